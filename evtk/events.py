@@ -1,0 +1,347 @@
+"""Columnar event streams and trigger lists.
+
+An :class:`Events` holds four equally long columns, ``t`` (int64
+microseconds), ``x`` and ``y`` (uint16 pixel coordinates, x to the right,
+y down) and ``p`` (uint8, 1 for ON, 0 for OFF), plus the sensor size
+``(width, height)`` they were recorded on.  :class:`Triggers` holds the
+external-signal time stamps that the camera records beside the events.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from .errors import EvtkError
+
+__all__ = ["Events", "Triggers", "TriggerKind", "STRUCTURED_LAYOUTS"]
+
+#: Structured dtypes of the event arrays other libraries use.
+#: ``dv`` matches ``dv_processing.EventStore.numpy()`` (and the on-disk AEDAT4
+#: event struct), ``faery`` matches ``faery.EVENTS_DTYPE``, ``tonic`` the
+#: ``x, y, t, p`` layout of tonic's transforms.
+STRUCTURED_LAYOUTS = {
+    "dv": np.dtype(
+        {
+            "names": ["timestamp", "x", "y", "polarity"],
+            "formats": ["<i8", "<i2", "<i2", "i1"],
+            "offsets": [0, 8, 10, 12],
+            "itemsize": 16,
+        }
+    ),
+    "faery": np.dtype([("t", "<u8"), ("x", "<u2"), ("y", "<u2"), (("p", "on"), "?")]),
+    "tonic": np.dtype([("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")]),
+}
+
+_T_NAMES = ("t", "timestamp", "ts")
+_P_NAMES = ("p", "polarity", "on")
+
+T_MIN_US = np.iinfo(np.int64).min
+T_MAX_US = np.iinfo(np.int64).max
+
+
+class TriggerKind(enum.IntEnum):
+    """Trigger type codes, numbered as in the AEDAT4 ``Trigger`` table."""
+
+    TIMESTAMP_RESET = 0
+    EXTERNAL_SIGNAL_RISING_EDGE = 1
+    EXTERNAL_SIGNAL_FALLING_EDGE = 2
+    EXTERNAL_SIGNAL_PULSE = 3
+    EXTERNAL_GENERATOR_RISING_EDGE = 4
+    EXTERNAL_GENERATOR_FALLING_EDGE = 5
+    APS_FRAME_START = 6
+    APS_FRAME_END = 7
+    APS_EXPOSURE_START = 8
+    APS_EXPOSURE_END = 9
+
+
+def _as_sensor_size(sensor_size) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in sensor_size)
+    except (TypeError, ValueError):
+        raise EvtkError(f"sensor_size must be (width, height), got {sensor_size!r}") from None
+    if not (0 < width <= 65536 and 0 < height <= 65536):
+        raise EvtkError(f"sensor_size must be positive and at most 65536, got {(width, height)}")
+    return width, height
+
+
+def _column(values, dtype, name: str, low=None, high=None) -> np.ndarray:
+    """Convert ``values`` to a 1-D array of ``dtype`` without silent wrap-around."""
+    arr = np.asarray(values)
+    if arr.ndim != 1:
+        raise EvtkError(f"column {name!r} must be one-dimensional, got shape {arr.shape}")
+    if arr.dtype == dtype:
+        return arr
+    if arr.dtype.kind == "b":
+        return arr.astype(dtype)
+    if arr.dtype.kind == "f":
+        if arr.size and not np.all(np.isfinite(arr)):
+            raise EvtkError(f"column {name!r} holds NaN or infinite values")
+        if arr.size and not np.array_equal(arr, np.round(arr)):
+            raise EvtkError(f"column {name!r} holds non-integer values")
+    elif arr.dtype.kind not in "iu":
+        if arr.size == 0:
+            return np.zeros(0, dtype)
+        raise EvtkError(f"column {name!r} must be numeric, got dtype {arr.dtype}")
+    info = np.iinfo(dtype)
+    lo = info.min if low is None else low
+    hi = info.max if high is None else high
+    if arr.size:
+        amin, amax = arr.min(), arr.max()
+        if amin < lo or amax > hi:
+            raise EvtkError(f"column {name!r} has values outside [{lo}, {hi}] (min {amin}, max {amax})")
+    return arr.astype(dtype)
+
+
+class Events:
+    """An event stream as four columns plus the sensor size.
+
+    Parameters
+    ----------
+    t, x, y, p : array_like
+        Time stamps in microseconds, column, row and polarity (1 = ON).
+        Converted to int64, uint16, uint16 and uint8; values that do not fit
+        raise :class:`~evtk.EvtkError` rather than wrap around.
+    sensor_size : (int, int)
+        ``(width, height)`` of the sensor in pixels.
+
+    Examples
+    --------
+    >>> import evtk
+    >>> ev = evtk.Events([10, 20, 30], [1, 2, 3], [0, 0, 1], [1, 0, 1], (320, 240))
+    >>> len(ev.between(15, 31))
+    2
+    """
+
+    __slots__ = ("t", "x", "y", "p", "sensor_size", "_sorted")
+
+    def __init__(self, t, x, y, p, sensor_size):
+        self.sensor_size = _as_sensor_size(sensor_size)
+        self.t = _column(t, np.int64, "t")
+        self.x = _column(x, np.uint16, "x")
+        self.y = _column(y, np.uint16, "y")
+        self.p = _column(p, np.uint8, "p", 0, 1)
+        n = len(self.t)
+        if not (len(self.x) == len(self.y) == len(self.p) == n):
+            raise EvtkError(
+                f"event columns differ in length: t={n}, x={len(self.x)}, y={len(self.y)}, p={len(self.p)}"
+            )
+        self._sorted = None
+
+    # -- construction -----------------------------------------------------
+    @classmethod
+    def empty(cls, sensor_size) -> "Events":
+        """An event stream with no events."""
+        return cls._trusted(
+            np.zeros(0, np.int64), np.zeros(0, np.uint16), np.zeros(0, np.uint16), np.zeros(0, np.uint8), sensor_size
+        )
+
+    @classmethod
+    def _trusted(cls, t, x, y, p, sensor_size, is_sorted=None) -> "Events":
+        """Wrap columns already of the right dtype and length (no copies, no checks)."""
+        ev = object.__new__(cls)
+        ev.t, ev.x, ev.y, ev.p = t, x, y, p
+        ev.sensor_size = _as_sensor_size(sensor_size)
+        ev._sorted = is_sorted
+        return ev
+
+    @classmethod
+    def concatenate(cls, parts: Sequence["Events"], sensor_size=None) -> "Events":
+        """Join event streams end to end.
+
+        The sensor size is ``sensor_size`` if given, else that of the parts,
+        which must then agree.
+        """
+        parts = list(parts)
+        if sensor_size is None:
+            sizes = {ev.sensor_size for ev in parts}
+            if len(sizes) != 1:
+                raise EvtkError(f"cannot concatenate events of different sensor sizes: {sorted(sizes)}")
+            sensor_size = sizes.pop()
+        if not parts:
+            return cls.empty(sensor_size)
+        return cls._trusted(
+            np.concatenate([ev.t for ev in parts]),
+            np.concatenate([ev.x for ev in parts]),
+            np.concatenate([ev.y for ev in parts]),
+            np.concatenate([ev.p for ev in parts]),
+            sensor_size,
+        )
+
+    @classmethod
+    def from_structured(cls, array: np.ndarray, sensor_size) -> "Events":
+        """Build from a structured array with fields named as dv-processing,
+        faery or tonic name them (``t``/``timestamp``/``ts``, ``x``, ``y``,
+        ``p``/``polarity``/``on``).
+        """
+        array = np.asarray(array)
+        names = array.dtype.names or ()
+
+        def pick(options):
+            for name in options:
+                if name in names:
+                    return array[name]
+            raise EvtkError(f"structured array has fields {list(names)}; expected one of {list(options)}")
+
+        return cls(pick(_T_NAMES), pick(("x",)), pick(("y",)), pick(_P_NAMES), sensor_size)
+
+    # -- conversion -------------------------------------------------------
+    def to_structured(self, layout: str = "dv") -> np.ndarray:
+        """Copy into the structured array of another library.
+
+        Parameters
+        ----------
+        layout : {'dv', 'faery', 'tonic'}
+            Which library's field names and dtypes to use, see
+            :data:`STRUCTURED_LAYOUTS`.
+        """
+        try:
+            dtype = STRUCTURED_LAYOUTS[layout]
+        except KeyError:
+            raise EvtkError(f"unknown layout {layout!r}; choose one of {sorted(STRUCTURED_LAYOUTS)}") from None
+        if layout == "faery" and len(self) and self.t[0] < 0:
+            raise EvtkError("faery stores unsigned time stamps; this stream has negative ones")
+        if layout == "dv" and len(self) and max(int(self.x.max()), int(self.y.max())) > 32767:
+            raise EvtkError("dv-processing stores int16 coordinates; this stream has coordinates above 32767")
+        out = np.zeros(len(self), dtype=dtype)
+        tname, pname = [n for n in dtype.names if n not in ("x", "y")]
+        out[tname] = self.t
+        out["x"] = self.x
+        out["y"] = self.y
+        out[pname] = self.p
+        return out
+
+    # -- queries ----------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def __repr__(self) -> str:
+        span = f", t=[{self.t[0]}, {self.t[-1]}] us" if len(self) else ""
+        return f"Events(n={len(self)}, sensor_size={self.sensor_size}{span})"
+
+    def __getitem__(self, index) -> "Events":
+        if isinstance(index, (int, np.integer)):
+            index = slice(index, index + 1 if index != -1 else None)
+        sorted_hint = self._sorted if isinstance(index, slice) and (index.step in (None, 1)) else None
+        return Events._trusted(self.t[index], self.x[index], self.y[index], self.p[index], self.sensor_size, sorted_hint)
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Events):
+            return NotImplemented
+        return (
+            self.sensor_size == other.sensor_size
+            and np.array_equal(self.t, other.t)
+            and np.array_equal(self.x, other.x)
+            and np.array_equal(self.y, other.y)
+            and np.array_equal(self.p, other.p)
+        )
+
+    __hash__ = None
+
+    @property
+    def is_sorted(self) -> bool:
+        """True when time stamps never decrease."""
+        if self._sorted is None:
+            self._sorted = bool(len(self.t) < 2 or np.all(self.t[1:] >= self.t[:-1]))
+        return self._sorted
+
+    @property
+    def t_start_us(self):
+        """First time stamp, or None for an empty stream."""
+        return int(self.t.min()) if len(self) else None
+
+    @property
+    def t_end_us(self):
+        """Last time stamp, or None for an empty stream."""
+        return int(self.t.max()) if len(self) else None
+
+    def between(self, t_start_us=None, t_end_us=None) -> "Events":
+        """Events with ``t_start_us <= t < t_end_us`` (None leaves a side open).
+
+        Sorted streams are cut with a binary search and the result shares
+        memory with this stream; unsorted ones are filtered with a mask.
+        """
+        lo = T_MIN_US if t_start_us is None else int(t_start_us)
+        if t_end_us is None:
+            hi_open = True
+            hi = T_MAX_US
+        else:
+            hi_open = False
+            hi = int(t_end_us)
+        if self.is_sorted:
+            i0 = int(np.searchsorted(self.t, lo, side="left"))
+            i1 = len(self.t) if hi_open else int(np.searchsorted(self.t, hi, side="left"))
+            return self[i0 : max(i0, i1)]
+        mask = self.t >= lo
+        if not hi_open:
+            mask &= self.t < hi
+        ev = Events._trusted(self.t[mask], self.x[mask], self.y[mask], self.p[mask], self.sensor_size, False)
+        return ev
+
+    def out_of_bounds(self) -> int:
+        """Number of events whose coordinates fall outside the sensor."""
+        w, h = self.sensor_size
+        if not len(self):
+            return 0
+        return int(np.count_nonzero((self.x >= w) | (self.y >= h)))
+
+
+class Triggers:
+    """External trigger time stamps (int64 microseconds) and their kinds.
+
+    Parameters
+    ----------
+    t : array_like
+        Time stamps in microseconds.
+    kind : array_like
+        :class:`TriggerKind` codes (uint8).
+    """
+
+    __slots__ = ("t", "kind")
+
+    def __init__(self, t=(), kind=()):
+        self.t = _column(t, np.int64, "t")
+        self.kind = _column(kind, np.uint8, "kind", 0, 255)
+        if len(self.t) != len(self.kind):
+            raise EvtkError(f"trigger columns differ in length: t={len(self.t)}, kind={len(self.kind)}")
+
+    @classmethod
+    def concatenate(cls, parts: Iterable["Triggers"]) -> "Triggers":
+        parts = list(parts)
+        if not parts:
+            return cls()
+        return cls(np.concatenate([p.t for p in parts]), np.concatenate([p.kind for p in parts]))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def __repr__(self) -> str:
+        return f"Triggers(n={len(self)})"
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Triggers):
+            return NotImplemented
+        return np.array_equal(self.t, other.t) and np.array_equal(self.kind, other.kind)
+
+    __hash__ = None
+
+    def __getitem__(self, index) -> "Triggers":
+        if isinstance(index, (int, np.integer)):
+            index = slice(index, index + 1 if index != -1 else None)
+        return Triggers(self.t[index], self.kind[index])
+
+    def between(self, t_start_us=None, t_end_us=None) -> "Triggers":
+        """Triggers with ``t_start_us <= t < t_end_us`` (None leaves a side open)."""
+        mask = np.ones(len(self), bool)
+        if t_start_us is not None:
+            mask &= self.t >= int(t_start_us)
+        if t_end_us is not None:
+            mask &= self.t < int(t_end_us)
+        return Triggers(self.t[mask], self.kind[mask])
+
+    def of_kind(self, kind) -> "Triggers":
+        """Only the triggers of one :class:`TriggerKind`."""
+        mask = self.kind == int(kind)
+        return Triggers(self.t[mask], self.kind[mask])

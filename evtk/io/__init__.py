@@ -1,0 +1,96 @@
+"""Reading and writing event recordings, format chosen by content or extension.
+
+Reading looks at a file's first bytes, so a misnamed file still opens;
+writing goes by the extension of the target path.
+"""
+
+from __future__ import annotations
+
+import os
+
+from ..errors import EvtkError, FormatError
+from ..events import Events, Triggers
+from . import aedat4
+from .aedat4 import Recording
+
+__all__ = ["open", "read_events", "write_events", "detect_format", "Recording", "WRITE_EXTENSIONS"]
+
+#: Extension -> format name for writing.
+WRITE_EXTENSIONS = {".aedat4": "aedat4"}
+
+_SIGNATURES = (
+    (aedat4.MAGIC, "aedat4"),
+    (b"#!AER-DAT", "aedat-other"),
+    (b"\x89HDF\r\n\x1a\n", "hdf5"),
+    (b"PAR1", "parquet"),
+)
+
+
+def detect_format(path) -> str:
+    """Name the format of ``path`` from its first bytes."""
+    path = os.fspath(path)
+    try:
+        with builtins_open(path, "rb") as f:
+            head = f.read(16)
+    except FileNotFoundError:
+        raise EvtkError(f"no such file: {path}") from None
+    except IsADirectoryError:
+        raise EvtkError(f"{path} is a directory, not a recording") from None
+    except OSError as exc:
+        raise EvtkError(f"cannot read {path}: {exc.strerror}") from None
+    if not head:
+        raise FormatError(path, 0, "the file is empty")
+    for sig, name in _SIGNATURES:
+        if head.startswith(sig):
+            return name
+    raise FormatError(path, 0, "unrecognised file: not AEDAT4 (#!AER-DAT4.0), HDF5 or Parquet")
+
+
+def open(path, salvage: bool = False) -> Recording:  # noqa: A001 - mirrors builtins.open on purpose
+    """Open a recording for reading.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    salvage : bool
+        Recover every intact packet before damage instead of raising
+        :class:`~evtk.FormatError`; ``recording.damage`` says where it stopped.
+
+    Examples
+    --------
+    >>> import evtk, tempfile, os
+    >>> path = os.path.join(tempfile.mkdtemp(), "r.aedat4")
+    >>> evtk.write_events(path, evtk.Events([1, 2], [0, 1], [0, 0], [1, 0], (320, 240)))
+    >>> with evtk.open(path) as rec:
+    ...     print(rec.sensor_size, len(rec.events()))
+    (320, 240) 2
+    """
+    fmt = detect_format(path)
+    if fmt in ("aedat4", "aedat-other"):
+        return Recording(path, salvage=salvage)
+    raise FormatError(path, 0, f"{fmt} files are not supported yet")
+
+
+def read_events(path, t_start_us=None, t_end_us=None) -> Events:
+    """All events of ``path`` with ``t_start_us <= t < t_end_us``."""
+    with open(path) as rec:
+        return rec.events(t_start_us, t_end_us)
+
+
+def write_events(path, events: Events, triggers: Triggers | None = None, compression: str = "lz4", metadata=None, **kwargs):
+    """Write ``events`` (and triggers) to ``path``; the extension picks the format.
+
+    The file appears under its name only once complete.
+    """
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    fmt = WRITE_EXTENSIONS.get(ext)
+    if fmt is None:
+        raise EvtkError(f"cannot tell the format from the extension {ext!r}; use one of {sorted(WRITE_EXTENSIONS)}")
+    if not isinstance(events, Events):
+        raise EvtkError(f"events must be evtk.Events, got {type(events).__name__}")
+    aedat4.write_aedat4(path, events, triggers, compression=compression, metadata=metadata, **kwargs)
+
+
+import builtins as _builtins  # noqa: E402
+
+builtins_open = _builtins.open

@@ -1,0 +1,50 @@
+"""Atomic file replacement: write beside the target, then rename over it."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+PARTIAL_SUFFIX = ".evtk-partial"
+
+
+class AtomicFile:
+    """A binary file that appears under ``path`` only when :meth:`commit` runs.
+
+    Until then the data lives in ``<name>.<random>.evtk-partial`` in the same
+    directory, so a crash leaves the previous file untouched and the partial
+    one recognisable.  :meth:`discard` removes the partial file.
+    """
+
+    def __init__(self, path):
+        self.path = os.fspath(path)
+        directory = os.path.dirname(os.path.abspath(self.path))
+        fd, self.tmp_path = tempfile.mkstemp(
+            prefix=os.path.basename(self.path) + ".", suffix=PARTIAL_SUFFIX, dir=directory
+        )
+        self.file = os.fdopen(fd, "w+b")
+
+    def commit(self):
+        self.file.flush()
+        os.fsync(self.file.fileno())
+        self.file.close()
+        os.replace(self.tmp_path, self.path)
+        try:  # make the rename itself durable
+            dfd = os.open(os.path.dirname(os.path.abspath(self.path)), os.O_RDONLY)
+        except OSError:  # pragma: no cover - platform without directory fds
+            return
+        try:
+            os.fsync(dfd)
+        except OSError:  # pragma: no cover
+            pass
+        finally:
+            os.close(dfd)
+
+    def discard(self):
+        try:
+            self.file.close()
+        finally:
+            try:
+                os.unlink(self.tmp_path)
+            except FileNotFoundError:
+                pass

@@ -1,0 +1,153 @@
+"""Packet-body compression of AEDAT4 files (LZ4 frames and Zstandard frames).
+
+Both libraries release the GIL while they work, so the reader and writer run
+them on a small thread pool.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import lz4.frame
+import zstandard
+
+NONE, LZ4, LZ4_HIGH, ZSTD, ZSTD_HIGH = range(5)
+
+#: Names used in the AEDAT4 header XML, indexed by the IOHeader code.
+CODE_NAMES = ("NONE", "LZ4", "LZ4_HIGH", "ZSTD", "ZSTD_HIGH")
+#: Names accepted by evtk's API and CLI.
+BY_NAME = {"none": NONE, "lz4": LZ4, "lz4_high": LZ4_HIGH, "zstd": ZSTD, "zstd_high": ZSTD_HIGH}
+
+_LZ4_MAGIC = b"\x04\x22\x4d\x18"
+_ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+# Largest FlatBuffer a packet can hold; nothing decompresses past it.
+MAX_PACKET_BYTES = 2**31 - 1
+
+_local = threading.local()
+_pool = None
+_pool_lock = threading.Lock()
+
+
+def workers() -> int:
+    """Threads used for (de)compression: the usable cores, at most 4."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        n = os.cpu_count() or 1
+    return max(1, min(4, n))
+
+
+def pool() -> ThreadPoolExecutor:
+    global _pool
+    with _pool_lock:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(max_workers=workers(), thread_name_prefix="evtk-io")
+        return _pool
+
+
+def sniff(body) -> str | None:
+    """Name the compressed format a body starts with, if any."""
+    head = bytes(body[:4])
+    if head == _LZ4_MAGIC:
+        return "LZ4"
+    if head == _ZSTD_MAGIC:
+        return "ZSTD"
+    return None
+
+
+class CodecError(Exception):
+    """A body could not be decompressed (converted to FormatError by callers)."""
+
+
+def output_limit(compressed_bytes: int, expected_elements: int = 0, element_bytes: int = 16) -> int:
+    """Most bytes a packet body may decompress to before it is called damaged.
+
+    Generous enough for any real recording (LZ4 cannot exceed 255:1) yet
+    bounded by the input, so a damaged length never asks for gigabytes.
+    """
+    hint = max(0, int(expected_elements)) * element_bytes + 65536
+    return min(MAX_PACKET_BYTES, max(1 << 20, 1024 * int(compressed_bytes), hint))
+
+
+def decompress(code: int, body, limit: int):
+    """Decompress one packet body, refusing to produce more than ``limit`` bytes."""
+    limit = min(int(limit), MAX_PACKET_BYTES)
+    if code == NONE:
+        return body
+    if code in (LZ4, LZ4_HIGH):
+        if bytes(body[:4]) != _LZ4_MAGIC:
+            raise CodecError(_mismatch("LZ4", body))
+        try:
+            info = lz4.frame.get_frame_info(body)
+            if info["content_size"] > limit:
+                raise CodecError(f"LZ4 frame announces {info['content_size']} bytes, more than the {limit} allowed")
+            out = lz4.frame.decompress(body)
+        except CodecError:
+            raise
+        except Exception as exc:  # lz4 raises RuntimeError for damaged frames
+            raise CodecError(f"damaged LZ4 frame ({exc})") from None
+        if len(out) > limit:
+            raise CodecError(f"LZ4 frame decompresses to more than {limit} bytes")
+        return out
+    if code in (ZSTD, ZSTD_HIGH):
+        if bytes(body[:4]) != _ZSTD_MAGIC:
+            raise CodecError(_mismatch("ZSTD", body))
+        dctx = getattr(_local, "dctx", None)
+        if dctx is None:
+            dctx = _local.dctx = zstandard.ZstdDecompressor()
+        try:
+            size = zstandard.frame_content_size(body)
+            if size > limit:
+                raise CodecError(f"ZSTD frame announces {size} bytes, more than the {limit} allowed")
+            if size >= 0:
+                return dctx.decompress(body)
+            # no size in the frame header (dv-processing streams its frames):
+            # read in bounded steps so a damaged frame cannot demand a huge buffer
+            reader = dctx.stream_reader(body, read_across_frames=False)
+            parts, total = [], 0
+            while True:
+                part = reader.read(1 << 22)
+                if not part:
+                    break
+                total += len(part)
+                if total > limit:
+                    raise CodecError(f"ZSTD frame decompresses to more than {limit} bytes")
+                parts.append(part)
+            return b"".join(parts)
+        except CodecError:
+            raise
+        except zstandard.ZstdError as exc:
+            raise CodecError(f"damaged ZSTD frame ({exc})") from None
+    raise CodecError(f"unknown compression code {code}")
+
+
+def _mismatch(declared: str, body) -> str:
+    found = sniff(body)
+    if found:
+        return f"the header declares {declared} compression but the body is a {found} frame"
+    return f"the header declares {declared} compression but the body is not a {declared} frame"
+
+
+def compress(code: int, data) -> bytes:
+    """Compress one packet body as dv-processing does for the same code."""
+    if code == NONE:
+        return bytes(data)
+    if code in (LZ4, LZ4_HIGH):
+        return lz4.frame.compress(
+            data,
+            compression_level=0 if code == LZ4 else 9,
+            block_size=lz4.frame.BLOCKSIZE_MAX64KB,
+            block_linked=True,
+            content_checksum=False,
+            store_size=True,
+        )
+    if code in (ZSTD, ZSTD_HIGH):
+        key = "cctx%d" % code
+        cctx = getattr(_local, key, None)
+        if cctx is None:
+            cctx = zstandard.ZstdCompressor(level=3 if code == ZSTD else 19, write_content_size=True)
+            setattr(_local, key, cctx)
+        return cctx.compress(data)
+    raise ValueError(f"unknown compression code {code}")

@@ -1,0 +1,396 @@
+"""Bounds-checked FlatBuffers access for the few AEDAT4 tables evtk knows.
+
+Every function takes the packet body as a uint8 array and never reads outside
+it: a lying offset yields a negative status instead of a crash.  The layouts
+are specified in ``formats/aedat4.md`` and ``formats/aedat4.fbs``.
+
+Status codes (``ST_*``) are shared with :mod:`evtk.io.aedat4`, which turns
+them into :class:`~evtk.FormatError` messages.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+ST_OK = 0
+ST_BAD_OFFSET = -1  # an offset points outside the buffer
+ST_BAD_IDENT = -2  # the file identifier is not the expected one
+ST_CAPACITY = -3  # more elements than the caller said there would be
+ST_COORD = -4  # an event lies outside the sensor
+ST_MISSING = -5  # a required field is absent
+
+STATUS_TEXT = {
+    ST_BAD_OFFSET: "a FlatBuffers offset points outside the packet",
+    ST_BAD_IDENT: "the packet's FlatBuffers identifier does not match its stream type",
+    ST_CAPACITY: "the packet holds more elements than the data table says",
+    ST_COORD: "an event lies outside the sensor",
+    ST_MISSING: "a required FlatBuffers field is missing",
+}
+
+
+@njit(cache=True, nogil=True)
+def _u16(b, pos):
+    return np.int64(b[pos]) | (np.int64(b[pos + 1]) << 8)
+
+
+@njit(cache=True, nogil=True)
+def _u32(b, pos):
+    return np.int64(b[pos]) | (np.int64(b[pos + 1]) << 8) | (np.int64(b[pos + 2]) << 16) | (np.int64(b[pos + 3]) << 24)
+
+
+@njit(cache=True, nogil=True)
+def _i32(b, pos):
+    v = _u32(b, pos)
+    if v >= 2147483648:
+        v -= 4294967296
+    return v
+
+
+@njit(cache=True, nogil=True)
+def _i64(b, pos):
+    v = np.uint64(0)
+    for k in range(8):
+        v |= np.uint64(b[pos + k]) << np.uint64(8 * k)
+    return np.int64(v)
+
+
+@njit(cache=True, nogil=True)
+def fb_root(b, ident):
+    """Position of the root table, or a negative status.
+
+    Accepts both the size-prefixed form AEDAT4 writers use and a plain buffer;
+    the four identifier bytes decide which one it is.
+    """
+    n = len(b)
+    for base in (4, 0):
+        if base + 8 > n:
+            continue
+        ok = True
+        for k in range(4):
+            if b[base + 4 + k] != ident[k]:
+                ok = False
+                break
+        if ok:
+            root = base + _u32(b, base)
+            if root + 4 > n:
+                return ST_BAD_OFFSET
+            return root
+    return ST_BAD_IDENT
+
+
+@njit(cache=True, nogil=True)
+def fb_field(b, table, slot):
+    """Absolute position of field ``slot`` of ``table``; 0 if absent, <0 if corrupt."""
+    n = len(b)
+    if table < 0 or table + 4 > n:
+        return ST_BAD_OFFSET
+    vt = table - _i32(b, table)
+    if vt < 0 or vt + 4 > n:
+        return ST_BAD_OFFSET
+    vt_size = _u16(b, vt)
+    tb_size = _u16(b, vt + 2)
+    if vt_size < 4 or vt + vt_size > n or table + tb_size > n:
+        return ST_BAD_OFFSET
+    entry = 4 + 2 * slot
+    if entry + 2 > vt_size:
+        return 0
+    off = _u16(b, vt + entry)
+    if off == 0:
+        return 0
+    if off + 1 > tb_size:
+        return ST_BAD_OFFSET
+    return table + off
+
+
+@njit(cache=True, nogil=True)
+def fb_deref(b, pos):
+    """Follow the unsigned offset stored at ``pos``."""
+    if pos < 0 or pos + 4 > len(b):
+        return ST_BAD_OFFSET
+    target = pos + _u32(b, pos)
+    if target + 4 > len(b):
+        return ST_BAD_OFFSET
+    return target
+
+
+@njit(cache=True, nogil=True)
+def fb_vector(b, table, slot, elem_size):
+    """(start, length) of the vector in field ``slot``; length 0 if the field is absent."""
+    f = fb_field(b, table, slot)
+    if f < 0:
+        return f, 0
+    if f == 0:
+        return 0, 0
+    v = fb_deref(b, f)
+    if v < 0:
+        return v, 0
+    count = _u32(b, v)
+    if v + 4 + count * elem_size > len(b):
+        return ST_BAD_OFFSET, 0
+    return v + 4, count
+
+
+@njit(cache=True, nogil=True)
+def decode_events(b, ident, t, x, y, p, offset, capacity, width, height):
+    """Decode an EVTS packet body into the columns, starting at ``offset``.
+
+    Returns ``(count, status)``; with ``ST_COORD`` the count is the index of
+    the first event outside ``width`` x ``height``.
+    """
+    root = fb_root(b, ident)
+    if root < 0:
+        return 0, root
+    start, count = fb_vector(b, root, 0, 16)
+    if start < 0:
+        return 0, start
+    if count > capacity:
+        return count, ST_CAPACITY
+    for i in range(count):
+        pos = start + 16 * i
+        xi = _u16(b, pos + 8)
+        yi = _u16(b, pos + 10)
+        # int16 on disk: negative values appear as >= 32768 and fail the test
+        if xi >= width or yi >= height:
+            return i, ST_COORD
+        j = offset + i
+        t[j] = _i64(b, pos)
+        x[j] = xi
+        y[j] = yi
+        p[j] = 1 if b[pos + 12] != 0 else 0
+    return count, ST_OK
+
+
+@njit(cache=True, nogil=True)
+def decode_triggers(b, ident, t, kind, offset, capacity):
+    """Decode a TRIG packet (a vector of ``Trigger`` tables)."""
+    root = fb_root(b, ident)
+    if root < 0:
+        return 0, root
+    start, count = fb_vector(b, root, 0, 4)
+    if start < 0:
+        return 0, start
+    if count > capacity:
+        return count, ST_CAPACITY
+    for i in range(count):
+        tb = fb_deref(b, start + 4 * i)
+        if tb < 0:
+            return i, tb
+        ft = fb_field(b, tb, 0)
+        fk = fb_field(b, tb, 1)
+        if ft < 0 or fk < 0:
+            return i, ST_BAD_OFFSET
+        if ft + 8 > len(b):
+            return i, ST_BAD_OFFSET
+        t[offset + i] = _i64(b, ft) if ft > 0 else 0
+        kind[offset + i] = b[fk] if fk > 0 else 0
+    return count, ST_OK
+
+
+@njit(cache=True, nogil=True)
+def vector_length(b, ident):
+    """Length of the vector in field 0 of the root table (IMU and other packets)."""
+    root = fb_root(b, ident)
+    if root < 0:
+        return root
+    start, count = fb_vector(b, root, 0, 1)
+    if start < 0:
+        return start
+    return count
+
+
+@njit(cache=True, nogil=True)
+def decode_data_table(b, ident, offset, stream, size, count, t0, t1):
+    """Decode a FileDataTable (FTAB) into per-packet columns.
+
+    Each column must have room for every entry; returns ``(entries, status)``.
+    """
+    root = fb_root(b, ident)
+    if root < 0:
+        return 0, root
+    start, n = fb_vector(b, root, 0, 4)
+    if start < 0:
+        return 0, start
+    if n > len(offset):
+        return n, ST_CAPACITY
+    for i in range(n):
+        tb = fb_deref(b, start + 4 * i)
+        if tb < 0:
+            return i, tb
+        f_off = fb_field(b, tb, 0)
+        f_hdr = fb_field(b, tb, 1)
+        f_cnt = fb_field(b, tb, 2)
+        f_t0 = fb_field(b, tb, 3)
+        f_t1 = fb_field(b, tb, 4)
+        if f_off < 0 or f_hdr < 0 or f_cnt < 0 or f_t0 < 0 or f_t1 < 0:
+            return i, ST_BAD_OFFSET
+        if f_off == 0 or f_hdr == 0:
+            return i, ST_MISSING
+        if f_off + 8 > len(b) or f_hdr + 8 > len(b) or f_cnt + 8 > len(b) or f_t0 + 8 > len(b) or f_t1 + 8 > len(b):
+            return i, ST_BAD_OFFSET
+        offset[i] = _i64(b, f_off)
+        stream[i] = _i32(b, f_hdr)
+        size[i] = _i32(b, f_hdr + 4)
+        count[i] = _i64(b, f_cnt) if f_cnt > 0 else 0
+        t0[i] = _i64(b, f_t0) if f_t0 > 0 else 0
+        t1[i] = _i64(b, f_t1) if f_t1 > 0 else 0
+    return n, ST_OK
+
+
+# ---------------------------------------------------------------------------
+# Writing.  Layouts are fixed and aligned so that every 8-byte scalar sits at
+# an 8-byte boundary counted from the start of the size prefix, as the
+# FlatBuffers builders of dv-processing and aedat produce them.
+# ---------------------------------------------------------------------------
+
+EVENT_PACKET_HEADER = 32  # bytes before the first event struct
+EVENT_STRUCT = 16
+
+
+@njit(cache=True, nogil=True)
+def _put_u16(b, pos, v):
+    b[pos] = v & 0xFF
+    b[pos + 1] = (v >> 8) & 0xFF
+
+
+@njit(cache=True, nogil=True)
+def _put_u32(b, pos, v):
+    for k in range(4):
+        b[pos + k] = (v >> (8 * k)) & 0xFF
+
+
+@njit(cache=True, nogil=True)
+def _put_i64(b, pos, v):
+    u = np.uint64(v)
+    for k in range(8):
+        b[pos + k] = np.uint8((u >> np.uint64(8 * k)) & np.uint64(0xFF))
+
+
+@njit(cache=True, nogil=True)
+def encode_event_packets(t, x, y, p, bounds, out):
+    """Serialise events ``bounds[i]:bounds[i+1]`` as size-prefixed EVTS packets.
+
+    Packet ``i`` is written at ``out[bounds[i]*16 + 32*i :]``; its length is
+    ``32 + 16 * n_i``.
+    """
+    for i in range(len(bounds) - 1):
+        lo = bounds[i]
+        hi = bounds[i + 1]
+        n = hi - lo
+        base = lo * 16 + 32 * i
+        _put_u32(out, base + 0, 28 + 16 * n)  # size prefix
+        _put_u32(out, base + 4, 16)  # root table at 4 + 16 = 20
+        out[base + 8] = 69  # 'E'
+        out[base + 9] = 86  # 'V'
+        out[base + 10] = 84  # 'T'
+        out[base + 11] = 83  # 'S'
+        _put_u16(out, base + 12, 0)  # padding
+        _put_u16(out, base + 14, 6)  # vtable: 6 bytes
+        _put_u16(out, base + 16, 8)  # table: 8 bytes
+        _put_u16(out, base + 18, 4)  # field 0 at table + 4
+        _put_u32(out, base + 20, 6)  # table -> vtable at 20 - 6 = 14
+        _put_u32(out, base + 24, 4)  # vector at 24 + 4 = 28
+        _put_u32(out, base + 28, n)
+        for k in range(n):
+            pos = base + 32 + 16 * k
+            j = lo + k
+            _put_i64(out, pos, t[j])
+            _put_u16(out, pos + 8, np.int64(x[j]))
+            _put_u16(out, pos + 10, np.int64(y[j]))
+            out[pos + 12] = p[j]
+            out[pos + 13] = 0
+            out[pos + 14] = 0
+            out[pos + 15] = 0
+
+
+@njit(cache=True, nogil=True)
+def encode_trigger_packet(t, kind, out):
+    """Serialise triggers as one size-prefixed TRIG packet; returns its length."""
+    n = len(t)
+    out[:] = 0
+    # root vtable at 12 (6 bytes), root table at 20, vector at 28, offsets at 32
+    _put_u32(out, 4, 16)
+    out[8] = 84  # 'T'
+    out[9] = 82  # 'R'
+    out[10] = 73  # 'I'
+    out[11] = 71  # 'G'
+    _put_u16(out, 14, 6)
+    _put_u16(out, 16, 8)
+    _put_u16(out, 18, 4)
+    _put_u32(out, 20, 6)
+    _put_u32(out, 24, 4)
+    _put_u32(out, 28, n)
+    vt = 32 + 4 * n  # shared vtable of the Trigger tables
+    _put_u16(out, vt, 8)
+    _put_u16(out, vt + 2, 13)
+    _put_u16(out, vt + 4, 4)
+    _put_u16(out, vt + 6, 12)
+    first = vt + 8
+    if first % 8 != 4:
+        first += 4
+    for i in range(n):
+        tb = first + 16 * i
+        _put_u32(out, 32 + 4 * i, tb - (32 + 4 * i))
+        _put_u32(out, tb, tb - vt)
+        _put_i64(out, tb + 4, t[i])
+        out[tb + 12] = kind[i]
+    total = first + 16 * n
+    _put_u32(out, 0, total - 4)
+    return total
+
+
+def trigger_packet_size(n: int) -> int:
+    first = 32 + 4 * n + 8
+    if first % 8 != 4:
+        first += 4
+    return first + 16 * n
+
+
+@njit(cache=True, nogil=True)
+def encode_data_table(offset, stream, size, count, t0, t1, out):
+    """Serialise the FileDataTable (FTAB); returns its length."""
+    n = len(offset)
+    out[:] = 0
+    _put_u32(out, 4, 16)
+    out[8] = 70  # 'F'
+    out[9] = 84  # 'T'
+    out[10] = 65  # 'A'
+    out[11] = 66  # 'B'
+    _put_u16(out, 14, 6)
+    _put_u16(out, 16, 8)
+    _put_u16(out, 18, 4)
+    _put_u32(out, 20, 6)
+    _put_u32(out, 24, 4)
+    _put_u32(out, 28, n)
+    vt = 32 + 4 * n
+    # vtable: ByteOffset, PacketInfo (struct), NumElements, TimestampStart, TimestampEnd
+    _put_u16(out, vt, 14)
+    _put_u16(out, vt + 2, 44)
+    _put_u16(out, vt + 4, 12)
+    _put_u16(out, vt + 6, 4)
+    _put_u16(out, vt + 8, 20)
+    _put_u16(out, vt + 10, 28)
+    _put_u16(out, vt + 12, 36)
+    first = vt + 14
+    while first % 8 != 4:
+        first += 1
+    for i in range(n):
+        tb = first + 48 * i
+        _put_u32(out, 32 + 4 * i, tb - (32 + 4 * i))
+        _put_u32(out, tb, tb - vt)
+        _put_u32(out, tb + 4, np.int64(stream[i]) & 0xFFFFFFFF)
+        _put_u32(out, tb + 8, np.int64(size[i]) & 0xFFFFFFFF)
+        _put_i64(out, tb + 12, offset[i])
+        _put_i64(out, tb + 20, count[i])
+        _put_i64(out, tb + 28, t0[i])
+        _put_i64(out, tb + 36, t1[i])
+    total = first + 48 * n
+    _put_u32(out, 0, total - 4)
+    return total
+
+
+def data_table_size(n: int) -> int:
+    first = 32 + 4 * n + 14
+    while first % 8 != 4:
+        first += 1
+    return first + 48 * n

@@ -1,0 +1,942 @@
+"""AEDAT4 reading and writing, byte-compatible with iniVation's dv-processing.
+
+The layout evtk relies on is written down in ``formats/aedat4.md``.  In
+short: a magic line, a size-prefixed ``IOHeader`` FlatBuffer holding the
+compression, the position of the data table and an XML description of the
+streams, then packets (stream id, body size, compressed size-prefixed
+FlatBuffer), then an optional ``FileDataTable`` indexing every packet.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from typing import Iterator
+from xml.sax.saxutils import escape
+
+import numpy as np
+
+from .._version import __version__
+from ..errors import EvtkError, FormatError
+from ..events import Events, Triggers
+from . import _compression as cz
+from . import _fb
+from ._atomic import AtomicFile
+
+__all__ = ["Recording", "StreamInfo", "Damage", "Aedat4Writer", "write_aedat4", "MAGIC"]
+
+MAGIC = b"#!AER-DAT4.0\r\n"
+_HEADER_START = len(MAGIC)
+_IDENT = {name: np.frombuffer(name.encode(), np.uint8) for name in ("EVTS", "TRIG", "IMUS", "FRME", "FTAB", "IOHE")}
+# types whose element count is the length of the root table's first vector
+_VECTOR_TYPES = {"EVTS", "TRIG", "IMUS"}
+_TYPE_NAMES = {"EVTS": "events", "TRIG": "triggers", "IMUS": "imu", "FRME": "frame"}
+
+DEFAULT_PACKET_EVENTS = 8192
+DEFAULT_PACKET_US = 10_000
+
+
+@dataclass
+class StreamInfo:
+    """One stream of a recording, as its header and packets describe it."""
+
+    id: int
+    name: str
+    type: str  # FlatBuffers identifier: EVTS, TRIG, IMUS, FRME, ...
+    packets: int = 0
+    count: int | None = None  # elements (events, triggers, IMU samples, frames)
+    t_start_us: int | None = None
+    t_end_us: int | None = None
+    sensor_size: tuple[int, int] | None = None
+    attributes: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return {
+            "id": self.id,
+            "name": self.name,
+            "type": self.type,
+            "kind": _TYPE_NAMES.get(self.type, "other"),
+            "packets": self.packets,
+            "count": self.count,
+            "t_start_us": self.t_start_us,
+            "t_end_us": self.t_end_us,
+            "sensor_size": list(self.sensor_size) if self.sensor_size else None,
+        }
+
+
+@dataclass
+class Damage:
+    """Where salvage stopped: the byte offset and what was wrong there."""
+
+    offset: int
+    reason: str
+
+
+class _Stop(Exception):
+    def __init__(self, offset, reason):
+        self.offset = offset
+        self.reason = reason
+
+
+class _PacketIndex:
+    """Per-packet columns: body offset and size, stream, element count, time range."""
+
+    def __init__(self, offset, size, stream, count, t0, t1, from_table):
+        self.offset = np.asarray(offset, np.int64)
+        self.size = np.asarray(size, np.int64)
+        self.stream = np.asarray(stream, np.int64)
+        self.count = np.asarray(count, np.int64)  # -1: unknown until decoded
+        self.t0 = np.asarray(t0, np.int64)
+        self.t1 = np.asarray(t1, np.int64)
+        self.from_table = from_table
+
+    def __len__(self):
+        return len(self.offset)
+
+    def take(self, mask):
+        return _PacketIndex(
+            self.offset[mask], self.size[mask], self.stream[mask], self.count[mask], self.t0[mask], self.t1[mask],
+            self.from_table,
+        )
+
+
+def _parse_xml(text: str, path) -> dict:
+    """Streams described by the header XML: ``{id: (attrs, info_attrs)}``."""
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise FormatError(path, _HEADER_START, f"the header's XML is malformed ({exc})") from None
+
+    def attrs(node):
+        out = {}
+        for a in node.findall("attr"):
+            key, typ, val = a.get("key"), a.get("type"), a.text or ""
+            if key is None:
+                continue
+            try:
+                if typ in ("int", "long", "short", "byte"):
+                    out[key] = int(val)
+                elif typ in ("float", "double"):
+                    out[key] = float(val)
+                elif typ == "bool":
+                    out[key] = val.strip().lower() == "true"
+                else:
+                    out[key] = val
+            except ValueError:
+                raise FormatError(path, _HEADER_START, f"header attribute {key!r} is not a valid {typ}: {val!r}") from None
+        return out
+
+    streams = {}
+    outinfo = None
+    for node in root.iter("node"):
+        if node.get("name") == "outInfo":
+            outinfo = node
+            break
+    if outinfo is None:
+        raise FormatError(path, _HEADER_START, "the header's XML has no 'outInfo' node describing the streams")
+    for node in outinfo.findall("node"):
+        try:
+            sid = int(node.get("name"))
+        except (TypeError, ValueError):
+            continue
+        info = node.find("node[@name='info']")
+        streams[sid] = (attrs(node), attrs(info) if info is not None else {})
+    return streams
+
+
+class Recording:
+    """An AEDAT4 file opened for reading.
+
+    Use :func:`evtk.open` rather than this class directly.  The file is
+    indexed on open (through its data table when it has a usable one, else
+    by walking the packet headers); packet bodies are read only when asked.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    salvage : bool
+        Return what is intact before the first damage instead of raising
+        :class:`~evtk.FormatError`; :attr:`damage` then says where it stopped.
+    """
+
+    format = "aedat4"
+
+    def __init__(self, path, salvage: bool = False):
+        self.path = os.fspath(path)
+        self.salvage = bool(salvage)
+        self.damage: Damage | None = None
+        self.warnings: list[str] = []
+        try:
+            self._fd = os.open(self.path, os.O_RDONLY)
+        except OSError as exc:
+            raise EvtkError(f"cannot open {self.path}: {exc.strerror}") from None
+        try:
+            self._size = os.fstat(self._fd).st_size
+            self._read_header()
+            self._index = self._build_index()
+        except BaseException:
+            os.close(self._fd)
+            self._fd = -1
+            raise
+
+    # -- plumbing -----------------------------------------------------------
+    def close(self):
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    def __repr__(self):
+        return f"Recording({self.path!r}, format='aedat4', streams={[s.name for s in self.streams]})"
+
+    def _pread(self, n, offset):
+        if self._fd < 0:
+            raise EvtkError(f"{self.path}: the recording is closed")
+        data = os.pread(self._fd, n, offset)
+        return data
+
+    def _fail(self, offset, reason):
+        """Raise in strict mode; in salvage mode record the damage and stop."""
+        if not self.salvage:
+            raise FormatError(self.path, offset, reason)
+        if self.damage is None or offset < self.damage.offset:
+            self.damage = Damage(int(offset), reason)
+        raise _Stop(offset, reason)
+
+    # -- header ---------------------------------------------------------------
+    def _read_header(self):
+        head = self._pread(_HEADER_START + 4, 0)
+        if head[: len(MAGIC)] != MAGIC:
+            if head.startswith(b"#!AER-DAT"):
+                version = head[9:12].decode("ascii", "replace")
+                raise FormatError(self.path, 0, f"AEDAT version {version} is not supported; evtk reads AEDAT 4.0")
+            raise FormatError(self.path, 0, "not an AEDAT4 file (the magic line '#!AER-DAT4.0' is missing)")
+        if len(head) < _HEADER_START + 4:
+            raise FormatError(self.path, _HEADER_START, "file ends inside the header (no header length)")
+        (hlen,) = struct.unpack_from("<I", head, _HEADER_START)
+        self._data_start = _HEADER_START + 4 + hlen
+        if self._data_start > self._size:
+            raise FormatError(
+                self.path, _HEADER_START,
+                f"the header claims {hlen} bytes but the file has only {self._size - _HEADER_START - 4} after it",
+            )
+        raw = np.frombuffer(self._pread(hlen, _HEADER_START + 4), np.uint8)
+        # IOHeader is stored like a plain (not size-prefixed) buffer after its length
+        buf = np.concatenate([np.frombuffer(struct.pack("<I", hlen), np.uint8), raw])
+        root = _fb.fb_root(buf, _IDENT["IOHE"])
+        if root < 0:
+            raise FormatError(self.path, _HEADER_START + 4, "the IOHeader FlatBuffer is damaged (" + _status(root) + ")")
+        f_comp = _fb.fb_field(buf, root, 0)
+        f_dtp = _fb.fb_field(buf, root, 1)
+        f_xml = _fb.fb_field(buf, root, 2)
+        if f_comp < 0 or f_dtp < 0 or f_xml < 0:
+            raise FormatError(self.path, _HEADER_START + 4, "the IOHeader FlatBuffer has offsets outside the header")
+        code = _fb._i32(buf, f_comp) if f_comp else 0
+        if not 0 <= code < len(cz.CODE_NAMES):
+            raise FormatError(self.path, _HEADER_START + f_comp, f"unknown compression code {code} in the header")
+        self._code = int(code)
+        self._data_table_pos = int(_fb._i64(buf, f_dtp)) if f_dtp else -1
+        if f_xml == 0:
+            raise FormatError(self.path, _HEADER_START + 4, "the header has no stream description (infoNode)")
+        s = _fb.fb_deref(buf, f_xml)
+        if s < 0:
+            raise FormatError(self.path, _HEADER_START + f_xml, "the header's infoNode string lies outside the header")
+        slen = _fb._u32(buf, s)
+        if s + 4 + slen > len(buf):
+            raise FormatError(self.path, _HEADER_START + s, "the header's infoNode string runs past the header")
+        self.header_xml = buf[s + 4 : s + 4 + slen].tobytes().decode("utf-8", "replace").rstrip("\x00")
+        described = _parse_xml(self.header_xml, self.path)
+        self._streams: dict[int, StreamInfo] = {}
+        for sid, (attrs, info) in sorted(described.items()):
+            typ = str(attrs.get("typeIdentifier", "")).strip()
+            name = str(attrs.get("originalOutputName", f"stream{sid}"))
+            size = None
+            if "sizeX" in info and "sizeY" in info:
+                size = (int(info["sizeX"]), int(info["sizeY"]))
+                if not (0 < size[0] <= 65536 and 0 < size[1] <= 65536):
+                    raise FormatError(self.path, _HEADER_START, f"stream {sid} has an impossible sensor size {size}")
+            elif typ == "EVTS":
+                raise FormatError(self.path, _HEADER_START, f"event stream {sid} ({name}) has no sizeX/sizeY in its header")
+            merged = dict(attrs)
+            merged.update(info)
+            self._streams[sid] = StreamInfo(sid, name, typ, sensor_size=size, attributes=merged)
+        if not self._streams:
+            raise FormatError(self.path, _HEADER_START, "the header describes no streams")
+
+    # -- index ------------------------------------------------------------------
+    def _build_index(self) -> _PacketIndex:
+        dtp = self._data_table_pos
+        if dtp >= 0:
+            if dtp < self._data_start or dtp > self._size:
+                if not self.salvage:
+                    raise FormatError(
+                        self.path, _HEADER_START,
+                        f"the data table is said to start at byte {dtp}, outside the file of {self._size} bytes "
+                        "(truncated file?)",
+                    )
+                self.damage = Damage(self._size, "file truncated: the data table lies past the end")
+            else:
+                table = self._read_data_table(dtp)
+                if table is not None:
+                    return table
+        end = dtp if self._data_start <= dtp <= self._size else self._size
+        return self._walk(end)
+
+    def _read_data_table(self, dtp):
+        body = self._pread(self._size - dtp, dtp)
+        if not body:
+            self.warnings.append("the data table is empty; packets were indexed by walking the file")
+            return None
+        try:
+            raw = cz.decompress(self._code, body, cz.output_limit(len(body), 0))
+        except cz.CodecError as exc:
+            self.warnings.append(f"the data table is unreadable ({exc}); packets were indexed by walking the file")
+            return None
+        b = np.frombuffer(raw, np.uint8)
+        cap = len(b) // 16 + 1
+        cols = [np.empty(cap, np.int64) for _ in range(6)]
+        n, st = _fb.decode_data_table(b, _IDENT["FTAB"], *cols)
+        if st != _fb.ST_OK:
+            self.warnings.append(
+                f"the data table is damaged ({_status(st)}); packets were indexed by walking the file"
+            )
+            return None
+        offset, stream, size, count, t0, t1 = (c[:n] for c in cols)
+        ok = (
+            (offset - 8 >= self._data_start)
+            & (size >= 0)
+            & (offset + size <= dtp)
+            & np.isin(stream, list(self._streams))
+            & (count >= 0)
+        )
+        if n and not ok.all():
+            self.warnings.append("the data table points outside the packets; packets were indexed by walking the file")
+            return None
+        order = np.argsort(offset, kind="stable")
+        if n and np.any(offset[order][1:] < (offset + size)[order][:-1] + 8):
+            self.warnings.append("the data table lists overlapping packets; packets were indexed by walking the file")
+            return None
+        idx = _PacketIndex(offset[order], size[order], stream[order], count[order], t0[order], t1[order], True)
+        return idx
+
+    def _walk(self, end) -> _PacketIndex:
+        offs, sizes, sids = [], [], []
+        pos = self._data_start
+        while pos < end:
+            if pos + 8 > end:
+                self._note(pos, f"file ends inside a packet header ({end - pos} of 8 bytes)")
+                break
+            sid, size = struct.unpack("<ii", self._pread(8, pos))
+            if sid not in self._streams:
+                self._note(pos, f"packet names stream {sid}, which the header does not describe")
+                break
+            if size < 0 or pos + 8 + size > end:
+                self._note(pos, f"packet of stream {sid} claims {size} bytes but only {end - pos - 8} remain")
+                break
+            offs.append(pos + 8)
+            sizes.append(size)
+            sids.append(sid)
+            pos += 8 + size
+        n = len(offs)
+        unknown = np.full(n, -1, np.int64)
+        return _PacketIndex(offs, sizes, sids, unknown, np.full(n, np.iinfo(np.int64).min), np.full(n, np.iinfo(np.int64).max), False)
+
+    def _note(self, offset, reason):
+        if not self.salvage:
+            raise FormatError(self.path, offset, reason)
+        if self.damage is None or offset < self.damage.offset:
+            self.damage = Damage(int(offset), reason)
+
+    # -- streams ------------------------------------------------------------------
+    @property
+    def compression(self) -> str:
+        return cz.CODE_NAMES[self._code].lower()
+
+    def _stream(self, stream, typ) -> StreamInfo | None:
+        if stream is None:
+            candidates = [s for s in self._streams.values() if s.type == typ]
+            preferred = [s for s in candidates if s.name == _TYPE_NAMES[typ]]
+            return (preferred or candidates or [None])[0]
+        for s in self._streams.values():
+            if stream == s.id or stream == s.name:
+                if s.type != typ:
+                    raise EvtkError(f"{self.path}: stream {stream!r} holds {s.type} packets, not {typ}")
+                return s
+        raise EvtkError(f"{self.path}: no stream {stream!r}; streams are {[s.name for s in self._streams.values()]}")
+
+    @property
+    def sensor_size(self):
+        """``(width, height)`` of the main event stream, or None without one."""
+        s = self._stream(None, "EVTS")
+        if s is None:
+            s = next((s for s in self._streams.values() if s.sensor_size), None)
+        return s.sensor_size if s is not None else None
+
+    @property
+    def streams(self) -> list[StreamInfo]:
+        """Every stream with its packet and element counts and time range."""
+        idx = self._index
+        for s in self._streams.values():
+            sel = idx.stream == s.id
+            s.packets = int(sel.sum())
+            counts = idx.count[sel]
+            if s.type == "FRME":
+                counts = np.ones(s.packets, np.int64)
+            elif np.any(counts < 0):
+                counts = self._count_elements(np.flatnonzero(sel), s.type)
+            s.count = int(counts.sum()) if counts is not None else None
+            if s.packets and idx.from_table:
+                nz = counts > 0 if counts is not None else np.ones(s.packets, bool)
+                s.t_start_us = int(idx.t0[sel][nz].min()) if nz.any() else None
+                s.t_end_us = int(idx.t1[sel][nz].max()) if nz.any() else None
+        if not idx.from_table:
+            self._fill_times()
+        return list(self._streams.values())
+
+    def _count_elements(self, rows, typ):
+        if typ not in _VECTOR_TYPES:
+            return None
+        out = np.zeros(len(rows), np.int64)
+        for k, i in enumerate(rows):
+            try:
+                b = self._body(i)
+            except _Stop:
+                return out[:k]
+            n = _fb.vector_length(b, _IDENT[typ])
+            if n < 0:
+                try:
+                    self._fail(int(self._index.offset[i]), f"{typ} packet: {_status(n)}")
+                except _Stop:
+                    return out[:k]
+            out[k] = n
+            self._index.count[i] = n
+        return out
+
+    def _fill_times(self):
+        ev = self._stream(None, "EVTS")
+        if ev is not None and ev.count:
+            events = self.events()
+            ev.t_start_us, ev.t_end_us = events.t_start_us, events.t_end_us
+        tr = self._stream(None, "TRIG")
+        if tr is not None and tr.count:
+            trig = self.triggers()
+            if len(trig):
+                tr.t_start_us, tr.t_end_us = int(trig.t.min()), int(trig.t.max())
+
+    @property
+    def metadata(self) -> dict:
+        """evtk metadata stored with the event stream (``evtkMetadata``), else {}."""
+        s = self._stream(None, "EVTS")
+        text = s.attributes.get("evtkMetadata") if s is not None else None
+        if not text:
+            return {}
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise FormatError(self.path, _HEADER_START, f"the evtkMetadata attribute is not valid JSON ({exc})") from None
+        return value if isinstance(value, dict) else {"value": value}
+
+    @property
+    def t_start_us(self):
+        return self._stream_time("t_start_us")
+
+    @property
+    def t_end_us(self):
+        return self._stream_time("t_end_us")
+
+    def _stream_time(self, attr):
+        s = self._stream(None, "EVTS")
+        if s is None:
+            return None
+        self.streams
+        return getattr(s, attr)
+
+    # -- packet bodies ------------------------------------------------------------
+    def _body(self, i):
+        """Decompressed body of packet ``i`` as a uint8 array (or raise/stop)."""
+        idx = self._index
+        off, size = int(idx.offset[i]), int(idx.size[i])
+        data = self._pread(size + 8, off - 8)
+        if len(data) < size + 8:
+            self._fail(off - 8, "file ends inside a packet")
+        sid, sz = struct.unpack_from("<ii", data, 0)
+        if sid != idx.stream[i] or sz != size:
+            self._fail(off - 8, f"packet header says stream {sid}, {sz} bytes; the data table says stream {idx.stream[i]}, {size} bytes")
+        body = memoryview(data)[8:]
+        try:
+            raw = cz.decompress(self._code, body, cz.output_limit(size, max(0, int(idx.count[i]))))
+        except cz.CodecError as exc:
+            self._fail(off, f"packet body cannot be decompressed: {exc}")
+        return np.frombuffer(raw, np.uint8)
+
+    def _select(self, typ, stream, t_start_us, t_end_us):
+        s = self._stream(stream, typ)
+        if s is None:
+            return None, np.zeros(0, np.int64)
+        idx = self._index
+        sel = idx.stream == s.id
+        if idx.from_table:
+            if t_start_us is not None:
+                sel &= idx.t1 >= int(t_start_us)
+            if t_end_us is not None:
+                sel &= idx.t0 < int(t_end_us)
+        return s, np.flatnonzero(sel)
+
+    # -- events -------------------------------------------------------------------
+    def events(self, t_start_us=None, t_end_us=None, stream=None) -> Events:
+        """Events with ``t_start_us <= t < t_end_us`` (None: no bound).
+
+        With a data table only the packets that overlap the window are
+        decoded; both cores decompress.
+        """
+        s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
+        if s is None:
+            raise EvtkError(f"{self.path}: the recording has no event stream")
+        width, height = s.sensor_size
+        counts = self._index.count[rows]
+        if np.any(counts < 0):
+            counts = self._count_elements(rows, "EVTS")
+            rows = rows[: len(counts)]
+        starts = np.zeros(len(rows) + 1, np.int64)
+        np.cumsum(counts, out=starts[1:])
+        total = int(starts[-1])
+        t = np.empty(total, np.int64)
+        x = np.empty(total, np.uint16)
+        y = np.empty(total, np.uint16)
+        p = np.empty(total, np.uint8)
+        ident = _IDENT["EVTS"]
+
+        def work(k0, k1):
+            for k in range(k0, k1):
+                i = rows[k]
+                try:
+                    b = self._body(i)
+                except _Stop:
+                    return k
+                cap = int(counts[k])
+                n, st = _fb.decode_events(b, ident, t, x, y, p, int(starts[k]), cap, width, height)
+                if st == _fb.ST_OK and n != cap:
+                    st = _fb.ST_CAPACITY
+                if st != _fb.ST_OK:
+                    off = int(self._index.offset[i])
+                    if st == _fb.ST_COORD:
+                        reason = f"event {n} of the packet lies outside the {width}x{height} sensor"
+                    elif st == _fb.ST_CAPACITY:
+                        reason = f"the packet holds {n} events, the data table says {cap}"
+                    else:
+                        reason = f"event packet: {_status(st)}"
+                    try:
+                        self._fail(off, reason)
+                    except _Stop:
+                        return k
+            return k1
+
+        stopped = _run_split(work, len(rows), counts)
+        end = int(starts[stopped])
+        ev = Events._trusted(t[:end], x[:end], y[:end], p[:end], s.sensor_size)
+        if t_start_us is not None or t_end_us is not None:
+            ev = ev.between(t_start_us, t_end_us)
+        return ev
+
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None, stream=None) -> Iterator[Events]:
+        """Yield the events in order, at most ``chunk_events`` at a time.
+
+        Memory stays bounded by the chunk (plus one packet), whatever the
+        size of the file.
+        """
+        chunk_events = int(chunk_events)
+        if chunk_events < 1:
+            raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
+        s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
+        if s is None:
+            raise EvtkError(f"{self.path}: the recording has no event stream")
+        width, height = s.sensor_size
+        ident = _IDENT["EVTS"]
+        pending: list[Events] = []
+        held = 0
+        for i in rows:
+            try:
+                b = self._body(i)
+            except _Stop:
+                break
+            n = _fb.vector_length(b, ident)
+            if n < 0:
+                try:
+                    self._fail(int(self._index.offset[i]), f"event packet: {_status(n)}")
+                except _Stop:
+                    break
+            cols = (np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8))
+            got, st = _fb.decode_events(b, ident, *cols, 0, n, width, height)
+            if st != _fb.ST_OK:
+                reason = (
+                    f"event {got} of the packet lies outside the {width}x{height} sensor"
+                    if st == _fb.ST_COORD else f"event packet: {_status(st)}"
+                )
+                try:
+                    self._fail(int(self._index.offset[i]), reason)
+                except _Stop:
+                    break
+            ev = Events._trusted(*cols, s.sensor_size)
+            if t_start_us is not None or t_end_us is not None:
+                ev = ev.between(t_start_us, t_end_us)
+            if not len(ev):
+                continue
+            pending.append(ev)
+            held += len(ev)
+            while held >= chunk_events:
+                joined = Events.concatenate(pending)
+                yield joined[:chunk_events]
+                rest = joined[chunk_events:]
+                pending = [rest] if len(rest) else []
+                held = len(rest)
+        if held:
+            yield Events.concatenate(pending)
+
+    # -- triggers -------------------------------------------------------------------
+    def triggers(self, t_start_us=None, t_end_us=None, stream=None) -> Triggers:
+        """Trigger time stamps and kinds (empty when the file has no trigger stream)."""
+        s, rows = self._select("TRIG", stream, t_start_us, t_end_us)
+        if s is None:
+            return Triggers()
+        parts = []
+        ident = _IDENT["TRIG"]
+        for i in rows:
+            try:
+                b = self._body(i)
+            except _Stop:
+                break
+            n = _fb.vector_length(b, ident)
+            if n < 0:
+                try:
+                    self._fail(int(self._index.offset[i]), f"trigger packet: {_status(n)}")
+                except _Stop:
+                    break
+            t = np.empty(n, np.int64)
+            k = np.empty(n, np.uint8)
+            got, st = _fb.decode_triggers(b, ident, t, k, 0, n)
+            if st != _fb.ST_OK:
+                try:
+                    self._fail(int(self._index.offset[i]), f"trigger packet: {_status(st)}")
+                except _Stop:
+                    break
+            parts.append(Triggers(t, k))
+        trig = Triggers.concatenate(parts)
+        if t_start_us is not None or t_end_us is not None:
+            trig = trig.between(t_start_us, t_end_us)
+        return trig
+
+    # -- summary ----------------------------------------------------------------------
+    def info(self) -> dict:
+        """A JSON-ready summary (what ``evtk info --json`` prints)."""
+        streams = self.streams
+        ev = self._stream(None, "EVTS")
+        tr = self._stream(None, "TRIG")
+        out = {
+            "path": self.path,
+            "format": self.format,
+            "compression": self.compression,
+            "events": ev.count if ev else 0,
+            "triggers": tr.count if tr else 0,
+            "sensor_size": list(self.sensor_size) if self.sensor_size else None,
+            "t_start_us": ev.t_start_us if ev else None,
+            "t_end_us": ev.t_end_us if ev else None,
+            "data_table": bool(self._index.from_table),
+            "streams": [s.as_dict() for s in streams],
+            "metadata": self.metadata,
+        }
+        if self.warnings:
+            out["warnings"] = list(self.warnings)
+        if self.salvage:
+            out["damage"] = None if self.damage is None else {"offset": self.damage.offset, "reason": self.damage.reason}
+        return out
+
+
+def _status(code) -> str:
+    return _fb.STATUS_TEXT.get(int(code), f"status {int(code)}")
+
+
+def _run_split(work, n_rows, counts) -> int:
+    """Run ``work(k0, k1)`` over contiguous row ranges on the I/O pool.
+
+    Each call returns the first row it did not finish (``k1`` on success);
+    the result is the length of the intact prefix.
+    """
+    if n_rows == 0:
+        return 0
+    nw = cz.workers()
+    total = int(np.sum(counts))
+    if nw == 1 or n_rows < 4 or total < 200_000:
+        return work(0, n_rows)
+    # balance by elements: 4 ranges per worker keeps both cores busy to the end
+    parts = nw * 4
+    cum = np.cumsum(counts)
+    cuts = np.searchsorted(cum, np.linspace(0, total, parts + 1)[1:-1], side="left")
+    bounds = np.unique(np.concatenate([[0], cuts, [n_rows]]))
+    futures = [cz.pool().submit(work, int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+    done = n_rows
+    for (a, b), fut in zip(zip(bounds[:-1], bounds[1:]), futures):
+        got = fut.result()
+        if got < b:
+            done = min(done, got)
+    return done
+
+
+# =============================================================================
+# Writing
+# =============================================================================
+
+_TYPE_DESCRIPTIONS = {"EVTS": "Array of events (polarity ON/OFF).", "TRIG": "Array of triggers."}
+
+
+def _header_xml(streams, code) -> str:
+    lines = ['<dv version="2.0">', '    <node name="outInfo" path="/outInfo/">']
+    for sid, (name, typ, info) in enumerate(streams):
+        base = f"/outInfo/{sid}/"
+        lines.append(f'        <node name="{sid}" path="{base}">')
+        for key, val in (
+            ("compression", cz.CODE_NAMES[code]),
+            ("originalModuleName", "evtk"),
+            ("originalOutputName", name),
+            ("typeDescription", _TYPE_DESCRIPTIONS.get(typ, "")),
+            ("typeIdentifier", typ),
+        ):
+            lines.append(f'            <attr key="{key}" type="string">{escape(val)}</attr>')
+        lines.append(f'            <node name="info" path="{base}info/">')
+        for key, (typ_name, val) in info.items():
+            lines.append(f'                <attr key="{escape(key)}" type="{typ_name}">{escape(str(val))}</attr>')
+        lines.append("            </node>")
+        lines.append("        </node>")
+    lines.append("    </node>")
+    lines.append("</dv>")
+    return "\n".join(lines) + "\n"
+
+
+def _io_header(code, data_table_pos, xml) -> bytes:
+    """Size-prefixed IOHeader FlatBuffer; the data-table position sits at byte 40."""
+    text = xml.encode("utf-8")
+    out = bytearray(48)
+    struct.pack_into("<I", out, 4, 24)  # root table at 4 + 24 = 28
+    out[8:12] = b"IOHE"
+    struct.pack_into("<HHHHH", out, 12, 10, 20, 4, 12, 8)  # vtable at 12
+    struct.pack_into("<i", out, 28, 16)  # table -> vtable
+    struct.pack_into("<i", out, 32, code)
+    struct.pack_into("<I", out, 36, 48 - 36)  # string at 48
+    struct.pack_into("<q", out, 40, data_table_pos)
+    out += struct.pack("<I", len(text)) + text + b"\x00"
+    out += b"\x00" * (-len(out) % 8)
+    struct.pack_into("<I", out, 0, len(out) - 4)
+    return bytes(out)
+
+
+_DTP_FIELD = _HEADER_START + 40  # file offset of IOHeader.dataTablePosition
+
+
+class Aedat4Writer:
+    """Stream events and triggers into an AEDAT4 file, atomically.
+
+    Data goes to a temporary file beside ``path``; :meth:`close` writes the
+    data table and renames it into place.  If the process dies first, the
+    temporary ``*.evtk-partial`` file is a valid recording without a data
+    table (read it with ``salvage=True``).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    sensor_size : (int, int)
+    compression : {'lz4', 'zstd', 'none', 'lz4_high', 'zstd_high'}
+    triggers : bool
+        Declare a trigger stream.
+    metadata : dict, optional
+        JSON-serialisable; stored in the event stream's ``evtkMetadata``.
+    packet_events, packet_us : int
+        A packet closes after this many events or this many microseconds.
+    """
+
+    def __init__(self, path, sensor_size, compression="lz4", triggers=True, metadata=None,
+                 packet_events=DEFAULT_PACKET_EVENTS, packet_us=DEFAULT_PACKET_US, source="evtk"):
+        name = str(compression).lower()
+        if name not in cz.BY_NAME:
+            raise EvtkError(f"unknown compression {compression!r}; choose one of {sorted(cz.BY_NAME)}")
+        self.code = cz.BY_NAME[name]
+        w, h = (int(v) for v in sensor_size)
+        if not (0 < w <= 32768 and 0 < h <= 32768):
+            raise EvtkError(f"AEDAT4 stores int16 coordinates: sensor size {(w, h)} does not fit")
+        self.sensor_size = (w, h)
+        self.packet_events = int(packet_events)
+        self.packet_us = None if packet_us is None else int(packet_us)
+        if self.packet_events < 1 or (self.packet_us is not None and self.packet_us < 1):
+            raise EvtkError("packet_events and packet_us must be positive")
+        info = {"sizeX": ("int", w), "sizeY": ("int", h), "source": ("string", source)}
+        if metadata:
+            try:
+                info["evtkMetadata"] = ("string", json.dumps(metadata, sort_keys=True, separators=(",", ":")))
+            except (TypeError, ValueError) as exc:
+                raise EvtkError(f"metadata must be JSON-serialisable: {exc}") from None
+        info["evtkVersion"] = ("string", __version__)
+        streams = [("events", "EVTS", info)]
+        self._trigger_sid = None
+        if triggers:
+            self._trigger_sid = 1
+            streams.append(("triggers", "TRIG", {"source": ("string", source)}))
+        self._file = AtomicFile(path)
+        self.path = self._file.path
+        self._table = [[] for _ in range(6)]  # offset, stream, size, count, t0, t1
+        self._closed = False
+        try:
+            header = _io_header(self.code, -1, _header_xml(streams, self.code))
+            self._f = self._file.file
+            self._f.write(MAGIC)
+            self._f.write(header)
+            self._pos = len(MAGIC) + len(header)
+        except BaseException:
+            self._file.discard()
+            raise
+
+    # -- packets ----------------------------------------------------------------------
+    def _emit(self, sid, body, count, t0, t1):
+        self._f.write(struct.pack("<ii", sid, len(body)))
+        self._f.write(body)
+        for col, v in zip(self._table, (self._pos + 8, sid, len(body), count, t0, t1)):
+            col.append(v)
+        self._pos += 8 + len(body)
+
+    def _packet_bounds(self, t, is_sorted):
+        """Event indices where packets start (plus the end): by count, and by
+        time span when the events are sorted."""
+        n = len(t)
+        if self.packet_us is None or not is_sorted:
+            return np.append(np.arange(0, n, self.packet_events, dtype=np.int64), n)
+        cuts = [0]
+        i = 0
+        t_max = int(np.iinfo(np.int64).max)
+        while i < n:
+            limit = int(t[i]) + self.packet_us
+            j = int(np.searchsorted(t, limit, side="left")) if limit <= t_max else n
+            i = min(max(j, i + 1), i + self.packet_events)
+            cuts.append(i)
+        return np.asarray(cuts, np.int64)
+
+    def write_events(self, events: Events):
+        """Append events (one or more packets)."""
+        self._check_open()
+        if tuple(events.sensor_size) != self.sensor_size:
+            raise EvtkError(f"events are for a {events.sensor_size} sensor, the file for {self.sensor_size}")
+        n = len(events)
+        if n == 0:
+            return
+        w, h = self.sensor_size
+        if int(events.x.max()) >= w or int(events.y.max()) >= h:
+            raise EvtkError(f"{events.out_of_bounds()} events lie outside the {w}x{h} sensor")
+        bounds = self._packet_bounds(events.t, events.is_sorted)
+        # serialise in batches of about 4 M events so the staging buffer stays small
+        batch_rows = max(1, (1 << 22) // max(1, self.packet_events))
+        for b0 in range(0, len(bounds) - 1, batch_rows):
+            b = bounds[b0 : b0 + batch_rows + 1]
+            lo, hi = int(b[0]), int(b[-1])
+            local = b - lo
+            npk = len(local) - 1
+            buf = np.empty((hi - lo) * 16 + 32 * npk, np.uint8)
+            tt, xx, yy, pp = events.t[lo:hi], events.x[lo:hi], events.y[lo:hi], events.p[lo:hi]
+            _fb.encode_event_packets(tt, xx, yy, pp, local, buf)
+            starts = local[:-1] * 16 + 32 * np.arange(npk)
+            ends = local[1:] * 16 + 32 * np.arange(1, npk + 1)
+            mv = memoryview(buf)
+            bodies = self._compress_all([mv[s:e] for s, e in zip(starts, ends)])
+            for k, body in enumerate(bodies):
+                a, z = int(local[k]), int(local[k + 1])
+                seg = tt[a:z]
+                self._emit(0, body, z - a, int(seg.min()), int(seg.max()))
+
+    def write_triggers(self, triggers: Triggers):
+        """Append triggers (one packet per 8192)."""
+        self._check_open()
+        if self._trigger_sid is None:
+            raise EvtkError("this writer was opened without a trigger stream (triggers=False)")
+        for lo in range(0, len(triggers), 8192):
+            t = triggers.t[lo : lo + 8192]
+            k = triggers.kind[lo : lo + 8192]
+            buf = np.empty(_fb.trigger_packet_size(len(t)), np.uint8)
+            size = _fb.encode_trigger_packet(t, k, buf)
+            body = cz.compress(self.code, buf[:size])
+            self._emit(self._trigger_sid, body, len(t), int(t.min()), int(t.max()))
+
+    def _compress_all(self, views):
+        if self.code == cz.NONE:
+            return [bytes(v) for v in views]
+        if len(views) < 4 or cz.workers() == 1:
+            return [cz.compress(self.code, v) for v in views]
+        code = self.code
+        return list(cz.pool().map(lambda v: cz.compress(code, v), views, chunksize=max(1, len(views) // 16)))
+
+    def _check_open(self):
+        if self._closed:
+            raise EvtkError(f"{self.path}: writer is closed")
+
+    # -- finishing ----------------------------------------------------------------------
+    def close(self):
+        """Write the data table, patch the header and move the file into place."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            cols = [np.asarray(c, np.int64) for c in self._table]
+            buf = np.empty(_fb.data_table_size(len(cols[0])), np.uint8)
+            size = _fb.encode_data_table(*cols, buf)
+            blob = cz.compress(self.code, buf[:size])
+            dtp = self._pos
+            self._f.write(blob)
+            self._f.seek(_DTP_FIELD)
+            self._f.write(struct.pack("<q", dtp))
+            self._file.commit()
+        except BaseException:
+            self._file.discard()
+            raise
+
+    def abort(self):
+        """Give up: remove the temporary file, leave any previous file alone."""
+        if not self._closed:
+            self._closed = True
+            self._file.discard()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_aedat4(path, events: Events, triggers: Triggers | None = None, compression="lz4", metadata=None, **kwargs):
+    """Write a whole recording to ``path`` (atomically); see :class:`Aedat4Writer`."""
+    with Aedat4Writer(path, events.sensor_size, compression, triggers=triggers is not None, metadata=metadata, **kwargs) as w:
+        if triggers is not None and len(triggers):
+            # interleave by time: each trigger packet follows the events before it
+            order = np.argsort(triggers.t, kind="stable")
+            trig = Triggers(triggers.t[order], triggers.kind[order])
+            done = 0
+            for lo in range(0, len(trig), 8192):
+                part = trig[lo : lo + 8192]
+                if events.is_sorted:
+                    cut = int(np.searchsorted(events.t, part.t[-1], side="right"))
+                    w.write_events(events[done:cut])
+                    done = max(done, cut)
+                w.write_triggers(part)
+            w.write_events(events[done:])
+        else:
+            w.write_events(events)
