@@ -22,6 +22,18 @@ class AtomicFile:
         fd, self.tmp_path = tempfile.mkstemp(
             prefix=os.path.basename(self.path) + ".", suffix=PARTIAL_SUFFIX, dir=directory
         )
+        # mkstemp creates 0600 files; give the result the mode a plain open()
+        # would (or keep the mode of the file being replaced)
+        try:
+            mode = os.stat(self.path).st_mode & 0o7777
+        except OSError:
+            umask = os.umask(0)
+            os.umask(umask)
+            mode = 0o666 & ~umask
+        try:
+            os.fchmod(fd, mode)
+        except OSError:  # pragma: no cover - filesystems without modes
+            pass
         self.file = os.fdopen(fd, "w+b")
 
     def commit(self):

@@ -131,7 +131,8 @@ def _mismatch(declared: str, body) -> str:
 
 
 def compress(code: int, data) -> bytes:
-    """Compress one packet body as dv-processing does for the same code."""
+    """Compress one packet body: LZ4 frames of 64 KiB linked blocks (level 0,
+    or 9 for LZ4_HIGH) or one Zstandard frame (level 1, or 9 for ZSTD_HIGH)."""
     if code == NONE:
         return bytes(data)
     if code in (LZ4, LZ4_HIGH):
@@ -147,7 +148,7 @@ def compress(code: int, data) -> bytes:
         key = "cctx%d" % code
         cctx = getattr(_local, key, None)
         if cctx is None:
-            cctx = zstandard.ZstdCompressor(level=3 if code == ZSTD else 19, write_content_size=True)
+            cctx = zstandard.ZstdCompressor(level=1 if code == ZSTD else 9, write_content_size=True)
             setattr(_local, key, cctx)
         return cctx.compress(data)
     raise ValueError(f"unknown compression code {code}")

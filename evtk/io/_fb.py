@@ -267,17 +267,22 @@ def _put_i64(b, pos, v):
 
 
 @njit(cache=True, nogil=True)
-def encode_event_packets(t, x, y, p, bounds, out):
-    """Serialise events ``bounds[i]:bounds[i+1]`` as size-prefixed EVTS packets.
+def encode_event_packets(t, x, y, p, bounds, stream_id, out):
+    """Serialise events ``bounds[i]:bounds[i+1]`` as AEDAT4 packets.
 
-    Packet ``i`` is written at ``out[bounds[i]*16 + 32*i :]``; its length is
-    ``32 + 16 * n_i``.
+    Each packet is an 8-byte packet header (stream id, body size) followed by
+    the size-prefixed EVTS FlatBuffer (32 + 16 n bytes), so an uncompressed
+    file can be written from ``out`` in one call.  Packet ``i`` starts at
+    ``16 * bounds[i] + 40 * i``.
     """
     for i in range(len(bounds) - 1):
         lo = bounds[i]
         hi = bounds[i + 1]
         n = hi - lo
-        base = lo * 16 + 32 * i
+        head = lo * 16 + 40 * i
+        _put_u32(out, head, stream_id)
+        _put_u32(out, head + 4, 32 + 16 * n)
+        base = head + 8
         _put_u32(out, base + 0, 28 + 16 * n)  # size prefix
         _put_u32(out, base + 4, 16)  # root table at 4 + 16 = 20
         out[base + 8] = 69  # 'E'

@@ -810,9 +810,14 @@ class Aedat4Writer:
     def _emit(self, sid, body, count, t0, t1):
         self._f.write(struct.pack("<ii", sid, len(body)))
         self._f.write(body)
-        for col, v in zip(self._table, (self._pos + 8, sid, len(body), count, t0, t1)):
-            col.append(v)
+        self._record_many(sid, [self._pos + 8], [len(body)], [count], [t0], [t1])
         self._pos += 8 + len(body)
+
+    def _record_many(self, sid, offsets, sizes, counts, t0, t1):
+        """Remember packets for the data table."""
+        n = len(offsets)
+        for col, v in zip(self._table, (offsets, np.full(n, sid), sizes, counts, t0, t1)):
+            col.append(np.asarray(v, np.int64))
 
     def _packet_bounds(self, t, is_sorted):
         """Event indices where packets start (plus the end): by count, and by
@@ -842,24 +847,47 @@ class Aedat4Writer:
         if int(events.x.max()) >= w or int(events.y.max()) >= h:
             raise EvtkError(f"{events.out_of_bounds()} events lie outside the {w}x{h} sensor")
         bounds = self._packet_bounds(events.t, events.is_sorted)
-        # serialise in batches of about 4 M events so the staging buffer stays small
-        batch_rows = max(1, (1 << 22) // max(1, self.packet_events))
-        for b0 in range(0, len(bounds) - 1, batch_rows):
-            b = bounds[b0 : b0 + batch_rows + 1]
+        # Serialise batches of about 2 M events into two staging buffers used in
+        # turn: the next batch is encoded while the pool compresses this one.
+        rows = max(1, (1 << 21) // self.packet_events)
+        staging = [None, None]
+        pending = None
+        for k, b0 in enumerate(range(0, len(bounds) - 1, rows)):
+            b = bounds[b0 : b0 + rows + 1]
             lo, hi = int(b[0]), int(b[-1])
             local = b - lo
             npk = len(local) - 1
-            buf = np.empty((hi - lo) * 16 + 32 * npk, np.uint8)
-            tt, xx, yy, pp = events.t[lo:hi], events.x[lo:hi], events.y[lo:hi], events.p[lo:hi]
-            _fb.encode_event_packets(tt, xx, yy, pp, local, buf)
-            starts = local[:-1] * 16 + 32 * np.arange(npk)
-            ends = local[1:] * 16 + 32 * np.arange(1, npk + 1)
+            need = (hi - lo) * 16 + 40 * npk
+            buf = staging[k % 2]
+            if buf is None or len(buf) < need:
+                buf = staging[k % 2] = np.empty(need, np.uint8)
+            tt = events.t[lo:hi]
+            _fb.encode_event_packets(tt, events.x[lo:hi], events.y[lo:hi], events.p[lo:hi], local, 0, buf)
+            heads = local[:-1] * 16 + 40 * np.arange(npk)
+            ends = local[1:] * 16 + 40 * np.arange(1, npk + 1)
+            if events.is_sorted:
+                t0, t1 = tt[local[:-1]], tt[local[1:] - 1]
+            else:
+                t0, t1 = np.minimum.reduceat(tt, local[:-1]), np.maximum.reduceat(tt, local[:-1])
+            counts = np.diff(local)
+            if self.code == cz.NONE:  # packet headers are already in place: one write
+                self._record_many(0, heads + 8 + self._pos, ends - heads - 8, counts, t0, t1)
+                self._f.write(memoryview(buf)[:need])
+                self._pos += need
+                continue
             mv = memoryview(buf)
-            bodies = self._compress_all([mv[s:e] for s, e in zip(starts, ends)])
-            for k, body in enumerate(bodies):
-                a, z = int(local[k]), int(local[k + 1])
-                seg = tt[a:z]
-                self._emit(0, body, z - a, int(seg.min()), int(seg.max()))
+            code = self.code
+            futures = [cz.pool().submit(cz.compress, code, mv[a:z]) for a, z in zip(heads + 8, ends)]
+            if pending is not None:
+                self._emit_all(*pending)
+            pending = (futures, counts, t0, t1)
+        if pending is not None:
+            self._emit_all(*pending)
+
+    def _emit_all(self, futures, counts, t0, t1):
+        """Write compressed event packets in order as they become ready."""
+        for k, fut in enumerate(futures):
+            self._emit(0, fut.result(), int(counts[k]), int(t0[k]), int(t1[k]))
 
     def write_triggers(self, triggers: Triggers):
         """Append triggers (one packet per 8192)."""
@@ -874,14 +902,6 @@ class Aedat4Writer:
             body = cz.compress(self.code, buf[:size])
             self._emit(self._trigger_sid, body, len(t), int(t.min()), int(t.max()))
 
-    def _compress_all(self, views):
-        if self.code == cz.NONE:
-            return [bytes(v) for v in views]
-        if len(views) < 4 or cz.workers() == 1:
-            return [cz.compress(self.code, v) for v in views]
-        code = self.code
-        return list(cz.pool().map(lambda v: cz.compress(code, v), views, chunksize=max(1, len(views) // 16)))
-
     def _check_open(self):
         if self._closed:
             raise EvtkError(f"{self.path}: writer is closed")
@@ -893,7 +913,7 @@ class Aedat4Writer:
             return
         self._closed = True
         try:
-            cols = [np.asarray(c, np.int64) for c in self._table]
+            cols = [np.concatenate(c) if c else np.zeros(0, np.int64) for c in self._table]
             buf = np.empty(_fb.data_table_size(len(cols[0])), np.uint8)
             size = _fb.encode_data_table(*cols, buf)
             blob = cz.compress(self.code, buf[:size])
