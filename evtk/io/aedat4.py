@@ -81,6 +81,10 @@ class _Stop(Exception):
         self.reason = reason
 
 
+class _CountMismatch(Exception):
+    """A packet holds another number of elements than the data table says."""
+
+
 class _PacketIndex:
     """Per-packet columns: body offset and size, stream, element count, time range."""
 
@@ -477,6 +481,8 @@ class Recording:
         if sid != idx.stream[i] or sz != size:
             self._fail(off - 8, f"packet header says stream {sid}, {sz} bytes; the data table says stream {idx.stream[i]}, {size} bytes")
         body = memoryview(data)[8:]
+        if self._code == cz.NONE and cz.sniff(body):
+            self._fail(off, f"the header declares no compression but the body is a {cz.sniff(body)} frame")
         try:
             raw = cz.decompress(self._code, body, cz.output_limit(size, max(0, int(idx.count[i]))))
         except cz.CodecError as exc:
@@ -503,6 +509,15 @@ class Recording:
         With a data table only the packets that overlap the window are
         decoded; both cores decompress.
         """
+        try:
+            return self._events(t_start_us, t_end_us, stream)
+        except _CountMismatch:
+            # the data table lied about a packet's size: count from the packets
+            self.warnings.append("the data table's element counts are wrong; counted from the packets instead")
+            self._index.count[:] = -1
+            return self._events(t_start_us, t_end_us, stream)
+
+    def _events(self, t_start_us, t_end_us, stream) -> Events:
         s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
         if s is None:
             raise EvtkError(f"{self.path}: the recording has no event stream")
@@ -529,14 +544,12 @@ class Recording:
                     return k
                 cap = int(counts[k])
                 n, st = _fb.decode_events(b, ident, t, x, y, p, int(starts[k]), cap, width, height)
-                if st == _fb.ST_OK and n != cap:
-                    st = _fb.ST_CAPACITY
+                if (st == _fb.ST_OK and n != cap) or st == _fb.ST_CAPACITY:
+                    raise _CountMismatch
                 if st != _fb.ST_OK:
                     off = int(self._index.offset[i])
                     if st == _fb.ST_COORD:
                         reason = f"event {n} of the packet lies outside the {width}x{height} sensor"
-                    elif st == _fb.ST_CAPACITY:
-                        reason = f"the packet holds {n} events, the data table says {cap}"
                     else:
                         reason = f"event packet: {_status(st)}"
                     try:

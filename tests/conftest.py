@@ -1,0 +1,28 @@
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import evtk
+
+FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
+
+
+def random_events(n, seed=0, sensor_size=(320, 240), t0=0, span_us=1_000_000, sort=True):
+    rng = np.random.default_rng(seed)
+    t = rng.integers(t0, t0 + span_us, n, dtype=np.int64)
+    if sort:
+        t = np.sort(t)
+    w, h = sensor_size
+    return evtk.Events(
+        t,
+        rng.integers(0, w, n, dtype=np.uint16),
+        rng.integers(0, h, n, dtype=np.uint16),
+        rng.integers(0, 2, n, dtype=np.uint8),
+        sensor_size,
+    )
+
+
+@pytest.fixture
+def fixtures_dir():
+    return FIXTURES

@@ -1,0 +1,284 @@
+"""Damaged AEDAT4 files: a FormatError naming file, offset and reason, or with
+salvage=True every intact packet before the damage."""
+
+import struct
+
+import numpy as np
+import pytest
+
+import evtk
+from evtk.io import aedat4
+
+from conftest import random_events
+
+PACKET = 1000
+
+
+@pytest.fixture
+def good(tmp_path):
+    """An LZ4 file of 10 event packets (and one trigger packet) plus its layout."""
+    ev = random_events(10 * PACKET, seed=21, span_us=100_000)
+    tr = evtk.Triggers([ev.t[-1]], [1])  # after the last event: the final packet
+    path = tmp_path / "good.aedat4"
+    evtk.write_events(path, ev, tr, packet_events=PACKET, packet_us=None)
+    with evtk.open(path) as rec:
+        index = rec._index
+        layout = dict(
+            offsets=index.offset.copy(), sizes=index.size.copy(), streams=index.stream.copy(),
+            data_start=rec._data_start, dtp=rec._data_table_pos,
+        )
+    return path, ev, layout
+
+
+def damaged(tmp_path, good, edit, name="bad.aedat4"):
+    path, _, layout = good
+    data = bytearray(path.read_bytes())
+    data = edit(data, layout)
+    out = tmp_path / name
+    out.write_bytes(bytes(data))
+    return out
+
+
+def expect_error(path, match, offset=None):
+    with pytest.raises(evtk.FormatError, match=match) as info:
+        with evtk.open(path) as rec:
+            rec.events()
+            rec.triggers()
+    err = info.value
+    assert err.path == str(path)
+    if offset is not None:
+        assert err.offset == offset
+    assert str(path) in str(err)
+    return err
+
+
+def test_empty_file(tmp_path):
+    p = tmp_path / "empty.aedat4"
+    p.write_bytes(b"")
+    expect_error(p, "empty", offset=0)
+
+
+def test_not_aedat(tmp_path):
+    p = tmp_path / "junk.aedat4"
+    p.write_bytes(b"hello world, not events" * 10)
+    expect_error(p, "unrecognised", offset=0)
+
+
+def test_older_aedat_version_is_named(tmp_path):
+    p = tmp_path / "old.aedat"
+    p.write_bytes(b"#!AER-DAT3.1\r\n#Format: RAW\r\n")
+    expect_error(p, "version 3.1", offset=0)
+
+
+def test_garbage_after_magic(tmp_path):
+    p = tmp_path / "garbage.aedat4"
+    p.write_bytes(aedat4.MAGIC + np.random.default_rng(0).bytes(500))
+    expect_error(p, "header", offset=14)
+
+
+@pytest.mark.parametrize("cut", [14, 16, 18, 40, 200])
+def test_truncated_inside_header(tmp_path, good, cut):
+    p = damaged(tmp_path, good, lambda d, L: d[:cut])
+    expect_error(p, "header")
+
+
+def test_truncated_inside_packet_strict_and_salvage(tmp_path, good):
+    _, ev, layout = good
+    k = 6  # cut in the middle of the 7th packet's body
+    cut = int(layout["offsets"][k] + layout["sizes"][k] // 2)
+    p = damaged(tmp_path, good, lambda d, L: d[:cut])
+    expect_error(p, "truncated|outside the file")
+    with evtk.open(p, salvage=True) as rec:
+        got = rec.events()
+        assert got == ev[: k * PACKET]
+        assert rec.damage.offset == int(layout["offsets"][k] - 8)
+        assert "remain" in rec.damage.reason
+
+
+def test_packet_size_larger_than_file(tmp_path, good):
+    _, ev, layout = good
+    k = 3
+
+    def edit(d, L):
+        struct.pack_into("<i", d, int(L["offsets"][k] - 4), 2**31 - 1)
+        return d
+
+    p = damaged(tmp_path, good, edit)
+    err = expect_error(p, "packet header says", offset=int(layout["offsets"][k] - 8))
+    with evtk.open(p, salvage=True) as rec:
+        assert rec.events() == ev[: k * PACKET]
+        assert rec.damage.offset == err.offset
+
+
+def test_packet_size_larger_than_file_without_data_table(tmp_path, good):
+    _, ev, layout = good
+    k = 2
+
+    def edit(d, L):
+        d = d[: L["dtp"]]
+        struct.pack_into("<q", d, aedat4._DTP_FIELD, -1)
+        struct.pack_into("<i", d, int(L["offsets"][k] - 4), 2**31 - 1)
+        return d
+
+    p = damaged(tmp_path, good, edit)
+    expect_error(p, "claims 2147483647 bytes", offset=int(layout["offsets"][k] - 8))
+    with evtk.open(p, salvage=True) as rec:
+        assert rec.events() == ev[: k * PACKET]
+
+
+def test_unknown_stream_id(tmp_path, good):
+    _, ev, layout = good
+
+    def edit(d, L):
+        d = d[: L["dtp"]]
+        struct.pack_into("<q", d, aedat4._DTP_FIELD, -1)
+        struct.pack_into("<i", d, int(L["offsets"][5] - 8), 77)
+        return d
+
+    p = damaged(tmp_path, good, edit)
+    expect_error(p, "stream 77", offset=int(layout["offsets"][5] - 8))
+
+
+def test_corrupt_compressed_body(tmp_path, good):
+    _, ev, layout = good
+    k = 4
+
+    def edit(d, L):
+        o = int(L["offsets"][k])
+        d[o + 4 : o + 40] = b"\xff" * 36  # keep the LZ4 magic, break the frame
+        return d
+
+    p = damaged(tmp_path, good, edit)
+    expect_error(p, "LZ4", offset=int(layout["offsets"][k]))
+    with evtk.open(p, salvage=True) as rec:
+        assert rec.events() == ev[: k * PACKET]
+        assert rec.damage.offset == int(layout["offsets"][k])
+
+
+@pytest.mark.parametrize("code, match", [(3, "declares ZSTD compression but the body is a LZ4"), (0, "no compression but the body is a LZ4")])
+def test_header_names_wrong_compression(tmp_path, good, code, match):
+    def edit(d, L):
+        struct.pack_into("<i", d, 14 + 32, code)
+        return d
+
+    p = damaged(tmp_path, good, edit)
+    expect_error(p, match)
+
+
+def test_unknown_compression_code(tmp_path, good):
+    p = damaged(tmp_path, good, lambda d, L: d[:46] + struct.pack("<i", 9) + d[50:])
+    expect_error(p, "unknown compression code 9")
+
+
+def test_out_of_range_coordinates(tmp_path, good):
+    _, ev, layout = good
+
+    def edit(d, L):
+        i = d.index(b'key="sizeX" type="int">320<')
+        d[i + 23 : i + 26] = b"100"  # claim a 100-pixel wide sensor
+        return d
+
+    p = damaged(tmp_path, good, edit)
+    err = expect_error(p, "outside the 100x240 sensor", offset=int(layout["offsets"][0]))
+    assert err.offset == int(layout["offsets"][0])
+    with evtk.open(p, salvage=True) as rec:
+        assert len(rec.events()) == 0 and rec.damage is not None
+
+
+def test_malformed_xml(tmp_path, good):
+    def edit(d, L):
+        i = d.index(b"<dv version")
+        d[i : i + 3] = b"<<<"
+        return d
+
+    p = damaged(tmp_path, good, edit)
+    expect_error(p, "XML is malformed")
+
+
+def test_data_table_lies_about_counts(tmp_path, good):
+    """A wrong element count in the data table is noticed and the file still reads."""
+    path, ev, layout = good
+    with evtk.open(path) as rec:
+        dtp = rec._data_table_pos
+    data = bytearray(path.read_bytes())
+    import lz4.frame
+
+    from evtk.io import _fb
+
+    table = bytearray(lz4.frame.decompress(bytes(data[dtp:])))
+    b = np.frombuffer(bytes(table), np.uint8)
+    root = _fb.fb_root(b, np.frombuffer(b"FTAB", np.uint8))
+    start, n = _fb.fb_vector(b, root, 0, 4)
+    entry = _fb.fb_deref(b, start)
+    f_count = _fb.fb_field(b, entry, 2)
+    struct.pack_into("<q", table, f_count, 5)  # first packet "holds 5 events"
+    data = data[:dtp] + lz4.frame.compress(bytes(table))
+    p = tmp_path / "lying.aedat4"
+    p.write_bytes(bytes(data))
+    with evtk.open(p) as rec:
+        assert rec.events() == ev
+        assert any("counts are wrong" in w for w in rec.warnings)
+
+
+def test_data_table_position_garbage_falls_back_to_walking(tmp_path, good):
+    _, ev, layout = good
+
+    def edit(d, L):
+        struct.pack_into("<q", d, aedat4._DTP_FIELD, int(L["offsets"][3]))  # points into a packet
+        return d
+
+    p = damaged(tmp_path, good, edit)
+    # walking stops at the claimed table position, which is inside packet 3
+    expect_error(p, "claims .* bytes but only 0 remain", offset=int(layout["offsets"][3] - 8))
+    with evtk.open(p, salvage=True) as rec:
+        assert rec.events() == ev[: 3 * PACKET]
+
+
+def test_huge_but_valid_header_is_read(tmp_path):
+    ev = random_events(10, seed=3)
+    p = tmp_path / "bigmeta.aedat4"
+    evtk.write_events(p, ev, metadata={"blob": "x" * 5_000_000})
+    with evtk.open(p) as rec:
+        assert rec.events() == ev and len(rec.metadata["blob"]) == 5_000_000
+
+
+def test_header_length_larger_than_file(tmp_path):
+    p = tmp_path / "hlen.aedat4"
+    p.write_bytes(aedat4.MAGIC + struct.pack("<I", 2**32 - 1) + b"\0" * 100)
+    expect_error(p, "header claims", offset=14)
+
+
+def test_missing_file_and_directory(tmp_path):
+    with pytest.raises(evtk.EvtkError, match="no such file"):
+        evtk.open(tmp_path / "nope.aedat4")
+    with pytest.raises(evtk.EvtkError, match="directory"):
+        evtk.open(tmp_path)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_random_bit_flips_never_crash(tmp_path, good, seed):
+    """Any flipped byte gives a correct read, a FormatError, or with salvage a prefix."""
+    path, ev, layout = good
+    rng = np.random.default_rng(seed)
+
+    def edit(d, L):
+        for _ in range(rng.integers(1, 4)):
+            i = int(rng.integers(0, len(d)))
+            d[i] ^= 1 << int(rng.integers(0, 8))
+        return d
+
+    p = damaged(tmp_path, good, edit)
+    try:
+        with evtk.open(p) as rec:
+            rec.info()
+            got = rec.events()
+            rec.triggers()
+            assert len(got) == len(ev)
+    except evtk.FormatError as err:
+        assert err.path == str(p)
+    try:
+        with evtk.open(p, salvage=True) as rec:
+            got = rec.events()
+            assert len(got) <= len(ev)
+    except evtk.FormatError:
+        pass  # damage in the header itself cannot be salvaged

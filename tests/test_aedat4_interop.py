@@ -1,0 +1,218 @@
+"""AEDAT4 interoperability: dv-processing, aedat and faery as oracles, both directions."""
+
+import numpy as np
+import pytest
+
+import evtk
+from evtk.io import aedat4
+
+import peers
+from conftest import random_events
+
+pytest.importorskip("dv_processing")
+pytest.importorskip("aedat")
+pytest.importorskip("faery")
+
+COMPRESSIONS = ["lz4", "zstd", "none"]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    ev = random_events(3000, seed=11, span_us=200_000, t0=1_000_000)
+    tr = evtk.Triggers(
+        [1_000_100, 1_050_000, 1_100_000, 1_150_000],
+        [
+            evtk.TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE,
+            evtk.TriggerKind.EXTERNAL_SIGNAL_FALLING_EDGE,
+            evtk.TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE,
+            evtk.TriggerKind.TIMESTAMP_RESET,  # default-valued field: may be left out of the table
+        ],
+    )
+    return ev, tr
+
+
+# -- peer writes, evtk reads -----------------------------------------------------------
+
+@pytest.mark.parametrize("compression", COMPRESSIONS + ["lz4_high", "zstd_high"])
+def test_evtk_reads_dv_processing_files(tmp_path, scene, compression):
+    ev, tr = scene
+    path = tmp_path / "dv.aedat4"
+    peers.dv_write(path, ev, tr, compression, chunk=700, imu=True, frame=True)
+    with evtk.open(path) as rec:
+        assert rec.compression == compression
+        assert rec.events() == ev
+        assert rec.triggers() == tr
+        kinds = {s.type: s for s in rec.streams}
+        assert kinds["EVTS"].count == len(ev) and kinds["EVTS"].packets == 5
+        assert kinds["TRIG"].count == len(tr)
+        assert kinds["IMUS"].count == 1 and kinds["FRME"].count == 1
+        assert rec.sensor_size == (320, 240)
+    # and what evtk reads is what dv-processing itself reads back
+    dv_ev, dv_tr = peers.dv_read(path)
+    assert dv_ev == ev and dv_tr == tr
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_evtk_reads_faery_files(tmp_path, compression):
+    ev = random_events(10_000, seed=12, t0=5)
+    path = tmp_path / "faery.aedat4"
+    peers.faery_write(path, ev, compression)
+    assert evtk.read_events(path) == ev
+
+
+@pytest.mark.parametrize("name", ["dvxplorer_lz4.aedat4", "dvxplorer_zstd.aedat4"])
+def test_committed_fixtures_agree_with_dv_processing(fixtures_dir, name):
+    dv_ev, dv_tr = peers.dv_read(fixtures_dir / name)
+    with evtk.open(fixtures_dir / name) as rec:
+        assert rec.events() == dv_ev
+        assert rec.triggers() == dv_tr
+    assert len(dv_ev) == 4000 and len(dv_tr) == 20
+
+
+# -- evtk writes, peers read -----------------------------------------------------------
+
+@pytest.mark.parametrize("compression", COMPRESSIONS + ["lz4_high", "zstd_high"])
+def test_dv_processing_reads_evtk_files(tmp_path, scene, compression):
+    ev, tr = scene
+    path = tmp_path / "evtk.aedat4"
+    evtk.write_events(path, ev, tr, compression=compression, packet_events=512)
+    dv_ev, dv_tr = peers.dv_read(path)
+    assert dv_ev == ev
+    assert dv_tr == tr
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_aedat_reads_evtk_files(tmp_path, scene, compression):
+    ev, tr = scene
+    path = tmp_path / "evtk.aedat4"
+    evtk.write_events(path, ev, tr, compression=compression, packet_events=512)
+    arr, trig, streams = peers.aedat_read(path)
+    assert np.array_equal(arr["t"], ev.t.astype(np.uint64))
+    assert np.array_equal(arr["x"], ev.x) and np.array_equal(arr["y"], ev.y)
+    assert np.array_equal(arr["on"], ev.p.astype(bool))
+    assert np.array_equal(trig["t"], tr.t.astype(np.uint64))
+    assert np.array_equal(trig["source"], tr.kind)
+    assert streams[0] == {"type": "events", "width": 320, "height": 240}
+    assert streams[1]["type"] == "triggers"
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_faery_reads_evtk_files(tmp_path, compression):
+    ev = random_events(5000, seed=13, t0=10)
+    path = tmp_path / "evtk.aedat4"
+    evtk.write_events(path, ev, compression=compression)
+    arr = peers.faery_read(path)
+    assert evtk.Events.from_structured(arr, (320, 240)) == ev
+
+
+def test_evtk_file_has_a_data_table_peers_agree_on(tmp_path, scene):
+    ev, tr = scene
+    path = tmp_path / "evtk.aedat4"
+    evtk.write_events(path, ev, tr, packet_events=1000)
+    import dv_processing as dv
+
+    rec = dv.io.MonoCameraRecording(str(path))
+    # dv-processing answers time ranges from the data table without decoding
+    assert rec.getTimeRange() == (min(ev.t[0], tr.t[0]), max(ev.t[-1], tr.t[-1]))
+    with evtk.open(path) as r:
+        assert r._index.from_table
+        assert r.t_start_us == ev.t[0] and r.t_end_us == ev.t[-1]
+
+
+def test_metadata_round_trip_and_dv_sees_the_attribute(tmp_path, scene):
+    ev, _ = scene
+    meta = {"bench": "A", "schedule": [[0, 1, 2], [3, 4, 5]], "window_us": 5000, "note": "<&>\""}
+    path = tmp_path / "meta.aedat4"
+    evtk.write_events(path, ev, metadata=meta)
+    with evtk.open(path) as rec:
+        assert rec.metadata == meta
+    import dv_processing as dv
+
+    rec = dv.io.MonoCameraRecording(str(path))
+    assert "evtkMetadata" in rec.getStreamMetadata("events")
+
+
+# -- windows, chunks, no data table -----------------------------------------------------
+
+def test_windowed_read_decodes_only_overlapping_packets(tmp_path, monkeypatch):
+    ev = random_events(50_000, seed=14, span_us=1_000_000)
+    path = tmp_path / "w.aedat4"
+    evtk.write_events(path, ev, packet_events=1000, packet_us=None)
+    with evtk.open(path) as rec:
+        calls = []
+        original = rec._body
+        monkeypatch.setattr(rec, "_body", lambda i: calls.append(i) or original(i))
+        for lo, hi in [(0, 10), (500_000, 510_000), (123_456, 654_321), (999_990, 2_000_000), (-5, 0)]:
+            calls.clear()
+            got = rec.events(lo, hi)
+            assert got == ev.between(lo, hi)
+            overlapping = int(np.sum((rec._index.t1 >= lo) & (rec._index.t0 < hi)))
+            assert len(calls) == overlapping <= len(got) // 1000 + 2
+
+
+def test_iter_events_chunks_are_bounded_and_complete(tmp_path):
+    ev = random_events(20_000, seed=15)
+    path = tmp_path / "it.aedat4"
+    evtk.write_events(path, ev, packet_events=777)
+    with evtk.open(path) as rec:
+        chunks = list(rec.iter_events(chunk_events=3000))
+        assert all(len(c) <= 3000 for c in chunks) and all(len(c) == 3000 for c in chunks[:-1])
+        assert evtk.Events.concatenate(chunks) == ev
+        window = list(rec.iter_events(chunk_events=1000, t_start_us=250_000, t_end_us=260_000))
+        assert evtk.Events.concatenate(window, sensor_size=(320, 240)) == ev.between(250_000, 260_000)
+        with pytest.raises(evtk.EvtkError):
+            next(rec.iter_events(chunk_events=0))
+
+
+def _strip_data_table(src, dst):
+    """Copy of ``src`` as an interrupted recording: no data table, position -1."""
+    with evtk.open(src) as rec:
+        dtp = rec._data_table_pos
+    data = bytearray(open(src, "rb").read()[:dtp])
+    data[aedat4._DTP_FIELD : aedat4._DTP_FIELD + 8] = np.int64(-1).tobytes()
+    open(dst, "wb").write(data)
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_file_without_data_table_is_read_by_walking(tmp_path, scene, compression):
+    ev, tr = scene
+    full, cut = tmp_path / "full.aedat4", tmp_path / "cut.aedat4"
+    peers.dv_write(full, ev, tr, compression, chunk=500)
+    _strip_data_table(full, cut)
+    with evtk.open(cut) as rec:
+        assert not rec._index.from_table
+        assert rec.events() == ev and rec.triggers() == tr
+        assert rec.events(1_050_000, 1_060_000) == ev.between(1_050_000, 1_060_000)
+        info = rec.info()
+        assert info["events"] == len(ev) and info["t_start_us"] == ev.t[0] and info["t_end_us"] == ev.t[-1]
+    # dv-processing agrees that it is still a readable recording
+    dv_ev, _ = peers.dv_read(cut)
+    assert dv_ev == ev
+
+
+def test_writer_is_atomic_and_keeps_previous_file(tmp_path):
+    path = tmp_path / "keep.aedat4"
+    first = random_events(100, seed=16)
+    evtk.write_events(path, first)
+    before = path.read_bytes()
+
+    class Boom(Exception):
+        pass
+
+    with pytest.raises(Boom):
+        with aedat4.Aedat4Writer(path, (320, 240)) as w:
+            w.write_events(random_events(1000, seed=17))
+            raise Boom
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.aedat4"]
+
+
+def test_streaming_writer_many_calls(tmp_path):
+    ev = random_events(10_000, seed=18)
+    path = tmp_path / "stream.aedat4"
+    with aedat4.Aedat4Writer(path, (320, 240), compression="zstd") as w:
+        for lo in range(0, len(ev), 1234):
+            w.write_events(ev[lo : lo + 1234])
+        w.write_triggers(evtk.Triggers([5], [1]))
+    dv_ev, dv_tr = peers.dv_read(path)
+    assert dv_ev == ev and dv_tr.t.tolist() == [5]
