@@ -1,0 +1,105 @@
+import json
+import subprocess
+import sys
+
+import pytest
+from click.testing import CliRunner
+
+import evtk
+from evtk.cli import main
+
+from conftest import random_events
+
+
+def run(*args):
+    result = CliRunner().invoke(main, [str(a) for a in args])
+    return result
+
+
+def test_version():
+    r = run("--version")
+    assert r.exit_code == 0 and evtk.__version__ in r.output
+
+
+def test_info_json_on_fixture(fixtures_dir):
+    r = run("info", "--json", fixtures_dir / "dvxplorer_lz4.aedat4")
+    assert r.exit_code == 0, r.output
+    info = json.loads(r.output)
+    assert info["format"] == "aedat4" and info["compression"] == "lz4"
+    assert info["events"] == 4000 and info["triggers"] == 20
+    assert info["sensor_size"] == [320, 240]
+    with evtk.open(fixtures_dir / "dvxplorer_lz4.aedat4") as rec:
+        ev = rec.events()
+    assert info["t_start_us"] == ev.t.min() and info["t_end_us"] == ev.t.max()
+    names = {s["name"]: s for s in info["streams"]}
+    assert set(names) == {"events", "triggers", "imu", "frames"}
+    assert names["imu"]["count"] == 1 and names["frames"]["type"] == "FRME"
+    assert all({"name", "type", "count"} <= set(s) for s in info["streams"])
+
+
+def test_info_human(fixtures_dir):
+    r = run("info", fixtures_dir / "dvxplorer_zstd.aedat4")
+    assert r.exit_code == 0
+    assert "4,000" in r.output and "320x240" in r.output and "zstd" in r.output
+
+
+@pytest.mark.parametrize("compression", ["lz4", "zstd", "none"])
+def test_convert_keeps_events_and_triggers(tmp_path, fixtures_dir, compression):
+    src = fixtures_dir / "dvxplorer_lz4.aedat4"
+    out = tmp_path / "out.aedat4"
+    r = run("convert", src, out, "--compression", compression)
+    assert r.exit_code == 0, r.output
+    with evtk.open(src) as a, evtk.open(out) as b:
+        assert b.compression == compression
+        assert a.events() == b.events() and a.triggers() == b.triggers()
+
+
+def test_salvage_flag(tmp_path):
+    ev = random_events(5000, seed=1)
+    good = tmp_path / "g.aedat4"
+    evtk.write_events(good, ev, packet_events=1000, packet_us=None)
+    bad = tmp_path / "b.aedat4"
+    bad.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    r = run("info", bad)
+    assert r.exit_code == 1
+    r = run("info", "--json", "--salvage", bad)
+    assert r.exit_code == 0, r.output
+    info = json.loads(r.output)
+    assert 0 < info["events"] < 5000 and info["events"] % 1000 == 0
+    assert info["damage"]["offset"] > 0
+
+
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        (["info", "/no/such/file.aedat4"], "no such file"),
+        (["convert", "/no/such/file.aedat4", "x.aedat4"], "no such file"),
+    ],
+)
+def test_errors_are_one_line_without_traceback(args, match):
+    r = run(*args)
+    assert r.exit_code == 1
+    assert match in r.output
+    assert "Traceback" not in r.output
+    assert len(r.output.strip().splitlines()) == 1
+
+
+def test_bad_file_and_bad_target(tmp_path, fixtures_dir):
+    junk = tmp_path / "junk.aedat4"
+    junk.write_bytes(b"\x00" * 100)
+    r = run("info", junk)
+    assert r.exit_code == 1 and "unrecognised" in r.output and "Traceback" not in r.output
+    r = run("convert", fixtures_dir / "dvxplorer_lz4.aedat4", tmp_path / "out.xyz")
+    assert r.exit_code == 1 and "extension" in r.output
+    r = run("convert", fixtures_dir / "dvxplorer_lz4.aedat4", tmp_path / "o.aedat4", "--compression", "rar")
+    assert r.exit_code == 2  # click's usage error
+
+
+def test_installed_entry_point(fixtures_dir):
+    out = subprocess.run(
+        [sys.executable, "-m", "evtk.cli", "info", "--json", str(fixtures_dir / "dvxplorer_lz4.aedat4")],
+        capture_output=True, text=True, check=True,
+    )
+    assert json.loads(out.stdout)["events"] == 4000
+    bad = subprocess.run([sys.executable, "-m", "evtk.cli", "info", "/nope"], capture_output=True, text=True)
+    assert bad.returncode == 1 and bad.stderr.startswith("evtk: error:") and "Traceback" not in bad.stderr
