@@ -267,14 +267,7 @@ def _put_i64(b, pos, v):
 
 
 @njit(cache=True, nogil=True)
-def encode_event_packets(t, x, y, p, bounds, stream_id, out):
-    """Serialise events ``bounds[i]:bounds[i+1]`` as AEDAT4 packets.
-
-    Each packet is an 8-byte packet header (stream id, body size) followed by
-    the size-prefixed EVTS FlatBuffer (32 + 16 n bytes), so an uncompressed
-    file can be written from ``out`` in one call.  Packet ``i`` starts at
-    ``16 * bounds[i] + 40 * i``.
-    """
+def _encode_event_packets(t, x, y, p, bounds, stream_id, out, out16, out64):
     for i in range(len(bounds) - 1):
         lo = bounds[i]
         hi = bounds[i + 1]
@@ -296,16 +289,28 @@ def encode_event_packets(t, x, y, p, bounds, stream_id, out):
         _put_u32(out, base + 20, 6)  # table -> vtable at 20 - 6 = 14
         _put_u32(out, base + 24, 4)  # vector at 24 + 4 = 28
         _put_u32(out, base + 28, n)
+        # the structs start 8-byte aligned (16 lo + 40 (i + 1)): store by word
+        w = (base + 32) // 8
         for k in range(n):
-            pos = base + 32 + 16 * k
             j = lo + k
-            _put_i64(out, pos, t[j])
-            _put_u16(out, pos + 8, np.int64(x[j]))
-            _put_u16(out, pos + 10, np.int64(y[j]))
-            out[pos + 12] = p[j]
-            out[pos + 13] = 0
-            out[pos + 14] = 0
-            out[pos + 15] = 0
+            out64[w + 2 * k] = t[j]
+            out64[w + 2 * k + 1] = 0
+            h = 4 * (w + 2 * k + 1)
+            out16[h] = x[j]
+            out16[h + 1] = y[j]
+            out[2 * h + 4] = p[j]
+
+
+def encode_event_packets(t, x, y, p, bounds, stream_id, out):
+    """Serialise events ``bounds[i]:bounds[i+1]`` as AEDAT4 packets.
+
+    Each packet is an 8-byte packet header (stream id, body size) followed by
+    the size-prefixed EVTS FlatBuffer (32 + 16 n bytes), so an uncompressed
+    file can be written from ``out`` in one call.  Packet ``i`` starts at
+    ``16 * bounds[i] + 40 * i``; ``out`` must be a uint8 array whose length
+    is a multiple of 8.
+    """
+    _encode_event_packets(t, x, y, p, bounds, stream_id, out, out.view(np.uint16), out.view(np.int64))
 
 
 @njit(cache=True, nogil=True)

@@ -873,7 +873,7 @@ class Aedat4Writer:
             need = (hi - lo) * 16 + 40 * npk
             buf = staging[k % 2]
             if buf is None or len(buf) < need:
-                buf = staging[k % 2] = np.empty(need, np.uint8)
+                buf = staging[k % 2] = np.empty(need + (-need % 8), np.uint8)
             tt = events.t[lo:hi]
             _fb.encode_event_packets(tt, events.x[lo:hi], events.y[lo:hi], events.p[lo:hi], local, 0, buf)
             heads = local[:-1] * 16 + 40 * np.arange(npk)
