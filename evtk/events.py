@@ -213,6 +213,19 @@ class Events:
         out[pname] = self.p
         return out
 
+    def to_arrow(self, metadata=None):
+        """A ``pyarrow.Table`` with columns t, x, y, p and the sensor size in its schema metadata."""
+        from .io.arrow import to_arrow
+
+        return to_arrow(self, metadata)
+
+    @classmethod
+    def from_arrow(cls, table, sensor_size=None) -> "Events":
+        """Events from a ``pyarrow.Table`` (sensor size from its metadata unless given)."""
+        from .io.arrow import from_arrow
+
+        return from_arrow(table, sensor_size)
+
     # -- queries ----------------------------------------------------------
     def __len__(self) -> int:
         return len(self.t)

@@ -12,11 +12,12 @@ from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
 from . import aedat4
 from .aedat4 import Recording
+from .base import BaseRecording
 
-__all__ = ["open", "read_events", "write_events", "detect_format", "Recording", "WRITE_EXTENSIONS"]
+__all__ = ["open", "read_events", "write_events", "detect_format", "Recording", "BaseRecording", "WRITE_EXTENSIONS"]
 
 #: Extension -> format name for writing.
-WRITE_EXTENSIONS = {".aedat4": "aedat4"}
+WRITE_EXTENSIONS = {".aedat4": "aedat4", ".h5": "hdf5", ".hdf5": "hdf5", ".parquet": "parquet", ".pq": "parquet"}
 
 _SIGNATURES = (
     (aedat4.MAGIC, "aedat4"),
@@ -46,15 +47,23 @@ def detect_format(path) -> str:
     raise FormatError(path, 0, "unrecognised file: not AEDAT4 (#!AER-DAT4.0), HDF5 or Parquet")
 
 
-def open(path, salvage: bool = False) -> Recording:  # noqa: A001 - mirrors builtins.open on purpose
-    """Open a recording for reading.
+def open(path, salvage: bool = False, sensor_size=None, sort: bool = False) -> BaseRecording:  # noqa: A001
+    """Open a recording for reading; the format is found from the file's first bytes.
 
     Parameters
     ----------
     path : str or os.PathLike
+        An AEDAT4, HDF5 (evtk, DSEC, Prophesee or event_utils layout) or
+        Parquet file.
     salvage : bool
-        Recover every intact packet before damage instead of raising
+        Recover what is intact before damage instead of raising
         :class:`~evtk.FormatError`; ``recording.damage`` says where it stopped.
+    sensor_size : (int, int), optional
+        For HDF5 or Parquet files that do not record it (otherwise inferred
+        from the largest coordinates, with a warning).
+    sort : bool
+        HDF5 only: sort events whose time stamps go backwards instead of
+        refusing the file.
 
     Examples
     --------
@@ -68,7 +77,13 @@ def open(path, salvage: bool = False) -> Recording:  # noqa: A001 - mirrors buil
     fmt = detect_format(path)
     if fmt in ("aedat4", "aedat-other"):
         return Recording(path, salvage=salvage)
-    raise FormatError(path, 0, f"{fmt} files are not supported yet")
+    if fmt == "hdf5":
+        from .hdf5 import Hdf5Recording
+
+        return Hdf5Recording(path, salvage=salvage, sensor_size=sensor_size, sort=sort)
+    from .arrow import ParquetRecording
+
+    return ParquetRecording(path, salvage=salvage, sensor_size=sensor_size)
 
 
 def read_events(path, t_start_us=None, t_end_us=None) -> Events:
@@ -80,7 +95,10 @@ def read_events(path, t_start_us=None, t_end_us=None) -> Events:
 def write_events(path, events: Events, triggers: Triggers | None = None, compression: str = "lz4", metadata=None, **kwargs):
     """Write ``events`` (and triggers) to ``path``; the extension picks the format.
 
-    The file appears under its name only once complete.
+    ``.aedat4``, ``.h5``/``.hdf5`` (evtk's layout) or ``.parquet``.  The file
+    appears under its name only once complete.  Extra keywords go to the
+    format's writer (for example ``packet_events`` for AEDAT4, ``sort`` and
+    ``chunk_events`` for HDF5, ``row_group_events`` for Parquet).
     """
     ext = os.path.splitext(os.fspath(path))[1].lower()
     fmt = WRITE_EXTENSIONS.get(ext)
@@ -88,7 +106,16 @@ def write_events(path, events: Events, triggers: Triggers | None = None, compres
         raise EvtkError(f"cannot tell the format from the extension {ext!r}; use one of {sorted(WRITE_EXTENSIONS)}")
     if not isinstance(events, Events):
         raise EvtkError(f"events must be evtk.Events, got {type(events).__name__}")
-    aedat4.write_aedat4(path, events, triggers, compression=compression, metadata=metadata, **kwargs)
+    if fmt == "aedat4":
+        aedat4.write_aedat4(path, events, triggers, compression=compression, metadata=metadata, **kwargs)
+    elif fmt == "hdf5":
+        from .hdf5 import write_hdf5
+
+        write_hdf5(path, events, triggers, compression=compression, metadata=metadata, **kwargs)
+    else:
+        from .arrow import write_parquet
+
+        write_parquet(path, events, triggers, compression=compression, metadata=metadata, **kwargs)
 
 
 import builtins as _builtins  # noqa: E402

@@ -16,7 +16,7 @@ class AtomicFile:
     one recognisable.  :meth:`discard` removes the partial file.
     """
 
-    def __init__(self, path):
+    def __init__(self, path, keep_open=True):
         self.path = os.fspath(path)
         directory = os.path.dirname(os.path.abspath(self.path))
         fd, self.tmp_path = tempfile.mkstemp(
@@ -35,11 +35,21 @@ class AtomicFile:
         except OSError:  # pragma: no cover - filesystems without modes
             pass
         self.file = os.fdopen(fd, "w+b")
+        if not keep_open:  # another library (h5py, pyarrow) writes the path itself
+            self.file.close()
 
     def commit(self):
-        self.file.flush()
-        os.fsync(self.file.fileno())
-        self.file.close()
+        """Flush to disk and move the file under its final name."""
+        if not self.file.closed:
+            self.file.flush()
+            os.fsync(self.file.fileno())
+            self.file.close()
+        else:
+            fd = os.open(self.tmp_path, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
         os.replace(self.tmp_path, self.path)
         try:  # make the rename itself durable
             dfd = os.open(os.path.dirname(os.path.abspath(self.path)), os.O_RDONLY)

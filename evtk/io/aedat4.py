@@ -13,7 +13,6 @@ import json
 import os
 import struct
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
 from typing import Iterator
 from xml.sax.saxutils import escape
 
@@ -25,54 +24,19 @@ from ..events import Events, Triggers
 from . import _compression as cz
 from . import _fb
 from ._atomic import AtomicFile
+from .base import BaseRecording, Damage, StreamInfo, time_chunks
 
-__all__ = ["Recording", "StreamInfo", "Damage", "Aedat4Writer", "write_aedat4", "MAGIC"]
+__all__ = ["Recording", "Aedat4Writer", "write_aedat4", "MAGIC"]
 
 MAGIC = b"#!AER-DAT4.0\r\n"
 _HEADER_START = len(MAGIC)
 _IDENT = {name: np.frombuffer(name.encode(), np.uint8) for name in ("EVTS", "TRIG", "IMUS", "FRME", "FTAB", "IOHE")}
 # types whose element count is the length of the root table's first vector
 _VECTOR_TYPES = {"EVTS", "TRIG", "IMUS"}
-_TYPE_NAMES = {"EVTS": "events", "TRIG": "triggers", "IMUS": "imu", "FRME": "frame"}
+_TYPE_NAMES = StreamInfo.KINDS
 
 DEFAULT_PACKET_EVENTS = 8192
 DEFAULT_PACKET_US = 10_000
-
-
-@dataclass
-class StreamInfo:
-    """One stream of a recording, as its header and packets describe it."""
-
-    id: int
-    name: str
-    type: str  # FlatBuffers identifier: EVTS, TRIG, IMUS, FRME, ...
-    packets: int = 0
-    count: int | None = None  # elements (events, triggers, IMU samples, frames)
-    t_start_us: int | None = None
-    t_end_us: int | None = None
-    sensor_size: tuple[int, int] | None = None
-    attributes: dict = field(default_factory=dict)
-
-    def as_dict(self) -> dict:
-        return {
-            "id": self.id,
-            "name": self.name,
-            "type": self.type,
-            "kind": _TYPE_NAMES.get(self.type, "other"),
-            "packets": self.packets,
-            "count": self.count,
-            "t_start_us": self.t_start_us,
-            "t_end_us": self.t_end_us,
-            "sensor_size": list(self.sensor_size) if self.sensor_size else None,
-        }
-
-
-@dataclass
-class Damage:
-    """Where salvage stopped: the byte offset and what was wrong there."""
-
-    offset: int
-    reason: str
 
 
 class _Stop(Exception):
@@ -151,7 +115,7 @@ def _parse_xml(text: str, path) -> dict:
     return streams
 
 
-class Recording:
+class Recording(BaseRecording):
     """An AEDAT4 file opened for reading.
 
     Use :func:`evtk.open` rather than this class directly.  The file is
@@ -169,10 +133,8 @@ class Recording:
     format = "aedat4"
 
     def __init__(self, path, salvage: bool = False):
-        self.path = os.fspath(path)
-        self.salvage = bool(salvage)
-        self.damage: Damage | None = None
-        self.warnings: list[str] = []
+        super().__init__(path, salvage)
+        self._fd = -1
         try:
             self._fd = os.open(self.path, os.O_RDONLY)
         except OSError as exc:
@@ -186,26 +148,13 @@ class Recording:
             self._fd = -1
             raise
 
-    # -- plumbing -----------------------------------------------------------
-    def close(self):
+    def _close(self):
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
-    def __del__(self):
-        try:
-            self.close()
-        except Exception:
-            pass
-
     def __repr__(self):
-        return f"Recording({self.path!r}, format='aedat4', streams={[s.name for s in self.streams]})"
+        return f"Recording({self.path!r}, format='aedat4', streams={[s.name for s in self._streams.values()]})"
 
     def _pread(self, n, offset):
         if self._fd < 0:
@@ -454,21 +403,6 @@ class Recording:
             raise FormatError(self.path, _HEADER_START, f"the evtkMetadata attribute is not valid JSON ({exc})") from None
         return value if isinstance(value, dict) else {"value": value}
 
-    @property
-    def t_start_us(self):
-        return self._stream_time("t_start_us")
-
-    @property
-    def t_end_us(self):
-        return self._stream_time("t_end_us")
-
-    def _stream_time(self, attr):
-        s = self._stream(None, "EVTS")
-        if s is None:
-            return None
-        self.streams
-        return getattr(s, attr)
-
     # -- packet bodies ------------------------------------------------------------
     def _body(self, i):
         """Decompressed body of packet ``i`` as a uint8 array (or raise/stop)."""
@@ -652,30 +586,8 @@ class Recording:
             trig = trig.between(t_start_us, t_end_us)
         return trig
 
-    # -- summary ----------------------------------------------------------------------
-    def info(self) -> dict:
-        """A JSON-ready summary (what ``evtk info --json`` prints)."""
-        streams = self.streams
-        ev = self._stream(None, "EVTS")
-        tr = self._stream(None, "TRIG")
-        out = {
-            "path": self.path,
-            "format": self.format,
-            "compression": self.compression,
-            "events": ev.count if ev else 0,
-            "triggers": tr.count if tr else 0,
-            "sensor_size": list(self.sensor_size) if self.sensor_size else None,
-            "t_start_us": ev.t_start_us if ev else None,
-            "t_end_us": ev.t_end_us if ev else None,
-            "data_table": bool(self._index.from_table),
-            "streams": [s.as_dict() for s in streams],
-            "metadata": self.metadata,
-        }
-        if self.warnings:
-            out["warnings"] = list(self.warnings)
-        if self.salvage:
-            out["damage"] = None if self.damage is None else {"offset": self.damage.offset, "reason": self.damage.reason}
-        return out
+    def _extra_info(self) -> dict:
+        return {"data_table": bool(self._index.from_table)}
 
 
 def _status(code) -> str:
@@ -832,22 +744,6 @@ class Aedat4Writer:
         for col, v in zip(self._table, (offsets, np.full(n, sid), sizes, counts, t0, t1)):
             col.append(np.asarray(v, np.int64))
 
-    def _packet_bounds(self, t, is_sorted):
-        """Event indices where packets start (plus the end): by count, and by
-        time span when the events are sorted."""
-        n = len(t)
-        if self.packet_us is None or not is_sorted:
-            return np.append(np.arange(0, n, self.packet_events, dtype=np.int64), n)
-        cuts = [0]
-        i = 0
-        t_max = int(np.iinfo(np.int64).max)
-        while i < n:
-            limit = int(t[i]) + self.packet_us
-            j = int(np.searchsorted(t, limit, side="left")) if limit <= t_max else n
-            i = min(max(j, i + 1), i + self.packet_events)
-            cuts.append(i)
-        return np.asarray(cuts, np.int64)
-
     def write_events(self, events: Events):
         """Append events (one or more packets)."""
         self._check_open()
@@ -859,7 +755,7 @@ class Aedat4Writer:
         w, h = self.sensor_size
         if int(events.x.max()) >= w or int(events.y.max()) >= h:
             raise EvtkError(f"{events.out_of_bounds()} events lie outside the {w}x{h} sensor")
-        bounds = self._packet_bounds(events.t, events.is_sorted)
+        bounds = time_chunks(events.t, self.packet_events, self.packet_us, events.is_sorted)
         # Serialise batches of about 2 M events into two staging buffers used in
         # turn: the next batch is encoded while the pool compresses this one.
         rows = max(1, (1 << 21) // self.packet_events)

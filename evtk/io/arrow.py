@@ -1,0 +1,292 @@
+"""Apache Arrow tables and Parquet files of events.
+
+Columns ``t`` (int64 µs), ``x``, ``y`` (uint16) and ``p`` (uint8); the sensor
+size, evtk metadata and triggers travel in the schema's key-value metadata
+(``formats/parquet.md``).  Parquet files are cut into row groups by time, so
+a window reads only the row groups whose ``t`` statistics overlap it.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from .._version import __version__
+from ..errors import EvtkError, FormatError
+from ..events import Events, Triggers
+from ._atomic import AtomicFile
+from ._checks import scan_events
+from .base import BaseRecording, Damage, StreamInfo, time_chunks
+
+__all__ = ["to_arrow", "from_arrow", "ParquetRecording", "write_parquet", "COMPRESSIONS"]
+
+KEY_SENSOR = b"evtk.sensor_size"
+KEY_META = b"evtk.metadata"
+KEY_TRIGGERS = b"evtk.triggers"
+KEY_VERSION = b"evtk.version"
+COMPRESSIONS = {"lz4": "lz4", "lz4_high": "lz4", "zstd": "zstd", "zstd_high": "zstd", "gzip": "gzip", "none": "none"}
+ROW_GROUP_EVENTS = 1 << 18
+ROW_GROUP_US = 100_000
+
+
+def _pa():
+    import pyarrow as pa
+
+    return pa
+
+
+def _schema_metadata(sensor_size, metadata=None, triggers=None) -> dict:
+    out = {KEY_SENSOR: json.dumps(list(sensor_size)).encode(), KEY_VERSION: __version__.encode()}
+    if metadata:
+        try:
+            out[KEY_META] = json.dumps(metadata, sort_keys=True).encode()
+        except (TypeError, ValueError) as exc:
+            raise EvtkError(f"metadata must be JSON-serialisable: {exc}") from None
+    if triggers is not None:
+        out[KEY_TRIGGERS] = json.dumps({"t": triggers.t.tolist(), "kind": triggers.kind.tolist()}).encode()
+    return out
+
+
+def _schema(sensor_size, metadata=None, triggers=None):
+    pa = _pa()
+    return pa.schema(
+        [("t", pa.int64()), ("x", pa.uint16()), ("y", pa.uint16()), ("p", pa.uint8())],
+        metadata=_schema_metadata(sensor_size, metadata, triggers),
+    )
+
+
+def to_arrow(events: Events, metadata=None, triggers=None):
+    """A ``pyarrow.Table`` sharing the event columns (no copy)."""
+    pa = _pa()
+    return pa.Table.from_arrays(
+        [pa.array(events.t), pa.array(events.x), pa.array(events.y), pa.array(events.p)],
+        schema=_schema(events.sensor_size, metadata, triggers),
+    )
+
+
+def _sensor_from(meta, path=None):
+    raw = (meta or {}).get(KEY_SENSOR)
+    if raw is None:
+        return None
+    try:
+        w, h = json.loads(raw)
+        return int(w), int(h)
+    except (ValueError, TypeError):
+        raise FormatError(path, None, f"schema metadata {KEY_SENSOR.decode()} is not [width, height]: {raw!r}") from None
+
+
+def _columns(table, path=None):
+    names = table.schema.names if hasattr(table, "schema") else table.names
+    missing = [c for c in ("t", "x", "y", "p") if c not in names]
+    if missing:
+        raise FormatError(path, None, f"columns {missing} missing; found {list(names)}; expected t, x, y, p")
+    cols = []
+    for name in ("t", "x", "y", "p"):
+        col = table.column(name)
+        if col.null_count:
+            raise FormatError(path, None, f"column {name!r} holds {col.null_count} null values")
+        arr = col.to_numpy()
+        if arr.dtype.kind not in "iub":
+            raise FormatError(path, None, f"column {name!r} has type {col.type}, expected an integer type")
+        cols.append(arr)
+    return cols
+
+
+def from_arrow(table, sensor_size=None) -> Events:
+    """Events from a ``pyarrow.Table`` (or anything with columns t, x, y, p).
+
+    The sensor size comes from ``sensor_size`` or from the schema metadata
+    evtk writes.
+    """
+    size = sensor_size or _sensor_from(table.schema.metadata)
+    if size is None:
+        raise EvtkError("the table carries no evtk.sensor_size metadata; pass sensor_size=(width, height)")
+    t, x, y, p = _columns(table)
+    return Events(t, x, y, p, size)
+
+
+# =============================================================================
+# Parquet
+# =============================================================================
+
+
+class ParquetRecording(BaseRecording):
+    """A Parquet file of events; windows skip row groups by their ``t`` statistics."""
+
+    format = "parquet"
+
+    def __init__(self, path, salvage=False, sensor_size=None):
+        super().__init__(path, salvage)
+        import pyarrow.parquet as pq
+
+        try:
+            self._pf = pq.ParquetFile(self.path)
+        except Exception as exc:  # pyarrow raises ArrowInvalid / OSError subclasses
+            raise FormatError(self.path, None, f"not a readable Parquet file ({exc})") from None
+        schema = self._pf.schema_arrow
+        missing = [c for c in ("t", "x", "y", "p") if c not in schema.names]
+        if missing:
+            raise FormatError(self.path, None, f"columns {missing} missing; found {schema.names}; expected t, x, y, p")
+        for name in ("t", "x", "y", "p"):
+            typ = schema.field(name).type
+            if not (str(typ).startswith(("int", "uint")) or str(typ) == "bool"):
+                raise FormatError(self.path, None, f"column {name!r} has type {typ}, expected an integer type")
+        meta = schema.metadata or {}
+        self._sensor = (int(sensor_size[0]), int(sensor_size[1])) if sensor_size else _sensor_from(meta, self.path)
+        self._meta = {}
+        if KEY_META in meta:
+            try:
+                self._meta = json.loads(meta[KEY_META])
+            except ValueError:
+                raise FormatError(self.path, None, "schema metadata evtk.metadata is not valid JSON") from None
+        self._triggers = Triggers()
+        if KEY_TRIGGERS in meta:
+            try:
+                d = json.loads(meta[KEY_TRIGGERS])
+                self._triggers = Triggers(d["t"], d["kind"])
+            except (ValueError, KeyError, TypeError, EvtkError):
+                raise FormatError(self.path, None, "schema metadata evtk.triggers is malformed") from None
+        self._t_col = schema.names.index("t")
+        md = self._pf.metadata
+        self._groups = []  # (rows, t_min, t_max) per row group; None when no statistics
+        for g in range(md.num_row_groups):
+            rg = md.row_group(g)
+            st = rg.column(self._t_col).statistics
+            if st is not None and st.has_min_max:
+                self._groups.append((rg.num_rows, int(st.min), int(st.max)))
+            else:
+                self._groups.append((rg.num_rows, None, None))
+        if self._sensor is None:
+            self._infer_sensor_size()
+
+    def _close(self):
+        try:
+            self._pf.close()
+        except AttributeError:  # pragma: no cover - older pyarrow
+            pass
+
+    def _infer_sensor_size(self):
+        w = h = 1
+        for g in range(len(self._groups)):
+            tab = self._pf.read_row_group(g, columns=["x", "y"])
+            if tab.num_rows:
+                w = max(w, int(np.max(tab.column("x").to_numpy())) + 1)
+                h = max(h, int(np.max(tab.column("y").to_numpy())) + 1)
+        self._sensor = (w, h)
+        self.warnings.append(f"the file does not record its sensor size; inferred {self._sensor} from the coordinates")
+
+    @property
+    def sensor_size(self):
+        return self._sensor
+
+    @property
+    def metadata(self):
+        return self._meta
+
+    @property
+    def compression(self):
+        md = self._pf.metadata
+        if md.num_row_groups == 0:
+            return None
+        return str(md.row_group(0).column(self._t_col).compression).lower()
+
+    def _rows(self, t_start_us, t_end_us):
+        keep = []
+        for g, (_, lo, hi) in enumerate(self._groups):
+            if lo is not None:
+                if t_start_us is not None and hi < t_start_us:
+                    continue
+                if t_end_us is not None and lo >= t_end_us:
+                    continue
+            keep.append(g)
+        return keep
+
+    def _read_group(self, g, t_before):
+        try:
+            table = self._pf.read_row_group(g, columns=["t", "x", "y", "p"])
+        except Exception as exc:
+            return None, f"row group {g} cannot be read ({exc})"
+        cols = _columns(table, self.path)
+        try:
+            ev = Events(*cols, self._sensor)
+        except EvtkError as exc:
+            return None, f"row group {g} holds invalid values: {exc}"
+        back, outside = scan_events(ev.t, ev.x, ev.y, self._sensor, t_before)
+        first = min(i for i in (back, outside, len(ev)) if i >= 0)
+        if first < len(ev):
+            what = "time stamps go backwards" if first == back else f"an event lies outside the {self._sensor} sensor"
+            start = sum(r for r, _, _ in self._groups[:g])
+            return ev[:first], f"{what} at event index {start + first}"
+        return ev, None
+
+    def _groups_events(self, t_start_us, t_end_us):
+        before = None
+        for g in self._rows(t_start_us, t_end_us):
+            ev, problem = self._read_group(g, before)
+            if problem:
+                if not self.salvage:
+                    raise FormatError(self.path, None, problem)
+                if self.damage is None:
+                    self.damage = Damage(None, problem)
+                if ev is not None and len(ev):
+                    yield ev.between(t_start_us, t_end_us)
+                return
+            if len(ev):
+                before = int(ev.t[-1])
+                yield ev.between(t_start_us, t_end_us)
+
+    def events(self, t_start_us=None, t_end_us=None) -> Events:
+        self._check_open()
+        return Events.concatenate(list(self._groups_events(t_start_us, t_end_us)), sensor_size=self._sensor)
+
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
+        self._check_open()
+        chunk_events = int(chunk_events)
+        if chunk_events < 1:
+            raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
+        for ev in self._groups_events(t_start_us, t_end_us):
+            for i in range(0, len(ev), chunk_events):
+                yield ev[i : i + chunk_events]
+
+    def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
+        return self._triggers.between(t_start_us, t_end_us)
+
+    @property
+    def streams(self):
+        md = self._pf.metadata
+        known = [(lo, hi) for _, lo, hi in self._groups if lo is not None]
+        first = min(lo for lo, _ in known) if known else None
+        last = max(hi for _, hi in known) if known else None
+        out = [StreamInfo(0, "events", "EVTS", packets=md.num_row_groups, count=md.num_rows,
+                          t_start_us=first, t_end_us=last, sensor_size=self._sensor)]
+        tr = self._triggers
+        if len(tr):
+            out.append(StreamInfo(1, "triggers", "TRIG", count=len(tr), t_start_us=int(tr.t.min()), t_end_us=int(tr.t.max())))
+        return out
+
+    def _extra_info(self):
+        return {"row_groups": len(self._groups)}
+
+
+def write_parquet(path, events: Events, triggers: Triggers | None = None, compression="lz4", metadata=None,
+                  row_group_events=ROW_GROUP_EVENTS, row_group_us=ROW_GROUP_US):
+    """Write events as Parquet (atomically), one row group per time slice."""
+    import pyarrow.parquet as pq
+
+    codec = COMPRESSIONS.get(str(compression).lower())
+    if codec is None:
+        raise EvtkError(f"unknown Parquet compression {compression!r}; choose one of {sorted(COMPRESSIONS)}")
+    table = to_arrow(events, metadata, triggers)
+    bounds = time_chunks(events.t, int(row_group_events), row_group_us, events.is_sorted)
+    atomic = AtomicFile(path, keep_open=False)
+    try:
+        with pq.ParquetWriter(atomic.tmp_path, table.schema, compression=codec) as writer:
+            if len(events) == 0:
+                writer.write_table(table)
+            for a, b in zip(bounds[:-1], bounds[1:]):
+                writer.write_table(table.slice(int(a), int(b - a)), row_group_size=int(b - a))
+        atomic.commit()
+    except BaseException:
+        atomic.discard()
+        raise

@@ -1,0 +1,184 @@
+"""What every opened recording offers, whatever its file format."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import numpy as np
+
+from ..errors import EvtkError
+from ..events import Events, Triggers
+
+__all__ = ["BaseRecording", "StreamInfo", "Damage", "time_chunks"]
+
+
+@dataclass
+class StreamInfo:
+    """One stream of a recording: name, type, element count and time range."""
+
+    id: int
+    name: str
+    type: str  # AEDAT4 identifier: EVTS, TRIG, IMUS, FRME, ...
+    packets: int = 0
+    count: int | None = None
+    t_start_us: int | None = None
+    t_end_us: int | None = None
+    sensor_size: tuple[int, int] | None = None
+    attributes: dict = field(default_factory=dict)
+
+    KINDS = {"EVTS": "events", "TRIG": "triggers", "IMUS": "imu", "FRME": "frame"}
+
+    def as_dict(self) -> dict:
+        return {
+            "id": self.id,
+            "name": self.name,
+            "type": self.type,
+            "kind": self.KINDS.get(self.type, "other"),
+            "packets": self.packets,
+            "count": self.count,
+            "t_start_us": self.t_start_us,
+            "t_end_us": self.t_end_us,
+            "sensor_size": list(self.sensor_size) if self.sensor_size else None,
+        }
+
+
+@dataclass
+class Damage:
+    """Where salvage stopped: the byte offset (or dataset) and what was wrong there."""
+
+    offset: int | None
+    reason: str
+
+
+class BaseRecording:
+    """Common interface of :class:`evtk.io.aedat4.Recording` and the HDF5 and
+    Parquet recordings.
+
+    Subclasses provide ``sensor_size``, ``streams``, ``metadata``,
+    ``events()``, ``triggers()``, ``iter_events()`` and ``_close()``.
+    """
+
+    format = "?"
+
+    def __init__(self, path, salvage: bool = False):
+        self.path = os.fspath(path)
+        self.salvage = bool(salvage)
+        self.damage: Damage | None = None
+        self.warnings: list[str] = []
+        self._closed = False
+
+    # -- lifetime -------------------------------------------------------------
+    def close(self):
+        if not self._closed:
+            self._closed = True
+            self._close()
+
+    def _close(self):  # pragma: no cover - overridden
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    def __repr__(self):
+        return f"{type(self).__name__}({self.path!r}, format={self.format!r})"
+
+    def _check_open(self):
+        if self._closed:
+            raise EvtkError(f"{self.path}: the recording is closed")
+
+    # -- interface -------------------------------------------------------------
+    sensor_size: tuple[int, int] | None = None
+
+    @property
+    def streams(self) -> list[StreamInfo]:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    @property
+    def metadata(self) -> dict:
+        return {}
+
+    def events(self, t_start_us=None, t_end_us=None) -> Events:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
+        return Triggers()
+
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None) -> Iterator[Events]:
+        raise NotImplementedError  # pragma: no cover
+
+    @property
+    def compression(self) -> str | None:
+        return None
+
+    # -- derived -----------------------------------------------------------------
+    def _main(self, typ):
+        return next((s for s in self.streams if s.type == typ), None)
+
+    @property
+    def t_start_us(self):
+        s = self._main("EVTS")
+        return s.t_start_us if s else None
+
+    @property
+    def t_end_us(self):
+        s = self._main("EVTS")
+        return s.t_end_us if s else None
+
+    def info(self) -> dict:
+        """A JSON-ready summary (what ``evtk info --json`` prints)."""
+        streams = self.streams
+        ev = next((s for s in streams if s.type == "EVTS"), None)
+        tr = next((s for s in streams if s.type == "TRIG"), None)
+        out = {
+            "path": self.path,
+            "format": self.format,
+            "compression": self.compression,
+            "events": ev.count if ev else 0,
+            "triggers": tr.count if tr else 0,
+            "sensor_size": list(self.sensor_size) if self.sensor_size else None,
+            "t_start_us": ev.t_start_us if ev else None,
+            "t_end_us": ev.t_end_us if ev else None,
+            "streams": [s.as_dict() for s in streams],
+            "metadata": self.metadata,
+        }
+        out.update(self._extra_info())
+        if self.warnings:
+            out["warnings"] = list(self.warnings)
+        if self.salvage:
+            out["damage"] = None if self.damage is None else {"offset": self.damage.offset, "reason": self.damage.reason}
+        return out
+
+    def _extra_info(self) -> dict:
+        return {}
+
+
+def time_chunks(t: np.ndarray, max_events: int, max_us: int | None, is_sorted: bool) -> np.ndarray:
+    """Indices where consecutive chunks of ``t`` start, plus ``len(t)``.
+
+    A chunk holds at most ``max_events`` events and, for a sorted stream, spans
+    less than ``max_us`` microseconds.  Used for AEDAT4 packets and Parquet
+    row groups alike, so a short time window touches few of them.
+    """
+    n = len(t)
+    if max_us is None or not is_sorted:
+        return np.append(np.arange(0, n, max_events, dtype=np.int64), n)
+    cuts = [0]
+    i = 0
+    t_max = int(np.iinfo(np.int64).max)
+    while i < n:
+        limit = int(t[i]) + max_us
+        j = int(np.searchsorted(t, limit, side="left")) if limit <= t_max else n
+        i = min(max(j, i + 1), i + max_events)
+        cuts.append(i)
+    return np.asarray(cuts, np.int64)

@@ -1,0 +1,750 @@
+"""HDF5 event recordings: evtk's own layout and the common foreign ones.
+
+evtk's layout (``formats/hdf5.md``) stores the four columns separately,
+chunked and compressed, plus a block index so that a time window reads only
+the chunks that overlap it.  :class:`Hdf5Recording` also reads the DSEC,
+Prophesee and event_utils layouts, recognised by their structure.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from .._version import __version__
+from ..errors import EvtkError, FormatError
+from ..events import Events, Triggers
+from ._atomic import AtomicFile
+from ._checks import scan_events
+from .base import BaseRecording, StreamInfo
+
+__all__ = ["Hdf5Recording", "Hdf5Writer", "write_hdf5", "COMPRESSIONS", "EVTK_FORMAT"]
+
+EVTK_FORMAT = "evtk.events"
+FORMAT_VERSION = 1
+DEFAULT_CHUNK = 65536
+PROPHESEE_ECF_FILTER = 36559
+
+
+def _h5():
+    """h5py with the hdf5plugin filters registered."""
+    import h5py
+
+    try:
+        import hdf5plugin  # noqa: F401  (registers Blosc, LZ4, Zstd, ... with HDF5)
+    except ImportError:  # pragma: no cover - hdf5plugin is a dependency
+        pass
+    return h5py
+
+
+def _filter(name: str) -> dict:
+    """h5py dataset keywords for a compression name (see formats/hdf5.md)."""
+    import hdf5plugin
+
+    table = {
+        "lz4": lambda: dict(**hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.SHUFFLE)),
+        "lz4_high": lambda: dict(**hdf5plugin.Blosc(cname="lz4hc", clevel=9, shuffle=hdf5plugin.Blosc.SHUFFLE)),
+        "zstd": lambda: dict(**hdf5plugin.Blosc(cname="zstd", clevel=3, shuffle=hdf5plugin.Blosc.SHUFFLE)),
+        "zstd_high": lambda: dict(**hdf5plugin.Blosc(cname="zstd", clevel=9, shuffle=hdf5plugin.Blosc.SHUFFLE)),
+        "gzip": lambda: dict(compression="gzip", compression_opts=1, shuffle=True),
+        "none": lambda: {},
+    }
+    try:
+        return table[name]()
+    except KeyError:
+        raise EvtkError(f"unknown HDF5 compression {name!r}; choose one of {sorted(COMPRESSIONS)}") from None
+
+
+#: Compression names accepted for HDF5 (Blosc with byte shuffle unless gzip/none).
+COMPRESSIONS = ("lz4", "lz4_high", "zstd", "zstd_high", "gzip", "none")
+
+
+# =============================================================================
+# Reading
+# =============================================================================
+
+
+class _Layout:
+    """How one HDF5 layout maps onto columns, an optional time index and metadata."""
+
+    name = "?"
+
+    def __init__(self, f, path):
+        self.f = f
+        self.path = path
+        self.sensor_size = None
+        self.metadata = {}
+        self.index_t = None  # index: index_t[k] <= t of event index_id[k] ...
+        self.index_id = None  # ... and every event before index_id[k] is earlier than index_t[k]
+
+    def __len__(self):
+        return self.n
+
+    def read(self, i0, i1):  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def t_at(self, i0, i1) -> np.ndarray:
+        """Time stamps (int64 µs) of events i0..i1."""
+        return self.read_t(i0, i1)
+
+    def triggers(self) -> Triggers:
+        return Triggers()
+
+    def compression(self):
+        return None
+
+
+def _need(f, path, names, layout):
+    missing = [n for n in names if n not in f]
+    if missing:
+        raise FormatError(path, None, f"{layout} layout: dataset(s) {', '.join('/' + m for m in missing)} missing")
+    return [f[n] for n in names]
+
+
+def _check_int(ds, path, what, kinds="iu"):
+    if ds.dtype.kind not in kinds:
+        raise FormatError(path, None, f"dataset {ds.name} ({what}) has dtype {ds.dtype}, expected an integer type")
+
+
+def _check_lengths(path, datasets):
+    lengths = {d.name: d.shape[0] if d.shape else None for d in datasets}
+    if any(d.ndim != 1 for d in datasets):
+        bad = [d.name for d in datasets if d.ndim != 1]
+        raise FormatError(path, None, f"dataset(s) {', '.join(bad)} must be one-dimensional")
+    if len(set(lengths.values())) != 1:
+        detail = ", ".join(f"{k}={v}" for k, v in lengths.items())
+        raise FormatError(path, None, f"event datasets differ in length: {detail}")
+    return next(iter(lengths.values()))
+
+
+def _describe_filters(ds):
+    """Filter ids of a dataset's pipeline."""
+    plist = ds.id.get_create_plist()
+    return [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
+
+
+class _EvtkLayout(_Layout):
+    name = "evtk"
+
+    def __init__(self, f, path):
+        super().__init__(f, path)
+        g = f["events"]
+        self.t, self.x, self.y, self.p = _need(g, path, ["t", "x", "y", "p"], "evtk")
+        for ds, what in ((self.t, "time"), (self.x, "x"), (self.y, "y"), (self.p, "polarity")):
+            _check_int(ds, path, what, "iub" if what == "polarity" else "iu")
+        self.n = _check_lengths(path, [self.t, self.x, self.y, self.p])
+        size = f.attrs.get("sensor_size")
+        if size is None or len(size) != 2:
+            raise FormatError(path, None, "evtk layout: root attribute 'sensor_size' [width, height] missing")
+        self.sensor_size = (int(size[0]), int(size[1]))
+        text = f.attrs.get("metadata")
+        if text:
+            try:
+                self.metadata = json.loads(text)
+            except json.JSONDecodeError as exc:
+                raise FormatError(path, None, f"root attribute 'metadata' is not valid JSON ({exc})") from None
+        if "index_t_us" in g:
+            stride = int(g["index_t_us"].attrs.get("stride", 0))
+            index = g["index_t_us"][...]
+            if stride <= 0 or len(index) != (self.n + stride - 1) // stride:
+                raise FormatError(path, None, "the block index /events/index_t_us does not match /events/t")
+            self.index_t = index.astype(np.int64)
+            self.index_id = np.arange(len(index), dtype=np.int64) * stride
+
+    def read(self, i0, i1):
+        return self.t[i0:i1], self.x[i0:i1], self.y[i0:i1], self.p[i0:i1]
+
+    def read_t(self, i0, i1):
+        return self.t[i0:i1].astype(np.int64, copy=False)
+
+    def triggers(self):
+        if "triggers" not in self.f:
+            return Triggers()
+        t, k = _need(self.f["triggers"], self.path, ["t", "kind"], "evtk")
+        if t.shape != k.shape:
+            raise FormatError(self.path, None, "datasets /triggers/t and /triggers/kind differ in length")
+        return Triggers(t[...], k[...])
+
+    def compression(self):
+        ids = _describe_filters(self.t)
+        names = {32001: "blosc", 32004: "lz4", 32015: "zstd", 32026: "blosc2", 1: "gzip", 2: "shuffle"}
+        parts = [names.get(i, str(i)) for i in ids if i != 2]
+        return "+".join(parts) if parts else "none"
+
+
+class _DsecLayout(_Layout):
+    """DSEC: /events/{x,y,t,p}, /ms_to_idx, /t_offset (t relative to t_offset)."""
+
+    name = "dsec"
+
+    def __init__(self, f, path):
+        super().__init__(f, path)
+        g = f["events"]
+        self.t, self.x, self.y, self.p = _need(g, path, ["t", "x", "y", "p"], "DSEC")
+        for ds in (self.t, self.x, self.y, self.p):
+            _check_int(ds, path, ds.name.rsplit("/", 1)[-1], "iub")
+        self.n = _check_lengths(path, [self.t, self.x, self.y, self.p])
+        self.offset = int(f["t_offset"][()]) if "t_offset" in f else 0
+        ms = f["ms_to_idx"][...].astype(np.int64)
+        self.index_t = self.offset + 1000 * np.arange(len(ms), dtype=np.int64)
+        self.index_id = np.clip(ms, 0, self.n)
+
+    def read(self, i0, i1):
+        return self.read_t(i0, i1), self.x[i0:i1], self.y[i0:i1], self.p[i0:i1]
+
+    def read_t(self, i0, i1):
+        return self.t[i0:i1].astype(np.int64) + self.offset
+
+
+class _PropheseeLayout(_Layout):
+    """Prophesee: /CD/events compound (x, y, p, t) and /CD/indexes (id, ts)."""
+
+    name = "prophesee"
+
+    def __init__(self, f, path):
+        super().__init__(f, path)
+        ds = f["CD/events"]
+        ids = _describe_filters(ds)
+        h5py = _h5()
+        if PROPHESEE_ECF_FILTER in ids and not h5py.h5z.filter_avail(PROPHESEE_ECF_FILTER):
+            raise FormatError(
+                path, None,
+                "/CD/events is compressed with Prophesee's ECF codec (HDF5 filter 36559), which is not installed; "
+                "install the ECF HDF5 plugin from Prophesee's OpenEB and point HDF5_PLUGIN_PATH at it",
+            )
+        names = ds.dtype.names or ()
+        missing = [c for c in ("x", "y", "p", "t") if c not in names]
+        if missing:
+            raise FormatError(path, None, f"/CD/events lacks field(s) {missing}; it has {list(names)}")
+        if ds.ndim != 1:
+            raise FormatError(path, None, "/CD/events must be one-dimensional")
+        self.ds = ds
+        self.n = ds.shape[0]
+        w = f.attrs.get("width", f["CD"].attrs.get("width"))
+        h = f.attrs.get("height", f["CD"].attrs.get("height"))
+        geometry = f.attrs.get("geometry")
+        if w is not None and h is not None:
+            self.sensor_size = (int(w), int(h))
+        elif geometry is not None:
+            text = geometry.decode() if isinstance(geometry, bytes) else str(geometry)
+            try:
+                gw, gh = text.lower().split("x")
+                self.sensor_size = (int(gw), int(gh))
+            except ValueError:
+                pass
+        if "CD/indexes" in f:
+            idx = f["CD/indexes"][...]
+            if idx.dtype.names and {"id", "ts"} <= set(idx.dtype.names):
+                ts = idx["ts"].astype(np.int64)
+                ok = idx["id"] >= 0  # Prophesee marks empty leading slots with -1
+                self.index_t = ts[ok]
+                self.index_id = np.clip(idx["id"][ok].astype(np.int64), 0, self.n)
+
+    def read(self, i0, i1):
+        a = self.ds[i0:i1]
+        return a["t"].astype(np.int64), a["x"], a["y"], a["p"]
+
+    def triggers(self):
+        """EXT_TRIGGER events: polarity 1 is a rising edge, 0 a falling one."""
+        if "EXT_TRIGGER/events" not in self.f:
+            return Triggers()
+        a = self.f["EXT_TRIGGER/events"][...]
+        if not a.dtype.names or not {"p", "t"} <= set(a.dtype.names):
+            raise FormatError(self.path, None, "/EXT_TRIGGER/events lacks fields p and t")
+        kind = np.where(a["p"] > 0, 1, 2).astype(np.uint8)
+        return Triggers(a["t"].astype(np.int64), kind)
+
+    def read_t(self, i0, i1):
+        return self.ds.fields("t")[i0:i1].astype(np.int64)
+
+
+class _EventUtilsLayout(_Layout):
+    """event_utils / E2VID: /events/{xs,ys,ts,ps}, ts in seconds (float)."""
+
+    name = "event_utils"
+
+    def __init__(self, f, path):
+        super().__init__(f, path)
+        g = f["events"]
+        self.xs, self.ys, self.ts, self.ps = _need(g, path, ["xs", "ys", "ts", "ps"], "event_utils")
+        for ds in (self.xs, self.ys):
+            _check_int(ds, path, ds.name, "iuf")
+        if self.ts.dtype.kind not in "fiu":
+            raise FormatError(path, None, f"dataset {self.ts.name} has dtype {self.ts.dtype}, expected seconds as float")
+        self.n = _check_lengths(path, [self.xs, self.ys, self.ts, self.ps])
+        res = f.attrs.get("sensor_resolution")
+        if res is not None and len(res) == 2:
+            self.sensor_size = (int(res[1]), int(res[0]))  # stored as (height, width)
+
+    def _t(self, raw):
+        if raw.dtype.kind == "f":
+            return np.round(raw.astype(np.float64) * 1e6).astype(np.int64)
+        return raw.astype(np.int64)
+
+    def read(self, i0, i1):
+        p = self.ps[i0:i1]
+        return self._t(self.ts[i0:i1]), self.xs[i0:i1], self.ys[i0:i1], (p > 0).astype(np.uint8)
+
+    def read_t(self, i0, i1):
+        return self._t(self.ts[i0:i1])
+
+
+_LAYOUTS = (
+    ("evtk", lambda f: f.attrs.get("evtk_format") == EVTK_FORMAT and "events" in f, _EvtkLayout),
+    ("dsec", lambda f: "events/t" in f and "events/x" in f and "ms_to_idx" in f, _DsecLayout),
+    ("prophesee", lambda f: "CD/events" in f, _PropheseeLayout),
+    ("event_utils", lambda f: "events/ts" in f and "events/xs" in f, _EventUtilsLayout),
+)
+
+_EXPECTED = (
+    "evtk (root attribute evtk_format='evtk.events', /events/{t,x,y,p}), "
+    "DSEC (/events/{x,y,t,p}, /ms_to_idx, /t_offset), "
+    "Prophesee (/CD/events, /CD/indexes) or event_utils (/events/{xs,ys,ts,ps})"
+)
+
+
+def _inventory(f, limit=12):
+    names = []
+
+    def visit(name, obj):
+        if len(names) < limit:
+            names.append("/" + name + ("/" if not hasattr(obj, "shape") else ""))
+
+    f.visititems(visit)
+    return names
+
+
+class _Unreadable(Exception):
+    def __init__(self, i0, i1, exc):
+        self.i0, self.i1, self.exc = i0, i1, exc
+
+
+class Hdf5Recording(BaseRecording):
+    """An HDF5 event recording (evtk, DSEC, Prophesee or event_utils layout).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    salvage : bool
+        Return the events before the first out-of-order or out-of-sensor
+        event instead of raising.
+    sensor_size : (int, int), optional
+        For foreign files that do not record it; otherwise inferred from the
+        largest coordinates (with a warning).
+    sort : bool
+        Sort events by time on reading instead of refusing a file whose
+        time stamps go backwards.
+    """
+
+    format = "hdf5"
+
+    def __init__(self, path, salvage=False, sensor_size=None, sort=False):
+        super().__init__(path, salvage)
+        h5py = _h5()
+        try:
+            self._f = h5py.File(self.path, "r")
+        except OSError as exc:
+            raise FormatError(self.path, None, f"HDF5 library cannot open the file ({exc})") from None
+        try:
+            self._layout = self._detect()
+            if sensor_size is not None:
+                self._layout.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
+            self._sort = bool(sort)
+            self._sorted_cache = None
+            self._checked = False
+            if self._layout.sensor_size is None:
+                self._infer_sensor_size()
+        except BaseException:
+            self._f.close()
+            raise
+
+    def _close(self):
+        self._f.close()
+
+    def _detect(self) -> _Layout:
+        for _name, test, cls in _LAYOUTS:
+            try:
+                hit = test(self._f)
+            except Exception:
+                hit = False
+            if hit:
+                return cls(self._f, self.path)
+        found = _inventory(self._f)
+        raise FormatError(
+            self.path, None,
+            f"unrecognised HDF5 layout: found {found or 'no datasets'}; expected {_EXPECTED}",
+        )
+
+    @property
+    def layout(self) -> str:
+        """Which layout the file uses: 'evtk', 'dsec', 'prophesee' or 'event_utils'."""
+        return self._layout.name
+
+    @property
+    def sensor_size(self):
+        return self._layout.sensor_size
+
+    @property
+    def metadata(self) -> dict:
+        return self._layout.metadata
+
+    @property
+    def compression(self):
+        return self._layout.compression()
+
+    def _infer_sensor_size(self):
+        w = h = 0
+        lay = self._layout
+        for i0 in range(0, lay.n, 1 << 22):
+            _, x, y, _ = lay.read(i0, min(lay.n, i0 + (1 << 22)))
+            if len(x):
+                w, h = max(w, int(np.max(x)) + 1), max(h, int(np.max(y)) + 1)
+        lay.sensor_size = (max(w, 1), max(h, 1))
+        self.warnings.append(f"the file does not record its sensor size; inferred {lay.sensor_size} from the coordinates")
+
+    # -- events -----------------------------------------------------------------
+    def _find(self, t_us) -> int:
+        """Index of the first event with t >= t_us."""
+        lay = self._layout
+        n = lay.n
+        if lay.index_t is not None and len(lay.index_t):
+            k = int(np.searchsorted(lay.index_t, t_us, side="left"))
+            lo = int(lay.index_id[k - 1]) if k > 0 else 0
+            hi = int(lay.index_id[k]) if k < len(lay.index_t) else n
+            lo, hi = min(lo, n), min(max(hi, lo), n)
+        else:  # bisect on the stored time stamps, a block at a time
+            lo, hi = 0, n
+            while hi - lo > 4096:
+                mid = (lo + hi) // 2
+                if int(lay.read_t(mid, mid + 1)[0]) < t_us:
+                    lo = mid + 1
+                else:
+                    hi = mid
+        t = lay.read_t(lo, hi)
+        i = lo + int(np.searchsorted(t, t_us, side="left"))
+        if lay.index_t is not None and not self._position_ok(i, t_us):
+            # a foreign index that does not mean what we assume: do without it
+            self.warnings.append("the file's time index disagrees with its time stamps; it is ignored")
+            lay.index_t = lay.index_id = None
+            return self._find(t_us)
+        return i
+
+    def _position_ok(self, i, t_us) -> bool:
+        lay = self._layout
+        if i > 0 and int(lay.read_t(i - 1, i)[0]) >= t_us:
+            return False
+        if i < lay.n and int(lay.read_t(i, i + 1)[0]) < t_us:
+            return False
+        return True
+
+    def _make(self, cols, first_index, t_before=None) -> Events:
+        t, x, y, p = cols
+        try:
+            ev = Events(t, x, y, p, self.sensor_size)
+        except EvtkError as exc:
+            raise FormatError(self.path, None, f"event datasets hold invalid values: {exc}") from None
+        back, outside = scan_events(ev.t, ev.x, ev.y, self.sensor_size, t_before)
+        if back >= 0 and not self._sort:
+            self._bad(first_index + back, "time stamps go backwards", ev, back)
+            ev = ev[:back]
+            outside = outside if outside < back else -1
+        if outside >= 0:
+            w, h = self.sensor_size
+            self._bad(first_index + outside, f"event lies outside the {w}x{h} sensor", ev, outside)
+            ev = ev[:outside]
+        return ev
+
+    def _bad(self, index, reason, ev, local):
+        msg = f"{reason} at event index {index}"
+        if not self.salvage:
+            extra = " (open with sort=True to sort them)" if "backwards" in reason else ""
+            raise FormatError(self.path, None, msg + extra)
+        from .base import Damage
+
+        if self.damage is None:
+            self.damage = Damage(None, msg)
+
+    def _read(self, i0, i1):
+        """Raw columns of events i0..i1, a damaged chunk named in a FormatError."""
+        try:
+            return self._layout.read(i0, i1)
+        except (OSError, ValueError, KeyError) as exc:
+            raise _Unreadable(i0, i1, exc) from None
+
+    def _blocks(self, i0, i1, block, t_before=None):
+        """Validated Events for i0..i1, ``block`` events at a time.
+
+        In salvage mode a damaged block is retried chunk by chunk so that
+        everything before the damage is returned.
+        """
+        a = i0
+        while a < i1:
+            b = min(i1, a + block)
+            try:
+                cols = self._read(a, b)
+            except _Unreadable as err:
+                if not self.salvage:
+                    raise FormatError(self.path, None, f"events {a}..{b} cannot be read ({err.exc})") from None
+                step = DEFAULT_CHUNK // 4
+                for c in range(a, b, step):
+                    try:
+                        part = self._read(c, min(b, c + step))
+                    except _Unreadable as inner:
+                        from .base import Damage
+
+                        self.damage = Damage(None, f"events from index {c} cannot be read ({inner.exc})")
+                        return
+                    ev = self._make(part, c, t_before)
+                    if len(ev):
+                        yield ev
+                        t_before = int(ev.t[-1])
+                return
+            ev = self._make(cols, a, t_before)
+            if len(ev):
+                yield ev
+                t_before = int(ev.t[-1])
+            if len(ev) < b - a:  # salvage stopped at bad values
+                return
+            a = b
+
+    def _span(self, t_start_us, t_end_us):
+        lay = self._layout
+        try:
+            i0 = 0 if t_start_us is None else self._find(int(t_start_us))
+            i1 = lay.n if t_end_us is None else self._find(int(t_end_us))
+            before = int(lay.read_t(i0 - 1, i0)[0]) if i0 > 0 else None
+        except (OSError, ValueError) as exc:
+            raise FormatError(self.path, None, f"time stamps cannot be read ({exc})") from None
+        return i0, max(i0, i1), before
+
+    def _all_sorted(self) -> Events:
+        if self._sorted_cache is None:
+            ev = Events.concatenate(list(self._blocks(0, self._layout.n, 1 << 22)), sensor_size=self.sensor_size)
+            order = np.argsort(ev.t, kind="stable")
+            self._sorted_cache = Events._trusted(ev.t[order], ev.x[order], ev.y[order], ev.p[order], ev.sensor_size, True)
+        return self._sorted_cache
+
+    def events(self, t_start_us=None, t_end_us=None) -> Events:
+        """Events with ``t_start_us <= t < t_end_us``; reads only the blocks the window needs."""
+        self._check_open()
+        if self._sort:
+            return self._all_sorted().between(t_start_us, t_end_us)
+        i0, i1, before = self._span(t_start_us, t_end_us)
+        if i1 - i0 <= (1 << 24):  # one read: the common case, no concatenation
+            parts = list(self._blocks(i0, i1, i1 - i0 or 1, before))
+        else:
+            parts = list(self._blocks(i0, i1, 1 << 22, before))
+        ev = parts[0] if len(parts) == 1 else Events.concatenate(parts, sensor_size=self.sensor_size)
+        if self.damage is not None and (t_start_us is not None or t_end_us is not None):
+            ev = ev.between(t_start_us, t_end_us)
+        return ev
+
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
+        """Yield events in order, ``chunk_events`` at a time (memory bounded by the chunk)."""
+        self._check_open()
+        chunk_events = int(chunk_events)
+        if chunk_events < 1:
+            raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
+        if self._sort:
+            ev = self._all_sorted().between(t_start_us, t_end_us)
+            for i in range(0, len(ev), chunk_events):
+                yield ev[i : i + chunk_events]
+            return
+        i0, i1, before = self._span(t_start_us, t_end_us)
+        yield from self._blocks(i0, i1, chunk_events, before)
+
+    def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
+        self._check_open()
+        tr = self._layout.triggers()
+        if t_start_us is not None or t_end_us is not None:
+            tr = tr.between(t_start_us, t_end_us)
+        return tr
+
+    @property
+    def streams(self):
+        lay = self._layout
+        first = last = None
+        if lay.n:
+            first = int(lay.read_t(0, 1)[0])
+            last = int(lay.read_t(lay.n - 1, lay.n)[0])
+        out = [StreamInfo(0, "events", "EVTS", count=lay.n, t_start_us=first, t_end_us=last, sensor_size=self.sensor_size)]
+        tr = lay.triggers()
+        if len(tr) or "triggers" in self._f:
+            out.append(
+                StreamInfo(1, "triggers", "TRIG", count=len(tr),
+                           t_start_us=int(tr.t.min()) if len(tr) else None,
+                           t_end_us=int(tr.t.max()) if len(tr) else None)
+            )
+        return out
+
+    def _extra_info(self):
+        return {"layout": self.layout}
+
+    # -- extra arrays (responses, schedules) --------------------------------------
+    def read_array(self, name: str) -> np.ndarray:
+        """A dataset stored beside the events (for example reconstructed responses)."""
+        self._check_open()
+        if name not in self._f:
+            raise EvtkError(f"{self.path}: no dataset {name!r}")
+        return self._f[name][...]
+
+
+# =============================================================================
+# Writing
+# =============================================================================
+
+
+class Hdf5Writer:
+    """Stream events into evtk's HDF5 layout, atomically.
+
+    Events must arrive in time order (call :meth:`write_events` as often as
+    needed); the block index is built on the way.  Nothing appears under
+    ``path`` until :meth:`close`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    sensor_size : (int, int)
+    compression : str
+        One of :data:`COMPRESSIONS`; default Blosc-LZ4 with byte shuffle
+        (chosen by measurement, see ``formats/hdf5.md``).
+    metadata : dict, optional
+        JSON-serialisable, stored in the root attribute ``metadata``.
+    chunk_events : int
+        HDF5 chunk length, and the stride of the time index.
+    """
+
+    def __init__(self, path, sensor_size, compression="lz4", metadata=None, chunk_events=DEFAULT_CHUNK):
+        h5py = _h5()
+        self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
+        self.chunk = int(chunk_events)
+        if self.chunk < 1:
+            raise EvtkError("chunk_events must be positive")
+        kw = _filter(str(compression).lower())
+        try:
+            meta_text = json.dumps(metadata or {}, sort_keys=True)
+        except (TypeError, ValueError) as exc:
+            raise EvtkError(f"metadata must be JSON-serialisable: {exc}") from None
+        self._atomic = AtomicFile(path, keep_open=False)
+        self.path = self._atomic.path
+        try:
+            self._f = h5py.File(self._atomic.tmp_path, "w")
+            f = self._f
+            f.attrs["evtk_format"] = EVTK_FORMAT
+            f.attrs["evtk_format_version"] = FORMAT_VERSION
+            f.attrs["evtk_version"] = __version__
+            f.attrs["sensor_size"] = np.asarray(self.sensor_size, np.int64)
+            f.attrs["time_unit"] = "us"
+            f.attrs["metadata"] = meta_text
+            g = f.create_group("events")
+            self._cols = {}
+            for name, dtype in (("t", np.int64), ("x", np.uint16), ("y", np.uint16), ("p", np.uint8)):
+                self._cols[name] = g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(self.chunk,), **kw)
+            self._cols["t"].attrs["unit"] = "us"
+            self._index = []
+            self._n = 0
+            self._last_t = None
+            self._trig = []
+            self._closed = False
+        except BaseException:
+            self._abort_files()
+            raise
+
+    def write_events(self, events: Events):
+        """Append time-ordered events."""
+        if self._closed:
+            raise EvtkError(f"{self.path}: writer is closed")
+        if tuple(events.sensor_size) != self.sensor_size:
+            raise EvtkError(f"events are for a {events.sensor_size} sensor, the file for {self.sensor_size}")
+        n = len(events)
+        if n == 0:
+            return
+        back, outside = scan_events(events.t, events.x, events.y, self.sensor_size, self._last_t)
+        if back >= 0:
+            raise EvtkError(f"events must be in time order: time goes backwards at event {self._n + back} (sort them first)")
+        if outside >= 0:
+            raise EvtkError(f"event {self._n + outside} lies outside the {self.sensor_size} sensor")
+        a, b = self._n, self._n + n
+        for name in ("t", "x", "y", "p"):
+            ds = self._cols[name]
+            ds.resize((b,))
+            ds[a:b] = getattr(events, name)
+        first_block = -(-a // self.chunk)
+        starts = np.arange(first_block * self.chunk, b, self.chunk)
+        if len(starts):
+            self._index.append(events.t[starts - a])
+        self._n = b
+        self._last_t = int(events.t[-1])
+
+    def write_triggers(self, triggers: Triggers):
+        if self._closed:
+            raise EvtkError(f"{self.path}: writer is closed")
+        self._trig.append(triggers)
+
+    def write_array(self, name: str, data, attrs=None):
+        """Store an extra dataset (responses, schedule, parameters) in the same file."""
+        if self._closed:
+            raise EvtkError(f"{self.path}: writer is closed")
+        if name.strip("/").split("/")[0] in ("events", "triggers"):
+            raise EvtkError(f"{name!r} is reserved for evtk's event layout")
+        ds = self._f.create_dataset(name, data=np.asarray(data))
+        for k, v in (attrs or {}).items():
+            ds.attrs[k] = v
+
+    def close(self):
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            g = self._f["events"]
+            index = np.concatenate(self._index) if self._index else np.zeros(0, np.int64)
+            ds = g.create_dataset("index_t_us", data=index.astype(np.int64))
+            ds.attrs["stride"] = self.chunk
+            if self._trig:
+                tr = Triggers.concatenate(self._trig)
+                order = np.argsort(tr.t, kind="stable")
+                tg = self._f.create_group("triggers")
+                tg.create_dataset("t", data=tr.t[order])
+                tg.create_dataset("kind", data=tr.kind[order])
+            self._f.close()
+            self._atomic.commit()
+        except BaseException:
+            self._abort_files()
+            raise
+
+    def _abort_files(self):
+        try:
+            self._f.close()
+        except Exception:
+            pass
+        self._atomic.discard()
+
+    def abort(self):
+        if not self._closed:
+            self._closed = True
+            self._abort_files()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_hdf5(path, events: Events, triggers: Triggers | None = None, compression="lz4", metadata=None, sort=False, **kwargs):
+    """Write a whole recording in evtk's HDF5 layout (atomically)."""
+    if not events.is_sorted:
+        if not sort:
+            back, _ = scan_events(events.t, events.x, events.y, (65536, 65536))
+            raise EvtkError(f"events must be in time order for HDF5: time goes backwards at event {back} (pass sort=True)")
+        order = np.argsort(events.t, kind="stable")
+        events = Events._trusted(events.t[order], events.x[order], events.y[order], events.p[order], events.sensor_size, True)
+    with Hdf5Writer(path, events.sensor_size, compression, metadata, **kwargs) as w:
+        for a in range(0, len(events), 1 << 22):
+            w.write_events(events[a : a + (1 << 22)])
+        if triggers is not None:
+            w.write_triggers(triggers)

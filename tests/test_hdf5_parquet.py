@@ -1,0 +1,330 @@
+"""HDF5 (evtk's layout and the foreign ones) and Arrow/Parquet."""
+
+import json
+
+import h5py
+import hdf5plugin
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import evtk
+
+from conftest import random_events
+
+WINDOWS = [(None, None), (0, 10), (250_000, 260_000), (123_457, 654_321), (999_000, 5_000_000), (-10, 0), (7, 3)]
+
+
+def check_windows(rec, ev):
+    for lo, hi in WINDOWS:
+        assert rec.events(lo, hi) == ev.between(lo, hi), (lo, hi)
+
+
+# -- evtk's own layout -------------------------------------------------------------------
+
+@pytest.mark.parametrize("compression", ["lz4", "zstd", "gzip", "none", "lz4_high"])
+def test_hdf5_round_trip_and_layout(tmp_path, compression):
+    ev = random_events(200_000, seed=1)
+    tr = evtk.Triggers([10, 20, 5], [1, 2, 1])
+    path = tmp_path / "r.h5"
+    evtk.write_events(path, ev, tr, compression=compression, metadata={"bench": "B", "n": [1, 2]}, chunk_events=4096)
+    with evtk.open(path) as rec:
+        assert rec.format == "hdf5" and rec.layout == "evtk"
+        assert rec.sensor_size == (320, 240)
+        assert rec.events() == ev
+        assert rec.triggers() == evtk.Triggers([5, 10, 20], [1, 1, 2])
+        assert rec.metadata == {"bench": "B", "n": [1, 2]}
+        check_windows(rec, ev)
+        chunks = list(rec.iter_events(chunk_events=30_000, t_start_us=100_000))
+        assert all(len(c) <= 30_000 for c in chunks)
+        assert evtk.Events.concatenate(chunks) == ev.between(100_000, None)
+    # the layout as formats/hdf5.md promises it, read with plain h5py
+    with h5py.File(path, "r") as f:
+        assert f.attrs["evtk_format"] == "evtk.events" and list(f.attrs["sensor_size"]) == [320, 240]
+        assert f["events/t"].dtype == np.int64 and f["events/x"].dtype == np.uint16 and f["events/p"].dtype == np.uint8
+        assert f["events/t"].chunks == (4096,)
+        idx = f["events/index_t_us"][...]
+        assert f["events/index_t_us"].attrs["stride"] == 4096
+        assert np.array_equal(idx, ev.t[::4096])
+        assert json.loads(f.attrs["metadata"]) == {"bench": "B", "n": [1, 2]}
+
+
+def test_hdf5_window_reads_only_overlapping_chunks(tmp_path, monkeypatch):
+    ev = random_events(300_000, seed=2)
+    path = tmp_path / "w.h5"
+    evtk.write_events(path, ev, chunk_events=8192)
+    with evtk.open(path) as rec:
+        lay = rec._layout
+        reads = []
+        orig_t, orig = lay.read_t, lay.read
+        monkeypatch.setattr(lay, "read_t", lambda a, b: reads.append(b - a) or orig_t(a, b))
+        monkeypatch.setattr(lay, "read", lambda a, b: reads.append(b - a) or orig(a, b))
+        got = rec.events(500_000, 510_000)
+        assert got == ev.between(500_000, 510_000)
+        # two index look-ups of at most one block each, plus the window itself
+        assert sum(reads) <= 2 * 8192 + len(got) + 8
+
+
+def test_hdf5_streaming_writer_and_extra_arrays(tmp_path):
+    from evtk.io.hdf5 import Hdf5Writer
+
+    ev = random_events(50_000, seed=3)
+    path = tmp_path / "s.h5"
+    with Hdf5Writer(path, (320, 240), chunk_events=1000) as w:
+        for a in range(0, len(ev), 7777):
+            w.write_events(ev[a : a + 7777])
+        w.write_array("responses/raw", np.arange(12.0).reshape(3, 4), {"unit": "counts"})
+        with pytest.raises(evtk.EvtkError, match="time order"):
+            w.write_events(ev[:10])
+    with evtk.open(path) as rec:
+        assert rec.events() == ev
+        assert np.array_equal(rec.read_array("responses/raw"), np.arange(12.0).reshape(3, 4))
+        assert np.array_equal(rec._layout.index_t, ev.t[::1000])
+
+
+def test_hdf5_writer_refuses_unsorted_unless_asked(tmp_path):
+    ev = random_events(1000, seed=4, sort=False)
+    with pytest.raises(evtk.EvtkError, match="time order"):
+        evtk.write_events(tmp_path / "u.h5", ev)
+    assert not (tmp_path / "u.h5").exists() and not list(tmp_path.iterdir())
+    evtk.write_events(tmp_path / "u.h5", ev, sort=True)
+    got = evtk.read_events(tmp_path / "u.h5")
+    order = np.argsort(ev.t, kind="stable")
+    assert np.array_equal(got.t, ev.t[order]) and np.array_equal(got.x, ev.x[order])
+
+
+# -- foreign layouts, built exactly as those projects lay them out -----------------------------
+
+def make_dsec(path, ev, t_offset):
+    rel = ev.t - t_offset
+    with h5py.File(path, "w") as f:
+        g = f.create_group("events")
+        g.create_dataset("p", data=ev.p, **hdf5plugin.Blosc(cname="zstd"))
+        g.create_dataset("t", data=rel.astype(np.uint32), **hdf5plugin.Blosc(cname="zstd"))
+        g.create_dataset("x", data=ev.x, **hdf5plugin.Blosc(cname="zstd"))
+        g.create_dataset("y", data=ev.y, **hdf5plugin.Blosc(cname="zstd"))
+        ms = np.searchsorted(rel, np.arange(0, int(rel[-1]) // 1000 + 2) * 1000, side="left").astype(np.uint64)
+        f.create_dataset("ms_to_idx", data=ms)
+        f.create_dataset("t_offset", data=np.int64(t_offset))
+
+
+def test_dsec_layout(tmp_path):
+    ev = random_events(100_000, seed=5, sensor_size=(640, 480), t0=5_000_000)
+    path = tmp_path / "dsec.h5"
+    make_dsec(path, ev, t_offset=4_990_000)
+    with evtk.open(path, sensor_size=(640, 480)) as rec:
+        assert rec.layout == "dsec" and rec.sensor_size == (640, 480)
+        assert rec.events() == ev
+        for lo, hi in [(5_100_000, 5_100_500), (5_000_000, 5_000_001), (0, 5_000_000), (5_999_000, None)]:
+            assert rec.events(lo, hi) == ev.between(lo, hi)
+        assert not rec.warnings
+    with evtk.open(path) as rec:  # no size given: inferred, with a warning
+        w, h = rec.sensor_size
+        assert w == int(ev.x.max()) + 1 and h == int(ev.y.max()) + 1
+        assert any("inferred" in m for m in rec.warnings)
+
+
+def test_prophesee_layout(tmp_path):
+    ev = random_events(50_000, seed=6, sensor_size=(1280, 720))
+    path = tmp_path / "prophesee.hdf5"
+    dt = np.dtype([("x", "<u2"), ("y", "<u2"), ("p", "<i2"), ("t", "<i8")])
+    cd = np.zeros(len(ev), dt)
+    cd["x"], cd["y"], cd["p"], cd["t"] = ev.x, ev.y, ev.p, ev.t
+    ts = np.arange(0, int(ev.t[-1]) + 2000, 2000, dtype=np.int64)
+    idx = np.zeros(len(ts), np.dtype([("id", "<u8"), ("ts", "<i8")]))
+    idx["ts"], idx["id"] = ts, np.searchsorted(ev.t, ts, side="left")
+    trig = np.zeros(2, np.dtype([("p", "<i2"), ("id", "<i2"), ("t", "<i8")]))
+    trig["p"], trig["t"] = [1, 0], [100, 900]
+    with h5py.File(path, "w") as f:
+        f.attrs["geometry"] = "1280x720"
+        f.attrs["format"] = "EVT3"
+        f.create_dataset("CD/events", data=cd, chunks=(16384,), compression="gzip")
+        f.create_dataset("CD/indexes", data=idx)
+        f.create_dataset("EXT_TRIGGER/events", data=trig)
+    with evtk.open(path) as rec:
+        assert rec.layout == "prophesee" and rec.sensor_size == (1280, 720)
+        assert rec.events() == ev
+        check_windows(rec, ev)
+        assert rec.triggers() == evtk.Triggers([100, 900], [1, 2])
+
+
+def test_prophesee_ecf_without_plugin_is_named(tmp_path):
+    from h5py import h5p, h5z
+
+    if h5z.filter_avail(36559):
+        pytest.skip("an ECF plugin is installed here")
+    path = tmp_path / "ecf.hdf5"
+    dt = np.dtype([("x", "<u2"), ("y", "<u2"), ("p", "<i2"), ("t", "<i8")])
+    with h5py.File(path, "w") as f:
+        dcpl = h5p.create(h5p.DATASET_CREATE)
+        dcpl.set_chunk((1024,))
+        dcpl.set_filter(36559, h5z.FLAG_OPTIONAL, ())
+        space = h5py.h5s.create_simple((10,), (h5py.h5s.UNLIMITED,))
+        f.create_group("CD")
+        h5py.h5d.create(f["CD"].id, b"events", h5py.h5t.py_create(dt), space, dcpl=dcpl)
+    with pytest.raises(evtk.FormatError, match="ECF codec .*36559.* not installed"):
+        evtk.open(path)
+
+
+@pytest.mark.parametrize("polarity", ["bool", "signed"])
+def test_event_utils_layout(tmp_path, polarity):
+    ev = random_events(20_000, seed=7, sensor_size=(346, 260), t0=1_000_000)
+    path = tmp_path / "eu.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("events/xs", data=ev.x.astype(np.int16))
+        f.create_dataset("events/ys", data=ev.y.astype(np.int16))
+        f.create_dataset("events/ts", data=ev.t / 1e6)
+        ps = ev.p.astype(bool) if polarity == "bool" else np.where(ev.p > 0, 1, -1).astype(np.int8)
+        f.create_dataset("events/ps", data=ps)
+        f.attrs["sensor_resolution"] = (260, 346)
+        f.attrs["num_events"] = len(ev)
+    with evtk.open(path) as rec:
+        assert rec.layout == "event_utils" and rec.sensor_size == (346, 260)
+        assert rec.events() == ev
+        assert rec.events(1_200_000, 1_300_000) == ev.between(1_200_000, 1_300_000)
+
+
+def test_unknown_layout_lists_what_was_found(tmp_path):
+    path = tmp_path / "other.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("images/frame0", data=np.zeros((2, 2)))
+    with pytest.raises(evtk.FormatError, match=r"found \['/images/', '/images/frame0'\]; expected evtk .* DSEC"):
+        evtk.open(path)
+
+
+# -- bad HDF5 input ----------------------------------------------------------------------------
+
+def evtk_file(path, ev, edit):
+    evtk.write_events(path, ev, chunk_events=1024)
+    with h5py.File(path, "r+") as f:
+        edit(f)
+    return path
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda f: (f["events/x"].resize((10,))), "differ in length"),
+        (lambda f: f.__delitem__("events/p"), r"/p missing"),
+        (lambda f: (f.__delitem__("events/x"), f.create_dataset("events/x", data=np.zeros(2000))), "dtype float64"),
+        (lambda f: f["events/t"].__setitem__(slice(1500, 1501), [0]), "backwards at event index 1500"),
+        (lambda f: f["events/x"].__setitem__(slice(1700, 1701), [999]), "outside the 320x240 sensor at event index 1700"),
+        (lambda f: f.attrs.__delitem__("sensor_size"), "sensor_size"),
+    ],
+)
+def test_bad_hdf5(tmp_path, edit, match):
+    ev = random_events(2000, seed=8)
+    path = evtk_file(tmp_path / "bad.h5", ev, edit)
+    with pytest.raises(evtk.FormatError, match=match) as info:
+        with evtk.open(path) as rec:
+            rec.events()
+    assert info.value.path == str(path)
+
+
+def test_hdf5_backwards_time_sort_and_salvage(tmp_path):
+    ev = random_events(2000, seed=9)
+    path = evtk_file(tmp_path / "b.h5", ev, lambda f: f["events/t"].__setitem__(slice(1500, 1501), [0]))
+    with evtk.open(path, sort=True) as rec:
+        got = rec.events()
+        assert got.is_sorted and len(got) == 2000 and got.t[0] == 0
+    with evtk.open(path, salvage=True) as rec:
+        assert rec.events() == ev[:1500]
+        assert "backwards at event index 1500" in rec.damage.reason
+
+
+def test_truncated_and_empty_hdf5(tmp_path):
+    ev = random_events(100_000, seed=10)
+    good = tmp_path / "g.h5"
+    evtk.write_events(good, ev, compression="none")
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(evtk.FormatError):
+        with evtk.open(cut) as rec:
+            rec.events()
+    empty = tmp_path / "empty.h5"
+    with h5py.File(empty, "w"):
+        pass
+    with pytest.raises(evtk.FormatError, match="no datasets"):
+        evtk.open(empty)
+
+
+# -- Arrow and Parquet --------------------------------------------------------------------------
+
+def test_arrow_round_trip():
+    ev = random_events(1000, seed=11)
+    table = ev.to_arrow()
+    assert table.schema.names == ["t", "x", "y", "p"]
+    assert table.schema.field("t").type == pa.int64() and table.schema.field("x").type == pa.uint16()
+    assert evtk.Events.from_arrow(table) == ev
+    plain = pa.table({"t": ev.t, "x": ev.x.astype(np.int32), "y": ev.y, "p": ev.p.astype(bool)})
+    assert evtk.Events.from_arrow(plain, sensor_size=(320, 240)) == ev
+    with pytest.raises(evtk.EvtkError, match="sensor_size"):
+        evtk.Events.from_arrow(plain)
+
+
+@pytest.mark.parametrize("compression", ["lz4", "zstd", "none"])
+def test_parquet_round_trip_windows_and_row_groups(tmp_path, compression):
+    ev = random_events(100_000, seed=12)
+    tr = evtk.Triggers([3, 4], [1, 2])
+    path = tmp_path / "e.parquet"
+    evtk.write_events(path, ev, tr, compression=compression, metadata={"k": 1}, row_group_events=10_000, row_group_us=50_000)
+    pf = pq.ParquetFile(path)
+    assert pf.metadata.num_row_groups >= 20
+    with evtk.open(path) as rec:
+        assert rec.format == "parquet" and rec.events() == ev and rec.triggers() == tr and rec.metadata == {"k": 1}
+        check_windows(rec, ev)
+        # a window reads only the row groups its time range overlaps
+        assert len(rec._rows(500_000, 510_000)) <= 2
+    # pandas/polars users read it with plain pyarrow
+    table = pq.read_table(path)
+    assert np.array_equal(table.column("t").to_numpy(), ev.t)
+
+
+def test_bad_parquet(tmp_path):
+    path = tmp_path / "bad.parquet"
+    pq.write_table(pa.table({"t": [1, 2], "x": [0, 1]}), path)
+    with pytest.raises(evtk.FormatError, match=r"columns \['y', 'p'\] missing"):
+        evtk.open(path)
+    pq.write_table(pa.table({"t": [1.5], "x": [0], "y": [0], "p": [1]}), path)
+    with pytest.raises(evtk.FormatError, match="type double"):
+        evtk.open(path)
+    pq.write_table(pa.table({"t": [5, 1], "x": [0, 1], "y": [0, 0], "p": [1, 0]}), path)
+    with pytest.raises(evtk.FormatError, match="backwards at event index 1"):
+        evtk.open(path, sensor_size=(4, 4)).events()
+    good = tmp_path / "g.parquet"
+    evtk.write_events(good, random_events(1000, seed=13))
+    cut = tmp_path / "cut.parquet"
+    cut.write_bytes(good.read_bytes()[:-100])
+    with pytest.raises(evtk.FormatError, match="Parquet"):
+        evtk.open(cut)
+
+
+# -- every pair of formats ------------------------------------------------------------------------
+
+FORMATS = [".aedat4", ".h5", ".parquet"]
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(n=st.integers(0, 400), seed=st.integers(0, 10**6), src=st.sampled_from(FORMATS), dst=st.sampled_from(FORMATS),
+       equal_t=st.booleans())
+def test_convert_every_pair(tmp_path, n, seed, src, dst, equal_t):
+    ev = random_events(n, seed=seed, span_us=1 if equal_t else 10**7)
+    tr = evtk.Triggers(np.arange(min(n, 3)), np.ones(min(n, 3)))
+    a = tmp_path / ("a" + src)
+    b = tmp_path / ("b" + dst)
+    evtk.write_events(a, ev, tr, metadata={"seed": seed})
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+
+    r = CliRunner().invoke(main, ["convert", str(a), str(b)])
+    assert r.exit_code == 0, r.output
+    with evtk.open(b) as rec:
+        assert rec.events() == ev
+        assert rec.triggers() == tr
+        assert rec.metadata == {"seed": seed}
+        info = rec.info()
+        assert info["events"] == n and info["sensor_size"] == [320, 240]
