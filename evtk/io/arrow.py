@@ -238,7 +238,16 @@ class ParquetRecording(BaseRecording):
 
     def events(self, t_start_us=None, t_end_us=None) -> Events:
         self._check_open()
-        return Events.concatenate(list(self._groups_events(t_start_us, t_end_us)), sensor_size=self._sensor)
+        groups = self._rows(t_start_us, t_end_us)
+        try:  # all row groups at once, on pyarrow's threads
+            table = self._pf.read_row_groups(groups, columns=["t", "x", "y", "p"], use_threads=True)
+            ev = Events(*_columns(table, self.path), self._sensor)
+        except Exception:  # damaged or invalid somewhere: go group by group to say where
+            return Events.concatenate(list(self._groups_events(t_start_us, t_end_us)), sensor_size=self._sensor)
+        back, outside = scan_events(ev.t, ev.x, ev.y, self._sensor)
+        if back >= 0 or outside >= 0:
+            return Events.concatenate(list(self._groups_events(t_start_us, t_end_us)), sensor_size=self._sensor)
+        return ev.between(t_start_us, t_end_us)
 
     def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
         self._check_open()

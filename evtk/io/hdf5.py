@@ -17,7 +17,7 @@ from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
 from ._atomic import AtomicFile
 from ._checks import scan_events
-from .base import BaseRecording, StreamInfo
+from .base import BaseRecording, Damage, StreamInfo
 
 __all__ = ["Hdf5Recording", "Hdf5Writer", "write_hdf5", "COMPRESSIONS", "EVTK_FORMAT"]
 
@@ -84,9 +84,10 @@ class _Layout:
     def read(self, i0, i1):  # pragma: no cover - overridden
         raise NotImplementedError
 
-    def t_at(self, i0, i1) -> np.ndarray:
-        """Time stamps (int64 µs) of events i0..i1."""
-        return self.read_t(i0, i1)
+    def read_into(self, i0, i1, out, o):
+        """Decode events i0..i1 into the output columns ``out`` at offset ``o``."""
+        for dst, src in zip(out, self.read(i0, i1)):
+            dst[o : o + (i1 - i0)] = src
 
     def triggers(self) -> Triggers:
         return Triggers()
@@ -155,6 +156,12 @@ class _EvtkLayout(_Layout):
     def read(self, i0, i1):
         return self.t[i0:i1], self.x[i0:i1], self.y[i0:i1], self.p[i0:i1]
 
+    def read_into(self, i0, i1, out, o):
+        # straight into the caller's arrays: no temporaries, no second copy
+        for ds, dst in zip((self.t, self.x, self.y, self.p), out):
+            if i1 > i0:
+                ds.read_direct(dst, np.s_[i0:i1], np.s_[o : o + (i1 - i0)])
+
     def read_t(self, i0, i1):
         return self.t[i0:i1].astype(np.int64, copy=False)
 
@@ -192,6 +199,13 @@ class _DsecLayout(_Layout):
 
     def read(self, i0, i1):
         return self.read_t(i0, i1), self.x[i0:i1], self.y[i0:i1], self.p[i0:i1]
+
+    def read_into(self, i0, i1, out, o):
+        if i1 <= i0:
+            return
+        for ds, dst in zip((self.t, self.x, self.y, self.p), out):
+            ds.read_direct(dst, np.s_[i0:i1], np.s_[o : o + (i1 - i0)])
+        out[0][o : o + (i1 - i0)] += self.offset
 
     def read_t(self, i0, i1):
         return self.t[i0:i1].astype(np.int64) + self.offset
@@ -438,75 +452,73 @@ class Hdf5Recording(BaseRecording):
             return False
         return True
 
-    def _make(self, cols, first_index, t_before=None) -> Events:
-        t, x, y, p = cols
-        try:
-            ev = Events(t, x, y, p, self.sensor_size)
-        except EvtkError as exc:
-            raise FormatError(self.path, None, f"event datasets hold invalid values: {exc}") from None
-        back, outside = scan_events(ev.t, ev.x, ev.y, self.sensor_size, t_before)
-        if back >= 0 and not self._sort:
-            self._bad(first_index + back, "time stamps go backwards", ev, back)
-            ev = ev[:back]
-            outside = outside if outside < back else -1
-        if outside >= 0:
-            w, h = self.sensor_size
-            self._bad(first_index + outside, f"event lies outside the {w}x{h} sensor", ev, outside)
-            ev = ev[:outside]
-        return ev
+    def _check(self, ev: Events, first_index, t_before) -> int:
+        """Number of leading events that are in order and on the sensor.
 
-    def _bad(self, index, reason, ev, local):
+        Raises FormatError in strict mode; in salvage mode records the damage.
+        """
+        back, outside = scan_events(ev.t, ev.x, ev.y, self.sensor_size, t_before)
+        if self._sort:
+            back = -1
+        bad = [i for i in (back, outside) if i >= 0]
+        if not bad:
+            return len(ev)
+        first = min(bad)
+        if first == back:
+            reason = "time stamps go backwards"
+        else:
+            w, h = self.sensor_size
+            reason = f"event lies outside the {w}x{h} sensor"
+        self._bad(first_index + first, reason)
+        return first
+
+    def _bad(self, index, reason):
         msg = f"{reason} at event index {index}"
         if not self.salvage:
             extra = " (open with sort=True to sort them)" if "backwards" in reason else ""
             raise FormatError(self.path, None, msg + extra)
-        from .base import Damage
-
         if self.damage is None:
             self.damage = Damage(None, msg)
 
-    def _read(self, i0, i1):
-        """Raw columns of events i0..i1, a damaged chunk named in a FormatError."""
+    def _read_into(self, i0, i1, out, o):
         try:
-            return self._layout.read(i0, i1)
-        except (OSError, ValueError, KeyError) as exc:
+            self._layout.read_into(i0, i1, out, o)
+        except (OSError, ValueError, KeyError, TypeError) as exc:
             raise _Unreadable(i0, i1, exc) from None
 
-    def _blocks(self, i0, i1, block, t_before=None):
-        """Validated Events for i0..i1, ``block`` events at a time.
+    def _load(self, i0, i1, t_before) -> Events:
+        """Events i0..i1 read straight into one preallocated set of columns."""
+        n = i1 - i0
+        out = (np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8))
+        try:
+            self._read_into(i0, i1, out, 0)
+        except _Unreadable as err:
+            if not self.salvage:
+                raise FormatError(self.path, None, f"events {i0}..{i1} cannot be read ({err.exc})") from None
+            good = self._salvage_block(i0, i1, out, 0, t_before)
+            return Events._trusted(*(c[:good] for c in out), self.sensor_size)
+        ev = Events._trusted(*out, self.sensor_size)
+        good = self._check(ev, i0, t_before)
+        return ev if good == n else ev[:good]
 
-        In salvage mode a damaged block is retried chunk by chunk so that
-        everything before the damage is returned.
-        """
-        a = i0
-        while a < i1:
-            b = min(i1, a + block)
+    def _salvage_block(self, a, b, out, o, t_before) -> int:
+        """Read a damaged block in small steps; return how many events are intact."""
+        step = DEFAULT_CHUNK // 4
+        good = 0
+        for c in range(a, b, step):
+            d = min(b, c + step)
             try:
-                cols = self._read(a, b)
+                self._read_into(c, d, out, o + (c - a))
             except _Unreadable as err:
-                if not self.salvage:
-                    raise FormatError(self.path, None, f"events {a}..{b} cannot be read ({err.exc})") from None
-                step = DEFAULT_CHUNK // 4
-                for c in range(a, b, step):
-                    try:
-                        part = self._read(c, min(b, c + step))
-                    except _Unreadable as inner:
-                        from .base import Damage
-
-                        self.damage = Damage(None, f"events from index {c} cannot be read ({inner.exc})")
-                        return
-                    ev = self._make(part, c, t_before)
-                    if len(ev):
-                        yield ev
-                        t_before = int(ev.t[-1])
-                return
-            ev = self._make(cols, a, t_before)
-            if len(ev):
-                yield ev
-                t_before = int(ev.t[-1])
-            if len(ev) < b - a:  # salvage stopped at bad values
-                return
-            a = b
+                self.damage = Damage(None, f"events from index {c} cannot be read ({err.exc})")
+                return good
+            ev = Events._trusted(*(col[o + c - a : o + d - a] for col in out), self.sensor_size)
+            ok = self._check(ev, c, t_before)
+            good += ok
+            if ok < d - c:
+                return good
+            t_before = int(ev.t[-1]) if len(ev) else t_before
+        return good
 
     def _span(self, t_start_us, t_end_us):
         lay = self._layout
@@ -520,7 +532,7 @@ class Hdf5Recording(BaseRecording):
 
     def _all_sorted(self) -> Events:
         if self._sorted_cache is None:
-            ev = Events.concatenate(list(self._blocks(0, self._layout.n, 1 << 22)), sensor_size=self.sensor_size)
+            ev = self._load(0, self._layout.n, None)
             order = np.argsort(ev.t, kind="stable")
             self._sorted_cache = Events._trusted(ev.t[order], ev.x[order], ev.y[order], ev.p[order], ev.sensor_size, True)
         return self._sorted_cache
@@ -531,11 +543,7 @@ class Hdf5Recording(BaseRecording):
         if self._sort:
             return self._all_sorted().between(t_start_us, t_end_us)
         i0, i1, before = self._span(t_start_us, t_end_us)
-        if i1 - i0 <= (1 << 24):  # one read: the common case, no concatenation
-            parts = list(self._blocks(i0, i1, i1 - i0 or 1, before))
-        else:
-            parts = list(self._blocks(i0, i1, 1 << 22, before))
-        ev = parts[0] if len(parts) == 1 else Events.concatenate(parts, sensor_size=self.sensor_size)
+        ev = self._load(i0, i1, before)
         if self.damage is not None and (t_start_us is not None or t_end_us is not None):
             ev = ev.between(t_start_us, t_end_us)
         return ev
@@ -552,7 +560,14 @@ class Hdf5Recording(BaseRecording):
                 yield ev[i : i + chunk_events]
             return
         i0, i1, before = self._span(t_start_us, t_end_us)
-        yield from self._blocks(i0, i1, chunk_events, before)
+        for a in range(i0, i1, chunk_events):
+            b = min(i1, a + chunk_events)
+            ev = self._load(a, b, before)
+            if len(ev):
+                yield ev
+                before = int(ev.t[-1])
+            if len(ev) < b - a:
+                return
 
     def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
         self._check_open()
