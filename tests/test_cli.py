@@ -103,3 +103,15 @@ def test_installed_entry_point(fixtures_dir):
     assert json.loads(out.stdout)["events"] == 4000
     bad = subprocess.run([sys.executable, "-m", "evtk.cli", "info", "/nope"], capture_output=True, text=True)
     assert bad.returncode == 1 and bad.stderr.startswith("evtk: error:") and "Traceback" not in bad.stderr
+
+
+@pytest.mark.parametrize("ext, fmt", [(".h5", "hdf5"), (".parquet", "parquet"), (".aedat4", "aedat4")])
+def test_info_on_every_format(tmp_path, fixtures_dir, ext, fmt):
+    out = tmp_path / ("x" + ext)
+    assert run("convert", fixtures_dir / "dvxplorer_zstd.aedat4", out).exit_code == 0
+    r = run("info", "--json", out)
+    assert r.exit_code == 0, r.output
+    info = json.loads(r.output)
+    assert info["format"] == fmt and info["events"] == 4000 and info["triggers"] == 20
+    assert info["sensor_size"] == [320, 240]
+    assert run("info", out).exit_code == 0

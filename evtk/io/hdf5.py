@@ -437,7 +437,7 @@ class Hdf5Recording(BaseRecording):
                     hi = mid
         t = lay.read_t(lo, hi)
         i = lo + int(np.searchsorted(t, t_us, side="left"))
-        if lay.index_t is not None and not self._position_ok(i, t_us):
+        if lay.index_t is not None and lay.name != "evtk" and not self._position_ok(i, t_us):
             # a foreign index that does not mean what we assume: do without it
             self.warnings.append("the file's time index disagrees with its time stamps; it is ignored")
             lay.index_t = lay.index_id = None
@@ -487,19 +487,22 @@ class Hdf5Recording(BaseRecording):
             raise _Unreadable(i0, i1, exc) from None
 
     def _load(self, i0, i1, t_before) -> Events:
-        """Events i0..i1 read straight into one preallocated set of columns."""
-        n = i1 - i0
-        out = (np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8))
+        """Events i0..i1, validated; one read per column in the common case."""
         try:
-            self._read_into(i0, i1, out, 0)
-        except _Unreadable as err:
+            cols = self._layout.read(i0, i1)
+        except (OSError, ValueError, KeyError, TypeError) as exc:
             if not self.salvage:
-                raise FormatError(self.path, None, f"events {i0}..{i1} cannot be read ({err.exc})") from None
+                raise FormatError(self.path, None, f"events {i0}..{i1} cannot be read ({exc})") from None
+            n = i1 - i0
+            out = (np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8))
             good = self._salvage_block(i0, i1, out, 0, t_before)
             return Events._trusted(*(c[:good] for c in out), self.sensor_size)
-        ev = Events._trusted(*out, self.sensor_size)
+        try:
+            ev = Events(*cols, self.sensor_size)
+        except EvtkError as exc:
+            raise FormatError(self.path, None, f"event datasets hold invalid values: {exc}") from None
         good = self._check(ev, i0, t_before)
-        return ev if good == n else ev[:good]
+        return ev if good == len(ev) else ev[:good]
 
     def _salvage_block(self, a, b, out, o, t_before) -> int:
         """Read a damaged block in small steps; return how many events are intact."""
