@@ -454,7 +454,7 @@ class Recording(BaseRecording):
     def _events(self, t_start_us, t_end_us, stream) -> Events:
         s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
         if s is None:
-            raise EvtkError(f"{self.path}: the recording has no event stream")
+            raise FormatError(self.path, None, f"no event stream; the streams are {[(s.name, s.type) for s in self._streams.values()]}")
         width, height = s.sensor_size
         counts = self._index.count[rows]
         if np.any(counts < 0):
@@ -510,7 +510,7 @@ class Recording(BaseRecording):
             raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
         s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
         if s is None:
-            raise EvtkError(f"{self.path}: the recording has no event stream")
+            raise FormatError(self.path, None, f"no event stream; the streams are {[(s.name, s.type) for s in self._streams.values()]}")
         width, height = s.sensor_size
         ident = _IDENT["EVTS"]
         pending: list[Events] = []

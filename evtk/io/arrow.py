@@ -26,8 +26,8 @@ KEY_META = b"evtk.metadata"
 KEY_TRIGGERS = b"evtk.triggers"
 KEY_VERSION = b"evtk.version"
 COMPRESSIONS = {"lz4": "lz4", "lz4_high": "lz4", "zstd": "zstd", "zstd_high": "zstd", "gzip": "gzip", "none": "none"}
-ROW_GROUP_EVENTS = 1 << 18
-ROW_GROUP_US = 100_000
+ROW_GROUP_EVENTS = 1 << 16
+ROW_GROUP_US = 50_000
 
 
 def _pa():

@@ -329,6 +329,40 @@ def _inventory(f, limit=12):
     return names
 
 
+_H5_ERRORS = (OSError, KeyError, ValueError, TypeError, RuntimeError, IndexError, AttributeError)
+
+
+def _guard(method):
+    """Turn whatever h5py raises on a damaged file into a FormatError naming it."""
+    import functools
+
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        try:
+            return method(self, *args, **kwargs)
+        except EvtkError:
+            raise
+        except _H5_ERRORS as exc:
+            raise FormatError(self.path, None, f"damaged HDF5 data ({type(exc).__name__}: {exc})") from None
+
+    return wrapper
+
+
+def _guard_gen(method):
+    import functools
+
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        try:
+            yield from method(self, *args, **kwargs)
+        except EvtkError:
+            raise
+        except _H5_ERRORS as exc:
+            raise FormatError(self.path, None, f"damaged HDF5 data ({type(exc).__name__}: {exc})") from None
+
+    return wrapper
+
+
 class _Unreadable(Exception):
     def __init__(self, i0, i1, exc):
         self.i0, self.i1, self.exc = i0, i1, exc
@@ -361,14 +395,14 @@ class Hdf5Recording(BaseRecording):
         except OSError as exc:
             raise FormatError(self.path, None, f"HDF5 library cannot open the file ({exc})") from None
         try:
-            self._layout = self._detect()
+            self._layout = _guard(Hdf5Recording._detect)(self)
             if sensor_size is not None:
                 self._layout.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
             self._sort = bool(sort)
             self._sorted_cache = None
             self._checked = False
             if self._layout.sensor_size is None:
-                self._infer_sensor_size()
+                _guard(Hdf5Recording._infer_sensor_size)(self)
         except BaseException:
             self._f.close()
             raise
@@ -404,6 +438,7 @@ class Hdf5Recording(BaseRecording):
         return self._layout.metadata
 
     @property
+    @_guard
     def compression(self):
         return self._layout.compression()
 
@@ -418,6 +453,7 @@ class Hdf5Recording(BaseRecording):
         self.warnings.append(f"the file does not record its sensor size; inferred {lay.sensor_size} from the coordinates")
 
     # -- events -----------------------------------------------------------------
+    @_guard
     def _find(self, t_us) -> int:
         """Index of the first event with t >= t_us."""
         lay = self._layout
@@ -540,6 +576,7 @@ class Hdf5Recording(BaseRecording):
             self._sorted_cache = Events._trusted(ev.t[order], ev.x[order], ev.y[order], ev.p[order], ev.sensor_size, True)
         return self._sorted_cache
 
+    @_guard
     def events(self, t_start_us=None, t_end_us=None) -> Events:
         """Events with ``t_start_us <= t < t_end_us``; reads only the blocks the window needs."""
         self._check_open()
@@ -551,6 +588,7 @@ class Hdf5Recording(BaseRecording):
             ev = ev.between(t_start_us, t_end_us)
         return ev
 
+    @_guard_gen
     def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
         """Yield events in order, ``chunk_events`` at a time (memory bounded by the chunk)."""
         self._check_open()
@@ -572,6 +610,7 @@ class Hdf5Recording(BaseRecording):
             if len(ev) < b - a:
                 return
 
+    @_guard
     def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
         self._check_open()
         tr = self._layout.triggers()
@@ -580,6 +619,7 @@ class Hdf5Recording(BaseRecording):
         return tr
 
     @property
+    @_guard
     def streams(self):
         lay = self._layout
         first = last = None
@@ -600,6 +640,7 @@ class Hdf5Recording(BaseRecording):
         return {"layout": self.layout}
 
     # -- extra arrays (responses, schedules) --------------------------------------
+    @_guard
     def read_array(self, name: str) -> np.ndarray:
         """A dataset stored beside the events (for example reconstructed responses)."""
         self._check_open()

@@ -1,0 +1,123 @@
+"""Mutation campaign over valid AEDAT4, HDF5 and Parquet files.
+
+    python tests/fuzz/campaign.py --cases 3000 --seed 1
+
+Every outcome must be a correct read, an evtk.FormatError, or (salvage) a
+prefix of the original events; anything else is reported as a crash with
+the seed that reproduces it.  Not collected by pytest (no test_ prefix).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import os
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+import evtk  # noqa: E402
+from conftest import random_events  # noqa: E402
+
+
+def sources(tmp: Path):
+    ev = random_events(5000, seed=3, span_us=50_000)
+    tr = evtk.Triggers([10, 20_000], [1, 2])
+    out = {}
+    for name, kw in (("a.aedat4", dict(packet_events=500, packet_us=None)), ("z.aedat4", dict(compression="zstd", packet_events=700)),
+                     ("n.aedat4", dict(compression="none", packet_events=900)), ("e.h5", dict(chunk_events=1024)),
+                     ("p.parquet", dict(row_group_events=1000))):
+        p = tmp / name
+        evtk.write_events(p, ev, tr, **kw)
+        out[name] = p
+    fixtures = HERE.parent.parent / "fixtures"
+    for f in fixtures.glob("*.aedat4"):
+        out[f.name] = f
+    return out
+
+
+def mutate(data: bytearray, rng) -> bytearray:
+    kind = rng.integers(0, 5)
+    if kind == 0:  # bit flips
+        for _ in range(int(rng.integers(1, 8))):
+            i = int(rng.integers(0, len(data)))
+            data[i] ^= 1 << int(rng.integers(0, 8))
+    elif kind == 1:  # truncation
+        data = data[: int(rng.integers(0, len(data)))]
+    elif kind == 2:  # a size-like field that lies
+        i = int(rng.integers(0, max(1, len(data) - 4)))
+        data[i : i + 4] = int(rng.choice([0, 1, 2**31 - 1, 2**32 - 1, len(data), 0x7FFF0000])).to_bytes(4, "little")
+    elif kind == 3:  # duplicated span
+        a = int(rng.integers(0, len(data)))
+        b = min(len(data), a + int(rng.integers(1, 4096)))
+        data = data[:b] + data[a:b] + data[b:]
+    else:  # zeroed span
+        a = int(rng.integers(0, len(data)))
+        data[a : a + int(rng.integers(1, 512))] = bytes(min(len(data) - a, 512))[: len(data[a : a + 512])]
+    return data
+
+
+def run_case(path: Path, reference):
+    outcome = "read"
+    try:
+        with evtk.open(path) as rec:
+            rec.info()
+            rec.events()
+            rec.events(1000, 2000)
+            rec.triggers()
+    except evtk.FormatError:
+        outcome = "format_error"
+    try:
+        with evtk.open(path, salvage=True) as rec:
+            got = rec.events()
+        if outcome != "read" and len(got) and len(got) <= len(reference):
+            outcome += "+salvaged"
+    except evtk.FormatError:
+        pass
+    return outcome
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--cases", type=int, default=2000)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    counts = collections.Counter()
+    crashes = []
+    slow = 0
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        srcs = sources(tmp)
+        refs = {name: evtk.read_events(p) for name, p in srcs.items()}
+        names = sorted(srcs)
+        t_start = time.time()
+        for case in range(args.cases):
+            rng = np.random.default_rng([args.seed, case])
+            name = names[case % len(names)]
+            data = mutate(bytearray(srcs[name].read_bytes()), rng)
+            p = tmp / ("m" + Path(name).suffix)
+            p.write_bytes(bytes(data))
+            t0 = time.time()
+            try:
+                counts[run_case(p, refs[name])] += 1
+            except Exception as exc:  # a crash: anything but FormatError
+                counts["crash"] += 1
+                crashes.append((name, case, "".join(traceback.format_exception_only(type(exc), exc)).strip()))
+            if time.time() - t0 > 1.0:
+                slow += 1
+            os.unlink(p)
+    print(f"cases {args.cases} in {time.time() - t_start:.0f} s: {dict(counts)}; slower than 1 s: {slow}")
+    for c in crashes[:20]:
+        print("CRASH", c)
+    return 1 if crashes else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
