@@ -96,6 +96,24 @@ class _Layout:
         return None
 
 
+def _fixed_text(obj, name):
+    """A fixed-length string attribute, or None.
+
+    Variable-length strings live in HDF5's global heap, which the library can
+    loop on forever when a file is damaged; evtk writes and trusts only
+    fixed-length ones.
+    """
+    if name not in obj.attrs:
+        return None
+    aid = obj.attrs.get_id(name)
+    if aid.dtype.kind != "S" or aid.shape not in ((), (1,)):
+        return None
+    value = obj.attrs[name]
+    if isinstance(value, np.ndarray):
+        value = value.reshape(-1)[0]
+    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
+
+
 def _need(f, path, names, layout):
     missing = [n for n in names if n not in f]
     if missing:
@@ -139,12 +157,16 @@ class _EvtkLayout(_Layout):
         if size is None or len(size) != 2:
             raise FormatError(path, None, "evtk layout: root attribute 'sensor_size' [width, height] missing")
         self.sensor_size = (int(size[0]), int(size[1]))
-        text = f.attrs.get("metadata")
-        if text:
+        if not all(0 < v <= 65536 for v in self.sensor_size):
+            raise FormatError(path, None, f"root attribute sensor_size {list(self.sensor_size)} is impossible")
+        if "metadata" in f:
+            ds = f["metadata"]
+            if ds.dtype != np.uint8 or ds.ndim != 1:
+                raise FormatError(path, None, "/metadata must be a 1-D uint8 dataset of UTF-8 JSON")
             try:
-                self.metadata = json.loads(text)
-            except json.JSONDecodeError as exc:
-                raise FormatError(path, None, f"root attribute 'metadata' is not valid JSON ({exc})") from None
+                self.metadata = json.loads(ds[...].tobytes().decode("utf-8"))
+            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise FormatError(path, None, f"/metadata is not valid JSON ({exc})") from None
         if "index_t_us" in g:
             stride = int(g["index_t_us"].attrs.get("stride", 0))
             index = g["index_t_us"][...]
@@ -237,7 +259,8 @@ class _PropheseeLayout(_Layout):
         self.n = ds.shape[0]
         w = f.attrs.get("width", f["CD"].attrs.get("width"))
         h = f.attrs.get("height", f["CD"].attrs.get("height"))
-        geometry = f.attrs.get("geometry")
+        geometry = _fixed_text(f, "geometry") if "geometry" in f.attrs and f.attrs.get_id("geometry").dtype.kind == "S" else (
+            f.attrs.get("geometry") if "geometry" in f.attrs else None)
         if w is not None and h is not None:
             self.sensor_size = (int(w), int(h))
         elif geometry is not None:
@@ -305,7 +328,7 @@ class _EventUtilsLayout(_Layout):
 
 
 _LAYOUTS = (
-    ("evtk", lambda f: f.attrs.get("evtk_format") == EVTK_FORMAT and "events" in f, _EvtkLayout),
+    ("evtk", lambda f: _fixed_text(f, "evtk_format") == EVTK_FORMAT and "events" in f, _EvtkLayout),
     ("dsec", lambda f: "events/t" in f and "events/x" in f and "ms_to_idx" in f, _DsecLayout),
     ("prophesee", lambda f: "CD/events" in f, _PropheseeLayout),
     ("event_utils", lambda f: "events/ts" in f and "events/xs" in f, _EventUtilsLayout),
@@ -690,17 +713,17 @@ class Hdf5Writer:
         try:
             self._f = h5py.File(self._atomic.tmp_path, "w")
             f = self._f
-            f.attrs["evtk_format"] = EVTK_FORMAT
+            f.attrs["evtk_format"] = np.bytes_(EVTK_FORMAT)
             f.attrs["evtk_format_version"] = FORMAT_VERSION
-            f.attrs["evtk_version"] = __version__
+            f.attrs["evtk_version"] = np.bytes_(__version__)
             f.attrs["sensor_size"] = np.asarray(self.sensor_size, np.int64)
-            f.attrs["time_unit"] = "us"
-            f.attrs["metadata"] = meta_text
+            f.attrs["time_unit"] = np.bytes_("us")
+            f.create_dataset("metadata", data=np.frombuffer(meta_text.encode("utf-8"), np.uint8))
             g = f.create_group("events")
             self._cols = {}
             for name, dtype in (("t", np.int64), ("x", np.uint16), ("y", np.uint16), ("p", np.uint8)):
                 self._cols[name] = g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(self.chunk,), **kw)
-            self._cols["t"].attrs["unit"] = "us"
+            self._cols["t"].attrs["unit"] = np.bytes_("us")
             self._index = []
             self._n = 0
             self._last_t = None
