@@ -6,6 +6,7 @@ import json
 import sys
 
 import click
+import numpy as np
 
 from . import io as evio
 from ._version import __version__
@@ -83,15 +84,28 @@ def info(file, as_json, salvage):
     help="Packet compression of the written file.",
 )
 @click.option("--salvage", is_flag=True, help="Convert what is intact before damage.")
-def convert(source, target, compression, salvage):
-    """Convert SOURCE to TARGET (format from TARGET's extension)."""
+@click.option("--sort", is_flag=True, help="Sort events by time (in memory) when the source is out of order.")
+@click.option("--chunk-events", type=click.IntRange(min=1), default=4_000_000, show_default=True,
+              help="Events held in memory at a time while streaming.")
+def convert(source, target, compression, salvage, sort, chunk_events):
+    """Convert SOURCE to TARGET (format from TARGET's extension), streaming."""
     with evio.open(source, salvage=salvage) as rec:
-        events = rec.events()
-        triggers = rec.triggers()
         has_triggers = any(s.type == "TRIG" for s in rec.streams)
-        metadata = rec.metadata
-    evio.write_events(target, events, triggers if has_triggers else None, compression=compression, metadata=metadata)
-    click.echo(f"wrote {len(events):,} events and {len(triggers):,} triggers to {target}", err=True)
+        triggers = rec.triggers() if has_triggers else None
+        n = 0
+        if sort:  # in memory: a stable sort by time
+            events = rec.events()
+            order = np.argsort(events.t, kind="stable")
+            events = events.__class__(events.t[order], events.x[order], events.y[order], events.p[order], events.sensor_size)
+            evio.write_events(target, events, triggers, compression=compression, metadata=rec.metadata or None)
+            n = len(events)
+        else:
+            with evio.open_writer(target, rec.sensor_size, compression, rec.metadata or None, triggers) as writer:
+                for chunk in rec.iter_events(chunk_events=chunk_events):
+                    writer.write_events(chunk)
+                    n += len(chunk)
+    n_trig = 0 if triggers is None else len(triggers)
+    click.echo(f"wrote {n:,} events and {n_trig:,} triggers to {target}", err=True)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -115,3 +115,42 @@ def test_info_on_every_format(tmp_path, fixtures_dir, ext, fmt):
     assert info["format"] == fmt and info["events"] == 4000 and info["triggers"] == 20
     assert info["sensor_size"] == [320, 240]
     assert run("info", out).exit_code == 0
+
+
+def test_convert_streams_in_bounded_chunks(tmp_path, monkeypatch):
+    """convert never asks the reader for more than --chunk-events at a time."""
+    ev = random_events(50_000, seed=2)
+    src = tmp_path / "s.aedat4"
+    evtk.write_events(src, ev, packet_events=1000)
+    seen = []
+    from evtk.io import aedat4
+
+    original = aedat4.Recording.iter_events
+
+    def spy(self, chunk_events=1_000_000, **kw):
+        for chunk in original(self, chunk_events=chunk_events, **kw):
+            seen.append(len(chunk))
+            yield chunk
+
+    monkeypatch.setattr(aedat4.Recording, "iter_events", spy)
+    for ext in (".h5", ".parquet", ".aedat4"):
+        seen.clear()
+        out = tmp_path / ("o" + ext)
+        r = run("convert", src, out, "--chunk-events", 7000)
+        assert r.exit_code == 0, r.output
+        assert max(seen) <= 7000 and sum(seen) == len(ev)
+        assert evtk.read_events(out) == ev
+
+
+def test_convert_unsorted_needs_sort_flag_for_hdf5(tmp_path):
+    ev = random_events(3000, seed=3, sort=False)
+    src = tmp_path / "u.aedat4"
+    evtk.write_events(src, ev)
+    r = run("convert", src, tmp_path / "u.h5")
+    assert r.exit_code == 1 and "time order" in r.output
+    assert not (tmp_path / "u.h5").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".evtk-partial")]
+    r = run("convert", "--sort", src, tmp_path / "u.h5")
+    assert r.exit_code == 0
+    got = evtk.read_events(tmp_path / "u.h5")
+    assert got.is_sorted and len(got) == len(ev)

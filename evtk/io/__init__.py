@@ -8,13 +8,15 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
+
 from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
 from . import aedat4
 from .aedat4 import Recording
 from .base import BaseRecording
 
-__all__ = ["open", "read_events", "write_events", "detect_format", "Recording", "BaseRecording", "WRITE_EXTENSIONS"]
+__all__ = ["open", "open_writer", "read_events", "write_events", "detect_format", "Recording", "BaseRecording", "WRITE_EXTENSIONS"]
 
 #: Extension -> format name for writing.
 WRITE_EXTENSIONS = {".aedat4": "aedat4", ".h5": "hdf5", ".hdf5": "hdf5", ".parquet": "parquet", ".pq": "parquet"}
@@ -116,6 +118,35 @@ def write_events(path, events: Events, triggers: Triggers | None = None, compres
         from .arrow import write_parquet
 
         write_parquet(path, events, triggers, compression=compression, metadata=metadata, **kwargs)
+
+
+def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, triggers: Triggers | None = None):
+    """A streaming writer for ``path`` (format from the extension).
+
+    Call ``write_events`` as often as needed, then ``close`` (or use it as a
+    context manager, which discards the partial file on an exception).
+    Triggers are written first; HDF5 needs events in time order.
+    """
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    fmt = WRITE_EXTENSIONS.get(ext)
+    if fmt is None:
+        raise EvtkError(f"cannot tell the format from the extension {ext!r}; use one of {sorted(WRITE_EXTENSIONS)}")
+    if fmt == "aedat4":
+        w = aedat4.Aedat4Writer(path, sensor_size, compression, triggers=triggers is not None, metadata=metadata)
+        if triggers is not None and len(triggers):
+            order = np.argsort(triggers.t, kind="stable")
+            w.write_triggers(Triggers(triggers.t[order], triggers.kind[order]))
+        return w
+    if fmt == "hdf5":
+        from .hdf5 import Hdf5Writer
+
+        w = Hdf5Writer(path, sensor_size, compression, metadata)
+        if triggers is not None:
+            w.write_triggers(triggers)
+        return w
+    from .arrow import ParquetWriter
+
+    return ParquetWriter(path, sensor_size, compression, metadata, triggers)
 
 
 import builtins as _builtins  # noqa: E402

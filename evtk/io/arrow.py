@@ -278,24 +278,79 @@ class ParquetRecording(BaseRecording):
         return {"row_groups": len(self._groups)}
 
 
+class ParquetWriter:
+    """Stream events into a Parquet file (atomically), row groups cut by time.
+
+    Triggers and metadata go in the schema, so they are given up front.
+    """
+
+    def __init__(self, path, sensor_size, compression="lz4", metadata=None, triggers=None,
+                 row_group_events=ROW_GROUP_EVENTS, row_group_us=ROW_GROUP_US):
+        import pyarrow.parquet as pq
+
+        codec = COMPRESSIONS.get(str(compression).lower())
+        if codec is None:
+            raise EvtkError(f"unknown Parquet compression {compression!r}; choose one of {sorted(COMPRESSIONS)}")
+        self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
+        self._schema = _schema(self.sensor_size, metadata, triggers)
+        self._rg_events, self._rg_us = int(row_group_events), row_group_us
+        self._atomic = AtomicFile(path, keep_open=False)
+        self.path = self._atomic.path
+        self._rows = 0
+        try:
+            self._w = pq.ParquetWriter(self._atomic.tmp_path, self._schema, compression=codec)
+        except BaseException:
+            self._atomic.discard()
+            raise
+        self._closed = False
+
+    def write_events(self, events: Events):
+        if self._closed:
+            raise EvtkError(f"{self.path}: writer is closed")
+        if tuple(events.sensor_size) != self.sensor_size:
+            raise EvtkError(f"events are for a {events.sensor_size} sensor, the file for {self.sensor_size}")
+        pa = _pa()
+        table = pa.Table.from_arrays(
+            [pa.array(events.t), pa.array(events.x), pa.array(events.y), pa.array(events.p)], schema=self._schema
+        )
+        bounds = time_chunks(events.t, self._rg_events, self._rg_us, events.is_sorted)
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            self._w.write_table(table.slice(int(a), int(b - a)), row_group_size=int(b - a))
+        self._rows += len(events)
+
+    def close(self):
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if self._rows == 0:
+                self._w.write_table(self._schema.empty_table())
+            self._w.close()
+            self._atomic.commit()
+        except BaseException:
+            self._atomic.discard()
+            raise
+
+    def abort(self):
+        if not self._closed:
+            self._closed = True
+            try:
+                self._w.close()
+            finally:
+                self._atomic.discard()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
 def write_parquet(path, events: Events, triggers: Triggers | None = None, compression="lz4", metadata=None,
                   row_group_events=ROW_GROUP_EVENTS, row_group_us=ROW_GROUP_US):
     """Write events as Parquet (atomically), one row group per time slice."""
-    import pyarrow.parquet as pq
-
-    codec = COMPRESSIONS.get(str(compression).lower())
-    if codec is None:
-        raise EvtkError(f"unknown Parquet compression {compression!r}; choose one of {sorted(COMPRESSIONS)}")
-    table = to_arrow(events, metadata, triggers)
-    bounds = time_chunks(events.t, int(row_group_events), row_group_us, events.is_sorted)
-    atomic = AtomicFile(path, keep_open=False)
-    try:
-        with pq.ParquetWriter(atomic.tmp_path, table.schema, compression=codec) as writer:
-            if len(events) == 0:
-                writer.write_table(table)
-            for a, b in zip(bounds[:-1], bounds[1:]):
-                writer.write_table(table.slice(int(a), int(b - a)), row_group_size=int(b - a))
-        atomic.commit()
-    except BaseException:
-        atomic.discard()
-        raise
+    with ParquetWriter(path, events.sensor_size, compression, metadata, triggers, row_group_events, row_group_us) as w:
+        w.write_events(events)

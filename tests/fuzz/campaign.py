@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import faulthandler
 import os
 import sys
 import tempfile
@@ -88,6 +89,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--cases", type=int, default=2000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--hang-seconds", type=float, default=20.0)
     args = ap.parse_args(argv)
     counts = collections.Counter()
     crashes = []
@@ -105,11 +107,16 @@ def main(argv=None):
             p = tmp / ("m" + Path(name).suffix)
             p.write_bytes(bytes(data))
             t0 = time.time()
+            # a case stuck inside a C library cannot be interrupted: dump the
+            # stacks and stop the campaign, naming the case
+            sys.stderr.write(f"\rcase {case} {name}   ")
+            faulthandler.dump_traceback_later(args.hang_seconds, exit=True)
             try:
                 counts[run_case(p, refs[name])] += 1
             except Exception as exc:  # a crash: anything but FormatError
                 counts["crash"] += 1
                 crashes.append((name, case, "".join(traceback.format_exception_only(type(exc), exc)).strip()))
+            faulthandler.cancel_dump_traceback_later()
             if time.time() - t0 > 1.0:
                 slow += 1
             os.unlink(p)
