@@ -216,3 +216,12 @@ def test_streaming_writer_many_calls(tmp_path):
         w.write_triggers(evtk.Triggers([5], [1]))
     dv_ev, dv_tr = peers.dv_read(path)
     assert dv_ev == ev and dv_tr.t.tolist() == [5]
+
+
+def test_header_attributes_are_exposed(fixtures_dir):
+    with evtk.open(fixtures_dir / "dvxplorer_lz4.aedat4") as rec:
+        header = rec.header
+        assert header["events"]["source"] == "DVXplorer_fixture"
+        assert header["events"]["sizeX"] == 320 and header["events"]["typeIdentifier"] == "EVTS"
+        assert header["triggers"]["compression"] == "LZ4"
+        assert rec.info()["header"]["frames"]["sizeY"] == 240

@@ -586,8 +586,14 @@ class Recording(BaseRecording):
             trig = trig.between(t_start_us, t_end_us)
         return trig
 
+    @property
+    def header(self) -> dict:
+        """Every stream's attributes from the header XML, by stream name
+        (``source``, ``sizeX``, ``tsOffset``, ``compression``, ...)."""
+        return {s.name: dict(s.attributes) for s in self._streams.values()}
+
     def _extra_info(self) -> dict:
-        return {"data_table": bool(self._index.from_table)}
+        return {"data_table": bool(self._index.from_table), "header": self.header}
 
 
 def _status(code) -> str:
