@@ -279,6 +279,14 @@ class Recording(BaseRecording):
         if n and not ok.all():
             self.warnings.append("the data table points outside the packets; packets were indexed by walking the file")
             return None
+        # an element count the packet's size cannot hold would make the reader
+        # allocate for it: such a table is not trusted
+        evts = np.isin(stream, [sid for sid, st in self._streams.items() if st.type == "EVTS"])
+        per_element = np.where(evts, 16, 1)
+        plausible = count <= np.array([cz.output_limit(z) for z in size], np.int64) // per_element
+        if n and not plausible.all():
+            self.warnings.append("the data table claims more elements than its packets can hold; packets were indexed by walking the file")
+            return None
         order = np.argsort(offset, kind="stable")
         if n and np.any(offset[order][1:] < (offset + size)[order][:-1] + 8):
             self.warnings.append("the data table lists overlapping packets; packets were indexed by walking the file")
