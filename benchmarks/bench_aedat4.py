@@ -189,8 +189,8 @@ def main(argv=None):
                     "evtk_speedup": (r["seconds"] / base["seconds"]) if base else None,
                 })
     print(f"\n{n:,} events, 320x240, median of {args.repeats} runs, each in a fresh process\n")
-    print(f"| op | compression | tool | time (s) | M events/s | peak RSS (MiB) | evtk speed-up |")
-    print(f"|---|---|---|---:|---:|---:|---:|")
+    print("| op | compression | tool | time (s) | M events/s | peak RSS (MiB) | evtk speed-up |")
+    print("|---|---|---|---:|---:|---:|---:|")
     for r in rows:
         print(
             f"| {r['op']} | {r['compression']} | {r['tool']} | {r['seconds']:.3f} | {r['mev_per_s']:.1f} | "

@@ -5,9 +5,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
-
-import numpy as np
 
 import evtk
 

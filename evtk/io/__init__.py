@@ -6,6 +6,7 @@ writing goes by the extension of the target path.
 
 from __future__ import annotations
 
+import builtins
 import os
 
 import numpy as np
@@ -33,7 +34,7 @@ def detect_format(path) -> str:
     """Name the format of ``path`` from its first bytes."""
     path = os.fspath(path)
     try:
-        with builtins_open(path, "rb") as f:
+        with builtins.open(path, "rb") as f:
             head = f.read(16)
     except FileNotFoundError:
         raise EvtkError(f"no such file: {path}") from None
@@ -148,7 +149,3 @@ def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, trig
 
     return ParquetWriter(path, sensor_size, compression, metadata, triggers)
 
-
-import builtins as _builtins  # noqa: E402
-
-builtins_open = _builtins.open

@@ -259,8 +259,7 @@ class _PropheseeLayout(_Layout):
         self.n = ds.shape[0]
         w = f.attrs.get("width", f["CD"].attrs.get("width"))
         h = f.attrs.get("height", f["CD"].attrs.get("height"))
-        geometry = _fixed_text(f, "geometry") if "geometry" in f.attrs and f.attrs.get_id("geometry").dtype.kind == "S" else (
-            f.attrs.get("geometry") if "geometry" in f.attrs else None)
+        geometry = f.attrs.get("geometry")
         if w is not None and h is not None:
             self.sensor_size = (int(w), int(h))
         elif geometry is not None:
