@@ -70,3 +70,16 @@ class AtomicFile:
                 os.unlink(self.tmp_path)
             except FileNotFoundError:
                 pass
+
+    def write(self, data):
+        return self.file.write(data)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.commit()
+        else:
+            self.discard()
+        return False
