@@ -1,0 +1,574 @@
+"""Simulated device: kernels and features in, an event recording (or responses) out.
+
+A run shows every (kernel, features) pair ``repeat`` times. Signed patterns
+are split into the non-negative passes K+F+, K+F-, K-F+, K-F- (a pass that is
+identically zero is left out). Each pass is one *capture*: both DMDs show
+their pattern for ``window_us``, then both go dark for ``settle_us``. The
+recording starts with ``settle_us`` of darkness. The DMD trigger output is
+recorded as trigger events: a rising edge when a pattern appears, a falling
+edge when it goes.
+
+Two ways to run:
+
+* :meth:`Simulation.iter_events` / :meth:`Simulation.write`: the event
+  stream of the whole sensor, in time order, streamed capture batch by
+  capture batch (memory bounded by a batch).
+* :meth:`Simulation.responses`: the fast path. Only pixels that see the
+  pattern are simulated, with the same pixel model, and only the per-window
+  event counts are kept, never the events.
+
+Everything needed to reproduce or reconstruct a run (bench, sensor, patterns,
+schedule, seed) is in :meth:`Simulation.metadata`, stored with the recording;
+see ``formats/schedule.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from ._version import __version__
+from .errors import EvtkError
+from .events import Events, TriggerKind, Triggers
+from .optics import Bench, ideal_response, response_region, screen_response
+from .sensor import PixelState, SensorModel, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
+
+__all__ = [
+    "split_passes",
+    "Schedule",
+    "Simulation",
+    "CaptureCounts",
+    "load_patterns",
+    "METADATA_KEY",
+]
+
+#: Key of the simulation record in a recording's evtk metadata.
+METADATA_KEY = "simulation"
+
+_T_LIMIT = np.iinfo(np.int64).max
+
+
+def _as_patterns(name, a):
+    """A stack (n, h, w) of patterns with values in {-1, 0, 1}."""
+    a = np.asarray(a)
+    if a.dtype == bool:
+        a = a.astype(np.int8)
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3 or 0 in a.shape:
+        raise EvtkError(f"{name} must be a 2-D pattern or a stack of them (n, h, w), got shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.number):
+        raise EvtkError(f"{name} must be numeric, got {a.dtype}")
+    if not np.all(np.isfinite(a)) or not np.all((a == -1) | (a == 0) | (a == 1)):
+        raise EvtkError(f"{name} must hold only -1, 0 and 1 (binary DMD patterns, optionally signed)")
+    return a.astype(np.int8)
+
+
+def split_passes(kernel, features):
+    """Non-negative passes of a signed (kernel, features) pair.
+
+    Returns a list of ``(kernel_sign, features_sign, kernel_pass, features_pass)``
+    with passes in {0, 1}; pairs where either pass is all zero are left out.
+    The signed response is ``sum(ks * fs * response(kp, fp))``.
+
+    Examples
+    --------
+    >>> k = np.array([[1, -1]]); f = np.array([[1, 1, 0]])
+    >>> [(ks, fs) for ks, fs, _, _ in split_passes(k, f)]
+    [(1, 1), (-1, 1)]
+    """
+    k = np.asarray(kernel)
+    f = np.asarray(features)
+    out = []
+    for ks in (1, -1):
+        kp = (k * ks > 0).astype(np.int8)
+        if not kp.any():
+            continue
+        for fs in (1, -1):
+            fp = (f * fs > 0).astype(np.int8)
+            if fp.any():
+                out.append((ks, fs, kp, fp))
+    return out
+
+
+@dataclass
+class Schedule:
+    """One row per capture: which patterns, which pass, when (us)."""
+
+    capture: np.ndarray
+    kernel_id: np.ndarray
+    features_id: np.ndarray
+    kernel_sign: np.ndarray
+    features_sign: np.ndarray
+    t_on_us: np.ndarray
+    t_off_us: np.ndarray
+    repeat: np.ndarray
+
+    _COLUMNS = ("capture", "kernel_id", "features_id", "kernel_sign", "features_sign", "t_on_us", "t_off_us",
+                "repeat")
+
+    def __len__(self):
+        return int(self.capture.size)
+
+    def to_dict(self) -> dict:
+        return {c: getattr(self, c).tolist() for c in self._COLUMNS}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Schedule":
+        try:
+            cols = {c: np.asarray(d[c], dtype=np.int64) for c in cls._COLUMNS}
+        except (KeyError, TypeError, ValueError) as exc:
+            raise EvtkError(f"capture schedule is malformed: {exc}") from None
+        n = {v.shape for v in cols.values()}
+        if len(n) != 1 or next(iter(n)).__len__() != 1:
+            raise EvtkError("capture schedule columns must be 1-D and of equal length")
+        return cls(**cols)
+
+
+@dataclass
+class CaptureCounts:
+    """Per-capture event counts inside each capture window, over a sensor region.
+
+    ``on`` and ``off`` have shape (n_captures, y1 - y0, x1 - x0); ``region`` is
+    (x0, x1, y0, y1) on the sensor.
+    """
+
+    on: np.ndarray
+    off: np.ndarray
+    region: tuple
+    schedule: Schedule
+
+
+class Simulation:
+    """A simulated run of the device.
+
+    Parameters
+    ----------
+    kernels, features : array_like
+        One pattern (h, w) or a stack (n, h, w) each, values in {-1, 0, 1}.
+        Every kernel is paired with every features pattern.
+    bench : Bench, optional
+    sensor : SensorModel, optional
+    window_us : int
+        How long a pattern is shown; must not be shorter than eq. 7 allows.
+    settle_us : int, optional
+        Darkness after each pattern (and before the first). Default: long
+        enough for a pixel to fall back from the brightest pattern to within
+        5 % of a threshold of the dark level (:meth:`recommended_settle_us`).
+    repeat : int
+        Times each pair is shown.
+    seed : int
+        The device: threshold mismatch and hot pixels follow from it.
+    noise_seed : int, optional
+        The trial: shot noise and background activity (default: ``seed``).
+        Same ``seed`` with another ``noise_seed`` is the same camera recording again.
+    start_us : int
+        Timestamp of the start of the recording.
+
+    Examples
+    --------
+    >>> sim = Simulation(np.ones((3, 3)), np.eye(16), seed=1)
+    >>> len(sim.schedule)
+    1
+    """
+
+    def __init__(self, kernels, features, bench: Bench | None = None, sensor: SensorModel | None = None,
+                 window_us=1000, settle_us=None, repeat=1, seed=0, start_us=0, noise_seed=None):
+        self.bench = bench if bench is not None else Bench()
+        self.sensor = sensor if sensor is not None else SensorModel()
+        self.kernels = _as_patterns("kernels", kernels)
+        self.features = _as_patterns("features", features)
+        self.bench.check_pattern(self.kernels.shape[1:], self.features.shape[1:])
+        self.window_us = _int_param("window_us", window_us, 1)
+        if self.window_us < self.bench.min_window_us:
+            raise EvtkError(f"window_us={self.window_us} is shorter than the bench allows: eq. 7 gives "
+                            f"e_min = {self.bench.min_window_us:g} us")
+        self.repeat = _int_param("repeat", repeat, 1)
+        self.seed = _int_param("seed", seed, 0)
+        self.noise_seed = self.seed if noise_seed is None else _int_param("noise_seed", noise_seed, 0)
+        self.start_us = _int_param("start_us", start_us, np.iinfo(np.int64).min // 2)
+        self.settle_us = self.recommended_settle_us() if settle_us is None else _int_param("settle_us", settle_us, 1)
+
+        # photoelectron rates per response unit and in the dark
+        kshape = self.kernels.shape[1:]
+        self.gain_e_per_s = self.bench.electrons_per_s_per_unit(kshape)
+        self.region = response_region(self.bench, kshape, self.features.shape[1:])
+        self._passes = {}
+        rows = []
+        for r in range(self.repeat):
+            for ki in range(len(self.kernels)):
+                for fi in range(len(self.features)):
+                    for ks, fs, kp, fp in self._pair_passes(ki, fi):
+                        rows.append((ki, fi, ks, fs, r))
+        if not rows:
+            raise EvtkError("nothing to show: every kernel or features pattern is all zero")
+        n = len(rows)
+        period = self.window_us + self.settle_us
+        end = self.start_us + self.settle_us + n * period
+        if end >= _T_LIMIT:
+            raise EvtkError(f"the run would end at t = {end} us, beyond the int64 timestamp range")
+        rows = np.asarray(rows, dtype=np.int64)
+        t_on = self.start_us + self.settle_us + np.arange(n, dtype=np.int64) * period
+        self.schedule = Schedule(np.arange(n, dtype=np.int64), rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3],
+                                 t_on, t_on + self.window_us, rows[:, 4])
+        self.end_us = int(end)
+
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x5E5]))
+        w, h = self.bench.sensor_width, self.bench.sensor_height
+        self._theta_on, self._theta_off = pixel_thresholds(self.sensor, w * h, rng)
+        n_hot = int(round(self.sensor.hot_pixel_fraction * w * h))
+        self._hot = np.sort(rng.choice(w * h, size=n_hot, replace=False)) if n_hot else np.zeros(0, np.int64)
+
+    # -- patterns and light -----------------------------------------------------------
+    def _pair_passes(self, ki, fi):
+        key = (ki, fi)
+        if key not in self._passes:
+            self._passes[key] = split_passes(self.kernels[ki], self.features[fi])
+        return self._passes[key]
+
+    def _pass_patterns(self, c):
+        s = self.schedule
+        ks, fs = int(s.kernel_sign[c]), int(s.features_sign[c])
+        k = (self.kernels[s.kernel_id[c]] * ks > 0).astype(np.int8)
+        f = (self.features[s.features_id[c]] * fs > 0).astype(np.int8)
+        return k, f
+
+    def _rate(self, response):
+        return self.gain_e_per_s * response + self.sensor.dark_current_e_per_s
+
+    @property
+    def blank_rate_e_per_s(self) -> float:
+        """Photoelectron rate of every pixel while both DMDs are dark."""
+        b = self.bench
+        nk = self.kernels.shape[1] * self.kernels.shape[2]
+        return self._rate(b.leak * b.leak * nk + b.stray_light) if b.power_mw > 0 else self.sensor.dark_current_e_per_s
+
+    def recommended_settle_us(self) -> int:
+        """Darkness after a pattern for a pixel to fall back close to the dark level.
+
+        Time for the mean photoreceptor output to decay from the brightest
+        possible level (every kernel element through every feature element)
+        to within 5 % of a threshold of the dark level, at the dark level's
+        time constant; at least the eq. 7 window.
+        """
+        b = self.bench
+        nk = self.kernels.shape[1] * self.kernels.shape[2]
+        gain = b.electrons_per_s_per_unit(self.kernels.shape[1:])
+        dark = self.sensor.dark_current_e_per_s
+        blank = gain * (b.leak * b.leak * nk + b.stray_light) + dark
+        bright = gain * (nk + b.stray_light) + dark
+        tau_us = float(time_constant_us(blank, self.sensor))
+        theta = min(self.sensor.theta_on, self.sensor.theta_off)
+        span = math.log(bright / blank)
+        need = tau_us * math.log(max(span / (0.05 * theta), 1.0))
+        return int(max(math.ceil(need), math.ceil(b.min_window_us)))
+
+    def pass_response(self, c, region=None):
+        """Light (response units) each pixel of ``region`` receives during capture ``c``."""
+        k, f = self._pass_patterns(c)
+        return screen_response(k, f, self.bench, region)
+
+    def ideal(self, c):
+        """Ground truth of capture ``c``: the noise-free digital response of its pass (full correlation)."""
+        k, f = self._pass_patterns(c)
+        return ideal_response(k, f, self.bench)
+
+    def ideal_pair(self, kernel_id, features_id):
+        """Ground truth of a signed pair: what the ± passes combine to."""
+        return ideal_response(self.kernels[kernel_id], self.features[features_id], self.bench)
+
+    # -- metadata ---------------------------------------------------------------------
+    def metadata(self) -> dict:
+        """The record stored with the recording (see ``formats/schedule.md``)."""
+        return {METADATA_KEY: {
+            "evtk_version": __version__,
+            "seed": self.seed,
+            "noise_seed": self.noise_seed,
+            "window_us": self.window_us,
+            "settle_us": self.settle_us,
+            "start_us": self.start_us,
+            "end_us": self.end_us,
+            "repeat": self.repeat,
+            "bench": self.bench.to_dict(),
+            "sensor": self.sensor.to_dict(),
+            "kernels": self.kernels.tolist(),
+            "features": self.features.tolist(),
+            "schedule": self.schedule.to_dict(),
+            "response_region": list(self.region),
+            "gain_e_per_s_per_unit": self.gain_e_per_s,
+            "blank_rate_e_per_s": self.blank_rate_e_per_s,
+            "correlation": "convolution" if self.bench.kernel_flipped else "correlation",
+        }}
+
+    def triggers(self) -> Triggers:
+        """Rising edge at each pattern's appearance, falling edge when it goes."""
+        s = self.schedule
+        t = np.empty(2 * len(s), np.int64)
+        t[0::2] = s.t_on_us
+        t[1::2] = s.t_off_us
+        kind = np.empty(2 * len(s), np.int8)
+        kind[0::2] = TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE
+        kind[1::2] = TriggerKind.EXTERNAL_SIGNAL_FALLING_EDGE
+        return Triggers(t, kind)
+
+    # -- the pixel simulation ---------------------------------------------------------
+    def _segments(self, c0, c1, lead_in):
+        """Segment bounds (float us relative to the batch base) and which capture/light each has."""
+        s = self.schedule
+        base = int(s.t_on_us[c0]) - (self.settle_us if lead_in else 0)
+        starts, ends, which = [], [], []
+        if lead_in:
+            starts.append(0.0)
+            ends.append(float(self.settle_us))
+            which.append(-1)
+        for c in range(c0, c1):
+            on = float(s.t_on_us[c] - base)
+            starts += [on, on + self.window_us]
+            ends += [on + self.window_us, on + self.window_us + self.settle_us]
+            which += [c, -1]
+        return base, np.array(starts), np.array(ends), np.array(which, np.int64)
+
+    def _levels(self, which, pixels_xy, region):
+        """(level, tau, noise) arrays, shape (n_segments, n_pixels), for pixels of ``region``."""
+        x0, x1, y0, y1 = region
+        blank = self.blank_rate_e_per_s
+        rates = np.empty((which.size, (x1 - x0) * (y1 - y0)))
+        cache = {}
+        for k, c in enumerate(which):
+            if c < 0:
+                rates[k] = blank
+                continue
+            s = self.schedule
+            key = (int(s.kernel_id[c]), int(s.features_id[c]), int(s.kernel_sign[c]), int(s.features_sign[c]))
+            if key not in cache:
+                cache[key] = self._rate(self.pass_response(c, region)).ravel()
+            rates[k] = cache[key]
+        return np.log(rates), time_constant_us(rates, self.sensor), log_noise_std(rates, self.sensor)
+
+    def _glow_rate(self, c):
+        b = self.bench
+        k, _ = self._pass_patterns(c)
+        return self._rate(b.leak * (k + b.leak * (1 - k)).sum() + b.stray_light)
+
+    def _region_pixels(self, region):
+        x0, x1, y0, y1 = region
+        w = self.bench.sensor_width
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        return (yy * w + xx).ravel()
+
+    def _run(self, emit, batch, progress=None, region=None):
+        """Generator over batches: (base, c0, c1, roi_out, outside_out)."""
+        region = self.region if region is None else region
+        roi_idx = self._region_pixels(region)
+        b = self.bench
+        w, h = b.sensor_width, b.sensor_height
+        blank = self.blank_rate_e_per_s
+        lvl0 = np.full(roi_idx.size, math.log(blank))
+        s0 = log_noise_std(blank, self.sensor)
+        seq = np.random.SeedSequence([self.noise_seed, 0xE7E])
+        rng = np.random.default_rng(seq.spawn(1)[0])
+        roi_state = PixelState(lvl0, s0, self._theta_on[roi_idx], self._theta_off[roi_idx], rng)
+
+        # pixels outside the region see a uniform glow; simulate them (noise-free) only if it can cross
+        outside = None
+        if emit:
+            mask = np.ones(w * h, bool)
+            mask[roi_idx] = False
+            out_idx = np.flatnonzero(mask)
+            if out_idx.size:
+                # until its first event every such pixel follows the same noise-free path V(t);
+                # it is monotone within a segment, so its extremes are at segment ends
+                v0 = v = math.log(blank)
+                tau_blank = float(time_constant_us(blank, self.sensor))
+                reach = 0.0
+                for c in range(len(self.schedule)):
+                    g = self._glow_rate(c)
+                    lg = math.log(g)
+                    v = lg + (v - lg) * math.exp(-self.window_us / float(time_constant_us(g, self.sensor)))
+                    reach = max(reach, abs(v - v0))
+                    v = v0 + (v - v0) * math.exp(-self.settle_us / tau_blank)
+                    reach = max(reach, abs(v - v0))
+                th_min = min(self._theta_on[out_idx].min(), self._theta_off[out_idx].min())
+                # a pixel whose thresholds both exceed the reach of the glow can never fire
+                can = np.minimum(self._theta_on[out_idx], self._theta_off[out_idx]) <= reach
+                out_idx = out_idx[can]
+                if reach >= th_min:
+                    quiet = SensorModel.from_dict({**self.sensor.to_dict(), "shot_noise": False})
+                    outside = (out_idx, quiet, PixelState(np.full(out_idx.size, math.log(blank)), 0.0,
+                                                          self._theta_on[out_idx], self._theta_off[out_idx], rng))
+        n = len(self.schedule)
+        for c0 in range(0, n, batch):
+            c1 = min(n, c0 + batch)
+            base, st, en, which = self._segments(c0, c1, lead_in=(c0 == 0))
+            slot = np.where(which >= 0, which - c0, -1)
+            lvl, tau, noise = self._levels(which, None, region)
+            seed_roi, seed_out, seed_ba = (int(v) for v in rng.integers(0, 2**31 - 1, 3))
+            roi = simulate_pixels(roi_state, lvl, tau, noise, st, en, self.sensor, seed_roi,
+                                  emit=emit, count_slot=slot, n_slots=c1 - c0)
+            out = None
+            if outside is not None:
+                out_idx, quiet, ostate = outside
+                g = np.array([math.log(self._glow_rate(c)) if c >= 0 else math.log(blank) for c in which])
+                olvl = np.repeat(g[:, None], out_idx.size, axis=1)
+                rates = np.exp(g)
+                otau = np.repeat(time_constant_us(rates, quiet)[:, None], out_idx.size, axis=1)
+                onoise = np.zeros_like(olvl)
+                out = simulate_pixels(ostate, olvl, otau, onoise, st, en, quiet, seed_out)
+            yield base, c0, c1, st, en, which, roi, out, seed_ba, roi_idx, (outside[0] if outside else None)
+            if progress is not None:
+                progress(c1 - c0)
+
+    def _noise_events(self, duration_us, seed):
+        """Background activity and hot pixels over the whole sensor: (t_rel_us, pixel, polarity)."""
+        sm = self.sensor
+        w, h = self.bench.sensor_width, self.bench.sensor_height
+        rng = np.random.default_rng(seed)
+        n_ba = rng.poisson(sm.background_rate_hz * 1e-6 * duration_us * w * h) if sm.background_rate_hz else 0
+        pix = rng.integers(0, w * h, n_ba)
+        t = rng.random(n_ba) * duration_us
+        if self._hot.size and sm.hot_pixel_rate_hz:
+            k = rng.poisson(sm.hot_pixel_rate_hz * 1e-6 * duration_us, self._hot.size)
+            pix = np.concatenate([pix, np.repeat(self._hot, k)])
+            t = np.concatenate([t, rng.random(int(k.sum())) * duration_us])
+        pol = rng.integers(0, 2, pix.size).astype(np.uint8)
+        return t, pix.astype(np.int64), pol
+
+    def iter_events(self, batch_captures=8, progress=None):
+        """Yield the recording's events in time order, one batch of captures at a time."""
+        w = self.bench.sensor_width
+        size = (self.bench.sensor_width, self.bench.sensor_height)
+        for base, c0, c1, st, en, which, roi, out, seed_ba, roi_idx, out_idx in self._run(True, batch_captures,
+                                                                                            progress):
+            span = float(en[-1])
+            parts_t = [roi[0]]
+            parts_i = [roi_idx[roi[1]]]
+            parts_p = [roi[2]]
+            if out is not None:
+                parts_t.append(out[0])
+                parts_i.append(out_idx[out[1]])
+                parts_p.append(out[2])
+            nt, ni, npol = self._noise_events(span, seed_ba)
+            parts_t.append(nt)
+            parts_i.append(ni)
+            parts_p.append(npol)
+            t_rel = np.concatenate(parts_t)
+            pix = np.concatenate(parts_i)
+            pol = np.concatenate(parts_p)
+            t_int = np.floor(t_rel).astype(np.int64)
+            np.clip(t_int, 0, int(math.ceil(span)) - 1, out=t_int)
+            order = _counting_order(t_int, int(math.ceil(span)))
+            t_abs = t_int[order] + base
+            pix = pix[order]
+            x = (pix % w).astype(np.uint16)
+            y = (pix // w).astype(np.uint16)
+            yield Events._trusted(t_abs, x, y, pol[order].astype(np.uint8), size, is_sorted=True)
+
+    def events(self) -> Events:
+        """All events in memory (use :meth:`write` or :meth:`iter_events` for long runs)."""
+        size = (self.bench.sensor_width, self.bench.sensor_height)
+        return Events.concatenate(list(self.iter_events()), sensor_size=size)
+
+    def write(self, path, compression="lz4", batch_captures=8, progress=None) -> dict:
+        """Stream the run to ``path`` (.aedat4, .h5, .parquet) with triggers and metadata; atomic."""
+        from .io import open_writer
+
+        size = (self.bench.sensor_width, self.bench.sensor_height)
+        n = 0
+        with open_writer(path, size, compression, self.metadata(), self.triggers()) as writer:
+            for ev in self.iter_events(batch_captures, progress):
+                writer.write_events(ev)
+                n += len(ev)
+        return {"path": str(path), "events": n, "triggers": 2 * len(self.schedule), "captures": len(self.schedule),
+                "t_start_us": self.start_us, "t_end_us": self.end_us, "window_us": self.window_us,
+                "settle_us": self.settle_us, "seed": self.seed, "noise_seed": self.noise_seed}
+
+    def responses(self, region=None, batch_captures=64, progress=None) -> CaptureCounts:
+        """The fast path: ON/OFF counts per pixel inside each capture window, without events.
+
+        Only the pixels of ``region`` (default: where the pattern's shadow can
+        fall) are simulated, with the same pixel model as the event path;
+        background activity and hot pixels are added as Poisson counts.
+        """
+        region = self.region if region is None else tuple(int(v) for v in region)
+        x0, x1, y0, y1 = region
+        b = self.bench
+        if not (0 <= x0 <= x1 <= b.sensor_width and 0 <= y0 <= y1 <= b.sensor_height):
+            raise EvtkError(f"region {region} is not inside the {b.sensor_width}x{b.sensor_height} sensor")
+        n = len(self.schedule)
+        ny, nx = y1 - y0, x1 - x0
+        on = np.zeros((n, ny, nx), np.int32)
+        off = np.zeros((n, ny, nx), np.int32)
+        roi_idx = self._region_pixels(region)
+        hot = np.isin(roi_idx, self._hot)
+        for _, c0, c1, _, _, _, roi, _, seed_ba, _, _ in self._run(False, batch_captures, progress, region):
+            on[c0:c1] = roi[3].reshape(c1 - c0, ny, nx)
+            off[c0:c1] = roi[4].reshape(c1 - c0, ny, nx)
+            rng = np.random.default_rng(seed_ba)
+            lam = 0.5 * self.sensor.background_rate_hz * 1e-6 * self.window_us
+            if lam > 0:
+                on[c0:c1] += rng.poisson(lam, (c1 - c0, ny, nx)).astype(np.int32)
+                off[c0:c1] += rng.poisson(lam, (c1 - c0, ny, nx)).astype(np.int32)
+            if hot.any() and self.sensor.hot_pixel_rate_hz:
+                lam_h = 0.5 * self.sensor.hot_pixel_rate_hz * 1e-6 * self.window_us
+                on[c0:c1] += (rng.poisson(lam_h, (c1 - c0, ny * nx)) * hot).reshape(c1 - c0, ny, nx).astype(np.int32)
+                off[c0:c1] += (rng.poisson(lam_h, (c1 - c0, ny * nx)) * hot).reshape(c1 - c0, ny, nx).astype(np.int32)
+        return CaptureCounts(on, off, region, self.schedule)
+
+
+def _int_param(name, v, low):
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer, float)) or (isinstance(v, float) and not v.is_integer()):
+        raise EvtkError(f"{name} must be a whole number, not {v!r}")
+    v = int(v)
+    if v < low:
+        raise EvtkError(f"{name} must be at least {low}, not {v}")
+    return v
+
+
+@numba.njit(cache=True)
+def _counting_order(keys, n_keys):
+    """Stable order sorting ``keys`` (ints in [0, n_keys)) in O(n + n_keys)."""
+    counts = np.zeros(n_keys + 1, np.int64)
+    for k in keys:
+        counts[k + 1] += 1
+    for i in range(n_keys):
+        counts[i + 1] += counts[i]
+    order = np.empty(keys.size, np.int64)
+    for i in range(keys.size):
+        k = keys[i]
+        order[counts[k]] = i
+        counts[k] += 1
+    return order
+
+
+def load_patterns(path_or_bits, name, side=None):
+    """Patterns from a ``.npy`` file, an image (PNG etc.) or a bit string like ``101010101``.
+
+    Images are binarised at half their range; a bit string fills a square
+    pattern row by row.
+    """
+    s = str(path_or_bits)
+    if set(s) <= {"0", "1"} and s:
+        n = len(s)
+        k = int(round(math.sqrt(n)))
+        if k * k != n:
+            raise EvtkError(f"{name} bits {s!r}: {n} bits do not make a square pattern")
+        return np.array([int(c) for c in s], dtype=np.int8).reshape(k, k)
+    if s.lower().endswith(".npy"):
+        try:
+            return np.load(s, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise EvtkError(f"{s}: cannot read {name} array: {exc}") from None
+    try:
+        from skimage import io as skio
+
+        img = skio.imread(s)
+    except Exception as exc:  # noqa: BLE001 - any reader failure is the user's file
+        raise EvtkError(f"{s}: cannot read {name} image: {exc}") from None
+    img = np.asarray(img, dtype=np.float64)
+    if img.ndim == 3:
+        img = img[..., :3].mean(axis=2)
+    lo, hi = float(img.min()), float(img.max())
+    return (img > (lo + hi) / 2).astype(np.int8) if hi > lo else np.zeros(img.shape, np.int8)
