@@ -33,7 +33,7 @@ import numpy as np
 from ._version import __version__
 from .errors import EvtkError
 from .events import Events, TriggerKind, Triggers
-from .optics import Bench, ideal_response, response_region, screen_response
+from .optics import Bench, _origin, ideal_response, response_region, screen_response
 from .sensor import PixelState, SensorModel, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
 
 __all__ = [
@@ -197,6 +197,7 @@ class Simulation:
         self.gain_e_per_s = self.bench.electrons_per_s_per_unit(kshape)
         self.region = response_region(self.bench, kshape, self.features.shape[1:])
         self._passes = {}
+        self._rate_cache = {}  # region -> {(kernel, features, signs): photoelectron rates}
         rows = []
         for r in range(self.repeat):
             for ki in range(len(self.kernels)):
@@ -298,6 +299,8 @@ class Simulation:
             "features": self.features.tolist(),
             "schedule": self.schedule.to_dict(),
             "response_region": list(self.region),
+            "response_origin_px": [float(v) for v in _origin(self.bench, self.kernels.shape[1:],
+                                                             self.features.shape[1:])],
             "gain_e_per_s_per_unit": self.gain_e_per_s,
             "blank_rate_e_per_s": self.blank_rate_e_per_s,
             "correlation": "convolution" if self.bench.kernel_flipped else "correlation",
@@ -336,7 +339,7 @@ class Simulation:
         x0, x1, y0, y1 = region
         blank = self.blank_rate_e_per_s
         rates = np.empty((which.size, (x1 - x0) * (y1 - y0)))
-        cache = {}
+        cache = self._rate_cache.setdefault(tuple(region), {})
         for k, c in enumerate(which):
             if c < 0:
                 rates[k] = blank
@@ -454,17 +457,14 @@ class Simulation:
             parts_t.append(nt)
             parts_i.append(ni)
             parts_p.append(npol)
-            t_rel = np.concatenate(parts_t)
-            pix = np.concatenate(parts_i)
-            pol = np.concatenate(parts_p)
-            t_int = np.floor(t_rel).astype(np.int64)
-            np.clip(t_int, 0, int(math.ceil(span)) - 1, out=t_int)
-            order = _counting_order(t_int, int(math.ceil(span)))
-            t_abs = t_int[order] + base
-            pix = pix[order]
-            x = (pix % w).astype(np.uint16)
-            y = (pix // w).astype(np.uint16)
-            yield Events._trusted(t_abs, x, y, pol[order].astype(np.uint8), size, is_sorted=True)
+            if len(parts_t) > 1:
+                t_rel = np.concatenate(parts_t)
+                pix = np.concatenate(parts_i)
+                pol = np.concatenate(parts_p)
+            else:
+                t_rel, pix, pol = parts_t[0], parts_i[0], parts_p[0]
+            t, x, y, p = _assemble(t_rel, pix, pol, int(math.ceil(span)), base, w)
+            yield Events._trusted(t, x, y, p, size, is_sorted=True)
 
     def events(self) -> Events:
         """All events in memory (use :meth:`write` or :meth:`iter_events` for long runs)."""
@@ -528,19 +528,34 @@ def _int_param(name, v, low):
 
 
 @numba.njit(cache=True)
-def _counting_order(keys, n_keys):
-    """Stable order sorting ``keys`` (ints in [0, n_keys)) in O(n + n_keys)."""
-    counts = np.zeros(n_keys + 1, np.int64)
-    for k in keys:
+def _assemble(t_rel, pix, pol, span, base, width):
+    """Events from (float us since ``base``, pixel index, polarity), sorted by whole us.
+
+    A stable counting sort over the ``span`` microseconds of the batch: O(n + span).
+    """
+    n = t_rel.size
+    key = np.empty(n, np.int64)
+    counts = np.zeros(span + 1, np.int64)
+    for i in range(n):
+        k = int(math.floor(t_rel[i]))
+        k = min(max(k, 0), span - 1)
+        key[i] = k
         counts[k + 1] += 1
-    for i in range(n_keys):
+    for i in range(span):
         counts[i + 1] += counts[i]
-    order = np.empty(keys.size, np.int64)
-    for i in range(keys.size):
-        k = keys[i]
-        order[counts[k]] = i
+    t = np.empty(n, np.int64)
+    x = np.empty(n, np.uint16)
+    y = np.empty(n, np.uint16)
+    p = np.empty(n, np.uint8)
+    for i in range(n):
+        k = key[i]
+        j = counts[k]
         counts[k] += 1
-    return order
+        t[j] = base + k
+        x[j] = pix[i] % width
+        y[j] = pix[i] // width
+        p[j] = pol[i]
+    return t, x, y, p
 
 
 def load_patterns(path_or_bits, name, side=None):

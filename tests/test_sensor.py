@@ -176,3 +176,16 @@ def test_sensor_rejects_bad_values(field, value):
 def test_unknown_sensor_parameter():
     with pytest.raises(EvtkError, match="gamma"):
         SensorModel.from_dict({"gamma": 2})
+
+
+def test_noisy_event_times_follow_the_noise_free_ones_in_bright_light():
+    """With little shot noise, events land where the closed form puts them (to the us)."""
+    noisy = SensorModel(theta_mismatch=0.0)
+    clean = noisy.replace(shot_noise=False)
+    lam0 = noisy.dark_current_e_per_s
+    a = _step(noisy, lam0, 1e9, 300, window_us=1000.0, settle_us=1.0, lead_us=1.0, theta=0.2)
+    b = _step(clean, lam0, 1e9, 1, window_us=1000.0, settle_us=1.0, lead_us=1.0, theta=0.2)
+    first_clean = np.sort(b[0][b[2] == 1])[:5]
+    for px in range(0, 300, 30):
+        t = np.sort(a[0][(a[1] == px) & (a[2] == 1)])[:5]
+        np.testing.assert_allclose(t, first_clean, atol=1.0)

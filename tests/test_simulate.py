@@ -318,3 +318,27 @@ def test_cli_default_run_uses_embedded_features(tmp_path):
         meta = rec.metadata[METADATA_KEY]
         f = np.array(meta["features"][0])
         assert f.shape == (16, 16) and 0 < f.sum() < 256
+
+
+def test_metadata_origin_maps_the_ground_truth_onto_the_sensor():
+    """Counts read at the pixels the metadata names line up with the ideal response."""
+    from scipy import stats
+
+    # point sources and identical noise-free pixels: equal light, equal counts
+    sim = Simulation(K3, _features(21), bench=Bench(source_extent="point"), seed=4,
+                     sensor=SensorModel(shot_noise=False, theta_mismatch=0.0, background_rate_hz=0.0))
+    meta = sim.metadata()[METADATA_KEY]
+    r = sim.responses()
+    x0, _, y0, _ = meta["response_region"]
+    ox, oy = meta["response_origin_px"]
+    ideal = sim.ideal(0)
+    on = r.on.mean(0)
+    ys = int(round(oy)) - y0 + np.arange(ideal.shape[0])
+    xs = int(round(ox)) - x0 + np.arange(ideal.shape[1])
+    sampled = on[np.ix_(ys, xs)]
+    assert stats.spearmanr(ideal.ravel(), sampled.ravel()).statistic > 0.99
+    for level in np.unique(ideal):  # a monotone map from light to counts
+        assert np.ptp(sampled[ideal == level]) == 0
+    # one pixel off, the match is clearly worse
+    shifted = on[np.ix_(ys, xs + 1)]
+    assert stats.spearmanr(ideal.ravel(), shifted.ravel()).statistic < 0.8
