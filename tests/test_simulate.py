@@ -342,3 +342,26 @@ def test_metadata_origin_maps_the_ground_truth_onto_the_sensor():
     # one pixel off, the match is clearly worse
     shifted = on[np.ix_(ys, xs + 1)]
     assert stats.spearmanr(ideal.ravel(), shifted.ravel()).statistic < 0.8
+
+
+def test_background_activity_and_hot_pixels_follow_their_rates():
+    """Dark features: what the sensor reports away from the pattern is BA and hot pixels (Poisson)."""
+    rate_hz, hot_rate_hz, frac = 20.0, 5000.0, 0.002
+    sensor = SensorModel(background_rate_hz=rate_hz, hot_pixel_fraction=frac, hot_pixel_rate_hz=hot_rate_hz)
+    sim = Simulation(np.ones((1, 1)), np.eye(4), sensor=sensor, repeat=8, seed=3)
+    ev = sim.events()
+    x0, x1, y0, y1 = sim.region
+    span_s = (sim.end_us - sim.start_us) * 1e-6
+    outside = ~((ev.x >= x0) & (ev.x < x1) & (ev.y >= y0) & (ev.y < y1))
+    pix = ev.y[outside].astype(np.int64) * 320 + ev.x[outside]
+    hot = np.isin(pix, sim._hot)
+    assert sim._hot.size == round(frac * 320 * 240)
+    hx, hy = sim._hot % 320, sim._hot // 320
+    hot_outside = np.sum(~((hx >= x0) & (hx < x1) & (hy >= y0) & (hy < y1)))
+    n_pix = 320 * 240 - (x1 - x0) * (y1 - y0) - hot_outside
+    expected_ba = rate_hz * span_s * n_pix
+    assert abs((~hot).sum() - expected_ba) < 5 * np.sqrt(expected_ba)  # Poisson, 5 sigma
+    per_hot = np.bincount(np.searchsorted(sim._hot, pix[hot]), minlength=sim._hot.size)
+    expected_hot = hot_rate_hz * span_s
+    assert abs(per_hot.mean() - expected_hot) < 5 * np.sqrt(expected_hot / sim._hot.size) + rate_hz * span_s
+    assert np.mean(ev.p[outside]) == pytest.approx(0.5, abs=0.02)
