@@ -50,6 +50,10 @@ METADATA_KEY = "simulation"
 
 _T_LIMIT = np.iinfo(np.int64).max
 
+# count tables of the fast path, shared by simulations of the same bench, sensor and timing
+_TABLES: dict = {}
+_TABLES_KEPT = 8
+
 
 def _as_patterns(name, a):
     """A stack (n, h, w) of patterns with values in {-1, 0, 1}."""
@@ -485,27 +489,47 @@ class Simulation:
                 "t_start_us": self.start_us, "t_end_us": self.end_us, "window_us": self.window_us,
                 "settle_us": self.settle_us, "seed": self.seed, "noise_seed": self.noise_seed}
 
-    def responses(self, region=None, batch_captures=64, progress=None) -> CaptureCounts:
+    def responses(self, region=None, method="auto", batch_captures=64, progress=None) -> CaptureCounts:
         """The fast path: ON/OFF counts per pixel inside each capture window, without events.
 
-        Only the pixels of ``region`` (default: where the pattern's shadow can
-        fall) are simulated, with the same pixel model as the event path;
-        background activity and hot pixels are added as Poisson counts.
+        Parameters
+        ----------
+        region : (x0, x1, y0, y1), optional
+            Sensor pixels to report; default where the pattern's shadow can fall.
+        method : {"auto", "table", "exact"}
+            "exact" runs the event path's pixel model on the region's pixels and
+            keeps only the counts (history between captures included).
+            "table" draws each pixel's counts from the distribution the same
+            model gives for its light and threshold, tabulated once per run
+            (:meth:`count_table`); it assumes every capture starts from the
+            settled dark state. "auto" takes "table" when ``settle_us`` is at
+            least :meth:`recommended_settle_us`, else "exact".
+
+        Background activity and hot pixels are added as Poisson counts.
         """
         region = self.region if region is None else tuple(int(v) for v in region)
         x0, x1, y0, y1 = region
         b = self.bench
         if not (0 <= x0 <= x1 <= b.sensor_width and 0 <= y0 <= y1 <= b.sensor_height):
             raise EvtkError(f"region {region} is not inside the {b.sensor_width}x{b.sensor_height} sensor")
+        if method not in ("auto", "table", "exact"):
+            raise EvtkError(f"method must be 'auto', 'table' or 'exact', not {method!r}")
+        if method == "auto":
+            method = "table" if self.settle_us >= self.recommended_settle_us() else "exact"
         n = len(self.schedule)
         ny, nx = y1 - y0, x1 - x0
         on = np.zeros((n, ny, nx), np.int32)
         off = np.zeros((n, ny, nx), np.int32)
         roi_idx = self._region_pixels(region)
         hot = np.isin(roi_idx, self._hot)
-        for _, c0, c1, _, _, _, roi, _, seed_ba, _, _ in self._run(False, batch_captures, progress, region):
-            on[c0:c1] = roi[3].reshape(c1 - c0, ny, nx)
-            off[c0:c1] = roi[4].reshape(c1 - c0, ny, nx)
+        if method == "exact":
+            batches = ((c0, c1, roi[3], roi[4], seed_ba) for _, c0, c1, _, _, _, roi, _, seed_ba, _, _
+                       in self._run(False, batch_captures, progress, region))
+        else:
+            batches = self._table_batches(region, roi_idx, batch_captures, progress)
+        for c0, c1, on_b, off_b, seed_ba in batches:
+            on[c0:c1] = on_b.reshape(c1 - c0, ny, nx)
+            off[c0:c1] = off_b.reshape(c1 - c0, ny, nx)
             rng = np.random.default_rng(seed_ba)
             lam = 0.5 * self.sensor.background_rate_hz * 1e-6 * self.window_us
             if lam > 0:
@@ -516,6 +540,96 @@ class Simulation:
                 on[c0:c1] += (rng.poisson(lam_h, (c1 - c0, ny * nx)) * hot).reshape(c1 - c0, ny, nx).astype(np.int32)
                 off[c0:c1] += (rng.poisson(lam_h, (c1 - c0, ny * nx)) * hot).reshape(c1 - c0, ny, nx).astype(np.int32)
         return CaptureCounts(on, off, region, self.schedule)
+
+    #: Grid of the count table: log-light steps, threshold points, replicates per cell.
+    TABLE_LIGHT_POINTS = 256
+    TABLE_THRESHOLD_POINTS = 7
+    TABLE_REPLICATES = 32
+
+    def count_table(self):
+        """Window counts of the pixel model, tabulated over light and ON threshold.
+
+        Returns ``(v_grid, theta_grid, on, off)``: ``v`` is the log-light step
+        in units of the pixel's own ON threshold, ``log(rate / blank rate) /
+        theta`` (about the count a noise-free slow pixel would give, so
+        neighbouring cells differ little along ``theta``), from 0 to the
+        brightest pattern; ``theta`` spans the ON threshold mismatch (+-4 sd),
+        and ``on``/``off`` (theta, v, replicate)
+        hold counts in the window of a capture that follows a settle, a
+        capture at the same light and another settle (the schedule a repeated
+        pair has). OFF thresholds vary between replicates as on the sensor.
+        Built once per simulation with the event path's pixel model.
+        """
+        key = self._table_key()
+        if key in _TABLES:
+            return _TABLES[key]
+        sm = self.sensor
+        b = self.bench
+        nk = self.kernels.shape[1] * self.kernels.shape[2]
+        blank = self.blank_rate_e_per_s
+        u_max = max(math.log(self._rate(nk * (1 + b.leak) + b.stray_light) / blank), 1e-6) * 1.01
+        spread = 4.0 * sm.theta_mismatch
+        th = np.linspace(max(sm.theta_on - spread, 0.01 * sm.theta_on), sm.theta_on + spread,
+                         self.TABLE_THRESHOLD_POINTS) if spread > 0 else np.array([sm.theta_on])
+        u = np.linspace(0.0, u_max / th[0], self.TABLE_LIGHT_POINTS)  # v, in thresholds
+        n_u, n_th, n_r = u.size, th.size, self.TABLE_REPLICATES
+        rng = np.random.default_rng(np.random.SeedSequence([self.noise_seed, 0x7AB]))
+        # pixels ordered (theta, v, replicate)
+        th_on = np.repeat(th, n_u * n_r)
+        _, th_off = pixel_thresholds(sm, th_on.size, rng)
+        lvl_on = math.log(blank) + np.tile(np.repeat(u, n_r), n_th) * th_on
+        rates = np.exp(np.stack([np.full(th_on.size, math.log(blank)), lvl_on] * 2 + [np.full(th_on.size, math.log(blank))]))
+        rates[0] = blank
+        lvl = np.log(rates)
+        tau = time_constant_us(rates, sm)
+        noise = log_noise_std(rates, sm)
+        st = PixelState(lvl[0], noise[0], th_on, th_off, rng)
+        w, z = float(self.window_us), float(self.settle_us)
+        starts = np.array([0.0, z, z + w, 2 * z + w, 2 * z + 2 * w])
+        ends = np.array([z, z + w, 2 * z + w, 2 * z + 2 * w, 3 * z + 2 * w])
+        slot = np.array([-1, -1, -1, 0, -1])
+        _, _, _, on, off = simulate_pixels(st, lvl, tau, noise, starts, ends, sm, int(rng.integers(2**31 - 1)),
+                                           emit=False, count_slot=slot, n_slots=1)
+        table = (u, th, on[0].reshape(n_th, n_u, n_r), off[0].reshape(n_th, n_u, n_r))
+        while len(_TABLES) >= _TABLES_KEPT:
+            _TABLES.pop(next(iter(_TABLES)))
+        _TABLES[key] = table
+        return table
+
+    def _table_key(self):
+        import json
+
+        return json.dumps([self.bench.to_dict(), self.sensor.to_dict(), self.window_us, self.settle_us,
+                           list(self.kernels.shape[1:]), self.noise_seed], sort_keys=True)
+
+    def _table_batches(self, region, roi_idx, batch, progress):
+        u_grid, th_grid, t_on, t_off = self.count_table()
+        blank = self.blank_rate_e_per_s
+        theta = self._theta_on[roi_idx]
+        rng = np.random.default_rng(np.random.SeedSequence([self.noise_seed, 0xFA5]))
+        # threshold neighbours and weights are fixed per pixel
+        if th_grid.size > 1:
+            pos = np.clip((theta - th_grid[0]) / (th_grid[1] - th_grid[0]), 0, th_grid.size - 1)
+        else:
+            pos = np.zeros_like(theta)
+        i_th, f_th = np.minimum(pos.astype(np.int64), th_grid.size - 1), pos - np.floor(pos)
+        du = u_grid[1] - u_grid[0]
+        n_r = t_on.shape[2]
+        n = len(self.schedule)
+        for c0 in range(0, n, batch):
+            c1 = min(n, c0 + batch)
+            which = np.arange(c0, c1)
+            lvl, _, _ = self._levels(which, None, region)  # (captures, pixels) log rates
+            upos = np.clip((lvl - math.log(blank)) / theta[None, :] / du, 0, u_grid.size - 1)
+            i_u = upos.astype(np.int64)
+            i_u += rng.random(upos.shape) < (upos - i_u)  # a mixture of the two neighbours: linear in the mean
+            i_u = np.minimum(i_u, u_grid.size - 1)
+            it = i_th[None, :] + (rng.random(upos.shape) < f_th[None, :])
+            it = np.minimum(it, th_grid.size - 1)
+            r = rng.integers(0, n_r, upos.shape)
+            yield c0, c1, t_on[it, i_u, r], t_off[it, i_u, r], int(rng.integers(2**31 - 1))
+            if progress is not None:
+                progress(c1 - c0)
 
 
 def _int_param(name, v, low):

@@ -130,7 +130,7 @@ def _window_counts(ev, sim, region):
 def test_fast_path_equals_event_path_without_noise():
     quiet = SensorModel(shot_noise=False, background_rate_hz=0.0)
     sim = Simulation(K3, _features(8, signed=True), sensor=quiet, repeat=2, seed=1)
-    r = sim.responses()
+    r = sim.responses(method="exact")
     on, off = _window_counts(sim.events(), sim, r.region)
     np.testing.assert_array_equal(r.on, on)
     np.testing.assert_array_equal(r.off, off)
@@ -144,6 +144,7 @@ def test_fast_path_agrees_statistically_with_event_path():
     ev_sim = Simulation(K3, f, repeat=n_rep, seed=11, sensor=SensorModel(background_rate_hz=50.0))
     # the same camera (seed: threshold mismatch), an independent trial (noise_seed)
     fast_sim = Simulation(K3, f, repeat=n_rep, seed=11, noise_seed=12, sensor=SensorModel(background_rate_hz=50.0))
+    assert fast_sim.settle_us >= fast_sim.recommended_settle_us()  # so "auto" is the count table
     fast = fast_sim.responses()
     on, _ = _window_counts(ev_sim.events(), ev_sim, fast.region)
     m_ev, m_fast = on.mean(0), fast.on.mean(0)
@@ -365,3 +366,33 @@ def test_background_activity_and_hot_pixels_follow_their_rates():
     expected_hot = hot_rate_hz * span_s
     assert abs(per_hot.mean() - expected_hot) < 5 * np.sqrt(expected_hot / sim._hot.size) + rate_hz * span_s
     assert np.mean(ev.p[outside]) == pytest.approx(0.5, abs=0.02)
+
+
+def test_count_table_and_exact_counts_agree():
+    """The tabulated fast path against the pixel model run per capture (same camera, other noise)."""
+    f = _features(17, signed=True)
+    a = Simulation(K3, f, repeat=30, seed=5, noise_seed=1).responses(method="exact")
+    b = Simulation(K3, f, repeat=30, seed=5, noise_seed=2).responses(method="table")
+    for counts_a, counts_b in ((a.on, b.on), (a.off, b.off)):
+        ma, mb = counts_a.mean(0), counts_b.mean(0)
+        va, vb = counts_a.var(0, ddof=1), counts_b.var(0, ddof=1)
+        se = np.sqrt((va + vb) / counts_a.shape[0]) + 1e-9
+        assert np.mean(np.abs(ma - mb) <= 4 * se) >= 0.99
+        assert mb.mean() == pytest.approx(ma.mean(), rel=0.03, abs=0.01)
+        assert vb.mean() == pytest.approx(va.mean(), rel=0.15, abs=0.01)
+
+
+def test_count_table_is_reused_and_fast_path_methods():
+    sim = Simulation(K3, _features(2), seed=1)
+    t1 = sim.count_table()
+    t2 = Simulation(K3, _features(3), seed=1).count_table()  # same bench, sensor, timing: same table
+    assert t1 is t2
+    u, th, on, off = t1
+    assert on.shape == (th.size, u.size, Simulation.TABLE_REPLICATES)
+    # more light, more ON counts; higher thresholds, fewer
+    assert np.all(np.diff(on.mean(2)[th.size // 2]) >= -0.5) and on.mean(2)[:, -1].min() > 10
+    assert on.mean(2)[0, -1] > on.mean(2)[-1, -1]
+    with pytest.raises(EvtkError, match="method"):
+        sim.responses(method="magic")
+    short = Simulation(K3, _features(2), seed=1, settle_us=1000)
+    assert short.responses().on.shape == short.responses(method="exact").on.shape
