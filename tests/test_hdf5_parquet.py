@@ -329,3 +329,38 @@ def test_convert_every_pair(tmp_path, n, seed, src, dst, equal_t):
         assert rec.metadata == {"seed": seed}
         info = rec.info()
         assert info["events"] == n and info["sensor_size"] == [320, 240]
+
+
+def test_parquet_footer_with_a_bad_column_type_is_an_error_not_an_abort(tmp_path):
+    """A footer whose column chunk type is damaged made pyarrow abort the process (fuzzing, seed 99).
+
+    The reader checks the chunk types against the schema first. Run in a child
+    process: a regression would kill the interpreter, not fail an assert.
+    """
+    import struct
+    import subprocess
+    import sys
+
+    ev = random_events(5000, seed=3)
+    good = tmp_path / "good.parquet"
+    evtk.write_events(good, ev, row_group_events=1000)
+    data = bytearray(good.read_bytes())
+    footer_len = struct.unpack("<I", data[-8:-4])[0]
+    # Thrift compact: ColumnMetaData field 1 (type, i32) = INT64 (2, zigzag 4), then field 2 (a list)
+    i = data.rfind(b"\x15\x04\x19", len(data) - 8 - footer_len)
+    assert i > 0
+    data[i + 1] = 0x1E  # type 15: no such physical type
+    bad = tmp_path / "bad.parquet"
+    bad.write_bytes(bytes(data))
+    code = (
+        "import evtk\n"
+        f"p = {str(bad)!r}\n"
+        "try:\n    evtk.open(p)\nexcept evtk.FormatError as e:\n    print('error:', e)\n"
+        "with evtk.open(p, salvage=True) as r:\n    print('salvaged', len(r.events()), r.damage is not None)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    md = pq.ParquetFile(good).metadata
+    last = md.num_row_groups - 1  # rfind: the last row group's t column was damaged
+    assert "error:" in r.stdout and f"row group {last} " in r.stdout and "footer is damaged" in r.stdout
+    assert f"salvaged {len(ev) - md.row_group(last).num_rows} True" in r.stdout

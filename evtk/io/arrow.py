@@ -150,8 +150,20 @@ class ParquetRecording(BaseRecording):
         self._t_col = schema.names.index("t")
         md = self._pf.metadata
         self._groups = []  # (rows, t_min, t_max) per row group; None when no statistics
+        expected = [md.schema.column(j).physical_type for j in range(md.num_columns)]
         for g in range(md.num_row_groups):
             rg = md.row_group(g)
+            # a damaged footer can give a column chunk a type its schema column does not have;
+            # pyarrow then aborts the process (an uncaught C++ exception) on its statistics
+            # or data, so check before touching them
+            found = [rg.column(j).physical_type for j in range(rg.num_columns)]
+            if found != expected:
+                problem = (f"row group {g} of the footer is damaged: column chunk types {found} "
+                           f"do not match the schema's {expected}")
+                if not self.salvage:
+                    raise FormatError(self.path, None, problem)
+                self.damage = Damage(None, problem)
+                break
             st = rg.column(self._t_col).statistics
             if st is not None and st.has_min_max:
                 self._groups.append((rg.num_rows, int(st.min), int(st.max)))
