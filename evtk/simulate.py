@@ -338,7 +338,7 @@ class Simulation:
             which += [c, -1]
         return base, np.array(starts), np.array(ends), np.array(which, np.int64)
 
-    def _levels(self, which, pixels_xy, region):
+    def _levels(self, which, region):
         """(level, tau, noise) arrays, shape (n_segments, n_pixels), for pixels of ``region``."""
         x0, x1, y0, y1 = region
         blank = self.blank_rate_e_per_s
@@ -367,7 +367,9 @@ class Simulation:
         return (yy * w + xx).ravel()
 
     def _run(self, emit, batch, progress=None, region=None):
-        """Generator over batches: (base, c0, c1, roi_out, outside_out)."""
+        """Simulate batches of captures; yields, per batch, its time base and segments, the
+        region's pixel output, the outside pixels' output (or None), a seed for background
+        activity, and the pixel indices of both."""
         region = self.region if region is None else region
         roi_idx = self._region_pixels(region)
         b = self.bench
@@ -411,7 +413,7 @@ class Simulation:
             c1 = min(n, c0 + batch)
             base, st, en, which = self._segments(c0, c1, lead_in=(c0 == 0))
             slot = np.where(which >= 0, which - c0, -1)
-            lvl, tau, noise = self._levels(which, None, region)
+            lvl, tau, noise = self._levels(which, region)
             seed_roi, seed_out, seed_ba = (int(v) for v in rng.integers(0, 2**31 - 1, 3))
             roi = simulate_pixels(roi_state, lvl, tau, noise, st, en, self.sensor, seed_roi,
                                   emit=emit, count_slot=slot, n_slots=c1 - c0)
@@ -619,7 +621,7 @@ class Simulation:
         for c0 in range(0, n, batch):
             c1 = min(n, c0 + batch)
             which = np.arange(c0, c1)
-            lvl, _, _ = self._levels(which, None, region)  # (captures, pixels) log rates
+            lvl, _, _ = self._levels(which, region)  # (captures, pixels) log rates
             upos = np.clip((lvl - math.log(blank)) / theta[None, :] / du, 0, u_grid.size - 1)
             i_u = upos.astype(np.int64)
             i_u += rng.random(upos.shape) < (upos - i_u)  # a mixture of the two neighbours: linear in the mean
