@@ -364,3 +364,47 @@ def test_parquet_footer_with_a_bad_column_type_is_an_error_not_an_abort(tmp_path
     last = md.num_row_groups - 1  # rfind: the last row group's t column was damaged
     assert "error:" in r.stdout and f"row group {last} " in r.stdout and "footer is damaged" in r.stdout
     assert f"salvaged {len(ev) - md.row_group(last).num_rows} True" in r.stdout
+
+
+class _FakeColumn:
+    physical_type = "INT64"
+    statistics = None
+    compression = "LZ4"
+
+
+class _FakeMetadata:
+    """Row group ``fatal`` aborts the process when touched, as pyarrow does on some damaged footers."""
+
+    def __init__(self, n, fatal):
+        self.num_row_groups, self.num_columns, self._fatal = n, 1, fatal
+        self.schema = self
+
+    def column(self, j):
+        return _FakeColumn()
+
+    def row_group(self, g):
+        if g == self._fatal:
+            import os
+
+            os.abort()
+        return self
+
+    @property
+    def num_rows(self):
+        return 0
+
+
+class _FakeFile:
+    def __init__(self, n, fatal):
+        self.metadata = _FakeMetadata(n, fatal)
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork")
+def test_parquet_footer_probe_finds_the_row_group_that_aborts():
+    """A footer entry pyarrow cannot parse (it aborts; found by fuzzing, seed 102) is probed in a child."""
+    from evtk.io.arrow import _first_fatal_row_group
+
+    assert _first_fatal_row_group(_FakeFile(5, fatal=2), 0) == 2
+    assert _first_fatal_row_group(_FakeFile(5, fatal=0), 0) == 0
+    assert _first_fatal_row_group(_FakeFile(5, fatal=None), 0) == 5
+    assert _first_fatal_row_group(_FakeFile(0, fatal=None), 0) is None

@@ -9,6 +9,10 @@ a window reads only the row groups whose ``t`` statistics overlap it.
 from __future__ import annotations
 
 import json
+import os
+import select
+import signal
+import time
 
 import numpy as np
 
@@ -28,6 +32,71 @@ KEY_VERSION = b"evtk.version"
 COMPRESSIONS = {"lz4": "lz4", "lz4_high": "lz4", "zstd": "zstd", "zstd_high": "zstd", "gzip": "gzip", "none": "none"}
 ROW_GROUP_EVENTS = 1 << 16
 ROW_GROUP_US = 50_000
+
+
+PROBE_SECONDS = 10.0
+
+
+def _first_fatal_row_group(pf, t_col):
+    """Index of the first row group whose footer entry makes pyarrow abort the process.
+
+    Some damaged footers make pyarrow throw a C++ exception nothing catches
+    (for example a size-statistics histogram of the wrong length), which
+    aborts the interpreter as soon as the row group's metadata is touched.
+    A forked child touches each row group's metadata as the reader will,
+    writing the index it is about to touch to a pipe; if the child dies of a
+    signal, the last index is the culprit. Returns ``num_row_groups`` when
+    all are safe, None when this cannot be checked (no ``fork``, or the
+    child did not finish in time).
+    """
+    n = pf.metadata.num_row_groups
+    if not hasattr(os, "fork") or n == 0:
+        return None
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # child: touch everything the reader touches, then leave without cleanup
+        code = 0
+        try:
+            os.close(r)
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 2)  # pyarrow's last words would reach the user's terminal
+            md = pf.metadata
+            expected = [md.schema.column(j).physical_type for j in range(md.num_columns)]
+            for g in range(n):
+                os.write(w, g.to_bytes(4, "little"))
+                rg = md.row_group(g)
+                cols = [rg.column(j) for j in range(rg.num_columns)]
+                if [c.physical_type for c in cols] != expected:
+                    break  # the reader stops here with an error of its own
+                cols[t_col].statistics
+                str(cols[t_col].compression)
+            os.write(w, b"DONE")
+        except BaseException:  # noqa: BLE001 - a Python error is the reader's to report
+            code = 1
+        finally:
+            os._exit(code)
+    os.close(w)
+    data = b""
+    deadline = time.monotonic() + PROBE_SECONDS
+    try:
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, 0)
+                return None
+            ready, _, _ = select.select([r], [], [], left)
+            if ready:
+                chunk = os.read(r, 4096)
+                if not chunk:
+                    break
+                data += chunk
+    finally:
+        os.close(r)
+    _, status = os.waitpid(pid, 0)
+    if os.WIFSIGNALED(status) and not data.endswith(b"DONE") and len(data) >= 4:
+        return int.from_bytes(data[-4:], "little")
+    return n
 
 
 def _pa():
@@ -151,7 +220,14 @@ class ParquetRecording(BaseRecording):
         md = self._pf.metadata
         self._groups = []  # (rows, t_min, t_max) per row group; None when no statistics
         expected = [md.schema.column(j).physical_type for j in range(md.num_columns)]
+        fatal = _first_fatal_row_group(self._pf, self._t_col)
         for g in range(md.num_row_groups):
+            if fatal is not None and g >= fatal:
+                problem = f"row group {g} of the footer is damaged: pyarrow cannot parse its metadata"
+                if not self.salvage:
+                    raise FormatError(self.path, None, problem)
+                self.damage = Damage(None, problem)
+                break
             rg = md.row_group(g)
             # a damaged footer can give a column chunk a type its schema column does not have;
             # pyarrow then aborts the process (an uncaught C++ exception) on its statistics
@@ -199,7 +275,7 @@ class ParquetRecording(BaseRecording):
     @property
     def compression(self):
         md = self._pf.metadata
-        if md.num_row_groups == 0:
+        if md.num_row_groups == 0 or not self._groups:
             return None
         return str(md.row_group(0).column(self._t_col).compression).lower()
 
@@ -279,7 +355,7 @@ class ParquetRecording(BaseRecording):
         known = [(lo, hi) for _, lo, hi in self._groups if lo is not None]
         first = min(lo for lo, _ in known) if known else None
         last = max(hi for _, hi in known) if known else None
-        out = [StreamInfo(0, "events", "EVTS", packets=md.num_row_groups, count=md.num_rows,
+        out = [StreamInfo(0, "events", "EVTS", packets=len(self._groups), count=sum(r for r, _, _ in self._groups),
                           t_start_us=first, t_end_us=last, sensor_size=self._sensor)]
         tr = self._triggers
         if len(tr):
