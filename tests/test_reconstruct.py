@@ -1,0 +1,167 @@
+"""Reconstruction stages 1-2: capture windows and per-window accumulation."""
+
+import numpy as np
+import pytest
+
+import evtk
+from evtk import EvtkError, TriggerKind, Triggers
+from evtk.reconstruct import Windows, accumulate, windows_from_schedule, windows_from_triggers, windows_periodic
+
+from conftest import random_events
+
+R, F = TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE, TriggerKind.EXTERNAL_SIGNAL_FALLING_EDGE
+
+
+def _oracle(ev, windows, region):
+    """np.add.at, window by window: the independent reference."""
+    x0, x1, y0, y1 = region
+    on = np.zeros((len(windows), y1 - y0, x1 - x0), np.int64)
+    off = np.zeros_like(on)
+    for w, (a, b) in enumerate(zip(windows.t_start_us, windows.t_end_us)):
+        sel = (ev.t >= a) & (ev.t < b) & (ev.x >= x0) & (ev.x < x1) & (ev.y >= y0) & (ev.y < y1)
+        for arr, pol in ((on, 1), (off, 0)):
+            s = sel & (ev.p == pol)
+            np.add.at(arr[w], (ev.y[s].astype(int) - y0, ev.x[s].astype(int) - x0), 1)
+    return on, off
+
+
+def _random_windows(rng, n, t0, t1, overlap=False):
+    if overlap:
+        a = rng.integers(t0, t1 - 1, n)
+        b = a + rng.integers(1, (t1 - t0) // 4, n)
+    else:
+        edges = np.sort(rng.choice(np.arange(t0, t1), 2 * n, replace=False))
+        a, b = edges[0::2], edges[1::2]
+    return Windows(a, b, np.arange(n), "test")
+
+
+@pytest.mark.parametrize("overlap", [False, True])
+@pytest.mark.parametrize("region", [None, (10, 50, 5, 40)])
+def test_accumulate_matches_add_at(overlap, region):
+    rng = np.random.default_rng(1 + overlap)
+    ev = random_events(50_000, seed=2, sensor_size=(64, 48), span_us=100_000)
+    win = _random_windows(rng, 40, -1000, 101_000, overlap)
+    got = accumulate(ev, win, region)
+    reg = region or (0, 64, 0, 48)
+    on, off = _oracle(ev, win, reg)
+    np.testing.assert_array_equal(got.on, on)
+    np.testing.assert_array_equal(got.off, off)
+    assert got.events_used == on.sum() + off.sum()
+    assert got.on.dtype == np.int32
+
+
+def test_accumulate_streams_a_recording_across_chunks(tmp_path):
+    ev = random_events(30_000, seed=4, sensor_size=(32, 24), span_us=60_000)
+    path = tmp_path / "r.aedat4"
+    evtk.write_events(path, ev)
+    rng = np.random.default_rng(5)
+    win = _random_windows(rng, 25, 0, 60_000)
+    # unsorted windows too: the result keeps the caller's order
+    perm = rng.permutation(len(win))
+    win = Windows(win.t_start_us[perm], win.t_end_us[perm], win.capture[perm], "test")
+    on, off = _oracle(ev, win, (0, 32, 0, 24))
+    for fmt in ("r.aedat4", "r.h5", "r.parquet"):
+        p = tmp_path / fmt
+        if not p.exists():
+            evtk.write_events(p, ev)
+        with evtk.open(p) as rec:
+            got = accumulate(rec, win, chunk_events=997)  # many chunks, windows straddle them
+        np.testing.assert_array_equal(got.on, on)
+        np.testing.assert_array_equal(got.off, off)
+
+
+def test_unsorted_events_empty_windows_and_no_events():
+    ev = random_events(5000, seed=6, sensor_size=(16, 16), span_us=10_000, sort=False)
+    win = Windows([0, 20_000, 5_000], [5_000, 30_000, 10_000], [0, 1, 2], "test")
+    got = accumulate(ev, win)
+    on, off = _oracle(ev, win, (0, 16, 0, 16))
+    np.testing.assert_array_equal(got.on, on)
+    assert got.on[1].sum() == got.off[1].sum() == 0  # a window after the last event
+    empty = evtk.Events.empty((16, 16))
+    assert accumulate(empty, win).on.sum() == 0
+    none = accumulate(ev, Windows([], [], [], "none"))
+    assert none.on.shape == (0, 16, 16)
+
+
+def test_bad_windows_and_regions():
+    with pytest.raises(EvtkError, match="empty or reversed"):
+        Windows([10], [10], [0], "x")
+    with pytest.raises(EvtkError, match="equal length"):
+        Windows([1, 2], [3], [0], "x")
+    ev = random_events(100, seed=1, sensor_size=(8, 8))
+    with pytest.raises(EvtkError, match="region"):
+        accumulate(ev, Windows([0], [10], [0], "x"), region=(0, 9, 0, 8))
+
+
+def test_windows_from_triggers_edge_cases():
+    t = [100, 200, 300, 350, 500, 600, 650, 800, 900, 900, 1000]
+    k = [R, F, R, R, F, F, 0, R, R, F, R]
+    w = windows_from_triggers(Triggers(t, k))
+    # [100,200); rising at 300 lost its falling edge; [350,500); falling at 600 has no rising edge;
+    # the timestamp reset (kind 0) is not an edge; 800 lost its falling edge; 900/900 is zero-length;
+    # 1000 is still open at the end
+    assert w.t_start_us.tolist() == [100, 350] and w.t_end_us.tolist() == [200, 500]
+    assert w.dropped == {"missing falling edge": 2, "falling edge without rising edge": 1,
+                         "recording ends mid-window": 1, "zero-length window": 1}
+    trimmed = windows_from_triggers(Triggers(t, k), skip_us=20, length_us=50)
+    assert trimmed.t_start_us.tolist() == [120, 370] and trimmed.t_end_us.tolist() == [170, 420]
+    with pytest.raises(EvtkError, match="leaves nothing"):
+        windows_from_triggers(Triggers(t, k), skip_us=100)
+    with pytest.raises(EvtkError, match="no complete window"):
+        windows_from_triggers(Triggers([5, 6], [F, R]))
+
+
+def test_windows_periodic():
+    w = windows_periodic(1000, 1950, 100, skip_us=10, length_us=50)
+    assert len(w) == 9 and w.t_start_us[0] == 1010 and w.t_end_us[0] == 1060
+    assert w.dropped == {"partial last period": 1}
+    with pytest.raises(EvtkError, match="shorter than one period"):
+        windows_periodic(0, 50, 100)
+    with pytest.raises(EvtkError, match="period_us"):
+        windows_periodic(0, 50, 0)
+
+
+def test_simulated_recording_schedule_and_triggers_agree(tmp_path):
+    from evtk.sensor import SensorModel
+    from evtk.simulate import Simulation
+
+    k = np.array([[1, -1, 1], [0, 1, 0], [1, 0, -1]])
+    f = np.random.default_rng(3).choice([-1, 1], (16, 16))
+    sim = Simulation(k, f, repeat=2, seed=2, sensor=SensorModel(shot_noise=False, background_rate_hz=0.0))
+    path = tmp_path / "sim.aedat4"
+    sim.write(path)
+    with evtk.open(path) as rec:
+        by_schedule = windows_from_schedule(rec.metadata)
+        by_triggers = windows_from_triggers(rec.triggers())
+        np.testing.assert_array_equal(by_schedule.t_start_us, by_triggers.t_start_us)
+        np.testing.assert_array_equal(by_schedule.t_end_us, by_triggers.t_end_us)
+        assert by_triggers.dropped == {}
+        counts = accumulate(rec, by_schedule, region=sim.region, chunk_events=5000)
+    exact = sim.responses(method="exact")
+    np.testing.assert_array_equal(counts.on, exact.on)
+    np.testing.assert_array_equal(counts.off, exact.off)
+    with pytest.raises(EvtkError, match="no capture schedule"):
+        windows_from_schedule({"something": 1})
+
+
+def test_windows_from_triggers_of_a_dv_processing_recording(tmp_path):
+    """A bench recording without a schedule: dv-processing writes events and the DMD triggers."""
+    pytest.importorskip("dv_processing")
+    from peers import dv_read, dv_write
+
+    ev = random_events(20_000, seed=8, sensor_size=(320, 240), span_us=40_000)
+    on_t = np.arange(2_000, 38_000, 4_000)
+    t = np.empty(2 * on_t.size, np.int64)
+    t[0::2], t[1::2] = on_t, on_t + 1_500
+    kinds = np.tile([int(R), int(F)], on_t.size)
+    path = tmp_path / "bench.aedat4"
+    dv_write(path, ev, Triggers(t, kinds))
+    _, dv_tr = dv_read(path)
+    with evtk.open(path) as rec:
+        assert rec.triggers() == dv_tr
+        win = windows_from_triggers(rec.triggers(), skip_us=100)
+        got = accumulate(rec, win)
+    assert win.t_start_us.tolist() == (on_t + 100).tolist()
+    on, off = _oracle(ev, win, (0, 320, 0, 240))
+    np.testing.assert_array_equal(got.on, on)
+    np.testing.assert_array_equal(got.off, off)
