@@ -177,14 +177,24 @@ def windows_periodic(t_start_us, t_end_us, period_us, skip_us=0, length_us=None)
 
 
 @numba.njit(cache=True)
-def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, on, off, total):
-    """Add the chunk's events to every window (``total``: events per window so far); returns those counted."""
+def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, started):
+    """Add the chunk's events to every window; returns the number counted.
+
+    ``counts`` is the flat (2, windows, y1 - y0, x1 - x0) array, OFF then ON,
+    not yet zeroed: a window's frames are zeroed when it is first reached
+    (``started``), which also brings them into cache just before the scattered
+    increments. ``total``: events per window so far (for the overflow check).
+    """
     used = 0
     n = t.size
     if n == 0:
         return 0
     t_first = t[0]
     t_last = t[n - 1]
+    w_px = x1 - x0
+    frame = (y1 - y0) * w_px
+    plane = starts.size * frame
+    full = x0 == 0 and y0 == 0
     for w in range(starts.size):
         a = starts[w]
         b = ends[w]
@@ -193,20 +203,29 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, on, off, total):
         lo = np.searchsorted(t, a)
         hi = np.searchsorted(t, b)
         total[w] += hi - lo
-        for i in range(lo, hi):
-            xi = np.int64(x[i])
-            yi = np.int64(y[i])
-            if xi < x0 or xi >= x1 or yi < y0 or yi >= y1:
-                continue
-            if p[i]:
-                on[w, yi - y0, xi - x0] += 1
-            else:
-                off[w, yi - y0, xi - x0] += 1
-            used += 1
+        base = w * frame
+        if not started[w]:
+            counts[base:base + frame] = 0
+            counts[plane + base:plane + base + frame] = 0
+            started[w] = True
+        if full and x1 >= 0 and y1 >= 0:
+            # every event is on the sensor (the reader checked), so inside a full-sensor region
+            for i in range(lo, hi):
+                counts[np.int64(p[i]) * plane + base + np.int64(y[i]) * w_px + np.int64(x[i])] += 1
+            used += hi - lo
+        else:
+            for i in range(lo, hi):
+                xi = np.int64(x[i]) - x0
+                yi = np.int64(y[i]) - y0
+                if xi < 0 or xi >= w_px or yi < 0 or yi >= y1 - y0:
+                    continue
+                counts[np.int64(p[i]) * plane + base + yi * w_px + xi] += 1
+                used += 1
     return used
 
 
-def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, progress=None) -> WindowCounts:
+def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, progress=None,
+               out=None) -> WindowCounts:
     """ON and OFF counts per window and pixel of ``region``.
 
     Parameters
@@ -216,7 +235,12 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         read in chunks of ``chunk_events`` over the span of the windows only.
     windows : Windows
     region : (x0, x1, y0, y1), optional
-        Sensor pixels to count (half-open); default the whole sensor.
+        Sensor pixels to count (half-open); default the whole sensor. Counting
+        only the pixels a response needs keeps the output small, which is
+        most of the cost (fresh memory is slow to touch).
+    out : ndarray, optional
+        A C-contiguous int32 array of shape (2, windows, height, width) to
+        reuse (OFF counts, then ON counts); zeroed here.
 
     Returns
     -------
@@ -239,17 +263,20 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
     if not (0 <= x0 < x1 <= sensor[0] and 0 <= y0 < y1 <= sensor[1]):
         raise EvtkError(f"region {tuple(region)} is not a non-empty part of the {sensor[0]}x{sensor[1]} sensor")
     n_w = len(windows)
-    on = np.zeros((n_w, y1 - y0, x1 - x0), np.int32)
-    off = np.zeros_like(on)
+    shape = (2, n_w, y1 - y0, x1 - x0)
+    if out is None:
+        counts = np.empty(shape, np.int32)  # each window zeroed when first reached
+    else:
+        counts = out
+        if counts.shape != shape or counts.dtype != np.int32 or not counts.flags.c_contiguous:
+            raise EvtkError(f"out must be a C-contiguous int32 array of shape {shape}")
+    on, off = counts[1], counts[0]
     if n_w == 0:
         return WindowCounts(on, off, windows, (x0, x1, y0, y1), 0)
+    started = np.zeros(n_w, np.bool_)
     order = np.argsort(windows.t_start_us, kind="stable")
     starts = windows.t_start_us[order]
     ends = windows.t_end_us[order]
-    inv = np.empty_like(order)
-    inv[order] = np.arange(n_w)
-    on_s = on if np.array_equal(order, np.arange(n_w)) else np.zeros_like(on)
-    off_s = off if on_s is on else np.zeros_like(off)
     span = (int(starts.min()), int(ends.max()))
     if isinstance(source, Events):
         chunks = [source if source.is_sorted else source[np.argsort(source.t, kind="stable")]]
@@ -257,14 +284,18 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         chunks = source.iter_events(chunk_events=chunk_events, t_start_us=span[0], t_end_us=span[1])
     used = 0
     total = np.zeros(n_w, np.int64)
+    flat = counts.reshape(-1)
     for ev in chunks:
-        used += _accumulate_chunk(ev.t, ev.x, ev.y, ev.p, starts, ends, x0, x1, y0, y1, on_s, off_s, total)
+        used += _accumulate_chunk(ev.t, ev.x, ev.y, ev.p, starts, ends, x0, x1, y0, y1, flat, total, started)
         if total.max() > np.iinfo(np.int32).max:
             w = int(order[np.argmax(total)])
             raise EvtkError(f"window {w} holds more than 2**31 - 1 events: its int32 counts could overflow")
         if progress is not None:
             progress(len(ev))
-    if on_s is not on:
-        on[:] = on_s[inv]
-        off[:] = off_s[inv]
+    counts[:, ~started] = 0  # windows no event reached (positions in start order)
+    if not np.array_equal(order, np.arange(n_w)):  # back to the caller's window order
+        inv = np.empty_like(order)
+        inv[order] = np.arange(n_w)
+        counts[:] = counts[:, inv]
+        on, off = counts[1], counts[0]
     return WindowCounts(on, off, windows, (x0, x1, y0, y1), int(used))

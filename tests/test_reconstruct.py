@@ -165,3 +165,16 @@ def test_windows_from_triggers_of_a_dv_processing_recording(tmp_path):
     on, off = _oracle(ev, win, (0, 320, 0, 240))
     np.testing.assert_array_equal(got.on, on)
     np.testing.assert_array_equal(got.off, off)
+
+
+def test_accumulate_into_a_reused_dirty_buffer():
+    ev = random_events(20_000, seed=9, sensor_size=(40, 30), span_us=50_000)
+    win = Windows([0, 60_000, 10_000, 30_000], [10_000, 70_000, 20_000, 30_500], np.arange(4), "test")
+    buf = np.full((2, 4, 30, 40), 7, np.int32)
+    got = accumulate(ev, win, out=buf)
+    on, off = _oracle(ev, win, (0, 40, 0, 30))
+    np.testing.assert_array_equal(got.on, on)  # the window after the last event is zeroed too
+    np.testing.assert_array_equal(got.off, off)
+    assert np.shares_memory(got.on, buf)
+    with pytest.raises(EvtkError, match="out must be"):
+        accumulate(ev, win, out=np.zeros((2, 4, 30, 40), np.int64))
