@@ -36,8 +36,10 @@ and stepped only near a threshold. Steps use the exact OU transition
 (``V' = L + (V - L) a + s sqrt(1 - a^2) N``, ``a = exp(-h/tau)``), valid for
 any step ``h``; crossings between two samples are caught with the Brownian
 bridge probability ``exp(-2 d0 d1 / (D h))``, ``D = 2 s^2 / tau``. Step size is
-``noise_step_fraction * tau`` (at most ``noise_step_max_us``); the tests show
-counts do not move with it beyond the stated tolerance.
+``noise_step_fraction * tau`` (at most ``noise_step_max_us``). Stated
+tolerance, checked by the tests: at the default step (0.4 tau) mean window
+counts stay within 4 % and their variances within 15 % of those at a 20x
+finer step, from dim to bright light.
 """
 
 from __future__ import annotations
