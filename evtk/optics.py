@@ -57,6 +57,7 @@ __all__ = [
     "screen_response",
     "ideal_response",
     "response_region",
+    "response_origin_px",
     "response_to_sensor_grid",
     "load_bench",
     "save_bench",
@@ -527,7 +528,12 @@ def _axis_weights(pixels, n_cells, k, bench: Bench, origin, psf_cells):
     return np.diff(np.maximum.accumulate(cdf, axis=2), axis=2)
 
 
-def _origin(bench: Bench, kernel_shape, features_shape):
+def response_origin_px(bench: Bench, kernel_shape, features_shape):
+    """Sensor pixel (x, y) whose footprint sees cell (0, 0) of the full response.
+
+    ``bench.origin_px`` when set, else the position that centres the full
+    response on the sensor.
+    """
     if bench.origin_px is not None:
         return bench.origin_px
     kh, kw = kernel_shape
@@ -542,7 +548,7 @@ def response_region(bench: Bench, kernel_shape, features_shape):
     """Sensor pixels the pattern's shadow can reach: ``(x0, x1, y0, y1)``, half-open, clipped."""
     kh, kw = kernel_shape
     fh, fw = features_shape
-    ox, oy = _origin(bench, kernel_shape, features_shape)
+    ox, oy = response_origin_px(bench, kernel_shape, features_shape)
     s1 = bench.pixel_cells
     kappa = bench.kernel_step_cells
     # the footprint of a pixel spreads half a pixel and half a source element each way, plus blur
@@ -606,7 +612,7 @@ def screen_response(kernel, features, bench: Bench, region=None, *, leak=True):
     ax0, ax1, ay0, ay1 = max(x0, rx0), min(x1, rx1), max(y0, ry0), min(y1, ry1)
     if ax1 <= ax0 or ay1 <= ay0 or not f.any():
         return out
-    ox, oy = _origin(bench, k.shape, f.shape)
+    ox, oy = response_origin_px(bench, k.shape, f.shape)
     psf_cells = bench.psf_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
     wx = _axis_weights(np.arange(ax0, ax1), f.shape[1], k.shape[1], bench, ox, psf_cells)  # (kw, nx, fw)
     wy = _axis_weights(np.arange(ay0, ay1), f.shape[0], k.shape[0], bench, oy, psf_cells)  # (kh, ny, fh)
@@ -644,7 +650,7 @@ def response_to_sensor_grid(bench: Bench, kernel_shape, features_shape):
     """
     kh, kw = kernel_shape
     fh, fw = features_shape
-    ox, oy = _origin(bench, kernel_shape, features_shape)
+    ox, oy = response_origin_px(bench, kernel_shape, features_shape)
     step = bench.kernel_step_cells / bench.pixel_cells
     # full-response cell i sits where element (k-1) of pixel x sees cell i - (k-1) -> x = origin + i*kappa/s1
     xs = ox + np.arange(fw + kw - 1) * step

@@ -33,7 +33,7 @@ import numpy as np
 from ._version import __version__
 from .errors import EvtkError
 from .events import Events, TriggerKind, Triggers
-from .optics import Bench, _origin, ideal_response, response_region, screen_response
+from .optics import Bench, ideal_response, response_origin_px, response_region, screen_response
 from .sensor import PixelState, SensorModel, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
 
 __all__ = [
@@ -84,18 +84,21 @@ def split_passes(kernel, features):
     >>> [(ks, fs) for ks, fs, _, _ in split_passes(k, f)]
     [(1, 1), (-1, 1)]
     """
-    k = np.asarray(kernel)
-    f = np.asarray(features)
     out = []
     for ks in (1, -1):
-        kp = (k * ks > 0).astype(np.int8)
+        kp = _pass(kernel, ks)
         if not kp.any():
             continue
         for fs in (1, -1):
-            fp = (f * fs > 0).astype(np.int8)
+            fp = _pass(features, fs)
             if fp.any():
                 out.append((ks, fs, kp, fp))
     return out
+
+
+def _pass(pattern, sign):
+    """The 0/1 pattern a DMD shows for one sign of a signed pattern."""
+    return (np.asarray(pattern) * sign > 0).astype(np.int8)
 
 
 @dataclass
@@ -237,9 +240,7 @@ class Simulation:
     def _pass_patterns(self, c):
         s = self.schedule
         ks, fs = int(s.kernel_sign[c]), int(s.features_sign[c])
-        k = (self.kernels[s.kernel_id[c]] * ks > 0).astype(np.int8)
-        f = (self.features[s.features_id[c]] * fs > 0).astype(np.int8)
-        return k, f
+        return _pass(self.kernels[s.kernel_id[c]], ks), _pass(self.features[s.features_id[c]], fs)
 
     def _rate(self, response):
         return self.gain_e_per_s * response + self.sensor.dark_current_e_per_s
@@ -303,7 +304,7 @@ class Simulation:
             "features": self.features.tolist(),
             "schedule": self.schedule.to_dict(),
             "response_region": list(self.region),
-            "response_origin_px": [float(v) for v in _origin(self.bench, self.kernels.shape[1:],
+            "response_origin_px": [float(v) for v in response_origin_px(self.bench, self.kernels.shape[1:],
                                                              self.features.shape[1:])],
             "gain_e_per_s_per_unit": self.gain_e_per_s,
             "blank_rate_e_per_s": self.blank_rate_e_per_s,
