@@ -644,9 +644,10 @@ def ideal_response(kernel, features, bench: Bench | None = None):
 def response_to_sensor_grid(bench: Bench, kernel_shape, features_shape):
     """Sensor pixel centres (x, y) of each cell of the full ideal response, in pixel units.
 
-    Cell ``(i, j)`` of :func:`ideal_response` is seen by the pixel whose
-    footprint centre is at ``origin + i * kappa / s1`` (kappa the kernel step,
-    s1 the pixel footprint, both in feature elements).
+    Cell ``(i, j)`` of :func:`ideal_response` is centred on sensor coordinate
+    ``origin + i * kappa / s1`` (kappa the kernel step, s1 the pixel footprint,
+    both in feature elements; pixel ``x`` is centred on ``x``). At stride 1
+    that cell is exactly pixel ``origin + i``'s footprint.
     """
     kh, kw = kernel_shape
     fh, fw = features_shape

@@ -1,6 +1,6 @@
 """From a recording to the responses the device computed: capture windows and event counts.
 
-This module holds the first two stages of reconstruction:
+The stages, each a function usable alone:
 
 1. :class:`Windows`: when each capture's pattern was on, from the schedule a
    simulated recording carries (:func:`windows_from_schedule`), from the DMD's
@@ -10,6 +10,14 @@ This module holds the first two stages of reconstruction:
 2. :func:`accumulate`: ON and OFF counts per pixel and window in one pass over
    the events (numba), each window found by binary search on the sorted time
    stamps, streamed chunk by chunk from a recording larger than memory.
+3. :func:`linearize`: counts back to relative intensity through the pixel
+   model (a net rise of ``n`` thresholds is a factor ``exp(n * theta)``).
+4. :func:`combine_passes`: ``K+F+ - K+F- - K-F+ + K-F-`` per (kernel,
+   features, repeat), from whichever passes the schedule holds.
+5. :func:`to_response_grid` (the sensor region onto the response's cells, any
+   effective stride, by area overlap) and :func:`downsample` (to a target
+   size: block means for whole factors, area-weighted resampling otherwise).
+6. :func:`binarize`: sign, mean, a fixed threshold or Otsu's.
 """
 
 from __future__ import annotations
@@ -29,6 +37,11 @@ __all__ = [
     "windows_from_triggers",
     "windows_periodic",
     "accumulate",
+    "linearize",
+    "combine_passes",
+    "to_response_grid",
+    "downsample",
+    "binarize",
 ]
 
 _RISING = (TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE, TriggerKind.EXTERNAL_GENERATOR_RISING_EDGE)
@@ -299,3 +312,176 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         counts[:] = counts[:, inv]
         on, off = counts[1], counts[0]
     return WindowCounts(on, off, windows, (x0, x1, y0, y1), int(used))
+
+
+def linearize(on, off=None, theta_on=0.2, theta_off=None):
+    """Relative intensity change over each window from its event counts.
+
+    A pixel that fires ``on`` ON and ``off`` OFF events has seen its log
+    intensity rise by about ``on * theta_on - off * theta_off``; the returned
+    value is ``exp(that) - 1``: 0 for no change, 1 for a doubling. Over a
+    dark-to-pattern window it is proportional to the pattern's light above
+    the dark level. Counts are quantised to whole thresholds, so the result
+    is too (a factor ``exp(theta)`` per count).
+
+    Examples
+    --------
+    >>> linearize(np.array([0, 5]), theta_on=np.log(2) / 5).round(6).tolist()
+    [0.0, 1.0]
+    """
+    on = np.asarray(on, dtype=np.float64)
+    theta_off = theta_on if theta_off is None else theta_off
+    for name, v in (("theta_on", theta_on), ("theta_off", theta_off)):
+        v = np.asarray(v, dtype=np.float64)
+        if not np.all(np.isfinite(v)) or np.any(v <= 0):
+            raise EvtkError(f"{name} must be positive and finite")
+    rise = on * theta_on
+    if off is not None:
+        rise = rise - np.asarray(off, dtype=np.float64) * theta_off
+    # exp overflows beyond ~709: that many thresholds is not a physical count
+    if np.any(rise > 700):
+        raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
+    return np.expm1(rise)
+
+
+def combine_passes(values, schedule):
+    """Signed responses: ``sum(kernel_sign * features_sign * values[c])`` over each pair's captures.
+
+    Parameters
+    ----------
+    values : ndarray, shape (captures, ...)
+        One response per capture, in schedule order.
+    schedule : evtk.simulate.Schedule or dict
+        The capture schedule (``kernel_id``, ``features_id``, signs, ``repeat``).
+
+    Returns
+    -------
+    (combined, pairs)
+        ``combined`` has shape (pairs, ...); ``pairs`` is an int array of
+        (kernel_id, features_id, repeat) rows, sorted.
+    """
+    from .simulate import Schedule
+
+    if isinstance(schedule, dict):
+        schedule = Schedule.from_dict(schedule)
+    values = np.asarray(values)
+    if values.shape[0] != len(schedule):
+        raise EvtkError(f"{values.shape[0]} responses for a schedule of {len(schedule)} captures")
+    keys = np.stack([schedule.kernel_id, schedule.features_id, schedule.repeat], axis=1)
+    pairs, which = np.unique(keys, axis=0, return_inverse=True)
+    which = np.asarray(which).reshape(-1)
+    sign = (schedule.kernel_sign * schedule.features_sign).astype(np.float64)
+    out = np.zeros((len(pairs),) + values.shape[1:], dtype=np.float64)
+    np.add.at(out, which, values * sign.reshape((-1,) + (1,) * (values.ndim - 1)))
+    return out, pairs
+
+
+def _overlap_matrix(n_cells, first_edge, step, n_pixels):
+    """W[c, x]: share of cell c (an interval of ``step`` pixels from ``first_edge + c*step``) covered by pixel x."""
+    lo = first_edge + step * np.arange(n_cells)[:, None]
+    hi = lo + step
+    px = np.arange(n_pixels)[None, :]
+    return np.clip(np.minimum(hi, px + 1) - np.maximum(lo, px), 0, None) / step
+
+
+def to_response_grid(values, region, origin_px, step_px, shape):
+    """Resample responses over a sensor region onto the response's cell grid.
+
+    Pixel ``x`` is centred on ``x`` and cell ``(i, j)`` on
+    ``origin + (j, i) * step_px`` (the optics' convention), each ``step_px``
+    pixels wide; a cell's value is the area-weighted mean of the pixels it
+    overlaps. Cells larger
+    than pixels (effective stride below 1) average whole and partial pixels;
+    cells smaller than pixels (stride above 1) take the value of the pixel
+    they lie in, as the sensor cannot resolve them. Parts of a cell outside
+    the region count as zero light.
+
+    Parameters
+    ----------
+    values : ndarray, shape (..., y1 - y0, x1 - x0)
+    region : (x0, x1, y0, y1)
+    origin_px : (x, y)
+        Sensor pixel that sees cell (0, 0) (``response_origin_px`` in the metadata).
+    step_px : float
+        Sensor pixels per cell: ``decimation / effective stride``.
+    shape : (rows, cols)
+        Cells wanted (the full response is ``features + kernel - 1``).
+    """
+    values = np.asarray(values, dtype=np.float64)
+    x0, x1, y0, y1 = (int(v) for v in region)
+    if values.shape[-2:] != (y1 - y0, x1 - x0):
+        raise EvtkError(f"values of shape {values.shape[-2:]} do not cover the region {tuple(region)}")
+    if not (np.isfinite(step_px) and step_px > 0):
+        raise EvtkError(f"step_px must be positive, not {step_px}")
+    rows, cols = (int(v) for v in shape)
+    ox, oy = (float(v) for v in origin_px)
+    # in edge units (pixel x spans [x, x + 1)) cell c starts at origin + 1/2 - step/2 + c * step
+    wy = _overlap_matrix(rows, oy + 0.5 - 0.5 * step_px - y0, step_px, y1 - y0)
+    wx = _overlap_matrix(cols, ox + 0.5 - 0.5 * step_px - x0, step_px, x1 - x0)
+    return np.einsum("ry,...yx,cx->...rc", wy, values, wx)
+
+
+def downsample(values, size=(16, 16)):
+    """Resize the last two axes to ``size``: block means for whole factors, else area-weighted.
+
+    Area weighting treats each input element as a unit square and each output
+    element as the mean over the squares it covers, which conserves the mean
+    for any ratio (up or down).
+
+    Examples
+    --------
+    >>> downsample(np.arange(16.0).reshape(4, 4), (2, 2)).tolist()
+    [[2.5, 4.5], [10.5, 12.5]]
+    """
+    values = np.asarray(values, dtype=np.float64)
+    h, w = values.shape[-2:]
+    oh, ow = (int(v) for v in size)
+    if oh < 1 or ow < 1:
+        raise EvtkError(f"size must be positive, not {size}")
+    if h % oh == 0 and w % ow == 0:
+        fy, fx = h // oh, w // ow
+        return values.reshape(values.shape[:-2] + (oh, fy, ow, fx)).mean(axis=(-3, -1))
+    wy = _overlap_matrix(oh, 0.0, h / oh, h)
+    wx = _overlap_matrix(ow, 0.0, w / ow, w)
+    return np.einsum("ry,...yx,cx->...rc", wy, values, wx)
+
+
+def binarize(values, method="sign"):
+    """+1 where a response reaches the threshold, -1 elsewhere (int8), per response.
+
+    ``method``: "sign" (threshold 0), "mean" (each response's mean), "otsu"
+    (Otsu's threshold of each response, scikit-image), or a number. A
+    constant response is all +1 under "mean" and "otsu".
+
+    Examples
+    --------
+    >>> binarize(np.array([[-1.0, 0.0], [2.0, 0.5]]), "mean").tolist()
+    [[-1, -1], [1, 1]]
+    """
+    values = np.asarray(values, dtype=np.float64)
+    if values.ndim < 2:
+        raise EvtkError("binarize needs responses of at least 2 dimensions")
+    if not np.all(np.isfinite(values)):
+        raise EvtkError("cannot binarize responses holding NaN or infinity")
+    flat = values.reshape((-1,) + values.shape[-2:])
+    if method == "sign":
+        thr = np.zeros(len(flat))
+    elif method == "mean":
+        thr = flat.mean(axis=(1, 2))
+    elif method == "otsu":
+        from skimage.filters import threshold_otsu
+
+        const = np.array([np.ptp(r) == 0 for r in flat], bool)
+        thr = np.array([r.flat[0] if c else threshold_otsu(r) for r, c in zip(flat, const)])
+        # Otsu's threshold is the last value of the lower class: strictly above it is "high"
+        high = flat > thr[:, None, None]
+        high[const] = True
+        return np.where(high, 1, -1).astype(np.int8).reshape(values.shape)
+    else:
+        try:
+            thr = np.full(len(flat), float(method))
+        except (TypeError, ValueError):
+            raise EvtkError(f"binarize method must be sign, mean, otsu or a number, not {method!r}") from None
+        if not np.isfinite(thr).all():
+            raise EvtkError(f"binarize threshold must be finite, not {method!r}")
+    return np.where(flat >= thr[:, None, None], 1, -1).astype(np.int8).reshape(values.shape)

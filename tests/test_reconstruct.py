@@ -178,3 +178,111 @@ def test_accumulate_into_a_reused_dirty_buffer():
     assert np.shares_memory(got.on, buf)
     with pytest.raises(EvtkError, match="out must be"):
         accumulate(ev, win, out=np.zeros((2, 4, 30, 40), np.int64))
+
+
+def test_linearize_inverts_the_count_model():
+    from evtk.reconstruct import linearize
+
+    theta = 0.2
+    ratio = np.array([1.0, 2.0, 10.0, 1e6])
+    n = np.floor(np.log(ratio) / theta + 1e-12)  # a noise-free slow pixel's ON count
+    rel = linearize(n, theta_on=theta)
+    # within one threshold below the true change, never above
+    assert np.all(rel <= ratio - 1 + 1e-12) and np.all((rel + 1) * np.exp(theta) >= ratio)
+    np.testing.assert_allclose(linearize([3], [3], theta_on=0.2), [0.0], atol=1e-15)
+    per_pixel = linearize(np.array([5, 5]), theta_on=np.array([0.1, 0.2]))
+    np.testing.assert_allclose(per_pixel, np.expm1([0.5, 1.0]))
+    with pytest.raises(EvtkError, match="theta_on"):
+        linearize([1], theta_on=0)
+    with pytest.raises(EvtkError, match="beyond"):
+        linearize([10_000], theta_on=0.2)
+
+
+def test_combine_passes_against_the_signed_correlation():
+    from scipy import signal
+
+    from evtk.reconstruct import combine_passes
+    from evtk.simulate import Simulation
+
+    rng = np.random.default_rng(11)
+    k = np.stack([rng.choice([-1, 0, 1], (3, 3)) for _ in range(2)])
+    k[:, 1, 1] = 1
+    f = np.stack([rng.choice([-1, 1], (8, 8)) for _ in range(3)])
+    sim = Simulation(k, f, repeat=2, seed=1)
+    per_capture = np.stack([sim.ideal(c) for c in range(len(sim.schedule))])
+    combined, pairs = combine_passes(per_capture, sim.schedule)
+    assert len(pairs) == 2 * 3 * 2
+    for (ki, fi, r), got in zip(pairs, combined):
+        np.testing.assert_array_equal(got, signal.correlate2d(f[fi], k[ki], "full"))
+    with pytest.raises(EvtkError, match="responses for a schedule"):
+        combine_passes(per_capture[:-1], sim.schedule)
+
+
+@pytest.mark.parametrize("stride", [1.0, 0.5, 0.25, 2.0])
+def test_to_response_grid_recovers_the_ideal_response(stride):
+    """Ideal optics (point sources, no leak): sensor light mapped back onto cells is the correlation."""
+    from scipy import signal
+
+    from evtk.optics import Bench, response_origin_px, response_region, screen_response
+    from evtk.reconstruct import to_response_grid
+
+    base = Bench(source_extent="point")
+    # an origin that puts pixel edges on cell edges: pixel 100's footprint starts at cell 0
+    o = 100 + (0.5 - stride / 2) / stride
+    bench = base.replace(sensor_pitch_um=base.sensor_pitch_um * stride, origin_px=(o, o))
+    rng = np.random.default_rng(3)
+    k = rng.integers(0, 2, (3, 3))
+    f = rng.integers(0, 2, (16, 16))
+    region = response_region(bench, k.shape, f.shape)
+    x0, x1, y0, y1 = region
+    light = screen_response(k, f, bench, region, leak=False)
+    origin = response_origin_px(bench, k.shape, f.shape)
+    cells = to_response_grid(light, region, origin, 1 / bench.stride_eff, (18, 18))
+    ideal = signal.correlate2d(f, k, "full")
+    if stride <= 1:  # every cell is covered by pixels that see only it
+        np.testing.assert_allclose(cells, ideal, atol=1e-9)
+    else:  # each pixel sees 2x2 cells: every cell takes its pixel's mean of them
+        padded = np.zeros((18, 18))
+        padded[:18, :18] = ideal
+        blocks = padded.reshape(9, 2, 9, 2).mean(axis=(1, 3))
+        np.testing.assert_allclose(cells, np.kron(blocks, np.ones((2, 2))), atol=1e-9)
+
+
+def test_downsample_block_and_area():
+    from skimage.measure import block_reduce
+
+    from evtk.reconstruct import downsample
+
+    rng = np.random.default_rng(4)
+    a = rng.random((3, 32, 48))
+    np.testing.assert_allclose(downsample(a, (16, 16)), block_reduce(a, (1, 2, 3), np.mean))
+    b = rng.random((14, 14))
+    up = downsample(b, (16, 16))
+    assert up.shape == (16, 16) and up.mean() == pytest.approx(b.mean())
+    down = downsample(rng.random((50, 70)), (16, 16))
+    assert down.shape == (16, 16)
+    const = downsample(np.full((21, 13), 2.5), (16, 16))
+    np.testing.assert_allclose(const, 2.5)
+    with pytest.raises(EvtkError, match="size"):
+        downsample(b, (0, 4))
+
+
+def test_binarize_methods():
+    from skimage.filters import threshold_otsu
+
+    from evtk.reconstruct import binarize
+
+    rng = np.random.default_rng(5)
+    r = np.concatenate([rng.normal(0, 1, (2, 8, 8)), rng.normal(5, 1, (2, 8, 8))], axis=1)
+    assert binarize(r, "sign").dtype == np.int8
+    np.testing.assert_array_equal(binarize(r, "sign"), np.where(r >= 0, 1, -1))
+    np.testing.assert_array_equal(binarize(r, 2.0), np.where(r >= 2.0, 1, -1))
+    for i in range(2):
+        np.testing.assert_array_equal(binarize(r, "mean")[i], np.where(r[i] >= r[i].mean(), 1, -1))
+        np.testing.assert_array_equal(binarize(r, "otsu")[i], np.where(r[i] > threshold_otsu(r[i]), 1, -1))
+    flat = np.zeros((4, 4))
+    assert np.all(binarize(flat, "otsu") == 1) and np.all(binarize(flat, "mean") == 1)
+    with pytest.raises(EvtkError, match="method"):
+        binarize(r, "median")
+    with pytest.raises(EvtkError, match="NaN"):
+        binarize(np.full((2, 2), np.nan))
