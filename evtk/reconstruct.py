@@ -42,6 +42,9 @@ __all__ = [
     "to_response_grid",
     "downsample",
     "binarize",
+    "reconstruct",
+    "Reconstruction",
+    "response_error",
 ]
 
 _RISING = (TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE, TriggerKind.EXTERNAL_GENERATOR_RISING_EDGE)
@@ -485,3 +488,143 @@ def binarize(values, method="sign"):
         if not np.isfinite(thr).all():
             raise EvtkError(f"binarize threshold must be finite, not {method!r}")
     return np.where(flat >= thr[:, None, None], 1, -1).astype(np.int8).reshape(values.shape)
+
+
+@dataclass
+class Reconstruction:
+    """What :func:`reconstruct` found.
+
+    Attributes
+    ----------
+    responses : ndarray (n, rows, cols)
+        One signed response per (kernel, features, repeat) of the schedule, or
+        per window when the recording has none, resampled to ``size``.
+    binary : ndarray (n, rows, cols) of int8 (+1/-1)
+    pairs : ndarray (n, 3) or None
+        (kernel_id, features_id, repeat) of each response.
+    cells : ndarray (n, h, w)
+        The responses on the response's own cell grid, before resampling.
+    ideal : ndarray or None
+        Ground truth on the same cell grid (simulated recordings only).
+    counts : WindowCounts
+    summary : dict
+        Captures, windows, events used and dropped, parameters, errors.
+    """
+
+    responses: np.ndarray
+    binary: np.ndarray
+    pairs: np.ndarray | None
+    cells: np.ndarray
+    ideal: np.ndarray | None
+    counts: WindowCounts
+    summary: dict
+
+
+def response_error(got, ideal):
+    """Pearson correlation and RMS error over the RMS of the ideal (normalised RMS error)."""
+    got = np.asarray(got, dtype=np.float64).ravel()
+    ideal = np.asarray(ideal, dtype=np.float64).ravel()
+    rms = float(np.sqrt(np.mean(ideal ** 2))) if ideal.size else 0.0
+    if got.size < 2 or np.ptp(got) == 0 or np.ptp(ideal) == 0:
+        corr = float("nan") if got.size < 2 else (1.0 if np.allclose(got, ideal) else 0.0)
+    else:
+        corr = float(np.corrcoef(got, ideal)[0, 1])
+    nrmse = float(np.sqrt(np.mean((got - ideal) ** 2)) / rms) if rms > 0 else None
+    return {"correlation": corr, "nrmse": nrmse}
+
+
+def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="sign",
+                linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None):
+    """The whole pipeline on an open recording: windows, counts, linearisation, passes, grid, binarisation.
+
+    Parameters
+    ----------
+    rec : Recording
+    window : "schedule", "triggers" or ("period", period_us)
+    skip_us, length_us : int
+        Shorten or delay every window (leave out the pixels' settling).
+    size : (rows, cols)
+        Output size of each response.
+    binarize_method : "sign", "mean", "otsu" or a number
+    linear : bool
+        Linearise counts to light (else net counts ON - OFF).
+    theta : float, optional
+        Contrast threshold for linearisation; default the recording's
+        simulation metadata, else 0.2.
+    crop : "valid" or "full"
+        Which part of the correlation to keep (needs a simulation record).
+    region : (x0, x1, y0, y1), optional
+        Sensor pixels to use; default the simulation's response region, else
+        the whole sensor.
+    """
+    from .optics import Bench
+    from .simulate import METADATA_KEY, Schedule
+
+    sim = (rec.metadata or {}).get(METADATA_KEY)
+    if window == "schedule":
+        if sim is None:
+            raise EvtkError("the recording carries no capture schedule: use window='triggers' or a period")
+        win = windows_from_schedule(sim, skip_us, length_us)
+    elif window == "triggers":
+        win = windows_from_triggers(rec.triggers(), skip_us, length_us)
+    elif isinstance(window, tuple) and len(window) == 2 and window[0] == "period":
+        info = rec.info()
+        win = windows_periodic(info["t_start_us"], info["t_end_us"] + 1, window[1], skip_us, length_us)
+    else:
+        raise EvtkError(f"window must be 'schedule', 'triggers' or ('period', US), not {window!r}")
+    if crop not in ("valid", "full"):
+        raise EvtkError(f"crop must be 'valid' or 'full', not {crop!r}")
+    if region is None:
+        region = tuple(sim["response_region"]) if sim is not None else (0, rec.sensor_size[0], 0, rec.sensor_size[1])
+    counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress)
+    if theta is None:
+        theta_on = float(sim["sensor"]["theta_on"]) if sim else 0.2
+        theta_off = float(sim["sensor"]["theta_off"]) if sim else 0.2
+    else:
+        theta_on = theta_off = float(theta)
+    values = linearize(counts.on, counts.off, theta_on, theta_off) if linear else \
+        (counts.on.astype(np.float64) - counts.off)
+
+    pairs = ideal = None
+    schedule = None
+    if sim is not None and len(win) == len(sim["schedule"]["capture"]):
+        schedule = Schedule.from_dict(sim["schedule"])
+        bench = Bench.from_dict({**sim["bench"], "origin_px": sim["bench"].get("origin_px")})
+        kernels = np.asarray(sim["kernels"])
+        features = np.asarray(sim["features"])
+        kh, kw = kernels.shape[1:]
+        fh, fw = features.shape[1:]
+        if linear:  # relative change -> light above the dark level, in response units
+            values = values * sim["blank_rate_e_per_s"] / sim["gain_e_per_s_per_unit"]
+        step = bench.kernel_step_cells / bench.pixel_cells
+        cells = to_response_grid(values, region, sim["response_origin_px"], step, (fh + kh - 1, fw + kw - 1))
+        combined, pairs = combine_passes(cells, schedule)
+        from .optics import ideal_response
+
+        ideal = np.stack([ideal_response(kernels[k], features[f], bench) for k, f, _ in pairs])
+        if crop == "valid":
+            sl = (slice(None), slice(kh - 1, fh), slice(kw - 1, fw))
+            combined, ideal = combined[sl], ideal[sl]
+        cells = combined
+    else:
+        cells = values
+    responses = downsample(cells, size)
+    binary = binarize(responses, binarize_method)
+    summary = {
+        "captures": int(len(schedule)) if schedule is not None else None,
+        "windows": len(win),
+        "window_source": win.source,
+        "windows_dropped": win.dropped,
+        "events_used": counts.events_used,
+        "region": list(counts.region),
+        "responses": int(responses.shape[0]),
+        "size": list(responses.shape[1:]),
+        "linear": bool(linear),
+        "theta_on": theta_on,
+        "binarize": str(binarize_method),
+        "skip_us": int(skip_us),
+        "length_us": None if length_us is None else int(length_us),
+    }
+    if ideal is not None:
+        summary["error"] = response_error(cells, ideal)
+    return Reconstruction(responses, binary, pairs, cells, ideal, counts, summary)

@@ -286,3 +286,33 @@ def test_binarize_methods():
         binarize(r, "median")
     with pytest.raises(EvtkError, match="NaN"):
         binarize(np.full((2, 2), np.nan))
+
+
+def test_reconstruct_end_to_end_on_an_ideal_simulation(tmp_path):
+    """Point sources, no shot noise, no threshold mismatch: the pipeline finds the correlation.
+
+    The accuracy the device reaches with its default (realistic) optics and
+    pixels is reported by the pipeline, not asserted here: see summary["error"].
+    """
+    from evtk.optics import Bench
+    from evtk.reconstruct import reconstruct
+    from evtk.sensor import SensorModel
+    from evtk.simulate import Simulation
+
+    rng = np.random.default_rng(0)
+    k = rng.choice([-1, 1], (3, 3))
+    f = rng.choice([-1, 1], (16, 16))
+    ideal_sensor = SensorModel(shot_noise=False, background_rate_hz=0.0, theta_mismatch=0.0)
+    sim = Simulation(k, f, bench=Bench(source_extent="point"), sensor=ideal_sensor, repeat=2, seed=1)
+    path = tmp_path / "ideal.aedat4"
+    sim.write(path)
+    with evtk.open(path) as rec:
+        r = reconstruct(rec, size=(16, 16))
+        by_triggers = reconstruct(rec, window="triggers")
+    assert r.summary["captures"] == 8 and r.summary["windows"] == 8 and r.pairs.tolist() == [[0, 0, 0], [0, 0, 1]]
+    assert r.cells.shape == (2, 14, 14) and r.responses.shape == (2, 16, 16) and r.binary.dtype == np.int8
+    assert r.summary["error"]["correlation"] > 0.99
+    np.testing.assert_array_equal(by_triggers.cells, r.cells)
+    # the binary response agrees with the sign of the ideal wherever the ideal is clearly non-zero
+    clear = np.abs(r.ideal) >= 2
+    assert np.mean(np.sign(r.cells[clear]) == np.sign(r.ideal[clear])) > 0.98
