@@ -192,5 +192,70 @@ def simulate(kernel_path, kernel_bits, features_path, signed, repeat, power_mw, 
                    f"e_min {bench.min_window_us:g} us (eq. 7), settle {summary['settle_us']} us")
 
 
+def _parse_size(text):
+    try:
+        rows, cols = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise EvtkError(f"--size must look like 16x16, not {text!r}") from None
+    return rows, cols
+
+
+@main.command("reconstruct")
+@click.argument("recording", type=click.Path(dir_okay=False, exists=True))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output: .npz, .h5 or .hdf5.")
+@click.option("--window", "window_spec", default="schedule", show_default=True,
+              help="schedule, triggers or period:US.")
+@click.option("--skip-us", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Leave out the start of every window (pixel settling).")
+@click.option("--length-us", type=click.IntRange(min=1), help="Keep at most this much of every window.")
+@click.option("--size", default="16x16", show_default=True, help="Size of each response, ROWSxCOLS.")
+@click.option("--binarize", "binarize_method", default="sign", show_default=True,
+              help="sign, mean, otsu or a threshold value.")
+@click.option("--linearize/--counts", default=True, show_default=True,
+              help="Linearise counts to light, or keep net counts (ON - OFF).")
+@click.option("--crop", type=click.Choice(["valid", "full"]), default="valid", show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
+def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, binarize_method, linearize, crop,
+                    as_json):
+    """Turn a recording into the convolution responses the device computed."""
+    from .reconstruct import reconstruct, save_reconstruction
+
+    if window_spec.startswith("period:"):
+        try:
+            window = ("period", int(window_spec.split(":", 1)[1]))
+        except ValueError:
+            raise EvtkError(f"--window period:US needs a whole number of us, not {window_spec!r}") from None
+    elif window_spec in ("schedule", "triggers"):
+        window = window_spec
+    else:
+        raise EvtkError(f"--window must be schedule, triggers or period:US, not {window_spec!r}")
+    if binarize_method not in ("sign", "mean", "otsu"):
+        try:
+            binarize_method = float(binarize_method)
+        except ValueError:
+            raise EvtkError(f"--binarize must be sign, mean, otsu or a number, not {binarize_method!r}") from None
+    with evio.open(recording) as rec:
+        n_events = rec.info()["events"]
+        update, finish = _progress(n_events, "reconstructing")
+        try:
+            result = reconstruct(rec, window=window, skip_us=skip_us, length_us=length_us, size=_parse_size(size),
+                                 binarize_method=binarize_method, linear=linearize, crop=crop, progress=update)
+        finally:
+            finish()
+        sensor = rec.sensor_size
+    save_reconstruction(output, result, sensor, {"source": str(recording)})
+    summary = dict(result.summary, output=str(output), events_in_recording=n_events,
+                   events_dropped=n_events - result.summary["events_used"])
+    if as_json:
+        click.echo(json.dumps(summary))
+    else:
+        err = summary.get("error")
+        line = (f"wrote {summary['responses']} responses of {size} from {summary['windows']} windows "
+                f"({summary['events_used']:,} of {n_events:,} events used) to {output}")
+        if err:
+            line += f"\nagainst ground truth: correlation {err['correlation']:.4f}, normalised RMS error {err['nrmse']:.3f}"
+        click.echo(line)
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

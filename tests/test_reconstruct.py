@@ -316,3 +316,59 @@ def test_reconstruct_end_to_end_on_an_ideal_simulation(tmp_path):
     # the binary response agrees with the sign of the ideal wherever the ideal is clearly non-zero
     clear = np.abs(r.ideal) >= 2
     assert np.mean(np.sign(r.cells[clear]) == np.sign(r.ideal[clear])) > 0.98
+
+
+def test_cli_reconstruct_outputs(tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+    from evtk.sensor import SensorModel
+    from evtk.simulate import Simulation
+
+    rng = np.random.default_rng(2)
+    sim = Simulation(rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16)), repeat=2, seed=3,
+                     sensor=SensorModel(shot_noise=False))
+    src = tmp_path / "sim.aedat4"
+    sim.write(src)
+    with evtk.open(src) as rec:
+        from evtk.reconstruct import reconstruct
+
+        lib = reconstruct(rec, size=(8, 8), binarize_method="mean")
+    for out in ("r.npz", "r.h5"):
+        res = CliRunner().invoke(main, ["reconstruct", str(src), "-o", str(tmp_path / out), "--size", "8x8",
+                                        "--binarize", "mean", "--json"])
+        assert res.exit_code == 0, res.output
+        summary = json.loads(res.output)
+        assert summary["responses"] == 2 and summary["size"] == [8, 8]
+        assert summary["events_used"] + summary["events_dropped"] == summary["events_in_recording"]
+        assert summary["error"]["correlation"] == pytest.approx(lib.summary["error"]["correlation"])
+    z = np.load(tmp_path / "r.npz")
+    np.testing.assert_array_equal(z["binary"], lib.binary)
+    np.testing.assert_allclose(z["responses"], lib.responses)
+    assert json.loads(str(z["summary"]))["reconstruction"]["windows"] == 8
+    import h5py
+
+    with h5py.File(tmp_path / "r.h5") as f:
+        np.testing.assert_allclose(f["reconstruction/responses"][...], lib.responses)
+        np.testing.assert_array_equal(f["reconstruction/pairs"][...], lib.pairs)
+    # a bench recording without a schedule: triggers or a period, never the schedule
+    bench = tmp_path / "bench.h5"
+    evtk.write_events(bench, random_events(5000, seed=1, span_us=20_000), evtk.Triggers([100, 900], [R, F]))
+    res = CliRunner().invoke(main, ["reconstruct", str(bench), "-o", str(tmp_path / "b.npz")])
+    assert res.exit_code == 1 and "no capture schedule" in res.output
+    res = CliRunner().invoke(main, ["reconstruct", str(bench), "-o", str(tmp_path / "b.npz"), "--window", "triggers",
+                                    "--size", "4x4", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.output)["windows"] == 1
+    res = CliRunner().invoke(main, ["reconstruct", str(bench), "-o", str(tmp_path / "p.npz"), "--window",
+                                    "period:5000", "--counts", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.output)["windows"] == 3
+    for bad, msg in ((["--window", "period:x"], "period:US"), (["--binarize", "median"], "--binarize"),
+                     (["--size", "4by4"], "--size")):
+        res = CliRunner().invoke(main, ["reconstruct", str(bench), "-o", str(tmp_path / "x.npz"), *bad])
+        assert res.exit_code == 1 and msg in res.output
+    res = CliRunner().invoke(main, ["reconstruct", str(bench), "-o", str(tmp_path / "x.txt"), "--window", "triggers"])
+    assert res.exit_code == 1 and ".npz" in res.output
