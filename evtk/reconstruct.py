@@ -422,7 +422,7 @@ def to_response_grid(values, region, origin_px, step_px, shape):
     # in edge units (pixel x spans [x, x + 1)) cell c starts at origin + 1/2 - step/2 + c * step
     wy = _overlap_matrix(rows, oy + 0.5 - 0.5 * step_px - y0, step_px, y1 - y0)
     wx = _overlap_matrix(cols, ox + 0.5 - 0.5 * step_px - x0, step_px, x1 - x0)
-    return np.einsum("ry,...yx,cx->...rc", wy, values, wx)
+    return wy @ values @ wx.T
 
 
 def downsample(values, size=(16, 16)):
@@ -447,7 +447,7 @@ def downsample(values, size=(16, 16)):
         return values.reshape(values.shape[:-2] + (oh, fy, ow, fx)).mean(axis=(-3, -1))
     wy = _overlap_matrix(oh, 0.0, h / oh, h)
     wx = _overlap_matrix(ow, 0.0, w / ow, w)
-    return np.einsum("ry,...yx,cx->...rc", wy, values, wx)
+    return wy @ values @ wx.T
 
 
 def binarize(values, method="sign"):

@@ -463,11 +463,22 @@ class Recording(BaseRecording):
         s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
         if s is None:
             raise FormatError(self.path, None, f"no event stream; the streams are {[(s.name, s.type) for s in self._streams.values()]}")
-        width, height = s.sensor_size
         counts = self._index.count[rows]
         if np.any(counts < 0):
             counts = self._count_elements(rows, "EVTS")
             rows = rows[: len(counts)]
+        ev, _ = self._decode_rows(s, rows, counts)
+        if t_start_us is not None or t_end_us is not None:
+            ev = ev.between(t_start_us, t_end_us)
+        return ev
+
+    def _decode_rows(self, s, rows, counts):
+        """Decode the event packets ``rows`` (element counts known) on both cores.
+
+        Returns ``(events, complete)``; with salvage, ``events`` is the intact
+        prefix and ``complete`` False when damage stopped the decoding.
+        """
+        width, height = s.sensor_size
         starts = np.zeros(len(rows) + 1, np.int64)
         np.cumsum(counts, out=starts[1:])
         total = int(starts[-1])
@@ -503,9 +514,7 @@ class Recording(BaseRecording):
         stopped = _run_split(work, len(rows), counts)
         end = int(starts[stopped])
         ev = Events._trusted(t[:end], x[:end], y[:end], p[:end], s.sensor_size)
-        if t_start_us is not None or t_end_us is not None:
-            ev = ev.between(t_start_us, t_end_us)
-        return ev
+        return ev, stopped == len(rows)
 
     def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None, stream=None) -> Iterator[Events]:
         """Yield the events in order, at most ``chunk_events`` at a time.
@@ -519,10 +528,50 @@ class Recording(BaseRecording):
         s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
         if s is None:
             raise FormatError(self.path, None, f"no event stream; the streams are {[(s.name, s.type) for s in self._streams.values()]}")
-        width, height = s.sensor_size
-        ident = _IDENT["EVTS"]
         pending: list[Events] = []
         held = 0
+        for ev in self._event_blocks(s, rows, chunk_events):
+            if t_start_us is not None or t_end_us is not None:
+                ev = ev.between(t_start_us, t_end_us)
+            if not len(ev):
+                continue
+            pending.append(ev)
+            held += len(ev)
+            while held >= chunk_events:
+                joined = Events.concatenate(pending)
+                yield joined[:chunk_events]
+                rest = joined[chunk_events:]
+                pending = [rest] if len(rest) else []
+                held = len(rest)
+        if held:
+            yield Events.concatenate(pending)
+
+    def _event_blocks(self, s, rows, chunk_events):
+        """Events of ``rows`` in order: blocks of about ``chunk_events`` decoded on both cores
+        when the data table gives element counts, else packet by packet."""
+        counts = self._index.count[rows]
+        k = 0
+        if len(rows) and np.all(counts >= 0):
+            cum = np.cumsum(counts)
+            while k < len(rows):
+                base = cum[k - 1] if k else 0
+                j = min(len(rows), int(np.searchsorted(cum, base + chunk_events, side="left")) + 1)
+                try:
+                    ev, complete = self._decode_rows(s, rows[k:j], counts[k:j])
+                except _CountMismatch:  # the table lied: go on packet by packet from here
+                    self.warnings.append("the data table's element counts are wrong; counted from the packets instead")
+                    break
+                yield ev
+                if not complete:
+                    return
+                k = j
+            else:
+                return
+        yield from self._event_packets(s, rows[k:])
+
+    def _event_packets(self, s, rows):
+        width, height = s.sensor_size
+        ident = _IDENT["EVTS"]
         for i in rows:
             try:
                 b = self._body(i)
@@ -545,21 +594,7 @@ class Recording(BaseRecording):
                     self._fail(int(self._index.offset[i]), reason)
                 except _Stop:
                     break
-            ev = Events._trusted(*cols, s.sensor_size)
-            if t_start_us is not None or t_end_us is not None:
-                ev = ev.between(t_start_us, t_end_us)
-            if not len(ev):
-                continue
-            pending.append(ev)
-            held += len(ev)
-            while held >= chunk_events:
-                joined = Events.concatenate(pending)
-                yield joined[:chunk_events]
-                rest = joined[chunk_events:]
-                pending = [rest] if len(rest) else []
-                held = len(rest)
-        if held:
-            yield Events.concatenate(pending)
+            yield Events._trusted(*cols, s.sensor_size)
 
     # -- triggers -------------------------------------------------------------------
     def triggers(self, t_start_us=None, t_end_us=None, stream=None) -> Triggers:
