@@ -408,3 +408,26 @@ def test_parquet_footer_probe_finds_the_row_group_that_aborts():
     assert _first_fatal_row_group(_FakeFile(5, fatal=0), 0) == 0
     assert _first_fatal_row_group(_FakeFile(5, fatal=None), 0) == 5
     assert _first_fatal_row_group(_FakeFile(0, fatal=None), 0) is None
+
+
+def test_hdf5_salvage_keeps_everything_before_a_damaged_chunk(tmp_path):
+    """events() and iter_events() agree on the intact prefix, to the HDF5 chunk (fuzzing, seed 7)."""
+    ev = random_events(10_000, seed=12)
+    path = tmp_path / "c.h5"
+    evtk.write_events(path, ev, compression="lz4", chunk_events=1000)
+    with h5py.File(path) as f:
+        info = f["events/x"].id.get_chunk_info(6)  # events 6000..6999 of the x column
+        offset, size = info.byte_offset, info.size
+    data = bytearray(path.read_bytes())
+    data[offset:offset + size] = bytes(size)
+    path.write_bytes(bytes(data))
+    with evtk.open(path) as rec:
+        with pytest.raises(evtk.FormatError, match="cannot be read"):
+            rec.events()
+    with evtk.open(path, salvage=True) as rec:
+        got = rec.events()
+        assert rec.damage is not None and "6000" in rec.damage.reason
+    assert got == ev[:6000]
+    for chunk in (333, 1000, 4096):
+        with evtk.open(path, salvage=True) as rec:
+            assert evtk.Events.concatenate(list(rec.iter_events(chunk_events=chunk))) == ev[:6000]

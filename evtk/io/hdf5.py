@@ -566,23 +566,26 @@ class Hdf5Recording(BaseRecording):
         return ev if good == len(ev) else ev[:good]
 
     def _salvage_block(self, a, b, out, o, t_before) -> int:
-        """Read a damaged block in small steps; return how many events are intact."""
-        step = DEFAULT_CHUNK // 4
-        good = 0
-        for c in range(a, b, step):
-            d = min(b, c + step)
+        """A block whose read failed: the longest readable prefix (found by bisection, as
+        any read touching a damaged chunk fails), then validated; returns how many events
+        are intact. The same prefix is found whatever block sizes the caller reads in."""
+        lo, hi = 0, b - a
+        reason = None
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
             try:
-                self._read_into(c, d, out, o + (c - a))
+                self._read_into(a, a + mid, out, o)
+                lo = mid
             except _Unreadable as err:
-                self.damage = Damage(None, f"events from index {c} cannot be read ({err.exc})")
-                return good
-            ev = Events._trusted(*(col[o + c - a : o + d - a] for col in out), self.sensor_size)
-            ok = self._check(ev, c, t_before)
-            good += ok
-            if ok < d - c:
-                return good
-            t_before = int(ev.t[-1]) if len(ev) else t_before
-        return good
+                hi = mid
+                reason = err.exc
+        # the last successful read was [a, a + lo): it is what ``out`` holds
+        if reason is None:  # a one-event block: its read failed before we were called
+            reason = "unreadable"
+        if self.damage is None:
+            self.damage = Damage(None, f"events from index {a + lo} cannot be read ({reason})")
+        ev = Events._trusted(*(col[o : o + lo] for col in out), self.sensor_size)
+        return self._check(ev, a, t_before)
 
     def _span(self, t_start_us, t_end_us):
         lay = self._layout

@@ -73,11 +73,16 @@ def run_case(path: Path, reference):
             rec.events()
             rec.events(1000, 2000)
             rec.triggers()
+            sum(len(c) for c in rec.iter_events(chunk_events=700))
     except evtk.FormatError:
         outcome = "format_error"
     try:
         with evtk.open(path, salvage=True) as rec:
             got = rec.events()
+        with evtk.open(path, salvage=True) as rec:
+            streamed = sum(len(c) for c in rec.iter_events(chunk_events=700))
+        if streamed != len(got):
+            raise AssertionError(f"salvage: iter_events gave {streamed} events, events() {len(got)}")
         if outcome != "read" and len(got) and len(got) <= len(reference):
             outcome += "+salvaged"
     except evtk.FormatError:
