@@ -214,11 +214,13 @@ def _parse_size(text):
 @click.option("--linearize/--counts", default=True, show_default=True,
               help="Linearise counts to light, or keep net counts (ON - OFF).")
 @click.option("--crop", type=click.Choice(["valid", "full"]), default="valid", show_default=True)
+@click.option("--png", "png_path", type=click.Path(dir_okay=False),
+              help="Also draw a contact sheet: captured beside ideal and binary.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
 def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, binarize_method, linearize, crop,
-                    as_json):
+                    png_path, as_json):
     """Turn a recording into the convolution responses the device computed."""
-    from .reconstruct import reconstruct, save_reconstruction
+    from .reconstruct import contact_sheet, reconstruct, save_reconstruction
 
     if window_spec.startswith("period:"):
         try:
@@ -244,6 +246,8 @@ def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, bi
             finish()
         sensor = rec.sensor_size
     save_reconstruction(output, result, sensor, {"source": str(recording)})
+    if png_path:
+        contact_sheet(png_path, result)
     summary = dict(result.summary, output=str(output), events_in_recording=n_events,
                    events_dropped=n_events - result.summary["events_used"])
     if as_json:

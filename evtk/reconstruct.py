@@ -46,6 +46,7 @@ __all__ = [
     "Reconstruction",
     "response_error",
     "save_reconstruction",
+    "contact_sheet",
 ]
 
 _RISING = (TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE, TriggerKind.EXTERNAL_GENERATOR_RISING_EDGE)
@@ -664,3 +665,41 @@ def save_reconstruction(path, result: Reconstruction, sensor_size, metadata=None
                 w.write_array(f"reconstruction/{name}", a)
     else:
         raise EvtkError(f"cannot tell the output format from {ext!r}: use .npz, .h5 or .hdf5")
+
+
+def contact_sheet(path, result: Reconstruction, max_rows=8):
+    """PNG of captured responses beside the ideal ones (when known) and the binary result.
+
+    One row per response (at most ``max_rows``); columns: captured (on the
+    response's cell grid), ideal, binarised. Written atomically.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io._atomic import AtomicFile
+
+    n = min(len(result.cells), int(max_rows))
+    if n == 0:
+        raise EvtkError("no responses to draw")
+    cols = [("captured", result.cells)]
+    if result.ideal is not None:
+        cols.append(("ideal", result.ideal))
+    cols.append(("binary", result.binary))
+    fig, axes = plt.subplots(n, len(cols), figsize=(2.2 * len(cols), 2.2 * n), squeeze=False)
+    for r in range(n):
+        for c, (title, arr) in enumerate(cols):
+            ax = axes[r][c]
+            ax.imshow(arr[r], cmap="gray", interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(title)
+        if result.pairs is not None:
+            k, f, rep = result.pairs[r]
+            axes[r][0].set_ylabel(f"K{k} F{f} #{rep}")
+    fig.tight_layout()
+    with AtomicFile(path) as out:
+        fig.savefig(out.file, format="png", dpi=80)
+    plt.close(fig)

@@ -338,12 +338,16 @@ def test_cli_reconstruct_outputs(tmp_path):
         lib = reconstruct(rec, size=(8, 8), binarize_method="mean")
     for out in ("r.npz", "r.h5"):
         res = CliRunner().invoke(main, ["reconstruct", str(src), "-o", str(tmp_path / out), "--size", "8x8",
-                                        "--binarize", "mean", "--json"])
+                                        "--binarize", "mean", "--json", "--png", str(tmp_path / "sheet.png")])
         assert res.exit_code == 0, res.output
         summary = json.loads(res.output)
         assert summary["responses"] == 2 and summary["size"] == [8, 8]
         assert summary["events_used"] + summary["events_dropped"] == summary["events_in_recording"]
         assert summary["error"]["correlation"] == pytest.approx(lib.summary["error"]["correlation"])
+    from skimage import io as skio
+
+    sheet = skio.imread(tmp_path / "sheet.png")
+    assert sheet.ndim == 3 and sheet.shape[0] > 100 and sheet.shape[1] > 3 * 100  # 2 rows x 3 columns of panels
     z = np.load(tmp_path / "r.npz")
     np.testing.assert_array_equal(z["binary"], lib.binary)
     np.testing.assert_allclose(z["responses"], lib.responses)
