@@ -47,6 +47,8 @@ __all__ = [
     "response_error",
     "save_reconstruction",
     "contact_sheet",
+    "count_curve",
+    "linearize_by_model",
 ]
 
 _RISING = (TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE, TriggerKind.EXTERNAL_GENERATOR_RISING_EDGE)
@@ -535,8 +537,23 @@ def response_error(got, ideal):
     return {"correlation": corr, "nrmse": nrmse}
 
 
+def _footprint_matrix(bench, origin, p0, p1, n_cells, step):
+    """M[c, i]: what a unit response at full-response cell i puts into cell c after sampling (one axis).
+
+    The optics' footprint (pixel width, source extent, diffuser blur) followed
+    by :func:`to_response_grid`'s area overlap; valid for matched scaling.
+    """
+    from .optics import _axis_weights, shadow_magnification
+
+    psf_cells = bench.psf_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
+    w = _axis_weights(np.arange(p0, p1), n_cells, 1, bench, origin, psf_cells)[0]  # (pixels, cells)
+    t = _overlap_matrix(n_cells, origin + 0.5 - 0.5 * step - p0, step, p1 - p0)  # (cells, pixels)
+    return t @ w
+
+
 def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="sign",
-                linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None):
+                linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None,
+                deblur=False):
     """The whole pipeline on an open recording: windows, counts, linearisation, passes, grid, binarisation.
 
     Parameters
@@ -558,6 +575,16 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
     region : (x0, x1, y0, y1), optional
         Sensor pixels to use; default the simulation's response region, else
         the whole sensor.
+    deblur : bool
+        With a simulation record and matched scaling, undo the known footprint
+        blur (extended sources, pixel area, diffuser) by solving the linear
+        sampling model on the full response. It restores the scale but
+        amplifies count quantisation and threshold mismatch (up to 4x at the
+        finest detail), so it is off by default.
+
+    With a simulation record, linearisation inverts the recording's own pixel
+    model (:func:`count_curve`); otherwise (or with ``theta`` given) it uses
+    ``exp(n * theta) - 1``.
     """
     from .optics import Bench
     from .simulate import METADATA_KEY, Schedule
@@ -584,8 +611,13 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         theta_off = float(sim["sensor"]["theta_off"]) if sim else 0.2
     else:
         theta_on = theta_off = float(theta)
-    values = linearize(counts.on, counts.off, theta_on, theta_off) if linear else \
-        (counts.on.astype(np.float64) - counts.off)
+    if not linear:
+        values = counts.on.astype(np.float64) - counts.off
+    elif sim is not None and theta is None:  # invert the recording's own pixel model
+        values = linearize_by_model(counts.on.astype(np.int64) - counts.off,
+                                    count_curve(sim, skip_us, length_us))
+    else:
+        values = linearize(counts.on, counts.off, theta_on, theta_off)
 
     pairs = ideal = None
     schedule = None
@@ -601,6 +633,11 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         step = bench.kernel_step_cells / bench.pixel_cells
         cells = to_response_grid(values, region, sim["response_origin_px"], step, (fh + kh - 1, fw + kw - 1))
         combined, pairs = combine_passes(cells, schedule)
+        deblurred = deblur and abs(bench.kernel_step_cells - 1.0) < 1e-9
+        if deblurred:  # undo the footprint blur of sources, pixels and diffuser
+            my = _footprint_matrix(bench, sim["response_origin_px"][1], region[2], region[3], fh + kh - 1, step)
+            mx = _footprint_matrix(bench, sim["response_origin_px"][0], region[0], region[1], fw + kw - 1, step)
+            combined = np.linalg.solve(my, np.linalg.solve(mx, combined.transpose(0, 2, 1)).transpose(0, 2, 1))
         from .optics import ideal_response
 
         ideal = np.stack([ideal_response(kernels[k], features[f], bench) for k, f, _ in pairs])
@@ -626,6 +663,8 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         "binarize": str(binarize_method),
         "skip_us": int(skip_us),
         "length_us": None if length_us is None else int(length_us),
+        "deblurred": bool(sim is not None and deblur and len(win) == len(sim["schedule"]["capture"])
+                          and abs(Bench.from_dict(sim["bench"]).kernel_step_cells - 1.0) < 1e-9),
     }
     if ideal is not None:
         summary["error"] = response_error(cells, ideal)
@@ -703,3 +742,58 @@ def contact_sheet(path, result: Reconstruction, max_rows=8):
     with AtomicFile(path) as out:
         fig.savefig(out.file, format="png", dpi=80)
     plt.close(fig)
+
+
+def count_curve(sim_record, skip_us=0, length_us=None, points=4000):
+    """ON counts a noise-free pixel with nominal thresholds gives, against its log-light step.
+
+    Runs the simulation's own pixel model (``sim_record``: a recording's
+    ``simulation`` metadata) for a dark-to-pattern step of ``u`` (natural
+    log of light over the dark level) from 0 to the brightest possible
+    pattern, counting in the same window as the reconstruction. Returns
+    ``(u, counts)``, counts non-decreasing in ``u``.
+    """
+    from .sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
+
+    sm = SensorModel.from_dict({**sim_record["sensor"], "shot_noise": False, "theta_mismatch": 0.0})
+    blank = float(sim_record["blank_rate_e_per_s"])
+    gain = float(sim_record["gain_e_per_s_per_unit"])
+    kernels = np.asarray(sim_record["kernels"])
+    nk = kernels.shape[1] * kernels.shape[2]
+    u_max = max(np.log((gain * (nk + 1.0) + blank) / blank), 1e-6)
+    u = np.linspace(0.0, u_max, int(points))
+    rates = np.stack([np.full(u.size, blank), blank * np.exp(u), np.full(u.size, blank)])
+    w, z = float(sim_record["window_us"]), float(sim_record["settle_us"])
+    a = z + float(skip_us)
+    b = z + w if length_us is None else min(z + w, a + float(length_us))
+    bounds = sorted({0.0, z, a, b, z + w, 2 * z + w})
+    starts, ends = np.array(bounds[:-1]), np.array(bounds[1:])
+    level_of = lambda t0: 1 if z <= t0 < z + w else (0 if t0 < z else 2)  # noqa: E731
+    which = np.array([level_of(t0) for t0 in starts])
+    lvl = np.log(rates[which])
+    slot = np.where((starts >= a) & (ends <= b), 0, -1)
+    st = PixelState(lvl[0], 0.0, np.full(u.size, sm.theta_on), np.full(u.size, sm.theta_off),
+                    np.random.default_rng(0))
+    _, _, _, on, off = simulate_pixels(st, lvl, time_constant_us(np.exp(lvl), sm), log_noise_std(np.exp(lvl), sm),
+                                       starts, ends, sm, 0, emit=False, count_slot=slot, n_slots=1)
+    return u, np.maximum.accumulate(on[0] - off[0])
+
+
+def linearize_by_model(net_counts, curve):
+    """Log-light step behind each net count, by inverting :func:`count_curve`; returns ``exp(u) - 1``.
+
+    A count ``n`` stands for the middle of the steps that give ``n``; 0 stays
+    0 (no light cannot be told from light below one threshold), and counts
+    beyond the curve take its end.
+    """
+    u, n_of_u = curve
+    n = np.asarray(net_counts)
+    top = int(n_of_u[-1])
+    levels = np.arange(top + 2)
+    first = np.searchsorted(n_of_u, levels, side="left")  # first grid index reaching each count
+    lo = u[np.minimum(first[:-1], u.size - 1)]
+    hi = np.where(first[1:] < u.size, u[np.minimum(first[1:], u.size - 1)], u[-1])
+    mid = 0.5 * (lo + hi)
+    mid[0] = 0.0
+    est = mid[np.clip(n, 0, top).astype(np.int64)]
+    return np.expm1(est)
