@@ -87,11 +87,6 @@ class _Layout:
     def read(self, i0, i1):  # pragma: no cover - overridden
         raise NotImplementedError
 
-    def read_into(self, i0, i1, out, o):
-        """Decode events i0..i1 into the output columns ``out`` at offset ``o``."""
-        for dst, src in zip(out, self.read(i0, i1)):
-            dst[o : o + (i1 - i0)] = src
-
     def triggers(self) -> Triggers:
         return Triggers()
 
@@ -181,12 +176,6 @@ class _EvtkLayout(_Layout):
     def read(self, i0, i1):
         return self.t[i0:i1], self.x[i0:i1], self.y[i0:i1], self.p[i0:i1]
 
-    def read_into(self, i0, i1, out, o):
-        # straight into the caller's arrays: no temporaries, no second copy
-        for ds, dst in zip((self.t, self.x, self.y, self.p), out):
-            if i1 > i0:
-                ds.read_direct(dst, np.s_[i0:i1], np.s_[o : o + (i1 - i0)])
-
     def read_t(self, i0, i1):
         return self.t[i0:i1].astype(np.int64, copy=False)
 
@@ -224,13 +213,6 @@ class _DsecLayout(_Layout):
 
     def read(self, i0, i1):
         return self.read_t(i0, i1), self.x[i0:i1], self.y[i0:i1], self.p[i0:i1]
-
-    def read_into(self, i0, i1, out, o):
-        if i1 <= i0:
-            return
-        for ds, dst in zip((self.t, self.x, self.y, self.p), out):
-            ds.read_direct(dst, np.s_[i0:i1], np.s_[o : o + (i1 - i0)])
-        out[0][o : o + (i1 - i0)] += self.offset
 
     def read_t(self, i0, i1):
         return self.t[i0:i1].astype(np.int64) + self.offset
@@ -388,11 +370,6 @@ def _guard_gen(method):
     return wrapper
 
 
-class _Unreadable(Exception):
-    def __init__(self, i0, i1, exc):
-        self.i0, self.i1, self.exc = i0, i1, exc
-
-
 class Hdf5Recording(BaseRecording):
     """An HDF5 event recording (evtk, DSEC, Prophesee or event_utils layout).
 
@@ -541,12 +518,6 @@ class Hdf5Recording(BaseRecording):
         if self.damage is None:
             self.damage = Damage(None, msg)
 
-    def _read_into(self, i0, i1, out, o):
-        try:
-            self._layout.read_into(i0, i1, out, o)
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise _Unreadable(i0, i1, exc) from None
-
     def _load(self, i0, i1, t_before) -> Events:
         """Events i0..i1, validated; one read per column in the common case."""
         try:
@@ -568,23 +539,30 @@ class Hdf5Recording(BaseRecording):
     def _salvage_block(self, a, b, out, o, t_before) -> int:
         """A block whose read failed: the longest readable prefix (found by bisection, as
         any read touching a damaged chunk fails), then validated; returns how many events
-        are intact. The same prefix is found whatever block sizes the caller reads in."""
+        are intact. The same prefix is found whatever block sizes the caller reads in.
+        Reads go through the same path as a normal read (the columns' own dtypes)."""
         lo, hi = 0, b - a
-        reason = None
+        reason = "unreadable"
+        best = None
         while hi - lo > 1:
             mid = (lo + hi) // 2
             try:
-                self._read_into(a, a + mid, out, o)
-                lo = mid
-            except _Unreadable as err:
+                cols = self._layout.read(a, a + mid)
+                lo, best = mid, cols
+            except (OSError, ValueError, KeyError, TypeError) as exc:
                 hi = mid
-                reason = err.exc
-        # the last successful read was [a, a + lo): it is what ``out`` holds
-        if reason is None:  # a one-event block: its read failed before we were called
-            reason = "unreadable"
+                reason = exc
         if self.damage is None:
             self.damage = Damage(None, f"events from index {a + lo} cannot be read ({reason})")
-        ev = Events._trusted(*(col[o : o + lo] for col in out), self.sensor_size)
+        if best is None:
+            return 0
+        try:
+            ev = Events(*best, self.sensor_size)
+        except EvtkError as exc:
+            self.damage = Damage(None, f"events from index {a} hold invalid values ({exc})")
+            return 0
+        for col, src in zip(out, (ev.t, ev.x, ev.y, ev.p)):
+            col[o : o + lo] = src
         return self._check(ev, a, t_before)
 
     def _span(self, t_start_us, t_end_us):
