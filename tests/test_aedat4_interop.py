@@ -158,6 +158,8 @@ def test_iter_events_chunks_are_bounded_and_complete(tmp_path):
         chunks = list(rec.iter_events(chunk_events=3000))
         assert all(len(c) <= 3000 for c in chunks) and all(len(c) == 3000 for c in chunks[:-1])
         assert evtk.Events.concatenate(chunks) == ev
+        small = list(rec.iter_events(chunk_events=100))  # packets (777) split across chunks
+        assert all(len(c) == 100 for c in small) and evtk.Events.concatenate(small) == ev
         window = list(rec.iter_events(chunk_events=1000, t_start_us=250_000, t_end_us=260_000))
         assert evtk.Events.concatenate(window, sensor_size=(320, 240)) == ev.between(250_000, 260_000)
         with pytest.raises(evtk.EvtkError):

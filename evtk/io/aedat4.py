@@ -478,14 +478,24 @@ class Recording(BaseRecording):
         Returns ``(events, complete)``; with salvage, ``events`` is the intact
         prefix and ``complete`` False when damage stopped the decoding.
         """
-        width, height = s.sensor_size
-        starts = np.zeros(len(rows) + 1, np.int64)
-        np.cumsum(counts, out=starts[1:])
-        total = int(starts[-1])
+        total = int(np.sum(counts))
         t = np.empty(total, np.int64)
         x = np.empty(total, np.uint16)
         y = np.empty(total, np.uint16)
         p = np.empty(total, np.uint8)
+        end, complete = self._decode_into(s, rows, counts, (t, x, y, p), 0)
+        return Events._trusted(t[:end], x[:end], y[:end], p[:end], s.sensor_size), complete
+
+    def _decode_into(self, s, rows, counts, out, offset):
+        """Decode the packets ``rows`` into the columns ``out`` from ``offset``, on both cores.
+
+        Returns ``(events written, complete)``.
+        """
+        width, height = s.sensor_size
+        t, x, y, p = out
+        starts = np.full(len(rows) + 1, offset, np.int64)
+        np.cumsum(counts, out=starts[1:])
+        starts[1:] += offset
         ident = _IDENT["EVTS"]
 
         def work(k0, k1):
@@ -512,9 +522,7 @@ class Recording(BaseRecording):
             return k1
 
         stopped = _run_split(work, len(rows), counts)
-        end = int(starts[stopped])
-        ev = Events._trusted(t[:end], x[:end], y[:end], p[:end], s.sensor_size)
-        return ev, stopped == len(rows)
+        return int(starts[stopped]) - offset, stopped == len(rows)
 
     def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None, stream=None) -> Iterator[Events]:
         """Yield the events in order, at most ``chunk_events`` at a time.
@@ -528,9 +536,84 @@ class Recording(BaseRecording):
         s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
         if s is None:
             raise FormatError(self.path, None, f"no event stream; the streams are {[(s.name, s.type) for s in self._streams.values()]}")
+        counts = self._index.count[rows]
+        if len(rows) and np.all(counts >= 0):
+            stopped_at = yield from self._chunks_from_table(s, rows, counts, chunk_events, t_start_us, t_end_us)
+            if stopped_at is None:
+                return
+            rows = rows[stopped_at:]
+        yield from self._chunks_from_packets(s, rows, chunk_events, t_start_us, t_end_us)
+
+    def _chunks_from_table(self, s, rows, counts, chunk_events, t_start_us, t_end_us):
+        """Chunks of exactly ``chunk_events`` (the last one shorter), packets decoded on both cores
+        straight into each chunk's arrays. Returns None when done, or the row to go on from packet
+        by packet when the data table's counts prove wrong."""
+        bounded = t_start_us is not None or t_end_us is not None
+        cum = np.zeros(len(rows) + 1, np.int64)
+        np.cumsum(counts, out=cum[1:])
+        buf = None
+        fill = 0
+
+        def chunk(n):
+            ev = Events._trusted(buf[0][:n], buf[1][:n], buf[2][:n], buf[3][:n], s.sensor_size)
+            return ev.between(t_start_us, t_end_us) if bounded else ev
+
+        def new_buffer():
+            return (np.empty(chunk_events, np.int64), np.empty(chunk_events, np.uint16),
+                    np.empty(chunk_events, np.uint16), np.empty(chunk_events, np.uint8))
+
+        k = 0
+        while k < len(rows):
+            if buf is None:
+                buf, fill = new_buffer(), 0
+            # the packets that fit whole in what is left of the chunk
+            j = int(np.searchsorted(cum, cum[k] + (chunk_events - fill), side="right")) - 1
+            try:
+                if j > k:
+                    n, complete = self._decode_into(s, rows[k:j], counts[k:j], buf, fill)
+                    fill += n
+                    k = j
+                else:  # one packet larger than the room left: decode it alone and split it
+                    ev1, complete = self._decode_rows(s, rows[k:k + 1], counts[k:k + 1])
+                    pos = 0
+                    while pos < len(ev1):
+                        if buf is None:
+                            buf, fill = new_buffer(), 0
+                        take = min(chunk_events - fill, len(ev1) - pos)
+                        for dst, src in zip(buf, (ev1.t, ev1.x, ev1.y, ev1.p)):
+                            dst[fill:fill + take] = src[pos:pos + take]
+                        fill += take
+                        pos += take
+                        if fill == chunk_events:
+                            ev = chunk(fill)
+                            if len(ev):
+                                yield ev
+                            buf = None
+                    k += 1
+            except _CountMismatch:  # the table lied: hand over what is complete, go on packet by packet
+                self.warnings.append("the data table's element counts are wrong; counted from the packets instead")
+                if buf is not None and fill:
+                    ev = chunk(fill)
+                    if len(ev):
+                        yield ev
+                return k
+            if not complete:
+                break
+            if buf is not None and fill == chunk_events:
+                ev = chunk(fill)
+                if len(ev):
+                    yield ev
+                buf = None
+        if buf is not None and fill:
+            ev = chunk(fill)
+            if len(ev):
+                yield ev
+        return None
+
+    def _chunks_from_packets(self, s, rows, chunk_events, t_start_us, t_end_us):
         pending: list[Events] = []
         held = 0
-        for ev in self._event_blocks(s, rows, chunk_events):
+        for ev in self._event_packets(s, rows):
             if t_start_us is not None or t_end_us is not None:
                 ev = ev.between(t_start_us, t_end_us)
             if not len(ev):
@@ -545,29 +628,6 @@ class Recording(BaseRecording):
                 held = len(rest)
         if held:
             yield Events.concatenate(pending)
-
-    def _event_blocks(self, s, rows, chunk_events):
-        """Events of ``rows`` in order: blocks of about ``chunk_events`` decoded on both cores
-        when the data table gives element counts, else packet by packet."""
-        counts = self._index.count[rows]
-        k = 0
-        if len(rows) and np.all(counts >= 0):
-            cum = np.cumsum(counts)
-            while k < len(rows):
-                base = cum[k - 1] if k else 0
-                j = min(len(rows), int(np.searchsorted(cum, base + chunk_events, side="left")) + 1)
-                try:
-                    ev, complete = self._decode_rows(s, rows[k:j], counts[k:j])
-                except _CountMismatch:  # the table lied: go on packet by packet from here
-                    self.warnings.append("the data table's element counts are wrong; counted from the packets instead")
-                    break
-                yield ev
-                if not complete:
-                    return
-                k = j
-            else:
-                return
-        yield from self._event_packets(s, rows[k:])
 
     def _event_packets(self, s, rows):
         width, height = s.sensor_size
