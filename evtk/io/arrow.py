@@ -53,7 +53,11 @@ def _first_fatal_row_group(pf, t_col):
     if not hasattr(os, "fork") or n == 0:
         return None
     r, w = os.pipe()
-    pid = os.fork()
+    import warnings
+
+    with warnings.catch_warnings():  # Python 3.12+ warns about fork with threads; the child only reads
+        warnings.simplefilter("ignore", DeprecationWarning)
+        pid = os.fork()
     if pid == 0:  # child: touch everything the reader touches, then leave without cleanup
         code = 0
         try:
