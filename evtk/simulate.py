@@ -13,9 +13,15 @@ Two ways to run:
 * :meth:`Simulation.iter_events` / :meth:`Simulation.write`: the event
   stream of the whole sensor, in time order, streamed capture batch by
   capture batch (memory bounded by a batch).
-* :meth:`Simulation.responses`: the fast path. Only pixels that see the
-  pattern are simulated, with the same pixel model, and only the per-window
-  event counts are kept, never the events.
+* :meth:`Simulation.responses`: the fast path, per-window event counts
+  without events. Each pixel's counts are drawn from a table of the same
+  pixel model's counts over light and threshold (:meth:`Simulation.count_table`,
+  built once per bench, sensor and timing); ``method="exact"`` runs the
+  model over the pixels that see the pattern instead, history included.
+
+Outside the pattern's reach the screen is uniform; those pixels are
+simulated without shot noise (only if the glow could make them fire) and
+their noise is background activity at the sensor's rate.
 
 Everything needed to reproduce or reconstruct a run (bench, sensor, patterns,
 schedule, seed) is in :meth:`Simulation.metadata`, stored with the recording;
