@@ -56,6 +56,8 @@ __all__ = [
     "shadow_magnification",
     "screen_response",
     "ideal_response",
+    "glow_response",
+    "brightest_response",
     "response_region",
     "response_origin_px",
     "response_to_sensor_grid",
@@ -604,9 +606,8 @@ def screen_response(kernel, features, bench: Bench, region=None, *, leak=True):
     lk = bench.leak if leak else 0.0
     k_eff = k + lk * (1.0 - k)  # off kernel mirrors in the lit footprint leak
     out = np.zeros((y1 - y0, x1 - x0))
-    if leak:
-        # the whole feature DMD passes lk where off: uniform glow lk * sum(K') everywhere ...
-        out += lk * k_eff.sum() + bench.stray_light
+    if leak:  # the whole feature DMD glows where it is off ...
+        out += glow_response(k, bench)
     # ... and the pattern adds (1 - lk) where its elements are on
     rx0, rx1, ry0, ry1 = response_region(bench, k.shape, f.shape)
     ax0, ax1, ay0, ay1 = max(x0, rx0), min(x1, rx1), max(y0, ry0), min(y1, ry1)
@@ -624,6 +625,24 @@ def screen_response(kernel, features, bench: Bench, region=None, *, leak=True):
                 patch += k_eff[r, c] * (a @ wx[c].T)
     out[ay0 - y0:ay1 - y0, ax0 - x0:ax1 - x0] += (1.0 - lk) * patch
     return out
+
+
+def glow_response(kernel, bench: Bench) -> float:
+    """Light every pixel gets whatever the features show: off feature mirrors leak.
+
+    ``leak * sum(K')`` with ``K' = K + leak * (1 - K)`` (off kernel mirrors
+    leak too), plus stray light, in the units of :func:`screen_response`.
+    With both DMDs dark (``kernel`` all zero) it is the blank level.
+    """
+    k = np.asarray(kernel, dtype=np.float64)
+    lk = bench.leak
+    return float(lk * (k + lk * (1.0 - k)).sum() + bench.stray_light)
+
+
+def brightest_response(kernel_shape, bench: Bench) -> float:
+    """The most light a pixel can get: every kernel element through open features, plus stray light."""
+    kh, kw = kernel_shape
+    return float(kh * kw + bench.stray_light)
 
 
 def ideal_response(kernel, features, bench: Bench | None = None):

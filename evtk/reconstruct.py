@@ -621,9 +621,10 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
 
     pairs = ideal = None
     schedule = None
+    deblurred = False
     if sim is not None and len(win) == len(sim["schedule"]["capture"]):
         schedule = Schedule.from_dict(sim["schedule"])
-        bench = Bench.from_dict({**sim["bench"], "origin_px": sim["bench"].get("origin_px")})
+        bench = Bench.from_dict(sim["bench"])
         kernels = np.asarray(sim["kernels"])
         features = np.asarray(sim["features"])
         kh, kw = kernels.shape[1:]
@@ -663,8 +664,7 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         "binarize": str(binarize_method),
         "skip_us": int(skip_us),
         "length_us": None if length_us is None else int(length_us),
-        "deblurred": bool(sim is not None and deblur and len(win) == len(sim["schedule"]["capture"])
-                          and abs(Bench.from_dict(sim["bench"]).kernel_step_cells - 1.0) < 1e-9),
+        "deblurred": bool(deblurred),
     }
     if ideal is not None:
         summary["error"] = response_error(cells, ideal)
@@ -756,11 +756,14 @@ def count_curve(sim_record, skip_us=0, length_us=None, points=4000):
     from .sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
 
     sm = SensorModel.from_dict({**sim_record["sensor"], "shot_noise": False, "theta_mismatch": 0.0})
+    from .optics import Bench, brightest_response
+
     blank = float(sim_record["blank_rate_e_per_s"])
     gain = float(sim_record["gain_e_per_s_per_unit"])
-    kernels = np.asarray(sim_record["kernels"])
-    nk = kernels.shape[1] * kernels.shape[2]
-    u_max = max(np.log((gain * (nk + 1.0) + blank) / blank), 1e-6)
+    bench = Bench.from_dict(sim_record["bench"])
+    dark = sm.dark_current_e_per_s
+    bright = gain * brightest_response(np.asarray(sim_record["kernels"]).shape[1:], bench) + dark
+    u_max = max(np.log(bright / blank), 1e-6) * 1.01
     u = np.linspace(0.0, u_max, int(points))
     rates = np.stack([np.full(u.size, blank), blank * np.exp(u), np.full(u.size, blank)])
     w, z = float(sim_record["window_us"]), float(sim_record["settle_us"])

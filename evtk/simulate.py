@@ -39,7 +39,8 @@ import numpy as np
 from ._version import __version__
 from .errors import EvtkError
 from .events import Events, TriggerKind, Triggers
-from .optics import Bench, ideal_response, response_origin_px, response_region, screen_response
+from .optics import (Bench, brightest_response, glow_response, ideal_response, response_origin_px,
+                     response_region, screen_response)
 from .sensor import PixelState, SensorModel, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
 
 __all__ = [
@@ -203,11 +204,9 @@ class Simulation:
         self.seed = _int_param("seed", seed, 0)
         self.noise_seed = self.seed if noise_seed is None else _int_param("noise_seed", noise_seed, 0)
         self.start_us = _int_param("start_us", start_us, np.iinfo(np.int64).min // 2)
-        self.settle_us = self.recommended_settle_us() if settle_us is None else _int_param("settle_us", settle_us, 1)
-
-        # photoelectron rates per response unit and in the dark
         kshape = self.kernels.shape[1:]
-        self.gain_e_per_s = self.bench.electrons_per_s_per_unit(kshape)
+        self.gain_e_per_s = self.bench.electrons_per_s_per_unit(kshape)  # photoelectrons/s per response unit
+        self.settle_us = self.recommended_settle_us() if settle_us is None else _int_param("settle_us", settle_us, 1)
         self.region = response_region(self.bench, kshape, self.features.shape[1:])
         self._passes = {}
         self._rate_cache = {}  # region -> {(kernel, features, signs): photoelectron rates}
@@ -254,9 +253,7 @@ class Simulation:
     @property
     def blank_rate_e_per_s(self) -> float:
         """Photoelectron rate of every pixel while both DMDs are dark."""
-        b = self.bench
-        nk = self.kernels.shape[1] * self.kernels.shape[2]
-        return self._rate(b.leak * b.leak * nk + b.stray_light) if b.power_mw > 0 else self.sensor.dark_current_e_per_s
+        return self._rate(glow_response(np.zeros(self.kernels.shape[1:]), self.bench))
 
     def recommended_settle_us(self) -> int:
         """Darkness after a pattern for a pixel to fall back close to the dark level.
@@ -267,11 +264,8 @@ class Simulation:
         time constant; at least the eq. 7 window.
         """
         b = self.bench
-        nk = self.kernels.shape[1] * self.kernels.shape[2]
-        gain = b.electrons_per_s_per_unit(self.kernels.shape[1:])
-        dark = self.sensor.dark_current_e_per_s
-        blank = gain * (b.leak * b.leak * nk + b.stray_light) + dark
-        bright = gain * (nk + b.stray_light) + dark
+        blank = self.blank_rate_e_per_s
+        bright = self._rate(brightest_response(self.kernels.shape[1:], b))
         tau_us = float(time_constant_us(blank, self.sensor))
         theta = min(self.sensor.theta_on, self.sensor.theta_off)
         span = math.log(bright / blank)
@@ -363,9 +357,7 @@ class Simulation:
         return np.log(rates), time_constant_us(rates, self.sensor), log_noise_std(rates, self.sensor)
 
     def _glow_rate(self, c):
-        b = self.bench
-        k, _ = self._pass_patterns(c)
-        return self._rate(b.leak * (k + b.leak * (1 - k)).sum() + b.stray_light)
+        return self._rate(glow_response(self._pass_patterns(c)[0], self.bench))
 
     def _region_pixels(self, region):
         x0, x1, y0, y1 = region
@@ -573,10 +565,8 @@ class Simulation:
         if key in _TABLES:
             return _TABLES[key]
         sm = self.sensor
-        b = self.bench
-        nk = self.kernels.shape[1] * self.kernels.shape[2]
         blank = self.blank_rate_e_per_s
-        u_max = max(math.log(self._rate(nk * (1 + b.leak) + b.stray_light) / blank), 1e-6) * 1.01
+        u_max = max(math.log(self._rate(brightest_response(self.kernels.shape[1:], self.bench)) / blank), 1e-6) * 1.01
         spread = 4.0 * sm.theta_mismatch
         th = np.linspace(max(sm.theta_on - spread, 0.01 * sm.theta_on), sm.theta_on + spread,
                          self.TABLE_THRESHOLD_POINTS) if spread > 0 else np.array([sm.theta_on])

@@ -172,6 +172,10 @@ def test_leak_and_stray_light():
     lit = screen_response(np.ones((3, 3), int), np.ones((16, 16), int), b)
     assert lit.max() == pytest.approx(9.0 * (1 - 0.01) + 0.01 * 9 + 0.01, rel=1e-9)
     assert lit.min() == pytest.approx(0.01 * 9 + 0.01)
+    from evtk.optics import brightest_response, glow_response
+
+    assert lit.max() == pytest.approx(brightest_response((3, 3), b), rel=1e-12)
+    assert glow_response(np.zeros((3, 3)), b) == pytest.approx(dark.max(), rel=1e-12)
 
 
 def test_patterns_must_be_binary_and_fit():

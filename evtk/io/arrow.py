@@ -358,7 +358,6 @@ class ParquetRecording(BaseRecording):
 
     @property
     def streams(self):
-        md = self._pf.metadata
         known = [(lo, hi) for _, lo, hi in self._groups if lo is not None]
         first = min(lo for lo, _ in known) if known else None
         last = max(hi for _, hi in known) if known else None
