@@ -27,7 +27,6 @@ import json
 import os
 import resource
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -35,6 +34,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_aedat4 import make_events  # noqa: E402
+from harness import ChildFailed, child_runs  # noqa: E402
 
 W, H = 320, 240
 
@@ -134,13 +134,10 @@ def child(tool, n_events, n_windows):
 
 
 def run(tool, n_events, n_windows, repeats):
-    out = []
-    for _ in range(repeats):
-        res = subprocess.run([sys.executable, __file__, "--child", tool, "--events", str(n_events),
-                              "--windows", str(n_windows)], capture_output=True, text=True)
-        if res.returncode != 0:
-            return {"tool": tool, "error": res.stderr.strip().splitlines()[-1] if res.stderr else "failed"}
-        out.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    try:
+        out = child_runs(__file__, [tool, "--events", n_events, "--windows", n_windows], repeats)
+    except ChildFailed as exc:
+        return {"tool": tool, "error": str(exc)}
     return {"tool": tool, "seconds": statistics.median(r["seconds"] for r in out), "check": out[0]["check"],
             "rss_mb": max(r["rss_mb"] for r in out)}
 

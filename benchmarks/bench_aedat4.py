@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from harness import child_runs
+
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"
 COMPRESSIONS = ("lz4", "zstd", "none")
@@ -129,9 +131,7 @@ def _small_events():
 
 
 def run_child(op, tool, n, compression):
-    cmd = [sys.executable, __file__, "--child", op, tool, str(n), compression]
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return child_runs(__file__, [op, tool, n, compression])[0]
 
 
 def ensure_data(n: int) -> None:

@@ -17,7 +17,6 @@ import json
 import os
 import resource
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -26,6 +25,7 @@ HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"
 sys.path.insert(0, str(HERE))
 from bench_aedat4 import make_events  # noqa: E402
+from harness import child_runs  # noqa: E402
 
 H5_FILTERS = ("lz4", "zstd", "gzip", "none")
 WINDOW_US = 10_000
@@ -96,11 +96,7 @@ def child(op, tool, kind, n, comp):
 
 
 def run(op, tool, kind, n, comp, repeats):
-    runs = []
-    for _ in range(repeats):
-        out = subprocess.run([sys.executable, __file__, "--child", op, tool, kind, str(n), comp],
-                             check=True, capture_output=True, text=True)
-        runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    runs = child_runs(__file__, [op, tool, kind, n, comp], repeats)
     med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
     return med
 

@@ -17,10 +17,10 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
+
+from harness import child_runs
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"
@@ -80,11 +80,7 @@ def main():
     path, _ = make(n)
     res = {}
     for op in ("read", "reconstruct"):
-        runs = []
-        for _ in range(a.repeats):
-            out = subprocess.run([sys.executable, __file__, "--child", op, "--events", str(n)],
-                                 capture_output=True, text=True, check=True)
-            runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        runs = child_runs(__file__, [op, "--events", n], a.repeats)
         res[op] = (statistics.median(r["seconds"] for r in runs), runs[0]["n"])
     import evtk
 

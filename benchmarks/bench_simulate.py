@@ -27,10 +27,10 @@ import json
 import os
 import resource
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
+
+from harness import child_runs
 
 
 def _sim(captures, noise):
@@ -75,27 +75,14 @@ def child(op, captures, noise):
 
 
 def run(op, captures, noise, repeats):
-    out = []
-    cmd = [sys.executable, __file__, "--child", op, "--captures", str(captures)]
-    if not noise:
-        cmd.append("--no-noise")
-    pin = ["taskset", "-c", "0"] if sys.platform.startswith("linux") and _has("taskset") else []
-    env = {**os.environ, "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
-    for _ in range(repeats):
-        res = subprocess.run(pin + cmd, capture_output=True, text=True, check=True, env=env)
-        out.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    args = [op, "--captures", captures] + ([] if noise else ["--no-noise"])
+    out = child_runs(__file__, args, repeats, pin_cpu=True, single_thread=True)
     secs = statistics.median(r["seconds"] for r in out)
     r0 = out[0]
     return {"op": op, "noise": noise, "seconds": secs, "events": r0["events"], "captures": r0["captures"],
             "events_per_s": r0["events"] / secs, "captures_per_s": r0["captures"] / secs,
             "rss_mb": max(r["rss_mb"] for r in out), "window_us": r0["window_us"], "settle_us": r0["settle_us"],
             "e_min_us": r0["e_min_us"]}
-
-
-def _has(prog):
-    from shutil import which
-
-    return which(prog) is not None
 
 
 def main():

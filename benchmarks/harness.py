@@ -1,0 +1,35 @@
+"""What every benchmark script shares: its measurements run in fresh child processes."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+
+class ChildFailed(RuntimeError):
+    """A measurement process exited with an error; the message is its last stderr line."""
+
+
+def child_runs(script, args, repeats=1, pin_cpu=False, single_thread=False) -> list[dict]:
+    """Run ``python script --child ARGS`` ``repeats`` times; the JSON object each prints last.
+
+    ``pin_cpu`` pins the child to CPU 0 (Linux, with taskset);
+    ``single_thread`` also caps numba's and OpenMP's threads at one.
+    """
+    cmd = [sys.executable, str(script), "--child", *[str(a) for a in args]]
+    if pin_cpu and sys.platform.startswith("linux") and shutil.which("taskset"):
+        cmd = ["taskset", "-c", "0", *cmd]
+    env = dict(os.environ)
+    if single_thread:
+        env.update(NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    out = []
+    for _ in range(int(repeats)):
+        res = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        if res.returncode != 0:
+            lines = res.stderr.strip().splitlines()
+            raise ChildFailed(lines[-1] if lines else f"exit status {res.returncode}")
+        out.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    return out
