@@ -134,6 +134,8 @@ def _default_features(side=16):
                    "binarised picture bundled with scikit-image.")
 @click.option("--signed", is_flag=True, help="Read 0 as -1 in kernels and features (four passes per pair).")
 @click.option("--repeat", type=click.IntRange(min=1), default=1, show_default=True, help="Times each pair is shown.")
+@click.option("--flat-field", type=click.IntRange(min=0), default=2, show_default=True,
+              help="Flat-field captures (all mirrors on) shown first, for per-pixel threshold calibration.")
 @click.option("--power-mw", type=float, help="Laser power (default: the bench's).")
 @click.option("--window-us", type=click.IntRange(min=1), default=1000, show_default=True,
               help="How long each pattern is shown.")
@@ -146,8 +148,8 @@ def _default_features(side=16):
               help="Recording to write: .aedat4, .h5/.hdf5 or .parquet.")
 @click.option("--save-bench", type=click.Path(dir_okay=False), help="Also write the bench used (.toml or .json).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def simulate(kernel_path, kernel_bits, features_path, signed, repeat, power_mw, window_us, settle_us, bench_path,
-             seed, compression, output, save_bench, as_json):
+def simulate(kernel_path, kernel_bits, features_path, signed, repeat, flat_field, power_mw, window_us, settle_us,
+             bench_path, seed, compression, output, save_bench, as_json):
     """Simulate the device and write the event recording it would produce."""
     from .optics import Bench, load_bench, save_bench as _save_bench
     from .sensor import SensorModel
@@ -167,7 +169,7 @@ def simulate(kernel_path, kernel_bits, features_path, signed, repeat, power_mw, 
         bench = bench.replace(power_mw=power_mw)
     sensor = SensorModel.from_dict(sensor)
     sim = Simulation(kernel, features, bench, sensor, window_us=window_us, settle_us=settle_us, repeat=repeat,
-                     seed=seed)
+                     seed=seed, flat_field=flat_field)
     update, finish = _progress(len(sim.schedule), "simulating")
     try:
         summary = sim.write(output, compression=compression, progress=update)
@@ -214,11 +216,15 @@ def _parse_size(text):
 @click.option("--linearize/--counts", default=True, show_default=True,
               help="Linearise counts to light, or keep net counts (ON - OFF).")
 @click.option("--crop", type=click.Choice(["valid", "full"]), default="valid", show_default=True)
+@click.option("--flat-field/--no-flat-field", default=True, show_default=True,
+              help="Calibrate each pixel's threshold on the recording's flat-field captures, if any.")
+@click.option("--deblur/--no-deblur", default=None,
+              help="Undo the known optical footprint blur (default: when the pixels are calibrated).")
 @click.option("--png", "png_path", type=click.Path(dir_okay=False),
               help="Also draw a contact sheet: captured beside ideal and binary.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
 def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, binarize_method, linearize, crop,
-                    png_path, as_json):
+                    flat_field, deblur, png_path, as_json):
     """Turn a recording into the convolution responses the device computed."""
     from .reconstruct import contact_sheet, reconstruct, save_reconstruction
 
@@ -241,7 +247,8 @@ def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, bi
         update, finish = _progress(n_events, "reconstructing")
         try:
             result = reconstruct(rec, window=window, skip_us=skip_us, length_us=length_us, size=_parse_size(size),
-                                 binarize_method=binarize_method, linear=linearize, crop=crop, progress=update)
+                                 binarize_method=binarize_method, linear=linearize, crop=crop,
+                                 flat_field=flat_field, deblur=deblur, progress=update)
         finally:
             finish()
         sensor = rec.sensor_size
@@ -257,7 +264,9 @@ def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, bi
         line = (f"wrote {summary['responses']} responses of {size} from {summary['windows']} windows "
                 f"({summary['events_used']:,} of {n_events:,} events used) to {output}")
         if err:
-            line += f"\nagainst ground truth: correlation {err['correlation']:.4f}, normalised RMS error {err['nrmse']:.3f}"
+            fmt = lambda v, spec: "n/a" if v is None else format(v, spec)  # noqa: E731
+            line += (f"\nagainst ground truth: correlation {fmt(err['correlation'], '.4f')}, RMS error "
+                     f"{fmt(err['nrmse'], '.1%')} of the ideal's RMS, {fmt(err['nrmse_range'], '.1%')} of its range")
         click.echo(line)
 
 

@@ -12,6 +12,8 @@ The stages, each a function usable alone:
    stamps, streamed chunk by chunk from a recording larger than memory.
 3. :func:`linearize`: counts back to relative intensity through the pixel
    model (a net rise of ``n`` thresholds is a factor ``exp(n * theta)``).
+   A recording's flat-field captures (every mirror on) calibrate each
+   pixel's threshold first (:func:`flat_field_gain`).
 4. :func:`combine_passes`: ``K+F+ - K+F- - K-F+ + K-F-`` per (kernel,
    features, repeat), from whichever passes the schedule holds.
 5. :func:`to_response_grid` (the sensor region onto the response's cells, any
@@ -49,6 +51,7 @@ __all__ = [
     "contact_sheet",
     "count_curve",
     "linearize_by_model",
+    "flat_field_gain",
 ]
 
 _RISING = (TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE, TriggerKind.EXTERNAL_GENERATOR_RISING_EDGE)
@@ -365,7 +368,8 @@ def combine_passes(values, schedule):
     -------
     (combined, pairs)
         ``combined`` has shape (pairs, ...); ``pairs`` is an int array of
-        (kernel_id, features_id, repeat) rows, sorted.
+        (kernel_id, features_id, repeat) rows, sorted. Flat-field captures
+        (ids -1) are not responses and are left out.
     """
     from .simulate import Schedule
 
@@ -374,12 +378,15 @@ def combine_passes(values, schedule):
     values = np.asarray(values)
     if values.shape[0] != len(schedule):
         raise EvtkError(f"{values.shape[0]} responses for a schedule of {len(schedule)} captures")
-    keys = np.stack([schedule.kernel_id, schedule.features_id, schedule.repeat], axis=1)
+    use = (schedule.kernel_id >= 0) & (schedule.features_id >= 0)
+    if not use.any():
+        raise EvtkError("the schedule holds no (kernel, features) captures, only flat fields")
+    keys = np.stack([schedule.kernel_id, schedule.features_id, schedule.repeat], axis=1)[use]
     pairs, which = np.unique(keys, axis=0, return_inverse=True)
     which = np.asarray(which).reshape(-1)
-    sign = (schedule.kernel_sign * schedule.features_sign).astype(np.float64)
+    sign = (schedule.kernel_sign * schedule.features_sign).astype(np.float64)[use]
     out = np.zeros((len(pairs),) + values.shape[1:], dtype=np.float64)
-    np.add.at(out, which, values * sign.reshape((-1,) + (1,) * (values.ndim - 1)))
+    np.add.at(out, which, values[use] * sign.reshape((-1,) + (1,) * (values.ndim - 1)))
     return out, pairs
 
 
@@ -525,16 +532,35 @@ class Reconstruction:
 
 
 def response_error(got, ideal):
-    """Pearson correlation and RMS error over the RMS of the ideal (normalised RMS error)."""
+    """How far responses are from the ideal: Pearson correlation and two normalised RMS errors.
+
+    ``nrmse`` is the RMS error over the ideal's RMS (the strict one: 1.0 for
+    an all-zero guess); ``nrmse_range`` is the RMS error over the ideal's
+    peak-to-peak range (the usual NRMSD). Undefined values are ``None``.
+
+    Examples
+    --------
+    >>> e = response_error([1.0, -1.0, 2.0, 0.0], [1.0, -1.0, 2.0, 1.0])
+    >>> round(e["nrmse"], 3), round(e["nrmse_range"], 3)
+    (0.378, 0.167)
+    """
     got = np.asarray(got, dtype=np.float64).ravel()
     ideal = np.asarray(ideal, dtype=np.float64).ravel()
+    if got.shape != ideal.shape:
+        raise EvtkError(f"responses ({got.size} values) and ideal ({ideal.size} values) differ in size")
+    if not np.all(np.isfinite(got)):
+        raise EvtkError("responses hold NaN or infinite values")
     rms = float(np.sqrt(np.mean(ideal ** 2))) if ideal.size else 0.0
-    if got.size < 2 or np.ptp(got) == 0 or np.ptp(ideal) == 0:
-        corr = float("nan") if got.size < 2 else (1.0 if np.allclose(got, ideal) else 0.0)
+    if got.size < 2:
+        corr = None
+    elif np.ptp(got) == 0 or np.ptp(ideal) == 0:
+        corr = 1.0 if np.allclose(got, ideal) else 0.0
     else:
         corr = float(np.corrcoef(got, ideal)[0, 1])
-    nrmse = float(np.sqrt(np.mean((got - ideal) ** 2)) / rms) if rms > 0 else None
-    return {"correlation": corr, "nrmse": nrmse}
+    rmse = float(np.sqrt(np.mean((got - ideal) ** 2))) if got.size else 0.0
+    span = float(np.ptp(ideal)) if ideal.size else 0.0
+    return {"correlation": corr, "nrmse": rmse / rms if rms > 0 else None,
+            "nrmse_range": rmse / span if span > 0 else None}
 
 
 def _footprint_matrix(bench, origin, p0, p1, n_cells, step):
@@ -553,7 +579,7 @@ def _footprint_matrix(bench, origin, p0, p1, n_cells, step):
 
 def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="sign",
                 linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None,
-                deblur=False):
+                deblur=None, flat_field=True):
     """The whole pipeline on an open recording: windows, counts, linearisation, passes, grid, binarisation.
 
     Parameters
@@ -575,12 +601,17 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
     region : (x0, x1, y0, y1), optional
         Sensor pixels to use; default the simulation's response region, else
         the whole sensor.
-    deblur : bool
+    deblur : bool or None
         With a simulation record and matched scaling, undo the known footprint
         blur (extended sources, pixel area, diffuser) by solving the linear
         sampling model on the full response. It restores the scale but
-        amplifies count quantisation and threshold mismatch (up to 4x at the
-        finest detail), so it is off by default.
+        amplifies what is left of count quantisation and threshold mismatch
+        (up to 4x at the finest detail). ``None`` (default): deblur when the
+        pixels are flat-field calibrated, where it helps on average (see
+        ``benchmarks/bench_accuracy.py``).
+    flat_field : bool
+        Calibrate each pixel's threshold on the recording's flat-field
+        captures, when it has any (:func:`flat_field_gain`).
 
     With a simulation record, linearisation inverts the recording's own pixel
     model (:func:`count_curve`); otherwise (or with ``theta`` given) it uses
@@ -611,20 +642,26 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         theta_off = float(sim["sensor"]["theta_off"]) if sim else 0.2
     else:
         theta_on = theta_off = float(theta)
-    if not linear:
-        values = counts.on.astype(np.float64) - counts.off
-    elif sim is not None and theta is None:  # invert the recording's own pixel model
-        values = linearize_by_model(counts.on.astype(np.int64) - counts.off,
-                                    count_curve(sim, skip_us, length_us))
-    else:
-        values = linearize(counts.on, counts.off, theta_on, theta_off)
-
-    pairs = ideal = None
-    schedule = None
-    deblurred = False
+    schedule = bench = None
     if sim is not None and len(win) == len(sim["schedule"]["capture"]):
         schedule = Schedule.from_dict(sim["schedule"])
         bench = Bench.from_dict(sim["bench"])
+    curve = count_curve(sim, skip_us, length_us) if sim is not None and linear and theta is None else None
+    net = counts.on.astype(np.float64) - counts.off
+    gain = None
+    if linear and flat_field and schedule is not None and np.any(schedule.kernel_id < 0):
+        gain = flat_field_gain(net[schedule.kernel_id < 0], _expected_flat_counts(sim, bench, region, curve, theta_on))
+    if not linear:
+        values = net
+    elif curve is not None:  # invert the recording's own pixel model
+        values = linearize_by_model(net if gain is None else net * gain, curve)
+    else:
+        g = 1.0 if gain is None else gain
+        values = linearize(counts.on * g, counts.off * g, theta_on, theta_off)
+
+    pairs = ideal = None
+    deblurred = False
+    if schedule is not None:
         kernels = np.asarray(sim["kernels"])
         features = np.asarray(sim["features"])
         kh, kw = kernels.shape[1:]
@@ -634,7 +671,9 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         step = bench.kernel_step_cells / bench.pixel_cells
         cells = to_response_grid(values, region, sim["response_origin_px"], step, (fh + kh - 1, fw + kw - 1))
         combined, pairs = combine_passes(cells, schedule)
-        deblurred = deblur and abs(bench.kernel_step_cells - 1.0) < 1e-9
+        if deblur is None:
+            deblur = gain is not None
+        deblurred = bool(deblur) and abs(bench.kernel_step_cells - 1.0) < 1e-9
         if deblurred:  # undo the footprint blur of sources, pixels and diffuser
             my = _footprint_matrix(bench, sim["response_origin_px"][1], region[2], region[3], fh + kh - 1, step)
             mx = _footprint_matrix(bench, sim["response_origin_px"][0], region[0], region[1], fw + kw - 1, step)
@@ -665,6 +704,7 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         "skip_us": int(skip_us),
         "length_us": None if length_us is None else int(length_us),
         "deblurred": bool(deblurred),
+        "flat_field_captures": 0 if gain is None else int(np.sum(schedule.kernel_id < 0)),
     }
     if ideal is not None:
         summary["error"] = response_error(cells, ideal)
@@ -745,19 +785,22 @@ def contact_sheet(path, result: Reconstruction, max_rows=8):
 
 
 def count_curve(sim_record, skip_us=0, length_us=None, points=4000):
-    """ON counts a noise-free pixel with nominal thresholds gives, against its log-light step.
+    """Net counts a noise-free pixel with nominal thresholds gives, against its log-light step.
 
     Runs the simulation's own pixel model (``sim_record``: a recording's
     ``simulation`` metadata) for a dark-to-pattern step of ``u`` (natural
     log of light over the dark level) from 0 to the brightest possible
-    pattern, counting in the same window as the reconstruction. Returns
-    ``(u, counts)``, counts non-decreasing in ``u``.
+    pattern, counting in the same window as the reconstruction, from a
+    settled pixel whose reference is the dark level. (A pixel in steady
+    operation keeps some residual from earlier captures; over random
+    patterns a fresh reference inverts the counts better than modelling the
+    previous capture at the same light.) Returns ``(u, counts)``, counts
+    non-decreasing in ``u``.
     """
+    from .optics import Bench, brightest_response
     from .sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
 
     sm = SensorModel.from_dict({**sim_record["sensor"], "shot_noise": False, "theta_mismatch": 0.0})
-    from .optics import Bench, brightest_response
-
     blank = float(sim_record["blank_rate_e_per_s"])
     gain = float(sim_record["gain_e_per_s_per_unit"])
     bench = Bench.from_dict(sim_record["bench"])
@@ -765,15 +808,13 @@ def count_curve(sim_record, skip_us=0, length_us=None, points=4000):
     bright = gain * brightest_response(np.asarray(sim_record["kernels"]).shape[1:], bench) + dark
     u_max = max(np.log(bright / blank), 1e-6) * 1.01
     u = np.linspace(0.0, u_max, int(points))
-    rates = np.stack([np.full(u.size, blank), blank * np.exp(u), np.full(u.size, blank)])
     w, z = float(sim_record["window_us"]), float(sim_record["settle_us"])
     a = z + float(skip_us)
     b = z + w if length_us is None else min(z + w, a + float(length_us))
     bounds = sorted({0.0, z, a, b, z + w, 2 * z + w})
     starts, ends = np.array(bounds[:-1]), np.array(bounds[1:])
-    level_of = lambda t0: 1 if z <= t0 < z + w else (0 if t0 < z else 2)  # noqa: E731
-    which = np.array([level_of(t0) for t0 in starts])
-    lvl = np.log(rates[which])
+    lit = (starts >= z) & (starts < z + w)
+    lvl = np.where(lit[:, None], np.log(blank) + u[None, :], np.log(blank))
     slot = np.where((starts >= a) & (ends <= b), 0, -1)
     st = PixelState(lvl[0], 0.0, np.full(u.size, sm.theta_on), np.full(u.size, sm.theta_off),
                     np.random.default_rng(0))
@@ -787,10 +828,39 @@ def linearize_by_model(net_counts, curve):
 
     A count ``n`` stands for the middle of the steps that give ``n``; 0 stays
     0 (no light cannot be told from light below one threshold), and counts
-    beyond the curve take its end.
+    beyond the curve take its end. Fractional counts (calibrated by
+    :func:`flat_field_gain`) interpolate between neighbouring whole counts.
     """
+    n = np.asarray(net_counts, dtype=np.float64)
+    if not np.all(np.isfinite(n)):
+        raise EvtkError("counts to linearise must be finite")
+    levels, mid = _count_steps(curve)
+    return np.expm1(np.interp(n, levels, mid))
+
+
+def _expected_flat_counts(sim, bench, region, curve, theta_on):
+    """Net count a nominal pixel gives in a flat-field window, per pixel of ``region`` (y, x).
+
+    The light is the optics' own (every mirror on, borders included); with
+    a count curve the count is the curve read continuously, else
+    ``log-step / theta_on``.
+    """
+    from .optics import screen_response
+
+    kshape = np.asarray(sim["kernels"]).shape[1:]
+    fshape = np.asarray(sim["features"]).shape[1:]
+    light = screen_response(np.ones(kshape), np.ones(fshape), bench, tuple(region))
+    rate = float(sim["gain_e_per_s_per_unit"]) * light + float(sim["sensor"]["dark_current_e_per_s"])
+    u = np.log(np.maximum(rate, 1e-300) / float(sim["blank_rate_e_per_s"]))
+    if curve is None:
+        return u / theta_on
+    levels, mid = _count_steps(curve)
+    return np.interp(u, mid, levels)
+
+
+def _count_steps(curve):
+    """Whole counts 0..top of a :func:`count_curve` and the log-light step each stands for (its middle)."""
     u, n_of_u = curve
-    n = np.asarray(net_counts)
     top = int(n_of_u[-1])
     levels = np.arange(top + 2)
     first = np.searchsorted(n_of_u, levels, side="left")  # first grid index reaching each count
@@ -798,5 +868,37 @@ def linearize_by_model(net_counts, curve):
     hi = np.where(first[1:] < u.size, u[np.minimum(first[1:], u.size - 1)], u[-1])
     mid = 0.5 * (lo + hi)
     mid[0] = 0.0
-    est = mid[np.clip(n, 0, top).astype(np.int64)]
-    return np.expm1(est)
+    return levels[:-1], mid
+
+
+def flat_field_gain(flat_counts, expected_counts, min_counts=3, limits=(0.5, 2.0)):
+    """Per-pixel count gain from flat-field captures: ``expected / observed``.
+
+    A pixel with threshold ``theta`` counts a log-light step ``u`` as about
+    ``u / theta`` events, so its threshold mismatch is a gain on all its
+    counts. ``flat_counts`` (captures, ...) are net counts of windows whose
+    light is known up to that gain (every mirror on); ``expected_counts``
+    (...) is what a pixel with nominal thresholds counts there (the pixel
+    model's :func:`count_curve` at the light the optics give each pixel, or
+    the region's median on a bench without a model). Multiplying a pixel's
+    counts by its gain puts them on the nominal threshold's scale.
+
+    Pixels expecting fewer than ``min_counts`` events, or observing none,
+    keep a gain of 1; gains are clipped to ``limits``.
+
+    Examples
+    --------
+    >>> flat_field_gain(np.array([[30, 25, 0]]), np.array([27.5, 27.5, 27.5])).tolist()
+    [0.9166666666666666, 1.1, 1.0]
+    """
+    obs = np.asarray(flat_counts, dtype=np.float64)
+    exp_ = np.asarray(expected_counts, dtype=np.float64)
+    if obs.ndim < 1 or obs.shape[0] == 0:
+        raise EvtkError("flat-field calibration needs at least one flat-field capture")
+    if obs.shape[1:] != exp_.shape:
+        raise EvtkError(f"flat-field counts {obs.shape[1:]} and expected counts {exp_.shape} differ in shape")
+    obs = obs.mean(axis=0)
+    ok = (exp_ >= min_counts) & (obs > 0) & np.isfinite(exp_)
+    gain = np.ones(exp_.shape)
+    gain[ok] = exp_[ok] / obs[ok]
+    return np.clip(gain, *limits)

@@ -181,16 +181,21 @@ class Simulation:
         Same ``seed`` with another ``noise_seed`` is the same camera recording again.
     start_us : int
         Timestamp of the start of the recording.
+    flat_field : int
+        Flat-field captures shown before everything else: every kernel
+        element and every features element on. They let the reconstruction
+        calibrate each pixel's threshold (:func:`evtk.reconstruct.flat_field_gain`);
+        in the schedule their ``kernel_id`` and ``features_id`` are -1.
 
     Examples
     --------
     >>> sim = Simulation(np.ones((3, 3)), np.eye(16), seed=1)
     >>> len(sim.schedule)
-    1
+    3
     """
 
     def __init__(self, kernels, features, bench: Bench | None = None, sensor: SensorModel | None = None,
-                 window_us=1000, settle_us=None, repeat=1, seed=0, start_us=0, noise_seed=None):
+                 window_us=1000, settle_us=None, repeat=1, seed=0, start_us=0, noise_seed=None, flat_field=2):
         self.bench = bench if bench is not None else Bench()
         self.sensor = sensor if sensor is not None else SensorModel()
         self.kernels = _as_patterns("kernels", kernels)
@@ -210,13 +215,14 @@ class Simulation:
         self.region = response_region(self.bench, kshape, self.features.shape[1:])
         self._passes = {}
         self._rate_cache = {}  # region -> {(kernel, features, signs): photoelectron rates}
-        rows = []
+        self.flat_field = _int_param("flat_field", flat_field, 0)
+        rows = [(-1, -1, 1, 1, i) for i in range(self.flat_field)]
         for r in range(self.repeat):
             for ki in range(len(self.kernels)):
                 for fi in range(len(self.features)):
                     for ks, fs, kp, fp in self._pair_passes(ki, fi):
                         rows.append((ki, fi, ks, fs, r))
-        if not rows:
+        if len(rows) == self.flat_field:
             raise EvtkError("nothing to show: every kernel or features pattern is all zero")
         n = len(rows)
         period = self.window_us + self.settle_us
@@ -245,6 +251,8 @@ class Simulation:
     def _pass_patterns(self, c):
         s = self.schedule
         ks, fs = int(s.kernel_sign[c]), int(s.features_sign[c])
+        if s.kernel_id[c] < 0:  # flat field
+            return np.ones(self.kernels.shape[1:], np.int8), np.ones(self.features.shape[1:], np.int8)
         return _pass(self.kernels[s.kernel_id[c]], ks), _pass(self.features[s.features_id[c]], fs)
 
     def _rate(self, response):
@@ -298,6 +306,7 @@ class Simulation:
             "start_us": self.start_us,
             "end_us": self.end_us,
             "repeat": self.repeat,
+            "flat_field": self.flat_field,
             "bench": self.bench.to_dict(),
             "sensor": self.sensor.to_dict(),
             "kernels": self.kernels.tolist(),

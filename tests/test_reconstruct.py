@@ -309,7 +309,9 @@ def test_reconstruct_end_to_end_on_an_ideal_simulation(tmp_path):
     with evtk.open(path) as rec:
         r = reconstruct(rec, size=(16, 16))
         by_triggers = reconstruct(rec, window="triggers")
-    assert r.summary["captures"] == 8 and r.summary["windows"] == 8 and r.pairs.tolist() == [[0, 0, 0], [0, 0, 1]]
+    # two flat fields, then two repeats of four passes
+    assert r.summary["captures"] == 10 and r.summary["windows"] == 10 and r.pairs.tolist() == [[0, 0, 0], [0, 0, 1]]
+    assert r.summary["flat_field_captures"] == 2
     assert r.cells.shape == (2, 14, 14) and r.responses.shape == (2, 16, 16) and r.binary.dtype == np.int8
     assert r.summary["error"]["correlation"] > 0.99
     np.testing.assert_array_equal(by_triggers.cells, r.cells)
@@ -351,7 +353,7 @@ def test_cli_reconstruct_outputs(tmp_path):
     z = np.load(tmp_path / "r.npz")
     np.testing.assert_array_equal(z["binary"], lib.binary)
     np.testing.assert_allclose(z["responses"], lib.responses)
-    assert json.loads(str(z["summary"]))["reconstruction"]["windows"] == 8
+    assert json.loads(str(z["summary"]))["reconstruction"]["windows"] == 10
     import h5py
 
     with h5py.File(tmp_path / "r.h5") as f:
@@ -417,9 +419,56 @@ def test_count_curve_inversion_restores_the_scale(tmp_path):
     assert np.all(np.diff(n) >= 0) and n[0] == 0 and n[-1] > 20
     # compression: bright steps give fewer counts than whole thresholds
     assert n[-1] < np.floor(u[-1] / sim.sensor.theta_on)
-    with evtk.open(path) as rec:
-        model = reconstruct(rec)
-        simple = reconstruct(rec, theta=sim.sensor.theta_on)
+    with evtk.open(path) as rec:  # without the flat field, which would absorb the compression too
+        model = reconstruct(rec, flat_field=False)
+        simple = reconstruct(rec, theta=sim.sensor.theta_on, flat_field=False)
     scale = lambda r: (r.cells.ravel() @ r.ideal.ravel()) / (r.cells.ravel() @ r.cells.ravel())  # noqa: E731
     assert abs(scale(model) - 1) < 0.15 < abs(scale(simple) - 1)
     assert model.summary["error"]["correlation"] > 0.99
+
+
+def test_flat_field_gain_finds_each_pixels_threshold(tmp_path):
+    """Threshold mismatch is a per-pixel gain on counts; the flat fields measure it.
+
+    Oracle: the simulated device's own thresholds. Mismatched, noise-free
+    pixels reconstruct far better calibrated than not.
+    """
+    from evtk.optics import Bench
+    from evtk.reconstruct import flat_field_gain, reconstruct
+    from evtk.sensor import SensorModel
+    from evtk.simulate import Simulation
+
+    rng = np.random.default_rng(5)
+    k, f = rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16))
+    sensor = SensorModel(shot_noise=False, background_rate_hz=0.0)  # thresholds 0.2 +- 0.02
+    sim = Simulation(k, f, bench=Bench(source_extent="point"), sensor=sensor, seed=2, flat_field=3)
+    path = tmp_path / "m.aedat4"
+    sim.write(path)
+    with evtk.open(path) as rec:
+        cal = reconstruct(rec)
+        raw = reconstruct(rec, flat_field=False)
+    x0, x1, y0, y1 = sim.region
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    true_gain = sim._theta_on[yy * sim.bench.sensor_width + xx] / sensor.theta_on
+    net = cal.counts.on[:3].astype(float) - cal.counts.off[:3]
+    from evtk.reconstruct import _expected_flat_counts, count_curve
+
+    meta = sim.metadata()["simulation"]
+    expected = _expected_flat_counts(meta, sim.bench, sim.region, count_curve(meta), 0.2)
+    gain = flat_field_gain(net, expected)
+    lit = expected >= 3  # the rest keep gain 1
+    assert lit.mean() > 0.5 and np.all(gain[~lit] == 1)
+    assert np.corrcoef(gain[lit], true_gain[lit])[0, 1] > 0.9
+    err, spread = np.abs(gain[lit] - true_gain[lit]), np.abs(true_gain[lit] - 1)
+    assert np.median(err) < 0.3 * np.median(spread)
+    assert cal.summary["flat_field_captures"] == 3 and raw.summary["flat_field_captures"] == 0
+    assert cal.summary["error"]["correlation"] > 0.97 > 0.9 > raw.summary["error"]["correlation"]
+    assert cal.summary["error"]["nrmse_range"] < 0.5 * raw.summary["error"]["nrmse_range"]
+    # bad input
+    with pytest.raises(EvtkError, match="at least one"):
+        flat_field_gain(np.zeros((0, 2)), np.ones(2))
+    with pytest.raises(EvtkError, match="shape"):
+        flat_field_gain(np.ones((1, 2)), np.ones(3))
+    # silent or dim pixels keep gain 1; gains are clipped
+    np.testing.assert_array_equal(flat_field_gain(np.array([[0.0, 10.0, 1.0, 100.0]]), np.array([20.0, 2.0, 20.0, 20.0])),
+                                  [1.0, 1.0, 2.0, 0.5])

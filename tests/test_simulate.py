@@ -45,7 +45,12 @@ def test_schedule_triggers_and_metadata():
     f = _features(2, signed=True)
     sim = Simulation(k, f, window_us=500, settle_us=700, repeat=2, start_us=1000, seed=3)
     s = sim.schedule
-    assert len(s) == 2 * (2 + 4)
+    assert len(s) == 2 + 2 * (2 + 4)
+    # two flat fields first: every mirror on, the brightest light the bench gives
+    assert s.kernel_id[:2].tolist() == [-1, -1] and s.features_id[:2].tolist() == [-1, -1]
+    assert np.all(s.kernel_id[2:] >= 0)
+    np.testing.assert_array_equal(sim.ideal(0), signal.correlate2d(np.ones((16, 16)), np.ones((3, 3)), "full"))
+    assert len(Simulation(k, f, flat_field=0).schedule) == 2 + 4
     assert s.t_on_us[0] == 1000 + 700
     np.testing.assert_array_equal(np.diff(s.t_on_us), 1200)
     np.testing.assert_array_equal(s.t_off_us - s.t_on_us, 500)
@@ -60,7 +65,7 @@ def test_schedule_triggers_and_metadata():
     assert Bench.from_dict({**meta["bench"], "origin_px": None}) == sim.bench
     assert SensorModel.from_dict(meta["sensor"]) == sim.sensor
     # ground truth: each pass, and the signed pair it combines into
-    for c in range(len(s)):
+    for c in range(2, len(s)):
         kp = (k[s.kernel_id[c]] * s.kernel_sign[c] > 0).astype(int)
         fp = (f * s.features_sign[c] > 0).astype(int)
         np.testing.assert_array_equal(sim.ideal(c), signal.correlate2d(fp, kp, "full"))
@@ -201,7 +206,7 @@ def test_extreme_light_and_patterns(scale, k, f):
 
 
 def test_timestamps_near_the_int64_limit():
-    for start in (2**62, 2**63 - 1 - 10_000, -(2**60)):
+    for start in (2**62, 2**63 - 1 - 12_000, -(2**60)):
         sim = Simulation(K3, _features(1), start_us=start, seed=1, settle_us=2000)
         ev = sim.events()
         assert len(ev) > 100 and ev.t.min() >= start and ev.t.max() <= sim.end_us and ev.is_sorted
@@ -279,7 +284,7 @@ def test_cli_simulate(tmp_path):
                                     "--save-bench", str(tmp_path / "used.json")])
     assert res.exit_code == 0, res.output
     summary = json.loads(res.output)
-    assert summary["captures"] == 2 and summary["stride_eff"] == pytest.approx(1.0)
+    assert summary["captures"] == 2 + 2 and summary["stride_eff"] == pytest.approx(1.0)
     with evtk.open(out) as rec:
         assert len(rec.events()) == summary["events"]
         meta = rec.metadata[METADATA_KEY]
@@ -332,8 +337,8 @@ def test_metadata_origin_maps_the_ground_truth_onto_the_sensor():
     r = sim.responses()
     x0, _, y0, _ = meta["response_region"]
     ox, oy = meta["response_origin_px"]
-    ideal = sim.ideal(0)
-    on = r.on.mean(0)
+    ideal = sim.ideal(sim.flat_field)
+    on = r.on[sim.flat_field:].mean(0)
     ys = int(round(oy)) - y0 + np.arange(ideal.shape[0])
     xs = int(round(ox)) - x0 + np.arange(ideal.shape[1])
     sampled = on[np.ix_(ys, xs)]
