@@ -45,6 +45,7 @@ __all__ = [
     "downsample",
     "binarize",
     "reconstruct",
+    "reconstruct_counts",
     "Reconstruction",
     "response_error",
     "save_reconstruction",
@@ -104,6 +105,13 @@ class WindowCounts:
     windows: Windows
     region: tuple
     events_used: int
+
+    @classmethod
+    def from_capture_counts(cls, cc):
+        """Window counts from the simulator's fast path (:meth:`evtk.simulate.Simulation.responses`)."""
+        s = cc.schedule
+        win = Windows(s.t_on_us, s.t_off_us, s.capture, "schedule")
+        return cls(cc.on, cc.off, win, tuple(cc.region), int(cc.on.sum() + cc.off.sum()))
 
 
 def _trim(t_on, t_off, skip_us, length_us, what):
@@ -617,8 +625,7 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
     model (:func:`count_curve`); otherwise (or with ``theta`` given) it uses
     ``exp(n * theta) - 1``.
     """
-    from .optics import Bench
-    from .simulate import METADATA_KEY, Schedule
+    from .simulate import METADATA_KEY
 
     sim = (rec.metadata or {}).get(METADATA_KEY)
     if window == "schedule":
@@ -632,11 +639,37 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         win = windows_periodic(info["t_start_us"], info["t_end_us"] + 1, window[1], skip_us, length_us)
     else:
         raise EvtkError(f"window must be 'schedule', 'triggers' or ('period', US), not {window!r}")
-    if crop not in ("valid", "full"):
-        raise EvtkError(f"crop must be 'valid' or 'full', not {crop!r}")
+    _check_crop(crop)  # before the long part
     if region is None:
         region = tuple(sim["response_region"]) if sim is not None else (0, rec.sensor_size[0], 0, rec.sensor_size[1])
     counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress)
+    return reconstruct_counts(counts, sim, skip_us=skip_us, length_us=length_us, size=size,
+                              binarize_method=binarize_method, linear=linear, theta=theta, crop=crop,
+                              deblur=deblur, flat_field=flat_field)
+
+
+def _check_crop(crop):
+    if crop not in ("valid", "full"):
+        raise EvtkError(f"crop must be 'valid' or 'full', not {crop!r}")
+
+
+def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16), binarize_method="sign",
+                       linear=True, theta=None, crop="valid", deblur=None, flat_field=True):
+    """Every stage after accumulation, on window counts (:func:`reconstruct` without the recording).
+
+    ``counts`` is a :class:`WindowCounts` (from :func:`accumulate`, or from
+    :meth:`evtk.simulate.Simulation.responses` through
+    :meth:`WindowCounts.from_capture_counts`); ``sim`` the simulation record
+    (a recording's ``simulation`` metadata) or None. The other parameters
+    are :func:`reconstruct`'s; ``skip_us``/``length_us`` must be the ones
+    the counts were taken with.
+    """
+    from .optics import Bench
+    from .simulate import Schedule
+
+    _check_crop(crop)
+    win = counts.windows
+    region = counts.region
     if theta is None:
         theta_on = float(sim["sensor"]["theta_on"]) if sim else 0.2
         theta_off = float(sim["sensor"]["theta_off"]) if sim else 0.2

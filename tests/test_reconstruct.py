@@ -472,3 +472,27 @@ def test_flat_field_gain_finds_each_pixels_threshold(tmp_path):
     # silent or dim pixels keep gain 1; gains are clipped
     np.testing.assert_array_equal(flat_field_gain(np.array([[0.0, 10.0, 1.0, 100.0]]), np.array([20.0, 2.0, 20.0, 20.0])),
                                   [1.0, 1.0, 2.0, 0.5])
+
+
+def test_reconstruct_counts_from_the_fast_path_equals_the_recording(tmp_path):
+    """The simulator's exact count path and the recording give the same counts, hence the same responses."""
+    from evtk.reconstruct import WindowCounts, reconstruct, reconstruct_counts
+    from evtk.sensor import SensorModel
+    from evtk.simulate import Simulation
+
+    rng = np.random.default_rng(4)
+    sim = Simulation(rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16)), repeat=2, seed=7,
+                     sensor=SensorModel(shot_noise=False, background_rate_hz=0.0))
+    path = tmp_path / "r.aedat4"
+    sim.write(path)
+    with evtk.open(path) as rec:
+        a = reconstruct(rec, size=(8, 8))
+    b = reconstruct_counts(WindowCounts.from_capture_counts(sim.responses(method="exact")),
+                           sim.metadata()["simulation"], size=(8, 8))
+    np.testing.assert_array_equal(a.counts.on, b.counts.on)
+    np.testing.assert_array_equal(a.counts.off, b.counts.off)
+    np.testing.assert_allclose(b.cells, a.cells)
+    np.testing.assert_array_equal(b.binary, a.binary)
+    assert b.summary["error"] == a.summary["error"]
+    with pytest.raises(EvtkError, match="crop"):
+        reconstruct_counts(b.counts, sim.metadata()["simulation"], crop="middle")
