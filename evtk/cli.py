@@ -117,14 +117,6 @@ def _progress(total, label):
     return bar.update, lambda: bar.__exit__(None, None, None)
 
 
-def _default_features(side=16):
-    """The embedded default input: scikit-image's camera picture, 16x16, binarised at its mean."""
-    from skimage import data, transform
-
-    img = transform.resize(data.camera().astype(np.float64), (side, side), anti_aliasing=True)
-    return (img > img.mean()).astype(np.int8)
-
-
 @main.command()
 @click.option("--kernel", "kernel_path", type=click.Path(dir_okay=False, exists=True),
               help="Kernel(s): .npy (h, w) or (n, h, w), or an image.")
@@ -153,14 +145,14 @@ def simulate(kernel_path, kernel_bits, features_path, signed, repeat, flat_field
     """Simulate the device and write the event recording it would produce."""
     from .optics import Bench, load_bench, save_bench as _save_bench
     from .sensor import SensorModel
-    from .simulate import Simulation, load_patterns
+    from .simulate import Simulation, default_features, load_patterns
 
     if kernel_path and kernel_bits:
         raise EvtkError("give --kernel or --kernel-bits, not both")
     if kernel_bits is not None and not (kernel_bits and set(kernel_bits) <= {"0", "1"}):
         raise EvtkError(f"--kernel-bits must be a string of 0s and 1s, not {kernel_bits!r}")
     kernel = load_patterns(kernel_path or kernel_bits or "010111010", "kernel")
-    features = load_patterns(features_path, "features") if features_path else _default_features()
+    features = load_patterns(features_path, "features") if features_path else default_features()
     if signed:
         kernel = np.where(np.asarray(kernel) > 0, 1, -1)
         features = np.where(np.asarray(features) > 0, 1, -1)
@@ -192,6 +184,17 @@ def simulate(kernel_path, kernel_bits, features_path, signed, repeat, flat_field
                    f"sigma {bench.sigma:.4g} (eq. 3), varsigma {bench.varsigma:.4g} (eq. 4; shown as "
                    f"{bench.kernel_mirrors} mirrors), effective stride {bench.stride_eff:.4g} (eq. 6), "
                    f"e_min {bench.min_window_us:g} us (eq. 7), settle {summary['settle_us']} us")
+
+
+def _parse_window(spec):
+    if spec.startswith("period:"):
+        try:
+            return ("period", int(spec.split(":", 1)[1]))
+        except ValueError:
+            raise EvtkError(f"--window period:US needs a whole number of us, not {spec!r}") from None
+    if spec in ("schedule", "triggers"):
+        return spec
+    raise EvtkError(f"--window must be schedule, triggers or period:US, not {spec!r}")
 
 
 def _parse_size(text):
@@ -228,15 +231,7 @@ def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, bi
     """Turn a recording into the convolution responses the device computed."""
     from .reconstruct import contact_sheet, reconstruct, save_reconstruction
 
-    if window_spec.startswith("period:"):
-        try:
-            window = ("period", int(window_spec.split(":", 1)[1]))
-        except ValueError:
-            raise EvtkError(f"--window period:US needs a whole number of us, not {window_spec!r}") from None
-    elif window_spec in ("schedule", "triggers"):
-        window = window_spec
-    else:
-        raise EvtkError(f"--window must be schedule, triggers or period:US, not {window_spec!r}")
+    window = _parse_window(window_spec)
     if binarize_method not in ("sign", "mean", "otsu"):
         try:
             binarize_method = float(binarize_method)
@@ -268,6 +263,311 @@ def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, bi
             line += (f"\nagainst ground truth: correlation {fmt(err['correlation'], '.4f')}, RMS error "
                      f"{fmt(err['nrmse'], '.1%')} of the ideal's RMS, {fmt(err['nrmse_range'], '.1%')} of its range")
         click.echo(line)
+
+
+def _number_list(text, name, integer=False):
+    try:
+        vals = [float(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise EvtkError(f"{name} must be a comma-separated list of numbers, not {text!r}") from None
+    if not vals or not all(np.isfinite(v) and v > 0 for v in vals):
+        raise EvtkError(f"{name} must list positive numbers, not {text!r}")
+    if integer:
+        if any(v != int(v) for v in vals):
+            raise EvtkError(f"{name} must list whole numbers, not {text!r}")
+        vals = [int(v) for v in vals]
+    return vals
+
+
+def _fmt(v, spec):
+    if v is None:
+        return "-"
+    if isinstance(v, float) and not np.isfinite(v):
+        return "inf" if v > 0 else "-inf"
+    return format(v, spec)
+
+
+def _table(rows, columns):
+    """Plain aligned text table: columns are (header, key or callable, format spec)."""
+    cells = [[h for h, _, _ in columns]]
+    for r in rows:
+        cells.append([_fmt(get(r) if callable(get) else r.get(get), spec) for _, get, spec in columns])
+    widths = [max(len(row[i]) for row in cells) for i in range(len(columns))]
+    lines = ["  ".join(c.rjust(w) for c, w in zip(row, widths)) for row in cells]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def _scene_rows(scenes, source=None, power=None):
+    rows = []
+    for s in scenes:
+        r = s["sinad"]
+        row = {"kernel_id": s["kernel_id"], "features_id": s["features_id"], "repeats": s["repeats"],
+               "flips": s["flips"].to_dict()}
+        if source is not None:
+            row["file"] = source
+        if power is not None:
+            row["power_mw"] = power
+        row["sinad"] = None if r is None else r.to_dict()
+        if "error" in s:
+            row["error"] = s["error"]
+        rows.append(row)
+    return rows
+
+
+def _reconstructed(path, window_spec, skip_us, length_us):
+    from .reconstruct import reconstruct
+
+    with evio.open(path) as rec:
+        update, finish = _progress(rec.info()["events"], f"reconstructing {path}")
+        try:
+            result = reconstruct(rec, window=_parse_window(window_spec), skip_us=skip_us, length_us=length_us,
+                                 progress=update)
+        finally:
+            finish()
+        sim = (rec.metadata or {}).get("simulation")
+    power = None if sim is None else float(sim["bench"]["power_mw"])
+    return result, power
+
+
+_window_options = [
+    click.option("--window", "window_spec", default="schedule", show_default=True,
+                 help="schedule, triggers or period:US (without a schedule every window is a repeat of one scene)."),
+    click.option("--skip-us", type=click.IntRange(min=0), default=0, show_default=True),
+    click.option("--length-us", type=click.IntRange(min=1)),
+]
+
+
+def _with_window_options(f):
+    for opt in reversed(_window_options):
+        f = opt(f)
+    return f
+
+
+@main.command()
+@click.argument("recording", type=click.Path(dir_okay=False, exists=True))
+@_with_window_options
+@click.option("--bootstrap", type=click.IntRange(min=0), default=1000, show_default=True,
+              help="Resamples of the repeats for the 95 % interval (0: none).")
+@click.option("--per-pixel", is_flag=True, help="Also report each pixel's SINAD (JSON only).")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="ENOB per scene as a PNG.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def enob(recording, window_spec, skip_us, length_us, bootstrap, per_pixel, plot_path, as_json):
+    """SINAD and effective bits (eq. 8) of every scene captured more than once."""
+    from .sweeps import scene_noise
+
+    result, _ = _reconstructed(recording, window_spec, skip_us, length_us)
+    scenes = scene_noise(result, bootstrap=bootstrap, per_pixel=per_pixel)
+    if plot_path:
+        from .plots import plot_enob
+
+        plot_enob(scenes, plot_path)
+    rows = _scene_rows(scenes)
+    if as_json:
+        click.echo(json.dumps({"file": str(recording), "scenes": rows}))
+        return
+    ci = lambda r, i: None if r["sinad"] is None or r["sinad"]["ci_enob"] is None else r["sinad"]["ci_enob"][i]  # noqa: E731
+    sin = lambda key: lambda r: None if r["sinad"] is None else r["sinad"][key]  # noqa: E731
+    click.echo(_table(rows, [
+        ("kernel", "kernel_id", "d"), ("features", "features_id", "d"), ("repeats", "repeats", "d"),
+        ("SINAD dB", lambda r: _inf_if_free(r, "sinad_db"), ".2f"), ("ENOB", lambda r: _inf_if_free(r, "enob_bits"), ".2f"),
+        ("ENOB 95% lo", lambda r: ci(r, 0), ".2f"), ("hi", lambda r: ci(r, 1), ".2f"),
+        ("noise std", sin("noise_std"), ".4g"), ("flips %", lambda r: r["flips"]["pairwise_pct"], ".2f"),
+    ]))
+    if plot_path:
+        click.echo(f"plot: {plot_path}")
+
+
+def _inf_if_free(row, key):
+    s = row["sinad"]
+    if s is None:
+        return None
+    return float("inf") if s["noise_free"] else s[key]
+
+
+@main.command()
+@click.argument("recordings", nargs=-1, type=click.Path(dir_okay=False, exists=True))
+@_with_window_options
+@click.option("--power-mw", "powers", default="0.05,0.2,1,5,20", show_default=True,
+              help="Without recordings: laser powers to sweep on the simulated bench.")
+@click.option("--kernels", "n_kernels", type=click.IntRange(min=1), default=11, show_default=True,
+              help="Without recordings: random signed 3x3 kernels to show.")
+@click.option("--repeats", type=click.IntRange(min=2), default=10, show_default=True,
+              help="Without recordings: captures of each kernel per power.")
+@click.option("--window-us", type=click.IntRange(min=1), default=1000, show_default=True,
+              help="Without recordings: capture window.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Flip rate against power as a PNG.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeats, window_us, seed, plot_path,
+          as_json):
+    """Pixels whose binarised response flips between repeats, per kernel and light power.
+
+    With RECORDINGS: each is reconstructed (16x16, sign) and its scenes
+    compared over their repeats. Without: the paper's Fig. 3 (right) on the
+    simulated bench: random kernels on the default features, swept over
+    laser power.
+    """
+    from .sweeps import flip_sweep, random_kernels, scene_noise
+    from .simulate import default_features
+
+    if recordings:
+        rows = []
+        for i, path in enumerate(recordings):
+            result, power = _reconstructed(path, window_spec, skip_us, length_us)
+            for s in scene_noise(result, bootstrap=0):
+                rows.append({"file": str(path), "file_index": i, "power_mw": power, "kernel_id": s["kernel_id"],
+                             "features_id": s["features_id"], "repeats": s["repeats"],
+                             "pairwise_pct": s["flips"].pairwise_pct, "majority_pct": s["flips"].majority_pct})
+        x_key = "power_mw" if all(r["power_mw"] is not None for r in rows) else "file_index"
+    else:
+        power_list = _number_list(powers, "--power-mw")
+        kernels = random_kernels(n_kernels, seed=seed)
+        features = np.where(default_features() > 0, 1, -1)
+        update, finish = _progress(len(power_list), "sweeping power")
+        try:
+            rows = flip_sweep(power_list, kernels, features, repeats=repeats, window_us=window_us, seed=seed,
+                              progress=update)
+        finally:
+            finish()
+        x_key = "power_mw"
+    if plot_path:
+        from .plots import plot_flips
+
+        plot_flips(rows, plot_path, x_key=x_key, x_label="laser power (mW)" if x_key == "power_mw" else "recording")
+    if as_json:
+        click.echo(json.dumps({"rows": rows}))
+        return
+    by_x = {}
+    for r in rows:
+        by_x.setdefault(r[x_key], []).append(r)
+    summary = [{"x": x, "kernels": len(v), "pairwise": float(np.mean([r["pairwise_pct"] for r in v])),
+                "majority": float(np.mean([r["majority_pct"] for r in v])),
+                "worst": float(np.max([r["pairwise_pct"] for r in v]))} for x, v in by_x.items()]
+    click.echo(_table(summary, [("power mW" if x_key == "power_mw" else "recording", "x", "g"),
+                                ("kernels", "kernels", "d"), ("flips % (pairs)", "pairwise", ".2f"),
+                                ("vs majority %", "majority", ".2f"), ("worst kernel %", "worst", ".2f")]))
+    if plot_path:
+        click.echo(f"plot: {plot_path}")
+
+
+@main.command()
+@click.option("--window-us", "windows", default="200,300,500,1000,2000", show_default=True,
+              help="Capture windows to sweep (us, at least eq. 7's minimum).")
+@click.option("--power-mw", "powers", help="Laser powers to sweep (default: the bench's).")
+@click.option("--settle-us", "settles", help="Dark times after each pattern to sweep (default: recommended).")
+@click.option("--kernels", "n_kernels", type=click.IntRange(min=1), default=2, show_default=True,
+              help="Random signed 3x3 kernels on the default features.")
+@click.option("--repeats", type=click.IntRange(min=2), default=10, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--fast", is_flag=True, help="Time the reconstruction from counts instead of from a written recording.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Work-precision plot as a PNG.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def tradeoff(windows, powers, settles, n_kernels, repeats, seed, fast, plot_path, as_json):
+    """Error, ENOB and flips against time per capture on the simulated bench (Pareto front marked *)."""
+    from .simulate import default_features
+    from .sweeps import random_kernels, tradeoff as run_tradeoff
+
+    w = _number_list(windows, "--window-us", integer=True)
+    p = _number_list(powers, "--power-mw") if powers else None
+    z = _number_list(settles, "--settle-us", integer=True) if settles else None
+    n_settings = len(w) * (len(p) if p else 1) * (len(z) if z else 1)
+    update, finish = _progress(n_settings, "sweeping")
+    try:
+        rows = run_tradeoff(w, random_kernels(n_kernels, seed=seed), np.where(default_features() > 0, 1, -1),
+                            powers_mw=p, settles_us=z, repeats=repeats, seed=seed, time_events=not fast,
+                            progress=update)
+    finally:
+        finish()
+    if plot_path:
+        from .plots import plot_tradeoff
+
+        plot_tradeoff(rows, plot_path)
+    if as_json:
+        click.echo(json.dumps({"rows": rows}))
+        return
+    click.echo(_table(rows, [
+        ("", lambda r: "*" if r["pareto"] else "", "s"), ("power mW", "power_mw", "g"), ("window us", "window_us", "d"),
+        ("settle us", "settle_us", "d"), ("device us/capture", "device_us_per_capture", ".0f"),
+        ("compute us/capture", "compute_us_per_capture", ".0f"), ("corr", "correlation", ".3f"),
+        ("RMSE/RMS", "nrmse", ".3f"), ("ENOB", lambda r: float("inf") if r["noise_free"] else r["enob_bits"], ".2f"),
+        ("flips %", "flip_pct", ".2f"),
+    ]))
+    if plot_path:
+        click.echo(f"plot: {plot_path}")
+
+
+@main.command()
+@click.option("--out", "out_dir", default="evtk-demo", show_default=True, type=click.Path(file_okay=False),
+              help="Directory for the recording, the reconstruction and the plots.")
+@click.option("--repeat", type=click.IntRange(min=2), default=10, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def demo(out_dir, repeat, seed, as_json):
+    """The main job on the embedded defaults: simulate, record, reconstruct, report.
+
+    A 3x3 kernel (a plus sign, as ``evtk simulate``) on a 16x16 binary
+    feature map made from scikit-image's camera picture, shown on the
+    paper's bench; the event stream goes to an
+    AEDAT4 file, is reconstructed, and compared with the digital correlation.
+    """
+    import os
+    import time
+
+    from .plots import plot_enob
+    from .reconstruct import contact_sheet, reconstruct, save_reconstruction
+    from .simulate import Simulation, default_features, load_patterns
+    from .sweeps import scene_noise
+
+    t0 = time.perf_counter()
+    os.makedirs(out_dir, exist_ok=True)
+    kernel = load_patterns("010111010", "kernel")
+    features = default_features()
+    sim = Simulation(kernel, features, repeat=repeat, seed=seed)
+    rec_path = os.path.join(out_dir, "demo.aedat4")
+    update, finish = _progress(len(sim.schedule), "simulating")
+    try:
+        written = sim.write(rec_path, progress=update)
+    finally:
+        finish()
+    with evio.open(rec_path) as rec:
+        result = reconstruct(rec, binarize_method="mean")  # an unsigned response: threshold at its mean
+        sensor = rec.sensor_size
+    out_h5 = os.path.join(out_dir, "reconstruction.h5")
+    save_reconstruction(out_h5, result, sensor, {"source": rec_path})
+    sheet = os.path.join(out_dir, "responses.png")
+    contact_sheet(sheet, result, max_rows=4)
+    scenes = scene_noise(result, bootstrap=1000, seed=seed)
+    enob_png = os.path.join(out_dir, "enob.png")
+    plot_enob(scenes, enob_png)
+    s, fl, err = scenes[0]["sinad"], scenes[0]["flips"], result.summary["error"]
+    summary = {
+        "recording": rec_path, "reconstruction": out_h5, "contact_sheet": sheet, "enob_plot": enob_png,
+        "events": written["events"], "captures": written["captures"], "repeats": repeat,
+        "error": err, "sinad": None if s is None else s.to_dict(), "flips": fl.to_dict(),
+        "seconds": time.perf_counter() - t0,
+    }
+    if as_json:
+        click.echo(json.dumps(summary))
+        return
+    if s is None:
+        enob_txt = "n/a (no signal)"
+    elif s.noise_free:
+        enob_txt = "inf (noise-free)"
+    else:
+        ci = "" if s.ci_enob is None else f" (95 % {_fmt(s.ci_enob[0], '.2f')}..{_fmt(s.ci_enob[1], '.2f')})"
+        enob_txt = f"{s.enob_bits:.2f} bits{ci}, SINAD {s.sinad_db:.1f} dB"
+    click.echo("\n".join([
+        f"simulated {written['captures']} captures ({repeat} repeats of a 3x3 kernel on 16x16 binary features, "
+        f"2 flat fields): {written['events']:,} events",
+        f"against the digital correlation: correlation {_fmt(err['correlation'], '.3f')}, RMS error "
+        f"{_fmt(err['nrmse'], '.1%')} of the ideal's RMS ({_fmt(err['nrmse_range'], '.1%')} of its range)",
+        f"effective bits (eq. 8): {enob_txt}",
+        f"binary pixels (16x16, above/below the mean) flipped between repeats: {fl.pairwise_pct:.2f} % (pairs), "
+        f"{fl.majority_pct:.2f} % against the majority",
+        f"files: {rec_path}, {out_h5}, {sheet}, {enob_png}",
+        f"done in {summary['seconds']:.1f} s",
+    ]))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -538,6 +538,18 @@ class Reconstruction:
     counts: WindowCounts
     summary: dict
 
+    def groups(self) -> dict:
+        """Indices of the responses of each scene: ``{(kernel_id, features_id): [i, ...]}`` over repeats.
+
+        Without a schedule every window counts as a repeat of one scene, keyed ``(-1, -1)``.
+        """
+        if self.pairs is None:
+            return {(-1, -1): np.arange(self.cells.shape[0])}
+        out = {}
+        for i, (k, f, _) in enumerate(self.pairs.tolist()):
+            out.setdefault((k, f), []).append(i)
+        return {key: np.asarray(v) for key, v in out.items()}
+
 
 def response_error(got, ideal):
     """How far responses are from the ideal: Pearson correlation and two normalised RMS errors.
@@ -785,13 +797,9 @@ def contact_sheet(path, result: Reconstruction, max_rows=8):
     One row per response (at most ``max_rows``); columns: captured (on the
     response's cell grid), ideal, binarised. Written atomically.
     """
-    import matplotlib
+    from .plots import pyplot, save_png
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .io._atomic import AtomicFile
-
+    plt = pyplot()
     n = min(len(result.cells), int(max_rows))
     if n == 0:
         raise EvtkError("no responses to draw")
@@ -811,10 +819,7 @@ def contact_sheet(path, result: Reconstruction, max_rows=8):
         if result.pairs is not None:
             k, f, rep = result.pairs[r]
             axes[r][0].set_ylabel(f"K{k} F{f} #{rep}")
-    fig.tight_layout()
-    with AtomicFile(path) as out:
-        fig.savefig(out.file, format="png", dpi=80)
-    plt.close(fig)
+    save_png(fig, path, dpi=80)
 
 
 def count_curve(sim_record, skip_us=0, length_us=None, points=4000):

@@ -49,6 +49,7 @@ __all__ = [
     "Simulation",
     "CaptureCounts",
     "load_patterns",
+    "default_features",
     "METADATA_KEY",
 ]
 
@@ -615,14 +616,18 @@ class Simulation:
         blank = self.blank_rate_e_per_s
         theta = self._theta_on[roi_idx]
         rng = np.random.default_rng(np.random.SeedSequence([self.noise_seed, 0xFA5]))
-        # threshold neighbours and weights are fixed per pixel
+        # which table neighbours a pixel reads is a property of the pixel (the device), not of
+        # the trial: a noise-free pixel shown the same light twice counts the same twice
+        dev = np.random.default_rng(np.random.SeedSequence([self.seed, 0xDE7, roi_idx.size]))
         if th_grid.size > 1:
             pos = np.clip((theta - th_grid[0]) / (th_grid[1] - th_grid[0]), 0, th_grid.size - 1)
         else:
             pos = np.zeros_like(theta)
-        i_th, f_th = np.minimum(pos.astype(np.int64), th_grid.size - 1), pos - np.floor(pos)
-        du = u_grid[1] - u_grid[0]
+        it = np.minimum(pos.astype(np.int64) + (dev.random(theta.size) < pos - np.floor(pos)), th_grid.size - 1)
+        u_pick = dev.random(theta.size)  # a mixture of the two light neighbours: linear in the mean over pixels
         n_r = t_on.shape[2]
+        r_fixed = dev.integers(0, n_r, theta.size)
+        du = u_grid[1] - u_grid[0]
         n = len(self.schedule)
         for c0 in range(0, n, batch):
             c1 = min(n, c0 + batch)
@@ -630,12 +635,11 @@ class Simulation:
             lvl, _, _ = self._levels(which, region)  # (captures, pixels) log rates
             upos = np.clip((lvl - math.log(blank)) / theta[None, :] / du, 0, u_grid.size - 1)
             i_u = upos.astype(np.int64)
-            i_u += rng.random(upos.shape) < (upos - i_u)  # a mixture of the two neighbours: linear in the mean
+            i_u += u_pick[None, :] < (upos - i_u)
             i_u = np.minimum(i_u, u_grid.size - 1)
-            it = i_th[None, :] + (rng.random(upos.shape) < f_th[None, :])
-            it = np.minimum(it, th_grid.size - 1)
-            r = rng.integers(0, n_r, upos.shape)
-            yield c0, c1, t_on[it, i_u, r], t_off[it, i_u, r], int(rng.integers(2**31 - 1))
+            # replicates differ by shot noise (the trial) and by OFF threshold (the device)
+            r = rng.integers(0, n_r, upos.shape) if self.sensor.shot_noise else np.broadcast_to(r_fixed, upos.shape)
+            yield c0, c1, t_on[it[None, :], i_u, r], t_off[it[None, :], i_u, r], int(rng.integers(2**31 - 1))
             if progress is not None:
                 progress(c1 - c0)
 
@@ -678,6 +682,14 @@ def _assemble(t_rel, pix, pol, span, base, width):
         y[j] = pix[i] // width
         p[j] = pol[i]
     return t, x, y, p
+
+
+def default_features(side=16):
+    """The embedded default input: scikit-image's camera picture, ``side`` x ``side``, binarised at its mean (0/1)."""
+    from skimage import data, transform
+
+    img = transform.resize(data.camera().astype(np.float64), (side, side), anti_aliasing=True)
+    return (img > img.mean()).astype(np.int8)
 
 
 def load_patterns(path_or_bits, name, side=None):

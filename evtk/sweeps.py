@@ -1,0 +1,237 @@
+"""Noise experiments on recordings and on the simulated bench: per-scene SINAD and flips, power sweeps, error against time.
+
+* :func:`scene_noise`: SINAD/ENOB and flip rates of every scene (kernel,
+  features) of a reconstruction, over its repeats.
+* :func:`flip_sweep`: the paper's Fig. 3 (right) on the simulated bench:
+  flip rates of several kernels against laser power.
+* :func:`tradeoff`: error, ENOB and flips against device time per capture
+  over capture windows (and powers), with the Pareto front marked.
+
+The simulated runs use the simulator's fast path (counts without events,
+:meth:`evtk.simulate.Simulation.responses`) and
+:func:`evtk.reconstruct.reconstruct_counts`; :func:`tradeoff` also times the
+event path's reconstruction of a written recording, which is what a bench
+user waits for.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import time
+
+import numpy as np
+
+from .errors import EvtkError
+from .metrics import flip_rates, sinad
+
+__all__ = ["scene_noise", "random_kernels", "simulated_reconstruction", "flip_sweep", "tradeoff", "pareto_front"]
+
+
+def scene_noise(result, bootstrap=1000, per_pixel=False, seed=0) -> list:
+    """SINAD/ENOB (eq. 8) and flip rates of each scene of a reconstruction, over its repeats.
+
+    Returns one dict per scene with at least two repeats: ``kernel_id``,
+    ``features_id``, ``repeats``, ``sinad`` (:class:`evtk.metrics.SinadReport`
+    of the signed responses on the cell grid), ``flips``
+    (:class:`evtk.metrics.FlipReport` of the binary responses) and, for
+    simulated recordings, ``error`` (mean correlation and NRMSE of the
+    repeats against the ideal). Scenes whose responses are all zero get
+    ``sinad = None``.
+    """
+    from .reconstruct import response_error
+
+    out = []
+    for (k, f), idx in result.groups().items():
+        if idx.size < 2:
+            continue
+        cells = result.cells[idx]
+        try:
+            s = sinad(cells, per_pixel=per_pixel, bootstrap=bootstrap, seed=seed)
+        except EvtkError as exc:
+            if "zero everywhere" not in str(exc):
+                raise
+            s = None
+        row = {"kernel_id": int(k), "features_id": int(f), "repeats": int(idx.size), "sinad": s,
+               "flips": flip_rates(result.binary[idx])}
+        if result.ideal is not None:
+            errs = [response_error(result.cells[i], result.ideal[i]) for i in idx]
+            row["error"] = {key: _mean_defined([e[key] for e in errs]) for key in ("correlation", "nrmse",
+                                                                                    "nrmse_range")}
+        out.append(row)
+    if not out:
+        raise EvtkError("no scene was captured at least twice: SINAD and flip rates need repeats")
+    return out
+
+
+def _mean_defined(values):
+    v = [x for x in values if x is not None]
+    return float(np.mean(v)) if v else None
+
+
+def random_kernels(n, shape=(3, 3), seed=0):
+    """``n`` distinct signed (+-1) kernels, drawn uniformly (at most ``2 ** size`` of them)."""
+    size = int(np.prod(shape))
+    if n < 1 or (size < 63 and n > 2 ** size):
+        raise EvtkError(f"cannot draw {n} distinct {shape[0]}x{shape[1]} kernels")
+    rng = np.random.default_rng(seed)
+    seen, out = set(), []
+    while len(out) < n:
+        k = rng.choice(np.array([-1, 1], np.int8), size)
+        if k.tobytes() not in seen:
+            seen.add(k.tobytes())
+            out.append(k.reshape(shape))
+    return np.stack(out)
+
+
+def simulated_reconstruction(kernels, features, bench=None, sensor=None, window_us=1000, repeat=10, seed=0,
+                             noise_seed=None, settle_us=None, size=(16, 16), binarize_method="sign", flat_field=2):
+    """Simulate a run on the fast path and reconstruct it; returns ``(Reconstruction, Simulation)``."""
+    from .reconstruct import WindowCounts, reconstruct_counts
+    from .simulate import METADATA_KEY, Simulation
+
+    sim = Simulation(kernels, features, bench=bench, sensor=sensor, window_us=window_us, settle_us=settle_us,
+                     repeat=repeat, seed=seed, noise_seed=noise_seed, flat_field=flat_field)
+    counts = WindowCounts.from_capture_counts(sim.responses())
+    result = reconstruct_counts(counts, sim.metadata()[METADATA_KEY], size=size, binarize_method=binarize_method)
+    return result, sim
+
+
+def _positive_list(values, name):
+    v = [float(x) for x in values]
+    if not v or not all(math.isfinite(x) and x > 0 for x in v):
+        raise EvtkError(f"{name} must be one or more positive numbers")
+    return v
+
+
+def flip_sweep(powers_mw, kernels, features, repeats=10, bench=None, sensor=None, window_us=1000, seed=0,
+               progress=None) -> list:
+    """Flip rates against laser power (the paper's Fig. 3, right), on the simulated bench.
+
+    For each power, every kernel is paired with ``features`` and captured
+    ``repeats`` times (one device: ``seed``; one trial per power); the
+    16x16 sign-binarised responses are compared between repeats. Returns
+    one row per (power, kernel): ``power_mw``, ``kernel_id``,
+    ``pairwise_pct``, ``majority_pct``, ``enob_bits`` (None when noise-free),
+    ``correlation``.
+    """
+    from .optics import Bench
+
+    powers = _positive_list(powers_mw, "powers_mw")
+    if int(repeats) < 2:
+        raise EvtkError("a flip rate needs at least two repeats")
+    bench = bench if bench is not None else Bench()
+    rows = []
+    for j, p in enumerate(powers):
+        result, _ = simulated_reconstruction(kernels, features, bench.replace(power_mw=p), sensor, window_us,
+                                             int(repeats), seed=seed, noise_seed=seed * 1000 + j + 1)
+        for scene in scene_noise(result, bootstrap=0):
+            s = scene["sinad"]
+            rows.append({"power_mw": p, "kernel_id": scene["kernel_id"],
+                         "pairwise_pct": scene["flips"].pairwise_pct, "majority_pct": scene["flips"].majority_pct,
+                         "enob_bits": None if s is None or s.noise_free else s.enob_bits,
+                         "correlation": scene["error"]["correlation"]})
+        if progress is not None:
+            progress(1)
+    return rows
+
+
+def pareto_front(cost, error):
+    """Mask of the points no other point beats in both (lower cost and lower error, one strictly).
+
+    Examples
+    --------
+    >>> pareto_front([1, 2, 3, 2], [5, 3, 4, 3]).tolist()
+    [True, True, False, True]
+    """
+    c = np.asarray(cost, dtype=np.float64)
+    e = np.asarray(error, dtype=np.float64)
+    if c.shape != e.shape or c.ndim != 1:
+        raise EvtkError("cost and error must be 1-D arrays of equal length")
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(e))):
+        raise EvtkError("cost and error must be finite")
+    dominated = ((c[None, :] <= c[:, None]) & (e[None, :] <= e[:, None])
+                 & ((c[None, :] < c[:, None]) | (e[None, :] < e[:, None]))).any(axis=1)
+    return ~dominated
+
+
+def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, repeats=10, bench=None, sensor=None,
+             seed=0, time_events=True, progress=None) -> list:
+    """Error against run time over capture windows (and powers, and settle times) on the simulated bench.
+
+    Each setting is simulated ``repeats`` times per (kernel, features), with
+    the simulator's recommended settle unless ``settles_us`` are given (the
+    dark time between patterns usually dominates the time per capture, and
+    shortening it leaves pixels short of the dark level). Per setting: ``device_us_per_capture`` (window plus
+    settle; the window is at least eq. 7's minimum), ``compute_us_per_capture``
+    (wall time of :func:`evtk.reconstruct.reconstruct` on the run written as
+    AEDAT4, per capture; with ``time_events=False`` the fast path's
+    :func:`~evtk.reconstruct.reconstruct_counts` instead), the error of the
+    responses against the ideal (``nrmse``, ``correlation``), ``enob_bits``
+    and ``flip_pct`` (pairwise), averaged over scenes, and ``pareto`` (not
+    beaten in both device time and NRMSE by another setting).
+    """
+    from .optics import Bench
+    from .reconstruct import reconstruct, reconstruct_counts
+
+    windows = _positive_list(windows_us, "windows_us")
+    bench = bench if bench is not None else Bench()
+    powers = _positive_list(powers_mw, "powers_mw") if powers_mw is not None else [bench.power_mw]
+    if int(repeats) < 2:
+        raise EvtkError("the trade-off needs at least two repeats per setting (ENOB and flips)")
+    for w in windows:
+        if w < bench.min_window_us or w != int(w):
+            raise EvtkError(f"window {w:g} us: windows must be whole microseconds of at least eq. 7's "
+                            f"e_min = {bench.min_window_us:g} us")
+    settles = [None] if settles_us is None else _positive_list(settles_us, "settles_us")
+    from .io import open as open_recording
+
+    def compute_time(result, sim):
+        if not time_events:
+            t0 = time.perf_counter()
+            reconstruct_counts(result.counts, sim.metadata()["simulation"])
+            return time.perf_counter() - t0
+        with tempfile.TemporaryDirectory() as tmp:
+            path = os.path.join(tmp, "run.aedat4")
+            sim.write(path)
+            with open_recording(path) as rec:
+                t0 = time.perf_counter()
+                reconstruct(rec)
+                return time.perf_counter() - t0
+
+    rows = []
+    settings = [(p, w, z) for p in powers for w in windows for z in settles]
+    for i, (p, w, z) in enumerate(settings):
+        b = bench.replace(power_mw=p)
+        result, sim = simulated_reconstruction(kernels, features, b, sensor, int(w), int(repeats), seed=seed,
+                                               noise_seed=seed * 1000 + i + 1,
+                                               settle_us=None if z is None else int(z))
+        n_cap = len(sim.schedule)
+        if i == 0:
+            compute_time(result, sim)  # warm-up: JIT caches, the count curve, imports
+        compute_s = compute_time(result, sim)
+        scenes = scene_noise(result, bootstrap=0)
+        enobs = [s["sinad"].enob_bits for s in scenes if s["sinad"] is not None and not s["sinad"].noise_free]
+        rows.append({
+            "power_mw": p, "window_us": int(w), "settle_us": int(sim.settle_us),
+            "device_us_per_capture": float(sim.window_us + sim.settle_us),
+            "compute_us_per_capture": 1e6 * compute_s / n_cap,
+            "captures": n_cap,
+            "nrmse": _mean_defined([s["error"]["nrmse"] for s in scenes]),
+            "nrmse_range": _mean_defined([s["error"]["nrmse_range"] for s in scenes]),
+            "correlation": _mean_defined([s["error"]["correlation"] for s in scenes]),
+            "enob_bits": float(np.mean(enobs)) if enobs else None,
+            "noise_free": not enobs,
+            "flip_pct": float(np.mean([s["flips"].pairwise_pct for s in scenes])),
+        })
+        if progress is not None:
+            progress(1)
+    err = np.array([r["nrmse"] if r["nrmse"] is not None else np.inf for r in rows])
+    finite = np.isfinite(err)
+    front = np.zeros(len(rows), bool)
+    if finite.any():
+        front[finite] = pareto_front(np.array([r["device_us_per_capture"] for r in rows])[finite], err[finite])
+    for r, f in zip(rows, front):
+        r["pareto"] = bool(f)
+    return rows
