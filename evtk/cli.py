@@ -456,6 +456,7 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
               help="Capture windows to sweep (us, at least eq. 7's minimum).")
 @click.option("--power-mw", "powers", help="Laser powers to sweep (default: the bench's).")
 @click.option("--settle-us", "settles", help="Dark times after each pattern to sweep (default: recommended).")
+@click.option("--decimation", "decimations", help="Decimations to sweep (keep every d-th pixel; default 1).")
 @click.option("--kernels", "n_kernels", type=click.IntRange(min=1), default=2, show_default=True,
               help="Random signed 3x3 kernels on the default features.")
 @click.option("--repeats", type=click.IntRange(min=2), default=10, show_default=True)
@@ -463,7 +464,7 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
 @click.option("--fast", is_flag=True, help="Time the reconstruction from counts instead of from a written recording.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Work-precision plot as a PNG.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def tradeoff(windows, powers, settles, n_kernels, repeats, seed, fast, plot_path, as_json):
+def tradeoff(windows, powers, settles, decimations, n_kernels, repeats, seed, fast, plot_path, as_json):
     """Error, ENOB and flips against time per capture on the simulated bench (Pareto front marked *)."""
     from .simulate import default_features
     from .sweeps import random_kernels, tradeoff as run_tradeoff
@@ -471,12 +472,13 @@ def tradeoff(windows, powers, settles, n_kernels, repeats, seed, fast, plot_path
     w = _number_list(windows, "--window-us", integer=True)
     p = _number_list(powers, "--power-mw") if powers else None
     z = _number_list(settles, "--settle-us", integer=True) if settles else None
-    n_settings = len(w) * (len(p) if p else 1) * (len(z) if z else 1)
+    d = _number_list(decimations, "--decimation", integer=True) if decimations else None
+    n_settings = len(w) * (len(p) if p else 1) * (len(z) if z else 1) * (len(d) if d else 1)
     update, finish = _progress(n_settings, "sweeping")
     try:
         rows = run_tradeoff(w, random_kernels(n_kernels, seed=seed), np.where(default_features() > 0, 1, -1),
-                            powers_mw=p, settles_us=z, repeats=repeats, seed=seed, time_events=not fast,
-                            progress=update)
+                            powers_mw=p, settles_us=z, decimations=d, repeats=repeats, seed=seed,
+                            time_events=not fast, progress=update)
     finally:
         finish()
     if plot_path:
@@ -488,7 +490,7 @@ def tradeoff(windows, powers, settles, n_kernels, repeats, seed, fast, plot_path
         return
     click.echo(_table(rows, [
         ("", lambda r: "*" if r["pareto"] else "", "s"), ("power mW", "power_mw", "g"), ("window us", "window_us", "d"),
-        ("settle us", "settle_us", "d"), ("device us/capture", "device_us_per_capture", ".0f"),
+        ("settle us", "settle_us", "d"), ("decimation", "decimation", "d"), ("device us/capture", "device_us_per_capture", ".0f"),
         ("compute us/capture", "compute_us_per_capture", ".0f"), ("corr", "correlation", ".3f"),
         ("RMSE/RMS", "nrmse", ".3f"), ("ENOB", lambda r: float("inf") if r["noise_free"] else r["enob_bits"], ".2f"),
         ("flips %", "flip_pct", ".2f"),

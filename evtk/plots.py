@@ -101,7 +101,8 @@ def plot_tradeoff(rows, path):
     order = np.argsort(x[front])
     ax.plot(x[front][order], y[front][order], "o-", color="C3", label="Pareto front")
     for r in pts:
-        ax.annotate(f"{r['window_us']}/{r['settle_us']}", (r["device_us_per_capture"], r["nrmse"]),
+        label = f"{r['window_us']}/{r['settle_us']}" + (f"/d{r['decimation']}" if r.get("decimation", 1) > 1 else "")
+        ax.annotate(label, (r["device_us_per_capture"], r["nrmse"]),
                     fontsize=6, xytext=(3, 3), textcoords="offset points")
     if x.max() / max(x.min(), 1e-9) > 20:
         ax.set_xscale("log")

@@ -716,8 +716,8 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
         step = bench.kernel_step_cells / bench.pixel_cells
         cells = to_response_grid(values, region, sim["response_origin_px"], step, (fh + kh - 1, fw + kw - 1))
         combined, pairs = combine_passes(cells, schedule)
-        if deblur is None:
-            deblur = gain is not None
+        if deblur is None:  # a decimated reconstruction does not have the neighbours deblurring needs
+            deblur = gain is not None and bench.decimation == 1
         deblurred = bool(deblur) and abs(bench.kernel_step_cells - 1.0) < 1e-9
         if deblurred:  # undo the footprint blur of sources, pixels and diffuser
             my = _footprint_matrix(bench, sim["response_origin_px"][1], region[2], region[3], fh + kh - 1, step)
@@ -729,6 +729,11 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
         if crop == "valid":
             sl = (slice(None), slice(kh - 1, fh), slice(kw - 1, fw))
             combined, ideal = combined[sl], ideal[sl]
+        if bench.decimation > 1:  # every decimation-th sensor pixel: a strided response (eq. 6)
+            if abs(step - 1.0) > 1e-9:
+                raise EvtkError("decimation is only supported with matched scaling (one pixel per cell)")
+            d = int(bench.decimation)
+            combined, ideal = combined[:, ::d, ::d], ideal[:, ::d, ::d]
         cells = combined
     else:
         cells = values
@@ -750,6 +755,7 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
         "length_us": None if length_us is None else int(length_us),
         "deblurred": bool(deblurred),
         "flat_field_captures": 0 if gain is None else int(np.sum(schedule.kernel_id < 0)),
+        "decimation": 1 if bench is None else int(bench.decimation),
     }
     if ideal is not None:
         summary["error"] = response_error(cells, ideal)

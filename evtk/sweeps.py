@@ -156,14 +156,17 @@ def pareto_front(cost, error):
     return ~dominated
 
 
-def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, repeats=10, bench=None, sensor=None,
-             seed=0, time_events=True, progress=None) -> list:
-    """Error against run time over capture windows (and powers, and settle times) on the simulated bench.
+def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, decimations=None, repeats=10,
+             bench=None, sensor=None, seed=0, time_events=True, progress=None) -> list:
+    """Error against run time over capture windows (and powers, settle times, decimations) on the simulated bench.
 
     Each setting is simulated ``repeats`` times per (kernel, features), with
     the simulator's recommended settle unless ``settles_us`` are given (the
     dark time between patterns usually dominates the time per capture, and
-    shortening it leaves pixels short of the dark level). Per setting: ``device_us_per_capture`` (window plus
+    shortening it leaves pixels short of the dark level). A decimation
+    ``d`` keeps every ``d``-th sensor pixel, so the response is the strided
+    correlation (eq. 6) and its error is taken against the strided ideal.
+    Per setting: ``device_us_per_capture`` (window plus
     settle; the window is at least eq. 7's minimum), ``compute_us_per_capture``
     (wall time of :func:`evtk.reconstruct.reconstruct` on the run written as
     AEDAT4, per capture; with ``time_events=False`` the fast path's
@@ -185,6 +188,7 @@ def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, rep
             raise EvtkError(f"window {w:g} us: windows must be whole microseconds of at least eq. 7's "
                             f"e_min = {bench.min_window_us:g} us")
     settles = [None] if settles_us is None else _positive_list(settles_us, "settles_us")
+    decs = [bench.decimation] if decimations is None else [int(d) for d in _positive_list(decimations, "decimations")]
     from .io import open as open_recording
 
     def compute_time(result, sim):
@@ -201,9 +205,9 @@ def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, rep
                 return time.perf_counter() - t0
 
     rows = []
-    settings = [(p, w, z) for p in powers for w in windows for z in settles]
-    for i, (p, w, z) in enumerate(settings):
-        b = bench.replace(power_mw=p)
+    settings = [(p, w, z, d) for p in powers for w in windows for z in settles for d in decs]
+    for i, (p, w, z, d) in enumerate(settings):
+        b = bench.replace(power_mw=p, decimation=d)
         result, sim = simulated_reconstruction(kernels, features, b, sensor, int(w), int(repeats), seed=seed,
                                                noise_seed=seed * 1000 + i + 1,
                                                settle_us=None if z is None else int(z))
@@ -214,7 +218,7 @@ def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, rep
         scenes = scene_noise(result, bootstrap=0)
         enobs = [s["sinad"].enob_bits for s in scenes if s["sinad"] is not None and not s["sinad"].noise_free]
         rows.append({
-            "power_mw": p, "window_us": int(w), "settle_us": int(sim.settle_us),
+            "power_mw": p, "window_us": int(w), "settle_us": int(sim.settle_us), "decimation": int(d),
             "device_us_per_capture": float(sim.window_us + sim.settle_us),
             "compute_us_per_capture": 1e6 * compute_s / n_cap,
             "captures": n_cap,

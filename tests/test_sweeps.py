@@ -173,3 +173,28 @@ def test_demo_runs_on_the_embedded_defaults(tmp_path):
     assert s["flips"]["pairwise_pct"] == pytest.approx(flip_rates(again.binary).pairwise_pct)
     text = CliRunner().invoke(main, ["demo", "--out", str(out), "--repeat", "2"])
     assert text.exit_code == 0 and "effective bits" in text.output and "flipped" in text.output
+
+
+def test_decimation_keeps_every_dth_pixel_a_strided_response():
+    """Decimation 2 on matched optics: the full reconstruction's cells at stride 2, against the strided ideal."""
+    from scipy import signal
+
+    from evtk.optics import Bench
+
+    quiet = SensorModel(shot_noise=False, background_rate_hz=0.0)
+    k = random_kernels(1, seed=9)
+    full, _ = simulated_reconstruction(k, F16, bench=Bench(decimation=1), sensor=quiet, repeat=2, seed=3)
+    dec, _ = simulated_reconstruction(k, F16, bench=Bench(decimation=2), sensor=quiet, repeat=2, seed=3)
+    assert dec.summary["decimation"] == 2 and not dec.summary["deblurred"] and full.summary["deblurred"]
+    from evtk.reconstruct import reconstruct_counts
+
+    plain = reconstruct_counts(full.counts, _meta(k, Bench(decimation=1), quiet), deblur=False)
+    np.testing.assert_allclose(dec.cells, plain.cells[:, ::2, ::2])
+    ideal = signal.correlate2d(F16, k[0], "valid")[::2, ::2]
+    np.testing.assert_array_equal(dec.ideal[0], ideal)
+    rows = tradeoff([1000], k, F16, decimations=[1, 2], repeats=3, time_events=False)
+    assert [r["decimation"] for r in rows] == [1, 2]
+
+
+def _meta(k, bench, sensor):
+    return Simulation(k, F16, bench=bench, sensor=sensor, repeat=2, seed=3).metadata()["simulation"]
