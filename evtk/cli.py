@@ -572,5 +572,160 @@ def demo(out_dir, repeat, seed, as_json):
     ]))
 
 
+def _load_array(path, what):
+    import os
+
+    ext = os.path.splitext(path)[1].lower()
+    if ext != ".npy":
+        raise EvtkError(f"{what} must be a .npy file, not {path!r}")
+    try:
+        return np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        raise EvtkError(f"cannot read {what} {path!r}: {exc}") from None
+
+
+def _recorded_candidates(path, size, features):
+    """Responses of every candidate kernel from a recording holding one capture (at least) per candidate."""
+    from .reconstruct import reconstruct
+    from .recover import all_kernels, kernel_bits
+
+    with evio.open(path) as rec:
+        sim = (rec.metadata or {}).get("simulation")
+        if sim is None:
+            raise EvtkError(f"{path}: no capture schedule, so the candidates cannot be told apart")
+        result = reconstruct(rec, crop="full", deblur=False)
+    feats = np.asarray(sim["features"])
+    if feats.shape[0] != 1 or not np.array_equal(feats[0], features):
+        raise EvtkError(f"{path}: its features are not the ones given")
+    index = {kernel_bits(k): i for i, k in enumerate(np.asarray(sim["kernels"]))}
+    out = np.zeros((2 ** (size * size),) + result.cells.shape[1:])
+    missing = 0
+    for j, cand in enumerate(all_kernels(size)):
+        i = index.get(kernel_bits(cand))
+        rows = [] if i is None else [r for r, (k, _, _) in enumerate(result.pairs.tolist()) if k == i]
+        if rows:
+            out[j] = result.cells[rows].mean(axis=0)
+        elif cand.any():
+            missing += 1
+    if missing:
+        raise EvtkError(f"{path}: {missing} candidate kernels of {size}x{size} were never captured")
+    return out
+
+
+@main.command()
+@click.option("--features", "features_path", type=click.Path(dir_okay=False, exists=True),
+              help="Binary features (.npy or image). Default: the bundled 16x16 picture (or random per trial).")
+@click.option("--target", "target_path", type=click.Path(dir_okay=False, exists=True),
+              help="Captured response (.npy) on the full cell grid, as evtk reconstruct --crop full --no-deblur "
+                   "saves in 'cells'.")
+@click.option("--target-kernel-bits", help="Capture the target on the simulated device with this kernel.")
+@click.option("--size", type=click.IntRange(1, 7), default=3, show_default=True, help="Kernel side.")
+@click.option("--method", type=click.Choice(["brute", "search"]), help="Default: brute up to 3x3, search above.")
+@click.option("--weights", type=click.Choice(["relative", "none"]), default="relative", show_default=True,
+              help="Weigh cells by 1/max(|target|, 1) (better at nominal light) or plain MSE (better when dim).")
+@click.option("--candidates", "candidates_path", type=click.Path(dir_okay=False, exists=True),
+              help="Brute force from a recording with one capture per candidate (default: the simulated device).")
+@click.option("--events", is_flag=True, help="Simulate candidates through the event stream, not the count path.")
+@click.option("--power-mw", "powers", default="20", show_default=True,
+              help="Laser power of the simulated device; with --trials a comma-separated sweep.")
+@click.option("--trials", type=click.IntRange(min=1), help="Success rate over this many random trials per power.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False),
+              help="PNG: Fig. 4 for one recovery, success against power for --trials.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def recover(features_path, target_path, target_kernel_bits, size, method, weights, candidates_path, events, powers,
+            trials, seed, plot_path, as_json):
+    """Find the binary kernel behind a captured response (paper 4.4), or measure how often that works."""
+    from .optics import Bench
+    from .recover import (all_kernels, device_responses, kernel_from_bits, recover_brute, recover_search,
+                          response_matrix, success_rate)
+    from .simulate import default_features, load_patterns
+
+    w = None if weights == "none" else weights
+    power_list = _number_list(powers, "--power-mw")
+    method = method or ("brute" if size <= 3 else "search")
+    if trials:
+        if target_path or target_kernel_bits or candidates_path:
+            raise EvtkError("--trials draws its own kernels and features: drop --target, --target-kernel-bits "
+                            "and --candidates")
+        update, finish = _progress(len(power_list), "trials")
+        try:
+            rows = success_rate(power_list, size=size, trials=trials, method=method, seed=seed, weights=w,
+                                progress=update)
+        finally:
+            finish()
+        if plot_path:
+            from .plots import plot_success
+
+            plot_success(rows, plot_path)
+        if as_json:
+            click.echo(json.dumps({"rows": rows}))
+            return
+        click.echo(_table(rows, [("power mW", "power_mw", "g"), ("trials", "trials", "d"),
+                                 ("exact %", "exact_pct", ".1f"), ("shift %", "shift_pct", ".1f"),
+                                 ("recovered %", "recovered_pct", ".1f"), ("median s", "median_s", ".3f"),
+                                 ("max s", "max_s", ".3f"), ("proven %", "proven_pct", ".0f")]))
+        return
+    if bool(target_path) == bool(target_kernel_bits):
+        raise EvtkError("give exactly one of --target and --target-kernel-bits")
+    features = load_patterns(features_path, "features") if features_path else default_features()
+    features = np.asarray(features)
+    if features.ndim == 3:
+        if features.shape[0] != 1:
+            raise EvtkError("recovery takes one features pattern, not a stack")
+        features = features[0]
+    if not np.isin(features, (0, 1)).all():
+        raise EvtkError("features must be binary (0/1) for kernel recovery")
+    bench = Bench(power_mw=power_list[0])
+    true_kernel = None
+    if target_kernel_bits:
+        true_kernel = kernel_from_bits(target_kernel_bits, size)
+        if not true_kernel.any():
+            raise EvtkError("an all-zero target kernel casts no light: nothing to recover")
+        target = device_responses(true_kernel[None], features, bench, seed=seed, noise_seed=seed + 1,
+                                  method="events" if events else "fast")[0]
+    else:
+        target = np.asarray(_load_array(target_path, "target"), dtype=np.float64)
+        if target.ndim == 3 and target.shape[0] == 1:
+            target = target[0]
+        full = (features.shape[0] + size - 1, features.shape[1] + size - 1)
+        if target.shape != full:
+            raise EvtkError(f"target has shape {target.shape}; a {size}x{size} kernel on {features.shape[0]}x"
+                            f"{features.shape[1]} features gives a full response of {full[0]}x{full[1]}")
+    if method == "brute":
+        if candidates_path:
+            cands = _recorded_candidates(candidates_path, size, features)
+        else:
+            cands = device_responses(all_kernels(size), features, bench, seed=seed, noise_seed=seed + 2,
+                                     method="events" if events else "fast")
+        result = recover_brute(target, cands, true_kernel=true_kernel, weights=w)
+        solution = cands[int(np.argmin(result.losses))]
+    else:
+        a_mat = response_matrix(features, size, bench, blurred=True)
+        result = recover_search(target, a_mat, size, true_kernel=true_kernel, weights=w)
+        solution = (result.scale * (a_mat @ result.kernel.ravel())).reshape(target.shape)
+    if plot_path:
+        from .plots import plot_recovery
+
+        plot_recovery(plot_path, features, target, solution, result, true_kernel)
+    out = result.to_dict()
+    if true_kernel is not None:
+        out["target_kernel_bits"] = target_kernel_bits
+    if as_json:
+        click.echo(json.dumps(out))
+        return
+    lines = [f"solution kernel {out['kernel_bits']} ({method}, loss {result.loss:.4g}"
+             + (", proven optimal" if result.proven else ", best found: node budget ran out") + ")"]
+    for row in result.kernel:
+        lines.append("  " + " ".join("#" if v else "." for v in row))
+    if result.status is not None:
+        lines.append(f"against the target kernel {target_kernel_bits}: {result.status}")
+    if result.near:
+        near = ", ".join(f"{b} ({v:.4g})" for b, v in result.near[:5])
+        lines.append(f"within 5 % of the best loss: {near}" + (" ..." if len(result.near) > 5 else ""))
+    lines.append(f"{result.seconds:.3f} s")
+    click.echo("\n".join(lines))
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

@@ -11,7 +11,7 @@ import numpy as np
 
 from .errors import EvtkError
 
-__all__ = ["plot_enob", "plot_flips", "plot_tradeoff"]
+__all__ = ["plot_enob", "plot_flips", "plot_tradeoff", "plot_recovery", "plot_success"]
 
 
 def pyplot():
@@ -109,4 +109,54 @@ def plot_tradeoff(rows, path):
     ax.set_xlabel("device time per capture (us; labels: window/settle)")
     ax.set_ylabel("RMS error / RMS of ideal")
     ax.legend()
+    save_png(fig, path)
+
+
+def plot_recovery(path, features, target_response, solution_response, result, true_kernel=None):
+    """The paper's Fig. 4 for one recovery: features, target kernel and response, solution, loss per candidate."""
+    plt = pyplot()
+    panels = [("input features", features, "gray")]
+    if true_kernel is not None:
+        panels.append(("target kernel", true_kernel, "gray"))
+    panels += [("target response", target_response, "viridis"),
+               (f"solution kernel ({result.status or '?'})", result.kernel, "gray"),
+               ("solution response", solution_response, "viridis")]
+    with_curve = result.losses is not None
+    fig = plt.figure(figsize=(2.3 * len(panels), 4.6 if with_curve else 2.6))
+    grid = fig.add_gridspec(2 if with_curve else 1, len(panels))
+    for i, (title, img, cmap) in enumerate(panels):
+        ax = fig.add_subplot(grid[0, i])
+        ax.imshow(np.asarray(img, dtype=float), cmap=cmap, interpolation="nearest")
+        ax.set_title(title, fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if with_curve:
+        ax = fig.add_subplot(grid[1, :])
+        ax.plot(result.losses, lw=0.6, color="0.3")
+        best = int(np.argmin(result.losses))
+        ax.plot(best, result.losses[best], "o", color="C3", label="solution")
+        ax.set_yscale("log" if np.all(result.losses > 0) else "linear")
+        ax.set_xlabel("candidate kernel (bits as a number)")
+        ax.set_ylabel("loss")
+        ax.legend(fontsize=8)
+    save_png(fig, path)
+
+
+def plot_success(rows, path):
+    """Share of kernels recovered (exactly or up to a shift) against laser power."""
+    if not rows:
+        raise EvtkError("no success rates to plot")
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(5.0, 3.5))
+    by = defaultdict(list)
+    for r in rows:
+        by[(r["size"], r["method"], r.get("weights"))].append((r["power_mw"], r["recovered_pct"], r["exact_pct"]))
+    for (size, method, weights), pts in sorted(by.items(), key=str):
+        pts.sort()
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=f"{size}x{size} {method} ({weights or 'mse'})")
+    ax.set_xscale("log")
+    ax.set_ylim(-3, 103)
+    ax.set_xlabel("laser power (mW)")
+    ax.set_ylabel("recovered, exact or shifted (%)")
+    ax.legend(fontsize=8)
     save_png(fig, path)
