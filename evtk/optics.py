@@ -35,6 +35,7 @@ correlation of kernel and features exactly.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -294,60 +295,60 @@ class Bench:
             object.__setattr__(self, "origin_px", o)
 
     # derived geometry ------------------------------------------------------------
-    @property
+    @functools.cached_property  # fields are frozen: compute once
     def sigma(self) -> float:
         """Optical scaling (eq. 3)."""
         return optical_scaling(self.u_mm, self.z_mm)
 
-    @property
+    @functools.cached_property
     def feature_pitch_um(self) -> float:
         """Feature element pitch ``F_pt`` on the feature DMD."""
         return self.feature_upsample * self.mirror_pitch_um
 
-    @property
+    @functools.cached_property
     def varsigma(self) -> float:
         """Matching kernel upsampling from eq. 4 (a real number)."""
         return software_scaling(self.sigma, self.feature_pitch_um, self.mirror_pitch_um)
 
-    @property
+    @functools.cached_property
     def kernel_mirrors(self) -> int:
         """Mirrors per kernel element actually displayed."""
         if self.kernel_upsample is not None:
             return self.kernel_upsample
         return max(1, int(round(self.varsigma)))
 
-    @property
+    @functools.cached_property
     def k_eff_um(self) -> float:
         """Kernel element extent in the diffuser plane (eq. 2, as displayed)."""
         return self.kernel_mirrors * self.mirror_pitch_um
 
-    @property
+    @functools.cached_property
     def f_eff_um(self) -> float:
         """Feature element extent mapped into the diffuser plane (eq. 2)."""
         return self.sigma * self.feature_pitch_um
 
-    @property
+    @functools.cached_property
     def kernel_step_cells(self) -> float:
         """Shift of the shadow per kernel element, in feature elements (1 when matched)."""
         return self.k_eff_um / self.f_eff_um
 
-    @property
+    @functools.cached_property
     def pixel_cells(self) -> float:
         """Width of one sensor pixel's footprint in feature elements (the stride at decimation 1)."""
         return self.sensor_pitch_um / (shadow_magnification(self.u_mm, self.z_mm) * self.feature_pitch_um)
 
-    @property
+    @functools.cached_property
     def stride_eff(self) -> float:
         """Effective stride in kernel elements per output sample (eq. 6, as displayed)."""
         return effective_stride(self.u_mm, self.z_mm, self.sensor_pitch_um, self.feature_pitch_um,
                                 self.decimation, k_eff_um=self.k_eff_um)
 
-    @property
+    @functools.cached_property
     def min_window_us(self) -> float:
         """Shortest capture window (eq. 7)."""
         return min_capture_window_us(self.kernel_hz, self.features_hz, self.pixel_latency_us)
 
-    @property
+    @functools.cached_property
     def leak(self) -> float:
         """Fraction of light an off mirror passes."""
         return 1.0 / self.dmd_contrast
@@ -515,11 +516,27 @@ def _footprint_cdf(t, a, b, s):
 
 def _axis_weights(pixels, n_cells, k, bench: Bench, origin, psf_cells):
     """W[j, i, n]: share of pixel ``pixels[i]``'s view of kernel element ``j``'s shadow in cell ``n``."""
-    s1 = bench.pixel_cells
-    kappa = bench.kernel_step_cells
-    b = kappa if bench.source_extent == "area" else 0.0
+    pixels = np.asarray(pixels)
+    if pixels.size and np.array_equal(pixels, np.arange(pixels[0], pixels[0] + pixels.size)):
+        # the usual call: a run of pixels; the same geometry recurs for every capture of a run
+        return _axis_weights_run(int(pixels[0]), int(pixels.size), int(n_cells), int(k), bench.pixel_cells,
+                                 bench.kernel_step_cells, bench.source_extent, bool(bench.kernel_flipped),
+                                 float(origin), float(psf_cells))
+    return _axis_weights_of(pixels, n_cells, k, bench.pixel_cells, bench.kernel_step_cells, bench.source_extent,
+                            bench.kernel_flipped, origin, psf_cells)
+
+
+@functools.lru_cache(maxsize=64)
+def _axis_weights_run(p0, n, n_cells, k, s1, kappa, source_extent, flipped, origin, psf_cells):
+    w = _axis_weights_of(np.arange(p0, p0 + n), n_cells, k, s1, kappa, source_extent, flipped, origin, psf_cells)
+    w.setflags(write=False)
+    return w
+
+
+def _axis_weights_of(pixels, n_cells, k, s1, kappa, source_extent, flipped, origin, psf_cells):
+    b = kappa if source_extent == "area" else 0.0
     j = np.arange(k, dtype=np.float64)
-    if bench.kernel_flipped:
+    if flipped:
         j = j[::-1].copy()
     # footprint centre of pixel x for element j: (x - origin) * s1 + (j - (k - 1)) * kappa + 1/2
     centre = (np.asarray(pixels, np.float64)[None, :] - origin) * s1 + (j[:, None] - (k - 1)) * kappa + 0.5

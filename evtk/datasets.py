@@ -1,0 +1,295 @@
+"""Data sets for the binary CNN, built from what is installed or on local disk (never downloaded).
+
+* :func:`face_not_face`: scikit-image's bundled LFW subset (100 faces, 100
+  non-faces); with ``data_dir`` holding Labeled Faces in the Wild
+  (``lfw/<person>/*.jpg``) and CIFAR-10's python pickles
+  (``cifar-10-batches-py/data_batch_*``), the paper's balanced FNF set.
+* :func:`letters_digits`: EMNIST from local IDX files (``data_dir`` with
+  ``emnist-balanced-{train,test}-{images-idx3,labels-idx1}-ubyte[.gz]``);
+  without them a synthetic glyph set rendered from the fonts matplotlib
+  ships, marked ``synthetic`` in every report.
+
+Images are downsampled to ``size`` x ``size`` by area and binarised at their
+own mean to +-1 (int8), as the feature DMD shows them; labels are 0/1.
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+import pickle
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import EvtkError, FormatError
+
+__all__ = ["Dataset", "face_not_face", "letters_digits", "read_idx", "read_cifar_batch", "binarize_images",
+           "load_dataset"]
+
+
+@dataclass
+class Dataset:
+    """A binary classification set of +-1 images.
+
+    ``x_*`` are int8 (n, size, size) in {-1, +1}; ``y_*`` int8 labels in {0, 1}
+    (``classes[1]`` is label 1); ``synthetic`` says the images are not real
+    data; ``source`` says where they came from.
+    """
+
+    name: str
+    x_train: np.ndarray
+    y_train: np.ndarray
+    x_test: np.ndarray
+    y_test: np.ndarray
+    classes: tuple
+    source: str
+    synthetic: bool = False
+
+    def summary(self) -> dict:
+        return {"name": self.name, "train": int(len(self.y_train)), "test": int(len(self.y_test)),
+                "classes": list(self.classes), "source": self.source, "synthetic": self.synthetic,
+                "size": list(self.x_train.shape[1:])}
+
+
+def binarize_images(images, size=16, method="mean"):
+    """Area-downsample grey images to ``size`` x ``size`` and threshold each at its own mean (or Otsu's): +-1 int8."""
+    from skimage.transform import resize
+
+    imgs = np.asarray(images, dtype=np.float64)
+    if imgs.ndim != 3 or imgs.shape[0] == 0:
+        raise EvtkError(f"images must be a non-empty (n, h, w) stack, got shape {imgs.shape}")
+    if not np.all(np.isfinite(imgs)):
+        raise EvtkError("images hold NaN or infinite values")
+    small = np.stack([resize(im, (size, size), anti_aliasing=True, preserve_range=True) for im in imgs])
+    if method == "mean":
+        thr = small.mean(axis=(1, 2), keepdims=True)
+    elif method == "otsu":
+        from skimage.filters import threshold_otsu
+
+        thr = np.array([threshold_otsu(im) if np.ptp(im) > 0 else im.flat[0] for im in small])[:, None, None]
+    else:
+        raise EvtkError(f"binarisation method must be 'mean' or 'otsu', not {method!r}")
+    return np.where(small > thr, 1, -1).astype(np.int8)
+
+
+def _split(x, y, test_fraction, seed):
+    """Stratified split: the same share of each class in the test set."""
+    if not 0 < test_fraction < 1:
+        raise EvtkError(f"test_fraction must be between 0 and 1, not {test_fraction}")
+    rng = np.random.default_rng(seed)
+    test = np.zeros(len(y), bool)
+    for c in np.unique(y):
+        idx = np.flatnonzero(y == c)
+        rng.shuffle(idx)
+        test[idx[: max(1, int(round(test_fraction * idx.size)))]] = True
+    tr, te = np.flatnonzero(~test), np.flatnonzero(test)
+    rng.shuffle(tr)
+    rng.shuffle(te)
+    return x[tr], y[tr], x[te], y[te]
+
+
+# -- file formats -----------------------------------------------------------------------
+
+def _open_maybe_gzip(path):
+    with open(path, "rb") as fh:
+        head = fh.read(2)
+    return gzip.open(path, "rb") if head == b"\x1f\x8b" else open(path, "rb")
+
+
+def read_idx(path):
+    """An IDX file (the MNIST/EMNIST format, optionally gzip-compressed) as a numpy array."""
+    types = {0x08: np.uint8, 0x09: np.int8, 0x0B: ">i2", 0x0C: ">i4", 0x0D: ">f4", 0x0E: ">f8"}
+    try:
+        with _open_maybe_gzip(path) as fh:
+            raw = fh.read()
+    except (OSError, EOFError) as exc:
+        raise FormatError(path, 0, f"cannot read IDX file: {exc}") from None
+    if len(raw) < 4 or raw[0] != 0 or raw[1] != 0 or raw[2] not in types or raw[3] == 0:
+        raise FormatError(path, 0, "not an IDX file (bad magic number)")
+    ndim = raw[3]
+    if len(raw) < 4 + 4 * ndim:
+        raise FormatError(path, 4, "IDX header is truncated")
+    shape = tuple(int.from_bytes(raw[4 + 4 * i: 8 + 4 * i], "big") for i in range(ndim))
+    dtype = np.dtype(types[raw[2]])
+    need = int(np.prod(shape)) * dtype.itemsize
+    body = raw[4 + 4 * ndim:]
+    if len(body) < need:
+        raise FormatError(path, 4 + 4 * ndim + len(body), f"IDX data is truncated: {len(body)} of {need} bytes")
+    return np.frombuffer(body[:need], dtype=dtype).reshape(shape).astype(dtype.newbyteorder("="))
+
+
+def read_cifar_batch(path):
+    """One CIFAR-10 python batch: (images (n, 32, 32) grey float in [0, 1], labels (n,))."""
+    try:
+        with open(path, "rb") as fh:
+            d = pickle.load(fh, encoding="bytes")
+        data = np.asarray(d[b"data"], dtype=np.uint8)
+        labels = np.asarray(d[b"labels"], dtype=np.int64)
+    except (OSError, EOFError, KeyError, pickle.UnpicklingError, TypeError, ValueError) as exc:
+        raise FormatError(path, 0, f"not a CIFAR-10 python batch: {exc}") from None
+    if data.ndim != 2 or data.shape[1] != 3072 or len(labels) != len(data):
+        raise FormatError(path, 0, f"CIFAR-10 batch has data of shape {data.shape} and {len(labels)} labels")
+    rgb = data.reshape(-1, 3, 32, 32).astype(np.float64) / 255.0
+    grey = 0.2125 * rgb[:, 0] + 0.7154 * rgb[:, 1] + 0.0721 * rgb[:, 2]
+    return grey, labels
+
+
+# -- face / not face ---------------------------------------------------------------------
+
+def face_not_face(seed=0, test_fraction=0.3, data_dir=None, size=16, n_per_class=None) -> Dataset:
+    """Faces against non-faces, binarised to ``size`` x ``size``.
+
+    Without ``data_dir``: scikit-image's LFW subset (100 and 100). With it:
+    ``n_per_class`` (default 1000) LFW faces, centre-cropped, against as many
+    CIFAR-10 images, all grey.
+    """
+    if data_dir is None:
+        from skimage import data
+
+        imgs = data.lfw_subset()
+        x = binarize_images(imgs, size)
+        y = np.r_[np.ones(100, np.int8), np.zeros(100, np.int8)]
+        source = "scikit-image lfw_subset (100 faces, 100 non-faces)"
+    else:
+        n = int(n_per_class or 1000)
+        faces = _lfw_faces(os.path.join(data_dir, "lfw"), n, seed)
+        others = _cifar_images(os.path.join(data_dir, "cifar-10-batches-py"), n, seed)
+        x = np.concatenate([binarize_images(faces, size), binarize_images(others, size)])
+        y = np.r_[np.ones(len(faces), np.int8), np.zeros(len(others), np.int8)]
+        source = f"LFW ({len(faces)} faces) and CIFAR-10 ({len(others)} images) from {data_dir}"
+    return Dataset("fnf", *_split(x, y, test_fraction, seed), ("not face", "face"), source)
+
+
+def _lfw_faces(root, n, seed):
+    from skimage import io
+    from skimage.color import rgb2gray
+
+    if not os.path.isdir(root):
+        raise EvtkError(f"no LFW folder at {root} (expected lfw/<person>/*.jpg)")
+    files = sorted(os.path.join(d, f) for d, _, fs in os.walk(root) for f in fs if f.lower().endswith(".jpg"))
+    if not files:
+        raise EvtkError(f"no .jpg images under {root}")
+    rng = np.random.default_rng(seed)
+    pick = rng.permutation(len(files))[:n]
+    out = []
+    for i in pick:
+        try:
+            im = io.imread(files[i])
+        except (OSError, ValueError) as exc:
+            raise FormatError(files[i], 0, f"cannot read image: {exc}") from None
+        im = rgb2gray(im) if im.ndim == 3 else im.astype(np.float64)
+        h, w = im.shape
+        c = min(h, w) // 2  # the face sits in the middle half of an LFW picture
+        out.append(im[h // 2 - c // 2: h // 2 + c // 2, w // 2 - c // 2: w // 2 + c // 2])
+    side = min(min(o.shape) for o in out)
+    from skimage.transform import resize
+
+    return np.stack([resize(o, (side, side), anti_aliasing=True) for o in out])
+
+
+def _cifar_images(root, n, seed):
+    files = sorted(os.path.join(root, f) for f in os.listdir(root) if f.startswith("data_batch")) \
+        if os.path.isdir(root) else []
+    if not files:
+        raise EvtkError(f"no CIFAR-10 python batches (data_batch_*) in {root}")
+    imgs = np.concatenate([read_cifar_batch(f)[0] for f in files])
+    rng = np.random.default_rng(seed + 1)
+    return imgs[rng.permutation(len(imgs))[:n]]
+
+
+# -- letters / digits --------------------------------------------------------------------
+
+def letters_digits(seed=0, test_fraction=0.3, data_dir=None, size=16, n_per_class=300) -> Dataset:
+    """Letters (label 1) against digits (label 0).
+
+    With ``data_dir``: EMNIST "balanced" IDX files (digits are classes 0-9,
+    letters 10-46), ``n_per_class`` of each drawn from the training file.
+    Without: a synthetic set rendered from matplotlib's bundled fonts.
+    """
+    if data_dir is not None:
+        imgs, labels = _emnist(data_dir)
+        rng = np.random.default_rng(seed)
+        digits = rng.permutation(np.flatnonzero(labels < 10))[:n_per_class]
+        letters = rng.permutation(np.flatnonzero(labels >= 10))[:n_per_class]
+        x = binarize_images(imgs[np.r_[digits, letters]].astype(np.float64), size, method="otsu")
+        y = np.r_[np.zeros(len(digits), np.int8), np.ones(len(letters), np.int8)]
+        return Dataset("letters-digits", *_split(x, y, test_fraction, seed), ("digit", "letter"),
+                       f"EMNIST balanced from {data_dir}")
+    x, y = synthetic_glyphs(n_per_class, size, seed)
+    return Dataset("letters-digits", *_split(x, y, test_fraction, seed), ("digit", "letter"),
+                   "synthetic glyphs rendered from matplotlib's bundled fonts (not EMNIST)", synthetic=True)
+
+
+def _emnist(data_dir):
+    for split in ("train", "test"):
+        base = os.path.join(data_dir, f"emnist-balanced-{split}")
+        for ext in ("", ".gz"):
+            img, lab = f"{base}-images-idx3-ubyte{ext}", f"{base}-labels-idx1-ubyte{ext}"
+            if os.path.exists(img) and os.path.exists(lab):
+                x, y = read_idx(img), read_idx(lab)
+                if x.ndim != 3 or y.ndim != 1 or len(x) != len(y):
+                    raise FormatError(img, 0, f"images {x.shape} and labels {y.shape} do not match")
+                return np.transpose(x, (0, 2, 1)), y.astype(np.int64)  # EMNIST stores images transposed
+    raise EvtkError(f"no EMNIST balanced IDX files in {data_dir}")
+
+
+_GLYPH_FONTS = ("DejaVuSans.ttf", "DejaVuSans-Bold.ttf", "DejaVuSerif.ttf", "DejaVuSansMono.ttf",
+                "DejaVuSans-Oblique.ttf", "DejaVuSerif-Bold.ttf")
+
+
+def _glyph_bitmaps(chars, res=48):
+    """High-resolution bitmaps of every (char, font), rendered once with matplotlib's Agg."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.font_manager import FontProperties
+
+    font_dir = os.path.join(os.path.dirname(matplotlib.__file__), "mpl-data", "fonts", "ttf")
+    out = {}
+    for font in _GLYPH_FONTS:
+        prop = FontProperties(fname=os.path.join(font_dir, font), size=res * 1.4)
+        for ch in chars:
+            fig = Figure(figsize=(1, 1), dpi=res)
+            canvas = FigureCanvasAgg(fig)
+            fig.text(0.5, 0.5, ch, fontproperties=prop, ha="center", va="center")
+            canvas.draw()
+            rgba = np.asarray(canvas.buffer_rgba(), dtype=np.float64)
+            out[(ch, font)] = 1.0 - rgba[..., :3].mean(axis=2) / 255.0  # ink = 1
+    return out
+
+
+def synthetic_glyphs(n_per_class, size=16, seed=0):
+    """Letters and digits drawn alike: random font, affine jitter, stroke noise; +-1 images and labels (letter = 1)."""
+    from skimage.transform import AffineTransform, warp
+
+    letters = "ABCDEFGHJKLMNPQRSTUVWXYZabdefghnqrt"
+    digits = "0123456789"
+    bitmaps = _glyph_bitmaps(letters + digits)
+    rng = np.random.default_rng(seed)
+    imgs, labels = [], []
+    for label, chars in ((0, digits), (1, letters)):
+        for _ in range(int(n_per_class)):
+            ch = chars[rng.integers(len(chars))]
+            bm = bitmaps[(ch, _GLYPH_FONTS[rng.integers(len(_GLYPH_FONTS))])]
+            c = np.array(bm.shape[::-1]) / 2.0
+            t = (AffineTransform(translation=-c)
+                 + AffineTransform(scale=rng.uniform(0.8, 1.15, 2), rotation=rng.normal(0, 0.12),
+                                   shear=rng.normal(0, 0.12))
+                 + AffineTransform(translation=c + rng.normal(0, 2.0, 2)))
+            im = warp(bm, t.inverse, order=1, mode="constant")
+            im = im + rng.normal(0, 0.1, im.shape)  # stroke noise
+            imgs.append(im)
+            labels.append(label)
+    return binarize_images(np.stack(imgs), size, method="otsu"), np.asarray(labels, np.int8)
+
+
+def load_dataset(task, seed=0, data_dir=None, test_fraction=0.3) -> Dataset:
+    """``"fnf"`` or ``"letters-digits"``."""
+    if task == "fnf":
+        return face_not_face(seed, test_fraction, data_dir)
+    if task == "letters-digits":
+        return letters_digits(seed, test_fraction, data_dir)
+    raise EvtkError(f"task must be 'fnf' or 'letters-digits', not {task!r}")
