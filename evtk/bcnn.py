@@ -26,7 +26,8 @@ import numpy as np
 
 from .errors import EvtkError
 
-__all__ = ["binary_correlate", "BCNN", "DigitalBackend", "OpticalBackend", "resample_matrix", "bce_loss"]
+__all__ = ["binary_correlate", "BCNN", "DigitalBackend", "OpticalBackend", "resample_matrix", "bce_loss",
+           "poisson_robustness"]
 
 
 @numba.njit(cache=True, inline="always")
@@ -79,6 +80,10 @@ def _xnor_correlate(x, k):
     return out
 
 
+def _plus_minus_one(a):
+    return bool(np.all(np.abs(a) == 1)) if np.issubdtype(a.dtype, np.number) else False
+
+
 def binary_correlate(x, k):
     """Full 2-D correlation of +-1 images with a +-1 kernel, by XNOR and popcount on bit-packed rows.
 
@@ -98,7 +103,7 @@ def binary_correlate(x, k):
         x = x[None]
     if x.ndim != 3 or k.ndim != 2 or x.size == 0 or k.size == 0:
         raise EvtkError(f"binary_correlate takes (n, h, w) images and an (h, w) kernel, not {x.shape} and {k.shape}")
-    if not (np.isin(x, (-1, 1)).all() and np.isin(k, (-1, 1)).all()):
+    if not (_plus_minus_one(x) and _plus_minus_one(k)):
         raise EvtkError("binary_correlate takes +-1 values only")
     if k.shape[0] * (x.shape[2] + 2 * (k.shape[1] - 1)) > 64:
         raise EvtkError(f"{k.shape[0]} rows of {x.shape[2] + 2 * (k.shape[1] - 1)} padded pixels do not fit a "
@@ -255,6 +260,47 @@ def _as_input(x):
     x = np.asarray(x)
     if x.ndim == 3:
         x = x[:, None]
-    if x.ndim != 4 or not np.isin(x, (-1, 1)).all():
+    if x.ndim != 4 or not _plus_minus_one(x):
         raise EvtkError("network inputs must be +-1 images (n, s, s) or (n, c, s, s)")
     return x.astype(np.int8)
+
+
+def poisson_robustness(model: BCNN, x, y, scales, seed=0, target_accuracy=None, backend=None) -> dict:
+    """Fig. 3 (left) and eq. 12: accuracy and flipped pixels with scaled Poisson noise in every layer.
+
+    At noise scale ``s`` each layer's response ``r`` becomes
+    ``sign(r) * s * Poisson(|r| / s)`` (``|r| / s`` photons; ``s = 0`` is
+    noise-free) before batch normalisation and binarisation. Flips are the
+    share of binary activations that differ from the noise-free network's,
+    averaged over layers. The robustness pair (R, r) of eq. 12: ``r`` the
+    accuracy to keep (default the noise-free accuracy minus 5 points) and
+    ``R`` the largest flip percentage among the scales that keep it.
+    """
+    backend = backend if backend is not None else DigitalBackend(model.size)
+    x = _as_input(x)
+    y = np.asarray(y)
+    scales = [float(s) for s in scales]
+    if not scales or any(not np.isfinite(s) or s < 0 for s in scales):
+        raise EvtkError("noise scales must be finite and >= 0")
+    rng = np.random.default_rng(seed)
+    clean_acts, a = [], x
+    for i in range(model.n_layers):
+        a, _, _ = model.layer(backend, a, i, model.thresholds[i])
+        clean_acts.append(a)
+    rows = []
+    for s in scales:
+        a, flips = x, []
+        for i in range(model.n_layers):
+            r = backend.correlate(a, model.kernels[i])
+            if s > 0:
+                r = np.sign(r) * s * rng.poisson(np.abs(r) / s)
+            a = np.where(r >= np.asarray(model.thresholds[i])[None, :, None, None], 1, -1).astype(np.int8)
+            flips.append(float(np.mean(a != clean_acts[i])))
+        s0, s1 = model.scores(a, model.masks[-1])
+        acc = float(np.mean((s1 < s0).astype(np.int8) == y))
+        rows.append({"scale": s, "accuracy": acc, "flip_pct": 100.0 * float(np.mean(flips)),
+                     "flip_pct_per_layer": [100.0 * f for f in flips]})
+    clean = model.accuracy(backend, x, y)
+    r_keep = clean - 0.05 if target_accuracy is None else float(target_accuracy)
+    kept = [row["flip_pct"] for row in rows if row["accuracy"] >= r_keep]
+    return {"rows": rows, "clean_accuracy": clean, "r": r_keep, "R_pct": max(kept) if kept else None}

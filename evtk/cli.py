@@ -727,5 +727,168 @@ def recover(features_path, target_path, target_kernel_bits, size, method, weight
     click.echo("\n".join(lines))
 
 
+def _train(task_data, backend_name, optimizer, steps, temperature, final_temperature, epochs, channels, seed,
+           power_mw=None, progress=None):
+    """One run: a fresh network trained on the data; returns (model, backend, record)."""
+    from .bcnn import BCNN, DigitalBackend, OpticalBackend
+    from .optics import Bench
+    from .optimize import train_layerwise, train_ste
+
+    model = BCNN.random(layers=3, channels=channels, seed=seed)
+    if backend_name == "digital":
+        backend = DigitalBackend()
+    else:
+        backend = OpticalBackend(bench=Bench() if power_mw is None else Bench(power_mw=power_mw), seed=seed)
+    if optimizer == "ste":
+        record = train_ste(model, task_data.x_train, task_data.y_train, epochs=epochs, seed=seed)
+    else:
+        record = train_layerwise(model, backend, task_data.x_train, task_data.y_train, optimizer=optimizer,
+                                 steps=steps, temperature=temperature, final_temperature=final_temperature,
+                                 seed=seed, progress=progress)
+    return model, backend, record
+
+
+def _stats(values):
+    v = np.asarray(values, dtype=np.float64)
+    return {"max": float(v.max()), "min": float(v.min()), "mean": float(v.mean()),
+            "std": float(v.std(ddof=1)) if v.size > 1 else 0.0}
+
+
+_task_options = [
+    click.option("--task", type=click.Choice(["fnf", "letters-digits"]), default="fnf", show_default=True),
+    click.option("--data-dir", type=click.Path(file_okay=False, exists=True),
+                 help="Local LFW + CIFAR-10 (fnf) or EMNIST IDX files (letters-digits); default: bundled/synthetic."),
+    click.option("--optimizer", type=click.Choice(["anneal", "walk", "brute", "ste"]), default="anneal",
+                 show_default=True),
+    click.option("--steps", type=click.IntRange(min=1), default=600, show_default=True,
+                 help="Metropolis steps per layer (anneal, walk)."),
+    click.option("--temperature", type=float, default=None,
+                 help="Start (anneal) or constant (walk) temperature; default 10 (anneal), 5 (walk)."),
+    click.option("--final-temperature", type=float, default=0.01, show_default=True),
+    click.option("--epochs", type=click.IntRange(min=1), default=300, show_default=True, help="STE epochs."),
+    click.option("--channels", type=click.IntRange(min=1), default=1, show_default=True,
+                 help="Kernels per layer (the paper: one)."),
+    click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True),
+]
+
+
+def _with_task_options(f):
+    for opt in reversed(_task_options):
+        f = opt(f)
+    return f
+
+
+@main.command()
+@_with_task_options
+@click.option("--backend", "backend_name", type=click.Choice(["digital", "optical"]), default="optical",
+              show_default=True, help="Exact binary correlations, or every correlation through the simulated device.")
+@click.option("--power-mw", type=float, help="Laser power of the simulated device (optical backend).")
+@click.option("--runs", type=click.IntRange(min=1), default=10, show_default=True)
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), default="evtk-classify", show_default=True,
+              help="Where the per-run curves (runs.json) go.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def classify(task, data_dir, optimizer, steps, temperature, final_temperature, epochs, channels, seed, backend_name,
+             power_mw, runs, out_dir, as_json):
+    """Train the binary CNN several times and report test accuracy (the paper's Tables 2 and 3)."""
+    import os
+    import time
+
+    from .datasets import load_dataset
+
+    if temperature is None:
+        temperature = 5.0 if optimizer == "walk" else 10.0
+    data = load_dataset(task, seed=seed, data_dir=data_dir)
+    per_run = []
+    total = runs * (3 * steps if optimizer in ("anneal", "walk") else 1)
+    update, finish = _progress(total, f"{task} {optimizer} on {backend_name}")
+    t_all = time.perf_counter()
+    try:
+        for r in range(runs):
+            t0 = time.perf_counter()
+            model, backend, record = _train(data, backend_name, optimizer, steps, temperature, final_temperature,
+                                            epochs, channels, seed + r, power_mw, progress=update)
+            per_run.append({
+                "run": r, "seed": seed + r, "seconds": time.perf_counter() - t0,
+                "train_accuracy": model.accuracy(backend, data.x_train, data.y_train),
+                "test_accuracy": model.accuracy(backend, data.x_test, data.y_test),
+                "kernels": [k.tolist() for k in model.kernels], "mask": model.masks[-1].tolist(),
+                "record": record,
+            })
+    finally:
+        finish()
+    seconds = time.perf_counter() - t_all
+    steps_done = sum(run["record"].get("steps", 0) for run in per_run)
+    summary = {
+        "task": task, "data": data.summary(), "backend": backend_name, "optimizer": optimizer, "runs": runs,
+        "steps_per_layer": steps if optimizer in ("anneal", "walk") else None,
+        "temperature": temperature if optimizer in ("anneal", "walk") else None,
+        "test_accuracy": _stats([r["test_accuracy"] for r in per_run]),
+        "train_accuracy": _stats([r["train_accuracy"] for r in per_run]),
+        "seconds": seconds, "steps_per_s": steps_done / seconds if steps_done else None,
+    }
+    os.makedirs(out_dir, exist_ok=True)
+    from .io._atomic import AtomicFile
+
+    with AtomicFile(os.path.join(out_dir, "runs.json")) as fh:
+        fh.write(json.dumps({"summary": summary, "runs": per_run}).encode())
+    summary["curves"] = os.path.join(out_dir, "runs.json")
+    if as_json:
+        click.echo(json.dumps(summary))
+        return
+    note = " (SYNTHETIC glyphs, not EMNIST)" if data.synthetic else ""
+    click.echo(f"{task}{note}: {data.summary()['train']} train / {data.summary()['test']} test images; "
+               f"{optimizer} on the {backend_name} backend, {runs} runs, {seconds:.1f} s")
+    rows = [dict(summary["test_accuracy"], what="test accuracy %"), dict(summary["train_accuracy"],
+                                                                         what="train accuracy %")]
+    pct = lambda key: lambda r: 100 * r[key]  # noqa: E731
+    click.echo(_table(rows, [("", "what", "s"), ("max", pct("max"), ".1f"), ("min", pct("min"), ".1f"),
+                             ("mean", pct("mean"), ".1f"), ("std", pct("std"), ".1f")]))
+    if summary["steps_per_s"]:
+        click.echo(f"{summary['steps_per_s']:.0f} optimisation steps/s; curves in {summary['curves']}")
+
+
+@main.command()
+@_with_task_options
+@click.option("--scales", default="0,0.01,0.03,0.1,0.3,1,3", show_default=True,
+              help="Poisson noise scales (response units per photon; 0 is noise-free).")
+@click.option("--target-accuracy", type=float, help="r of eq. 12 (default: noise-free accuracy minus 0.05).")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Accuracy and flips against noise (PNG).")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def robustness(task, data_dir, optimizer, steps, temperature, final_temperature, epochs, channels, seed, scales,
+               target_accuracy, plot_path, as_json):
+    """Fig. 3 (left) and eq. 12: test accuracy and flipped pixels with scaled Poisson noise in every layer."""
+    from .bcnn import poisson_robustness
+    from .datasets import load_dataset
+
+    if temperature is None:
+        temperature = 5.0 if optimizer == "walk" else 10.0
+    data = load_dataset(task, seed=seed, data_dir=data_dir)
+    model, backend, _ = _train(data, "digital", optimizer, steps, temperature, final_temperature, epochs, channels,
+                               seed)
+    res = poisson_robustness(model, data.x_test, data.y_test, _number_list_zero(scales), seed=seed,
+                             target_accuracy=target_accuracy)
+    if plot_path:
+        from .plots import plot_robustness
+
+        plot_robustness(res, plot_path)
+    if as_json:
+        click.echo(json.dumps(res))
+        return
+    click.echo(_table(res["rows"], [("noise scale", "scale", "g"), ("test accuracy %", lambda r: 100 * r["accuracy"],
+                                                                    ".1f"), ("flipped %", "flip_pct", ".2f")]))
+    big_r = "none" if res["R_pct"] is None else f"{res['R_pct']:.2f} %"
+    click.echo(f"eq. 12: keeping accuracy >= {100 * res['r']:.1f} % tolerates R = {big_r} flipped pixels")
+
+
+def _number_list_zero(text):
+    try:
+        vals = [float(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise EvtkError(f"--scales must be a comma-separated list of numbers, not {text!r}") from None
+    if not vals or any(not np.isfinite(v) or v < 0 for v in vals):
+        raise EvtkError(f"--scales must list numbers >= 0, not {text!r}")
+    return vals
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

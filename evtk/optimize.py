@@ -88,8 +88,7 @@ class _LayerObjective:
         self.kshape = model.kernels[i].shape
         self.n_kernel_bits = int(np.prod(self.kshape))
         self.mask_shape = model.masks[i].shape
-        self._key = None
-        self._act = None
+        self._cache = {}  # kernel bytes -> (activations, thresholds); the current and the last proposal
         self.kernel_evaluations = 0
 
     def split(self, bits):
@@ -98,12 +97,16 @@ class _LayerObjective:
 
     def activations(self, k):
         key = k.tobytes()
-        if key != self._key:
+        if key not in self._cache:
             self.model.kernels[self.i] = k
-            self._act, _, self._thr = self.model.layer(self.backend, self.x, self.i)
-            self._key = key
+            act, _, thr = self.model.layer(self.backend, self.x, self.i)
+            if len(self._cache) >= 4:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[key] = (act, thr)
             self.kernel_evaluations += 1
-        return self._act, self._thr
+        else:  # most recently used last
+            self._cache[key] = self._cache.pop(key)
+        return self._cache[key]
 
     def __call__(self, bits):
         k, mask = self.split(bits)

@@ -11,7 +11,7 @@ import numpy as np
 
 from .errors import EvtkError
 
-__all__ = ["plot_enob", "plot_flips", "plot_tradeoff", "plot_recovery", "plot_success"]
+__all__ = ["plot_enob", "plot_flips", "plot_tradeoff", "plot_recovery", "plot_success", "plot_robustness"]
 
 
 def pyplot():
@@ -159,4 +159,25 @@ def plot_success(rows, path):
     ax.set_xlabel("laser power (mW)")
     ax.set_ylabel("recovered, exact or shifted (%)")
     ax.legend(fontsize=8)
+    save_png(fig, path)
+
+
+def plot_robustness(result, path):
+    """Fig. 3 (left): accuracy and flipped pixels against the Poisson noise scale."""
+    rows = result["rows"]
+    if not rows:
+        raise EvtkError("no noise levels to plot")
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(5.0, 3.5))
+    xs = [r["scale"] for r in rows]
+    ax.plot(xs, [100 * r["accuracy"] for r in rows], "o-", color="C0", label="test accuracy")
+    ax.axhline(100 * result["r"], color="C0", ls=":", lw=0.8)
+    ax.set_ylabel("test accuracy (%)")
+    ax2 = ax.twinx()
+    ax2.plot(xs, [r["flip_pct"] for r in rows], "s--", color="C3", label="flipped pixels")
+    ax2.set_ylabel("flipped pixels (%)")
+    if min(xs) >= 0 and max(xs) > 0 and len([x for x in xs if x > 0]) > 1:
+        ax.set_xscale("symlog", linthresh=min(x for x in xs if x > 0))
+    ax.set_xlabel("Poisson noise scale (response units per photon)")
+    fig.legend(loc="lower left", fontsize=8)
     save_png(fig, path)
