@@ -265,13 +265,13 @@ def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, bi
         click.echo(line)
 
 
-def _number_list(text, name, integer=False):
+def _number_list(text, name, integer=False, allow_zero=False):
     try:
         vals = [float(v) for v in str(text).split(",") if v.strip()]
     except ValueError:
         raise EvtkError(f"{name} must be a comma-separated list of numbers, not {text!r}") from None
-    if not vals or not all(np.isfinite(v) and v > 0 for v in vals):
-        raise EvtkError(f"{name} must list positive numbers, not {text!r}")
+    if not vals or not all(np.isfinite(v) and (v > 0 or (allow_zero and v == 0)) for v in vals):
+        raise EvtkError(f"{name} must list {'numbers >= 0' if allow_zero else 'positive numbers'}, not {text!r}")
     if integer:
         if any(v != int(v) for v in vals):
             raise EvtkError(f"{name} must list whole numbers, not {text!r}")
@@ -338,10 +338,16 @@ _window_options = [
 ]
 
 
-def _with_window_options(f):
-    for opt in reversed(_window_options):
-        f = opt(f)
-    return f
+def _options(opts):
+    """A decorator applying a shared list of click options in order."""
+    def deco(f):
+        for opt in reversed(opts):
+            f = opt(f)
+        return f
+    return deco
+
+
+_with_window_options = _options(_window_options)
 
 
 @main.command()
@@ -772,10 +778,7 @@ _task_options = [
 ]
 
 
-def _with_task_options(f):
-    for opt in reversed(_task_options):
-        f = opt(f)
-    return f
+_with_task_options = _options(_task_options)
 
 
 @main.command()
@@ -865,7 +868,7 @@ def robustness(task, data_dir, optimizer, steps, temperature, final_temperature,
     data = load_dataset(task, seed=seed, data_dir=data_dir)
     model, backend, _ = _train(data, "digital", optimizer, steps, temperature, final_temperature, epochs, channels,
                                seed)
-    res = poisson_robustness(model, data.x_test, data.y_test, _number_list_zero(scales), seed=seed,
+    res = poisson_robustness(model, data.x_test, data.y_test, _number_list(scales, "--scales", allow_zero=True), seed=seed,
                              target_accuracy=target_accuracy)
     if plot_path:
         from .plots import plot_robustness
@@ -878,16 +881,6 @@ def robustness(task, data_dir, optimizer, steps, temperature, final_temperature,
                                                                     ".1f"), ("flipped %", "flip_pct", ".2f")]))
     big_r = "none" if res["R_pct"] is None else f"{res['R_pct']:.2f} %"
     click.echo(f"eq. 12: keeping accuracy >= {100 * res['r']:.1f} % tolerates R = {big_r} flipped pixels")
-
-
-def _number_list_zero(text):
-    try:
-        vals = [float(v) for v in str(text).split(",") if v.strip()]
-    except ValueError:
-        raise EvtkError(f"--scales must be a comma-separated list of numbers, not {text!r}") from None
-    if not vals or any(not np.isfinite(v) or v < 0 for v in vals):
-        raise EvtkError(f"--scales must list numbers >= 0, not {text!r}")
-    return vals
 
 
 if __name__ == "__main__":  # pragma: no cover
