@@ -14,7 +14,27 @@ from .errors import EvtkError
 
 
 class _Group(click.Group):
-    """Turns evtk errors and OS errors into one line on stderr and exit code 1."""
+    """Turns evtk errors and OS errors into one line on stderr and exit code 1; usage errors into one line and 2."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode, **extra)
+        try:
+            rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click.UsageError as exc:
+            where = exc.ctx.command_path if exc.ctx is not None else "evtk"
+            click.echo(f"evtk: error: {exc.format_message()} (see '{where} --help')", err=True)
+            sys.exit(exc.exit_code)
+        except click.ClickException as exc:
+            click.echo(f"evtk: error: {exc.format_message()}", err=True)
+            sys.exit(exc.exit_code)
+        except click.Abort:
+            click.echo("evtk: aborted", err=True)
+            sys.exit(1)
+        except KeyboardInterrupt:
+            click.echo("evtk: interrupted", err=True)
+            sys.exit(130)
+        sys.exit(rv if isinstance(rv, int) else 0)
 
     def invoke(self, ctx):
         try:

@@ -154,3 +154,36 @@ def test_convert_unsorted_needs_sort_flag_for_hdf5(tmp_path):
     assert r.exit_code == 0
     got = evtk.read_events(tmp_path / "u.h5")
     assert got.is_sorted and len(got) == len(ev)
+
+
+@pytest.mark.parametrize("args", [
+    ["info", "{missing}"], ["info", "{junk}"], ["info", "--salvage", "{junk}"], ["info", "{dir}"],
+    ["convert", "{missing}", "{out}.aedat4"], ["convert", "{junk}", "{out}.aedat4"],
+    ["simulate", "--kernel-bits", "12", "-o", "{out}.aedat4"], ["simulate", "--window-us", "0", "-o", "{out}.h5"],
+    ["simulate", "--features", "{missing}", "-o", "{out}.h5"], ["simulate", "--features", "{junk}", "-o", "{out}.h5"],
+    ["simulate", "-o", "{out}.txt"], ["simulate", "--bench", "{junk}", "-o", "{out}.h5"],
+    ["reconstruct", "{missing}", "-o", "{out}.npz"], ["reconstruct", "{junk}", "-o", "{out}.npz"],
+    ["reconstruct", "{junk}", "-o", "{out}.npz", "--size", "4by4"], ["reconstruct"],
+    ["demo", "--out", "{junk}"], ["demo", "--repeat", "1"],
+    ["enob", "{missing}"], ["enob", "{junk}"], ["enob", "{junk}", "--bootstrap", "-1"],
+    ["flips", "{junk}"], ["flips", "--power-mw", "x"], ["flips", "--repeats", "1"],
+    ["tradeoff", "--window-us", "0"], ["tradeoff", "--kernels", "0"], ["tradeoff", "--settle-us", "1.5"],
+    ["recover", "--target-kernel-bits", "12"], ["recover", "--size", "9", "--target-kernel-bits", "1"],
+    ["recover", "--target", "{junk}"], ["recover", "--features", "{junk}", "--target-kernel-bits", "111000111"],
+    ["classify", "--task", "nosuch"], ["classify", "--runs", "0"], ["classify", "--data-dir", "{missing}"],
+    ["robustness", "--scales", "-1"], ["robustness", "--optimizer", "sgd"],
+    ["nosuchcommand"], ["info", "--nosuchflag", "x"],
+])
+def test_every_command_fails_in_one_line(tmp_path, args):
+    """Missing, unreadable or wrong-format files and nonsense parameters: one line, non-zero exit, no traceback."""
+    junk = tmp_path / "junk.aedat4"
+    junk.write_bytes(b"\x00garbage" * 50)
+    fill = {"{missing}": str(tmp_path / "nope" / "missing.aedat4"), "{junk}": str(junk),
+            "{dir}": str(tmp_path), "{out}": str(tmp_path / "out")}
+    argv = [fill.get(a, a.replace("{out}", str(tmp_path / "out"))) for a in args]
+    r = run(*argv)
+    assert r.exit_code in (1, 2), (argv, r.exit_code, r.output)
+    assert "Traceback" not in r.output
+    lines = r.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("evtk: error: "), (argv, r.output)
+    assert not (tmp_path / "out.aedat4").exists() and not (tmp_path / "out.h5").exists()
