@@ -1,0 +1,114 @@
+"""Peak memory against recording size: write, read, convert and reconstruct stream in bounded memory.
+
+    python benchmarks/bench_memory.py                          # 1e7, 1e8 and 1e9 events
+    python benchmarks/bench_memory.py --events 1e7,1e8 --json benchmarks/results/memory.json
+
+For each size a recording is generated lazily (1 M-event chunks of uniform
+events at 20 M events/s on a 320x240 sensor, AEDAT4 with LZ4) and written
+through ``evtk.io.open_writer``; then, each in a fresh process, the peak
+resident memory (``ru_maxrss``) of: writing it; reading every event
+(``iter_events``); converting it to HDF5 (``evtk convert``, streamed); and
+reconstructing it (``reconstruct`` with 50 ms periodic windows over a 64x64
+region, so the output itself stays small). Flat peaks across sizes mean
+memory is bounded by the chunk, not the file. Files go to
+``benchmarks/data`` and are deleted afterwards unless ``--keep``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import time
+from pathlib import Path
+
+from harness import child_runs
+
+HERE = Path(__file__).resolve().parent
+DATA = HERE / "data"
+CHUNK = 1_000_000
+
+
+def _peak_mib():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+
+
+def _child(mode, path, n):
+    import numpy as np
+
+    import evtk
+    from evtk.io import open_writer
+
+    t0 = time.perf_counter()
+    base_mib = _peak_mib()
+    done = 0
+    if mode == "write":
+        rng = np.random.default_rng(0)
+        with open_writer(path, (320, 240), "lz4") as w:
+            t = 0
+            while done < n:
+                m = min(CHUNK, n - done)
+                ts = t + np.sort(rng.integers(0, m // 20, m))  # 20 events per microsecond
+                w.write_events(evtk.Events(ts, rng.integers(0, 320, m).astype(np.uint16),
+                                           rng.integers(0, 240, m).astype(np.uint16),
+                                           rng.integers(0, 2, m).astype(np.uint8), (320, 240)))
+                t += m // 20
+                done += m
+    elif mode == "read":
+        with evtk.open(path) as rec:
+            for chunk in rec.iter_events(chunk_events=CHUNK):
+                done += len(chunk)
+    elif mode == "convert":
+        from click.testing import CliRunner
+
+        from evtk.cli import main
+
+        out = str(path) + ".h5"
+        res = CliRunner().invoke(main, ["convert", str(path), out, "--chunk-events", str(CHUNK)])
+        if res.exit_code != 0:
+            raise SystemExit(res.output)
+        with evtk.open(out) as rec:
+            done = rec.info()["events"]
+        os.unlink(out)
+    elif mode == "reconstruct":
+        from evtk.reconstruct import reconstruct
+
+        with evtk.open(path) as rec:
+            reconstruct(rec, window=("period", 50_000), region=(128, 192, 88, 152), chunk_events=CHUNK,
+                        size=(16, 16))
+            done = rec.info()["events"]  # every event is read; those in the region are counted
+    print(json.dumps({"mode": mode, "events": int(done), "seconds": time.perf_counter() - t0,
+                      "peak_mib": _peak_mib(), "start_mib": base_mib}))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--events", default="1e7,1e8,1e9")
+    ap.add_argument("--keep", action="store_true")
+    ap.add_argument("--json")
+    ap.add_argument("--child", nargs=3, metavar=("MODE", "PATH", "N"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        _child(args.child[0], args.child[1], int(args.child[2]))
+        return
+    DATA.mkdir(exist_ok=True)
+    rows = []
+    print(f"{'events':>13s} {'operation':12s} {'peak RSS MiB':>12s} {'seconds':>8s} {'M events/s':>10s} {'file MB':>8s}")
+    for n in (int(float(v)) for v in args.events.split(",")):
+        path = DATA / f"memory_{n}.aedat4"
+        for mode in ("write", "read", "convert", "reconstruct"):
+            (r,) = child_runs(Path(__file__), ["--child", mode, path, n][1:], repeats=1)
+            r["file_mb"] = path.stat().st_size / 1e6
+            rows.append(r)
+            print(f"{n:13,d} {mode:12s} {r['peak_mib']:12.0f} {r['seconds']:8.1f} "
+                  f"{r['events'] / r['seconds'] / 1e6:10.1f} {r['file_mb']:8.0f}", flush=True)
+        if not args.keep:
+            path.unlink()
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(rows, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
