@@ -120,7 +120,7 @@ def test_writer_killed_at_random_moments(tmp_path, ext):
         assert len(partials) <= 1
         for p in partials:
             r = CliRunner().invoke(main, ["info", "--salvage", "--json", str(p)])
-            if ext == ".aedat4":
+            if ext == ".aedat4" and delay > 0:  # killed before its first bytes reached the disk, it is empty
                 assert r.exit_code == 0, r.output
             if r.exit_code == 0:
                 with evtk.open(p, salvage=True) as rec:
