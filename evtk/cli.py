@@ -370,7 +370,7 @@ def _options(opts):
 _with_window_options = _options(_window_options)
 
 
-@main.command()
+@main.command(short_help="SINAD and effective bits (eq. 8) of every repeated scene.")
 @click.argument("recording", type=click.Path(dir_okay=False, exists=True))
 @_with_window_options
 @click.option("--bootstrap", type=click.IntRange(min=0), default=1000, show_default=True,
@@ -870,7 +870,7 @@ def classify(task, data_dir, optimizer, steps, temperature, final_temperature, e
         click.echo(f"{summary['steps_per_s']:.0f} optimisation steps/s; curves in {summary['curves']}")
 
 
-@main.command()
+@main.command(short_help="Accuracy and flipped pixels under Poisson noise (Fig. 3 left, eq. 12).")
 @_with_task_options
 @click.option("--scales", default="0,0.01,0.03,0.1,0.3,1,3", show_default=True,
               help="Poisson noise scales (response units per photon; 0 is noise-free).")
