@@ -265,7 +265,7 @@ def _as_input(x):
     return x.astype(np.int8)
 
 
-def poisson_robustness(model: BCNN, x, y, scales, seed=0, target_accuracy=None, backend=None) -> dict:
+def poisson_robustness(model: BCNN, x, y, scales, seed=0, target_accuracy=None, backend=None, client=None) -> dict:
     """Fig. 3 (left) and eq. 12: accuracy and flipped pixels with scaled Poisson noise in every layer.
 
     At noise scale ``s`` each layer's response ``r`` becomes
@@ -274,33 +274,40 @@ def poisson_robustness(model: BCNN, x, y, scales, seed=0, target_accuracy=None, 
     share of binary activations that differ from the noise-free network's,
     averaged over layers. The robustness pair (R, r) of eq. 12: ``r`` the
     accuracy to keep (default the noise-free accuracy minus 5 points) and
-    ``R`` the largest flip percentage among the scales that keep it.
+    ``R`` the largest flip percentage among the scales that keep it. Each
+    scale is an independent task seeded by ``(seed, its index)`` (on
+    ``client``'s workers when given).
     """
+    from .cluster import run_tasks
+
     backend = backend if backend is not None else DigitalBackend(model.size)
     x = _as_input(x)
     y = np.asarray(y)
     scales = [float(s) for s in scales]
     if not scales or any(not np.isfinite(s) or s < 0 for s in scales):
         raise EvtkError("noise scales must be finite and >= 0")
-    rng = np.random.default_rng(seed)
-    clean_acts, a = [], x
-    for i in range(model.n_layers):
-        a, _, _ = model.layer(backend, a, i, model.thresholds[i])
-        clean_acts.append(a)
-    rows = []
-    for s in scales:
-        a, flips = x, []
-        for i in range(model.n_layers):
-            r = backend.correlate(a, model.kernels[i])
-            if s > 0:
-                r = np.sign(r) * s * rng.poisson(np.abs(r) / s)
-            a = np.where(r >= np.asarray(model.thresholds[i])[None, :, None, None], 1, -1).astype(np.int8)
-            flips.append(float(np.mean(a != clean_acts[i])))
-        s0, s1 = model.scores(a, model.masks[-1])
-        acc = float(np.mean((s1 < s0).astype(np.int8) == y))
-        rows.append({"scale": s, "accuracy": acc, "flip_pct": 100.0 * float(np.mean(flips)),
-                     "flip_pct_per_layer": [100.0 * f for f in flips]})
+    rows = run_tasks(_noisy_inference, [(model, backend, x, y, s, seed, i) for i, s in enumerate(scales)], client)
     clean = model.accuracy(backend, x, y)
     r_keep = clean - 0.05 if target_accuracy is None else float(target_accuracy)
     kept = [row["flip_pct"] for row in rows if row["accuracy"] >= r_keep]
     return {"rows": rows, "clean_accuracy": clean, "r": r_keep, "R_pct": max(kept) if kept else None}
+
+
+def _noisy_inference(args):
+    model, backend, x, y, s, seed, index = args
+    rng = np.random.default_rng([seed, index])
+    a_clean = a = x
+    flips = []
+    for i in range(model.n_layers):
+        thr = np.asarray(model.thresholds[i])[None, :, None, None]
+        r_clean = backend.correlate(a_clean, model.kernels[i])
+        a_clean = np.where(r_clean >= thr, 1, -1).astype(np.int8)
+        r = backend.correlate(a, model.kernels[i])
+        if s > 0:
+            r = np.sign(r) * s * rng.poisson(np.abs(r) / s)
+        a = np.where(r >= thr, 1, -1).astype(np.int8)
+        flips.append(float(np.mean(a != a_clean)))
+    s0, s1 = model.scores(a, model.masks[-1])
+    acc = float(np.mean((s1 < s0).astype(np.int8) == y))
+    return {"scale": s, "accuracy": acc, "flip_pct": 100.0 * float(np.mean(flips)),
+            "flip_pct_per_layer": [100.0 * f for f in flips]}

@@ -350,6 +350,11 @@ def _reconstructed(path, window_spec, skip_us, length_us):
     return result, power
 
 
+_scheduler_option = click.option(
+    "--scheduler", "scheduler_spec", default=None,
+    help="Where independent tasks run: serial, local[:N] (a local Dask cluster) or tcp://HOST:PORT; "
+         "default local with Dask installed, else serial.")
+
 _window_options = [
     click.option("--window", "window_spec", default="schedule", show_default=True,
                  help="schedule, triggers or period:US (without a schedule every window is a repeat of one scene)."),
@@ -424,9 +429,10 @@ def _inf_if_free(row, key):
               help="Without recordings: capture window.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Flip rate against power as a PNG.")
+@_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeats, window_us, seed, plot_path,
-          as_json):
+          scheduler_spec, as_json):
     """Pixels whose binarised response flips between repeats, per kernel and light power.
 
     With RECORDINGS: each is reconstructed (16x16, sign) and its scenes
@@ -450,10 +456,13 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
         power_list = _number_list(powers, "--power-mw")
         kernels = random_kernels(n_kernels, seed=seed)
         features = np.where(default_features() > 0, 1, -1)
+        from .cluster import scheduler
+
         update, finish = _progress(len(power_list), "sweeping power")
         try:
-            rows = flip_sweep(power_list, kernels, features, repeats=repeats, window_us=window_us, seed=seed,
-                              progress=update)
+            with scheduler(scheduler_spec) as client:
+                rows = flip_sweep(power_list, kernels, features, repeats=repeats, window_us=window_us, seed=seed,
+                                  progress=update, client=client)
         finally:
             finish()
         x_key = "power_mw"
@@ -489,8 +498,10 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--fast", is_flag=True, help="Time the reconstruction from counts instead of from a written recording.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Work-precision plot as a PNG.")
+@_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def tradeoff(windows, powers, settles, decimations, n_kernels, repeats, seed, fast, plot_path, as_json):
+def tradeoff(windows, powers, settles, decimations, n_kernels, repeats, seed, fast, plot_path, scheduler_spec,
+             as_json):
     """Error, ENOB and flips against time per capture on the simulated bench (Pareto front marked *)."""
     from .simulate import default_features
     from .sweeps import random_kernels, tradeoff as run_tradeoff
@@ -500,11 +511,14 @@ def tradeoff(windows, powers, settles, decimations, n_kernels, repeats, seed, fa
     z = _number_list(settles, "--settle-us", integer=True) if settles else None
     d = _number_list(decimations, "--decimation", integer=True) if decimations else None
     n_settings = len(w) * (len(p) if p else 1) * (len(z) if z else 1) * (len(d) if d else 1)
+    from .cluster import scheduler
+
     update, finish = _progress(n_settings, "sweeping")
     try:
-        rows = run_tradeoff(w, random_kernels(n_kernels, seed=seed), np.where(default_features() > 0, 1, -1),
-                            powers_mw=p, settles_us=z, decimations=d, repeats=repeats, seed=seed,
-                            time_events=not fast, progress=update)
+        with scheduler(scheduler_spec) as client:
+            rows = run_tradeoff(w, random_kernels(n_kernels, seed=seed), np.where(default_features() > 0, 1, -1),
+                                powers_mw=p, settles_us=z, decimations=d, repeats=repeats, seed=seed,
+                                time_events=not fast, progress=update, client=client)
     finally:
         finish()
     if plot_path:
@@ -658,9 +672,10 @@ def _recorded_candidates(path, size, features):
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False),
               help="PNG: Fig. 4 for one recovery, success against power for --trials.")
+@_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def recover(features_path, target_path, target_kernel_bits, size, method, weights, candidates_path, events, powers,
-            trials, seed, plot_path, as_json):
+            trials, seed, plot_path, scheduler_spec, as_json):
     """Find the binary kernel behind a captured response (paper 4.4), or measure how often that works."""
     from .optics import Bench
     from .recover import (all_kernels, device_responses, kernel_from_bits, recover_brute, recover_search,
@@ -674,10 +689,13 @@ def recover(features_path, target_path, target_kernel_bits, size, method, weight
         if target_path or target_kernel_bits or candidates_path:
             raise EvtkError("--trials draws its own kernels and features: drop --target, --target-kernel-bits "
                             "and --candidates")
+        from .cluster import scheduler
+
         update, finish = _progress(len(power_list), "trials")
         try:
-            rows = success_rate(power_list, size=size, trials=trials, method=method, seed=seed, weights=w,
-                                progress=update)
+            with scheduler(scheduler_spec) as client:
+                rows = success_rate(power_list, size=size, trials=trials, method=method, seed=seed, weights=w,
+                                    progress=update, client=client)
         finally:
             finish()
         if plot_path:
@@ -774,6 +792,20 @@ def _train(task_data, backend_name, optimizer, steps, temperature, final_tempera
     return model, backend, record
 
 
+def _classify_run(args):
+    """One training run of ``evtk classify`` (a task: everything it needs is in ``args``)."""
+    import time
+
+    data, backend_name, optimizer, steps, temperature, final_temperature, epochs, channels, run_seed, power_mw, r = args
+    t0 = time.perf_counter()
+    model, backend, record = _train(data, backend_name, optimizer, steps, temperature, final_temperature, epochs,
+                                    channels, run_seed, power_mw)
+    return {"run": r, "seed": run_seed, "seconds": time.perf_counter() - t0,
+            "train_accuracy": model.accuracy(backend, data.x_train, data.y_train),
+            "test_accuracy": model.accuracy(backend, data.x_test, data.y_test),
+            "kernels": [k.tolist() for k in model.kernels], "mask": model.masks[-1].tolist(), "record": record}
+
+
 def _stats(values):
     v = np.asarray(values, dtype=np.float64)
     return {"max": float(v.max()), "min": float(v.min()), "mean": float(v.mean()),
@@ -809,9 +841,10 @@ _with_task_options = _options(_task_options)
 @click.option("--runs", type=click.IntRange(min=1), default=10, show_default=True)
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default="evtk-classify", show_default=True,
               help="Where the per-run curves (runs.json) go.")
+@_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def classify(task, data_dir, optimizer, steps, temperature, final_temperature, epochs, channels, seed, backend_name,
-             power_mw, runs, out_dir, as_json):
+             power_mw, runs, out_dir, scheduler_spec, as_json):
     """Train the binary CNN several times and report test accuracy (the paper's Tables 2 and 3)."""
     import os
     import time
@@ -821,22 +854,15 @@ def classify(task, data_dir, optimizer, steps, temperature, final_temperature, e
     if temperature is None:
         temperature = 5.0 if optimizer == "walk" else 10.0
     data = load_dataset(task, seed=seed, data_dir=data_dir)
-    per_run = []
-    total = runs * (3 * steps if optimizer in ("anneal", "walk") else 1)
-    update, finish = _progress(total, f"{task} {optimizer} on {backend_name}")
+    from .cluster import run_tasks, scheduler
+
+    update, finish = _progress(runs, f"{task} {optimizer} on {backend_name}")
     t_all = time.perf_counter()
+    tasks = [(data, backend_name, optimizer, steps, temperature, final_temperature, epochs, channels, seed + r,
+              power_mw, r) for r in range(runs)]
     try:
-        for r in range(runs):
-            t0 = time.perf_counter()
-            model, backend, record = _train(data, backend_name, optimizer, steps, temperature, final_temperature,
-                                            epochs, channels, seed + r, power_mw, progress=update)
-            per_run.append({
-                "run": r, "seed": seed + r, "seconds": time.perf_counter() - t0,
-                "train_accuracy": model.accuracy(backend, data.x_train, data.y_train),
-                "test_accuracy": model.accuracy(backend, data.x_test, data.y_test),
-                "kernels": [k.tolist() for k in model.kernels], "mask": model.masks[-1].tolist(),
-                "record": record,
-            })
+        with scheduler(scheduler_spec) as client:
+            per_run = run_tasks(_classify_run, tasks, client, update)
     finally:
         finish()
     seconds = time.perf_counter() - t_all
@@ -876,9 +902,10 @@ def classify(task, data_dir, optimizer, steps, temperature, final_temperature, e
               help="Poisson noise scales (response units per photon; 0 is noise-free).")
 @click.option("--target-accuracy", type=float, help="r of eq. 12 (default: noise-free accuracy minus 0.05).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Accuracy and flips against noise (PNG).")
+@_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def robustness(task, data_dir, optimizer, steps, temperature, final_temperature, epochs, channels, seed, scales,
-               target_accuracy, plot_path, as_json):
+               target_accuracy, plot_path, scheduler_spec, as_json):
     """Fig. 3 (left) and eq. 12: test accuracy and flipped pixels with scaled Poisson noise in every layer."""
     from .bcnn import poisson_robustness
     from .datasets import load_dataset
@@ -888,8 +915,11 @@ def robustness(task, data_dir, optimizer, steps, temperature, final_temperature,
     data = load_dataset(task, seed=seed, data_dir=data_dir)
     model, backend, _ = _train(data, "digital", optimizer, steps, temperature, final_temperature, epochs, channels,
                                seed)
-    res = poisson_robustness(model, data.x_test, data.y_test, _number_list(scales, "--scales", allow_zero=True), seed=seed,
-                             target_accuracy=target_accuracy)
+    from .cluster import scheduler
+
+    with scheduler(scheduler_spec) as client:
+        res = poisson_robustness(model, data.x_test, data.y_test, _number_list(scales, "--scales", allow_zero=True),
+                                 seed=seed, target_accuracy=target_accuracy, client=client)
     if plot_path:
         from .plots import plot_robustness
 
@@ -901,6 +931,61 @@ def robustness(task, data_dir, optimizer, steps, temperature, final_temperature,
                                                                     ".1f"), ("flipped %", "flip_pct", ".2f")]))
     big_r = "none" if res["R_pct"] is None else f"{res['R_pct']:.2f} %"
     click.echo(f"eq. 12: keeping accuracy >= {100 * res['r']:.1f} % tolerates R = {big_r} flipped pixels")
+
+
+@main.group()
+def batch():
+    """Run a command over many recordings (one task each, resumable, with a manifest)."""
+
+
+@batch.command("reconstruct")
+@click.argument("inputs", nargs=-1, required=True)
+@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Folder for the outputs and batch.json.")
+@_with_window_options
+@click.option("--size", default="16x16", show_default=True, help="Size of each response, ROWSxCOLS.")
+@click.option("--binarize", "binarize_method", default="sign", show_default=True)
+@click.option("--linearize/--counts", default=True, show_default=True)
+@click.option("--crop", type=click.Choice(["valid", "full"]), default="valid", show_default=True)
+@click.option("--format", "fmt", type=click.Choice(["h5", "npz"]), default="h5", show_default=True)
+@click.option("--force", is_flag=True, help="Redo inputs whose output exists.")
+@_scheduler_option
+@click.option("--json", "as_json", is_flag=True, help="Print the manifest as one JSON object.")
+def batch_reconstruct_cmd(inputs, out_dir, window_spec, skip_us, length_us, size, binarize_method, linearize, crop,
+                          fmt, force, scheduler_spec, as_json):
+    """Reconstruct every recording in INPUTS (files, folders, glob patterns) into OUT.
+
+    Exit status 1 when any input failed; the others are still done, and
+    batch.json says what happened to each.
+    """
+    from .batch import batch_reconstruct
+    from .cluster import scheduler
+
+    if binarize_method not in ("sign", "mean", "otsu"):
+        try:
+            binarize_method = float(binarize_method)
+        except ValueError:
+            raise EvtkError(f"--binarize must be sign, mean, otsu or a number, not {binarize_method!r}") from None
+    options = {"window": _parse_window(window_spec), "skip_us": skip_us, "length_us": length_us,
+               "size": _parse_size(size), "binarize_method": binarize_method, "linear": linearize, "crop": crop}
+    update, finish = _progress(len(inputs), "batch")
+    try:
+        with scheduler(scheduler_spec) as client:
+            manifest = batch_reconstruct(inputs, out_dir, options, fmt=fmt, client=client, progress=update,
+                                         force=force)
+    finally:
+        finish()
+    c = manifest["counts"]
+    if as_json:
+        click.echo(json.dumps(manifest))
+    else:
+        click.echo(f"{c['ok']} reconstructed, {c['skipped']} already done, {c['error']} failed "
+                   f"({manifest['seconds']:.1f} s); manifest: {out_dir}/batch.json")
+        for e in manifest["inputs"]:
+            if e["status"] == "error":
+                click.echo(f"  failed: {e['input']}: {e['error']}")
+    if c["error"]:
+        sys.exit(1)
 
 
 if __name__ == "__main__":  # pragma: no cover

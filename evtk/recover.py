@@ -458,7 +458,7 @@ def device_responses(kernels, features, bench=None, sensor=None, seed=0, noise_s
 
 
 def success_rate(powers_mw, size=3, trials=100, method=None, bench=None, sensor=None, features_shape=(16, 16),
-                 seed=0, weights="relative", progress=None) -> list:
+                 seed=0, weights="relative", progress=None, client=None) -> list:
     """Share of random (kernel, features) trials recovered exactly or up to a shift, per laser power.
 
     Each trial draws a random non-zero binary kernel and random binary
@@ -470,7 +470,8 @@ def success_rate(powers_mw, size=3, trials=100, method=None, bench=None, sensor=
     relatively. Returns one row per power:
     ``power_mw``, ``trials``, ``exact_pct``, ``shift_pct``, ``recovered_pct``,
     ``median_s``/``max_s`` per recovery (target capture excluded),
-    ``proven_pct``.
+    ``proven_pct``. Trials run as independent tasks (on ``client``'s
+    workers when given).
     """
     from .optics import Bench
 
@@ -479,31 +480,25 @@ def success_rate(powers_mw, size=3, trials=100, method=None, bench=None, sensor=
     if method not in ("brute", "search"):
         raise EvtkError(f"method must be 'brute' or 'search', not {method!r}")
     bench = bench if bench is not None else Bench()
+    from .cluster import run_tasks
+
     rows = []
     for pi, p in enumerate(powers_mw):
         if not (np.isfinite(p) and p > 0):
             raise EvtkError(f"power must be positive, not {p!r}")
         b = bench.replace(power_mw=float(p))
         rng = np.random.default_rng([seed, pi])
-        status, secs, proven = [], [], []
-        cands = all_kernels(s) if method == "brute" else None
-        for t in range(int(trials)):
+        tasks = []
+        for _ in range(int(trials)):  # every trial's draws come from the run's seed, in order
             k = np.zeros(s * s, np.int8)
             while not k.any():
                 k = (rng.random(s * s) < 0.5).astype(np.int8)
-            k = k.reshape(s, s)
             f = (rng.random(features_shape) < 0.5).astype(np.int8)
-            noise = int(rng.integers(2**31 - 1))
-            target = device_responses(k[None], f, b, sensor, seed=seed, noise_seed=noise)[0]
-            t0 = time.perf_counter()
-            if method == "brute":
-                resp = device_responses(cands, f, b, sensor, seed=seed, noise_seed=noise + 1)
-                rec = recover_brute(target, resp, true_kernel=k, weights=weights)
-            else:
-                rec = recover_search(target, response_matrix(f, s, b, blurred=True), s, true_kernel=k, weights=weights)
-            secs.append(time.perf_counter() - t0)
-            status.append(rec.status)
-            proven.append(rec.proven)
+            tasks.append((k.reshape(s, s), f, int(rng.integers(2**31 - 1)), b, sensor, seed, method, weights))
+        results = run_tasks(_recovery_trial, tasks, client)
+        status = [r[0] for r in results]
+        secs = [r[1] for r in results]
+        proven = [r[2] for r in results]
         n = len(status)
         rows.append({"power_mw": float(p), "size": s, "method": method, "weights": weights, "trials": n,
                      "exact_pct": 100.0 * status.count("exact") / n, "shift_pct": 100.0 * status.count("shift") / n,
@@ -513,3 +508,17 @@ def success_rate(powers_mw, size=3, trials=100, method=None, bench=None, sensor=
         if progress is not None:
             progress(1)
     return rows
+
+
+def _recovery_trial(args):
+    """One trial of :func:`success_rate`: (status, seconds, proven)."""
+    k, f, noise, b, sensor, seed, method, weights = args
+    s = k.shape[0]
+    target = device_responses(k[None], f, b, sensor, seed=seed, noise_seed=noise)[0]
+    t0 = time.perf_counter()
+    if method == "brute":
+        resp = device_responses(all_kernels(s), f, b, sensor, seed=seed, noise_seed=noise + 1)
+        rec = recover_brute(target, resp, true_kernel=k, weights=weights)
+    else:
+        rec = recover_search(target, response_matrix(f, s, b, blurred=True), s, true_kernel=k, weights=weights)
+    return rec.status, time.perf_counter() - t0, rec.proven

@@ -106,7 +106,7 @@ def _positive_list(values, name):
 
 
 def flip_sweep(powers_mw, kernels, features, repeats=10, bench=None, sensor=None, window_us=1000, seed=0,
-               progress=None) -> list:
+               progress=None, client=None) -> list:
     """Flip rates against laser power (the paper's Fig. 3, right), on the simulated bench.
 
     For each power, every kernel is paired with ``features`` and captured
@@ -114,26 +114,32 @@ def flip_sweep(powers_mw, kernels, features, repeats=10, bench=None, sensor=None
     16x16 sign-binarised responses are compared between repeats. Returns
     one row per (power, kernel): ``power_mw``, ``kernel_id``,
     ``pairwise_pct``, ``majority_pct``, ``enob_bits`` (None when noise-free),
-    ``correlation``.
+    ``correlation``. Powers run as independent tasks (on ``client``'s
+    workers when given; :mod:`evtk.cluster`).
     """
+    from .cluster import run_tasks
     from .optics import Bench
 
     powers = _positive_list(powers_mw, "powers_mw")
     if int(repeats) < 2:
         raise EvtkError("a flip rate needs at least two repeats")
     bench = bench if bench is not None else Bench()
+    tasks = [(p, j, np.asarray(kernels), np.asarray(features), int(repeats), bench, sensor, window_us, seed)
+             for j, p in enumerate(powers)]
+    return [row for rows in run_tasks(_flip_task, tasks, client, progress) for row in rows]
+
+
+def _flip_task(args):
+    p, j, kernels, features, repeats, bench, sensor, window_us, seed = args
+    result, _ = simulated_reconstruction(kernels, features, bench.replace(power_mw=p), sensor, window_us, repeats,
+                                         seed=seed, noise_seed=seed * 1000 + j + 1)
     rows = []
-    for j, p in enumerate(powers):
-        result, _ = simulated_reconstruction(kernels, features, bench.replace(power_mw=p), sensor, window_us,
-                                             int(repeats), seed=seed, noise_seed=seed * 1000 + j + 1)
-        for scene in scene_noise(result, bootstrap=0):
-            s = scene["sinad"]
-            rows.append({"power_mw": p, "kernel_id": scene["kernel_id"],
-                         "pairwise_pct": scene["flips"].pairwise_pct, "majority_pct": scene["flips"].majority_pct,
-                         "enob_bits": None if s is None or s.noise_free else s.enob_bits,
-                         "correlation": scene["error"]["correlation"]})
-        if progress is not None:
-            progress(1)
+    for scene in scene_noise(result, bootstrap=0):
+        s = scene["sinad"]
+        rows.append({"power_mw": p, "kernel_id": scene["kernel_id"],
+                     "pairwise_pct": scene["flips"].pairwise_pct, "majority_pct": scene["flips"].majority_pct,
+                     "enob_bits": None if s is None or s.noise_free else s.enob_bits,
+                     "correlation": scene["error"]["correlation"]})
     return rows
 
 
@@ -157,7 +163,7 @@ def pareto_front(cost, error):
 
 
 def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, decimations=None, repeats=10,
-             bench=None, sensor=None, seed=0, time_events=True, progress=None) -> list:
+             bench=None, sensor=None, seed=0, time_events=True, progress=None, client=None) -> list:
     """Error against run time over capture windows (and powers, settle times, decimations) on the simulated bench.
 
     Each setting is simulated ``repeats`` times per (kernel, features), with
@@ -173,10 +179,11 @@ def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, dec
     :func:`~evtk.reconstruct.reconstruct_counts` instead), the error of the
     responses against the ideal (``nrmse``, ``correlation``), ``enob_bits``
     and ``flip_pct`` (pairwise), averaged over scenes, and ``pareto`` (not
-    beaten in both device time and NRMSE by another setting).
+    beaten in both device time and NRMSE by another setting). Settings run
+    as independent tasks (on ``client``'s workers when given); each times
+    its reconstruction after a warm-up in its own process.
     """
     from .optics import Bench
-    from .reconstruct import reconstruct, reconstruct_counts
 
     windows = _positive_list(windows_us, "windows_us")
     bench = bench if bench is not None else Bench()
@@ -189,9 +196,32 @@ def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, dec
                             f"e_min = {bench.min_window_us:g} us")
     settles = [None] if settles_us is None else _positive_list(settles_us, "settles_us")
     decs = [bench.decimation] if decimations is None else [int(d) for d in _positive_list(decimations, "decimations")]
-    from .io import open as open_recording
+    from .cluster import run_tasks
 
-    def compute_time(result, sim):
+    settings = [(p, w, z, d) for p in powers for w in windows for z in settles for d in decs]
+    tasks = [(i, p, w, z, d, np.asarray(kernels), np.asarray(features), int(repeats), bench, sensor, seed,
+              time_events) for i, (p, w, z, d) in enumerate(settings)]
+    rows = run_tasks(_tradeoff_task, tasks, client, progress)
+    err = np.array([r["nrmse"] if r["nrmse"] is not None else np.inf for r in rows])
+    finite = np.isfinite(err)
+    front = np.zeros(len(rows), bool)
+    if finite.any():
+        front[finite] = pareto_front(np.array([r["device_us_per_capture"] for r in rows])[finite], err[finite])
+    for r, f in zip(rows, front):
+        r["pareto"] = bool(f)
+    return rows
+
+
+def _tradeoff_task(args):
+    from .io import open as open_recording
+    from .reconstruct import reconstruct, reconstruct_counts
+
+    i, p, w, z, d, kernels, features, repeats, bench, sensor, seed, time_events = args
+    b = bench.replace(power_mw=p, decimation=d)
+    result, sim = simulated_reconstruction(kernels, features, b, sensor, int(w), repeats, seed=seed,
+                                           noise_seed=seed * 1000 + i + 1, settle_us=None if z is None else int(z))
+
+    def compute_time():
         if not time_events:
             t0 = time.perf_counter()
             reconstruct_counts(result.counts, sim.metadata()["simulation"])
@@ -204,38 +234,20 @@ def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, dec
                 reconstruct(rec)
                 return time.perf_counter() - t0
 
-    rows = []
-    settings = [(p, w, z, d) for p in powers for w in windows for z in settles for d in decs]
-    for i, (p, w, z, d) in enumerate(settings):
-        b = bench.replace(power_mw=p, decimation=d)
-        result, sim = simulated_reconstruction(kernels, features, b, sensor, int(w), int(repeats), seed=seed,
-                                               noise_seed=seed * 1000 + i + 1,
-                                               settle_us=None if z is None else int(z))
-        n_cap = len(sim.schedule)
-        if i == 0:
-            compute_time(result, sim)  # warm-up: JIT caches, the count curve, imports
-        compute_s = compute_time(result, sim)
-        scenes = scene_noise(result, bootstrap=0)
-        enobs = [s["sinad"].enob_bits for s in scenes if s["sinad"] is not None and not s["sinad"].noise_free]
-        rows.append({
-            "power_mw": p, "window_us": int(w), "settle_us": int(sim.settle_us), "decimation": int(d),
-            "device_us_per_capture": float(sim.window_us + sim.settle_us),
-            "compute_us_per_capture": 1e6 * compute_s / n_cap,
-            "captures": n_cap,
-            "nrmse": _mean_defined([s["error"]["nrmse"] for s in scenes]),
-            "nrmse_range": _mean_defined([s["error"]["nrmse_range"] for s in scenes]),
-            "correlation": _mean_defined([s["error"]["correlation"] for s in scenes]),
-            "enob_bits": float(np.mean(enobs)) if enobs else None,
-            "noise_free": not enobs,
-            "flip_pct": float(np.mean([s["flips"].pairwise_pct for s in scenes])),
-        })
-        if progress is not None:
-            progress(1)
-    err = np.array([r["nrmse"] if r["nrmse"] is not None else np.inf for r in rows])
-    finite = np.isfinite(err)
-    front = np.zeros(len(rows), bool)
-    if finite.any():
-        front[finite] = pareto_front(np.array([r["device_us_per_capture"] for r in rows])[finite], err[finite])
-    for r, f in zip(rows, front):
-        r["pareto"] = bool(f)
-    return rows
+    compute_time()  # warm-up: JIT caches, the count curve, imports (in this process)
+    compute_s = compute_time()
+    n_cap = len(sim.schedule)
+    scenes = scene_noise(result, bootstrap=0)
+    enobs = [s["sinad"].enob_bits for s in scenes if s["sinad"] is not None and not s["sinad"].noise_free]
+    return {
+        "power_mw": p, "window_us": int(w), "settle_us": int(sim.settle_us), "decimation": int(d),
+        "device_us_per_capture": float(sim.window_us + sim.settle_us),
+        "compute_us_per_capture": 1e6 * compute_s / n_cap,
+        "captures": n_cap,
+        "nrmse": _mean_defined([s["error"]["nrmse"] for s in scenes]),
+        "nrmse_range": _mean_defined([s["error"]["nrmse_range"] for s in scenes]),
+        "correlation": _mean_defined([s["error"]["correlation"] for s in scenes]),
+        "enob_bits": float(np.mean(enobs)) if enobs else None,
+        "noise_free": not enobs,
+        "flip_pct": float(np.mean([s["flips"].pairwise_pct for s in scenes])),
+    }

@@ -15,6 +15,9 @@ if os.environ.get("CI"):
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 
+# commands that fan out run serially in the tests unless a test asks for a cluster (test_cluster.py)
+os.environ.setdefault("EVTK_SCHEDULER", "serial")
+
 
 def random_events(n, seed=0, sensor_size=(320, 240), t0=0, span_us=1_000_000, sort=True):
     rng = np.random.default_rng(seed)

@@ -1,0 +1,106 @@
+"""Where work runs: serially, on a local Dask cluster, or on a running Dask scheduler.
+
+Every command that fans out takes ``--scheduler``:
+
+* ``serial``: one task after another in this process (the default without Dask);
+* ``local`` or ``local:N``: a ``dask.distributed.LocalCluster`` of N worker
+  processes (default: one per core), started and stopped by evtk (the
+  default with Dask installed, ``pip install 'evtk[cluster]'``);
+* ``tcp://HOST:PORT``: an existing ``dask scheduler`` with its workers.
+
+Without ``--scheduler`` the environment variable ``EVTK_SCHEDULER`` decides
+(so a lab can point unchanged scripts at its cluster), then the default above.
+
+In the library, functions that fan out take an optional ``client`` (a
+``distributed.Client``); :func:`run_tasks` is what they share. Tasks are
+module-level functions of explicit arguments, seeded from the run's seed and
+the task's index, so results equal a serial run's whatever the worker.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+
+from .errors import EvtkError
+
+__all__ = ["dask_available", "default_scheduler", "scheduler", "run_tasks"]
+
+CONNECT_TIMEOUT_S = 5
+
+
+def dask_available() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("distributed") is not None
+
+
+def default_scheduler() -> str:
+    """``$EVTK_SCHEDULER`` if set, else local with Dask installed, else serial."""
+    env = os.environ.get("EVTK_SCHEDULER", "").strip()
+    if env:
+        return env
+    return "local" if dask_available() else "serial"
+
+
+@contextlib.contextmanager
+def scheduler(spec=None):
+    """A ``distributed.Client`` for ``spec`` (None for serial), closed on exit."""
+    spec = default_scheduler() if spec in (None, "") else str(spec)
+    if spec == "serial":
+        yield None
+        return
+    if not (spec == "local" or spec.startswith("local:") or spec.startswith("tcp://")):
+        raise EvtkError(f"--scheduler must be serial, local, local:N or tcp://HOST:PORT, not {spec!r}")
+    if not dask_available():
+        raise EvtkError(f"--scheduler {spec} needs Dask: pip install 'evtk[cluster]' (or use --scheduler serial)")
+    from distributed import Client, LocalCluster
+
+    if spec.startswith("tcp://"):
+        try:
+            client = Client(spec, timeout=f"{CONNECT_TIMEOUT_S}s")
+        except (OSError, TimeoutError) as exc:
+            raise EvtkError(f"no Dask scheduler answered at {spec} within {CONNECT_TIMEOUT_S} s ({exc})") from None
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    n = os.cpu_count() or 1
+    if spec.startswith("local:"):
+        try:
+            n = int(spec.split(":", 1)[1])
+        except ValueError:
+            n = 0
+        if n < 1:
+            raise EvtkError(f"local:N needs a positive number of workers, not {spec!r}")
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
+                           silence_logs=50)
+    client = Client(cluster)
+    try:
+        yield client
+    finally:
+        client.close()
+        cluster.close()
+
+
+def run_tasks(fn, items, client=None, progress=None, retries=2):
+    """``[fn(item) for item in items]``, on ``client``'s workers when given (in order, retried on worker loss)."""
+    items = list(items)
+    if client is None:
+        out = []
+        for it in items:
+            out.append(fn(it))
+            if progress is not None:
+                progress(1)
+        return out
+    from distributed import as_completed
+
+    futures = client.map(fn, items, pure=False, retries=retries)
+    index = {f.key: i for i, f in enumerate(futures)}
+    out = [None] * len(items)
+    for fut in as_completed(futures):
+        out[index[fut.key]] = fut.result()
+        if progress is not None:
+            progress(1)
+    return out

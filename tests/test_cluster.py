@@ -1,0 +1,144 @@
+"""Fanning out on Dask: same results as serial, batches with manifests, lost workers, dead schedulers."""
+
+import json
+import os
+import time
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import evtk
+from evtk import EvtkError
+from evtk.cli import main
+from evtk.cluster import run_tasks, scheduler
+
+distributed = pytest.importorskip("distributed")
+
+
+@pytest.fixture(scope="module")
+def client():
+    with scheduler("local:2") as c:
+        yield c
+
+
+def _by_value(fn):
+    """Ship ``fn`` to the workers by value (they cannot import this test module)."""
+    fn.__module__ = "__main__"
+    fn.__qualname__ = fn.__name__
+    return fn
+
+
+def test_scheduler_specs():
+    with scheduler("serial") as c:
+        assert c is None
+    for bad in ("cluster", "local:0", "local:x", "udp://x"):
+        with pytest.raises(EvtkError, match="scheduler|local:N"):
+            with scheduler(bad):
+                pass
+
+
+def test_a_dead_scheduler_address_fails_fast():
+    t0 = time.perf_counter()
+    with pytest.raises(EvtkError, match="no Dask scheduler answered"):
+        with scheduler("tcp://127.0.0.1:9"):
+            pass
+    assert time.perf_counter() - t0 < 20
+    r = CliRunner().invoke(main, ["flips", "--scheduler", "tcp://127.0.0.1:9", "--power-mw", "1"])
+    assert r.exit_code == 1 and len(r.output.strip().splitlines()) == 1 and "no Dask scheduler" in r.output
+
+
+def test_run_tasks_keeps_order_and_survives_a_killed_worker(client, tmp_path):
+    square = _by_value(lambda v: v * v)
+    assert run_tasks(square, range(20), client) == [v * v for v in range(20)]
+
+    def kill_once(args):
+        import os as _os
+
+        marker, value = args
+        if value == 3 and not _os.path.exists(marker):
+            open(marker, "w").close()
+            _os._exit(1)  # the worker dies mid-task, once
+        return value * 10
+
+    marker = str(tmp_path / "killed-once")
+    got = run_tasks(_by_value(kill_once), [(marker, v) for v in range(6)], client)
+    assert got == [0, 10, 20, 30, 40, 50] and os.path.exists(marker)
+
+
+def test_sweeps_equal_serial_runs(client):
+    from evtk.simulate import default_features
+    from evtk.sweeps import flip_sweep, random_kernels
+
+    f = np.where(default_features() > 0, 1, -1)
+    k = random_kernels(2, seed=1)
+    assert flip_sweep([0.2, 5.0], k, f, repeats=3, seed=2, client=client) == flip_sweep([0.2, 5.0], k, f, repeats=3,
+                                                                                          seed=2)
+    from evtk.recover import success_rate
+
+    a = success_rate([20.0], size=4, trials=6, seed=3, client=client)
+    b = success_rate([20.0], size=4, trials=6, seed=3)
+    for ra, rb in zip(a, b):
+        for key in ("exact_pct", "shift_pct", "recovered_pct", "proven_pct"):
+            assert ra[key] == rb[key]
+    from evtk.bcnn import BCNN, DigitalBackend, poisson_robustness
+    from evtk.datasets import face_not_face
+    from evtk.optimize import train_layerwise
+
+    d = face_not_face()
+    m = BCNN.random(seed=0)
+    train_layerwise(m, DigitalBackend(), d.x_train, d.y_train, steps=50, seed=0)
+    assert (poisson_robustness(m, d.x_test, d.y_test, [0, 0.5, 2], client=client)
+            == poisson_robustness(m, d.x_test, d.y_test, [0, 0.5, 2]))
+
+
+def _recordings(folder, n=3):
+    from evtk.simulate import Simulation
+
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        Simulation(rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (8, 8)), repeat=2, seed=i).write(
+            folder / f"run{i}.aedat4")
+    (folder / "broken.aedat4").write_bytes(b"#!AER-DAT4.0\r\n garbage")
+    return folder
+
+
+def test_batch_on_a_cluster_equals_serial_and_resumes(tmp_path):
+    import h5py
+
+    src = _recordings(tmp_path / "in")
+    outs = {}
+    for spec in ("serial", "local:2"):
+        out = tmp_path / spec.replace(":", "")
+        r = CliRunner().invoke(main, ["batch", "reconstruct", str(src), "-o", str(out), "--scheduler", spec,
+                                      "--json"])
+        assert r.exit_code == 1, r.output  # the broken file fails, the rest completes
+        m = json.loads(r.output)
+        assert m["counts"] == {"ok": 3, "skipped": 0, "error": 1}
+        bad = [e for e in m["inputs"] if e["status"] == "error"]
+        assert len(bad) == 1 and "broken" in bad[0]["input"] and bad[0]["error"]
+        assert json.loads((out / "batch.json").read_text()) == m
+        outs[spec] = out
+    for i in range(3):
+        with h5py.File(outs["serial"] / f"run{i}.h5") as a, h5py.File(outs["local:2"] / f"run{i}.h5") as b:
+            for name in ("reconstruction/responses", "reconstruction/binary", "reconstruction/cells"):
+                np.testing.assert_array_equal(a[name][...], b[name][...])
+        with evtk.open(src / f"run{i}.aedat4") as rec:
+            from evtk.reconstruct import reconstruct
+
+            lib = reconstruct(rec)
+        with h5py.File(outs["serial"] / f"run{i}.h5") as a:
+            np.testing.assert_allclose(a["reconstruction/responses"][...], lib.responses)
+    # again: the finished inputs are skipped, the broken one is tried again
+    stamp = (outs["serial"] / "run0.h5").stat().st_mtime_ns
+    r = CliRunner().invoke(main, ["batch", "reconstruct", str(src), "-o", str(outs["serial"]), "--scheduler",
+                                  "serial", "--json"])
+    m = json.loads(r.output)
+    assert m["counts"] == {"ok": 0, "skipped": 3, "error": 1}
+    assert (outs["serial"] / "run0.h5").stat().st_mtime_ns == stamp
+    assert all(e["events"] for e in m["inputs"] if e["status"] == "skipped")
+    assert not [p for p in outs["serial"].iterdir() if p.name.endswith(".evtk-partial")]
+    r = CliRunner().invoke(main, ["batch", "reconstruct", str(tmp_path / "nothing-*.aedat4"), "-o",
+                                  str(tmp_path / "x"), "--scheduler", "serial"])
+    assert r.exit_code == 1 and "no recordings" in r.output
