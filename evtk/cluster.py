@@ -74,8 +74,12 @@ def scheduler(spec=None):
             n = 0
         if n < 1:
             raise EvtkError(f"local:N needs a positive number of workers, not {spec!r}")
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
-                           silence_logs=50)
+    try:
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
+                               silence_logs=50)
+    except (RuntimeError, OSError, TimeoutError) as exc:
+        raise EvtkError(f"could not start a local Dask cluster ({exc}); a script that starts one needs an "
+                        "'if __name__ == \"__main__\":' guard, or use --scheduler serial") from None
     client = Client(cluster)
     try:
         yield client
