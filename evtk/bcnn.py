@@ -169,18 +169,16 @@ class OpticalBackend:
         self.calls = 0
 
     def correlate(self, x, k):
-        from .reconstruct import WindowCounts, reconstruct_counts
-        from .simulate import METADATA_KEY, Simulation
+        from .sweeps import simulated_reconstruction
 
         n, c_in = x.shape[:2]
         out = np.zeros((n, k.shape[0], self.size, self.size))
         for o in range(k.shape[0]):
             for c in range(c_in):
                 self.calls += 1
-                sim = Simulation(k[o, c], x[:, c], bench=self.bench, sensor=self.sensor, seed=self.seed,
-                                 noise_seed=self.seed * 1_000_003 + self.calls)
-                r = reconstruct_counts(WindowCounts.from_capture_counts(sim.responses()),
-                                       sim.metadata()[METADATA_KEY], crop="full", size=(self.size, self.size))
+                r, _ = simulated_reconstruction(k[o, c], x[:, c], self.bench, self.sensor, repeat=1, seed=self.seed,
+                                                noise_seed=self.seed * 1_000_003 + self.calls, crop="full",
+                                                size=(self.size, self.size))
                 out[:, o] += r.responses[np.argsort(r.pairs[:, 1], kind="stable")]
         return out
 

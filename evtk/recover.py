@@ -428,30 +428,15 @@ def device_responses(kernels, features, bench=None, sensor=None, seed=0, noise_s
     deblurred by default (compare with ``response_matrix(..., blurred=True)``).
     All-zero kernels show no light: their response is zero.
     """
-    import os
-    import tempfile
-
-    from .io import open as open_recording
-    from .reconstruct import WindowCounts, reconstruct, reconstruct_counts
-    from .simulate import METADATA_KEY, Simulation
+    from .sweeps import simulated_reconstruction
 
     k = np.asarray(kernels)
     lit = np.flatnonzero(k.reshape(len(k), -1).any(axis=1))
     f = _as_binary("features", features, 2)
     if lit.size == 0:
         raise EvtkError("every kernel is all zero: nothing to show")
-    sim = Simulation(k[lit], f, bench=bench, sensor=sensor, seed=seed, noise_seed=noise_seed)
-    if method == "fast":
-        result = reconstruct_counts(WindowCounts.from_capture_counts(sim.responses()), sim.metadata()[METADATA_KEY],
-                                    crop=crop, deblur=deblur)
-    elif method == "events":
-        with tempfile.TemporaryDirectory() as tmp:
-            path = os.path.join(tmp, "candidates.aedat4")
-            sim.write(path)
-            with open_recording(path) as rec:
-                result = reconstruct(rec, crop=crop, deblur=deblur)
-    else:
-        raise EvtkError(f"method must be 'fast' or 'events', not {method!r}")
+    result, _ = simulated_reconstruction(k[lit], f, bench, sensor, repeat=1, seed=seed, noise_seed=noise_seed,
+                                         method=method, crop=crop, deblur=deblur)
     out = np.zeros((len(k),) + result.cells.shape[1:])
     out[lit[result.pairs[:, 0]]] = result.cells
     return out

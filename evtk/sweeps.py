@@ -86,16 +86,32 @@ def random_kernels(n, shape=(3, 3), seed=0):
 
 
 def simulated_reconstruction(kernels, features, bench=None, sensor=None, window_us=1000, repeat=10, seed=0,
-                             noise_seed=None, settle_us=None, size=(16, 16), binarize_method="sign", flat_field=2):
-    """Simulate a run on the fast path and reconstruct it; returns ``(Reconstruction, Simulation)``."""
-    from .reconstruct import WindowCounts, reconstruct_counts
+                             noise_seed=None, settle_us=None, flat_field=2, method="fast", **options):
+    """Simulate a run and reconstruct it; returns ``(Reconstruction, Simulation)``.
+
+    ``method="fast"`` reconstructs the simulator's fast-path counts
+    (:func:`evtk.reconstruct.reconstruct_counts`); ``"events"`` writes the
+    event stream to a temporary AEDAT4 file and reconstructs that, as a
+    bench recording would be. ``options`` go to the reconstruction (size,
+    binarize_method, crop, deblur, ...).
+    """
+    from .reconstruct import WindowCounts, reconstruct, reconstruct_counts
     from .simulate import METADATA_KEY, Simulation
 
     sim = Simulation(kernels, features, bench=bench, sensor=sensor, window_us=window_us, settle_us=settle_us,
                      repeat=repeat, seed=seed, noise_seed=noise_seed, flat_field=flat_field)
-    counts = WindowCounts.from_capture_counts(sim.responses())
-    result = reconstruct_counts(counts, sim.metadata()[METADATA_KEY], size=size, binarize_method=binarize_method)
-    return result, sim
+    if method == "fast":
+        counts = WindowCounts.from_capture_counts(sim.responses())
+        return reconstruct_counts(counts, sim.metadata()[METADATA_KEY], **options), sim
+    if method != "events":
+        raise EvtkError(f"method must be 'fast' or 'events', not {method!r}")
+    from .io import open as open_recording
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "run.aedat4")
+        sim.write(path)
+        with open_recording(path) as rec:
+            return reconstruct(rec, **options), sim
 
 
 def _positive_list(values, name):
