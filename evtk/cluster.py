@@ -74,9 +74,15 @@ def scheduler(spec=None):
             n = 0
         if n < 1:
             raise EvtkError(f"local:N needs a positive number of workers, not {spec!r}")
+    import dask
+
     try:
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
-                               silence_logs=50)
+        # Dask sets MALLOC_TRIM_THRESHOLD_ in its workers, which also stops glibc from raising its mmap
+        # threshold: every large array then comes from fresh pages, and a reconstruction ran at half speed
+        # (measured, benchmarks/bench_batch.py). evtk's workers keep the allocator's default.
+        with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                   silence_logs=50)
     except (RuntimeError, OSError, TimeoutError) as exc:
         raise EvtkError(f"could not start a local Dask cluster ({exc}); a script that starts one needs an "
                         "'if __name__ == \"__main__\":' guard, or use --scheduler serial") from None
