@@ -949,10 +949,12 @@ def batch():
 @click.option("--crop", type=click.Choice(["valid", "full"]), default="valid", show_default=True)
 @click.option("--format", "fmt", type=click.Choice(["h5", "npz"]), default="h5", show_default=True)
 @click.option("--force", is_flag=True, help="Redo inputs whose output exists.")
+@click.option("--split-events", type=click.IntRange(min=1), default=50_000_000, show_default=True,
+              help="Split recordings with more events than this into tasks by time.")
 @_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print the manifest as one JSON object.")
 def batch_reconstruct_cmd(inputs, out_dir, window_spec, skip_us, length_us, size, binarize_method, linearize, crop,
-                          fmt, force, scheduler_spec, as_json):
+                          fmt, force, split_events, scheduler_spec, as_json):
     """Reconstruct every recording in INPUTS (files, folders, glob patterns) into OUT.
 
     Exit status 1 when any input failed; the others are still done, and
@@ -972,7 +974,7 @@ def batch_reconstruct_cmd(inputs, out_dir, window_spec, skip_us, length_us, size
     try:
         with scheduler(scheduler_spec) as client:
             manifest = batch_reconstruct(inputs, out_dir, options, fmt=fmt, client=client, progress=update,
-                                         force=force)
+                                         force=force, split_events=split_events)
     finally:
         finish()
     c = manifest["counts"]

@@ -44,6 +44,7 @@ __all__ = [
     "to_response_grid",
     "downsample",
     "binarize",
+    "plan",
     "reconstruct",
     "reconstruct_counts",
     "Reconstruction",
@@ -597,6 +598,27 @@ def _footprint_matrix(bench, origin, p0, p1, n_cells, step):
     return t @ w
 
 
+def plan(rec, window="schedule", skip_us=0, length_us=None, region=None):
+    """What :func:`reconstruct` will count: ``(simulation record or None, Windows, region)``."""
+    from .simulate import METADATA_KEY
+
+    sim = (rec.metadata or {}).get(METADATA_KEY)
+    if window == "schedule":
+        if sim is None:
+            raise EvtkError("the recording carries no capture schedule: use window='triggers' or a period")
+        win = windows_from_schedule(sim, skip_us, length_us)
+    elif window == "triggers":
+        win = windows_from_triggers(rec.triggers(), skip_us, length_us)
+    elif isinstance(window, tuple) and len(window) == 2 and window[0] == "period":
+        info = rec.info()
+        win = windows_periodic(info["t_start_us"], info["t_end_us"] + 1, window[1], skip_us, length_us)
+    else:
+        raise EvtkError(f"window must be 'schedule', 'triggers' or ('period', US), not {window!r}")
+    if region is None:
+        region = tuple(sim["response_region"]) if sim is not None else (0, rec.sensor_size[0], 0, rec.sensor_size[1])
+    return sim, win, tuple(region)
+
+
 def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="sign",
                 linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None,
                 deblur=None, flat_field=True):
@@ -637,23 +659,8 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
     model (:func:`count_curve`); otherwise (or with ``theta`` given) it uses
     ``exp(n * theta) - 1``.
     """
-    from .simulate import METADATA_KEY
-
-    sim = (rec.metadata or {}).get(METADATA_KEY)
-    if window == "schedule":
-        if sim is None:
-            raise EvtkError("the recording carries no capture schedule: use window='triggers' or a period")
-        win = windows_from_schedule(sim, skip_us, length_us)
-    elif window == "triggers":
-        win = windows_from_triggers(rec.triggers(), skip_us, length_us)
-    elif isinstance(window, tuple) and len(window) == 2 and window[0] == "period":
-        info = rec.info()
-        win = windows_periodic(info["t_start_us"], info["t_end_us"] + 1, window[1], skip_us, length_us)
-    else:
-        raise EvtkError(f"window must be 'schedule', 'triggers' or ('period', US), not {window!r}")
-    _check_crop(crop)  # before the long part
-    if region is None:
-        region = tuple(sim["response_region"]) if sim is not None else (0, rec.sensor_size[0], 0, rec.sensor_size[1])
+    _check_crop(crop)
+    sim, win, region = plan(rec, window, skip_us, length_us, region)
     counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress)
     return reconstruct_counts(counts, sim, skip_us=skip_us, length_us=length_us, size=size,
                               binarize_method=binarize_method, linear=linear, theta=theta, crop=crop,
