@@ -3,6 +3,7 @@
 from ._version import __version__
 from .errors import EvtkError, FormatError
 from .events import Events, Triggers, TriggerKind
+from .cluster import to_dask
 from .io import Recording, detect_format, open, read_events, write_events
 
 __all__ = [
@@ -17,4 +18,5 @@ __all__ = [
     "read_events",
     "write_events",
     "detect_format",
+    "to_dask",
 ]

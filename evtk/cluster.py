@@ -24,7 +24,7 @@ import os
 
 from .errors import EvtkError
 
-__all__ = ["dask_available", "default_scheduler", "scheduler", "run_tasks"]
+__all__ = ["dask_available", "default_scheduler", "scheduler", "run_tasks", "to_dask"]
 
 CONNECT_TIMEOUT_S = 5
 
@@ -114,3 +114,52 @@ def run_tasks(fn, items, client=None, progress=None, retries=2):
         if progress is not None:
             progress(1)
     return out
+
+
+def to_dask(path, partitions=None, events_per_partition=5_000_000):
+    """A recording's events as a lazily read ``dask.dataframe`` (columns t, x, y, p), partitioned by time.
+
+    Each partition reads one time range through the recording's index (the
+    AEDAT4 data table, the HDF5 time index, Parquet row-group statistics),
+    so nothing is read until computed; about ``events_per_partition`` events
+    each, or ``partitions`` equal time ranges. Needs ``pip install
+    'evtk[cluster]'``.
+    """
+    import math
+
+    try:
+        import dask.dataframe as dd
+        import pandas as pd
+        from dask import delayed
+    except ImportError:
+        raise EvtkError("to_dask needs Dask's dataframes: pip install 'evtk[cluster]'") from None
+    import numpy as np
+
+    from .io import open as open_recording
+
+    path = os.fspath(path)
+    with open_recording(path) as rec:
+        info = rec.info()
+    n = int(info["events"])
+    if n == 0 or info["t_start_us"] is None:
+        bounds = [0, 1]
+    else:
+        k = int(partitions) if partitions else max(1, math.ceil(n / int(events_per_partition)))
+        if k < 1:
+            raise EvtkError(f"partitions must be at least 1, not {partitions!r}")
+        t0, t1 = int(info["t_start_us"]), int(info["t_end_us"]) + 1
+        bounds = sorted(set(int(v) for v in np.linspace(t0, t1, k + 1)))
+    meta = pd.DataFrame({"t": np.zeros(0, np.int64), "x": np.zeros(0, np.uint16), "y": np.zeros(0, np.uint16),
+                         "p": np.zeros(0, np.uint8)})
+    parts = [delayed(_time_range_frame)(path, a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+    return dd.from_delayed(parts, meta=meta, verify_meta=False)
+
+
+def _time_range_frame(path, t_start_us, t_end_us):
+    import pandas as pd
+
+    from .io import open as open_recording
+
+    with open_recording(path) as rec:
+        ev = rec.events(t_start_us=t_start_us, t_end_us=t_end_us)
+    return pd.DataFrame({"t": ev.t, "x": ev.x, "y": ev.y, "p": ev.p})

@@ -177,3 +177,21 @@ def test_time_split_reconstruction_equals_the_whole(client, tmp_path):
     with h5py.File(tmp_path / "a" / "long.h5") as fa, h5py.File(tmp_path / "b" / "long.h5") as fb:
         for name in ("reconstruction/responses", "reconstruction/cells", "reconstruction/on"):
             np.testing.assert_array_equal(fa[name][...], fb[name][...])
+
+
+@pytest.mark.parametrize("ext", [".aedat4", ".h5", ".parquet"])
+def test_to_dask_reads_lazily_by_time(tmp_path, ext):
+    pytest.importorskip("dask.dataframe")
+    from conftest import random_events
+
+    ev = random_events(50_000, seed=3, span_us=2_000_000)
+    path = tmp_path / f"r{ext}"
+    evtk.write_events(path, ev)
+    df = evtk.to_dask(path, partitions=7)
+    assert df.npartitions == 7 and list(df.columns) == ["t", "x", "y", "p"]
+    got = df.compute(scheduler="synchronous")
+    np.testing.assert_array_equal(got["t"].to_numpy(), ev.t)
+    np.testing.assert_array_equal(got["x"].to_numpy(), ev.x)
+    np.testing.assert_array_equal(got["p"].to_numpy(), ev.p)
+    assert int(df[df.p == 1].t.count().compute(scheduler="synchronous")) == int(ev.p.sum())
+    assert evtk.to_dask(path).npartitions == 1  # 50 000 events: one default partition
