@@ -206,6 +206,15 @@ def simulate(kernel_path, kernel_bits, features_path, signed, repeat, flat_field
                    f"e_min {bench.min_window_us:g} us (eq. 7), settle {summary['settle_us']} us")
 
 
+def _parse_binarize(text):
+    if text in ("sign", "mean", "otsu"):
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise EvtkError(f"--binarize must be sign, mean, otsu or a number, not {text!r}") from None
+
+
 def _parse_window(spec):
     if spec.startswith("period:"):
         try:
@@ -249,24 +258,14 @@ def _parse_size(text):
 def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, binarize_method, linearize, crop,
                     flat_field, deblur, png_path, as_json):
     """Turn a recording into the convolution responses the device computed."""
-    from .reconstruct import contact_sheet, reconstruct, save_reconstruction
+    from .reconstruct import contact_sheet, save_reconstruction
 
     window = _parse_window(window_spec)
-    if binarize_method not in ("sign", "mean", "otsu"):
-        try:
-            binarize_method = float(binarize_method)
-        except ValueError:
-            raise EvtkError(f"--binarize must be sign, mean, otsu or a number, not {binarize_method!r}") from None
-    with evio.open(recording) as rec:
-        n_events = rec.info()["events"]
-        update, finish = _progress(n_events, "reconstructing")
-        try:
-            result = reconstruct(rec, window=window, skip_us=skip_us, length_us=length_us, size=_parse_size(size),
-                                 binarize_method=binarize_method, linear=linearize, crop=crop,
-                                 flat_field=flat_field, deblur=deblur, progress=update)
-        finally:
-            finish()
-        sensor = rec.sensor_size
+    binarize_method = _parse_binarize(binarize_method)
+    result, about = _reconstructed(recording, window=window, skip_us=skip_us, length_us=length_us,
+                                   size=_parse_size(size), binarize_method=binarize_method, linear=linearize,
+                                   crop=crop, flat_field=flat_field, deblur=deblur)
+    n_events, sensor = about["events"], about["sensor_size"]
     save_reconstruction(output, result, sensor, {"source": str(recording)})
     if png_path:
         contact_sheet(png_path, result)
@@ -335,19 +334,21 @@ def _scene_rows(scenes, source=None, power=None):
     return rows
 
 
-def _reconstructed(path, window_spec, skip_us, length_us):
+def _reconstructed(path, **options):
+    """``reconstruct`` on one recording with a progress bar; returns (result, {events, sensor_size, power_mw})."""
     from .reconstruct import reconstruct
 
     with evio.open(path) as rec:
-        update, finish = _progress(rec.info()["events"], f"reconstructing {path}")
+        n_events = rec.info()["events"]
+        update, finish = _progress(n_events, f"reconstructing {path}")
         try:
-            result = reconstruct(rec, window=_parse_window(window_spec), skip_us=skip_us, length_us=length_us,
-                                 progress=update)
+            result = reconstruct(rec, progress=update, **options)
         finally:
             finish()
         sim = (rec.metadata or {}).get("simulation")
-    power = None if sim is None else float(sim["bench"]["power_mw"])
-    return result, power
+        about = {"events": n_events, "sensor_size": rec.sensor_size,
+                 "power_mw": None if sim is None else float(sim["bench"]["power_mw"])}
+    return result, about
 
 
 _scheduler_option = click.option(
@@ -387,7 +388,7 @@ def enob(recording, window_spec, skip_us, length_us, bootstrap, per_pixel, plot_
     """SINAD and effective bits (eq. 8) of every scene captured more than once."""
     from .sweeps import scene_noise
 
-    result, _ = _reconstructed(recording, window_spec, skip_us, length_us)
+    result, _ = _reconstructed(recording, window=_parse_window(window_spec), skip_us=skip_us, length_us=length_us)
     scenes = scene_noise(result, bootstrap=bootstrap, per_pixel=per_pixel)
     if plot_path:
         from .plots import plot_enob
@@ -446,7 +447,9 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
     if recordings:
         rows = []
         for i, path in enumerate(recordings):
-            result, power = _reconstructed(path, window_spec, skip_us, length_us)
+            result, about = _reconstructed(path, window=_parse_window(window_spec), skip_us=skip_us,
+                                           length_us=length_us)
+            power = about["power_mw"]
             for s in scene_noise(result, bootstrap=0):
                 rows.append({"file": str(path), "file_index": i, "power_mw": power, "kernel_id": s["kernel_id"],
                              "features_id": s["features_id"], "repeats": s["repeats"],
@@ -557,7 +560,7 @@ def demo(out_dir, repeat, seed, as_json):
     import time
 
     from .plots import plot_enob
-    from .reconstruct import contact_sheet, reconstruct, save_reconstruction
+    from .reconstruct import contact_sheet, save_reconstruction
     from .simulate import Simulation, default_features, load_patterns
     from .sweeps import scene_noise
 
@@ -572,11 +575,9 @@ def demo(out_dir, repeat, seed, as_json):
         written = sim.write(rec_path, progress=update)
     finally:
         finish()
-    with evio.open(rec_path) as rec:
-        result = reconstruct(rec, binarize_method="mean")  # an unsigned response: threshold at its mean
-        sensor = rec.sensor_size
+    result, about = _reconstructed(rec_path, binarize_method="mean")  # an unsigned response: its mean splits it
     out_h5 = os.path.join(out_dir, "reconstruction.h5")
-    save_reconstruction(out_h5, result, sensor, {"source": rec_path})
+    save_reconstruction(out_h5, result, about["sensor_size"], {"source": rec_path})
     sheet = os.path.join(out_dir, "responses.png")
     contact_sheet(sheet, result, max_rows=4)
     scenes = scene_noise(result, bootstrap=1000, seed=seed)
@@ -963,11 +964,7 @@ def batch_reconstruct_cmd(inputs, out_dir, window_spec, skip_us, length_us, size
     from .batch import batch_reconstruct
     from .cluster import scheduler
 
-    if binarize_method not in ("sign", "mean", "otsu"):
-        try:
-            binarize_method = float(binarize_method)
-        except ValueError:
-            raise EvtkError(f"--binarize must be sign, mean, otsu or a number, not {binarize_method!r}") from None
+    binarize_method = _parse_binarize(binarize_method)
     options = {"window": _parse_window(window_spec), "skip_us": skip_us, "length_us": length_us,
                "size": _parse_size(size), "binarize_method": binarize_method, "linear": linearize, "crop": crop}
     update, finish = _progress(len(inputs), "batch")

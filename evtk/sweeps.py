@@ -237,21 +237,20 @@ def _tradeoff_task(args):
     result, sim = simulated_reconstruction(kernels, features, b, sensor, int(w), repeats, seed=seed,
                                            noise_seed=seed * 1000 + i + 1, settle_us=None if z is None else int(z))
 
-    def compute_time():
-        if not time_events:
-            t0 = time.perf_counter()
-            reconstruct_counts(result.counts, sim.metadata()["simulation"])
-            return time.perf_counter() - t0
+    def timed(fn):
+        fn()  # warm-up: JIT caches, the count curve, imports (in this process)
+        t0 = time.perf_counter()
+        fn()
+        return time.perf_counter() - t0
+
+    if time_events:  # the recording is written once; only its reconstruction is timed
         with tempfile.TemporaryDirectory() as tmp:
             path = os.path.join(tmp, "run.aedat4")
             sim.write(path)
             with open_recording(path) as rec:
-                t0 = time.perf_counter()
-                reconstruct(rec)
-                return time.perf_counter() - t0
-
-    compute_time()  # warm-up: JIT caches, the count curve, imports (in this process)
-    compute_s = compute_time()
+                compute_s = timed(lambda: reconstruct(rec))
+    else:
+        compute_s = timed(lambda: reconstruct_counts(result.counts, sim.metadata()["simulation"]))
     n_cap = len(sim.schedule)
     scenes = scene_noise(result, bootstrap=0)
     enobs = [s["sinad"].enob_bits for s in scenes if s["sinad"] is not None and not s["sinad"].noise_free]
