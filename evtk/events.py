@@ -157,6 +157,8 @@ class Events:
         parts = list(parts)
         if sensor_size is None:
             sizes = {ev.sensor_size for ev in parts}
+            if not sizes:
+                raise EvtkError("no events to concatenate and no sensor_size given")
             if len(sizes) != 1:
                 raise EvtkError(f"cannot concatenate events of different sensor sizes: {sorted(sizes)}")
             sensor_size = sizes.pop()

@@ -835,6 +835,7 @@ class Aedat4Writer:
             self._f = self._file.file
             self._f.write(MAGIC)
             self._f.write(header)
+            self._f.flush()  # a writer killed from here on leaves a partial file whose header is readable
             self._pos = len(MAGIC) + len(header)
         except BaseException:
             self._file.discard()
