@@ -24,6 +24,8 @@ The stages, each a function usable alone:
 
 from __future__ import annotations
 
+import functools
+import json
 from dataclasses import dataclass, field
 
 import numba
@@ -846,17 +848,36 @@ def count_curve(sim_record, skip_us=0, length_us=None, points=4000):
     operation keeps some residual from earlier captures; over random
     patterns a fresh reference inverts the counts better than modelling the
     previous capture at the same light.) Returns ``(u, counts)``, counts
-    non-decreasing in ``u``.
+    non-decreasing in ``u`` (read-only arrays, shared by calls with the same
+    bench, sensor and window: a batch of recordings computes it once).
     """
+    keys = ("sensor", "blank_rate_e_per_s", "gain_e_per_s_per_unit", "bench", "window_us", "settle_us")
+    key = json.dumps({**{k: sim_record[k] for k in keys}, "kernel_shape": np.shape(sim_record["kernels"])[1:],
+                      "skip_us": float(skip_us), "length_us": None if length_us is None else float(length_us),
+                      "points": int(points)}, sort_keys=True, default=_plain)
+    return _count_curve(key)
+
+
+def _plain(value):
+    """numpy scalars and arrays as JSON values (for cache keys)."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON-serialisable")
+
+
+@functools.lru_cache(maxsize=16)
+def _count_curve(key):
     from .optics import Bench, brightest_response
     from .sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
 
+    sim_record = json.loads(key)
+    skip_us, length_us, points = sim_record["skip_us"], sim_record["length_us"], sim_record["points"]
     sm = SensorModel.from_dict({**sim_record["sensor"], "shot_noise": False, "theta_mismatch": 0.0})
     blank = float(sim_record["blank_rate_e_per_s"])
     gain = float(sim_record["gain_e_per_s_per_unit"])
     bench = Bench.from_dict(sim_record["bench"])
     dark = sm.dark_current_e_per_s
-    bright = gain * brightest_response(np.asarray(sim_record["kernels"]).shape[1:], bench) + dark
+    bright = gain * brightest_response(tuple(sim_record["kernel_shape"]), bench) + dark
     u_max = max(np.log(bright / blank), 1e-6) * 1.01
     u = np.linspace(0.0, u_max, int(points))
     w, z = float(sim_record["window_us"]), float(sim_record["settle_us"])
@@ -871,7 +892,9 @@ def count_curve(sim_record, skip_us=0, length_us=None, points=4000):
                     np.random.default_rng(0))
     _, _, _, on, off = simulate_pixels(st, lvl, time_constant_us(np.exp(lvl), sm), log_noise_std(np.exp(lvl), sm),
                                        starts, ends, sm, 0, emit=False, count_slot=slot, n_slots=1)
-    return u, np.maximum.accumulate(on[0] - off[0])
+    counts = np.maximum.accumulate(on[0] - off[0])
+    u.flags.writeable = counts.flags.writeable = False
+    return u, counts
 
 
 def linearize_by_model(net_counts, curve):

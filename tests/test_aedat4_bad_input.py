@@ -343,3 +343,41 @@ def test_bit_flips_in_a_dv_recording(tmp_path, fixtures_dir, seed):
     strict, salvaged = _outcome(p)
     if strict is not None:
         assert strict <= 4000  # an undetectable flip (a time stamp, a shorter vector) reads on
+
+
+@pytest.mark.parametrize("shift", range(8))
+def test_event_decoder_word_path_equals_byte_path(shift):
+    """The word-wise decoder (aligned vectors) and the byte-wise one (unaligned or unknown address) agree on
+    every event and on where the first out-of-sensor event is, whatever the body's alignment in memory."""
+    from evtk.io import _fb
+
+    rng = np.random.default_rng(shift)
+    n = 1000
+    t = np.sort(rng.integers(-(2**62), 2**62, n))
+    x = rng.integers(0, 320, n).astype(np.uint16)
+    y = rng.integers(0, 240, n).astype(np.uint16)
+    p = rng.integers(0, 2, n).astype(np.uint8)
+    out = np.zeros(40 + 16 * n, np.uint8)
+    _fb.encode_event_packets(t, x, y, p, np.array([0, n]), 0, out)
+    body = out[8:]  # past the packet header (stream id, size)
+    for bad in (None, 517):
+        b = body.copy()
+        if bad is not None:  # event 517 lies outside a 320-wide sensor
+            root = _fb.fb_root(b, np.frombuffer(b"EVTS", np.uint8))
+            start, _ = _fb.fb_vector(b, root, 0, 16)
+            b[start + 16 * bad + 8 : start + 16 * bad + 10] = np.frombuffer(np.uint16(320).tobytes(), np.uint8)
+        holder = np.zeros(len(b) + 16, np.uint8)
+        off = (shift - _fb.address_mod8(holder)) % 8
+        shifted = holder[off : off + len(b)]
+        shifted[:] = b
+        assert _fb.address_mod8(shifted) == shift
+        got = []
+        for mod in (_fb.address_mod8(shifted), -1):
+            cols = (np.zeros(n, np.int64), np.zeros(n, np.uint16), np.zeros(n, np.uint16), np.zeros(n, np.uint8))
+            got.append((_fb.decode_events(shifted, np.frombuffer(b"EVTS", np.uint8), *cols, 0, n, 320, 240, mod),
+                        cols))
+        (res_w, cols_w), (res_b, cols_b) = got
+        assert res_w == res_b == ((n, _fb.ST_OK) if bad is None else (bad, _fb.ST_COORD))
+        k = res_w[0]
+        for a, c, ref in zip(cols_w, cols_b, (t, x, y, p)):
+            assert np.array_equal(a[:k], c[:k]) and np.array_equal(a[:k], ref[:k])

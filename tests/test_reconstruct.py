@@ -427,6 +427,28 @@ def test_count_curve_inversion_restores_the_scale(tmp_path):
     assert model.summary["error"]["correlation"] > 0.99
 
 
+def test_count_curve_is_shared_only_between_equal_settings():
+    """The cached curve is the one a fresh computation gives, cannot be altered by a caller, and a different
+    threshold, window or numpy-typed record gets its own."""
+    import copy
+
+    from evtk.reconstruct import _count_curve, count_curve
+    from evtk.simulate import Simulation
+
+    meta = Simulation(np.ones((3, 3)), np.ones((16, 16)), seed=1).metadata()["simulation"]
+    u, n = count_curve(meta)
+    with pytest.raises(ValueError):
+        n[0] = 5
+    _count_curve.cache_clear()
+    u2, n2 = count_curve(copy.deepcopy(meta))
+    assert u2 is not u and np.array_equal(u, u2) and np.array_equal(n, n2)
+    assert count_curve(meta)[1] is n2  # shared
+    other = copy.deepcopy(meta)
+    other["sensor"]["theta_on"] = np.float64(meta["sensor"]["theta_on"] * 2)  # numpy scalars are fine in the key
+    assert count_curve(other)[1][-1] < n[-1]
+    assert count_curve(meta, length_us=meta["window_us"] / 4)[1][-1] < n[-1]
+
+
 def test_flat_field_gain_finds_each_pixels_threshold(tmp_path):
     """Threshold mismatch is a per-pixel gain on counts; the flat fields measure it.
 

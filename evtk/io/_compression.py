@@ -31,7 +31,13 @@ _pool_lock = threading.Lock()
 
 
 def workers() -> int:
-    """Threads used for (de)compression: the usable cores, at most 4."""
+    """Threads used for (de)compression: ``EVTK_IO_THREADS`` if set, else the usable cores, at most 4."""
+    env = os.environ.get("EVTK_IO_THREADS")
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            pass
     try:
         n = len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not Linux

@@ -10,8 +10,13 @@ them into :class:`~evtk.FormatError` messages.
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 from numba import njit
+
+# the word-wise event decoder reinterprets little-endian bytes as native words
+_LITTLE_ENDIAN = sys.byteorder == "little"
 
 ST_OK = 0
 ST_BAD_OFFSET = -1  # an offset points outside the buffer
@@ -132,11 +137,15 @@ def fb_vector(b, table, slot, elem_size):
 
 
 @njit(cache=True, nogil=True)
-def decode_events(b, ident, t, x, y, p, offset, capacity, width, height):
+def decode_events(b, ident, t, x, y, p, offset, capacity, width, height, address_mod8=-1):
     """Decode an EVTS packet body into the columns, starting at ``offset``.
 
     Returns ``(count, status)``; with ``ST_COORD`` the count is the index of
-    the first event outside ``width`` x ``height``.
+    the first event outside ``width`` x ``height``. ``address_mod8`` is the
+    body's memory address modulo 8 (:func:`address_mod8`): when the event
+    vector is 8-byte aligned, as FlatBuffers lays it out, each 16-byte event
+    is read as two little-endian words; otherwise (a damaged file, or -1)
+    byte by byte.
     """
     root = fb_root(b, ident)
     if root < 0:
@@ -146,6 +155,20 @@ def decode_events(b, ident, t, x, y, p, offset, capacity, width, height):
         return 0, start
     if count > capacity:
         return count, ST_CAPACITY
+    if address_mod8 >= 0 and (address_mod8 + start) % 8 == 0 and _LITTLE_ENDIAN:
+        w = b[start : start + 16 * count].view(np.uint64)
+        for i in range(count):
+            hi = w[2 * i + 1]
+            xi = np.int64(hi & np.uint64(0xFFFF))
+            yi = np.int64((hi >> np.uint64(16)) & np.uint64(0xFFFF))
+            if xi >= width or yi >= height:  # int16 on disk: negative values appear as >= 32768
+                return i, ST_COORD
+            j = offset + i
+            t[j] = np.int64(w[2 * i])
+            x[j] = xi
+            y[j] = yi
+            p[j] = 1 if (hi >> np.uint64(32)) & np.uint64(0xFF) else 0
+        return count, ST_OK
     for i in range(count):
         pos = start + 16 * i
         xi = _u16(b, pos + 8)
@@ -159,6 +182,11 @@ def decode_events(b, ident, t, x, y, p, offset, capacity, width, height):
         y[j] = yi
         p[j] = 1 if b[pos + 12] != 0 else 0
     return count, ST_OK
+
+
+def address_mod8(b) -> int:
+    """Memory address of a numpy buffer modulo 8 (for :func:`decode_events`)."""
+    return b.__array_interface__["data"][0] % 8
 
 
 @njit(cache=True, nogil=True)

@@ -506,7 +506,7 @@ class Recording(BaseRecording):
                 except _Stop:
                     return k
                 cap = int(counts[k])
-                n, st = _fb.decode_events(b, ident, t, x, y, p, int(starts[k]), cap, width, height)
+                n, st = _fb.decode_events(b, ident, t, x, y, p, int(starts[k]), cap, width, height, _fb.address_mod8(b))
                 if (st == _fb.ST_OK and n != cap) or st == _fb.ST_CAPACITY:
                     raise _CountMismatch
                 if st != _fb.ST_OK:
@@ -644,7 +644,7 @@ class Recording(BaseRecording):
                 except _Stop:
                     break
             cols = (np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8))
-            got, st = _fb.decode_events(b, ident, *cols, 0, n, width, height)
+            got, st = _fb.decode_events(b, ident, *cols, 0, n, width, height, _fb.address_mod8(b))
             if st != _fb.ST_OK:
                 reason = (
                     f"event {got} of the packet lies outside the {width}x{height} sensor"
