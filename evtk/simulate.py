@@ -215,7 +215,7 @@ class Simulation:
         self.settle_us = self.recommended_settle_us() if settle_us is None else _int_param("settle_us", settle_us, 1)
         self.region = response_region(self.bench, kshape, self.features.shape[1:])
         self._passes = {}
-        self._rate_cache = {}  # region -> {(kernel, features, signs): photoelectron rates}
+        self._rate_cache = {}  # region (or "glow") -> {(kernel, features, signs): photoelectron rates}
         self.flat_field = _int_param("flat_field", flat_field, 0)
         rows = [(-1, -1, 1, 1, i) for i in range(self.flat_field)]
         for r in range(self.repeat):
@@ -367,7 +367,13 @@ class Simulation:
         return np.log(rates), time_constant_us(rates, self.sensor), log_noise_std(rates, self.sensor)
 
     def _glow_rate(self, c):
-        return self._rate(glow_response(self._pass_patterns(c)[0], self.bench))
+        """Photoelectron rate of the uniform glow outside the region during capture ``c`` (cached per pass)."""
+        s = self.schedule
+        key = (int(s.kernel_id[c]), int(s.features_id[c]), int(s.kernel_sign[c]), int(s.features_sign[c]))
+        cache = self._rate_cache.setdefault("glow", {})
+        if key not in cache:
+            cache[key] = float(self._rate(glow_response(self._pass_patterns(c)[0], self.bench)))
+        return cache[key]
 
     def _region_pixels(self, region):
         x0, x1, y0, y1 = region
@@ -456,30 +462,23 @@ class Simulation:
 
     def iter_events(self, batch_captures=8, progress=None):
         """Yield the recording's events in time order, one batch of captures at a time."""
-        w = self.bench.sensor_width
-        size = (self.bench.sensor_width, self.bench.sensor_height)
+        w, h = self.bench.sensor_width, self.bench.sensor_height
+        maps = None
         for base, c0, c1, st, en, which, roi, out, seed_ba, roi_idx, out_idx in self._run(True, batch_captures,
                                                                                             progress):
+            if maps is None:  # events carry indices into [region pixels, outside pixels, every pixel]
+                every = np.arange(w * h)
+                sensor = np.concatenate([roi_idx, every[:0] if out_idx is None else out_idx, every])
+                maps = ((sensor % w).astype(np.uint16), (sensor // w).astype(np.uint16),
+                        roi_idx.size, roi_idx.size + (0 if out_idx is None else out_idx.size))
+            x_of, y_of, out_base, every_base = maps
             span = float(en[-1])
-            parts_t = [roi[0]]
-            parts_i = [roi_idx[roi[1]]]
-            parts_p = [roi[2]]
-            if out is not None:
-                parts_t.append(out[0])
-                parts_i.append(out_idx[out[1]])
-                parts_p.append(out[2])
             nt, ni, npol = self._noise_events(span, seed_ba)
-            parts_t.append(nt)
-            parts_i.append(ni)
-            parts_p.append(npol)
-            if len(parts_t) > 1:
-                t_rel = np.concatenate(parts_t)
-                pix = np.concatenate(parts_i)
-                pol = np.concatenate(parts_p)
-            else:
-                t_rel, pix, pol = parts_t[0], parts_i[0], parts_p[0]
-            t, x, y, p = _assemble(t_rel, pix, pol, int(math.ceil(span)), base, w)
-            yield Events._trusted(t, x, y, p, size, is_sorted=True)
+            parts = [roi] + ([] if out is None else [(out[0], out[1] + out_base, out[2])])
+            parts.append((nt, ni + every_base, npol))
+            t_rel, local, pol = (np.concatenate([part[k] for part in parts]) for k in range(3))
+            t, x, y, p = _sorted_events(t_rel, local, pol, int(math.ceil(span)), base, x_of, y_of)
+            yield Events._trusted(t, x, y, p, (w, h), is_sorted=True)
 
     def events(self) -> Events:
         """All events in memory (use :meth:`write` or :meth:`iter_events` for long runs)."""
@@ -656,15 +655,30 @@ def _int_param(name, v, low):
     return v
 
 
+def _sorted_events(t_rel, local, pol, span, base, x_of, y_of):
+    """:func:`_assemble`, or for a batch spanning more than ``_COUNTING_SORT_MAX_US`` (very long settles) a
+    stable argsort, whose memory does not grow with the span."""
+    if span <= _COUNTING_SORT_MAX_US and t_rel.size < 2**31:
+        return _assemble(t_rel, local, pol, span, base, x_of, y_of)
+    k = np.clip(np.floor(t_rel), 0, span - 1).astype(np.int64)
+    order = np.argsort(k, kind="stable")
+    local = local[order]
+    return base + k[order], x_of[local], y_of[local], pol[order]
+
+
+_COUNTING_SORT_MAX_US = 1 << 26  # 64 s of bins (0.25 GiB of counts at most)
+
+
 @numba.njit(cache=True)
-def _assemble(t_rel, pix, pol, span, base, width):
-    """Events from (float us since ``base``, pixel index, polarity), sorted by whole us.
+def _assemble(t_rel, local, pol, span, base, x_of, y_of):
+    """Events from (float us since ``base``, pixel, polarity), sorted by whole us; pixel ``local[i]`` sits
+    at ``(x_of[local[i]], y_of[local[i]])``.
 
     A stable counting sort over the ``span`` microseconds of the batch: O(n + span).
     """
     n = t_rel.size
-    key = np.empty(n, np.int64)
-    counts = np.zeros(span + 1, np.int64)
+    key = np.empty(n, np.int32)  # spans are at most _COUNTING_SORT_MAX_US
+    counts = np.zeros(span + 1, np.int32)  # fewer than 2^31 events (see _sorted_events)
     for i in range(n):
         k = int(math.floor(t_rel[i]))
         k = min(max(k, 0), span - 1)
@@ -681,8 +695,9 @@ def _assemble(t_rel, pix, pol, span, base, width):
         j = counts[k]
         counts[k] += 1
         t[j] = base + k
-        x[j] = pix[i] % width
-        y[j] = pix[i] // width
+        q = local[i]
+        x[j] = x_of[q]
+        y[j] = y_of[q]
         p[j] = pol[i]
     return t, x, y, p
 

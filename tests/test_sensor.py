@@ -189,3 +189,31 @@ def test_noisy_event_times_follow_the_noise_free_ones_in_bright_light():
     for px in range(0, 300, 30):
         t = np.sort(a[0][(a[1] == px) & (a[2] == 1)])[:5]
         np.testing.assert_allclose(t, first_clean, atol=1.0)
+
+
+def test_ziggurat_normals_follow_the_normal_law():
+    """The pixel model's normal deviates (ziggurat): KS test against the normal CDF, the share beyond the
+    ziggurat's base strip (the tail branch) and beyond 5 sd against the analytic tails, and the first four
+    moments, over 2 M draws."""
+    import numba
+    from scipy import stats
+
+    from evtk.sensor import _ZIG_R, _normal, _rng_state
+
+    @numba.njit
+    def draw(n, seed):
+        st = _rng_state(seed)
+        out = np.empty(n)
+        for i in range(n):
+            out[i] = _normal(st)
+        return out
+
+    n = 2_000_000
+    x = draw(n, 11)
+    assert stats.kstest(x, "norm").pvalue > 1e-3
+    for edge in (_ZIG_R, 5.0):  # binomial counts of the two-sided tail, within 5 of their sd
+        p = 2 * stats.norm.sf(edge)
+        assert abs(np.sum(np.abs(x) > edge) - n * p) < 5 * np.sqrt(n * p) + 1
+    assert abs(x.mean()) < 5 / np.sqrt(n) and abs(x.var() - 1) < 5 * np.sqrt(2 / n)
+    assert abs(stats.skew(x)) < 5 * np.sqrt(6 / n) and abs(stats.kurtosis(x)) < 5 * np.sqrt(24 / n)
+    assert np.sum(x > 0) == pytest.approx(n / 2, abs=5 * np.sqrt(n / 4))

@@ -234,6 +234,18 @@ def test_streaming_batches_are_time_ordered_and_bounded():
         assert ch.t[0] >= sim.schedule.t_on_us[3 * i] - 1 and ch.t[-1] < sim.schedule.t_on_us[3 * i] + 3 * period
 
 
+def test_long_batches_sort_without_a_bin_per_microsecond(monkeypatch):
+    """A batch spanning more than the counting sort's bins (very long settles) is sorted by a stable argsort
+    instead: the same events in the same order."""
+    import evtk.simulate as es
+
+    sim = Simulation(K3, _features(3), repeat=3, seed=5)
+    counting = sim.events()
+    monkeypatch.setattr(es, "_COUNTING_SORT_MAX_US", 1000)
+    assert sim.window_us + sim.settle_us > 1000
+    assert sim.events() == counting and counting.is_sorted and len(counting) > 1000
+
+
 @pytest.mark.parametrize("kwargs,match", [
     ({"window_us": 100}, "eq. 7"),
     ({"window_us": 0}, "window_us"),
