@@ -37,7 +37,7 @@ and stepped only near a threshold. Steps use the exact OU transition
 any step ``h``; crossings between two samples are caught with the Brownian
 bridge probability ``exp(-2 d0 d1 / (D h))``, ``D = 2 s^2 / tau``. Step size is
 ``noise_step_fraction * tau`` (at most ``noise_step_max_us``). Stated
-tolerance, checked by the tests: at the default step (0.4 tau) mean window
+tolerance, checked by the tests: at the default step (0.8 tau) mean window
 counts stay within 4 % and their variances within 15 % of those at a 20x
 finer step, from dim to bright light.
 """
@@ -376,7 +376,7 @@ def _advance(m, v, L, tau, s, dt):
     return m, v
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step_frac, step_max,
                 mean, var, vref, blind, seed, emit, count_slot, on_c, off_c, i0, out_t, out_i, out_p, n,
                 per_pixel_bound):
