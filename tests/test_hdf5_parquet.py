@@ -1,6 +1,7 @@
 """HDF5 (evtk's layout and the foreign ones) and Arrow/Parquet."""
 
 import json
+import struct
 
 import h5py
 import hdf5plugin
@@ -431,3 +432,111 @@ def test_hdf5_salvage_keeps_everything_before_a_damaged_chunk(tmp_path):
     for chunk in (333, 1000, 4096):
         with evtk.open(path, salvage=True) as rec:
             assert evtk.Events.concatenate(list(rec.iter_events(chunk_events=chunk))) == ev[:6000]
+
+
+# -- Blosc (v1) chunks are checked before c-blosc sees them -----------------------------------
+
+@pytest.mark.parametrize("cname", ["lz4", "zstd", "blosclz", "snappy", "zlib"])
+def test_sound_blosc1_chunks_pass_the_check(tmp_path, cname):
+    """No false alarms: every chunk HDF5's Blosc filter writes (several types, the three shuffles, a chunk
+    of several blocks with a leftover, chunks the filter stored raw) passes blosc1_chunk_damage."""
+    from evtk.io.hdf5 import blosc1_chunk_damage
+
+    rng = np.random.default_rng(1)
+    n = 300_001
+    prophesee = np.zeros(n, [("x", "<u2"), ("y", "<u2"), ("p", "<i2"), ("t", "<i8")])
+    prophesee["t"] = np.cumsum(rng.integers(0, 40, n))
+    prophesee["x"] = rng.integers(0, 1280, n)
+    columns = [np.cumsum(rng.integers(0, 3, n)).astype(np.int64), rng.integers(0, 640, n).astype(np.uint16),
+               rng.integers(0, 2, n).astype(np.uint8), rng.random(n).astype(np.float32), prophesee]
+    checked = 0
+    with h5py.File(tmp_path / "b.h5", "w") as f:
+        for k, data in enumerate(columns):
+            for shuffle in (hdf5plugin.Blosc.NOSHUFFLE, hdf5plugin.Blosc.SHUFFLE, hdf5plugin.Blosc.BITSHUFFLE):
+                for chunk in (1000, 150_001):
+                    f.create_dataset(f"d{k}_{shuffle}_{chunk}", data=data, chunks=(chunk,),
+                                     **hdf5plugin.Blosc(cname=cname, clevel=5, shuffle=shuffle))
+    with h5py.File(tmp_path / "b.h5", "r") as f:
+        for name, ds in f.items():
+            nbytes = ds.chunks[0] * ds.dtype.itemsize
+            for i in range(ds.id.get_num_chunks()):
+                mask, raw = ds.id.read_direct_chunk(ds.id.get_chunk_info(i).chunk_offset)
+                if not mask & 1:
+                    assert blosc1_chunk_damage(memoryview(raw), nbytes) is None, (name, i)
+                    checked += 1
+    assert checked > 500
+
+
+def test_blosc1_check_names_each_lie():
+    from evtk.io.hdf5 import blosc1_chunk_damage
+
+    data = np.arange(20_000, dtype=np.int64)
+    import io
+
+    buf = io.BytesIO()
+    with h5py.File(buf, "w") as f:
+        f.create_dataset("t", data=data, chunks=(20_000,), **hdf5plugin.Blosc(cname="lz4"))
+    with h5py.File(buf, "r") as f:
+        raw = bytearray(f["t"].id.read_direct_chunk((0,))[1])
+    assert blosc1_chunk_damage(raw, data.nbytes) is None
+
+    def lie(pos, fmt, value):
+        bad = bytearray(raw)
+        struct.pack_into(fmt, bad, pos, value)
+        return blosc1_chunk_damage(bad, data.nbytes)
+
+    assert "compressed bytes" in lie(12, "<i", len(raw) + 1000)
+    assert "uncompressed" in lie(4, "<i", 2**31 - 1)
+    assert "block size" in lie(8, "<i", -5)
+    assert "block 0 starts" in lie(16, "<i", 2**30)
+    first_stream = struct.unpack_from("<i", raw, 16)[0]
+    assert "claims" in lie(first_stream, "<i", 2**30)
+    assert "claims" in lie(first_stream, "<i", -1)
+    assert "shorter" in blosc1_chunk_damage(raw[:10], data.nbytes)
+
+
+READ_IN_A_CHILD = """
+import sys, json, evtk
+out = {}
+for salvage in (False, True):
+    try:
+        with evtk.open(sys.argv[1], salvage=salvage) as rec:
+            ev = rec.events()
+        out[str(salvage)] = ["ok", len(ev), [int(v) for v in ev.t[:3]], [int(v) for v in ev.t[-1:]]]
+    except evtk.FormatError as exc:
+        out[str(salvage)] = ["FormatError", str(exc)]
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.parametrize("pos,value", [(12, 2**31 - 1), (16, 2**30), (15, 0x7F7F7F7F), (4, 2**31 - 1)])
+def test_damaged_dsec_blosc1_chunk_is_an_error_not_a_crash(tmp_path, pos, value):
+    """A DSEC file (Blosc v1, as DSEC ships) whose second chunk of /events/t has a lying header field:
+    read in a child process (c-blosc 1 would take the whole process down), it gives a FormatError naming
+    the chunk, and salvage returns exactly the events before that chunk."""
+    import json
+    import subprocess
+    import sys
+
+    ev = random_events(60_000, seed=9, sensor_size=(640, 480), t0=1_000_000)
+    path = tmp_path / "dsec.h5"
+    rel = ev.t - 1_000_000
+    with h5py.File(path, "w") as f:
+        g = f.create_group("events")
+        for name, data in (("t", rel.astype(np.uint32)), ("x", ev.x), ("y", ev.y), ("p", ev.p)):
+            g.create_dataset(name, data=data, chunks=(20_000,), **hdf5plugin.Blosc(cname="lz4"))
+        ms = np.searchsorted(rel, np.arange(0, int(rel[-1]) // 1000 + 2) * 1000).astype(np.uint64)
+        f.create_dataset("ms_to_idx", data=ms)
+        f.create_dataset("t_offset", data=np.int64(1_000_000))
+    with h5py.File(path, "r") as f:
+        offset = f["events/t"].id.get_chunk_info(1).byte_offset
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<I", data, offset + pos, value)
+    path.write_bytes(bytes(data))
+    r = subprocess.run([sys.executable, "-c", READ_IN_A_CHILD, str(path)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, (r.returncode, r.stderr[-500:])
+    out = json.loads(r.stdout)
+    assert out["False"][0] == "FormatError" and "Blosc chunk 1 of /events/t" in out["False"][1]
+    status, n, head, tail = out["True"]
+    assert status == "ok" and n == 20_000
+    assert head == [int(v) for v in ev.t[:3]] and tail == [int(ev.t[19_999])]

@@ -9,6 +9,7 @@ Prophesee and event_utils layouts, recognised by their structure.
 from __future__ import annotations
 
 import json
+import struct
 
 import numpy as np
 
@@ -139,6 +140,174 @@ def _describe_filters(ds):
     """Filter ids of a dataset's pipeline."""
     plist = ds.id.get_create_plist()
     return [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
+
+
+BLOSC1_FILTER = 32001
+_BLOSC_MEMCPYED, _BLOSC_DONT_SPLIT = 0x02, 0x10
+_BLOSC_MAX_SPLITS, _BLOSC_MIN_BUFFERSIZE = 16, 128
+
+
+def blosc1_chunk_damage(raw, expected_nbytes) -> str | None:
+    """Why a Blosc (v1) chunk would make c-blosc read outside it, or None if its layout is sound.
+
+    c-blosc 1 trusts the sizes and offsets inside a chunk (the HDF5 filter
+    does not even pass it the chunk's length), so a damaged chunk can crash
+    the process. Checked here, from the chunk's own bytes: the 16-byte header
+    (uncompressed size equal to the HDF5 chunk's, compressed size equal to
+    the stored length), every block start, and every stream's length inside
+    each block, split into ``typesize`` streams where c-blosc splits them.
+    """
+    n = len(raw)
+    if n < 16:
+        return f"{n} bytes, shorter than the 16-byte header"
+    flags, typesize = raw[2], raw[3]
+    nbytes, blocksize, ctbytes = struct.unpack_from("<iii", raw, 4)
+    if ctbytes != n:
+        return f"the header gives {ctbytes} compressed bytes, the chunk has {n}"
+    if nbytes != expected_nbytes:
+        return f"the header gives {nbytes} uncompressed bytes, the chunk holds {expected_nbytes}"
+    if flags & _BLOSC_MEMCPYED:
+        return None if ctbytes == nbytes + 16 else f"a stored (uncompressed) chunk of {ctbytes} bytes for {nbytes}"
+    if nbytes == 0:
+        return None
+    if blocksize <= 0 or blocksize > nbytes or typesize == 0:
+        return f"block size {blocksize} (type size {typesize}) for {nbytes} bytes"
+    nblocks, leftover = divmod(nbytes, blocksize)
+    nblocks += leftover > 0
+    first = 16 + 4 * nblocks
+    if first > n:
+        return f"{nblocks} block starts do not fit in {n} bytes"
+    starts = struct.unpack_from(f"<{nblocks}i", raw, 16)
+    for b, start in enumerate(starts):
+        last = b == nblocks - 1 and leftover > 0
+        split = (not flags & _BLOSC_DONT_SPLIT and typesize <= _BLOSC_MAX_SPLITS
+                 and blocksize // typesize >= _BLOSC_MIN_BUFFERSIZE and not last)
+        streams = typesize if split else 1
+        pos = start
+        if not first <= pos <= n:
+            return f"block {b} starts at byte {pos}, outside {first}..{n}"
+        for k in range(streams):
+            if pos + 4 > n:
+                return f"stream {k} of block {b} has no length (byte {pos})"
+            (cbytes,) = struct.unpack_from("<i", raw, pos)
+            if cbytes < 0 or pos + 4 + cbytes > n:  # (snappy's streams may exceed their raw size)
+                return f"stream {k} of block {b} claims {cbytes} bytes at byte {pos}, past the chunk's {n}"
+            pos += 4 + cbytes
+    return None
+
+
+class _Blosc1Checked:
+    """A Blosc (v1) dataset whose chunks are checked (:func:`blosc1_chunk_damage`) before HDF5 decodes them.
+
+    Reads along the first axis check only the chunks they touch, each once
+    (the chunks at the start of the other axes: event columns are 1-D);
+    a damaged chunk raises OSError naming its dataset, index and byte offset
+    (readers turn that into a FormatError, or salvage what comes before it).
+    """
+
+    def __init__(self, ds, position):
+        self._ds = ds
+        self._position = position  # the filter's place in the pipeline: a chunk may skip it
+        self._last = position == ds.id.get_create_plist().get_nfilters() - 1
+        self._len = ds.chunks[0]
+        self._nbytes = int(np.prod(ds.chunks)) * ds.dtype.itemsize
+        self._ndim = ds.ndim
+        self._n = ds.shape[0] if ds.ndim else 0
+        self._ok = set()
+
+    def __getattr__(self, name):
+        return getattr(self._ds, name)
+
+    def __len__(self):
+        return len(self._ds)
+
+    def __getitem__(self, key):
+        self._check(key)
+        return self._ds[key]
+
+    def fields(self, names):
+        return _CheckedFields(self, names)
+
+    def _check(self, key):
+        ds = self._ds
+        if not self._last or self._ndim == 0:  # another filter comes after Blosc on disk: not Blosc's bytes
+            return
+        n = self._n
+        first = key[0] if isinstance(key, tuple) and key else key
+        if isinstance(first, slice):
+            start, stop, _ = first.indices(n)
+        elif isinstance(first, (int, np.integer)):
+            start = int(first) % n if n else 0
+            stop = start + 1
+        else:  # Ellipsis, (), lists: the whole axis
+            start, stop = 0, n
+        if stop <= start:
+            return
+        zeros = (0,) * (self._ndim - 1)
+        for c in range(start // self._len, (stop - 1) // self._len + 1):
+            if c in self._ok:
+                continue
+            offset = (c * self._len,) + zeros
+            try:
+                mask, raw = ds.id.read_direct_chunk(offset)
+            except (OSError, ValueError):  # not written (HDF5 gives the fill value), or unreadable: HDF5 says
+                self._ok.add(c)
+                continue
+            if not mask & (1 << self._position):
+                why = blosc1_chunk_damage(memoryview(raw), self._nbytes)
+                if why:
+                    at = ds.id.get_chunk_info_by_coord(offset).byte_offset
+                    raise OSError(f"Blosc chunk {c} of {ds.name} (byte {at}) is damaged: {why}")
+            self._ok.add(c)
+
+
+class _CheckedFields:
+    def __init__(self, checked, names):
+        self._checked = checked
+        self._names = names
+
+    def __getitem__(self, key):
+        self._checked._check(key)
+        return self._checked._ds.fields(self._names)[key]
+
+
+def _checked(node):
+    """``node`` itself, or for a Blosc (v1) dataset a :class:`_Blosc1Checked` view; groups stay groups
+    whose members are checked the same way."""
+    h5py = _h5()
+    if isinstance(node, h5py.Dataset):
+        try:
+            ids = _describe_filters(node)
+        except Exception:
+            return node
+        if BLOSC1_FILTER in ids and node.chunks:
+            return _Blosc1Checked(node, ids.index(BLOSC1_FILTER))
+        return node
+    if isinstance(node, h5py.Group):
+        return _CheckedGroup(node)
+    return node
+
+
+class _CheckedGroup:
+    """An HDF5 group (or file) whose datasets come back checked (:func:`_checked`)."""
+
+    def __init__(self, group):
+        self._g = group
+
+    def __getattr__(self, name):
+        return getattr(self._g, name)
+
+    def __contains__(self, name):
+        return name in self._g
+
+    def __iter__(self):
+        return iter(self._g)
+
+    def __len__(self):
+        return len(self._g)
+
+    def __getitem__(self, name):
+        return _checked(self._g[name])
 
 
 class _EvtkLayout(_Layout):
@@ -419,7 +588,7 @@ class Hdf5Recording(BaseRecording):
             except Exception:
                 hit = False
             if hit:
-                return cls(self._f, self.path)
+                return cls(_CheckedGroup(self._f), self.path)
         found = _inventory(self._f)
         raise FormatError(
             self.path, None,
@@ -445,14 +614,28 @@ class Hdf5Recording(BaseRecording):
         return self._layout.compression()
 
     def _infer_sensor_size(self):
+        """From the largest coordinates; with salvage, from those before the first unreadable block."""
         w = h = 0
         lay = self._layout
-        for i0 in range(0, lay.n, 1 << 22):
-            _, x, y, _ = lay.read(i0, min(lay.n, i0 + (1 << 22)))
+        step = 1 << 22
+        i0 = 0
+        while i0 < lay.n:
+            i1 = min(lay.n, i0 + step)
+            try:
+                _, x, y, _ = lay.read(i0, i1)
+            except (OSError, ValueError, KeyError, TypeError):
+                if not self.salvage:
+                    raise
+                if i1 - i0 > 1024:  # narrow down to the intact part of the block
+                    step = max(1024, (i1 - i0) // 8)
+                    continue
+                break
             if len(x):
                 w, h = max(w, int(np.max(x)) + 1), max(h, int(np.max(y)) + 1)
+            i0 = i1
         lay.sensor_size = (max(w, 1), max(h, 1))
-        self.warnings.append(f"the file does not record its sensor size; inferred {lay.sensor_size} from the coordinates")
+        self.warnings.append(f"the file does not record its sensor size; inferred {lay.sensor_size} from the coordinates"
+                             + (f" of the first {i0} events (the rest cannot be read)" if i0 < lay.n else ""))
 
     # -- events -----------------------------------------------------------------
     @_guard

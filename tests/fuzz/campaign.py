@@ -38,6 +38,12 @@ def sources(tmp: Path):
         p = tmp / name
         evtk.write_events(p, ev, tr, **kw)
         out[name] = p
+    # a foreign layout compressed with Blosc (v1), as DSEC ships it: c-blosc 1 trusts its chunks
+    from test_hdf5_parquet import make_dsec
+
+    dsec = random_events(5000, seed=4, sensor_size=(640, 480), span_us=50_000, t0=1000)
+    make_dsec(tmp / "d.h5", dsec, t_offset=500)
+    out["d.h5"] = tmp / "d.h5"
     fixtures = HERE.parent.parent / "fixtures"
     for f in fixtures.glob("*.aedat4"):
         out[f.name] = f
