@@ -540,3 +540,25 @@ def test_damaged_dsec_blosc1_chunk_is_an_error_not_a_crash(tmp_path, pos, value)
     status, n, head, tail = out["True"]
     assert status == "ok" and n == 20_000
     assert head == [int(v) for v in ev.t[:3]] and tail == [int(ev.t[19_999])]
+
+
+def test_damaged_blosc_filter_parameters_are_an_error_not_a_crash(tmp_path):
+    """The Blosc filter reads its parameters 2 and 3 unchecked; a pipeline message whose parameter count
+    was zeroed (found by the fuzz campaign, seed 23) crashed the process. Now it is a FormatError naming
+    the dataset (read in a child process)."""
+    import subprocess
+    import sys
+
+    ev = random_events(5000, seed=4, sensor_size=(640, 480), t0=1000)
+    path = tmp_path / "dsec.h5"
+    make_dsec(path, ev, t_offset=500)
+    data = bytes(path.read_bytes())
+    message = struct.pack("<HHHH", 32001, 8, 1, 7) + b"blosc"  # filter id, name length, flags, parameters
+    assert data.count(message) == 4
+    data = data.replace(message, struct.pack("<HHHH", 32001, 8, 0, 0) + b"blosc")
+    path.write_bytes(data)
+    r = subprocess.run([sys.executable, "-c", READ_IN_A_CHILD, str(path)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, (r.returncode, r.stderr[-500:])
+    out = json.loads(r.stdout)
+    for mode in ("False", "True"):
+        assert out[mode][0] == "FormatError" and "filter pipeline is damaged" in out[mode][1]

@@ -143,6 +143,7 @@ def _describe_filters(ds):
 
 
 BLOSC1_FILTER = 32001
+_BLOSC_FILTERS = {BLOSC1_FILTER: "Blosc", 32026: "Blosc2"}
 _BLOSC_MEMCPYED, _BLOSC_DONT_SPLIT = 0x02, 0x10
 _BLOSC_MAX_SPLITS, _BLOSC_MIN_BUFFERSIZE = 16, 128
 
@@ -277,9 +278,17 @@ def _checked(node):
     h5py = _h5()
     if isinstance(node, h5py.Dataset):
         try:
-            ids = _describe_filters(node)
+            plist = node.id.get_create_plist()
+            pipeline = [plist.get_filter(i) for i in range(plist.get_nfilters())]
         except Exception:
             return node
+        ids = [f[0] for f in pipeline]
+        for fid, _flags, values, _name in pipeline:
+            # the Blosc filters read their type and chunk sizes from parameters 2 and 3 without checking
+            # that there are that many: a damaged pipeline message with fewer crashed the process
+            if fid in _BLOSC_FILTERS and len(values) < 4:
+                raise OSError(f"{node.name}: the filter pipeline is damaged ({_BLOSC_FILTERS[fid]} with "
+                              f"{len(values)} parameters, at least 4 expected)")
         if BLOSC1_FILTER in ids and node.chunks:
             return _Blosc1Checked(node, ids.index(BLOSC1_FILTER))
         return node
