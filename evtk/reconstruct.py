@@ -779,7 +779,6 @@ def save_reconstruction(path, result: Reconstruction, sensor_size, metadata=None
     the summary (parameters, errors) as JSON (``summary`` in NPZ, in the
     metadata in HDF5, together with ``metadata``).
     """
-    import json
     import os
 
     arrays = {"responses": result.responses, "binary": result.binary, "cells": result.cells,

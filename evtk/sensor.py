@@ -301,7 +301,10 @@ def _uniform(st):
     return float(_next_u64(st) >> np.uint64(11)) * 1.1102230246251565e-16
 
 
-def _ziggurat_tables(layers=256, r=3.6541528853610088):
+_ZIG_R = 3.6541528853610088  # right edge of the base strip for 256 strips
+
+
+def _ziggurat_tables(layers=256, r=_ZIG_R):
     """Tables of Marsaglia and Tsang's ziggurat for the standard normal.
 
     ``layers`` strips of equal area ``v`` under ``exp(-x^2 / 2)``: the base
@@ -327,7 +330,6 @@ def _ziggurat_tables(layers=256, r=3.6541528853610088):
 
 
 _ZIG_W, _ZIG_IN, _ZIG_LO, _ZIG_HI = _ziggurat_tables()
-_ZIG_R = 3.6541528853610088
 
 
 @numba.njit(cache=True)

@@ -359,17 +359,20 @@ class Simulation:
             if c < 0:
                 rates[k] = blank
                 continue
-            s = self.schedule
-            key = (int(s.kernel_id[c]), int(s.features_id[c]), int(s.kernel_sign[c]), int(s.features_sign[c]))
+            key = self._pass_key(c)
             if key not in cache:
                 cache[key] = self._rate(self.pass_response(c, region)).ravel()
             rates[k] = cache[key]
         return np.log(rates), time_constant_us(rates, self.sensor), log_noise_std(rates, self.sensor)
 
+    def _pass_key(self, c):
+        """What capture ``c`` shows: (kernel id, features id, kernel sign, features sign)."""
+        s = self.schedule
+        return int(s.kernel_id[c]), int(s.features_id[c]), int(s.kernel_sign[c]), int(s.features_sign[c])
+
     def _glow_rate(self, c):
         """Photoelectron rate of the uniform glow outside the region during capture ``c`` (cached per pass)."""
-        s = self.schedule
-        key = (int(s.kernel_id[c]), int(s.features_id[c]), int(s.kernel_sign[c]), int(s.features_sign[c]))
+        key = self._pass_key(c)
         cache = self._rate_cache.setdefault("glow", {})
         if key not in cache:
             cache[key] = float(self._rate(glow_response(self._pass_patterns(c)[0], self.bench)))

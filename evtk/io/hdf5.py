@@ -274,7 +274,8 @@ class _CheckedFields:
 
 def _checked(node):
     """``node`` itself, or for a Blosc (v1) dataset a :class:`_Blosc1Checked` view; groups stay groups
-    whose members are checked the same way."""
+    whose members are checked the same way. A Blosc or Blosc2 pipeline with too few parameters raises
+    OSError before any read."""
     h5py = _h5()
     if isinstance(node, h5py.Dataset):
         try:
