@@ -80,7 +80,9 @@ def scheduler(spec=None):
         # Dask sets MALLOC_TRIM_THRESHOLD_ in its workers, which also stops glibc from raising its mmap
         # threshold: every large array then comes from fresh pages, and a reconstruction ran at half speed
         # (measured, benchmarks/bench_batch.py). evtk's workers keep the allocator's default.
-        io_threads = str(max(1, (os.cpu_count() or 1) // n))
+        from .io._compression import workers as io_workers
+
+        io_threads = str(max(1, io_workers() // n))  # the parent's decode threads, shared out
         with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
                               "distributed.nanny.pre-spawn-environ.EVTK_IO_THREADS": io_threads}):
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",

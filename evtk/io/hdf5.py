@@ -627,22 +627,20 @@ class Hdf5Recording(BaseRecording):
         """From the largest coordinates; with salvage, from those before the first unreadable block."""
         w = h = 0
         lay = self._layout
-        step = 1 << 22
         i0 = 0
         while i0 < lay.n:
-            i1 = min(lay.n, i0 + step)
+            i1 = min(lay.n, i0 + (1 << 22))
             try:
-                _, x, y, _ = lay.read(i0, i1)
+                cols, n = lay.read(i0, i1), i1 - i0
             except (OSError, ValueError, KeyError, TypeError):
                 if not self.salvage:
                     raise
-                if i1 - i0 > 1024:  # narrow down to the intact part of the block
-                    step = max(1024, (i1 - i0) // 8)
-                    continue
+                n, cols, _ = self._readable_prefix(i0, i1)
+            if n:
+                w, h = max(w, int(np.max(cols[1])) + 1), max(h, int(np.max(cols[2])) + 1)
+            i0 += n
+            if i0 < i1:  # the rest cannot be read
                 break
-            if len(x):
-                w, h = max(w, int(np.max(x)) + 1), max(h, int(np.max(y)) + 1)
-            i0 = i1
         lay.sensor_size = (max(w, 1), max(h, 1))
         self.warnings.append(f"the file does not record its sensor size; inferred {lay.sensor_size} from the coordinates"
                              + (f" of the first {i0} events (the rest cannot be read)" if i0 < lay.n else ""))
@@ -729,11 +727,9 @@ class Hdf5Recording(BaseRecording):
         good = self._check(ev, i0, t_before)
         return ev if good == len(ev) else ev[:good]
 
-    def _salvage_block(self, a, b, out, o, t_before) -> int:
-        """A block whose read failed: the longest readable prefix (found by bisection, as
-        any read touching a damaged chunk fails), then validated; returns how many events
-        are intact. The same prefix is found whatever block sizes the caller reads in.
-        Reads go through the same path as a normal read (the columns' own dtypes)."""
+    def _readable_prefix(self, a, b):
+        """``(n, columns, reason)``: the longest prefix of events ``a..b`` that reads (bisection: any read
+        touching a damaged chunk fails), its columns (None when empty) and why the rest does not."""
         lo, hi = 0, b - a
         reason = "unreadable"
         best = None
@@ -745,6 +741,14 @@ class Hdf5Recording(BaseRecording):
             except (OSError, ValueError, KeyError, TypeError) as exc:
                 hi = mid
                 reason = exc
+        return lo, best, reason
+
+    def _salvage_block(self, a, b, out, o, t_before) -> int:
+        """A block whose read failed: the longest readable prefix (found by bisection, as
+        any read touching a damaged chunk fails), then validated; returns how many events
+        are intact. The same prefix is found whatever block sizes the caller reads in.
+        Reads go through the same path as a normal read (the columns' own dtypes)."""
+        lo, best, reason = self._readable_prefix(a, b)
         if self.damage is None:
             self.damage = Damage(None, f"events from index {a + lo} cannot be read ({reason})")
         if best is None:
