@@ -99,10 +99,10 @@ def _accumulate_part(args):
     from .io import open as open_recording
     from .reconstruct import Windows, accumulate
 
-    path, starts, ends, capture, region, chunk_events = args
+    path, starts, ends, capture, region, chunk_events, times = args
     with open_recording(path) as rec:
-        c = accumulate(rec, Windows(starts, ends, capture, "part"), region, chunk_events=chunk_events)
-    return c.on, c.off, c.events_used
+        c = accumulate(rec, Windows(starts, ends, capture, "part"), region, chunk_events=chunk_events, times=times)
+    return c.on, c.off, c.events_used, c.on_first_us, c.on_last_us
 
 
 def reconstruct_split(path, parts, client=None, chunk_events=4_000_000, **options):
@@ -114,7 +114,7 @@ def reconstruct_split(path, parts, client=None, chunk_events=4_000_000, **option
     """
     from .cluster import run_tasks
     from .io import open as open_recording
-    from .reconstruct import WindowCounts, _check_crop, plan, reconstruct_counts
+    from .reconstruct import WindowCounts, _check_crop, plan, reconstruct_counts, wants_times
 
     opts = dict(options)
     window = opts.pop("window", "schedule")
@@ -124,15 +124,20 @@ def reconstruct_split(path, parts, client=None, chunk_events=4_000_000, **option
         sim, win, region = plan(rec, window, skip_us, length_us, opts.pop("region", None))
     order = np.argsort(win.t_start_us, kind="stable")
     groups = [g for g in np.array_split(order, max(1, min(int(parts), len(order)))) if g.size]
-    tasks = [(path, win.t_start_us[g], win.t_end_us[g], win.capture[g], region, chunk_events) for g in groups]
+    times = wants_times(sim, opts.get("linear", True), opts.get("theta"), opts.get("timing"))
+    tasks = [(path, win.t_start_us[g], win.t_end_us[g], win.capture[g], region, chunk_events, times)
+             for g in groups]
     x0, x1, y0, y1 = region
     on = np.zeros((len(win), y1 - y0, x1 - x0), np.int32)
     off = np.zeros_like(on)
+    first, last = (np.full_like(on, -1), np.full_like(on, -1)) if times else (None, None)
     used = 0
-    for g, (on_g, off_g, used_g) in zip(groups, run_tasks(_accumulate_part, tasks, client)):
+    for g, (on_g, off_g, used_g, first_g, last_g) in zip(groups, run_tasks(_accumulate_part, tasks, client)):
         on[g], off[g] = on_g, off_g
+        if times:
+            first[g], last[g] = first_g, last_g
         used += used_g
-    return reconstruct_counts(WindowCounts(on, off, win, region, int(used)), sim, **opts)
+    return reconstruct_counts(WindowCounts(on, off, win, region, int(used), first, last), sim, **opts)
 
 
 def _split_large(todo, split_events, client, entries):

@@ -252,11 +252,14 @@ def _parse_size(text):
               help="Calibrate each pixel's threshold on the recording's flat-field captures, if any.")
 @click.option("--deblur/--no-deblur", default=None,
               help="Undo the known optical footprint blur (default: when the pixels are calibrated).")
+@click.option("--timing/--no-timing", default=None,
+              help="Read light below one threshold from each window's first and last ON-event times "
+                   "(default: wherever the recording's pixel model allows).")
 @click.option("--png", "png_path", type=click.Path(dir_okay=False),
               help="Also draw a contact sheet: captured beside ideal and binary.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
 def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, binarize_method, linearize, crop,
-                    flat_field, deblur, png_path, as_json):
+                    flat_field, deblur, timing, png_path, as_json):
     """Turn a recording into the convolution responses the device computed."""
     from .reconstruct import contact_sheet, save_reconstruction
 
@@ -264,7 +267,7 @@ def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, bi
     binarize_method = _parse_binarize(binarize_method)
     result, about = _reconstructed(recording, window=window, skip_us=skip_us, length_us=length_us,
                                    size=_parse_size(size), binarize_method=binarize_method, linear=linearize,
-                                   crop=crop, flat_field=flat_field, deblur=deblur)
+                                   crop=crop, flat_field=flat_field, deblur=deblur, timing=timing)
     n_events, sensor = about["events"], about["sensor_size"]
     save_reconstruction(output, result, sensor, {"source": str(recording)})
     if png_path:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 from dataclasses import dataclass, field
 
 import numba
@@ -55,6 +56,9 @@ __all__ = [
     "contact_sheet",
     "count_curve",
     "linearize_by_model",
+    "linearize_by_timing",
+    "timing_thresholds",
+    "wants_times",
     "flat_field_gain",
 ]
 
@@ -100,7 +104,10 @@ class WindowCounts:
     """Event counts per window and pixel: ``on``/``off`` of shape (windows, y1 - y0, x1 - x0).
 
     ``region`` is (x0, x1, y0, y1) on the sensor; ``events_used`` counts the
-    events that fell in a window and the region.
+    events that fell in a window and the region. ``on_first_us`` and
+    ``on_last_us`` (int32, same shape, -1 where a window holds no ON event),
+    when accumulated with ``times=True``, are the time stamps of each pixel's
+    first and last ON event in the window, counted from the window's start.
     """
 
     on: np.ndarray
@@ -108,6 +115,8 @@ class WindowCounts:
     windows: Windows
     region: tuple
     events_used: int
+    on_first_us: np.ndarray | None = None
+    on_last_us: np.ndarray | None = None
 
     @classmethod
     def from_capture_counts(cls, cc):
@@ -211,13 +220,16 @@ def windows_periodic(t_start_us, t_end_us, period_us, skip_us=0, length_us=None)
 
 
 @numba.njit(cache=True)
-def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, started):
+def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, started, first, last):
     """Add the chunk's events to every window; returns the number counted.
 
     ``counts`` is the flat (2, windows, y1 - y0, x1 - x0) array, OFF then ON,
     not yet zeroed: a window's frames are zeroed when it is first reached
     (``started``), which also brings them into cache just before the scattered
     increments. ``total``: events per window so far (for the overflow check).
+    ``first``/``last``: flat (windows, y1 - y0, x1 - x0) times of the first and
+    last ON event since the window's start (-1: none yet), or empty arrays
+    when times are not wanted.
     """
     used = 0
     n = t.size
@@ -229,6 +241,7 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
     frame = (y1 - y0) * w_px
     plane = starts.size * frame
     full = x0 == 0 and y0 == 0
+    timed = first.size > 0
     for w in range(starts.size):
         a = starts[w]
         b = ends[w]
@@ -241,8 +254,11 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
         if not started[w]:
             counts[base:base + frame] = 0
             counts[plane + base:plane + base + frame] = 0
+            if timed:
+                first[base:base + frame] = -1
+                last[base:base + frame] = -1
             started[w] = True
-        if full and x1 >= 0 and y1 >= 0:
+        if full and x1 >= 0 and y1 >= 0 and not timed:
             # every event is on the sensor (the reader checked), so inside a full-sensor region
             for i in range(lo, hi):
                 counts[np.int64(p[i]) * plane + base + np.int64(y[i]) * w_px + np.int64(x[i])] += 1
@@ -253,13 +269,19 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
                 yi = np.int64(y[i]) - y0
                 if xi < 0 or xi >= w_px or yi < 0 or yi >= y1 - y0:
                     continue
-                counts[np.int64(p[i]) * plane + base + yi * w_px + xi] += 1
+                k = base + yi * w_px + xi
+                counts[np.int64(p[i]) * plane + k] += 1
                 used += 1
+                if timed and p[i] != 0:
+                    dt = np.int32(t[i] - a)  # windows shorter than 2**31 us (checked by the caller)
+                    if first[k] < 0:
+                        first[k] = dt
+                    last[k] = dt
     return used
 
 
 def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, progress=None,
-               out=None) -> WindowCounts:
+               out=None, times=False) -> WindowCounts:
     """ON and OFF counts per window and pixel of ``region``.
 
     Parameters
@@ -275,6 +297,10 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
     out : ndarray, optional
         A C-contiguous int32 array of shape (2, windows, height, width) to
         reuse (OFF counts, then ON counts); zeroed here.
+    times : bool
+        Also keep each pixel's first and last ON-event time per window
+        (``on_first_us``/``on_last_us``), which the timing linearisation
+        (:func:`linearize_by_timing`) reads below one threshold.
 
     Returns
     -------
@@ -305,8 +331,15 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         if counts.shape != shape or counts.dtype != np.int32 or not counts.flags.c_contiguous:
             raise EvtkError(f"out must be a C-contiguous int32 array of shape {shape}")
     on, off = counts[1], counts[0]
+    if times:
+        if n_w and int(windows.length_us.max()) >= 2**31:
+            raise EvtkError("event times are kept relative to their window as int32: windows must be "
+                            "shorter than 2**31 us")
+        first, last = np.empty(shape[1:], np.int32), np.empty(shape[1:], np.int32)
+    else:
+        first = last = np.empty(0, np.int32)
     if n_w == 0:
-        return WindowCounts(on, off, windows, (x0, x1, y0, y1), 0)
+        return WindowCounts(on, off, windows, (x0, x1, y0, y1), 0, *((first, last) if times else ()))
     started = np.zeros(n_w, np.bool_)
     order = np.argsort(windows.t_start_us, kind="stable")
     starts = windows.t_start_us[order]
@@ -319,20 +352,29 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
     used = 0
     total = np.zeros(n_w, np.int64)
     flat = counts.reshape(-1)
+    first_flat, last_flat = first.reshape(-1), last.reshape(-1)
     for ev in chunks:
-        used += _accumulate_chunk(ev.t, ev.x, ev.y, ev.p, starts, ends, x0, x1, y0, y1, flat, total, started)
+        used += _accumulate_chunk(ev.t, ev.x, ev.y, ev.p, starts, ends, x0, x1, y0, y1, flat, total, started,
+                                  first_flat, last_flat)
         if total.max() > np.iinfo(np.int32).max:
             w = int(order[np.argmax(total)])
             raise EvtkError(f"window {w} holds more than 2**31 - 1 events: its int32 counts could overflow")
         if progress is not None:
             progress(len(ev))
     counts[:, ~started] = 0  # windows no event reached (positions in start order)
+    if times:
+        first[~started] = -1
+        last[~started] = -1
     if not np.array_equal(order, np.arange(n_w)):  # back to the caller's window order
         inv = np.empty_like(order)
         inv[order] = np.arange(n_w)
         counts[:] = counts[:, inv]
         on, off = counts[1], counts[0]
-    return WindowCounts(on, off, windows, (x0, x1, y0, y1), int(used))
+        if times:
+            first, last = first[inv], last[inv]
+    if not times:
+        return WindowCounts(on, off, windows, (x0, x1, y0, y1), int(used))
+    return WindowCounts(on, off, windows, (x0, x1, y0, y1), int(used), first, last)
 
 
 def linearize(on, off=None, theta_on=0.2, theta_off=None):
@@ -623,7 +665,7 @@ def plan(rec, window="schedule", skip_us=0, length_us=None, region=None):
 
 def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="sign",
                 linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None,
-                deblur=None, flat_field=True):
+                deblur=None, flat_field=True, timing=None):
     """The whole pipeline on an open recording: windows, counts, linearisation, passes, grid, binarisation.
 
     Parameters
@@ -656,17 +698,27 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
     flat_field : bool
         Calibrate each pixel's threshold on the recording's flat-field
         captures, when it has any (:func:`flat_field_gain`).
+    timing : bool or None
+        Read the light below one threshold from each window's first and last
+        ON-event times (:func:`linearize_by_timing`). ``None`` (default):
+        wherever the recording's pixel model allows it; ``True``: required.
 
     With a simulation record, linearisation inverts the recording's own pixel
-    model (:func:`count_curve`); otherwise (or with ``theta`` given) it uses
-    ``exp(n * theta) - 1``.
+    model (:func:`count_curve`, refined by event times); otherwise (or with
+    ``theta`` given) it uses ``exp(n * theta) - 1``.
     """
     _check_crop(crop)
     sim, win, region = plan(rec, window, skip_us, length_us, region)
-    counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress)
+    counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress,
+                        times=wants_times(sim, linear, theta, timing))
     return reconstruct_counts(counts, sim, skip_us=skip_us, length_us=length_us, size=size,
                               binarize_method=binarize_method, linear=linear, theta=theta, crop=crop,
-                              deblur=deblur, flat_field=flat_field)
+                              deblur=deblur, flat_field=flat_field, timing=timing)
+
+
+def wants_times(sim, linear=True, theta=None, timing=None):
+    """Whether a reconstruction with these settings reads event times (accumulate with ``times=True``)."""
+    return timing is not False and sim is not None and bool(linear) and theta is None
 
 
 def _check_crop(crop):
@@ -675,7 +727,7 @@ def _check_crop(crop):
 
 
 def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16), binarize_method="sign",
-                       linear=True, theta=None, crop="valid", deblur=None, flat_field=True):
+                       linear=True, theta=None, crop="valid", deblur=None, flat_field=True, timing=None):
     """Every stage after accumulation, on window counts (:func:`reconstruct` without the recording).
 
     ``counts`` is a :class:`WindowCounts` (from :func:`accumulate`, or from
@@ -712,6 +764,14 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
     else:
         g = 1.0 if gain is None else gain
         values = linearize(counts.on * g, counts.off * g, theta_on, theta_off)
+    timed_share = None
+    if timing is not False:
+        why = _no_timing(counts, sim, schedule, curve, skip_us)
+        if why is not None and timing:
+            raise EvtkError(f"timing linearisation is not possible: {why}")
+        if why is None:
+            values, timed_share = _refine_by_timing(values, counts, sim, bench, schedule, curve, gain, theta_on,
+                                                    skip_us)
 
     pairs = ideal = None
     deblurred = False
@@ -765,10 +825,77 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
         "deblurred": bool(deblurred),
         "flat_field_captures": 0 if gain is None else int(np.sum(schedule.kernel_id < 0)),
         "decimation": 1 if bench is None else int(bench.decimation),
+        "linearization": ("counts" if not linear else "pixel model and event times" if timed_share is not None
+                          else "pixel model" if curve is not None else "exp(n theta)"),
+        "timed_share": timed_share,
     }
     if ideal is not None:
         summary["error"] = response_error(cells, ideal)
     return Reconstruction(responses, binary, pairs, cells, ideal, counts, summary)
+
+
+def _no_timing(counts, sim, schedule, curve, skip_us):
+    """Why event times cannot refine this reconstruction's linearisation (None: they can)."""
+    if curve is None:
+        return "it needs the recording's pixel model (a simulated recording, linear, no fixed theta)"
+    if counts.on_first_us is None:
+        return "the counts hold no event times (accumulate with times=True)"
+    if schedule is None or not np.array_equal(counts.windows.t_start_us, schedule.t_on_us + int(skip_us)):
+        return "the windows must start skip_us after each pattern's onset (schedule windows)"
+    return None
+
+
+def _refine_by_timing(values, counts, sim, bench, schedule, curve, gain, theta_on, skip_us):
+    """Replace count-based light by :func:`linearize_by_timing` wherever the times determine it.
+
+    Thresholds: nominal, or per pixel from the flat-field windows' times
+    (:func:`timing_thresholds`), else from the flat-field count gain.
+    Returns the values and the share of pixel-windows the times set.
+    """
+    from .sensor import SensorModel
+
+    sm = SensorModel.from_dict(sim["sensor"])
+    blank = float(sim["blank_rate_e_per_s"])
+    theta = np.full(counts.on.shape[1:], float(theta_on))
+    if gain is not None:
+        ff = schedule.kernel_id < 0
+        flat_u = np.broadcast_to(_flat_log_step(sim, bench, counts.region), (int(ff.sum()),) + theta.shape)
+        flat_u = flat_u - _settle_residual(flat_u, schedule.t_on_us[ff], schedule.t_off_us[ff], sm, blank)
+        t = timing_thresholds(counts.on[ff], counts.on_first_us[ff], counts.on_last_us[ff], flat_u, sm, blank,
+                              skip_us)
+        theta = np.where(np.isfinite(t), t, theta * gain)
+    u = linearize_by_timing(counts.on, counts.on_first_us, counts.on_last_us, theta, sm, blank, curve, skip_us)
+    ok = np.isfinite(u)
+    u = np.where(ok, u, np.log1p(values))
+    u[ok] += _settle_residual(u, schedule.t_on_us, schedule.t_off_us, sm, blank)[ok]
+    return np.where(ok, np.expm1(u), values), float(ok.mean()) if ok.size else 0.0
+
+
+def _settle_residual(u, t_on_us, t_off_us, sensor, blank_rate_e_per_s):
+    """How far above the dark level (log units) each pixel's photoreceptor still is at each pattern's onset.
+
+    The darkness between patterns is finite, so a pixel starts a window a
+    little above the dark level, from where the timing estimate measures its
+    step. Noise-free mean path through the windows ``[t_on_us, t_off_us)`` in
+    time order, from a settled first window, with the light of each window
+    taken as ``u`` (its log step over the dark level).
+    """
+    from .sensor import time_constant_us
+
+    order = np.argsort(t_on_us, kind="stable")
+    tau_dark = float(time_constant_us(blank_rate_e_per_s, sensor))
+    eps = np.zeros_like(u)
+    level = np.zeros(u.shape[1:])
+    prev_off = None
+    for w in order:
+        if prev_off is not None:
+            level = level * math.exp(-max(int(t_on_us[w]) - prev_off, 0) / tau_dark)
+        eps[w] = level
+        lit = max(int(t_off_us[w]) - int(t_on_us[w]), 0)
+        tau = time_constant_us(blank_rate_e_per_s * np.exp(u[w]), sensor)
+        level = u[w] + (level - u[w]) * np.exp(-lit / tau)
+        prev_off = int(t_off_us[w])
+    return eps
 
 
 def save_reconstruction(path, result: Reconstruction, sensor_size, metadata=None):
@@ -911,6 +1038,198 @@ def linearize_by_model(net_counts, curve):
     return np.expm1(np.interp(n, levels, mid))
 
 
+@numba.njit(cache=True, inline="always")
+def _timing_factor(n, a_us, b_us, log_rate, tau_min_us, tau_electrons, refr_us):
+    """``u / theta`` for a pixel whose ``n`` (>= 2) ON events after a step of ``u`` from the dark level came
+    first at ``a_us`` and last at ``b_us`` after the step, the light being ``exp(log_rate)`` photoelectrons/s.
+
+    Noise-free, the photoreceptor approaches its new level as ``V = L - u exp(-t/tau)``. Each event
+    raises the reference by ``theta`` above V, and the refractory period lets V climb on by a factor
+    ``q = exp(-refr/tau)`` of what remains. Writing ``E = exp(-t/tau)`` at event times, that chain is
+    ``u (q E_k - E_(k+1)) = theta``, whose solution from the first to the last event is
+    ``u / theta = (1 - q^(n-1)) / ((1 - q)(q^(n-1) E_1 - E_n))``, free of the reference the pixel started
+    from. Computed in logs (no overflow for any times). -1 when the times cannot come from such a chain
+    (``b - a <= (n - 1) refr``).
+    """
+    tau = tau_min_us + tau_electrons / (np.exp(log_rate) * 1e-6)
+    r = refr_us / tau
+    x = (b_us - a_us) / tau - (n - 1) * r
+    if not x > 0.0:
+        return -1.0
+    # log of (1 - q) * (exp(-(n-1) r - A) - exp(-B)) = log(1 - q) - B + log(expm1(x))
+    log_den = np.log(-np.expm1(-r)) - b_us / tau + x + np.log1p(-np.exp(-x))
+    return np.exp(np.log(-np.expm1(-(n - 1) * r)) - log_den)
+
+
+@numba.njit(cache=True)
+def _timing_solve(n_on, first, last, theta, theta_nominal, band_lo, band_hi, offset_us, log_blank, tau_min_us,
+                  tau_electrons, refr_us, out):
+    """Log-light steps from ON-event times, :func:`linearize_by_timing`'s work, per (window, pixel)."""
+    n_w, n_px = n_on.shape
+    top = band_lo.size - 1
+    for w in range(n_w):
+        for i in range(n_px):
+            n = n_on[w, i]
+            out[w, i] = np.nan
+            if n < 2 or first[w, i] < 0 or last[w, i] < first[w, i]:
+                continue
+            a = first[w, i] + offset_us + 0.5  # time stamps are whole us, rounded down
+            b = last[w, i] + offset_us + 0.5
+            th = theta[i]
+            # Search where the count allows: its band (scaled to the pixel's threshold) and the next one,
+            # since the reference a pixel starts from may sit up to one threshold above the dark level,
+            # widened by a threshold. (Far outside, a much brighter and faster pixel can fit the same
+            # two times: h has a second root there.)
+            s = th / theta_nominal
+            lo = max(0.0, band_lo[min(n, top)] * s - th)
+            # the last band reaches the brightest light, whatever the pixel's threshold
+            hi = band_hi[n + 1] * s + th if n + 1 < top else band_hi[top] * max(s, 1.0) + th
+            f = _timing_factor(n, a, b, log_blank + lo, tau_min_us, tau_electrons, refr_us)
+            if f < 0.0:
+                continue
+            h_lo = lo - th * f
+            h_hi = hi - th * _timing_factor(n, a, b, log_blank + hi, tau_min_us, tau_electrons, refr_us)
+            if not (h_lo < 0.0 < h_hi):
+                continue
+            side = 0
+            u = lo
+            for _ in range(100):  # Illinois method
+                u = (lo * h_hi - hi * h_lo) / (h_hi - h_lo)
+                h = u - th * _timing_factor(n, a, b, log_blank + u, tau_min_us, tau_electrons, refr_us)
+                if abs(h) <= 1e-10 * (1.0 + u) or hi - lo <= 1e-12:
+                    break
+                if h > 0.0:
+                    hi, h_hi = u, h
+                    if side == 1:
+                        h_lo *= 0.5
+                    side = 1
+                else:
+                    lo, h_lo = u, h
+                    if side == -1:
+                        h_hi *= 0.5
+                    side = -1
+            out[w, i] = u
+
+
+def linearize_by_timing(on, on_first_us, on_last_us, theta, sensor, dark_rate_e_per_s, curve, offset_us=0):
+    """Log-light step of each window from the times of its first and last ON event, below one threshold.
+
+    A count alone places the step somewhere in a band one threshold wide (a
+    22 % band of light at ``theta = 0.2``). When the pixel's time constant is
+    known (a simulated recording's pixel model: ``tau = tau_min +
+    tau_electrons / lam``, refractory period), the times at which the noise-free
+    photoreceptor crosses its thresholds fix the step within that band
+    (:func:`_timing_factor`). The estimate does not depend on the reference the
+    pixel started the window with, so the residue earlier captures leave does
+    not bias it. With shot noise the times scatter and the estimate with them;
+    it still beats the count's band at nominal light (see
+    ``benchmarks/bench_accuracy.py``).
+
+    Parameters
+    ----------
+    on, on_first_us, on_last_us : ndarray (windows, ...)
+        ON counts and first/last ON-event times from the window's start
+        (:func:`accumulate` with ``times=True``).
+    theta : float or ndarray (...)
+        Each pixel's ON threshold.
+    sensor : SensorModel or dict
+        The pixel model (``theta_on`` nominal, ``tau_min_us``,
+        ``tau_electrons``, ``refractory_us``).
+    dark_rate_e_per_s : float
+        Photoelectron rate of the dark level the step starts from.
+    curve : (u, counts)
+        The pixel model's :func:`count_curve` for these windows: the search
+        stays within the steps a pixel's count allows.
+    offset_us : float
+        Time from the step (the pattern's onset) to the window's start.
+
+    Returns
+    -------
+    ndarray (windows, ...)
+        The step ``u`` (natural log of light over the dark level); NaN where
+        the times do not determine it (fewer than two ON events, or times no
+        noise-free pixel with that count produces): fall back to the count there.
+    """
+    from .sensor import SensorModel
+
+    sm = sensor if isinstance(sensor, SensorModel) else SensorModel.from_dict(dict(sensor))
+    n = np.asarray(on)
+    first = np.asarray(on_first_us)
+    last = np.asarray(on_last_us)
+    if not (n.shape == first.shape == last.shape) or n.ndim < 1:
+        raise EvtkError(f"counts {n.shape} and event times {first.shape}/{last.shape} must have one shape")
+    th = np.broadcast_to(np.asarray(theta, dtype=np.float64), n.shape[1:])
+    if not (np.all(np.isfinite(th)) and np.all(th > 0)):
+        raise EvtkError("thresholds must be finite and positive")
+    if not (math.isfinite(dark_rate_e_per_s) and dark_rate_e_per_s > 0):
+        raise EvtkError(f"the dark level's rate must be finite and positive, not {dark_rate_e_per_s!r}")
+    _, band_lo, band_hi = _count_bands(curve)
+    rows = n.shape[0]
+    out = np.empty(n.shape, np.float64)
+    _timing_solve(n.reshape(rows, -1).astype(np.int64), first.reshape(rows, -1).astype(np.int64),
+                  last.reshape(rows, -1).astype(np.int64), np.ascontiguousarray(th.ravel()), sm.theta_on,
+                  np.ascontiguousarray(band_lo, np.float64), np.ascontiguousarray(band_hi, np.float64),
+                  float(offset_us), math.log(dark_rate_e_per_s), sm.tau_min_us, sm.tau_electrons, sm.refractory_us,
+                  out.reshape(rows, -1))
+    return out
+
+
+def _flat_log_step(sim, bench, region):
+    """Log-light step ``u`` each pixel of ``region`` (y, x) sees in a flat-field window (every mirror on)."""
+    from .optics import screen_response
+
+    kshape = np.asarray(sim["kernels"]).shape[1:]
+    fshape = np.asarray(sim["features"]).shape[1:]
+    light = screen_response(np.ones(kshape), np.ones(fshape), bench, tuple(region))
+    rate = float(sim["gain_e_per_s_per_unit"]) * light + float(sim["sensor"]["dark_current_e_per_s"])
+    return np.log(np.maximum(rate, 1e-300) / float(sim["blank_rate_e_per_s"]))
+
+
+def timing_thresholds(flat_on, flat_first_us, flat_last_us, flat_u, sensor, dark_rate_e_per_s, offset_us=0):
+    """Each pixel's ON threshold from flat-field windows of known step ``flat_u`` and their ON-event times.
+
+    ``flat_u``: the step of each window and pixel, or of each pixel.
+
+    The inverse of :func:`linearize_by_timing`: with the step known,
+    ``theta = u / factor``, averaged over the flat-field windows whose times
+    determine it; NaN for a pixel none does.
+    """
+    from .sensor import SensorModel
+
+    sm = sensor if isinstance(sensor, SensorModel) else SensorModel.from_dict(dict(sensor))
+    n = np.asarray(flat_on, dtype=np.int64)
+    if n.ndim < 1 or n.shape[0] == 0:
+        raise EvtkError("threshold calibration needs at least one flat-field window")
+    if not (n.shape == np.shape(flat_first_us) == np.shape(flat_last_us)):
+        raise EvtkError("flat-field counts and event times must have one shape")
+    rows = n.shape[0]
+    fu = np.ascontiguousarray(np.broadcast_to(np.asarray(flat_u, dtype=np.float64), n.shape).reshape(rows, -1))
+    theta = _timing_theta(n.reshape(rows, -1), np.asarray(flat_first_us, np.int64).reshape(rows, -1),
+                          np.asarray(flat_last_us, np.int64).reshape(rows, -1), fu, float(offset_us),
+                          math.log(dark_rate_e_per_s), sm.tau_min_us, sm.tau_electrons, sm.refractory_us)
+    return theta.reshape(n.shape[1:])
+
+
+@numba.njit(cache=True)
+def _timing_theta(n_on, first, last, flat_u, offset_us, log_blank, tau_min_us, tau_electrons, refr_us):
+    n_w, n_px = n_on.shape
+    out = np.full(n_px, np.nan)
+    for i in range(n_px):
+        total = 0.0
+        k = 0
+        for w in range(n_w):
+            if n_on[w, i] < 2 or first[w, i] < 0:
+                continue
+            f = _timing_factor(n_on[w, i], first[w, i] + offset_us + 0.5, last[w, i] + offset_us + 0.5,
+                               log_blank + flat_u[w, i], tau_min_us, tau_electrons, refr_us)
+            if f > 0.0:
+                total += flat_u[w, i] / f
+                k += 1
+        if k > 0:
+            out[i] = total / k
+    return out
+
+
 def _expected_flat_counts(sim, bench, region, curve, theta_on):
     """Net count a nominal pixel gives in a flat-field window, per pixel of ``region`` (y, x).
 
@@ -918,13 +1237,7 @@ def _expected_flat_counts(sim, bench, region, curve, theta_on):
     a count curve the count is the curve read continuously, else
     ``log-step / theta_on``.
     """
-    from .optics import screen_response
-
-    kshape = np.asarray(sim["kernels"]).shape[1:]
-    fshape = np.asarray(sim["features"]).shape[1:]
-    light = screen_response(np.ones(kshape), np.ones(fshape), bench, tuple(region))
-    rate = float(sim["gain_e_per_s_per_unit"]) * light + float(sim["sensor"]["dark_current_e_per_s"])
-    u = np.log(np.maximum(rate, 1e-300) / float(sim["blank_rate_e_per_s"]))
+    u = _flat_log_step(sim, bench, region)
     if curve is None:
         return u / theta_on
     levels, mid = _count_steps(curve)
@@ -933,15 +1246,21 @@ def _expected_flat_counts(sim, bench, region, curve, theta_on):
 
 def _count_steps(curve):
     """Whole counts 0..top of a :func:`count_curve` and the log-light step each stands for (its middle)."""
+    levels, lo, hi = _count_bands(curve)
+    mid = 0.5 * (lo + hi)
+    mid[0] = 0.0
+    return levels, mid
+
+
+def _count_bands(curve):
+    """Whole counts 0..top of a :func:`count_curve` and the band ``[lo, hi)`` of log-light steps giving each."""
     u, n_of_u = curve
     top = int(n_of_u[-1])
     levels = np.arange(top + 2)
     first = np.searchsorted(n_of_u, levels, side="left")  # first grid index reaching each count
     lo = u[np.minimum(first[:-1], u.size - 1)]
     hi = np.where(first[1:] < u.size, u[np.minimum(first[1:], u.size - 1)], u[-1])
-    mid = 0.5 * (lo + hi)
-    mid[0] = 0.0
-    return levels[:-1], mid
+    return levels[:-1], lo, hi
 
 
 def flat_field_gain(flat_counts, expected_counts, min_counts=3, limits=(0.5, 2.0)):

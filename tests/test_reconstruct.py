@@ -497,7 +497,8 @@ def test_flat_field_gain_finds_each_pixels_threshold(tmp_path):
 
 
 def test_reconstruct_counts_from_the_fast_path_equals_the_recording(tmp_path):
-    """The simulator's exact count path and the recording give the same counts, hence the same responses."""
+    """The simulator's exact count path and the recording give the same counts, hence the same responses
+    (the count path has no event times: compare with the recording's reconstruction from counts alone)."""
     from evtk.reconstruct import WindowCounts, reconstruct, reconstruct_counts
     from evtk.sensor import SensorModel
     from evtk.simulate import Simulation
@@ -508,9 +509,14 @@ def test_reconstruct_counts_from_the_fast_path_equals_the_recording(tmp_path):
     path = tmp_path / "r.aedat4"
     sim.write(path)
     with evtk.open(path) as rec:
-        a = reconstruct(rec, size=(8, 8))
+        a = reconstruct(rec, size=(8, 8), timing=False)
+        timed = reconstruct(rec, size=(8, 8))
     b = reconstruct_counts(WindowCounts.from_capture_counts(sim.responses(method="exact")),
                            sim.metadata()["simulation"], size=(8, 8))
+    assert a.summary["linearization"] == b.summary["linearization"] == "pixel model"
+    assert timed.summary["linearization"] == "pixel model and event times" and timed.summary["timed_share"] > 0.5
+    with pytest.raises(EvtkError, match="no event times"):
+        reconstruct_counts(b.counts, sim.metadata()["simulation"], timing=True)
     np.testing.assert_array_equal(a.counts.on, b.counts.on)
     np.testing.assert_array_equal(a.counts.off, b.counts.off)
     np.testing.assert_allclose(b.cells, a.cells)
