@@ -757,21 +757,20 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
     gain = None
     if linear and flat_field and schedule is not None and np.any(schedule.kernel_id < 0):
         gain = flat_field_gain(net[schedule.kernel_id < 0], _expected_flat_counts(sim, bench, region, curve, theta_on))
+    timed_share = None
+    why = _no_timing(counts, sim, schedule, curve, skip_us) if timing is not False else "not asked for"
+    if why is not None and timing:
+        raise EvtkError(f"timing linearisation is not possible: {why}")
     if not linear:
         values = net
+    elif why is None:  # the pixel model, read below one threshold from the event times
+        values, timed_share = _refine_by_timing(net if gain is None else net * gain, counts, sim, bench, schedule,
+                                                curve, gain, theta_on, skip_us)
     elif curve is not None:  # invert the recording's own pixel model
         values = linearize_by_model(net if gain is None else net * gain, curve)
     else:
         g = 1.0 if gain is None else gain
         values = linearize(counts.on * g, counts.off * g, theta_on, theta_off)
-    timed_share = None
-    if timing is not False:
-        why = _no_timing(counts, sim, schedule, curve, skip_us)
-        if why is not None and timing:
-            raise EvtkError(f"timing linearisation is not possible: {why}")
-        if why is None:
-            values, timed_share = _refine_by_timing(values, counts, sim, bench, schedule, curve, gain, theta_on,
-                                                    skip_us)
 
     pairs = ideal = None
     deblurred = False
@@ -845,12 +844,13 @@ def _no_timing(counts, sim, schedule, curve, skip_us):
     return None
 
 
-def _refine_by_timing(values, counts, sim, bench, schedule, curve, gain, theta_on, skip_us):
-    """Replace count-based light by :func:`linearize_by_timing` wherever the times determine it.
+def _refine_by_timing(net, counts, sim, bench, schedule, curve, gain, theta_on, skip_us):
+    """Light from :func:`linearize_by_timing` wherever the times determine it, else from the (calibrated)
+    net counts ``net`` through :func:`linearize_by_model`.
 
     Thresholds: nominal, or per pixel from the flat-field windows' times
     (:func:`timing_thresholds`), else from the flat-field count gain.
-    Returns the values and the share of pixel-windows the times set.
+    Returns the values (``exp(u) - 1``) and the share of pixel-windows the times set.
     """
     from .sensor import SensorModel
 
@@ -866,9 +866,9 @@ def _refine_by_timing(values, counts, sim, bench, schedule, curve, gain, theta_o
         theta = np.where(np.isfinite(t), t, theta * gain)
     u = linearize_by_timing(counts.on, counts.on_first_us, counts.on_last_us, theta, sm, blank, curve, skip_us)
     ok = np.isfinite(u)
-    u = np.where(ok, u, np.log1p(values))
+    u[~ok] = _model_log_step(net[~ok], curve)
     u[ok] += _settle_residual(u, schedule.t_on_us, schedule.t_off_us, sm, blank)[ok]
-    return np.where(ok, np.expm1(u), values), float(ok.mean()) if ok.size else 0.0
+    return np.expm1(u), float(ok.mean()) if ok.size else 0.0
 
 
 def _settle_residual(u, t_on_us, t_off_us, sensor, blank_rate_e_per_s):
@@ -883,18 +883,28 @@ def _settle_residual(u, t_on_us, t_off_us, sensor, blank_rate_e_per_s):
     from .sensor import time_constant_us
 
     order = np.argsort(t_on_us, kind="stable")
+    t_on = np.asarray(t_on_us, np.int64)[order]
+    t_off = np.asarray(t_off_us, np.int64)[order]
     tau_dark = float(time_constant_us(blank_rate_e_per_s, sensor))
-    eps = np.zeros_like(u)
-    level = np.zeros(u.shape[1:])
-    prev_off = None
-    for w in order:
-        if prev_off is not None:
-            level = level * math.exp(-max(int(t_on_us[w]) - prev_off, 0) / tau_dark)
-        eps[w] = level
-        lit = max(int(t_off_us[w]) - int(t_on_us[w]), 0)
-        tau = time_constant_us(blank_rate_e_per_s * np.exp(u[w]), sensor)
-        level = u[w] + (level - u[w]) * np.exp(-lit / tau)
-        prev_off = int(t_off_us[w])
+    gap = np.maximum(t_on[1:] - t_off[:-1], 0)
+    dark_decay = np.concatenate([[0.0], np.exp(-gap / tau_dark)])  # the first window starts settled
+    u_t = np.ascontiguousarray(u[order]).reshape(len(order), -1)
+    lit = np.maximum(t_off - t_on, 0).astype(np.float64)
+    lit_decay = np.exp(-lit[:, None] / time_constant_us(blank_rate_e_per_s * np.exp(u_t), sensor))
+    eps = np.empty_like(u)
+    eps[order] = _settle_path(u_t, lit_decay, dark_decay).reshape((len(order),) + u.shape[1:])
+    return eps
+
+
+@numba.njit(cache=True)
+def _settle_path(u, lit_decay, dark_decay):
+    eps = np.empty_like(u)
+    level = np.zeros(u.shape[1])
+    for w in range(u.shape[0]):
+        for i in range(u.shape[1]):
+            level[i] *= dark_decay[w]
+            eps[w, i] = level[i]
+            level[i] = u[w, i] + (level[i] - u[w, i]) * lit_decay[w, i]
     return eps
 
 
@@ -1031,11 +1041,16 @@ def linearize_by_model(net_counts, curve):
     beyond the curve take its end. Fractional counts (calibrated by
     :func:`flat_field_gain`) interpolate between neighbouring whole counts.
     """
+    return np.expm1(_model_log_step(net_counts, curve))
+
+
+def _model_log_step(net_counts, curve):
+    """:func:`linearize_by_model`'s step ``u`` itself."""
     n = np.asarray(net_counts, dtype=np.float64)
     if not np.all(np.isfinite(n)):
         raise EvtkError("counts to linearise must be finite")
     levels, mid = _count_steps(curve)
-    return np.expm1(np.interp(n, levels, mid))
+    return np.interp(n, levels, mid)
 
 
 @numba.njit(cache=True, inline="always")
@@ -1056,18 +1071,21 @@ def _timing_factor(n, a_us, b_us, log_rate, tau_min_us, tau_electrons, refr_us):
     x = (b_us - a_us) / tau - (n - 1) * r
     if not x > 0.0:
         return -1.0
-    # log of (1 - q) * (exp(-(n-1) r - A) - exp(-B)) = log(1 - q) - B + log(expm1(x))
-    log_den = np.log(-np.expm1(-r)) - b_us / tau + x + np.log1p(-np.exp(-x))
+    big = b_us / tau
+    if big < 700.0:  # (1 - q) (exp(-(n-1) r - A) - exp(-B)) = (1 - q) exp(-B) expm1(x)
+        return -np.expm1(-(n - 1) * r) / (-np.expm1(-r) * np.exp(-big) * np.expm1(x))
+    # the same in logs, where exp(-B) would underflow
+    log_den = np.log(-np.expm1(-r)) - big + x + np.log1p(-np.exp(-x))
     return np.exp(np.log(-np.expm1(-(n - 1) * r)) - log_den)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _timing_solve(n_on, first, last, theta, theta_nominal, band_lo, band_hi, offset_us, log_blank, tau_min_us,
                   tau_electrons, refr_us, out):
     """Log-light steps from ON-event times, :func:`linearize_by_timing`'s work, per (window, pixel)."""
     n_w, n_px = n_on.shape
     top = band_lo.size - 1
-    for w in range(n_w):
+    for w in numba.prange(n_w):
         for i in range(n_px):
             n = n_on[w, i]
             out[w, i] = np.nan
@@ -1084,9 +1102,29 @@ def _timing_solve(n_on, first, last, theta, theta_nominal, band_lo, band_hi, off
             lo = max(0.0, band_lo[min(n, top)] * s - th)
             # the last band reaches the brightest light, whatever the pixel's threshold
             hi = band_hi[n + 1] * s + th if n + 1 < top else band_hi[top] * max(s, 1.0) + th
-            f = _timing_factor(n, a, b, log_blank + lo, tau_min_us, tau_electrons, refr_us)
-            if f < 0.0:
+            # secant steps on h(u) = u - theta * factor(u) from the middle of the band; the time constant
+            # changes slowly with the light, so this takes a few steps; the bracketed method otherwise
+            u0 = 0.5 * (lo + hi)
+            f = _timing_factor(n, a, b, log_blank + u0, tau_min_us, tau_electrons, refr_us)
+            if f < 0.0:  # depends on the times only
                 continue
+            h0 = u0 - th * f
+            u1 = th * f
+            done = False
+            for _ in range(10):
+                h1 = u1 - th * _timing_factor(n, a, b, log_blank + u1, tau_min_us, tau_electrons, refr_us)
+                if abs(h1) <= 1e-4 * (1.0 + abs(u1)):
+                    done = lo <= u1 <= hi
+                    break
+                if h1 == h0:
+                    break
+                u0, h0, u1 = u1, h1, u1 - h1 * (u1 - u0) / (h1 - h0)
+                if not (-1.0 < u1 < 2.0 * hi + 1.0):
+                    break
+            if done:
+                out[w, i] = u1
+                continue
+            f = _timing_factor(n, a, b, log_blank + lo, tau_min_us, tau_electrons, refr_us)
             h_lo = lo - th * f
             h_hi = hi - th * _timing_factor(n, a, b, log_blank + hi, tau_min_us, tau_electrons, refr_us)
             if not (h_lo < 0.0 < h_hi):
@@ -1096,7 +1134,7 @@ def _timing_solve(n_on, first, last, theta, theta_nominal, band_lo, band_hi, off
             for _ in range(100):  # Illinois method
                 u = (lo * h_hi - hi * h_lo) / (h_hi - h_lo)
                 h = u - th * _timing_factor(n, a, b, log_blank + u, tau_min_us, tau_electrons, refr_us)
-                if abs(h) <= 1e-10 * (1.0 + u) or hi - lo <= 1e-12:
+                if abs(h) <= 1e-6 * (1.0 + u) or hi - lo <= 1e-9:
                     break
                 if h > 0.0:
                     hi, h_hi = u, h

@@ -25,6 +25,20 @@ def _oracle(ev, windows, region):
     return on, off
 
 
+def _time_oracle(ev, windows, region):
+    """First and last ON-event time per window and pixel from the window's start, -1 where none."""
+    x0, x1, y0, y1 = region
+    first = np.full((len(windows), y1 - y0, x1 - x0), -1, np.int64)
+    last = first.copy()
+    for w, (a, b) in enumerate(zip(windows.t_start_us, windows.t_end_us)):
+        sel = (ev.t >= a) & (ev.t < b) & (ev.x >= x0) & (ev.x < x1) & (ev.y >= y0) & (ev.y < y1) & (ev.p == 1)
+        for t, x, y in zip(ev.t[sel] - a, ev.x[sel].astype(int) - x0, ev.y[sel].astype(int) - y0):
+            if first[w, y, x] < 0:
+                first[w, y, x] = t
+            last[w, y, x] = t
+    return first, last
+
+
 def _random_windows(rng, n, t0, t1, overlap=False):
     if overlap:
         a = rng.integers(t0, t1 - 1, n)
@@ -48,6 +62,14 @@ def test_accumulate_matches_add_at(overlap, region):
     np.testing.assert_array_equal(got.off, off)
     assert got.events_used == on.sum() + off.sum()
     assert got.on.dtype == np.int32
+    assert got.on_first_us is None and got.on_last_us is None
+    timed = accumulate(ev, win, region, times=True)
+    np.testing.assert_array_equal(timed.on, on)
+    np.testing.assert_array_equal(timed.off, off)
+    first, last = _time_oracle(ev, win, reg)
+    np.testing.assert_array_equal(timed.on_first_us, first)
+    np.testing.assert_array_equal(timed.on_last_us, last)
+    assert timed.on_first_us.dtype == np.int32
 
 
 def test_accumulate_streams_a_recording_across_chunks(tmp_path):
@@ -66,8 +88,13 @@ def test_accumulate_streams_a_recording_across_chunks(tmp_path):
             evtk.write_events(p, ev)
         with evtk.open(p) as rec:
             got = accumulate(rec, win, chunk_events=997)  # many chunks, windows straddle them
+            timed = accumulate(rec, win, chunk_events=997, times=True)
         np.testing.assert_array_equal(got.on, on)
         np.testing.assert_array_equal(got.off, off)
+        np.testing.assert_array_equal(timed.on, on)
+        first, last = _time_oracle(ev, win, (0, 32, 0, 24))
+        np.testing.assert_array_equal(timed.on_first_us, first)  # in the caller's window order
+        np.testing.assert_array_equal(timed.on_last_us, last)
 
 
 def test_unsorted_events_empty_windows_and_no_events():
@@ -81,6 +108,12 @@ def test_unsorted_events_empty_windows_and_no_events():
     assert accumulate(empty, win).on.sum() == 0
     none = accumulate(ev, Windows([], [], [], "none"))
     assert none.on.shape == (0, 16, 16)
+    timed = accumulate(ev, win, times=True)
+    assert np.all(timed.on_first_us[1] == -1) and np.all(timed.on_last_us[1] == -1)
+    assert accumulate(ev, Windows([], [], [], "none"), times=True).on_first_us.shape == (0, 16, 16)
+    assert np.all(accumulate(empty, win, times=True).on_last_us == -1)
+    with pytest.raises(EvtkError, match="shorter than 2\\*\\*31"):
+        accumulate(ev, Windows([0], [2**31], [0], "long"), times=True)
 
 
 def test_bad_windows_and_regions():
