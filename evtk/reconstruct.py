@@ -11,9 +11,12 @@ The stages, each a function usable alone:
    the events (numba), each window found by binary search on the sorted time
    stamps, streamed chunk by chunk from a recording larger than memory.
 3. :func:`linearize`: counts back to relative intensity through the pixel
-   model (a net rise of ``n`` thresholds is a factor ``exp(n * theta)``).
-   A recording's flat-field captures (every mirror on) calibrate each
-   pixel's threshold first (:func:`flat_field_gain`).
+   model (a net rise of ``n`` thresholds is a factor ``exp(n * theta)``;
+   :func:`linearize_by_model` inverts a simulated recording's own pixel
+   model, and :func:`linearize_by_timing` reads the light within the
+   count's band from the first and last ON-event times). A recording's
+   flat-field captures (every mirror on) calibrate each pixel's threshold
+   first (:func:`flat_field_gain`, :func:`timing_thresholds`).
 4. :func:`combine_passes`: ``K+F+ - K+F- - K-F+ + K-F-`` per (kernel,
    features, repeat), from whichever passes the schedule holds.
 5. :func:`to_response_grid` (the sensor region onto the response's cells, any
