@@ -208,7 +208,9 @@ class BCNN:
     beta: float = 0.25
 
     @classmethod
-    def random(cls, layers=3, channels=1, size=16, pool=2, seed=0):
+    def random(cls, layers=3, channels=1, size=16, pool=2, seed=0, channel_masks=False):
+        """Random kernels and masks; ``channel_masks``: one mask plane per channel (c, s/p, s/p) instead of
+        one plane scoring the channels' mean."""
         rng = np.random.default_rng(seed)
         if layers < 1 or channels < 1 or size % pool:
             raise EvtkError("need at least one layer and one channel, and a size the pooling divides")
@@ -216,7 +218,8 @@ class BCNN:
         for _ in range(layers):
             kernels.append(rng.choice(np.array([-1, 1], np.int8), (channels, c_in, 3, 3)))
             c_in = channels
-        masks = [(rng.random((size // pool, size // pool)) < 0.5).astype(np.int8) for _ in range(layers)]
+        plane = (channels,) if channel_masks else ()
+        masks = [(rng.random(plane + (size // pool, size // pool)) < 0.5).astype(np.int8) for _ in range(layers)]
         return cls(kernels, masks, [None] * layers, pool, size)
 
     @property
@@ -231,13 +234,14 @@ class BCNN:
         return a, r, thr
 
     def scores(self, a, mask):
-        """Dot products of the pooled map (channel mean) with ``mask`` and its complement: (s0, s1)."""
-        p = self.pool
-        n, c, s, _ = a.shape
-        pooled = a.reshape(n, c, s // p, p, s // p, p).mean(axis=(1, 3, 5))
-        s1 = np.einsum("nij,ij->n", pooled, mask)
-        s0 = np.einsum("nij,ij->n", pooled, 1 - mask)
-        return s0, s1
+        """Dot products of the pooled map with ``mask`` and its complement: (s0, s1).
+
+        A 2-D mask scores the channels' mean; a 3-D one (c, s/p, s/p) each
+        channel with its own plane (scaled by 1/c, like the mean).
+        """
+        pooled = pool_map(a, self.pool, per_channel=np.ndim(mask) == 3).reshape(a.shape[0], -1)
+        m = np.asarray(mask, np.float64).ravel()
+        return pooled @ (1 - m), pooled @ m
 
     def forward(self, backend, x, upto=None):
         """Binary activations after layer ``upto`` (default the last), with the stored thresholds."""
@@ -256,6 +260,16 @@ class BCNN:
 
     def accuracy(self, backend, x, y):
         return float(np.mean(self.predict(backend, x) == np.asarray(y)))
+
+
+def pool_map(a, pool, per_channel=False):
+    """Mean over ``pool`` x ``pool`` blocks of activations (n, c, s, s): (n, s/p, s/p) averaged over the
+    channels too, or (n, c, s/p, s/p) divided by c with ``per_channel`` (so both sum to the same scale)."""
+    n, c, s, _ = a.shape
+    blocks = a.reshape(n, c, s // pool, pool, s // pool, pool)
+    if per_channel:
+        return blocks.mean(axis=(3, 5)) / c
+    return blocks.mean(axis=(1, 3, 5))
 
 
 def _as_input(x):

@@ -776,13 +776,13 @@ def recover(features_path, target_path, target_kernel_bits, size, method, weight
 
 
 def _train(task_data, backend_name, optimizer, steps, temperature, final_temperature, epochs, channels, seed,
-           power_mw=None, progress=None):
+           power_mw=None, progress=None, channel_masks=False):
     """One run: a fresh network trained on the data; returns (model, backend, record)."""
     from .bcnn import BCNN, DigitalBackend, OpticalBackend
     from .optics import Bench
     from .optimize import train_layerwise, train_ste
 
-    model = BCNN.random(layers=3, channels=channels, seed=seed)
+    model = BCNN.random(layers=3, channels=channels, seed=seed, channel_masks=channel_masks)
     if backend_name == "digital":
         backend = DigitalBackend()
     else:
@@ -800,10 +800,11 @@ def _classify_run(args):
     """One training run of ``evtk classify`` (a task: everything it needs is in ``args``)."""
     import time
 
-    data, backend_name, optimizer, steps, temperature, final_temperature, epochs, channels, run_seed, power_mw, r = args
+    (data, backend_name, optimizer, steps, temperature, final_temperature, epochs, channels, channel_masks, run_seed,
+     power_mw, r) = args
     t0 = time.perf_counter()
     model, backend, record = _train(data, backend_name, optimizer, steps, temperature, final_temperature, epochs,
-                                    channels, run_seed, power_mw)
+                                    channels, run_seed, power_mw, channel_masks=channel_masks)
     return {"run": r, "seed": run_seed, "seconds": time.perf_counter() - t0,
             "train_accuracy": model.accuracy(backend, data.x_train, data.y_train),
             "test_accuracy": model.accuracy(backend, data.x_test, data.y_test),
@@ -830,6 +831,10 @@ _task_options = [
     click.option("--epochs", type=click.IntRange(min=1), default=300, show_default=True, help="STE epochs."),
     click.option("--channels", type=click.IntRange(min=1), default=1, show_default=True,
                  help="Kernels per layer (the paper: one)."),
+    click.option("--channel-masks", is_flag=True,
+                 help="Score each channel with its own mask plane (default: one plane scores the channels' mean)."),
+    click.option("--samples", "n_per_class", type=click.IntRange(min=2),
+                 help="Samples per class (letters-digits: default 1000; fnf: needs --data-dir, default 1000)."),
     click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True),
 ]
 
@@ -847,8 +852,8 @@ _with_task_options = _options(_task_options)
               help="Where the per-run curves (runs.json) go.")
 @_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def classify(task, data_dir, optimizer, steps, temperature, final_temperature, epochs, channels, seed, backend_name,
-             power_mw, runs, out_dir, scheduler_spec, as_json):
+def classify(task, data_dir, optimizer, steps, temperature, final_temperature, epochs, channels, channel_masks,
+             n_per_class, seed, backend_name, power_mw, runs, out_dir, scheduler_spec, as_json):
     """Train the binary CNN several times and report test accuracy (the paper's Tables 2 and 3)."""
     import os
     import time
@@ -857,13 +862,13 @@ def classify(task, data_dir, optimizer, steps, temperature, final_temperature, e
 
     if temperature is None:
         temperature = 5.0 if optimizer == "walk" else 10.0
-    data = load_dataset(task, seed=seed, data_dir=data_dir)
+    data = load_dataset(task, seed=seed, data_dir=data_dir, n_per_class=n_per_class)
     from .cluster import run_tasks, scheduler
 
     update, finish = _progress(runs, f"{task} {optimizer} on {backend_name}")
     t_all = time.perf_counter()
-    tasks = [(data, backend_name, optimizer, steps, temperature, final_temperature, epochs, channels, seed + r,
-              power_mw, r) for r in range(runs)]
+    tasks = [(data, backend_name, optimizer, steps, temperature, final_temperature, epochs, channels, channel_masks,
+              seed + r, power_mw, r) for r in range(runs)]
     try:
         with scheduler(scheduler_spec) as client:
             per_run = run_tasks(_classify_run, tasks, client, update)
@@ -873,6 +878,7 @@ def classify(task, data_dir, optimizer, steps, temperature, final_temperature, e
     steps_done = sum(run["record"].get("steps", 0) for run in per_run)
     summary = {
         "task": task, "data": data.summary(), "backend": backend_name, "optimizer": optimizer, "runs": runs,
+        "channels": channels, "channel_masks": bool(channel_masks),
         "steps_per_layer": steps if optimizer in ("anneal", "walk") else None,
         "temperature": temperature if optimizer in ("anneal", "walk") else None,
         "test_accuracy": _stats([r["test_accuracy"] for r in per_run]),
@@ -908,17 +914,17 @@ def classify(task, data_dir, optimizer, steps, temperature, final_temperature, e
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Accuracy and flips against noise (PNG).")
 @_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def robustness(task, data_dir, optimizer, steps, temperature, final_temperature, epochs, channels, seed, scales,
-               target_accuracy, plot_path, scheduler_spec, as_json):
+def robustness(task, data_dir, optimizer, steps, temperature, final_temperature, epochs, channels, channel_masks,
+               n_per_class, seed, scales, target_accuracy, plot_path, scheduler_spec, as_json):
     """Fig. 3 (left) and eq. 12: test accuracy and flipped pixels with scaled Poisson noise in every layer."""
     from .bcnn import poisson_robustness
     from .datasets import load_dataset
 
     if temperature is None:
         temperature = 5.0 if optimizer == "walk" else 10.0
-    data = load_dataset(task, seed=seed, data_dir=data_dir)
+    data = load_dataset(task, seed=seed, data_dir=data_dir, n_per_class=n_per_class)
     model, backend, _ = _train(data, "digital", optimizer, steps, temperature, final_temperature, epochs, channels,
-                               seed)
+                               seed, channel_masks=channel_masks)
     from .cluster import scheduler
 
     with scheduler(scheduler_spec) as client:

@@ -200,12 +200,12 @@ def _cifar_images(root, n, seed):
 
 # -- letters / digits --------------------------------------------------------------------
 
-def letters_digits(seed=0, test_fraction=0.3, data_dir=None, size=16, n_per_class=300) -> Dataset:
-    """Letters (label 1) against digits (label 0).
+def letters_digits(seed=0, test_fraction=0.3, data_dir=None, size=16, n_per_class=1000) -> Dataset:
+    """Letters (label 1) against digits (label 0), ``n_per_class`` of each.
 
     With ``data_dir``: EMNIST "balanced" IDX files (digits are classes 0-9,
-    letters 10-46), ``n_per_class`` of each drawn from the training file.
-    Without: a synthetic set rendered from matplotlib's bundled fonts.
+    letters 10-46), drawn from the training file. Without: a synthetic set
+    rendered from matplotlib's bundled fonts.
     """
     if data_dir is not None:
         imgs, labels = _emnist(data_dir)
@@ -286,10 +286,15 @@ def synthetic_glyphs(n_per_class, size=16, seed=0):
     return binarize_images(np.stack(imgs), size, method="otsu"), np.asarray(labels, np.int8)
 
 
-def load_dataset(task, seed=0, data_dir=None, test_fraction=0.3) -> Dataset:
-    """``"fnf"`` or ``"letters-digits"``."""
+def load_dataset(task, seed=0, data_dir=None, test_fraction=0.3, n_per_class=None) -> Dataset:
+    """``"fnf"`` or ``"letters-digits"``; ``n_per_class`` None: the task's default."""
+    if n_per_class is not None and int(n_per_class) < 2:
+        raise EvtkError(f"need at least 2 samples per class, not {n_per_class}")
     if task == "fnf":
-        return face_not_face(seed, test_fraction, data_dir)
+        if n_per_class is not None and data_dir is None:
+            raise EvtkError("the bundled LFW subset has 100 faces and 100 non-faces: choosing the number of "
+                            "samples needs a data directory")
+        return face_not_face(seed, test_fraction, data_dir, n_per_class=n_per_class)
     if task == "letters-digits":
-        return letters_digits(seed, test_fraction, data_dir)
+        return letters_digits(seed, test_fraction, data_dir, n_per_class=1000 if n_per_class is None else n_per_class)
     raise EvtkError(f"task must be 'fnf' or 'letters-digits', not {task!r}")

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from .bcnn import BCNN, _as_input, bce_loss, resample_matrix
+from .bcnn import BCNN, _as_input, bce_loss, pool_map, resample_matrix
 from .errors import EvtkError
 
 __all__ = ["metropolis", "train_layerwise", "train_ste", "fit_mask"]
@@ -70,10 +70,9 @@ def metropolis(objective, n_bits, steps, temperature, final_temperature=None, se
     return best, best_value, trace
 
 
-def fit_mask(a, y, pool):
+def fit_mask(a, y, pool, per_channel=False):
     """The mask rule: a pooled cell scores class 1 where class 1's mean activation is lower there."""
-    n, c, s, _ = a.shape
-    pooled = a.reshape(n, c, s // pool, pool, s // pool, pool).mean(axis=(1, 3, 5))
+    pooled = pool_map(a, pool, per_channel)
     y = np.asarray(y)
     m1 = pooled[y == 1].mean(axis=0) if np.any(y == 1) else np.zeros(pooled.shape[1:])
     m0 = pooled[y == 0].mean(axis=0) if np.any(y == 0) else np.zeros(pooled.shape[1:])
@@ -144,7 +143,7 @@ def train_layerwise(model: BCNN, backend, x, y, optimizer="anneal", steps=600, t
             for code in range(2 ** obj.n_kernel_bits):
                 kb = ((code >> np.arange(obj.n_kernel_bits)) & 1).astype(np.int8)
                 act, _ = obj.activations(obj.split(np.r_[kb, np.zeros(n_bits - kb.size, np.int8)])[0])
-                bits = np.r_[kb, fit_mask(act, y, model.pool).ravel()]
+                bits = np.r_[kb, fit_mask(act, y, model.pool, len(obj.mask_shape) == 3).ravel()]
                 v = obj(bits)
                 trace.append(v)
                 if v < best_value:
@@ -233,17 +232,19 @@ def train_ste(model: BCNN, x, y, epochs=300, lr=0.02, seed=0) -> dict:
             cache.append((a, cols, kb, z, sd))
             a = a_next
         co = a.shape[1]
-        pooled = a.reshape(n, co, s // p, p, s // p, p).mean(axis=(1, 3, 5))
+        per_channel = m.ndim == 3
+        pooled = pool_map(a, p, per_channel)
         mb = (m >= 0).astype(np.float64)
-        logit = model.beta * np.einsum("nij,ij->n", pooled, 1 - 2 * mb)
+        logit = model.beta * (pooled.reshape(n, -1) @ (1 - 2 * mb).ravel())
         prob = 1 / (1 + np.exp(-np.clip(logit, -50, 50)))
         losses.append(float(np.mean(np.logaddexp(0, -logit) * y + np.logaddexp(0, logit) * (1 - y))))
         # backward
         g_logit = (prob - y) / n * model.beta
-        g_pooled = g_logit[:, None, None] * (1 - 2 * mb)
-        g_mb = -2 * np.einsum("n,nij->ij", g_logit, pooled)
+        g_pooled = g_logit.reshape((n,) + (1,) * mb.ndim) * (1 - 2 * mb)
+        g_mb = -2 * (g_logit @ pooled.reshape(n, -1)).reshape(mb.shape)
         grads = [None] * len(w) + [g_mb * (np.abs(m) <= 1)]
-        g_a = np.repeat(np.repeat(g_pooled[:, None], p, axis=2), p, axis=3) / (co * p * p)
+        g_up = g_pooled if per_channel else g_pooled[:, None]
+        g_a = np.repeat(np.repeat(g_up, p, axis=2), p, axis=3) / (co * p * p)
         g_a = np.broadcast_to(g_a, a.shape)
         for li in range(len(w) - 1, -1, -1):
             a_in, cols, kb, z, sd = cache[li]

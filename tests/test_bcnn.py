@@ -103,6 +103,33 @@ def test_ste_reference_learns_and_yields_a_binary_network():
     assert model.accuracy(DigitalBackend(), x, y) >= 0.9
 
 
+def test_channel_masks_score_each_channel():
+    """A mask plane per channel: equal planes score exactly as one shared plane does; the scores are the
+    per-channel pooled sums; both trainers fit (c, 8, 8) masks that separate a toy task."""
+    rng = np.random.default_rng(0)
+    a = rng.choice(np.array([-1, 1], np.int8), (5, 3, 16, 16))
+    model = BCNN.random(layers=1, channels=3, seed=0, channel_masks=True)
+    assert model.masks[0].shape == (3, 8, 8)
+    shared = (rng.random((8, 8)) < 0.5).astype(np.int8)
+    s_shared = model.scores(a, shared)
+    s_planes = model.scores(a, np.repeat(shared[None], 3, axis=0))
+    np.testing.assert_allclose(s_planes, s_shared, atol=1e-12)
+    planes = (rng.random((3, 8, 8)) < 0.5).astype(np.int8)
+    pooled = a.reshape(5, 3, 8, 2, 8, 2).mean(axis=(3, 5))
+    expect1 = np.array([sum((pooled[n, c] * planes[c]).sum() for c in range(3)) / 3 for n in range(5)])
+    np.testing.assert_allclose(model.scores(a, planes)[1], expect1, atol=1e-12)
+    np.testing.assert_array_equal(fit_mask(a, np.array([1, 0, 1, 0, 1]), 2, per_channel=True).shape, (3, 8, 8))
+    x, y = _toy_data(seed=7)
+    for trainer in ("ste", "anneal"):
+        m = BCNN.random(layers=1, channels=2, seed=1, channel_masks=True)
+        if trainer == "ste":
+            rec = train_ste(m, x, y, epochs=150, seed=2)
+            assert rec["losses"][-1] < rec["losses"][0]
+        else:
+            train_layerwise(m, DigitalBackend(), x, y, steps=300, seed=2)
+        assert m.masks[-1].shape == (2, 8, 8) and m.accuracy(DigitalBackend(), x, y) >= 0.9, trainer
+
+
 def test_bce_loss_is_stable_and_correct():
     assert bce_loss([0.0], [0.0], [1], 1.0) == pytest.approx(np.log(2))
     assert bce_loss([1e6], [0.0], [1], 1.0) == pytest.approx(0.0)
@@ -216,8 +243,15 @@ def test_cli_classify_and_robustness(tmp_path):
     runs = json.loads((tmp_path / "c" / "runs.json").read_text())["runs"]
     assert len(runs) == 2 and len(runs[0]["record"]["layers"][0]["trace"]) == 60
     text = CliRunner().invoke(main, ["classify", "--backend", "digital", "--runs", "2", "--steps", "30",
-                                     "--task", "letters-digits", "--out", str(tmp_path / "d")])
-    assert text.exit_code == 0 and "SYNTHETIC" in text.output and "test accuracy" in text.output
+                                     "--task", "letters-digits", "--samples", "50", "--out", str(tmp_path / "d")])
+    assert text.exit_code == 0 and "SYNTHETIC" in text.output and "70 train / 30 test" in text.output
+    res = CliRunner().invoke(main, ["classify", "--backend", "digital", "--runs", "1", "--steps", "30", "--channels",
+                                    "2", "--channel-masks", "--out", str(tmp_path / "e"), "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.output)["channel_masks"] is True
+    assert np.shape(json.loads((tmp_path / "e" / "runs.json").read_text())["runs"][0]["mask"]) == (2, 8, 8)
+    res = CliRunner().invoke(main, ["classify", "--samples", "50"])  # the bundled FNF subset is fixed
+    assert res.exit_code == 1 and "data directory" in res.output
     res = CliRunner().invoke(main, ["robustness", "--steps", "60", "--scales", "0,1,10", "--json", "--plot",
                                     str(tmp_path / "r.png")])
     assert res.exit_code == 0, res.output
