@@ -5,8 +5,8 @@
 
 The recordings are simulated once (signed random 3x3 kernel and 16x16
 features, default bench and sensor, AEDAT4 LZ4) into ``benchmarks/data/batch``.
-Each mode runs ``evtk.batch.batch_reconstruct`` over all of them with
-``force=True`` into a fresh folder; the cluster is started before the clock
+Each mode runs, in a fresh process of its own, ``evtk.batch.batch_reconstruct``
+over all of them with ``force=True`` into a fresh folder; the cluster is started before the clock
 and its start-up is reported apart. The per-task overhead is
 ``(local:1 - serial) / recordings``.
 """
@@ -16,12 +16,15 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data" / "batch"
+sys.path.insert(0, str(HERE))
+from harness import child_runs  # noqa: E402
 
 
 def make(n):
@@ -40,37 +43,49 @@ def make(n):
     return files
 
 
+def child(spec, n_recordings, repeats):
+    """One mode in this (fresh) process: warm up, then time ``repeats`` batches; prints a JSON line."""
+    from evtk.batch import batch_reconstruct
+    from evtk.cluster import scheduler
+
+    files = make(n_recordings)
+    batch_reconstruct(files[:1], tempfile.mkdtemp(), force=True)  # warm this process's JIT caches
+    t0 = time.perf_counter()
+    with scheduler(spec) as client:
+        start = time.perf_counter() - t0
+        if client is not None:
+            batch_reconstruct(files[:2], tempfile.mkdtemp(), client=client, force=True)  # warm the workers
+        times = []
+        for _ in range(repeats):
+            with tempfile.TemporaryDirectory() as out:
+                t = time.perf_counter()
+                m = batch_reconstruct(files, out, client=client, force=True)
+                times.append(time.perf_counter() - t)
+                assert m["counts"]["ok"] == len(files)
+    print(json.dumps({"median_s": statistics.median(times), "start_s": start}))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--recordings", type=int, default=20)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.child:
+        child(args.child, args.recordings, args.repeats)
+        return
     import evtk
-    from evtk.batch import batch_reconstruct
-    from evtk.cluster import scheduler
 
     files = make(args.recordings)
     with evtk.open(files[0]) as rec:
         events = rec.info()["events"]
     res = {"recordings": len(files), "events_per_recording": events}
-    batch_reconstruct(files[:1], tempfile.mkdtemp(), force=True)  # warm this process's JIT caches
-    for spec in ("serial", "local:1", "local:2"):
-        t0 = time.perf_counter()
-        with scheduler(spec) as client:
-            start = time.perf_counter() - t0
-            if client is not None:
-                batch_reconstruct(files[:2], tempfile.mkdtemp(), client=client, force=True)  # warm the workers
-            times = []
-            for _ in range(args.repeats):
-                with tempfile.TemporaryDirectory() as out:
-                    t = time.perf_counter()
-                    m = batch_reconstruct(files, out, client=client, force=True)
-                    times.append(time.perf_counter() - t)
-                    assert m["counts"]["ok"] == len(files)
-        res[spec] = {"median_s": statistics.median(times), "start_s": start}
-        print(f"{spec:8s} {statistics.median(times):6.2f} s for {len(files)} recordings of {events:,} events "
-              f"(cluster start {start:.2f} s)", flush=True)
+    for spec in ("serial", "local:1", "local:2"):  # each mode in a fresh process: no threads left over
+        run = child_runs(__file__, [spec, "--recordings", args.recordings, "--repeats", args.repeats])[0]
+        res[spec] = run
+        print(f"{spec:8s} {run['median_s']:6.2f} s for {len(files)} recordings of {events:,} events "
+              f"(cluster start {run['start_s']:.2f} s)", flush=True)
     s, l1, l2 = (res[k]["median_s"] for k in ("serial", "local:1", "local:2"))
     res["speedup_local2"] = s / l2
     res["local1_over_serial"] = l1 / s

@@ -83,8 +83,11 @@ def scheduler(spec=None):
         from .io._compression import workers as io_workers
 
         io_threads = str(max(1, io_workers() // n))  # the parent's decode threads, shared out
+        # and so are the threads of numba's parallel loops
+        numba_threads = str(max(1, (os.cpu_count() or 1) // n))
         with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
-                              "distributed.nanny.pre-spawn-environ.EVTK_IO_THREADS": io_threads}):
+                              "distributed.nanny.pre-spawn-environ.EVTK_IO_THREADS": io_threads,
+                              "distributed.nanny.pre-spawn-environ.NUMBA_NUM_THREADS": numba_threads}):
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
                                    silence_logs=50)
     except (RuntimeError, OSError, TimeoutError) as exc:
