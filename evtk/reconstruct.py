@@ -1066,8 +1066,8 @@ def _timing_factor(n, a_us, b_us, log_rate, tau_min_us, tau_electrons, refr_us):
     ``q = exp(-refr/tau)`` of what remains. Writing ``E = exp(-t/tau)`` at event times, that chain is
     ``u (q E_k - E_(k+1)) = theta``, whose solution from the first to the last event is
     ``u / theta = (1 - q^(n-1)) / ((1 - q)(q^(n-1) E_1 - E_n))``, free of the reference the pixel started
-    from. Computed in logs (no overflow for any times). -1 when the times cannot come from such a chain
-    (``b - a <= (n - 1) refr``).
+    from. Computed directly, or in logs where ``exp(-b/tau)`` would underflow (no overflow for any times).
+    -1 when the times cannot come from such a chain (``b - a <= (n - 1) refr``).
     """
     tau = tau_min_us + tau_electrons / (np.exp(log_rate) * 1e-6)
     r = refr_us / tau
