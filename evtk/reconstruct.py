@@ -855,9 +855,7 @@ def _refine_by_timing(net, counts, sim, bench, schedule, curve, gain, theta_on, 
     (:func:`timing_thresholds`), else from the flat-field count gain.
     Returns the values (``exp(u) - 1``) and the share of pixel-windows the times set.
     """
-    from .sensor import SensorModel
-
-    sm = SensorModel.from_dict(sim["sensor"])
+    sm = _as_sensor(sim["sensor"])
     blank = float(sim["blank_rate_e_per_s"])
     theta = np.full(counts.on.shape[1:], float(theta_on))
     if gain is not None:
@@ -1191,9 +1189,7 @@ def linearize_by_timing(on, on_first_us, on_last_us, theta, sensor, dark_rate_e_
         the times do not determine it (fewer than two ON events, or times no
         noise-free pixel with that count produces): fall back to the count there.
     """
-    from .sensor import SensorModel
-
-    sm = sensor if isinstance(sensor, SensorModel) else SensorModel.from_dict(dict(sensor))
+    sm = _as_sensor(sensor)
     n = np.asarray(on)
     first = np.asarray(on_first_us)
     last = np.asarray(on_last_us)
@@ -1213,6 +1209,13 @@ def linearize_by_timing(on, on_first_us, on_last_us, theta, sensor, dark_rate_e_
                   float(offset_us), math.log(dark_rate_e_per_s), sm.tau_min_us, sm.tau_electrons, sm.refractory_us,
                   out.reshape(rows, -1))
     return out
+
+
+def _as_sensor(sensor):
+    """A :class:`~evtk.sensor.SensorModel` from one or from its dict (a recording's record)."""
+    from .sensor import SensorModel
+
+    return sensor if isinstance(sensor, SensorModel) else SensorModel.from_dict(dict(sensor))
 
 
 def _flat_log_step(sim, bench, region):
@@ -1235,9 +1238,7 @@ def timing_thresholds(flat_on, flat_first_us, flat_last_us, flat_u, sensor, dark
     ``theta = u / factor``, averaged over the flat-field windows whose times
     determine it; NaN for a pixel none does.
     """
-    from .sensor import SensorModel
-
-    sm = sensor if isinstance(sensor, SensorModel) else SensorModel.from_dict(dict(sensor))
+    sm = _as_sensor(sensor)
     n = np.asarray(flat_on, dtype=np.int64)
     if n.ndim < 1 or n.shape[0] == 0:
         raise EvtkError("threshold calibration needs at least one flat-field window")
