@@ -304,6 +304,29 @@ def test_bad_parquet(tmp_path):
         evtk.open(cut)
 
 
+def test_parquet_without_a_sensor_size_and_a_damaged_row_group(tmp_path):
+    """A foreign file (no evtk metadata) whose third row group's page header is zeroed: inferring the sensor
+    size reads the row groups, so it meets the damage first. A FormatError naming the row group; salvage infers
+    the size from the intact row groups and keeps their events (found by the fuzz campaign, seed 29)."""
+    ev = random_events(3000, seed=21, sensor_size=(64, 48))
+    path = tmp_path / "foreign.parquet"
+    pq.write_table(pa.table({"t": ev.t, "x": ev.x, "y": ev.y, "p": ev.p}), path, row_group_size=1000,
+                   compression="none")
+    off = pq.ParquetFile(path).metadata.row_group(2).column(1).data_page_offset
+    data = bytearray(path.read_bytes())
+    data[off:off + 8] = bytes(8)
+    path.write_bytes(bytes(data))
+    with pytest.raises(evtk.FormatError, match="row group 2 cannot be read") as err:
+        evtk.open(path)
+    assert "\n" not in str(err.value)
+    with evtk.open(path, salvage=True) as rec:
+        assert rec.sensor_size == (int(ev.x[:2000].max()) + 1, int(ev.y[:2000].max()) + 1)
+        got = rec.events()
+        for col in "txyp":
+            np.testing.assert_array_equal(getattr(got, col), getattr(ev, col)[:2000])
+        assert "row group 2" in rec.damage.reason
+
+
 # -- every pair of formats ------------------------------------------------------------------------
 
 FORMATS = [".aedat4", ".h5", ".parquet"]

@@ -106,6 +106,11 @@ def _first_fatal_row_group(pf, t_col):
     return n
 
 
+def _unreadable(g, exc):
+    """What to say of a row group pyarrow could not read (its message on one line)."""
+    return f"row group {g} cannot be read ({' '.join(str(exc).split())})"
+
+
 def _pa():
     import pyarrow as pa
 
@@ -262,12 +267,21 @@ class ParquetRecording(BaseRecording):
             pass
 
     def _infer_sensor_size(self):
+        """The sensor size from the largest coordinates; with salvage, of the row groups before a damaged one."""
         w = h = 1
         for g in range(len(self._groups)):
-            tab = self._pf.read_row_group(g, columns=["x", "y"])
-            if tab.num_rows:
-                w = max(w, int(np.max(tab.column("x").to_numpy())) + 1)
-                h = max(h, int(np.max(tab.column("y").to_numpy())) + 1)
+            try:
+                tab = self._pf.read_row_group(g, columns=["x", "y"])
+                if tab.num_rows:
+                    w = max(w, int(np.max(tab.column("x").to_numpy())) + 1)
+                    h = max(h, int(np.max(tab.column("y").to_numpy())) + 1)
+            except Exception as exc:  # pyarrow raises OSError, ArrowInvalid, ... on damaged pages
+                problem = _unreadable(g, exc)
+                if not self.salvage:
+                    raise FormatError(self.path, None, problem) from None
+                if self.damage is None:
+                    self.damage = Damage(None, problem)
+                break
         self._sensor = (w, h)
         self.warnings.append(f"the file does not record its sensor size; inferred {self._sensor} from the coordinates")
 
@@ -301,7 +315,7 @@ class ParquetRecording(BaseRecording):
         try:
             table = self._pf.read_row_group(g, columns=["t", "x", "y", "p"])
         except Exception as exc:
-            return None, f"row group {g} cannot be read ({exc})"
+            return None, _unreadable(g, exc)
         cols = _columns(table, self.path)
         try:
             ev = Events(*cols, self._sensor)
