@@ -334,15 +334,14 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         if counts.shape != shape or counts.dtype != np.int32 or not counts.flags.c_contiguous:
             raise EvtkError(f"out must be a C-contiguous int32 array of shape {shape}")
     on, off = counts[1], counts[0]
+    first = last = None
     if times:
         if n_w and int(windows.length_us.max()) >= 2**31:
             raise EvtkError("event times are kept relative to their window as int32: windows must be "
                             "shorter than 2**31 us")
         first, last = np.empty(shape[1:], np.int32), np.empty(shape[1:], np.int32)
-    else:
-        first = last = np.empty(0, np.int32)
     if n_w == 0:
-        return WindowCounts(on, off, windows, (x0, x1, y0, y1), 0, *((first, last) if times else ()))
+        return WindowCounts(on, off, windows, (x0, x1, y0, y1), 0, first, last)
     started = np.zeros(n_w, np.bool_)
     order = np.argsort(windows.t_start_us, kind="stable")
     starts = windows.t_start_us[order]
@@ -355,7 +354,9 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
     used = 0
     total = np.zeros(n_w, np.int64)
     flat = counts.reshape(-1)
-    first_flat, last_flat = first.reshape(-1), last.reshape(-1)
+    no_times = np.empty(0, np.int32)  # the numba loop keeps no times when given empty arrays
+    first_flat = first.reshape(-1) if times else no_times
+    last_flat = last.reshape(-1) if times else no_times
     for ev in chunks:
         used += _accumulate_chunk(ev.t, ev.x, ev.y, ev.p, starts, ends, x0, x1, y0, y1, flat, total, started,
                                   first_flat, last_flat)
@@ -375,8 +376,6 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         on, off = counts[1], counts[0]
         if times:
             first, last = first[inv], last[inv]
-    if not times:
-        return WindowCounts(on, off, windows, (x0, x1, y0, y1), int(used))
     return WindowCounts(on, off, windows, (x0, x1, y0, y1), int(used), first, last)
 
 
@@ -1198,17 +1197,23 @@ def linearize_by_timing(on, on_first_us, on_last_us, theta, sensor, dark_rate_e_
     th = np.broadcast_to(np.asarray(theta, dtype=np.float64), n.shape[1:])
     if not (np.all(np.isfinite(th)) and np.all(th > 0)):
         raise EvtkError("thresholds must be finite and positive")
-    if not (math.isfinite(dark_rate_e_per_s) and dark_rate_e_per_s > 0):
-        raise EvtkError(f"the dark level's rate must be finite and positive, not {dark_rate_e_per_s!r}")
+    log_blank = _log_dark_rate(dark_rate_e_per_s)
     _, band_lo, band_hi = _count_bands(curve)
     rows = n.shape[0]
     out = np.empty(n.shape, np.float64)
     _timing_solve(n.reshape(rows, -1).astype(np.int64), first.reshape(rows, -1).astype(np.int64),
                   last.reshape(rows, -1).astype(np.int64), np.ascontiguousarray(th.ravel()), sm.theta_on,
                   np.ascontiguousarray(band_lo, np.float64), np.ascontiguousarray(band_hi, np.float64),
-                  float(offset_us), math.log(dark_rate_e_per_s), sm.tau_min_us, sm.tau_electrons, sm.refractory_us,
+                  float(offset_us), log_blank, sm.tau_min_us, sm.tau_electrons, sm.refractory_us,
                   out.reshape(rows, -1))
     return out
+
+
+def _log_dark_rate(rate_e_per_s):
+    """``log`` of the dark level's photoelectron rate, which must be finite and positive."""
+    if not (math.isfinite(rate_e_per_s) and rate_e_per_s > 0):
+        raise EvtkError(f"the dark level's rate must be finite and positive, not {rate_e_per_s!r}")
+    return math.log(rate_e_per_s)
 
 
 def _as_sensor(sensor):
@@ -1248,7 +1253,7 @@ def timing_thresholds(flat_on, flat_first_us, flat_last_us, flat_u, sensor, dark
     fu = np.ascontiguousarray(np.broadcast_to(np.asarray(flat_u, dtype=np.float64), n.shape).reshape(rows, -1))
     theta = _timing_theta(n.reshape(rows, -1), np.asarray(flat_first_us, np.int64).reshape(rows, -1),
                           np.asarray(flat_last_us, np.int64).reshape(rows, -1), fu, float(offset_us),
-                          math.log(dark_rate_e_per_s), sm.tau_min_us, sm.tau_electrons, sm.refractory_us)
+                          _log_dark_rate(dark_rate_e_per_s), sm.tau_min_us, sm.tau_electrons, sm.refractory_us)
     return theta.reshape(n.shape[1:])
 
 
