@@ -80,14 +80,7 @@ def scheduler(spec=None):
         # Dask sets MALLOC_TRIM_THRESHOLD_ in its workers, which also stops glibc from raising its mmap
         # threshold: every large array then comes from fresh pages, and a reconstruction ran at half speed
         # (measured, benchmarks/bench_batch.py). evtk's workers keep the allocator's default.
-        from .io._compression import workers as io_workers
-
-        io_threads = str(max(1, io_workers() // n))  # the parent's decode threads, shared out
-        # and so are the threads of numba's parallel loops
-        numba_threads = str(max(1, (os.cpu_count() or 1) // n))
-        with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
-                              "distributed.nanny.pre-spawn-environ.EVTK_IO_THREADS": io_threads,
-                              "distributed.nanny.pre-spawn-environ.NUMBA_NUM_THREADS": numba_threads}):
+        with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
                                    silence_logs=50)
     except (RuntimeError, OSError, TimeoutError) as exc:
@@ -95,6 +88,12 @@ def scheduler(spec=None):
                         "'if __name__ == \"__main__\":' guard, or use --scheduler serial") from None
     client = Client(cluster)
     try:
+        # the workers share out the threads the parent would use (decode threads, numba's parallel loops);
+        # set inside each worker: the nanny's pre-spawn environment would also change this process's own
+        from ._worker_plugin import WorkerThreads
+        from .io._compression import workers as io_workers
+
+        client.register_plugin(WorkerThreads(max(1, io_workers() // n)))
         yield client
     finally:
         client.close()

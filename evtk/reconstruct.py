@@ -27,6 +27,7 @@ The stages, each a function usable alone:
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import math
@@ -1201,12 +1202,27 @@ def linearize_by_timing(on, on_first_us, on_last_us, theta, sensor, dark_rate_e_
     _, band_lo, band_hi = _count_bands(curve)
     rows = n.shape[0]
     out = np.empty(n.shape, np.float64)
-    _timing_solve(n.reshape(rows, -1).astype(np.int64), first.reshape(rows, -1).astype(np.int64),
-                  last.reshape(rows, -1).astype(np.int64), np.ascontiguousarray(th.ravel()), sm.theta_on,
-                  np.ascontiguousarray(band_lo, np.float64), np.ascontiguousarray(band_hi, np.float64),
-                  float(offset_us), log_blank, sm.tau_min_us, sm.tau_electrons, sm.refractory_us,
-                  out.reshape(rows, -1))
+    with _thread_budget():
+        _timing_solve(n.reshape(rows, -1).astype(np.int64), first.reshape(rows, -1).astype(np.int64),
+                      last.reshape(rows, -1).astype(np.int64), np.ascontiguousarray(th.ravel()), sm.theta_on,
+                      np.ascontiguousarray(band_lo, np.float64), np.ascontiguousarray(band_hi, np.float64),
+                      float(offset_us), log_blank, sm.tau_min_us, sm.tau_electrons, sm.refractory_us,
+                      out.reshape(rows, -1))
     return out
+
+
+@contextlib.contextmanager
+def _thread_budget():
+    """numba's parallel loops on as many threads as evtk's decoding (``EVTK_IO_THREADS``; a local cluster's
+    workers each get their share), restored afterwards."""
+    from .io._compression import workers
+
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(workers(), numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
 
 
 def _log_dark_rate(rate_e_per_s):

@@ -48,6 +48,26 @@ def test_a_dead_scheduler_address_fails_fast():
     assert r.exit_code == 1 and len(r.output.strip().splitlines()) == 1 and "no Dask scheduler" in r.output
 
 
+def test_local_workers_share_out_threads_without_touching_this_process(client):
+    """Each of the 2 workers decodes (and runs numba's parallel loops) on its share of the threads; this
+    process's environment stays as it was (numba refuses to compile once its thread count changes under it)."""
+    from evtk.io._compression import workers
+
+    def probe(_):
+        import os as _os
+
+        from evtk.io._compression import workers as w
+
+        return _os.environ.get("EVTK_IO_THREADS"), w()
+
+    got = run_tasks(_by_value(probe), range(4), client)
+    assert got == [(str(max(1, workers() // 2)), max(1, workers() // 2))] * 4
+    before = {k: os.environ.get(k) for k in ("EVTK_IO_THREADS", "NUMBA_NUM_THREADS")}
+    with scheduler("local:1") as c1:
+        assert run_tasks(_by_value(probe), [0], c1) == [(str(workers()), workers())]
+    assert {k: os.environ.get(k) for k in before} == before
+
+
 def test_run_tasks_keeps_order_and_survives_a_killed_worker(client, tmp_path):
     square = _by_value(lambda v: v * v)
     assert run_tasks(square, range(20), client) == [v * v for v in range(20)]
