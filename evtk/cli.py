@@ -75,7 +75,8 @@ def _human_info(info: dict) -> str:
         lines.append(f"warning: {w}")
     if info.get("damage"):
         d = info["damage"]
-        lines.append(f"salvaged: stopped at byte {d['offset']}: {d['reason']}")
+        where = f" at byte {d['offset']}" if d["offset"] is not None else ""
+        lines.append(f"salvaged: stopped{where}: {d['reason']}")
     return "\n".join(lines)
 
 

@@ -19,7 +19,9 @@ import numpy as np
 from .._version import __version__
 from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
+from . import _parquet_footer as _footer
 from ._atomic import AtomicFile
+from ._overlay import SplicedFile, close_at_exit
 from ._checks import scan_events
 from .base import BaseRecording, Damage, StreamInfo, time_chunks
 
@@ -201,10 +203,11 @@ class ParquetRecording(BaseRecording):
         super().__init__(path, salvage)
         import pyarrow.parquet as pq
 
+        self._overlay = None
         try:
             self._pf = pq.ParquetFile(self.path)
         except Exception as exc:  # pyarrow raises ArrowInvalid / OSError subclasses
-            raise FormatError(self.path, None, f"not a readable Parquet file ({exc})") from None
+            self._pf = self._without_footer(pq, exc)
         schema = self._pf.schema_arrow
         missing = [c for c in ("t", "x", "y", "p") if c not in schema.names]
         if missing:
@@ -260,11 +263,55 @@ class ParquetRecording(BaseRecording):
         if self._sensor is None:
             self._infer_sensor_size()
 
+    def _without_footer(self, pq, exc):
+        """Open a file whose footer is missing or unreadable by writing a new one for its complete row groups
+        (salvage only): what an interrupted writer leaves."""
+        problem = f"not a readable Parquet file ({' '.join(str(exc).split())})"
+        try:
+            with open(self.path, "rb") as f:
+                head = f.read(4)
+                size = f.seek(0, os.SEEK_END)
+                f.seek(max(0, size - 4))
+                tail = f.read(4)
+        except OSError:
+            head = tail = b""
+            size = 0
+        if head == b"PAR1" and (tail != b"PAR1" or size < 12):
+            problem = ("the file ends without a Parquet footer: its writer did not finish (interrupted?); "
+                       "salvage recovers its complete row groups")
+        if not self.salvage or head != b"PAR1":
+            raise FormatError(self.path, None, problem)
+        last = None
+        for repetition in (_footer.OPTIONAL, _footer.REQUIRED):  # nullable columns (pyarrow's default) first
+            try:
+                end, footer, rows, groups = _footer.rebuild_footer(self.path, repetition=repetition)
+                overlay = SplicedFile(self.path, end, footer)
+                try:
+                    pf = pq.ParquetFile(overlay)
+                    if groups:  # does the guessed repetition decode?
+                        pf.read_row_group(0, columns=["t"])
+                except BaseException:
+                    overlay.close()
+                    raise
+            except Exception as err:  # noqa: BLE001 - ThriftError, or pyarrow refusing the guess
+                last = err
+                continue
+            self._overlay = overlay
+            close_at_exit(self)
+            self.damage = Damage(end, f"{problem.split(';')[0]}: recovered {rows} events in {groups} complete "
+                                      "row group(s) by rebuilding the footer; the sensor size, metadata and "
+                                      "triggers the footer held are lost")
+            return pf
+        raise FormatError(self.path, None, f"{problem.split(';')[0]}, and no complete row group can be recovered "
+                                           f"({' '.join(str(last).split())})")
+
     def _close(self):
         try:
             self._pf.close()
         except AttributeError:  # pragma: no cover - older pyarrow
             pass
+        if self._overlay is not None:
+            self._overlay.close()
 
     def _infer_sensor_size(self):
         """The sensor size from the largest coordinates; with salvage, of the row groups before a damaged one."""
@@ -406,7 +453,9 @@ class ParquetWriter:
         self.path = self._atomic.path
         self._rows = 0
         try:
-            self._w = pq.ParquetWriter(self._atomic.tmp_path, self._schema, compression=codec)
+            # dictionary pages (pyarrow's default, made explicit) start every column chunk: salvage finds
+            # the chunks of a file whose footer was never written by them
+            self._w = pq.ParquetWriter(self._atomic.tmp_path, self._schema, compression=codec, use_dictionary=True)
         except BaseException:
             self._atomic.discard()
             raise

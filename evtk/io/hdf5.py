@@ -9,6 +9,7 @@ Prophesee and event_utils layouts, recognised by their structure.
 from __future__ import annotations
 
 import json
+import os
 import struct
 
 import numpy as np
@@ -17,6 +18,7 @@ from .._version import __version__
 from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
 from ._atomic import AtomicFile
+from ._overlay import SplicedFile, close_at_exit
 from ._checks import scan_events
 from .base import BaseRecording, Damage, StreamInfo
 
@@ -24,6 +26,10 @@ __all__ = ["Hdf5Recording", "Hdf5Writer", "write_hdf5", "COMPRESSIONS", "EVTK_FO
 
 EVTK_FORMAT = "evtk.events"
 FORMAT_VERSION = 1
+INTERRUPTED = "evtk_writing"  # root attribute present while a writer has the file open
+# fill values of the event datasets: what a chunk the index does not reach reads as (after an interrupted
+# flush), chosen to fail the reader's checks (time going backwards, a coordinate outside the sensor)
+_FILL = {"t": np.iinfo(np.int64).min, "x": 65535, "y": 65535, "p": 255}
 DEFAULT_CHUNK = 65536
 PROPHESEE_ECF_FILTER = 36559
 
@@ -125,12 +131,12 @@ def _check_int(ds, path, what, kinds="iu"):
         raise FormatError(path, None, f"dataset {ds.name} ({what}) has dtype {ds.dtype}, expected an integer type")
 
 
-def _check_lengths(path, datasets):
+def _check_lengths(path, datasets, equal=True):
     lengths = {d.name: d.shape[0] if d.shape else None for d in datasets}
     if any(d.ndim != 1 for d in datasets):
         bad = [d.name for d in datasets if d.ndim != 1]
         raise FormatError(path, None, f"dataset(s) {', '.join(bad)} must be one-dimensional")
-    if len(set(lengths.values())) != 1:
+    if equal and len(set(lengths.values())) != 1:
         detail = ", ".join(f"{k}={v}" for k, v in lengths.items())
         raise FormatError(path, None, f"event datasets differ in length: {detail}")
     return next(iter(lengths.values()))
@@ -329,7 +335,14 @@ class _EvtkLayout(_Layout):
         self.t, self.x, self.y, self.p = _need(g, path, ["t", "x", "y", "p"], "evtk")
         for ds, what in ((self.t, "time"), (self.x, "x"), (self.y, "y"), (self.p, "polarity")):
             _check_int(ds, path, what, "iub" if what == "polarity" else "iu")
-        self.n = _check_lengths(path, [self.t, self.x, self.y, self.p])
+        # set by the writer until it closes: a file that still has it was left by an interrupted writer, whose
+        # columns may have been flushed to different lengths
+        self.interrupted = INTERRUPTED in f.attrs
+        if self.interrupted:
+            _check_lengths(path, [self.t, self.x, self.y, self.p], equal=False)
+            self.n = min(int(d.shape[0]) for d in (self.t, self.x, self.y, self.p))
+        else:
+            self.n = _check_lengths(path, [self.t, self.x, self.y, self.p])
         size = f.attrs.get("sensor_size")
         if size is None or len(size) != 2:
             raise FormatError(path, None, "evtk layout: root attribute 'sensor_size' [width, height] missing")
@@ -344,13 +357,17 @@ class _EvtkLayout(_Layout):
                 self.metadata = json.loads(ds[...].tobytes().decode("utf-8"))
             except (UnicodeDecodeError, json.JSONDecodeError) as exc:
                 raise FormatError(path, None, f"/metadata is not valid JSON ({exc})") from None
-        if "index_t_us" in g:
-            stride = int(g["index_t_us"].attrs.get("stride", 0))
-            index = g["index_t_us"][...]
-            if stride <= 0 or len(index) != (self.n + stride - 1) // stride:
-                raise FormatError(path, None, "the block index /events/index_t_us does not match /events/t")
-            self.index_t = index.astype(np.int64)
-            self.index_id = np.arange(len(index), dtype=np.int64) * stride
+        self.index_problem = None  # why the index cannot be used (a reader may go on without it)
+        try:
+            if "index_t_us" in g:
+                stride = int(g["index_t_us"].attrs.get("stride", 0))
+                index = g["index_t_us"][...]
+                if stride <= 0 or len(index) != (self.n + stride - 1) // stride:
+                    raise FormatError(path, None, "the block index /events/index_t_us does not match /events/t")
+                self.index_t = index.astype(np.int64)
+                self.index_id = np.arange(len(index), dtype=np.int64) * stride
+        except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:  # libhdf5 on a damaged object
+            self.index_problem = f"the block index /events/index_t_us cannot be read ({' '.join(str(exc).split())})"
 
     def read(self, i0, i1):
         return self.t[i0:i1], self.x[i0:i1], self.y[i0:i1], self.p[i0:i1]
@@ -571,12 +588,19 @@ class Hdf5Recording(BaseRecording):
     def __init__(self, path, salvage=False, sensor_size=None, sort=False):
         super().__init__(path, salvage)
         h5py = _h5()
+        self._spliced = None
         try:
             self._f = h5py.File(self.path, "r")
         except OSError as exc:
-            raise FormatError(self.path, None, f"HDF5 library cannot open the file ({exc})") from None
+            self._f = self._open_truncated(h5py, exc)
         try:
             self._layout = _guard(Hdf5Recording._detect)(self)
+            if getattr(self._layout, "interrupted", False):
+                self._interrupted()
+            if getattr(self._layout, "index_problem", None):
+                if not self.salvage:
+                    raise FormatError(self.path, None, self._layout.index_problem)
+                self.warnings.append(self._layout.index_problem + "; reading without it")
             if sensor_size is not None:
                 self._layout.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
             self._sort = bool(sort)
@@ -589,7 +613,47 @@ class Hdf5Recording(BaseRecording):
             raise
 
     def _close(self):
-        self._f.close()
+        try:
+            self._f.close()
+        finally:
+            if self._spliced is not None:
+                self._spliced.close()
+
+    def _open_truncated(self, h5py, exc):
+        """A file shorter than its superblock records (a truncated copy) opens, with salvage, with the missing
+        end reading as zeros: the datasets whose metadata lies before the cut read up to their first chunk
+        that was cut off."""
+        problem = f"HDF5 library cannot open the file ({' '.join(str(exc).split())})"
+        try:
+            size = os.path.getsize(self.path)
+            eoa = _superblock_eoa(self.path)
+        except OSError:
+            eoa = None
+        if eoa is None or eoa <= size:
+            raise FormatError(self.path, None, problem) from None
+        problem = f"the file is truncated: it ends at byte {size} of the {eoa} its superblock records"
+        if not self.salvage:
+            raise FormatError(self.path, None, problem + "; salvage recovers the events before the cut") from None
+        spliced = SplicedFile(self.path, size, size=eoa)
+        try:
+            f = h5py.File(spliced, "r")
+        except Exception as err:  # noqa: BLE001 - libhdf5 reports any failure as OSError or ValueError
+            spliced.close()
+            raise FormatError(self.path, None, f"{problem}, and what is left does not open "
+                                               f"({' '.join(str(err).split())})") from None
+        self._spliced = spliced
+        close_at_exit(self)
+        self.damage = Damage(size, problem + " (the missing end reads as zeros)")
+        return f
+
+    def _interrupted(self):
+        """A file its writer never closed: an error, or with salvage what the writer's last flush recorded."""
+        if not self.salvage:
+            raise FormatError(self.path, None, "the file was never closed by its writer (interrupted?); salvage "
+                                               "recovers the events it had flushed")
+        self.damage = Damage(None, f"the file was never closed by its writer (interrupted?): it holds the "
+                                   f"{self._layout.n} events of its last flush; the triggers and the time index, "
+                                   "written on closing, are missing")
 
     def _detect(self) -> _Layout:
         for _name, test, cls in _LAYOUTS:
@@ -857,6 +921,39 @@ class Hdf5Recording(BaseRecording):
 # =============================================================================
 
 
+def _superblock_eoa(path):
+    """The end-of-file address an HDF5 superblock records (absolute), or None when none is found.
+
+    The superblock sits at byte 0 or after a user block of 512, 1024, 2048, ... bytes.  Versions 0 and 1
+    keep the address after four fixed fields; versions 2 and 3 right after the base and extension addresses.
+    """
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        at = 0
+        while at + 64 <= size:
+            f.seek(at)
+            head = f.read(64)
+            if head[:8] == b"\x89HDF\r\n\x1a\n":
+                version = head[8]
+                if version in (0, 1):
+                    width = head[13]
+                    start = 24 if version == 0 else 28
+                else:
+                    width = head[9]
+                    start = 12
+                if width not in (2, 4, 8):
+                    return None
+                base = int.from_bytes(head[start : start + width], "little")
+                eoa = int.from_bytes(head[start + 2 * width : start + 3 * width], "little")
+                return base + eoa if base + eoa < 1 << 62 else None
+            at = 512 if at == 0 else at * 2
+    return None
+
+
+def _copy(ev: Events) -> Events:
+    return Events._trusted(ev.t.copy(), ev.x.copy(), ev.y.copy(), ev.p.copy(), ev.sensor_size, True)
+
+
 class Hdf5Writer:
     """Stream events into evtk's HDF5 layout, atomically.
 
@@ -898,17 +995,22 @@ class Hdf5Writer:
             f.attrs["evtk_version"] = np.bytes_(__version__)
             f.attrs["sensor_size"] = np.asarray(self.sensor_size, np.int64)
             f.attrs["time_unit"] = np.bytes_("us")
+            f.attrs[INTERRUPTED] = np.uint8(1)
             f.create_dataset("metadata", data=np.frombuffer(meta_text.encode("utf-8"), np.uint8))
             g = f.create_group("events")
             self._cols = {}
             for name, dtype in (("t", np.int64), ("x", np.uint16), ("y", np.uint16), ("p", np.uint8)):
-                self._cols[name] = g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(self.chunk,), **kw)
+                self._cols[name] = g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(self.chunk,),
+                                                    fillvalue=_FILL[name], **kw)
             self._cols["t"].attrs["unit"] = np.bytes_("us")
             self._index = []
-            self._n = 0
+            self._n = 0  # events accepted ...
+            self._stored = 0  # ... of which in the datasets (whole chunks until close)
+            self._tail = []  # the rest, fewer than a chunk
             self._last_t = None
             self._trig = []
             self._closed = False
+            f.flush()  # from here on the partial file opens (and salvages) as an interrupted evtk file
         except BaseException:
             self._abort_files()
             raise
@@ -928,16 +1030,34 @@ class Hdf5Writer:
         if outside >= 0:
             raise EvtkError(f"event {self._n + outside} lies outside the {self.sensor_size} sensor")
         a, b = self._n, self._n + n
-        for name in ("t", "x", "y", "p"):
-            ds = self._cols[name]
-            ds.resize((b,))
-            ds[a:b] = getattr(events, name)
         first_block = -(-a // self.chunk)
         starts = np.arange(first_block * self.chunk, b, self.chunk)
         if len(starts):
             self._index.append(events.t[starts - a])
         self._n = b
         self._last_t = int(events.t[-1])
+        self._tail.append(events)
+        whole = (b // self.chunk) * self.chunk
+        if whole > self._stored:
+            self._store(whole)
+            self._f.flush()  # the file on disk is complete up to here: a kill loses at most the events since
+        else:  # keep our own copy: the caller may reuse its arrays
+            self._tail[-1] = _copy(events)
+
+    def _store(self, upto):
+        """Move the buffered events up to index ``upto`` into the datasets.
+
+        Only whole chunks are stored before :meth:`close`, so a stored chunk is never rewritten: after a kill
+        every chunk the last flush recorded is still where it was.
+        """
+        pending = Events.concatenate(self._tail, sensor_size=self.sensor_size) if len(self._tail) > 1 else self._tail[0]
+        a, k = self._stored, upto - self._stored
+        for name in ("t", "x", "y", "p"):
+            ds = self._cols[name]
+            ds.resize((upto,))
+            ds[a:upto] = getattr(pending, name)[:k]
+        self._tail = [_copy(pending[k:])] if k < len(pending) else []
+        self._stored = upto
 
     def write_triggers(self, triggers: Triggers):
         if self._closed:
@@ -959,6 +1079,8 @@ class Hdf5Writer:
             return
         self._closed = True
         try:
+            if self._stored < self._n:
+                self._store(self._n)
             g = self._f["events"]
             index = np.concatenate(self._index) if self._index else np.zeros(0, np.int64)
             ds = g.create_dataset("index_t_us", data=index.astype(np.int64))
@@ -969,6 +1091,7 @@ class Hdf5Writer:
                 tg = self._f.create_group("triggers")
                 tg.create_dataset("t", data=tr.t[order])
                 tg.create_dataset("kind", data=tr.kind[order])
+            del self._f.attrs[INTERRUPTED]
             self._f.close()
             self._atomic.commit()
         except BaseException:
