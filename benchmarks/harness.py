@@ -17,14 +17,14 @@ def child_runs(script, args, repeats=1, pin_cpu=False, single_thread=False) -> l
     """Run ``python script --child ARGS`` ``repeats`` times; the JSON object each prints last.
 
     ``pin_cpu`` pins the child to CPU 0 (Linux, with taskset);
-    ``single_thread`` also caps numba's and OpenMP's threads at one.
+    ``single_thread`` also caps evtk's decode threads, numba's and OpenMP's threads at one.
     """
     cmd = [sys.executable, str(script), "--child", *[str(a) for a in args]]
     if pin_cpu and sys.platform.startswith("linux") and shutil.which("taskset"):
         cmd = ["taskset", "-c", "0", *cmd]
     env = dict(os.environ)
     if single_thread:
-        env.update(NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1")
+        env.update(EVTK_IO_THREADS="1", NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1")
     out = []
     for _ in range(int(repeats)):
         res = subprocess.run(cmd, capture_output=True, text=True, env=env)

@@ -220,7 +220,7 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
     per_task = 1
     if client is not None and todo:
         workers = max(1, len(client.scheduler_info().get("workers", {})))
-        per_task = max(1, len(todo) // (4 * workers))
+        per_task = max(1, len(todo) // (2 * workers))
     groups = [todo[i:i + per_task] for i in range(0, len(todo), per_task)]
     for group in run_tasks(_reconstruct_group, groups, client, progress):
         for entry in group:

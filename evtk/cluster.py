@@ -80,8 +80,14 @@ def scheduler(spec=None):
         # Dask sets MALLOC_TRIM_THRESHOLD_ in its workers, which also stops glibc from raising its mmap
         # threshold: every large array then comes from fresh pages, and a reconstruction ran at half speed
         # (measured, benchmarks/bench_batch.py). evtk's workers keep the allocator's default.
-        with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
-            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
+        # The workers' statistical profiler (a stack sample every 10 ms, for the dashboard) and GIL monitor
+        # took about a tenth of each worker's time on evtk's tasks (measured); a local cluster evtk starts and
+        # stops around one command has no dashboard to show them on.
+        quiet = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+                 "distributed.worker.profile.enabled": False,
+                 "distributed.admin.system-monitor.gil.enabled": False}
+        with dask.config.set(quiet):
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                                    silence_logs=50)
     except (RuntimeError, OSError, TimeoutError) as exc:
         raise EvtkError(f"could not start a local Dask cluster ({exc}); a script that starts one needs an "

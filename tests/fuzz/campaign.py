@@ -118,7 +118,15 @@ def main(argv=None):
     ap.add_argument("--cases", type=int, default=2000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--hang-seconds", type=float, default=20.0)
+    ap.add_argument("--alloc-limit", type=float, default=64.0,
+                    help="a case whose traced allocations (Python objects and NumPy arrays, through tracemalloc) "
+                         "peak above 16 MiB + this many times the file's size is a crash; 0 turns tracing off")
     args = ap.parse_args(argv)
+    if args.alloc_limit > 0:
+        import tracemalloc
+
+        tracemalloc.start()
+    worst_alloc = (0.0, None)
     counts = collections.Counter()
     crashes = []
     slow = 0
@@ -139,16 +147,27 @@ def main(argv=None):
             # stacks and stop the campaign, naming the case
             sys.stderr.write(f"\rcase {case} {name}   ")
             faulthandler.dump_traceback_later(args.hang_seconds, exit=True)
+            if args.alloc_limit > 0:
+                base = tracemalloc.get_traced_memory()[0]
+                tracemalloc.reset_peak()
             try:
                 counts[run_case(p, refs[name], kind)] += 1
             except Exception as exc:  # a crash: anything but FormatError
                 counts["crash"] += 1
                 crashes.append((name, case, "".join(traceback.format_exception_only(type(exc), exc)).strip()))
             faulthandler.cancel_dump_traceback_later()
+            if args.alloc_limit > 0:
+                peak = tracemalloc.get_traced_memory()[1] - base
+                worst_alloc = max(worst_alloc, (peak / 2**20, f"{name} case {case}, a {len(data):,}-byte file"))
+                if peak > 16 * 2**20 + args.alloc_limit * len(data):
+                    counts["crash"] += 1
+                    crashes.append((name, case, f"allocated {peak / 2**20:.1f} MiB for a {len(data)}-byte file"))
             if time.time() - t0 > 1.0:
                 slow += 1
             os.unlink(p)
     print(f"cases {args.cases} in {time.time() - t_start:.0f} s: {dict(counts)}; slower than 1 s: {slow}")
+    if args.alloc_limit > 0:
+        print(f"largest traced allocation peak: {worst_alloc[0]:.1f} MiB ({worst_alloc[1]})")
     for c in crashes[:20]:
         print("CRASH", c)
     return 1 if crashes else 0
