@@ -585,3 +585,32 @@ def test_damaged_blosc_filter_parameters_are_an_error_not_a_crash(tmp_path):
     out = json.loads(r.stdout)
     for mode in ("False", "True"):
         assert out[mode][0] == "FormatError" and "filter pipeline is damaged" in out[mode][1]
+
+
+def test_chunk_claiming_more_than_the_file_is_refused_before_allocating(tmp_path):
+    """A chunk index entry that claims a 4 GB chunk in a 30 kB file (found by the fuzz campaign: h5py
+    allocated the claimed size before libhdf5 compared it with the file) is a FormatError naming the chunk,
+    with nothing large allocated."""
+    import struct
+    import tracemalloc
+
+    ev = random_events(5000, seed=4, sensor_size=(640, 480), span_us=50_000, t0=1000)
+    path = tmp_path / "d.h5"
+    make_dsec(path, ev, t_offset=500)
+    with h5py.File(path, "r") as f:
+        info = f["events/t"].id.get_chunk_info(0)
+    data = bytearray(path.read_bytes())
+    # v1 B-tree key of chunk 0: its size, the filter mask, then its offsets (0, and 0 for the element)
+    key = struct.pack("<II", info.size, 0) + bytes(16)
+    at = data.find(key)
+    assert at > 0 and data.find(key, at + 1) < 0
+    data[at : at + 4] = struct.pack("<I", 0xFFFF0000)
+    path.write_bytes(bytes(data))
+    tracemalloc.start()
+    try:
+        with pytest.raises(evtk.FormatError, match="chunk 0 of /events/t claims 4294901760 bytes"):
+            evtk.read_events(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 64 * 2**20

@@ -221,6 +221,10 @@ class _Blosc1Checked:
         self._ndim = ds.ndim
         self._n = ds.shape[0] if ds.ndim else 0
         self._ok = set()
+        try:
+            self._file_bytes = int(ds.file.id.get_filesize())
+        except (OSError, ValueError, AttributeError):  # pragma: no cover - a file object without a size
+            self._file_bytes = None
 
     def __getattr__(self, name):
         return getattr(self._ds, name)
@@ -255,6 +259,13 @@ class _Blosc1Checked:
             if c in self._ok:
                 continue
             offset = (c * self._len,) + zeros
+            try:  # h5py allocates the size the chunk index claims before libhdf5 checks it against the file
+                stored = ds.id.get_chunk_info_by_coord(offset).size
+            except (OSError, ValueError, AttributeError):
+                stored = None
+            if stored is not None and self._file_bytes is not None and stored > self._file_bytes:
+                raise OSError(f"chunk {c} of {ds.name} claims {stored} bytes, more than the whole file "
+                              f"({self._file_bytes})")
             try:
                 mask, raw = ds.id.read_direct_chunk(offset)
             except (OSError, ValueError):  # not written (HDF5 gives the fill value), or unreadable: HDF5 says
