@@ -35,3 +35,9 @@ class FormatError(EvtkError):
         if self.offset is not None:
             where = f"{where} at byte {self.offset}"
         super().__init__(f"{where}: {self.reason}")
+
+
+def one_line(exc) -> str:
+    """A library's error message on one line (pyarrow's and libhdf5's span several)."""
+    return " ".join(str(exc).split())
+

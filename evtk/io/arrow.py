@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from .._version import __version__
-from ..errors import EvtkError, FormatError
+from ..errors import EvtkError, FormatError, one_line
 from ..events import Events, Triggers
 from . import _parquet_footer as _footer
 from ._atomic import AtomicFile
@@ -110,7 +110,7 @@ def _first_fatal_row_group(pf, t_col):
 
 def _unreadable(g, exc):
     """What to say of a row group pyarrow could not read (its message on one line)."""
-    return f"row group {g} cannot be read ({' '.join(str(exc).split())})"
+    return f"row group {g} cannot be read ({one_line(exc)})"
 
 
 def _pa():
@@ -266,7 +266,7 @@ class ParquetRecording(BaseRecording):
     def _without_footer(self, pq, exc):
         """Open a file whose footer is missing or unreadable by writing a new one for its complete row groups
         (salvage only): what an interrupted writer leaves."""
-        problem = f"not a readable Parquet file ({' '.join(str(exc).split())})"
+        problem = f"not a readable Parquet file ({one_line(exc)})"
         try:
             with open(self.path, "rb") as f:
                 head = f.read(4)
@@ -303,7 +303,7 @@ class ParquetRecording(BaseRecording):
                                       "triggers the footer held are lost")
             return pf
         raise FormatError(self.path, None, f"{problem.split(';')[0]}, and no complete row group can be recovered "
-                                           f"({' '.join(str(last).split())})")
+                                           f"({one_line(last)})")
 
     def _close(self):
         try:

@@ -15,7 +15,7 @@ import struct
 import numpy as np
 
 from .._version import __version__
-from ..errors import EvtkError, FormatError
+from ..errors import EvtkError, FormatError, one_line
 from ..events import Events, Triggers
 from ._atomic import AtomicFile
 from ._overlay import SplicedFile, close_at_exit
@@ -378,7 +378,7 @@ class _EvtkLayout(_Layout):
                 self.index_t = index.astype(np.int64)
                 self.index_id = np.arange(len(index), dtype=np.int64) * stride
         except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:  # libhdf5 on a damaged object
-            self.index_problem = f"the block index /events/index_t_us cannot be read ({' '.join(str(exc).split())})"
+            self.index_problem = f"the block index /events/index_t_us cannot be read ({one_line(exc)})"
 
     def read(self, i0, i1):
         return self.t[i0:i1], self.x[i0:i1], self.y[i0:i1], self.p[i0:i1]
@@ -634,7 +634,7 @@ class Hdf5Recording(BaseRecording):
         """A file shorter than its superblock records (a truncated copy) opens, with salvage, with the missing
         end reading as zeros: the datasets whose metadata lies before the cut read up to their first chunk
         that was cut off."""
-        problem = f"HDF5 library cannot open the file ({' '.join(str(exc).split())})"
+        problem = f"HDF5 library cannot open the file ({one_line(exc)})"
         try:
             size = os.path.getsize(self.path)
             eoa = _superblock_eoa(self.path)
@@ -651,7 +651,7 @@ class Hdf5Recording(BaseRecording):
         except Exception as err:  # noqa: BLE001 - libhdf5 reports any failure as OSError or ValueError
             spliced.close()
             raise FormatError(self.path, None, f"{problem}, and what is left does not open "
-                                               f"({' '.join(str(err).split())})") from None
+                                               f"({one_line(err)})") from None
         self._spliced = spliced
         close_at_exit(self)
         self.damage = Damage(size, problem + " (the missing end reads as zeros)")
