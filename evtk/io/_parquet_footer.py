@@ -20,7 +20,7 @@ from __future__ import annotations
 import os
 import struct
 
-__all__ = ["rebuild_footer", "ThriftError", "read_struct"]
+__all__ = ["find_row_groups", "encode_footer", "rebuild_footer", "ThriftError", "read_struct"]
 
 MAGIC = b"PAR1"
 
@@ -238,6 +238,11 @@ class _Page:
         self.compressed, self.uncompressed, self.encodings = compressed, uncompressed, encodings
         self.low, self.high = low, high  # the page's min and max statistics (plain-encoded), when it has them
 
+    @property
+    def stored_uncompressed(self):
+        """Header plus uncompressed body: what a footer's uncompressed sizes add up."""
+        return self.uncompressed + (self.end - self.compressed - self.offset)
+
 
 def _pages(f, size: int):
     """The complete pages from byte 4 on, stopping at the first that does not parse or is cut short."""
@@ -330,22 +335,20 @@ def _codec(f, pages):
     return 0
 
 
-def rebuild_footer(path, size=None, repetition=OPTIONAL):
-    """A footer for the complete row groups of a footerless evtk Parquet file.
+def find_row_groups(path):
+    """The complete row groups of a footerless evtk Parquet file, from its page headers.
 
-    Returns ``(end, footer, rows, groups)``: the byte offset where the intact
-    row groups end, the footer bytes (Thrift metadata, its length and the
-    closing magic) to place there, and the row and row-group counts (both 0
-    when not even one row group is complete).  Raises :class:`ThriftError`
-    when the file does not start with ``PAR1`` or its pages use a codec
-    pyarrow does not have.
+    Returns ``(end, groups, codec)``: the byte offset where the intact row
+    groups end, a list of ``(rows, column chunks)`` (empty when not even one
+    is complete) and the codec number.  Raises :class:`ThriftError` when the
+    file does not start with ``PAR1`` or its pages use a codec pyarrow does
+    not have.
 
     Every column chunk must start with a dictionary page (pyarrow's default,
     kept by evtk's writer), which is how the chunks are told apart.
     """
     with open(path, "rb") as f:
-        if size is None:
-            size = os.fstat(f.fileno()).st_size
+        size = os.fstat(f.fileno()).st_size
         if f.read(4) != MAGIC:
             raise ThriftError("the file does not start with PAR1")
         pages = list(_pages(f, size))
@@ -364,6 +367,13 @@ def rebuild_footer(path, size=None, repetition=OPTIONAL):
         if codec is None:
             raise ThriftError("the pages are compressed with no codec pyarrow knows")
     end = groups[-1][1][-1][-1].end if groups else len(MAGIC)
+    return end, groups, codec
+
+
+def encode_footer(groups, codec, repetition=OPTIONAL) -> bytes:
+    """The footer (Thrift metadata, its length, the closing magic) for :func:`find_row_groups`' result, its
+    columns declared with ``repetition`` (:data:`OPTIONAL`: nullable, as pyarrow writes by default)."""
+    ncol = len(COLUMNS)
     rows = sum(r for r, _ in groups)
     w = _Writer()
     w.i32(1, 1)  # format version
@@ -392,9 +402,9 @@ def rebuild_footer(path, size=None, repetition=OPTIONAL):
     def column_chunk(s, item):
         (name, physical, _), pages = item
         first = pages[0].offset
-        data = next(p for p in pages if p.kind != _DICTIONARY_PAGE) if any(p.kind != _DICTIONARY_PAGE for p in pages) else pages[0]
+        data = next((p for p in pages if p.kind != _DICTIONARY_PAGE), pages[0])
         compressed = pages[-1].end - first
-        uncompressed = sum(p.uncompressed + (p.end - p.compressed - p.offset) for p in pages)
+        uncompressed = sum(p.stored_uncompressed for p in pages)
         encodings = sorted({e for p in pages for e in p.encodings})
 
         def meta(m):
@@ -428,7 +438,7 @@ def rebuild_footer(path, size=None, repetition=OPTIONAL):
     def row_group(s, item):
         rows_g, cols = item
         s.struct_list(1, list(zip(COLUMNS, cols)), column_chunk)
-        s.i64(2, sum(p.uncompressed + (p.end - p.compressed - p.offset) for c in cols for p in c))
+        s.i64(2, sum(p.stored_uncompressed for c in cols for p in c))
         s.i64(3, rows_g)
 
     w.struct_list(4, groups, row_group)
@@ -436,5 +446,11 @@ def rebuild_footer(path, size=None, repetition=OPTIONAL):
     # type-defined sort order for every column: without it readers ignore min_value/max_value
     w.struct_list(7, COLUMNS, lambda s, _col: s.struct(1, lambda _order: None))
     meta = w.finish()
-    footer = meta + struct.pack("<I", len(meta)) + MAGIC
-    return end, footer, rows, len(groups)
+    return meta + struct.pack("<I", len(meta)) + MAGIC
+
+
+def rebuild_footer(path, repetition=OPTIONAL):
+    """``(end, footer, rows, row groups)`` for a footerless evtk Parquet file: where its intact row groups end,
+    the footer to place there, and what it holds."""
+    end, groups, codec = find_row_groups(path)
+    return end, encode_footer(groups, codec, repetition), sum(r for r, _ in groups), len(groups)

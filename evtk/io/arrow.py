@@ -281,11 +281,16 @@ class ParquetRecording(BaseRecording):
                        "salvage recovers its complete row groups")
         if not self.salvage or head != b"PAR1":
             raise FormatError(self.path, None, problem)
+        cause = problem.split(";")[0]
+        try:
+            end, found, codec = _footer.find_row_groups(self.path)
+        except (_footer.ThriftError, OSError) as err:
+            raise FormatError(self.path, None, f"{cause}, and no row group can be recovered ({one_line(err)})") from None
+        rows, groups = sum(r for r, _ in found), len(found)
         last = None
         for repetition in (_footer.OPTIONAL, _footer.REQUIRED):  # nullable columns (pyarrow's default) first
             try:
-                end, footer, rows, groups = _footer.rebuild_footer(self.path, repetition=repetition)
-                overlay = SplicedFile(self.path, end, footer)
+                overlay = SplicedFile(self.path, end, _footer.encode_footer(found, codec, repetition))
                 try:
                     pf = pq.ParquetFile(overlay)
                     if groups:  # does the guessed repetition decode?
@@ -293,16 +298,16 @@ class ParquetRecording(BaseRecording):
                 except BaseException:
                     overlay.close()
                     raise
-            except Exception as err:  # noqa: BLE001 - ThriftError, or pyarrow refusing the guess
+            except Exception as err:  # noqa: BLE001 - pyarrow refusing the guessed repetition
                 last = err
                 continue
             self._overlay = overlay
             close_at_exit(self)
-            self.damage = Damage(end, f"{problem.split(';')[0]}: recovered {rows} events in {groups} complete "
+            self.damage = Damage(end, f"{cause}: recovered {rows} events in {groups} complete "
                                       "row group(s) by rebuilding the footer; the sensor size, metadata and "
                                       "triggers the footer held are lost")
             return pf
-        raise FormatError(self.path, None, f"{problem.split(';')[0]}, and no complete row group can be recovered "
+        raise FormatError(self.path, None, f"{cause}, and its row groups do not decode under a rebuilt footer "
                                            f"({one_line(last)})")
 
     def _close(self):
