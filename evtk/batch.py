@@ -216,7 +216,7 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
     if split_events:
         todo = _split_large(todo, int(split_events), client, entries)
     # small recordings reconstruct in tens of milliseconds: on a cluster, hand each task a few of them
-    # (about four tasks per worker) so the scheduler's per-task cost is spread
+    # (two tasks per worker) so the scheduler's per-task cost is spread
     per_task = 1
     if client is not None and todo:
         workers = max(1, len(client.scheduler_info().get("workers", {})))

@@ -76,20 +76,28 @@ def scheduler(spec=None):
             raise EvtkError(f"local:N needs a positive number of workers, not {spec!r}")
     import dask
 
+    # Dask's nanny applies its pre-spawn environment to this process's os.environ before it starts a
+    # worker; what it changes here is put back when the cluster closes
+    saved = dict(os.environ)
     try:
         # Dask sets MALLOC_TRIM_THRESHOLD_ in its workers, which also stops glibc from raising its mmap
         # threshold: every large array then comes from fresh pages, and a reconstruction ran at half speed
         # (measured, benchmarks/bench_batch.py). evtk's workers keep the allocator's default.
+        # Tasks run on a worker's thread pool, whose thread allocates from a glibc arena of its own; that
+        # arena gave its freed pages back after every recording (about 1,300 page faults and 3 ms per
+        # recording of 30, measured), the main arena keeps them: one arena per worker (MALLOC_ARENA_MAX).
         # The workers' statistical profiler (a stack sample every 10 ms, for the dashboard) and GIL monitor
         # took about a tenth of each worker's time on evtk's tasks (measured); a local cluster evtk starts and
         # stops around one command has no dashboard to show them on.
         quiet = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+                 "distributed.nanny.pre-spawn-environ.MALLOC_ARENA_MAX": 1,
                  "distributed.worker.profile.enabled": False,
                  "distributed.admin.system-monitor.gil.enabled": False}
         with dask.config.set(quiet):
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                                    silence_logs=50)
     except (RuntimeError, OSError, TimeoutError) as exc:
+        _restore_environ(saved)
         raise EvtkError(f"could not start a local Dask cluster ({exc}); a script that starts one needs an "
                         "'if __name__ == \"__main__\":' guard, or use --scheduler serial") from None
     client = Client(cluster)
@@ -104,6 +112,15 @@ def scheduler(spec=None):
     finally:
         client.close()
         cluster.close()
+        _restore_environ(saved)
+
+
+def _restore_environ(saved):
+    for key in set(os.environ) - set(saved):
+        del os.environ[key]
+    for key, value in saved.items():
+        if os.environ.get(key) != value:
+            os.environ[key] = value
 
 
 def run_tasks(fn, items, client=None, progress=None, retries=2):

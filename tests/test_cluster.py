@@ -68,6 +68,33 @@ def test_local_workers_share_out_threads_without_touching_this_process(client):
     assert {k: os.environ.get(k) for k in before} == before
 
 
+def test_local_workers_allocator_settings_and_this_process_environment_left_as_it_was():
+    """The workers start with one malloc arena and glibc's own trim threshold (Dask's nanny would set
+    MALLOC_TRIM_THRESHOLD_); the nanny applies its pre-spawn environment to this process's os.environ,
+    which evtk puts back when the cluster closes. In a fresh interpreter, whose environment has none of them."""
+    import subprocess
+    import sys
+
+    code = """
+import json, os
+from evtk.cluster import scheduler
+before = dict(os.environ)
+with scheduler("local:1") as c:
+    workers = list(c.run(lambda: {k: os.environ.get(k) for k in
+                                  ("MALLOC_ARENA_MAX", "MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")}).values())
+print(json.dumps({"workers": workers, "same": dict(os.environ) == before,
+                  "leaked": sorted(set(os.environ) - set(before))}))
+"""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("MALLOC_ARENA_MAX", "MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS", "MKL_NUM_THREADS",
+                        "OPENBLAS_NUM_THREADS")}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    assert got["workers"] == [{"MALLOC_ARENA_MAX": "1", "MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": "1"}]
+    assert got["same"] and got["leaked"] == []
+
+
 def test_run_tasks_keeps_order_and_survives_a_killed_worker(client, tmp_path):
     square = _by_value(lambda v: v * v)
     assert run_tasks(square, range(20), client) == [v * v for v in range(20)]
