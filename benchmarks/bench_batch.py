@@ -1,14 +1,16 @@
 """Batch reconstruction serially and on local Dask clusters of one and two workers.
 
-    python benchmarks/bench_batch.py                  # 20 recordings of about 1 M events, median of 3
-    python benchmarks/bench_batch.py --recordings 8 --repeats 1
+    python benchmarks/bench_batch.py                  # 20 recordings of about 1 M events, 3 rounds
+    python benchmarks/bench_batch.py --recordings 8 --repeats 1 --rounds 1
 
 The recordings are simulated once (signed random 3x3 kernel and 16x16
 features, default bench and sensor, AEDAT4 LZ4) into ``benchmarks/data/batch``.
 Each mode runs, in a fresh process of its own, ``evtk.batch.batch_reconstruct``
 over all of them with ``force=True`` into a fresh folder; the cluster is started before the clock
-and its start-up is reported apart. The per-task overhead is
-``(local:1 - serial) / recordings``.
+and its start-up is reported apart. The four modes run one after the other in each of
+``--rounds`` rounds, and the ratios are the medians of each round's ratios (the same
+mode varies by a fifth from one minute to the next on a shared 2-core machine). The
+per-recording overhead is ``(local:1 - serial) / recordings``.
 
 Serial mode already uses both cores of a 2-core machine (evtk decodes
 packets and solves the event-time fits on threads), so it also runs once
@@ -70,10 +72,15 @@ def child(spec, n_recordings, repeats):
     print(json.dumps({"median_s": statistics.median(times), "start_s": start}))
 
 
+MODES = (("serial", "serial", False), ("serial/1", "serial", True), ("local:1", "local:1", False),
+         ("local:2", "local:2", False))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--recordings", type=int, default=20)
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=3, help="batches timed per mode and round (median)")
+    ap.add_argument("--rounds", type=int, default=3, help="rounds of all four modes, one after the other")
     ap.add_argument("--json")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -85,24 +92,39 @@ def main():
     files = make(args.recordings)
     with evtk.open(files[0]) as rec:
         events = rec.info()["events"]
-    res = {"recordings": len(files), "events_per_recording": events}
-    # each mode in a fresh process: no threads left over
-    for label, spec, one in (("serial", "serial", False), ("serial/1", "serial", True), ("local:1", "local:1", False),
-                             ("local:2", "local:2", False)):
-        run = child_runs(__file__, [spec, "--recordings", args.recordings, "--repeats", args.repeats],
-                         single_thread=one)[0]
-        res[label] = run
-        print(f"{label:8s} {run['median_s']:6.2f} s for {len(files)} recordings of {events:,} events "
-              f"(cluster start {run['start_s']:.2f} s)", flush=True)
-    s, s1, l1, l2 = (res[k]["median_s"] for k in ("serial", "serial/1", "local:1", "local:2"))
-    res["speedup_local2"] = s / l2
-    res["speedup_local2_over_one_thread"] = s1 / l2
-    res["ceiling_local2"] = 2 * s / s1
-    res["local1_over_serial"] = l1 / s
-    res["overhead_ms_per_task"] = 1e3 * (l1 - s) / len(files)
-    print(f"local:2 is {s / l2:.2f}x serial ({s1 / l2:.2f}x serial on one thread; at most {2 * s / s1:.2f}x "
-          f"serial on this machine); local:1 takes {l1 / s:.2f}x serial; "
-          f"overhead {res['overhead_ms_per_task']:.1f} ms per task")
+    res = {"recordings": len(files), "events_per_recording": events, "rounds": []}
+    print(f"{len(files)} recordings of {events:,} events; seconds per batch (median of {args.repeats})")
+    print("round   " + "".join(f"{label:>10s}" for label, _, _ in MODES) + "   local:2/serial  local:1/serial")
+    for r in range(args.rounds):
+        # each mode in a fresh process (no threads left over), the four modes side by side in time, so a
+        # slow minute on a shared machine shows in all of a round's figures rather than in one mode's
+        row = {}
+        for label, spec, one in MODES:
+            row[label] = child_runs(__file__, [spec, "--recordings", args.recordings, "--repeats", args.repeats],
+                                    single_thread=one)[0]
+        res["rounds"].append(row)
+        s, l1, l2 = (row[k]["median_s"] for k in ("serial", "local:1", "local:2"))
+        print(f"{r + 1:5d}   " + "".join(f"{row[label]['median_s']:10.3f}" for label, _, _ in MODES)
+              + f"   {s / l2:13.2f}x  {l1 / s:14.2f}", flush=True)
+    rounds = res["rounds"]
+
+    def med(fn):
+        return statistics.median(fn(row) for row in rounds)
+
+    def t(row, k):
+        return row[k]["median_s"]
+
+    res["speedup_local2"] = med(lambda r: t(r, "serial") / t(r, "local:2"))
+    res["speedup_local2_over_one_thread"] = med(lambda r: t(r, "serial/1") / t(r, "local:2"))
+    res["ceiling_local2"] = med(lambda r: 2 * t(r, "serial") / t(r, "serial/1"))
+    res["local1_over_serial"] = med(lambda r: t(r, "local:1") / t(r, "serial"))
+    res["overhead_ms_per_task"] = med(lambda r: 1e3 * (t(r, "local:1") - t(r, "serial")) / len(files))
+    res["cluster_start_s"] = med(lambda r: r["local:2"]["start_s"])
+    print(f"medians over {len(rounds)} rounds: local:2 is {res['speedup_local2']:.2f}x serial "
+          f"({res['speedup_local2_over_one_thread']:.2f}x serial on one thread; at most "
+          f"{res['ceiling_local2']:.2f}x serial on this machine); local:1 takes {res['local1_over_serial']:.2f}x "
+          f"serial; overhead {res['overhead_ms_per_task']:.1f} ms per recording; local:2 starts in "
+          f"{res['cluster_start_s']:.2f} s")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(res, fh, indent=1)
