@@ -616,6 +616,7 @@ class Hdf5Recording(BaseRecording):
                 self._layout.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
             self._sort = bool(sort)
             self._sorted_cache = None
+            self._intact = None
             self._checked = False
             if self._layout.sensor_size is None:
                 _guard(Hdf5Recording._infer_sensor_size)(self)
@@ -900,19 +901,42 @@ class Hdf5Recording(BaseRecording):
     @_guard
     def streams(self):
         lay = self._layout
-        first = last = None
-        if lay.n:
-            first = int(lay.read_t(0, 1)[0])
-            last = int(lay.read_t(lay.n - 1, lay.n)[0])
-        out = [StreamInfo(0, "events", "EVTS", count=lay.n, t_start_us=first, t_end_us=last, sensor_size=self.sensor_size)]
-        tr = lay.triggers()
-        if len(tr) or "triggers" in self._f:
+        n, first, last = lay.n, None, None
+        if n:
+            try:
+                if self.salvage:  # every column's first and last event, whose chunk indexes salvage also needs
+                    first, last = int(lay.read(0, 1)[0][0]), int(lay.read(n - 1, n)[0][0])
+                else:
+                    first, last = int(lay.read_t(0, 1)[0]), int(lay.read_t(n - 1, n)[0])
+            except _H5_ERRORS:
+                if not self.salvage:
+                    raise
+                n, first, last = self._intact_span()
+        out = [StreamInfo(0, "events", "EVTS", count=n, t_start_us=first, t_end_us=last, sensor_size=self.sensor_size)]
+        try:
+            tr = lay.triggers()
+            listed = "triggers" in self._f
+        except _H5_ERRORS as exc:
+            if not self.salvage:
+                raise
+            note = f"the triggers cannot be read ({type(exc).__name__}: {exc}); left out"
+            if note not in self.warnings:
+                self.warnings.append(note)
+            return out
+        if len(tr) or listed:
             out.append(
                 StreamInfo(1, "triggers", "TRIG", count=len(tr),
                            t_start_us=int(tr.t.min()) if len(tr) else None,
                            t_end_us=int(tr.t.max()) if len(tr) else None)
             )
         return out
+
+    def _intact_span(self):
+        """Salvage, when the first or last time stamp cannot be read: the number of events
+        :meth:`iter_events` recovers and their first and last time (one pass, a chunk at a time)."""
+        if self._intact is None:
+            self._intact = self._read_span()
+        return self._intact
 
     def _extra_info(self):
         return {"layout": self.layout}
