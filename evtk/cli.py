@@ -67,7 +67,7 @@ def _human_info(info: dict) -> str:
     if info["t_start_us"] is not None:
         span = (info["t_end_us"] - info["t_start_us"]) / 1e6
         lines.append(f"time         {info['t_start_us']} .. {info['t_end_us']} us ({span:.6f} s)")
-    lines.append("streams")
+    lines.append("streams (as the file indexes them)" if info.get("scanned") else "streams")
     for s in info["streams"]:
         count = "?" if s["count"] is None else f"{s['count']:,}"
         lines.append(f"  {s['id']:>3}  {s['name']:<16} {s['type']:<5} {count:>14} elements in {s['packets']:,} packets")
@@ -83,11 +83,19 @@ def _human_info(info: dict) -> str:
 @main.command()
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-@click.option("--salvage", is_flag=True, help="Report what is intact before damage instead of failing.")
-def info(file, as_json, salvage):
-    """Describe a recording: format, sensor, counts, time span, streams."""
+@click.option("--salvage", is_flag=True,
+              help="Report what is intact before damage instead of failing (reads every event once).")
+@click.option("--check", is_flag=True, help="Read every event once and fail at the first damage.")
+def info(file, as_json, salvage, check):
+    """Describe a recording: format, sensor, counts, time span, streams.
+
+    Without --salvage or --check the counts and times are what the file's
+    headers and indexes say; with either, what its events read back as.
+    """
     with evio.open(file, salvage=salvage) as rec:
         summary = rec.info()
+        if salvage or check:
+            summary.update(rec.scan())
     if as_json:
         click.echo(json.dumps(summary))
     else:

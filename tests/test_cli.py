@@ -69,6 +69,35 @@ def test_salvage_flag(tmp_path):
     assert info["damage"]["offset"] > 0
 
 
+def test_info_check_and_salvage_read_every_event(tmp_path):
+    """A packet damaged in the middle, the file's index intact: plain info reports the index (5,000
+    events); --check reads the events and fails at the damage; --salvage reports what salvage recovers
+    (the packets before it), not the index's count."""
+    ev = random_events(5000, seed=1)
+    good = tmp_path / "g.aedat4"
+    evtk.write_events(good, ev, packet_events=1000, packet_us=None)
+    data = bytearray(good.read_bytes())
+    at = int(len(data) * 0.6)
+    data[at:at + 64] = bytes(64)
+    bad = tmp_path / "b.aedat4"
+    bad.write_bytes(bytes(data))
+    assert json.loads(run("info", "--json", bad).output)["events"] == 5000
+    r = run("info", "--check", bad)
+    assert r.exit_code == 1 and "cannot be decompressed" in r.output
+    r = run("info", "--json", "--salvage", bad)
+    assert r.exit_code == 0, r.output
+    info = json.loads(r.output)
+    with evtk.open(bad, salvage=True) as rec:
+        got = rec.events()
+    assert 0 < len(got) < 5000 and got == ev[:len(got)]
+    assert (info["events"], info["t_start_us"], info["t_end_us"]) == (len(got), int(got.t[0]), int(got.t[-1]))
+    assert info["damage"]["offset"] > 0 and info["scanned"]
+    assert "streams (as the file indexes them)" in run("info", "--salvage", bad).output
+    r = run("info", "--json", "--check", good)
+    assert r.exit_code == 0 and json.loads(r.output)["events"] == 5000
+    assert json.loads(r.output)["t_end_us"] == int(ev.t[-1])
+
+
 @pytest.mark.parametrize(
     "args, match",
     [

@@ -8,7 +8,7 @@ from typing import Iterator
 
 import numpy as np
 
-from ..errors import EvtkError
+from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
 
 __all__ = ["BaseRecording", "StreamInfo", "Damage", "time_chunks"]
@@ -136,7 +136,8 @@ class BaseRecording:
         return s.t_end_us if s else None
 
     def info(self) -> dict:
-        """A JSON-ready summary (what ``evtk info --json`` prints)."""
+        """A JSON-ready summary (what ``evtk info --json`` prints): counts and times as the file's
+        headers and indexes give them, without reading the events (:meth:`scan` reads them)."""
         streams = self.streams
         ev = next((s for s in streams if s.type == "EVTS"), None)
         tr = next((s for s in streams if s.type == "TRIG"), None)
@@ -153,11 +154,46 @@ class BaseRecording:
             "metadata": self.metadata,
         }
         out.update(self._extra_info())
+        out.update(self._damage_info())
+        return out
+
+    def _damage_info(self) -> dict:
+        out = {}
         if self.warnings:
             out["warnings"] = list(self.warnings)
         if self.salvage:
             out["damage"] = None if self.damage is None else {"offset": self.damage.offset, "reason": self.damage.reason}
         return out
+
+    def _read_span(self, chunk_events: int = 1_000_000):
+        """``(count, first t, last t)`` of the events :meth:`iter_events` gives, in one pass."""
+        n, first, last = 0, None, None
+        for ev in self.iter_events(chunk_events=chunk_events):
+            if len(ev):
+                first = int(ev.t[0]) if first is None else first
+                n, last = n + len(ev), int(ev.t[-1])
+        return n, first, last
+
+    def scan(self, chunk_events: int = 1_000_000) -> dict:
+        """Read every event and trigger once (``chunk_events`` at a time) and report what reads:
+        ``events``, ``t_start_us``, ``t_end_us``, ``triggers``, ``scanned`` (True), with ``warnings``
+        and (salvage) ``damage`` as they stand after the pass.
+
+        :meth:`info` reports what the file's headers and indexes say; with
+        ``salvage=True`` this reports what :meth:`events` recovers, which
+        damage found only by reading can make fewer. In strict mode it
+        raises :class:`~evtk.FormatError` at the first damage instead.
+        """
+        n, first, last = self._read_span(chunk_events)
+        try:
+            triggers = len(self.triggers())
+        except FormatError as exc:
+            if not self.salvage:
+                raise
+            triggers = 0
+            self.warnings.append(f"the triggers cannot be read ({exc}); none counted")
+        return {"events": n, "t_start_us": first, "t_end_us": last, "triggers": triggers, "scanned": True,
+                **self._damage_info()}
 
     def _extra_info(self) -> dict:
         return {}
