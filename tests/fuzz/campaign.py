@@ -3,7 +3,8 @@
     python tests/fuzz/campaign.py --cases 3000 --seed 1
 
 Every outcome must be a read, an evtk.FormatError, or (salvage) a prefix
-of the file's events; anything else is reported as a crash with the seed
+of the file's events, which info() must describe without failing and
+scan() count exactly; anything else is reported as a crash with the seed
 that reproduces it.  A truncated file must salvage to an exact prefix of
 the original events (nothing before the cut was touched): a different
 result is a crash too.  For the other mutations the salvaged events are
@@ -103,6 +104,11 @@ def run_case(path: Path, reference, kind):
             streamed = sum(len(c) for c in rec.iter_events(chunk_events=700))
         if streamed != len(got):
             raise AssertionError(f"salvage: iter_events gave {streamed} events, events() {len(got)}")
+        with evtk.open(path, salvage=True) as rec:
+            rec.info()
+            scanned = rec.scan(chunk_events=700)["events"]
+        if scanned != len(got):
+            raise AssertionError(f"salvage: scan() counted {scanned} events, events() gave {len(got)}")
         if outcome != "read" and len(got):
             exact = _is_prefix(got, reference)
             if kind == "truncation" and not exact:
