@@ -932,7 +932,7 @@ class Hdf5Recording(BaseRecording):
         return out
 
     def _intact_span(self):
-        """Salvage, when the first or last time stamp cannot be read: the number of events
+        """Salvage, when the first or last event cannot be read: the number of events
         :meth:`iter_events` recovers and their first and last time (one pass, a chunk at a time)."""
         if self._intact is None:
             self._intact = self._read_span()
