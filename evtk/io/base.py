@@ -165,6 +165,11 @@ class BaseRecording:
             out["damage"] = None if self.damage is None else {"offset": self.damage.offset, "reason": self.damage.reason}
         return out
 
+    def _warn_once(self, topic: str, detail: str):
+        """A warning ``topic (detail)``, unless one on ``topic`` is there already."""
+        if not any(w.startswith(topic) for w in self.warnings):
+            self.warnings.append(f"{topic} ({detail})")
+
     def _read_span(self, chunk_events: int = 1_000_000):
         """``(count, first t, last t)`` of the events :meth:`iter_events` gives, in one pass."""
         n, first, last = 0, None, None
@@ -191,7 +196,7 @@ class BaseRecording:
             if not self.salvage:
                 raise
             triggers = 0
-            self.warnings.append(f"the triggers cannot be read ({exc}); none counted")
+            self._warn_once("the triggers cannot be read; none counted", str(exc))
         return {"events": n, "t_start_us": first, "t_end_us": last, "triggers": triggers, "scanned": True,
                 **self._damage_info()}
 

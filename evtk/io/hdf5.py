@@ -919,9 +919,7 @@ class Hdf5Recording(BaseRecording):
         except _H5_ERRORS as exc:
             if not self.salvage:
                 raise
-            note = f"the triggers cannot be read ({type(exc).__name__}: {exc}); left out"
-            if note not in self.warnings:
-                self.warnings.append(note)
+            self._warn_once("the triggers cannot be read; none counted", f"{type(exc).__name__}: {exc}")
             return out
         if len(tr) or listed:
             out.append(
