@@ -118,12 +118,12 @@ def main():
     res["speedup_local2_over_one_thread"] = med(lambda r: t(r, "serial/1") / t(r, "local:2"))
     res["ceiling_local2"] = med(lambda r: 2 * t(r, "serial") / t(r, "serial/1"))
     res["local1_over_serial"] = med(lambda r: t(r, "local:1") / t(r, "serial"))
-    res["overhead_ms_per_task"] = med(lambda r: 1e3 * (t(r, "local:1") - t(r, "serial")) / len(files))
+    res["overhead_ms_per_recording"] = med(lambda r: 1e3 * (t(r, "local:1") - t(r, "serial")) / len(files))
     res["cluster_start_s"] = med(lambda r: r["local:2"]["start_s"])
     print(f"medians over {len(rounds)} rounds: local:2 is {res['speedup_local2']:.2f}x serial "
           f"({res['speedup_local2_over_one_thread']:.2f}x serial on one thread; at most "
           f"{res['ceiling_local2']:.2f}x serial on this machine); local:1 takes {res['local1_over_serial']:.2f}x "
-          f"serial; overhead {res['overhead_ms_per_task']:.1f} ms per recording; local:2 starts in "
+          f"serial; overhead {res['overhead_ms_per_recording']:.1f} ms per recording; local:2 starts in "
           f"{res['cluster_start_s']:.2f} s")
     if args.json:
         with open(args.json, "w") as fh:

@@ -100,15 +100,11 @@ def run_case(path: Path, reference, kind):
     try:
         with evtk.open(path, salvage=True) as rec:
             got = rec.events()
-        with evtk.open(path, salvage=True) as rec:
-            streamed = sum(len(c) for c in rec.iter_events(chunk_events=700))
-        if streamed != len(got):
-            raise AssertionError(f"salvage: iter_events gave {streamed} events, events() {len(got)}")
-        with evtk.open(path, salvage=True) as rec:
+        with evtk.open(path, salvage=True) as rec:  # scan() streams through iter_events
             rec.info()
             scanned = rec.scan(chunk_events=700)["events"]
         if scanned != len(got):
-            raise AssertionError(f"salvage: scan() counted {scanned} events, events() gave {len(got)}")
+            raise AssertionError(f"salvage: iter_events (scan) gave {scanned} events, events() {len(got)}")
         if outcome != "read" and len(got):
             exact = _is_prefix(got, reference)
             if kind == "truncation" and not exact:
