@@ -1,9 +1,11 @@
-"""One-pass validation of decoded event columns (numba)."""
+"""One-pass validation of decoded event columns (numba), and what writers require of their input."""
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+from ..errors import EvtkError
 
 
 @njit(cache=True, nogil=True)
@@ -33,3 +35,27 @@ def scan_events(t, x, y, sensor_size, t_before=None):
     if len(t) == 0:
         return -1, -1
     return _scan(t, x, y, int(w), int(h), np.int64(prev))
+
+
+def require_readable(events, sensor_size, t_before=None, first_index=0, fmt="this format"):
+    """Raise :class:`~evtk.EvtkError` unless ``events`` are in time order (after ``t_before``) and on the
+    sensor: what the HDF5 and Parquet readers require, checked by their writers so that nothing written
+    is refused on reading. ``first_index`` numbers the events in the message."""
+    back, outside = scan_events(events.t, events.x, events.y, sensor_size, t_before)
+    if back >= 0:
+        raise EvtkError(f"events must be in time order for {fmt}: time goes backwards at event "
+                        f"{first_index + back} (sort them first, or pass sort=True)")
+    if outside >= 0:
+        w, h = sensor_size
+        raise EvtkError(f"event {first_index + outside} lies outside the {w}x{h} sensor")
+
+
+def sorted_for_writing(events, sort, fmt):
+    """``events`` in time order: as they are when sorted, sorted (stable) when ``sort``, else an error."""
+    if events.is_sorted:
+        return events
+    if not sort:
+        require_readable(events, (65536, 65536), fmt=fmt)
+    order = np.argsort(events.t, kind="stable")
+    return type(events)._trusted(events.t[order], events.x[order], events.y[order], events.p[order],
+                                 events.sensor_size, True)

@@ -67,14 +67,21 @@ class CodecError(Exception):
     """A body could not be decompressed (converted to FormatError by callers)."""
 
 
-def output_limit(compressed_bytes: int, expected_elements: int = 0, element_bytes: int = 16) -> int:
+#: What any packet body may decompress to, whatever its compressed size (frames of black pixels, tiny packets).
+BODY_FLOOR_BYTES = 32 << 20
+#: How many times its compressed size a larger body may grow. Event packets compress 2-6x; LZ4 cannot pass 255x
+#: and a frame of one grey level reaches ZSTD's thousands only when it is also tiny, which the floor covers.
+BODY_RATIO = 64
+
+
+def output_limit(compressed_bytes: int) -> int:
     """Most bytes a packet body may decompress to before it is called damaged.
 
-    Generous enough for any real recording (LZ4 cannot exceed 255:1) yet
-    bounded by the input, so a damaged length never asks for gigabytes.
+    ``BODY_FLOOR_BYTES + BODY_RATIO * compressed_bytes`` (at most 2 GiB): bounded by the file's own bytes,
+    never by what a frame header, a vector length or the data table claims, so memory stays within a fixed
+    budget plus a small multiple of the file whatever a hostile file declares.
     """
-    hint = max(0, int(expected_elements)) * element_bytes + 65536
-    return min(MAX_PACKET_BYTES, max(1 << 20, 1024 * int(compressed_bytes), hint))
+    return min(MAX_PACKET_BYTES, BODY_FLOOR_BYTES + BODY_RATIO * max(0, int(compressed_bytes)))
 
 
 def decompress(code: int, body, limit: int):
@@ -87,15 +94,24 @@ def decompress(code: int, body, limit: int):
             raise CodecError(_mismatch("LZ4", body))
         try:
             info = lz4.frame.get_frame_info(body)
-            if info["content_size"] > limit:
-                raise CodecError(f"LZ4 frame announces {info['content_size']} bytes, more than the {limit} allowed")
-            out = lz4.frame.decompress(body)
+            size = info["content_size"]
+            if size > limit:
+                raise CodecError(f"LZ4 frame announces {size} bytes, more than the {limit} allowed")
+            if size > 0:
+                out = lz4.frame.decompress(body)
+            else:  # no size in the frame header (DV, dv-processing): never past the limit
+                d = lz4.frame.LZ4FrameDecompressor()
+                out = d.decompress(body, max_length=limit + 1)
+                if len(out) <= limit and not d.eof:
+                    raise CodecError("LZ4 frame ends before its end mark (truncated)")
         except CodecError:
             raise
         except Exception as exc:  # lz4 raises RuntimeError for damaged frames
             raise CodecError(f"damaged LZ4 frame ({exc})") from None
         if len(out) > limit:
             raise CodecError(f"LZ4 frame decompresses to more than {limit} bytes")
+        if size > 0 and len(out) != size:
+            raise CodecError(f"LZ4 frame announces {size} bytes but holds {len(out)}")
         return out
     if code in (ZSTD, ZSTD_HIGH):
         if bytes(body[:4]) != _ZSTD_MAGIC:

@@ -18,12 +18,16 @@ from numba import njit
 # the word-wise event decoder reinterprets little-endian bytes as native words
 _LITTLE_ENDIAN = sys.byteorder == "little"
 
+EVENT_PACKET_HEADER = 32  # bytes before the first event struct (as evtk writes them)
+EVENT_STRUCT = 16  # bytes of one event: int64 time, int16 x, int16 y, bool polarity, padding
+
 ST_OK = 0
 ST_BAD_OFFSET = -1  # an offset points outside the buffer
 ST_BAD_IDENT = -2  # the file identifier is not the expected one
 ST_CAPACITY = -3  # more elements than the caller said there would be
 ST_COORD = -4  # an event lies outside the sensor
 ST_MISSING = -5  # a required field is absent
+ST_SLACK = -6  # the body has room for more events after the vector than its length says
 
 STATUS_TEXT = {
     ST_BAD_OFFSET: "a FlatBuffers offset points outside the packet",
@@ -31,6 +35,7 @@ STATUS_TEXT = {
     ST_CAPACITY: "the packet holds more elements than the data table says",
     ST_COORD: "an event lies outside the sensor",
     ST_MISSING: "a required FlatBuffers field is missing",
+    ST_SLACK: "the packet's body holds more bytes after its event vector than one event (its vector length is damaged)",
 }
 
 
@@ -153,6 +158,10 @@ def decode_events(b, ident, t, x, y, p, offset, capacity, width, height, address
     start, count = fb_vector(b, root, 0, 16)
     if start < 0:
         return 0, start
+    # writers build the event vector first, so it ends the buffer (FlatBuffers fills from the back): room
+    # for another event after it means a length that shrank, whose events would vanish without a word
+    if len(b) - (start + EVENT_STRUCT * count) >= EVENT_STRUCT:
+        return 0, ST_SLACK
     if count > capacity:
         return count, ST_CAPACITY
     if address_mod8 >= 0 and (address_mod8 + start) % 8 == 0 and _LITTLE_ENDIAN:
@@ -216,14 +225,20 @@ def decode_triggers(b, ident, t, kind, offset, capacity):
 
 
 @njit(cache=True, nogil=True)
-def vector_length(b, ident):
-    """Length of the vector in field 0 of the root table (IMU and other packets)."""
+def vector_length(b, ident, struct_size=0):
+    """Length of the vector in field 0 of the root table (IMU and other packets).
+
+    With ``struct_size`` (16 for events), a vector of structs must end the buffer as writers lay it out
+    (less than one element after it), else ``ST_SLACK``.
+    """
     root = fb_root(b, ident)
     if root < 0:
         return root
-    start, count = fb_vector(b, root, 0, 1)
+    start, count = fb_vector(b, root, 0, max(1, struct_size))
     if start < 0:
         return start
+    if struct_size > 0 and len(b) - (start + struct_size * count) >= struct_size:
+        return ST_SLACK
     return count
 
 
@@ -270,9 +285,6 @@ def decode_data_table(b, ident, offset, stream, size, count, t0, t1):
 # an 8-byte boundary counted from the start of the size prefix, as the
 # FlatBuffers builders of dv-processing and aedat produce them.
 # ---------------------------------------------------------------------------
-
-EVENT_PACKET_HEADER = 32  # bytes before the first event struct
-EVENT_STRUCT = 16
 
 
 @njit(cache=True, nogil=True)

@@ -24,7 +24,7 @@ from ..events import Events, Triggers
 from . import _compression as cz
 from . import _fb
 from ._atomic import AtomicFile
-from .base import BaseRecording, Damage, StreamInfo, time_chunks
+from .base import BaseRecording, Damage, StreamInfo, time_chunks, window_blocks
 
 __all__ = ["Recording", "Aedat4Writer", "write_aedat4", "MAGIC"]
 
@@ -33,6 +33,8 @@ _HEADER_START = len(MAGIC)
 _IDENT = {name: np.frombuffer(name.encode(), np.uint8) for name in ("EVTS", "TRIG", "IMUS", "FRME", "FTAB", "IOHE")}
 # types whose element count is the length of the root table's first vector
 _VECTOR_TYPES = {"EVTS", "TRIG", "IMUS"}
+# ... and the element size of those whose vector holds structs (which then ends the packet)
+_STRUCT_SIZE = {"EVTS": _fb.EVENT_STRUCT}
 _TYPE_NAMES = StreamInfo.KINDS
 
 DEFAULT_PACKET_EVENTS = 8192
@@ -255,7 +257,7 @@ class Recording(BaseRecording):
             self.warnings.append("the data table is empty; packets were indexed by walking the file")
             return None
         try:
-            raw = cz.decompress(self._code, body, cz.output_limit(len(body), 0))
+            raw = cz.decompress(self._code, body, cz.output_limit(len(body)))
         except cz.CodecError as exc:
             self.warnings.append(f"the data table is unreadable ({exc}); packets were indexed by walking the file")
             return None
@@ -377,7 +379,7 @@ class Recording(BaseRecording):
                 b = self._body(i)
             except _Stop:
                 return out[:k]
-            n = _fb.vector_length(b, _IDENT[typ])
+            n = _fb.vector_length(b, _IDENT[typ], _STRUCT_SIZE.get(typ, 0))
             if n < 0:
                 try:
                     self._fail(int(self._index.offset[i]), f"{typ} packet: {_status(n)}")
@@ -426,7 +428,7 @@ class Recording(BaseRecording):
         if self._code == cz.NONE and cz.sniff(body):
             self._fail(off, f"the header declares no compression but the body is a {cz.sniff(body)} frame")
         try:
-            raw = cz.decompress(self._code, body, cz.output_limit(size, max(0, int(idx.count[i]))))
+            raw = cz.decompress(self._code, body, cz.output_limit(size))
         except cz.CodecError as exc:
             self._fail(off, f"packet body cannot be decompressed: {exc}")
         return np.frombuffer(raw, np.uint8)
@@ -436,13 +438,24 @@ class Recording(BaseRecording):
         if s is None:
             return None, np.zeros(0, np.int64)
         idx = self._index
-        sel = idx.stream == s.id
-        if idx.from_table:
-            if t_start_us is not None:
-                sel &= idx.t1 >= int(t_start_us)
-            if t_end_us is not None:
-                sel &= idx.t0 < int(t_end_us)
-        return s, np.flatnonzero(sel)
+        rows = np.flatnonzero(idx.stream == s.id)
+        if idx.from_table and (t_start_us is not None or t_end_us is not None):
+            span = window_blocks(idx.t0[rows], idx.t1[rows], t_start_us, t_end_us,
+                                 lambda k: self._packet_span(s, rows[k]))
+            if span is None:
+                self._warn_once("the data table's packet times disagree with the packets or are out of order; "
+                                "windows read every packet", s.name)
+            else:
+                rows = rows[span[0]:span[1]]
+        return s, rows
+
+    def _packet_span(self, s, row):
+        """(first, last) time stamp of packet ``row``, or None when it is empty or unreadable."""
+        if s.type == "TRIG":
+            t = self._decode_triggers(s, [row]).t
+        else:
+            t = next(self._event_packets(s, [row]), Events.empty(s.sensor_size)).t
+        return (int(t[0]), int(t[-1])) if len(t) else None
 
     # -- events -------------------------------------------------------------------
     def events(self, t_start_us=None, t_end_us=None, stream=None) -> Events:
@@ -637,7 +650,7 @@ class Recording(BaseRecording):
                 b = self._body(i)
             except _Stop:
                 break
-            n = _fb.vector_length(b, ident)
+            n = _fb.vector_length(b, ident, _fb.EVENT_STRUCT)
             if n < 0:
                 try:
                     self._fail(int(self._index.offset[i]), f"event packet: {_status(n)}")
@@ -662,6 +675,12 @@ class Recording(BaseRecording):
         s, rows = self._select("TRIG", stream, t_start_us, t_end_us)
         if s is None:
             return Triggers()
+        trig = self._decode_triggers(s, rows)
+        if t_start_us is not None or t_end_us is not None:
+            trig = trig.between(t_start_us, t_end_us)
+        return trig
+
+    def _decode_triggers(self, s, rows) -> Triggers:
         parts = []
         ident = _IDENT["TRIG"]
         for i in rows:
@@ -684,10 +703,7 @@ class Recording(BaseRecording):
                 except _Stop:
                     break
             parts.append(Triggers(t, k))
-        trig = Triggers.concatenate(parts)
-        if t_start_us is not None or t_end_us is not None:
-            trig = trig.between(t_start_us, t_end_us)
-        return trig
+        return Triggers.concatenate(parts)
 
     @property
     def header(self) -> dict:

@@ -22,8 +22,8 @@ from ..events import Events, Triggers
 from . import _parquet_footer as _footer
 from ._atomic import AtomicFile
 from ._overlay import SplicedFile, close_at_exit
-from ._checks import scan_events
-from .base import BaseRecording, Damage, StreamInfo, time_chunks
+from ._checks import require_readable, scan_events, sorted_for_writing
+from .base import BaseRecording, Damage, StreamInfo, window_blocks, time_chunks
 
 __all__ = ["to_arrow", "from_arrow", "ParquetRecording", "write_parquet", "COMPRESSIONS"]
 
@@ -353,15 +353,27 @@ class ParquetRecording(BaseRecording):
         return str(md.row_group(0).column(self._t_col).compression).lower()
 
     def _rows(self, t_start_us, t_end_us):
-        keep = []
-        for g, (_, lo, hi) in enumerate(self._groups):
-            if lo is not None:
-                if t_start_us is not None and hi < t_start_us:
-                    continue
-                if t_end_us is not None and lo >= t_end_us:
-                    continue
-            keep.append(g)
-        return keep
+        """The row groups a window needs: by their ``t`` statistics, checked at the edges against the stamps
+        (:func:`~evtk.io.base.window_blocks`); every row group when the statistics are missing or lie."""
+        every = list(range(len(self._groups)))
+        if t_start_us is None and t_end_us is None:
+            return every
+        span = window_blocks([lo for _, lo, _ in self._groups], [hi for _, _, hi in self._groups],
+                             t_start_us, t_end_us, self._group_span)
+        if span is None:
+            if any(lo is not None for _, lo, _ in self._groups):
+                self._warn_once("the row groups' t statistics disagree with their time stamps or are out of order; "
+                                "windows read every row group", "statistics")
+            return every
+        return every[span[0]:span[1]]
+
+    def _group_span(self, g):
+        """(first, last) time stamp of row group ``g``, or None when it is empty or unreadable."""
+        try:
+            t = self._pf.read_row_group(g, columns=["t"]).column(0).to_numpy()
+        except Exception:  # noqa: BLE001 - pyarrow's errors on a damaged group; the full read reports it
+            return None
+        return (int(t[0]), int(t[-1])) if len(t) else None
 
     def _read_group(self, g, t_before):
         try:
@@ -457,6 +469,7 @@ class ParquetWriter:
         self._atomic = AtomicFile(path, keep_open=False)
         self.path = self._atomic.path
         self._rows = 0
+        self._last_t = None
         try:
             # dictionary pages (pyarrow's default, made explicit) start every column chunk: salvage finds
             # the chunks of a file whose footer was never written by them
@@ -471,6 +484,9 @@ class ParquetWriter:
             raise EvtkError(f"{self.path}: writer is closed")
         if tuple(events.sensor_size) != self.sensor_size:
             raise EvtkError(f"events are for a {events.sensor_size} sensor, the file for {self.sensor_size}")
+        require_readable(events, self.sensor_size, self._last_t, self._rows, "Parquet")
+        if len(events):
+            self._last_t = int(events.t[-1])
         pa = _pa()
         table = pa.Table.from_arrays(
             [pa.array(events.t), pa.array(events.x), pa.array(events.y), pa.array(events.p)], schema=self._schema
@@ -512,7 +528,9 @@ class ParquetWriter:
 
 
 def write_parquet(path, events: Events, triggers: Triggers | None = None, compression="lz4", metadata=None,
-                  row_group_events=ROW_GROUP_EVENTS, row_group_us=ROW_GROUP_US):
-    """Write events as Parquet (atomically), one row group per time slice."""
+                  row_group_events=ROW_GROUP_EVENTS, row_group_us=ROW_GROUP_US, sort=False):
+    """Write events as Parquet (atomically), one row group per time slice; events out of time order are an
+    error unless ``sort`` (the reader requires them in order)."""
+    events = sorted_for_writing(events, sort, "Parquet")
     with ParquetWriter(path, events.sensor_size, compression, metadata, triggers, row_group_events, row_group_us) as w:
         w.write_events(events)

@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
 
-__all__ = ["BaseRecording", "StreamInfo", "Damage", "time_chunks"]
+__all__ = ["BaseRecording", "StreamInfo", "Damage", "time_chunks", "window_blocks"]
 
 
 @dataclass
@@ -223,3 +223,44 @@ def time_chunks(t: np.ndarray, max_events: int, max_us: int | None, is_sorted: b
         i = min(max(j, i + 1), i + max_events)
         cuts.append(i)
     return np.asarray(cuts, np.int64)
+
+
+def window_blocks(t_lo, t_hi, t_start_us, t_end_us, actual) -> tuple[int, int] | None:
+    """The blocks (packets, row groups) a time window needs, by a file's index, checked against the data.
+
+    ``t_lo[k]``/``t_hi[k]`` are the first and last time an index gives block ``k`` (None when it gives
+    none); ``actual(k)`` reads block ``k`` and returns its ``(first, last)`` time stamp, or None when it is
+    empty or cannot be read. Returns ``(a, b)``: blocks ``a..b-1`` hold every event of the window, checked
+    by reading the nearest non-empty block on each side of the range (exact for time-ordered data, which
+    the readers verify as they read). Returns None when the index cannot be used: some block without
+    times, times out of order, or an edge block whose stamps contradict it (an index that lies); the caller
+    then reads every block.
+    """
+    n = len(t_lo)
+    if any(v is None for v in t_lo) or any(v is None for v in t_hi):
+        return None
+    lo = np.asarray(t_lo, np.int64)
+    hi = np.asarray(t_hi, np.int64)
+    if n and (np.any(lo > hi) or np.any(np.diff(lo) < 0) or np.any(np.diff(hi) < 0)):
+        return None
+    a = 0 if t_start_us is None else int(np.searchsorted(hi, int(t_start_us), side="left"))
+    b = n if t_end_us is None else max(a, int(np.searchsorted(lo, int(t_end_us), side="left")))
+    if t_start_us is not None:
+        k = a - 1
+        while k >= 0:  # the last events before the range must come before the window
+            got = actual(k)
+            if got is not None:
+                if got[1] >= int(t_start_us) or got[0] != lo[k] or got[1] != hi[k]:
+                    return None
+                break
+            k -= 1
+    if t_end_us is not None:
+        k = b
+        while k < n:  # ... and the first events after it at or after its end
+            got = actual(k)
+            if got is not None:
+                if got[0] < int(t_end_us) or got[0] != lo[k] or got[1] != hi[k]:
+                    return None
+                break
+            k += 1
+    return a, b

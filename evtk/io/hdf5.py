@@ -19,7 +19,7 @@ from ..errors import EvtkError, FormatError, one_line
 from ..events import Events, Triggers
 from ._atomic import AtomicFile
 from ._overlay import SplicedFile, close_at_exit
-from ._checks import scan_events
+from ._checks import require_readable, scan_events, sorted_for_writing
 from .base import BaseRecording, Damage, StreamInfo
 
 __all__ = ["Hdf5Recording", "Hdf5Writer", "write_hdf5", "COMPRESSIONS", "EVTK_FORMAT"]
@@ -32,6 +32,8 @@ INTERRUPTED = "evtk_writing"  # root attribute present while a writer has the fi
 _FILL = {"t": np.iinfo(np.int64).min, "x": 65535, "y": 65535, "p": 255}
 DEFAULT_CHUNK = 65536
 PROPHESEE_ECF_FILTER = 36559
+_ECF_MISSING = ("is compressed with Prophesee's ECF codec (HDF5 filter 36559), which is not installed; install the "
+                "ECF HDF5 plugin from Prophesee's OpenEB and point HDF5_PLUGIN_PATH at it")
 
 
 def _h5():
@@ -214,10 +216,11 @@ class _Blosc1Checked:
 
     def __init__(self, ds, position):
         self._ds = ds
-        self._position = position  # the filter's place in the pipeline: a chunk may skip it
-        self._last = position == ds.id.get_create_plist().get_nfilters() - 1
-        self._len = ds.chunks[0]
-        self._nbytes = int(np.prod(ds.chunks)) * ds.dtype.itemsize
+        self._position = position  # the filter's place in the pipeline: a chunk may skip it (None: no Blosc)
+        self._last = position is not None and position == ds.id.get_create_plist().get_nfilters() - 1
+        self.written = None  # salvage: elements before the first unwritten chunk, when some are
+        self._len = ds.chunks[0] if ds.chunks else 1
+        self._nbytes = int(np.prod(ds.chunks or (1,))) * ds.dtype.itemsize
         self._ndim = ds.ndim
         self._n = ds.shape[0] if ds.ndim else 0
         self._ok = set()
@@ -289,10 +292,131 @@ class _CheckedFields:
         return self._checked._ds.fields(self._names)[key]
 
 
-def _checked(node):
+class _Policy:
+    """What a reader allows a file to do: follow links out of it, and how much data its datasets may claim."""
+
+    def __init__(self, path, trust_external=False, salvage=False, file_bytes=None):
+        self.path = path
+        self.trust_external = bool(trust_external)
+        self.salvage = bool(salvage)
+        self.file_bytes = file_bytes
+
+
+#: Largest uncompressed HDF5 chunk evtk decodes: every read of one element decodes its whole chunk.
+MAX_CHUNK_BYTES = 64 << 20
+#: What a dataset may claim beyond a fixed budget, as a multiple of the whole file's size (event columns
+#: compress 2-6x): a dataset claiming more is a decompression bomb or a lie, not a recording.
+DATA_BUDGET_BYTES = 256 << 20
+DATA_RATIO = 64
+_TRUST_HINT = "evtk does not read outside a file unless told to trust it (trust_external=True, --trust-external)"
+
+
+def _source_path(policy, name):
+    """Where HDF5 looks for a file another one names (its directory first, then the working directory)."""
+    if name in (".", ""):
+        return policy.path
+    if os.path.isabs(name):
+        return name
+    beside = os.path.join(os.path.dirname(os.path.abspath(policy.path)), name)
+    return beside if os.path.exists(beside) else name
+
+
+def _check_links(group, name, policy, depth=0):
+    """Refuse an external link anywhere along ``name`` (soft links are followed, within the file)."""
+    h5py = _h5()
+    if depth > 16:
+        raise FormatError(policy.path, None, f"soft links around {name} loop")
+    g = group.file if name.startswith("/") else group
+    parts = [p for p in name.split("/") if p and p != "."]
+    for k, part in enumerate(parts):
+        link = g.get(part, getlink=True)
+        where = (g.name.rstrip("/") + "/" + part) if g.name else part
+        if link is None:
+            return
+        if isinstance(link, h5py.ExternalLink):
+            target = f"{link.filename}:{link.path}"
+            if not policy.trust_external:
+                raise FormatError(policy.path, None, f"{where} is an external link to {target}; {_TRUST_HINT}")
+            if not os.path.exists(_source_path(policy, link.filename)):
+                raise FormatError(policy.path, None, f"{where} is an external link to {target}, which does not exist")
+        elif isinstance(link, h5py.SoftLink):
+            _check_links(g.file, link.path, policy, depth + 1)
+        if k < len(parts) - 1:
+            g = g[part]
+
+
+def _storage_problem(ds, policy) -> tuple[str | None, int | None]:
+    """``(why the dataset cannot be trusted, elements written along axis 0 when some chunks are not)``.
+
+    Refused: storage in other files and virtual datasets (unless trusted; a missing source always), chunks
+    larger than :data:`MAX_CHUNK_BYTES`, more data than :data:`DATA_BUDGET_BYTES` plus :data:`DATA_RATIO`
+    times the file, and elements never written (HDF5 would return fill values for them).
+    """
+    h5d = _h5().h5d
+    name = ds.name
+    plist = ds.id.get_create_plist()
+    if ds.is_virtual:
+        sources = [(v.file_name, v.dset_name) for v in ds.virtual_sources()]
+        listed = ", ".join(f"{f}:{d}" for f, d in sources[:4]) + (" ..." if len(sources) > 4 else "")
+        if not policy.trust_external:
+            return f"{name} is a virtual dataset reading {listed}; {_TRUST_HINT}", None
+        missing = [f for f, _ in sources if not os.path.exists(_source_path(policy, f))]
+        if missing:
+            return f"{name} is a virtual dataset whose source file {missing[0]} does not exist", None
+        return None, None
+    externals = plist.get_external_count()
+    if externals:
+        files = [plist.get_external(i)[0].decode("utf-8", "replace") for i in range(externals)]
+        if not policy.trust_external:
+            return f"{name} keeps its data in external file(s) {', '.join(files[:4])}; {_TRUST_HINT}", None
+        missing = [f for f in files if not os.path.exists(_source_path(policy, f))]
+        if missing:
+            return f"{name} keeps its data in external file {missing[0]}, which does not exist", None
+        return None, None
+    n = int(ds.size)
+    item = int(ds.dtype.itemsize)
+    if n == 0:
+        return None, None
+    claimed = n * item
+    if policy.file_bytes is not None and claimed > DATA_BUDGET_BYTES + DATA_RATIO * policy.file_bytes:
+        return (f"{name} claims {n} elements ({claimed} bytes), far more than a file of {policy.file_bytes} "
+                "bytes can hold"), None
+    layout = plist.get_layout()
+    if layout == h5d.CHUNKED:
+        chunks = ds.chunks
+        chunk_bytes = int(np.prod(chunks, dtype=np.int64)) * item
+        if chunk_bytes > MAX_CHUNK_BYTES:
+            return f"{name} has chunks of {chunk_bytes} bytes, more than the {MAX_CHUNK_BYTES} evtk decodes", None
+        needed = 1
+        for size, c in zip(ds.shape, chunks):
+            needed *= -(-size // c)
+        written = ds.id.get_num_chunks()
+        if written < needed:
+            return (f"{name} has {written} of its {needed} chunks written (the rest would read as fill values)",
+                    _written_prefix(ds) if ds.ndim == 1 else 0)
+    elif layout == h5d.CONTIGUOUS:
+        if ds.id.get_offset() is None or ds.id.get_storage_size() < claimed:
+            return f"{name} was never written (no storage for its {n} elements)", 0
+    return None, None
+
+
+def _written_prefix(ds) -> int:
+    """Elements of a 1-D chunked dataset before its first chunk that was never written."""
+    c = ds.chunks[0]
+    have = set()
+    for i in range(ds.id.get_num_chunks()):
+        have.add(ds.id.get_chunk_info(i).chunk_offset[0] // c)
+    k = 0
+    while k in have:
+        k += 1
+    return min(int(ds.shape[0]), k * c)
+
+
+def _checked(node, policy):
     """``node`` itself, or for a Blosc (v1) dataset a :class:`_Blosc1Checked` view; groups stay groups
-    whose members are checked the same way. A Blosc or Blosc2 pipeline with too few parameters raises
-    OSError before any read."""
+    whose members are checked the same way. A dataset the policy refuses (:func:`_storage_problem`) or a
+    Blosc or Blosc2 pipeline with too few parameters raises before any read. In salvage mode a dataset with
+    unwritten chunks comes back with ``written``: how many of its elements can be read."""
     h5py = _h5()
     if isinstance(node, h5py.Dataset):
         try:
@@ -307,19 +431,34 @@ def _checked(node):
             if fid in _BLOSC_FILTERS and len(values) < 4:
                 raise OSError(f"{node.name}: the filter pipeline is damaged ({_BLOSC_FILTERS[fid]} with "
                               f"{len(values)} parameters, at least 4 expected)")
-        if BLOSC1_FILTER in ids and node.chunks:
-            return _Blosc1Checked(node, ids.index(BLOSC1_FILTER))
+            if fid == PROPHESEE_ECF_FILTER and not h5py.h5z.filter_avail(fid):
+                raise FormatError(policy.path, None, f"{node.name} {_ECF_MISSING}")
+        try:
+            why, written = _storage_problem(node, policy)
+        except _H5_ERRORS:
+            if not policy.salvage:
+                raise
+            why = written = None  # a damaged chunk index: salvage reads what it can reach
+        if why is not None and not (policy.salvage and written is not None):
+            raise FormatError(policy.path, None, why)
+        if BLOSC1_FILTER in ids and node.chunks or why is not None:
+            view = _Blosc1Checked(node, ids.index(BLOSC1_FILTER) if BLOSC1_FILTER in ids else None)
+            if why is not None:
+                view.written, view.unwritten = written, why
+            return view
         return node
     if isinstance(node, h5py.Group):
-        return _CheckedGroup(node)
+        return _CheckedGroup(node, policy)
     return node
 
 
 class _CheckedGroup:
-    """An HDF5 group (or file) whose datasets come back checked (:func:`_checked`)."""
+    """An HDF5 group (or file) whose members come back checked (:func:`_checked`), reached only through
+    links that stay inside the file unless the policy trusts it (:func:`_check_links`)."""
 
-    def __init__(self, group):
+    def __init__(self, group, policy):
         self._g = group
+        self._policy = policy
 
     def __getattr__(self, name):
         return getattr(self._g, name)
@@ -334,7 +473,39 @@ class _CheckedGroup:
         return len(self._g)
 
     def __getitem__(self, name):
-        return _checked(self._g[name])
+        _check_links(self._g, name, self._policy)
+        return _checked(self._g[name], self._policy)
+
+
+_T_MAX = np.iinfo(np.int64).max
+
+
+def _as_us(raw, path, name, offset=0) -> np.ndarray:
+    """Time stamps as int64 microseconds (``raw`` plus ``offset``), or a FormatError naming the dataset when
+    one does not fit: uint64 stamps at or above 2**63 would wrap negative, an offset could overflow."""
+    if not len(raw):
+        return np.zeros(0, np.int64)
+    if raw.dtype.kind == "u" and raw.dtype.itemsize == 8 and int(raw.max()) > _T_MAX:
+        raise FormatError(path, None, f"{name} holds time stamp {int(raw.max())}, beyond int64 microseconds")
+    if offset:
+        lo, hi = int(raw.min()) + offset, int(raw.max()) + offset
+        if not -_T_MAX <= lo <= hi <= _T_MAX:
+            raise FormatError(path, None, f"{name} plus the time offset {offset} leaves int64 microseconds")
+        return raw.astype(np.int64) + np.int64(offset)
+    return raw.astype(np.int64, copy=False)
+
+
+def _seconds_as_us(raw, path, name) -> np.ndarray:
+    """event_utils time stamps (float seconds) as int64 microseconds; NaN, infinities and values beyond
+    int64 microseconds are a FormatError naming the dataset."""
+    if raw.dtype.kind != "f":
+        return _as_us(raw, path, name)
+    us = np.round(raw.astype(np.float64) * 1e6)
+    bad = ~(np.abs(us) < 2.0**63)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise FormatError(path, None, f"{name}[{i}] = {raw[i]!r} seconds is not a time evtk can hold")
+    return us.astype(np.int64)
 
 
 class _EvtkLayout(_Layout):
@@ -381,10 +552,10 @@ class _EvtkLayout(_Layout):
             self.index_problem = f"the block index /events/index_t_us cannot be read ({one_line(exc)})"
 
     def read(self, i0, i1):
-        return self.t[i0:i1], self.x[i0:i1], self.y[i0:i1], self.p[i0:i1]
+        return _as_us(self.t[i0:i1], self.path, self.t.name), self.x[i0:i1], self.y[i0:i1], self.p[i0:i1]
 
     def read_t(self, i0, i1):
-        return self.t[i0:i1].astype(np.int64, copy=False)
+        return _as_us(self.t[i0:i1], self.path, self.t.name)
 
     def triggers(self):
         if "triggers" not in self.f:
@@ -413,8 +584,19 @@ class _DsecLayout(_Layout):
         for ds in (self.t, self.x, self.y, self.p):
             _check_int(ds, path, ds.name.rsplit("/", 1)[-1], "iub")
         self.n = _check_lengths(path, [self.t, self.x, self.y, self.p])
-        self.offset = int(f["t_offset"][()]) if "t_offset" in f else 0
-        ms = f["ms_to_idx"][...].astype(np.int64)
+        self.offset = 0
+        if "t_offset" in f:
+            off = f["t_offset"][()]
+            if np.ndim(off) != 0 or np.asarray(off).dtype.kind not in "iu":
+                raise FormatError(path, None, "/t_offset must be one integer (microseconds)")
+            self.offset = int(off)
+            if not -_T_MAX <= self.offset <= _T_MAX:
+                raise FormatError(path, None, f"/t_offset {self.offset} is beyond int64 microseconds")
+        ms_ds = f["ms_to_idx"]
+        _check_int(ms_ds, path, "index", "iu")
+        ms = _as_us(ms_ds[...].reshape(-1), path, ms_ds.name)
+        if len(ms) and 1000 * (len(ms) - 1) > _T_MAX - max(self.offset, 0):
+            raise FormatError(path, None, "/ms_to_idx spans more milliseconds than int64 microseconds hold")
         self.index_t = self.offset + 1000 * np.arange(len(ms), dtype=np.int64)
         self.index_id = np.clip(ms, 0, self.n)
 
@@ -422,7 +604,7 @@ class _DsecLayout(_Layout):
         return self.read_t(i0, i1), self.x[i0:i1], self.y[i0:i1], self.p[i0:i1]
 
     def read_t(self, i0, i1):
-        return self.t[i0:i1].astype(np.int64) + self.offset
+        return _as_us(self.t[i0:i1], self.path, self.t.name, self.offset)
 
 
 class _PropheseeLayout(_Layout):
@@ -432,15 +614,7 @@ class _PropheseeLayout(_Layout):
 
     def __init__(self, f, path):
         super().__init__(f, path)
-        ds = f["CD/events"]
-        ids = _describe_filters(ds)
-        h5py = _h5()
-        if PROPHESEE_ECF_FILTER in ids and not h5py.h5z.filter_avail(PROPHESEE_ECF_FILTER):
-            raise FormatError(
-                path, None,
-                "/CD/events is compressed with Prophesee's ECF codec (HDF5 filter 36559), which is not installed; "
-                "install the ECF HDF5 plugin from Prophesee's OpenEB and point HDF5_PLUGIN_PATH at it",
-            )
+        ds = f["CD/events"]  # (refused when compressed with a filter that is not installed)
         names = ds.dtype.names or ()
         missing = [c for c in ("x", "y", "p", "t") if c not in names]
         if missing:
@@ -464,14 +638,14 @@ class _PropheseeLayout(_Layout):
         if "CD/indexes" in f:
             idx = f["CD/indexes"][...]
             if idx.dtype.names and {"id", "ts"} <= set(idx.dtype.names):
-                ts = idx["ts"].astype(np.int64)
+                ts = _as_us(idx["ts"], path, "/CD/indexes/ts")
                 ok = idx["id"] >= 0  # Prophesee marks empty leading slots with -1
                 self.index_t = ts[ok]
                 self.index_id = np.clip(idx["id"][ok].astype(np.int64), 0, self.n)
 
     def read(self, i0, i1):
         a = self.ds[i0:i1]
-        return a["t"].astype(np.int64), a["x"], a["y"], a["p"]
+        return _as_us(a["t"], self.path, self.ds.name + "/t"), a["x"], a["y"], a["p"]
 
     def triggers(self):
         """EXT_TRIGGER events: polarity 1 is a rising edge, 0 a falling one."""
@@ -481,10 +655,10 @@ class _PropheseeLayout(_Layout):
         if not a.dtype.names or not {"p", "t"} <= set(a.dtype.names):
             raise FormatError(self.path, None, "/EXT_TRIGGER/events lacks fields p and t")
         kind = np.where(a["p"] > 0, 1, 2).astype(np.uint8)
-        return Triggers(a["t"].astype(np.int64), kind)
+        return Triggers(_as_us(a["t"], self.path, "/EXT_TRIGGER/events/t"), kind)
 
     def read_t(self, i0, i1):
-        return self.ds.fields("t")[i0:i1].astype(np.int64)
+        return _as_us(self.ds.fields("t")[i0:i1], self.path, self.ds.name + "/t")
 
 
 class _EventUtilsLayout(_Layout):
@@ -506,9 +680,7 @@ class _EventUtilsLayout(_Layout):
             self.sensor_size = (int(res[1]), int(res[0]))  # stored as (height, width)
 
     def _t(self, raw):
-        if raw.dtype.kind == "f":
-            return np.round(raw.astype(np.float64) * 1e6).astype(np.int64)
-        return raw.astype(np.int64)
+        return _seconds_as_us(raw, self.path, self.ts.name)
 
     def read(self, i0, i1):
         p = self.ps[i0:i1]
@@ -592,11 +764,15 @@ class Hdf5Recording(BaseRecording):
     sort : bool
         Sort events by time on reading instead of refusing a file whose
         time stamps go backwards.
+    trust_external : bool
+        Follow external links, external storage and virtual datasets into
+        other files. Off by default: a file could otherwise make evtk read
+        (and ``convert`` copy) any file this process can read.
     """
 
     format = "hdf5"
 
-    def __init__(self, path, salvage=False, sensor_size=None, sort=False):
+    def __init__(self, path, salvage=False, sensor_size=None, sort=False, trust_external=False):
         super().__init__(path, salvage)
         h5py = _h5()
         self._spliced = None
@@ -605,7 +781,10 @@ class Hdf5Recording(BaseRecording):
         except OSError as exc:
             self._f = self._open_truncated(h5py, exc)
         try:
+            self._policy = _Policy(self.path, trust_external, self.salvage, os.path.getsize(self.path))
+            self._root = _CheckedGroup(self._f, self._policy)
             self._layout = _guard(Hdf5Recording._detect)(self)
+            self._clip_unwritten()
             if getattr(self._layout, "interrupted", False):
                 self._interrupted()
             if getattr(self._layout, "index_problem", None):
@@ -674,12 +853,24 @@ class Hdf5Recording(BaseRecording):
             except Exception:
                 hit = False
             if hit:
-                return cls(_CheckedGroup(self._f), self.path)
+                return cls(self._root, self.path)
         found = _inventory(self._f)
         raise FormatError(
             self.path, None,
             f"unrecognised HDF5 layout: found {found or 'no datasets'}; expected {_EXPECTED}",
         )
+
+    def _clip_unwritten(self):
+        """Salvage of a file with chunks never written: the events before the first one (strict reads refused
+        the file when its datasets were checked)."""
+        lay = self._layout
+        short = [c for c in vars(lay).values() if getattr(c, "written", None) is not None]
+        if short:
+            first = min(short, key=lambda c: c.written)
+            if first.written < lay.n:
+                lay.n = int(first.written)
+                self.damage = Damage(None, f"{first.unwritten}: the {lay.n} events before its first unwritten "
+                                           "chunk are read")
 
     @property
     def layout(self) -> str:
@@ -742,8 +933,9 @@ class Hdf5Recording(BaseRecording):
                     hi = mid
         t = lay.read_t(lo, hi)
         i = lo + int(np.searchsorted(t, t_us, side="left"))
-        if lay.index_t is not None and lay.name != "evtk" and not self._position_ok(i, t_us):
-            # a foreign index that does not mean what we assume: do without it
+        if lay.index_t is not None and not self._position_ok(i, t_us):
+            # an index that lies, or a foreign one that does not mean what we assume: do without it (the check
+            # is exact for time-ordered stamps, which every read verifies)
             self.warnings.append("the file's time index disagrees with its time stamps; it is ignored")
             lay.index_t = lay.index_id = None
             return self._find(t_us)
@@ -946,7 +1138,7 @@ class Hdf5Recording(BaseRecording):
         self._check_open()
         if name not in self._f:
             raise EvtkError(f"{self.path}: no dataset {name!r}")
-        return self._f[name][...]
+        return self._root[name][...]
 
 
 # =============================================================================
@@ -1057,11 +1249,7 @@ class Hdf5Writer:
         n = len(events)
         if n == 0:
             return
-        back, outside = scan_events(events.t, events.x, events.y, self.sensor_size, self._last_t)
-        if back >= 0:
-            raise EvtkError(f"events must be in time order: time goes backwards at event {self._n + back} (sort them first)")
-        if outside >= 0:
-            raise EvtkError(f"event {self._n + outside} lies outside the {self.sensor_size} sensor")
+        require_readable(events, self.sensor_size, self._last_t, self._n, "HDF5")
         a, b = self._n, self._n + n
         first_block = -(-a // self.chunk)
         starts = np.arange(first_block * self.chunk, b, self.chunk)
@@ -1155,12 +1343,7 @@ class Hdf5Writer:
 
 def write_hdf5(path, events: Events, triggers: Triggers | None = None, compression="lz4", metadata=None, sort=False, **kwargs):
     """Write a whole recording in evtk's HDF5 layout (atomically)."""
-    if not events.is_sorted:
-        if not sort:
-            back, _ = scan_events(events.t, events.x, events.y, (65536, 65536))
-            raise EvtkError(f"events must be in time order for HDF5: time goes backwards at event {back} (pass sort=True)")
-        order = np.argsort(events.t, kind="stable")
-        events = Events._trusted(events.t[order], events.x[order], events.y[order], events.p[order], events.sensor_size, True)
+    events = sorted_for_writing(events, sort, "HDF5")
     with Hdf5Writer(path, events.sensor_size, compression, metadata, **kwargs) as w:
         for a in range(0, len(events), 1 << 22):
             w.write_events(events[a : a + (1 << 22)])
