@@ -42,7 +42,8 @@ def find_recordings(inputs) -> list:
             found += [os.path.join(item, f) for f in sorted(os.listdir(item))
                       if f.lower().endswith(RECORDING_EXTENSIONS) and os.path.isfile(os.path.join(item, f))]
         elif any(c in item for c in "*?["):
-            found += sorted(glob.glob(item))
+            # a pattern that matches nothing stays, to be reported as such
+            found += sorted(glob.glob(item)) or [item]
         else:
             found.append(item)  # a missing file becomes an "error" entry, not a crash
     seen, out = set(), []
@@ -72,6 +73,25 @@ def _output_names(inputs, out_dir, ext):
     return out
 
 
+def _refuse_outputs_that_are_inputs(outputs):
+    """An output that is one of the inputs (the same file by any name) would replace it: an error."""
+    inputs = {}
+    for f in outputs:
+        try:
+            st = os.stat(f)
+            inputs[(st.st_dev, st.st_ino)] = f
+        except OSError:
+            pass
+    for f, out in outputs.items():
+        try:
+            st = os.stat(out)
+        except OSError:
+            continue
+        if (st.st_dev, st.st_ino) in inputs:
+            raise EvtkError(f"the output for {f} would be {out}, which is the input "
+                            f"{inputs[(st.st_dev, st.st_ino)]}; choose another --out folder")
+
+
 def _reconstruct_one(args):
     """A batch task: reconstruct one recording into its output; never raises for a bad input."""
     from .io import open as open_recording
@@ -82,16 +102,26 @@ def _reconstruct_one(args):
     entry = {"input": path, "output": out, "status": "error", "events": None, "windows": None, "seconds": None,
              "error": None}
     try:
+        if not os.path.exists(path) and any(c in path for c in "*?["):
+            raise EvtkError(f"the pattern {path!r} matches no file")
         with open_recording(path) as rec:
             result = reconstruct(rec, **options)
             events = rec.info()["events"]
             sensor = rec.sensor_size
         save_reconstruction(out, result, sensor, {"source": path})
         entry.update(status="ok", events=int(events), windows=int(result.summary["windows"]))
-    except (EvtkError, OSError, MemoryError, ValueError) as exc:
-        entry["error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    except Exception as exc:  # noqa: BLE001 - one bad input is recorded; the batch goes on
+        entry["error"] = _error_text(exc)
     entry["seconds"] = time.perf_counter() - t0
     return entry
+
+
+def _error_text(exc) -> str:
+    """One line for the manifest: evtk's own message, or the exception's type and message."""
+    text = " ".join(str(exc).split())
+    if isinstance(exc, EvtkError):
+        return text or type(exc).__name__
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 def _accumulate_part(args):
@@ -150,8 +180,8 @@ def _split_large(todo, split_events, client, entries):
         try:
             with open_recording(path) as rec:
                 n, sensor = rec.info()["events"], rec.sensor_size
-        except (EvtkError, OSError):
-            rest.append((path, out, options))  # its own task reports the error
+        except Exception:  # noqa: BLE001 - its own task reports the error
+            rest.append((path, out, options))
             continue
         if n <= split_events:
             rest.append((path, out, options))
@@ -164,8 +194,8 @@ def _split_large(todo, split_events, client, entries):
             result = reconstruct_split(path, parts, client, **options)
             save_reconstruction(out, result, sensor, {"source": path})
             entry.update(status="ok", windows=int(result.summary["windows"]))
-        except (EvtkError, OSError, MemoryError, ValueError) as exc:
-            entry["error"] = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        except Exception as exc:  # noqa: BLE001 - recorded; the batch goes on
+            entry["error"] = _error_text(exc)
         entry["seconds"] = time.perf_counter() - t0
         entries[path] = entry
     return rest
@@ -185,7 +215,6 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
     about ``events / split_events`` tasks (:func:`reconstruct_split`).
     """
     from .cluster import run_tasks
-    from .io._atomic import AtomicFile
 
     if fmt not in ("h5", "npz"):
         raise EvtkError(f"batch output format must be h5 or npz, not {fmt!r}")
@@ -194,20 +223,22 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
         raise EvtkError("no recordings to reconstruct (give files, folders or glob patterns)")
     os.makedirs(out_dir, exist_ok=True)
     outputs = _output_names(files, out_dir, "." + fmt)
+    _refuse_outputs_that_are_inputs(outputs)
     options = dict(options or {})
-    old = {}
     manifest_path = os.path.join(out_dir, MANIFEST)
-    if os.path.exists(manifest_path):
-        try:
-            with open(manifest_path) as fh:
-                old = {e["input"]: e for e in json.load(fh).get("inputs", [])}
-        except (OSError, ValueError, KeyError, TypeError):
-            old = {}  # an unreadable manifest is rebuilt
+    old = _read_manifest(manifest_path)
     todo, entries = [], {}
     for f in files:
         out = outputs[f]
+        prev = old.get(os.path.abspath(f))
         if not force and os.path.exists(out):
-            prev = old.get(f, {})
+            owner = _owner(old, out)
+            if owner is not None and owner != os.path.abspath(f):
+                entries[f] = {"input": f, "output": out, "status": "error", "events": None, "windows": None,
+                              "seconds": None, "error": f"{out} holds the reconstruction of another input "
+                                                        f"({owner}); rename this one or pass --force"}
+                continue
+            prev = prev or {}
             entries[f] = {**prev, "input": f, "output": out, "status": "skipped",
                           "error": None, "seconds": prev.get("seconds")}
         else:
@@ -222,17 +253,64 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
         workers = max(1, len(client.scheduler_info().get("workers", {})))
         per_task = max(1, len(todo) // (2 * workers))
     groups = [todo[i:i + per_task] for i in range(0, len(todo), per_task)]
-    for group in run_tasks(_reconstruct_group, groups, client, progress):
-        for entry in group:
-            entries[entry["input"]] = entry
-    manifest = {
-        "evtk_batch": 1,
-        "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in options.items()},
-        "format": fmt,
-        "seconds": time.perf_counter() - t0,
-        "counts": {s: sum(e["status"] == s for e in entries.values()) for s in ("ok", "skipped", "error")},
-        "inputs": [entries[f] for f in files],
-    }
-    with AtomicFile(manifest_path) as fh:
-        fh.write(json.dumps(manifest, indent=1).encode())
+    try:
+        for group in run_tasks(_reconstruct_group, groups, client, progress):
+            for entry in group:
+                entries[entry["input"]] = entry
+    finally:  # interrupted or not, the manifest records what was done
+        for f, out, _ in todo:
+            entries.setdefault(f, {"input": f, "output": out, "status": "error", "events": None, "windows": None,
+                                   "seconds": None, "error": "not done: the batch was interrupted"})
+        manifest = {
+            "evtk_batch": 1,
+            "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in options.items()},
+            "format": fmt,
+            "seconds": time.perf_counter() - t0,
+            "inputs": [entries[f] for f in files],
+        }
+        manifest = _write_manifest(manifest_path, manifest)
     return manifest
+
+
+def _read_manifest(path) -> dict:
+    """The entries of an existing manifest by absolute input path ({} when there is none or it is unreadable)."""
+    try:
+        with open(path) as fh:
+            data = json.load(fh)
+        entries = data.get("inputs", []) if isinstance(data, dict) else []
+        return {os.path.abspath(e["input"]): e for e in entries if isinstance(e, dict) and "input" in e}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}  # an unreadable manifest is rebuilt
+
+
+def _owner(entries, out):
+    """Absolute path of the input whose finished reconstruction ``out`` is, by the manifest, or None."""
+    for key, e in entries.items():
+        if e.get("output") and os.path.abspath(e["output"]) == os.path.abspath(out) and e.get("status") in ("ok", "skipped"):
+            return key
+    return None
+
+
+def _write_manifest(path, manifest) -> dict:
+    """Write ``manifest`` atomically, merged under a lock with the entries another batch run wrote into
+    the same folder meanwhile (theirs kept for inputs this run did not touch). Returns what was written."""
+    import fcntl
+
+    from .io._atomic import AtomicFile
+
+    with open(path + ".lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            mine = {os.path.abspath(e["input"]) for e in manifest["inputs"]}
+            others = [e for k, e in _read_manifest(path).items() if k not in mine]
+            merged = dict(manifest, inputs=others + manifest["inputs"])
+            merged["counts"] = _counts(merged["inputs"])
+            with AtomicFile(path) as fh:
+                fh.write(json.dumps(merged, indent=1).encode())
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+    return dict(manifest, counts=_counts(manifest["inputs"]))
+
+
+def _counts(entries) -> dict:
+    return {s: sum(e.get("status") == s for e in entries) for s in ("ok", "skipped", "error")}

@@ -10,7 +10,8 @@ import numpy as np
 
 from . import io as evio
 from ._version import __version__
-from .errors import EvtkError
+from .errors import EvtkError, one_line
+from .io._atomic import refuse_overwriting_inputs
 
 
 class _Group(click.Group):
@@ -43,17 +44,63 @@ class _Group(click.Group):
             if ctx.meta.get("evtk.debug"):
                 raise
             msg = str(exc) if isinstance(exc, EvtkError) else f"{type(exc).__name__}: {exc}"
-            click.echo(f"evtk: error: {msg}", err=True)
+            click.echo(f"evtk: error: {one_line(msg)}", err=True)
             ctx.exit(1)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="evtk")
 @click.option("--debug", is_flag=True, help="Show the full traceback on errors.")
+@click.option("--trust-external", is_flag=True,
+              help="Let HDF5 files read other files (external links, external storage, virtual datasets).")
+@click.option("--memory-limit-mb", type=click.FloatRange(min=1, max=2**40),
+              help="Largest allocation a command may plan (estimated first; default 8192).")
 @click.pass_context
-def main(ctx, debug):
+def main(ctx, debug, trust_external, memory_limit_mb):
     """evtk: event recordings of the opto-electronic convolution accelerator."""
+    import os
+
+    from .limits import LIMIT_ENV
+
     ctx.meta["evtk.debug"] = debug
+    # through the environment, so that batch workers inherit them; put back when the command ends (it may
+    # run inside another program, a test runner or a notebook)
+    changes = {}
+    if trust_external:
+        changes["EVTK_TRUST_EXTERNAL"] = "1"
+    if memory_limit_mb is not None:
+        changes[LIMIT_ENV] = repr(float(memory_limit_mb))
+    saved = {k: os.environ.get(k) for k in changes}
+    os.environ.update(changes)
+
+    def restore():
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+    ctx.call_on_close(restore)
+
+
+def _finite(obj):
+    """``obj`` with every NaN or infinite float replaced by None (JSON has no such numbers)."""
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, np.floating):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def _dumps(obj) -> str:
+    """What ``--json`` prints: strict JSON (no bare NaN or Infinity; they become null)."""
+    return json.dumps(_finite(obj), allow_nan=False)
 
 
 def _human_info(info: dict) -> str:
@@ -97,7 +144,7 @@ def info(file, as_json, salvage, check):
         if salvage or check:
             summary.update(rec.scan())
     if as_json:
-        click.echo(json.dumps(summary))
+        click.echo(_dumps(summary))
     else:
         click.echo(_human_info(summary))
 
@@ -118,6 +165,7 @@ def info(file, as_json, salvage, check):
               help="Events held in memory at a time while streaming.")
 def convert(source, target, compression, salvage, sort, chunk_events):
     """Convert SOURCE to TARGET (format from TARGET's extension), streaming."""
+    refuse_overwriting_inputs(target, [source])
     with evio.open(source, salvage=salvage) as rec:
         has_triggers = any(s.type == "TRIG" for s in rec.streams)
         triggers = rec.triggers() if has_triggers else None
@@ -205,7 +253,7 @@ def simulate(kernel_path, kernel_bits, features_path, signed, repeat, flat_field
         "response_region": list(sim.region),
     })
     if as_json:
-        click.echo(json.dumps(summary))
+        click.echo(_dumps(summary))
     else:
         span = (summary["t_end_us"] - summary["t_start_us"]) / 1e6
         click.echo(f"wrote {summary['events']:,} events and {summary['triggers']:,} triggers "
@@ -272,6 +320,9 @@ def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, bi
     """Turn a recording into the convolution responses the device computed."""
     from .reconstruct import contact_sheet, save_reconstruction
 
+    refuse_overwriting_inputs(output, [recording])
+    if png_path:
+        refuse_overwriting_inputs(png_path, [recording, output])
     window = _parse_window(window_spec)
     binarize_method = _parse_binarize(binarize_method)
     result, about = _reconstructed(recording, window=window, skip_us=skip_us, length_us=length_us,
@@ -284,7 +335,7 @@ def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, bi
     summary = dict(result.summary, output=str(output), events_in_recording=n_events,
                    events_dropped=n_events - result.summary["events_used"])
     if as_json:
-        click.echo(json.dumps(summary))
+        click.echo(_dumps(summary))
     else:
         err = summary.get("error")
         line = (f"wrote {summary['responses']} responses of {size} from {summary['windows']} windows "
@@ -408,7 +459,7 @@ def enob(recording, window_spec, skip_us, length_us, bootstrap, per_pixel, plot_
         plot_enob(scenes, plot_path)
     rows = _scene_rows(scenes)
     if as_json:
-        click.echo(json.dumps({"file": str(recording), "scenes": rows}))
+        click.echo(_dumps({"file": str(recording), "scenes": rows}))
         return
     ci = lambda r, i: None if r["sinad"] is None or r["sinad"]["ci_enob"] is None else r["sinad"]["ci_enob"][i]  # noqa: E731
     sin = lambda key: lambda r: None if r["sinad"] is None else r["sinad"][key]  # noqa: E731
@@ -486,7 +537,7 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
 
         plot_flips(rows, plot_path, x_key=x_key, x_label="laser power (mW)" if x_key == "power_mw" else "recording")
     if as_json:
-        click.echo(json.dumps({"rows": rows}))
+        click.echo(_dumps({"rows": rows}))
         return
     by_x = {}
     for r in rows:
@@ -541,7 +592,7 @@ def tradeoff(windows, powers, settles, decimations, n_kernels, repeats, seed, fa
 
         plot_tradeoff(rows, plot_path)
     if as_json:
-        click.echo(json.dumps({"rows": rows}))
+        click.echo(_dumps({"rows": rows}))
         return
     click.echo(_table(rows, [
         ("", lambda r: "*" if r["pareto"] else "", "s"), ("power mW", "power_mw", "g"), ("window us", "window_us", "d"),
@@ -603,7 +654,7 @@ def demo(out_dir, repeat, seed, as_json):
         "seconds": time.perf_counter() - t0,
     }
     if as_json:
-        click.echo(json.dumps(summary))
+        click.echo(_dumps(summary))
         return
     if s is None:
         enob_txt = "n/a (no signal)"
@@ -716,7 +767,7 @@ def recover(features_path, target_path, target_kernel_bits, size, method, weight
 
             plot_success(rows, plot_path)
         if as_json:
-            click.echo(json.dumps({"rows": rows}))
+            click.echo(_dumps({"rows": rows}))
             return
         click.echo(_table(rows, [("power mW", "power_mw", "g"), ("trials", "trials", "d"),
                                  ("exact %", "exact_pct", ".1f"), ("shift %", "shift_pct", ".1f"),
@@ -769,7 +820,7 @@ def recover(features_path, target_path, target_kernel_bits, size, method, weight
     if true_kernel is not None:
         out["target_kernel_bits"] = target_kernel_bits
     if as_json:
-        click.echo(json.dumps(out))
+        click.echo(_dumps(out))
         return
     lines = [f"solution kernel {out['kernel_bits']} ({method}, loss {result.loss:.4g}"
              + (", proven optimal" if result.proven else ", best found: node budget ran out") + ")"]
@@ -898,10 +949,10 @@ def classify(task, data_dir, optimizer, steps, temperature, final_temperature, e
     from .io._atomic import AtomicFile
 
     with AtomicFile(os.path.join(out_dir, "runs.json")) as fh:
-        fh.write(json.dumps({"summary": summary, "runs": per_run}).encode())
+        fh.write(_dumps({"summary": summary, "runs": per_run}).encode())
     summary["curves"] = os.path.join(out_dir, "runs.json")
     if as_json:
-        click.echo(json.dumps(summary))
+        click.echo(_dumps(summary))
         return
     note = " (SYNTHETIC glyphs, not EMNIST)" if data.synthetic else ""
     click.echo(f"{task}{note}: {data.summary()['train']} train / {data.summary()['test']} test images; "
@@ -944,7 +995,7 @@ def robustness(task, data_dir, optimizer, steps, temperature, final_temperature,
 
         plot_robustness(res, plot_path)
     if as_json:
-        click.echo(json.dumps(res))
+        click.echo(_dumps(res))
         return
     click.echo(_table(res["rows"], [("noise scale", "scale", "g"), ("test accuracy %", lambda r: 100 * r["accuracy"],
                                                                     ".1f"), ("flipped %", "flip_pct", ".2f")]))
@@ -994,7 +1045,7 @@ def batch_reconstruct_cmd(inputs, out_dir, window_spec, skip_us, length_us, size
         finish()
     c = manifest["counts"]
     if as_json:
-        click.echo(json.dumps(manifest))
+        click.echo(_dumps(manifest))
     else:
         click.echo(f"{c['ok']} reconstructed, {c['skipped']} already done, {c['error']} failed "
                    f"({manifest['seconds']:.1f} s); manifest: {out_dir}/batch.json")

@@ -20,6 +20,7 @@ the task's index, so results equal a serial run's whatever the worker.
 from __future__ import annotations
 
 import contextlib
+import socket
 import os
 
 from .errors import EvtkError
@@ -57,10 +58,16 @@ def scheduler(spec=None):
     from distributed import Client, LocalCluster
 
     if spec.startswith("tcp://"):
+        host, port = _tcp_address(spec)
+        try:  # a refused connection answers at once: say so now, not after the client's full time-out
+            socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S).close()
+        except OSError as exc:
+            raise EvtkError(f"no Dask scheduler at {spec}: {exc.strerror or exc}") from None
         try:
             client = Client(spec, timeout=f"{CONNECT_TIMEOUT_S}s")
-        except (OSError, TimeoutError) as exc:
-            raise EvtkError(f"no Dask scheduler answered at {spec} within {CONNECT_TIMEOUT_S} s ({exc})") from None
+        except Exception as exc:  # noqa: BLE001 - distributed raises OSError, TimeoutError, ValueError, ...
+            raise EvtkError(f"no Dask scheduler answered at {spec} within {CONNECT_TIMEOUT_S} s "
+                            f"({type(exc).__name__}: {exc})") from None
         try:
             yield client
         finally:
@@ -74,6 +81,10 @@ def scheduler(spec=None):
             n = 0
         if n < 1:
             raise EvtkError(f"local:N needs a positive number of workers, not {spec!r}")
+        most = max_local_workers()
+        if n > most:
+            raise EvtkError(f"{spec}: at most {most} local workers on this machine ({os.cpu_count() or 1} cores; "
+                            "each is a process); set EVTK_MAX_LOCAL_WORKERS to allow more")
     import dask
 
     # Dask's nanny applies its pre-spawn environment to this process's os.environ before it starts a
@@ -113,6 +124,29 @@ def scheduler(spec=None):
         client.close()
         cluster.close()
         _restore_environ(saved)
+
+
+def max_local_workers() -> int:
+    """Most workers ``local:N`` starts: ``$EVTK_MAX_LOCAL_WORKERS``, else four per core (at least 8)."""
+    env = os.environ.get("EVTK_MAX_LOCAL_WORKERS", "").strip()
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            raise EvtkError(f"EVTK_MAX_LOCAL_WORKERS must be a whole number, not {env!r}") from None
+    return max(8, 4 * (os.cpu_count() or 1))
+
+
+def _tcp_address(spec):
+    """``(host, port)`` of ``tcp://HOST:PORT``, or an EvtkError saying what is wrong with it."""
+    rest = spec[len("tcp://"):]
+    host, sep, port = rest.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port:
+        raise EvtkError(f"--scheduler {spec!r}: expected tcp://HOST:PORT")
+    if not port.isdigit() or not 0 < int(port) < 65536:
+        raise EvtkError(f"--scheduler {spec!r}: the port must be a number from 1 to 65535, not {port!r}")
+    return host, int(port)
 
 
 def _restore_environ(saved):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["EvtkError", "FormatError"]
+__all__ = ["EvtkError", "FormatError", "check_parameters"]
 
 
 class EvtkError(Exception):
@@ -41,3 +41,32 @@ def one_line(exc) -> str:
     """A library's error message on one line (pyarrow's and libhdf5's span several)."""
     return " ".join(str(exc).split())
 
+
+
+def check_parameters(kind: str, cls, values: dict):
+    """Raise :class:`EvtkError` naming the first of ``values`` that is not a parameter of the dataclass
+    ``cls`` or does not fit its field: a number (finite) where the default is a number, text where it is
+    text, true/false where it is a flag. ``kind`` names the parameters in the message ("bench", "sensor")."""
+    import dataclasses
+    import math
+
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise EvtkError(f"unknown {kind} parameter(s): {', '.join(unknown)}")
+    for name, v in values.items():
+        default = fields[name].default
+        if default is dataclasses.MISSING or default is None:
+            continue
+        if isinstance(default, bool):
+            ok, want = isinstance(v, bool), "true or false"
+        elif isinstance(default, (int, float)):
+            ok, want = isinstance(v, (int, float)) and not isinstance(v, bool), "a number"
+            if ok and isinstance(v, float) and not math.isfinite(v):
+                raise EvtkError(f"{kind} parameter {name} must be a finite number, not {v!r}")
+        elif isinstance(default, str):
+            ok, want = isinstance(v, str), "text"
+        else:
+            ok, want = True, ""
+        if not ok:
+            raise EvtkError(f"{kind} parameter {name} must be {want}, not {v!r}")

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import special
 
-from .errors import EvtkError
+from .errors import EvtkError, check_parameters
 
 __all__ = [
     "Bench",
@@ -387,10 +387,7 @@ class Bench:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Bench":
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise EvtkError(f"unknown bench parameter(s): {', '.join(unknown)}")
+        check_parameters("bench", cls, d)
         return cls(**d)
 
     def replace(self, **changes) -> "Bench":

@@ -37,6 +37,7 @@ import numba
 import numpy as np
 
 from .errors import EvtkError
+from .limits import require_memory
 from .events import Events, TriggerKind, Triggers
 
 __all__ = [
@@ -213,10 +214,13 @@ def windows_periodic(t_start_us, t_end_us, period_us, skip_us=0, length_us=None)
     period_us = int(period_us)
     if period_us < 1:
         raise EvtkError(f"period_us must be >= 1, not {period_us}")
+    if t_start_us is None or t_end_us is None:
+        raise EvtkError("the recording has no events, so no time span to cut into periods")
     t0, t1 = int(t_start_us), int(t_end_us)
     n = (t1 - t0) // period_us if t1 > t0 else 0
     if n < 1:
         raise EvtkError(f"the recording ({t0} .. {t1} us) is shorter than one period of {period_us} us")
+    require_memory(n * 40, f"{n:,} windows of {period_us} us")
     t_on = t0 + period_us * np.arange(n, dtype=np.int64)
     start, end = _trim(t_on, t_on + period_us, skip_us, length_us, "periodic")
     dropped = {"partial last period": 1} if t0 + n * period_us < t1 else {}
@@ -658,11 +662,16 @@ def plan(rec, window="schedule", skip_us=0, length_us=None, region=None):
         win = windows_from_triggers(rec.triggers(), skip_us, length_us)
     elif isinstance(window, tuple) and len(window) == 2 and window[0] == "period":
         info = rec.info()
-        win = windows_periodic(info["t_start_us"], info["t_end_us"] + 1, window[1], skip_us, length_us)
+        end = None if info["t_end_us"] is None else info["t_end_us"] + 1
+        win = windows_periodic(info["t_start_us"], end, window[1], skip_us, length_us)
     else:
         raise EvtkError(f"window must be 'schedule', 'triggers' or ('period', US), not {window!r}")
     if region is None:
         region = tuple(sim["response_region"]) if sim is not None else (0, rec.sensor_size[0], 0, rec.sensor_size[1])
+    x0, x1, y0, y1 = (int(v) for v in region)
+    # ON and OFF counts per window and pixel, and with event times the first and last ON time
+    require_memory(len(win) * max(0, x1 - x0) * max(0, y1 - y0) * 24,
+                   f"counting {len(win):,} windows over {max(0, x1 - x0)}x{max(0, y1 - y0)} pixels")
     return sim, win, tuple(region)
 
 

@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .errors import EvtkError
+from .errors import EvtkError, check_parameters
 
 __all__ = [
     "SensorModel",
@@ -139,10 +139,7 @@ class SensorModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> "SensorModel":
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise EvtkError(f"unknown sensor parameter(s): {', '.join(unknown)}")
+        check_parameters("sensor", cls, d)
         return cls(**d)
 
     def replace(self, **changes) -> "SensorModel":

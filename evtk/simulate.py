@@ -38,6 +38,7 @@ import numpy as np
 
 from ._version import __version__
 from .errors import EvtkError
+from .limits import require_memory
 from .events import Events, TriggerKind, Triggers
 from .optics import (Bench, brightest_response, glow_response, ideal_response, response_origin_px,
                      response_region, screen_response)
@@ -212,11 +213,20 @@ class Simulation:
         self.start_us = _int_param("start_us", start_us, np.iinfo(np.int64).min // 2)
         kshape = self.kernels.shape[1:]
         self.gain_e_per_s = self.bench.electrons_per_s_per_unit(kshape)  # photoelectrons/s per response unit
+        if not math.isfinite(self.gain_e_per_s * brightest_response(kshape, self.bench)):
+            raise EvtkError(f"power_mw {self.bench.power_mw:g} makes the photon rates overflow float64; "
+                            "no bench is that bright")
         self.settle_us = self.recommended_settle_us() if settle_us is None else _int_param("settle_us", settle_us, 1)
         self.region = response_region(self.bench, kshape, self.features.shape[1:])
         self._passes = {}
         self._rate_cache = {}  # region (or "glow") -> {(kernel, features, signs): photoelectron rates}
         self.flat_field = _int_param("flat_field", flat_field, 0)
+        per_pair = max(len(self._pair_passes(0, 0)), 1) if len(self.kernels) and len(self.features) else 1
+        n_est = self.flat_field + self.repeat * len(self.kernels) * len(self.features) * per_pair
+        x0, x1, y0, y1 = self.region
+        # the schedule, and one response-sized light map per capture while it is simulated and written
+        require_memory(n_est * (64 + 16 * (x1 - x0) * (y1 - y0)),
+                       f"a run of {n_est:,} captures ({self.flat_field:,} flat fields, {self.repeat:,} repeats)")
         rows = [(-1, -1, 1, 1, i) for i in range(self.flat_field)]
         for r in range(self.repeat):
             for ki in range(len(self.kernels)):

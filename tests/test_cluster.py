@@ -40,7 +40,7 @@ def test_scheduler_specs():
 
 def test_a_dead_scheduler_address_fails_fast():
     t0 = time.perf_counter()
-    with pytest.raises(EvtkError, match="no Dask scheduler answered"):
+    with pytest.raises(EvtkError, match="no Dask scheduler"):
         with scheduler("tcp://127.0.0.1:9"):
             pass
     assert time.perf_counter() - t0 < 20
@@ -188,7 +188,8 @@ def test_batch_on_a_cluster_equals_serial_and_resumes(tmp_path):
     assert not [p for p in outs["serial"].iterdir() if p.name.endswith(".evtk-partial")]
     r = CliRunner().invoke(main, ["batch", "reconstruct", str(tmp_path / "nothing-*.aedat4"), "-o",
                                   str(tmp_path / "x"), "--scheduler", "serial"])
-    assert r.exit_code == 1 and "no recordings" in r.output
+    # an empty glob is reported as such, in the manifest too
+    assert r.exit_code == 1 and "matches no file" in r.output
 
 
 def test_time_split_reconstruction_equals_the_whole(client, tmp_path):

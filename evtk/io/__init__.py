@@ -50,7 +50,8 @@ def detect_format(path) -> str:
     raise FormatError(path, 0, "unrecognised file: not AEDAT4 (#!AER-DAT4.0), HDF5 or Parquet")
 
 
-def open(path, salvage: bool = False, sensor_size=None, sort: bool = False) -> BaseRecording:  # noqa: A001
+def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # noqa: A001
+         trust_external: bool | None = None) -> BaseRecording:
     """Open a recording for reading; the format is found from the file's first bytes.
 
     Parameters
@@ -67,6 +68,11 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False) -> B
     sort : bool
         HDF5 only: sort events whose time stamps go backwards instead of
         refusing the file.
+    trust_external : bool, optional
+        HDF5 only: follow external links, external storage and virtual
+        datasets into other files. Refused by default (a file could make
+        evtk read any file); None takes ``$EVTK_TRUST_EXTERNAL`` (set by
+        ``evtk --trust-external``).
 
     Examples
     --------
@@ -83,7 +89,9 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False) -> B
     if fmt == "hdf5":
         from .hdf5 import Hdf5Recording
 
-        return Hdf5Recording(path, salvage=salvage, sensor_size=sensor_size, sort=sort)
+        if trust_external is None:
+            trust_external = os.environ.get("EVTK_TRUST_EXTERNAL", "") not in ("", "0")
+        return Hdf5Recording(path, salvage=salvage, sensor_size=sensor_size, sort=sort, trust_external=trust_external)
     from .arrow import ParquetRecording
 
     return ParquetRecording(path, salvage=salvage, sensor_size=sensor_size)

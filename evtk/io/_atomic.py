@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import io
 import os
 import tempfile
+
+from ..errors import EvtkError
 
 PARTIAL_SUFFIX = ".evtk-partial"
 
@@ -19,6 +22,8 @@ class AtomicFile:
     def __init__(self, path, keep_open=True):
         self.path = os.fspath(path)
         directory = os.path.dirname(os.path.abspath(self.path))
+        if not os.path.isdir(directory):
+            raise EvtkError(f"cannot write {self.path}: there is no folder {directory}")
         fd, self.tmp_path = tempfile.mkstemp(
             prefix=os.path.basename(self.path) + ".", suffix=PARTIAL_SUFFIX, dir=directory
         )
@@ -83,3 +88,91 @@ class AtomicFile:
         else:
             self.discard()
         return False
+
+
+def refuse_overwriting_inputs(target, sources):
+    """Raise :class:`~evtk.EvtkError` when ``target`` is one of ``sources`` (the same file, by any name):
+    writing it would replace the recording being read."""
+    if not os.path.exists(target):
+        return
+    for src in sources:
+        try:
+            same = os.path.samefile(target, src)
+        except OSError:
+            continue
+        if same:
+            raise EvtkError(f"the output {target} is the input {src}; writing it would replace the recording "
+                            "(choose another output name)")
+
+
+class FailSafeFile(io.RawIOBase):
+    """A file object for a library that writes through it (h5py) and must be able to close after the disk
+    fails: the first failed write raises, and from then on writes, reads and truncation go nowhere, so the
+    library's own clean-up succeeds (libhdf5 otherwise crashes the process at exit after a failed flush).
+    :attr:`failure` keeps the first error. The file itself is about to be discarded."""
+
+    def __init__(self, raw):
+        super().__init__()
+        self._f = raw
+        self.failure = None
+        self._pos = 0
+        self._size = 0
+
+    def readable(self):
+        return True
+
+    def writable(self):
+        return True
+
+    def seekable(self):
+        return True
+
+    def seek(self, offset, whence=0):
+        if self.failure is None:
+            self._pos = self._f.seek(offset, whence)
+        else:
+            self._pos = (offset, self._pos + offset, self._size + offset)[whence]
+        return self._pos
+
+    def tell(self):
+        return self._pos
+
+    def write(self, data):
+        n = memoryview(data).nbytes
+        if self.failure is None:
+            try:
+                n = self._f.write(data)
+            except OSError as exc:
+                self.failure = exc
+                raise
+        self._pos += n
+        self._size = max(self._size, self._pos)
+        return n
+
+    def readinto(self, buf):
+        if self.failure is None:
+            n = self._f.readinto(buf) or 0
+        else:
+            n = len(buf)
+            memoryview(buf).cast("B")[:] = bytes(n)
+        self._pos += n
+        return n
+
+    def truncate(self, size=None):
+        size = self._pos if size is None else size
+        if self.failure is None:
+            try:
+                self._f.truncate(size)
+            except OSError as exc:
+                self.failure = exc
+                raise
+        self._size = size
+        return size
+
+    def flush(self):
+        if self.failure is None:
+            try:
+                self._f.flush()
+            except OSError as exc:
+                self.failure = exc
+                raise

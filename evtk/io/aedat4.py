@@ -24,7 +24,7 @@ from ..events import Events, Triggers
 from . import _compression as cz
 from . import _fb
 from ._atomic import AtomicFile
-from .base import BaseRecording, Damage, StreamInfo, time_chunks, window_blocks
+from .base import BaseRecording, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
 
 __all__ = ["Recording", "Aedat4Writer", "write_aedat4", "MAGIC"]
 
@@ -221,9 +221,7 @@ class Recording(BaseRecording):
             name = str(attrs.get("originalOutputName", f"stream{sid}"))
             size = None
             if "sizeX" in info and "sizeY" in info:
-                size = (int(info["sizeX"]), int(info["sizeY"]))
-                if not (0 < size[0] <= 65536 and 0 < size[1] <= 65536):
-                    raise FormatError(self.path, _HEADER_START, f"stream {sid} has an impossible sensor size {size}")
+                size = sensor_dims(info["sizeX"], info["sizeY"], self.path, f"the header of stream {sid}")
             elif typ == "EVTS":
                 raise FormatError(self.path, _HEADER_START, f"event stream {sid} ({name}) has no sizeX/sizeY in its header")
             merged = dict(attrs)
@@ -283,9 +281,13 @@ class Recording(BaseRecording):
             return None
         # an element count the packet's size cannot hold would make the reader
         # allocate for it: such a table is not trusted
+        # (an event packet's body grows at most BODY_RATIO times when decompressed: the fixed allowance
+        # the decompressor grants frames of pixels is no licence for event counts)
         evts = np.isin(stream, [sid for sid, st in self._streams.items() if st.type == "EVTS"])
-        per_element = np.where(evts, 16, 1)
-        plausible = count <= np.array([cz.output_limit(z) for z in size], np.int64) // per_element
+        per_element = np.where(evts, _fb.EVENT_STRUCT, 1)
+        room = np.where(evts, cz.BODY_RATIO * size + 4096,
+                        np.array([cz.output_limit(z) for z in size], np.int64))
+        plausible = count <= room // per_element
         if n and not plausible.all():
             self.warnings.append("the data table claims more elements than its packets can hold; packets were indexed by walking the file")
             return None
@@ -407,10 +409,7 @@ class Recording(BaseRecording):
         text = s.attributes.get("evtkMetadata") if s is not None else None
         if not text:
             return {}
-        try:
-            value = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise FormatError(self.path, _HEADER_START, f"the evtkMetadata attribute is not valid JSON ({exc})") from None
+        value = load_json(text, self.path, "the evtkMetadata attribute")
         return value if isinstance(value, dict) else {"value": value}
 
     # -- packet bodies ------------------------------------------------------------

@@ -23,7 +23,7 @@ from . import _parquet_footer as _footer
 from ._atomic import AtomicFile
 from ._overlay import SplicedFile, close_at_exit
 from ._checks import require_readable, scan_events, sorted_for_writing
-from .base import BaseRecording, Damage, StreamInfo, window_blocks, time_chunks
+from .base import BaseRecording, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
 
 __all__ = ["to_arrow", "from_arrow", "ParquetRecording", "write_parquet", "COMPRESSIONS"]
 
@@ -152,11 +152,10 @@ def _sensor_from(meta, path=None):
     raw = (meta or {}).get(KEY_SENSOR)
     if raw is None:
         return None
-    try:
-        w, h = json.loads(raw)
-        return int(w), int(h)
-    except (ValueError, TypeError):
-        raise FormatError(path, None, f"schema metadata {KEY_SENSOR.decode()} is not [width, height]: {raw!r}") from None
+    value = load_json(raw, path, f"schema metadata {KEY_SENSOR.decode()}")
+    if not isinstance(value, list) or len(value) != 2:
+        raise FormatError(path, None, f"schema metadata {KEY_SENSOR.decode()} is not [width, height]: {raw[:100]!r}")
+    return sensor_dims(value[0], value[1], path, f"schema metadata {KEY_SENSOR.decode()}")
 
 
 def _columns(table, path=None):
@@ -217,17 +216,15 @@ class ParquetRecording(BaseRecording):
             if not (str(typ).startswith(("int", "uint")) or str(typ) == "bool"):
                 raise FormatError(self.path, None, f"column {name!r} has type {typ}, expected an integer type")
         meta = schema.metadata or {}
-        self._sensor = (int(sensor_size[0]), int(sensor_size[1])) if sensor_size else _sensor_from(meta, self.path)
+        self._sensor = (sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size") if sensor_size
+                        else _sensor_from(meta, self.path))
         self._meta = {}
         if KEY_META in meta:
-            try:
-                self._meta = json.loads(meta[KEY_META])
-            except ValueError:
-                raise FormatError(self.path, None, "schema metadata evtk.metadata is not valid JSON") from None
+            self._meta = load_json(meta[KEY_META], self.path, "schema metadata evtk.metadata")
         self._triggers = Triggers()
         if KEY_TRIGGERS in meta:
+            d = load_json(meta[KEY_TRIGGERS], self.path, "schema metadata evtk.triggers")
             try:
-                d = json.loads(meta[KEY_TRIGGERS])
                 self._triggers = Triggers(d["t"], d["kind"])
             except (ValueError, KeyError, TypeError, EvtkError):
                 raise FormatError(self.path, None, "schema metadata evtk.triggers is malformed") from None

@@ -8,6 +8,7 @@ Prophesee and event_utils layouts, recognised by their structure.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import struct
@@ -17,10 +18,10 @@ import numpy as np
 from .._version import __version__
 from ..errors import EvtkError, FormatError, one_line
 from ..events import Events, Triggers
-from ._atomic import AtomicFile
+from ._atomic import AtomicFile, FailSafeFile
 from ._overlay import SplicedFile, close_at_exit
 from ._checks import require_readable, scan_events, sorted_for_writing
-from .base import BaseRecording, Damage, StreamInfo
+from .base import BaseRecording, Damage, StreamInfo, load_json, sensor_dims
 
 __all__ = ["Hdf5Recording", "Hdf5Writer", "write_hdf5", "COMPRESSIONS", "EVTK_FORMAT"]
 
@@ -528,17 +529,12 @@ class _EvtkLayout(_Layout):
         size = f.attrs.get("sensor_size")
         if size is None or len(size) != 2:
             raise FormatError(path, None, "evtk layout: root attribute 'sensor_size' [width, height] missing")
-        self.sensor_size = (int(size[0]), int(size[1]))
-        if not all(0 < v <= 65536 for v in self.sensor_size):
-            raise FormatError(path, None, f"root attribute sensor_size {list(self.sensor_size)} is impossible")
+        self.sensor_size = sensor_dims(size[0], size[1], path, "root attribute sensor_size")
         if "metadata" in f:
             ds = f["metadata"]
             if ds.dtype != np.uint8 or ds.ndim != 1:
                 raise FormatError(path, None, "/metadata must be a 1-D uint8 dataset of UTF-8 JSON")
-            try:
-                self.metadata = json.loads(ds[...].tobytes().decode("utf-8"))
-            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise FormatError(path, None, f"/metadata is not valid JSON ({exc})") from None
+            self.metadata = load_json(ds[...].tobytes(), path, "/metadata")
         self.index_problem = None  # why the index cannot be used (a reader may go on without it)
         try:
             if "index_t_us" in g:
@@ -627,14 +623,12 @@ class _PropheseeLayout(_Layout):
         h = f.attrs.get("height", f["CD"].attrs.get("height"))
         geometry = f.attrs.get("geometry")
         if w is not None and h is not None:
-            self.sensor_size = (int(w), int(h))
+            self.sensor_size = sensor_dims(w, h, path, "attributes width and height")
         elif geometry is not None:
-            text = geometry.decode() if isinstance(geometry, bytes) else str(geometry)
-            try:
-                gw, gh = text.lower().split("x")
-                self.sensor_size = (int(gw), int(gh))
-            except ValueError:
-                pass
+            text = geometry.decode("utf-8", "replace") if isinstance(geometry, bytes) else str(geometry)
+            parts = text.lower().split("x")
+            if len(parts) == 2:
+                self.sensor_size = sensor_dims(parts[0], parts[1], path, "attribute geometry")
         if "CD/indexes" in f:
             idx = f["CD/indexes"][...]
             if idx.dtype.names and {"id", "ts"} <= set(idx.dtype.names):
@@ -677,7 +671,7 @@ class _EventUtilsLayout(_Layout):
         self.n = _check_lengths(path, [self.xs, self.ys, self.ts, self.ps])
         res = f.attrs.get("sensor_resolution")
         if res is not None and len(res) == 2:
-            self.sensor_size = (int(res[1]), int(res[0]))  # stored as (height, width)
+            self.sensor_size = sensor_dims(res[1], res[0], path, "attribute sensor_resolution")  # (height, width)
 
     def _t(self, raw):
         return _seconds_as_us(raw, self.path, self.ts.name)
@@ -792,7 +786,7 @@ class Hdf5Recording(BaseRecording):
                     raise FormatError(self.path, None, self._layout.index_problem)
                 self.warnings.append(self._layout.index_problem + "; reading without it")
             if sensor_size is not None:
-                self._layout.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
+                self._layout.sensor_size = sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size")
             self._sort = bool(sort)
             self._sorted_cache = None
             self._intact = None
@@ -1210,10 +1204,13 @@ class Hdf5Writer:
             meta_text = json.dumps(metadata or {}, sort_keys=True)
         except (TypeError, ValueError) as exc:
             raise EvtkError(f"metadata must be JSON-serialisable: {exc}") from None
-        self._atomic = AtomicFile(path, keep_open=False)
+        self._atomic = AtomicFile(path)
         self.path = self._atomic.path
+        # libhdf5 writes through a Python file object that turns into a sink once the disk fails: a failed
+        # write is then one error, and the library still closes (it crashed the process at exit otherwise)
+        self._sink = FailSafeFile(self._atomic.file)
         try:
-            self._f = h5py.File(self._atomic.tmp_path, "w")
+            self._f = h5py.File(self._sink, "w")
             f = self._f
             f.attrs["evtk_format"] = np.bytes_(EVTK_FORMAT)
             f.attrs["evtk_format_version"] = FORMAT_VERSION
@@ -1260,8 +1257,9 @@ class Hdf5Writer:
         self._tail.append(events)
         whole = (b // self.chunk) * self.chunk
         if whole > self._stored:
-            self._store(whole)
-            self._f.flush()  # the file on disk is complete up to here: a kill loses at most the events since
+            with self._disk():
+                self._store(whole)
+                self._f.flush()  # the file on disk is complete up to here: a kill loses at most the events since
         else:  # keep our own copy: the caller may reuse its arrays
             self._tail[-1] = _copy(events)
 
@@ -1291,33 +1289,56 @@ class Hdf5Writer:
             raise EvtkError(f"{self.path}: writer is closed")
         if name.strip("/").split("/")[0] in ("events", "triggers"):
             raise EvtkError(f"{name!r} is reserved for evtk's event layout")
-        ds = self._f.create_dataset(name, data=np.asarray(data))
-        for k, v in (attrs or {}).items():
-            ds.attrs[k] = v
+        with self._disk():
+            ds = self._f.create_dataset(name, data=np.asarray(data))
+            for k, v in (attrs or {}).items():
+                ds.attrs[k] = v
+
+    @contextlib.contextmanager
+    def _disk(self):
+        """A write that the disk refused (full, over quota, too large) becomes one EvtkError, with the partial
+        file removed; any previous file under the name is untouched."""
+        try:
+            yield
+        except EvtkError:
+            raise
+        except Exception:
+            failure = self._sink.failure
+            if failure is None:
+                raise
+            self._closed = True
+            self._abort_files()
+            raise EvtkError(f"cannot write {self.path}: {failure.strerror or failure} (nothing was written "
+                            "under that name)") from None
 
     def close(self):
         if self._closed:
             return
         self._closed = True
         try:
-            if self._stored < self._n:
-                self._store(self._n)
-            g = self._f["events"]
-            index = np.concatenate(self._index) if self._index else np.zeros(0, np.int64)
-            ds = g.create_dataset("index_t_us", data=index.astype(np.int64))
-            ds.attrs["stride"] = self.chunk
-            if self._trig:
-                tr = Triggers.concatenate(self._trig)
-                order = np.argsort(tr.t, kind="stable")
-                tg = self._f.create_group("triggers")
-                tg.create_dataset("t", data=tr.t[order])
-                tg.create_dataset("kind", data=tr.kind[order])
-            del self._f.attrs[INTERRUPTED]
-            self._f.close()
+            with self._disk():
+                self._finish()
             self._atomic.commit()
         except BaseException:
             self._abort_files()
             raise
+
+    def _finish(self):
+        """Store what is buffered, the time index and the triggers, and close the HDF5 file."""
+        if self._stored < self._n:
+            self._store(self._n)
+        g = self._f["events"]
+        index = np.concatenate(self._index) if self._index else np.zeros(0, np.int64)
+        ds = g.create_dataset("index_t_us", data=index.astype(np.int64))
+        ds.attrs["stride"] = self.chunk
+        if self._trig:
+            tr = Triggers.concatenate(self._trig)
+            order = np.argsort(tr.t, kind="stable")
+            tg = self._f.create_group("triggers")
+            tg.create_dataset("t", data=tr.t[order])
+            tg.create_dataset("kind", data=tr.kind[order])
+        del self._f.attrs[INTERRUPTED]
+        self._f.close()
 
     def _abort_files(self):
         try:
