@@ -692,3 +692,54 @@ def test_batch_onto_a_full_disk_writes_its_manifest(tmp_path):
     manifest = json.loads((out / "batch.json").read_text())
     assert [e["status"] for e in manifest["inputs"]] == ["error", "error"]
     assert not [p for p in out.iterdir() if p.name.endswith(".evtk-partial")]
+
+
+# -- bounds of the FlatBuffers decoders -------------------------------------------------------------------------
+
+
+def test_ioheader_field_at_the_end_of_the_buffer_is_the_same_error_every_time(tmp_path):
+    """A field whose offset lies inside its table but whose value would run past the header: reading it
+    read beyond the buffer (errors changed from run to run and could print heap addresses)."""
+    buf = bytearray(32)
+    struct.pack_into("<I", buf, 0, 28)  # size prefix
+    struct.pack_into("<I", buf, 4, 20)  # root table at 4 + 20 = 24
+    buf[8:12] = b"IOHE"
+    struct.pack_into("<HHHHH", buf, 12, 10, 8, 7, 0, 0)  # vtable: table of 8 bytes, compression at +7
+    struct.pack_into("<i", buf, 24, 12)  # table -> vtable at 12
+    path = tmp_path / "h.aedat4"
+    path.write_bytes(a4.MAGIC + bytes(buf))
+    messages = set()
+    for _ in range(20):
+        with pytest.raises(evtk.FormatError) as err:
+            evtk.open(path)
+        messages.add(str(err.value))
+    assert len(messages) == 1 and "offsets outside the header" in messages.pop()
+
+
+def test_data_table_claiming_billions_of_events_is_not_trusted(tmp_path):
+    ev = random_events(3000, seed=11)
+    path = tmp_path / "c.aedat4"
+    evtk.write_events(path, ev, compression="none", packet_events=1000, packet_us=None)
+    with evtk.open(path) as rec:
+        idx, dtp = rec._index, rec._data_table_pos
+        cols = [idx.offset, idx.stream, idx.size, idx.count.copy(), idx.t0, idx.t1]
+    cols[3][0] = 3_280_000_000
+    buf = np.empty(_fb.data_table_size(len(cols[0])), np.uint8)
+    size = _fb.encode_data_table(*cols, buf)
+    data = bytearray(path.read_bytes())
+    data[dtp:dtp + size] = buf[:size].tobytes()
+    path.write_bytes(bytes(data))
+    with evtk.open(path) as rec:
+        assert rec.info()["events"] == 3000
+        assert any("more elements than its packets can hold" in w for w in rec.warnings)
+        assert rec.events() == ev
+
+
+@pytest.mark.parametrize("size", [[-5, 0], [0, 240], [70000, 1], [1.5, 2]])
+def test_hdf5_impossible_sensor_size_is_an_error_not_printed(tmp_path, size):
+    path = tmp_path / "s.h5"
+    evtk.write_events(path, random_events(10, seed=1))
+    with h5py.File(path, "a") as f:
+        f.attrs["sensor_size"] = np.array(size)
+    code, out = _cli("info", path)
+    assert code == 1 and "impossible sensor size" in out and "x0" not in out.split("size")[0], out

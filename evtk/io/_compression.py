@@ -68,10 +68,12 @@ class CodecError(Exception):
 
 
 #: What any packet body may decompress to, whatever its compressed size (frames of black pixels, tiny packets).
-BODY_FLOOR_BYTES = 32 << 20
+BODY_FLOOR_BYTES = 8 << 20
 #: How many times its compressed size a larger body may grow. Event packets compress 2-6x; LZ4 cannot pass 255x
-#: and a frame of one grey level reaches ZSTD's thousands only when it is also tiny, which the floor covers.
-BODY_RATIO = 64
+#: and a frame of one grey level reaches ZSTD's thousands only when it is also small, which the floor covers.
+BODY_RATIO = 32
+#: Bytes decompressed at a time from a frame that does not state its size.
+STEP_BYTES = 4 << 20
 
 
 def output_limit(compressed_bytes: int) -> int:
@@ -99,11 +101,21 @@ def decompress(code: int, body, limit: int):
                 raise CodecError(f"LZ4 frame announces {size} bytes, more than the {limit} allowed")
             if size > 0:
                 out = lz4.frame.decompress(body)
-            else:  # no size in the frame header (DV, dv-processing): never past the limit
+            else:  # no size in the frame header (DV, dv-processing): a step at a time, never past the limit
                 d = lz4.frame.LZ4FrameDecompressor()
-                out = d.decompress(body, max_length=limit + 1)
-                if len(out) <= limit and not d.eof:
+                parts, total = [d.decompress(body, max_length=STEP_BYTES)], 0
+                total = len(parts[0])
+                while not d.eof and not d.needs_input:
+                    if total > limit:
+                        break
+                    part = d.decompress(b"", max_length=STEP_BYTES)
+                    parts.append(part)
+                    total += len(part)
+                if total > limit:
+                    raise CodecError(f"LZ4 frame decompresses to more than {limit} bytes")
+                if not d.eof:
                     raise CodecError("LZ4 frame ends before its end mark (truncated)")
+                out = parts[0] if len(parts) == 1 else b"".join(parts)
         except CodecError:
             raise
         except Exception as exc:  # lz4 raises RuntimeError for damaged frames
@@ -130,7 +142,7 @@ def decompress(code: int, body, limit: int):
             reader = dctx.stream_reader(body, read_across_frames=False)
             parts, total = [], 0
             while True:
-                part = reader.read(1 << 22)
+                part = reader.read(STEP_BYTES)
                 if not part:
                     break
                 total += len(part)

@@ -110,6 +110,7 @@ def fb_field(b, table, slot):
         return 0
     if off + 1 > tb_size:
         return ST_BAD_OFFSET
+    # (only the field's first byte is known to lie in the buffer: callers check the rest for its size)
     return table + off
 
 

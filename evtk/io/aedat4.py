@@ -198,7 +198,9 @@ class Recording(BaseRecording):
         f_comp = _fb.fb_field(buf, root, 0)
         f_dtp = _fb.fb_field(buf, root, 1)
         f_xml = _fb.fb_field(buf, root, 2)
-        if f_comp < 0 or f_dtp < 0 or f_xml < 0:
+        # a field's offset is only known to lie inside its table: its whole value must lie inside the header
+        if (f_comp < 0 or f_dtp < 0 or f_xml < 0 or f_comp + 4 > len(buf) or f_dtp + 8 > len(buf)
+                or f_xml + 4 > len(buf)):
             raise FormatError(self.path, _HEADER_START + 4, "the IOHeader FlatBuffer has offsets outside the header")
         code = _fb._i32(buf, f_comp) if f_comp else 0
         if not 0 <= code < len(cz.CODE_NAMES):

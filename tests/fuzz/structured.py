@@ -8,9 +8,11 @@ lies inside and then packages it properly:
 * AEDAT4: a packet's FlatBuffer (root and vtable offsets, table sizes, vector
   length, identifier, or the event structs themselves) is mutated and
   recompressed into a valid LZ4 or ZSTD frame; or the data table's counts,
-  offsets and times lie while the packets are intact.
+  offsets and times lie while the packets are intact; or a packet is a valid
+  frame that inflates to 256 MiB (or says it holds 1.9 GB).
 * HDF5 (evtk layout): a column resized, retyped or made sparse, the time
-  index shifted or shuffled, a soft or external link put in a column's place.
+  index shifted or shuffled, a soft or external link, a virtual dataset or
+  external storage put in a column's place, the sensor size changed.
 * Parquet: a row group's ``t`` statistics moved in the footer.
 
 Every case is read strictly, with windows and in chunks. The outcome must be
@@ -57,13 +59,34 @@ def _aedat4_parts(path):
     return path.read_bytes()[:start], bodies, code
 
 
-def _assemble(header, bodies, code, table=None):
-    """An AEDAT4 file of the bodies, compressed into valid frames, with a data table (or ``table`` lies)."""
+_BOMBS = {}
+
+
+def _bomb(code, rng):
+    """A valid frame that inflates far past what its packet may (256 MiB), or claims to (ZSTD, 1.9 GB)."""
+    import lz4.frame
+    import zstandard
+
+    if code in (cz.LZ4, cz.LZ4_HIGH):
+        if "lz4" not in _BOMBS:
+            _BOMBS["lz4"] = lz4.frame.compress(bytes(256 << 20), store_size=False)
+        return _BOMBS["lz4"]
+    if rng.integers(0, 2):  # a header that claims 1.9 GB around one raw block
+        return b"\x28\xb5\x2f\xfd" + bytes([0b11100000]) + struct.pack("<Q", 1_900_000_000) + \
+            struct.pack("<I", (64 << 3) | 1)[:3] + bytes(64)
+    if "zstd" not in _BOMBS:
+        _BOMBS["zstd"] = zstandard.ZstdCompressor(level=1, write_content_size=False).compress(bytes(256 << 20))
+    return _BOMBS["zstd"]
+
+
+def _assemble(header, bodies, code, table=None, raw=None):
+    """An AEDAT4 file of the bodies, compressed into valid frames (``raw`` maps a packet to the frame to
+    store instead), with a data table (or ``table`` lies)."""
     out = bytearray(header)
     struct.pack_into("<q", out, a4._DTP_FIELD, -1)
     rows = []
-    for sid, body in bodies:
-        blob = cz.compress(code, body)
+    for k, (sid, body) in enumerate(bodies):
+        blob = (raw or {}).get(k) or cz.compress(code, body)
         rows.append((len(out) + 8, sid, len(blob)))
         out += struct.pack("<ii", sid, len(blob)) + blob
     if table is not None:
@@ -102,7 +125,7 @@ def mutate_aedat4(parts, rng):
     k = events[int(rng.integers(0, len(events)))]
     sid, body = bodies[k]
     b = bytearray(body)
-    what = int(rng.integers(0, 9))
+    what = int(rng.integers(0, 10))
     payload_only = False
     if what == 0:  # the root offset
         struct.pack_into("<I", b, 4, int(rng.choice([0, 2, 8, 4096, 2**31])))
@@ -147,14 +170,17 @@ def mutate_aedat4(parts, rng):
             return cols
     elif rng.integers(0, 2):
         table = _honest_table
-    return _assemble(header, bodies, code, table), f"aedat4/{['root', 'vtable', 'sizes', 'vector_length', 'ident', 'payload', 'body_length', 'vector_offset', 'table'][what]}", payload_only
+    raw = {k: _bomb(code, rng)} if what == 9 else None
+    names = ["root", "vtable", "sizes", "vector_length", "ident", "payload", "body_length", "vector_offset",
+             "table", "bomb"]
+    return _assemble(header, bodies, code, table, raw), f"aedat4/{names[what]}", payload_only
 
 
 def mutate_hdf5(src: Path, dst: Path, rng):
     import h5py
 
     dst.write_bytes(src.read_bytes())
-    what = int(rng.integers(0, 7))
+    what = int(rng.integers(0, 9))
     with h5py.File(dst, "a") as f:
         g = f["events"]
         if what == 0:  # one column shorter or longer
@@ -191,11 +217,25 @@ def mutate_hdf5(src: Path, dst: Path, rng):
             big = g.create_dataset(name, shape=(len(data) * 1000,), maxshape=(None,), chunks=(1024,),
                                    dtype=data.dtype)
             big[: len(data)] = data
-        else:  # the sensor size made smaller than the coordinates
+        elif what == 6:  # the sensor size changed (smaller than the coordinates, or larger)
             f.attrs["sensor_size"] = np.array([int(rng.integers(1, 400)), int(rng.integers(1, 300))])
+        elif what == 7:  # a column turned into a virtual dataset reading the original file
+            name = "txyp"[int(rng.integers(0, 4))]
+            n, dtype = g[name].shape[0], g[name].dtype
+            del g[name]
+            layout = h5py.VirtualLayout(shape=(n,), dtype=dtype)
+            layout[:] = h5py.VirtualSource(str(src), f"/events/{name}", shape=(n,))
+            g.create_virtual_dataset(name, layout)
+        else:  # a column whose storage is the original file's bytes
+            name = "txyp"[int(rng.integers(0, 4))]
+            n, dtype = g[name].shape[0], g[name].dtype
+            del g[name]
+            g.create_dataset(name, shape=(n,), dtype=dtype, external=[(str(src), 0, n * dtype.itemsize)])
     # a retyped column, one linked to another or a larger sensor is a valid file holding other values: like a
     # payload change
-    return f"hdf5/{['length', 'dtype', 'index', 'soft_link', 'external_link', 'sparse', 'sensor_size'][what]}", what in (1, 3, 6)
+    names = ["length", "dtype", "index", "soft_link", "external_link", "sparse", "sensor_size", "virtual",
+             "external_storage"]
+    return f"hdf5/{names[what]}", what in (1, 3, 6)
 
 
 def mutate_parquet(src: Path, rng):
@@ -245,12 +285,37 @@ def check(path: Path, reference, kind, payload_only, counts):
                              f"{len(reference)} written, outside any payload")
 
 
+def check_cli(path: Path, tmp: Path):
+    """``evtk info --check`` and ``evtk convert`` on the case: exit 0 or 1, and one line on error."""
+    from click.testing import CliRunner
+
+    from evtk.cli import main as cli
+
+    out = tmp / "converted.h5"
+    for args in (["info", "--check", "--json", str(path)], ["convert", str(path), str(out)]):
+        r = CliRunner().invoke(cli, args)
+        if r.exit_code not in (0, 1) or (r.exit_code == 1 and len(r.output.strip().splitlines()) != 1):
+            raise AssertionError(f"evtk {args[0]}: exit {r.exit_code}, output {r.output[-300:]!r}, "
+                                 f"exception {r.exception!r}")
+        if out.exists():
+            out.unlink()
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--cases", type=int, default=3000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--hang-seconds", type=float, default=20.0)
+    ap.add_argument("--cli-every", type=int, default=10, help="run the CLI on every Nth case (0: never)")
+    ap.add_argument("--alloc-limit", type=float, default=64.0,
+                    help="a case whose traced allocations peak above 16 MiB + this many times the file's size "
+                         "is a crash; 0 turns tracing off")
     args = ap.parse_args(argv)
+    if args.alloc_limit > 0:
+        import tracemalloc
+
+        tracemalloc.start()
+    worst = (0.0, None)
     counts = collections.Counter()
     kinds = collections.Counter()
     crashes = []
@@ -281,14 +346,28 @@ def main(argv=None):
                 p.write_bytes(data)
             kinds[kind] += 1
             faulthandler.dump_traceback_later(args.hang_seconds, exit=True)
+            if args.alloc_limit > 0:
+                base = tracemalloc.get_traced_memory()[0]
+                tracemalloc.reset_peak()
             try:
                 check(p, ev, kind, payload_only, counts)
+                if args.cli_every and case % args.cli_every == 0:
+                    check_cli(p, tmp)
             except Exception as exc:  # noqa: BLE001 - anything but FormatError, or a wrong result
                 counts["crash"] += 1
                 crashes.append((kind, case, "".join(traceback.format_exception_only(type(exc), exc)).strip()))
             faulthandler.cancel_dump_traceback_later()
+            if args.alloc_limit > 0:
+                size = p.stat().st_size
+                peak = tracemalloc.get_traced_memory()[1] - base
+                worst = max(worst, (peak / 2**20, f"{kind} case {case}, a {size:,}-byte file"))
+                if peak > 16 * 2**20 + args.alloc_limit * size:
+                    counts["crash"] += 1
+                    crashes.append((kind, case, f"allocated {peak / 2**20:.1f} MiB for a {size}-byte file"))
             os.unlink(p)
     print(f"cases {args.cases} in {time.time() - t_start:.0f} s: {dict(counts)}")
+    if args.alloc_limit > 0:
+        print(f"largest traced allocation peak: {worst[0]:.1f} MiB ({worst[1]})")
     print(f"mutations: {dict(sorted(kinds.items()))}")
     for c in crashes[:20]:
         print("CRASH", c)
