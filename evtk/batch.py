@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from .errors import EvtkError
+from .io._atomic import refuse_overwriting_inputs
 
 __all__ = ["find_recordings", "batch_reconstruct", "reconstruct_split", "MANIFEST"]
 
@@ -71,25 +72,6 @@ def _output_names(inputs, out_dir, ext):
     if len(set(out.values())) != len(out):
         raise EvtkError("inputs map to the same output name; rename them or run them in separate batches")
     return out
-
-
-def _refuse_outputs_that_are_inputs(outputs):
-    """An output that is one of the inputs (the same file by any name) would replace it: an error."""
-    inputs = {}
-    for f in outputs:
-        try:
-            st = os.stat(f)
-            inputs[(st.st_dev, st.st_ino)] = f
-        except OSError:
-            pass
-    for f, out in outputs.items():
-        try:
-            st = os.stat(out)
-        except OSError:
-            continue
-        if (st.st_dev, st.st_ino) in inputs:
-            raise EvtkError(f"the output for {f} would be {out}, which is the input "
-                            f"{inputs[(st.st_dev, st.st_ino)]}; choose another --out folder")
 
 
 def _reconstruct_one(args):
@@ -223,7 +205,7 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
         raise EvtkError("no recordings to reconstruct (give files, folders or glob patterns)")
     os.makedirs(out_dir, exist_ok=True)
     outputs = _output_names(files, out_dir, "." + fmt)
-    _refuse_outputs_that_are_inputs(outputs)
+    refuse_overwriting_inputs(outputs.values(), files)
     options = dict(options or {})
     manifest_path = os.path.join(out_dir, MANIFEST)
     old = _read_manifest(manifest_path)

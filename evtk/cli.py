@@ -14,6 +14,10 @@ from .errors import EvtkError, one_line
 from .io._atomic import refuse_overwriting_inputs
 
 
+#: Largest whole number an option takes: microseconds and counts stay far inside int64 arithmetic.
+_MAX_INT = 2**62
+
+
 class _Group(click.Group):
     """Turns evtk errors and OS errors into one line on stderr and exit code 1; usage errors into one line and 2."""
 
@@ -161,7 +165,7 @@ def info(file, as_json, salvage, check):
 )
 @click.option("--salvage", is_flag=True, help="Convert what is intact before damage.")
 @click.option("--sort", is_flag=True, help="Sort events by time (in memory) when the source is out of order.")
-@click.option("--chunk-events", type=click.IntRange(min=1), default=4_000_000, show_default=True,
+@click.option("--chunk-events", type=click.IntRange(min=1, max=_MAX_INT), default=4_000_000, show_default=True,
               help="Events held in memory at a time while streaming.")
 def convert(source, target, compression, salvage, sort, chunk_events):
     """Convert SOURCE to TARGET (format from TARGET's extension), streaming."""
@@ -202,15 +206,15 @@ def _progress(total, label):
               help="Features: .npy (h, w) or (n, h, w), or an image (binarised). Default: a 16x16 "
                    "binarised picture bundled with scikit-image.")
 @click.option("--signed", is_flag=True, help="Read 0 as -1 in kernels and features (four passes per pair).")
-@click.option("--repeat", type=click.IntRange(min=1), default=1, show_default=True, help="Times each pair is shown.")
-@click.option("--flat-field", type=click.IntRange(min=0), default=2, show_default=True,
+@click.option("--repeat", type=click.IntRange(min=1, max=_MAX_INT), default=1, show_default=True, help="Times each pair is shown.")
+@click.option("--flat-field", type=click.IntRange(min=0, max=_MAX_INT), default=2, show_default=True,
               help="Flat-field captures (all mirrors on) shown first, for per-pixel threshold calibration.")
 @click.option("--power-mw", type=float, help="Laser power (default: the bench's).")
-@click.option("--window-us", type=click.IntRange(min=1), default=1000, show_default=True,
+@click.option("--window-us", type=click.IntRange(min=1, max=_MAX_INT), default=1000, show_default=True,
               help="How long each pattern is shown.")
-@click.option("--settle-us", type=click.IntRange(min=1), help="Darkness after each pattern (default: recommended).")
+@click.option("--settle-us", type=click.IntRange(min=1, max=_MAX_INT), help="Darkness after each pattern (default: recommended).")
 @click.option("--bench", "bench_path", type=click.Path(dir_okay=False), help="Bench description (.toml or .json).")
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True)
 @click.option("--compression", type=click.Choice(["lz4", "zstd", "none", "lz4_high", "zstd_high", "gzip"]),
               default="lz4", show_default=True)
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
@@ -296,9 +300,9 @@ def _parse_size(text):
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output: .npz, .h5 or .hdf5.")
 @click.option("--window", "window_spec", default="schedule", show_default=True,
               help="schedule, triggers or period:US.")
-@click.option("--skip-us", type=click.IntRange(min=0), default=0, show_default=True,
+@click.option("--skip-us", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True,
               help="Leave out the start of every window (pixel settling).")
-@click.option("--length-us", type=click.IntRange(min=1), help="Keep at most this much of every window.")
+@click.option("--length-us", type=click.IntRange(min=1, max=_MAX_INT), help="Keep at most this much of every window.")
 @click.option("--size", default="16x16", show_default=True, help="Size of each response, ROWSxCOLS.")
 @click.option("--binarize", "binarize_method", default="sign", show_default=True,
               help="sign, mean, otsu or a threshold value.")
@@ -422,8 +426,8 @@ _scheduler_option = click.option(
 _window_options = [
     click.option("--window", "window_spec", default="schedule", show_default=True,
                  help="schedule, triggers or period:US (without a schedule every window is a repeat of one scene)."),
-    click.option("--skip-us", type=click.IntRange(min=0), default=0, show_default=True),
-    click.option("--length-us", type=click.IntRange(min=1)),
+    click.option("--skip-us", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True),
+    click.option("--length-us", type=click.IntRange(min=1, max=_MAX_INT)),
 ]
 
 
@@ -442,7 +446,7 @@ _with_window_options = _options(_window_options)
 @main.command(short_help="SINAD and effective bits (eq. 8) of every repeated scene.")
 @click.argument("recording", type=click.Path(dir_okay=False, exists=True))
 @_with_window_options
-@click.option("--bootstrap", type=click.IntRange(min=0), default=1000, show_default=True,
+@click.option("--bootstrap", type=click.IntRange(min=0, max=_MAX_INT), default=1000, show_default=True,
               help="Resamples of the repeats for the 95 % interval (0: none).")
 @click.option("--per-pixel", is_flag=True, help="Also report each pixel's SINAD (JSON only).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="ENOB per scene as a PNG.")
@@ -485,13 +489,13 @@ def _inf_if_free(row, key):
 @_with_window_options
 @click.option("--power-mw", "powers", default="0.05,0.2,1,5,20", show_default=True,
               help="Without recordings: laser powers to sweep on the simulated bench.")
-@click.option("--kernels", "n_kernels", type=click.IntRange(min=1), default=11, show_default=True,
+@click.option("--kernels", "n_kernels", type=click.IntRange(min=1, max=_MAX_INT), default=11, show_default=True,
               help="Without recordings: random signed 3x3 kernels to show.")
-@click.option("--repeats", type=click.IntRange(min=2), default=10, show_default=True,
+@click.option("--repeats", type=click.IntRange(min=2, max=_MAX_INT), default=10, show_default=True,
               help="Without recordings: captures of each kernel per power.")
-@click.option("--window-us", type=click.IntRange(min=1), default=1000, show_default=True,
+@click.option("--window-us", type=click.IntRange(min=1, max=_MAX_INT), default=1000, show_default=True,
               help="Without recordings: capture window.")
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True)
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Flip rate against power as a PNG.")
 @_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
@@ -558,10 +562,10 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
 @click.option("--power-mw", "powers", help="Laser powers to sweep (default: the bench's).")
 @click.option("--settle-us", "settles", help="Dark times after each pattern to sweep (default: recommended).")
 @click.option("--decimation", "decimations", help="Decimations to sweep (keep every d-th pixel; default 1).")
-@click.option("--kernels", "n_kernels", type=click.IntRange(min=1), default=2, show_default=True,
+@click.option("--kernels", "n_kernels", type=click.IntRange(min=1, max=_MAX_INT), default=2, show_default=True,
               help="Random signed 3x3 kernels on the default features.")
-@click.option("--repeats", type=click.IntRange(min=2), default=10, show_default=True)
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--repeats", type=click.IntRange(min=2, max=_MAX_INT), default=10, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True)
 @click.option("--fast", is_flag=True, help="Time the reconstruction from counts instead of from a written recording.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Work-precision plot as a PNG.")
 @_scheduler_option
@@ -608,8 +612,8 @@ def tradeoff(windows, powers, settles, decimations, n_kernels, repeats, seed, fa
 @main.command()
 @click.option("--out", "out_dir", default="evtk-demo", show_default=True, type=click.Path(file_okay=False),
               help="Directory for the recording, the reconstruction and the plots.")
-@click.option("--repeat", type=click.IntRange(min=2), default=10, show_default=True)
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--repeat", type=click.IntRange(min=2, max=_MAX_INT), default=10, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def demo(out_dir, repeat, seed, as_json):
     """The main job on the embedded defaults: simulate, record, reconstruct, report.
@@ -732,8 +736,8 @@ def _recorded_candidates(path, size, features):
 @click.option("--events", is_flag=True, help="Simulate candidates through the event stream, not the count path.")
 @click.option("--power-mw", "powers", default="20", show_default=True,
               help="Laser power of the simulated device; with --trials a comma-separated sweep.")
-@click.option("--trials", type=click.IntRange(min=1), help="Success rate over this many random trials per power.")
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--trials", type=click.IntRange(min=1, max=_MAX_INT), help="Success rate over this many random trials per power.")
+@click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True)
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False),
               help="PNG: Fig. 4 for one recovery, success against power for --trials.")
 @_scheduler_option
@@ -883,19 +887,19 @@ _task_options = [
                  help="Local LFW + CIFAR-10 (fnf) or EMNIST IDX files (letters-digits); default: bundled/synthetic."),
     click.option("--optimizer", type=click.Choice(["anneal", "walk", "brute", "ste"]), default="anneal",
                  show_default=True),
-    click.option("--steps", type=click.IntRange(min=1), default=600, show_default=True,
+    click.option("--steps", type=click.IntRange(min=1, max=_MAX_INT), default=600, show_default=True,
                  help="Metropolis steps per layer (anneal, walk)."),
     click.option("--temperature", type=float, default=None,
                  help="Start (anneal) or constant (walk) temperature; default 10 (anneal), 5 (walk)."),
     click.option("--final-temperature", type=float, default=0.01, show_default=True),
-    click.option("--epochs", type=click.IntRange(min=1), default=300, show_default=True, help="STE epochs."),
-    click.option("--channels", type=click.IntRange(min=1), default=1, show_default=True,
+    click.option("--epochs", type=click.IntRange(min=1, max=_MAX_INT), default=300, show_default=True, help="STE epochs."),
+    click.option("--channels", type=click.IntRange(min=1, max=_MAX_INT), default=1, show_default=True,
                  help="Kernels per layer (the paper: one)."),
     click.option("--channel-masks", is_flag=True,
                  help="Score each channel with its own mask plane (default: one plane scores the channels' mean)."),
-    click.option("--samples", "n_per_class", type=click.IntRange(min=2),
+    click.option("--samples", "n_per_class", type=click.IntRange(min=2, max=_MAX_INT),
                  help="Samples per class (letters-digits: default 1000; fnf: needs --data-dir, default 1000)."),
-    click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True),
+    click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True),
 ]
 
 
@@ -907,7 +911,7 @@ _with_task_options = _options(_task_options)
 @click.option("--backend", "backend_name", type=click.Choice(["digital", "optical"]), default="optical",
               show_default=True, help="Exact binary correlations, or every correlation through the simulated device.")
 @click.option("--power-mw", type=float, help="Laser power of the simulated device (optical backend).")
-@click.option("--runs", type=click.IntRange(min=1), default=10, show_default=True)
+@click.option("--runs", type=click.IntRange(min=1, max=_MAX_INT), default=10, show_default=True)
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default="evtk-classify", show_default=True,
               help="Where the per-run curves (runs.json) go.")
 @_scheduler_option
@@ -1019,7 +1023,7 @@ def batch():
 @click.option("--crop", type=click.Choice(["valid", "full"]), default="valid", show_default=True)
 @click.option("--format", "fmt", type=click.Choice(["h5", "npz"]), default="h5", show_default=True)
 @click.option("--force", is_flag=True, help="Redo inputs whose output exists.")
-@click.option("--split-events", type=click.IntRange(min=1), default=50_000_000, show_default=True,
+@click.option("--split-events", type=click.IntRange(min=1, max=_MAX_INT), default=50_000_000, show_default=True,
               help="Split recordings with more events than this into tasks by time.")
 @_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print the manifest as one JSON object.")

@@ -90,19 +90,27 @@ class AtomicFile:
         return False
 
 
-def refuse_overwriting_inputs(target, sources):
-    """Raise :class:`~evtk.EvtkError` when ``target`` is one of ``sources`` (the same file, by any name):
-    writing it would replace the recording being read."""
-    if not os.path.exists(target):
-        return
+def refuse_overwriting_inputs(targets, sources):
+    """Raise :class:`~evtk.EvtkError` when one of ``targets`` (a path or several) is one of ``sources`` (the
+    same file by any name, compared by device and inode): writing it would replace a recording being read."""
+    if isinstance(targets, (str, os.PathLike)):
+        targets = [targets]
+    inodes = {}
     for src in sources:
         try:
-            same = os.path.samefile(target, src)
+            st = os.stat(src)
         except OSError:
             continue
-        if same:
-            raise EvtkError(f"the output {target} is the input {src}; writing it would replace the recording "
-                            "(choose another output name)")
+        inodes.setdefault((st.st_dev, st.st_ino), src)
+    for target in targets:
+        try:
+            st = os.stat(target)
+        except OSError:
+            continue
+        src = inodes.get((st.st_dev, st.st_ino))
+        if src is not None:
+            raise EvtkError(f"the output {os.fspath(target)} is the input {os.fspath(src)}; writing it would replace "
+                            "the recording (choose another output name or folder)")
 
 
 class FailSafeFile(io.RawIOBase):
