@@ -743,3 +743,34 @@ def test_hdf5_impossible_sensor_size_is_an_error_not_printed(tmp_path, size):
         f.attrs["sensor_size"] = np.array(size)
     code, out = _cli("info", path)
     assert code == 1 and "impossible sensor size" in out and "x0" not in out.split("size")[0], out
+
+
+def test_two_batch_runs_at_once_into_one_folder_lose_no_entry(tmp_path):
+    """Two runs writing their manifests at the same moment (threads here; processes share the same lock)."""
+    import threading
+
+    from evtk.batch import batch_reconstruct
+
+    names = [f"r{k}.h5" for k in range(6)]
+    for k, name in enumerate(names):
+        _trig_recording(tmp_path / name, k)
+    out = tmp_path / "out"
+    opts = {"window": "triggers", "size": (4, 4)}
+    runs = [[tmp_path / n for n in names[:3]], [tmp_path / n for n in names[3:]]]
+    errors = []
+
+    def go(inputs):
+        try:
+            batch_reconstruct(inputs, out, opts)
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=go, args=(r,)) for r in runs]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    manifest = json.loads((out / "batch.json").read_text())
+    assert sorted(os.path.basename(e["input"]) for e in manifest["inputs"]) == names
+    assert manifest["counts"]["ok"] == 6
