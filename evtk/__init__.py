@@ -2,9 +2,18 @@
 
 from ._version import __version__
 from .errors import EvtkError, FormatError
-from .events import Events, Triggers, TriggerKind
-from .cluster import to_dask
-from .io import Recording, detect_format, open, read_events, write_events
+from .io import detect_format, open, read_events, write_events
+
+# loaded on first use (numba compiles and loads its caches when they are), so that the command line starts fast
+_LAZY = {"Events": "events", "Triggers": "events", "TriggerKind": "events", "to_dask": "cluster", "Recording": "io"}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = [
     "__version__",

@@ -8,10 +8,9 @@ import sys
 import click
 import numpy as np
 
-from . import io as evio
+from . import io as evio  # (light: its readers and writers load on first use)
 from ._version import __version__
 from .errors import EvtkError, one_line
-from .io._atomic import refuse_overwriting_inputs
 
 
 #: Largest whole number an option takes: microseconds and counts stay far inside int64 arithmetic.
@@ -169,6 +168,8 @@ def info(file, as_json, salvage, check):
               help="Events held in memory at a time while streaming.")
 def convert(source, target, compression, salvage, sort, chunk_events):
     """Convert SOURCE to TARGET (format from TARGET's extension), streaming."""
+    from .io._atomic import refuse_overwriting_inputs
+
     refuse_overwriting_inputs(target, [source])
     with evio.open(source, salvage=salvage) as rec:
         has_triggers = any(s.type == "TRIG" for s in rec.streams)
@@ -323,6 +324,8 @@ def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, bi
                     flat_field, deblur, timing, png_path, as_json):
     """Turn a recording into the convolution responses the device computed."""
     from .reconstruct import contact_sheet, save_reconstruction
+
+    from .io._atomic import refuse_overwriting_inputs
 
     refuse_overwriting_inputs(output, [recording])
     if png_path:

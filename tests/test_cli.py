@@ -216,3 +216,19 @@ def test_every_command_fails_in_one_line(tmp_path, args):
     lines = r.output.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("evtk: error: "), (argv, r.output)
     assert not (tmp_path / "out.aedat4").exists() and not (tmp_path / "out.h5").exists()
+
+
+def test_version_and_help_load_no_reader_or_compiler():
+    """`evtk --version` and `--help` start without numba, h5py, pyarrow or Dask: they load on first use."""
+    code = ("import sys\n"
+            "from evtk.cli import main\n"
+            "for args in (['--version'], ['--help'], ['info', '--help']):\n"
+            "    try:\n"
+            "        main(args)\n"
+            "    except SystemExit:\n"
+            "        pass\n"
+            "heavy = sorted(m for m in ('numba', 'h5py', 'pyarrow', 'distributed', 'scipy', 'skimage', 'matplotlib')\n"
+            "               if m in sys.modules)\n"
+            "print('HEAVY', heavy)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert "HEAVY []" in out, out

@@ -9,21 +9,27 @@ from __future__ import annotations
 import builtins
 import os
 
-import numpy as np
-
 from ..errors import EvtkError, FormatError
-from ..events import Events, Triggers
-from . import aedat4
-from .aedat4 import Recording
-from .base import BaseRecording
 
 __all__ = ["open", "open_writer", "read_events", "write_events", "detect_format", "Recording", "BaseRecording", "WRITE_EXTENSIONS"]
+
+# the readers and writers (numba, h5py, pyarrow) load on first use: `evtk --version` and `--help` start fast
+_LAZY = {"Recording": ("aedat4", "Recording"), "BaseRecording": ("base", "BaseRecording")}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        module, attr = _LAZY[name]
+        return getattr(importlib.import_module(f"{__name__}.{module}"), attr)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 #: Extension -> format name for writing.
 WRITE_EXTENSIONS = {".aedat4": "aedat4", ".h5": "hdf5", ".hdf5": "hdf5", ".parquet": "parquet", ".pq": "parquet"}
 
 _SIGNATURES = (
-    (aedat4.MAGIC, "aedat4"),
+    (b"#!AER-DAT4.0\r\n", "aedat4"),  # aedat4.MAGIC
     (b"#!AER-DAT", "aedat-other"),
     (b"\x89HDF\r\n\x1a\n", "hdf5"),
     (b"PAR1", "parquet"),
@@ -85,6 +91,8 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     """
     fmt = detect_format(path)
     if fmt in ("aedat4", "aedat-other"):
+        from .aedat4 import Recording
+
         return Recording(path, salvage=salvage)
     if fmt == "hdf5":
         from .hdf5 import Hdf5Recording
@@ -115,9 +123,13 @@ def write_events(path, events: Events, triggers: Triggers | None = None, compres
     fmt = WRITE_EXTENSIONS.get(ext)
     if fmt is None:
         raise EvtkError(f"cannot tell the format from the extension {ext!r}; use one of {sorted(WRITE_EXTENSIONS)}")
+    from ..events import Events
+
     if not isinstance(events, Events):
         raise EvtkError(f"events must be evtk.Events, got {type(events).__name__}")
     if fmt == "aedat4":
+        from . import aedat4
+
         aedat4.write_aedat4(path, events, triggers, compression=compression, metadata=metadata, **kwargs)
     elif fmt == "hdf5":
         from .hdf5 import write_hdf5
@@ -141,6 +153,11 @@ def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, trig
     if fmt is None:
         raise EvtkError(f"cannot tell the format from the extension {ext!r}; use one of {sorted(WRITE_EXTENSIONS)}")
     if fmt == "aedat4":
+        import numpy as np
+
+        from ..events import Triggers
+        from . import aedat4
+
         w = aedat4.Aedat4Writer(path, sensor_size, compression, triggers=triggers is not None, metadata=metadata)
         if triggers is not None and len(triggers):
             order = np.argsort(triggers.t, kind="stable")
