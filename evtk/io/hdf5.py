@@ -90,6 +90,7 @@ class _Layout:
         self.metadata = {}
         self.index_t = None  # index: index_t[k] <= t of event index_id[k] ...
         self.index_id = None  # ... and every event before index_id[k] is earlier than index_t[k]
+        self.notes = []  # warnings about the file the layout found while opening it
 
     def __len__(self):
         return self.n
@@ -636,6 +637,25 @@ class _PropheseeLayout(_Layout):
                 ok = idx["id"] >= 0  # Prophesee marks empty leading slots with -1
                 self.index_t = ts[ok]
                 self.index_id = np.clip(idx["id"][ok].astype(np.int64), 0, self.n)
+                offset = f["CD/indexes"].attrs.get("offset")
+                if offset is not None and np.ndim(offset) == 0 and len(self.index_t):
+                    self.index_t = self._with_offset(self.index_t, self.index_id, int(offset))
+
+    def _with_offset(self, index_t, index_id, offset):
+        """Prophesee's index times are counted from an ``offset`` attribute: the sign that agrees with the
+        stamps of an indexed event (checked where the index reaches an event); as stored when neither does
+        (the reader then finds it disagrees and reads without it)."""
+        k = int(np.searchsorted(index_id, max(1, min(self.n - 1, int(index_id[len(index_id) // 2])))))
+        k = min(k, len(index_id) - 1)
+        i = int(index_id[k])
+        if not 0 < i < self.n:
+            return index_t
+        before, at = (int(v) for v in _as_us(self.ds.fields("t")[i - 1:i + 1], self.path, "/CD/events/t"))
+        for cand in (offset, -offset):
+            t = int(index_t[k]) + cand
+            if before < t <= at:
+                return index_t + np.int64(cand)
+        return index_t
 
     def read(self, i0, i1):
         a = self.ds[i0:i1]
@@ -672,6 +692,24 @@ class _EventUtilsLayout(_Layout):
         res = f.attrs.get("sensor_resolution")
         if res is not None and len(res) == 2:
             self.sensor_size = sensor_dims(res[1], res[0], path, "attribute sensor_resolution")  # (height, width)
+            self._fit_coordinates()
+
+    def _fit_coordinates(self):
+        """Some writers store the largest coordinate seen (one less than the sensor) as the resolution:
+        the coordinates decide then, with a note (one pass over xs and ys)."""
+        w, h = self.sensor_size
+        mx = my = -1
+        for a in range(0, self.n, 1 << 22):
+            b = min(self.n, a + (1 << 22))
+            mx = max(mx, float(np.max(self.xs[a:b])))
+            my = max(my, float(np.max(self.ys[a:b])))
+        if mx >= w or my >= h:
+            fit = (max(w, int(mx) + 1), max(h, int(my) + 1))
+            if max(fit) > 65536:
+                raise FormatError(self.path, None, f"coordinates reach ({int(mx)}, {int(my)}), beyond a 16-bit sensor")
+            self.notes.append(f"the attribute sensor_resolution gives {w}x{h} but coordinates reach "
+                              f"({int(mx)}, {int(my)}); read as a {fit[0]}x{fit[1]} sensor")
+            self.sensor_size = fit
 
     def _t(self, raw):
         return _seconds_as_us(raw, self.path, self.ts.name)
@@ -778,6 +816,7 @@ class Hdf5Recording(BaseRecording):
             self._policy = _Policy(self.path, trust_external, self.salvage, os.path.getsize(self.path))
             self._root = _CheckedGroup(self._f, self._policy)
             self._layout = _guard(Hdf5Recording._detect)(self)
+            self.warnings.extend(self._layout.notes)
             self._clip_unwritten()
             if getattr(self._layout, "interrupted", False):
                 self._interrupted()
