@@ -53,7 +53,14 @@ def detect_format(path) -> str:
     for sig, name in _SIGNATURES:
         if head.startswith(sig):
             return name
-    raise FormatError(path, 0, "unrecognised file: not AEDAT4 (#!AER-DAT4.0), HDF5 or Parquet")
+    if head.startswith(b"%"):
+        from .prophesee import sniff
+
+        with builtins.open(path, "rb") as f:
+            if sniff(f.read(4096)):
+                return "prophesee"
+    raise FormatError(path, 0, "unrecognised file: not AEDAT4 (#!AER-DAT4.0), HDF5, Parquet or Prophesee "
+                               "RAW/DAT (a '%' header)")
 
 
 def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # noqa: A001
@@ -63,8 +70,8 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     Parameters
     ----------
     path : str or os.PathLike
-        An AEDAT4, HDF5 (evtk, DSEC, Prophesee or event_utils layout) or
-        Parquet file.
+        An AEDAT4, HDF5 (evtk, DSEC, Prophesee or event_utils layout),
+        Parquet, or Prophesee RAW (EVT 2.0) or DAT file.
     salvage : bool
         Recover what is intact before damage instead of raising
         :class:`~evtk.FormatError`; ``recording.damage`` says where it stopped.
@@ -94,6 +101,10 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         from .aedat4 import Recording
 
         return Recording(path, salvage=salvage)
+    if fmt == "prophesee":
+        from .prophesee import PropheseeRecording
+
+        return PropheseeRecording(path, salvage=salvage, sensor_size=sensor_size)
     if fmt == "hdf5":
         from .hdf5 import Hdf5Recording
 

@@ -1,0 +1,389 @@
+"""Prophesee RAW (EVT 2.0) and DAT (CD, version 2) recordings, read by content.
+
+Both start with a text header of lines beginning with ``%``. EVT 2.0 then
+holds little-endian 32-bit words whose top four bits give their type:
+CD_OFF (0) and CD_ON (1) carry the six low bits of the time stamp, x (11
+bits) and y (11 bits); EV_TIME_HIGH (8) carries the 28 high bits of the time
+stamp; EXT_TRIGGER (10) carries the six low bits, a channel (5 bits) and the
+edge (bit 0). DAT files follow the header with two bytes (event type 0x0C,
+event size 8) and then 8-byte events: a 32-bit time stamp and a 32-bit word
+with x (14 bits), y (14 bits) and the polarity (4 bits). Time stamps are
+microseconds as stored (faery also writes a ``% t0`` line and adds it back
+when reading; Prophesee's tools and expelliarmus do not: evtk reports it in
+``metadata`` and keeps the stamps as stored). Counters that wrap (EVT 2.0's
+34-bit time, DAT's 32-bit one) are unwrapped.
+
+The reader makes its own block index in one pass on first use (numba), so a
+time window decodes only the blocks it overlaps and streaming holds one block
+at a time; nothing in it comes from the file's claims.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from numba import njit
+
+from ..errors import EvtkError, FormatError
+from ..events import Events, Triggers
+from .base import BaseRecording, Damage, StreamInfo, sensor_dims
+
+__all__ = ["PropheseeRecording", "sniff"]
+
+BLOCK_WORDS = 1 << 20  # decoding unit: 4 MiB of EVT 2.0 words, 8 MiB of DAT events
+_MAX_HEADER = 1 << 20
+
+EVT2, DAT = "evt2", "dat"
+
+ST_OK, ST_COORD, ST_TYPE = 0, -1, -2
+
+
+def sniff(head: bytes) -> str | None:
+    """'evt2', 'evt3', 'dat' or None from a file's first bytes (its header)."""
+    if not head.startswith(b"%"):
+        return None
+    text = head[:4096].decode("latin-1").lower()
+    if "% evt 2.0" in text or "format evt2" in text:
+        return EVT2
+    if "% evt 3.0" in text or "format evt3" in text:
+        return "evt3"
+    if "% version 2" in text or "% version 1" in text or "% width" in text:
+        return DAT
+    if "% evt" in text:
+        return "evt-other"
+    return None
+
+
+def _header(path):
+    """(header lines without '%', data offset) of a Prophesee file."""
+    lines = []
+    with open(path, "rb") as f:
+        pos = 0
+        while True:
+            line = f.readline(_MAX_HEADER)
+            if not line.startswith(b"%"):
+                break
+            pos += len(line)
+            if pos > _MAX_HEADER:
+                raise FormatError(path, 0, "the text header runs past 1 MiB")
+            text = line[1:].decode("utf-8", "replace").strip()
+            if text == "end":  # OpenEB closes newer headers with '% end'
+                break
+            lines.append(text)
+    return lines, pos
+
+
+def _sensor_from_header(lines, path):
+    for line in lines:
+        low = line.lower()
+        if low.startswith("geometry"):
+            parts = line.split(None, 1)[-1].lower().split("x")
+            if len(parts) == 2:
+                return sensor_dims(parts[0], parts[1], path, "the header's geometry")
+        if low.startswith("format") and "width=" in low:
+            fields = dict(p.split("=", 1) for p in line.split(None, 1)[-1].split(";") if "=" in p)
+            if "width" in fields and "height" in fields:
+                return sensor_dims(fields["width"], fields["height"], path, "the header's format line")
+    keys = {line.split(None, 1)[0].lower(): line.split(None, 1)[-1] for line in lines if line.split()}
+    if "width" in keys and "height" in keys:
+        return sensor_dims(keys["width"], keys["height"], path, "the header's Width and Height")
+    return None
+
+
+# -- decoding (numba) -------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def _evt2_scan(words, high0, epoch0):
+    """One pass over EVT 2.0 words: (events, triggers, last time high, epoch, min t, max t)."""
+    high = high0
+    epoch = epoch0
+    n_ev = 0
+    n_tr = 0
+    t_min = np.int64(2**62)
+    t_max = np.int64(-(2**62))
+    for i in range(len(words)):
+        w = np.int64(words[i])
+        kind = w >> 28
+        if kind == 8:
+            new = w & 0xFFFFFFF
+            if new < high and high - new > (1 << 27):  # the 28-bit counter wrapped
+                epoch += 1
+            high = new
+        elif kind == 0 or kind == 1 or kind == 10:
+            t = (epoch << 34) | (high << 6) | ((w >> 22) & 0x3F)
+            if kind == 10:
+                n_tr += 1
+            else:
+                n_ev += 1
+                if t < t_min:
+                    t_min = t
+                if t > t_max:
+                    t_max = t
+    return n_ev, n_tr, high, epoch, t_min, t_max
+
+
+@njit(cache=True, nogil=True)
+def _evt2_decode(words, high0, epoch0, width, height, t, x, y, p, tt, tk):
+    """Decode EVT 2.0 words; returns (events, triggers, status, word index of a bad event)."""
+    high = high0
+    epoch = epoch0
+    n = 0
+    m = 0
+    for i in range(len(words)):
+        w = np.int64(words[i])
+        kind = w >> 28
+        if kind == 8:
+            new = w & 0xFFFFFFF
+            if new < high and high - new > (1 << 27):
+                epoch += 1
+            high = new
+        elif kind == 0 or kind == 1:
+            xi = (w >> 11) & 0x7FF
+            yi = w & 0x7FF
+            if xi >= width or yi >= height:
+                return n, m, ST_COORD, i
+            t[n] = (epoch << 34) | (high << 6) | ((w >> 22) & 0x3F)
+            x[n] = xi
+            y[n] = yi
+            p[n] = kind
+            n += 1
+        elif kind == 10:
+            tt[m] = (epoch << 34) | (high << 6) | ((w >> 22) & 0x3F)
+            # the edge in bit 0, the channel in bits 8..12: kind 1 rising, 2 falling (evtk's Triggers)
+            tk[m] = 1 if (w & 1) else 2
+            m += 1
+        elif kind != 14 and kind != 15:  # OTHERS and CONTINUED carry no events; no other type exists
+            return n, m, ST_TYPE, i
+    return n, m, ST_OK, -1
+
+
+@njit(cache=True, nogil=True)
+def _dat_decode(raw, t_prev0, epoch0, width, height, t, x, y, p):
+    """Decode DAT CD events (pairs of uint32: time stamp, data); returns (events, status, bad index,
+    last raw time, epoch)."""
+    prev = t_prev0
+    epoch = epoch0
+    n = len(raw) // 2
+    for i in range(n):
+        ts = np.int64(raw[2 * i])
+        d = np.int64(raw[2 * i + 1])
+        if ts < prev and prev - ts > (1 << 31):  # the 32-bit counter wrapped
+            epoch += 1
+        prev = ts
+        xi = d & 0x3FFF
+        yi = (d >> 14) & 0x3FFF
+        if xi >= width or yi >= height:
+            return i, ST_COORD, i, prev, epoch
+        t[i] = (epoch << 32) | ts
+        x[i] = xi
+        y[i] = yi
+        p[i] = 1 if (d >> 28) & 0xF else 0
+    return n, ST_OK, -1, prev, epoch
+
+
+class PropheseeRecording(BaseRecording):
+    """A Prophesee RAW (EVT 2.0) or DAT recording.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    salvage : bool
+        Read what is intact before damage (an event off the sensor, a file
+        cut inside an event) instead of raising.
+    sensor_size : (int, int), optional
+        For files whose header does not give it.
+    """
+
+    format = "prophesee"
+
+    def __init__(self, path, salvage=False, sensor_size=None):
+        super().__init__(path, salvage)
+        with open(self.path, "rb") as f:
+            kind = sniff(f.read(4096))
+        if kind == "evt3":
+            raise FormatError(self.path, 0, "Prophesee EVT 3.0 is not read yet; convert it with Prophesee's "
+                                            "metavision_file_to_hdf5 or faery to EVT 2.0, DAT or HDF5")
+        if kind not in (EVT2, DAT):
+            raise FormatError(self.path, 0, "not a Prophesee EVT 2.0 or DAT file (no recognised % header)")
+        self.encoding = kind
+        self._lines, self._start = _header(self.path)
+        size = _sensor_from_header(self._lines, self.path)
+        if sensor_size is not None:
+            size = sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size")
+        if size is None:
+            raise FormatError(self.path, 0, "the header gives no sensor size (geometry, format or Width/Height); "
+                                            "pass sensor_size=(width, height)")
+        self._size = size
+        self._file_bytes = os.path.getsize(self.path)
+        item = 4
+        if kind == DAT:
+            with open(self.path, "rb") as f:
+                f.seek(self._start)
+                head = f.read(2)
+            if len(head) < 2:
+                raise FormatError(self.path, self._start, "the file ends before the event type and size bytes")
+            if head[1] != 8:
+                raise FormatError(self.path, self._start + 1, f"DAT events of {head[1]} bytes; evtk reads 8-byte events")
+            if head[0] not in (0x0C, 0x00):
+                raise FormatError(self.path, self._start, f"DAT event type {head[0]:#x}; evtk reads CD events (0x0c)")
+            self._start += 2
+            item = 8
+        self._item = item
+        body = self._file_bytes - self._start
+        self._count = body // item
+        if body % item:
+            where = self._start + self._count * item
+            problem = f"the file ends inside an event ({body % item} of {item} bytes)"
+            if not self.salvage:
+                raise FormatError(self.path, where, problem + "; salvage reads the events before it")
+            self.damage = Damage(where, problem)
+        self._blocks = None  # per block: start state, events, triggers, min t, max t
+        self._triggers = None
+
+    # -- raw access ---------------------------------------------------------------------------------------------
+    def _words(self, b):
+        """uint32 words of block ``b`` (DAT: pairs of them)."""
+        per = BLOCK_WORDS if self.encoding == EVT2 else BLOCK_WORDS // 2
+        a = b * per
+        n = min(per, self._count - a)
+        with open(self.path, "rb") as f:
+            f.seek(self._start + a * self._item)
+            raw = f.read(n * self._item)
+        return np.frombuffer(raw, "<u4")
+
+    def _n_blocks(self):
+        per = BLOCK_WORDS if self.encoding == EVT2 else BLOCK_WORDS // 2
+        return -(-self._count // per)
+
+    def _index(self):
+        """One pass over the file: every block's decoder state at its start and its counts and time range."""
+        if self._blocks is None:
+            rows = []
+            state = (np.int64(0), np.int64(0))
+            for b in range(self._n_blocks()):
+                w = self._words(b)
+                if self.encoding == EVT2:
+                    n_ev, n_tr, high, epoch, lo, hi = _evt2_scan(w, *state)
+                    rows.append((state, int(n_ev), int(n_tr), int(lo), int(hi)))
+                    state = (np.int64(high), np.int64(epoch))
+                else:
+                    ts = w[0::2].astype(np.int64)
+                    prev, epoch = int(state[0]), int(state[1])
+                    wraps = np.flatnonzero((np.diff(np.concatenate([[prev], ts])) < -(1 << 31)))
+                    full = ts.copy()
+                    k = epoch
+                    # unwrap: every wrap adds 2^32 from there on
+                    steps = np.zeros(len(ts), np.int64)
+                    steps[wraps] = 1
+                    full += (np.cumsum(steps) + k) << 32
+                    rows.append((state, len(ts), 0, int(full.min()) if len(ts) else 0,
+                                 int(full.max()) if len(ts) else -1))
+                    state = (np.int64(ts[-1]) if len(ts) else np.int64(prev), np.int64(k + len(wraps)))
+            self._blocks = rows
+        return self._blocks
+
+    def _decode_block(self, b):
+        """(Events, Triggers, problem) of block ``b``; a problem stops salvage there."""
+        state, n_ev, n_tr, _, _ = self._index()[b]
+        w, h = self._size
+        t = np.empty(n_ev, np.int64)
+        x = np.empty(n_ev, np.uint16)
+        y = np.empty(n_ev, np.uint16)
+        p = np.empty(n_ev, np.uint8)
+        tt = np.empty(n_tr, np.int64)
+        tk = np.empty(n_tr, np.uint8)
+        words = self._words(b)
+        if self.encoding == EVT2:
+            n, m, st, bad = _evt2_decode(words, state[0], state[1], w, h, t, x, y, p, tt, tk)
+            at = self._start + 4 * (b * BLOCK_WORDS + bad)
+        else:
+            n, st, bad, _, _ = _dat_decode(words, state[0], state[1], w, h, t, x, y, p)
+            m = 0
+            at = self._start + 8 * (b * (BLOCK_WORDS // 2) + bad)
+        problem = None
+        if st == ST_COORD:
+            problem = (at, f"an event lies outside the {w}x{h} sensor")
+        elif st == ST_TYPE:
+            problem = (at, f"word of unknown type {int(words[bad]) >> 28} (EVT 2.0 has 0, 1, 8, 10, 14 and 15)")
+        ev = Events._trusted(t[:n], x[:n], y[:n], p[:n], self._size)
+        return ev, Triggers(tt[:m], tk[:m]), problem
+
+    def _stop(self, problem):
+        at, reason = problem
+        if not self.salvage:
+            raise FormatError(self.path, at, reason)
+        if self.damage is None or (self.damage.offset is not None and at < self.damage.offset):
+            self.damage = Damage(at, reason)
+
+    # -- interface ----------------------------------------------------------------------------------------------
+    @property
+    def sensor_size(self):
+        return self._size
+
+    @property
+    def metadata(self) -> dict:
+        out = {"encoding": self.encoding, "header": list(self._lines)}
+        for line in self._lines:
+            parts = line.split()
+            if len(parts) == 2 and parts[0].lower() == "t0" and parts[1].lstrip("-").isdigit():
+                out["header_t0_us"] = int(parts[1])
+        return out
+
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
+        self._check_open()
+        chunk_events = int(chunk_events)
+        if chunk_events < 1:
+            raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
+        pending, held = [], 0
+        for b, (_, n_ev, _, lo, hi) in enumerate(self._index()):
+            if n_ev and ((t_start_us is not None and hi < t_start_us) or (t_end_us is not None and lo >= t_end_us)):
+                continue
+            ev, _, problem = self._decode_block(b)
+            if t_start_us is not None or t_end_us is not None:
+                ev = ev.between(t_start_us, t_end_us)
+            if len(ev):
+                pending.append(ev)
+                held += len(ev)
+            while held >= chunk_events:
+                joined = Events.concatenate(pending, sensor_size=self._size)
+                yield joined[:chunk_events]
+                rest = joined[chunk_events:]
+                pending, held = ([rest] if len(rest) else []), len(rest)
+            if problem:
+                self._stop(problem)
+                break
+        if held:
+            yield Events.concatenate(pending, sensor_size=self._size)
+
+    def events(self, t_start_us=None, t_end_us=None) -> Events:
+        parts = list(self.iter_events(1 << 62, t_start_us, t_end_us))
+        return Events.concatenate(parts, sensor_size=self._size) if parts else Events.empty(self._size)
+
+    def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
+        self._check_open()
+        if self._triggers is None:
+            parts = []
+            for b, (_, _, n_tr, _, _) in enumerate(self._index()):
+                if n_tr:
+                    parts.append(self._decode_block(b)[1])
+            self._triggers = Triggers.concatenate(parts)
+        tr = self._triggers
+        return tr.between(t_start_us, t_end_us) if (t_start_us is not None or t_end_us is not None) else tr
+
+    @property
+    def streams(self):
+        rows = self._index()
+        n = sum(r[1] for r in rows)
+        lo = min((r[3] for r in rows if r[1]), default=None)
+        hi = max((r[4] for r in rows if r[1]), default=None)
+        out = [StreamInfo(0, "events", "EVTS", packets=len(rows), count=n, t_start_us=lo, t_end_us=hi,
+                          sensor_size=self._size)]
+        n_tr = sum(r[2] for r in rows)
+        if n_tr:
+            out.append(StreamInfo(1, "triggers", "TRIG", packets=len(rows), count=n_tr))
+        return out
+
+    def _extra_info(self):
+        return {"encoding": self.encoding}

@@ -1,0 +1,121 @@
+"""Prophesee RAW (EVT 2.0) and DAT files (issue 20), against faery and expelliarmus as oracles."""
+
+import struct
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import evtk
+from conftest import random_events
+from evtk.cli import main
+from evtk.io import prophesee
+
+faery = pytest.importorskip("faery")
+expelliarmus = pytest.importorskip("expelliarmus")
+
+
+def _faery_write(path, ev, version):
+    arr = np.zeros(len(ev), faery.EVENTS_DTYPE)
+    arr["t"], arr["x"], arr["y"], arr["on"] = ev.t, ev.x, ev.y, ev.p.astype(bool)
+    faery.events_stream_from_array(arr, tuple(ev.sensor_size)).to_file(str(path), version=version)
+
+
+@pytest.fixture(params=[("evt2", ".raw"), ("dat2", ".dat")], ids=["evt2", "dat"])
+def written(request, tmp_path):
+    version, ext = request.param
+    ev = random_events(30_000, seed=4, sensor_size=(1280, 720), t0=5_000, span_us=3_000_000)
+    path = tmp_path / f"rec{ext}"
+    _faery_write(path, ev, version)
+    return path, ev, "evt2" if version == "evt2" else "dat"
+
+
+def test_read_equals_both_public_readers(written):
+    path, ev, enc = written
+    with evtk.open(path) as rec:
+        got = rec.events()
+        t0 = rec.metadata["header_t0_us"]
+        assert rec.sensor_size == (1280, 720) and rec.info()["events"] == len(ev)
+    ex = expelliarmus.Wizard(encoding=enc).read(str(path))
+    fa = np.concatenate(list(faery.events_stream_from_file(str(path))))
+    # the stamps as stored (Prophesee's tools, expelliarmus); faery adds its own '% t0' header line back
+    assert np.array_equal(got.t, ex["t"]) and np.array_equal(got.t + t0, fa["t"])
+    assert np.array_equal(got.t + t0, ev.t)
+    for c in "xy":
+        assert np.array_equal(getattr(got, c), ex[c]) and np.array_equal(getattr(got, c), fa[c])
+    assert np.array_equal(got.p, ex["p"]) and np.array_equal(got.p.astype(bool), fa["on"])
+
+
+def test_windows_and_chunks_are_exact_over_many_blocks(written, monkeypatch):
+    path, ev, _ = written
+    monkeypatch.setattr(prophesee, "BLOCK_WORDS", 2048)  # some fifty blocks
+    with evtk.open(path) as rec:
+        whole = rec.events()
+        assert len(rec._index()) > 10
+        for lo, hi in [(0, 1), (100_000, 250_000), (1_234_567, 1_240_000), (2_999_000, 10**9)]:
+            assert rec.events(lo, hi) == whole.between(lo, hi)
+        chunks = list(rec.iter_events(chunk_events=777))
+        assert all(len(c) == 777 for c in chunks[:-1])
+        assert evtk.Events.concatenate(chunks) == whole
+
+
+def _evt2(words, sensor=(640, 480)):
+    head = f"% evt 2.0\n% format EVT2;width={sensor[0]};height={sensor[1]}\n".encode()
+    return head + np.asarray(words, "<u4").tobytes()
+
+
+def _cd(t_low, x, y, on=1):
+    return (on << 28) | (t_low << 22) | (x << 11) | y
+
+
+def test_triggers_and_wrapping_time(tmp_path):
+    words = [(8 << 28) | 0xFFFFFFF, _cd(5, 1, 2), (10 << 28) | (6 << 22) | 1,  # rising edge
+             (8 << 28) | 0, _cd(3, 3, 4, 0), (10 << 28) | (9 << 22) | (3 << 8)]  # the counter wrapped; falling
+    path = tmp_path / "w.raw"
+    path.write_bytes(_evt2(words))
+    with evtk.open(path) as rec:
+        ev, tr = rec.events(), rec.triggers()
+    top = (0xFFFFFFF << 6)
+    assert ev.t.tolist() == [top | 5, (1 << 34) | 3] and ev.x.tolist() == [1, 3] and ev.p.tolist() == [1, 0]
+    assert tr.t.tolist() == [top | 6, (1 << 34) | 9] and tr.kind.tolist() == [1, 2]
+
+
+def test_damage_is_an_error_and_salvage_keeps_the_intact_prefix(tmp_path):
+    words = [(8 << 28) | 1] + [_cd(k % 64, k, k) for k in range(100)]
+    path = tmp_path / "d.raw"
+    data = _evt2(words)
+    path.write_bytes(data[:-2])  # cut inside the last word
+    with pytest.raises(evtk.FormatError, match="ends inside an event"):
+        evtk.open(path)
+    with evtk.open(path, salvage=True) as rec:
+        assert len(rec.events()) == 99 and rec.damage is not None
+    bad = list(words)
+    bad[50] = _cd(0, 700, 1)  # off a 640-pixel-wide sensor
+    path.write_bytes(_evt2(bad))
+    with pytest.raises(evtk.FormatError, match="outside the 640x480 sensor"):
+        evtk.read_events(path)
+    with evtk.open(path, salvage=True) as rec:
+        assert rec.events().x.tolist() == list(range(49))
+    bad[50] = 5 << 28  # a type EVT 2.0 does not have
+    path.write_bytes(_evt2(bad))
+    with pytest.raises(evtk.FormatError, match="unknown type 5"):
+        evtk.read_events(path)
+
+
+def test_cli_info_and_convert(written, tmp_path):
+    path, ev, _ = written
+    r = CliRunner().invoke(main, ["info", "--json", str(path)])
+    assert r.exit_code == 0 and '"format": "prophesee"' in r.output
+    out = tmp_path / "c.h5"
+    r = CliRunner().invoke(main, ["convert", str(path), str(out)])
+    assert r.exit_code == 0, r.output
+    assert evtk.read_events(out) == evtk.read_events(path)
+
+
+def test_header_without_size_needs_one(tmp_path):
+    path = tmp_path / "n.raw"
+    path.write_bytes(b"% evt 2.0\n" + np.asarray([_cd(1, 1, 1)], "<u4").tobytes())
+    with pytest.raises(evtk.FormatError, match="no sensor size"):
+        evtk.open(path)
+    with evtk.open(path, sensor_size=(640, 480)) as rec:
+        assert len(rec.events()) == 1
