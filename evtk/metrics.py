@@ -128,21 +128,38 @@ def _as_repeats(captures, what):
     return x
 
 
-def _pair_terms(x):
-    """Pixel-pooled half squared differences of every pair of repeats, and each repeat's mean square.
+#: Most groups of repeats the bootstrap resamples: more repeats are resampled in contiguous blocks.
+MAX_BOOTSTRAP_GROUPS = 64
 
-    ``d[r, s] = mean_p (x[r, p] - x[s, p])^2 / 2``; the mean of ``d`` over
-    pairs ``r < s`` is the pooled per-pixel variance (ddof 1). Computed on
-    data centred per pixel, so large means with tiny noise lose nothing.
+
+def _group_terms(x, groups):
+    """Sufficient statistics of contiguous groups of repeats, in one pass over the captures.
+
+    With ``xc`` the captures centred per pixel and ``d_ij = mean_p (xc_i - xc_j)^2 / 2`` (half the squared
+    difference of repeats i and j, pooled over pixels), returns ``(M, N, P, n)``: ``M[g, h]`` the sum of
+    ``d_ij`` over i in g and j in h (i != j; twice the within-group sum on the diagonal), ``N`` the number
+    of such pairs, ``P[g]`` the summed mean square of g's repeats and ``n[g]`` their number. Memory is
+    groups x pixels; no repeat-by-repeat matrix is formed. Centring keeps large means with tiny noise exact.
     """
     r, p = x.shape
-    xc = x - x.mean(axis=0)
-    d = np.zeros((r, r))
-    for i in range(r - 1):
-        diff = xc[i + 1:] - xc[i]
-        d[i, i + 1:] = d[i + 1:, i] = np.einsum("rp,rp->r", diff, diff) / (2.0 * p)
-    ms = np.einsum("rp,rp->r", x, x) / p
-    return d, ms
+    bounds = np.linspace(0, r, groups + 1).round().astype(np.int64)
+    n = np.diff(bounds).astype(np.float64)
+    mean = x.mean(axis=0)
+    s1 = np.empty((groups, p))
+    a = np.empty(groups)
+    power = np.empty(groups)
+    for g in range(groups):
+        block = x[bounds[g]:bounds[g + 1]]
+        xc = block - mean
+        s1[g] = xc.sum(axis=0)
+        a[g] = np.einsum("rp,rp->", xc, xc) / p
+        power[g] = np.einsum("rp,rp->", block, block) / p
+    k = s1 @ s1.T / p
+    m = (n[None, :] * a[:, None] + n[:, None] * a[None, :] - 2.0 * k) / 2.0  # between groups
+    np.fill_diagonal(m, n * a - np.diag(k))  # twice the within-group sum
+    pairs = np.outer(n, n)
+    np.fill_diagonal(pairs, n * (n - 1))
+    return m, pairs, power, n
 
 
 def sinad(captures, per_pixel=False, bootstrap=1000, confidence=0.95, seed=0) -> SinadReport:
@@ -186,16 +203,17 @@ def sinad(captures, per_pixel=False, bootstrap=1000, confidence=0.95, seed=0) ->
     if not 0 < confidence < 1:
         raise EvtkError(f"confidence must be between 0 and 1, not {confidence}")
     r, p = x.shape
-    d, ms_r = _pair_terms(x)
-    power = float(ms_r.mean())
+    power = float(np.einsum("rp,rp->", x, x) / x.size)
     if power == 0.0:
         raise EvtkError("SINAD: the signal is zero everywhere (no light reached the pixels?)")
-    noise = float(d[np.triu_indices(r, 1)].mean())
+    xc = x - x.mean(axis=0)
+    noise = float(np.einsum("rp,rp->", xc, xc) / ((r - 1) * p))  # pooled per-pixel variance, ddof 1
+    del xc
     s_db = _ratio_db(power, noise)
     report = SinadReport(s_db, enob_bits(s_db), noise == 0.0, math.sqrt(power), math.sqrt(noise), r, p,
                          confidence=confidence)
     if bootstrap and r >= 3:
-        boot = _bootstrap_db(d, ms_r, int(bootstrap), seed)
+        boot = _bootstrap_db(_group_terms(x, min(r, MAX_BOOTSTRAP_GROUPS)), int(bootstrap), seed)
         a = (1.0 - confidence) / 2
         srt = np.sort(boot)
         lo = srt[int(math.floor(a * (srt.size - 1)))]
@@ -217,28 +235,33 @@ def _ratio_db(power, noise):
     return math.inf if noise == 0.0 else 10.0 * math.log10(power / noise)
 
 
-def _bootstrap_db(d, ms_r, n, seed):
-    """SINAD of ``n`` resamplings of the repeats, noise from pairs of distinct repeats only.
+def _bootstrap_db(terms, n, seed):
+    """SINAD of ``n`` resamplings of the groups of repeats (:func:`_group_terms`; one repeat a group up to
+    :data:`MAX_BOOTSTRAP_GROUPS` repeats, contiguous blocks beyond), noise from pairs of distinct repeats only.
 
     Resampling a repeat twice adds a pair with no difference; the pooled
     variance is a mean over pairs, so only pairs of different original
     repeats enter (a U-statistic bootstrap), which keeps the interval centred
-    on the estimate. Resamples that draw one repeat only are skipped.
+    on the estimate. With a resample's group counts ``c`` the noise is
+    ``c'Mc / c'Nc`` and the power ``c.P / c.n``: time and memory grow with the
+    groups and the resamples, not with the repeats. Resamples without a pair
+    of distinct repeats are skipped.
     """
-    r = ms_r.size
+    m, pairs, power, sizes = terms
+    g = sizes.size
     rng = np.random.default_rng(seed)
     out = []
+    rows = np.arange(min(n, 4096))[:, None]
     while len(out) < n:
-        idx = rng.integers(0, r, size=(n, r))
-        dd = d[idx[:, :, None], idx[:, None, :]]  # (n, r, r), zero where the same repeat meets itself
-        distinct = idx[:, :, None] != idx[:, None, :]
-        upper = np.triu(np.ones((r, r), bool), 1)[None]
-        pairs = (distinct & upper).sum(axis=(1, 2))
-        ok = pairs > 0
-        noise = (dd * upper).sum(axis=(1, 2))[ok] / pairs[ok]
-        power = ms_r[idx[ok]].mean(axis=1)
+        idx = rng.integers(0, g, size=(rows.shape[0], g))
+        c = np.zeros((rows.shape[0], g))
+        np.add.at(c, (np.broadcast_to(rows, idx.shape), idx), 1.0)
+        npairs = np.einsum("bg,gh,bh->b", c, pairs, c)
+        ok = npairs > 0
+        noise = np.einsum("bg,gh,bh->b", c[ok], m, c[ok]) / npairs[ok]
+        pw = (c[ok] @ power) / (c[ok] @ sizes)
         with np.errstate(divide="ignore"):
-            out.extend(np.where(noise > 0, 10.0 * np.log10(power / np.where(noise > 0, noise, 1.0)), np.inf))
+            out.extend(np.where(noise > 0, 10.0 * np.log10(pw / np.where(noise > 0, noise, 1.0)), np.inf))
     return np.asarray(out[:n])
 
 
