@@ -1,4 +1,4 @@
-"""Prophesee RAW (EVT 2.0) and DAT (CD, version 2) recordings, read by content.
+"""Prophesee RAW (EVT 2.0 and 3.0) and DAT (CD, version 2) recordings, read by content.
 
 Both start with a text header of lines beginning with ``%``. EVT 2.0 then
 holds little-endian 32-bit words whose top four bits give their type:
@@ -7,7 +7,12 @@ bits) and y (11 bits); EV_TIME_HIGH (8) carries the 28 high bits of the time
 stamp; EXT_TRIGGER (10) carries the six low bits, a channel (5 bits) and the
 edge (bit 0). DAT files follow the header with two bytes (event type 0x0C,
 event size 8) and then 8-byte events: a 32-bit time stamp and a 32-bit word
-with x (14 bits), y (14 bits) and the polarity (4 bits). Time stamps are
+with x (14 bits), y (14 bits) and the polarity (4 bits). EVT 3.0 holds 16-bit
+words (type in the top four bits): y (0), a single x with its polarity (2),
+the base x and polarity of a vector (3), 12- and 8-pixel vector masks (4, 5),
+the low and high twelve bits of a 24-bit time stamp (6, 8) and triggers (10),
+following Prophesee's documentation; the 24-bit time is unwrapped (public
+decoders differ on some files' stamps: evtk follows the documented format). Time stamps are
 microseconds as stored (faery also writes a ``% t0`` line and adds it back
 when reading; Prophesee's tools and expelliarmus do not: evtk reports it in
 ``metadata`` and keeps the stamps as stored). Counters that wrap (EVT 2.0's
@@ -34,7 +39,7 @@ __all__ = ["PropheseeRecording", "sniff"]
 BLOCK_WORDS = 1 << 20  # decoding unit: 4 MiB of EVT 2.0 words, 8 MiB of DAT events
 _MAX_HEADER = 1 << 20
 
-EVT2, DAT = "evt2", "dat"
+EVT2, EVT3, DAT = "evt2", "evt3", "dat"
 
 ST_OK, ST_COORD, ST_TYPE = 0, -1, -2
 
@@ -47,7 +52,7 @@ def sniff(head: bytes) -> str | None:
     if "% evt 2.0" in text or "format evt2" in text:
         return EVT2
     if "% evt 3.0" in text or "format evt3" in text:
-        return "evt3"
+        return EVT3
     if "% version 2" in text or "% version 1" in text or "% width" in text:
         return DAT
     if "% evt" in text:
@@ -183,8 +188,94 @@ def _dat_decode(raw, t_prev0, epoch0, width, height, t, x, y, p):
     return n, ST_OK, -1, prev, epoch
 
 
+# EVT 3.0 decoder state: time high, time low, epoch (wraps of the 24-bit time), y, vector base x, polarity
+_E3_HIGH, _E3_LOW, _E3_EPOCH, _E3_Y, _E3_BASE, _E3_POL = range(6)
+
+
+@njit(cache=True, nogil=True)
+def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk):
+    """One pass over EVT 3.0 words (16 bits, type in the top four): counts, or with ``decode`` the events
+    and triggers. ``state`` (:data:`_E3_HIGH` ...) carries over from the previous block and is updated.
+    Returns (events, triggers, status, word index of the problem, min t, max t)."""
+    high = state[_E3_HIGH]
+    low = state[_E3_LOW]
+    epoch = state[_E3_EPOCH]
+    yy = state[_E3_Y]
+    base = state[_E3_BASE]
+    pol = state[_E3_POL]
+    n = 0
+    m = 0
+    t_min = np.int64(2**62)
+    t_max = np.int64(-(2**62))
+    status = ST_OK
+    bad = -1
+    for i in range(len(words)):
+        w = np.int64(words[i])
+        kind = w >> 12
+        v = w & 0xFFF
+        if kind == 0:  # EVT_ADDR_Y
+            yy = v & 0x7FF
+        elif kind == 2 or kind == 4 or kind == 5:  # EVT_ADDR_X, VECT_12, VECT_8
+            if kind == 2:
+                first, mask, step = v & 0x7FF, np.int64(1), 0
+                ep = (v >> 11) & 1
+            else:
+                first, mask, step = base, v if kind == 4 else v & 0xFF, 12 if kind == 4 else 8
+                ep = pol
+            tcur = (epoch << 24) | (high << 12) | low
+            for k in range(12):
+                if (mask >> k) & 1:
+                    xi = first + k
+                    if xi >= width or yy >= height:
+                        status = ST_COORD
+                        bad = i
+                        break
+                    if decode:
+                        t[n] = tcur
+                        x[n] = xi
+                        y[n] = yy
+                        p[n] = ep
+                    n += 1
+                    if tcur < t_min:
+                        t_min = tcur
+                    if tcur > t_max:
+                        t_max = tcur
+            if status != ST_OK:
+                break
+            base += step
+        elif kind == 3:  # VECT_BASE_X
+            base = v & 0x7FF
+            pol = (v >> 11) & 1
+        elif kind == 6:  # EVT_TIME_LOW
+            low = v
+        elif kind == 8:  # EVT_TIME_HIGH
+            if v < high and high - v > 2048:  # the 24-bit time wrapped
+                epoch += 1
+            high = v
+        elif kind == 10:  # EXT_TRIGGER: the edge in bit 0, the channel in bits 8..11
+            if decode:
+                tt[m] = (epoch << 24) | (high << 12) | low
+                tk[m] = 1 if (v & 1) else 2
+            m += 1
+        elif kind != 7 and kind != 14 and kind != 15:  # CONTINUED_4, OTHERS, CONTINUED_12
+            status = ST_TYPE
+            bad = i
+            break
+    state[_E3_HIGH] = high
+    state[_E3_LOW] = low
+    state[_E3_EPOCH] = epoch
+    state[_E3_Y] = yy
+    state[_E3_BASE] = base
+    state[_E3_POL] = pol
+    return n, m, status, bad, t_min, t_max
+
+
+_NO_OUT = (np.empty(0, np.int64), np.empty(0, np.uint16), np.empty(0, np.uint16), np.empty(0, np.uint8),
+           np.empty(0, np.int64), np.empty(0, np.uint8))
+
+
 class PropheseeRecording(BaseRecording):
-    """A Prophesee RAW (EVT 2.0) or DAT recording.
+    """A Prophesee RAW (EVT 2.0 or 3.0) or DAT recording.
 
     Parameters
     ----------
@@ -202,11 +293,8 @@ class PropheseeRecording(BaseRecording):
         super().__init__(path, salvage)
         with open(self.path, "rb") as f:
             kind = sniff(f.read(4096))
-        if kind == "evt3":
-            raise FormatError(self.path, 0, "Prophesee EVT 3.0 is not read yet; convert it with Prophesee's "
-                                            "metavision_file_to_hdf5 or faery to EVT 2.0, DAT or HDF5")
-        if kind not in (EVT2, DAT):
-            raise FormatError(self.path, 0, "not a Prophesee EVT 2.0 or DAT file (no recognised % header)")
+        if kind not in (EVT2, EVT3, DAT):
+            raise FormatError(self.path, 0, "not a Prophesee EVT 2.0, EVT 3.0 or DAT file (no recognised % header)")
         self.encoding = kind
         self._lines, self._start = _header(self.path)
         size = _sensor_from_header(self._lines, self.path)
@@ -230,6 +318,8 @@ class PropheseeRecording(BaseRecording):
                 raise FormatError(self.path, self._start, f"DAT event type {head[0]:#x}; evtk reads CD events (0x0c)")
             self._start += 2
             item = 8
+        if kind == EVT3:
+            item = 2
         self._item = item
         body = self._file_bytes - self._start
         self._count = body // item
@@ -243,19 +333,22 @@ class PropheseeRecording(BaseRecording):
         self._triggers = None
 
     # -- raw access ---------------------------------------------------------------------------------------------
+    def _per_block(self):
+        """Items (words, DAT events) in a block."""
+        return BLOCK_WORDS // 2 if self.encoding == DAT else BLOCK_WORDS
+
     def _words(self, b):
-        """uint32 words of block ``b`` (DAT: pairs of them)."""
-        per = BLOCK_WORDS if self.encoding == EVT2 else BLOCK_WORDS // 2
+        """Words of block ``b``: uint32 (DAT: pairs of them), uint16 for EVT 3.0."""
+        per = self._per_block()
         a = b * per
         n = min(per, self._count - a)
         with open(self.path, "rb") as f:
             f.seek(self._start + a * self._item)
             raw = f.read(n * self._item)
-        return np.frombuffer(raw, "<u4")
+        return np.frombuffer(raw, "<u2" if self.encoding == EVT3 else "<u4")
 
     def _n_blocks(self):
-        per = BLOCK_WORDS if self.encoding == EVT2 else BLOCK_WORDS // 2
-        return -(-self._count // per)
+        return -(-self._count // self._per_block())
 
     def _index(self):
         """One pass over the file: every block's decoder state at its start and its counts and time range."""
@@ -264,7 +357,13 @@ class PropheseeRecording(BaseRecording):
             state = (np.int64(0), np.int64(0))
             for b in range(self._n_blocks()):
                 w = self._words(b)
-                if self.encoding == EVT2:
+                if self.encoding == EVT3:
+                    if b == 0:
+                        state = np.zeros(6, np.int64)
+                    start = state.copy()
+                    n_ev, n_tr, _, _, lo, hi = _evt3_run(w, state, 1 << 16, 1 << 16, False, *_NO_OUT)
+                    rows.append((start, int(n_ev), int(n_tr), int(lo), int(hi)))
+                elif self.encoding == EVT2:
                     n_ev, n_tr, high, epoch, lo, hi = _evt2_scan(w, *state)
                     rows.append((state, int(n_ev), int(n_tr), int(lo), int(hi)))
                     state = (np.int64(high), np.int64(epoch))
@@ -295,7 +394,10 @@ class PropheseeRecording(BaseRecording):
         tt = np.empty(n_tr, np.int64)
         tk = np.empty(n_tr, np.uint8)
         words = self._words(b)
-        if self.encoding == EVT2:
+        if self.encoding == EVT3:
+            n, m, st, bad, _, _ = _evt3_run(words, state.copy(), w, h, True, t, x, y, p, tt, tk)
+            at = self._start + 2 * (b * BLOCK_WORDS + bad)
+        elif self.encoding == EVT2:
             n, m, st, bad = _evt2_decode(words, state[0], state[1], w, h, t, x, y, p, tt, tk)
             at = self._start + 4 * (b * BLOCK_WORDS + bad)
         else:
@@ -305,6 +407,8 @@ class PropheseeRecording(BaseRecording):
         problem = None
         if st == ST_COORD:
             problem = (at, f"an event lies outside the {w}x{h} sensor")
+        elif st == ST_TYPE and self.encoding == EVT3:
+            problem = (at, f"word of unknown type {int(words[bad]) >> 12} (EVT 3.0 has 0, 2-8, 10, 14 and 15)")
         elif st == ST_TYPE:
             problem = (at, f"word of unknown type {int(words[bad]) >> 28} (EVT 2.0 has 0, 1, 8, 10, 14 and 15)")
         ev = Events._trusted(t[:n], x[:n], y[:n], p[:n], self._size)
