@@ -1,4 +1,4 @@
-"""Prophesee RAW (EVT 2.0) and DAT files (issue 20), against faery and expelliarmus as oracles."""
+"""Prophesee RAW (EVT 2.0, 3.0), DAT and Event Stream files (issue 20), against faery and expelliarmus."""
 
 import struct
 
@@ -18,26 +18,34 @@ expelliarmus = pytest.importorskip("expelliarmus")
 def _faery_write(path, ev, version):
     arr = np.zeros(len(ev), faery.EVENTS_DTYPE)
     arr["t"], arr["x"], arr["y"], arr["on"] = ev.t, ev.x, ev.y, ev.p.astype(bool)
-    faery.events_stream_from_array(arr, tuple(ev.sensor_size)).to_file(str(path), version=version)
+    stream = faery.events_stream_from_array(arr, tuple(ev.sensor_size))
+    stream.to_file(str(path), **({"version": version} if version else {}))
 
 
-@pytest.fixture(params=[("evt2", ".raw"), ("evt3", ".raw"), ("dat2", ".dat")], ids=["evt2", "evt3", "dat"])
+@pytest.fixture(params=[("evt2", ".raw"), ("evt3", ".raw"), ("dat2", ".dat"), (None, ".es")],
+                ids=["evt2", "evt3", "dat", "es"])
 def written(request, tmp_path):
     version, ext = request.param
     ev = random_events(30_000, seed=4, sensor_size=(1280, 720), t0=5_000, span_us=3_000_000)
     path = tmp_path / f"rec{ext}"
     _faery_write(path, ev, version)
-    return path, ev, "dat" if version == "dat2" else version
+    return path, ev, "es" if ext == ".es" else "dat" if version == "dat2" else version
 
 
 def test_read_equals_the_events_written_and_the_public_readers(written):
     path, ev, enc = written
+    fa = np.concatenate(list(faery.events_stream_from_file(str(path))))
+    if enc == "es":  # Event Stream keeps no t0: faery writes the stamps from the first event on
+        got = evtk.read_events(path)
+        assert np.array_equal(got.t, ev.t - ev.t[0]) and np.array_equal(got.t, fa["t"])
+        assert np.array_equal(got.x, fa["x"]) and np.array_equal(got.y, fa["y"]) and np.array_equal(got.y, ev.y)
+        assert np.array_equal(got.p.astype(bool), fa["on"])
+        return
     with evtk.open(path) as rec:
         got = rec.events()
         t0 = rec.metadata["header_t0_us"]
         assert rec.sensor_size == (1280, 720) and rec.info()["events"] == len(ev)
     ex = expelliarmus.Wizard(encoding=enc).read(str(path))
-    fa = np.concatenate(list(faery.events_stream_from_file(str(path))))
     # the stamps as stored; faery writes its own '% t0' header line and adds it back, Prophesee's tools do not
     assert np.array_equal(got.t + t0, ev.t) and np.array_equal(got.t + t0, fa["t"])
     if enc == "evt3":  # expelliarmus adds 4096 us after the first change of the time high (a known disagreement)
@@ -106,9 +114,10 @@ def test_damage_is_an_error_and_salvage_keeps_the_intact_prefix(tmp_path):
 
 
 def test_cli_info_and_convert(written, tmp_path):
-    path, ev, _ = written
+    path, ev, enc = written
     r = CliRunner().invoke(main, ["info", "--json", str(path)])
-    assert r.exit_code == 0 and '"format": "prophesee"' in r.output
+    fmt = "event_stream" if enc == "es" else "prophesee"
+    assert r.exit_code == 0 and f'"format": "{fmt}"' in r.output and f'"events": {len(ev)}' in r.output
     out = tmp_path / "c.h5"
     r = CliRunner().invoke(main, ["convert", str(path), str(out)])
     assert r.exit_code == 0, r.output
@@ -156,3 +165,20 @@ def test_evt3_vectors_triggers_and_wrapping_time(tmp_path):
     path.write_bytes(_evt3([(0 << 12) | 7, (9 << 12)]))
     with pytest.raises(evtk.FormatError, match="unknown type 9"):
         evtk.read_events(path)
+
+
+def test_event_stream_overflow_reset_bytes_and_a_cut_event(tmp_path):
+    head = b"Event Stream" + bytes([2, 0, 0, 1]) + (640).to_bytes(2, "little") + (480).to_bytes(2, "little")
+    body = bytes([0xFF, 0xFE, 0xFF, 0x0B]) + (7).to_bytes(2, "little") + (470).to_bytes(2, "little")
+    path = tmp_path / "o.es"
+    path.write_bytes(head + body)
+    ev = evtk.read_events(path)
+    assert ev.t.tolist() == [127 + 127 + 5] and ev.x.tolist() == [7] and ev.y.tolist() == [9] and ev.p.tolist() == [1]
+    path.write_bytes(head + body + bytes([0x02, 1, 0]))  # a second event cut after its x
+    with pytest.raises(evtk.FormatError, match="ends inside an event"):
+        evtk.open(path).events()
+    with evtk.open(path, salvage=True) as rec:
+        assert len(rec.events()) == 1 and rec.damage is not None
+    path.write_bytes(head[:15] + bytes([2]) + head[16:] + body)
+    with pytest.raises(evtk.FormatError, match="ATIS"):
+        evtk.open(path)

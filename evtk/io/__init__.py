@@ -33,6 +33,7 @@ _SIGNATURES = (
     (b"#!AER-DAT", "aedat-other"),
     (b"\x89HDF\r\n\x1a\n", "hdf5"),
     (b"PAR1", "parquet"),
+    (b"Event Stream", "event_stream"),
 )
 
 
@@ -59,8 +60,8 @@ def detect_format(path) -> str:
         with builtins.open(path, "rb") as f:
             if sniff(f.read(4096)):
                 return "prophesee"
-    raise FormatError(path, 0, "unrecognised file: not AEDAT4 (#!AER-DAT4.0), HDF5, Parquet or Prophesee "
-                               "RAW/DAT (a '%' header)")
+    raise FormatError(path, 0, "unrecognised file: not AEDAT4 (#!AER-DAT4.0), HDF5, Parquet, Prophesee "
+                               "RAW/DAT (a '%' header) or Event Stream")
 
 
 def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # noqa: A001
@@ -71,7 +72,7 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     ----------
     path : str or os.PathLike
         An AEDAT4, HDF5 (evtk, DSEC, Prophesee or event_utils layout),
-        Parquet, or Prophesee RAW (EVT 2.0) or DAT file.
+        Parquet, Prophesee RAW (EVT 2.0 or 3.0) or DAT, or Event Stream file.
     salvage : bool
         Recover what is intact before damage instead of raising
         :class:`~evtk.FormatError`; ``recording.damage`` says where it stopped.
@@ -105,6 +106,10 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         from .prophesee import PropheseeRecording
 
         return PropheseeRecording(path, salvage=salvage, sensor_size=sensor_size)
+    if fmt == "event_stream":
+        from .prophesee import EventStreamRecording
+
+        return EventStreamRecording(path, salvage=salvage, sensor_size=sensor_size)
     if fmt == "hdf5":
         from .hdf5 import Hdf5Recording
 

@@ -34,7 +34,7 @@ from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
 from .base import BaseRecording, Damage, StreamInfo, sensor_dims
 
-__all__ = ["PropheseeRecording", "sniff"]
+__all__ = ["PropheseeRecording", "EventStreamRecording", "sniff"]
 
 BLOCK_WORDS = 1 << 20  # decoding unit: 4 MiB of EVT 2.0 words, 8 MiB of DAT events
 _MAX_HEADER = 1 << 20
@@ -270,6 +270,69 @@ def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk):
     return n, m, status, bad, t_min, t_max
 
 
+# Event Stream (DVS) decoder state: time, position inside an event (0: at its first byte), x, y, polarity
+_ES_T, _ES_PHASE, _ES_X, _ES_Y, _ES_POL = range(5)
+ES = "es"
+ES_MAGIC = b"Event Stream"
+
+
+@njit(cache=True, nogil=True)
+def _es_dvs_run(data, state, width, height, decode, t, x, y, p):
+    """One pass over Event Stream 2.x DVS bytes: 0xFF adds 127 us, 0xFE is a reset (nothing), any other
+    first byte adds its top seven bits to the time and gives the polarity in bit 0; four bytes follow (x,
+    then y counted from the bottom row, little-endian). Returns (events, status, byte index of the problem,
+    min t, max t); ``state`` carries over between blocks."""
+    tc = state[_ES_T]
+    phase = state[_ES_PHASE]
+    xi = state[_ES_X]
+    yi = state[_ES_Y]
+    pol = state[_ES_POL]
+    n = 0
+    t_min = np.int64(2**62)
+    t_max = np.int64(-(2**62))
+    for i in range(len(data)):
+        b = np.int64(data[i])
+        if phase == 0:
+            if b == 0xFF:
+                tc += 127
+            elif b != 0xFE:
+                tc += b >> 1
+                pol = b & 1
+                phase = 1
+        elif phase == 1:
+            xi = b
+            phase = 2
+        elif phase == 2:
+            xi |= b << 8
+            phase = 3
+        elif phase == 3:
+            yi = b
+            phase = 4
+        else:
+            yi |= b << 8
+            phase = 0
+            if xi >= width or yi >= height:
+                state[_ES_T] = tc
+                state[_ES_PHASE] = phase
+                return n, ST_COORD, i, t_min, t_max
+            if decode:
+                t[n] = tc
+                x[n] = xi
+                y[n] = height - 1 - yi  # stored from the bottom row up; evtk counts y down
+                p[n] = pol
+            n += 1
+            if tc < t_min:
+                t_min = tc
+            if tc > t_max:
+                t_max = tc
+    state[_ES_T] = tc
+    state[_ES_PHASE] = phase
+    state[_ES_X] = xi
+    state[_ES_Y] = yi
+    state[_ES_POL] = pol
+    return n, ST_OK, -1, t_min, t_max
+
+
 _NO_OUT = (np.empty(0, np.int64), np.empty(0, np.uint16), np.empty(0, np.uint16), np.empty(0, np.uint8),
            np.empty(0, np.int64), np.empty(0, np.uint8))
 
@@ -345,7 +408,7 @@ class PropheseeRecording(BaseRecording):
         with open(self.path, "rb") as f:
             f.seek(self._start + a * self._item)
             raw = f.read(n * self._item)
-        return np.frombuffer(raw, "<u2" if self.encoding == EVT3 else "<u4")
+        return np.frombuffer(raw, {EVT3: "<u2", ES: "u1"}.get(self.encoding, "<u4"))
 
     def _n_blocks(self):
         return -(-self._count // self._per_block())
@@ -357,6 +420,14 @@ class PropheseeRecording(BaseRecording):
             state = (np.int64(0), np.int64(0))
             for b in range(self._n_blocks()):
                 w = self._words(b)
+                if self.encoding == ES:
+                    if b == 0:
+                        state = np.zeros(5, np.int64)
+                    start = state.copy()
+                    w_, h_ = self._size
+                    n_ev, _, _, lo, hi = _es_dvs_run(w, state, w_, h_, False, *_NO_OUT[:4])
+                    rows.append((start, int(n_ev), 0, int(lo), int(hi)))
+                    continue
                 if self.encoding == EVT3:
                     if b == 0:
                         state = np.zeros(6, np.int64)
@@ -381,6 +452,12 @@ class PropheseeRecording(BaseRecording):
                                  int(full.max()) if len(ts) else -1))
                     state = (np.int64(ts[-1]) if len(ts) else np.int64(prev), np.int64(k + len(wraps)))
             self._blocks = rows
+            if self.encoding == ES and self._count and state[_ES_PHASE] != 0 and self.damage is None:
+                where = self._start + self._count
+                problem = f"the file ends inside an event ({int(state[_ES_PHASE])} of its 5 bytes)"
+                if not self.salvage:
+                    raise FormatError(self.path, where, problem + "; salvage reads the events before it")
+                self.damage = Damage(where, problem)
         return self._blocks
 
     def _decode_block(self, b):
@@ -394,7 +471,11 @@ class PropheseeRecording(BaseRecording):
         tt = np.empty(n_tr, np.int64)
         tk = np.empty(n_tr, np.uint8)
         words = self._words(b)
-        if self.encoding == EVT3:
+        if self.encoding == ES:
+            n, st, bad, _, _ = _es_dvs_run(words, state.copy(), w, h, True, t, x, y, p)
+            m = 0
+            at = self._start + b * BLOCK_WORDS + bad
+        elif self.encoding == EVT3:
             n, m, st, bad, _, _ = _evt3_run(words, state.copy(), w, h, True, t, x, y, p, tt, tk)
             at = self._start + 2 * (b * BLOCK_WORDS + bad)
         elif self.encoding == EVT2:
@@ -491,3 +572,45 @@ class PropheseeRecording(BaseRecording):
 
     def _extra_info(self):
         return {"encoding": self.encoding}
+
+
+class EventStreamRecording(PropheseeRecording):
+    """An Event Stream (.es) recording of DVS events (version 2.x), as Sepia, Tonic and faery write them.
+
+    The header is the text ``Event Stream``, the version (three bytes), the
+    event type (1: DVS) and the sensor's width and height (16 bits each);
+    events follow as a byte stream (see :func:`_es_dvs_run`). y is stored
+    from the bottom row up and read as evtk's rows from the top. Generic,
+    ATIS and colour streams are named and refused.
+    """
+
+    format = "event_stream"
+
+    def __init__(self, path, salvage=False, sensor_size=None):  # noqa: D107 - the class says it
+        BaseRecording.__init__(self, path, salvage)
+        with open(self.path, "rb") as f:
+            head = f.read(20)
+        if not head.startswith(ES_MAGIC) or len(head) < 16:
+            raise FormatError(self.path, 0, "not an Event Stream file (no 'Event Stream' header)")
+        major = head[12]
+        kind = head[15]
+        if major != 2:
+            raise FormatError(self.path, 12, f"Event Stream version {major}.{head[13]}.{head[14]}; evtk reads 2.x")
+        if kind != 1:
+            names = {0: "generic", 2: "ATIS", 3: "colour"}
+            raise FormatError(self.path, 15, f"Event Stream of {names.get(kind, f'type {kind}')} events; evtk reads "
+                                             "DVS events (type 1)")
+        if len(head) < 20:
+            raise FormatError(self.path, 16, "the file ends inside the Event Stream header")
+        w, h = int.from_bytes(head[16:18], "little"), int.from_bytes(head[18:20], "little")
+        self._size = sensor_dims(w, h, self.path, "the Event Stream header")
+        if sensor_size is not None:
+            self._size = sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size")
+        self.encoding = ES
+        self._lines = [f"version {major}.{head[13]}.{head[14]}", "type dvs"]
+        self._start = 20
+        self._item = 1
+        self._file_bytes = os.path.getsize(self.path)
+        self._count = self._file_bytes - self._start
+        self._blocks = None
+        self._triggers = None
