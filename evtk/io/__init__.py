@@ -72,7 +72,8 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     ----------
     path : str or os.PathLike
         An AEDAT4, HDF5 (evtk, DSEC, Prophesee or event_utils layout),
-        Parquet, Prophesee RAW (EVT 2.0 or 3.0) or DAT, or Event Stream file.
+        Parquet, Prophesee RAW (EVT 2.0 or 3.0) or DAT, Event Stream, or
+        AEDAT 2.0/3.1 file.
     salvage : bool
         Recover what is intact before damage instead of raising
         :class:`~evtk.FormatError`; ``recording.damage`` says where it stopped.
@@ -98,7 +99,11 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     (320, 240) 2
     """
     fmt = detect_format(path)
-    if fmt in ("aedat4", "aedat-other"):
+    if fmt == "aedat-other":
+        from .aedat_legacy import LegacyAedatRecording
+
+        return LegacyAedatRecording(path, salvage=salvage, sensor_size=sensor_size)
+    if fmt == "aedat4":
         from .aedat4 import Recording
 
         return Recording(path, salvage=salvage)

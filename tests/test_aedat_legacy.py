@@ -1,0 +1,124 @@
+"""AEDAT 2.0 (jAER) and 3.1 (cAER) polarity events (issue 20), against iniVation's legacy reader (dv)."""
+
+import struct
+
+import numpy as np
+import pytest
+
+import evtk
+from conftest import random_events
+
+dv = pytest.importorskip("dv")
+
+
+def write_aedat31(path, ev, packet=1000, other=True):
+    """AEDAT 3.1 as cAER writes it: header, polarity packets (and a frame packet to be left out)."""
+    out = bytearray(b"#!AER-DAT3.1\r\n#Format: RAW\r\n#Source 1: DAVIS346\r\n#!END-HEADER\r\n")
+    # a packet never spans a change of the overflow counter (cAER starts a new one)
+    cuts = sorted(set(range(0, len(ev), packet)) | set(np.flatnonzero(np.diff(ev.t >> 31)) + 1))
+    for a, b in zip(cuts, cuts[1:] + [len(ev)]):
+        packet = b - a
+        t = ev.t[a:a + packet]
+        n = len(t)
+        overflow = int(t[0]) >> 31
+        d = (ev.x[a:a + packet].astype(np.uint32) << 17) | (ev.y[a:a + packet].astype(np.uint32) << 2) | \
+            (ev.p[a:a + packet].astype(np.uint32) << 1) | 1
+        body = np.empty(2 * n, "<u4")
+        body[0::2], body[1::2] = d, (t & 0x7FFFFFFF).astype(np.uint32)
+        out += struct.pack("<hhiiiiii", 1, 1, 8, 4, overflow, n, n, n) + body.tobytes()
+        if other and a == 0:  # a frame packet of one 4-byte "event": listed, left out
+            out += struct.pack("<hhiiiiii", 2, 1, 4, 0, 0, 1, 1, 1) + bytes(4)
+    path.write_bytes(bytes(out))
+
+
+def write_aedat2_davis(path, ev, height, aps_every=0):
+    """AEDAT 2.0 as jAER writes DAVIS events: big-endian address and time stamp; y from the bottom row."""
+    out = bytearray(b"#!AER-DAT2.0\r\n# This is a raw AE data file - do not edit\r\n"
+                    b"# AEChip: eu.seebetter.ini.chips.davis.DAVIS346B\r\n")
+    yraw = (height - 1 - ev.y.astype(np.uint32))
+    addr = (yraw << 22) | (ev.x.astype(np.uint32) << 12) | (ev.p.astype(np.uint32) << 11)
+    rec = np.empty(2 * len(ev), ">u4")
+    rec[0::2], rec[1::2] = addr, (ev.t & 0xFFFFFFFF).astype(np.uint32)
+    if aps_every:  # APS samples (bit 31) in between: left out
+        aps = np.empty(2, ">u4")
+        aps[0], aps[1] = (1 << 31) | 5, rec[1]
+        rec = np.concatenate([aps, rec]).astype(">u4")
+    path.write_bytes(bytes(out) + rec.tobytes())
+
+
+def _dv_read(path):
+    with dv.LegacyAedatFile(str(path)) as f:
+        rows = [(e.timestamp, e.x, e.y, e.polarity) for e in f]
+    return np.array(rows, np.int64).reshape(-1, 4)
+
+
+def test_aedat31_equals_dv_and_the_events_written(tmp_path):
+    ev = random_events(20_000, seed=7, sensor_size=(346, 260), span_us=2_000_000)
+    path = tmp_path / "r.aedat"
+    write_aedat31(path, ev)
+    with evtk.open(path) as rec:
+        got = rec.events()
+        assert rec.sensor_size == (346, 260) and rec.info()["left_out"] == {"frame": 1}
+    assert got == ev
+    ref = _dv_read(path)
+    assert np.array_equal(ref[:, 0], got.t) and np.array_equal(ref[:, 1], got.x)
+    assert np.array_equal(ref[:, 2], got.y) and np.array_equal(ref[:, 3], got.p)
+
+
+def test_aedat31_time_beyond_31_bits_uses_the_overflow_counter(tmp_path):
+    ev = random_events(3000, seed=8, sensor_size=(346, 260), t0=(1 << 31) - 500_000, span_us=1_000_000)
+    path = tmp_path / "o.aedat"
+    write_aedat31(path, ev, packet=100, other=False)
+    assert evtk.read_events(path) == ev
+
+
+def test_aedat2_davis_equals_dv_with_y_from_the_top(tmp_path):
+    ev = random_events(20_000, seed=9, sensor_size=(346, 260), span_us=2_000_000)
+    path = tmp_path / "r2.aedat"
+    write_aedat2_davis(path, ev, 260, aps_every=1)
+    with evtk.open(path) as rec:
+        got = rec.events()
+        assert rec.sensor_size == (346, 260) and rec.metadata["chip"] == "davis346"
+        assert rec.info()["left_out"] == {"aps/imu samples": 1}
+    assert got == ev
+    ref = _dv_read(path)  # dv keeps jAER's rows, counted from the bottom
+    assert np.array_equal(ref[:, 0], got.t) and np.array_equal(ref[:, 1], got.x)
+    assert np.array_equal(259 - ref[:, 2], got.y) and np.array_equal(ref[:, 3], got.p)
+
+
+def test_aedat2_windows_streaming_wraps_and_damage(tmp_path, monkeypatch):
+    from evtk.io import aedat_legacy
+
+    monkeypatch.setattr(aedat_legacy, "BLOCK_RECORDS", 1000)
+    ev = random_events(10_000, seed=10, sensor_size=(346, 260), t0=(1 << 32) - 400_000, span_us=1_000_000)
+    path = tmp_path / "w.aedat"
+    write_aedat2_davis(path, ev, 260)
+    with evtk.open(path) as rec:
+        whole = rec.events()
+        assert whole == ev  # the 32-bit stamps wrapped inside the file and were unwrapped
+        for lo, hi in [(0, 1), (int(ev.t[1234]), int(ev.t[5678])), (int(ev.t[-1]), 2**62)]:
+            assert rec.events(lo, hi) == ev.between(lo, hi)
+        assert evtk.Events.concatenate(list(rec.iter_events(chunk_events=999))) == ev
+    data = path.read_bytes()
+    path.write_bytes(data[:-3])
+    with pytest.raises(evtk.FormatError, match="ends inside a record"):
+        evtk.open(path)
+    with evtk.open(path, salvage=True) as rec:
+        assert rec.events() == ev[:-1]
+
+
+def test_unknown_version_and_damaged_packet_are_one_error(tmp_path):
+    path = tmp_path / "v.aedat"
+    path.write_bytes(b"#!AER-DAT1.0\r\n")
+    with pytest.raises(evtk.FormatError, match="version 1.0"):
+        evtk.open(path)
+    ev = random_events(500, seed=1, sensor_size=(346, 260))
+    write_aedat31(path, ev, packet=100, other=False)
+    data = bytearray(path.read_bytes())
+    head = data.index(b"#!END-HEADER\r\n") + 14
+    struct.pack_into("<i", data, head + 28 + 800 + 16, 10**9)  # the second packet's capacity
+    path.write_bytes(bytes(data))
+    with pytest.raises(evtk.FormatError, match="claims"):
+        evtk.open(path)
+    with evtk.open(path, salvage=True) as rec:
+        assert rec.events() == ev[:100]
