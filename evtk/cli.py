@@ -166,28 +166,23 @@ def info(file, as_json, salvage, check):
 @click.option("--sort", is_flag=True, help="Sort events by time (in memory) when the source is out of order.")
 @click.option("--chunk-events", type=click.IntRange(min=1, max=_MAX_INT), default=4_000_000, show_default=True,
               help="Events held in memory at a time while streaming.")
-def convert(source, target, compression, salvage, sort, chunk_events):
-    """Convert SOURCE to TARGET (format from TARGET's extension), streaming."""
-    from .io._atomic import refuse_overwriting_inputs
+@click.option("--events-only", is_flag=True,
+              help="Write events and triggers only (no frames, IMU or other streams, and no warning about them).")
+def convert(source, target, compression, salvage, sort, chunk_events, events_only):
+    """Convert SOURCE to TARGET (format from TARGET's extension), streaming.
 
-    refuse_overwriting_inputs(target, [source])
-    with evio.open(source, salvage=salvage) as rec:
-        has_triggers = any(s.type == "TRIG" for s in rec.streams)
-        triggers = rec.triggers() if has_triggers else None
-        n = 0
-        if sort:  # in memory: a stable sort by time
-            events = rec.events()
-            order = np.argsort(events.t, kind="stable")
-            events = events.__class__(events.t[order], events.x[order], events.y[order], events.p[order], events.sensor_size)
-            evio.write_events(target, events, triggers, compression=compression, metadata=rec.metadata or None)
-            n = len(events)
-        else:
-            with evio.open_writer(target, rec.sensor_size, compression, rec.metadata or None, triggers) as writer:
-                for chunk in rec.iter_events(chunk_events=chunk_events):
-                    writer.write_events(chunk)
-                    n += len(chunk)
-    n_trig = 0 if triggers is None else len(triggers)
-    click.echo(f"wrote {n:,} events and {n_trig:,} triggers to {target}", err=True)
+    AEDAT4 to AEDAT4 copies frames, IMU and other streams and keeps the
+    camera's name; other targets get one warning naming what they cannot hold.
+    """
+    from .io.convert import convert as run
+
+    done = run(source, target, compression, salvage=salvage, sort=sort, chunk_events=chunk_events,
+               events_only=events_only)
+    if done["left_out"]:
+        what = ", ".join(f"{name} ({k:,} packets)" for name, k in done["left_out"].items())
+        click.echo(f"evtk: warning: left out {what}: {target} cannot hold them (--events-only: no warning)", err=True)
+    copied = "".join(f", {k:,} {name} packets" for name, k in done["copied"].items())
+    click.echo(f"wrote {done['events']:,} events and {done['triggers']:,} triggers{copied} to {target}", err=True)
 
 
 def _progress(total, label):

@@ -1,5 +1,7 @@
 """AEDAT4 interoperability: dv-processing, aedat and faery as oracles, both directions."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -228,3 +230,47 @@ def test_header_attributes_are_exposed(fixtures_dir):
         assert header["events"]["sizeX"] == 320 and header["events"]["typeIdentifier"] == "EVTS"
         assert header["triggers"]["compression"] == "LZ4"
         assert rec.info()["header"]["frames"]["sizeY"] == 240
+
+
+def _dv_frames_and_imu(path):
+    import dv_processing as dv
+
+    rec = dv.io.MonoCameraRecording(str(path))
+    frames, imu = [], []
+    while rec.isFrameStreamAvailable():
+        f = rec.getNextFrame()
+        if f is None:
+            break
+        frames.append((f.timestamp, f.image.copy()))
+    while rec.isImuStreamAvailable():
+        batch = rec.getNextImuBatch()
+        if batch is None:
+            break
+        imu += [(m.timestamp, m.accelerometerX, m.accelerometerY, m.accelerometerZ, m.temperature) for m in batch]
+    return rec.getCameraName(), frames, imu
+
+
+def test_convert_aedat4_to_aedat4_keeps_frames_imu_and_the_camera(tmp_path):
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+    from peers import dv_read
+
+    src = Path(__file__).resolve().parent.parent / "fixtures" / "dvxplorer_lz4.aedat4"
+    out = tmp_path / "copy.aedat4"
+    r = CliRunner().invoke(main, ["convert", str(src), str(out), "--compression", "zstd"])
+    assert r.exit_code == 0 and "frames" in r.output and "warning" not in r.output, r.output
+    name0, frames0, imu0 = _dv_frames_and_imu(src)
+    name1, frames1, imu1 = _dv_frames_and_imu(out)
+    assert name1 == name0 == "DVXplorer_fixture"
+    assert len(frames1) == len(frames0) >= 1 and imu1 == imu0 and len(imu0) >= 1
+    assert all(t0 == t1 and np.array_equal(a, b) for (t0, a), (t1, b) in zip(frames0, frames1))
+    e0, t0 = dv_read(src)
+    e1, t1 = dv_read(out)
+    assert e0 == e1 and np.array_equal(t0.t, t1.t)
+    # a target that cannot hold them: one warning naming them, or none with --events-only
+    r = CliRunner().invoke(main, ["convert", str(src), str(tmp_path / "c.parquet")])
+    assert r.exit_code == 0 and "warning: left out frames (1 packets), imu (1 packets)" in r.output
+    assert evtk.open(tmp_path / "c.parquet").metadata["source"] == "DVXplorer_fixture"
+    r = CliRunner().invoke(main, ["convert", str(src), str(tmp_path / "d.h5"), "--events-only"])
+    assert r.exit_code == 0 and "warning" not in r.output

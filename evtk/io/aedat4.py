@@ -706,6 +706,26 @@ class Recording(BaseRecording):
             parts.append(Triggers(t, k))
         return Triggers.concatenate(parts)
 
+    def other_streams(self) -> list[StreamInfo]:
+        """Streams that are neither events nor triggers (frames, IMU, ...), which evtk copies but does not decode."""
+        return [st for st in self._streams.values() if st.type not in ("EVTS", "TRIG")]
+
+    def packets(self, stream):
+        """Yield ``(body, count, t_start_us, t_end_us)`` for every packet of ``stream`` (name or id), the body
+        decompressed and as the file holds it; counts and times from the data table (None without one)."""
+        s = next((st for st in self._streams.values() if stream in (st.id, st.name)), None)
+        if s is None:
+            raise EvtkError(f"{self.path}: no stream {stream!r}")
+        idx = self._index
+        for i in np.flatnonzero(idx.stream == s.id):
+            try:
+                body = self._body(i)
+            except _Stop:
+                return
+            known = idx.from_table
+            yield (body.tobytes(), int(idx.count[i]) if known else None, int(idx.t0[i]) if known else None,
+                   int(idx.t1[i]) if known else None)
+
     @property
     def header(self) -> dict:
         """Every stream's attributes from the header XML, by stream name
@@ -768,12 +788,24 @@ def _header_xml(streams, code) -> str:
             lines.append(f'            <attr key="{key}" type="string">{escape(val)}</attr>')
         lines.append(f'            <node name="info" path="{base}info/">')
         for key, (typ_name, val) in info.items():
-            lines.append(f'                <attr key="{escape(key)}" type="{typ_name}">{escape(str(val))}</attr>')
+            text = str(val).lower() if isinstance(val, bool) else str(val)
+            lines.append(f'                <attr key="{escape(key)}" type="{typ_name}">{escape(text)}</attr>')
         lines.append("            </node>")
         lines.append("        </node>")
     lines.append("    </node>")
     lines.append("</dv>")
     return "\n".join(lines) + "\n"
+
+
+def _xml_type(value) -> str:
+    """The header XML type of a stream attribute read back from another file."""
+    if isinstance(value, bool):
+        return "bool"
+    if isinstance(value, int):
+        return "int" if -(2**31) <= value < 2**31 else "long"
+    if isinstance(value, float):
+        return "double"
+    return "string"
 
 
 def _io_header(code, data_table_pos, xml) -> bytes:
@@ -818,7 +850,8 @@ class Aedat4Writer:
     """
 
     def __init__(self, path, sensor_size, compression="lz4", triggers=True, metadata=None,
-                 packet_events=DEFAULT_PACKET_EVENTS, packet_us=DEFAULT_PACKET_US, source="evtk"):
+                 packet_events=DEFAULT_PACKET_EVENTS, packet_us=DEFAULT_PACKET_US, source="evtk",
+                 extra_streams=()):
         name = str(compression).lower()
         if name not in cz.BY_NAME:
             raise EvtkError(f"unknown compression {compression!r}; choose one of {sorted(cz.BY_NAME)}")
@@ -843,6 +876,11 @@ class Aedat4Writer:
         if triggers:
             self._trigger_sid = 1
             streams.append(("triggers", "TRIG", {"source": ("string", source)}))
+        # other streams (frames, IMU, ...) copied from another recording: (name, type, {key: value})
+        self._extra = {}
+        for name, typ, attrs in extra_streams:
+            self._extra[name] = len(streams)
+            streams.append((name, typ, {k: (_xml_type(v), v) for k, v in attrs.items()}))
         self._file = AtomicFile(path)
         self.path = self._file.path
         self._table = [[] for _ in range(6)]  # offset, stream, size, count, t0, t1
@@ -924,6 +962,14 @@ class Aedat4Writer:
         """Write compressed event packets in order as they become ready."""
         for k, fut in enumerate(futures):
             self._emit(0, fut.result(), int(counts[k]), int(t0[k]), int(t1[k]))
+
+    def write_packet(self, stream: str, body, count: int, t_start_us: int, t_end_us: int):
+        """Append one packet of a stream declared in ``extra_streams``: ``body`` is its (decompressed)
+        FlatBuffer, written as it is under this file's compression (frames, IMU samples, ...)."""
+        self._check_open()
+        if stream not in self._extra:
+            raise EvtkError(f"no stream {stream!r} was declared; declared: {sorted(self._extra)}")
+        self._emit(self._extra[stream], cz.compress(self.code, body), int(count), int(t_start_us), int(t_end_us))
 
     def write_triggers(self, triggers: Triggers):
         """Append triggers (one packet per 8192)."""

@@ -1,0 +1,83 @@
+"""Convert a recording to another file (format from the target's extension), keeping what the target can hold."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ..errors import EvtkError
+from ._atomic import refuse_overwriting_inputs
+
+__all__ = ["convert"]
+
+# attributes the AEDAT4 writer sets itself for every stream
+_OWN_KEYS = {"compression", "originalModuleName", "originalOutputName", "typeDescription", "typeIdentifier"}
+
+
+def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_events=4_000_000,
+            events_only=False) -> dict:
+    """Write the recording ``source`` to ``target``, streaming the events ``chunk_events`` at a time.
+
+    AEDAT4 to AEDAT4 also copies the other streams (frames, IMU, ...) packet
+    by packet and keeps the camera's name (the ``source`` attribute). A target
+    that cannot hold them gets the events, the triggers and the metadata (with
+    the camera's name as ``source``), and the result's ``left_out`` names what
+    was not copied, unless ``events_only`` asks for exactly that.
+
+    Returns a summary: ``events``, ``triggers``, ``copied`` and ``left_out``
+    (stream name -> packets).
+    """
+    from . import open as open_recording
+    from . import open_writer, WRITE_EXTENSIONS
+
+    ext = os.path.splitext(os.fspath(target))[1].lower()
+    fmt = WRITE_EXTENSIONS.get(ext)
+    if fmt is None:
+        raise EvtkError(f"cannot tell the format from the extension {ext!r}; use one of {sorted(WRITE_EXTENSIONS)}")
+    refuse_overwriting_inputs(target, [source])
+    with open_recording(source, salvage=salvage) as rec:
+        streams = rec.streams
+        triggers = rec.triggers() if any(s.type == "TRIG" for s in streams) else None
+        others = [] if events_only else list(getattr(rec, "other_streams", lambda: [])())
+        main = next((s for s in streams if s.type == "EVTS"), None)
+        camera = (main.attributes.get("source") if main is not None else None) or None
+        metadata = dict(rec.metadata or {})
+        copied, left_out = {}, {}
+        if fmt == "aedat4":
+            from .aedat4 import Aedat4Writer
+
+            extra = [(s.name, s.type, {k: v for k, v in s.attributes.items() if k not in _OWN_KEYS}) for s in others]
+            writer = Aedat4Writer(target, rec.sensor_size, compression, triggers=triggers is not None,
+                                  metadata=metadata or None, source=str(camera or "evtk"), extra_streams=extra)
+            if triggers is not None and len(triggers):
+                order = np.argsort(triggers.t, kind="stable")
+                writer.write_triggers(type(triggers)(triggers.t[order], triggers.kind[order]))
+        else:
+            if camera:
+                metadata.setdefault("source", str(camera))
+            left_out = {s.name: s.packets for s in others}
+            others = []
+            writer = open_writer(target, rec.sensor_size, compression, metadata or None, triggers)
+        n = 0
+        with writer:
+            if sort:  # in memory: a stable sort by time
+                events = rec.events()
+                order = np.argsort(events.t, kind="stable")
+                events = type(events)(events.t[order], events.x[order], events.y[order], events.p[order],
+                                      events.sensor_size)
+                writer.write_events(events)
+                n = len(events)
+            else:
+                for chunk in rec.iter_events(chunk_events=chunk_events):
+                    writer.write_events(chunk)
+                    n += len(chunk)
+            for s in others:
+                k = 0
+                for body, count, t0, t1 in rec.packets(s.id):
+                    writer.write_packet(s.name, body, count if count is not None else 0,
+                                        t0 if t0 is not None else 0, t1 if t1 is not None else 0)
+                    k += 1
+                copied[s.name] = k
+    return {"events": n, "triggers": 0 if triggers is None else len(triggers), "copied": copied,
+            "left_out": left_out}
