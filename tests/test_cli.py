@@ -232,3 +232,19 @@ def test_version_and_help_load_no_reader_or_compiler():
             "print('HEAVY', heavy)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert "HEAVY []" in out, out
+
+
+def test_info_on_an_aedat4_file_with_a_data_table_loads_no_compiler(tmp_path):
+    """Describing a file reads its header and data table in plain Python and numpy (no numba to load)."""
+    path = tmp_path / "i.aedat4"
+    evtk.write_events(path, evtk.Events(np.arange(4000), np.zeros(4000, np.uint16), np.zeros(4000, np.uint16),
+                                        np.ones(4000, np.uint8), (320, 240)))
+    code = ("import sys\n"
+            "from evtk.cli import main\n"
+            "try:\n"
+            f"    main(['info', '--json', {str(path)!r}])\n"
+            "except SystemExit:\n"
+            "    pass\n"
+            "print('NUMBA', 'numba' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert '"events": 4000' in out and "NUMBA False" in out, out

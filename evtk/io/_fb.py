@@ -18,25 +18,9 @@ from numba import njit
 # the word-wise event decoder reinterprets little-endian bytes as native words
 _LITTLE_ENDIAN = sys.byteorder == "little"
 
-EVENT_PACKET_HEADER = 32  # bytes before the first event struct (as evtk writes them)
-EVENT_STRUCT = 16  # bytes of one event: int64 time, int16 x, int16 y, bool polarity, padding
-
-ST_OK = 0
-ST_BAD_OFFSET = -1  # an offset points outside the buffer
-ST_BAD_IDENT = -2  # the file identifier is not the expected one
-ST_CAPACITY = -3  # more elements than the caller said there would be
-ST_COORD = -4  # an event lies outside the sensor
-ST_MISSING = -5  # a required field is absent
-ST_SLACK = -6  # the body has room for more events after the vector than its length says
-
-STATUS_TEXT = {
-    ST_BAD_OFFSET: "a FlatBuffers offset points outside the packet",
-    ST_BAD_IDENT: "the packet's FlatBuffers identifier does not match its stream type",
-    ST_CAPACITY: "the packet holds more elements than the data table says",
-    ST_COORD: "an event lies outside the sensor",
-    ST_MISSING: "a required FlatBuffers field is missing",
-    ST_SLACK: "the packet's body holds more bytes after its event vector than one event (its vector length is damaged)",
-}
+# constants and status codes shared with the plain-Python header reader
+from ._fbpy import (EVENT_PACKET_HEADER, EVENT_STRUCT, ST_BAD_IDENT, ST_BAD_OFFSET, ST_CAPACITY,  # noqa: E402,F401
+                    ST_COORD, ST_MISSING, ST_OK, ST_SLACK, STATUS_TEXT)
 
 
 @njit(cache=True, nogil=True)

@@ -22,7 +22,7 @@ from .._version import __version__
 from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
 from . import _compression as cz
-from . import _fb
+from . import _fbpy
 from ._atomic import AtomicFile
 from .base import BaseRecording, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
 
@@ -31,10 +31,18 @@ __all__ = ["Recording", "Aedat4Writer", "write_aedat4", "MAGIC"]
 MAGIC = b"#!AER-DAT4.0\r\n"
 _HEADER_START = len(MAGIC)
 _IDENT = {name: np.frombuffer(name.encode(), np.uint8) for name in ("EVTS", "TRIG", "IMUS", "FRME", "FTAB", "IOHE")}
+
+
+def _jit():
+    """The compiled FlatBuffers decoders and encoders (numba loads on first use: opening and describing a file
+    with a data table needs none of them)."""
+    from . import _fb
+
+    return _fb
 # types whose element count is the length of the root table's first vector
 _VECTOR_TYPES = {"EVTS", "TRIG", "IMUS"}
 # ... and the element size of those whose vector holds structs (which then ends the packet)
-_STRUCT_SIZE = {"EVTS": _fb.EVENT_STRUCT}
+_STRUCT_SIZE = {"EVTS": _fbpy.EVENT_STRUCT}
 _TYPE_NAMES = StreamInfo.KINDS
 
 DEFAULT_PACKET_EVENTS = 8192
@@ -189,33 +197,31 @@ class Recording(BaseRecording):
                 self.path, _HEADER_START,
                 f"the header claims {hlen} bytes but the file has only {self._size - _HEADER_START - 4} after it",
             )
-        raw = np.frombuffer(self._pread(hlen, _HEADER_START + 4), np.uint8)
         # IOHeader is stored like a plain (not size-prefixed) buffer after its length
-        buf = np.concatenate([np.frombuffer(struct.pack("<I", hlen), np.uint8), raw])
-        root = _fb.fb_root(buf, _IDENT["IOHE"])
+        buf = struct.pack("<I", hlen) + self._pread(hlen, _HEADER_START + 4)
+        root = _fbpy.fb_root(buf, b"IOHE")
         if root < 0:
             raise FormatError(self.path, _HEADER_START + 4, "the IOHeader FlatBuffer is damaged (" + _status(root) + ")")
-        f_comp = _fb.fb_field(buf, root, 0)
-        f_dtp = _fb.fb_field(buf, root, 1)
-        f_xml = _fb.fb_field(buf, root, 2)
-        # a field's offset is only known to lie inside its table: its whole value must lie inside the header
-        if (f_comp < 0 or f_dtp < 0 or f_xml < 0 or f_comp + 4 > len(buf) or f_dtp + 8 > len(buf)
-                or f_xml + 4 > len(buf)):
+        # each field's whole value must lie inside the header (a field at the table's end read past it once)
+        f_comp = _fbpy.fb_field(buf, root, 0, 4)
+        f_dtp = _fbpy.fb_field(buf, root, 1, 8)
+        f_xml = _fbpy.fb_field(buf, root, 2, 4)
+        if f_comp < 0 or f_dtp < 0 or f_xml < 0:
             raise FormatError(self.path, _HEADER_START + 4, "the IOHeader FlatBuffer has offsets outside the header")
-        code = _fb._i32(buf, f_comp) if f_comp else 0
+        code = _fbpy.i32(buf, f_comp) if f_comp else 0
         if not 0 <= code < len(cz.CODE_NAMES):
             raise FormatError(self.path, _HEADER_START + f_comp, f"unknown compression code {code} in the header")
         self._code = int(code)
-        self._data_table_pos = int(_fb._i64(buf, f_dtp)) if f_dtp else -1
+        self._data_table_pos = int(_fbpy.i64(buf, f_dtp)) if f_dtp else -1
         if f_xml == 0:
             raise FormatError(self.path, _HEADER_START + 4, "the header has no stream description (infoNode)")
-        s = _fb.fb_deref(buf, f_xml)
+        s = _fbpy.fb_deref(buf, f_xml)
         if s < 0:
             raise FormatError(self.path, _HEADER_START + f_xml, "the header's infoNode string lies outside the header")
-        slen = _fb._u32(buf, s)
+        slen = _fbpy.u32(buf, s)
         if s + 4 + slen > len(buf):
             raise FormatError(self.path, _HEADER_START + s, "the header's infoNode string runs past the header")
-        self.header_xml = buf[s + 4 : s + 4 + slen].tobytes().decode("utf-8", "replace").rstrip("\x00")
+        self.header_xml = buf[s + 4 : s + 4 + slen].decode("utf-8", "replace").rstrip("\x00")
         described = _parse_xml(self.header_xml, self.path)
         self._streams: dict[int, StreamInfo] = {}
         for sid, (attrs, info) in sorted(described.items()):
@@ -261,16 +267,14 @@ class Recording(BaseRecording):
         except cz.CodecError as exc:
             self.warnings.append(f"the data table is unreadable ({exc}); packets were indexed by walking the file")
             return None
-        b = np.frombuffer(raw, np.uint8)
-        cap = len(b) // 16 + 1
-        cols = [np.empty(cap, np.int64) for _ in range(6)]
-        n, st = _fb.decode_data_table(b, _IDENT["FTAB"], *cols)
-        if st != _fb.ST_OK:
+        cols, st = _fbpy.decode_data_table(raw, b"FTAB")
+        if st != _fbpy.ST_OK:
             self.warnings.append(
                 f"the data table is damaged ({_status(st)}); packets were indexed by walking the file"
             )
             return None
-        offset, stream, size, count, t0, t1 = (c[:n] for c in cols)
+        offset, stream, size, count, t0, t1 = cols
+        n = len(offset)
         ok = (
             (offset - 8 >= self._data_start)
             & (size >= 0)
@@ -286,7 +290,7 @@ class Recording(BaseRecording):
         # (an event packet's body grows at most BODY_RATIO times when decompressed: the fixed allowance
         # the decompressor grants frames of pixels is no licence for event counts)
         evts = np.isin(stream, [sid for sid, st in self._streams.items() if st.type == "EVTS"])
-        per_element = np.where(evts, _fb.EVENT_STRUCT, 1)
+        per_element = np.where(evts, _fbpy.EVENT_STRUCT, 1)
         room = np.where(evts, cz.BODY_RATIO * size + 4096,
                         np.array([cz.output_limit(z) for z in size], np.int64))
         plausible = count <= room // per_element
@@ -383,7 +387,7 @@ class Recording(BaseRecording):
                 b = self._body(i)
             except _Stop:
                 return out[:k]
-            n = _fb.vector_length(b, _IDENT[typ], _STRUCT_SIZE.get(typ, 0))
+            n = _jit().vector_length(b, _IDENT[typ], _STRUCT_SIZE.get(typ, 0))
             if n < 0:
                 try:
                     self._fail(int(self._index.offset[i]), f"{typ} packet: {_status(n)}")
@@ -520,12 +524,12 @@ class Recording(BaseRecording):
                 except _Stop:
                     return k
                 cap = int(counts[k])
-                n, st = _fb.decode_events(b, ident, t, x, y, p, int(starts[k]), cap, width, height, _fb.address_mod8(b))
-                if (st == _fb.ST_OK and n != cap) or st == _fb.ST_CAPACITY:
+                n, st = _jit().decode_events(b, ident, t, x, y, p, int(starts[k]), cap, width, height, _jit().address_mod8(b))
+                if (st == _fbpy.ST_OK and n != cap) or st == _fbpy.ST_CAPACITY:
                     raise _CountMismatch
-                if st != _fb.ST_OK:
+                if st != _fbpy.ST_OK:
                     off = int(self._index.offset[i])
-                    if st == _fb.ST_COORD:
+                    if st == _fbpy.ST_COORD:
                         reason = f"event {n} of the packet lies outside the {width}x{height} sensor"
                     else:
                         reason = f"event packet: {_status(st)}"
@@ -651,18 +655,18 @@ class Recording(BaseRecording):
                 b = self._body(i)
             except _Stop:
                 break
-            n = _fb.vector_length(b, ident, _fb.EVENT_STRUCT)
+            n = _jit().vector_length(b, ident, _fbpy.EVENT_STRUCT)
             if n < 0:
                 try:
                     self._fail(int(self._index.offset[i]), f"event packet: {_status(n)}")
                 except _Stop:
                     break
             cols = (np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8))
-            got, st = _fb.decode_events(b, ident, *cols, 0, n, width, height, _fb.address_mod8(b))
-            if st != _fb.ST_OK:
+            got, st = _jit().decode_events(b, ident, *cols, 0, n, width, height, _jit().address_mod8(b))
+            if st != _fbpy.ST_OK:
                 reason = (
                     f"event {got} of the packet lies outside the {width}x{height} sensor"
-                    if st == _fb.ST_COORD else f"event packet: {_status(st)}"
+                    if st == _fbpy.ST_COORD else f"event packet: {_status(st)}"
                 )
                 try:
                     self._fail(int(self._index.offset[i]), reason)
@@ -689,7 +693,7 @@ class Recording(BaseRecording):
                 b = self._body(i)
             except _Stop:
                 break
-            n = _fb.vector_length(b, ident)
+            n = _jit().vector_length(b, ident)
             if n < 0:
                 try:
                     self._fail(int(self._index.offset[i]), f"trigger packet: {_status(n)}")
@@ -697,8 +701,8 @@ class Recording(BaseRecording):
                     break
             t = np.empty(n, np.int64)
             k = np.empty(n, np.uint8)
-            got, st = _fb.decode_triggers(b, ident, t, k, 0, n)
-            if st != _fb.ST_OK:
+            got, st = _jit().decode_triggers(b, ident, t, k, 0, n)
+            if st != _fbpy.ST_OK:
                 try:
                     self._fail(int(self._index.offset[i]), f"trigger packet: {_status(st)}")
                 except _Stop:
@@ -737,7 +741,7 @@ class Recording(BaseRecording):
 
 
 def _status(code) -> str:
-    return _fb.STATUS_TEXT.get(int(code), f"status {int(code)}")
+    return _fbpy.STATUS_TEXT.get(int(code), f"status {int(code)}")
 
 
 def _run_split(work, n_rows, counts) -> int:
@@ -936,7 +940,7 @@ class Aedat4Writer:
             if buf is None or len(buf) < need:
                 buf = staging[k % 2] = np.empty(need + (-need % 8), np.uint8)
             tt = events.t[lo:hi]
-            _fb.encode_event_packets(tt, events.x[lo:hi], events.y[lo:hi], events.p[lo:hi], local, 0, buf)
+            _jit().encode_event_packets(tt, events.x[lo:hi], events.y[lo:hi], events.p[lo:hi], local, 0, buf)
             heads = local[:-1] * 16 + 40 * np.arange(npk)
             ends = local[1:] * 16 + 40 * np.arange(1, npk + 1)
             if events.is_sorted:
@@ -979,8 +983,8 @@ class Aedat4Writer:
         for lo in range(0, len(triggers), 8192):
             t = triggers.t[lo : lo + 8192]
             k = triggers.kind[lo : lo + 8192]
-            buf = np.empty(_fb.trigger_packet_size(len(t)), np.uint8)
-            size = _fb.encode_trigger_packet(t, k, buf)
+            buf = np.empty(_jit().trigger_packet_size(len(t)), np.uint8)
+            size = _jit().encode_trigger_packet(t, k, buf)
             body = cz.compress(self.code, buf[:size])
             self._emit(self._trigger_sid, body, len(t), int(t.min()), int(t.max()))
 
@@ -996,8 +1000,8 @@ class Aedat4Writer:
         self._closed = True
         try:
             cols = [np.concatenate(c) if c else np.zeros(0, np.int64) for c in self._table]
-            buf = np.empty(_fb.data_table_size(len(cols[0])), np.uint8)
-            size = _fb.encode_data_table(*cols, buf)
+            buf = np.empty(_jit().data_table_size(len(cols[0])), np.uint8)
+            size = _jit().encode_data_table(*cols, buf)
             blob = cz.compress(self.code, buf[:size])
             dtp = self._pos
             self._f.write(blob)

@@ -87,6 +87,8 @@ class LegacyAedatRecording(BaseRecording):
             raise FormatError(self.path, 0, f"AEDAT version {self.version} is not read (evtk reads 2.0, 3.1 and 4.0)")
         self._v3 = self.version.startswith("3")
         self._lines, self._start = _header_lines(self.path, self._v3)
+        if self._v3 and not (self._lines and self._lines[-1].startswith("#!END-HEADER")):
+            raise FormatError(self.path, self._start, f"the AEDAT {self.version} header never ends (no #!END-HEADER line)")
         self._file_bytes = os.path.getsize(self.path)
         text = "\n".join(self._lines).lower()
         self.chip = None
