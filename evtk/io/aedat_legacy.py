@@ -44,12 +44,17 @@ _TYPE_NAMES = {0: "special", 1: "polarity", 2: "frame", 3: "imu6", 4: "imu9", 5:
                8: "point1d", 9: "point2d", 10: "point3d", 11: "point4d", 12: "spike"}
 
 
+_TEXT = re.compile(rb"#[\x20-\x7e\t]*\r?\n\Z")
+
+
 def _header_lines(path, v3):
+    """Header lines and where the data starts. A line is header only if it is text: '#', printable ASCII and a
+    line end (jAER's own rule, a leading '#', would take a first record whose top byte is 0x23 for text)."""
     lines, pos = [], 0
     with open(path, "rb") as f:
         while True:
             line = f.readline(1 << 16)
-            if not line.startswith(b"#"):
+            if not _TEXT.match(line):
                 break
             pos += len(line)
             if pos > 1 << 24:

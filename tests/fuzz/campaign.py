@@ -53,6 +53,24 @@ def sources(tmp: Path):
     fixtures = HERE.parent.parent / "fixtures"
     for f in fixtures.glob("*.aedat4"):
         out[f.name] = f
+    # the formats evtk reads but does not write, as their own tools write them (faery) or as jAER and cAER
+    # lay them out (the legacy AEDAT writers of the tests)
+    try:
+        import faery
+
+        from test_prophesee import _faery_write
+
+        for version, name in (("evt2", "f2.raw"), ("evt3", "f3.raw"), ("dat2", "f.dat"), (None, "f.es")):
+            _faery_write(tmp / name, ev, version)
+            out[name] = tmp / name
+    except ImportError:  # pragma: no cover - faery is in the test extra
+        pass
+    from test_aedat_legacy import write_aedat2_davis, write_aedat31
+
+    big = evtk.Events(ev.t, ev.x, ev.y, ev.p, (346, 260))
+    write_aedat2_davis(tmp / "l2.aedat", big, 260)
+    write_aedat31(tmp / "l3.aedat", big, packet=700)
+    out["l2.aedat"], out["l3.aedat"] = tmp / "l2.aedat", tmp / "l3.aedat"
     return out
 
 
