@@ -174,7 +174,7 @@ def convert(source, target, compression, salvage, sort, chunk_events, events_onl
     AEDAT4 to AEDAT4 copies frames, IMU and other streams and keeps the
     camera's name; other targets get one warning naming what they cannot hold.
     """
-    from .io.convert import convert as run
+    from .io._convert import convert as run
 
     done = run(source, target, compression, salvage=salvage, sort=sort, chunk_events=chunk_events,
                events_only=events_only)

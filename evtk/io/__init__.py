@@ -11,10 +11,12 @@ import os
 
 from ..errors import EvtkError, FormatError
 
-__all__ = ["open", "open_writer", "read_events", "write_events", "detect_format", "Recording", "BaseRecording", "WRITE_EXTENSIONS"]
+__all__ = ["open", "open_writer", "read_events", "write_events", "convert", "detect_format", "Recording", "BaseRecording",
+           "WRITE_EXTENSIONS"]
 
 # the readers and writers (numba, h5py, pyarrow) load on first use: `evtk --version` and `--help` start fast
-_LAZY = {"Recording": ("aedat4", "Recording"), "BaseRecording": ("base", "BaseRecording")}
+_LAZY = {"Recording": ("aedat4", "Recording"), "BaseRecording": ("base", "BaseRecording"),
+         "convert": ("_convert", "convert")}
 
 
 def __getattr__(name):
