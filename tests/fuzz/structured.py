@@ -305,6 +305,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--cases", type=int, default=3000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--start", type=int, default=0, help="first case number (to split a campaign over processes)")
     ap.add_argument("--hang-seconds", type=float, default=20.0)
     ap.add_argument("--cli-every", type=int, default=10, help="run the CLI on every Nth case (0: never)")
     ap.add_argument("--alloc-limit", type=float, default=64.0,
@@ -331,7 +332,7 @@ def main(argv=None):
         parts = {n: _aedat4_parts(p) for n, p in srcs.items() if n.endswith(".aedat4")}
         names = sorted(srcs)
         t_start = time.time()
-        for case in range(args.cases):
+        for case in range(args.start, args.start + args.cases):
             rng = np.random.default_rng([args.seed, case])
             name = names[case % len(names)]
             p = tmp / ("m" + Path(name).suffix)
