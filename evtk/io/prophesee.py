@@ -131,7 +131,7 @@ def _evt2_scan(words, high0, epoch0):
 
 @njit(cache=True, nogil=True)
 def _evt2_decode(words, high0, epoch0, width, height, t, x, y, p, tt, tk):
-    """Decode EVT 2.0 words; returns (events, triggers, status, word index of a bad event)."""
+    """Decode EVT 2.0 words; returns (events, triggers, status, word index of a bad event, time high, epoch)."""
     high = high0
     epoch = epoch0
     n = 0
@@ -148,7 +148,7 @@ def _evt2_decode(words, high0, epoch0, width, height, t, x, y, p, tt, tk):
             xi = (w >> 11) & 0x7FF
             yi = w & 0x7FF
             if xi >= width or yi >= height:
-                return n, m, ST_COORD, i
+                return n, m, ST_COORD, i, high, epoch
             t[n] = (epoch << 34) | (high << 6) | ((w >> 22) & 0x3F)
             x[n] = xi
             y[n] = yi
@@ -160,8 +160,8 @@ def _evt2_decode(words, high0, epoch0, width, height, t, x, y, p, tt, tk):
             tk[m] = 1 if (w & 1) else 2
             m += 1
         elif kind != 14 and kind != 15:  # OTHERS and CONTINUED carry no events; no other type exists
-            return n, m, ST_TYPE, i
-    return n, m, ST_OK, -1
+            return n, m, ST_TYPE, i, high, epoch
+    return n, m, ST_OK, -1, high, epoch
 
 
 @njit(cache=True, nogil=True)
@@ -452,37 +452,63 @@ class PropheseeRecording(BaseRecording):
                                  int(full.max()) if len(ts) else -1))
                     state = (np.int64(ts[-1]) if len(ts) else np.int64(prev), np.int64(k + len(wraps)))
             self._blocks = rows
-            if self.encoding == ES and self._count and state[_ES_PHASE] != 0 and self.damage is None:
-                where = self._start + self._count
-                problem = f"the file ends inside an event ({int(state[_ES_PHASE])} of its 5 bytes)"
-                if not self.salvage:
-                    raise FormatError(self.path, where, problem + "; salvage reads the events before it")
-                self.damage = Damage(where, problem)
+            self._check_es_end(state)
         return self._blocks
 
-    def _decode_block(self, b):
-        """(Events, Triggers, problem) of block ``b``; a problem stops salvage there."""
-        state, n_ev, n_tr, _, _ = self._index()[b]
+    def _check_es_end(self, state):
+        """An Event Stream whose last event is cut: an error, or with salvage a note."""
+        if self.encoding == ES and self._count and state[_ES_PHASE] != 0 and self.damage is None:
+            where = self._start + self._count
+            problem = f"the file ends inside an event ({int(state[_ES_PHASE])} of its 5 bytes)"
+            if not self.salvage:
+                raise FormatError(self.path, where, problem + "; salvage reads the events before it")
+            self.damage = Damage(where, problem)
+
+    def _decode_block(self, b, state=None):
+        """(Events, Triggers, problem) of block ``b``; a problem stops salvage there.
+
+        With ``state`` (the decoder's state at the block's start, when reading straight through without
+        the index) the outputs are sized by what the block could hold, and the block's index row and the
+        state at its end come back too: ``(events, triggers, problem, row, end state)``.
+        """
+        words = self._words(b)
         w, h = self._size
+        through = state is not None
+        if through:
+            start = state.copy() if isinstance(state, np.ndarray) else state
+            if self.encoding == EVT3:  # up to 12 events a word: count first (the block is in cache)
+                probe = state.copy()
+                n_ev, n_tr, _, _, _, _ = _evt3_run(words, probe, 1 << 16, 1 << 16, False, *_NO_OUT)
+            elif self.encoding == ES:
+                n_ev, n_tr = len(words) // 5 + 1, 0
+            elif self.encoding == DAT:
+                n_ev, n_tr = len(words) // 2, 0
+            else:
+                n_ev = n_tr = len(words)
+        else:
+            start, n_ev, n_tr, _, _ = self._index()[b]
         t = np.empty(n_ev, np.int64)
         x = np.empty(n_ev, np.uint16)
         y = np.empty(n_ev, np.uint16)
         p = np.empty(n_ev, np.uint8)
         tt = np.empty(n_tr, np.int64)
         tk = np.empty(n_tr, np.uint8)
-        words = self._words(b)
         if self.encoding == ES:
-            n, st, bad, _, _ = _es_dvs_run(words, state.copy(), w, h, True, t, x, y, p)
+            end = start.copy()
+            n, st, bad, _, _ = _es_dvs_run(words, end, w, h, True, t, x, y, p)
             m = 0
             at = self._start + b * BLOCK_WORDS + bad
         elif self.encoding == EVT3:
-            n, m, st, bad, _, _ = _evt3_run(words, state.copy(), w, h, True, t, x, y, p, tt, tk)
+            end = start.copy()
+            n, m, st, bad, _, _ = _evt3_run(words, end, w, h, True, t, x, y, p, tt, tk)
             at = self._start + 2 * (b * BLOCK_WORDS + bad)
         elif self.encoding == EVT2:
-            n, m, st, bad = _evt2_decode(words, state[0], state[1], w, h, t, x, y, p, tt, tk)
+            n, m, st, bad, high, epoch = _evt2_decode(words, start[0], start[1], w, h, t, x, y, p, tt, tk)
+            end = (np.int64(high), np.int64(epoch))
             at = self._start + 4 * (b * BLOCK_WORDS + bad)
         else:
-            n, st, bad, _, _ = _dat_decode(words, state[0], state[1], w, h, t, x, y, p)
+            n, st, bad, prev, epoch = _dat_decode(words, start[0], start[1], w, h, t, x, y, p)
+            end = (np.int64(prev), np.int64(epoch))
             m = 0
             at = self._start + 8 * (b * (BLOCK_WORDS // 2) + bad)
         problem = None
@@ -493,7 +519,27 @@ class PropheseeRecording(BaseRecording):
         elif st == ST_TYPE:
             problem = (at, f"word of unknown type {int(words[bad]) >> 28} (EVT 2.0 has 0, 1, 8, 10, 14 and 15)")
         ev = Events._trusted(t[:n], x[:n], y[:n], p[:n], self._size)
-        return ev, Triggers(tt[:m], tk[:m]), problem
+        tr = Triggers(tt[:m], tk[:m])
+        if not through:
+            return ev, tr, problem
+        row = (start, int(n), int(m), int(ev.t.min()) if n else 0, int(ev.t.max()) if n else -1)
+        return ev, tr, problem, row, end
+
+    def _through(self):
+        """Yield ``(events, triggers, problem)`` block by block in one pass, without the index; the index rows
+        it sees are kept, and become the index when the pass reaches the end without a problem."""
+        state = np.zeros(6 if self.encoding == EVT3 else 5, np.int64) if self.encoding in (EVT3, ES) \
+            else (np.int64(0 if self.encoding == EVT2 else -1), np.int64(0))
+        rows = []
+        for b in range(self._n_blocks()):
+            ev, tr, problem, row, state = self._decode_block(b, state)
+            rows.append(row)
+            yield ev, tr, problem
+            if problem:
+                return
+        if self._blocks is None:
+            self._blocks = rows
+            self._check_es_end(state)
 
     def _stop(self, problem):
         at, reason = problem
@@ -522,11 +568,13 @@ class PropheseeRecording(BaseRecording):
         if chunk_events < 1:
             raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
         pending, held = [], 0
-        for b, (_, n_ev, _, lo, hi) in enumerate(self._index()):
-            if n_ev and ((t_start_us is not None and hi < t_start_us) or (t_end_us is not None and lo >= t_end_us)):
-                continue
-            ev, _, problem = self._decode_block(b)
-            if t_start_us is not None or t_end_us is not None:
+        windowed = t_start_us is not None or t_end_us is not None
+        if windowed or self._blocks is not None:
+            blocks = self._windowed(t_start_us, t_end_us)
+        else:  # straight through: one pass, and the index comes with it
+            blocks = self._through()
+        for ev, _, problem in blocks:
+            if windowed:
                 ev = ev.between(t_start_us, t_end_us)
             if len(ev):
                 pending.append(ev)
@@ -541,6 +589,13 @@ class PropheseeRecording(BaseRecording):
                 break
         if held:
             yield Events.concatenate(pending, sensor_size=self._size)
+
+    def _windowed(self, t_start_us, t_end_us):
+        """Yield ``(events, triggers, problem)`` of the blocks whose time range (by the index) meets the window."""
+        for b, (_, n_ev, _, lo, hi) in enumerate(self._index()):
+            if n_ev and ((t_start_us is not None and hi < t_start_us) or (t_end_us is not None and lo >= t_end_us)):
+                continue
+            yield self._decode_block(b)
 
     def events(self, t_start_us=None, t_end_us=None) -> Events:
         parts = list(self.iter_events(1 << 62, t_start_us, t_end_us))
