@@ -1,4 +1,6 @@
-"""Bounds-checked FlatBuffers access for the few AEDAT4 tables evtk knows.
+"""Bounds-checked FlatBuffers access for the AEDAT4 packet bodies evtk decodes and encodes (numba).
+
+The header and the data table are read by :mod:`evtk.io._fbpy` (plain Python and numpy, no compiler).
 
 Every function takes the packet body as a uint8 array and never reads outside
 it: a lying offset yields a negative status instead of a crash.  The layouts
@@ -225,44 +227,6 @@ def vector_length(b, ident, struct_size=0):
     if struct_size > 0 and len(b) - (start + struct_size * count) >= struct_size:
         return ST_SLACK
     return count
-
-
-@njit(cache=True, nogil=True)
-def decode_data_table(b, ident, offset, stream, size, count, t0, t1):
-    """Decode a FileDataTable (FTAB) into per-packet columns.
-
-    Each column must have room for every entry; returns ``(entries, status)``.
-    """
-    root = fb_root(b, ident)
-    if root < 0:
-        return 0, root
-    start, n = fb_vector(b, root, 0, 4)
-    if start < 0:
-        return 0, start
-    if n > len(offset):
-        return n, ST_CAPACITY
-    for i in range(n):
-        tb = fb_deref(b, start + 4 * i)
-        if tb < 0:
-            return i, tb
-        f_off = fb_field(b, tb, 0)
-        f_hdr = fb_field(b, tb, 1)
-        f_cnt = fb_field(b, tb, 2)
-        f_t0 = fb_field(b, tb, 3)
-        f_t1 = fb_field(b, tb, 4)
-        if f_off < 0 or f_hdr < 0 or f_cnt < 0 or f_t0 < 0 or f_t1 < 0:
-            return i, ST_BAD_OFFSET
-        if f_off == 0 or f_hdr == 0:
-            return i, ST_MISSING
-        if f_off + 8 > len(b) or f_hdr + 8 > len(b) or f_cnt + 8 > len(b) or f_t0 + 8 > len(b) or f_t1 + 8 > len(b):
-            return i, ST_BAD_OFFSET
-        offset[i] = _i64(b, f_off)
-        stream[i] = _i32(b, f_hdr)
-        size[i] = _i32(b, f_hdr + 4)
-        count[i] = _i64(b, f_cnt) if f_cnt > 0 else 0
-        t0[i] = _i64(b, f_t0) if f_t0 > 0 else 0
-        t1[i] = _i64(b, f_t1) if f_t1 > 0 else 0
-    return n, ST_OK
 
 
 # ---------------------------------------------------------------------------
