@@ -42,6 +42,8 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
         others = [] if events_only else list(getattr(rec, "other_streams", lambda: [])())
         main = next((s for s in streams if s.type == "EVTS"), None)
         camera = (main.attributes.get("source") if main is not None else None) or None
+        if camera == "evtk":  # evtk's own name as a writer, not a camera's
+            camera = None
         metadata = dict(rec.metadata or {})
         copied, left_out = {}, {}
         if fmt == "aedat4":
