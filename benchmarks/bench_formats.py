@@ -155,6 +155,7 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--legacy-events", type=float, default=2e5,
                     help="events in the AEDAT 2/3.1 files (dv's legacy reader yields one Python object an event)")
+    ap.add_argument("--only", help="measure only the files whose kind starts with this (e.g. aedat4, evt)")
     ap.add_argument("--json", dest="json_out")
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -164,6 +165,8 @@ def main(argv=None):
     DATA.mkdir(exist_ok=True)
     rows = []
     for kind, ext in FILES.items():
+        if args.only and not kind.startswith(args.only):
+            continue
         n = int(args.legacy_events if kind.startswith("aedat2") or kind.startswith("aedat3") else args.events)
         path = DATA / f"fmt_{kind.replace('/', '_')}_{n}{ext}"
         if not path.exists():
