@@ -182,3 +182,20 @@ def test_event_stream_overflow_reset_bytes_and_a_cut_event(tmp_path):
     path.write_bytes(head[:15] + bytes([2]) + head[16:] + body)
     with pytest.raises(evtk.FormatError, match="ATIS"):
         evtk.open(path)
+
+
+def test_evt3_vectors_with_more_events_than_words(tmp_path, monkeypatch):
+    """Full 12-pixel vectors give 12 events a word: the straight-through decoder resumes where room runs out."""
+    monkeypatch.setattr(prophesee, "BLOCK_WORDS", 256)
+    words = [(8 << 12) | 1]
+    for k in range(1000):
+        words += [(6 << 12) | (k % 4096), (0 << 12) | (k % 480), (3 << 12) | (1 << 11) | 0, (4 << 12) | 0xFFF]
+    path = tmp_path / "full.raw"
+    path.write_bytes(_evt3(words))
+    with evtk.open(path) as rec:
+        ev = rec.events()
+        assert len(ev) == 12_000 and ev.x[:13].tolist() == list(range(12)) + [0]
+        assert rec.events(4096 + 100, 4096 + 200) == ev.between(4096 + 100, 4096 + 200)
+    with evtk.open(path) as rec:  # the windowed path first: its index, then the same events
+        assert rec.events(4096 + 100, 4096 + 200) == ev.between(4096 + 100, 4096 + 200)
+        assert rec.info()["events"] == 12_000

@@ -41,7 +41,7 @@ _MAX_HEADER = 1 << 20
 
 EVT2, EVT3, DAT = "evt2", "evt3", "dat"
 
-ST_OK, ST_COORD, ST_TYPE = 0, -1, -2
+ST_OK, ST_COORD, ST_TYPE, ST_FULL = 0, -1, -2, -3
 
 
 def sniff(head: bytes) -> str | None:
@@ -216,6 +216,10 @@ def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk):
         if kind == 0:  # EVT_ADDR_Y
             yy = v & 0x7FF
         elif kind == 2 or kind == 4 or kind == 5:  # EVT_ADDR_X, VECT_12, VECT_8
+            if decode and n + 12 > len(t):  # no room for a whole vector: the caller resumes at this word
+                status = ST_FULL
+                bad = i
+                break
             if kind == 2:
                 first, mask, step = v & 0x7FF, np.int64(1), 0
                 ep = (v >> 11) & 1
@@ -253,6 +257,10 @@ def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk):
                 epoch += 1
             high = v
         elif kind == 10:  # EXT_TRIGGER: the edge in bit 0, the channel in bits 8..11
+            if decode and m >= len(tt):
+                status = ST_FULL
+                bad = i
+                break
             if decode:
                 tt[m] = (epoch << 24) | (high << 12) | low
                 tk[m] = 1 if (v & 1) else 2
@@ -476,9 +484,8 @@ class PropheseeRecording(BaseRecording):
         through = state is not None
         if through:
             start = state.copy() if isinstance(state, np.ndarray) else state
-            if self.encoding == EVT3:  # up to 12 events a word: count first (the block is in cache)
-                probe = state.copy()
-                n_ev, n_tr, _, _, _, _ = _evt3_run(words, probe, 1 << 16, 1 << 16, False, *_NO_OUT)
+            if self.encoding == EVT3:  # up to 12 events a word: decoded in pieces, resumed where room ran out
+                return self._evt3_through(b, words, state)
             elif self.encoding == ES:
                 n_ev, n_tr = len(words) // 5 + 1, 0
             elif self.encoding == DAT:
@@ -487,6 +494,8 @@ class PropheseeRecording(BaseRecording):
                 n_ev = n_tr = len(words)
         else:
             start, n_ev, n_tr, _, _ = self._index()[b]
+        if self.encoding == EVT3:  # the decoder wants room for a whole vector before it decodes one
+            n_ev, n_tr = n_ev + 12, n_tr + 1
         t = np.empty(n_ev, np.int64)
         x = np.empty(n_ev, np.uint16)
         y = np.empty(n_ev, np.uint16)
@@ -523,6 +532,34 @@ class PropheseeRecording(BaseRecording):
         if not through:
             return ev, tr, problem
         row = (start, int(n), int(m), int(ev.t.min()) if n else 0, int(ev.t.max()) if n else -1)
+        return ev, tr, problem, row, end
+
+    def _evt3_through(self, b, words, state):
+        """EVT 3.0 block ``b`` straight through (see :meth:`_decode_block`): into buffers of one event a word,
+        resumed at the word where a vector no longer fits."""
+        w, h = self._size
+        start = state.copy()
+        end = state.copy()
+        evs, trs, pos, problem = [], [], 0, None
+        while True:
+            cap = max(len(words) - pos, 0) + 12
+            t, x, y = np.empty(cap, np.int64), np.empty(cap, np.uint16), np.empty(cap, np.uint16)
+            p, tt, tk = np.empty(cap, np.uint8), np.empty(cap, np.int64), np.empty(cap, np.uint8)
+            n, m, st, bad, _, _ = _evt3_run(words[pos:], end, w, h, True, t, x, y, p, tt, tk)
+            evs.append(Events._trusted(t[:n], x[:n], y[:n], p[:n], self._size))
+            trs.append(Triggers(tt[:m], tk[:m]))
+            if st != ST_FULL:
+                if st == ST_COORD:
+                    problem = (self._start + 2 * (b * BLOCK_WORDS + pos + bad), f"an event lies outside the {w}x{h} sensor")
+                elif st == ST_TYPE:
+                    problem = (self._start + 2 * (b * BLOCK_WORDS + pos + bad),
+                               f"word of unknown type {int(words[pos + bad]) >> 12} (EVT 3.0 has 0, 2-8, 10, 14 and 15)")
+                break
+            pos += bad
+        ev = evs[0] if len(evs) == 1 else Events.concatenate(evs, sensor_size=self._size)
+        tr = trs[0] if len(trs) == 1 else Triggers.concatenate(trs)
+        n = len(ev)
+        row = (start, n, len(tr), int(ev.t.min()) if n else 0, int(ev.t.max()) if n else -1)
         return ev, tr, problem, row, end
 
     def _through(self):
