@@ -134,28 +134,30 @@ def _evt2_decode(words, high0, epoch0, width, height, t, x, y, p, tt, tk):
     """Decode EVT 2.0 words; returns (events, triggers, status, word index of a bad event, time high, epoch)."""
     high = high0
     epoch = epoch0
+    base = (epoch << 34) | (high << 6)
     n = 0
     m = 0
     for i in range(len(words)):
         w = np.int64(words[i])
         kind = w >> 28
-        if kind == 8:
-            new = w & 0xFFFFFFF
-            if new < high and high - new > (1 << 27):
-                epoch += 1
-            high = new
-        elif kind == 0 or kind == 1:
+        if kind <= 1:  # CD_OFF, CD_ON: most words
             xi = (w >> 11) & 0x7FF
             yi = w & 0x7FF
             if xi >= width or yi >= height:
                 return n, m, ST_COORD, i, high, epoch
-            t[n] = (epoch << 34) | (high << 6) | ((w >> 22) & 0x3F)
+            t[n] = base | ((w >> 22) & 0x3F)
             x[n] = xi
             y[n] = yi
             p[n] = kind
             n += 1
+        elif kind == 8:
+            new = w & 0xFFFFFFF
+            if new < high and high - new > (1 << 27):  # the 28-bit counter wrapped
+                epoch += 1
+            high = new
+            base = (epoch << 34) | (high << 6)
         elif kind == 10:
-            tt[m] = (epoch << 34) | (high << 6) | ((w >> 22) & 0x3F)
+            tt[m] = base | ((w >> 22) & 0x3F)
             # the edge in bit 0, the channel in bits 8..12: kind 1 rising, 2 falling (evtk's Triggers)
             tk[m] = 1 if (w & 1) else 2
             m += 1
@@ -635,8 +637,53 @@ class PropheseeRecording(BaseRecording):
             yield self._decode_block(b)
 
     def events(self, t_start_us=None, t_end_us=None) -> Events:
+        self._check_open()
+        if t_start_us is None and t_end_us is None and self.encoding in (EVT2, DAT, ES) and self._count:
+            return self._whole()
         parts = list(self.iter_events(1 << 62, t_start_us, t_end_us))
         return Events.concatenate(parts, sensor_size=self._size) if parts else Events.empty(self._size)
+
+    def _whole(self) -> Events:
+        """Every event in one decoder call over the memory-mapped file, into outputs sized by what the file
+        could hold (untouched pages cost no memory) and trimmed: no blocks to join."""
+        w, h = self._size
+        dtype = {EVT2: "<u4", DAT: "<u4", ES: "u1"}[self.encoding]
+        n_items = self._count * (2 if self.encoding == DAT else 1)
+        words = np.memmap(self.path, dtype=dtype, mode="r", offset=self._start, shape=(n_items,))
+        cap = {EVT2: n_items, DAT: n_items // 2, ES: n_items // 5 + 1}[self.encoding]
+        t, x = np.empty(cap, np.int64), np.empty(cap, np.uint16)
+        y, p = np.empty(cap, np.uint16), np.empty(cap, np.uint8)
+        problem = None
+        if self.encoding == EVT2:
+            tt, tk = np.empty(cap, np.int64), np.empty(cap, np.uint8)
+            n, m, st, bad, _, _ = _evt2_decode(words, np.int64(0), np.int64(0), w, h, t, x, y, p, tt, tk)
+            at = self._start + 4 * bad
+            if self._triggers is None and st == ST_OK:
+                self._triggers = Triggers(tt[:m].copy(), tk[:m].copy())
+        elif self.encoding == DAT:
+            n, st, bad, _, _ = _dat_decode(words, np.int64(-1), np.int64(0), w, h, t, x, y, p)
+            at = self._start + 8 * bad
+        else:
+            state = np.zeros(5, np.int64)
+            n, st, bad, _, _ = _es_dvs_run(words, state, w, h, True, t, x, y, p)
+            at = self._start + bad
+            if st == ST_OK:
+                self._check_es_end(state)
+        del words
+        if st == ST_COORD:
+            problem = (at, f"an event lies outside the {w}x{h} sensor")
+        elif st == ST_TYPE:
+            problem = (at, f"word of unknown type {int(self._words_at(bad)) >> 28} (EVT 2.0 has 0, 1, 8, 10, 14 "
+                           "and 15)")
+        if problem:
+            self._stop(problem)
+        # the used part (the pages of the rest were never touched: they hold no memory)
+        return Events._trusted(t[:n], x[:n], y[:n], p[:n], self._size)
+
+    def _words_at(self, i):
+        with open(self.path, "rb") as f:
+            f.seek(self._start + 4 * i)
+            return int.from_bytes(f.read(4), "little")
 
     def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
         self._check_open()
