@@ -134,7 +134,7 @@ def decode_events(b, ident, t, x, y, p, offset, capacity, width, height, address
 
     Returns ``(count, status)``; with ``ST_COORD`` the count is the index of
     the first event outside ``width`` x ``height``. ``address_mod8`` is the
-    body's memory address modulo 8 (:func:`address_mod8`): when the event
+    body's memory address modulo 8 (:func:`address_mod8`; -2: found here): when the event
     vector is 8-byte aligned, as FlatBuffers lays it out, each 16-byte event
     is read as two little-endian words; otherwise (a damaged file, or -1)
     byte by byte.
@@ -151,6 +151,8 @@ def decode_events(b, ident, t, x, y, p, offset, capacity, width, height, address
         return 0, ST_SLACK
     if count > capacity:
         return count, ST_CAPACITY
+    if address_mod8 == -2:  # the body's own address: no Python call per packet to find it
+        address_mod8 = b.ctypes.data % 8
     if address_mod8 >= 0 and (address_mod8 + start) % 8 == 0 and _LITTLE_ENDIAN:
         w = b[start : start + 16 * count].view(np.uint64)
         for i in range(count):

@@ -515,6 +515,7 @@ class Recording(BaseRecording):
         np.cumsum(counts, out=starts[1:])
         starts[1:] += offset
         ident = _IDENT["EVTS"]
+        decode = _jit().decode_events
 
         def work(k0, k1):
             for k in range(k0, k1):
@@ -524,7 +525,7 @@ class Recording(BaseRecording):
                 except _Stop:
                     return k
                 cap = int(counts[k])
-                n, st = _jit().decode_events(b, ident, t, x, y, p, int(starts[k]), cap, width, height, _jit().address_mod8(b))
+                n, st = decode(b, ident, t, x, y, p, int(starts[k]), cap, width, height, -2)
                 if (st == _fbpy.ST_OK and n != cap) or st == _fbpy.ST_CAPACITY:
                     raise _CountMismatch
                 if st != _fbpy.ST_OK:
