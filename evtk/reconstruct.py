@@ -669,8 +669,10 @@ def plan(rec, window="schedule", skip_us=0, length_us=None, region=None):
     if region is None:
         region = tuple(sim["response_region"]) if sim is not None else (0, rec.sensor_size[0], 0, rec.sensor_size[1])
     x0, x1, y0, y1 = (int(v) for v in region)
-    # ON and OFF counts per window and pixel, and with event times the first and last ON time
-    require_memory(len(win) * max(0, x1 - x0) * max(0, y1 - y0) * 24,
+    # per window and pixel: ON and OFF counts (int32), with a simulation record the first and last ON times
+    # (int64), and the float64 stages after them (a minute of 10 ms windows over 320x240 peaked at 53 bytes
+    # a window-pixel without a record: measured, killed at 24 GB)
+    require_memory(len(win) * max(0, x1 - x0) * max(0, y1 - y0) * (64 if sim is None else 80),
                    f"counting {len(win):,} windows over {max(0, x1 - x0)}x{max(0, y1 - y0)} pixels")
     return sim, win, tuple(region)
 
