@@ -199,3 +199,15 @@ def test_evt3_vectors_with_more_events_than_words(tmp_path, monkeypatch):
     with evtk.open(path) as rec:  # the windowed path first: its index, then the same events
         assert rec.events(4096 + 100, 4096 + 200) == ev.between(4096 + 100, 4096 + 200)
         assert rec.info()["events"] == 12_000
+
+
+def test_first_data_word_starting_with_a_percent_sign_is_data(tmp_path):
+    """Older headers end without '% end': a word whose first (low) byte is '%' (0x25) must not be taken for text."""
+    words = [(8 << 28) | 1, _cd(0, 1, 0x25), _cd(1, 2, 3)]
+    assert np.asarray(words[1:2], "<u4").tobytes()[:1] == b"%"
+    path = tmp_path / "pct.raw"
+    path.write_bytes(b"% evt 2.0\n% format EVT2;width=640;height=480\n" + np.asarray(words[1:], "<u4").tobytes())
+    ev = evtk.read_events(path)
+    assert ev.x.tolist() == [1, 2] and ev.y.tolist() == [0x25, 3]
+    path.write_bytes(b"% evt 2.0\n% geometry 640x480\n% end\n" + np.asarray(words, "<u4").tobytes())
+    assert evtk.read_events(path).t.tolist() == [64, 65]

@@ -26,6 +26,7 @@ at a time; nothing in it comes from the file's claims.
 from __future__ import annotations
 
 import os
+import re
 
 import numpy as np
 from numba import njit
@@ -60,14 +61,18 @@ def sniff(head: bytes) -> str | None:
     return None
 
 
+_TEXT_LINE = re.compile(rb"%[\x20-\x7e\t]*\r?\n\Z")
+
+
 def _header(path):
-    """(header lines without '%', data offset) of a Prophesee file."""
+    """(header lines without '%', data offset) of a Prophesee file. A line is header only if it is text ('%',
+    printable ASCII, a line end): a first data word whose low byte is '%' is data, not header."""
     lines = []
     with open(path, "rb") as f:
         pos = 0
         while True:
             line = f.readline(_MAX_HEADER)
-            if not line.startswith(b"%"):
+            if not _TEXT_LINE.match(line):
                 break
             pos += len(line)
             if pos > _MAX_HEADER:
