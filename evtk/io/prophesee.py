@@ -18,9 +18,10 @@ when reading; Prophesee's tools and expelliarmus do not: evtk reports it in
 ``metadata`` and keeps the stamps as stored). Counters that wrap (EVT 2.0's
 34-bit time, DAT's 32-bit one) are unwrapped.
 
-The reader makes its own block index in one pass on first use (numba), so a
-time window decodes only the blocks it overlaps and streaming holds one block
-at a time; nothing in it comes from the file's claims.
+A full read is one decoder call over the memory-mapped file. For windows the
+reader makes its own block index in one counting pass (numba), so a window
+decodes only the blocks it overlaps, and streaming holds one block at a time;
+nothing in the index comes from the file's claims.
 """
 
 from __future__ import annotations
@@ -104,44 +105,25 @@ def _sensor_from_header(lines, path):
 # -- decoding (numba) -------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True)
-def _evt2_scan(words, high0, epoch0):
-    """One pass over EVT 2.0 words: (events, triggers, last time high, epoch, min t, max t)."""
-    high = high0
-    epoch = epoch0
-    n_ev = 0
-    n_tr = 0
-    t_min = np.int64(2**62)
-    t_max = np.int64(-(2**62))
-    for i in range(len(words)):
-        w = np.int64(words[i])
-        kind = w >> 28
-        if kind == 8:
-            new = w & 0xFFFFFFF
-            if new < high and high - new > (1 << 27):  # the 28-bit counter wrapped
-                epoch += 1
-            high = new
-        elif kind == 0 or kind == 1 or kind == 10:
-            t = (epoch << 34) | (high << 6) | ((w >> 22) & 0x3F)
-            if kind == 10:
-                n_tr += 1
-            else:
-                n_ev += 1
-                if t < t_min:
-                    t_min = t
-                if t > t_max:
-                    t_max = t
-    return n_ev, n_tr, high, epoch, t_min, t_max
+# decoder states (int64 arrays, updated in place so that a block goes on where the one before ended)
+# EVT 2.0: time high, epoch (wraps of the 34-bit time); DAT: last raw time stamp, epoch (wraps of 32 bits)
+_E2_HIGH, _E2_EPOCH = range(2)
+_DAT_PREV, _DAT_EPOCH = range(2)
 
 
 @njit(cache=True, nogil=True)
-def _evt2_decode(words, high0, epoch0, width, height, t, x, y, p, tt, tk):
-    """Decode EVT 2.0 words; returns (events, triggers, status, word index of a bad event, time high, epoch)."""
-    high = high0
-    epoch = epoch0
+def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk):
+    """One pass over EVT 2.0 words: counts, or with ``decode`` the events and triggers. Returns (events,
+    triggers, status, word index of the problem, min t, max t); the min and max only when counting."""
+    high = state[_E2_HIGH]
+    epoch = state[_E2_EPOCH]
     base = (epoch << 34) | (high << 6)
     n = 0
     m = 0
+    t_min = np.int64(2**62)
+    t_max = np.int64(-(2**62))
+    status = ST_OK
+    bad = -1
     for i in range(len(words)):
         w = np.int64(words[i])
         kind = w >> 28
@@ -149,11 +131,18 @@ def _evt2_decode(words, high0, epoch0, width, height, t, x, y, p, tt, tk):
             xi = (w >> 11) & 0x7FF
             yi = w & 0x7FF
             if xi >= width or yi >= height:
-                return n, m, ST_COORD, i, high, epoch
-            t[n] = base | ((w >> 22) & 0x3F)
-            x[n] = xi
-            y[n] = yi
-            p[n] = kind
+                status = ST_COORD
+                bad = i
+                break
+            tc = base | ((w >> 22) & 0x3F)
+            if decode:
+                t[n] = tc
+                x[n] = xi
+                y[n] = yi
+                p[n] = kind
+            else:
+                t_min = min(t_min, tc)
+                t_max = max(t_max, tc)
             n += 1
         elif kind == 8:
             new = w & 0xFFFFFFF
@@ -162,23 +151,32 @@ def _evt2_decode(words, high0, epoch0, width, height, t, x, y, p, tt, tk):
             high = new
             base = (epoch << 34) | (high << 6)
         elif kind == 10:
-            tt[m] = base | ((w >> 22) & 0x3F)
-            # the edge in bit 0, the channel in bits 8..12: kind 1 rising, 2 falling (evtk's Triggers)
-            tk[m] = 1 if (w & 1) else 2
+            if decode:
+                tt[m] = base | ((w >> 22) & 0x3F)
+                # the edge in bit 0, the channel in bits 8..12: kind 1 rising, 2 falling (evtk's Triggers)
+                tk[m] = 1 if (w & 1) else 2
             m += 1
         elif kind != 14 and kind != 15:  # OTHERS and CONTINUED carry no events; no other type exists
-            return n, m, ST_TYPE, i, high, epoch
-    return n, m, ST_OK, -1, high, epoch
+            status = ST_TYPE
+            bad = i
+            break
+    state[_E2_HIGH] = high
+    state[_E2_EPOCH] = epoch
+    return n, m, status, bad, t_min, t_max
 
 
 @njit(cache=True, nogil=True)
-def _dat_decode(raw, t_prev0, epoch0, width, height, t, x, y, p):
-    """Decode DAT CD events (pairs of uint32: time stamp, data); returns (events, status, bad index,
-    last raw time, epoch)."""
-    prev = t_prev0
-    epoch = epoch0
-    n = len(raw) // 2
-    for i in range(n):
+def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk):
+    """One pass over DAT CD events (pairs of uint32: time stamp, data), with :func:`_evt2_run`'s arguments
+    and results (DAT files hold no triggers)."""
+    prev = state[_DAT_PREV]
+    epoch = state[_DAT_EPOCH]
+    n = 0
+    t_min = np.int64(2**62)
+    t_max = np.int64(-(2**62))
+    status = ST_OK
+    bad = -1
+    for i in range(len(raw) // 2):
         ts = np.int64(raw[2 * i])
         d = np.int64(raw[2 * i + 1])
         if ts < prev and prev - ts > (1 << 31):  # the 32-bit counter wrapped
@@ -187,12 +185,22 @@ def _dat_decode(raw, t_prev0, epoch0, width, height, t, x, y, p):
         xi = d & 0x3FFF
         yi = (d >> 14) & 0x3FFF
         if xi >= width or yi >= height:
-            return i, ST_COORD, i, prev, epoch
-        t[i] = (epoch << 32) | ts
-        x[i] = xi
-        y[i] = yi
-        p[i] = 1 if (d >> 28) & 0xF else 0
-    return n, ST_OK, -1, prev, epoch
+            status = ST_COORD
+            bad = i
+            break
+        tc = (epoch << 32) | ts
+        if decode:
+            t[n] = tc
+            x[n] = xi
+            y[n] = yi
+            p[n] = 1 if (d >> 28) & 0xF else 0
+        else:
+            t_min = min(t_min, tc)
+            t_max = max(t_max, tc)
+        n += 1
+    state[_DAT_PREV] = prev
+    state[_DAT_EPOCH] = epoch
+    return n, 0, status, bad, t_min, t_max
 
 
 # EVT 3.0 decoder state: time high, time low, epoch (wraps of the 24-bit time), y, vector base x, polarity
@@ -292,11 +300,11 @@ ES_MAGIC = b"Event Stream"
 
 
 @njit(cache=True, nogil=True)
-def _es_dvs_run(data, state, width, height, decode, t, x, y, p):
+def _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk):
     """One pass over Event Stream 2.x DVS bytes: 0xFF adds 127 us, 0xFE is a reset (nothing), any other
     first byte adds its top seven bits to the time and gives the polarity in bit 0; four bytes follow (x,
-    then y counted from the bottom row, little-endian). Returns (events, status, byte index of the problem,
-    min t, max t); ``state`` carries over between blocks."""
+    then y counted from the bottom row, little-endian). :func:`_evt2_run`'s arguments and results (no
+    triggers); ``state`` carries over between blocks."""
     tc = state[_ES_T]
     phase = state[_ES_PHASE]
     xi = state[_ES_X]
@@ -329,7 +337,7 @@ def _es_dvs_run(data, state, width, height, decode, t, x, y, p):
             if xi >= width or yi >= height:
                 state[_ES_T] = tc
                 state[_ES_PHASE] = phase
-                return n, ST_COORD, i, t_min, t_max
+                return n, 0, ST_COORD, i, t_min, t_max
             if decode:
                 t[n] = tc
                 x[n] = xi
@@ -345,9 +353,14 @@ def _es_dvs_run(data, state, width, height, decode, t, x, y, p):
     state[_ES_X] = xi
     state[_ES_Y] = yi
     state[_ES_POL] = pol
-    return n, ST_OK, -1, t_min, t_max
+    return n, 0, ST_OK, -1, t_min, t_max
 
 
+_RUNNERS = {EVT2: _evt2_run, EVT3: _evt3_run, DAT: _dat_run, ES: _es_dvs_run}
+_STATE_SIZE = {EVT2: 2, EVT3: 6, DAT: 2, ES: 5}
+_DTYPE = {EVT2: "<u4", EVT3: "<u2", DAT: "<u4", ES: "u1"}
+# where a word's type sits, and the types a format has (for the message about a word of another type)
+_TYPES = {EVT2: (28, "EVT 2.0 has 0, 1, 8, 10, 14 and 15"), EVT3: (12, "EVT 3.0 has 0, 2-8, 10, 14 and 15")}
 _NO_OUT = (np.empty(0, np.int64), np.empty(0, np.uint16), np.empty(0, np.uint16), np.empty(0, np.uint8),
            np.empty(0, np.int64), np.empty(0, np.uint8))
 
@@ -416,56 +429,36 @@ class PropheseeRecording(BaseRecording):
         return BLOCK_WORDS // 2 if self.encoding == DAT else BLOCK_WORDS
 
     def _words(self, b):
-        """Words of block ``b``: uint32 (DAT: pairs of them), uint16 for EVT 3.0."""
+        """Words of block ``b``: uint32 (DAT: pairs of them), uint16 for EVT 3.0, bytes for Event Stream."""
         per = self._per_block()
         a = b * per
         n = min(per, self._count - a)
         with open(self.path, "rb") as f:
             f.seek(self._start + a * self._item)
             raw = f.read(n * self._item)
-        return np.frombuffer(raw, {EVT3: "<u2", ES: "u1"}.get(self.encoding, "<u4"))
+        return np.frombuffer(raw, _DTYPE[self.encoding])
 
     def _n_blocks(self):
         return -(-self._count // self._per_block())
 
+    def _initial_state(self):
+        """The decoder's state before the first word (:data:`_E2_HIGH` ..., :data:`_E3_HIGH` ..., ...)."""
+        state = np.zeros(_STATE_SIZE[self.encoding], np.int64)
+        if self.encoding == DAT:
+            state[_DAT_PREV] = -1
+        return state
+
     def _index(self):
-        """One pass over the file: every block's decoder state at its start and its counts and time range."""
+        """One counting pass over the file: every block's decoder state at its start, its event and trigger
+        counts and its time range."""
         if self._blocks is None:
+            run = _RUNNERS[self.encoding]
             rows = []
-            state = (np.int64(0), np.int64(0))
+            state = self._initial_state()
             for b in range(self._n_blocks()):
-                w = self._words(b)
-                if self.encoding == ES:
-                    if b == 0:
-                        state = np.zeros(5, np.int64)
-                    start = state.copy()
-                    w_, h_ = self._size
-                    n_ev, _, _, lo, hi = _es_dvs_run(w, state, w_, h_, False, *_NO_OUT[:4])
-                    rows.append((start, int(n_ev), 0, int(lo), int(hi)))
-                    continue
-                if self.encoding == EVT3:
-                    if b == 0:
-                        state = np.zeros(6, np.int64)
-                    start = state.copy()
-                    n_ev, n_tr, _, _, lo, hi = _evt3_run(w, state, 1 << 16, 1 << 16, False, *_NO_OUT)
-                    rows.append((start, int(n_ev), int(n_tr), int(lo), int(hi)))
-                elif self.encoding == EVT2:
-                    n_ev, n_tr, high, epoch, lo, hi = _evt2_scan(w, *state)
-                    rows.append((state, int(n_ev), int(n_tr), int(lo), int(hi)))
-                    state = (np.int64(high), np.int64(epoch))
-                else:
-                    ts = w[0::2].astype(np.int64)
-                    prev, epoch = int(state[0]), int(state[1])
-                    wraps = np.flatnonzero((np.diff(np.concatenate([[prev], ts])) < -(1 << 31)))
-                    full = ts.copy()
-                    k = epoch
-                    # unwrap: every wrap adds 2^32 from there on
-                    steps = np.zeros(len(ts), np.int64)
-                    steps[wraps] = 1
-                    full += (np.cumsum(steps) + k) << 32
-                    rows.append((state, len(ts), 0, int(full.min()) if len(ts) else 0,
-                                 int(full.max()) if len(ts) else -1))
-                    state = (np.int64(ts[-1]) if len(ts) else np.int64(prev), np.int64(k + len(wraps)))
+                start = state.copy()
+                n_ev, n_tr, _, _, lo, hi = run(self._words(b), state, 1 << 16, 1 << 16, False, *_NO_OUT)
+                rows.append((start, int(n_ev), int(n_tr), int(lo), int(hi)))
             self._blocks = rows
             self._check_es_end(state)
         return self._blocks
@@ -479,105 +472,52 @@ class PropheseeRecording(BaseRecording):
                 raise FormatError(self.path, where, problem + "; salvage reads the events before it")
             self.damage = Damage(where, problem)
 
-    def _decode_block(self, b, state=None):
-        """(Events, Triggers, problem) of block ``b``; a problem stops salvage there.
-
-        With ``state`` (the decoder's state at the block's start, when reading straight through without
-        the index) the outputs are sized by what the block could hold, and the block's index row and the
-        state at its end come back too: ``(events, triggers, problem, row, end state)``.
-        """
-        words = self._words(b)
+    def _decode(self, words, state, first):
+        """Decode ``words`` (item ``first`` of the file onwards) from ``state``, which is updated: ``(events,
+        triggers, problem)``. Outputs are sized by what the words could hold (pages never written cost no
+        memory); EVT 3.0, with up to 12 events a word, goes on where a whole vector no longer fits."""
+        run = _RUNNERS[self.encoding]
         w, h = self._size
-        through = state is not None
-        if through:
-            start = state.copy() if isinstance(state, np.ndarray) else state
-            if self.encoding == EVT3:  # up to 12 events a word: decoded in pieces, resumed where room ran out
-                return self._evt3_through(b, words, state)
-            elif self.encoding == ES:
-                n_ev, n_tr = len(words) // 5 + 1, 0
-            elif self.encoding == DAT:
-                n_ev, n_tr = len(words) // 2, 0
-            else:
-                n_ev = n_tr = len(words)
-        else:
-            start, n_ev, n_tr, _, _ = self._index()[b]
-        if self.encoding == EVT3:  # the decoder wants room for a whole vector before it decodes one
-            n_ev, n_tr = n_ev + 12, n_tr + 1
-        t = np.empty(n_ev, np.int64)
-        x = np.empty(n_ev, np.uint16)
-        y = np.empty(n_ev, np.uint16)
-        p = np.empty(n_ev, np.uint8)
-        tt = np.empty(n_tr, np.int64)
-        tk = np.empty(n_tr, np.uint8)
-        if self.encoding == ES:
-            end = start.copy()
-            n, st, bad, _, _ = _es_dvs_run(words, end, w, h, True, t, x, y, p)
-            m = 0
-            at = self._start + b * BLOCK_WORDS + bad
-        elif self.encoding == EVT3:
-            end = start.copy()
-            n, m, st, bad, _, _ = _evt3_run(words, end, w, h, True, t, x, y, p, tt, tk)
-            at = self._start + 2 * (b * BLOCK_WORDS + bad)
-        elif self.encoding == EVT2:
-            n, m, st, bad, high, epoch = _evt2_decode(words, start[0], start[1], w, h, t, x, y, p, tt, tk)
-            end = (np.int64(high), np.int64(epoch))
-            at = self._start + 4 * (b * BLOCK_WORDS + bad)
-        else:
-            n, st, bad, prev, epoch = _dat_decode(words, start[0], start[1], w, h, t, x, y, p)
-            end = (np.int64(prev), np.int64(epoch))
-            m = 0
-            at = self._start + 8 * (b * (BLOCK_WORDS // 2) + bad)
-        problem = None
-        if st == ST_COORD:
-            problem = (at, f"an event lies outside the {w}x{h} sensor")
-        elif st == ST_TYPE and self.encoding == EVT3:
-            problem = (at, f"word of unknown type {int(words[bad]) >> 12} (EVT 3.0 has 0, 2-8, 10, 14 and 15)")
-        elif st == ST_TYPE:
-            problem = (at, f"word of unknown type {int(words[bad]) >> 28} (EVT 2.0 has 0, 1, 8, 10, 14 and 15)")
-        ev = Events._trusted(t[:n], x[:n], y[:n], p[:n], self._size)
-        tr = Triggers(tt[:m], tk[:m])
-        if not through:
-            return ev, tr, problem
-        row = (start, int(n), int(m), int(ev.t.min()) if n else 0, int(ev.t.max()) if n else -1)
-        return ev, tr, problem, row, end
-
-    def _evt3_through(self, b, words, state):
-        """EVT 3.0 block ``b`` straight through (see :meth:`_decode_block`): into buffers of one event a word,
-        resumed at the word where a vector no longer fits."""
-        w, h = self._size
-        start = state.copy()
-        end = state.copy()
-        evs, trs, pos, problem = [], [], 0, None
+        size = len(words)
+        cap = {EVT2: size, EVT3: size + 12, DAT: size // 2, ES: size // 5 + 1}[self.encoding]
+        cap_tr = cap if self.encoding in (EVT2, EVT3) else 0
+        evs, trs, pos = [], [], 0
         while True:
-            cap = max(len(words) - pos, 0) + 12
-            t, x, y = np.empty(cap, np.int64), np.empty(cap, np.uint16), np.empty(cap, np.uint16)
-            p, tt, tk = np.empty(cap, np.uint8), np.empty(cap, np.int64), np.empty(cap, np.uint8)
-            n, m, st, bad, _, _ = _evt3_run(words[pos:], end, w, h, True, t, x, y, p, tt, tk)
+            t, x, y, p = (np.empty(cap, np.int64), np.empty(cap, np.uint16), np.empty(cap, np.uint16),
+                          np.empty(cap, np.uint8))
+            tt, tk = np.empty(cap_tr, np.int64), np.empty(cap_tr, np.uint8)
+            n, m, st, bad, _, _ = run(words[pos:], state, w, h, True, t, x, y, p, tt, tk)
             evs.append(Events._trusted(t[:n], x[:n], y[:n], p[:n], self._size))
             trs.append(Triggers(tt[:m], tk[:m]))
             if st != ST_FULL:
-                if st == ST_COORD:
-                    problem = (self._start + 2 * (b * BLOCK_WORDS + pos + bad), f"an event lies outside the {w}x{h} sensor")
-                elif st == ST_TYPE:
-                    problem = (self._start + 2 * (b * BLOCK_WORDS + pos + bad),
-                               f"word of unknown type {int(words[pos + bad]) >> 12} (EVT 3.0 has 0, 2-8, 10, 14 and 15)")
                 break
             pos += bad
+        problem = None
+        if st != ST_OK:
+            at = self._start + self._item * (first + pos + bad)
+            if st == ST_COORD:
+                problem = (at, f"an event lies outside the {w}x{h} sensor")
+            else:
+                shift, known = _TYPES[self.encoding]
+                problem = (at, f"word of unknown type {int(words[pos + bad]) >> shift} ({known})")
         ev = evs[0] if len(evs) == 1 else Events.concatenate(evs, sensor_size=self._size)
         tr = trs[0] if len(trs) == 1 else Triggers.concatenate(trs)
-        n = len(ev)
-        row = (start, n, len(tr), int(ev.t.min()) if n else 0, int(ev.t.max()) if n else -1)
-        return ev, tr, problem, row, end
+        return ev, tr, problem
+
+    def _decode_block(self, b):
+        """(Events, Triggers, problem) of block ``b``, from its state in the index; a problem stops salvage."""
+        return self._decode(self._words(b), self._index()[b][0].copy(), b * self._per_block())
 
     def _through(self):
         """Yield ``(events, triggers, problem)`` block by block in one pass, without the index; the index rows
         it sees are kept, and become the index when the pass reaches the end without a problem."""
-        state = np.zeros(6 if self.encoding == EVT3 else 5, np.int64) if self.encoding in (EVT3, ES) \
-            else (np.int64(0 if self.encoding == EVT2 else -1), np.int64(0))
+        state = self._initial_state()
         rows = []
         for b in range(self._n_blocks()):
-            ev, tr, problem, row, state = self._decode_block(b, state)
-            rows.append(row)
+            start = state.copy()
+            ev, tr, problem = self._decode(self._words(b), state, b * self._per_block())
+            n = len(ev)
+            rows.append((start, n, len(tr), int(ev.t.min()) if n else 0, int(ev.t.max()) if n else -1))
             yield ev, tr, problem
             if problem:
                 return
@@ -643,52 +583,25 @@ class PropheseeRecording(BaseRecording):
 
     def events(self, t_start_us=None, t_end_us=None) -> Events:
         self._check_open()
-        if t_start_us is None and t_end_us is None and self.encoding in (EVT2, DAT, ES) and self._count:
+        if t_start_us is None and t_end_us is None and self._count:
             return self._whole()
         parts = list(self.iter_events(1 << 62, t_start_us, t_end_us))
         return Events.concatenate(parts, sensor_size=self._size) if parts else Events.empty(self._size)
 
     def _whole(self) -> Events:
-        """Every event in one decoder call over the memory-mapped file, into outputs sized by what the file
-        could hold (untouched pages cost no memory) and trimmed: no blocks to join."""
-        w, h = self._size
-        dtype = {EVT2: "<u4", DAT: "<u4", ES: "u1"}[self.encoding]
-        n_items = self._count * (2 if self.encoding == DAT else 1)
-        words = np.memmap(self.path, dtype=dtype, mode="r", offset=self._start, shape=(n_items,))
-        cap = {EVT2: n_items, DAT: n_items // 2, ES: n_items // 5 + 1}[self.encoding]
-        t, x = np.empty(cap, np.int64), np.empty(cap, np.uint16)
-        y, p = np.empty(cap, np.uint16), np.empty(cap, np.uint8)
-        problem = None
-        if self.encoding == EVT2:
-            tt, tk = np.empty(cap, np.int64), np.empty(cap, np.uint8)
-            n, m, st, bad, _, _ = _evt2_decode(words, np.int64(0), np.int64(0), w, h, t, x, y, p, tt, tk)
-            at = self._start + 4 * bad
-            if self._triggers is None and st == ST_OK:
-                self._triggers = Triggers(tt[:m].copy(), tk[:m].copy())
-        elif self.encoding == DAT:
-            n, st, bad, _, _ = _dat_decode(words, np.int64(-1), np.int64(0), w, h, t, x, y, p)
-            at = self._start + 8 * bad
-        else:
-            state = np.zeros(5, np.int64)
-            n, st, bad, _, _ = _es_dvs_run(words, state, w, h, True, t, x, y, p)
-            at = self._start + bad
-            if st == ST_OK:
-                self._check_es_end(state)
+        """Every event in one decoder call over the memory-mapped file: no blocks to join."""
+        n_words = self._count * (2 if self.encoding == DAT else 1)
+        words = np.memmap(self.path, dtype=_DTYPE[self.encoding], mode="r", offset=self._start, shape=(n_words,))
+        state = self._initial_state()
+        ev, tr, problem = self._decode(words, state, 0)
         del words
-        if st == ST_COORD:
-            problem = (at, f"an event lies outside the {w}x{h} sensor")
-        elif st == ST_TYPE:
-            problem = (at, f"word of unknown type {int(self._words_at(bad)) >> 28} (EVT 2.0 has 0, 1, 8, 10, 14 "
-                           "and 15)")
         if problem:
             self._stop(problem)
-        # the used part (the pages of the rest were never touched: they hold no memory)
-        return Events._trusted(t[:n], x[:n], y[:n], p[:n], self._size)
-
-    def _words_at(self, i):
-        with open(self.path, "rb") as f:
-            f.seek(self._start + 4 * i)
-            return int.from_bytes(f.read(4), "little")
+        else:
+            self._check_es_end(state)
+            if self._triggers is None:
+                self._triggers = tr
+        return ev
 
     def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
         self._check_open()
