@@ -90,7 +90,7 @@ class _Layout:
         self.metadata = {}
         self.index_t = None  # index: index_t[k] <= t of event index_id[k] ...
         self.index_id = None  # ... and every event before index_id[k] is earlier than index_t[k]
-        self.notes = []  # warnings about the file the layout found while opening it
+        self.short_size = None  # where a stored size that may be the largest coordinate came from (then fitted)
 
     def __len__(self):
         return self.n
@@ -218,11 +218,10 @@ class _Blosc1Checked:
 
     def __init__(self, ds, position):
         self._ds = ds
-        self._position = position  # the filter's place in the pipeline: a chunk may skip it (None: no Blosc)
-        self._last = position is not None and position == ds.id.get_create_plist().get_nfilters() - 1
-        self.written = None  # salvage: elements before the first unwritten chunk, when some are
-        self._len = ds.chunks[0] if ds.chunks else 1
-        self._nbytes = int(np.prod(ds.chunks or (1,))) * ds.dtype.itemsize
+        self._position = position  # the filter's place in the pipeline: a chunk may skip it
+        self._last = position == ds.id.get_create_plist().get_nfilters() - 1
+        self._len = ds.chunks[0]
+        self._nbytes = int(np.prod(ds.chunks)) * ds.dtype.itemsize
         self._ndim = ds.ndim
         self._n = ds.shape[0] if ds.ndim else 0
         self._ok = set()
@@ -302,6 +301,7 @@ class _Policy:
         self.trust_external = bool(trust_external)
         self.salvage = bool(salvage)
         self.file_bytes = file_bytes
+        self.unwritten = {}  # salvage: dataset name -> (elements before its first unwritten chunk, why)
 
 
 #: Largest uncompressed HDF5 chunk evtk decodes: every read of one element decodes its whole chunk.
@@ -418,7 +418,7 @@ def _checked(node, policy):
     """``node`` itself, or for a Blosc (v1) dataset a :class:`_Blosc1Checked` view; groups stay groups
     whose members are checked the same way. A dataset the policy refuses (:func:`_storage_problem`) or a
     Blosc or Blosc2 pipeline with too few parameters raises before any read. In salvage mode a dataset with
-    unwritten chunks comes back with ``written``: how many of its elements can be read."""
+    unwritten chunks is noted in ``policy.unwritten``, with how many of its elements can be read."""
     h5py = _h5()
     if isinstance(node, h5py.Dataset):
         try:
@@ -441,13 +441,12 @@ def _checked(node, policy):
             if not policy.salvage:
                 raise
             why = written = None  # a damaged chunk index: salvage reads what it can reach
-        if why is not None and not (policy.salvage and written is not None):
-            raise FormatError(policy.path, None, why)
-        if BLOSC1_FILTER in ids and node.chunks or why is not None:
-            view = _Blosc1Checked(node, ids.index(BLOSC1_FILTER) if BLOSC1_FILTER in ids else None)
-            if why is not None:
-                view.written, view.unwritten = written, why
-            return view
+        if why is not None:
+            if not (policy.salvage and written is not None):
+                raise FormatError(policy.path, None, why)
+            policy.unwritten[node.name] = (written, why)
+        if BLOSC1_FILTER in ids and node.chunks:
+            return _Blosc1Checked(node, ids.index(BLOSC1_FILTER))
         return node
     if isinstance(node, h5py.Group):
         return _CheckedGroup(node, policy)
@@ -645,11 +644,11 @@ class _PropheseeLayout(_Layout):
         """Prophesee's index times are counted from an ``offset`` attribute: the sign that agrees with the
         stamps of an indexed event (checked where the index reaches an event); as stored when neither does
         (the reader then finds it disagrees and reads without it)."""
-        k = int(np.searchsorted(index_id, max(1, min(self.n - 1, int(index_id[len(index_id) // 2])))))
-        k = min(k, len(index_id) - 1)
-        i = int(index_id[k])
-        if not 0 < i < self.n:
+        inside = np.flatnonzero((index_id > 0) & (index_id < self.n))
+        if not len(inside):
             return index_t
+        k = int(inside[len(inside) // 2])
+        i = int(index_id[k])
         before, at = (int(v) for v in _as_us(self.ds.fields("t")[i - 1:i + 1], self.path, "/CD/events/t"))
         for cand in (offset, -offset):
             t = int(index_t[k]) + cand
@@ -692,24 +691,8 @@ class _EventUtilsLayout(_Layout):
         res = f.attrs.get("sensor_resolution")
         if res is not None and len(res) == 2:
             self.sensor_size = sensor_dims(res[1], res[0], path, "attribute sensor_resolution")  # (height, width)
-            self._fit_coordinates()
-
-    def _fit_coordinates(self):
-        """Some writers store the largest coordinate seen (one less than the sensor) as the resolution:
-        the coordinates decide then, with a note (one pass over xs and ys)."""
-        w, h = self.sensor_size
-        mx = my = -1
-        for a in range(0, self.n, 1 << 22):
-            b = min(self.n, a + (1 << 22))
-            mx = max(mx, float(np.max(self.xs[a:b])))
-            my = max(my, float(np.max(self.ys[a:b])))
-        if mx >= w or my >= h:
-            fit = (max(w, int(mx) + 1), max(h, int(my) + 1))
-            if max(fit) > 65536:
-                raise FormatError(self.path, None, f"coordinates reach ({int(mx)}, {int(my)}), beyond a 16-bit sensor")
-            self.notes.append(f"the attribute sensor_resolution gives {w}x{h} but coordinates reach "
-                              f"({int(mx)}, {int(my)}); read as a {fit[0]}x{fit[1]} sensor")
-            self.sensor_size = fit
+            # some writers store the largest coordinate seen (one less than the sensor): the reader checks
+            self.short_size = "attribute sensor_resolution"
 
     def _t(self, raw):
         return _seconds_as_us(raw, self.path, self.ts.name)
@@ -816,7 +799,6 @@ class Hdf5Recording(BaseRecording):
             self._policy = _Policy(self.path, trust_external, self.salvage, os.path.getsize(self.path))
             self._root = _CheckedGroup(self._f, self._policy)
             self._layout = _guard(Hdf5Recording._detect)(self)
-            self.warnings.extend(self._layout.notes)
             self._clip_unwritten()
             if getattr(self._layout, "interrupted", False):
                 self._interrupted()
@@ -832,6 +814,8 @@ class Hdf5Recording(BaseRecording):
             self._checked = False
             if self._layout.sensor_size is None:
                 _guard(Hdf5Recording._infer_sensor_size)(self)
+            elif self._layout.short_size and sensor_size is None:
+                _guard(Hdf5Recording._fit_sensor_size)(self)
         except BaseException:
             self._f.close()
             raise
@@ -897,13 +881,11 @@ class Hdf5Recording(BaseRecording):
         """Salvage of a file with chunks never written: the events before the first one (strict reads refused
         the file when its datasets were checked)."""
         lay = self._layout
-        short = [c for c in vars(lay).values() if getattr(c, "written", None) is not None]
-        if short:
-            first = min(short, key=lambda c: c.written)
-            if first.written < lay.n:
-                lay.n = int(first.written)
-                self.damage = Damage(None, f"{first.unwritten}: the {lay.n} events before its first unwritten "
-                                           "chunk are read")
+        if self._policy.unwritten:
+            written, why = min(self._policy.unwritten.values())
+            if written < lay.n:
+                lay.n = int(written)
+                self.damage = Damage(None, f"{why}: the {lay.n} events before its first unwritten chunk are read")
 
     @property
     def layout(self) -> str:
@@ -923,8 +905,9 @@ class Hdf5Recording(BaseRecording):
     def compression(self):
         return self._layout.compression()
 
-    def _infer_sensor_size(self):
-        """From the largest coordinates; with salvage, from those before the first unreadable block."""
+    def _coordinate_extent(self):
+        """``(width, height, events scanned)`` the coordinates need: one pass a block at a time; with salvage,
+        over the events before the first unreadable block."""
         w = h = 0
         lay = self._layout
         i0 = 0
@@ -941,9 +924,26 @@ class Hdf5Recording(BaseRecording):
             i0 += n
             if i0 < i1:  # the rest cannot be read
                 break
+        return w, h, i0
+
+    def _infer_sensor_size(self):
+        """From the largest coordinates; with salvage, from those before the first unreadable block."""
+        lay = self._layout
+        w, h, i0 = self._coordinate_extent()
         lay.sensor_size = (max(w, 1), max(h, 1))
         self.warnings.append(f"the file does not record its sensor size; inferred {lay.sensor_size} from the coordinates"
                              + (f" of the first {i0} events (the rest cannot be read)" if i0 < lay.n else ""))
+
+    def _fit_sensor_size(self):
+        """A stored size the coordinates pass (the largest coordinate stored, not the sensor): they decide."""
+        lay = self._layout
+        sw, sh = lay.sensor_size
+        w, h, _ = self._coordinate_extent()
+        if w > sw or h > sh:
+            fit = sensor_dims(max(w, sw), max(h, sh), self.path, "the coordinates")
+            self.warnings.append(f"the {lay.short_size} gives {sw}x{sh} but the coordinates reach ({w - 1}, {h - 1}); "
+                                 f"read as a {fit[0]}x{fit[1]} sensor")
+            lay.sensor_size = fit
 
     # -- events -----------------------------------------------------------------
     @_guard
