@@ -111,19 +111,20 @@ class LegacyAedatRecording(BaseRecording):
             size = sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size")
         self._size = size
         self.skipped = {}  # what was left out: {"frame": n, "imu6": n, ...}
+        self._block_stats = None
         self._blocks = self._index_blocks()
         if self._size is None:
             self._infer_size()
 
     # -- layout ---------------------------------------------------------------------------------------------
     def _index_blocks(self):
-        """Blocks of records (2.0) or of polarity packets (3.1): [(byte ranges, events)]."""
+        """Blocks of records (2.0) or of polarity packets (3.1): a list of byte ranges per block."""
         if not self._v3:
             body = self._file_bytes - self._start
             n = body // 8
             if body % 8:
                 self._problem(self._start + 8 * n, f"the file ends inside a record ({body % 8} of 8 bytes)")
-            return [([(self._start + 8 * a, 8 * min(BLOCK_RECORDS, n - a))], None) for a in range(0, n, BLOCK_RECORDS)]
+            return [[(self._start + 8 * a, 8 * min(BLOCK_RECORDS, n - a))] for a in range(0, n, BLOCK_RECORDS)]
         blocks, cur, held = [], [], 0
         pos = self._start
         with open(self.path, "rb") as f:
@@ -150,14 +151,14 @@ class LegacyAedatRecording(BaseRecording):
                     cur.append((pos + _PACKET_HEADER, 8 * number, overflow))
                     held += number
                     if held >= BLOCK_RECORDS:
-                        blocks.append((cur, None))
+                        blocks.append(cur)
                         cur, held = [], 0
                 else:
                     name = _TYPE_NAMES.get(typ, f"type {typ}")
                     self.skipped[name] = self.skipped.get(name, 0) + number
                 pos += _PACKET_HEADER + length
         if cur:
-            blocks.append((cur, None))
+            blocks.append(cur)
         return blocks
 
     def _problem(self, at, reason):
@@ -166,19 +167,19 @@ class LegacyAedatRecording(BaseRecording):
         if self.damage is None:
             self.damage = Damage(at, reason)
 
-    def _read_block(self, k):
-        """(t, x, y, p) of block ``k`` as stored (y not yet mirrored), and what was skipped in it."""
+    def _read_block(self, k, epoch=0):
+        """(t, x, y, p) of block ``k`` as stored (y not yet mirrored), the records left out of it, and (2.0)
+        how often the 32-bit time had wrapped by its end, given ``epoch`` wraps before it."""
         parts = []
         with open(self.path, "rb") as f:
-            for rng in self._blocks[k][0]:
+            for rng in self._blocks[k]:
                 f.seek(rng[0])
                 parts.append((f.read(rng[1]), rng[2] if len(rng) > 2 else None))
         if not self._v3:
-            raw = np.frombuffer(parts[0][0], ">u4") if parts else np.zeros(0, ">u4")
+            raw = np.frombuffer(parts[0][0], ">u4")
             addr = raw[0::2].astype(np.int64)
             ts = raw[1::2].astype(np.int64)
-            prev = self._prev_ts(k)
-            wraps = np.cumsum(np.diff(np.concatenate([[prev], ts])) < 0) + self._epoch(k)
+            wraps = np.cumsum(np.diff(np.concatenate([[self._prev_ts(k)], ts])) < 0) + epoch
             t = ts + (wraps << 32)
             if self.chip == "dvs128":
                 keep = np.ones(len(addr), bool)
@@ -190,7 +191,8 @@ class LegacyAedatRecording(BaseRecording):
                 x = (addr >> 12) & 0x3FF
                 yraw = (addr >> 22) & 0x1FF
                 p = (addr >> 11) & 1
-            return t[keep], x[keep], yraw[keep], p[keep], int(np.count_nonzero(~keep))
+            end = int(wraps[-1]) if len(wraps) else epoch
+            return t[keep], x[keep], yraw[keep], p[keep], int(np.count_nonzero(~keep)), end
         ts_parts, d_parts = [], []
         for raw, overflow in parts:
             a = np.frombuffer(raw, "<u4")
@@ -199,50 +201,42 @@ class LegacyAedatRecording(BaseRecording):
         d = np.concatenate(d_parts) if d_parts else np.zeros(0, np.int64)
         t = np.concatenate(ts_parts) if ts_parts else np.zeros(0, np.int64)
         keep = (d & 1) == 1  # the valid flag
-        return t[keep], (d[keep] >> 17) & 0x7FFF, (d[keep] >> 2) & 0x7FFF, (d[keep] >> 1) & 1, 0
+        return t[keep], (d[keep] >> 17) & 0x7FFF, (d[keep] >> 2) & 0x7FFF, (d[keep] >> 1) & 1, 0, 0
 
     def _prev_ts(self, k):
         """AEDAT 2.0: the raw time stamp before block ``k`` (to carry the wrap count over)."""
         if k == 0:
             return -1
-        at = self._blocks[k][0][0][0] - 4
+        at = self._blocks[k][0][0] - 4
         with open(self.path, "rb") as f:
             f.seek(at)
             return int.from_bytes(f.read(4), "big")
 
-    def _epoch(self, k):
-        """AEDAT 2.0: how often the 32-bit time wrapped before block ``k`` (from the block index)."""
-        return self._epochs[k] if k < len(getattr(self, "_epochs", [])) else 0
-
     def _infer_size(self):
-        mx = my = 0
-        for k in range(len(self._blocks)):
-            _, x, y, _, _ = self._read_block(k)
-            if len(x):
-                mx, my = max(mx, int(x.max())), max(my, int(y.max()))
+        mx, my = self._stats()[1]
         self._size = (mx + 1, my + 1)
         self.warnings.append(f"the header names no known camera; the sensor size {self._size} is inferred from the "
                              "coordinates" + ("" if self._v3 else " (y is mirrored about that height)"))
 
     def _stats(self):
-        """Per block: (events, min t, max t, wraps before it); one pass, on first use."""
-        if getattr(self, "_block_stats", None) is None:
-            self._epochs, stats, epoch = [], [], 0
+        """One pass, on first use: per block (events, min t, max t, time wraps before it), and the largest
+        (x, y) stored; the records left out are counted on the way."""
+        if self._block_stats is None:
+            rows, epoch, mx, my = [], 0, 0, 0
             for k in range(len(self._blocks)):
-                self._epochs.append(epoch)
-                t, x, y, p, left_out = self._read_block(k)
+                t, x, y, _, left_out, end = self._read_block(k, epoch)
                 if left_out:
                     self.skipped["aps/imu samples"] = self.skipped.get("aps/imu samples", 0) + left_out
-                if not self._v3 and len(self._blocks[k][0]):
-                    raw = t  # the last raw time stamp of this block carries the wraps on
-                    epoch = int(raw[-1] >> 32) if len(raw) else epoch
-                stats.append((len(t), int(t.min()) if len(t) else 0, int(t.max()) if len(t) else -1))
-            self._block_stats = stats
+                rows.append((len(t), int(t.min()) if len(t) else 0, int(t.max()) if len(t) else -1, epoch))
+                if len(x):
+                    mx, my = max(mx, int(x.max())), max(my, int(y.max()))
+                epoch = end
+            self._block_stats = rows, (mx, my)
         return self._block_stats
 
     def _decode(self, k):
         """Events of block ``k`` in evtk's convention, or a FormatError / salvage stop."""
-        t, x, y, p, skipped = self._read_block(k)
+        t, x, y, p, _, _ = self._read_block(k, self._stats()[0][k][3])
         w, h = self._size
         if not self._v3:
             y = (h - 1) - y
@@ -268,9 +262,8 @@ class LegacyAedatRecording(BaseRecording):
         chunk_events = int(chunk_events)
         if chunk_events < 1:
             raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
-        stats = self._stats()
         pending, held = [], 0
-        for k, (n, lo, hi) in enumerate(stats):
+        for k, (n, lo, hi, _) in enumerate(self._stats()[0]):
             if n and ((t_start_us is not None and hi < t_start_us) or (t_end_us is not None and lo >= t_end_us)):
                 continue
             ev, problem = self._decode(k)
@@ -302,7 +295,7 @@ class LegacyAedatRecording(BaseRecording):
 
     @property
     def streams(self):
-        stats = self._stats()
+        stats = self._stats()[0]
         n = sum(s[0] for s in stats)
         lo = min((s[1] for s in stats if s[0]), default=None)
         hi = max((s[2] for s in stats if s[0]), default=None)
