@@ -209,12 +209,14 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
     options = dict(options or {})
     manifest_path = os.path.join(out_dir, MANIFEST)
     old = _read_manifest(manifest_path)
+    owners = {os.path.abspath(e["output"]): key for key, e in old.items()
+              if e.get("output") and e.get("status") in ("ok", "skipped")}
     todo, entries = [], {}
     for f in files:
         out = outputs[f]
         prev = old.get(os.path.abspath(f))
         if not force and os.path.exists(out):
-            owner = _owner(old, out)
+            owner = owners.get(os.path.abspath(out))
             if owner is not None and owner != os.path.abspath(f):
                 entries[f] = {"input": f, "output": out, "status": "error", "events": None, "windows": None,
                               "seconds": None, "error": f"{out} holds the reconstruction of another input "
@@ -263,14 +265,6 @@ def _read_manifest(path) -> dict:
         return {os.path.abspath(e["input"]): e for e in entries if isinstance(e, dict) and "input" in e}
     except (OSError, ValueError, KeyError, TypeError):
         return {}  # an unreadable manifest is rebuilt
-
-
-def _owner(entries, out):
-    """Absolute path of the input whose finished reconstruction ``out`` is, by the manifest, or None."""
-    for key, e in entries.items():
-        if e.get("output") and os.path.abspath(e["output"]) == os.path.abspath(out) and e.get("status") in ("ok", "skipped"):
-            return key
-    return None
 
 
 def _write_manifest(path, manifest) -> dict:

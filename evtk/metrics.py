@@ -251,11 +251,11 @@ def _bootstrap_db(terms, n, seed):
     g = sizes.size
     rng = np.random.default_rng(seed)
     out = []
-    rows = np.arange(min(n, 4096))[:, None]
+    batch = min(n, 4096)
+    offsets = (np.arange(batch) * g)[:, None]
     while len(out) < n:
-        idx = rng.integers(0, g, size=(rows.shape[0], g))
-        c = np.zeros((rows.shape[0], g))
-        np.add.at(c, (np.broadcast_to(rows, idx.shape), idx), 1.0)
+        idx = rng.integers(0, g, size=(batch, g))
+        c = np.bincount((idx + offsets).ravel(), minlength=batch * g).reshape(batch, g).astype(np.float64)
         npairs = np.einsum("bg,gh,bh->b", c, pairs, c)
         ok = npairs > 0
         noise = np.einsum("bg,gh,bh->b", c[ok], m, c[ok]) / npairs[ok]

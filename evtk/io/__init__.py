@@ -164,12 +164,15 @@ def write_events(path, events: Events, triggers: Triggers | None = None, compres
         write_parquet(path, events, triggers, compression=compression, metadata=metadata, **kwargs)
 
 
-def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, triggers: Triggers | None = None):
+def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, triggers: Triggers | None = None,
+                **kwargs):
     """A streaming writer for ``path`` (format from the extension).
 
     Call ``write_events`` as often as needed, then ``close`` (or use it as a
     context manager, which discards the partial file on an exception).
-    Triggers are written first; HDF5 needs events in time order.
+    Triggers are written first; HDF5 needs events in time order. Extra
+    keywords go to the format's writer (for AEDAT4 ``source`` and
+    ``extra_streams``, see :class:`evtk.io.aedat4.Aedat4Writer`).
     """
     ext = os.path.splitext(os.fspath(path))[1].lower()
     fmt = WRITE_EXTENSIONS.get(ext)
@@ -181,7 +184,8 @@ def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, trig
         from ..events import Triggers
         from . import aedat4
 
-        w = aedat4.Aedat4Writer(path, sensor_size, compression, triggers=triggers is not None, metadata=metadata)
+        w = aedat4.Aedat4Writer(path, sensor_size, compression, triggers=triggers is not None, metadata=metadata,
+                                **kwargs)
         if triggers is not None and len(triggers):
             order = np.argsort(triggers.t, kind="stable")
             w.write_triggers(Triggers(triggers.t[order], triggers.kind[order]))
@@ -189,11 +193,11 @@ def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, trig
     if fmt == "hdf5":
         from .hdf5 import Hdf5Writer
 
-        w = Hdf5Writer(path, sensor_size, compression, metadata)
+        w = Hdf5Writer(path, sensor_size, compression, metadata, **kwargs)
         if triggers is not None:
             w.write_triggers(triggers)
         return w
     from .arrow import ParquetWriter
 
-    return ParquetWriter(path, sensor_size, compression, metadata, triggers)
+    return ParquetWriter(path, sensor_size, compression, metadata, triggers, **kwargs)
 

@@ -102,7 +102,7 @@ def decompress(code: int, body, limit: int):
                 out = lz4.frame.decompress(body)
             else:  # no size in the frame header (DV, dv-processing): a step at a time, never past the limit
                 d = lz4.frame.LZ4FrameDecompressor()
-                parts, total = [d.decompress(body, max_length=STEP_BYTES)], 0
+                parts = [d.decompress(body, max_length=STEP_BYTES)]
                 total = len(parts[0])
                 while not d.eof and not d.needs_input:
                     if total > limit:

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import os
 
-import numpy as np
-
 from ..errors import EvtkError
 from ._atomic import refuse_overwriting_inputs
+from ._checks import sorted_for_writing
 
 __all__ = ["convert"]
 
@@ -46,15 +45,10 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
             camera = None
         metadata = dict(rec.metadata or {})
         copied, left_out = {}, {}
-        if fmt == "aedat4":
-            from .aedat4 import Aedat4Writer
-
+        if fmt == "aedat4":  # the camera's name and the other streams go along
             extra = [(s.name, s.type, {k: v for k, v in s.attributes.items() if k not in _OWN_KEYS}) for s in others]
-            writer = Aedat4Writer(target, rec.sensor_size, compression, triggers=triggers is not None,
-                                  metadata=metadata or None, source=str(camera or "evtk"), extra_streams=extra)
-            if triggers is not None and len(triggers):
-                order = np.argsort(triggers.t, kind="stable")
-                writer.write_triggers(type(triggers)(triggers.t[order], triggers.kind[order]))
+            writer = open_writer(target, rec.sensor_size, compression, metadata or None, triggers,
+                                 source=str(camera or "evtk"), extra_streams=extra)
         else:
             if camera:
                 metadata.setdefault("source", str(camera))
@@ -64,10 +58,7 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
         n = 0
         with writer:
             if sort:  # in memory: a stable sort by time
-                events = rec.events()
-                order = np.argsort(events.t, kind="stable")
-                events = type(events)(events.t[order], events.x[order], events.y[order], events.p[order],
-                                      events.sensor_size)
+                events = sorted_for_writing(rec.events(), True, fmt)
                 writer.write_events(events)
                 n = len(events)
             else:
@@ -77,8 +68,7 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
             for s in others:
                 k = 0
                 for body, count, t0, t1 in rec.packets(s.id):
-                    writer.write_packet(s.name, body, count if count is not None else 0,
-                                        t0 if t0 is not None else 0, t1 if t1 is not None else 0)
+                    writer.write_packet(s.name, body, count, t0 if t0 is not None else 0, t1 if t1 is not None else 0)
                     k += 1
                 copied[s.name] = k
     return {"events": n, "triggers": 0 if triggers is None else len(triggers), "copied": copied,

@@ -129,12 +129,12 @@ def fb_vector(b, table, slot, elem_size):
 
 
 @njit(cache=True, nogil=True)
-def decode_events(b, ident, t, x, y, p, offset, capacity, width, height, address_mod8=-1):
+def decode_events(b, ident, t, x, y, p, offset, capacity, width, height, address_mod8=-2):
     """Decode an EVTS packet body into the columns, starting at ``offset``.
 
     Returns ``(count, status)``; with ``ST_COORD`` the count is the index of
     the first event outside ``width`` x ``height``. ``address_mod8`` is the
-    body's memory address modulo 8 (:func:`address_mod8`; -2: found here): when the event
+    body's memory address modulo 8 (:func:`address_mod8`; -2, the default: found here): when the event
     vector is 8-byte aligned, as FlatBuffers lays it out, each 16-byte event
     is read as two little-endian words; otherwise (a damaged file, or -1)
     byte by byte.

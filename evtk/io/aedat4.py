@@ -525,7 +525,7 @@ class Recording(BaseRecording):
                 except _Stop:
                     return k
                 cap = int(counts[k])
-                n, st = decode(b, ident, t, x, y, p, int(starts[k]), cap, width, height, -2)
+                n, st = decode(b, ident, t, x, y, p, int(starts[k]), cap, width, height)
                 if (st == _fbpy.ST_OK and n != cap) or st == _fbpy.ST_CAPACITY:
                     raise _CountMismatch
                 if st != _fbpy.ST_OK:
@@ -651,19 +651,20 @@ class Recording(BaseRecording):
     def _event_packets(self, s, rows):
         width, height = s.sensor_size
         ident = _IDENT["EVTS"]
+        fb = _jit()
         for i in rows:
             try:
                 b = self._body(i)
             except _Stop:
                 break
-            n = _jit().vector_length(b, ident, _fbpy.EVENT_STRUCT)
+            n = fb.vector_length(b, ident, _fbpy.EVENT_STRUCT)
             if n < 0:
                 try:
                     self._fail(int(self._index.offset[i]), f"event packet: {_status(n)}")
                 except _Stop:
                     break
             cols = (np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8))
-            got, st = _jit().decode_events(b, ident, *cols, 0, n, width, height, _jit().address_mod8(b))
+            got, st = fb.decode_events(b, ident, *cols, 0, n, width, height)
             if st != _fbpy.ST_OK:
                 reason = (
                     f"event {got} of the packet lies outside the {width}x{height} sensor"
@@ -717,18 +718,24 @@ class Recording(BaseRecording):
 
     def packets(self, stream):
         """Yield ``(body, count, t_start_us, t_end_us)`` for every packet of ``stream`` (name or id), the body
-        decompressed and as the file holds it; counts and times from the data table (None without one)."""
+        decompressed and as the file holds it; counts from the data table or the packets, times from the data
+        table (None without one)."""
         s = next((st for st in self._streams.values() if stream in (st.id, st.name)), None)
         if s is None:
             raise EvtkError(f"{self.path}: no stream {stream!r}")
         idx = self._index
-        for i in np.flatnonzero(idx.stream == s.id):
+        rows = np.flatnonzero(idx.stream == s.id)
+        if np.any(idx.count[rows] < 0):  # no data table: count what the packets hold (frames: one each)
+            counted = self._count_elements(rows, s.type)
+            if counted is None:
+                idx.count[rows] = 1 if s.type == "FRME" else 0
+        known = idx.from_table
+        for i in rows:
             try:
                 body = self._body(i)
             except _Stop:
                 return
-            known = idx.from_table
-            yield (body.tobytes(), int(idx.count[i]) if known else None, int(idx.t0[i]) if known else None,
+            yield (body.tobytes(), max(0, int(idx.count[i])), int(idx.t0[i]) if known else None,
                    int(idx.t1[i]) if known else None)
 
     @property
