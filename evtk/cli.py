@@ -109,7 +109,7 @@ def _dumps(obj) -> str:
 def _human_info(info: dict) -> str:
     lines = [
         f"file         {info['path']}",
-        f"format       {info['format']} ({info.get('compression', '-')})",
+        f"format       {info['format']} ({info.get('compression') or info.get('encoding') or info.get('aedat_version') or '-'})",
         f"sensor       {info['sensor_size'][0]}x{info['sensor_size'][1]}" if info["sensor_size"] else "sensor       -",
         f"events       {info['events']:,}",
         f"triggers     {info['triggers']:,}",
