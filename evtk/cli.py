@@ -444,17 +444,27 @@ _with_window_options = _options(_window_options)
 @main.command(short_help="SINAD and effective bits (eq. 8) of every repeated scene.")
 @click.argument("recording", type=click.Path(dir_okay=False, exists=True))
 @_with_window_options
-@click.option("--bootstrap", type=click.IntRange(min=0, max=_MAX_INT), default=1000, show_default=True,
-              help="Resamples of the repeats for the 95 % interval (0: none).")
+@click.option("--interval", type=click.Choice(["jackknife", "bootstrap", "none"]), default="jackknife",
+              show_default=True, help="The 95 % interval over repeats (the bootstrap undercovers with few repeats).")
 @click.option("--per-pixel", is_flag=True, help="Also report each pixel's SINAD (JSON only).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="ENOB per scene as a PNG.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def enob(recording, window_spec, skip_us, length_us, bootstrap, per_pixel, plot_path, as_json):
-    """SINAD and effective bits (eq. 8) of every scene captured more than once."""
-    from .sweeps import scene_noise
+def enob(recording, window_spec, skip_us, length_us, interval, per_pixel, plot_path, as_json):
+    """SINAD and effective bits (eq. 8) of every scene captured more than once.
 
-    result, _ = _reconstructed(recording, window=_parse_window(window_spec), skip_us=skip_us, length_us=length_us)
-    scenes = scene_noise(result, bootstrap=bootstrap, per_pixel=per_pixel)
+    Without a schedule every window is a repeat of one scene; they are
+    measured a batch at a time, so memory stays bounded however many.
+    """
+    from .sweeps import recording_noise
+
+    with evio.open(recording) as rec:
+        update, finish = _progress(rec.info()["events"], f"measuring {recording}")
+        try:
+            scenes = recording_noise(rec, _parse_window(window_spec), skip_us, length_us,
+                                     interval=None if interval == "none" else interval, per_pixel=per_pixel,
+                                     progress=update)
+        finally:
+            finish()
     if plot_path:
         from .plots import plot_enob
 
@@ -506,16 +516,17 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
     simulated bench: random kernels on the default features, swept over
     laser power.
     """
-    from .sweeps import flip_sweep, random_kernels, scene_noise
+    from .sweeps import flip_sweep, random_kernels, recording_noise
     from .simulate import default_features
 
     if recordings:
         rows = []
         for i, path in enumerate(recordings):
-            result, about = _reconstructed(path, window=_parse_window(window_spec), skip_us=skip_us,
-                                           length_us=length_us)
-            power = about["power_mw"]
-            for s in scene_noise(result, bootstrap=0):
+            with evio.open(path) as rec:
+                sim = (rec.metadata or {}).get("simulation")
+                power = None if sim is None else float(sim["bench"]["power_mw"])
+                scenes = recording_noise(rec, _parse_window(window_spec), skip_us, length_us, interval=None)
+            for s in scenes:
                 rows.append({"file": str(path), "file_index": i, "power_mw": power, "kernel_id": s["kernel_id"],
                              "features_id": s["features_id"], "repeats": s["repeats"],
                              "pairwise_pct": s["flips"].pairwise_pct, "majority_pct": s["flips"].majority_pct})
@@ -645,7 +656,7 @@ def demo(out_dir, repeat, seed, as_json):
     save_reconstruction(out_h5, result, about["sensor_size"], {"source": rec_path})
     sheet = os.path.join(out_dir, "responses.png")
     contact_sheet(sheet, result, max_rows=4)
-    scenes = scene_noise(result, bootstrap=1000, seed=seed)
+    scenes = scene_noise(result, seed=seed)
     enob_png = os.path.join(out_dir, "enob.png")
     plot_enob(scenes, enob_png)
     s, fl, err = scenes[0]["sinad"], scenes[0]["flips"], result.summary["error"]

@@ -64,6 +64,7 @@ __all__ = [
     "linearize_by_timing",
     "timing_thresholds",
     "wants_times",
+    "window_bytes",
     "flat_field_gain",
 ]
 
@@ -102,6 +103,11 @@ class Windows:
     @property
     def length_us(self) -> np.ndarray:
         return self.t_end_us - self.t_start_us
+
+    def __getitem__(self, index):
+        """The windows at ``index`` (a slice or indices), as :class:`Windows` of the same source."""
+        return Windows(self.t_start_us[index], self.t_end_us[index], self.capture[index], self.source,
+                       dict(self.dropped))
 
 
 @dataclass
@@ -399,12 +405,15 @@ def linearize(on, off=None, theta_on=0.2, theta_off=None):
     >>> linearize(np.array([0, 5]), theta_on=np.log(2) / 5).round(6).tolist()
     [0.0, 1.0]
     """
-    on = np.asarray(on, dtype=np.float64)
     theta_off = theta_on if theta_off is None else theta_off
     for name, v in (("theta_on", theta_on), ("theta_off", theta_off)):
         v = np.asarray(v, dtype=np.float64)
         if not np.all(np.isfinite(v)) or np.any(v <= 0):
             raise EvtkError(f"{name} must be positive and finite")
+    table = _count_table(on, off, theta_on, theta_off)
+    if table is not None:  # integer counts and one threshold each: look the few distinct values up
+        return table
+    on = np.asarray(on, dtype=np.float64)
     rise = on * theta_on
     if off is not None:
         rise = rise - np.asarray(off, dtype=np.float64) * theta_off
@@ -412,6 +421,58 @@ def linearize(on, off=None, theta_on=0.2, theta_off=None):
     if np.any(rise > 700):
         raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
     return np.expm1(rise)
+
+
+#: Largest table of distinct (ON, OFF) counts :func:`linearize` looks values up in.
+_TABLE_MAX = 1 << 20
+
+
+def _count_table(on, off, theta_on, theta_off):
+    """:func:`linearize` of integer counts with scalar thresholds by table look-up (None when it does not apply).
+
+    A window holds few distinct counts, so ``expm1`` of each distinct
+    (ON, OFF) pair, looked up per pixel, is exact and several times faster
+    than ``expm1`` per pixel.
+    """
+    on = np.asarray(on)
+    if off is None:
+        off = np.zeros_like(on)
+    off = np.asarray(off)
+    if (on.dtype.kind not in "iu" or off.dtype.kind not in "iu" or np.ndim(theta_on) or np.ndim(theta_off)
+            or on.shape != off.shape or on.size < 4096):
+        return None
+    on_flat = np.ascontiguousarray(on).reshape(-1)
+    off_flat = np.ascontiguousarray(off).reshape(-1)
+    lo, hi_on, hi_off = (int(v) for v in _count_extent(on_flat, off_flat))
+    if lo < 0 or (hi_on + 1) * (hi_off + 1) > _TABLE_MAX:
+        return None
+    rise = np.arange(hi_on + 1.0)[:, None] * float(theta_on) - np.arange(hi_off + 1.0)[None, :] * float(theta_off)
+    if rise.max() > 700:
+        raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
+    out = np.empty(on.shape, np.float64)
+    with _thread_budget():
+        _look_up(on_flat, off_flat, np.expm1(rise).ravel(), hi_off + 1, out.reshape(-1))
+    return out
+
+
+@numba.njit(cache=True)
+def _count_extent(on, off):
+    lo = 0
+    hi_on = 0
+    hi_off = 0
+    for i in range(on.size):
+        a = on[i]
+        b = off[i]
+        lo = min(lo, a, b)
+        hi_on = max(hi_on, a)
+        hi_off = max(hi_off, b)
+    return lo, hi_on, hi_off
+
+
+@numba.njit(cache=True, parallel=True)
+def _look_up(on, off, table, stride, out):
+    for i in numba.prange(on.size):
+        out[i] = table[on[i] * stride + off[i]]
 
 
 def combine_passes(values, schedule):
@@ -649,8 +710,12 @@ def _footprint_matrix(bench, origin, p0, p1, n_cells, step):
     return t @ w
 
 
-def plan(rec, window="schedule", skip_us=0, length_us=None, region=None):
-    """What :func:`reconstruct` will count: ``(simulation record or None, Windows, region)``."""
+def plan(rec, window="schedule", skip_us=0, length_us=None, region=None, check_memory=True):
+    """What :func:`reconstruct` will count: ``(simulation record or None, Windows, region)``.
+
+    With ``check_memory`` the counts of every window at once must fit the
+    memory budget (:func:`evtk.limits.require_memory`).
+    """
     from .simulate import METADATA_KEY
 
     sim = (rec.metadata or {}).get(METADATA_KEY)
@@ -669,12 +734,22 @@ def plan(rec, window="schedule", skip_us=0, length_us=None, region=None):
     if region is None:
         region = tuple(sim["response_region"]) if sim is not None else (0, rec.sensor_size[0], 0, rec.sensor_size[1])
     x0, x1, y0, y1 = (int(v) for v in region)
-    # per window and pixel: ON and OFF counts (int32), with a simulation record the first and last ON times
-    # (int64), and the float64 stages after them (a minute of 10 ms windows over 320x240 peaked at 53 bytes
-    # a window-pixel without a record: measured, killed at 24 GB)
-    require_memory(len(win) * max(0, x1 - x0) * max(0, y1 - y0) * (64 if sim is None else 80),
-                   f"counting {len(win):,} windows over {max(0, x1 - x0)}x{max(0, y1 - y0)} pixels")
+    if check_memory:
+        require_memory(len(win) * window_bytes(region, sim is not None),
+                       f"counting {len(win):,} windows over {max(0, x1 - x0)}x{max(0, y1 - y0)} pixels")
     return sim, win, tuple(region)
+
+
+def window_bytes(region, simulated):
+    """Estimated peak bytes a window costs a reconstruction over ``region`` (x0, x1, y0, y1).
+
+    Per pixel: ON and OFF counts (int32), with a simulation record the first
+    and last ON times, and the float64 stages after them (a minute of 10 ms
+    windows over 320x240 peaked at 53 bytes a window-pixel without a record:
+    measured, killed at 24 GB).
+    """
+    x0, x1, y0, y1 = (int(v) for v in region)
+    return max(0, x1 - x0) * max(0, y1 - y0) * (80 if simulated else 64)
 
 
 def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="sign",
@@ -767,7 +842,8 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
         schedule = Schedule.from_dict(sim["schedule"])
         bench = Bench.from_dict(sim["bench"])
     curve = count_curve(sim, skip_us, length_us) if sim is not None and linear and theta is None else None
-    net = counts.on.astype(np.float64) - counts.off
+    needs_net = not linear or curve is not None or (flat_field and schedule is not None)
+    net = counts.on.astype(np.float64) - counts.off if needs_net else None
     gain = None
     if linear and flat_field and schedule is not None and np.any(schedule.kernel_id < 0):
         gain = flat_field_gain(net[schedule.kernel_id < 0], _expected_flat_counts(sim, bench, region, curve, theta_on))
@@ -782,9 +858,10 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
                                                 curve, gain, theta_on, skip_us)
     elif curve is not None:  # invert the recording's own pixel model
         values = linearize_by_model(net if gain is None else net * gain, curve)
+    elif gain is None:
+        values = linearize(counts.on, counts.off, theta_on, theta_off)
     else:
-        g = 1.0 if gain is None else gain
-        values = linearize(counts.on * g, counts.off * g, theta_on, theta_off)
+        values = linearize(counts.on * gain, counts.off * gain, theta_on, theta_off)
 
     pairs = ideal = None
     deblurred = False

@@ -1,7 +1,8 @@
 """Noise experiments on recordings and on the simulated bench: per-scene SINAD and flips, power sweeps, error against time.
 
 * :func:`scene_noise`: SINAD/ENOB and flip rates of every scene (kernel,
-  features) of a reconstruction, over its repeats.
+  features) of a reconstruction, over its repeats; :func:`recording_noise`
+  the same straight from a recording, in bounded memory.
 * :func:`flip_sweep`: the paper's Fig. 3 (right) on the simulated bench:
   flip rates of several kernels against laser power.
 * :func:`tradeoff`: error, ENOB and flips against device time per capture
@@ -24,21 +25,21 @@ import time
 import numpy as np
 
 from .errors import EvtkError
-from .metrics import flip_rates, sinad
+from .metrics import SinadAccumulator, flip_rates
 
-__all__ = ["scene_noise", "random_kernels", "simulated_reconstruction", "flip_sweep", "tradeoff", "pareto_front"]
+__all__ = ["scene_noise", "recording_noise", "random_kernels", "simulated_reconstruction", "flip_sweep", "tradeoff", "pareto_front"]
 
 
-def scene_noise(result, bootstrap=1000, per_pixel=False, seed=0) -> list:
+def scene_noise(result, interval="jackknife", per_pixel=False, seed=0) -> list:
     """SINAD/ENOB (eq. 8) and flip rates of each scene of a reconstruction, over its repeats.
 
     Returns one dict per scene with at least two repeats: ``kernel_id``,
     ``features_id``, ``repeats``, ``sinad`` (:class:`evtk.metrics.SinadReport`
-    of the signed responses on the cell grid), ``flips``
-    (:class:`evtk.metrics.FlipReport` of the binary responses) and, for
-    simulated recordings, ``error`` (mean correlation and NRMSE of the
-    repeats against the ideal). Scenes whose responses are all zero get
-    ``sinad = None``.
+    of the signed responses on the cell grid, with an ``interval`` as in
+    :func:`evtk.metrics.sinad`), ``flips`` (:class:`evtk.metrics.FlipReport`
+    of the binary responses) and, for simulated recordings, ``error`` (mean
+    correlation and NRMSE of the repeats against the ideal). Scenes whose
+    responses are all zero get ``sinad = None``.
     """
     from .reconstruct import response_error
 
@@ -46,15 +47,9 @@ def scene_noise(result, bootstrap=1000, per_pixel=False, seed=0) -> list:
     for (k, f), idx in result.groups().items():
         if idx.size < 2:
             continue
-        cells = result.cells[idx]
-        try:
-            s = sinad(cells, per_pixel=per_pixel, bootstrap=bootstrap, seed=seed)
-        except EvtkError as exc:
-            if "zero everywhere" not in str(exc):
-                raise
-            s = None
-        row = {"kernel_id": int(k), "features_id": int(f), "repeats": int(idx.size), "sinad": s,
-               "flips": flip_rates(result.binary[idx])}
+        acc = SinadAccumulator(idx.size, result.cells.shape[1:])
+        acc.add(result.cells[idx])
+        row = _scene_row(k, f, acc, result.binary[idx], interval, per_pixel, seed)
         if result.ideal is not None:
             errs = [response_error(result.cells[i], result.ideal[i]) for i in idx]
             row["error"] = {key: _mean_defined([e[key] for e in errs]) for key in ("correlation", "nrmse",
@@ -63,6 +58,57 @@ def scene_noise(result, bootstrap=1000, per_pixel=False, seed=0) -> list:
     if not out:
         raise EvtkError("no scene was captured at least twice: SINAD and flip rates need repeats")
     return out
+
+
+def _scene_row(kernel_id, features_id, acc, binary, interval, per_pixel, seed):
+    try:
+        s = acc.report(per_pixel=per_pixel, interval=interval, seed=seed)
+    except EvtkError as exc:
+        if "zero everywhere" not in str(exc):
+            raise
+        s = None
+    return {"kernel_id": int(kernel_id), "features_id": int(features_id), "repeats": int(acc.repeats), "sinad": s,
+            "flips": flip_rates(binary)}
+
+
+#: Most memory one batch of windows of :func:`recording_noise` may take, in bytes.
+NOISE_BATCH_BYTES = 256 << 20
+
+
+def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval="jackknife", per_pixel=False,
+                    seed=0, progress=None, **options) -> list:
+    """:func:`scene_noise` of an open recording, in memory bounded by a batch of windows when it can be.
+
+    Windows without a capture schedule (``"triggers"`` or ``("period",
+    US)``) are repeats of one scene and independent of each other: they are
+    reconstructed a batch at a time (at most :data:`NOISE_BATCH_BYTES`, and
+    within the memory budget) and fed to one
+    :class:`evtk.metrics.SinadAccumulator`, so a minute of 10 ms windows over
+    a whole sensor is measured in one pass. A scheduled (simulated) recording
+    ties its windows together (passes, flat fields) and is reconstructed
+    whole. ``options`` go to :func:`evtk.reconstruct.reconstruct_counts`
+    (``linear``, ``theta``, ``binarize_method``, ...).
+    """
+    from .limits import memory_limit_bytes
+    from .reconstruct import accumulate, plan, reconstruct, reconstruct_counts, window_bytes
+
+    sim, win, region = plan(rec, window, skip_us, length_us, options.pop("region", None), check_memory=False)
+    if sim is not None:
+        result = reconstruct(rec, window, skip_us, length_us, region=region, progress=progress, **options)
+        return scene_noise(result, interval=interval, per_pixel=per_pixel, seed=seed)
+    if len(win) < 2:
+        raise EvtkError("no scene was captured at least twice: SINAD and flip rates need repeats")
+    batch = max(1, min(NOISE_BATCH_BYTES, memory_limit_bytes() // 2) // max(1, window_bytes(region, False)))
+    acc = binary = None
+    for i in range(0, len(win), batch):
+        counts = accumulate(rec, win[i:i + batch], region, progress=progress)
+        part = reconstruct_counts(counts, None, skip_us=skip_us, length_us=length_us, **options)
+        if acc is None:
+            acc = SinadAccumulator(len(win), part.cells.shape[1:])
+            binary = np.empty((len(win),) + part.binary.shape[1:], part.binary.dtype)
+        acc.add(part.cells)
+        binary[i:i + batch] = part.binary
+    return [_scene_row(-1, -1, acc, binary, interval, per_pixel, seed)]
 
 
 def _mean_defined(values):
@@ -150,7 +196,7 @@ def _flip_task(args):
     result, _ = simulated_reconstruction(kernels, features, bench.replace(power_mw=p), sensor, window_us, repeats,
                                          seed=seed, noise_seed=seed * 1000 + j + 1)
     rows = []
-    for scene in scene_noise(result, bootstrap=0):
+    for scene in scene_noise(result, interval=None):
         s = scene["sinad"]
         rows.append({"power_mw": p, "kernel_id": scene["kernel_id"],
                      "pairwise_pct": scene["flips"].pairwise_pct, "majority_pct": scene["flips"].majority_pct,
@@ -252,7 +298,7 @@ def _tradeoff_task(args):
     else:
         compute_s = timed(lambda: reconstruct_counts(result.counts, sim.metadata()["simulation"]))
     n_cap = len(sim.schedule)
-    scenes = scene_noise(result, bootstrap=0)
+    scenes = scene_noise(result, interval=None)
     enobs = [s["sinad"].enob_bits for s in scenes if s["sinad"] is not None and not s["sinad"].noise_free]
     return {
         "power_mw": p, "window_us": int(w), "settle_us": int(sim.settle_us), "decimation": int(d),

@@ -557,3 +557,22 @@ def test_reconstruct_counts_from_the_fast_path_equals_the_recording(tmp_path):
     assert b.summary["error"] == a.summary["error"]
     with pytest.raises(EvtkError, match="crop"):
         reconstruct_counts(b.counts, sim.metadata()["simulation"], crop="middle")
+
+
+def test_linearize_by_table_equals_expm1_per_pixel():
+    """Integer counts are looked up in a table of their distinct values: the same numbers as expm1 per pixel."""
+    from evtk.reconstruct import linearize
+
+    rng = np.random.default_rng(2)
+    on = rng.integers(0, 40, (30, 20, 20)).astype(np.int32)
+    off = rng.integers(0, 25, (30, 20, 20)).astype(np.int32)
+    for a, b in ((0.2, 0.2), (0.17, 0.31)):
+        want = np.expm1(on.astype(np.float64) * a - off.astype(np.float64) * b)
+        assert np.array_equal(linearize(on, off, a, b), want)
+        assert np.array_equal(linearize(on.astype(np.float64), off, a, b), want)  # no table for floats
+    assert np.array_equal(linearize(on, None, 0.2), np.expm1(on * 0.2))
+    wide = on * 3000  # 117,001 x 25 distinct pairs, too many for a table: expm1 per pixel
+    assert np.array_equal(linearize(wide, off, 0.005), np.expm1(wide * 0.005 - off * 0.005))
+    big = np.full((64, 64), 3600, np.int32)
+    with pytest.raises(EvtkError, match="exp\\(700\\)"):
+        linearize(big, np.zeros_like(big), 0.2)

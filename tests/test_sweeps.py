@@ -40,11 +40,11 @@ def test_pareto_front_against_brute_force():
 
 def test_scene_noise_matches_the_metrics_on_each_scene():
     result, sim = simulated_reconstruction(random_kernels(2, seed=1), F16, repeat=5, seed=2)
-    scenes = scene_noise(result, bootstrap=0)
+    scenes = scene_noise(result, interval=None)
     assert [(s["kernel_id"], s["features_id"], s["repeats"]) for s in scenes] == [(0, 0, 5), (1, 0, 5)]
     for s in scenes:
         idx = [i for i, (k, f, _) in enumerate(result.pairs.tolist()) if k == s["kernel_id"]]
-        assert s["sinad"].sinad_db == pytest.approx(sinad(result.cells[idx], bootstrap=0).sinad_db)
+        assert s["sinad"].sinad_db == pytest.approx(sinad(result.cells[idx], interval=None).sinad_db)
         assert s["flips"].pairwise_pct == pytest.approx(flip_rates(result.binary[idx]).pairwise_pct)
         assert -1 <= s["error"]["correlation"] <= 1
 
@@ -101,7 +101,7 @@ def test_cli_enob_flips_tradeoff(tmp_path):
                          bench=evtk.optics.Bench(power_mw=power))
         paths.append(tmp_path / f"p{power}.aedat4")
         sim.write(paths[-1])
-    res = CliRunner().invoke(main, ["enob", str(paths[1]), "--json", "--bootstrap", "200", "--plot",
+    res = CliRunner().invoke(main, ["enob", str(paths[1]), "--json", "--interval", "bootstrap", "--plot",
                                     str(tmp_path / "e.png")])
     assert res.exit_code == 0, res.output
     out = json.loads(res.output)
@@ -112,7 +112,7 @@ def test_cli_enob_flips_tradeoff(tmp_path):
     with evtk.open(paths[1]) as rec:
         from evtk.reconstruct import reconstruct
 
-        lib = scene_noise(reconstruct(rec), bootstrap=0)
+        lib = scene_noise(reconstruct(rec), interval=None)
     assert out["scenes"][1]["sinad"]["sinad_db"] == pytest.approx(lib[1]["sinad"].sinad_db)
     text = CliRunner().invoke(main, ["enob", str(paths[1])])
     assert text.exit_code == 0 and "ENOB" in text.output and "SINAD dB" in text.output
@@ -149,12 +149,46 @@ def test_enob_of_a_recording_without_a_schedule(tmp_path):
     ev = evtk.Events(t, x, np.zeros(n, np.uint16), (rng.random(n) < 0.8).astype(np.uint8), (8, 1))
     path = tmp_path / "bench.h5"
     evtk.write_events(path, ev)
-    res = CliRunner().invoke(main, ["enob", str(path), "--window", "period:5000", "--json", "--bootstrap", "0"])
+    res = CliRunner().invoke(main, ["enob", str(path), "--window", "period:5000", "--json", "--interval", "none"])
     assert res.exit_code == 0, res.output
     (scene,) = json.loads(res.output)["scenes"]
-    assert scene["kernel_id"] == -1 and scene["repeats"] == 10
+    assert scene["kernel_id"] == -1 and scene["repeats"] == 10 and scene["sinad"]["ci_db"] is None
     res = CliRunner().invoke(main, ["enob", str(path)])
     assert res.exit_code == 1 and "no capture schedule" in res.output
+
+
+def test_recording_noise_in_batches_equals_the_whole_reconstruction(tmp_path, monkeypatch):
+    """Windows measured a few at a time give the whole reconstruction's SINAD, interval, per-pixel SINAD and
+    flips; with a memory budget too small for every window at once, enob still runs where reconstruct cannot."""
+    import evtk.sweeps as sweeps
+    from evtk.reconstruct import reconstruct
+
+    rng = np.random.default_rng(1)
+    n = 400_000
+    t = np.sort(rng.integers(0, 2_000_000, n))
+    x = rng.integers(0, 64, n).astype(np.uint16)
+    y = rng.integers(0, 48, n).astype(np.uint16)
+    p = (rng.random(n) < 0.3 + 0.5 * (x > 32)).astype(np.uint8)
+    path = tmp_path / "bench.aedat4"
+    evtk.write_events(path, evtk.Events(t, x, y, p, (64, 48)))
+    with evtk.open(path) as rec:
+        whole = scene_noise(reconstruct(rec, ("period", 10_000)), per_pixel=True)[0]
+        monkeypatch.setattr(sweeps, "NOISE_BATCH_BYTES", 7 * 64 * 48 * 64)  # 7 windows a batch: 29 batches
+        (part,) = sweeps.recording_noise(rec, ("period", 10_000), per_pixel=True)
+    assert part["repeats"] == whole["repeats"] > 190
+    assert part["sinad"].sinad_db == pytest.approx(whole["sinad"].sinad_db, rel=1e-9)
+    assert np.allclose(part["sinad"].ci_db, whole["sinad"].ci_db, rtol=1e-9)
+    assert np.allclose(part["sinad"].per_pixel_db, whole["sinad"].per_pixel_db, rtol=1e-9)
+    assert part["flips"].pairwise_pct == pytest.approx(whole["flips"].pairwise_pct)
+    monkeypatch.undo()
+    monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "4")  # 200 windows x 64x48 x 64 B = 37.5 MiB
+    res = CliRunner().invoke(main, ["reconstruct", str(path), "--window", "period:10000", "-o",
+                                    str(tmp_path / "r.h5")])
+    assert res.exit_code == 1 and "MiB" in res.output, res.output
+    res = CliRunner().invoke(main, ["enob", str(path), "--window", "period:10000", "--json"])
+    assert res.exit_code == 0, res.output
+    got = json.loads(res.output)["scenes"][0]["sinad"]["sinad_db"]
+    assert got == pytest.approx(whole["sinad"].sinad_db, rel=1e-9)
 
 
 def test_demo_runs_on_the_embedded_defaults(tmp_path):
