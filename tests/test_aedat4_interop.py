@@ -274,3 +274,63 @@ def test_convert_aedat4_to_aedat4_keeps_frames_imu_and_the_camera(tmp_path):
     assert evtk.open(tmp_path / "c.parquet").metadata["source"] == "DVXplorer_fixture"
     r = CliRunner().invoke(main, ["convert", str(src), str(tmp_path / "d.h5"), "--events-only"])
     assert r.exit_code == 0 and "warning" not in r.output
+
+
+def test_faery_checksums_checked_only_when_asked(tmp_path):
+    """faery's LZ4 bodies carry xxHash block and content checksums: skipped by default (the frame is rebuilt
+    without them), checked with verify_checksums; a damaged checksum is invisible to the first, fatal to the
+    second."""
+    ev = random_events(20_000, seed=13, t0=5)
+    path = tmp_path / "faery.aedat4"
+    peers.faery_write(path, ev, "lz4")
+    with evtk.open(path) as rec:
+        body_at = int(rec._index.offset[rec._index.stream == 0][0])
+    data = bytearray(path.read_bytes())
+    flg = data[body_at + 4]
+    assert flg & 0x10 and flg & 0x04  # block and content checksums, as faery writes them
+    head = body_at + 4 + 2 + (8 if flg & 0x08 else 0) + 1
+    size = int.from_bytes(data[head:head + 4], "little") & 0x7FFFFFFF
+    data[head + 4 + size] ^= 0xFF  # the first block's checksum
+    bad = tmp_path / "bad_checksum.aedat4"
+    bad.write_bytes(bytes(data))
+    assert evtk.read_events(path) == ev
+    assert evtk.read_events(bad) == ev
+    with evtk.open(path, verify_checksums=True) as rec:
+        assert rec.events() == ev
+    with evtk.open(bad, verify_checksums=True) as rec, pytest.raises(evtk.FormatError, match="LZ4"):
+        rec.events()
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+
+    res = CliRunner().invoke(main, ["--verify-checksums", "convert", str(bad), str(tmp_path / "out.h5")])
+    assert res.exit_code == 1 and "LZ4" in res.output, res.output
+    res = CliRunner().invoke(main, ["convert", str(bad), str(tmp_path / "out.h5")])
+    assert res.exit_code == 0, res.output
+
+
+def test_lz4_checksum_stripping_matches_lz4(tmp_path):
+    """Every frame layout lz4 writes decompresses to the same bytes without its checksums; xxh32 is checked
+    against lz4's own header check byte and a truncated frame is left for the decompressor to refuse."""
+    import lz4.frame
+
+    from evtk.io import _compression as cz
+
+    data = np.random.default_rng(0).integers(0, 4, 300_000, np.uint8).tobytes()
+    for linked in (True, False):
+        for store_size in (True, False):
+            for block_sum in (True, False):
+                f = lz4.frame.compress(data, content_checksum=True, block_checksum=block_sum, store_size=store_size,
+                                       block_linked=linked, block_size=lz4.frame.BLOCKSIZE_MAX64KB)
+                g = cz.lz4_without_checksums(f)
+                info = lz4.frame.get_frame_info(g)
+                assert not info["content_checksum"] and not info["block_checksum"]
+                assert cz.decompress(cz.LZ4, f, 1 << 22) == data == lz4.frame.decompress(g)
+                assert cz.decompress(cz.LZ4, f, 1 << 22, verify=True) == data
+    # xxHash32's published test values (empty, short, and over one 16-byte stripe)
+    assert cz.xxh32(b"") == 0x02CC5D05 and cz.xxh32(b"abc") == 0x32D153FF
+    assert cz.xxh32(b"Nobody inspects the spammish repetition") == 0xE2293B2F
+    cut = f[: len(f) // 2]
+    assert cz.lz4_without_checksums(cut) is cut
+    with pytest.raises(cz.CodecError):
+        cz.decompress(cz.LZ4, cut, 1 << 22)

@@ -67,7 +67,7 @@ def detect_format(path) -> str:
 
 
 def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # noqa: A001
-         trust_external: bool | None = None) -> BaseRecording:
+         trust_external: bool | None = None, verify_checksums: bool | None = None) -> BaseRecording:
     """Open a recording for reading; the format is found from the file's first bytes.
 
     Parameters
@@ -90,6 +90,12 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         datasets into other files. Refused by default (a file could make
         evtk read any file); None takes ``$EVTK_TRUST_EXTERNAL`` (set by
         ``evtk --trust-external``).
+    verify_checksums : bool, optional
+        AEDAT4 only: check the xxHash checksums LZ4 packet bodies may carry
+        (faery writes them; DV and dv-processing do not). Off by default,
+        which halves the time such files take; the frames' structure is
+        checked either way. None takes ``$EVTK_VERIFY_CHECKSUMS`` (set by
+        ``evtk --verify-checksums``).
 
     Examples
     --------
@@ -108,7 +114,9 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     if fmt == "aedat4":
         from .aedat4 import Recording
 
-        return Recording(path, salvage=salvage)
+        if verify_checksums is None:
+            verify_checksums = os.environ.get("EVTK_VERIFY_CHECKSUMS", "") not in ("", "0")
+        return Recording(path, salvage=salvage, verify_checksums=verify_checksums)
     if fmt == "prophesee":
         from .prophesee import PropheseeRecording
 

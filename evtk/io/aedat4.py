@@ -142,9 +142,10 @@ class Recording(BaseRecording):
 
     format = "aedat4"
 
-    def __init__(self, path, salvage: bool = False):
+    def __init__(self, path, salvage: bool = False, verify_checksums: bool = False):
         super().__init__(path, salvage)
         self._fd = -1
+        self.verify_checksums = bool(verify_checksums)
         try:
             self._fd = os.open(self.path, os.O_RDONLY)
         except OSError as exc:
@@ -263,7 +264,7 @@ class Recording(BaseRecording):
             self.warnings.append("the data table is empty; packets were indexed by walking the file")
             return None
         try:
-            raw = cz.decompress(self._code, body, cz.output_limit(len(body)))
+            raw = cz.decompress(self._code, body, cz.output_limit(len(body)), self.verify_checksums)
         except cz.CodecError as exc:
             self.warnings.append(f"the data table is unreadable ({exc}); packets were indexed by walking the file")
             return None
@@ -433,7 +434,7 @@ class Recording(BaseRecording):
         if self._code == cz.NONE and cz.sniff(body):
             self._fail(off, f"the header declares no compression but the body is a {cz.sniff(body)} frame")
         try:
-            raw = cz.decompress(self._code, body, cz.output_limit(size))
+            raw = cz.decompress(self._code, body, cz.output_limit(size), self.verify_checksums)
         except cz.CodecError as exc:
             self._fail(off, f"packet body cannot be decompressed: {exc}")
         return np.frombuffer(raw, np.uint8)
