@@ -5,7 +5,8 @@ from .errors import EvtkError, FormatError
 from .io import detect_format, open, read_events, write_events
 
 # loaded on first use (numba compiles and loads its caches when they are), so that the command line starts fast
-_LAZY = {"Events": "events", "Triggers": "events", "TriggerKind": "events", "to_dask": "cluster", "Recording": "io"}
+_LAZY = {"Events": "events", "Triggers": "events", "TriggerKind": "events", "to_dask": "cluster", "Recording": "io",
+         "load_reconstruction": "io.reconstruction", "save_reconstruction": "io.reconstruction"}
 
 
 def __getattr__(name):
@@ -28,4 +29,6 @@ __all__ = [
     "write_events",
     "detect_format",
     "to_dask",
+    "load_reconstruction",
+    "save_reconstruction",
 ]

@@ -145,7 +145,14 @@ def info(file, as_json, salvage, check):
 
     Without --salvage or --check the counts and times are what the file's
     headers and indexes say; with either, what its events read back as.
+    A reconstruction file (from ``evtk reconstruct``) is described as one.
     """
+    from .io.reconstruction import describe_reconstruction, human_description, is_reconstruction
+
+    if is_reconstruction(file):
+        d = describe_reconstruction(file)
+        click.echo(_dumps(d) if as_json else human_description(d))
+        return
     with evio.open(file, salvage=salvage) as rec:
         summary = rec.info()
         if salvage or check:
@@ -459,6 +466,18 @@ def enob(recording, window_spec, skip_us, length_us, interval, per_pixel, plot_p
     Without a schedule every window is a repeat of one scene; they are
     measured a batch at a time, so memory stays bounded however many.
     """
+    from .io.reconstruction import is_reconstruction, load_reconstruction
+    from .sweeps import scene_noise
+
+    if is_reconstruction(recording):  # the responses of an earlier `evtk reconstruct`
+        scenes = scene_noise(load_reconstruction(recording), interval=None if interval == "none" else interval,
+                             per_pixel=per_pixel)
+    else:
+        scenes = _recording_noise(recording, window_spec, skip_us, length_us, interval, per_pixel)
+    _report_scenes(recording, scenes, plot_path, as_json)
+
+
+def _recording_noise(recording, window_spec, skip_us, length_us, interval, per_pixel):
     from .sweeps import recording_noise
 
     with evio.open(recording) as rec:
@@ -469,6 +488,10 @@ def enob(recording, window_spec, skip_us, length_us, interval, per_pixel, plot_p
                                      progress=update)
         finally:
             finish()
+    return scenes
+
+
+def _report_scenes(recording, scenes, plot_path, as_json):
     if plot_path:
         from .plots import plot_enob
 

@@ -38,6 +38,7 @@ import numpy as np
 
 from .errors import EvtkError
 from .limits import require_memory
+from .io.reconstruction import save_reconstruction  # noqa: F401  (public here since 0.1)
 from .events import Events, TriggerKind, Triggers
 
 __all__ = [
@@ -995,40 +996,6 @@ def _settle_path(u, lit_decay, dark_decay):
             eps[w, i] = level[i]
             level[i] = u[w, i] + (level[i] - u[w, i]) * lit_decay[w, i]
     return eps
-
-
-def save_reconstruction(path, result: Reconstruction, sensor_size, metadata=None):
-    """Write a reconstruction as ``.npz`` or as evtk HDF5 (``.h5``/``.hdf5``), atomically.
-
-    Arrays: ``responses``, ``binary``, ``cells``, ``ideal`` (when known),
-    ``pairs``, ``window_start_us``/``window_end_us``, ``on``/``off`` counts;
-    the summary (parameters, errors) as JSON (``summary`` in NPZ, in the
-    metadata in HDF5, together with ``metadata``).
-    """
-    import os
-
-    arrays = {"responses": result.responses, "binary": result.binary, "cells": result.cells,
-              "window_start_us": result.counts.windows.t_start_us, "window_end_us": result.counts.windows.t_end_us,
-              "on": result.counts.on, "off": result.counts.off}
-    if result.ideal is not None:
-        arrays["ideal"] = result.ideal
-    if result.pairs is not None:
-        arrays["pairs"] = result.pairs
-    meta = {"reconstruction": result.summary, **(metadata or {})}
-    ext = os.path.splitext(os.fspath(path))[1].lower()
-    if ext == ".npz":
-        from .io._atomic import AtomicFile
-
-        with AtomicFile(path) as f:
-            np.savez_compressed(f.file, summary=np.array(json.dumps(meta)), **arrays)
-    elif ext in (".h5", ".hdf5"):
-        from .io.hdf5 import Hdf5Writer
-
-        with Hdf5Writer(path, sensor_size, "lz4", meta) as w:
-            for name, a in arrays.items():
-                w.write_array(f"reconstruction/{name}", a)
-    else:
-        raise EvtkError(f"cannot tell the output format from {ext!r}: use .npz, .h5 or .hdf5")
 
 
 def contact_sheet(path, result: Reconstruction, max_rows=8):

@@ -1,5 +1,7 @@
 """Reconstruction stages 1-2: capture windows and per-window accumulation."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -576,3 +578,53 @@ def test_linearize_by_table_equals_expm1_per_pixel():
     big = np.full((64, 64), 3600, np.int32)
     with pytest.raises(EvtkError, match="exp\\(700\\)"):
         linearize(big, np.zeros_like(big), 0.2)
+
+
+def test_reconstruction_files_read_back_and_describe_themselves(tmp_path):
+    """Both containers round-trip every array and the summary; info describes responses (not "events 0"),
+    enob on the file equals enob on the recording, and damaged files are one FormatError each."""
+    import h5py
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+    from evtk.io.reconstruction import is_reconstruction, load_reconstruction
+    from evtk.reconstruct import reconstruct
+    from evtk.simulate import Simulation
+
+    rec_path = tmp_path / "run.aedat4"
+    Simulation([[1, 0, 1], [0, 1, 0], [1, 0, 1]], np.eye(6, dtype=int), repeat=3, seed=2).write(rec_path)
+    with evtk.open(rec_path) as rec:
+        result = reconstruct(rec)
+    for name in ("out.h5", "out.npz"):
+        res = CliRunner().invoke(main, ["reconstruct", str(rec_path), "-o", str(tmp_path / name)])
+        assert res.exit_code == 0, res.output
+        assert is_reconstruction(tmp_path / name)
+        back = load_reconstruction(tmp_path / name)
+        for key in ("responses", "binary", "cells", "ideal", "pairs"):
+            assert np.array_equal(getattr(back, key), getattr(result, key)), key
+        assert np.array_equal(back.counts.on, result.counts.on) and np.array_equal(back.counts.off, result.counts.off)
+        assert back.summary["error"] == pytest.approx(result.summary["error"])
+        assert back.summary["source"] == str(rec_path) and back.summary["sensor_size"] == list(rec.sensor_size)
+        info = CliRunner().invoke(main, ["info", str(tmp_path / name)])
+        assert info.exit_code == 0 and "responses    3 of 16x16" in info.output and "events" not in info.output
+        js = CliRunner().invoke(main, ["info", str(tmp_path / name), "--json"])
+        assert json.loads(js.output)["scenes"] == 1
+        a = CliRunner().invoke(main, ["enob", str(tmp_path / name), "--json"])
+        b = CliRunner().invoke(main, ["enob", str(rec_path), "--json"])
+        assert a.exit_code == 0 and json.loads(a.output)["scenes"] == json.loads(b.output)["scenes"]
+    assert not is_reconstruction(rec_path)
+    # damaged: an array missing, a shape that does not match, NaN in a response
+    with h5py.File(tmp_path / "out.h5", "a") as f:
+        del f["reconstruction/off"]
+    with pytest.raises(evtk.FormatError, match="no off"):
+        load_reconstruction(tmp_path / "out.h5")
+    arrays = dict(np.load(tmp_path / "out.npz"))
+    for key, value, msg in (("pairs", arrays["pairs"][:, :2], "pairs must be"),
+                            ("responses", np.full_like(arrays["responses"], np.nan), "NaN"),
+                            ("on", arrays["on"][:2], "do not match")):
+        bad = dict(arrays, **{key: value})
+        np.savez(tmp_path / "bad.npz", **bad)
+        with pytest.raises(evtk.FormatError, match=msg):
+            load_reconstruction(tmp_path / "bad.npz")
+    res = CliRunner().invoke(main, ["info", str(tmp_path / "bad.npz")])
+    assert res.exit_code == 1 and "do not match" in res.output
