@@ -196,6 +196,11 @@ def convert(source, target, compression, salvage, sort, chunk_events, events_onl
     click.echo(f"wrote {done['events']:,} events and {done['triggers']:,} triggers{copied} to {target}", err=True)
 
 
+def _count(n, noun):
+    """``1 response``, ``3 responses``."""
+    return f"{n:,} {noun}" + ("" if n == 1 else "s")
+
+
 def _progress(total, label):
     """A click progress bar on a terminal, nothing otherwise; returns (callback, finish)."""
     if not sys.stderr.isatty() or total < 2:
@@ -275,12 +280,12 @@ def simulate(kernel_path, kernel_bits, features_path, signed, repeat, flat_field
 
 
 def _parse_binarize(text):
-    if text in ("sign", "mean", "otsu"):
+    if text in ("auto", "sign", "mean", "otsu"):
         return text
     try:
         return float(text)
     except ValueError:
-        raise EvtkError(f"--binarize must be sign, mean, otsu or a number, not {text!r}") from None
+        raise EvtkError(f"--binarize must be auto, sign, mean, otsu or a number, not {text!r}") from None
 
 
 def _parse_window(spec):
@@ -311,8 +316,8 @@ def _parse_size(text):
               help="Leave out the start of every window (pixel settling).")
 @click.option("--length-us", type=click.IntRange(min=1, max=_MAX_INT), help="Keep at most this much of every window.")
 @click.option("--size", default="16x16", show_default=True, help="Size of each response, ROWSxCOLS.")
-@click.option("--binarize", "binarize_method", default="sign", show_default=True,
-              help="sign, mean, otsu or a threshold value.")
+@click.option("--binarize", "binarize_method", default="auto", show_default=True,
+              help="auto (sign for signed responses, else each response's mean), sign, mean, otsu or a threshold.")
 @click.option("--linearize/--counts", default=True, show_default=True,
               help="Linearise counts to light, or keep net counts (ON - OFF).")
 @click.option("--crop", type=click.Choice(["valid", "full"]), default="valid", show_default=True)
@@ -351,7 +356,8 @@ def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, bi
         click.echo(_dumps(summary))
     else:
         err = summary.get("error")
-        line = (f"wrote {summary['responses']} responses of {size} from {summary['windows']} windows "
+        line = (f"wrote {_count(summary['responses'], 'response')} of {size} from "
+                f"{_count(summary['windows'], 'window')} "
                 f"({summary['events_used']:,} of {n_events:,} events used) to {output}")
         if err:
             fmt = lambda v, spec: "n/a" if v is None else format(v, spec)  # noqa: E731
@@ -538,7 +544,7 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
           scheduler_spec, as_json):
     """Pixels whose binarised response flips between repeats, per kernel and light power.
 
-    With RECORDINGS: each is reconstructed (16x16, sign) and its scenes
+    With RECORDINGS: each is reconstructed (16x16, binarised as reconstruct does) and its scenes
     compared over their repeats. Without: the paper's Fig. 3 (right) on the
     simulated bench: random kernels on the default features, swept over
     laser power.
@@ -635,7 +641,7 @@ def tradeoff(windows, powers, settles, decimations, n_kernels, repeats, seed, fa
         click.echo(_dumps({"rows": rows}))
         return
     click.echo(_table(rows, [
-        ("", lambda r: "*" if r["pareto"] else "", "s"), ("power mW", "power_mw", "g"), ("window us", "window_us", "d"),
+        ("Pareto", lambda r: "*" if r["pareto"] else "", "s"), ("power mW", "power_mw", "g"), ("window us", "window_us", "d"),
         ("settle us", "settle_us", "d"), ("decimation", "decimation", "d"), ("device us/capture", "device_us_per_capture", ".0f"),
         ("compute us/capture", "compute_us_per_capture", ".0f"), ("corr", "correlation", ".3f"),
         ("RMSE/RMS", "nrmse", ".3f"), ("ENOB", lambda r: float("inf") if r["noise_free"] else r["enob_bits"], ".2f"),
@@ -678,7 +684,7 @@ def demo(out_dir, repeat, seed, as_json):
         written = sim.write(rec_path, progress=update)
     finally:
         finish()
-    result, about = _reconstructed(rec_path, binarize_method="mean")  # an unsigned response: its mean splits it
+    result, about = _reconstructed(rec_path)  # binarised as reconstruct does by default (auto)
     out_h5 = os.path.join(out_dir, "reconstruction.h5")
     save_reconstruction(out_h5, result, about["sensor_size"], {"source": rec_path})
     sheet = os.path.join(out_dir, "responses.png")
@@ -871,7 +877,7 @@ def recover(features_path, target_path, target_kernel_bits, size, method, weight
     if result.near:
         near = ", ".join(f"{b} ({v:.4g})" for b, v in result.near[:5])
         lines.append(f"within 5 % of the best loss: {near}" + (" ..." if len(result.near) > 5 else ""))
-    lines.append(f"{result.seconds:.3f} s")
+    lines.append(f"search time {result.seconds:.3f} s")
     click.echo("\n".join(lines))
 
 
@@ -1054,7 +1060,8 @@ def batch():
               help="Folder for the outputs and batch.json.")
 @_with_window_options
 @click.option("--size", default="16x16", show_default=True, help="Size of each response, ROWSxCOLS.")
-@click.option("--binarize", "binarize_method", default="sign", show_default=True)
+@click.option("--binarize", "binarize_method", default="auto", show_default=True,
+              help="auto (sign for signed responses, else each response's mean), sign, mean, otsu or a threshold.")
 @click.option("--linearize/--counts", default=True, show_default=True)
 @click.option("--crop", type=click.Choice(["valid", "full"]), default="valid", show_default=True)
 @click.option("--format", "fmt", type=click.Choice(["h5", "npz"]), default="h5", show_default=True)

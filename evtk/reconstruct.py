@@ -53,6 +53,7 @@ __all__ = [
     "to_response_grid",
     "downsample",
     "binarize",
+    "binarize_rule",
     "plan",
     "reconstruct",
     "reconstruct_counts",
@@ -582,6 +583,21 @@ def downsample(values, size=(16, 16)):
     return wy @ values @ wx.T
 
 
+def binarize_rule(sim) -> str:
+    """The binarisation ``"auto"`` stands for: ``"sign"`` for signed responses, ``"mean"`` for the rest.
+
+    A response is signed when the recording's schedule shows a kernel or
+    features holding -1 (its captures are combined from + and - passes, so
+    zero is the natural threshold). An unsigned kernel on 0/1 features gives
+    a response that is positive wherever light falls (the sign would be +1
+    almost everywhere), and a recording without a schedule has no sign to
+    go by: both are split at each response's mean.
+    """
+    if sim is not None and (np.min(sim["kernels"]) < 0 or np.min(sim["features"]) < 0):
+        return "sign"
+    return "mean"
+
+
 def binarize(values, method="sign"):
     """+1 where a response reaches the threshold, -1 elsewhere (int8), per response.
 
@@ -753,7 +769,7 @@ def window_bytes(region, simulated):
     return max(0, x1 - x0) * max(0, y1 - y0) * (80 if simulated else 64)
 
 
-def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="sign",
+def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
                 linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None,
                 deblur=None, flat_field=True, timing=None):
     """The whole pipeline on an open recording: windows, counts, linearisation, passes, grid, binarisation.
@@ -766,7 +782,9 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         Shorten or delay every window (leave out the pixels' settling).
     size : (rows, cols)
         Output size of each response.
-    binarize_method : "sign", "mean", "otsu" or a number
+    binarize_method : "auto", "sign", "mean", "otsu" or a number
+        ``"auto"`` (default): :func:`binarize_rule` (sign for signed
+        responses, each response's mean otherwise).
     linear : bool
         Linearise counts to light (else net counts ON - OFF).
     theta : float, optional
@@ -816,7 +834,7 @@ def _check_crop(crop):
         raise EvtkError(f"crop must be 'valid' or 'full', not {crop!r}")
 
 
-def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16), binarize_method="sign",
+def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
                        linear=True, theta=None, crop="valid", deblur=None, flat_field=True, timing=None):
     """Every stage after accumulation, on window counts (:func:`reconstruct` without the recording).
 
@@ -898,6 +916,8 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
     else:
         cells = values
     responses = downsample(cells, size)
+    if isinstance(binarize_method, str) and binarize_method == "auto":
+        binarize_method = binarize_rule(sim)
     binary = binarize(responses, binarize_method)
     summary = {
         "captures": int(len(schedule)) if schedule is not None else None,
