@@ -40,8 +40,9 @@ W, H = 320, 240
 
 
 def _windows(ev, n):
-    from evtk.reconstruct import Windows
     import numpy as np
+
+    from evtk.reconstruct import Windows
 
     edges = np.linspace(int(ev.t[0]), int(ev.t[-1]) + 1, n + 1).astype(np.int64)
     return Windows(edges[:-1], edges[1:], np.arange(n), "bench")
@@ -115,7 +116,7 @@ def child(tool, n_events, n_windows):
             store.add(batch)
         acc = dv.Accumulator((W, H), dv.Accumulator.Decay.NONE, 0.0, False, 1.0, 1e9, 0.0, 0.0, False)
         acc.accept(store.sliceTime(int(small.t[0]), int(small.t[-1])))  # warm-up
-        for rep in range(2):  # the second pass is timed (steady state)
+        for _rep in range(2):  # the second pass is timed (steady state)
             t0 = time.perf_counter()
             for a, b in zip(win.t_start_us.tolist(), win.t_end_us.tolist()):
                 acc.clear()

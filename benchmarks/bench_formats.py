@@ -21,7 +21,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from harness import child_runs
 
 HERE = Path(__file__).resolve().parent

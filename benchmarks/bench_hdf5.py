@@ -156,12 +156,14 @@ def main(argv=None):
     print(f"\n{n:,} events over {n / 2e6:.0f} s, 320x240; median of {args.repeats} runs in fresh processes\n")
     print("Read times include opening the file (as the peer's do); the window is read from an")
     print("open recording and compared with a full read from an open recording.\n")
-    print("| format | compression | bytes/event | write M ev/s | read M ev/s (evtk) | read M ev/s (peer) | open (ms) | 10 ms window (ms) | window / full read |")
+    print("| format | compression | bytes/event | write M ev/s | read M ev/s (evtk) | read M ev/s (peer) | open (ms) "
+          "| 10 ms window (ms) | window / full read |")
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         peer = f"{r['peer_read_mev_s']:.0f} ({r['peer']})"
         print(f"| {r['format']} | {r['compression']} | {r['bytes_per_event']:.2f} | {r['write_mev_s']:.0f} | "
-              f"{r['read_mev_s']:.0f} | {peer} | {r['open_ms']:.2f} | {r['window_ms']:.2f} | {100 * r['window_share_of_full_read']:.2f} % |")
+              f"{r['read_mev_s']:.0f} | {peer} | {r['open_ms']:.2f} | {r['window_ms']:.2f} | "
+              f"{100 * r['window_share_of_full_read']:.2f} % |")
     if args.json_out:
         Path(args.json_out).write_text(json.dumps(rows, indent=1))
 

@@ -12,7 +12,6 @@ from . import io as evio  # (light: its readers and writers load on first use)
 from ._version import __version__
 from .errors import EvtkError, one_line
 
-
 #: Largest whole number an option takes: microseconds and counts stay far inside int64 arithmetic.
 _MAX_INT = 2**62
 
@@ -218,7 +217,8 @@ def _progress(total, label):
               help="Features: .npy (h, w) or (n, h, w), or an image (binarised). Default: a 16x16 "
                    "binarised picture bundled with scikit-image.")
 @click.option("--signed", is_flag=True, help="Read 0 as -1 in kernels and features (four passes per pair).")
-@click.option("--repeat", type=click.IntRange(min=1, max=_MAX_INT), default=1, show_default=True, help="Times each pair is shown.")
+@click.option("--repeat", type=click.IntRange(min=1, max=_MAX_INT), default=1, show_default=True,
+              help="Times each pair is shown.")
 @click.option("--flat-field", type=click.IntRange(min=0, max=_MAX_INT), default=2, show_default=True,
               help="Flat-field captures (all mirrors on) shown first, for per-pixel threshold calibration.")
 @click.option("--power-mw", type=float, help="Laser power (default: the bench's).")
@@ -236,7 +236,8 @@ def _progress(total, label):
 def simulate(kernel_path, kernel_bits, features_path, signed, repeat, flat_field, power_mw, window_us, settle_us,
              bench_path, seed, compression, output, save_bench, as_json):
     """Simulate the device and write the event recording it would produce."""
-    from .optics import Bench, load_bench, save_bench as _save_bench
+    from .optics import Bench, load_bench
+    from .optics import save_bench as _save_bench
     from .sensor import SensorModel
     from .simulate import Simulation, default_features, load_patterns
 
@@ -334,9 +335,8 @@ def _parse_size(text):
 def reconstruct_cmd(recording, output, window_spec, skip_us, length_us, size, binarize_method, linearize, crop,
                     flat_field, deblur, timing, png_path, as_json):
     """Turn a recording into the convolution responses the device computed."""
-    from .reconstruct import contact_sheet, save_reconstruction
-
     from .io._atomic import refuse_overwriting_inputs
+    from .reconstruct import contact_sheet, save_reconstruction
 
     refuse_overwriting_inputs(output, [recording])
     if png_path:
@@ -549,8 +549,8 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
     simulated bench: random kernels on the default features, swept over
     laser power.
     """
-    from .sweeps import flip_sweep, random_kernels, recording_noise
     from .simulate import default_features
+    from .sweeps import flip_sweep, random_kernels, recording_noise
 
     if recordings:
         rows = []
@@ -616,7 +616,8 @@ def tradeoff(windows, powers, settles, decimations, n_kernels, repeats, seed, fa
              as_json):
     """Error, ENOB and flips against time per capture on the simulated bench (Pareto front marked *)."""
     from .simulate import default_features
-    from .sweeps import random_kernels, tradeoff as run_tradeoff
+    from .sweeps import random_kernels
+    from .sweeps import tradeoff as run_tradeoff
 
     w = _number_list(windows, "--window-us", integer=True)
     p = _number_list(powers, "--power-mw") if powers else None
@@ -788,8 +789,15 @@ def recover(features_path, target_path, target_kernel_bits, size, method, weight
             trials, seed, plot_path, scheduler_spec, as_json):
     """Find the binary kernel behind a captured response (paper 4.4), or measure how often that works."""
     from .optics import Bench
-    from .recover import (all_kernels, device_responses, kernel_from_bits, recover_brute, recover_search,
-                          response_matrix, success_rate)
+    from .recover import (
+        all_kernels,
+        device_responses,
+        kernel_from_bits,
+        recover_brute,
+        recover_search,
+        response_matrix,
+        success_rate,
+    )
     from .simulate import default_features, load_patterns
 
     w = None if weights == "none" else weights

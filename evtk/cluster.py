@@ -20,8 +20,8 @@ the task's index, so results equal a serial run's whatever the worker.
 from __future__ import annotations
 
 import contextlib
-import socket
 import os
+import socket
 
 from .errors import EvtkError
 

@@ -10,7 +10,7 @@ external-signal time stamps that the camera records beside the events.
 from __future__ import annotations
 
 import enum
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -132,14 +132,14 @@ class Events:
 
     # -- construction -----------------------------------------------------
     @classmethod
-    def empty(cls, sensor_size) -> "Events":
+    def empty(cls, sensor_size) -> Events:
         """An event stream with no events."""
         return cls._trusted(
             np.zeros(0, np.int64), np.zeros(0, np.uint16), np.zeros(0, np.uint16), np.zeros(0, np.uint8), sensor_size
         )
 
     @classmethod
-    def _trusted(cls, t, x, y, p, sensor_size, is_sorted=None) -> "Events":
+    def _trusted(cls, t, x, y, p, sensor_size, is_sorted=None) -> Events:
         """Wrap columns already of the right dtype and length (no copies, no checks)."""
         ev = object.__new__(cls)
         ev.t, ev.x, ev.y, ev.p = t, x, y, p
@@ -148,7 +148,7 @@ class Events:
         return ev
 
     @classmethod
-    def concatenate(cls, parts: Sequence["Events"], sensor_size=None) -> "Events":
+    def concatenate(cls, parts: Sequence[Events], sensor_size=None) -> Events:
         """Join event streams end to end.
 
         The sensor size is ``sensor_size`` if given, else that of the parts,
@@ -173,7 +173,7 @@ class Events:
         )
 
     @classmethod
-    def from_structured(cls, array: np.ndarray, sensor_size) -> "Events":
+    def from_structured(cls, array: np.ndarray, sensor_size) -> Events:
         """Build from a structured array with fields named as dv-processing,
         faery or tonic name them (``t``/``timestamp``/``ts``, ``x``, ``y``,
         ``p``/``polarity``/``on``).
@@ -222,7 +222,7 @@ class Events:
         return to_arrow(self, metadata)
 
     @classmethod
-    def from_arrow(cls, table, sensor_size=None) -> "Events":
+    def from_arrow(cls, table, sensor_size=None) -> Events:
         """Events from a ``pyarrow.Table`` (sensor size from its metadata unless given)."""
         from .io.arrow import from_arrow
 
@@ -236,7 +236,7 @@ class Events:
         span = f", t=[{self.t[0]}, {self.t[-1]}] us" if len(self) else ""
         return f"Events(n={len(self)}, sensor_size={self.sensor_size}{span})"
 
-    def __getitem__(self, index) -> "Events":
+    def __getitem__(self, index) -> Events:
         if isinstance(index, (int, np.integer)):
             index = slice(index, index + 1 if index != -1 else None)
         sorted_hint = self._sorted if isinstance(index, slice) and (index.step in (None, 1)) else None
@@ -272,7 +272,7 @@ class Events:
         """Last time stamp, or None for an empty stream."""
         return int(self.t.max()) if len(self) else None
 
-    def between(self, t_start_us=None, t_end_us=None) -> "Events":
+    def between(self, t_start_us=None, t_end_us=None) -> Events:
         """Events with ``t_start_us <= t < t_end_us`` (None leaves a side open).
 
         Sorted streams are cut with a binary search and the result shares
@@ -323,7 +323,7 @@ class Triggers:
             raise EvtkError(f"trigger columns differ in length: t={len(self.t)}, kind={len(self.kind)}")
 
     @classmethod
-    def concatenate(cls, parts: Iterable["Triggers"]) -> "Triggers":
+    def concatenate(cls, parts: Iterable[Triggers]) -> Triggers:
         parts = list(parts)
         if not parts:
             return cls()
@@ -342,12 +342,12 @@ class Triggers:
 
     __hash__ = None
 
-    def __getitem__(self, index) -> "Triggers":
+    def __getitem__(self, index) -> Triggers:
         if isinstance(index, (int, np.integer)):
             index = slice(index, index + 1 if index != -1 else None)
         return Triggers(self.t[index], self.kind[index])
 
-    def between(self, t_start_us=None, t_end_us=None) -> "Triggers":
+    def between(self, t_start_us=None, t_end_us=None) -> Triggers:
         """Triggers with ``t_start_us <= t < t_end_us`` (None leaves a side open)."""
         mask = np.ones(len(self), bool)
         if t_start_us is not None:
@@ -356,7 +356,7 @@ class Triggers:
             mask &= self.t < int(t_end_us)
         return Triggers(self.t[mask], self.kind[mask])
 
-    def of_kind(self, kind) -> "Triggers":
+    def of_kind(self, kind) -> Triggers:
         """Only the triggers of one :class:`TriggerKind`."""
         mask = self.kind == int(kind)
         return Triggers(self.t[mask], self.kind[mask])

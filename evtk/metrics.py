@@ -376,7 +376,7 @@ def _ratio_db(power, noise):
 
 
 def _bootstrap_db(terms, n, seed):
-    """SINAD of ``n`` resamplings of the groups of repeats (:meth:`SinadAccumulator.report`'s group terms; one repeat a group up to
+    """SINAD of ``n`` resamplings of the groups of repeats (``SinadAccumulator._group_terms``; one repeat a group up to
     :data:`MAX_BOOTSTRAP_GROUPS` repeats, contiguous blocks beyond), noise from pairs of distinct repeats only.
 
     Resampling a repeat twice adds a pair with no difference; the pooled

@@ -386,11 +386,11 @@ class Bench:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Bench":
+    def from_dict(cls, d: dict) -> Bench:
         check_parameters("bench", cls, d)
         return cls(**d)
 
-    def replace(self, **changes) -> "Bench":
+    def replace(self, **changes) -> Bench:
         return dataclasses.replace(self, **changes)
 
 

@@ -73,7 +73,7 @@ def plot_flips(rows, path, x_key="power_mw", x_label="laser power (mW)"):
     by_kernel = defaultdict(list)
     for r in rows:
         by_kernel[r["kernel_id"]].append((r[x_key], r["pairwise_pct"]))
-    for k, pts in sorted(by_kernel.items()):
+    for _k, pts in sorted(by_kernel.items()):
         pts.sort()
         ax.plot([p[0] for p in pts], [p[1] for p in pts], color="0.7", lw=0.8)
     xs = sorted({r[x_key] for r in rows})

@@ -37,9 +37,9 @@ import numba
 import numpy as np
 
 from .errors import EvtkError
-from .limits import require_memory
-from .io.reconstruction import save_reconstruction  # noqa: F401  (public here since 0.1)
 from .events import Events, TriggerKind, Triggers
+from .io.reconstruction import save_reconstruction  # noqa: F401  (public here since 0.1)
+from .limits import require_memory
 
 __all__ = [
     "Windows",
@@ -811,6 +811,8 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         ON-event times (:func:`linearize_by_timing`). ``None`` (default):
         wherever the recording's pixel model allows it; ``True``: required.
 
+    Notes
+    -----
     With a simulation record, linearisation inverts the recording's own pixel
     model (:func:`count_curve`, refined by event times); otherwise (or with
     ``theta`` given) it uses ``exp(n * theta) - 1``.

@@ -102,7 +102,10 @@ def _check_size(size):
 
 
 def all_kernels(size):
-    """Every binary ``size`` x ``size`` kernel, index ``i`` holding the bits of ``i`` (row-major, first element most significant)."""
+    """Every binary ``size`` x ``size`` kernel, index ``i`` holding the bits of ``i``.
+
+    Row-major, the first element the most significant bit.
+    """
     s = _check_size(size)
     n = s * s
     if n > MAX_BRUTE_BITS:

@@ -138,11 +138,11 @@ class SensorModel:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "SensorModel":
+    def from_dict(cls, d: dict) -> SensorModel:
         check_parameters("sensor", cls, d)
         return cls(**d)
 
-    def replace(self, **changes) -> "SensorModel":
+    def replace(self, **changes) -> SensorModel:
         return dataclasses.replace(self, **changes)
 
 

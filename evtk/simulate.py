@@ -25,7 +25,7 @@ their noise is background activity at the sensor's rate.
 
 Everything needed to reproduce or reconstruct a run (bench, sensor, patterns,
 schedule, seed) is in :meth:`Simulation.metadata`, stored with the recording;
-see ``formats/schedule.md``.
+see ``docs/formats/schedule.md``.
 """
 
 from __future__ import annotations
@@ -38,10 +38,9 @@ import numpy as np
 
 from ._version import __version__
 from .errors import EvtkError
-from .limits import require_memory
 from .events import Events, TriggerKind, Triggers
-from .optics import (Bench, brightest_response, glow_response, ideal_response, response_origin_px,
-                     response_region, screen_response)
+from .limits import require_memory
+from .optics import Bench, brightest_response, glow_response, ideal_response, response_origin_px, response_region, screen_response
 from .sensor import PixelState, SensorModel, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
 
 __all__ = [
@@ -133,7 +132,7 @@ class Schedule:
         return {c: getattr(self, c).tolist() for c in self._COLUMNS}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Schedule":
+    def from_dict(cls, d: dict) -> Schedule:
         try:
             cols = {c: np.asarray(d[c], dtype=np.int64) for c in cls._COLUMNS}
         except (KeyError, TypeError, ValueError) as exc:
@@ -231,7 +230,7 @@ class Simulation:
         for r in range(self.repeat):
             for ki in range(len(self.kernels)):
                 for fi in range(len(self.features)):
-                    for ks, fs, kp, fp in self._pair_passes(ki, fi):
+                    for ks, fs, _kp, _fp in self._pair_passes(ki, fi):
                         rows.append((ki, fi, ks, fs, r))
         if len(rows) == self.flat_field:
             raise EvtkError("nothing to show: every kernel or features pattern is all zero")
@@ -307,7 +306,7 @@ class Simulation:
 
     # -- metadata ---------------------------------------------------------------------
     def metadata(self) -> dict:
-        """The record stored with the recording (see ``formats/schedule.md``)."""
+        """The record stored with the recording (see ``docs/formats/schedule.md``)."""
         return {METADATA_KEY: {
             "evtk_version": __version__,
             "seed": self.seed,
@@ -477,7 +476,7 @@ class Simulation:
         """Yield the recording's events in time order, one batch of captures at a time."""
         w, h = self.bench.sensor_width, self.bench.sensor_height
         maps = None
-        for base, c0, c1, st, en, which, roi, out, seed_ba, roi_idx, out_idx in self._run(True, batch_captures,
+        for base, _c0, _c1, _st, en, _which, roi, out, seed_ba, roi_idx, out_idx in self._run(True, batch_captures,
                                                                                             progress):
             if maps is None:  # events carry indices into [region pixels, outside pixels, every pixel]
                 every = np.arange(w * h)
@@ -528,6 +527,8 @@ class Simulation:
             settled dark state. "auto" takes "table" when ``settle_us`` is at
             least :meth:`recommended_settle_us`, else "exact".
 
+        Notes
+        -----
         Background activity and hot pixels are added as Poisson counts.
         """
         region = self.region if region is None else tuple(int(v) for v in region)

@@ -27,7 +27,8 @@ import numpy as np
 from .errors import EvtkError
 from .metrics import SinadAccumulator, flip_rates
 
-__all__ = ["scene_noise", "recording_noise", "random_kernels", "simulated_reconstruction", "flip_sweep", "tradeoff", "pareto_front"]
+__all__ = ["scene_noise", "recording_noise", "random_kernels", "simulated_reconstruction", "flip_sweep", "tradeoff",
+           "pareto_front"]
 
 
 def scene_noise(result, interval="jackknife", per_pixel=False, seed=0) -> list:

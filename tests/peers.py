@@ -16,7 +16,8 @@ def dv_write(path, events, triggers=None, compression="lz4", chunk=1000, imu=Fal
     writer = dv.io.MonoCameraWriter(str(path), cfg)
     for lo in range(0, len(events), chunk):
         store = dv.EventStore()
-        for t, x, y, p in zip(events.t[lo : lo + chunk], events.x[lo : lo + chunk], events.y[lo : lo + chunk], events.p[lo : lo + chunk]):
+        sl = slice(lo, lo + chunk)
+        for t, x, y, p in zip(events.t[sl], events.x[sl], events.y[sl], events.p[sl]):
             store.push_back(int(t), int(x), int(y), bool(p))
         writer.writeEvents(store)
     if triggers is not None and len(triggers):

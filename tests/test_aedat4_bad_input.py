@@ -5,11 +5,10 @@ import struct
 
 import numpy as np
 import pytest
+from conftest import random_events
 
 import evtk
 from evtk.io import aedat4
-
-from conftest import random_events
 
 PACKET = 1000
 
@@ -157,7 +156,8 @@ def test_corrupt_compressed_body(tmp_path, good):
         assert rec.damage.offset == int(layout["offsets"][k])
 
 
-@pytest.mark.parametrize("code, match", [(3, "declares ZSTD compression but the body is a LZ4"), (0, "no compression but the body is a LZ4")])
+@pytest.mark.parametrize("code, match", [(3, "declares ZSTD compression but the body is a LZ4"),
+                                         (0, "no compression but the body is a LZ4")])
 def test_header_names_wrong_compression(tmp_path, good, code, match):
     def edit(d, L):
         struct.pack_into("<i", d, 14 + 32, code)

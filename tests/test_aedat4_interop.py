@@ -3,13 +3,12 @@
 from pathlib import Path
 
 import numpy as np
+import peers
 import pytest
+from conftest import random_events
 
 import evtk
 from evtk.io import aedat4
-
-import peers
-from conftest import random_events
 
 pytest.importorskip("dv_processing")
 pytest.importorskip("aedat")
@@ -252,9 +251,9 @@ def _dv_frames_and_imu(path):
 
 def test_convert_aedat4_to_aedat4_keeps_frames_imu_and_the_camera(tmp_path):
     from click.testing import CliRunner
+    from peers import dv_read
 
     from evtk.cli import main
-    from peers import dv_read
 
     src = Path(__file__).resolve().parent.parent / "fixtures" / "dvxplorer_lz4.aedat4"
     out = tmp_path / "copy.aedat4"

@@ -1,13 +1,12 @@
 """Property tests: any event stream the format can hold survives a round trip."""
 
 import numpy as np
+import peers
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import evtk
-
-import peers
 
 I64 = np.iinfo(np.int64)
 

@@ -4,9 +4,9 @@ import struct
 
 import numpy as np
 import pytest
+from conftest import random_events
 
 import evtk
-from conftest import random_events
 
 dv = pytest.importorskip("dv")
 

@@ -5,11 +5,10 @@ import sys
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import random_events
 
 import evtk
 from evtk.cli import main
-
-from conftest import random_events
 
 
 def run(*args):

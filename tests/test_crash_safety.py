@@ -8,10 +8,9 @@ import textwrap
 
 import numpy as np
 import pytest
+from conftest import random_events
 
 import evtk
-
-from conftest import random_events
 
 WRITER = textwrap.dedent(
     """

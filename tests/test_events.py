@@ -1,10 +1,9 @@
 import numpy as np
 import pytest
+from conftest import random_events
 
 import evtk
 from evtk.events import STRUCTURED_LAYOUTS
-
-from conftest import random_events
 
 
 def test_columns_are_converted_to_documented_dtypes():

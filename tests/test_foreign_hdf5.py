@@ -3,9 +3,9 @@
 import h5py
 import numpy as np
 import pytest
+from conftest import random_events
 
 import evtk
-from conftest import random_events
 
 
 def _prophesee_with_offset(path, ev, sign):

@@ -9,12 +9,11 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from conftest import random_events
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import evtk
-
-from conftest import random_events
 
 WINDOWS = [(None, None), (0, 10), (250_000, 260_000), (123_457, 654_321), (999_000, 5_000_000), (-10, 0), (7, 3)]
 
@@ -42,7 +41,7 @@ def test_hdf5_round_trip_and_layout(tmp_path, compression):
         chunks = list(rec.iter_events(chunk_events=30_000, t_start_us=100_000))
         assert all(len(c) <= 30_000 for c in chunks)
         assert evtk.Events.concatenate(chunks) == ev.between(100_000, None)
-    # the layout as formats/hdf5.md promises it, read with plain h5py
+    # the layout as docs/formats/hdf5.md promises it, read with plain h5py
     with h5py.File(path, "r") as f:
         assert f.attrs["evtk_format"] == b"evtk.events" and list(f.attrs["sensor_size"]) == [320, 240]
         assert f["events/t"].dtype == np.int64 and f["events/x"].dtype == np.uint16 and f["events/p"].dtype == np.uint8

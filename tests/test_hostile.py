@@ -16,9 +16,9 @@ import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import random_events
 
 import evtk
-from conftest import random_events
 from evtk.cli import main
 from evtk.io import _compression as cz
 from evtk.io import _fb
@@ -533,7 +533,7 @@ def test_info_json_is_strict_json_whatever_the_metadata(tmp_path):
 @pytest.mark.parametrize("value", ['"abc"', "NaN", "Infinity", "1e400", "true"])
 def test_bench_values_that_are_not_numbers_are_one_line(tmp_path, value):
     bench = tmp_path / "b.json"
-    bench.write_text('{"power_mw": %s}' % value)
+    bench.write_text(f'{{"power_mw": {value}}}')
     code, out = _cli("simulate", "--bench", bench, "-o", tmp_path / "s.aedat4")
     assert code == 1 and "power_mw" in out and len(out.strip().splitlines()) == 1, out
 

@@ -8,8 +8,16 @@ import pytest
 import evtk
 from evtk import EvtkError
 from evtk.optics import Bench
-from evtk.reconstruct import (_timing_factor, accumulate, count_curve, linearize_by_model, linearize_by_timing,
-                              reconstruct, timing_thresholds, windows_from_schedule)
+from evtk.reconstruct import (
+    _timing_factor,
+    accumulate,
+    count_curve,
+    linearize_by_model,
+    linearize_by_timing,
+    reconstruct,
+    timing_thresholds,
+    windows_from_schedule,
+)
 from evtk.sensor import PixelState, SensorModel, simulate_pixels, time_constant_us
 from evtk.simulate import Simulation
 

@@ -9,8 +9,17 @@ import pytest
 from scipy import stats
 
 from evtk import EvtkError
-from evtk.metrics import (capture_terms, cumulative_factor, enob_bits, flip_rates, log_cumulative_factor,
-                          lowest_cumulative_factor, poisson_log_pmf, poisson_pmf, sinad)
+from evtk.metrics import (
+    capture_terms,
+    cumulative_factor,
+    enob_bits,
+    flip_rates,
+    log_cumulative_factor,
+    lowest_cumulative_factor,
+    poisson_log_pmf,
+    poisson_pmf,
+    sinad,
+)
 
 
 @pytest.mark.parametrize("snr_db", [0.0, 20.0, 48.0, 90.0])

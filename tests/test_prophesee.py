@@ -1,13 +1,12 @@
 """Prophesee RAW (EVT 2.0, 3.0), DAT and Event Stream files (issue 20), against faery and expelliarmus."""
 
-import struct
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import random_events
 
 import evtk
-from conftest import random_events
 from evtk.cli import main
 from evtk.io import prophesee
 

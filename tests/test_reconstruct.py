@@ -4,12 +4,11 @@ import json
 
 import numpy as np
 import pytest
+from conftest import random_events
 
 import evtk
 from evtk import EvtkError, TriggerKind, Triggers
 from evtk.reconstruct import Windows, accumulate, windows_from_schedule, windows_from_triggers, windows_periodic
-
-from conftest import random_events
 
 R, F = TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE, TriggerKind.EXTERNAL_SIGNAL_FALLING_EDGE
 
@@ -247,7 +246,7 @@ def test_combine_passes_against_the_signed_correlation():
     per_capture = np.stack([sim.ideal(c) for c in range(len(sim.schedule))])
     combined, pairs = combine_passes(per_capture, sim.schedule)
     assert len(pairs) == 2 * 3 * 2
-    for (ki, fi, r), got in zip(pairs, combined):
+    for (ki, fi, _r), got in zip(pairs, combined):
         np.testing.assert_array_equal(got, signal.correlate2d(f[fi], k[ki], "full"))
     with pytest.raises(EvtkError, match="responses for a schedule"):
         combine_passes(per_capture[:-1], sim.schedule)

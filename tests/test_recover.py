@@ -10,8 +10,18 @@ from scipy import signal
 from evtk import EvtkError
 from evtk.cli import main
 from evtk.optics import Bench
-from evtk.recover import (all_kernels, classify, device_responses, is_shift, kernel_bits, kernel_from_bits,
-                          recover_brute, recover_search, response_matrix, success_rate)
+from evtk.recover import (
+    all_kernels,
+    classify,
+    device_responses,
+    is_shift,
+    kernel_bits,
+    kernel_from_bits,
+    recover_brute,
+    recover_search,
+    response_matrix,
+    success_rate,
+)
 from evtk.sensor import SensorModel
 
 QUIET = SensorModel(shot_noise=False, background_rate_hz=0.0, theta_mismatch=0.0)

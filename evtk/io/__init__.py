@@ -8,8 +8,13 @@ from __future__ import annotations
 
 import builtins
 import os
+from typing import TYPE_CHECKING
 
 from ..errors import EvtkError, FormatError
+
+if TYPE_CHECKING:  # loaded lazily at run time (below)
+    from ..events import Events, Triggers
+    from .base import BaseRecording
 
 __all__ = ["open", "open_writer", "read_events", "write_events", "convert", "detect_format", "Recording", "BaseRecording",
            "WRITE_EXTENSIONS"]

@@ -268,7 +268,7 @@ def compress(code: int, data) -> bytes:
             store_size=True,
         )
     if code in (ZSTD, ZSTD_HIGH):
-        key = "cctx%d" % code
+        key = f"cctx{code}"
         cctx = getattr(_local, key, None)
         if cctx is None:
             cctx = zstandard.ZstdCompressor(level=1 if code == ZSTD else 9, write_content_size=True)

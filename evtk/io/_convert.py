@@ -27,8 +27,8 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
     Returns a summary: ``events``, ``triggers``, ``copied`` and ``left_out``
     (stream name -> packets).
     """
+    from . import WRITE_EXTENSIONS, open_writer
     from . import open as open_recording
-    from . import open_writer, WRITE_EXTENSIONS
 
     ext = os.path.splitext(os.fspath(target))[1].lower()
     fmt = WRITE_EXTENSIONS.get(ext)

@@ -4,7 +4,7 @@ The header and the data table are read by :mod:`evtk.io._fbpy` (plain Python and
 
 Every function takes the packet body as a uint8 array and never reads outside
 it: a lying offset yields a negative status instead of a crash.  The layouts
-are specified in ``formats/aedat4.md`` and ``formats/aedat4.fbs``.
+are specified in ``docs/formats/aedat4.md`` and ``docs/formats/aedat4.fbs``.
 
 Status codes (``ST_*``) are shared with :mod:`evtk.io.aedat4`, which turns
 them into :class:`~evtk.FormatError` messages.
@@ -21,8 +21,18 @@ from numba import njit
 _LITTLE_ENDIAN = sys.byteorder == "little"
 
 # constants and status codes shared with the plain-Python header reader
-from ._fbpy import (EVENT_PACKET_HEADER, EVENT_STRUCT, ST_BAD_IDENT, ST_BAD_OFFSET, ST_CAPACITY,  # noqa: E402,F401
-                    ST_COORD, ST_MISSING, ST_OK, ST_SLACK, STATUS_TEXT)
+from ._fbpy import (  # noqa: E402,F401
+    EVENT_PACKET_HEADER,
+    EVENT_STRUCT,
+    ST_BAD_IDENT,
+    ST_BAD_OFFSET,
+    ST_CAPACITY,
+    ST_COORD,
+    ST_MISSING,
+    ST_OK,
+    ST_SLACK,
+    STATUS_TEXT,
+)
 
 
 @njit(cache=True, nogil=True)

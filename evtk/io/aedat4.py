@@ -1,6 +1,6 @@
 """AEDAT4 reading and writing, byte-compatible with iniVation's dv-processing.
 
-The layout evtk relies on is written down in ``formats/aedat4.md``.  In
+The layout evtk relies on is written down in ``docs/formats/aedat4.md``.  In
 short: a magic line, a size-prefixed ``IOHeader`` FlatBuffer holding the
 compression, the position of the data table and an XML description of the
 streams, then packets (stream id, body size, compressed size-prefixed
@@ -13,7 +13,7 @@ import json
 import os
 import struct
 import xml.etree.ElementTree as ET
-from typing import Iterator
+from collections.abc import Iterator
 from xml.sax.saxutils import escape
 
 import numpy as np
@@ -167,6 +167,9 @@ class Recording(BaseRecording):
     def __repr__(self):
         return f"Recording({self.path!r}, format='aedat4', streams={[s.name for s in self._streams.values()]})"
 
+    def _stream_names(self):
+        return [(s.name, s.type) for s in self._streams.values()]
+
     def _pread(self, n, offset):
         if self._fd < 0:
             raise EvtkError(f"{self.path}: the recording is closed")
@@ -296,7 +299,8 @@ class Recording(BaseRecording):
                         np.array([cz.output_limit(z) for z in size], np.int64))
         plausible = count <= room // per_element
         if n and not plausible.all():
-            self.warnings.append("the data table claims more elements than its packets can hold; packets were indexed by walking the file")
+            self.warnings.append("the data table claims more elements than its packets can hold; "
+                                 "packets were indexed by walking the file")
             return None
         order = np.argsort(offset, kind="stable")
         if n and np.any(offset[order][1:] < (offset + size)[order][:-1] + 8):
@@ -325,7 +329,8 @@ class Recording(BaseRecording):
             pos += 8 + size
         n = len(offs)
         unknown = np.full(n, -1, np.int64)
-        return _PacketIndex(offs, sizes, sids, unknown, np.full(n, np.iinfo(np.int64).min), np.full(n, np.iinfo(np.int64).max), False)
+        return _PacketIndex(offs, sizes, sids, unknown, np.full(n, np.iinfo(np.int64).min),
+                            np.full(n, np.iinfo(np.int64).max), False)
 
     def _note(self, offset, reason):
         if not self.salvage:
@@ -429,7 +434,8 @@ class Recording(BaseRecording):
             self._fail(off - 8, "file ends inside a packet")
         sid, sz = struct.unpack_from("<ii", data, 0)
         if sid != idx.stream[i] or sz != size:
-            self._fail(off - 8, f"packet header says stream {sid}, {sz} bytes; the data table says stream {idx.stream[i]}, {size} bytes")
+            self._fail(off - 8, f"packet header says stream {sid}, {sz} bytes; "
+                                f"the data table says stream {idx.stream[i]}, {size} bytes")
         body = memoryview(data)[8:]
         if self._code == cz.NONE and cz.sniff(body):
             self._fail(off, f"the header declares no compression but the body is a {cz.sniff(body)} frame")
@@ -481,7 +487,7 @@ class Recording(BaseRecording):
     def _events(self, t_start_us, t_end_us, stream) -> Events:
         s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
         if s is None:
-            raise FormatError(self.path, None, f"no event stream; the streams are {[(s.name, s.type) for s in self._streams.values()]}")
+            raise FormatError(self.path, None, f"no event stream; the streams are {self._stream_names()}")
         counts = self._index.count[rows]
         if np.any(counts < 0):
             counts = self._count_elements(rows, "EVTS")
@@ -555,7 +561,7 @@ class Recording(BaseRecording):
             raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
         s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
         if s is None:
-            raise FormatError(self.path, None, f"no event stream; the streams are {[(s.name, s.type) for s in self._streams.values()]}")
+            raise FormatError(self.path, None, f"no event stream; the streams are {self._stream_names()}")
         counts = self._index.count[rows]
         if len(rows) and np.all(counts >= 0):
             stopped_at = yield from self._chunks_from_table(s, rows, counts, chunk_events, t_start_us, t_end_us)
@@ -772,7 +778,7 @@ def _run_split(work, n_rows, counts) -> int:
     bounds = np.unique(np.concatenate([[0], cuts, [n_rows]]))
     futures = [cz.pool().submit(work, int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
     done = n_rows
-    for (a, b), fut in zip(zip(bounds[:-1], bounds[1:]), futures):
+    for b, fut in zip(bounds[1:], futures):
         got = fut.result()
         if got < b:
             done = min(done, got)

@@ -2,7 +2,7 @@
 
 Columns ``t`` (int64 µs), ``x``, ``y`` (uint16) and ``p`` (uint8); the sensor
 size, evtk metadata and triggers travel in the schema's key-value metadata
-(``formats/parquet.md``).  Parquet files are cut into row groups by time, so
+(``docs/formats/parquet.md``).  Parquet files are cut into row groups by time, so
 a window reads only the row groups whose ``t`` statistics overlap it.
 """
 
@@ -21,8 +21,8 @@ from ..errors import EvtkError, FormatError, one_line
 from ..events import Events, Triggers
 from . import _parquet_footer as _footer
 from ._atomic import AtomicFile
-from ._overlay import SplicedFile, close_at_exit
 from ._checks import require_readable, scan_events, sorted_for_writing
+from ._overlay import SplicedFile, close_at_exit
 from .base import BaseRecording, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
 
 __all__ = ["to_arrow", "from_arrow", "ParquetRecording", "write_parquet", "COMPRESSIONS"]
@@ -77,7 +77,7 @@ def _first_fatal_row_group(pf, t_col):
                 cols = [rg.column(j) for j in range(rg.num_columns)]
                 if [c.physical_type for c in cols] != expected:
                     break  # the reader stops here with an error of its own
-                cols[t_col].statistics
+                _ = cols[t_col].statistics  # reading them is the check
                 str(cols[t_col].compression)
             os.write(w, b"DONE")
         except BaseException:  # noqa: BLE001 - a Python error is the reader's to report

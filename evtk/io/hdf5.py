@@ -1,6 +1,6 @@
 """HDF5 event recordings: evtk's own layout and the common foreign ones.
 
-evtk's layout (``formats/hdf5.md``) stores the four columns separately,
+evtk's layout (``docs/formats/hdf5.md``) stores the four columns separately,
 chunked and compressed, plus a block index so that a time window reads only
 the chunks that overlap it.  :class:`Hdf5Recording` also reads the DSEC,
 Prophesee and event_utils layouts, recognised by their structure.
@@ -19,8 +19,8 @@ from .._version import __version__
 from ..errors import EvtkError, FormatError, one_line
 from ..events import Events, Triggers
 from ._atomic import AtomicFile, FailSafeFile
-from ._overlay import SplicedFile, close_at_exit
 from ._checks import require_readable, scan_events, sorted_for_writing
+from ._overlay import SplicedFile, close_at_exit
 from .base import BaseRecording, Damage, StreamInfo, load_json, sensor_dims
 
 __all__ = ["Hdf5Recording", "Hdf5Writer", "write_hdf5", "COMPRESSIONS", "EVTK_FORMAT"]
@@ -49,7 +49,7 @@ def _h5():
 
 
 def _filter(name: str) -> dict:
-    """h5py dataset keywords for a compression name (see formats/hdf5.md)."""
+    """h5py dataset keywords for a compression name (see docs/formats/hdf5.md)."""
     import hdf5plugin
 
     # Blosc2 rather than Blosc (v1): c-blosc 1 trusts the compressed stream and
@@ -1225,7 +1225,7 @@ class Hdf5Writer:
     sensor_size : (int, int)
     compression : str
         One of :data:`COMPRESSIONS`; default Blosc2-LZ4 with byte shuffle
-        (chosen by measurement and robustness, see ``formats/hdf5.md``).
+        (chosen by measurement and robustness, see ``docs/formats/hdf5.md``).
     metadata : dict, optional
         JSON-serialisable, stored in the root attribute ``metadata``.
     chunk_events : int

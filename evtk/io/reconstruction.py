@@ -1,6 +1,6 @@
 """Reconstruction files: what ``evtk reconstruct`` writes, and reading them back.
 
-The layout is specified in ``formats/reconstruction.md``. One file holds the
+The layout is specified in ``docs/formats/reconstruction.md``. One file holds the
 responses of every capture (resampled, binary and on the response's own cell
 grid), the windows they were counted in, the per-pixel ON/OFF counts, the
 ideal responses when known, and the run's summary (parameters, errors) as

@@ -30,15 +30,17 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-import evtk  # noqa: E402
 from conftest import random_events  # noqa: E402
+
+import evtk  # noqa: E402
 
 
 def sources(tmp: Path):
     ev = random_events(5000, seed=3, span_us=50_000)
     tr = evtk.Triggers([10, 20_000], [1, 2])
     out = {}
-    for name, kw in (("a.aedat4", dict(packet_events=500, packet_us=None)), ("z.aedat4", dict(compression="zstd", packet_events=700)),
+    for name, kw in (("a.aedat4", dict(packet_events=500, packet_us=None)),
+                     ("z.aedat4", dict(compression="zstd", packet_events=700)),
                      ("n.aedat4", dict(compression="none", packet_events=900)), ("e.h5", dict(chunk_events=1024)),
                      ("p.parquet", dict(row_group_events=1000))):
         p = tmp / name
@@ -56,8 +58,7 @@ def sources(tmp: Path):
     # the formats evtk reads but does not write, as their own tools write them (faery) or as jAER and cAER
     # lay them out (the legacy AEDAT writers of the tests)
     try:
-        import faery
-
+        import faery  # noqa: F401  (the writers below need it)
         from test_prophesee import _faery_write
 
         for version, name in (("evt2", "f2.raw"), ("evt3", "f3.raw"), ("dat2", "f.dat"), (None, "f.es")):

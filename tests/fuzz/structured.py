@@ -41,8 +41,9 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-import evtk  # noqa: E402
 from conftest import random_events  # noqa: E402
+
+import evtk  # noqa: E402
 from evtk.io import _compression as cz  # noqa: E402
 from evtk.io import _fb  # noqa: E402
 from evtk.io import aedat4 as a4  # noqa: E402
