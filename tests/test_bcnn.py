@@ -260,3 +260,36 @@ def test_cli_classify_and_robustness(tmp_path):
     assert (tmp_path / "r.png").stat().st_size > 1000
     res = CliRunner().invoke(main, ["robustness", "--scales", "a,b"])
     assert res.exit_code == 1 and "--scales" in res.output
+
+
+def test_baselines_against_brute_force_and_scipy():
+    """Nearest centroid by brute force; the logistic regression's weights minimise its objective (scipy's
+    minimiser finds the same predictions), and a separable set is classified perfectly."""
+    from scipy.optimize import minimize
+
+    from evtk.datasets import Dataset, baselines
+
+    rng = np.random.default_rng(0)
+    proto = rng.choice([-1, 1], (2, 6, 6))
+    def draw(n):
+        y = rng.integers(0, 2, n).astype(np.int8)
+        x = proto[y] * np.where(rng.random((n, 6, 6)) < 0.2, -1, 1)
+        return x.astype(np.int8), y
+    xtr, ytr = draw(200)
+    xte, yte = draw(100)
+    data = Dataset("t", xtr, ytr, xte, yte, ("a", "b"), "test")
+    got = baselines(data, l2=1e-2)
+    a, b = xtr.reshape(200, -1).astype(float), xte.reshape(100, -1).astype(float)
+    c0, c1 = a[ytr == 0].mean(0), a[ytr == 1].mean(0)
+    nc = [int(np.sum((v - c1) ** 2) < np.sum((v - c0) ** 2)) for v in b]
+    assert got["nearest_centroid"] == pytest.approx(np.mean(np.array(nc) == yte))
+    A = np.hstack([a, np.ones((200, 1))])
+    def loss(w):
+        z = A @ w
+        return np.sum(np.logaddexp(0, z) - ytr * z) + 0.5 * 1e-2 * 200 * np.sum(w[:-1] ** 2)
+    w = minimize(loss, np.zeros(A.shape[1]), method="L-BFGS-B").x
+    pred = (np.hstack([b, np.ones((100, 1))]) @ w > 0).astype(int)
+    assert got["logistic_regression"] == pytest.approx(np.mean(pred == yte), abs=0.011)
+    assert got["logistic_regression"] > 0.95 and got["test_images"] == 100
+    with pytest.raises(EvtkError, match="one class"):
+        baselines(Dataset("t", xtr, np.zeros(200, np.int8), xte, yte, ("a", "b"), "test"))
