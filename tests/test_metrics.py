@@ -321,3 +321,15 @@ def test_sinad_interval_reaches_infinity_when_a_left_out_repeat_holds_all_the_no
     x[2, 3] += 1.0  # only repeat 2 differs: leaving it out leaves no noise
     r = sinad(x)
     assert np.isfinite(r.sinad_db) and r.ci_db[1] == math.inf and r.ci_db[0] <= r.sinad_db
+
+
+def test_cumulative_factor_rises_with_the_window_and_falls_with_light_at_a_fixed_window():
+    """The docs' reading of eq. 10: C -> 1 - exp(-lam) as N_e grows; at fixed N_e, C vanishes once lam >> N_e phi."""
+    from scipy import stats
+
+    assert cumulative_factor(5.0, 1, 10) == pytest.approx(stats.poisson.cdf(10, 5.0) - stats.poisson.pmf(0, 5.0))
+    assert cumulative_factor(5.0, 1, 10) == pytest.approx(0.9796, abs=1e-4)
+    assert cumulative_factor(100.0, 1, 10) < 1e-29
+    assert cumulative_factor(100.0, 1, 200) == pytest.approx(1.0 - math.exp(-100.0))
+    fixed = [cumulative_factor(lam, 1, 10) for lam in (0.5, 2.0, 5.0, 20.0, 100.0)]
+    assert fixed[2] > fixed[1] > fixed[0] and fixed[2] > fixed[3] > fixed[4]  # rises, then falls
