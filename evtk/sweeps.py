@@ -133,23 +133,34 @@ def random_kernels(n, shape=(3, 3), seed=0):
 
 
 def simulated_reconstruction(kernels, features, bench=None, sensor=None, window_us=1000, repeat=10, seed=0,
-                             noise_seed=None, settle_us=None, flat_field=2, method="fast", **options):
+                             noise_seed=None, settle_us=None, flat_field=2, method="fast", timed=False, **options):
     """Simulate a run and reconstruct it; returns ``(Reconstruction, Simulation)``.
 
     ``method="fast"`` reconstructs the simulator's fast-path counts
     (:func:`evtk.reconstruct.reconstruct_counts`); ``"events"`` writes the
     event stream to a temporary AEDAT4 file and reconstructs that, as a
     bench recording would be. ``options`` go to the reconstruction (size,
-    binarize_method, crop, deblur, ...).
+    binarize_method, crop, deblur, ...). With ``timed`` the reconstruction
+    runs a second time, warm, and ``(Reconstruction, Simulation, seconds)``
+    is returned: the time of exactly the pipeline whose result is returned.
     """
     from .reconstruct import WindowCounts, reconstruct, reconstruct_counts
     from .simulate import METADATA_KEY, Simulation
 
     sim = Simulation(kernels, features, bench=bench, sensor=sensor, window_us=window_us, settle_us=settle_us,
                      repeat=repeat, seed=seed, noise_seed=noise_seed, flat_field=flat_field)
+
+    def run(work):
+        result = work()  # with timed, also the warm-up: JIT caches, the count curve, imports
+        if not timed:
+            return result, sim
+        t0 = time.perf_counter()
+        work()
+        return result, sim, time.perf_counter() - t0
+
     if method == "fast":
         counts = WindowCounts.from_capture_counts(sim.responses())
-        return reconstruct_counts(counts, sim.metadata()[METADATA_KEY], **options), sim
+        return run(lambda: reconstruct_counts(counts, sim.metadata()[METADATA_KEY], **options))
     if method != "events":
         raise EvtkError(f"method must be 'fast' or 'events', not {method!r}")
     from .io import open as open_recording
@@ -158,7 +169,7 @@ def simulated_reconstruction(kernels, features, bench=None, sensor=None, window_
         path = os.path.join(tmp, "run.aedat4")
         sim.write(path)
         with open_recording(path) as rec:
-            return reconstruct(rec, **options), sim
+            return run(lambda: reconstruct(rec, **options))
 
 
 def _positive_list(values, name):
@@ -240,7 +251,9 @@ def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, dec
     (wall time of :func:`evtk.reconstruct.reconstruct` on the run written as
     AEDAT4, per capture; with ``time_events=False`` the fast path's
     :func:`~evtk.reconstruct.reconstruct_counts` instead), the error of the
-    responses against the ideal (``nrmse``, ``correlation``), ``enob_bits``
+    responses of that same reconstruction against the ideal (``nrmse`` and
+    its spread over responses ``nrmse_std``, ``correlation``), ``pipeline``
+    (``"events"`` or ``"counts"``), ``enob_bits``
     and ``flip_pct`` (pairwise), averaged over scenes, and ``pareto`` (not
     beaten in both device time and NRMSE by another setting). Settings run
     as independent tasks (on ``client``'s workers when given); each times
@@ -276,37 +289,28 @@ def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, dec
 
 
 def _tradeoff_task(args):
-    from .io import open as open_recording
-    from .reconstruct import reconstruct, reconstruct_counts
+    from .reconstruct import response_error
 
     i, p, w, z, d, kernels, features, repeats, bench, sensor, seed, time_events = args
     b = bench.replace(power_mw=p, decimation=d)
-    result, sim = simulated_reconstruction(kernels, features, b, sensor, int(w), repeats, seed=seed,
-                                           noise_seed=seed * 1000 + i + 1, settle_us=None if z is None else int(z))
-
-    def timed(fn):
-        fn()  # warm-up: JIT caches, the count curve, imports (in this process)
-        t0 = time.perf_counter()
-        fn()
-        return time.perf_counter() - t0
-
-    if time_events:  # the recording is written once; only its reconstruction is timed
-        with tempfile.TemporaryDirectory() as tmp:
-            path = os.path.join(tmp, "run.aedat4")
-            sim.write(path)
-            with open_recording(path) as rec:
-                compute_s = timed(lambda: reconstruct(rec))
-    else:
-        compute_s = timed(lambda: reconstruct_counts(result.counts, sim.metadata()["simulation"]))
+    # error and time from one pipeline: the event path (the recording written once, its reconstruction timed)
+    # or, with time_events=False, the counts of the simulator's fast path
+    result, sim, compute_s = simulated_reconstruction(
+        kernels, features, b, sensor, int(w), repeats, seed=seed, noise_seed=seed * 1000 + i + 1,
+        settle_us=None if z is None else int(z), method="events" if time_events else "fast", timed=True)
     n_cap = len(sim.schedule)
     scenes = scene_noise(result, interval=None)
     enobs = [s["sinad"].enob_bits for s in scenes if s["sinad"] is not None and not s["sinad"].noise_free]
+    per_response = [response_error(result.cells[k], result.ideal[k])["nrmse"] for k in range(len(result.cells))]
+    per_response = [v for v in per_response if v is not None]
     return {
         "power_mw": p, "window_us": int(w), "settle_us": int(sim.settle_us), "decimation": int(d),
         "device_us_per_capture": float(sim.window_us + sim.settle_us),
         "compute_us_per_capture": 1e6 * compute_s / n_cap,
         "captures": n_cap,
         "nrmse": _mean_defined([s["error"]["nrmse"] for s in scenes]),
+        "nrmse_std": float(np.std(per_response, ddof=1)) if len(per_response) > 1 else None,
+        "pipeline": "events" if time_events else "counts",
         "nrmse_range": _mean_defined([s["error"]["nrmse_range"] for s in scenes]),
         "correlation": _mean_defined([s["error"]["correlation"] for s in scenes]),
         "enob_bits": float(np.mean(enobs)) if enobs else None,
