@@ -1,0 +1,66 @@
+"""From a recording to the responses the device computed: capture windows and event counts.
+
+The stages, each a function usable alone:
+
+1. :class:`Windows`: when each capture's pattern was on, from the schedule a
+   simulated recording carries (:func:`windows_from_schedule`), from the DMD's
+   trigger edges of a bench recording (:func:`windows_from_triggers`), or at a
+   fixed period (:func:`windows_periodic`); any of them shortened or delayed
+   (``skip_us``, ``length_us``) to leave out the pixels' settling.
+2. :func:`accumulate`: ON and OFF counts per pixel and window in one pass over
+   the events (numba), each window found by binary search on the sorted time
+   stamps, streamed chunk by chunk from a recording larger than memory.
+3. :func:`linearize`: counts back to relative intensity through the pixel
+   model (a net rise of ``n`` thresholds is a factor ``exp(n * theta)``;
+   :func:`linearize_by_model` inverts a simulated recording's own pixel
+   model, and :func:`linearize_by_timing` reads the light within the
+   count's band from the first and last ON-event times). A recording's
+   flat-field captures (every mirror on) calibrate each pixel's threshold
+   first (:func:`flat_field_gain`, :func:`timing_thresholds`).
+4. :func:`combine_passes`: ``K+F+ - K+F- - K-F+ + K-F-`` per (kernel,
+   features, repeat), from whichever passes the schedule holds.
+5. :func:`to_response_grid` (the sensor region onto the response's cells, any
+   effective stride, by area overlap) and :func:`downsample` (to a target
+   size: block means for whole factors, area-weighted resampling otherwise).
+6. :func:`binarize`: sign, mean, a fixed threshold or Otsu's.
+"""
+
+from __future__ import annotations
+
+from ..io.reconstruction import save_reconstruction
+from .accumulate import accumulate
+from .binarize import binarize, binarize_rule
+from .grid import combine_passes, downsample, to_response_grid
+from .linearize import count_curve, flat_field_gain, linearize, linearize_by_model
+from .options import ReconstructOptions
+from .pipeline import (
+    Reconstruction,
+    plan,
+    reconstruct,
+    reconstruct_counts,
+    response_error,
+    wants_times,
+    window_bytes,
+)
+from .timing import linearize_by_timing, timing_thresholds
+from .windows import WindowCounts, Windows, windows_from_schedule, windows_from_triggers, windows_periodic
+
+# internals the tests and benchmarks check stage by stage
+from .grid import _footprint_matrix, _overlap_matrix  # noqa: F401, I001
+from .linearize import _count_curve, _expected_flat_counts, _flat_log_step  # noqa: F401
+from .pipeline import _check_crop  # noqa: F401
+from .timing import _timing_factor  # noqa: F401
+
+__all__ = [
+    "Windows", "WindowCounts", "windows_from_schedule", "windows_from_triggers", "windows_periodic",
+    "ReconstructOptions", "accumulate", "linearize", "combine_passes", "to_response_grid", "downsample", "binarize",
+    "binarize_rule", "plan", "reconstruct", "reconstruct_counts", "Reconstruction", "response_error",
+    "save_reconstruction", "contact_sheet", "count_curve", "linearize_by_model", "linearize_by_timing",
+    "timing_thresholds", "wants_times", "window_bytes", "flat_field_gain"]
+
+
+def contact_sheet(path, result, max_rows=8):
+    """Moved to :func:`evtk.plots.contact_sheet` (kept here for existing scripts)."""
+    from ..plots import contact_sheet as draw
+
+    return draw(path, result, rows_per_page=max_rows)

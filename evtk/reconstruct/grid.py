@@ -1,0 +1,129 @@
+"""The sensor region onto the response's cells, the signed passes combined, and resampling to a target size."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import EvtkError
+
+__all__ = ["combine_passes", "to_response_grid", "downsample"]
+
+
+def combine_passes(values, schedule):
+    """Signed responses: ``sum(kernel_sign * features_sign * values[c])`` over each pair's captures.
+
+    Parameters
+    ----------
+    values : ndarray, shape (captures, ...)
+        One response per capture, in schedule order.
+    schedule : evtk.simulate.Schedule or dict
+        The capture schedule (``kernel_id``, ``features_id``, signs, ``repeat``).
+
+    Returns
+    -------
+    (combined, pairs)
+        ``combined`` has shape (pairs, ...); ``pairs`` is an int array of
+        (kernel_id, features_id, repeat) rows, sorted. Flat-field captures
+        (ids -1) are not responses and are left out.
+    """
+    from ..simulate import Schedule
+
+    if isinstance(schedule, dict):
+        schedule = Schedule.from_dict(schedule)
+    values = np.asarray(values)
+    if values.shape[0] != len(schedule):
+        raise EvtkError(f"{values.shape[0]} responses for a schedule of {len(schedule)} captures")
+    use = (schedule.kernel_id >= 0) & (schedule.features_id >= 0)
+    if not use.any():
+        raise EvtkError("the schedule holds no (kernel, features) captures, only flat fields")
+    keys = np.stack([schedule.kernel_id, schedule.features_id, schedule.repeat], axis=1)[use]
+    pairs, which = np.unique(keys, axis=0, return_inverse=True)
+    which = np.asarray(which).reshape(-1)
+    sign = (schedule.kernel_sign * schedule.features_sign).astype(np.float64)[use]
+    out = np.zeros((len(pairs),) + values.shape[1:], dtype=np.float64)
+    np.add.at(out, which, values[use] * sign.reshape((-1,) + (1,) * (values.ndim - 1)))
+    return out, pairs
+
+
+def _overlap_matrix(n_cells, first_edge, step, n_pixels):
+    """W[c, x]: share of cell c (an interval of ``step`` pixels from ``first_edge + c*step``) covered by pixel x."""
+    lo = first_edge + step * np.arange(n_cells)[:, None]
+    hi = lo + step
+    px = np.arange(n_pixels)[None, :]
+    return np.clip(np.minimum(hi, px + 1) - np.maximum(lo, px), 0, None) / step
+
+
+def to_response_grid(values, region, origin_px, step_px, shape):
+    """Resample responses over a sensor region onto the response's cell grid.
+
+    Pixel ``x`` is centred on ``x`` and cell ``(i, j)`` on
+    ``origin + (j, i) * step_px`` (the optics' convention), each ``step_px``
+    pixels wide; a cell's value is the area-weighted mean of the pixels it
+    overlaps. Cells larger
+    than pixels (effective stride below 1) average whole and partial pixels;
+    cells smaller than pixels (stride above 1) take the value of the pixel
+    they lie in, as the sensor cannot resolve them. Parts of a cell outside
+    the region count as zero light.
+
+    Parameters
+    ----------
+    values : ndarray, shape (..., y1 - y0, x1 - x0)
+    region : (x0, x1, y0, y1)
+    origin_px : (x, y)
+        Sensor pixel that sees cell (0, 0) (``response_origin_px`` in the metadata).
+    step_px : float
+        Sensor pixels per cell: ``decimation / effective stride``.
+    shape : (rows, cols)
+        Cells wanted (the full response is ``features + kernel - 1``).
+    """
+    values = np.asarray(values, dtype=np.float64)
+    x0, x1, y0, y1 = (int(v) for v in region)
+    if values.shape[-2:] != (y1 - y0, x1 - x0):
+        raise EvtkError(f"values of shape {values.shape[-2:]} do not cover the region {tuple(region)}")
+    if not (np.isfinite(step_px) and step_px > 0):
+        raise EvtkError(f"step_px must be positive, not {step_px}")
+    rows, cols = (int(v) for v in shape)
+    ox, oy = (float(v) for v in origin_px)
+    # in edge units (pixel x spans [x, x + 1)) cell c starts at origin + 1/2 - step/2 + c * step
+    wy = _overlap_matrix(rows, oy + 0.5 - 0.5 * step_px - y0, step_px, y1 - y0)
+    wx = _overlap_matrix(cols, ox + 0.5 - 0.5 * step_px - x0, step_px, x1 - x0)
+    return wy @ values @ wx.T
+
+
+def downsample(values, size=(16, 16)):
+    """Resize the last two axes to ``size``: block means for whole factors, else area-weighted.
+
+    Area weighting treats each input element as a unit square and each output
+    element as the mean over the squares it covers, which conserves the mean
+    for any ratio (up or down).
+
+    Examples
+    --------
+    >>> downsample(np.arange(16.0).reshape(4, 4), (2, 2)).tolist()
+    [[2.5, 4.5], [10.5, 12.5]]
+    """
+    values = np.asarray(values, dtype=np.float64)
+    h, w = values.shape[-2:]
+    oh, ow = (int(v) for v in size)
+    if oh < 1 or ow < 1:
+        raise EvtkError(f"size must be positive, not {size}")
+    if h % oh == 0 and w % ow == 0:
+        fy, fx = h // oh, w // ow
+        return values.reshape(values.shape[:-2] + (oh, fy, ow, fx)).mean(axis=(-3, -1))
+    wy = _overlap_matrix(oh, 0.0, h / oh, h)
+    wx = _overlap_matrix(ow, 0.0, w / ow, w)
+    return wy @ values @ wx.T
+
+
+def _footprint_matrix(bench, origin, p0, p1, n_cells, step):
+    """M[c, i]: what a unit response at full-response cell i puts into cell c after sampling (one axis).
+
+    The optics' footprint (pixel width, source extent, diffuser blur) followed
+    by :func:`to_response_grid`'s area overlap; valid for matched scaling.
+    """
+    from ..optics import _axis_weights, shadow_magnification
+
+    psf_cells = bench.psf_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
+    w = _axis_weights(np.arange(p0, p1), n_cells, 1, bench, origin, psf_cells)[0]  # (pixels, cells)
+    t = _overlap_matrix(n_cells, origin + 0.5 - 0.5 * step - p0, step, p1 - p0)  # (cells, pixels)
+    return t @ w

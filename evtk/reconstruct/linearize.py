@@ -1,0 +1,270 @@
+"""Counts back to light: ``exp(n theta) - 1``, the inverse of a recording's own pixel model, and flat-field gains."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import json
+
+import numba
+import numpy as np
+
+from ..errors import EvtkError
+
+__all__ = ["linearize", "count_curve", "linearize_by_model", "flat_field_gain"]
+
+
+def linearize(on, off=None, theta_on=0.2, theta_off=None):
+    """Relative intensity change over each window from its event counts.
+
+    A pixel that fires ``on`` ON and ``off`` OFF events has seen its log
+    intensity rise by about ``on * theta_on - off * theta_off``; the returned
+    value is ``exp(that) - 1``: 0 for no change, 1 for a doubling. Over a
+    dark-to-pattern window it is proportional to the pattern's light above
+    the dark level. Counts are quantised to whole thresholds, so the result
+    is too (a factor ``exp(theta)`` per count).
+
+    Examples
+    --------
+    >>> linearize(np.array([0, 5]), theta_on=np.log(2) / 5).round(6).tolist()
+    [0.0, 1.0]
+    """
+    theta_off = theta_on if theta_off is None else theta_off
+    for name, v in (("theta_on", theta_on), ("theta_off", theta_off)):
+        v = np.asarray(v, dtype=np.float64)
+        if not np.all(np.isfinite(v)) or np.any(v <= 0):
+            raise EvtkError(f"{name} must be positive and finite")
+    table = _count_table(on, off, theta_on, theta_off)
+    if table is not None:  # integer counts and one threshold each: look the few distinct values up
+        return table
+    on = np.asarray(on, dtype=np.float64)
+    rise = on * theta_on
+    if off is not None:
+        rise = rise - np.asarray(off, dtype=np.float64) * theta_off
+    # exp overflows beyond ~709: that many thresholds is not a physical count
+    if np.any(rise > 700):
+        raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
+    return np.expm1(rise)
+
+
+#: Largest table of distinct (ON, OFF) counts :func:`linearize` looks values up in.
+_TABLE_MAX = 1 << 20
+
+
+def _count_table(on, off, theta_on, theta_off):
+    """:func:`linearize` of integer counts with scalar thresholds by table look-up (None when it does not apply).
+
+    A window holds few distinct counts, so ``expm1`` of each distinct
+    (ON, OFF) pair, looked up per pixel, is exact and several times faster
+    than ``expm1`` per pixel.
+    """
+    on = np.asarray(on)
+    if off is None:
+        off = np.zeros_like(on)
+    off = np.asarray(off)
+    if (on.dtype.kind not in "iu" or off.dtype.kind not in "iu" or np.ndim(theta_on) or np.ndim(theta_off)
+            or on.shape != off.shape or on.size < 4096):
+        return None
+    on_flat = np.ascontiguousarray(on).reshape(-1)
+    off_flat = np.ascontiguousarray(off).reshape(-1)
+    lo, hi_on, hi_off = (int(v) for v in _count_extent(on_flat, off_flat))
+    if lo < 0 or (hi_on + 1) * (hi_off + 1) > _TABLE_MAX:
+        return None
+    rise = np.arange(hi_on + 1.0)[:, None] * float(theta_on) - np.arange(hi_off + 1.0)[None, :] * float(theta_off)
+    if rise.max() > 700:
+        raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
+    out = np.empty(on.shape, np.float64)
+    with _thread_budget():
+        _look_up(on_flat, off_flat, np.expm1(rise).ravel(), hi_off + 1, out.reshape(-1))
+    return out
+
+
+@numba.njit(cache=True)
+def _count_extent(on, off):
+    lo = 0
+    hi_on = 0
+    hi_off = 0
+    for i in range(on.size):
+        a = on[i]
+        b = off[i]
+        lo = min(lo, a, b)
+        hi_on = max(hi_on, a)
+        hi_off = max(hi_off, b)
+    return lo, hi_on, hi_off
+
+
+@numba.njit(cache=True, parallel=True)
+def _look_up(on, off, table, stride, out):
+    for i in numba.prange(on.size):
+        out[i] = table[on[i] * stride + off[i]]
+
+
+def count_curve(sim_record, skip_us=0, length_us=None, points=4000):
+    """Net counts a noise-free pixel with nominal thresholds gives, against its log-light step.
+
+    Runs the simulation's own pixel model (``sim_record``: a recording's
+    ``simulation`` metadata) for a dark-to-pattern step of ``u`` (natural
+    log of light over the dark level) from 0 to the brightest possible
+    pattern, counting in the same window as the reconstruction, from a
+    settled pixel whose reference is the dark level. (A pixel in steady
+    operation keeps some residual from earlier captures; over random
+    patterns a fresh reference inverts the counts better than modelling the
+    previous capture at the same light.) Returns ``(u, counts)``, counts
+    non-decreasing in ``u`` (read-only arrays, shared by calls with the same
+    bench, sensor and window: a batch of recordings computes it once).
+    """
+    keys = ("sensor", "blank_rate_e_per_s", "gain_e_per_s_per_unit", "bench", "window_us", "settle_us")
+    key = json.dumps({**{k: sim_record[k] for k in keys}, "kernel_shape": np.shape(sim_record["kernels"])[1:],
+                      "skip_us": float(skip_us), "length_us": None if length_us is None else float(length_us),
+                      "points": int(points)}, sort_keys=True, default=_plain)
+    return _count_curve(key)
+
+
+def _plain(value):
+    """numpy scalars and arrays as JSON values (for cache keys)."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON-serialisable")
+
+
+@functools.lru_cache(maxsize=16)
+def _count_curve(key):
+    from ..optics import Bench, brightest_response
+    from ..sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
+
+    sim_record = json.loads(key)
+    skip_us, length_us, points = sim_record["skip_us"], sim_record["length_us"], sim_record["points"]
+    sm = SensorModel.from_dict({**sim_record["sensor"], "shot_noise": False, "theta_mismatch": 0.0})
+    blank = float(sim_record["blank_rate_e_per_s"])
+    gain = float(sim_record["gain_e_per_s_per_unit"])
+    bench = Bench.from_dict(sim_record["bench"])
+    dark = sm.dark_current_e_per_s
+    bright = gain * brightest_response(tuple(sim_record["kernel_shape"]), bench) + dark
+    u_max = max(np.log(bright / blank), 1e-6) * 1.01
+    u = np.linspace(0.0, u_max, int(points))
+    w, z = float(sim_record["window_us"]), float(sim_record["settle_us"])
+    a = z + float(skip_us)
+    b = z + w if length_us is None else min(z + w, a + float(length_us))
+    bounds = sorted({0.0, z, a, b, z + w, 2 * z + w})
+    starts, ends = np.array(bounds[:-1]), np.array(bounds[1:])
+    lit = (starts >= z) & (starts < z + w)
+    lvl = np.where(lit[:, None], np.log(blank) + u[None, :], np.log(blank))
+    slot = np.where((starts >= a) & (ends <= b), 0, -1)
+    st = PixelState(lvl[0], 0.0, np.full(u.size, sm.theta_on), np.full(u.size, sm.theta_off),
+                    np.random.default_rng(0))
+    _, _, _, on, off = simulate_pixels(st, lvl, time_constant_us(np.exp(lvl), sm), log_noise_std(np.exp(lvl), sm),
+                                       starts, ends, sm, 0, emit=False, count_slot=slot, n_slots=1)
+    counts = np.maximum.accumulate(on[0] - off[0])
+    u.flags.writeable = counts.flags.writeable = False
+    return u, counts
+
+
+def linearize_by_model(net_counts, curve):
+    """Log-light step behind each net count, by inverting :func:`count_curve`; returns ``exp(u) - 1``.
+
+    A count ``n`` stands for the middle of the steps that give ``n``; 0 stays
+    0 (no light cannot be told from light below one threshold), and counts
+    beyond the curve take its end. Fractional counts (calibrated by
+    :func:`flat_field_gain`) interpolate between neighbouring whole counts.
+    """
+    return np.expm1(_model_log_step(net_counts, curve))
+
+
+def _model_log_step(net_counts, curve):
+    """:func:`linearize_by_model`'s step ``u`` itself."""
+    n = np.asarray(net_counts, dtype=np.float64)
+    if not np.all(np.isfinite(n)):
+        raise EvtkError("counts to linearise must be finite")
+    levels, mid = _count_steps(curve)
+    return np.interp(n, levels, mid)
+
+
+@contextlib.contextmanager
+def _thread_budget():
+    """numba's parallel loops on as many threads as evtk's decoding (``EVTK_IO_THREADS``; a local cluster's
+    workers each get their share), restored afterwards."""
+    from ..io._compression import workers
+
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(workers(), numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
+
+
+def _flat_log_step(sim, bench, region):
+    """Log-light step ``u`` each pixel of ``region`` (y, x) sees in a flat-field window (every mirror on)."""
+    from ..optics import screen_response
+
+    kshape = np.asarray(sim["kernels"]).shape[1:]
+    fshape = np.asarray(sim["features"]).shape[1:]
+    light = screen_response(np.ones(kshape), np.ones(fshape), bench, tuple(region))
+    rate = float(sim["gain_e_per_s_per_unit"]) * light + float(sim["sensor"]["dark_current_e_per_s"])
+    return np.log(np.maximum(rate, 1e-300) / float(sim["blank_rate_e_per_s"]))
+
+
+def _expected_flat_counts(sim, bench, region, curve, theta_on):
+    """Net count a nominal pixel gives in a flat-field window, per pixel of ``region`` (y, x).
+
+    The light is the optics' own (every mirror on, borders included); with
+    a count curve the count is the curve read continuously, else
+    ``log-step / theta_on``.
+    """
+    u = _flat_log_step(sim, bench, region)
+    if curve is None:
+        return u / theta_on
+    levels, mid = _count_steps(curve)
+    return np.interp(u, mid, levels)
+
+
+def _count_steps(curve):
+    """Whole counts 0..top of a :func:`count_curve` and the log-light step each stands for (its middle)."""
+    levels, lo, hi = _count_bands(curve)
+    mid = 0.5 * (lo + hi)
+    mid[0] = 0.0
+    return levels, mid
+
+
+def _count_bands(curve):
+    """Whole counts 0..top of a :func:`count_curve` and the band ``[lo, hi)`` of log-light steps giving each."""
+    u, n_of_u = curve
+    top = int(n_of_u[-1])
+    levels = np.arange(top + 2)
+    first = np.searchsorted(n_of_u, levels, side="left")  # first grid index reaching each count
+    lo = u[np.minimum(first[:-1], u.size - 1)]
+    hi = np.where(first[1:] < u.size, u[np.minimum(first[1:], u.size - 1)], u[-1])
+    return levels[:-1], lo, hi
+
+
+def flat_field_gain(flat_counts, expected_counts, min_counts=3, limits=(0.5, 2.0)):
+    """Per-pixel count gain from flat-field captures: ``expected / observed``.
+
+    A pixel with threshold ``theta`` counts a log-light step ``u`` as about
+    ``u / theta`` events, so its threshold mismatch is a gain on all its
+    counts. ``flat_counts`` (captures, ...) are net counts of windows whose
+    light is known up to that gain (every mirror on); ``expected_counts``
+    (...) is what a pixel with nominal thresholds counts there (the pixel
+    model's :func:`count_curve` at the light the optics give each pixel, or
+    the region's median on a bench without a model). Multiplying a pixel's
+    counts by its gain puts them on the nominal threshold's scale.
+
+    Pixels expecting fewer than ``min_counts`` events, or observing none,
+    keep a gain of 1; gains are clipped to ``limits``.
+
+    Examples
+    --------
+    >>> flat_field_gain(np.array([[30, 25, 0]]), np.array([27.5, 27.5, 27.5])).tolist()
+    [0.9166666666666666, 1.1, 1.0]
+    """
+    obs = np.asarray(flat_counts, dtype=np.float64)
+    exp_ = np.asarray(expected_counts, dtype=np.float64)
+    if obs.ndim < 1 or obs.shape[0] == 0:
+        raise EvtkError("flat-field calibration needs at least one flat-field capture")
+    if obs.shape[1:] != exp_.shape:
+        raise EvtkError(f"flat-field counts {obs.shape[1:]} and expected counts {exp_.shape} differ in shape")
+    obs = obs.mean(axis=0)
+    ok = (exp_ >= min_counts) & (obs > 0) & np.isfinite(exp_)
+    gain = np.ones(exp_.shape)
+    gain[ok] = exp_[ok] / obs[ok]
+    return np.clip(gain, *limits)

@@ -1,0 +1,357 @@
+"""Every stage in order: :func:`reconstruct` on a recording, :func:`reconstruct_counts` on window counts."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import EvtkError
+from ..limits import require_memory
+from .accumulate import accumulate
+from .binarize import binarize, binarize_rule
+from .grid import _footprint_matrix, combine_passes, downsample, to_response_grid
+from .linearize import (
+    _expected_flat_counts,
+    _flat_log_step,
+    _model_log_step,
+    count_curve,
+    flat_field_gain,
+    linearize,
+    linearize_by_model,
+)
+from .timing import _as_sensor, _settle_residual, linearize_by_timing, timing_thresholds
+from .windows import WindowCounts, windows_from_schedule, windows_from_triggers, windows_periodic
+
+__all__ = ["Reconstruction", "response_error", "plan", "window_bytes", "reconstruct", "wants_times",
+    "reconstruct_counts"]
+
+
+@dataclass
+class Reconstruction:
+    """What :func:`reconstruct` found.
+
+    Attributes
+    ----------
+    responses : ndarray (n, rows, cols)
+        One signed response per (kernel, features, repeat) of the schedule, or
+        per window when the recording has none, resampled to ``size``.
+    binary : ndarray (n, rows, cols) of int8 (+1/-1)
+    pairs : ndarray (n, 3) or None
+        (kernel_id, features_id, repeat) of each response.
+    cells : ndarray (n, h, w)
+        The responses on the response's own cell grid, before resampling.
+    ideal : ndarray or None
+        Ground truth on the same cell grid (simulated recordings only).
+    counts : WindowCounts
+    summary : dict
+        Captures, windows, events used and dropped, parameters, errors.
+    """
+
+    responses: np.ndarray
+    binary: np.ndarray
+    pairs: np.ndarray | None
+    cells: np.ndarray
+    ideal: np.ndarray | None
+    counts: WindowCounts
+    summary: dict
+
+    def groups(self) -> dict:
+        """Indices of the responses of each scene: ``{(kernel_id, features_id): [i, ...]}`` over repeats.
+
+        Without a schedule every window counts as a repeat of one scene, keyed ``(-1, -1)``.
+        """
+        if self.pairs is None:
+            return {(-1, -1): np.arange(self.cells.shape[0])}
+        out = {}
+        for i, (k, f, _) in enumerate(self.pairs.tolist()):
+            out.setdefault((k, f), []).append(i)
+        return {key: np.asarray(v) for key, v in out.items()}
+
+
+def response_error(got, ideal):
+    """How far responses are from the ideal: Pearson correlation and two normalised RMS errors.
+
+    ``nrmse`` is the RMS error over the ideal's RMS (the strict one: 1.0 for
+    an all-zero guess); ``nrmse_range`` is the RMS error over the ideal's
+    peak-to-peak range (the usual NRMSD). Undefined values are ``None``.
+
+    Examples
+    --------
+    >>> e = response_error([1.0, -1.0, 2.0, 0.0], [1.0, -1.0, 2.0, 1.0])
+    >>> round(e["nrmse"], 3), round(e["nrmse_range"], 3)
+    (0.378, 0.167)
+    """
+    got = np.asarray(got, dtype=np.float64).ravel()
+    ideal = np.asarray(ideal, dtype=np.float64).ravel()
+    if got.shape != ideal.shape:
+        raise EvtkError(f"responses ({got.size} values) and ideal ({ideal.size} values) differ in size")
+    if not np.all(np.isfinite(got)):
+        raise EvtkError("responses hold NaN or infinite values")
+    rms = float(np.sqrt(np.mean(ideal ** 2))) if ideal.size else 0.0
+    if got.size < 2:
+        corr = None
+    elif np.ptp(got) == 0 or np.ptp(ideal) == 0:
+        corr = 1.0 if np.allclose(got, ideal) else 0.0
+    else:
+        corr = float(np.corrcoef(got, ideal)[0, 1])
+    rmse = float(np.sqrt(np.mean((got - ideal) ** 2))) if got.size else 0.0
+    span = float(np.ptp(ideal)) if ideal.size else 0.0
+    return {"correlation": corr, "nrmse": rmse / rms if rms > 0 else None,
+            "nrmse_range": rmse / span if span > 0 else None}
+
+
+def plan(rec, window="schedule", skip_us=0, length_us=None, region=None, check_memory=True):
+    """What :func:`reconstruct` will count: ``(simulation record or None, Windows, region)``.
+
+    With ``check_memory`` the counts of every window at once must fit the
+    memory budget (:func:`evtk.limits.require_memory`).
+    """
+    from ..simulate import METADATA_KEY
+
+    sim = (rec.metadata or {}).get(METADATA_KEY)
+    if window == "schedule":
+        if sim is None:
+            raise EvtkError("the recording carries no capture schedule: use window='triggers' or a period")
+        win = windows_from_schedule(sim, skip_us, length_us)
+    elif window == "triggers":
+        win = windows_from_triggers(rec.triggers(), skip_us, length_us)
+    elif isinstance(window, tuple) and len(window) == 2 and window[0] == "period":
+        info = rec.info()
+        end = None if info["t_end_us"] is None else info["t_end_us"] + 1
+        win = windows_periodic(info["t_start_us"], end, window[1], skip_us, length_us)
+    else:
+        raise EvtkError(f"window must be 'schedule', 'triggers' or ('period', US), not {window!r}")
+    if region is None:
+        region = tuple(sim["response_region"]) if sim is not None else (0, rec.sensor_size[0], 0, rec.sensor_size[1])
+    x0, x1, y0, y1 = (int(v) for v in region)
+    if check_memory:
+        require_memory(len(win) * window_bytes(region, sim is not None),
+                       f"counting {len(win):,} windows over {max(0, x1 - x0)}x{max(0, y1 - y0)} pixels")
+    return sim, win, tuple(region)
+
+
+def window_bytes(region, simulated):
+    """Estimated peak bytes a window costs a reconstruction over ``region`` (x0, x1, y0, y1).
+
+    Per pixel: ON and OFF counts (int32), with a simulation record the first
+    and last ON times, and the float64 stages after them (a minute of 10 ms
+    windows over 320x240 peaked at 53 bytes a window-pixel without a record:
+    measured, killed at 24 GB).
+    """
+    x0, x1, y0, y1 = (int(v) for v in region)
+    return max(0, x1 - x0) * max(0, y1 - y0) * (80 if simulated else 64)
+
+
+def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
+                linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None,
+                deblur=None, flat_field=True, timing=None):
+    """The whole pipeline on an open recording: windows, counts, linearisation, passes, grid, binarisation.
+
+    Parameters
+    ----------
+    rec : Recording
+    window : "schedule", "triggers" or ("period", period_us)
+    skip_us, length_us : int
+        Shorten or delay every window (leave out the pixels' settling).
+    size : (rows, cols)
+        Output size of each response.
+    binarize_method : "auto", "sign", "mean", "otsu" or a number
+        ``"auto"`` (default): :func:`binarize_rule` (sign for signed
+        responses, each response's mean otherwise).
+    linear : bool
+        Linearise counts to light (else net counts ON - OFF).
+    theta : float, optional
+        Contrast threshold for linearisation; default the recording's
+        simulation metadata, else 0.2.
+    crop : "valid" or "full"
+        Which part of the correlation to keep (needs a simulation record).
+    region : (x0, x1, y0, y1), optional
+        Sensor pixels to use; default the simulation's response region, else
+        the whole sensor.
+    deblur : bool or None
+        With a simulation record and matched scaling, undo the known footprint
+        blur (extended sources, pixel area, diffuser) by solving the linear
+        sampling model on the full response. It restores the scale but
+        amplifies what is left of count quantisation and threshold mismatch
+        (up to 4x at the finest detail). ``None`` (default): deblur when the
+        pixels are flat-field calibrated, where it helps on average (see
+        ``benchmarks/bench_accuracy.py``).
+    flat_field : bool
+        Calibrate each pixel's threshold on the recording's flat-field
+        captures, when it has any (:func:`flat_field_gain`).
+    timing : bool or None
+        Read the light below one threshold from each window's first and last
+        ON-event times (:func:`linearize_by_timing`). ``None`` (default):
+        wherever the recording's pixel model allows it; ``True``: required.
+
+    Notes
+    -----
+    With a simulation record, linearisation inverts the recording's own pixel
+    model (:func:`count_curve`, refined by event times); otherwise (or with
+    ``theta`` given) it uses ``exp(n * theta) - 1``.
+    """
+    _check_crop(crop)
+    sim, win, region = plan(rec, window, skip_us, length_us, region)
+    counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress,
+                        times=wants_times(sim, linear, theta, timing))
+    return reconstruct_counts(counts, sim, skip_us=skip_us, length_us=length_us, size=size,
+                              binarize_method=binarize_method, linear=linear, theta=theta, crop=crop,
+                              deblur=deblur, flat_field=flat_field, timing=timing)
+
+
+def wants_times(sim, linear=True, theta=None, timing=None):
+    """Whether a reconstruction with these settings reads event times (accumulate with ``times=True``)."""
+    return timing is not False and sim is not None and bool(linear) and theta is None
+
+
+def _check_crop(crop):
+    if crop not in ("valid", "full"):
+        raise EvtkError(f"crop must be 'valid' or 'full', not {crop!r}")
+
+
+def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
+                       linear=True, theta=None, crop="valid", deblur=None, flat_field=True, timing=None):
+    """Every stage after accumulation, on window counts (:func:`reconstruct` without the recording).
+
+    ``counts`` is a :class:`WindowCounts` (from :func:`accumulate`, or from
+    :meth:`evtk.simulate.Simulation.responses` through
+    :meth:`WindowCounts.from_capture_counts`); ``sim`` the simulation record
+    (a recording's ``simulation`` metadata) or None. The other parameters
+    are :func:`reconstruct`'s; ``skip_us``/``length_us`` must be the ones
+    the counts were taken with.
+    """
+    from ..optics import Bench
+    from ..simulate import Schedule
+
+    _check_crop(crop)
+    win = counts.windows
+    region = counts.region
+    if theta is None:
+        theta_on = float(sim["sensor"]["theta_on"]) if sim else 0.2
+        theta_off = float(sim["sensor"]["theta_off"]) if sim else 0.2
+    else:
+        theta_on = theta_off = float(theta)
+    schedule = bench = None
+    if sim is not None and len(win) == len(sim["schedule"]["capture"]):
+        schedule = Schedule.from_dict(sim["schedule"])
+        bench = Bench.from_dict(sim["bench"])
+    curve = count_curve(sim, skip_us, length_us) if sim is not None and linear and theta is None else None
+    needs_net = not linear or curve is not None or (flat_field and schedule is not None)
+    net = counts.on.astype(np.float64) - counts.off if needs_net else None
+    gain = None
+    if linear and flat_field and schedule is not None and np.any(schedule.kernel_id < 0):
+        gain = flat_field_gain(net[schedule.kernel_id < 0], _expected_flat_counts(sim, bench, region, curve, theta_on))
+    timed_share = None
+    why = _no_timing(counts, sim, schedule, curve, skip_us) if timing is not False else "not asked for"
+    if why is not None and timing:
+        raise EvtkError(f"timing linearisation is not possible: {why}")
+    if not linear:
+        values = net
+    elif why is None:  # the pixel model, read below one threshold from the event times
+        values, timed_share = _refine_by_timing(net if gain is None else net * gain, counts, sim, bench, schedule,
+                                                curve, gain, theta_on, skip_us)
+    elif curve is not None:  # invert the recording's own pixel model
+        values = linearize_by_model(net if gain is None else net * gain, curve)
+    elif gain is None:
+        values = linearize(counts.on, counts.off, theta_on, theta_off)
+    else:
+        values = linearize(counts.on * gain, counts.off * gain, theta_on, theta_off)
+
+    pairs = ideal = None
+    deblurred = False
+    if schedule is not None:
+        kernels = np.asarray(sim["kernels"])
+        features = np.asarray(sim["features"])
+        kh, kw = kernels.shape[1:]
+        fh, fw = features.shape[1:]
+        if linear:  # relative change -> light above the dark level, in response units
+            values = values * sim["blank_rate_e_per_s"] / sim["gain_e_per_s_per_unit"]
+        step = bench.kernel_step_cells / bench.pixel_cells
+        cells = to_response_grid(values, region, sim["response_origin_px"], step, (fh + kh - 1, fw + kw - 1))
+        combined, pairs = combine_passes(cells, schedule)
+        if deblur is None:  # a decimated reconstruction does not have the neighbours deblurring needs
+            deblur = gain is not None and bench.decimation == 1
+        deblurred = bool(deblur) and abs(bench.kernel_step_cells - 1.0) < 1e-9
+        if deblurred:  # undo the footprint blur of sources, pixels and diffuser
+            my = _footprint_matrix(bench, sim["response_origin_px"][1], region[2], region[3], fh + kh - 1, step)
+            mx = _footprint_matrix(bench, sim["response_origin_px"][0], region[0], region[1], fw + kw - 1, step)
+            combined = np.linalg.solve(my, np.linalg.solve(mx, combined.transpose(0, 2, 1)).transpose(0, 2, 1))
+        from ..optics import ideal_response
+
+        ideal = np.stack([ideal_response(kernels[k], features[f], bench) for k, f, _ in pairs])
+        if crop == "valid":
+            sl = (slice(None), slice(kh - 1, fh), slice(kw - 1, fw))
+            combined, ideal = combined[sl], ideal[sl]
+        if bench.decimation > 1:  # every decimation-th sensor pixel: a strided response (eq. 6)
+            if abs(step - 1.0) > 1e-9:
+                raise EvtkError("decimation is only supported with matched scaling (one pixel per cell)")
+            d = int(bench.decimation)
+            combined, ideal = combined[:, ::d, ::d], ideal[:, ::d, ::d]
+        cells = combined
+    else:
+        cells = values
+    responses = downsample(cells, size)
+    if isinstance(binarize_method, str) and binarize_method == "auto":
+        binarize_method = binarize_rule(sim)
+    binary = binarize(responses, binarize_method)
+    summary = {
+        "captures": int(len(schedule)) if schedule is not None else None,
+        "windows": len(win),
+        "window_source": win.source,
+        "windows_dropped": win.dropped,
+        "events_used": counts.events_used,
+        "region": list(counts.region),
+        "responses": int(responses.shape[0]),
+        "size": list(responses.shape[1:]),
+        "linear": bool(linear),
+        "theta_on": theta_on,
+        "binarize": str(binarize_method),
+        "skip_us": int(skip_us),
+        "length_us": None if length_us is None else int(length_us),
+        "deblurred": bool(deblurred),
+        "flat_field_captures": 0 if gain is None else int(np.sum(schedule.kernel_id < 0)),
+        "decimation": 1 if bench is None else int(bench.decimation),
+        "linearization": ("counts" if not linear else "pixel model and event times" if timed_share is not None
+                          else "pixel model" if curve is not None else "exp(n theta)"),
+        "timed_share": timed_share,
+    }
+    if ideal is not None:
+        summary["error"] = response_error(cells, ideal)
+    return Reconstruction(responses, binary, pairs, cells, ideal, counts, summary)
+
+
+def _no_timing(counts, sim, schedule, curve, skip_us):
+    """Why event times cannot refine this reconstruction's linearisation (None: they can)."""
+    if curve is None:
+        return "it needs the recording's pixel model (a simulated recording, linear, no fixed theta)"
+    if counts.on_first_us is None:
+        return "the counts hold no event times (accumulate with times=True)"
+    if schedule is None or not np.array_equal(counts.windows.t_start_us, schedule.t_on_us + int(skip_us)):
+        return "the windows must start skip_us after each pattern's onset (schedule windows)"
+    return None
+
+
+def _refine_by_timing(net, counts, sim, bench, schedule, curve, gain, theta_on, skip_us):
+    """Light from :func:`linearize_by_timing` wherever the times determine it, else from the (calibrated)
+    net counts ``net`` through :func:`linearize_by_model`.
+
+    Thresholds: nominal, or per pixel from the flat-field windows' times
+    (:func:`timing_thresholds`), else from the flat-field count gain.
+    Returns the values (``exp(u) - 1``) and the share of pixel-windows the times set.
+    """
+    sm = _as_sensor(sim["sensor"])
+    blank = float(sim["blank_rate_e_per_s"])
+    theta = np.full(counts.on.shape[1:], float(theta_on))
+    if gain is not None:
+        ff = schedule.kernel_id < 0
+        flat_u = np.broadcast_to(_flat_log_step(sim, bench, counts.region), (int(ff.sum()),) + theta.shape)
+        flat_u = flat_u - _settle_residual(flat_u, schedule.t_on_us[ff], schedule.t_off_us[ff], sm, blank)
+        t = timing_thresholds(counts.on[ff], counts.on_first_us[ff], counts.on_last_us[ff], flat_u, sm, blank,
+                              skip_us)
+        theta = np.where(np.isfinite(t), t, theta * gain)
+    u = linearize_by_timing(counts.on, counts.on_first_us, counts.on_last_us, theta, sm, blank, curve, skip_us)
+    ok = np.isfinite(u)
+    u[~ok] = _model_log_step(net[~ok], curve)
+    u[ok] += _settle_residual(u, schedule.t_on_us, schedule.t_off_us, sm, blank)[ok]
+    return np.expm1(u), float(ok.mean()) if ok.size else 0.0

@@ -1,0 +1,264 @@
+"""Light within a count's band, read from each pixel's first and last ON-event times (the noise-free crossing chain)."""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from ..errors import EvtkError
+from .linearize import _count_bands, _thread_budget
+
+__all__ = ["linearize_by_timing", "timing_thresholds"]
+
+
+def _settle_residual(u, t_on_us, t_off_us, sensor, blank_rate_e_per_s):
+    """How far above the dark level (log units) each pixel's photoreceptor still is at each pattern's onset.
+
+    The darkness between patterns is finite, so a pixel starts a window a
+    little above the dark level, from where the timing estimate measures its
+    step. Noise-free mean path through the windows ``[t_on_us, t_off_us)`` in
+    time order, from a settled first window, with the light of each window
+    taken as ``u`` (its log step over the dark level).
+    """
+    from ..sensor import time_constant_us
+
+    order = np.argsort(t_on_us, kind="stable")
+    t_on = np.asarray(t_on_us, np.int64)[order]
+    t_off = np.asarray(t_off_us, np.int64)[order]
+    tau_dark = float(time_constant_us(blank_rate_e_per_s, sensor))
+    gap = np.maximum(t_on[1:] - t_off[:-1], 0)
+    dark_decay = np.concatenate([[0.0], np.exp(-gap / tau_dark)])  # the first window starts settled
+    u_t = np.ascontiguousarray(u[order]).reshape(len(order), -1)
+    lit = np.maximum(t_off - t_on, 0).astype(np.float64)
+    lit_decay = np.exp(-lit[:, None] / time_constant_us(blank_rate_e_per_s * np.exp(u_t), sensor))
+    eps = np.empty_like(u)
+    eps[order] = _settle_path(u_t, lit_decay, dark_decay).reshape((len(order),) + u.shape[1:])
+    return eps
+
+
+@numba.njit(cache=True)
+def _settle_path(u, lit_decay, dark_decay):
+    eps = np.empty_like(u)
+    level = np.zeros(u.shape[1])
+    for w in range(u.shape[0]):
+        for i in range(u.shape[1]):
+            level[i] *= dark_decay[w]
+            eps[w, i] = level[i]
+            level[i] = u[w, i] + (level[i] - u[w, i]) * lit_decay[w, i]
+    return eps
+
+
+@numba.njit(cache=True, inline="always")
+def _timing_factor(n, a_us, b_us, log_rate, tau_min_us, tau_electrons, refr_us):
+    """``u / theta`` for a pixel whose ``n`` (>= 2) ON events after a step of ``u`` from the dark level came
+    first at ``a_us`` and last at ``b_us`` after the step, the light being ``exp(log_rate)`` photoelectrons/s.
+
+    Noise-free, the photoreceptor approaches its new level as ``V = L - u exp(-t/tau)``. Each event
+    raises the reference by ``theta`` above V, and the refractory period lets V climb on by a factor
+    ``q = exp(-refr/tau)`` of what remains. Writing ``E = exp(-t/tau)`` at event times, that chain is
+    ``u (q E_k - E_(k+1)) = theta``, whose solution from the first to the last event is
+    ``u / theta = (1 - q^(n-1)) / ((1 - q)(q^(n-1) E_1 - E_n))``, free of the reference the pixel started
+    from. Computed directly, or in logs where ``exp(-b/tau)`` would underflow (no overflow for any times).
+    -1 when the times cannot come from such a chain (``b - a <= (n - 1) refr``).
+    """
+    tau = tau_min_us + tau_electrons / (np.exp(log_rate) * 1e-6)
+    r = refr_us / tau
+    x = (b_us - a_us) / tau - (n - 1) * r
+    if not x > 0.0:
+        return -1.0
+    big = b_us / tau
+    if big < 700.0:  # (1 - q) (exp(-(n-1) r - A) - exp(-B)) = (1 - q) exp(-B) expm1(x)
+        return -np.expm1(-(n - 1) * r) / (-np.expm1(-r) * np.exp(-big) * np.expm1(x))
+    # the same in logs, where exp(-B) would underflow
+    log_den = np.log(-np.expm1(-r)) - big + x + np.log1p(-np.exp(-x))
+    return np.exp(np.log(-np.expm1(-(n - 1) * r)) - log_den)
+
+
+@numba.njit(cache=True, parallel=True)
+def _timing_solve(n_on, first, last, theta, theta_nominal, band_lo, band_hi, offset_us, log_blank, tau_min_us,
+                  tau_electrons, refr_us, out):
+    """Log-light steps from ON-event times, :func:`linearize_by_timing`'s work, per (window, pixel)."""
+    n_w, n_px = n_on.shape
+    top = band_lo.size - 1
+    for w in numba.prange(n_w):
+        for i in range(n_px):
+            n = n_on[w, i]
+            out[w, i] = np.nan
+            if n < 2 or first[w, i] < 0 or last[w, i] < first[w, i]:
+                continue
+            a = first[w, i] + offset_us + 0.5  # time stamps are whole us, rounded down
+            b = last[w, i] + offset_us + 0.5
+            th = theta[i]
+            # Search where the count allows: its band (scaled to the pixel's threshold) and the next one,
+            # since the reference a pixel starts from may sit up to one threshold above the dark level,
+            # widened by a threshold. (Far outside, a much brighter and faster pixel can fit the same
+            # two times: h has a second root there.)
+            s = th / theta_nominal
+            lo = max(0.0, band_lo[min(n, top)] * s - th)
+            # the last band reaches the brightest light, whatever the pixel's threshold
+            hi = band_hi[n + 1] * s + th if n + 1 < top else band_hi[top] * max(s, 1.0) + th
+            # secant steps on h(u) = u - theta * factor(u) from the middle of the band; the time constant
+            # changes slowly with the light, so this takes a few steps; the bracketed method otherwise
+            u0 = 0.5 * (lo + hi)
+            f = _timing_factor(n, a, b, log_blank + u0, tau_min_us, tau_electrons, refr_us)
+            if f < 0.0:  # depends on the times only
+                continue
+            h0 = u0 - th * f
+            u1 = th * f
+            done = False
+            for _ in range(10):
+                h1 = u1 - th * _timing_factor(n, a, b, log_blank + u1, tau_min_us, tau_electrons, refr_us)
+                if abs(h1) <= 1e-4 * (1.0 + abs(u1)):
+                    done = lo <= u1 <= hi
+                    break
+                if h1 == h0:
+                    break
+                u0, h0, u1 = u1, h1, u1 - h1 * (u1 - u0) / (h1 - h0)
+                if not (-1.0 < u1 < 2.0 * hi + 1.0):
+                    break
+            if done:
+                out[w, i] = u1
+                continue
+            f = _timing_factor(n, a, b, log_blank + lo, tau_min_us, tau_electrons, refr_us)
+            h_lo = lo - th * f
+            h_hi = hi - th * _timing_factor(n, a, b, log_blank + hi, tau_min_us, tau_electrons, refr_us)
+            if not (h_lo < 0.0 < h_hi):
+                continue
+            side = 0
+            u = lo
+            for _ in range(100):  # Illinois method
+                u = (lo * h_hi - hi * h_lo) / (h_hi - h_lo)
+                h = u - th * _timing_factor(n, a, b, log_blank + u, tau_min_us, tau_electrons, refr_us)
+                if abs(h) <= 1e-6 * (1.0 + u) or hi - lo <= 1e-9:
+                    break
+                if h > 0.0:
+                    hi, h_hi = u, h
+                    if side == 1:
+                        h_lo *= 0.5
+                    side = 1
+                else:
+                    lo, h_lo = u, h
+                    if side == -1:
+                        h_hi *= 0.5
+                    side = -1
+            out[w, i] = u
+
+
+def linearize_by_timing(on, on_first_us, on_last_us, theta, sensor, dark_rate_e_per_s, curve, offset_us=0):
+    """Log-light step of each window from the times of its first and last ON event, below one threshold.
+
+    A count alone places the step somewhere in a band one threshold wide (a
+    22 % band of light at ``theta = 0.2``). When the pixel's time constant is
+    known (a simulated recording's pixel model: ``tau = tau_min +
+    tau_electrons / lam``, refractory period), the times at which the noise-free
+    photoreceptor crosses its thresholds fix the step within that band
+    (:func:`_timing_factor`). The estimate does not depend on the reference the
+    pixel started the window with, so the residue earlier captures leave does
+    not bias it. With shot noise the times scatter and the estimate with them;
+    it still beats the count's band at nominal light (see
+    ``benchmarks/bench_accuracy.py``).
+
+    Parameters
+    ----------
+    on, on_first_us, on_last_us : ndarray (windows, ...)
+        ON counts and first/last ON-event times from the window's start
+        (:func:`accumulate` with ``times=True``).
+    theta : float or ndarray (...)
+        Each pixel's ON threshold.
+    sensor : SensorModel or dict
+        The pixel model (``theta_on`` nominal, ``tau_min_us``,
+        ``tau_electrons``, ``refractory_us``).
+    dark_rate_e_per_s : float
+        Photoelectron rate of the dark level the step starts from.
+    curve : (u, counts)
+        The pixel model's :func:`count_curve` for these windows: the search
+        stays within the steps a pixel's count allows.
+    offset_us : float
+        Time from the step (the pattern's onset) to the window's start.
+
+    Returns
+    -------
+    ndarray (windows, ...)
+        The step ``u`` (natural log of light over the dark level); NaN where
+        the times do not determine it (fewer than two ON events, or times no
+        noise-free pixel with that count produces): fall back to the count there.
+    """
+    sm = _as_sensor(sensor)
+    n = np.asarray(on)
+    first = np.asarray(on_first_us)
+    last = np.asarray(on_last_us)
+    if not (n.shape == first.shape == last.shape) or n.ndim < 1:
+        raise EvtkError(f"counts {n.shape} and event times {first.shape}/{last.shape} must have one shape")
+    th = np.broadcast_to(np.asarray(theta, dtype=np.float64), n.shape[1:])
+    if not (np.all(np.isfinite(th)) and np.all(th > 0)):
+        raise EvtkError("thresholds must be finite and positive")
+    log_blank = _log_dark_rate(dark_rate_e_per_s)
+    _, band_lo, band_hi = _count_bands(curve)
+    rows = n.shape[0]
+    out = np.empty(n.shape, np.float64)
+    with _thread_budget():
+        _timing_solve(n.reshape(rows, -1).astype(np.int64), first.reshape(rows, -1).astype(np.int64),
+                      last.reshape(rows, -1).astype(np.int64), np.ascontiguousarray(th.ravel()), sm.theta_on,
+                      np.ascontiguousarray(band_lo, np.float64), np.ascontiguousarray(band_hi, np.float64),
+                      float(offset_us), log_blank, sm.tau_min_us, sm.tau_electrons, sm.refractory_us,
+                      out.reshape(rows, -1))
+    return out
+
+
+def _log_dark_rate(rate_e_per_s):
+    """``log`` of the dark level's photoelectron rate, which must be finite and positive."""
+    if not (math.isfinite(rate_e_per_s) and rate_e_per_s > 0):
+        raise EvtkError(f"the dark level's rate must be finite and positive, not {rate_e_per_s!r}")
+    return math.log(rate_e_per_s)
+
+
+def _as_sensor(sensor):
+    """A :class:`~evtk.sensor.SensorModel` from one or from its dict (a recording's record)."""
+    from ..sensor import SensorModel
+
+    return sensor if isinstance(sensor, SensorModel) else SensorModel.from_dict(dict(sensor))
+
+
+def timing_thresholds(flat_on, flat_first_us, flat_last_us, flat_u, sensor, dark_rate_e_per_s, offset_us=0):
+    """Each pixel's ON threshold from flat-field windows of known step ``flat_u`` and their ON-event times.
+
+    ``flat_u``: the step of each window and pixel, or of each pixel.
+
+    The inverse of :func:`linearize_by_timing`: with the step known,
+    ``theta = u / factor``, averaged over the flat-field windows whose times
+    determine it; NaN for a pixel none does.
+    """
+    sm = _as_sensor(sensor)
+    n = np.asarray(flat_on, dtype=np.int64)
+    if n.ndim < 1 or n.shape[0] == 0:
+        raise EvtkError("threshold calibration needs at least one flat-field window")
+    if not (n.shape == np.shape(flat_first_us) == np.shape(flat_last_us)):
+        raise EvtkError("flat-field counts and event times must have one shape")
+    rows = n.shape[0]
+    fu = np.ascontiguousarray(np.broadcast_to(np.asarray(flat_u, dtype=np.float64), n.shape).reshape(rows, -1))
+    theta = _timing_theta(n.reshape(rows, -1), np.asarray(flat_first_us, np.int64).reshape(rows, -1),
+                          np.asarray(flat_last_us, np.int64).reshape(rows, -1), fu, float(offset_us),
+                          _log_dark_rate(dark_rate_e_per_s), sm.tau_min_us, sm.tau_electrons, sm.refractory_us)
+    return theta.reshape(n.shape[1:])
+
+
+@numba.njit(cache=True)
+def _timing_theta(n_on, first, last, flat_u, offset_us, log_blank, tau_min_us, tau_electrons, refr_us):
+    n_w, n_px = n_on.shape
+    out = np.full(n_px, np.nan)
+    for i in range(n_px):
+        total = 0.0
+        k = 0
+        for w in range(n_w):
+            if n_on[w, i] < 2 or first[w, i] < 0:
+                continue
+            f = _timing_factor(n_on[w, i], first[w, i] + offset_us + 0.5, last[w, i] + offset_us + 0.5,
+                               log_blank + flat_u[w, i], tau_min_us, tau_electrons, refr_us)
+            if f > 0.0:
+                total += flat_u[w, i] / f
+                k += 1
+        if k > 0:
+            out[i] = total / k
+    return out

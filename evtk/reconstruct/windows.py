@@ -1,0 +1,180 @@
+"""Capture windows: when each pattern was on, from a schedule, trigger edges or a fixed period."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import EvtkError
+from ..events import TriggerKind, Triggers
+from ..limits import require_memory
+
+__all__ = ["Windows", "WindowCounts", "windows_from_schedule", "windows_from_triggers", "windows_periodic"]
+
+
+_RISING = (TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE, TriggerKind.EXTERNAL_GENERATOR_RISING_EDGE)
+
+
+_FALLING = (TriggerKind.EXTERNAL_SIGNAL_FALLING_EDGE, TriggerKind.EXTERNAL_GENERATOR_FALLING_EDGE)
+
+
+@dataclass
+class Windows:
+    """Half-open time windows ``[t_start_us, t_end_us)``, one per capture.
+
+    ``capture`` is the schedule's capture index (or the window's own index
+    when there is no schedule); ``dropped`` says, per reason, how many windows
+    could not be formed.
+    """
+
+    t_start_us: np.ndarray
+    t_end_us: np.ndarray
+    capture: np.ndarray
+    source: str
+    dropped: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.t_start_us = np.ascontiguousarray(self.t_start_us, dtype=np.int64)
+        self.t_end_us = np.ascontiguousarray(self.t_end_us, dtype=np.int64)
+        self.capture = np.ascontiguousarray(self.capture, dtype=np.int64)
+        if not (self.t_start_us.shape == self.t_end_us.shape == self.capture.shape) or self.t_start_us.ndim != 1:
+            raise EvtkError("window starts, ends and capture indices must be 1-D arrays of equal length")
+        if np.any(self.t_end_us <= self.t_start_us):
+            i = int(np.flatnonzero(self.t_end_us <= self.t_start_us)[0])
+            raise EvtkError(f"window {i} is empty or reversed: [{self.t_start_us[i]}, {self.t_end_us[i]}) us")
+
+    def __len__(self):
+        return int(self.t_start_us.size)
+
+    @property
+    def length_us(self) -> np.ndarray:
+        return self.t_end_us - self.t_start_us
+
+    def __getitem__(self, index):
+        """The windows at ``index`` (a slice or indices), as :class:`Windows` of the same source."""
+        return Windows(self.t_start_us[index], self.t_end_us[index], self.capture[index], self.source,
+                       dict(self.dropped))
+
+
+@dataclass
+class WindowCounts:
+    """Event counts per window and pixel: ``on``/``off`` of shape (windows, y1 - y0, x1 - x0).
+
+    ``region`` is (x0, x1, y0, y1) on the sensor; ``events_used`` counts the
+    events that fell in a window and the region. ``on_first_us`` and
+    ``on_last_us`` (int32, same shape, -1 where a window holds no ON event),
+    when accumulated with ``times=True``, are the time stamps of each pixel's
+    first and last ON event in the window, counted from the window's start.
+    """
+
+    on: np.ndarray
+    off: np.ndarray
+    windows: Windows
+    region: tuple
+    events_used: int
+    on_first_us: np.ndarray | None = None
+    on_last_us: np.ndarray | None = None
+
+    @classmethod
+    def from_capture_counts(cls, cc):
+        """Window counts from the simulator's fast path (:meth:`evtk.simulate.Simulation.responses`)."""
+        s = cc.schedule
+        win = Windows(s.t_on_us, s.t_off_us, s.capture, "schedule")
+        return cls(cc.on, cc.off, win, tuple(cc.region), int(cc.on.sum() + cc.off.sum()))
+
+
+def _trim(t_on, t_off, skip_us, length_us, what):
+    skip_us = int(skip_us)
+    if skip_us < 0:
+        raise EvtkError(f"skip_us must be >= 0, not {skip_us}")
+    start = t_on + skip_us
+    end = t_off.copy()
+    if length_us is not None:
+        length_us = int(length_us)
+        if length_us < 1:
+            raise EvtkError(f"length_us must be >= 1, not {length_us}")
+        end = np.minimum(end, start + length_us)
+    if np.any(end <= start):
+        shortest = int(np.min(t_off - t_on)) if t_on.size else 0
+        raise EvtkError(f"skip_us={skip_us} leaves nothing of the {what} windows (shortest: {shortest} us)")
+    return start, end
+
+
+def windows_from_schedule(schedule, skip_us=0, length_us=None) -> Windows:
+    """Windows of a simulated recording's captures.
+
+    ``schedule`` is an :class:`evtk.simulate.Schedule`, a recording's metadata
+    dict (with a ``simulation`` record) or that record itself.
+    """
+    from ..simulate import METADATA_KEY, Schedule
+
+    if isinstance(schedule, dict):
+        rec = schedule.get(METADATA_KEY, schedule)
+        if "schedule" not in rec:
+            raise EvtkError("the recording carries no capture schedule; use its triggers or a period instead")
+        schedule = Schedule.from_dict(rec["schedule"])
+    start, end = _trim(schedule.t_on_us, schedule.t_off_us, skip_us, length_us, "scheduled")
+    return Windows(start, end, schedule.capture, "schedule")
+
+
+def windows_from_triggers(triggers: Triggers, skip_us=0, length_us=None) -> Windows:
+    """Windows from the DMD's trigger edges: each rising edge to the next falling edge.
+
+    Edge cases are defined, and counted in ``Windows.dropped``: a rising edge
+    while a window is open (its falling edge is missing: that window is
+    dropped), a falling edge with no open window (ignored), and a window still
+    open when the triggers end (the recording ends mid-window: dropped).
+    Triggers of other kinds are ignored.
+    """
+    order = np.argsort(triggers.t, kind="stable")
+    t = triggers.t[order]
+    kind = triggers.kind[order]
+    rising = np.isin(kind, _RISING)
+    falling = np.isin(kind, _FALLING)
+    starts, ends = [], []
+    dropped = {"missing falling edge": 0, "falling edge without rising edge": 0, "recording ends mid-window": 0}
+    open_at = None
+    for ti, r, f in zip(t.tolist(), rising.tolist(), falling.tolist()):
+        if r:
+            if open_at is not None:
+                dropped["missing falling edge"] += 1
+            open_at = ti
+        elif f:
+            if open_at is None:
+                dropped["falling edge without rising edge"] += 1
+            elif ti > open_at:
+                starts.append(open_at)
+                ends.append(ti)
+                open_at = None
+            else:  # rising and falling at the same microsecond: nothing was shown
+                dropped.setdefault("zero-length window", 0)
+                dropped["zero-length window"] += 1
+                open_at = None
+    if open_at is not None:
+        dropped["recording ends mid-window"] += 1
+    if not starts:
+        raise EvtkError("no complete window in the triggers: no rising edge followed by a falling edge "
+                        f"({int(rising.sum())} rising, {int(falling.sum())} falling)")
+    t_on = np.array(starts, np.int64)
+    t_off = np.array(ends, np.int64)
+    start, end = _trim(t_on, t_off, skip_us, length_us, "triggered")
+    return Windows(start, end, np.arange(t_on.size), "triggers", {k: v for k, v in dropped.items() if v})
+
+
+def windows_periodic(t_start_us, t_end_us, period_us, skip_us=0, length_us=None) -> Windows:
+    """Back-to-back windows of ``period_us`` from ``t_start_us``; a last partial period is dropped."""
+    period_us = int(period_us)
+    if period_us < 1:
+        raise EvtkError(f"period_us must be >= 1, not {period_us}")
+    if t_start_us is None or t_end_us is None:
+        raise EvtkError("the recording has no events, so no time span to cut into periods")
+    t0, t1 = int(t_start_us), int(t_end_us)
+    n = (t1 - t0) // period_us if t1 > t0 else 0
+    if n < 1:
+        raise EvtkError(f"the recording ({t0} .. {t1} us) is shorter than one period of {period_us} us")
+    require_memory(n * 40, f"{n:,} windows of {period_us} us")
+    t_on = t0 + period_us * np.arange(n, dtype=np.int64)
+    start, end = _trim(t_on, t_on + period_us, skip_us, length_us, "periodic")
+    dropped = {"partial last period": 1} if t0 + n * period_us < t1 else {}
+    return Windows(start, end, np.arange(n), "period", dropped)
