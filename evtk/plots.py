@@ -11,7 +11,8 @@ import numpy as np
 
 from .errors import EvtkError
 
-__all__ = ["plot_enob", "plot_flips", "plot_tradeoff", "plot_recovery", "plot_success", "plot_robustness"]
+__all__ = ["contact_sheet", "wilson_interval", "plot_enob", "plot_flips", "plot_tradeoff", "plot_recovery", "plot_success",
+           "plot_robustness"]
 
 
 def pyplot():
@@ -25,27 +26,99 @@ def pyplot():
 
 
 def save_png(fig, path, dpi=100):
-    """Write ``fig`` as a PNG at ``path`` (atomically) and close it."""
+    """Write ``fig`` as a PNG at ``path`` (atomically) and close it; room is kept for a figure title."""
     from .io._atomic import AtomicFile
 
     plt = pyplot()
     try:
-        fig.tight_layout()
+        top = 1.0
+        if fig._suptitle is not None:  # tight_layout leaves no room for it
+            top = 1.0 - 0.5 / fig.get_figheight()
+        fig.tight_layout(rect=(0.0, 0.0, 1.0, top))
         with AtomicFile(path) as out:
             fig.savefig(out.file, format="png", dpi=dpi)
     finally:
         plt.close(fig)
 
 
+def contact_sheet(path, result, rows_per_page=8) -> list:
+    """PNG pages of every response: measured and ideal on the cell grid, and both binarised.
+
+    One row per response, ``rows_per_page`` rows a page; the first page is
+    ``path``, the next ``<stem>-p2.png`` and so on (returned in order).
+    Columns: the measured response and the ideal one (when known) with
+    colour bars in response units, then the measured binary response and the
+    ideal's, binarised by the same rule (``result.summary["binarize"]``) at the
+    same size, so each flipped pixel shows. Row labels name kernel, features
+    and repeat. Written atomically.
+    """
+    import os
+
+    from .reconstruct import binarize, downsample
+
+    n = len(result.cells)
+    if n == 0:
+        raise EvtkError("no responses to draw")
+    rows_per_page = max(1, int(rows_per_page))
+    method = result.summary.get("binarize", "sign")
+    try:
+        method = float(method)
+    except (TypeError, ValueError):
+        pass
+    ideal_binary = None
+    if result.ideal is not None:
+        ideal_binary = binarize(downsample(result.ideal, result.binary.shape[1:]), method)
+    stem, ext = os.path.splitext(os.fspath(path))
+    paths = []
+    plt = pyplot()
+    for page, start in enumerate(range(0, n, rows_per_page)):
+        rows = range(start, min(n, start + rows_per_page))
+        cols = [("measured", result.cells, True)]
+        if result.ideal is not None:
+            cols.append(("ideal", result.ideal, True))
+        cols.append((f"measured, binary ({method})", result.binary, False))
+        if ideal_binary is not None:
+            cols.append(("ideal, binary", ideal_binary, False))
+        fig, axes = plt.subplots(len(rows), len(cols), figsize=(2.9 * len(cols), 2.4 * len(rows) + 0.6),
+                                 squeeze=False)
+        for r, i in enumerate(rows):
+            for c, (title, arr, bar) in enumerate(cols):
+                ax = axes[r][c]
+                im = ax.imshow(arr[i], cmap="gray", interpolation="nearest",
+                               vmin=None if bar else -1, vmax=None if bar else 1)
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if r == 0:
+                    ax.set_title(title, fontsize=9)
+                if bar:
+                    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04).ax.tick_params(labelsize=7)
+            if result.pairs is not None:
+                k, f, rep = (int(v) for v in result.pairs[i])
+                axes[r][0].set_ylabel(f"kernel {k}, features {f}\nrepeat {rep}", fontsize=8)
+            else:
+                axes[r][0].set_ylabel(f"window {i}", fontsize=8)
+        pages = -(-n // rows_per_page)
+        err = result.summary.get("error") or {}
+        corr = err.get("correlation")
+        fig.suptitle(f"responses {rows[0] + 1}-{rows[-1] + 1} of {n}"
+                     + (f" (page {page + 1} of {pages})" if pages > 1 else "")
+                     + ("" if corr is None else f"; correlation with the ideal {corr:.3f}"), fontsize=10)
+        out = os.fspath(path) if page == 0 else f"{stem}-p{page + 1}{ext}"
+        save_png(fig, out, dpi=80)
+        paths.append(out)
+    return paths
+
+
 def plot_enob(scenes, path):
-    """ENOB (eq. 8) of each scene with its bootstrap interval; noise-free scenes drawn as a marker at the top."""
+    """ENOB (eq. 8) of each scene with its interval; noise-free scenes drawn as a marker at the top."""
     if not scenes:
         raise EvtkError("no scenes to plot")
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(max(4.0, 0.5 * len(scenes) + 2), 3.2))
     labels, finite = [], []
     for i, s in enumerate(scenes):
-        labels.append(f"K{s['kernel_id']}F{s['features_id']}" if s["kernel_id"] >= 0 else "all")
+        name = f"K{s['kernel_id']} F{s['features_id']}" if s["kernel_id"] >= 0 else "all windows"
+        labels.append(f"{name}\nn={s['repeats']}")
         r = s["sinad"]
         if r is None or r.noise_free:
             continue
@@ -58,9 +131,12 @@ def plot_enob(scenes, path):
         if s["sinad"] is not None and s["sinad"].noise_free:
             ax.plot(i, top, "^", color="C2")
     ax.set_xticks(range(len(scenes)))
-    ax.set_xticklabels(labels, rotation=90 if len(scenes) > 8 else 0)
+    ax.set_xticklabels(labels, rotation=90 if len(scenes) > 8 else 0, fontsize=8)
+    ax.set_xlabel("scene (kernel, features; n repeats)")
     ax.set_ylabel("ENOB (bits)")
-    ax.set_title("effective bits per scene (eq. 8)")
+    kinds = {s["sinad"].interval for s in scenes if s["sinad"] is not None and s["sinad"].interval}
+    ax.set_title("effective bits per scene (eq. 8)" + (f", 95 % {kinds.pop()} interval" if len(kinds) == 1 else ""),
+                 fontsize=10)
     save_png(fig, path)
 
 
@@ -81,10 +157,22 @@ def plot_flips(rows, path, x_key="power_mw", x_label="laser power (mW)"):
     ax.plot(xs, mean, "o-", color="C3", label=f"mean of {len(by_kernel)} kernels")
     if len(xs) > 1 and min(xs) > 0 and max(xs) / min(xs) > 20:
         ax.set_xscale("log")
+    _tick_at(ax, xs)
     ax.set_xlabel(x_label)
     ax.set_ylabel("pixels flipped between repeats (%)")
-    ax.legend()
+    ax.set_title("binary pixels that flip between repeats (Fig. 3, right)", fontsize=10)
+    ax.legend(fontsize=8)
     save_png(fig, path)
+
+
+def _tick_at(ax, xs):
+    """Ticks at the measured values only (no crowded log-axis labels), rotated when there are many."""
+    from matplotlib.ticker import NullFormatter, NullLocator
+
+    ax.xaxis.set_minor_locator(NullLocator())
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set_xticks(list(xs))
+    ax.set_xticklabels([f"{x:g}" for x in xs], rotation=45 if len(xs) > 5 else 0, fontsize=8)
 
 
 def plot_tradeoff(rows, path):
@@ -93,22 +181,35 @@ def plot_tradeoff(rows, path):
     if not pts:
         raise EvtkError("no settings with a defined error to plot")
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    fig, (ax, ax_c) = plt.subplots(1, 2, figsize=(10.0, 4.0), gridspec_kw={"width_ratios": [3, 2]})
     x = np.array([r["device_us_per_capture"] for r in pts])
     y = np.array([r["nrmse"] for r in pts])
     front = np.array([r["pareto"] for r in pts])
-    ax.scatter(x[~front], y[~front], color="0.6", label="setting")
+    powers = sorted({r["power_mw"] for r in pts})
+    markers = "osD^v<>p*h"
+    for j, pw in enumerate(powers):
+        sel = np.array([r["power_mw"] == pw for r in pts])
+        spread = np.array([r.get("nrmse_std") or 0.0 for r in pts])[sel]
+        ax.errorbar(x[sel], y[sel], yerr=spread, color=f"C{j % 10}", marker=markers[j % len(markers)], ls="none",
+                    capsize=2, label=f"{pw:g} mW", zorder=3)
+        ax_c.errorbar([r["compute_us_per_capture"] for r, s in zip(pts, sel) if s], y[sel], yerr=spread,
+                      color=f"C{j % 10}", marker=markers[j % len(markers)], ls="none", capsize=2)
     order = np.argsort(x[front])
-    ax.plot(x[front][order], y[front][order], "o-", color="C3", label="Pareto front")
+    ax.plot(x[front][order], y[front][order], "-", color="0.2", lw=1.2, label="Pareto front", zorder=2)
     for r in pts:
         label = f"{r['window_us']}/{r['settle_us']}" + (f"/d{r['decimation']}" if r.get("decimation", 1) > 1 else "")
         ax.annotate(label, (r["device_us_per_capture"], r["nrmse"]),
                     fontsize=6, xytext=(3, 3), textcoords="offset points")
     if x.max() / max(x.min(), 1e-9) > 20:
         ax.set_xscale("log")
-    ax.set_xlabel("device time per capture (us; labels: window/settle)")
+    ax.set_xlabel("device time per capture (µs; labels: window/settle µs)")
     ax.set_ylabel("RMS error / RMS of ideal")
-    ax.legend()
+    ax.set_title("error against device time per capture (bars: sd over responses)", fontsize=9)
+    ax.legend(fontsize=8, title="laser power", title_fontsize=8)
+    pipeline = {r.get("pipeline", "events") for r in pts}
+    ax_c.set_xlabel("compute time per capture (µs)")
+    ax_c.set_ylabel("RMS error / RMS of ideal")
+    ax_c.set_title(f"error against compute time ({', '.join(sorted(pipeline))} pipeline)", fontsize=9)
     save_png(fig, path)
 
 
@@ -150,16 +251,35 @@ def plot_success(rows, path):
     fig, ax = plt.subplots(figsize=(5.0, 3.5))
     by = defaultdict(list)
     for r in rows:
-        by[(r["size"], r["method"], r.get("weights"))].append((r["power_mw"], r["recovered_pct"], r["exact_pct"]))
+        by[(r["size"], r["method"], r.get("weights"))].append((r["power_mw"], r["recovered_pct"], r["exact_pct"],
+                                                               int(r["trials"])))
+    trials = set()
     for (size, method, weights), pts in sorted(by.items(), key=str):
         pts.sort()
-        ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=f"{size}x{size} {method} ({weights or 'mse'})")
+        ns = [n for _, _, _, n in pts]
+        trials.update(ns)
+        share = np.array([p[1] for p in pts]) / 100.0
+        lo, hi = wilson_interval(share, np.array(ns))
+        ax.errorbar([p[0] for p in pts], 100 * share, yerr=[100 * (share - lo), 100 * (hi - share)], fmt="o-",
+                    capsize=3, label=f"{size}x{size} {method} ({weights or 'mse'})")
     ax.set_xscale("log")
+    _tick_at(ax, sorted({r["power_mw"] for r in rows}))
     ax.set_ylim(-3, 103)
     ax.set_xlabel("laser power (mW)")
     ax.set_ylabel("recovered, exact or shifted (%)")
+    n_text = ", ".join(str(n) for n in sorted(trials))
+    ax.set_title(f"kernels recovered (n = {n_text} trials a point; 95 % Wilson intervals)", fontsize=9)
     ax.legend(fontsize=8)
     save_png(fig, path)
+
+
+def wilson_interval(share, n, z=1.959963984540054):
+    """Wilson score interval of binomial shares ``share`` out of ``n`` trials (95 % by default)."""
+    share = np.asarray(share, dtype=float)
+    n = np.maximum(np.asarray(n, dtype=float), 1.0)
+    centre = (share + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(share * (1 - share) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return np.clip(centre - half, 0.0, 1.0), np.clip(centre + half, 0.0, 1.0)
 
 
 def plot_robustness(result, path):
@@ -179,5 +299,7 @@ def plot_robustness(result, path):
     if min(xs) >= 0 and max(xs) > 0 and len([x for x in xs if x > 0]) > 1:
         ax.set_xscale("symlog", linthresh=min(x for x in xs if x > 0))
     ax.set_xlabel("Poisson noise scale (response units per photon)")
-    fig.legend(loc="lower left", fontsize=8)
+    ax.set_title("accuracy and flipped pixels against noise (Fig. 3, left)", fontsize=10)
+    handles = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
+    ax.legend(handles, [h.get_label() for h in handles], fontsize=8, loc="center left", framealpha=0.9)
     save_png(fig, path)

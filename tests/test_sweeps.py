@@ -195,9 +195,11 @@ def test_demo_runs_on_the_embedded_defaults(tmp_path):
     out = tmp_path / "demo"
     res = CliRunner().invoke(main, ["demo", "--out", str(out), "--repeat", "3", "--json"])
     assert res.exit_code == 0, res.output
-    s = json.loads(res.output)
-    for key in ("recording", "reconstruction", "contact_sheet", "enob_plot"):
+    s = json.loads(res.stdout)
+    assert "evtk demo: simulating" in res.stderr  # progress from the start, before any compiling
+    for key in ("recording", "reconstruction", "enob_plot"):
         assert (out / s[key].split("/")[-1]).stat().st_size > 0
+    assert [p.split("/")[-1] for p in s["contact_sheet"]] == ["responses.png"]  # three responses: one page
     assert s["captures"] == 2 + 3 and s["repeats"] == 3
     with evtk.open(s["recording"]) as rec:
         from evtk.reconstruct import reconstruct
@@ -232,3 +234,11 @@ def test_decimation_keeps_every_dth_pixel_a_strided_response():
 
 def _meta(k, bench, sensor):
     return Simulation(k, F16, bench=bench, sensor=sensor, repeat=2, seed=3).metadata()["simulation"]
+
+
+def test_wilson_interval_matches_its_closed_form_values():
+    """0 of 10: [0, 0.2775]; 5 of 10: [0.2366, 0.7634]; 10 of 10: [0.7225, 1] (the Wilson score interval)."""
+    from evtk.plots import wilson_interval
+
+    lo, hi = wilson_interval([0.0, 0.5, 1.0], [10, 10, 10])
+    assert np.allclose(lo, [0.0, 0.2366, 0.7225], atol=1e-4) and np.allclose(hi, [0.2775, 0.7634, 1.0], atol=1e-4)

@@ -1,0 +1,326 @@
+"""The ``evtk`` group, its error handling, and the option types and helpers every command shares."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import click
+import numpy as np
+
+from .. import io as evio  # (light: its readers and writers load on first use)
+from .._version import __version__
+from ..errors import EvtkError, one_line
+
+#: Largest whole number an option takes: microseconds and counts stay far inside int64 arithmetic.
+_MAX_INT = 2**62
+
+
+class _Group(click.Group):
+    """Turns evtk errors and OS errors into one line on stderr and exit code 1; usage errors into one line and 2."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode, **extra)
+        try:
+            rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click.UsageError as exc:
+            where = exc.ctx.command_path if exc.ctx is not None else "evtk"
+            click.echo(f"evtk: error: {exc.format_message()} (see '{where} --help')", err=True)
+            sys.exit(exc.exit_code)
+        except click.ClickException as exc:
+            click.echo(f"evtk: error: {exc.format_message()}", err=True)
+            sys.exit(exc.exit_code)
+        except click.Abort:
+            click.echo("evtk: aborted", err=True)
+            sys.exit(1)
+        except KeyboardInterrupt:
+            click.echo("evtk: interrupted", err=True)
+            sys.exit(130)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except (EvtkError, OSError, MemoryError) as exc:
+            if ctx.meta.get("evtk.debug"):
+                raise
+            msg = str(exc) if isinstance(exc, EvtkError) else f"{type(exc).__name__}: {exc}"
+            click.echo(f"evtk: error: {one_line(msg)}", err=True)
+            ctx.exit(1)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="evtk")
+@click.option("--debug", is_flag=True, help="Show the full traceback on errors.")
+@click.option("--trust-external", is_flag=True,
+              help="Let HDF5 files read other files (external links, external storage, virtual datasets).")
+@click.option("--verify-checksums", is_flag=True,
+              help="Check the xxHash checksums of AEDAT4 LZ4 bodies that carry them (slower; structure is always checked).")
+@click.option("--memory-limit-mb", type=click.FloatRange(min=1, max=2**40),
+              help="Largest allocation a command may plan (estimated first; default 8192).")
+@click.pass_context
+def main(ctx, debug, trust_external, verify_checksums, memory_limit_mb):
+    """evtk: event recordings of the opto-electronic convolution accelerator."""
+    import os
+
+    from ..limits import LIMIT_ENV
+
+    ctx.meta["evtk.debug"] = debug
+    # through the environment, so that batch workers inherit them; put back when the command ends (it may
+    # run inside another program, a test runner or a notebook)
+    changes = {}
+    if trust_external:
+        changes["EVTK_TRUST_EXTERNAL"] = "1"
+    if verify_checksums:
+        changes["EVTK_VERIFY_CHECKSUMS"] = "1"
+    if memory_limit_mb is not None:
+        changes[LIMIT_ENV] = repr(float(memory_limit_mb))
+    saved = {k: os.environ.get(k) for k in changes}
+    os.environ.update(changes)
+
+    def restore():
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+    ctx.call_on_close(restore)
+
+
+def _finite(obj):
+    """``obj`` with every NaN or infinite float replaced by None (JSON has no such numbers)."""
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, np.floating):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def _dumps(obj) -> str:
+    """What ``--json`` prints: strict JSON (no bare NaN or Infinity; they become null)."""
+    return json.dumps(_finite(obj), allow_nan=False)
+
+
+def _options(opts):
+    """A decorator applying a shared list of click options in order."""
+    def deco(f):
+        for opt in reversed(opts):
+            f = opt(f)
+        return f
+    return deco
+
+
+def _count(n, noun):
+    """``1 response``, ``3 responses``."""
+    return f"{n:,} {noun}" + ("" if n == 1 else "s")
+
+
+def _progress(total, label):
+    """A click progress bar on a terminal, nothing otherwise; returns (callback, finish)."""
+    if not sys.stderr.isatty() or total < 2:
+        return None, lambda: None
+    bar = click.progressbar(length=total, label=label, file=sys.stderr)
+    bar.__enter__()
+    return bar.update, lambda: bar.__exit__(None, None, None)
+
+
+def _parse_binarize(text):
+    if text in ("auto", "sign", "mean", "otsu"):
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise EvtkError(f"--binarize must be auto, sign, mean, otsu or a number, not {text!r}") from None
+
+
+def _parse_window(spec):
+    if spec.startswith("period:"):
+        try:
+            return ("period", int(spec.split(":", 1)[1]))
+        except ValueError:
+            raise EvtkError(f"--window period:US needs a whole number of us, not {spec!r}") from None
+    if spec in ("schedule", "triggers"):
+        return spec
+    raise EvtkError(f"--window must be schedule, triggers or period:US, not {spec!r}")
+
+
+def _parse_size(text):
+    try:
+        rows, cols = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise EvtkError(f"--size must look like 16x16, not {text!r}") from None
+    return rows, cols
+
+
+_reconstruct_options = _options([
+    click.option("--window", "window_spec", default="schedule", show_default=True,
+                 help="schedule, triggers or period:US (without a schedule every window is a repeat of one scene)."),
+    click.option("--skip-us", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True,
+                 help="Leave out the start of every window (pixel settling)."),
+    click.option("--length-us", type=click.IntRange(min=1, max=_MAX_INT), help="Keep at most this much of every window."),
+    click.option("--size", default="16x16", show_default=True, help="Size of each response, ROWSxCOLS."),
+    click.option("--binarize", "binarize_method", default="auto", show_default=True,
+                 help="auto (sign for signed responses, else each response's mean), sign, mean, otsu or a threshold."),
+    click.option("--linearize/--counts", default=True, show_default=True,
+                 help="Linearise counts to light, or keep net counts (ON - OFF)."),
+    click.option("--crop", type=click.Choice(["valid", "full"]), default="valid", show_default=True),
+    click.option("--flat-field/--no-flat-field", default=True, show_default=True,
+                 help="Calibrate each pixel's threshold on the recording's flat-field captures, if any."),
+    click.option("--deblur/--no-deblur", default=None,
+                 help="Undo the known optical footprint blur (default: when the pixels are calibrated)."),
+    click.option("--timing/--no-timing", default=None,
+                 help="Read light below one threshold from each window's first and last ON-event times "
+                      "(default: wherever the recording's pixel model allows)."),
+])
+
+
+def _reconstruct_settings(window_spec, skip_us, length_us, size, binarize_method, linearize, crop, flat_field,
+                          deblur, timing):
+    """The options of :data:`_reconstruct_options` as one :class:`evtk.reconstruct.ReconstructOptions`."""
+    from ..reconstruct import ReconstructOptions
+
+    return ReconstructOptions(window=_parse_window(window_spec), skip_us=skip_us, length_us=length_us,
+                              size=_parse_size(size), binarize_method=_parse_binarize(binarize_method),
+                              linear=linearize, crop=crop, flat_field=flat_field, deblur=deblur, timing=timing)
+
+
+def _number_list(text, name, integer=False, allow_zero=False):
+    try:
+        vals = [float(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise EvtkError(f"{name} must be a comma-separated list of numbers, not {text!r}") from None
+    if not vals or not all(np.isfinite(v) and (v > 0 or (allow_zero and v == 0)) for v in vals):
+        raise EvtkError(f"{name} must list {'numbers >= 0' if allow_zero else 'positive numbers'}, not {text!r}")
+    if integer:
+        if any(v != int(v) for v in vals):
+            raise EvtkError(f"{name} must list whole numbers, not {text!r}")
+        vals = [int(v) for v in vals]
+    return vals
+
+
+def _fmt(v, spec):
+    if v is None:
+        return "-"
+    if isinstance(v, float) and not np.isfinite(v):
+        return "inf" if v > 0 else "-inf"
+    return format(v, spec)
+
+
+def _table(rows, columns):
+    """Plain aligned text table: columns are (header, key or callable, format spec)."""
+    cells = [[h for h, _, _ in columns]]
+    for r in rows:
+        cells.append([_fmt(get(r) if callable(get) else r.get(get), spec) for _, get, spec in columns])
+    widths = [max(len(row[i]) for row in cells) for i in range(len(columns))]
+    lines = ["  ".join(c.rjust(w) for c, w in zip(row, widths)) for row in cells]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def _scene_rows(scenes, source=None, power=None):
+    rows = []
+    for s in scenes:
+        r = s["sinad"]
+        row = {"kernel_id": s["kernel_id"], "features_id": s["features_id"], "repeats": s["repeats"],
+               "flips": s["flips"].to_dict()}
+        if source is not None:
+            row["file"] = source
+        if power is not None:
+            row["power_mw"] = power
+        row["sinad"] = None if r is None else r.to_dict()
+        if "error" in s:
+            row["error"] = s["error"]
+        rows.append(row)
+    return rows
+
+
+def _reconstructed(path, **options):
+    """``reconstruct`` on one recording with a progress bar; returns (result, {events, sensor_size, power_mw})."""
+    from ..reconstruct import reconstruct
+
+    with evio.open(path) as rec:
+        n_events = rec.info()["events"]
+        update, finish = _progress(n_events, f"reconstructing {path}")
+        try:
+            result = reconstruct(rec, progress=update, **options)
+        finally:
+            finish()
+        sim = (rec.metadata or {}).get("simulation")
+        about = {"events": n_events, "sensor_size": rec.sensor_size,
+                 "power_mw": None if sim is None else float(sim["bench"]["power_mw"])}
+    return result, about
+
+
+_scheduler_option = click.option(
+    "--scheduler", "scheduler_spec", default=None,
+    help="Where independent tasks run: serial, local[:N] (a local Dask cluster) or tcp://HOST:PORT; "
+         "default local with Dask installed, else serial.")
+
+
+_window_options = [
+    click.option("--window", "window_spec", default="schedule", show_default=True,
+                 help="schedule, triggers or period:US (without a schedule every window is a repeat of one scene)."),
+    click.option("--skip-us", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True),
+    click.option("--length-us", type=click.IntRange(min=1, max=_MAX_INT)),
+]
+
+
+_with_window_options = _options(_window_options)
+
+
+def _inf_if_free(row, key):
+    s = row["sinad"]
+    if s is None:
+        return None
+    return float("inf") if s["noise_free"] else s[key]
+
+
+def _load_array(path, what):
+    import os
+
+    ext = os.path.splitext(path)[1].lower()
+    if ext != ".npy":
+        raise EvtkError(f"{what} must be a .npy file, not {path!r}")
+    try:
+        return np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        raise EvtkError(f"cannot read {what} {path!r}: {exc}") from None
+
+
+def _stats(values):
+    v = np.asarray(values, dtype=np.float64)
+    return {"max": float(v.max()), "min": float(v.min()), "mean": float(v.mean()),
+            "std": float(v.std(ddof=1)) if v.size > 1 else 0.0}
+
+
+_task_options = [
+    click.option("--task", type=click.Choice(["fnf", "letters-digits"]), default="fnf", show_default=True),
+    click.option("--data-dir", type=click.Path(file_okay=False, exists=True),
+                 help="Local LFW + CIFAR-10 (fnf) or EMNIST IDX files (letters-digits); default: bundled/synthetic."),
+    click.option("--optimizer", type=click.Choice(["anneal", "walk", "brute", "ste"]), default="anneal",
+                 show_default=True),
+    click.option("--steps", type=click.IntRange(min=1, max=_MAX_INT), default=600, show_default=True,
+                 help="Metropolis steps per layer (anneal, walk)."),
+    click.option("--temperature", type=float, default=None,
+                 help="Start (anneal) or constant (walk) temperature; default 10 (anneal), 5 (walk)."),
+    click.option("--final-temperature", type=float, default=0.01, show_default=True),
+    click.option("--epochs", type=click.IntRange(min=1, max=_MAX_INT), default=300, show_default=True, help="STE epochs."),
+    click.option("--channels", type=click.IntRange(min=1, max=_MAX_INT), default=1, show_default=True,
+                 help="Kernels per layer (the paper: one)."),
+    click.option("--channel-masks", is_flag=True,
+                 help="Score each channel with its own mask plane (default: one plane scores the channels' mean)."),
+    click.option("--samples", "n_per_class", type=click.IntRange(min=2, max=_MAX_INT),
+                 help="Samples per class (letters-digits: default 1000; fnf: needs --data-dir, default 1000)."),
+    click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True),
+]
+
+
+_with_task_options = _options(_task_options)

@@ -1,0 +1,102 @@
+"""``evtk reconstruct`` and ``evtk batch reconstruct``: recordings to responses."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from ._base import (
+    _MAX_INT,
+    _count,
+    _dumps,
+    _progress,
+    _reconstruct_options,
+    _reconstruct_settings,
+    _reconstructed,
+    _scheduler_option,
+    main,
+)
+
+
+@main.command("reconstruct")
+@click.argument("recording", type=click.Path(dir_okay=False, exists=True))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output: .npz, .h5 or .hdf5.")
+@_reconstruct_options
+@click.option("--png", "png_path", type=click.Path(dir_okay=False),
+              help="Also draw contact sheets: measured beside ideal, and both binarised.")
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
+def reconstruct_cmd(recording, output, png_path, as_json, **settings):
+    """Turn a recording into the convolution responses the device computed."""
+    from ..io._atomic import refuse_overwriting_inputs
+    from ..io.reconstruction import save_reconstruction
+    from ..plots import contact_sheet
+
+    refuse_overwriting_inputs(output, [recording])
+    if png_path:
+        refuse_overwriting_inputs(png_path, [recording, output])
+    options = _reconstruct_settings(**settings)
+    result, about = _reconstructed(recording, **options.kwargs())
+    n_events, sensor = about["events"], about["sensor_size"]
+    save_reconstruction(output, result, sensor, {"source": str(recording)})
+    pages = contact_sheet(png_path, result) if png_path else []
+    summary = dict(result.summary, output=str(output), events_in_recording=n_events,
+                   events_dropped=n_events - result.summary["events_used"], contact_sheet=pages)
+    if as_json:
+        click.echo(_dumps(summary))
+    else:
+        err = summary.get("error")
+        line = (f"wrote {_count(summary['responses'], 'response')} of {'x'.join(map(str, options.size))} from "
+                f"{_count(summary['windows'], 'window')} "
+                f"({summary['events_used']:,} of {n_events:,} events used) to {output}")
+        if err:
+            fmt = lambda v, spec: "n/a" if v is None else format(v, spec)  # noqa: E731
+            line += (f"\nagainst ground truth: correlation {fmt(err['correlation'], '.4f')}, RMS error "
+                     f"{fmt(err['nrmse'], '.1%')} of the ideal's RMS, {fmt(err['nrmse_range'], '.1%')} of its range")
+        click.echo(line)
+
+
+@main.group()
+def batch():
+    """Run a command over many recordings (one task each, resumable, with a manifest)."""
+
+
+@batch.command("reconstruct")
+@click.argument("inputs", nargs=-1, required=True)
+@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Folder for the outputs and batch.json.")
+@_reconstruct_options
+@click.option("--format", "fmt", type=click.Choice(["h5", "npz"]), default="h5", show_default=True)
+@click.option("--force", is_flag=True, help="Redo inputs whose output exists.")
+@click.option("--split-events", type=click.IntRange(min=1, max=_MAX_INT), default=50_000_000, show_default=True,
+              help="Split recordings with more events than this into tasks by time.")
+@_scheduler_option
+@click.option("--json", "as_json", is_flag=True, help="Print the manifest as one JSON object.")
+def batch_reconstruct_cmd(inputs, out_dir, fmt, force, split_events, scheduler_spec, as_json, **settings):
+    """Reconstruct every recording in INPUTS (files, folders, glob patterns) into OUT.
+
+    Exit status 1 when any input failed; the others are still done, and
+    batch.json says what happened to each.
+    """
+    from ..batch import batch_reconstruct
+    from ..cluster import scheduler
+
+    options = _reconstruct_settings(**settings).kwargs()  # the same settings as `evtk reconstruct`
+    update, finish = _progress(len(inputs), "batch")
+    try:
+        with scheduler(scheduler_spec) as client:
+            manifest = batch_reconstruct(inputs, out_dir, options, fmt=fmt, client=client, progress=update,
+                                         force=force, split_events=split_events)
+    finally:
+        finish()
+    c = manifest["counts"]
+    if as_json:
+        click.echo(_dumps(manifest))
+    else:
+        click.echo(f"{c['ok']} reconstructed, {c['skipped']} already done, {c['error']} failed "
+                   f"({manifest['seconds']:.1f} s); manifest: {out_dir}/batch.json")
+        for e in manifest["inputs"]:
+            if e["status"] == "error":
+                click.echo(f"  failed: {e['input']}: {e['error']}")
+    if c["error"]:
+        sys.exit(1)
