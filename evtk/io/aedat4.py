@@ -24,7 +24,7 @@ from ..events import Events, Triggers
 from . import _compression as cz
 from . import _fbpy
 from ._atomic import AtomicFile
-from .base import BaseRecording, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
+from .base import BaseRecording, BaseWriter, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
 
 __all__ = ["Recording", "Aedat4Writer", "write_aedat4", "MAGIC"]
 
@@ -847,7 +847,7 @@ def _io_header(code, data_table_pos, xml) -> bytes:
 _DTP_FIELD = _HEADER_START + 40  # file offset of IOHeader.dataTablePosition
 
 
-class Aedat4Writer:
+class Aedat4Writer(BaseWriter):
     """Stream events and triggers into an AEDAT4 file, atomically.
 
     Data goes to a temporary file beside ``path``; :meth:`close` writes the
@@ -1003,44 +1003,23 @@ class Aedat4Writer:
             body = cz.compress(self.code, buf[:size])
             self._emit(self._trigger_sid, body, len(t), int(t.min()), int(t.max()))
 
-    def _check_open(self):
-        if self._closed:
-            raise EvtkError(f"{self.path}: writer is closed")
+    # -- finishing (BaseWriter's close and abort) --------------------------------------
+    def _finish(self):
+        """Write the data table and patch the header's pointer to it."""
+        cols = [np.concatenate(c) if c else np.zeros(0, np.int64) for c in self._table]
+        buf = np.empty(_jit().data_table_size(len(cols[0])), np.uint8)
+        size = _jit().encode_data_table(*cols, buf)
+        blob = cz.compress(self.code, buf[:size])
+        dtp = self._pos
+        self._f.write(blob)
+        self._f.seek(_DTP_FIELD)
+        self._f.write(struct.pack("<q", dtp))
 
-    # -- finishing ----------------------------------------------------------------------
-    def close(self):
-        """Write the data table, patch the header and move the file into place."""
-        if self._closed:
-            return
-        self._closed = True
-        try:
-            cols = [np.concatenate(c) if c else np.zeros(0, np.int64) for c in self._table]
-            buf = np.empty(_jit().data_table_size(len(cols[0])), np.uint8)
-            size = _jit().encode_data_table(*cols, buf)
-            blob = cz.compress(self.code, buf[:size])
-            dtp = self._pos
-            self._f.write(blob)
-            self._f.seek(_DTP_FIELD)
-            self._f.write(struct.pack("<q", dtp))
-            self._file.commit()
-        except BaseException:
-            self._file.discard()
-            raise
+    def _commit(self):
+        self._file.commit()
 
-    def abort(self):
-        """Give up: remove the temporary file, leave any previous file alone."""
-        if not self._closed:
-            self._closed = True
-            self._file.discard()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, exc_type, exc, tb):
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
+    def _discard(self):
+        self._file.discard()
 
 
 def write_aedat4(path, events: Events, triggers: Triggers | None = None, compression="lz4", metadata=None, **kwargs):

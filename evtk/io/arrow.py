@@ -23,7 +23,7 @@ from . import _parquet_footer as _footer
 from ._atomic import AtomicFile
 from ._checks import require_readable, scan_events, sorted_for_writing
 from ._overlay import SplicedFile, close_at_exit
-from .base import BaseRecording, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
+from .base import BaseRecording, BaseWriter, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
 
 __all__ = ["to_arrow", "from_arrow", "ParquetRecording", "write_parquet", "COMPRESSIONS"]
 
@@ -447,7 +447,7 @@ class ParquetRecording(BaseRecording):
         return {"row_groups": len(self._groups)}
 
 
-class ParquetWriter:
+class ParquetWriter(BaseWriter):
     """Stream events into a Parquet file (atomically), row groups cut by time.
 
     Triggers and metadata go in the schema, so they are given up front.
@@ -477,8 +477,7 @@ class ParquetWriter:
         self._closed = False
 
     def write_events(self, events: Events):
-        if self._closed:
-            raise EvtkError(f"{self.path}: writer is closed")
+        self._check_open()
         if tuple(events.sensor_size) != self.sensor_size:
             raise EvtkError(f"events are for a {events.sensor_size} sensor, the file for {self.sensor_size}")
         require_readable(events, self.sensor_size, self._last_t, self._rows, "Parquet")
@@ -493,35 +492,22 @@ class ParquetWriter:
             self._w.write_table(table.slice(int(a), int(b - a)), row_group_size=int(b - a))
         self._rows += len(events)
 
-    def close(self):
-        if self._closed:
-            return
-        self._closed = True
+    # -- finishing (BaseWriter's close and abort) --------------------------------------
+    def _finish(self):
+        if self._rows == 0:
+            self._w.write_table(self._schema.empty_table())
+        self._w.close()
+
+    def _commit(self):
+        self._atomic.commit()
+
+    def _discard(self):
         try:
-            if self._rows == 0:
-                self._w.write_table(self._schema.empty_table())
             self._w.close()
-            self._atomic.commit()
-        except BaseException:
+        except Exception:  # a writer that failed may fail again on closing; the file goes either way
+            pass
+        finally:
             self._atomic.discard()
-            raise
-
-    def abort(self):
-        if not self._closed:
-            self._closed = True
-            try:
-                self._w.close()
-            finally:
-                self._atomic.discard()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, exc_type, exc, tb):
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 def write_parquet(path, events: Events, triggers: Triggers | None = None, compression="lz4", metadata=None,

@@ -12,7 +12,7 @@ import numpy as np
 from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
 
-__all__ = ["BaseRecording", "StreamInfo", "Damage", "time_chunks", "window_blocks", "sensor_dims", "load_json"]
+__all__ = ["BaseRecording", "BaseWriter", "StreamInfo", "Damage", "time_chunks", "window_blocks", "sensor_dims", "load_json"]
 
 #: Largest sensor side evtk reads (coordinates are 16-bit).
 MAX_SENSOR_SIDE = 65536
@@ -92,6 +92,63 @@ class Damage:
 
     offset: int | None
     reason: str
+
+
+class BaseWriter:
+    """What every writer shares: one ``close`` that finishes and moves the file into place, one ``abort``.
+
+    A writer is a context manager: leaving the block normally closes it,
+    leaving it on an exception aborts it (the temporary file is removed and
+    any previous file under the name is untouched). Either happens once;
+    writing after it is an :class:`~evtk.EvtkError`. Subclasses set
+    ``path`` and ``_closed = False`` and provide ``_finish()`` (write what is
+    buffered and the file's trailer), ``_commit()`` (move the file into
+    place) and ``_discard()`` (remove the temporary file, never raising for
+    a writer already broken).
+    """
+
+    path: str
+    _closed: bool = True
+
+    def _finish(self):  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _commit(self):  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _discard(self):  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _check_open(self):
+        if self._closed:
+            raise EvtkError(f"{self.path}: writer is closed")
+
+    def close(self):
+        """Finish the file and move it into place (atomically); a second call does nothing."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._finish()
+            self._commit()
+        except BaseException:
+            self._discard()
+            raise
+
+    def abort(self):
+        """Give up: remove the temporary file and leave any previous file alone."""
+        if not self._closed:
+            self._closed = True
+            self._discard()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
 
 
 class BaseRecording:

@@ -21,7 +21,7 @@ from ..events import Events, Triggers
 from ._atomic import AtomicFile, FailSafeFile
 from ._checks import require_readable, scan_events, sorted_for_writing
 from ._overlay import SplicedFile, close_at_exit
-from .base import BaseRecording, Damage, StreamInfo, load_json, sensor_dims
+from .base import BaseRecording, BaseWriter, Damage, StreamInfo, load_json, sensor_dims
 
 __all__ = ["Hdf5Recording", "Hdf5Writer", "write_hdf5", "COMPRESSIONS", "EVTK_FORMAT"]
 
@@ -1212,7 +1212,7 @@ def _copy(ev: Events) -> Events:
     return Events._trusted(ev.t.copy(), ev.x.copy(), ev.y.copy(), ev.p.copy(), ev.sensor_size, True)
 
 
-class Hdf5Writer:
+class Hdf5Writer(BaseWriter):
     """Stream events into evtk's HDF5 layout, atomically.
 
     Events must arrive in time order (call :meth:`write_events` as often as
@@ -1273,13 +1273,12 @@ class Hdf5Writer:
             self._closed = False
             f.flush()  # from here on the partial file opens (and salvages) as an interrupted evtk file
         except BaseException:
-            self._abort_files()
+            self._discard()
             raise
 
     def write_events(self, events: Events):
         """Append time-ordered events."""
-        if self._closed:
-            raise EvtkError(f"{self.path}: writer is closed")
+        self._check_open()
         if tuple(events.sensor_size) != self.sensor_size:
             raise EvtkError(f"events are for a {events.sensor_size} sensor, the file for {self.sensor_size}")
         n = len(events)
@@ -1318,14 +1317,12 @@ class Hdf5Writer:
         self._stored = upto
 
     def write_triggers(self, triggers: Triggers):
-        if self._closed:
-            raise EvtkError(f"{self.path}: writer is closed")
+        self._check_open()
         self._trig.append(triggers)
 
     def write_array(self, name: str, data, attrs=None):
         """Store an extra dataset (responses, schedule, parameters) in the same file."""
-        if self._closed:
-            raise EvtkError(f"{self.path}: writer is closed")
+        self._check_open()
         if name.strip("/").split("/")[0] in ("events", "triggers"):
             raise EvtkError(f"{name!r} is reserved for evtk's event layout")
         with self._disk():
@@ -1346,23 +1343,19 @@ class Hdf5Writer:
             if failure is None:
                 raise
             self._closed = True
-            self._abort_files()
+            self._discard()
             raise EvtkError(f"cannot write {self.path}: {failure.strerror or failure} (nothing was written "
                             "under that name)") from None
 
-    def close(self):
-        if self._closed:
-            return
-        self._closed = True
-        try:
-            with self._disk():
-                self._finish()
-            self._atomic.commit()
-        except BaseException:
-            self._abort_files()
-            raise
-
+    # -- finishing (BaseWriter's close and abort) --------------------------------------
     def _finish(self):
+        with self._disk():
+            self._finish_file()
+
+    def _commit(self):
+        self._atomic.commit()
+
+    def _finish_file(self):
         """Store what is buffered, the time index and the triggers, and close the HDF5 file."""
         if self._stored < self._n:
             self._store(self._n)
@@ -1379,26 +1372,12 @@ class Hdf5Writer:
         del self._f.attrs[INTERRUPTED]
         self._f.close()
 
-    def _abort_files(self):
+    def _discard(self):
         try:
             self._f.close()
         except Exception:
             pass
         self._atomic.discard()
-
-    def abort(self):
-        if not self._closed:
-            self._closed = True
-            self._abort_files()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, exc_type, exc, tb):
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 def write_hdf5(path, events: Events, triggers: Triggers | None = None, compression="lz4", metadata=None, sort=False, **kwargs):
