@@ -259,7 +259,7 @@ def test_cli_classify_and_robustness(tmp_path):
     assert [row["scale"] for row in r["rows"]] == [0, 1, 10] and r["rows"][0]["flip_pct"] == 0
     assert (tmp_path / "r.png").stat().st_size > 1000
     res = CliRunner().invoke(main, ["robustness", "--scales", "a,b"])
-    assert res.exit_code == 1 and "--scales" in res.output
+    assert res.exit_code == 2 and "--scales" in res.output  # a usage error
 
 
 def test_baselines_against_brute_force_and_scipy():

@@ -132,7 +132,26 @@ def _progress(total, label):
     return bar.update, lambda: bar.__exit__(None, None, None)
 
 
+class _Parsed(click.ParamType):
+    """A click type from a parse function that raises EvtkError: bad values are usage errors (exit status 2)."""
+
+    def __init__(self, metavar, parse, **options):
+        self.name = metavar
+        self._parse = parse
+        self._options = options
+
+    def convert(self, value, param, ctx):
+        if not isinstance(value, str):
+            return value  # a default already parsed
+        try:
+            return self._parse(value, **self._options)
+        except EvtkError as exc:
+            self.fail(str(exc), param, ctx)
+
+
 def _parse_binarize(text):
+    if not isinstance(text, str):
+        return text
     if text in ("auto", "sign", "mean", "otsu"):
         return text
     try:
@@ -142,6 +161,8 @@ def _parse_binarize(text):
 
 
 def _parse_window(spec):
+    if not isinstance(spec, str):
+        return spec
     if spec.startswith("period:"):
         try:
             return ("period", int(spec.split(":", 1)[1]))
@@ -153,6 +174,8 @@ def _parse_window(spec):
 
 
 def _parse_size(text):
+    if not isinstance(text, str):
+        return text
     try:
         rows, cols = (int(v) for v in text.lower().split("x"))
     except ValueError:
@@ -160,14 +183,24 @@ def _parse_size(text):
     return rows, cols
 
 
+WINDOW = _Parsed("window", _parse_window)
+SIZE = _Parsed("ROWSxCOLS", _parse_size)
+BINARIZE = _Parsed("binarize", _parse_binarize)
+
+
+def number_list(name, integer=False, allow_zero=False):
+    """A click type for a comma-separated list of positive numbers (whole ones with ``integer``)."""
+    return _Parsed("LIST", lambda text: _number_list(text, name, integer, allow_zero))
+
+
 _reconstruct_options = _options([
-    click.option("--window", "window_spec", default="schedule", show_default=True,
+    click.option("--window", "window_spec", type=WINDOW, default="schedule", show_default=True,
                  help="schedule, triggers or period:US (without a schedule every window is a repeat of one scene)."),
     click.option("--skip-us", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True,
                  help="Leave out the start of every window (pixel settling)."),
     click.option("--length-us", type=click.IntRange(min=1, max=_MAX_INT), help="Keep at most this much of every window."),
-    click.option("--size", default="16x16", show_default=True, help="Size of each response, ROWSxCOLS."),
-    click.option("--binarize", "binarize_method", default="auto", show_default=True,
+    click.option("--size", type=SIZE, default="16x16", show_default=True, help="Size of each response, ROWSxCOLS."),
+    click.option("--binarize", "binarize_method", type=BINARIZE, default="auto", show_default=True,
                  help="auto (sign for signed responses, else each response's mean), sign, mean, otsu or a threshold."),
     click.option("--linearize/--counts", default=True, show_default=True,
                  help="Linearise counts to light, or keep net counts (ON - OFF)."),
@@ -187,12 +220,14 @@ def _reconstruct_settings(window_spec, skip_us, length_us, size, binarize_method
     """The options of :data:`_reconstruct_options` as one :class:`evtk.reconstruct.ReconstructOptions`."""
     from ..reconstruct import ReconstructOptions
 
-    return ReconstructOptions(window=_parse_window(window_spec), skip_us=skip_us, length_us=length_us,
-                              size=_parse_size(size), binarize_method=_parse_binarize(binarize_method),
+    return ReconstructOptions(window=window_spec, skip_us=skip_us, length_us=length_us,
+                              size=size, binarize_method=binarize_method,
                               linear=linearize, crop=crop, flat_field=flat_field, deblur=deblur, timing=timing)
 
 
-def _number_list(text, name, integer=False, allow_zero=False):
+def _number_list(text, name="the list", integer=False, allow_zero=False):
+    if isinstance(text, list):
+        return text
     try:
         vals = [float(v) for v in str(text).split(",") if v.strip()]
     except ValueError:
@@ -266,7 +301,7 @@ _scheduler_option = click.option(
 
 
 _window_options = [
-    click.option("--window", "window_spec", default="schedule", show_default=True,
+    click.option("--window", "window_spec", type=WINDOW, default="schedule", show_default=True,
                  help="schedule, triggers or period:US (without a schedule every window is a repeat of one scene)."),
     click.option("--skip-us", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True),
     click.option("--length-us", type=click.IntRange(min=1, max=_MAX_INT)),

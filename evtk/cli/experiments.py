@@ -11,13 +11,13 @@ from ._base import (
     _MAX_INT,
     _dumps,
     _load_array,
-    _number_list,
     _progress,
     _scheduler_option,
     _stats,
     _table,
     _with_task_options,
     main,
+    number_list,
 )
 
 
@@ -63,7 +63,7 @@ def _recorded_candidates(path, size, features):
 @click.option("--candidates", "candidates_path", type=click.Path(dir_okay=False, exists=True),
               help="Brute force from a recording with one capture per candidate (default: the simulated device).")
 @click.option("--events", is_flag=True, help="Simulate candidates through the event stream, not the count path.")
-@click.option("--power-mw", "powers", default="20", show_default=True,
+@click.option("--power-mw", "powers", type=number_list("--power-mw"), default="20", show_default=True,
               help="Laser power of the simulated device; with --trials a comma-separated sweep.")
 @click.option("--trials", type=click.IntRange(min=1, max=_MAX_INT), help="Success rate over this many random trials per power.")
 @click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True)
@@ -87,7 +87,7 @@ def recover(features_path, target_path, target_kernel_bits, size, method, weight
     from ..simulate import default_features, load_patterns
 
     w = None if weights == "none" else weights
-    power_list = _number_list(powers, "--power-mw")
+    power_list = powers
     method = method or ("brute" if size <= 3 else "search")
     if trials:
         if target_path or target_kernel_bits or candidates_path:
@@ -281,7 +281,8 @@ def classify(task, data_dir, optimizer, steps, temperature, final_temperature, e
 
 @main.command(short_help="Accuracy and flipped pixels under Poisson noise (Fig. 3 left, eq. 12).")
 @_with_task_options
-@click.option("--scales", default="0,0.01,0.03,0.1,0.3,1,3", show_default=True,
+@click.option("--scales", type=number_list("--scales", allow_zero=True), default="0,0.01,0.03,0.1,0.3,1,3",
+              show_default=True,
               help="Poisson noise scales (response units per photon; 0 is noise-free).")
 @click.option("--target-accuracy", type=float, help="r of eq. 12 (default: noise-free accuracy minus 0.05).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Accuracy and flips against noise (PNG).")
@@ -301,7 +302,7 @@ def robustness(task, data_dir, optimizer, steps, temperature, final_temperature,
     from ..cluster import scheduler
 
     with scheduler(scheduler_spec) as client:
-        res = poisson_robustness(model, data.x_test, data.y_test, _number_list(scales, "--scales", allow_zero=True),
+        res = poisson_robustness(model, data.x_test, data.y_test, scales,
                                  seed=seed, target_accuracy=target_accuracy, client=client)
     if plot_path:
         from ..plots import plot_robustness

@@ -10,14 +10,13 @@ from ._base import (
     _MAX_INT,
     _dumps,
     _inf_if_free,
-    _number_list,
-    _parse_window,
     _progress,
     _scene_rows,
     _scheduler_option,
     _table,
     _with_window_options,
     main,
+    number_list,
 )
 
 
@@ -52,7 +51,7 @@ def _recording_noise(recording, window_spec, skip_us, length_us, interval, per_p
     with evio.open(recording) as rec:
         update, finish = _progress(rec.info()["events"], f"measuring {recording}")
         try:
-            scenes = recording_noise(rec, _parse_window(window_spec), skip_us, length_us,
+            scenes = recording_noise(rec, window_spec, skip_us, length_us,
                                      interval=None if interval == "none" else interval, per_pixel=per_pixel,
                                      progress=update)
         finally:
@@ -84,7 +83,7 @@ def _report_scenes(recording, scenes, plot_path, as_json):
 @main.command()
 @click.argument("recordings", nargs=-1, type=click.Path(dir_okay=False, exists=True))
 @_with_window_options
-@click.option("--power-mw", "powers", default="0.05,0.2,1,5,20", show_default=True,
+@click.option("--power-mw", "powers", type=number_list("--power-mw"), default="0.05,0.2,1,5,20", show_default=True,
               help="Without recordings: laser powers to sweep on the simulated bench.")
 @click.option("--kernels", "n_kernels", type=click.IntRange(min=1, max=_MAX_INT), default=11, show_default=True,
               help="Without recordings: random signed 3x3 kernels to show.")
@@ -114,14 +113,14 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
             with evio.open(path) as rec:
                 sim = (rec.metadata or {}).get("simulation")
                 power = None if sim is None else float(sim["bench"]["power_mw"])
-                scenes = recording_noise(rec, _parse_window(window_spec), skip_us, length_us, interval=None)
+                scenes = recording_noise(rec, window_spec, skip_us, length_us, interval=None)
             for s in scenes:
                 rows.append({"file": str(path), "file_index": i, "power_mw": power, "kernel_id": s["kernel_id"],
                              "features_id": s["features_id"], "repeats": s["repeats"],
                              "pairwise_pct": s["flips"].pairwise_pct, "majority_pct": s["flips"].majority_pct})
         x_key = "power_mw" if all(r["power_mw"] is not None for r in rows) else "file_index"
     else:
-        power_list = _number_list(powers, "--power-mw")
+        power_list = powers
         kernels = random_kernels(n_kernels, seed=seed)
         features = np.where(default_features() > 0, 1, -1)
         from ..cluster import scheduler
@@ -155,11 +154,14 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
 
 
 @main.command()
-@click.option("--window-us", "windows", default="200,300,500,1000,2000", show_default=True,
+@click.option("--window-us", "windows", type=number_list("--window-us", integer=True), default="200,300,500,1000,2000",
+              show_default=True,
               help="Capture windows to sweep (us, at least eq. 7's minimum).")
-@click.option("--power-mw", "powers", help="Laser powers to sweep (default: the bench's).")
-@click.option("--settle-us", "settles", help="Dark times after each pattern to sweep (default: recommended).")
-@click.option("--decimation", "decimations", help="Decimations to sweep (keep every d-th pixel; default 1).")
+@click.option("--power-mw", "powers", type=number_list("--power-mw"), help="Laser powers to sweep (default: the bench's).")
+@click.option("--settle-us", "settles", type=number_list("--settle-us", integer=True),
+              help="Dark times after each pattern to sweep (default: recommended).")
+@click.option("--decimation", "decimations", type=number_list("--decimation", integer=True),
+              help="Decimations to sweep (keep every d-th pixel; default 1).")
 @click.option("--kernels", "n_kernels", type=click.IntRange(min=1, max=_MAX_INT), default=2, show_default=True,
               help="Random signed 3x3 kernels on the default features.")
 @click.option("--repeats", type=click.IntRange(min=2, max=_MAX_INT), default=10, show_default=True)
@@ -175,10 +177,10 @@ def tradeoff(windows, powers, settles, decimations, n_kernels, repeats, seed, fa
     from ..sweeps import random_kernels
     from ..sweeps import tradeoff as run_tradeoff
 
-    w = _number_list(windows, "--window-us", integer=True)
-    p = _number_list(powers, "--power-mw") if powers else None
-    z = _number_list(settles, "--settle-us", integer=True) if settles else None
-    d = _number_list(decimations, "--decimation", integer=True) if decimations else None
+    w = windows
+    p = powers if powers else None
+    z = settles if settles else None
+    d = decimations if decimations else None
     n_settings = len(w) * (len(p) if p else 1) * (len(z) if z else 1) * (len(d) if d else 1)
     from ..cluster import scheduler
 
