@@ -409,7 +409,7 @@ def test_cli_reconstruct_outputs(tmp_path):
     for bad, msg in ((["--window", "period:x"], "period:US"), (["--binarize", "median"], "--binarize"),
                      (["--size", "4by4"], "--size")):
         res = CliRunner().invoke(main, ["reconstruct", str(bench), "-o", str(tmp_path / "x.npz"), *bad])
-        assert res.exit_code == 1 and msg in res.output
+        assert res.exit_code == 2 and msg in res.output  # malformed values are usage errors
     res = CliRunner().invoke(main, ["reconstruct", str(bench), "-o", str(tmp_path / "x.txt"), "--window", "triggers"])
     assert res.exit_code == 1 and ".npz" in res.output
 
