@@ -262,6 +262,23 @@ class Events:
             self._sorted = bool(len(self.t) < 2 or np.all(self.t[1:] >= self.t[:-1]))
         return self._sorted
 
+    def sorted(self) -> Events:
+        """The events in time order: ``self`` when already sorted, else a stable-sorted copy.
+
+        Events with equal time stamps keep their order.
+
+        Examples
+        --------
+        >>> ev = Events([5, 1, 5, 3], [0, 1, 2, 3], [0, 0, 0, 0], [1, 0, 0, 1], (4, 1))
+        >>> s = ev.sorted()
+        >>> s.t.tolist(), s.x.tolist(), s.is_sorted
+        ([1, 3, 5, 5], [1, 3, 0, 2], True)
+        """
+        if self.is_sorted:
+            return self
+        order = np.argsort(self.t, kind="stable")
+        return type(self)._trusted(self.t[order], self.x[order], self.y[order], self.p[order], self.sensor_size, True)
+
     @property
     def t_start_us(self):
         """First time stamp, or None for an empty stream."""

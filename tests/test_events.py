@@ -122,3 +122,15 @@ def test_triggers():
 def test_out_of_bounds_count():
     ev = evtk.Events([1, 2, 3], [0, 10, 5], [0, 0, 3], [0, 0, 0], (10, 3))
     assert ev.out_of_bounds() == 2
+
+
+def test_sorted_is_a_stable_sort_and_free_when_already_sorted():
+    rng = np.random.default_rng(4)
+    n = 5000
+    ev = evtk.Events(rng.integers(0, 50, n), rng.integers(0, 64, n), rng.integers(0, 48, n), rng.integers(0, 2, n),
+                     (64, 48))
+    s = ev.sorted()
+    order = np.argsort(ev.t, kind="stable")
+    assert s.is_sorted and np.array_equal(s.t, ev.t[order]) and np.array_equal(s.x, ev.x[order])
+    assert np.array_equal(s.y, ev.y[order]) and np.array_equal(s.p, ev.p[order]) and s.sensor_size == ev.sensor_size
+    assert s.sorted() is s

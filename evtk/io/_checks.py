@@ -56,6 +56,4 @@ def sorted_for_writing(events, sort, fmt):
         return events
     if not sort:
         require_readable(events, (65536, 65536), fmt=fmt)
-    order = np.argsort(events.t, kind="stable")
-    return type(events)._trusted(events.t[order], events.x[order], events.y[order], events.p[order],
-                                 events.sensor_size, True)
+    return events.sorted()

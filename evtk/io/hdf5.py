@@ -1075,9 +1075,7 @@ class Hdf5Recording(BaseRecording):
 
     def _all_sorted(self) -> Events:
         if self._sorted_cache is None:
-            ev = self._load(0, self._layout.n, None)
-            order = np.argsort(ev.t, kind="stable")
-            self._sorted_cache = Events._trusted(ev.t[order], ev.x[order], ev.y[order], ev.p[order], ev.sensor_size, True)
+            self._sorted_cache = self._load(0, self._layout.n, None).sorted()
         return self._sorted_cache
 
     @_guard

@@ -138,7 +138,7 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
     ends = windows.t_end_us[order]
     span = (int(starts.min()), int(ends.max()))
     if isinstance(source, Events):
-        chunks = [source if source.is_sorted else source[np.argsort(source.t, kind="stable")]]
+        chunks = [source.sorted()]
     else:
         chunks = source.iter_events(chunk_events=chunk_events, t_start_us=span[0], t_end_us=span[1])
     used = 0
