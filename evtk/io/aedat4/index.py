@@ -1,0 +1,268 @@
+"""Opening an AEDAT4 file: the IOHeader, the data table or a walk over the packets, checked."""
+
+from __future__ import annotations
+
+import os
+import struct
+import xml.etree.ElementTree as ET
+
+import numpy as np
+
+from ...errors import EvtkError, FormatError
+from .. import _compression as cz
+from .. import _fbpy
+from ..base import Damage, StreamInfo, sensor_dims
+from .common import _HEADER_START, MAGIC, _status
+
+
+class _Stop(Exception):
+    def __init__(self, offset, reason):
+        self.offset = offset
+        self.reason = reason
+
+
+class _CountMismatch(Exception):
+    """A packet holds another number of elements than the data table says."""
+
+
+class _PacketIndex:
+    """Per-packet columns: body offset and size, stream, element count, time range."""
+
+    def __init__(self, offset, size, stream, count, t0, t1, from_table):
+        self.offset = np.asarray(offset, np.int64)
+        self.size = np.asarray(size, np.int64)
+        self.stream = np.asarray(stream, np.int64)
+        self.count = np.asarray(count, np.int64)  # -1: unknown until decoded
+        self.t0 = np.asarray(t0, np.int64)
+        self.t1 = np.asarray(t1, np.int64)
+        self.from_table = from_table
+
+    def __len__(self):
+        return len(self.offset)
+
+    def take(self, mask):
+        return _PacketIndex(
+            self.offset[mask], self.size[mask], self.stream[mask], self.count[mask], self.t0[mask], self.t1[mask],
+            self.from_table,
+        )
+
+
+def _parse_xml(text: str, path) -> dict:
+    """Streams described by the header XML: ``{id: (attrs, info_attrs)}``."""
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise FormatError(path, _HEADER_START, f"the header's XML is malformed ({exc})") from None
+
+    def attrs(node):
+        out = {}
+        for a in node.findall("attr"):
+            key, typ, val = a.get("key"), a.get("type"), a.text or ""
+            if key is None:
+                continue
+            try:
+                if typ in ("int", "long", "short", "byte"):
+                    out[key] = int(val)
+                elif typ in ("float", "double"):
+                    out[key] = float(val)
+                elif typ == "bool":
+                    out[key] = val.strip().lower() == "true"
+                else:
+                    out[key] = val
+            except ValueError:
+                raise FormatError(path, _HEADER_START, f"header attribute {key!r} is not a valid {typ}: {val!r}") from None
+        return out
+
+    streams = {}
+    outinfo = None
+    for node in root.iter("node"):
+        if node.get("name") == "outInfo":
+            outinfo = node
+            break
+    if outinfo is None:
+        raise FormatError(path, _HEADER_START, "the header's XML has no 'outInfo' node describing the streams")
+    for node in outinfo.findall("node"):
+        try:
+            sid = int(node.get("name"))
+        except (TypeError, ValueError):
+            continue
+        info = node.find("node[@name='info']")
+        streams[sid] = (attrs(node), attrs(info) if info is not None else {})
+    return streams
+
+
+
+
+class _FileIndex:
+    """The reading side's file access, header and packet index, shared as a mixin by :class:`Recording`.
+
+    Expects ``path``, ``salvage``, ``damage``, ``warnings`` and ``_fd`` on the instance.
+    """
+
+    def _pread(self, n, offset):
+        if self._fd < 0:
+            raise EvtkError(f"{self.path}: the recording is closed")
+        data = os.pread(self._fd, n, offset)
+        return data
+
+    def _fail(self, offset, reason):
+        """Raise in strict mode; in salvage mode record the damage and stop."""
+        if not self.salvage:
+            raise FormatError(self.path, offset, reason)
+        if self.damage is None or offset < self.damage.offset:
+            self.damage = Damage(int(offset), reason)
+        raise _Stop(offset, reason)
+
+    # -- header ---------------------------------------------------------------
+    def _read_header(self):
+        head = self._pread(_HEADER_START + 4, 0)
+        if head[: len(MAGIC)] != MAGIC:
+            if head.startswith(b"#!AER-DAT"):
+                version = head[9:12].decode("ascii", "replace")
+                raise FormatError(self.path, 0, f"AEDAT version {version} is not supported; evtk reads AEDAT 4.0")
+            raise FormatError(self.path, 0, "not an AEDAT4 file (the magic line '#!AER-DAT4.0' is missing)")
+        if len(head) < _HEADER_START + 4:
+            raise FormatError(self.path, _HEADER_START, "file ends inside the header (no header length)")
+        (hlen,) = struct.unpack_from("<I", head, _HEADER_START)
+        self._data_start = _HEADER_START + 4 + hlen
+        if self._data_start > self._size:
+            raise FormatError(
+                self.path, _HEADER_START,
+                f"the header claims {hlen} bytes but the file has only {self._size - _HEADER_START - 4} after it",
+            )
+        # IOHeader is stored like a plain (not size-prefixed) buffer after its length
+        buf = struct.pack("<I", hlen) + self._pread(hlen, _HEADER_START + 4)
+        root = _fbpy.fb_root(buf, b"IOHE")
+        if root < 0:
+            raise FormatError(self.path, _HEADER_START + 4, "the IOHeader FlatBuffer is damaged (" + _status(root) + ")")
+        # each field's whole value must lie inside the header (a field at the table's end read past it once)
+        f_comp = _fbpy.fb_field(buf, root, 0, 4)
+        f_dtp = _fbpy.fb_field(buf, root, 1, 8)
+        f_xml = _fbpy.fb_field(buf, root, 2, 4)
+        if f_comp < 0 or f_dtp < 0 or f_xml < 0:
+            raise FormatError(self.path, _HEADER_START + 4, "the IOHeader FlatBuffer has offsets outside the header")
+        code = _fbpy.i32(buf, f_comp) if f_comp else 0
+        if not 0 <= code < len(cz.CODE_NAMES):
+            raise FormatError(self.path, _HEADER_START + f_comp, f"unknown compression code {code} in the header")
+        self._code = int(code)
+        self._data_table_pos = int(_fbpy.i64(buf, f_dtp)) if f_dtp else -1
+        if f_xml == 0:
+            raise FormatError(self.path, _HEADER_START + 4, "the header has no stream description (infoNode)")
+        s = _fbpy.fb_deref(buf, f_xml)
+        if s < 0:
+            raise FormatError(self.path, _HEADER_START + f_xml, "the header's infoNode string lies outside the header")
+        slen = _fbpy.u32(buf, s)
+        if s + 4 + slen > len(buf):
+            raise FormatError(self.path, _HEADER_START + s, "the header's infoNode string runs past the header")
+        self.header_xml = buf[s + 4 : s + 4 + slen].decode("utf-8", "replace").rstrip("\x00")
+        described = _parse_xml(self.header_xml, self.path)
+        self._streams: dict[int, StreamInfo] = {}
+        for sid, (attrs, info) in sorted(described.items()):
+            typ = str(attrs.get("typeIdentifier", "")).strip()
+            name = str(attrs.get("originalOutputName", f"stream{sid}"))
+            size = None
+            if "sizeX" in info and "sizeY" in info:
+                size = sensor_dims(info["sizeX"], info["sizeY"], self.path, f"the header of stream {sid}")
+            elif typ == "EVTS":
+                raise FormatError(self.path, _HEADER_START, f"event stream {sid} ({name}) has no sizeX/sizeY in its header")
+            merged = dict(attrs)
+            merged.update(info)
+            self._streams[sid] = StreamInfo(sid, name, typ, sensor_size=size, attributes=merged)
+        if not self._streams:
+            raise FormatError(self.path, _HEADER_START, "the header describes no streams")
+
+    # -- index ------------------------------------------------------------------
+    def _build_index(self) -> _PacketIndex:
+        dtp = self._data_table_pos
+        if dtp >= 0:
+            if dtp < self._data_start or dtp > self._size:
+                if not self.salvage:
+                    raise FormatError(
+                        self.path, _HEADER_START,
+                        f"the data table is said to start at byte {dtp}, outside the file of {self._size} bytes "
+                        "(truncated file?)",
+                    )
+                self.damage = Damage(self._size, "file truncated: the data table lies past the end")
+            else:
+                table = self._read_data_table(dtp)
+                if table is not None:
+                    return table
+        end = dtp if self._data_start <= dtp <= self._size else self._size
+        return self._walk(end)
+
+    def _read_data_table(self, dtp):
+        body = self._pread(self._size - dtp, dtp)
+        if not body:
+            self.warnings.append("the data table is empty; packets were indexed by walking the file")
+            return None
+        try:
+            raw = cz.decompress(self._code, body, cz.output_limit(len(body)), self.verify_checksums)
+        except cz.CodecError as exc:
+            self.warnings.append(f"the data table is unreadable ({exc}); packets were indexed by walking the file")
+            return None
+        cols, st = _fbpy.decode_data_table(raw, b"FTAB")
+        if st != _fbpy.ST_OK:
+            self.warnings.append(
+                f"the data table is damaged ({_status(st)}); packets were indexed by walking the file"
+            )
+            return None
+        offset, stream, size, count, t0, t1 = cols
+        n = len(offset)
+        ok = (
+            (offset - 8 >= self._data_start)
+            & (size >= 0)
+            & (offset + size <= dtp)
+            & np.isin(stream, list(self._streams))
+            & (count >= 0)
+        )
+        if n and not ok.all():
+            self.warnings.append("the data table points outside the packets; packets were indexed by walking the file")
+            return None
+        # an element count the packet's size cannot hold would make the reader
+        # allocate for it: such a table is not trusted
+        # (an event packet's body grows at most BODY_RATIO times when decompressed: the fixed allowance
+        # the decompressor grants frames of pixels is no licence for event counts)
+        evts = np.isin(stream, [sid for sid, st in self._streams.items() if st.type == "EVTS"])
+        per_element = np.where(evts, _fbpy.EVENT_STRUCT, 1)
+        room = np.where(evts, cz.BODY_RATIO * size + 4096,
+                        np.array([cz.output_limit(z) for z in size], np.int64))
+        plausible = count <= room // per_element
+        if n and not plausible.all():
+            self.warnings.append("the data table claims more elements than its packets can hold; "
+                                 "packets were indexed by walking the file")
+            return None
+        order = np.argsort(offset, kind="stable")
+        if n and np.any(offset[order][1:] < (offset + size)[order][:-1] + 8):
+            self.warnings.append("the data table lists overlapping packets; packets were indexed by walking the file")
+            return None
+        idx = _PacketIndex(offset[order], size[order], stream[order], count[order], t0[order], t1[order], True)
+        return idx
+
+    def _walk(self, end) -> _PacketIndex:
+        offs, sizes, sids = [], [], []
+        pos = self._data_start
+        while pos < end:
+            if pos + 8 > end:
+                self._note(pos, f"file ends inside a packet header ({end - pos} of 8 bytes)")
+                break
+            sid, size = struct.unpack("<ii", self._pread(8, pos))
+            if sid not in self._streams:
+                self._note(pos, f"packet names stream {sid}, which the header does not describe")
+                break
+            if size < 0 or pos + 8 + size > end:
+                self._note(pos, f"packet of stream {sid} claims {size} bytes but only {end - pos - 8} remain")
+                break
+            offs.append(pos + 8)
+            sizes.append(size)
+            sids.append(sid)
+            pos += 8 + size
+        n = len(offs)
+        unknown = np.full(n, -1, np.int64)
+        return _PacketIndex(offs, sizes, sids, unknown, np.full(n, np.iinfo(np.int64).min),
+                            np.full(n, np.iinfo(np.int64).max), False)
+
+    def _note(self, offset, reason):
+        if not self.salvage:
+            raise FormatError(self.path, offset, reason)
+        if self.damage is None or offset < self.damage.offset:
+            self.damage = Damage(int(offset), reason)

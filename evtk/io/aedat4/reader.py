@@ -1,0 +1,510 @@
+"""Reading an AEDAT4 file: streams, packet bodies, events and triggers by time window, salvage."""
+
+from __future__ import annotations
+
+import os
+import struct
+from collections.abc import Iterator
+
+import numpy as np
+
+from ...errors import EvtkError, FormatError
+from ...events import Events, Triggers
+from .. import _compression as cz
+from .. import _fbpy
+from ..base import BaseRecording, StreamInfo, load_json, window_blocks
+from .common import _IDENT, _STRUCT_SIZE, _TYPE_NAMES, _VECTOR_TYPES, _jit, _status
+from .index import _CountMismatch, _FileIndex, _Stop
+
+
+class Recording(_FileIndex, BaseRecording):
+    """An AEDAT4 file opened for reading.
+
+    Use :func:`evtk.open` rather than this class directly.  The file is
+    indexed on open (through its data table when it has a usable one, else
+    by walking the packet headers); packet bodies are read only when asked.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    salvage : bool
+        Return what is intact before the first damage instead of raising
+        :class:`~evtk.FormatError`; :attr:`damage` then says where it stopped.
+    """
+
+    format = "aedat4"
+
+    def __init__(self, path, salvage: bool = False, verify_checksums: bool = False):
+        super().__init__(path, salvage)
+        self._fd = -1
+        self.verify_checksums = bool(verify_checksums)
+        try:
+            self._fd = os.open(self.path, os.O_RDONLY)
+        except OSError as exc:
+            raise EvtkError(f"cannot open {self.path}: {exc.strerror}") from None
+        try:
+            self._size = os.fstat(self._fd).st_size
+            self._read_header()
+            self._index = self._build_index()
+        except BaseException:
+            os.close(self._fd)
+            self._fd = -1
+            raise
+
+    def _close(self):
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __repr__(self):
+        return f"Recording({self.path!r}, format='aedat4', streams={[s.name for s in self._streams.values()]})"
+
+    def _stream_names(self):
+        return [(s.name, s.type) for s in self._streams.values()]
+
+
+    # -- streams ------------------------------------------------------------------
+    @property
+    def compression(self) -> str:
+        return cz.CODE_NAMES[self._code].lower()
+
+    def _stream(self, stream, typ) -> StreamInfo | None:
+        if stream is None:
+            candidates = [s for s in self._streams.values() if s.type == typ]
+            preferred = [s for s in candidates if s.name == _TYPE_NAMES[typ]]
+            return (preferred or candidates or [None])[0]
+        for s in self._streams.values():
+            if stream == s.id or stream == s.name:
+                if s.type != typ:
+                    raise EvtkError(f"{self.path}: stream {stream!r} holds {s.type} packets, not {typ}")
+                return s
+        raise EvtkError(f"{self.path}: no stream {stream!r}; streams are {[s.name for s in self._streams.values()]}")
+
+    @property
+    def sensor_size(self):
+        """``(width, height)`` of the main event stream, or None without one."""
+        s = self._stream(None, "EVTS")
+        if s is None:
+            s = next((s for s in self._streams.values() if s.sensor_size), None)
+        return s.sensor_size if s is not None else None
+
+    @property
+    def streams(self) -> list[StreamInfo]:
+        """Every stream with its packet and element counts and time range."""
+        idx = self._index
+        for s in self._streams.values():
+            sel = idx.stream == s.id
+            s.packets = int(sel.sum())
+            counts = idx.count[sel]
+            if s.type == "FRME":
+                counts = np.ones(s.packets, np.int64)
+            elif np.any(counts < 0):
+                counts = self._count_elements(np.flatnonzero(sel), s.type)
+            s.count = int(counts.sum()) if counts is not None else None
+            if s.packets and idx.from_table:
+                nz = counts > 0 if counts is not None else np.ones(s.packets, bool)
+                s.t_start_us = int(idx.t0[sel][nz].min()) if nz.any() else None
+                s.t_end_us = int(idx.t1[sel][nz].max()) if nz.any() else None
+        if not idx.from_table:
+            self._fill_times()
+        return list(self._streams.values())
+
+    def _count_elements(self, rows, typ):
+        if typ not in _VECTOR_TYPES:
+            return None
+        out = np.zeros(len(rows), np.int64)
+        for k, i in enumerate(rows):
+            try:
+                b = self._body(i)
+            except _Stop:
+                return out[:k]
+            n = _jit().vector_length(b, _IDENT[typ], _STRUCT_SIZE.get(typ, 0))
+            if n < 0:
+                try:
+                    self._fail(int(self._index.offset[i]), f"{typ} packet: {_status(n)}")
+                except _Stop:
+                    return out[:k]
+            out[k] = n
+            self._index.count[i] = n
+        return out
+
+    def _fill_times(self):
+        ev = self._stream(None, "EVTS")
+        if ev is not None and ev.count:
+            events = self.events()
+            ev.t_start_us, ev.t_end_us = events.t_start_us, events.t_end_us
+        tr = self._stream(None, "TRIG")
+        if tr is not None and tr.count:
+            trig = self.triggers()
+            if len(trig):
+                tr.t_start_us, tr.t_end_us = int(trig.t.min()), int(trig.t.max())
+
+    @property
+    def metadata(self) -> dict:
+        """evtk metadata stored with the event stream (``evtkMetadata``), else {}."""
+        s = self._stream(None, "EVTS")
+        text = s.attributes.get("evtkMetadata") if s is not None else None
+        if not text:
+            return {}
+        value = load_json(text, self.path, "the evtkMetadata attribute")
+        return value if isinstance(value, dict) else {"value": value}
+
+    # -- packet bodies ------------------------------------------------------------
+    def _body(self, i):
+        """Decompressed body of packet ``i`` as a uint8 array (or raise/stop)."""
+        idx = self._index
+        off, size = int(idx.offset[i]), int(idx.size[i])
+        data = self._pread(size + 8, off - 8)
+        if len(data) < size + 8:
+            self._fail(off - 8, "file ends inside a packet")
+        sid, sz = struct.unpack_from("<ii", data, 0)
+        if sid != idx.stream[i] or sz != size:
+            self._fail(off - 8, f"packet header says stream {sid}, {sz} bytes; "
+                                f"the data table says stream {idx.stream[i]}, {size} bytes")
+        body = memoryview(data)[8:]
+        if self._code == cz.NONE and cz.sniff(body):
+            self._fail(off, f"the header declares no compression but the body is a {cz.sniff(body)} frame")
+        try:
+            raw = cz.decompress(self._code, body, cz.output_limit(size), self.verify_checksums)
+        except cz.CodecError as exc:
+            self._fail(off, f"packet body cannot be decompressed: {exc}")
+        return np.frombuffer(raw, np.uint8)
+
+    def _select(self, typ, stream, t_start_us, t_end_us):
+        s = self._stream(stream, typ)
+        if s is None:
+            return None, np.zeros(0, np.int64)
+        idx = self._index
+        rows = np.flatnonzero(idx.stream == s.id)
+        if idx.from_table and (t_start_us is not None or t_end_us is not None):
+            span = window_blocks(idx.t0[rows], idx.t1[rows], t_start_us, t_end_us,
+                                 lambda k: self._packet_span(s, rows[k]))
+            if span is None:
+                self._warn_once("the data table's packet times disagree with the packets or are out of order; "
+                                "windows read every packet", s.name)
+            else:
+                rows = rows[span[0]:span[1]]
+        return s, rows
+
+    def _packet_span(self, s, row):
+        """(first, last) time stamp of packet ``row``, or None when it is empty or unreadable."""
+        if s.type == "TRIG":
+            t = self._decode_triggers(s, [row]).t
+        else:
+            t = next(self._event_packets(s, [row]), Events.empty(s.sensor_size)).t
+        return (int(t[0]), int(t[-1])) if len(t) else None
+
+    # -- events -------------------------------------------------------------------
+    def events(self, t_start_us=None, t_end_us=None, stream=None) -> Events:
+        """Events with ``t_start_us <= t < t_end_us`` (None: no bound).
+
+        With a data table only the packets that overlap the window are
+        decoded; both cores decompress.
+        """
+        try:
+            return self._events(t_start_us, t_end_us, stream)
+        except _CountMismatch:
+            # the data table lied about a packet's size: count from the packets
+            self.warnings.append("the data table's element counts are wrong; counted from the packets instead")
+            self._index.count[:] = -1
+            return self._events(t_start_us, t_end_us, stream)
+
+    def _events(self, t_start_us, t_end_us, stream) -> Events:
+        s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
+        if s is None:
+            raise FormatError(self.path, None, f"no event stream; the streams are {self._stream_names()}")
+        counts = self._index.count[rows]
+        if np.any(counts < 0):
+            counts = self._count_elements(rows, "EVTS")
+            rows = rows[: len(counts)]
+        ev, _ = self._decode_rows(s, rows, counts)
+        if t_start_us is not None or t_end_us is not None:
+            ev = ev.between(t_start_us, t_end_us)
+        return ev
+
+    def _decode_rows(self, s, rows, counts):
+        """Decode the event packets ``rows`` (element counts known) on both cores.
+
+        Returns ``(events, complete)``; with salvage, ``events`` is the intact
+        prefix and ``complete`` False when damage stopped the decoding.
+        """
+        total = int(np.sum(counts))
+        t = np.empty(total, np.int64)
+        x = np.empty(total, np.uint16)
+        y = np.empty(total, np.uint16)
+        p = np.empty(total, np.uint8)
+        end, complete = self._decode_into(s, rows, counts, (t, x, y, p), 0)
+        return Events._trusted(t[:end], x[:end], y[:end], p[:end], s.sensor_size), complete
+
+    def _decode_into(self, s, rows, counts, out, offset):
+        """Decode the packets ``rows`` into the columns ``out`` from ``offset``, on both cores.
+
+        Returns ``(events written, complete)``.
+        """
+        width, height = s.sensor_size
+        t, x, y, p = out
+        starts = np.full(len(rows) + 1, offset, np.int64)
+        np.cumsum(counts, out=starts[1:])
+        starts[1:] += offset
+        ident = _IDENT["EVTS"]
+        decode = _jit().decode_events
+
+        def work(k0, k1):
+            for k in range(k0, k1):
+                i = rows[k]
+                try:
+                    b = self._body(i)
+                except _Stop:
+                    return k
+                cap = int(counts[k])
+                n, st = decode(b, ident, t, x, y, p, int(starts[k]), cap, width, height)
+                if (st == _fbpy.ST_OK and n != cap) or st == _fbpy.ST_CAPACITY:
+                    raise _CountMismatch
+                if st != _fbpy.ST_OK:
+                    off = int(self._index.offset[i])
+                    if st == _fbpy.ST_COORD:
+                        reason = f"event {n} of the packet lies outside the {width}x{height} sensor"
+                    else:
+                        reason = f"event packet: {_status(st)}"
+                    try:
+                        self._fail(off, reason)
+                    except _Stop:
+                        return k
+            return k1
+
+        stopped = _run_split(work, len(rows), counts)
+        return int(starts[stopped]) - offset, stopped == len(rows)
+
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None, stream=None) -> Iterator[Events]:
+        """Yield the events in order, at most ``chunk_events`` at a time.
+
+        Memory stays bounded by the chunk (plus one packet), whatever the
+        size of the file.
+        """
+        chunk_events = int(chunk_events)
+        if chunk_events < 1:
+            raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
+        s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
+        if s is None:
+            raise FormatError(self.path, None, f"no event stream; the streams are {self._stream_names()}")
+        counts = self._index.count[rows]
+        if len(rows) and np.all(counts >= 0):
+            stopped_at = yield from self._chunks_from_table(s, rows, counts, chunk_events, t_start_us, t_end_us)
+            if stopped_at is None:
+                return
+            rows = rows[stopped_at:]
+        yield from self._chunks_from_packets(s, rows, chunk_events, t_start_us, t_end_us)
+
+    def _chunks_from_table(self, s, rows, counts, chunk_events, t_start_us, t_end_us):
+        """Chunks of exactly ``chunk_events`` (the last one shorter), packets decoded on both cores
+        straight into each chunk's arrays. Returns None when done, or the row to go on from packet
+        by packet when the data table's counts prove wrong."""
+        bounded = t_start_us is not None or t_end_us is not None
+        cum = np.zeros(len(rows) + 1, np.int64)
+        np.cumsum(counts, out=cum[1:])
+        buf = None
+        fill = 0
+
+        def chunk(n):
+            ev = Events._trusted(buf[0][:n], buf[1][:n], buf[2][:n], buf[3][:n], s.sensor_size)
+            return ev.between(t_start_us, t_end_us) if bounded else ev
+
+        def new_buffer():
+            return (np.empty(chunk_events, np.int64), np.empty(chunk_events, np.uint16),
+                    np.empty(chunk_events, np.uint16), np.empty(chunk_events, np.uint8))
+
+        k = 0
+        while k < len(rows):
+            if buf is None:
+                buf, fill = new_buffer(), 0
+            # the packets that fit whole in what is left of the chunk
+            j = int(np.searchsorted(cum, cum[k] + (chunk_events - fill), side="right")) - 1
+            try:
+                if j > k:
+                    n, complete = self._decode_into(s, rows[k:j], counts[k:j], buf, fill)
+                    fill += n
+                    k = j
+                else:  # one packet larger than the room left: decode it alone and split it
+                    ev1, complete = self._decode_rows(s, rows[k:k + 1], counts[k:k + 1])
+                    pos = 0
+                    while pos < len(ev1):
+                        if buf is None:
+                            buf, fill = new_buffer(), 0
+                        take = min(chunk_events - fill, len(ev1) - pos)
+                        for dst, src in zip(buf, (ev1.t, ev1.x, ev1.y, ev1.p)):
+                            dst[fill:fill + take] = src[pos:pos + take]
+                        fill += take
+                        pos += take
+                        if fill == chunk_events:
+                            ev = chunk(fill)
+                            if len(ev):
+                                yield ev
+                            buf = None
+                    k += 1
+            except _CountMismatch:  # the table lied: hand over what is complete, go on packet by packet
+                self.warnings.append("the data table's element counts are wrong; counted from the packets instead")
+                if buf is not None and fill:
+                    ev = chunk(fill)
+                    if len(ev):
+                        yield ev
+                return k
+            if not complete:
+                break
+            if buf is not None and fill == chunk_events:
+                ev = chunk(fill)
+                if len(ev):
+                    yield ev
+                buf = None
+        if buf is not None and fill:
+            ev = chunk(fill)
+            if len(ev):
+                yield ev
+        return None
+
+    def _chunks_from_packets(self, s, rows, chunk_events, t_start_us, t_end_us):
+        pending: list[Events] = []
+        held = 0
+        for ev in self._event_packets(s, rows):
+            if t_start_us is not None or t_end_us is not None:
+                ev = ev.between(t_start_us, t_end_us)
+            if not len(ev):
+                continue
+            pending.append(ev)
+            held += len(ev)
+            while held >= chunk_events:
+                joined = Events.concatenate(pending)
+                yield joined[:chunk_events]
+                rest = joined[chunk_events:]
+                pending = [rest] if len(rest) else []
+                held = len(rest)
+        if held:
+            yield Events.concatenate(pending)
+
+    def _event_packets(self, s, rows):
+        width, height = s.sensor_size
+        ident = _IDENT["EVTS"]
+        fb = _jit()
+        for i in rows:
+            try:
+                b = self._body(i)
+            except _Stop:
+                break
+            n = fb.vector_length(b, ident, _fbpy.EVENT_STRUCT)
+            if n < 0:
+                try:
+                    self._fail(int(self._index.offset[i]), f"event packet: {_status(n)}")
+                except _Stop:
+                    break
+            cols = (np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8))
+            got, st = fb.decode_events(b, ident, *cols, 0, n, width, height)
+            if st != _fbpy.ST_OK:
+                reason = (
+                    f"event {got} of the packet lies outside the {width}x{height} sensor"
+                    if st == _fbpy.ST_COORD else f"event packet: {_status(st)}"
+                )
+                try:
+                    self._fail(int(self._index.offset[i]), reason)
+                except _Stop:
+                    break
+            yield Events._trusted(*cols, s.sensor_size)
+
+    # -- triggers -------------------------------------------------------------------
+    def triggers(self, t_start_us=None, t_end_us=None, stream=None) -> Triggers:
+        """Trigger time stamps and kinds (empty when the file has no trigger stream)."""
+        s, rows = self._select("TRIG", stream, t_start_us, t_end_us)
+        if s is None:
+            return Triggers()
+        trig = self._decode_triggers(s, rows)
+        if t_start_us is not None or t_end_us is not None:
+            trig = trig.between(t_start_us, t_end_us)
+        return trig
+
+    def _decode_triggers(self, s, rows) -> Triggers:
+        parts = []
+        ident = _IDENT["TRIG"]
+        for i in rows:
+            try:
+                b = self._body(i)
+            except _Stop:
+                break
+            n = _jit().vector_length(b, ident)
+            if n < 0:
+                try:
+                    self._fail(int(self._index.offset[i]), f"trigger packet: {_status(n)}")
+                except _Stop:
+                    break
+            t = np.empty(n, np.int64)
+            k = np.empty(n, np.uint8)
+            got, st = _jit().decode_triggers(b, ident, t, k, 0, n)
+            if st != _fbpy.ST_OK:
+                try:
+                    self._fail(int(self._index.offset[i]), f"trigger packet: {_status(st)}")
+                except _Stop:
+                    break
+            parts.append(Triggers(t, k))
+        return Triggers.concatenate(parts)
+
+    def other_streams(self) -> list[StreamInfo]:
+        """Streams that are neither events nor triggers (frames, IMU, ...), which evtk copies but does not decode."""
+        return [st for st in self._streams.values() if st.type not in ("EVTS", "TRIG")]
+
+    def packets(self, stream):
+        """Yield ``(body, count, t_start_us, t_end_us)`` for every packet of ``stream`` (name or id), the body
+        decompressed and as the file holds it; counts from the data table or the packets, times from the data
+        table (None without one)."""
+        s = next((st for st in self._streams.values() if stream in (st.id, st.name)), None)
+        if s is None:
+            raise EvtkError(f"{self.path}: no stream {stream!r}")
+        idx = self._index
+        rows = np.flatnonzero(idx.stream == s.id)
+        if np.any(idx.count[rows] < 0):  # no data table: count what the packets hold (frames: one each)
+            counted = self._count_elements(rows, s.type)
+            if counted is None:
+                idx.count[rows] = 1 if s.type == "FRME" else 0
+        known = idx.from_table
+        for i in rows:
+            try:
+                body = self._body(i)
+            except _Stop:
+                return
+            yield (body.tobytes(), max(0, int(idx.count[i])), int(idx.t0[i]) if known else None,
+                   int(idx.t1[i]) if known else None)
+
+    @property
+    def header(self) -> dict:
+        """Every stream's attributes from the header XML, by stream name
+        (``source``, ``sizeX``, ``tsOffset``, ``compression``, ...)."""
+        return {s.name: dict(s.attributes) for s in self._streams.values()}
+
+    def _extra_info(self) -> dict:
+        return {"data_table": bool(self._index.from_table), "header": self.header}
+
+
+
+
+
+
+def _run_split(work, n_rows, counts) -> int:
+    """Run ``work(k0, k1)`` over contiguous row ranges on the I/O pool.
+
+    Each call returns the first row it did not finish (``k1`` on success);
+    the result is the length of the intact prefix.
+    """
+    if n_rows == 0:
+        return 0
+    nw = cz.workers()
+    total = int(np.sum(counts))
+    if nw == 1 or n_rows < 4 or total < 200_000:
+        return work(0, n_rows)
+    # balance by elements: 4 ranges per worker keeps both cores busy to the end
+    parts = nw * 4
+    cum = np.cumsum(counts)
+    cuts = np.searchsorted(cum, np.linspace(0, total, parts + 1)[1:-1], side="left")
+    bounds = np.unique(np.concatenate([[0], cuts, [n_rows]]))
+    futures = [cz.pool().submit(work, int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+    done = n_rows
+    for b, fut in zip(bounds[1:], futures):
+        got = fut.result()
+        if got < b:
+            done = min(done, got)
+    return done
