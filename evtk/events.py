@@ -262,6 +262,35 @@ class Events:
             self._sorted = bool(len(self.t) < 2 or np.all(self.t[1:] >= self.t[:-1]))
         return self._sorted
 
+    def stamp_period_us(self, max_events=200_000):
+        """The spacing of the time stamps' grid: 1.0 for an asynchronous sensor, the readout period for one that
+        reads its pixels in frames (the DVXplorer family), or None with fewer than 64 distinct stamps.
+
+        Looks at the first ``max_events`` events. The grid is the greatest common divisor of the gaps between
+        distinct stamps; when that is 1 but every gap is, within 5 %, a whole number of the shortest gap (a
+        period that is not a whole number of microseconds, rounded), that gap's mean is returned.
+
+        Examples
+        --------
+        >>> t = np.arange(0, 20_000, 200)
+        >>> Events(t, t % 7, t % 5, t % 2, (8, 8)).stamp_period_us()
+        200.0
+        """
+        u = np.unique(self.t[: int(max_events)])
+        if u.size < 64:
+            return None
+        gaps = np.diff(u)
+        g = int(np.gcd.reduce(gaps))
+        if g > 1:
+            return float(g)
+        shortest = gaps.min()
+        if shortest > 2:
+            period = float(gaps[gaps < 1.5 * shortest].mean())
+            k = gaps / period
+            if np.mean(np.abs(k - np.round(k)) < 0.05) >= 0.95:
+                return period
+        return 1.0
+
     def sorted(self) -> Events:
         """The events in time order: ``self`` when already sorted, else a stable-sorted copy.
 

@@ -98,6 +98,12 @@ class SensorModel:
     hot_pixel_fraction : float
         Fraction of pixels that fire at ``hot_pixel_rate_hz`` regardless of light.
     hot_pixel_rate_hz : float
+    readout_period_us : float
+        How the sensor reads its pixels out. 0 (default): asynchronously,
+        each event stamped when it happens (DAVIS-like). Above 0: in frames,
+        as the DVXplorer family does (a few thousand readouts per second),
+        every event stamped at the end of the readout frame it fell in, so
+        time stamps are multiples of the period.
     """
 
     theta_on: float = 0.2
@@ -113,6 +119,7 @@ class SensorModel:
     background_rate_hz: float = 0.1
     hot_pixel_fraction: float = 0.0
     hot_pixel_rate_hz: float = 1000.0
+    readout_period_us: float = 0.0
 
     def __post_init__(self):
         def finite(name, low, strict):
@@ -126,7 +133,8 @@ class SensorModel:
         for name in ("theta_on", "theta_off", "tau_min_us", "tau_electrons", "dark_current_e_per_s",
                      "noise_step_fraction", "noise_step_max_us"):
             finite(name, 0.0, True)
-        for name in ("theta_mismatch", "background_rate_hz", "hot_pixel_rate_hz", "hot_pixel_fraction"):
+        for name in ("theta_mismatch", "background_rate_hz", "hot_pixel_rate_hz", "hot_pixel_fraction",
+                     "readout_period_us"):
             finite(name, 0.0, False)
         finite("refractory_us", 1.0, False)
         if self.hot_pixel_fraction > 1:
@@ -136,6 +144,15 @@ class SensorModel:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+    def stamp(self, t_us):
+        """Event time stamps as the sensor reports them: unchanged when asynchronous, else the end of each
+        event's readout frame (``ceil(t / readout_period_us) * readout_period_us``, whole microseconds)."""
+        t_us = np.asarray(t_us)
+        if self.readout_period_us <= 0:
+            return t_us
+        period = self.readout_period_us
+        return (np.ceil(t_us / period) * period).round().astype(np.int64)
 
     @classmethod
     def from_dict(cls, d: dict) -> SensorModel:

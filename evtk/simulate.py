@@ -490,7 +490,7 @@ class Simulation:
             parts.append((nt, ni + every_base, npol))
             t_rel, local, pol = (np.concatenate([part[k] for part in parts]) for k in range(3))
             t, x, y, p = _sorted_events(t_rel, local, pol, int(math.ceil(span)), base, x_of, y_of)
-            yield Events._trusted(t, x, y, p, (w, h), is_sorted=True)
+            yield Events._trusted(self.sensor.stamp(t), x, y, p, (w, h), is_sorted=True)  # frame readout, if any
 
     def events(self) -> Events:
         """All events in memory (use :meth:`write` or :meth:`iter_events` for long runs)."""

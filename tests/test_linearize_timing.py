@@ -177,3 +177,52 @@ def test_timing_needs_schedule_windows_and_the_pixel_model(tmp_path):
         skipped = reconstruct(rec, skip_us=20)
     assert skipped.summary["linearization"] == "pixel model and event times"
     assert skipped.summary["error"]["correlation"] > 0.99
+
+
+@pytest.mark.parametrize("period_us", [66.6667, 200.0])
+def test_frame_readout_stamps_fall_back_to_counts_and_say_so(tmp_path, monkeypatch, period_us):
+    """A DVXplorer-like sensor stamps events at the end of each readout frame. The stamps' grid is measured from
+    the events alone (no simulation record needed); the default reconstruction then leaves the event times out
+    (they would raise the error about 2x), says why, and an explicit --timing is refused."""
+    import evtk
+    import evtk.reconstruct.pipeline as pipeline
+    from evtk.reconstruct import reconstruct
+    from evtk.sensor import SensorModel
+    from evtk.simulate import Simulation, default_features
+
+    sim = Simulation([[0, 1, 0], [1, 1, 1], [0, 1, 0]], default_features(), repeat=3, seed=1,
+                     sensor=SensorModel(readout_period_us=period_us))
+    path = tmp_path / "frames.h5"
+    sim.write(path)
+    with evtk.open(path) as rec:
+        ev = rec.events()
+        assert ev.stamp_period_us() == pytest.approx(period_us, rel=1e-3)
+        assert np.all(np.abs(ev.t / period_us - np.round(ev.t / period_us)) * period_us <= 0.5 + 1e-9)
+        result = reconstruct(rec)
+        assert result.summary["linearization"] == "pixel model"
+        assert "grid" in result.summary["timing_skipped"]
+        with pytest.raises(evtk.EvtkError, match="too coarse"):
+            reconstruct(rec, timing=True)
+        monkeypatch.setattr(pipeline, "MAX_TIMING_STAMP_US", 1e9)  # what trusting the coarse stamps would give
+        forced = reconstruct(rec)
+    assert forced.summary["linearization"] == "pixel model and event times"
+    assert result.summary["error"]["nrmse"] < 0.6 * forced.summary["error"]["nrmse"]
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+
+    monkeypatch.undo()
+    res = CliRunner().invoke(main, ["reconstruct", str(path), "-o", str(tmp_path / "r.npz")])
+    assert res.exit_code == 0 and "note: event times were not used" in res.output, res.output
+
+
+def test_stamp_period_of_asynchronous_sparse_and_short_streams():
+    import evtk
+
+    rng = np.random.default_rng(0)
+    dense = np.sort(rng.integers(0, 10_000, 5000))
+    sparse = np.sort(rng.integers(0, 10_000_000, 500))  # gaps of thousands of us, but no grid
+    for t, want in ((dense, 1.0), (sparse, 1.0), (np.arange(50) * 100, None)):
+        ev = evtk.Events(t, np.zeros(t.size, np.uint16), np.zeros(t.size, np.uint16), np.ones(t.size, np.uint8),
+                         (4, 4))
+        assert ev.stamp_period_us() == want

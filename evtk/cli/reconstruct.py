@@ -53,6 +53,8 @@ def reconstruct_cmd(recording, output, png_path, as_json, **settings):
             fmt = lambda v, spec: "n/a" if v is None else format(v, spec)  # noqa: E731
             line += (f"\nagainst ground truth: correlation {fmt(err['correlation'], '.4f')}, RMS error "
                      f"{fmt(err['nrmse'], '.1%')} of the ideal's RMS, {fmt(err['nrmse_range'], '.1%')} of its range")
+        if summary.get("timing_skipped"):
+            line += f"\nnote: event times were not used: {summary['timing_skipped']}"
         click.echo(line)
 
 

@@ -147,7 +147,10 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
     no_times = np.empty(0, np.int32)  # the numba loop keeps no times when given empty arrays
     first_flat = first.reshape(-1) if times else no_times
     last_flat = last.reshape(-1) if times else no_times
+    period = None
     for ev in chunks:
+        if times and period is None:
+            period = ev.stamp_period_us()
         used += _accumulate_chunk(ev.t, ev.x, ev.y, ev.p, starts, ends, x0, x1, y0, y1, flat, total, started,
                                   first_flat, last_flat)
         if total.max() > np.iinfo(np.int32).max:
@@ -166,4 +169,4 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         on, off = counts[1], counts[0]
         if times:
             first, last = first[inv], last[inv]
-    return WindowCounts(on, off, windows, (x0, x1, y0, y1), int(used), first, last)
+    return WindowCounts(on, off, windows, (x0, x1, y0, y1), int(used), first, last, period)

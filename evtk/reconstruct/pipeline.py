@@ -315,6 +315,8 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
         "linearization": ("counts" if not linear else "pixel model and event times" if timed_share is not None
                           else "pixel model" if curve is not None else "exp(n theta)"),
         "timed_share": timed_share,
+        # the default would have read event times but the recording does not allow it: say why
+        "timing_skipped": why if timing is None and linear and curve is not None and why is not None else None,
     }
     if ideal is not None:
         summary["error"] = response_error(cells, ideal)
@@ -329,7 +331,15 @@ def _no_timing(counts, sim, schedule, curve, skip_us):
         return "the counts hold no event times (accumulate with times=True)"
     if schedule is None or not np.array_equal(counts.windows.t_start_us, schedule.t_on_us + int(skip_us)):
         return "the windows must start skip_us after each pattern's onset (schedule windows)"
+    period = counts.stamp_period_us
+    if period is not None and period > MAX_TIMING_STAMP_US:
+        return (f"the event time stamps lie on a {period:g} us grid (a sensor that reads its pixels out in "
+                f"frames): too coarse to time threshold crossings (at most {MAX_TIMING_STAMP_US:g} us)")
     return None
+
+
+#: Coarsest time-stamp grid the timing linearisation accepts; coarser stamps (frame readout) fall back to counts.
+MAX_TIMING_STAMP_US = 10.0
 
 
 def _refine_by_timing(net, counts, sim, bench, schedule, curve, gain, theta_on, skip_us):

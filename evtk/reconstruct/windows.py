@@ -66,6 +66,9 @@ class WindowCounts:
     ``on_last_us`` (int32, same shape, -1 where a window holds no ON event),
     when accumulated with ``times=True``, are the time stamps of each pixel's
     first and last ON event in the window, counted from the window's start.
+    ``stamp_period_us`` is the spacing of the recording's time stamps
+    (:meth:`evtk.Events.stamp_period_us`: 1 for an asynchronous sensor, the
+    readout period of a frame-readout one), when accumulated with times.
     """
 
     on: np.ndarray
@@ -75,6 +78,7 @@ class WindowCounts:
     events_used: int
     on_first_us: np.ndarray | None = None
     on_last_us: np.ndarray | None = None
+    stamp_period_us: float | None = None
 
     @classmethod
     def from_capture_counts(cls, cc):
