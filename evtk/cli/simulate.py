@@ -32,15 +32,32 @@ from ._base import _MAX_INT, _dumps, _fmt, _progress, main
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
               help="Recording to write: .aedat4, .h5/.hdf5 or .parquet.")
 @click.option("--save-bench", type=click.Path(dir_okay=False), help="Also write the bench used (.toml or .json).")
+@click.option("--job", "job_path", type=click.Path(dir_okay=False, exists=True),
+              help="A job file (.toml/.json, as `evtk patterns` takes) instead of the pattern and timing options.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def simulate(kernel_path, kernel_bits, features_path, signed, repeat, flat_field, power_mw, window_us, settle_us,
-             bench_path, seed, compression, output, save_bench, as_json):
+@click.pass_context
+def simulate(ctx, kernel_path, kernel_bits, features_path, signed, repeat, flat_field, power_mw, window_us, settle_us,
+             bench_path, seed, compression, output, save_bench, job_path, as_json):
     """Simulate the device and write the event recording it would produce."""
     from ..optics import Bench, load_bench
-    from ..optics import save_bench as _save_bench
     from ..sensor import SensorModel
     from ..simulate import Simulation, default_features, load_patterns
 
+    if job_path:
+        given = [f"--{name.replace('_', '-')}" for name in ("kernel_path", "kernel_bits", "features_path", "signed",
+                                                             "repeat", "flat_field", "window_us", "settle_us",
+                                                             "bench_path", "seed")
+                 if ctx.get_parameter_source(name) == click.core.ParameterSource.COMMANDLINE]
+        if given:
+            raise click.UsageError(f"--job sets the patterns and timing; leave out {', '.join(given)}")
+        from ..patterns import load_job
+
+        job = load_job(job_path)
+        if power_mw is not None:
+            job["bench"] = job["bench"].replace(power_mw=power_mw)
+        kernel, features, bench, sensor = job.pop("kernels"), job.pop("features"), job.pop("bench"), job.pop("sensor")
+        sim = Simulation(kernel, features, bench, sensor, **job)
+        return _write_simulation(sim, bench, sensor, compression, output, save_bench, as_json)
     if kernel_path and kernel_bits:
         raise EvtkError("give --kernel or --kernel-bits, not both")
     if kernel_bits is not None and not (kernel_bits and set(kernel_bits) <= {"0", "1"}):
@@ -56,6 +73,12 @@ def simulate(kernel_path, kernel_bits, features_path, signed, repeat, flat_field
     sensor = SensorModel.from_dict(sensor)
     sim = Simulation(kernel, features, bench, sensor, window_us=window_us, settle_us=settle_us, repeat=repeat,
                      seed=seed, flat_field=flat_field)
+    _write_simulation(sim, bench, sensor, compression, output, save_bench, as_json)
+
+
+def _write_simulation(sim, bench, sensor, compression, output, save_bench, as_json):
+    from ..optics import save_bench as _save_bench
+
     update, finish = _progress(len(sim.schedule), "simulating")
     try:
         summary = sim.write(output, compression=compression, progress=update)
@@ -122,3 +145,25 @@ def demo(out_dir, repeat, seed, as_json):
         f"files: {rec_path}, {out_h5}, {sheet}, {enob_png}",
         f"done in {summary['seconds']:.1f} s",
     ]))
+
+
+@main.command(short_help="DMD frames and the capture schedule of a job, for the bench.")
+@click.argument("job_path", metavar="JOB", type=click.Path(dir_okay=False, exists=True))
+@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Folder for the frames (kernel/, features/, dark) and schedule.json.")
+@click.option("--format", "image_format", type=click.Choice(["png", "bmp"]), default="png", show_default=True,
+              help="1-bit images at the DMD's resolution.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def patterns(job_path, out_dir, image_format, as_json):
+    """Write the frame each DMD shows for every capture of JOB, and the schedule that says which trigger edge
+    starts which frame pair. `evtk simulate --job JOB` simulates the same run."""
+    from ..patterns import job_simulation, write_patterns
+
+    summary = write_patterns(job_simulation(job_path), out_dir, image_format)
+    if as_json:
+        click.echo(_dumps(summary))
+        return
+    click.echo(f"wrote {summary['kernel_frames']} kernel and {summary['features_frames']} features frames "
+               f"({summary['dmd'][0]}x{summary['dmd'][1]} mirrors, 1 bit, {summary['format']}) for "
+               f"{summary['captures']} captures; schedule: {summary['schedule']}")
+

@@ -1,0 +1,246 @@
+"""Driving the bench: a job file in, the DMDs' frames and the capture schedule out.
+
+A *job* says what to compute and how to show it: kernels and features, the
+signed (+/-) split, repeats, flat fields, the time each pattern is shown and
+the dark time after it, and the bench's geometry. :func:`load_job` reads one
+(TOML or JSON); :func:`write_patterns` writes, for every capture, the frame
+each DMD shows (1-bit PNG or BMP at the DMD's native resolution, the kernel
+upsampled by eq. 4's varsigma, the features by their mirrors per element,
+both centred) and a schedule saying which frame pair each trigger edge
+starts. The simulator takes the same job (:func:`job_simulation`), so a
+simulated run and a bench run share the frames and the schedule and differ
+only in where the recording comes from.
+
+Job keys (all optional but ``kernels``)::
+
+    kernels = ["010111010"]          # bit strings (square, row by row), nested lists, or a .npy/.png path
+    features = "features.png"        # same forms; default: the 16x16 picture bundled with scikit-image
+    signed = false                   # read 0 as -1 (each pair shown in up to four +/- passes)
+    repeat = 10
+    flat_field = 2                   # captures with every mirror on, first (per-pixel calibration)
+    window_us = 1000                 # how long each pattern is shown
+    settle_us = 13340                # dark time after each pattern (default: the simulator's recommendation)
+    [bench]                          # evtk.optics.Bench fields: DMD size and pitch, distances, rates, ...
+    [sensor]                         # evtk.sensor.SensorModel fields (the simulator only)
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+
+import numpy as np
+
+from .errors import EvtkError
+from .optics import Bench
+from .sensor import SensorModel
+from .simulate import Simulation, default_features, load_patterns
+
+__all__ = ["load_job", "job_simulation", "dmd_frame", "write_patterns", "SCHEDULE_VERSION", "JOB_KEYS"]
+
+#: Version of the schedule file :func:`write_patterns` writes.
+SCHEDULE_VERSION = 1
+#: Keys a job file may hold.
+JOB_KEYS = ("kernels", "features", "signed", "repeat", "flat_field", "window_us", "settle_us", "seed", "bench",
+            "sensor")
+
+
+def _read_table(path):
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except OSError as exc:
+        raise EvtkError(f"{path}: cannot read job file: {exc.strerror or exc}") from None
+    try:
+        if path.lower().endswith(".toml"):
+            try:
+                import tomllib
+            except ModuleNotFoundError:  # Python 3.10
+                import tomli as tomllib
+            data = tomllib.loads(raw.decode("utf-8"))
+        else:
+            data = json.loads(raw.decode("utf-8"))
+    except Exception as exc:  # noqa: BLE001 - any parse failure is the user's file
+        raise EvtkError(f"{path}: not a valid job file: {exc}") from None
+    if not isinstance(data, dict):
+        raise EvtkError(f"{path}: a job file holds a table of settings")
+    unknown = sorted(set(data) - set(JOB_KEYS))
+    if unknown:
+        raise EvtkError(f"{path}: unknown job settings {unknown}; a job holds {list(JOB_KEYS)}")
+    return data
+
+
+def _patterns(value, name, base_dir):
+    """One or more 2-D 0/1 (or -1/0/1) patterns from a job value."""
+    if isinstance(value, str):
+        text = value if set(value) <= {"0", "1"} else os.path.join(base_dir, value)
+        return np.asarray(load_patterns(text, name))
+    if isinstance(value, list) and value and all(isinstance(v, str) for v in value):
+        pats = [np.asarray(load_patterns(v if set(v) <= {"0", "1"} else os.path.join(base_dir, v), name))
+                for v in value]
+        if len({p.shape for p in pats}) != 1:
+            raise EvtkError(f"the job's {name} differ in shape: {[p.shape for p in pats]}")
+        return np.stack(pats)
+    try:
+        arr = np.asarray(value, dtype=np.int64)
+    except (TypeError, ValueError):
+        raise EvtkError(f"the job's {name} must be bit strings, nested lists of numbers or a file path") from None
+    if arr.ndim not in (2, 3) or arr.size == 0:
+        raise EvtkError(f"the job's {name} must be a 2-D pattern or a list of them, not shape {arr.shape}")
+    return arr
+
+
+def load_job(path) -> dict:
+    """Read a job file (TOML or JSON; see the module docstring) into :class:`~evtk.simulate.Simulation`'s arguments.
+
+    Returns a dict with ``kernels``, ``features``, ``bench`` (a
+    :class:`~evtk.optics.Bench`), ``sensor`` (a :class:`~evtk.sensor.SensorModel`),
+    ``repeat``, ``flat_field``, ``window_us``, ``settle_us`` and ``seed``.
+    Paths in the job are relative to the job file.
+    """
+    data = _read_table(path)
+    base = os.path.dirname(os.path.abspath(os.fspath(path)))
+    if "kernels" not in data:
+        raise EvtkError(f"{path}: the job names no kernels")
+    kernels = _patterns(data["kernels"], "kernels", base)
+    features = _patterns(data["features"], "features", base) if "features" in data else default_features()
+    signed = data.get("signed", False)
+    if not isinstance(signed, bool):
+        raise EvtkError(f"{path}: signed must be true or false, not {signed!r}")
+    if signed:
+        kernels, features = np.where(kernels > 0, 1, -1), np.where(features > 0, 1, -1)
+    for key in ("bench", "sensor"):
+        if not isinstance(data.get(key, {}), dict):
+            raise EvtkError(f"{path}: [{key}] must be a table of parameters")
+    try:
+        bench = Bench.from_dict(data.get("bench", {}))
+        sensor = SensorModel.from_dict(data.get("sensor", {}))
+    except (EvtkError, TypeError) as exc:
+        raise EvtkError(f"{path}: {exc}") from None
+    job = {"kernels": kernels, "features": features, "bench": bench, "sensor": sensor}
+    for key, default in (("repeat", 1), ("flat_field", 2), ("window_us", 1000), ("settle_us", None), ("seed", 0)):
+        v = data.get(key, default)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int)):
+            raise EvtkError(f"{path}: {key} must be a whole number, not {v!r}")
+        job[key] = v
+    return job
+
+
+def job_simulation(path) -> Simulation:
+    """The :class:`~evtk.simulate.Simulation` of a job file: the same schedule :func:`write_patterns` writes."""
+    return Simulation(**load_job(path))
+
+
+def dmd_frame(pattern, upsample, dmd_cols, dmd_rows) -> tuple[np.ndarray, tuple[int, int]]:
+    """One DMD frame: ``pattern`` (elements > 0 on) with each element ``upsample`` x ``upsample`` mirrors, centred.
+
+    Returns the boolean frame (``dmd_rows`` x ``dmd_cols``) and the mirror
+    (row, column) of the pattern's top-left element.
+
+    Examples
+    --------
+    >>> frame, at = dmd_frame([[1, 0], [0, 1]], 2, 8, 6)
+    >>> at, int(frame.sum()), frame[at[0]:at[0] + 4, at[1]:at[1] + 4].astype(int).tolist()
+    ((1, 2), 8, [[1, 1, 0, 0], [1, 1, 0, 0], [0, 0, 1, 1], [0, 0, 1, 1]])
+    """
+    pat = np.asarray(pattern) > 0
+    up = int(upsample)
+    h, w = pat.shape[0] * up, pat.shape[1] * up
+    if h > dmd_rows or w > dmd_cols:
+        raise EvtkError(f"a {pat.shape[0]}x{pat.shape[1]} pattern at {up} mirrors per element needs {w}x{h} "
+                        f"mirrors; the DMD has {dmd_cols}x{dmd_rows}")
+    r0, c0 = (dmd_rows - h) // 2, (dmd_cols - w) // 2
+    frame = np.zeros((dmd_rows, dmd_cols), bool)
+    frame[r0:r0 + h, c0:c0 + w] = np.kron(pat, np.ones((up, up), bool))
+    return frame, (r0, c0)
+
+
+def _save_1bit(path, frame, image_format):
+    from PIL import Image
+
+    from .io._atomic import AtomicFile
+
+    img = Image.fromarray(np.ascontiguousarray(frame, dtype=bool))  # mode "1": one bit a mirror
+    with AtomicFile(path) as out:
+        img.save(out.file, format=image_format.upper())
+
+
+def write_patterns(sim: Simulation, out_dir, image_format="png") -> dict:
+    """Write every DMD frame of a run and its schedule into ``out_dir``.
+
+    Files: ``kernel/kNNN.<fmt>`` and ``features/fNNN.<fmt>`` (each distinct
+    frame once), ``dark.<fmt>`` (all mirrors off, shown between patterns by
+    both DMDs), and ``schedule.json``: per capture, its trigger edges
+    (``t_on_us``/``t_off_us``: capture ``c`` is started by the ``c``-th rising
+    edge and ended by the next falling edge), the frame each DMD shows, which
+    kernel and features and which +/- pass it is, and the repeat; plus the
+    kernels, features, timing and bench geometry (see
+    ``docs/formats/schedule.md``). It holds no pixel model: nothing a bench
+    would not know. Returns a summary (frames written, captures, paths).
+    """
+    fmt = str(image_format).lower()
+    if fmt not in ("png", "bmp"):
+        raise EvtkError(f"image format must be png or bmp, not {image_format!r}")
+    b = sim.bench
+    out_dir = os.fspath(out_dir)
+    os.makedirs(os.path.join(out_dir, "kernel"), exist_ok=True)
+    os.makedirs(os.path.join(out_dir, "features"), exist_ok=True)
+    written = {}
+
+    def frame_file(kind, pattern, upsample):
+        frame, at = dmd_frame(pattern, upsample, b.dmd_cols, b.dmd_rows)
+        key = (kind, hashlib.sha1(np.packbits(frame).tobytes()).hexdigest())
+        if key not in written:
+            name = f"{kind}/{kind[0]}{sum(k[0] == kind for k in written):03d}.{fmt}"
+            _save_1bit(os.path.join(out_dir, name), frame, fmt)
+            written[key] = (name, at)
+        return written[key]
+
+    s = sim.schedule
+    captures = []
+    for c in range(len(s)):
+        kpat, fpat = sim._pass_patterns(c)
+        kname, k_at = frame_file("kernel", kpat, b.kernel_mirrors)
+        fname, f_at = frame_file("features", fpat, b.feature_upsample)
+        captures.append({"capture": c, "t_on_us": int(s.t_on_us[c]), "t_off_us": int(s.t_off_us[c]),
+                         "kernel_frame": kname, "features_frame": fname, "kernel_id": int(s.kernel_id[c]),
+                         "features_id": int(s.features_id[c]), "kernel_sign": int(s.kernel_sign[c]),
+                         "features_sign": int(s.features_sign[c]), "repeat": int(s.repeat[c])})
+    dark = f"dark.{fmt}"
+    _save_1bit(os.path.join(out_dir, dark), np.zeros((b.dmd_rows, b.dmd_cols), bool), fmt)
+    doc = {
+        "evtk_schedule_version": SCHEDULE_VERSION,
+        "window_us": int(sim.window_us), "settle_us": int(sim.settle_us), "start_us": int(sim.start_us),
+        "repeat": int(sim.repeat), "flat_field": int(sim.flat_field),
+        "kernels": sim.kernels.tolist(), "features": sim.features.tolist(),
+        "dmd": {"cols": int(b.dmd_cols), "rows": int(b.dmd_rows), "mirror_pitch_um": float(b.mirror_pitch_um),
+                "kernel_mirrors_per_element": int(b.kernel_mirrors), "varsigma": float(b.varsigma),
+                "feature_mirrors_per_element": int(b.feature_upsample),
+                "kernel_top_left": list(_top_left(written, "kernel")),
+                "features_top_left": list(_top_left(written, "features")),
+                "kernel_hz": float(b.kernel_hz), "features_hz": float(b.features_hz)},
+        "bench": b.to_dict(),
+        "dark_frame": dark,
+        "triggers": "capture c: the c-th rising edge shows its frames, the next falling edge returns both DMDs "
+                    "to the dark frame",
+        "captures": captures,
+    }
+    from .io._atomic import AtomicFile
+
+    schedule_path = os.path.join(out_dir, "schedule.json")
+    with AtomicFile(schedule_path) as out:
+        out.file.write(json.dumps(doc, indent=1).encode())
+    kinds = [k[0] for k in written]
+    return {"out_dir": out_dir, "schedule": schedule_path, "captures": len(captures),
+            "kernel_frames": kinds.count("kernel"), "features_frames": kinds.count("features"),
+            "format": fmt, "dmd": [int(b.dmd_cols), int(b.dmd_rows)]}
+
+
+def _top_left(written, kind):
+    """Top-left mirror (row, column) of the frames of ``kind`` (all centred alike)."""
+    for (k, _), (_, at) in written.items():
+        if k == kind:
+            return at
+    return (0, 0)
