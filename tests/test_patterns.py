@@ -106,3 +106,77 @@ def test_job_values_in_every_form(tmp_path):
     assert frame.sum() == 3 * 16 and at == (2, 4)
     with pytest.raises(EvtkError, match="image format"):
         write_patterns(job_simulation(tmp_path / "j.json"), tmp_path / "o", "jpg")
+
+
+def _camera_copy(sim_path, out_path, offset_us, drop=(), extra=()):
+    """What the camera would have written: the events and trigger edges, on its own clock, no evtk metadata;
+    trigger edges ``drop`` (indices) lost and ``extra`` (time, kind) edges added."""
+    with evtk.open(sim_path) as rec:
+        ev, tr, record = rec.events(), rec.triggers(), rec.metadata["simulation"]
+    keep = np.ones(len(tr), bool)
+    keep[list(drop)] = False
+    t = np.r_[tr.t[keep], [e[0] for e in extra]].astype(np.int64) + offset_us
+    kind = np.r_[tr.kind[keep], [e[1] for e in extra]].astype(np.uint8)
+    order = np.argsort(t, kind="stable")
+    evtk.write_events(out_path, evtk.Events(ev.t + offset_us, ev.x, ev.y, ev.p, ev.sensor_size),
+                      evtk.Triggers(t[order], kind[order]))
+    return record
+
+
+def test_bench_reconstruction_from_the_schedule_alone(tmp_path):
+    """patterns -> a simulated run -> the camera's copy (own clock, a lost edge, a spurious pair, no record) ->
+    reconstruct --schedule: every window is matched to its capture, the pair with a lost pass is left out and
+    reported, and with flat-field calibration the responses correlate with the job's digital correlation nearly
+    as well as the oracle reconstruction that inverts the simulator's own pixel model."""
+    from evtk.reconstruct import reconstruct, reconstruct_bench
+
+    job = tmp_path / "job.toml"
+    job.write_text('kernels = ["010111010"]\nrepeat = 3\nflat_field = 2\nwindow_us = 1000\nseed = 2\n')
+    assert CliRunner().invoke(main, ["patterns", str(job), "-o", str(tmp_path / "p")]).exit_code == 0
+    assert CliRunner().invoke(main, ["simulate", "--job", str(job), "-o", str(tmp_path / "sim.h5")]).exit_code == 0
+    record = _camera_copy(tmp_path / "sim.h5", tmp_path / "cam.aedat4", 7_000_003, drop=[6],
+                          extra=[(10, 1), (20, 2)])
+    with evtk.open(tmp_path / "sim.h5") as rec:
+        oracle = reconstruct(rec)
+    with evtk.open(tmp_path / "cam.aedat4") as rec:
+        assert rec.metadata.get("simulation") is None
+        bench = reconstruct_bench(rec, tmp_path / "p" / "schedule.json", record["response_region"],
+                                  record["response_origin_px"])
+        plain = reconstruct_bench(rec, tmp_path / "p" / "schedule.json", record["response_region"],
+                                  record["response_origin_px"], flat_field=False)
+    m = bench.summary["match"]
+    assert m["offset_us"] == 7_000_003 and m["missing"] == [3] and m["extra"] == 1 and m["matched"] == 4
+    assert bench.summary["pairs_left_out"] == [(0, 0, 1)] and len(bench.pairs) == 2
+    assert bench.summary["binarize"] == "mean" and bench.summary["flat_field_captures"] == 2
+    corr, oracle_corr = bench.summary["error"]["correlation"], oracle.summary["error"]["correlation"]
+    assert corr > 0.85 and corr > oracle_corr - 0.08, (corr, oracle_corr)
+    assert corr > plain.summary["error"]["correlation"] + 0.1  # the flat field is what makes it work
+    region = ",".join(map(str, record["response_region"]))
+    res = CliRunner().invoke(main, ["reconstruct", str(tmp_path / "cam.aedat4"), "--schedule",
+                                    str(tmp_path / "p" / "schedule.json"), "--region", region, "-o",
+                                    str(tmp_path / "r.h5")])
+    assert res.exit_code == 0 and "missing [3], 1 extra" in res.output, res.output
+    assert "digital correlation of the schedule's patterns" in res.output
+    assert evtk.load_reconstruction(tmp_path / "r.h5").responses.shape == (2, 16, 16)
+    for bad, msg in ((["--region", region, "--window", "triggers"], "leave out --window"), ([], "needs --region")):
+        res = CliRunner().invoke(main, ["reconstruct", str(tmp_path / "cam.aedat4"), "--schedule",
+                                        str(tmp_path / "p" / "schedule.json"), "-o", str(tmp_path / "x.h5"), *bad])
+        assert res.exit_code == 2 and msg in res.output, res.output
+
+
+def test_a_schedule_that_does_not_belong_to_the_recording_is_one_error(tmp_path):
+    from evtk.reconstruct import load_schedule, reconstruct_bench
+
+    (tmp_path / "s.json").write_text('{"evtk_schedule_version": 1, "captures": [{"capture": 0}]}')
+    with pytest.raises(EvtkError, match="malformed"):
+        load_schedule(tmp_path / "s.json")
+    (tmp_path / "n.json").write_text("[1, 2]")
+    with pytest.raises(EvtkError, match="not an evtk schedule"):
+        load_schedule(tmp_path / "n.json")
+    job = tmp_path / "job.toml"
+    job.write_text('kernels = ["010111010"]\nflat_field = 0\n')
+    write_patterns(job_simulation(job), tmp_path / "p")
+    ev = evtk.Events([5, 6], [0, 1], [0, 0], [1, 0], (320, 240))
+    evtk.write_events(tmp_path / "none.h5", ev)
+    with evtk.open(tmp_path / "none.h5") as rec, pytest.raises(EvtkError, match="no complete window"):
+        reconstruct_bench(rec, tmp_path / "p" / "schedule.json", (0, 10, 0, 10))

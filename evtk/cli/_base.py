@@ -183,7 +183,26 @@ def _parse_size(text):
     return rows, cols
 
 
+def _parse_ints(text, n, name):
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != n or not all(np.isfinite(vals)):
+        raise EvtkError(f"{name} must be {n} comma-separated numbers, not {text!r}")
+    return vals
+
+
+def _parse_region(text):
+    x0, x1, y0, y1 = (int(v) for v in _parse_ints(text, 4, "--region"))
+    if not (0 <= x0 < x1 and 0 <= y0 < y1):
+        raise EvtkError(f"--region X0,X1,Y0,Y1 must satisfy 0 <= X0 < X1 and 0 <= Y0 < Y1, not {text!r}")
+    return (x0, x1, y0, y1)
+
+
 WINDOW = _Parsed("window", _parse_window)
+REGION = _Parsed("X0,X1,Y0,Y1", _parse_region)
+POINT = _Parsed("X,Y", lambda text: tuple(_parse_ints(text, 2, "--origin-px")))
 SIZE = _Parsed("ROWSxCOLS", _parse_size)
 BINARIZE = _Parsed("binarize", _parse_binarize)
 

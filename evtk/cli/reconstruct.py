@@ -8,6 +8,8 @@ import click
 
 from ._base import (
     _MAX_INT,
+    POINT,
+    REGION,
     _count,
     _dumps,
     _progress,
@@ -25,9 +27,21 @@ from ._base import (
 @_reconstruct_options
 @click.option("--png", "png_path", type=click.Path(dir_okay=False),
               help="Also draw contact sheets: measured beside ideal, and both binarised.")
+@click.option("--schedule", "schedule_path", type=click.Path(dir_okay=False, exists=True),
+              help="A bench recording's schedule.json (evtk patterns): windows matched to its captures, no "
+                   "simulation record read. Needs --region.")
+@click.option("--region", type=REGION, help="With --schedule: sensor pixels X0,X1,Y0,Y1 the response lies on.")
+@click.option("--origin-px", type=POINT, help="With --schedule: sensor pixel X,Y of the response's cell (0, 0) "
+                                               "(default: the bench geometry's).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
-def reconstruct_cmd(recording, output, png_path, as_json, **settings):
-    """Turn a recording into the convolution responses the device computed."""
+@click.pass_context
+def reconstruct_cmd(ctx, recording, output, png_path, schedule_path, region, origin_px, as_json, **settings):
+    """Turn a recording into the convolution responses the device computed.
+
+    A simulated recording is windowed by its stored schedule; a bench
+    recording by its trigger edges, matched with --schedule against the
+    schedule evtk patterns wrote (lost or extra edges are reported).
+    """
     from ..io._atomic import refuse_overwriting_inputs
     from ..io.reconstruction import save_reconstruction
     from ..plots import contact_sheet
@@ -36,7 +50,18 @@ def reconstruct_cmd(recording, output, png_path, as_json, **settings):
     if png_path:
         refuse_overwriting_inputs(png_path, [recording, output])
     options = _reconstruct_settings(**settings)
-    result, about = _reconstructed(recording, **options.kwargs())
+    if schedule_path:
+        not_here = [f"--{n.replace('_', '-')}" for n in ("window_spec", "linearize", "deblur", "timing")
+                    if ctx.get_parameter_source(n) == click.core.ParameterSource.COMMANDLINE]
+        if not_here or region is None:
+            raise click.UsageError("--schedule needs --region" if region is None else
+                                   f"--schedule reconstructs from the trigger windows by exp(n theta): leave out "
+                                   f"{', '.join(not_here)}")
+        result, about = _reconstructed_bench(recording, schedule_path, region, origin_px, options)
+    else:
+        if region is not None or origin_px is not None:
+            raise click.UsageError("--region and --origin-px go with --schedule")
+        result, about = _reconstructed(recording, **options.kwargs())
     n_events, sensor = about["events"], about["sensor_size"]
     save_reconstruction(output, result, sensor, {"source": str(recording)})
     pages = contact_sheet(png_path, result) if png_path else []
@@ -51,8 +76,15 @@ def reconstruct_cmd(recording, output, png_path, as_json, **settings):
                 f"({summary['events_used']:,} of {n_events:,} events used) to {output}")
         if err:
             fmt = lambda v, spec: "n/a" if v is None else format(v, spec)  # noqa: E731
-            line += (f"\nagainst ground truth: correlation {fmt(err['correlation'], '.4f')}, RMS error "
+            what = ("the digital correlation of the schedule's patterns (best scale)" if "scale_to_ideal" in summary
+                    else "ground truth")
+            line += (f"\nagainst {what}: correlation {fmt(err['correlation'], '.4f')}, RMS error "
                      f"{fmt(err['nrmse'], '.1%')} of the ideal's RMS, {fmt(err['nrmse_range'], '.1%')} of its range")
+        match = summary.get("match")
+        if match and (match["missing"] or match["extra"]):
+            line += (f"\ntrigger windows: {match['matched']} of {match['captures']} captures matched; missing "
+                     f"{match['missing'][:10]}{' ...' if len(match['missing']) > 10 else ''}, {match['extra']} extra"
+                     + (f"; pairs left out {summary['pairs_left_out']}" if summary.get("pairs_left_out") else ""))
         if summary.get("timing_skipped"):
             line += f"\nnote: event times were not used: {summary['timing_skipped']}"
         click.echo(line)
@@ -102,3 +134,21 @@ def batch_reconstruct_cmd(inputs, out_dir, fmt, force, split_events, scheduler_s
                 click.echo(f"  failed: {e['input']}: {e['error']}")
     if c["error"]:
         sys.exit(1)
+
+
+def _reconstructed_bench(path, schedule_path, region, origin_px, options):
+    from .. import io as evio
+    from ..reconstruct import reconstruct_bench
+
+    with evio.open(path) as rec:
+        n_events = rec.info()["events"]
+        update, finish = _progress(n_events, f"reconstructing {path}")
+        try:
+            result = reconstruct_bench(rec, schedule_path, region, origin_px, size=options.size,
+                                       binarize_method=options.binarize_method, skip_us=options.skip_us,
+                                       length_us=options.length_us, crop=options.crop,
+                                       flat_field=options.flat_field, progress=update)
+        finally:
+            finish()
+        return result, {"events": n_events, "sensor_size": rec.sensor_size}
+

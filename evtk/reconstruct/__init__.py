@@ -29,6 +29,7 @@ from __future__ import annotations
 
 from ..io.reconstruction import save_reconstruction
 from .accumulate import accumulate
+from .bench import load_schedule, match_windows, reconstruct_bench
 from .binarize import binarize, binarize_rule
 from .grid import combine_passes, downsample, to_response_grid
 from .linearize import count_curve, flat_field_gain, linearize, linearize_by_model
@@ -53,10 +54,12 @@ from .timing import _timing_factor  # noqa: F401
 
 __all__ = [
     "Windows", "WindowCounts", "windows_from_schedule", "windows_from_triggers", "windows_periodic",
-    "ReconstructOptions", "accumulate", "linearize", "combine_passes", "to_response_grid", "downsample", "binarize",
-    "binarize_rule", "plan", "reconstruct", "reconstruct_counts", "Reconstruction", "response_error",
-    "save_reconstruction", "contact_sheet", "count_curve", "linearize_by_model", "linearize_by_timing",
-    "timing_thresholds", "wants_times", "window_bytes", "flat_field_gain"]
+    "ReconstructOptions", "reconstruct_bench", "match_windows", "load_schedule", "accumulate", "linearize",
+    "combine_passes", "to_response_grid", "downsample", "binarize", "binarize_rule", "plan", "reconstruct",
+    "reconstruct_counts", "Reconstruction", "response_error", "save_reconstruction", "contact_sheet",
+    "count_curve", "linearize_by_model", "linearize_by_timing", "timing_thresholds", "wants_times",
+    "window_bytes", "flat_field_gain",
+]
 
 
 def contact_sheet(path, result, max_rows=8):

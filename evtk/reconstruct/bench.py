@@ -1,0 +1,240 @@
+"""Reconstructing a bench recording from its schedule alone: no simulation record, no pixel model.
+
+The bench knows what it showed (``schedule.json`` from :mod:`evtk.patterns`)
+and where the response lies on the sensor (a region and the pixel of cell
+(0, 0), from a calibration or measured by hand); it does not know the
+pixels' model. :func:`match_windows` pairs the recording's trigger windows
+with the schedule's captures (the camera's clock has its own origin; edges
+can be lost or doubled), and :func:`reconstruct_bench` runs windows,
+counts, ``exp(n theta)`` linearisation, the passes, the grid, resampling and
+binarisation on what matched, and compares the result with the digital
+correlation of the job's patterns, which the bench knows too.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+from ..errors import EvtkError
+from .binarize import binarize
+from .grid import combine_passes, downsample, to_response_grid
+from .linearize import flat_field_gain, linearize
+from .pipeline import Reconstruction, response_error
+from .windows import Windows, windows_from_triggers
+
+__all__ = ["load_schedule", "match_windows", "reconstruct_bench"]
+
+
+def load_schedule(path) -> dict:
+    """Read a ``schedule.json`` written by :func:`evtk.patterns.write_patterns`.
+
+    Returns ``schedule`` (:class:`evtk.simulate.Schedule`), ``kernels``,
+    ``features`` (int arrays), ``bench`` (:class:`evtk.optics.Bench`),
+    ``window_us`` and ``settle_us``; a malformed file is one
+    :class:`~evtk.EvtkError` naming what is wrong.
+    """
+    from ..optics import Bench
+    from ..simulate import Schedule
+
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as f:
+            doc = json.loads(f.read().decode("utf-8"))
+    except OSError as exc:
+        raise EvtkError(f"{path}: cannot read the schedule: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise EvtkError(f"{path}: not a schedule file (invalid JSON: {exc})") from None
+    if not isinstance(doc, dict) or doc.get("evtk_schedule_version") != 1:
+        raise EvtkError(f"{path}: not an evtk schedule (evtk_schedule_version 1); write one with evtk patterns")
+    try:
+        caps = doc["captures"]
+        cols = {c: [int(cap[c]) for cap in caps] for c in Schedule._COLUMNS}
+        schedule = Schedule.from_dict(cols)
+        kernels = np.asarray(doc["kernels"], dtype=np.int64)
+        features = np.asarray(doc["features"], dtype=np.int64)
+        bench = Bench.from_dict(doc["bench"])
+        window_us, settle_us = int(doc["window_us"]), int(doc["settle_us"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise EvtkError(f"{path}: the schedule is malformed ({type(exc).__name__}: {exc})") from None
+    if kernels.ndim != 3 or features.ndim != 3 or len(schedule) == 0:
+        raise EvtkError(f"{path}: the schedule needs kernels, features and at least one capture")
+    if np.any(schedule.kernel_id >= len(kernels)) or np.any(schedule.features_id >= len(features)):
+        raise EvtkError(f"{path}: a capture names a kernel or features pattern the schedule does not hold")
+    return {"schedule": schedule, "kernels": kernels, "features": features, "bench": bench,
+            "window_us": window_us, "settle_us": settle_us}
+
+
+def match_windows(triggers, schedule, tolerance_us=None):
+    """Pair trigger windows with the schedule's captures; returns ``(Windows, report)``.
+
+    The recording's clock and the schedule's differ by an offset, found as
+    the one that lines up the most window starts with capture starts (tried
+    from the first few windows and captures). A window matches the capture
+    it then starts within ``tolerance_us`` of (default: a quarter of the
+    shortest gap between captures); a capture gets at most one window.
+    ``Windows.capture`` holds the matched capture numbers; ``report`` says
+    how many matched, which captures have no window (``missing``), how many
+    windows match none (``extra``), the offset, and what the trigger edges
+    themselves left out (``dropped``). Missing and extra edges are reported,
+    not fatal; no match at all is an error.
+    """
+    win = windows_from_triggers(triggers)
+    t_on = schedule.t_on_us
+    if len(win) == 0:
+        raise EvtkError("the recording holds no trigger windows (rising then falling edge) to match the schedule")
+    gaps = np.diff(np.sort(t_on))
+    tol = float(tolerance_us) if tolerance_us is not None else max(1.0, 0.25 * float(gaps.min() if gaps.size
+                                                                                    else 1e9))
+    order = np.argsort(t_on, kind="stable")
+    sorted_on = t_on[order]
+
+    def assign(offset):
+        rel = win.t_start_us - offset
+        j = np.clip(np.searchsorted(sorted_on, rel), 1, max(1, len(sorted_on) - 1))
+        cand = np.stack([j - 1, np.minimum(j, len(sorted_on) - 1)])
+        dist = np.abs(sorted_on[cand] - rel)
+        best = cand[np.argmin(dist, axis=0), np.arange(len(rel))]
+        ok = np.abs(sorted_on[best] - rel) <= tol
+        return best, ok, np.abs(sorted_on[best] - rel)
+
+    # a schedule of equal periods lines up almost as well one capture off: the most matches win, then the
+    # smallest total distance (a constant clock offset lines every start up to the microsecond)
+    best_offset, best_score = None, None
+    k = min(8, len(win), len(t_on))
+    for i in range(k):
+        for j in range(k):
+            off = int(win.t_start_us[i] - sorted_on[j])
+            _, ok, dist = assign(off)
+            score = (int(ok.sum()), -float(dist[ok].sum()))
+            if best_score is None or score > best_score:
+                best_offset, best_score = off, score
+    idx, ok, dist = assign(best_offset)
+    if not ok.any():
+        raise EvtkError("no trigger window lines up with the schedule: is it the schedule of this recording?")
+    taken = {}
+    for w in np.flatnonzero(ok):  # a capture keeps its closest window; the others are extra
+        c = int(idx[w])
+        if c not in taken or dist[w] < dist[taken[c]]:
+            taken[c] = int(w)
+    caps = np.array(sorted(taken), dtype=np.int64)
+    wins = np.array([taken[c] for c in caps], dtype=np.int64)
+    matched = Windows(win.t_start_us[wins], win.t_end_us[wins], order[caps], "triggers matched to the schedule",
+                      dict(win.dropped))
+    missing = sorted(set(range(len(t_on))) - set(order[caps].tolist()))
+    report = {"matched": int(len(caps)), "captures": int(len(t_on)), "missing": missing,
+              "extra": int(len(win) - len(caps)), "offset_us": int(best_offset),
+              "dropped": {k: v for k, v in win.dropped.items() if v}}
+    return matched, report
+
+
+def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), binarize_method="auto", theta=0.2,
+                      skip_us=0, length_us=None, crop="valid", tolerance_us=None, flat_field=True,
+                      progress=None) -> Reconstruction:
+    """The whole pipeline on a bench recording, driven by its schedule; no simulation record is read.
+
+    Parameters
+    ----------
+    rec : Recording
+        Events and the DMD's trigger edges.
+    schedule : str, os.PathLike or dict
+        ``schedule.json`` (:func:`evtk.patterns.write_patterns`) or :func:`load_schedule`'s dict.
+    region : (x0, x1, y0, y1)
+        Sensor pixels to count (half-open).
+    origin_px : (x, y), optional
+        Sensor pixel that sees cell (0, 0) of the full response; default the
+        bench geometry's (the response centred on the sensor).
+    size, binarize_method, skip_us, length_us, crop
+        As :func:`~evtk.reconstruct.reconstruct`; ``"auto"`` binarises by sign
+        when the job is signed, else at each response's mean.
+    theta : float
+        Contrast threshold of ``exp(n theta) - 1`` (:func:`linearize`).
+    tolerance_us : float, optional
+        How far a window start may be from its capture's (see :func:`match_windows`).
+    flat_field : bool
+        Calibrate each pixel's threshold on the matched flat-field captures:
+        without a pixel model, what a nominal pixel would count there is
+        taken as the 5x5 median of its neighbours' counts (the flat response
+        is smooth; threshold mismatch is not), see :func:`flat_field_gain`.
+
+    Returns a :class:`~evtk.reconstruct.Reconstruction` whose ``ideal`` is the
+    digital correlation of the job's patterns and whose ``summary`` carries
+    the trigger match (``match``) and the error against the ideal after the
+    best scale (``error``: responses are relative intensity, not the ideal's
+    units). Pairs with a pass that has no window are left out and listed.
+    """
+    from ..optics import ideal_response, response_origin_px
+    from .accumulate import accumulate
+    from .pipeline import _check_crop
+    from .windows import _trim
+
+    _check_crop(crop)
+    sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
+    s, kernels, features, bench = sched["schedule"], sched["kernels"], sched["features"], sched["bench"]
+    win, report = match_windows(rec.triggers(), s, tolerance_us)
+    start, end = _trim(win.t_start_us, win.t_end_us, skip_us, length_us, "matched")
+    win = Windows(start, end, win.capture, win.source, win.dropped)
+    kh, kw = kernels.shape[1:]
+    fh, fw = features.shape[1:]
+    origin = tuple(float(v) for v in (origin_px if origin_px is not None
+                                      else response_origin_px(bench, (kh, kw), (fh, fw))))
+    counts = accumulate(rec, win, region, progress=progress)
+    flat = s.kernel_id[win.capture] < 0
+    gain = None
+    if flat_field and flat.any():
+        from scipy.ndimage import median_filter
+
+        net_flat = counts.on[flat].astype(np.float64) - counts.off[flat]
+        gain = flat_field_gain(net_flat, median_filter(net_flat.mean(axis=0), size=5, mode="nearest"))
+    values = linearize(counts.on, counts.off, theta) if gain is None else \
+        linearize(counts.on * gain, counts.off * gain, theta)
+    step = bench.kernel_step_cells / bench.pixel_cells
+    cells = to_response_grid(values, counts.region, origin, step, (fh + kh - 1, fw + kw - 1))
+    # the passes of each (kernel, features, repeat) pair: only pairs whose every pass has a window
+    sub = {c: getattr(s, c)[win.capture] for c in s._COLUMNS}
+    complete = _complete_pairs(s, set(win.capture.tolist()))
+    keep = np.array([(k, f, r) in complete or k < 0 for k, f, r in zip(sub["kernel_id"], sub["features_id"],
+                                                                        sub["repeat"])], bool)
+    from ..simulate import Schedule
+
+    kept = Schedule(**{c: v[keep] for c, v in sub.items()})
+    combined, pairs = combine_passes(cells[keep], kept)
+    ideal = np.stack([ideal_response(kernels[k], features[f], bench) for k, f, _ in pairs])
+    if crop == "valid":
+        sl = (slice(None), slice(kh - 1, fh), slice(kw - 1, fw))
+        combined, ideal = combined[sl], ideal[sl]
+    signed = bool(np.min(kernels) < 0 or np.min(features) < 0)
+    method = ("sign" if signed else "mean") if binarize_method == "auto" else binarize_method
+    responses = downsample(combined, size)
+    binary = binarize(responses, method)
+    scale = float(np.sum(combined * ideal) / np.sum(combined * combined)) if np.any(combined) else 1.0
+    summary = {
+        "captures": int(len(s)), "windows": int(len(win)), "window_source": win.source,
+        "windows_dropped": win.dropped, "events_used": counts.events_used, "region": list(counts.region),
+        "response_origin_px": list(origin), "responses": int(responses.shape[0]), "size": list(responses.shape[1:]),
+        "linear": True, "theta_on": float(theta), "binarize": str(method), "skip_us": int(skip_us),
+        "length_us": None if length_us is None else int(length_us), "linearization": "exp(n theta)",
+        "deblurred": False, "flat_field_captures": int(flat.sum()) if gain is not None else 0,
+        "decimation": int(bench.decimation),
+        "match": report, "pairs_left_out": sorted(_all_pairs(s) - complete),
+        "error": response_error(combined * scale, ideal), "scale_to_ideal": scale,
+    }
+    return Reconstruction(responses, binary, pairs, combined, ideal, counts, summary)
+
+
+def _all_pairs(s):
+    use = (s.kernel_id >= 0) & (s.features_id >= 0)
+    return {(int(k), int(f), int(r)) for k, f, r in zip(s.kernel_id[use], s.features_id[use], s.repeat[use])}
+
+
+def _complete_pairs(s, have):
+    """The (kernel, features, repeat) pairs all of whose captures are in ``have``."""
+    out = {}
+    for c in range(len(s)):
+        if s.kernel_id[c] < 0:
+            continue
+        key = (int(s.kernel_id[c]), int(s.features_id[c]), int(s.repeat[c]))
+        out[key] = out.get(key, True) and c in have
+    return {k for k, v in out.items() if v}
