@@ -359,7 +359,10 @@ def _refine_by_timing(net, counts, sim, bench, schedule, curve, gain, theta_on, 
         flat_u = flat_u - _settle_residual(flat_u, schedule.t_on_us[ff], schedule.t_off_us[ff], sm, blank)
         t = timing_thresholds(counts.on[ff], counts.on_first_us[ff], counts.on_last_us[ff], flat_u, sm, blank,
                               skip_us)
-        theta = np.where(np.isfinite(t), t, theta * gain)
+        # a threshold the times put far from nominal says the model does not fit this pixel (a camera whose
+        # pixels differ from the record's): the count gain is the safer estimate there
+        plausible = np.isfinite(t) & (t > 0.25 * theta) & (t < 4.0 * theta)
+        theta = np.where(plausible, t, theta * gain)
     u = linearize_by_timing(counts.on, counts.on_first_us, counts.on_last_us, theta, sm, blank, curve, skip_us)
     ok = np.isfinite(u)
     u[~ok] = _model_log_step(net[~ok], curve)
