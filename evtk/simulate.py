@@ -49,6 +49,9 @@ __all__ = [
     "Simulation",
     "CaptureCounts",
     "load_patterns",
+    "dot_grid",
+    "FLAT_ID",
+    "DOTS_ID",
     "default_features",
     "METADATA_KEY",
 ]
@@ -186,7 +189,16 @@ class Simulation:
         Flat-field captures shown before everything else: every kernel
         element and every features element on. They let the reconstruction
         calibrate each pixel's threshold (:func:`evtk.reconstruct.flat_field_gain`);
-        in the schedule their ``kernel_id`` and ``features_id`` are -1.
+        in the schedule their ``kernel_id`` and ``features_id`` are -1 (:data:`FLAT_ID`).
+    calibration : int
+        Dot-grid captures shown after the flat fields: the kernel's centre
+        element on, and on the feature DMD one element every ``dot_spacing``
+        along each axis (:func:`dot_grid`). Each dot lights one response cell
+        (blurred by the optics), so they tell where the response lies and how
+        its cells map to pixels (:func:`evtk.calibrate.calibrate`); ids -2
+        (:data:`DOTS_ID`).
+    dot_spacing : int
+        Feature elements between dots.
 
     Examples
     --------
@@ -196,7 +208,8 @@ class Simulation:
     """
 
     def __init__(self, kernels, features, bench: Bench | None = None, sensor: SensorModel | None = None,
-                 window_us=1000, settle_us=None, repeat=1, seed=0, start_us=0, noise_seed=None, flat_field=2):
+                 window_us=1000, settle_us=None, repeat=1, seed=0, start_us=0, noise_seed=None, flat_field=2,
+                 calibration=0, dot_spacing=4):
         self.bench = bench if bench is not None else Bench()
         self.sensor = sensor if sensor is not None else SensorModel()
         self.kernels = _as_patterns("kernels", kernels)
@@ -226,13 +239,18 @@ class Simulation:
         # the schedule, and one response-sized light map per capture while it is simulated and written
         require_memory(n_est * (64 + 16 * (x1 - x0) * (y1 - y0)),
                        f"a run of {n_est:,} captures ({self.flat_field:,} flat fields, {self.repeat:,} repeats)")
-        rows = [(-1, -1, 1, 1, i) for i in range(self.flat_field)]
+        self.calibration = _int_param("calibration", calibration, 0)
+        self.dot_spacing = _int_param("dot_spacing", dot_spacing, 2)
+        if self.calibration and not dot_grid(self.features.shape[1:], self.dot_spacing).any():
+            raise EvtkError(f"a dot spacing of {self.dot_spacing} leaves no dot on {self.features.shape[1:]} features")
+        rows = [(FLAT_ID, FLAT_ID, 1, 1, i) for i in range(self.flat_field)]
+        rows += [(DOTS_ID, DOTS_ID, 1, 1, i) for i in range(self.calibration)]
         for r in range(self.repeat):
             for ki in range(len(self.kernels)):
                 for fi in range(len(self.features)):
                     for ks, fs, _kp, _fp in self._pair_passes(ki, fi):
                         rows.append((ki, fi, ks, fs, r))
-        if len(rows) == self.flat_field:
+        if len(rows) == self.flat_field + self.calibration:
             raise EvtkError("nothing to show: every kernel or features pattern is all zero")
         n = len(rows)
         period = self.window_us + self.settle_us
@@ -261,8 +279,12 @@ class Simulation:
     def _pass_patterns(self, c):
         s = self.schedule
         ks, fs = int(s.kernel_sign[c]), int(s.features_sign[c])
-        if s.kernel_id[c] < 0:  # flat field
+        if s.kernel_id[c] == FLAT_ID:  # flat field
             return np.ones(self.kernels.shape[1:], np.int8), np.ones(self.features.shape[1:], np.int8)
+        if s.kernel_id[c] == DOTS_ID:  # calibration dots under the kernel's centre element
+            k = np.zeros(self.kernels.shape[1:], np.int8)
+            k[(k.shape[0] - 1) // 2, (k.shape[1] - 1) // 2] = 1
+            return k, dot_grid(self.features.shape[1:], self.dot_spacing)
         return _pass(self.kernels[s.kernel_id[c]], ks), _pass(self.features[s.features_id[c]], fs)
 
     def _rate(self, response):
@@ -317,6 +339,8 @@ class Simulation:
             "end_us": self.end_us,
             "repeat": self.repeat,
             "flat_field": self.flat_field,
+            "calibration": self.calibration,
+            "dot_spacing": self.dot_spacing,
             "bench": self.bench.to_dict(),
             "sensor": self.sensor.to_dict(),
             "kernels": self.kernels.tolist(),
@@ -722,6 +746,28 @@ def default_features(side=16):
 
     img = transform.resize(data.camera().astype(np.float64), (side, side), anti_aliasing=True)
     return (img > img.mean()).astype(np.int8)
+
+
+#: ``kernel_id``/``features_id`` of a flat-field capture (every mirror on) in a schedule.
+FLAT_ID = -1
+#: ``kernel_id``/``features_id`` of a calibration capture (kernel all on, a dot grid of features).
+DOTS_ID = -2
+
+
+def dot_grid(shape, spacing):
+    """The calibration pattern: 1 at every ``spacing``-th features element along each axis, starting
+    ``spacing // 2`` in, 0 elsewhere (int8).
+
+    Examples
+    --------
+    >>> dot_grid((6, 6), 3).nonzero()
+    (array([1, 1, 4, 4]), array([1, 4, 1, 4]))
+    """
+    h, w = (int(v) for v in shape)
+    s = int(spacing)
+    out = np.zeros((h, w), np.int8)
+    out[s // 2::s, s // 2::s] = 1
+    return out
 
 
 def load_patterns(path_or_bits, name, side=None):

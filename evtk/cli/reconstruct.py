@@ -6,6 +6,7 @@ import sys
 
 import click
 
+from ..errors import EvtkError
 from ._base import (
     _MAX_INT,
     POINT,
@@ -30,12 +31,15 @@ from ._base import (
 @click.option("--schedule", "schedule_path", type=click.Path(dir_okay=False, exists=True),
               help="A bench recording's schedule.json (evtk patterns): windows matched to its captures, no "
                    "simulation record read. Needs --region.")
+@click.option("--calibration", "calibration_path", type=click.Path(dir_okay=False, exists=True),
+              help="With --schedule: where the response lies, from evtk calibrate (instead of --region/--origin-px).")
 @click.option("--region", type=REGION, help="With --schedule: sensor pixels X0,X1,Y0,Y1 the response lies on.")
 @click.option("--origin-px", type=POINT, help="With --schedule: sensor pixel X,Y of the response's cell (0, 0) "
                                                "(default: the bench geometry's).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
 @click.pass_context
-def reconstruct_cmd(ctx, recording, output, png_path, schedule_path, region, origin_px, as_json, **settings):
+def reconstruct_cmd(ctx, recording, output, png_path, schedule_path, calibration_path, region, origin_px, as_json,
+                    **settings):
     """Turn a recording into the convolution responses the device computed.
 
     A simulated recording is windowed by its stored schedule; a bench
@@ -50,6 +54,14 @@ def reconstruct_cmd(ctx, recording, output, png_path, schedule_path, region, ori
     if png_path:
         refuse_overwriting_inputs(png_path, [recording, output])
     options = _reconstruct_settings(**settings)
+    calibration = None
+    if calibration_path:
+        from ..calibrate import load_calibration
+
+        if not schedule_path or region is not None or origin_px is not None:
+            raise click.UsageError("--calibration goes with --schedule, and replaces --region and --origin-px")
+        calibration = load_calibration(calibration_path)
+        region, origin_px = tuple(calibration.region), tuple(calibration.origin_px)
     if schedule_path:
         not_here = [f"--{n.replace('_', '-')}" for n in ("window_spec", "linearize", "deblur", "timing")
                     if ctx.get_parameter_source(n) == click.core.ParameterSource.COMMANDLINE]
@@ -57,7 +69,7 @@ def reconstruct_cmd(ctx, recording, output, png_path, schedule_path, region, ori
             raise click.UsageError("--schedule needs --region" if region is None else
                                    f"--schedule reconstructs from the trigger windows by exp(n theta): leave out "
                                    f"{', '.join(not_here)}")
-        result, about = _reconstructed_bench(recording, schedule_path, region, origin_px, options)
+        result, about = _reconstructed_bench(recording, schedule_path, region, origin_px, options, calibration)
     else:
         if region is not None or origin_px is not None:
             raise click.UsageError("--region and --origin-px go with --schedule")
@@ -136,11 +148,14 @@ def batch_reconstruct_cmd(inputs, out_dir, fmt, force, split_events, scheduler_s
         sys.exit(1)
 
 
-def _reconstructed_bench(path, schedule_path, region, origin_px, options):
+def _reconstructed_bench(path, schedule_path, region, origin_px, options, calibration=None):
     from .. import io as evio
     from ..reconstruct import reconstruct_bench
 
     with evio.open(path) as rec:
+        if calibration is not None and tuple(calibration.sensor_size) != tuple(rec.sensor_size):
+            raise EvtkError(f"the calibration is of a {calibration.sensor_size[0]}x{calibration.sensor_size[1]} "
+                            f"sensor, {path} of a {rec.sensor_size[0]}x{rec.sensor_size[1]} one")
         n_events = rec.info()["events"]
         update, finish = _progress(n_events, f"reconstructing {path}")
         try:

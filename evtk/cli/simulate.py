@@ -167,3 +167,33 @@ def patterns(job_path, out_dir, image_format, as_json):
                f"({summary['dmd'][0]}x{summary['dmd'][1]} mirrors, 1 bit, {summary['format']}) for "
                f"{summary['captures']} captures; schedule: {summary['schedule']}")
 
+
+@main.command(short_help="Where the response lies on the sensor, from the recording's calibration dots.")
+@click.argument("recording", type=click.Path(dir_okay=False, exists=True))
+@click.option("--schedule", "schedule_path", required=True, type=click.Path(dir_okay=False, exists=True),
+              help="The schedule.json evtk patterns wrote for the run (its job needs calibration = N).")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+              help="Calibration to write (.toml or .json), for evtk reconstruct --calibration.")
+@click.option("--png", "png_path", type=click.Path(dir_okay=False), help="Also draw the dots, the fit and residuals.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def calibrate(recording, schedule_path, output, png_path, as_json):
+    """Fit the map from response cells to sensor pixels (projective, RANSAC) from the dot-grid captures."""
+    from .. import io as evio
+    from ..calibrate import calibrate as run
+    from ..calibrate import plot_calibration, save_calibration
+    from ..io._atomic import refuse_overwriting_inputs
+
+    refuse_overwriting_inputs(output, [recording, schedule_path])
+    with evio.open(recording) as rec:
+        cal = run(rec, schedule_path)
+    save_calibration(output, cal)
+    if png_path:
+        plot_calibration(png_path, cal)
+    if as_json:
+        click.echo(_dumps(dict(cal.to_dict(), output=str(output))))
+        return
+    click.echo(f"{cal.dots_found} of {cal.dots_expected} dots found, {cal.inliers} fit one map: residual RMS "
+               f"{cal.residual_rms_px:.3f} px (max {cal.residual_max_px:.3f}); response origin "
+               f"({cal.origin_px[0]:.2f}, {cal.origin_px[1]:.2f}) px, {cal.step_px:.4f} px per cell, region "
+               f"{cal.region}; written to {output}")
+

@@ -19,6 +19,7 @@ import os
 import numpy as np
 
 from ..errors import EvtkError
+from ..simulate import FLAT_ID
 from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid
 from .linearize import flat_field_gain, linearize
@@ -63,8 +64,9 @@ def load_schedule(path) -> dict:
         raise EvtkError(f"{path}: the schedule needs kernels, features and at least one capture")
     if np.any(schedule.kernel_id >= len(kernels)) or np.any(schedule.features_id >= len(features)):
         raise EvtkError(f"{path}: a capture names a kernel or features pattern the schedule does not hold")
+    cal = doc.get("calibration") or {}
     return {"schedule": schedule, "kernels": kernels, "features": features, "bench": bench,
-            "window_us": window_us, "settle_us": settle_us}
+            "window_us": window_us, "settle_us": settle_us, "dot_spacing": int(cal.get("dot_spacing", 4))}
 
 
 def match_windows(triggers, schedule, tolerance_us=None):
@@ -181,7 +183,7 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     origin = tuple(float(v) for v in (origin_px if origin_px is not None
                                       else response_origin_px(bench, (kh, kw), (fh, fw))))
     counts = accumulate(rec, win, region, progress=progress)
-    flat = s.kernel_id[win.capture] < 0
+    flat = s.kernel_id[win.capture] == FLAT_ID
     gain = None
     if flat_field and flat.any():
         from scipy.ndimage import median_filter

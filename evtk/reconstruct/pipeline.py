@@ -8,6 +8,7 @@ import numpy as np
 
 from ..errors import EvtkError
 from ..limits import require_memory
+from ..simulate import FLAT_ID
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
 from .grid import _footprint_matrix, combine_passes, downsample, to_response_grid
@@ -240,8 +241,8 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
     needs_net = not linear or curve is not None or (flat_field and schedule is not None)
     net = counts.on.astype(np.float64) - counts.off if needs_net else None
     gain = None
-    if linear and flat_field and schedule is not None and np.any(schedule.kernel_id < 0):
-        gain = flat_field_gain(net[schedule.kernel_id < 0], _expected_flat_counts(sim, bench, region, curve, theta_on))
+    if linear and flat_field and schedule is not None and np.any(schedule.kernel_id == FLAT_ID):
+        gain = flat_field_gain(net[schedule.kernel_id == FLAT_ID], _expected_flat_counts(sim, bench, region, curve, theta_on))
     timed_share = None
     why = _no_timing(counts, sim, schedule, curve, skip_us) if timing is not False else "not asked for"
     if why is not None and timing:
@@ -310,7 +311,7 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
         "skip_us": int(skip_us),
         "length_us": None if length_us is None else int(length_us),
         "deblurred": bool(deblurred),
-        "flat_field_captures": 0 if gain is None else int(np.sum(schedule.kernel_id < 0)),
+        "flat_field_captures": 0 if gain is None else int(np.sum(schedule.kernel_id == FLAT_ID)),
         "decimation": 1 if bench is None else int(bench.decimation),
         "linearization": ("counts" if not linear else "pixel model and event times" if timed_share is not None
                           else "pixel model" if curve is not None else "exp(n theta)"),
@@ -354,7 +355,7 @@ def _refine_by_timing(net, counts, sim, bench, schedule, curve, gain, theta_on, 
     blank = float(sim["blank_rate_e_per_s"])
     theta = np.full(counts.on.shape[1:], float(theta_on))
     if gain is not None:
-        ff = schedule.kernel_id < 0
+        ff = schedule.kernel_id == FLAT_ID
         flat_u = np.broadcast_to(_flat_log_step(sim, bench, counts.region), (int(ff.sum()),) + theta.shape)
         flat_u = flat_u - _settle_residual(flat_u, schedule.t_on_us[ff], schedule.t_off_us[ff], sm, blank)
         t = timing_thresholds(counts.on[ff], counts.on_first_us[ff], counts.on_last_us[ff], flat_u, sm, blank,

@@ -1,0 +1,298 @@
+"""Where the response lies on the sensor, measured from the device's own calibration captures.
+
+A job with ``calibration = N`` shows, after its flat fields, N captures of a
+dot grid on the feature DMD (:func:`evtk.simulate.dot_grid`) under the
+kernel's centre element alone. Each dot lights one response cell, known in
+cell coordinates. :func:`calibrate` finds
+the blobs in the ON events of those windows, pairs them with the dots, and
+fits the map from response cells to sensor pixels: a projective transform,
+by RANSAC (scikit-image's ``measure.ransac`` with ``transform.ProjectiveTransform``),
+with its residuals in pixels. From the map follow the response's origin
+(the pixel that sees cell (0, 0)), its step (pixels per cell) and the
+region to count. Nothing here reads a simulation record: the schedule
+(``schedule.json`` from ``evtk patterns``) and the events are enough.
+
+Not yet modelled: radial lens distortion (the map is projective), the
+blur of the kernel sources, and the pixels' gains, thresholds, time
+constant and dark rate (issue 22).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .errors import EvtkError
+
+__all__ = ["Calibration", "calibrate", "load_calibration", "save_calibration", "plot_calibration", "MIN_DOTS"]
+
+#: Fewest dots a calibration needs (a projective map has 8 unknowns; RANSAC wants more).
+MIN_DOTS = 8
+
+
+@dataclass
+class Calibration:
+    """What :func:`calibrate` measured.
+
+    Attributes
+    ----------
+    matrix : list of 3 lists of 3 floats
+        Projective map from response cells (column, row) to sensor pixels (x, y), homogeneous.
+    origin_px : [x, y]
+        Sensor pixel that sees cell (0, 0) of the full response.
+    step_px : float
+        Sensor pixels per response cell (mean of the map's two axes at the response's centre).
+    region : [x0, x1, y0, y1]
+        Sensor pixels covering the full response plus a pixel of margin (half-open), clipped to the sensor.
+    residual_rms_px, residual_max_px : float
+        Distances between the dots found and the fitted map, over the inliers.
+    dots_expected, dots_found, inliers : int
+    sensor_size : [width, height]
+    response_shape : [rows, cols]
+        Cells of the full response (features + kernel - 1).
+    """
+
+    matrix: list
+    origin_px: list
+    step_px: float
+    region: list
+    residual_rms_px: float
+    residual_max_px: float
+    dots_expected: int
+    dots_found: int
+    inliers: int
+    sensor_size: list
+    response_shape: list
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def to_pixels(self, cells_xy):
+        """Sensor pixels (x, y) of response cells (column, row)."""
+        from skimage.transform import ProjectiveTransform
+
+        return ProjectiveTransform(np.asarray(self.matrix, dtype=np.float64))(np.atleast_2d(cells_xy))
+
+
+def _blobs(image, min_pixels=2, radius=2):
+    """Centroids (x, y) of the bright spots of ``image``.
+
+    Spots are found as the connected areas above Otsu's threshold; each
+    spot's centre is then the count-weighted mean over the (2 radius + 1)^2
+    pixels around its brightest one, background (the window's lowest count)
+    taken off, so that the faint pixels a sub-pixel position spreads light
+    into count too (a thresholded centroid is biased towards the pixel grid).
+    """
+    from skimage.filters import threshold_otsu
+    from skimage.measure import label, regionprops
+
+    img = np.asarray(image, dtype=np.float64)
+    if not np.any(img > 0):
+        return np.zeros((0, 2))
+    thr = threshold_otsu(img) if np.ptp(img) > 0 else 0.0
+    labels = label(img > thr, connectivity=2)
+    out = []
+    h, w = img.shape
+    for reg in regionprops(labels, intensity_image=img):
+        if reg.area < min_pixels:
+            continue
+        coords = reg.coords
+        py, px = coords[np.argmax(img[coords[:, 0], coords[:, 1]])]
+        y0, y1 = max(0, py - radius), min(h, py + radius + 1)
+        x0, x1 = max(0, px - radius), min(w, px + radius + 1)
+        win = img[y0:y1, x0:x1]
+        win = win - win.min()
+        total = win.sum()
+        if total <= 0:
+            continue
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        out.append((float((win * xx).sum() / total), float((win * yy).sum() / total)))
+    return np.asarray(out, dtype=np.float64).reshape(-1, 2)
+
+
+def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
+    """Fit the map from response cells to sensor pixels from a recording's calibration captures.
+
+    ``schedule`` is a ``schedule.json`` path or :func:`evtk.reconstruct.load_schedule`'s
+    dict; windows come from the recording's trigger edges, matched to the
+    schedule (:func:`evtk.reconstruct.match_windows`). Raises
+    :class:`~evtk.EvtkError` when the schedule has no calibration captures,
+    none was recorded, fewer than :data:`MIN_DOTS` dots are seen, or the
+    dots do not fit one map. Dots are located on the ON-event counts (a
+    pixel counts the log of its light, which pulls centres up to 0.08 px
+    towards the pixel boundaries; linearising first amplified the noise
+    more than it removed). The map is projective; when an affine map fits
+    the inliers as well (RMS within 10 %), the affine one is kept, as its
+    fewer parameters extrapolate better to the response's corners.
+    """
+    from skimage.measure import ransac
+    from skimage.transform import ProjectiveTransform
+
+    from .reconstruct import accumulate, load_schedule, match_windows
+    from .reconstruct.windows import Windows
+    from .simulate import DOTS_ID, dot_grid
+
+    sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
+    s, kernels, features = sched["schedule"], sched["kernels"], sched["features"]
+    if not np.any(s.kernel_id == DOTS_ID):
+        raise EvtkError("the schedule has no calibration captures: add calibration = N to the job")
+    win, report = match_windows(rec.triggers(), s, tolerance_us)
+    dots_win = s.kernel_id[win.capture] == DOTS_ID
+    if not dots_win.any():
+        raise EvtkError(f"none of the schedule's calibration captures has a trigger window (missing: "
+                        f"{report['missing'][:10]})")
+    w, h = rec.sensor_size
+    sub = Windows(win.t_start_us[dots_win], win.t_end_us[dots_win], win.capture[dots_win], win.source)
+    counts = accumulate(rec, sub, (0, w, 0, h))
+    image = counts.on.sum(axis=0).astype(np.float64)
+    found = _blobs(image)
+    kh, kw = kernels.shape[1:]
+    fh, fw = features.shape[1:]
+    dots = np.argwhere(dot_grid((fh, fw), sched["dot_spacing"]) > 0)  # (row, col) of each dot
+    # the kernel's centre element (ck) and a dot at features (r, c) light full-response cell (r + kh-1 - ck, ...)
+    ck_r, ck_c = (kh - 1) // 2, (kw - 1) // 2
+    expected = np.stack([dots[:, 1] + (kw - 1) - ck_c, dots[:, 0] + (kh - 1) - ck_r], axis=1).astype(np.float64)
+    if len(found) < MIN_DOTS:
+        raise EvtkError(f"only {len(found)} calibration dots were seen ({len(expected)} shown); at least {MIN_DOTS} "
+                        "are needed: more light, a longer window, or a coarser dot spacing")
+    pairs = _pair(found, expected)
+    if len(pairs) < MIN_DOTS:
+        raise EvtkError(f"only {len(pairs)} of the {len(found)} dots seen could be paired with the "
+                        f"{len(expected)} shown: is the schedule that of this recording?")
+    src = expected[[j for _, j in pairs]]
+    dst = found[[i for i, _ in pairs]]
+    model, inliers = ransac((src, dst), ProjectiveTransform, min_samples=4, residual_threshold=1.0,
+                            max_trials=500, rng=0)
+    if model is None or inliers is None or inliers.sum() < MIN_DOTS:
+        raise EvtkError("the calibration dots do not fit one projective map (fewer than "
+                        f"{MIN_DOTS} agree within a pixel)")
+    res = np.linalg.norm(model(src[inliers]) - dst[inliers], axis=1)
+    affine = _affine(src[inliers], dst[inliers])
+    if affine is not None:
+        res_a = np.linalg.norm(affine(src[inliers]) - dst[inliers], axis=1)
+        if np.sqrt(np.mean(res_a ** 2)) <= 1.1 * np.sqrt(np.mean(res ** 2)):
+            model, res = ProjectiveTransform(affine.params), res_a
+    rows, cols = fh + kh - 1, fw + kw - 1
+    origin = model(np.array([[0.0, 0.0]]))[0]
+    centre = np.array([[(cols - 1) / 2, (rows - 1) / 2]])
+    dx = np.linalg.norm(model(centre + [0.5, 0]) - model(centre - [0.5, 0]))
+    dy = np.linalg.norm(model(centre + [0, 0.5]) - model(centre - [0, 0.5]))
+    corners = model(np.array([[-0.5, -0.5], [cols - 0.5, -0.5], [-0.5, rows - 0.5], [cols - 0.5, rows - 0.5]]))
+    x0 = int(max(0, np.floor(corners[:, 0].min()) - 1))
+    x1 = int(min(w, np.ceil(corners[:, 0].max()) + 2))
+    y0 = int(max(0, np.floor(corners[:, 1].min()) - 1))
+    y1 = int(min(h, np.ceil(corners[:, 1].max()) + 2))
+    cal = Calibration(model.params.tolist(), [float(origin[0]), float(origin[1])], float((dx + dy) / 2),
+                      [x0, x1, y0, y1], float(np.sqrt(np.mean(res ** 2))), float(res.max()), len(expected),
+                      len(found), int(inliers.sum()), [int(w), int(h)], [int(rows), int(cols)])
+    cal._evidence = (image, found, expected)  # for plot_calibration; not saved
+    return cal
+
+
+def _affine(src, dst):
+    """The least-squares affine map ``src -> dst`` (scikit-image's, through whichever API it has), or None."""
+    from skimage.transform import AffineTransform
+
+    if hasattr(AffineTransform, "from_estimate"):  # scikit-image >= 0.26
+        model = AffineTransform.from_estimate(src, dst)
+        return model if model else None
+    model = AffineTransform()
+    return model if model.estimate(src, dst) else None
+
+
+def _pair(found, expected):
+    """Pairs (found index, expected index): the grid's bounding box mapped onto the blobs' (scale and shift
+    per axis), then each expected dot takes its nearest blob within half a dot spacing, one blob each."""
+    lo_f, hi_f = found.min(axis=0), found.max(axis=0)
+    lo_e, hi_e = expected.min(axis=0), expected.max(axis=0)
+    scale = np.where(hi_e > lo_e, (hi_f - lo_f) / np.maximum(hi_e - lo_e, 1e-9), 1.0)
+    guess = (expected - lo_e) * scale + lo_f
+    spacing = np.min([np.min(np.diff(np.unique(np.round(expected[:, a], 6)))) if len(np.unique(expected[:, a])) > 1
+                      else 1.0 for a in (0, 1)]) * float(np.mean(scale))
+    pairs, used = [], set()
+    for j, g in enumerate(guess):
+        d = np.linalg.norm(found - g, axis=1)
+        i = int(np.argmin(d))
+        if d[i] <= 0.5 * spacing and i not in used:
+            pairs.append((i, j))
+            used.add(i)
+    return pairs
+
+
+def save_calibration(path, cal: Calibration):
+    """Write a calibration as TOML (``.toml``) or JSON, atomically."""
+    from .io._atomic import AtomicFile
+
+    path = os.fspath(path)
+    d = cal.to_dict()
+    if path.lower().endswith(".toml"):
+        def val(v):
+            if isinstance(v, list):
+                return "[" + ", ".join(val(x) for x in v) + "]"
+            return repr(float(v)) if isinstance(v, float) else str(v)
+        text = "# evtk calibration (evtk calibrate): response cells -> sensor pixels\n" + \
+            "".join(f"{k} = {val(v)}\n" for k, v in d.items())
+    else:
+        text = json.dumps(d, indent=1)
+    with AtomicFile(path) as out:
+        out.file.write(text.encode())
+
+
+def load_calibration(path) -> Calibration:
+    """Read :func:`save_calibration`'s file; a malformed one is one :class:`~evtk.EvtkError`."""
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as f:
+            raw = f.read().decode("utf-8")
+        if path.lower().endswith(".toml"):
+            try:
+                import tomllib
+            except ModuleNotFoundError:  # Python 3.10
+                import tomli as tomllib
+            d = tomllib.loads(raw)
+        else:
+            d = json.loads(raw)
+        cal = Calibration(**d)
+        m = np.asarray(cal.matrix, dtype=np.float64)
+        if m.shape != (3, 3) or not np.all(np.isfinite(m)) or len(cal.region) != 4 or len(cal.sensor_size) != 2:
+            raise ValueError("matrix must be 3x3 and finite, region four numbers, sensor_size two")
+    except OSError as exc:
+        raise EvtkError(f"{path}: cannot read the calibration: {exc.strerror or exc}") from None
+    except (ValueError, TypeError) as exc:
+        raise EvtkError(f"{path}: not an evtk calibration ({exc})") from None
+    return cal
+
+
+def plot_calibration(path, cal: Calibration):
+    """PNG report of a calibration: the calibration captures' ON events with the dots found and the fitted
+    map's prediction of every dot, and the residual of each dot (pixels)."""
+    from .plots import pyplot, save_png
+
+    image, found, expected = getattr(cal, "_evidence", (None, None, None))
+    if image is None:
+        raise EvtkError("a calibration read from a file holds no evidence to draw; calibrate the recording again")
+    plt = pyplot()
+    fig, (ax, ax_r) = plt.subplots(1, 2, figsize=(10.0, 4.2), gridspec_kw={"width_ratios": [3, 2]})
+    x0, x1, y0, y1 = cal.region
+    pad = 4
+    xs = slice(max(0, x0 - pad), min(image.shape[1], x1 + pad))
+    ys = slice(max(0, y0 - pad), min(image.shape[0], y1 + pad))
+    im = ax.imshow(image[ys, xs], cmap="gray", interpolation="nearest",
+                   extent=(xs.start - 0.5, xs.stop - 0.5, ys.stop - 0.5, ys.start - 0.5))
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="ON events")
+    pred = cal.to_pixels(expected)
+    ax.plot(found[:, 0], found[:, 1], "o", mfc="none", color="C1", label="dots found")
+    ax.plot(pred[:, 0], pred[:, 1], "+", color="C0", label="fitted map")
+    ax.set_xlabel("sensor x (pixels)")
+    ax.set_ylabel("sensor y (pixels)")
+    ax.set_title(f"calibration dots: {cal.dots_found} found of {cal.dots_expected}", fontsize=10)
+    ax.legend(fontsize=8, loc="upper right")
+    d = np.linalg.norm(found[:, None, :] - pred[None, :, :], axis=2).min(axis=1)
+    ax_r.bar(np.arange(len(d)), d, color="C0")
+    ax_r.set_xlabel("dot")
+    ax_r.set_ylabel("distance to the fitted map (pixels)")
+    ax_r.set_title(f"residual RMS {cal.residual_rms_px:.3f} px", fontsize=10)
+    save_png(fig, path)
