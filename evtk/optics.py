@@ -353,6 +353,30 @@ class Bench:
         """Fraction of light an off mirror passes."""
         return 1.0 / self.dmd_contrast
 
+    @functools.cached_property
+    def fresnel_number(self) -> float:
+        """Fresnel number of one feature element seen from the screen: ``F_pt^2 / (lambda u)``.
+
+        Ray optics (the shadow model evtk simulates) holds when it is well above
+        1; at the default bench it is about 0.013, where each element diffracts.
+        """
+        return (self.feature_pitch_um * 1e-6) ** 2 / (self.wavelength_nm * 1e-9 * self.u_mm * 1e-3)
+
+    @functools.cached_property
+    def diffraction_spread_um(self) -> float:
+        """Width on the screen of the far-field diffraction of one feature element, ``lambda u / F_pt``
+        (first zeros of a slit, halved): what the shadow model leaves out when :attr:`fresnel_number` < 1."""
+        return self.wavelength_nm * 1e-3 * self.u_mm * 1e3 / self.feature_pitch_um
+
+    def shadow_model_note(self) -> str | None:
+        """A sentence saying why the ray-optics shadow model does not hold for this bench, or None when it does."""
+        if self.fresnel_number >= 1.0:
+            return None
+        pixels = self.diffraction_spread_um / self.sensor_pitch_um
+        return (f"Fresnel number {self.fresnel_number:.3g} < 1: each feature element diffracts over about "
+                f"{self.diffraction_spread_um / 1000:.3g} mm on the screen ({pixels:.3g} sensor pixels), which the "
+                "simulated shadows leave out (shorter u_mm or larger feature elements make them valid)")
+
     def photons_per_s(self) -> float:
         """Laser photon rate."""
         return self.power_mw * 1e-3 * self.wavelength_nm / PHOTON_ENERGY_J_PER_NM

@@ -242,3 +242,17 @@ def test_response_region_covers_every_lit_pixel():
             x0, x1, y0, y1 = response_region(b, k.shape, f.shape)
             inside = resp[y0:y1, x0:x1].sum()
             assert inside == pytest.approx(resp.sum(), rel=1e-9)
+
+
+def test_fresnel_number_says_when_the_shadow_model_holds():
+    """N_F = F_pt^2 / (lambda u): 0.0133 at the default bench (45.36 um elements, 514 nm, 300 mm), where each
+    element's diffraction (lambda u / F_pt = 3.4 mm) dwarfs a 181 um pixel; a near screen makes it valid."""
+    from evtk.optics import Bench
+
+    b = Bench()
+    assert b.fresnel_number == pytest.approx(45.36e-6 ** 2 / (514e-9 * 0.3), rel=1e-9)
+    assert b.fresnel_number == pytest.approx(0.01334, rel=1e-3)
+    assert b.diffraction_spread_um == pytest.approx(514e-9 * 0.3 / 45.36e-6 * 1e6, rel=1e-9)
+    assert "Fresnel number 0.0133" in b.shadow_model_note()
+    near = b.replace(u_mm=1.0, feature_upsample=40)
+    assert near.fresnel_number > 1 and near.shadow_model_note() is None

@@ -91,6 +91,7 @@ def _write_simulation(sim, bench, sensor, compression, output, save_bench, as_js
         "stride_eff": bench.stride_eff, "min_window_us": bench.min_window_us,
         "kernel_shape": list(sim.kernels.shape[1:]), "features_shape": list(sim.features.shape[1:]),
         "response_region": list(sim.region),
+        "fresnel_number": bench.fresnel_number, "shadow_model_note": bench.shadow_model_note(),
     })
     if as_json:
         click.echo(_dumps(summary))
@@ -101,6 +102,8 @@ def _write_simulation(sim, bench, sensor, compression, output, save_bench, as_js
                    f"sigma {bench.sigma:.4g} (eq. 3), varsigma {bench.varsigma:.4g} (eq. 4; shown as "
                    f"{bench.kernel_mirrors} mirrors), effective stride {bench.stride_eff:.4g} (eq. 6), "
                    f"e_min {bench.min_window_us:g} us (eq. 7), settle {summary['settle_us']} us")
+        if bench.shadow_model_note():
+            click.echo(f"note: {bench.shadow_model_note()}", err=True)
 
 
 @main.command()
