@@ -1,7 +1,7 @@
 """Time of the bench route: calibration and schedule-driven reconstruction, against a plain read.
 
-    python benchmarks/bench_calibrate.py                  # 40 repeats of one kernel, best of 5
-    python benchmarks/bench_calibrate.py --repeat 100 --runs 3
+    python benchmarks/bench_calibrate.py                  # 300 repeats of one kernel (3.8 M events), best of 5
+    python benchmarks/bench_calibrate.py --repeat 40 --runs 3
 
 A job (one 3x3 kernel on the bundled 16x16 features, two flat fields, two
 dot-grid calibration captures) is simulated on the default 320x240 sensor and
@@ -33,7 +33,7 @@ def best(fn, runs):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--repeat", type=int, default=40)
+    ap.add_argument("--repeat", type=int, default=300)
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--json", dest="json_out")
     args = ap.parse_args()

@@ -106,13 +106,12 @@ def match_windows(triggers, schedule, tolerance_us=None):
     # smallest total distance (a constant clock offset lines every start up to the microsecond)
     best_offset, best_score = None, None
     k = min(8, len(win), len(t_on))
-    for i in range(k):
-        for j in range(k):
-            off = int(win.t_start_us[i] - sorted_on[j])
-            _, ok, dist = assign(off)
-            score = (int(ok.sum()), -float(dist[ok].sum()))
-            if best_score is None or score > best_score:
-                best_offset, best_score = off, score
+    candidates = np.unique((win.t_start_us[:k, None] - sorted_on[None, :k]).ravel())
+    for off in candidates.tolist():
+        _, ok, dist = assign(off)
+        score = (int(ok.sum()), -float(dist[ok].sum()))
+        if best_score is None or score > best_score:
+            best_offset, best_score = int(off), score
     idx, ok, dist = assign(best_offset)
     if not ok.any():
         raise EvtkError("no trigger window lines up with the schedule: is it the schedule of this recording?")
@@ -203,7 +202,11 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
 
     kept = Schedule(**{c: v[keep] for c, v in sub.items()})
     combined, pairs = combine_passes(cells[keep], kept)
-    ideal = np.stack([ideal_response(kernels[k], features[f], bench) for k, f, _ in pairs])
+    per_pair = {}
+    for k, f, _ in pairs.tolist():  # repeats of a pair share its ideal
+        if (k, f) not in per_pair:
+            per_pair[(k, f)] = ideal_response(kernels[k], features[f], bench)
+    ideal = np.stack([per_pair[(k, f)] for k, f, _ in pairs.tolist()])
     if crop == "valid":
         sl = (slice(None), slice(kh - 1, fh), slice(kw - 1, fw))
         combined, ideal = combined[sl], ideal[sl]
