@@ -1,0 +1,62 @@
+"""Flip rates of repeated binarised captures (the paper's Fig. 3)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import EvtkError
+from .sinad import _as_repeats
+
+__all__ = ["FlipReport", "flip_rates"]
+
+
+@dataclass
+class FlipReport:
+    """What :func:`flip_rates` measured (percentages of pixels).
+
+    ``pairwise_pct``: mean over all pairs of repeats of the share of pixels
+    that differ; ``majority_pct``: share of (repeat, pixel) values that differ
+    from the pixel's majority vote (ties count as +1, as
+    :func:`evtk.reconstruct.binarize` maps 0 to +1); ``per_pixel``: each
+    pixel's share of repeats that disagree with its majority.
+    """
+
+    pairwise_pct: float
+    majority_pct: float
+    repeats: int
+    pixels: int
+    per_pixel: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"pairwise_pct": self.pairwise_pct, "majority_pct": self.majority_pct,
+                "repeats": self.repeats, "pixels": self.pixels}
+
+
+def flip_rates(binary) -> FlipReport:
+    """Flip rates of repeated binarised captures of one scene.
+
+    Parameters
+    ----------
+    binary : array_like, shape (repeats, ...)
+        Values in {-1, +1}, {0, 1} or bool.
+
+    Examples
+    --------
+    >>> r = flip_rates([[1, 1, -1, -1], [1, -1, -1, -1], [1, 1, -1, 1]])
+    >>> round(r.pairwise_pct, 4), round(r.majority_pct, 4)   # 4 of 12 pair-pixels; 2 of 12 values
+    (33.3333, 16.6667)
+    """
+    b = _as_repeats(binary, "flip rates")
+    vals = np.unique(b)
+    if not (set(vals.tolist()) <= {-1, 1} or set(vals.tolist()) <= {0, 1}):
+        raise EvtkError(f"flip rates need binary values (-1/+1, 0/1 or bool), found {vals[:6].tolist()}")
+    ones = (b > 0).reshape(b.shape[0], -1)
+    r, p = ones.shape
+    k = ones.sum(axis=0, dtype=np.int64)
+    pairwise = float((k * (r - k)).sum()) / (p * r * (r - 1) / 2)
+    majority_one = 2 * k >= r
+    disagree = np.where(majority_one, r - k, k)
+    return FlipReport(100.0 * pairwise, 100.0 * float(disagree.sum()) / (r * p), r, p,
+                      (disagree / r).reshape(b.shape[1:]))
