@@ -1,0 +1,336 @@
+"""The bench description (:class:`Bench`) and its TOML/JSON files."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import os
+from dataclasses import dataclass, field
+
+from ..errors import EvtkError, check_parameters
+from .geometry import (
+    PHOTON_ENERGY_J_PER_NM,
+    _positive,
+    effective_stride,
+    min_capture_window_us,
+    optical_scaling,
+    shadow_magnification,
+    software_scaling,
+)
+
+__all__ = ["Bench", "load_bench", "save_bench"]
+
+
+@dataclass(frozen=True)
+class Bench:
+    """Everything about the optical bench that the simulator needs.
+
+    Defaults follow the paper's hardware (514 nm laser, two 0.65-inch 1080p
+    DMDs with 7.56 um mirrors, a DVXplorer Lite at 320x240). Distances, the
+    screen-side pixel pitch and the light budget are not given in the paper;
+    the defaults are chosen so that scaling is matched (eq. 4 gives a whole
+    number of mirrors) and the effective stride is 1 (eq. 6).
+
+    Attributes
+    ----------
+    u_mm, z_mm : float
+        Feature DMD to screen, and diffuser to feature DMD distances.
+    mirror_pitch_um : float
+        Mirror pitch of both DMDs (``K_pt`` for the kernel).
+    dmd_cols, dmd_rows : int
+        Mirrors per DMD; a displayed pattern must fit.
+    feature_upsample : int
+        Mirrors per feature element along each axis (``F_pt`` = this x pitch).
+    kernel_upsample : int or None
+        Mirrors per kernel element; None takes eq. 4 rounded to a whole number.
+    sensor_pitch_um : float
+        Footprint of one sensor pixel on the screen (``Phi_pt``).
+    decimation : int
+        Keep every ``decimation``-th sensor pixel when reconstructing (``Delta``).
+    sensor_width, sensor_height : int
+        Event camera resolution.
+    kernel_hz, features_hz : float
+        Pattern rates of the two DMDs.
+    pixel_latency_us : float
+        Event camera pixel latency (``S_I`` of eq. 7).
+    wavelength_nm, power_mw : float
+        Laser.
+    efficiency : float
+        Photoelectrons produced in the pixel that images one feature element
+        per photon leaving one kernel element (diffuser spread, feature DMD,
+        screen scatter, camera lens, quantum efficiency together).
+    dmd_contrast : float
+        On/off contrast of each DMD; an off mirror passes ``1/dmd_contrast``.
+    stray_light : float
+        Ambient light on the screen, in response units (a floor).
+    psf_sigma_um : float
+        Gaussian blur of the diffuser on the screen (standard deviation).
+    source_extent : {"point", "area"}
+        "area": each kernel element is a uniform square source; "point": it
+        emits from its centre (the idealised device).
+    kernel_flipped : bool
+        The relay inverts the kernel image, turning correlation into convolution.
+    origin_px : tuple of float or None
+        Sensor pixel (x, y) where the full response begins; None centres it.
+    """
+
+    u_mm: float = 300.0
+    z_mm: float = 100.0
+    mirror_pitch_um: float = 7.56
+    dmd_cols: int = 1920
+    dmd_rows: int = 1080
+    feature_upsample: int = 6
+    kernel_upsample: int | None = None
+    sensor_pitch_um: float = 181.44
+    decimation: int = 1
+    sensor_width: int = 320
+    sensor_height: int = 240
+    kernel_hz: float = 9523.0
+    features_hz: float = 9523.0
+    pixel_latency_us: float = 200.0
+    wavelength_nm: float = 514.0
+    power_mw: float = 20.0
+    efficiency: float = 3.5e-10
+    dmd_contrast: float = 1000.0
+    stray_light: float = 1e-4
+    psf_sigma_um: float = 0.0
+    source_extent: str = "area"
+    kernel_flipped: bool = False
+    origin_px: tuple | None = field(default=None)
+
+    def __post_init__(self):
+        _positive(u_mm=self.u_mm, z_mm=self.z_mm, mirror_pitch_um=self.mirror_pitch_um,
+                  sensor_pitch_um=self.sensor_pitch_um, kernel_hz=self.kernel_hz, features_hz=self.features_hz,
+                  pixel_latency_us=self.pixel_latency_us, wavelength_nm=self.wavelength_nm,
+                  dmd_contrast=self.dmd_contrast)
+        for name in ("dmd_cols", "dmd_rows", "feature_upsample", "decimation", "sensor_width", "sensor_height"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or int(v) != v or v < 1:
+                raise EvtkError(f"bench {name} must be a positive integer, not {v!r}")
+            object.__setattr__(self, name, int(v))
+        if self.sensor_width > 32767 or self.sensor_height > 32767:
+            raise EvtkError("bench sensor size must be at most 32767 pixels per side")
+        if self.kernel_upsample is not None:
+            v = self.kernel_upsample
+            if isinstance(v, bool) or int(v) != v or v < 1:
+                raise EvtkError(f"bench kernel_upsample must be a positive integer or None, not {v!r}")
+            object.__setattr__(self, "kernel_upsample", int(v))
+        for name in ("power_mw", "efficiency", "stray_light", "psf_sigma_um"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise EvtkError(f"bench {name} must be a finite number >= 0, not {v!r}")
+        if self.dmd_contrast < 1:
+            raise EvtkError(f"bench dmd_contrast must be >= 1, not {self.dmd_contrast!r}")
+        if self.source_extent not in ("point", "area"):
+            raise EvtkError(f"bench source_extent must be 'point' or 'area', not {self.source_extent!r}")
+        if self.origin_px is not None:
+            o = tuple(float(v) for v in self.origin_px)
+            if len(o) != 2 or not all(math.isfinite(v) for v in o):
+                raise EvtkError(f"bench origin_px must be two finite numbers (x, y), not {self.origin_px!r}")
+            object.__setattr__(self, "origin_px", o)
+
+    # derived geometry ------------------------------------------------------------
+    @functools.cached_property  # fields are frozen: compute once
+    def sigma(self) -> float:
+        """Optical scaling (eq. 3)."""
+        return optical_scaling(self.u_mm, self.z_mm)
+
+    @functools.cached_property
+    def feature_pitch_um(self) -> float:
+        """Feature element pitch ``F_pt`` on the feature DMD."""
+        return self.feature_upsample * self.mirror_pitch_um
+
+    @functools.cached_property
+    def varsigma(self) -> float:
+        """Matching kernel upsampling from eq. 4 (a real number)."""
+        return software_scaling(self.sigma, self.feature_pitch_um, self.mirror_pitch_um)
+
+    @functools.cached_property
+    def kernel_mirrors(self) -> int:
+        """Mirrors per kernel element actually displayed."""
+        if self.kernel_upsample is not None:
+            return self.kernel_upsample
+        return max(1, int(round(self.varsigma)))
+
+    @functools.cached_property
+    def k_eff_um(self) -> float:
+        """Kernel element extent in the diffuser plane (eq. 2, as displayed)."""
+        return self.kernel_mirrors * self.mirror_pitch_um
+
+    @functools.cached_property
+    def f_eff_um(self) -> float:
+        """Feature element extent mapped into the diffuser plane (eq. 2)."""
+        return self.sigma * self.feature_pitch_um
+
+    @functools.cached_property
+    def kernel_step_cells(self) -> float:
+        """Shift of the shadow per kernel element, in feature elements (1 when matched)."""
+        return self.k_eff_um / self.f_eff_um
+
+    @functools.cached_property
+    def pixel_cells(self) -> float:
+        """Width of one sensor pixel's footprint in feature elements (the stride at decimation 1)."""
+        return self.sensor_pitch_um / (shadow_magnification(self.u_mm, self.z_mm) * self.feature_pitch_um)
+
+    @functools.cached_property
+    def stride_eff(self) -> float:
+        """Effective stride in kernel elements per output sample (eq. 6, as displayed)."""
+        return effective_stride(self.u_mm, self.z_mm, self.sensor_pitch_um, self.feature_pitch_um,
+                                self.decimation, k_eff_um=self.k_eff_um)
+
+    @functools.cached_property
+    def min_window_us(self) -> float:
+        """Shortest capture window (eq. 7)."""
+        return min_capture_window_us(self.kernel_hz, self.features_hz, self.pixel_latency_us)
+
+    @functools.cached_property
+    def leak(self) -> float:
+        """Fraction of light an off mirror passes."""
+        return 1.0 / self.dmd_contrast
+
+    @functools.cached_property
+    def fresnel_number(self) -> float:
+        """Fresnel number of one feature element seen from the screen: ``F_pt^2 / (lambda u)``.
+
+        Ray optics (the shadow model evtk simulates) holds when it is well above
+        1; at the default bench it is about 0.013, where each element diffracts.
+        """
+        return (self.feature_pitch_um * 1e-6) ** 2 / (self.wavelength_nm * 1e-9 * self.u_mm * 1e-3)
+
+    @functools.cached_property
+    def diffraction_spread_um(self) -> float:
+        """Width on the screen of the far-field diffraction of one feature element, ``lambda u / F_pt``
+        (first zeros of a slit, halved): what the shadow model leaves out when :attr:`fresnel_number` < 1."""
+        return self.wavelength_nm * 1e-3 * self.u_mm * 1e3 / self.feature_pitch_um
+
+    def shadow_model_note(self) -> str | None:
+        """A sentence saying why the ray-optics shadow model does not hold for this bench, or None when it does."""
+        if self.fresnel_number >= 1.0:
+            return None
+        pixels = self.diffraction_spread_um / self.sensor_pitch_um
+        return (f"Fresnel number {self.fresnel_number:.3g} < 1: each feature element diffracts over about "
+                f"{self.diffraction_spread_um / 1000:.3g} mm on the screen ({pixels:.3g} sensor pixels), which the "
+                "simulated shadows leave out (shorter u_mm or larger feature elements make them valid)")
+
+    def photons_per_s(self) -> float:
+        """Laser photon rate."""
+        return self.power_mw * 1e-3 * self.wavelength_nm / PHOTON_ENERGY_J_PER_NM
+
+    def electrons_per_s_per_unit(self, kernel_shape) -> float:
+        """Photoelectron rate of a pixel per response unit (see :func:`screen_response`).
+
+        The laser is spread over the kernel's footprint (all its elements, lit
+        or not); a pixel collects in proportion to its footprint area.
+        """
+        kh, kw = kernel_shape
+        return self.photons_per_s() / (kh * kw) * self.efficiency * self.pixel_cells ** 2
+
+    def check_pattern(self, kernel_shape, features_shape):
+        """Raise if a kernel or feature pattern does not fit its DMD."""
+        kh, kw = kernel_shape
+        fh, fw = features_shape
+        m = self.kernel_mirrors
+        if kh * m > self.dmd_rows or kw * m > self.dmd_cols:
+            raise EvtkError(f"a {kh}x{kw} kernel at {m} mirrors per element needs {kw * m}x{kh * m} mirrors; "
+                            f"the kernel DMD has {self.dmd_cols}x{self.dmd_rows}")
+        m = self.feature_upsample
+        if fh * m > self.dmd_rows or fw * m > self.dmd_cols:
+            raise EvtkError(f"{fh}x{fw} features at {m} mirrors per element need {fw * m}x{fh * m} mirrors; "
+                            f"the feature DMD has {self.dmd_cols}x{self.dmd_rows}")
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        if d["origin_px"] is not None:
+            d["origin_px"] = list(d["origin_px"])
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Bench:
+        check_parameters("bench", cls, d)
+        return cls(**d)
+
+    def replace(self, **changes) -> Bench:
+        return dataclasses.replace(self, **changes)
+
+
+
+def load_bench(path):
+    """Read a bench description; returns ``(Bench, sensor_dict)``.
+
+    TOML (``.toml``) or JSON (anything else). Top-level keys are :class:`Bench`
+    fields; an optional ``sensor`` table holds :class:`evtk.sensor.SensorModel`
+    fields.
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except OSError as exc:
+        raise EvtkError(f"{path}: cannot read bench file: {exc.strerror or exc}") from None
+    try:
+        if path.lower().endswith(".toml"):
+            try:
+                import tomllib
+            except ModuleNotFoundError:  # Python 3.10
+                import tomli as tomllib
+            data = tomllib.loads(raw.decode("utf-8"))
+        else:
+            data = json.loads(raw.decode("utf-8"))
+    except Exception as exc:  # noqa: BLE001 - any parse failure is the user's file
+        raise EvtkError(f"{path}: not a valid bench file: {exc}") from None
+    if not isinstance(data, dict):
+        raise EvtkError(f"{path}: a bench file holds a table of parameters")
+    data = dict(data)
+    sensor = data.pop("sensor", {})
+    if not isinstance(sensor, dict):
+        raise EvtkError(f"{path}: 'sensor' must be a table of parameters")
+    try:
+        return Bench.from_dict(data), sensor
+    except EvtkError as exc:
+        raise EvtkError(f"{path}: {exc}") from None
+    except TypeError as exc:
+        raise EvtkError(f"{path}: {exc}") from None
+
+
+def _toml_value(v):
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        if isinstance(v, float) and not math.isfinite(v):
+            raise EvtkError(f"cannot store {v!r} in a bench file")
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise EvtkError(f"cannot store {v!r} in a bench file")
+
+
+def save_bench(path, bench: Bench, sensor=None):
+    """Write a bench description as TOML (``.toml``) or JSON; atomic.
+
+    ``sensor`` is an optional :class:`evtk.sensor.SensorModel` or dict. Unset
+    optional values (None) are left out.
+    """
+    from ..io._atomic import AtomicFile
+
+    data = bench.to_dict()
+    sdata = None
+    if sensor is not None:
+        sdata = sensor.to_dict() if hasattr(sensor, "to_dict") else dict(sensor)
+    path = os.fspath(path)
+    if path.lower().endswith(".toml"):
+        lines = ["# evtk bench description"]
+        lines += [f"{k} = {_toml_value(v)}" for k, v in data.items() if v is not None]
+        if sdata:
+            lines += ["", "[sensor]"] + [f"{k} = {_toml_value(v)}" for k, v in sdata.items() if v is not None]
+        text = "\n".join(lines) + "\n"
+    else:
+        out = {k: v for k, v in data.items() if v is not None}
+        if sdata:
+            out["sensor"] = {k: v for k, v in sdata.items() if v is not None}
+        text = json.dumps(out, indent=2) + "\n"
+    with AtomicFile(path) as f:
+        f.write(text.encode("utf-8"))
