@@ -237,7 +237,7 @@ def test_streaming_batches_are_time_ordered_and_bounded():
 def test_long_batches_sort_without_a_bin_per_microsecond(monkeypatch):
     """A batch spanning more than the counting sort's bins (very long settles) is sorted by a stable argsort
     instead: the same events in the same order."""
-    import evtk.simulate as es
+    import evtk.simulate.events as es
 
     sim = Simulation(K3, _features(3), repeat=3, seed=5)
     counting = sim.events()
