@@ -7,6 +7,7 @@ from click.testing import CliRunner
 from conftest import random_events
 
 import evtk
+import evtk.io.prophesee.recording  # noqa: F401  (the block size the tests shrink)
 from evtk.cli import main
 from evtk.io import prophesee
 
@@ -58,7 +59,7 @@ def test_read_equals_the_events_written_and_the_public_readers(written):
 
 def test_windows_and_chunks_are_exact_over_many_blocks(written, monkeypatch):
     path, ev, _ = written
-    monkeypatch.setattr(prophesee, "BLOCK_WORDS", 2048)  # some fifty blocks
+    monkeypatch.setattr(prophesee.recording, "BLOCK_WORDS", 2048)  # some fifty blocks
     with evtk.open(path) as rec:
         whole = rec.events()
         assert len(rec._index()) > 10
@@ -185,7 +186,7 @@ def test_event_stream_overflow_reset_bytes_and_a_cut_event(tmp_path):
 
 def test_evt3_vectors_with_more_events_than_words(tmp_path, monkeypatch):
     """Full 12-pixel vectors give 12 events a word: the straight-through decoder resumes where room runs out."""
-    monkeypatch.setattr(prophesee, "BLOCK_WORDS", 256)
+    monkeypatch.setattr(prophesee.recording, "BLOCK_WORDS", 256)
     words = [(8 << 12) | 1]
     for k in range(1000):
         words += [(6 << 12) | (k % 4096), (0 << 12) | (k % 480), (3 << 12) | (1 << 11) | 0, (4 << 12) | 0xFFF]

@@ -1,0 +1,340 @@
+"""Prophesee RAW (EVT 2.0, EVT 3.0), DAT and Event Stream: recognising them, their headers, and the numba decoders."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+from numba import njit
+
+from ...errors import FormatError
+from ..base import sensor_dims
+
+__all__ = ["sniff"]
+
+
+BLOCK_WORDS = 1 << 20  # decoding unit: 4 MiB of EVT 2.0 words, 8 MiB of DAT events
+_MAX_HEADER = 1 << 20
+
+EVT2, EVT3, DAT = "evt2", "evt3", "dat"
+
+ST_OK, ST_COORD, ST_TYPE, ST_FULL = 0, -1, -2, -3
+
+
+def sniff(head: bytes) -> str | None:
+    """'evt2', 'evt3', 'dat' or None from a file's first bytes (its header)."""
+    if not head.startswith(b"%"):
+        return None
+    text = head[:4096].decode("latin-1").lower()
+    if "% evt 2.0" in text or "format evt2" in text:
+        return EVT2
+    if "% evt 3.0" in text or "format evt3" in text:
+        return EVT3
+    if "% version 2" in text or "% version 1" in text or "% width" in text:
+        return DAT
+    if "% evt" in text:
+        return "evt-other"
+    return None
+
+
+_TEXT_LINE = re.compile(rb"%[\x20-\x7e\t]*\r?\n\Z")
+
+
+def _header(path):
+    """(header lines without '%', data offset) of a Prophesee file. A line is header only if it is text ('%',
+    printable ASCII, a line end): a first data word whose low byte is '%' is data, not header."""
+    lines = []
+    with open(path, "rb") as f:
+        pos = 0
+        while True:
+            line = f.readline(_MAX_HEADER)
+            if not _TEXT_LINE.match(line):
+                break
+            pos += len(line)
+            if pos > _MAX_HEADER:
+                raise FormatError(path, 0, "the text header runs past 1 MiB")
+            text = line[1:].decode("utf-8", "replace").strip()
+            if text == "end":  # OpenEB closes newer headers with '% end'
+                break
+            lines.append(text)
+    return lines, pos
+
+
+def _sensor_from_header(lines, path):
+    for line in lines:
+        low = line.lower()
+        if low.startswith("geometry"):
+            parts = line.split(None, 1)[-1].lower().split("x")
+            if len(parts) == 2:
+                return sensor_dims(parts[0], parts[1], path, "the header's geometry")
+        if low.startswith("format") and "width=" in low:
+            fields = dict(p.split("=", 1) for p in line.split(None, 1)[-1].split(";") if "=" in p)
+            if "width" in fields and "height" in fields:
+                return sensor_dims(fields["width"], fields["height"], path, "the header's format line")
+    keys = {line.split(None, 1)[0].lower(): line.split(None, 1)[-1] for line in lines if line.split()}
+    if "width" in keys and "height" in keys:
+        return sensor_dims(keys["width"], keys["height"], path, "the header's Width and Height")
+    return None
+
+
+# -- decoding (numba) -------------------------------------------------------------------------------------------
+
+
+# decoder states (int64 arrays, updated in place so that a block goes on where the one before ended)
+# EVT 2.0: time high, epoch (wraps of the 34-bit time); DAT: last raw time stamp, epoch (wraps of 32 bits)
+_E2_HIGH, _E2_EPOCH = range(2)
+_DAT_PREV, _DAT_EPOCH = range(2)
+
+
+@njit(cache=True, nogil=True)
+def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk):
+    """One pass over EVT 2.0 words: counts, or with ``decode`` the events and triggers. Returns (events,
+    triggers, status, word index of the problem, min t, max t); the min and max only when counting."""
+    high = state[_E2_HIGH]
+    epoch = state[_E2_EPOCH]
+    base = (epoch << 34) | (high << 6)
+    n = 0
+    m = 0
+    t_min = np.int64(2**62)
+    t_max = np.int64(-(2**62))
+    status = ST_OK
+    bad = -1
+    for i in range(len(words)):
+        w = np.int64(words[i])
+        kind = w >> 28
+        if kind <= 1:  # CD_OFF, CD_ON: most words
+            xi = (w >> 11) & 0x7FF
+            yi = w & 0x7FF
+            if xi >= width or yi >= height:
+                status = ST_COORD
+                bad = i
+                break
+            tc = base | ((w >> 22) & 0x3F)
+            if decode:
+                t[n] = tc
+                x[n] = xi
+                y[n] = yi
+                p[n] = kind
+            else:
+                t_min = min(t_min, tc)
+                t_max = max(t_max, tc)
+            n += 1
+        elif kind == 8:
+            new = w & 0xFFFFFFF
+            if new < high and high - new > (1 << 27):  # the 28-bit counter wrapped
+                epoch += 1
+            high = new
+            base = (epoch << 34) | (high << 6)
+        elif kind == 10:
+            if decode:
+                tt[m] = base | ((w >> 22) & 0x3F)
+                # the edge in bit 0, the channel in bits 8..12: kind 1 rising, 2 falling (evtk's Triggers)
+                tk[m] = 1 if (w & 1) else 2
+            m += 1
+        elif kind != 14 and kind != 15:  # OTHERS and CONTINUED carry no events; no other type exists
+            status = ST_TYPE
+            bad = i
+            break
+    state[_E2_HIGH] = high
+    state[_E2_EPOCH] = epoch
+    return n, m, status, bad, t_min, t_max
+
+
+@njit(cache=True, nogil=True)
+def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk):
+    """One pass over DAT CD events (pairs of uint32: time stamp, data), with :func:`_evt2_run`'s arguments
+    and results (DAT files hold no triggers)."""
+    prev = state[_DAT_PREV]
+    epoch = state[_DAT_EPOCH]
+    n = 0
+    t_min = np.int64(2**62)
+    t_max = np.int64(-(2**62))
+    status = ST_OK
+    bad = -1
+    for i in range(len(raw) // 2):
+        ts = np.int64(raw[2 * i])
+        d = np.int64(raw[2 * i + 1])
+        if ts < prev and prev - ts > (1 << 31):  # the 32-bit counter wrapped
+            epoch += 1
+        prev = ts
+        xi = d & 0x3FFF
+        yi = (d >> 14) & 0x3FFF
+        if xi >= width or yi >= height:
+            status = ST_COORD
+            bad = i
+            break
+        tc = (epoch << 32) | ts
+        if decode:
+            t[n] = tc
+            x[n] = xi
+            y[n] = yi
+            p[n] = 1 if (d >> 28) & 0xF else 0
+        else:
+            t_min = min(t_min, tc)
+            t_max = max(t_max, tc)
+        n += 1
+    state[_DAT_PREV] = prev
+    state[_DAT_EPOCH] = epoch
+    return n, 0, status, bad, t_min, t_max
+
+
+# EVT 3.0 decoder state: time high, time low, epoch (wraps of the 24-bit time), y, vector base x, polarity
+_E3_HIGH, _E3_LOW, _E3_EPOCH, _E3_Y, _E3_BASE, _E3_POL = range(6)
+
+
+@njit(cache=True, nogil=True)
+def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk):
+    """One pass over EVT 3.0 words (16 bits, type in the top four): counts, or with ``decode`` the events
+    and triggers. ``state`` (:data:`_E3_HIGH` ...) carries over from the previous block and is updated.
+    Returns (events, triggers, status, word index of the problem, min t, max t)."""
+    high = state[_E3_HIGH]
+    low = state[_E3_LOW]
+    epoch = state[_E3_EPOCH]
+    yy = state[_E3_Y]
+    base = state[_E3_BASE]
+    pol = state[_E3_POL]
+    n = 0
+    m = 0
+    t_min = np.int64(2**62)
+    t_max = np.int64(-(2**62))
+    status = ST_OK
+    bad = -1
+    for i in range(len(words)):
+        w = np.int64(words[i])
+        kind = w >> 12
+        v = w & 0xFFF
+        if kind == 0:  # EVT_ADDR_Y
+            yy = v & 0x7FF
+        elif kind == 2 or kind == 4 or kind == 5:  # EVT_ADDR_X, VECT_12, VECT_8
+            if decode and n + 12 > len(t):  # no room for a whole vector: the caller resumes at this word
+                status = ST_FULL
+                bad = i
+                break
+            if kind == 2:
+                first, mask, step = v & 0x7FF, np.int64(1), 0
+                ep = (v >> 11) & 1
+            else:
+                first, mask, step = base, v if kind == 4 else v & 0xFF, 12 if kind == 4 else 8
+                ep = pol
+            tcur = (epoch << 24) | (high << 12) | low
+            for k in range(12):
+                if (mask >> k) & 1:
+                    xi = first + k
+                    if xi >= width or yy >= height:
+                        status = ST_COORD
+                        bad = i
+                        break
+                    if decode:
+                        t[n] = tcur
+                        x[n] = xi
+                        y[n] = yy
+                        p[n] = ep
+                    n += 1
+                    if tcur < t_min:
+                        t_min = tcur
+                    if tcur > t_max:
+                        t_max = tcur
+            if status != ST_OK:
+                break
+            base += step
+        elif kind == 3:  # VECT_BASE_X
+            base = v & 0x7FF
+            pol = (v >> 11) & 1
+        elif kind == 6:  # EVT_TIME_LOW
+            low = v
+        elif kind == 8:  # EVT_TIME_HIGH
+            if v < high and high - v > 2048:  # the 24-bit time wrapped
+                epoch += 1
+            high = v
+        elif kind == 10:  # EXT_TRIGGER: the edge in bit 0, the channel in bits 8..11
+            if decode and m >= len(tt):
+                status = ST_FULL
+                bad = i
+                break
+            if decode:
+                tt[m] = (epoch << 24) | (high << 12) | low
+                tk[m] = 1 if (v & 1) else 2
+            m += 1
+        elif kind != 7 and kind != 14 and kind != 15:  # CONTINUED_4, OTHERS, CONTINUED_12
+            status = ST_TYPE
+            bad = i
+            break
+    state[_E3_HIGH] = high
+    state[_E3_LOW] = low
+    state[_E3_EPOCH] = epoch
+    state[_E3_Y] = yy
+    state[_E3_BASE] = base
+    state[_E3_POL] = pol
+    return n, m, status, bad, t_min, t_max
+
+
+# Event Stream (DVS) decoder state: time, position inside an event (0: at its first byte), x, y, polarity
+_ES_T, _ES_PHASE, _ES_X, _ES_Y, _ES_POL = range(5)
+ES = "es"
+ES_MAGIC = b"Event Stream"
+
+
+@njit(cache=True, nogil=True)
+def _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk):
+    """One pass over Event Stream 2.x DVS bytes: 0xFF adds 127 us, 0xFE is a reset (nothing), any other
+    first byte adds its top seven bits to the time and gives the polarity in bit 0; four bytes follow (x,
+    then y counted from the bottom row, little-endian). :func:`_evt2_run`'s arguments and results (no
+    triggers); ``state`` carries over between blocks."""
+    tc = state[_ES_T]
+    phase = state[_ES_PHASE]
+    xi = state[_ES_X]
+    yi = state[_ES_Y]
+    pol = state[_ES_POL]
+    n = 0
+    t_min = np.int64(2**62)
+    t_max = np.int64(-(2**62))
+    for i in range(len(data)):
+        b = np.int64(data[i])
+        if phase == 0:
+            if b == 0xFF:
+                tc += 127
+            elif b != 0xFE:
+                tc += b >> 1
+                pol = b & 1
+                phase = 1
+        elif phase == 1:
+            xi = b
+            phase = 2
+        elif phase == 2:
+            xi |= b << 8
+            phase = 3
+        elif phase == 3:
+            yi = b
+            phase = 4
+        else:
+            yi |= b << 8
+            phase = 0
+            if xi >= width or yi >= height:
+                state[_ES_T] = tc
+                state[_ES_PHASE] = phase
+                return n, 0, ST_COORD, i, t_min, t_max
+            if decode:
+                t[n] = tc
+                x[n] = xi
+                y[n] = height - 1 - yi  # stored from the bottom row up; evtk counts y down
+                p[n] = pol
+            n += 1
+            if tc < t_min:
+                t_min = tc
+            if tc > t_max:
+                t_max = tc
+    state[_ES_T] = tc
+    state[_ES_PHASE] = phase
+    state[_ES_X] = xi
+    state[_ES_Y] = yi
+    state[_ES_POL] = pol
+    return n, 0, ST_OK, -1, t_min, t_max
+
+
+_RUNNERS = {EVT2: _evt2_run, EVT3: _evt3_run, DAT: _dat_run, ES: _es_dvs_run}
+_STATE_SIZE = {EVT2: 2, EVT3: 6, DAT: 2, ES: 5}
+_DTYPE = {EVT2: "<u4", EVT3: "<u2", DAT: "<u4", ES: "u1"}
+# where a word's type sits, and the types a format has (for the message about a word of another type)
+_TYPES = {EVT2: (28, "EVT 2.0 has 0, 1, 8, 10, 14 and 15"), EVT3: (12, "EVT 3.0 has 0, 2-8, 10, 14 and 15")}
+_NO_OUT = (np.empty(0, np.int64), np.empty(0, np.uint16), np.empty(0, np.uint16), np.empty(0, np.uint8),
+           np.empty(0, np.int64), np.empty(0, np.uint8))
