@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from .errors import EvtkError
+from .settings import read_table, toml_value
 
 __all__ = ["Calibration", "calibrate", "load_calibration", "save_calibration", "plot_calibration", "MIN_DOTS"]
 
@@ -229,12 +230,8 @@ def save_calibration(path, cal: Calibration):
     path = os.fspath(path)
     d = cal.to_dict()
     if path.lower().endswith(".toml"):
-        def val(v):
-            if isinstance(v, list):
-                return "[" + ", ".join(val(x) for x in v) + "]"
-            return repr(float(v)) if isinstance(v, float) else str(v)
         text = "# evtk calibration (evtk calibrate): response cells -> sensor pixels\n" + \
-            "".join(f"{k} = {val(v)}\n" for k, v in d.items())
+            "".join(f"{k} = {toml_value(v, 'calibration')}\n" for k, v in d.items())
     else:
         text = json.dumps(d, indent=1)
     with AtomicFile(path) as out:
@@ -244,23 +241,12 @@ def save_calibration(path, cal: Calibration):
 def load_calibration(path) -> Calibration:
     """Read :func:`save_calibration`'s file; a malformed one is one :class:`~evtk.EvtkError`."""
     path = os.fspath(path)
+    d = read_table(path, "calibration")
     try:
-        with open(path, "rb") as f:
-            raw = f.read().decode("utf-8")
-        if path.lower().endswith(".toml"):
-            try:
-                import tomllib
-            except ModuleNotFoundError:  # Python 3.10
-                import tomli as tomllib
-            d = tomllib.loads(raw)
-        else:
-            d = json.loads(raw)
         cal = Calibration(**d)
         m = np.asarray(cal.matrix, dtype=np.float64)
         if m.shape != (3, 3) or not np.all(np.isfinite(m)) or len(cal.region) != 4 or len(cal.sensor_size) != 2:
             raise ValueError("matrix must be 3x3 and finite, region four numbers, sensor_size two")
-    except OSError as exc:
-        raise EvtkError(f"{path}: cannot read the calibration: {exc.strerror or exc}") from None
     except (ValueError, TypeError) as exc:
         raise EvtkError(f"{path}: not an evtk calibration ({exc})") from None
     return cal

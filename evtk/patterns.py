@@ -37,6 +37,7 @@ import numpy as np
 from .errors import EvtkError
 from .optics import Bench
 from .sensor import SensorModel
+from .settings import read_table
 from .simulate import Simulation, default_features, load_patterns
 
 __all__ = ["load_job", "job_simulation", "dmd_frame", "write_patterns", "SCHEDULE_VERSION", "JOB_KEYS"]
@@ -49,25 +50,7 @@ JOB_KEYS = ("kernels", "features", "signed", "repeat", "flat_field", "calibratio
 
 
 def _read_table(path):
-    path = os.fspath(path)
-    try:
-        with open(path, "rb") as f:
-            raw = f.read()
-    except OSError as exc:
-        raise EvtkError(f"{path}: cannot read job file: {exc.strerror or exc}") from None
-    try:
-        if path.lower().endswith(".toml"):
-            try:
-                import tomllib
-            except ModuleNotFoundError:  # Python 3.10
-                import tomli as tomllib
-            data = tomllib.loads(raw.decode("utf-8"))
-        else:
-            data = json.loads(raw.decode("utf-8"))
-    except Exception as exc:  # noqa: BLE001 - any parse failure is the user's file
-        raise EvtkError(f"{path}: not a valid job file: {exc}") from None
-    if not isinstance(data, dict):
-        raise EvtkError(f"{path}: a job file holds a table of settings")
+    data = read_table(path, "job")
     unknown = sorted(set(data) - set(JOB_KEYS))
     if unknown:
         raise EvtkError(f"{path}: unknown job settings {unknown}; a job holds {list(JOB_KEYS)}")

@@ -10,6 +10,7 @@ import os
 from dataclasses import dataclass, field
 
 from ..errors import EvtkError, check_parameters
+from ..settings import read_table, toml_value
 from .geometry import (
     PHOTON_ENERGY_J_PER_NM,
     _positive,
@@ -264,24 +265,7 @@ def load_bench(path):
     fields.
     """
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as f:
-            raw = f.read()
-    except OSError as exc:
-        raise EvtkError(f"{path}: cannot read bench file: {exc.strerror or exc}") from None
-    try:
-        if path.lower().endswith(".toml"):
-            try:
-                import tomllib
-            except ModuleNotFoundError:  # Python 3.10
-                import tomli as tomllib
-            data = tomllib.loads(raw.decode("utf-8"))
-        else:
-            data = json.loads(raw.decode("utf-8"))
-    except Exception as exc:  # noqa: BLE001 - any parse failure is the user's file
-        raise EvtkError(f"{path}: not a valid bench file: {exc}") from None
-    if not isinstance(data, dict):
-        raise EvtkError(f"{path}: a bench file holds a table of parameters")
+    data = read_table(path, "bench")
     data = dict(data)
     sensor = data.pop("sensor", {})
     if not isinstance(sensor, dict):
@@ -292,20 +276,6 @@ def load_bench(path):
         raise EvtkError(f"{path}: {exc}") from None
     except TypeError as exc:
         raise EvtkError(f"{path}: {exc}") from None
-
-
-def _toml_value(v):
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        if isinstance(v, float) and not math.isfinite(v):
-            raise EvtkError(f"cannot store {v!r} in a bench file")
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise EvtkError(f"cannot store {v!r} in a bench file")
 
 
 def save_bench(path, bench: Bench, sensor=None):
@@ -323,9 +293,9 @@ def save_bench(path, bench: Bench, sensor=None):
     path = os.fspath(path)
     if path.lower().endswith(".toml"):
         lines = ["# evtk bench description"]
-        lines += [f"{k} = {_toml_value(v)}" for k, v in data.items() if v is not None]
+        lines += [f"{k} = {toml_value(v)}" for k, v in data.items() if v is not None]
         if sdata:
-            lines += ["", "[sensor]"] + [f"{k} = {_toml_value(v)}" for k, v in sdata.items() if v is not None]
+            lines += ["", "[sensor]"] + [f"{k} = {toml_value(v)}" for k, v in sdata.items() if v is not None]
         text = "\n".join(lines) + "\n"
     else:
         out = {k: v for k, v in data.items() if v is not None}
