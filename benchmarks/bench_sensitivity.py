@@ -14,7 +14,9 @@ the row (the *true* camera). Three reconstructions of the same events:
 - **assumed default**: the same pipeline, but the record's pixel model is the
   default one, not the true one (a model calibrated on another camera);
 - **bench**: `reconstruct_bench` from the schedule alone (trigger windows,
-  `exp(n theta)`, model-free flat field), knowing nothing of the pixels.
+  `exp(n theta)`, model-free flat field), knowing nothing of the pixels, with
+  the response's placement from `evtk.calibrate.calibrate` on the run's own
+  dot-grid captures (not the simulation's answer).
 
 Reported: mean correlation with the ideal correlation, and mean NRMSE after
 the best scale (the bench path's responses are relative intensity).
@@ -49,6 +51,7 @@ def _scaled_error(got, ideal):
 
 def run(draws):
     import evtk
+    from evtk.calibrate import calibrate
     from evtk.patterns import write_patterns
     from evtk.reconstruct import accumulate, plan, reconstruct_bench, reconstruct_counts, wants_times
     from evtk.sensor import SensorModel
@@ -67,7 +70,7 @@ def run(draws):
                     true[name] = default[name] * factor
                     if name == "theta_on":
                         true["theta_off"] = default["theta_off"] * factor
-                sim = Simulation(k, f, sensor=SensorModel(**true), seed=d, repeat=1)
+                sim = Simulation(k, f, sensor=SensorModel(**true), seed=d, repeat=1, calibration=2)
                 path = os.path.join(tmp, "run.aedat4")
                 sim.write(path)
                 write_patterns(sim, os.path.join(tmp, "p"))
@@ -77,8 +80,9 @@ def run(draws):
                     oracle = reconstruct_counts(counts, record)
                     assumed_record = dict(record, sensor=dict(default))
                     assumed = reconstruct_counts(counts, assumed_record)
-                    bench = reconstruct_bench(rec, os.path.join(tmp, "p", "schedule.json"),
-                                              record["response_region"], record["response_origin_px"])
+                    schedule = os.path.join(tmp, "p", "schedule.json")
+                    cal = calibrate(rec, schedule)
+                    bench = reconstruct_bench(rec, schedule, cal.region, cal.origin_px)
                 for key, r in (("oracle", oracle), ("assumed default", assumed), ("bench", bench)):
                     e = _scaled_error(r.cells, r.ideal)
                     acc[key].append((e["correlation"], e["nrmse"]))
