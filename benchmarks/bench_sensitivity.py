@@ -78,7 +78,7 @@ def run(draws):
                     record, win, region = plan(rec)
                     counts = accumulate(rec, win, region, times=wants_times(record))
                     oracle = reconstruct_counts(counts, record)
-                    assumed_record = dict(record, sensor=dict(default))
+                    assumed_record = record.replace(sensor=SensorModel(**default))
                     assumed = reconstruct_counts(counts, assumed_record)
                     schedule = os.path.join(tmp, "p", "schedule.json")
                     cal = calibrate(rec, schedule)

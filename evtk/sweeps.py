@@ -145,7 +145,7 @@ def simulated_reconstruction(kernels, features, bench=None, sensor=None, window_
     is returned: the time of exactly the pipeline whose result is returned.
     """
     from .reconstruct import WindowCounts, reconstruct, reconstruct_counts
-    from .simulate import METADATA_KEY, Simulation
+    from .simulate import Simulation
 
     sim = Simulation(kernels, features, bench=bench, sensor=sensor, window_us=window_us, settle_us=settle_us,
                      repeat=repeat, seed=seed, noise_seed=noise_seed, flat_field=flat_field)
@@ -160,7 +160,7 @@ def simulated_reconstruction(kernels, features, bench=None, sensor=None, window_
 
     if method == "fast":
         counts = WindowCounts.from_capture_counts(sim.responses())
-        return run(lambda: reconstruct_counts(counts, sim.metadata()[METADATA_KEY], **options))
+        return run(lambda: reconstruct_counts(counts, sim.record(), **options))
     if method != "events":
         raise EvtkError(f"method must be 'fast' or 'events', not {method!r}")
     from .io import open as open_recording

@@ -247,7 +247,7 @@ def test_a_pixel_model_that_does_not_fit_the_camera_degrades_gracefully(tmp_path
             record, win, region = plan(rec)
             counts = accumulate(rec, win, region, times=wants_times(record))
         oracle = reconstruct_counts(counts, record)
-        assumed = reconstruct_counts(counts, dict(record, sensor=SensorModel().to_dict()))
+        assumed = reconstruct_counts(counts, record.replace(sensor=SensorModel()))
         errors.append((oracle.summary["error"]["correlation"], assumed.summary["error"]["correlation"]))
     for o, a in errors:
         assert a > o - 0.05, errors

@@ -413,3 +413,32 @@ def test_count_table_is_reused_and_fast_path_methods():
         sim.responses(method="magic")
     short = Simulation(K3, _features(2), seed=1, settle_us=1000)
     assert short.responses().on.shape == short.responses(method="exact").on.shape
+
+
+def test_simulation_record_is_typed_and_round_trips_through_a_recording(tmp_path):
+    """The record a recording stores reads back as the same typed record; a broken one is one clear error."""
+    import evtk
+    from evtk.errors import EvtkError
+    from evtk.simulate import SimulationRecord
+
+    sim = Simulation(np.array([[1, -1], [0, 1]]), np.ones((8, 8)), repeat=2, flat_field=1, seed=4)
+    sim.write(tmp_path / "r.h5")
+    with evtk.open(tmp_path / "r.h5") as rec:
+        back = SimulationRecord.from_metadata(rec.metadata)
+    mine = sim.record()
+    assert back.sensor == sim.sensor and back.bench.to_dict() == sim.bench.to_dict()
+    assert np.array_equal(back.kernels, sim.kernels) and back.kernels.dtype == np.int64
+    assert np.array_equal(back.schedule.t_on_us, sim.schedule.t_on_us)
+    assert back.response_region == mine.response_region and back.response_origin_px == mine.response_origin_px
+    assert back.signed and back.repeat == 2 and back.flat_field == 1
+    assert SimulationRecord.from_metadata({}) is None
+    d = mine.to_dict()
+    del d["blank_rate_e_per_s"]
+    with pytest.raises(EvtkError, match="lacks blank_rate_e_per_s"):
+        SimulationRecord.from_dict(d)
+    with pytest.raises(EvtkError, match="malformed"):
+        SimulationRecord.from_dict(dict(mine.to_dict(), window_us="soon"))
+    with pytest.raises(EvtkError, match="malformed"):
+        SimulationRecord.from_dict(dict(mine.to_dict(), response_region=[0, 1]))
+    older = {k: v for k, v in mine.to_dict().items() if k not in ("dot_spacing", "calibration", "evtk_version")}
+    assert SimulationRecord.from_dict(older).dot_spacing == 4  # records from before these keys still read

@@ -299,6 +299,7 @@ def _scene_rows(scenes, source=None, power=None):
 def _reconstructed(path, **options):
     """``reconstruct`` on one recording with a progress bar; returns (result, {events, sensor_size, power_mw})."""
     from ..reconstruct import reconstruct
+    from ..simulate import SimulationRecord
 
     with evio.open(path) as rec:
         n_events = rec.info()["events"]
@@ -307,9 +308,9 @@ def _reconstructed(path, **options):
             result = reconstruct(rec, progress=update, **options)
         finally:
             finish()
-        sim = (rec.metadata or {}).get("simulation")
+        sim = SimulationRecord.from_metadata(rec.metadata)
         about = {"events": n_events, "sensor_size": rec.sensor_size,
-                 "power_mw": None if sim is None else float(sim["bench"]["power_mw"])}
+                 "power_mw": None if sim is None else sim.bench.power_mw}
     return result, about
 
 

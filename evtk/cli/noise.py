@@ -104,15 +104,15 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
     simulated bench: random kernels on the default features, swept over
     laser power.
     """
-    from ..simulate import default_features
+    from ..simulate import SimulationRecord, default_features
     from ..sweeps import flip_sweep, random_kernels, recording_noise
 
     if recordings:
         rows = []
         for i, path in enumerate(recordings):
             with evio.open(path) as rec:
-                sim = (rec.metadata or {}).get("simulation")
-                power = None if sim is None else float(sim["bench"]["power_mw"])
+                sim = SimulationRecord.from_metadata(rec.metadata)
+                power = None if sim is None else sim.bench.power_mw
                 scenes = recording_noise(rec, window_spec, skip_us, length_us, interval=None)
             for s in scenes:
                 rows.append({"file": str(path), "file_index": i, "power_mw": power, "kernel_id": s["kernel_id"],

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import EvtkError
+from ..simulate.record import SimulationRecord
 
 __all__ = ["binarize_rule", "binarize"]
 
@@ -19,7 +20,7 @@ def binarize_rule(sim) -> str:
     almost everywhere), and a recording without a schedule has no sign to
     go by: both are split at each response's mean.
     """
-    if sim is not None and (np.min(sim["kernels"]) < 0 or np.min(sim["features"]) < 0):
+    if sim is not None and SimulationRecord.from_dict(sim).signed:
         return "sign"
     return "mean"
 

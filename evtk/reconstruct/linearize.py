@@ -10,6 +10,10 @@ import numba
 import numpy as np
 
 from ..errors import EvtkError
+from ..io._compression import workers
+from ..optics import Bench, brightest_response, screen_response
+from ..sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
+from ..simulate.record import SimulationRecord
 
 __all__ = ["linearize", "count_curve", "linearize_by_model", "flat_field_gain"]
 
@@ -102,8 +106,8 @@ def _look_up(on, off, table, stride, out):
 def count_curve(sim_record, skip_us=0, length_us=None, points=4000):
     """Net counts a noise-free pixel with nominal thresholds gives, against its log-light step.
 
-    Runs the simulation's own pixel model (``sim_record``: a recording's
-    ``simulation`` metadata) for a dark-to-pattern step of ``u`` (natural
+    Runs the simulation's own pixel model (``sim_record``: a
+    :class:`~evtk.simulate.SimulationRecord` or its dict form) for a dark-to-pattern step of ``u`` (natural
     log of light over the dark level) from 0 to the brightest possible
     pattern, counting in the same window as the reconstruction, from a
     settled pixel whose reference is the dark level. (A pixel in steady
@@ -113,8 +117,10 @@ def count_curve(sim_record, skip_us=0, length_us=None, points=4000):
     non-decreasing in ``u`` (read-only arrays, shared by calls with the same
     bench, sensor and window: a batch of recordings computes it once).
     """
-    keys = ("sensor", "blank_rate_e_per_s", "gain_e_per_s_per_unit", "bench", "window_us", "settle_us")
-    key = json.dumps({**{k: sim_record[k] for k in keys}, "kernel_shape": np.shape(sim_record["kernels"])[1:],
+    r = SimulationRecord.from_dict(sim_record)
+    key = json.dumps({"sensor": r.sensor.to_dict(), "blank_rate_e_per_s": r.blank_rate_e_per_s,
+                      "gain_e_per_s_per_unit": r.gain_e_per_s_per_unit, "bench": r.bench.to_dict(),
+                      "window_us": r.window_us, "settle_us": r.settle_us, "kernel_shape": r.kernels.shape[1:],
                       "skip_us": float(skip_us), "length_us": None if length_us is None else float(length_us),
                       "points": int(points)}, sort_keys=True, default=_plain)
     return _count_curve(key)
@@ -129,9 +135,6 @@ def _plain(value):
 
 @functools.lru_cache(maxsize=16)
 def _count_curve(key):
-    from ..optics import Bench, brightest_response
-    from ..sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
-
     sim_record = json.loads(key)
     skip_us, length_us, points = sim_record["skip_us"], sim_record["length_us"], sim_record["points"]
     sm = SensorModel.from_dict({**sim_record["sensor"], "shot_noise": False, "theta_mismatch": 0.0})
@@ -183,8 +186,6 @@ def _model_log_step(net_counts, curve):
 def _thread_budget():
     """numba's parallel loops on as many threads as evtk's decoding (``EVTK_IO_THREADS``; a local cluster's
     workers each get their share), restored afterwards."""
-    from ..io._compression import workers
-
     before = numba.get_num_threads()
     numba.set_num_threads(max(1, min(workers(), numba.config.NUMBA_NUM_THREADS)))
     try:
@@ -195,13 +196,10 @@ def _thread_budget():
 
 def _flat_log_step(sim, bench, region):
     """Log-light step ``u`` each pixel of ``region`` (y, x) sees in a flat-field window (every mirror on)."""
-    from ..optics import screen_response
-
-    kshape = np.asarray(sim["kernels"]).shape[1:]
-    fshape = np.asarray(sim["features"]).shape[1:]
-    light = screen_response(np.ones(kshape), np.ones(fshape), bench, tuple(region))
-    rate = float(sim["gain_e_per_s_per_unit"]) * light + float(sim["sensor"]["dark_current_e_per_s"])
-    return np.log(np.maximum(rate, 1e-300) / float(sim["blank_rate_e_per_s"]))
+    sim = SimulationRecord.from_dict(sim)
+    light = screen_response(np.ones(sim.kernels.shape[1:]), np.ones(sim.features.shape[1:]), bench, tuple(region))
+    rate = sim.gain_e_per_s_per_unit * light + sim.sensor.dark_current_e_per_s
+    return np.log(np.maximum(rate, 1e-300) / sim.blank_rate_e_per_s)
 
 
 def _expected_flat_counts(sim, bench, region, curve, theta_on):

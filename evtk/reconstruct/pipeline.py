@@ -8,7 +8,9 @@ import numpy as np
 
 from ..errors import EvtkError
 from ..limits import require_memory
-from ..simulate import FLAT_ID
+from ..optics import Bench, ideal_response
+from ..simulate import FLAT_ID, Schedule
+from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
 from .grid import _footprint_matrix, combine_passes, downsample, to_response_grid
@@ -21,7 +23,7 @@ from .linearize import (
     linearize,
     linearize_by_model,
 )
-from .timing import _as_sensor, _settle_residual, linearize_by_timing, timing_thresholds
+from .timing import _settle_residual, linearize_by_timing, timing_thresholds
 from .windows import WindowCounts, windows_from_schedule, windows_from_triggers, windows_periodic
 
 __all__ = ["Reconstruction", "response_error", "plan", "window_bytes", "reconstruct", "wants_times",
@@ -108,9 +110,7 @@ def plan(rec, window="schedule", skip_us=0, length_us=None, region=None, check_m
     With ``check_memory`` the counts of every window at once must fit the
     memory budget (:func:`evtk.limits.require_memory`).
     """
-    from ..simulate import METADATA_KEY
-
-    sim = (rec.metadata or {}).get(METADATA_KEY)
+    sim = SimulationRecord.from_metadata(rec.metadata)
     if window == "schedule":
         if sim is None:
             raise EvtkError("the recording carries no capture schedule: use window='triggers' or a period")
@@ -124,7 +124,7 @@ def plan(rec, window="schedule", skip_us=0, length_us=None, region=None, check_m
     else:
         raise EvtkError(f"window must be 'schedule', 'triggers' or ('period', US), not {window!r}")
     if region is None:
-        region = tuple(sim["response_region"]) if sim is not None else (0, rec.sensor_size[0], 0, rec.sensor_size[1])
+        region = sim.response_region if sim is not None else (0, rec.sensor_size[0], 0, rec.sensor_size[1])
     x0, x1, y0, y1 = (int(v) for v in region)
     if check_memory:
         require_memory(len(win) * window_bytes(region, sim is not None),
@@ -218,25 +218,22 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
     ``counts`` is a :class:`WindowCounts` (from :func:`accumulate`, or from
     :meth:`evtk.simulate.Simulation.responses` through
     :meth:`WindowCounts.from_capture_counts`); ``sim`` the simulation record
-    (a recording's ``simulation`` metadata) or None. The other parameters
+    (:class:`~evtk.simulate.SimulationRecord`, or its dict form) or None. The other parameters
     are :func:`reconstruct`'s; ``skip_us``/``length_us`` must be the ones
     the counts were taken with.
     """
-    from ..optics import Bench
-    from ..simulate import Schedule
-
     _check_crop(crop)
+    sim = None if sim is None else SimulationRecord.from_dict(sim)
     win = counts.windows
     region = counts.region
     if theta is None:
-        theta_on = float(sim["sensor"]["theta_on"]) if sim else 0.2
-        theta_off = float(sim["sensor"]["theta_off"]) if sim else 0.2
+        theta_on = sim.sensor.theta_on if sim else 0.2
+        theta_off = sim.sensor.theta_off if sim else 0.2
     else:
         theta_on = theta_off = float(theta)
     schedule = bench = None
-    if sim is not None and len(win) == len(sim["schedule"]["capture"]):
-        schedule = Schedule.from_dict(sim["schedule"])
-        bench = Bench.from_dict(sim["bench"])
+    if sim is not None and len(win) == len(sim.schedule):
+        schedule, bench = sim.schedule, sim.bench
     curve = count_curve(sim, skip_us, length_us) if sim is not None and linear and theta is None else None
     needs_net = not linear or curve is not None or (flat_field and schedule is not None)
     net = counts.on.astype(np.float64) - counts.off if needs_net else None
@@ -262,24 +259,21 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
     pairs = ideal = None
     deblurred = False
     if schedule is not None:
-        kernels = np.asarray(sim["kernels"])
-        features = np.asarray(sim["features"])
+        kernels, features = sim.kernels, sim.features
         kh, kw = kernels.shape[1:]
         fh, fw = features.shape[1:]
         if linear:  # relative change -> light above the dark level, in response units
-            values = values * sim["blank_rate_e_per_s"] / sim["gain_e_per_s_per_unit"]
+            values = values * sim.blank_rate_e_per_s / sim.gain_e_per_s_per_unit
         step = bench.kernel_step_cells / bench.pixel_cells
-        cells = to_response_grid(values, region, sim["response_origin_px"], step, (fh + kh - 1, fw + kw - 1))
+        cells = to_response_grid(values, region, sim.response_origin_px, step, (fh + kh - 1, fw + kw - 1))
         combined, pairs = combine_passes(cells, schedule)
         if deblur is None:  # a decimated reconstruction does not have the neighbours deblurring needs
             deblur = gain is not None and bench.decimation == 1
         deblurred = bool(deblur) and abs(bench.kernel_step_cells - 1.0) < 1e-9
         if deblurred:  # undo the footprint blur of sources, pixels and diffuser
-            my = _footprint_matrix(bench, sim["response_origin_px"][1], region[2], region[3], fh + kh - 1, step)
-            mx = _footprint_matrix(bench, sim["response_origin_px"][0], region[0], region[1], fw + kw - 1, step)
+            my = _footprint_matrix(bench, sim.response_origin_px[1], region[2], region[3], fh + kh - 1, step)
+            mx = _footprint_matrix(bench, sim.response_origin_px[0], region[0], region[1], fw + kw - 1, step)
             combined = np.linalg.solve(my, np.linalg.solve(mx, combined.transpose(0, 2, 1)).transpose(0, 2, 1))
-        from ..optics import ideal_response
-
         ideal = np.stack([ideal_response(kernels[k], features[f], bench) for k, f, _ in pairs])
         if crop == "valid":
             sl = (slice(None), slice(kh - 1, fh), slice(kw - 1, fw))
@@ -351,8 +345,8 @@ def _refine_by_timing(net, counts, sim, bench, schedule, curve, gain, theta_on, 
     (:func:`timing_thresholds`), else from the flat-field count gain.
     Returns the values (``exp(u) - 1``) and the share of pixel-windows the times set.
     """
-    sm = _as_sensor(sim["sensor"])
-    blank = float(sim["blank_rate_e_per_s"])
+    sm = sim.sensor
+    blank = sim.blank_rate_e_per_s
     theta = np.full(counts.on.shape[1:], float(theta_on))
     if gain is not None:
         ff = schedule.kernel_id == FLAT_ID

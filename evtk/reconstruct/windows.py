@@ -9,6 +9,8 @@ import numpy as np
 from ..errors import EvtkError
 from ..events import TriggerKind, Triggers
 from ..limits import require_memory
+from ..simulate import METADATA_KEY, Schedule
+from ..simulate.record import SimulationRecord
 
 __all__ = ["Windows", "WindowCounts", "windows_from_schedule", "windows_from_triggers", "windows_periodic"]
 
@@ -108,12 +110,13 @@ def _trim(t_on, t_off, skip_us, length_us, what):
 def windows_from_schedule(schedule, skip_us=0, length_us=None) -> Windows:
     """Windows of a simulated recording's captures.
 
-    ``schedule`` is an :class:`evtk.simulate.Schedule`, a recording's metadata
-    dict (with a ``simulation`` record) or that record itself.
+    ``schedule`` is an :class:`evtk.simulate.Schedule`, a
+    :class:`~evtk.simulate.SimulationRecord`, a recording's metadata dict
+    (with a ``simulation`` record) or that record's dict.
     """
-    from ..simulate import METADATA_KEY, Schedule
-
-    if isinstance(schedule, dict):
+    if isinstance(schedule, SimulationRecord):
+        schedule = schedule.schedule
+    elif isinstance(schedule, dict):
         rec = schedule.get(METADATA_KEY, schedule)
         if "schedule" not in rec:
             raise EvtkError("the recording carries no capture schedule; use its triggers or a period instead")

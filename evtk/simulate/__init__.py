@@ -30,6 +30,7 @@ see ``docs/formats/schedule.md``.
 
 from __future__ import annotations
 
+from .record import SimulationRecord
 from .run import Simulation
 from .schedule import (
     DOTS_ID,
@@ -44,6 +45,6 @@ from .schedule import (
 )
 
 __all__ = [
-    "split_passes", "Schedule", "Simulation", "CaptureCounts", "load_patterns", "dot_grid", "FLAT_ID",
+    "split_passes", "Schedule", "Simulation", "SimulationRecord", "CaptureCounts", "load_patterns", "dot_grid", "FLAT_ID",
     "DOTS_ID", "default_features", "METADATA_KEY",
 ]

@@ -21,6 +21,7 @@ from ..optics import (
 )
 from ..sensor import PixelState, SensorModel, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
 from .events import _sorted_events
+from .record import SimulationRecord
 from .schedule import (
     _T_LIMIT,
     DOTS_ID,
@@ -210,32 +211,22 @@ class Simulation:
         return ideal_response(self.kernels[kernel_id], self.features[features_id], self.bench)
 
     # -- metadata ---------------------------------------------------------------------
+    def record(self) -> SimulationRecord:
+        """How this run is made, typed (stored with the recording; see ``docs/formats/schedule.md``)."""
+        return SimulationRecord(
+            bench=self.bench, sensor=self.sensor, kernels=self.kernels, features=self.features,
+            schedule=self.schedule, window_us=self.window_us, settle_us=self.settle_us, start_us=self.start_us,
+            end_us=self.end_us, response_region=tuple(int(v) for v in self.region),
+            response_origin_px=tuple(float(v) for v in response_origin_px(self.bench, self.kernels.shape[1:],
+                                                                         self.features.shape[1:])),
+            gain_e_per_s_per_unit=float(self.gain_e_per_s), blank_rate_e_per_s=float(self.blank_rate_e_per_s),
+            seed=self.seed, noise_seed=self.noise_seed, repeat=self.repeat, flat_field=self.flat_field,
+            calibration=self.calibration, dot_spacing=self.dot_spacing,
+            correlation="convolution" if self.bench.kernel_flipped else "correlation", evtk_version=__version__)
+
     def metadata(self) -> dict:
-        """The record stored with the recording (see ``docs/formats/schedule.md``)."""
-        return {METADATA_KEY: {
-            "evtk_version": __version__,
-            "seed": self.seed,
-            "noise_seed": self.noise_seed,
-            "window_us": self.window_us,
-            "settle_us": self.settle_us,
-            "start_us": self.start_us,
-            "end_us": self.end_us,
-            "repeat": self.repeat,
-            "flat_field": self.flat_field,
-            "calibration": self.calibration,
-            "dot_spacing": self.dot_spacing,
-            "bench": self.bench.to_dict(),
-            "sensor": self.sensor.to_dict(),
-            "kernels": self.kernels.tolist(),
-            "features": self.features.tolist(),
-            "schedule": self.schedule.to_dict(),
-            "response_region": list(self.region),
-            "response_origin_px": [float(v) for v in response_origin_px(self.bench, self.kernels.shape[1:],
-                                                             self.features.shape[1:])],
-            "gain_e_per_s_per_unit": self.gain_e_per_s,
-            "blank_rate_e_per_s": self.blank_rate_e_per_s,
-            "correlation": "convolution" if self.bench.kernel_flipped else "correlation",
-        }}
+        """The recording's metadata: :meth:`record` in its dict form, under ``simulation``."""
+        return {METADATA_KEY: self.record().to_dict()}
 
     def triggers(self) -> Triggers:
         """Rising edge at each pattern's appearance, falling edge when it goes."""
