@@ -8,8 +8,8 @@ import numpy as np
 
 from ..errors import EvtkError
 from ..limits import require_memory
-from ..optics import Bench, ideal_response
-from ..simulate import FLAT_ID, Schedule
+from ..optics import ideal_response
+from ..simulate import FLAT_ID
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
