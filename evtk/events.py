@@ -15,6 +15,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 
 from .errors import EvtkError
+from .io.table import columns_to_table, table_to_columns
 
 __all__ = ["Events", "Triggers", "TriggerKind", "STRUCTURED_LAYOUTS"]
 
@@ -217,16 +218,13 @@ class Events:
 
     def to_arrow(self, metadata=None):
         """A ``pyarrow.Table`` with columns t, x, y, p and the sensor size in its schema metadata."""
-        from .io.arrow import to_arrow
-
-        return to_arrow(self, metadata)
+        return columns_to_table(self.t, self.x, self.y, self.p, self.sensor_size, metadata)
 
     @classmethod
     def from_arrow(cls, table, sensor_size=None) -> Events:
         """Events from a ``pyarrow.Table`` (sensor size from its metadata unless given)."""
-        from .io.arrow import from_arrow
-
-        return from_arrow(table, sensor_size)
+        t, x, y, p, size = table_to_columns(table, sensor_size)
+        return cls(t, x, y, p, size)
 
     # -- queries ----------------------------------------------------------
     def __len__(self) -> int:

@@ -8,7 +8,6 @@ a window reads only the row groups whose ``t`` statistics overlap it.
 
 from __future__ import annotations
 
-import json
 import os
 import select
 import signal
@@ -16,7 +15,6 @@ import time
 
 import numpy as np
 
-from .._version import __version__
 from ..errors import EvtkError, FormatError, one_line
 from ..events import Events, Triggers
 from . import _parquet_footer as _footer
@@ -24,13 +22,10 @@ from ._atomic import AtomicFile
 from ._checks import require_readable, scan_events, sorted_for_writing
 from ._overlay import SplicedFile, close_at_exit
 from .base import BaseRecording, BaseWriter, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
+from .table import KEY_META, KEY_TRIGGERS, _columns, _pa, _schema, _sensor_from, columns_to_table
 
 __all__ = ["to_arrow", "from_arrow", "ParquetRecording", "write_parquet", "COMPRESSIONS"]
 
-KEY_SENSOR = b"evtk.sensor_size"
-KEY_META = b"evtk.metadata"
-KEY_TRIGGERS = b"evtk.triggers"
-KEY_VERSION = b"evtk.version"
 COMPRESSIONS = {"lz4": "lz4", "lz4_high": "lz4", "zstd": "zstd", "zstd_high": "zstd", "gzip": "gzip", "none": "none"}
 ROW_GROUP_EVENTS = 1 << 16
 ROW_GROUP_US = 50_000
@@ -113,79 +108,14 @@ def _unreadable(g, exc):
     return f"row group {g} cannot be read ({one_line(exc)})"
 
 
-def _pa():
-    import pyarrow as pa
-
-    return pa
-
-
-def _schema_metadata(sensor_size, metadata=None, triggers=None) -> dict:
-    out = {KEY_SENSOR: json.dumps(list(sensor_size)).encode(), KEY_VERSION: __version__.encode()}
-    if metadata:
-        try:
-            out[KEY_META] = json.dumps(metadata, sort_keys=True).encode()
-        except (TypeError, ValueError) as exc:
-            raise EvtkError(f"metadata must be JSON-serialisable: {exc}") from None
-    if triggers is not None:
-        out[KEY_TRIGGERS] = json.dumps({"t": triggers.t.tolist(), "kind": triggers.kind.tolist()}).encode()
-    return out
-
-
-def _schema(sensor_size, metadata=None, triggers=None):
-    pa = _pa()
-    return pa.schema(
-        [("t", pa.int64()), ("x", pa.uint16()), ("y", pa.uint16()), ("p", pa.uint8())],
-        metadata=_schema_metadata(sensor_size, metadata, triggers),
-    )
-
-
 def to_arrow(events: Events, metadata=None, triggers=None):
-    """A ``pyarrow.Table`` sharing the event columns (no copy)."""
-    pa = _pa()
-    return pa.Table.from_arrays(
-        [pa.array(events.t), pa.array(events.x), pa.array(events.y), pa.array(events.p)],
-        schema=_schema(events.sensor_size, metadata, triggers),
-    )
-
-
-def _sensor_from(meta, path=None):
-    raw = (meta or {}).get(KEY_SENSOR)
-    if raw is None:
-        return None
-    value = load_json(raw, path, f"schema metadata {KEY_SENSOR.decode()}")
-    if not isinstance(value, list) or len(value) != 2:
-        raise FormatError(path, None, f"schema metadata {KEY_SENSOR.decode()} is not [width, height]: {raw[:100]!r}")
-    return sensor_dims(value[0], value[1], path, f"schema metadata {KEY_SENSOR.decode()}")
-
-
-def _columns(table, path=None):
-    names = table.schema.names if hasattr(table, "schema") else table.names
-    missing = [c for c in ("t", "x", "y", "p") if c not in names]
-    if missing:
-        raise FormatError(path, None, f"columns {missing} missing; found {list(names)}; expected t, x, y, p")
-    cols = []
-    for name in ("t", "x", "y", "p"):
-        col = table.column(name)
-        if col.null_count:
-            raise FormatError(path, None, f"column {name!r} holds {col.null_count} null values")
-        arr = col.to_numpy()
-        if arr.dtype.kind not in "iub":
-            raise FormatError(path, None, f"column {name!r} has type {col.type}, expected an integer type")
-        cols.append(arr)
-    return cols
+    """A ``pyarrow.Table`` sharing the event columns (no copy); :meth:`evtk.Events.to_arrow`."""
+    return columns_to_table(events.t, events.x, events.y, events.p, events.sensor_size, metadata, triggers)
 
 
 def from_arrow(table, sensor_size=None) -> Events:
-    """Events from a ``pyarrow.Table`` (or anything with columns t, x, y, p).
-
-    The sensor size comes from ``sensor_size`` or from the schema metadata
-    evtk writes.
-    """
-    size = sensor_size or _sensor_from(table.schema.metadata)
-    if size is None:
-        raise EvtkError("the table carries no evtk.sensor_size metadata; pass sensor_size=(width, height)")
-    t, x, y, p = _columns(table)
-    return Events(t, x, y, p, size)
+    """Events from a ``pyarrow.Table`` (or anything with columns t, x, y, p); :meth:`evtk.Events.from_arrow`."""
+    return Events.from_arrow(table, sensor_size)
 
 
 # =============================================================================

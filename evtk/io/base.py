@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -11,50 +10,9 @@ import numpy as np
 
 from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
+from .table import MAX_SENSOR_SIDE, load_json, sensor_dims  # noqa: F401  (part of this module's API)
 
 __all__ = ["BaseRecording", "BaseWriter", "StreamInfo", "Damage", "time_chunks", "window_blocks", "sensor_dims", "load_json"]
-
-#: Largest sensor side evtk reads (coordinates are 16-bit).
-MAX_SENSOR_SIDE = 65536
-
-
-def sensor_dims(width, height, path, where) -> tuple[int, int]:
-    """``(width, height)`` from a file's header values (numbers, or their text), or a FormatError naming
-    ``where`` they came from when they are not whole numbers from 1 to 65536."""
-    out = []
-    for v in (width, height):
-        if isinstance(v, (bytes, np.bytes_)):
-            v = bytes(v).decode("utf-8", "replace")
-        if isinstance(v, np.ndarray) and v.size == 1:
-            v = v.reshape(-1)[0]
-        try:
-            f = float(v)
-            ok = f.is_integer() and 1 <= f <= MAX_SENSOR_SIDE
-        except (TypeError, ValueError, OverflowError):
-            ok = False
-        if not ok:
-            raise FormatError(path, None, f"{where} gives an impossible sensor size {width!r} x {height!r} "
-                                          f"(whole numbers from 1 to {MAX_SENSOR_SIDE} expected)")
-        out.append(int(f))
-    return out[0], out[1]
-
-
-def _no_constant(name):
-    raise ValueError(f"{name} is not a JSON number")
-
-
-def load_json(text, path, what):
-    """JSON metadata a file carries, or a FormatError naming ``what`` when it is not valid JSON, nests too
-    deeply to read, or holds NaN or infinities (which would make evtk's own JSON output invalid)."""
-    try:
-        if isinstance(text, (bytes, bytearray, memoryview)):
-            text = bytes(text).decode("utf-8")
-        return json.loads(text, parse_constant=_no_constant)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise FormatError(path, None, f"{what} is not valid JSON ({' '.join(str(exc).split())[:200]})") from None
-    except RecursionError:
-        raise FormatError(path, None, f"{what} nests too deeply to read") from None
-
 
 @dataclass
 class StreamInfo:

@@ -1,0 +1,137 @@
+"""Events as an Arrow table: the columns, the schema metadata evtk writes, and the header checks shared by readers.
+
+This module imports nothing of evtk's event classes (:class:`evtk.Events`
+builds on it), so the event container and the file formats do not import
+each other.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from .._version import __version__
+from ..errors import EvtkError, FormatError
+
+__all__ = ["columns_to_table", "table_to_columns", "sensor_dims", "load_json", "MAX_SENSOR_SIDE"]
+
+KEY_SENSOR = b"evtk.sensor_size"
+KEY_META = b"evtk.metadata"
+KEY_TRIGGERS = b"evtk.triggers"
+KEY_VERSION = b"evtk.version"
+
+#: Largest sensor side evtk reads (coordinates are 16-bit).
+MAX_SENSOR_SIDE = 65536
+
+
+def sensor_dims(width, height, path, where) -> tuple[int, int]:
+    """``(width, height)`` from a file's header values (numbers, or their text), or a FormatError naming
+    ``where`` they came from when they are not whole numbers from 1 to 65536."""
+    out = []
+    for v in (width, height):
+        if isinstance(v, (bytes, np.bytes_)):
+            v = bytes(v).decode("utf-8", "replace")
+        if isinstance(v, np.ndarray) and v.size == 1:
+            v = v.reshape(-1)[0]
+        try:
+            f = float(v)
+            ok = f.is_integer() and 1 <= f <= MAX_SENSOR_SIDE
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok:
+            raise FormatError(path, None, f"{where} gives an impossible sensor size {width!r} x {height!r} "
+                                          f"(whole numbers from 1 to {MAX_SENSOR_SIDE} expected)")
+        out.append(int(f))
+    return out[0], out[1]
+
+
+def _no_constant(name):
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def load_json(text, path, what):
+    """JSON metadata a file carries, or a FormatError naming ``what`` when it is not valid JSON, nests too
+    deeply to read, or holds NaN or infinities (which would make evtk's own JSON output invalid)."""
+    try:
+        if isinstance(text, (bytes, bytearray, memoryview)):
+            text = bytes(text).decode("utf-8")
+        return json.loads(text, parse_constant=_no_constant)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise FormatError(path, None, f"{what} is not valid JSON ({' '.join(str(exc).split())[:200]})") from None
+    except RecursionError:
+        raise FormatError(path, None, f"{what} nests too deeply to read") from None
+
+
+
+def _pa():
+    import pyarrow as pa
+
+    return pa
+
+
+def _schema_metadata(sensor_size, metadata=None, triggers=None) -> dict:
+    out = {KEY_SENSOR: json.dumps(list(sensor_size)).encode(), KEY_VERSION: __version__.encode()}
+    if metadata:
+        try:
+            out[KEY_META] = json.dumps(metadata, sort_keys=True).encode()
+        except (TypeError, ValueError) as exc:
+            raise EvtkError(f"metadata must be JSON-serialisable: {exc}") from None
+    if triggers is not None:
+        out[KEY_TRIGGERS] = json.dumps({"t": triggers.t.tolist(), "kind": triggers.kind.tolist()}).encode()
+    return out
+
+
+def _schema(sensor_size, metadata=None, triggers=None):
+    pa = _pa()
+    return pa.schema(
+        [("t", pa.int64()), ("x", pa.uint16()), ("y", pa.uint16()), ("p", pa.uint8())],
+        metadata=_schema_metadata(sensor_size, metadata, triggers),
+    )
+
+
+def columns_to_table(t, x, y, p, sensor_size, metadata=None, triggers=None):
+    """A ``pyarrow.Table`` of the event columns t, x, y, p (no copy), the sensor size in its schema metadata."""
+    pa = _pa()
+    return pa.Table.from_arrays([pa.array(t), pa.array(x), pa.array(y), pa.array(p)],
+                                schema=_schema(sensor_size, metadata, triggers))
+
+
+def _sensor_from(meta, path=None):
+    raw = (meta or {}).get(KEY_SENSOR)
+    if raw is None:
+        return None
+    value = load_json(raw, path, f"schema metadata {KEY_SENSOR.decode()}")
+    if not isinstance(value, list) or len(value) != 2:
+        raise FormatError(path, None, f"schema metadata {KEY_SENSOR.decode()} is not [width, height]: {raw[:100]!r}")
+    return sensor_dims(value[0], value[1], path, f"schema metadata {KEY_SENSOR.decode()}")
+
+
+def _columns(table, path=None):
+    names = table.schema.names if hasattr(table, "schema") else table.names
+    missing = [c for c in ("t", "x", "y", "p") if c not in names]
+    if missing:
+        raise FormatError(path, None, f"columns {missing} missing; found {list(names)}; expected t, x, y, p")
+    cols = []
+    for name in ("t", "x", "y", "p"):
+        col = table.column(name)
+        if col.null_count:
+            raise FormatError(path, None, f"column {name!r} holds {col.null_count} null values")
+        arr = col.to_numpy()
+        if arr.dtype.kind not in "iub":
+            raise FormatError(path, None, f"column {name!r} has type {col.type}, expected an integer type")
+        cols.append(arr)
+    return cols
+
+
+def table_to_columns(table, sensor_size=None):
+    """``(t, x, y, p, sensor_size)`` of a ``pyarrow.Table`` (or anything with columns t, x, y, p).
+
+    The sensor size comes from ``sensor_size`` or from the schema metadata
+    evtk writes.
+    """
+    size = sensor_size or _sensor_from(table.schema.metadata)
+    if size is None:
+        raise EvtkError("the table carries no evtk.sensor_size metadata; pass sensor_size=(width, height)")
+    t, x, y, p = _columns(table)
+    return t, x, y, p, tuple(size)
