@@ -25,8 +25,21 @@ import time
 
 import numpy as np
 
+from .cluster import run_tasks
 from .errors import EvtkError
-from .io._atomic import refuse_overwriting_inputs
+from .io import open as open_recording
+from .io._atomic import AtomicFile, refuse_overwriting_inputs
+from .io.reconstruction import save_reconstruction
+from .reconstruct import (
+    WindowCounts,
+    Windows,
+    _check_crop,
+    accumulate,
+    plan,
+    reconstruct,
+    reconstruct_counts,
+    wants_times,
+)
 
 __all__ = ["find_recordings", "batch_reconstruct", "reconstruct_split", "MANIFEST"]
 
@@ -76,8 +89,6 @@ def _output_names(inputs, out_dir, ext):
 
 def _reconstruct_one(args):
     """A batch task: reconstruct one recording into its output; never raises for a bad input."""
-    from .io import open as open_recording
-    from .reconstruct import reconstruct, save_reconstruction
 
     path, out, options = args
     t0 = time.perf_counter()
@@ -108,8 +119,6 @@ def _error_text(exc) -> str:
 
 def _accumulate_part(args):
     """A split task: counts of one contiguous group of windows of one recording."""
-    from .io import open as open_recording
-    from .reconstruct import Windows, accumulate
 
     path, starts, ends, capture, region, chunk_events, times = args
     with open_recording(path) as rec:
@@ -124,9 +133,6 @@ def reconstruct_split(path, parts, client=None, chunk_events=4_000_000, **option
     integers). ``options`` are ``reconstruct``'s (window, skip_us, length_us,
     region, size, ...).
     """
-    from .cluster import run_tasks
-    from .io import open as open_recording
-    from .reconstruct import WindowCounts, _check_crop, plan, reconstruct_counts, wants_times
 
     opts = dict(options)
     window = opts.pop("window", "schedule")
@@ -154,8 +160,6 @@ def reconstruct_split(path, parts, client=None, chunk_events=4_000_000, **option
 
 def _split_large(todo, split_events, client, entries):
     """Reconstruct the inputs of more than ``split_events`` events in time-split tasks; return the others."""
-    from .io import open as open_recording
-    from .reconstruct import save_reconstruction
 
     rest = []
     for path, out, options in todo:
@@ -196,7 +200,6 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
     Recordings of more than ``split_events`` events are split by time into
     about ``events / split_events`` tasks (:func:`reconstruct_split`).
     """
-    from .cluster import run_tasks
 
     if fmt not in ("h5", "npz"):
         raise EvtkError(f"batch output format must be h5 or npz, not {fmt!r}")
@@ -271,8 +274,6 @@ def _write_manifest(path, manifest) -> dict:
     """Write ``manifest`` atomically, merged under a lock with the entries another batch run wrote into
     the same folder meanwhile (theirs kept for inputs this run did not touch). Returns what was written."""
     import fcntl
-
-    from .io._atomic import AtomicFile
 
     with open(path + ".lock", "a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)

@@ -24,7 +24,11 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
+from .cluster import run_tasks
 from .errors import EvtkError
+from .optics import Bench
+from .reconstruct import _overlap_matrix
+from .sweeps import simulated_reconstruction
 
 __all__ = ["binary_correlate", "BCNN", "DigitalBackend", "OpticalBackend", "resample_matrix", "bce_loss",
            "poisson_robustness"]
@@ -113,7 +117,6 @@ def binary_correlate(x, k):
 
 def resample_matrix(n_in, n_out):
     """Area-overlap resampling from ``n_in`` cells to ``n_out`` (rows sum to 1), as :func:`evtk.reconstruct.downsample`."""
-    from .reconstruct import _overlap_matrix
 
     step = n_in / n_out
     return _overlap_matrix(n_out, 0.0, step, n_in)
@@ -160,8 +163,6 @@ class OpticalBackend:
     name = "optical"
 
     def __init__(self, bench=None, sensor=None, seed=0, size=16):
-        from .optics import Bench
-
         self.bench = bench if bench is not None else Bench()
         self.sensor = sensor
         self.seed = int(seed)
@@ -169,8 +170,6 @@ class OpticalBackend:
         self.calls = 0
 
     def correlate(self, x, k):
-        from .sweeps import simulated_reconstruction
-
         n, c_in = x.shape[:2]
         out = np.zeros((n, k.shape[0], self.size, self.size))
         for o in range(k.shape[0]):
@@ -294,7 +293,6 @@ def poisson_robustness(model: BCNN, x, y, scales, seed=0, target_accuracy=None, 
     scale is an independent task seeded by ``(seed, its index)`` (on
     ``client``'s workers when given).
     """
-    from .cluster import run_tasks
 
     backend = backend if backend is not None else DigitalBackend(model.size)
     x = _as_input(x)

@@ -26,7 +26,12 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from .errors import EvtkError
+from .io._atomic import AtomicFile
+from .plots import pyplot, save_png
+from .reconstruct import accumulate, load_schedule, match_windows
+from .reconstruct.windows import Windows
 from .settings import read_table, toml_value
+from .simulate import DOTS_ID, dot_grid
 
 __all__ = ["Calibration", "calibrate", "load_calibration", "save_calibration", "plot_calibration", "MIN_DOTS"]
 
@@ -132,10 +137,6 @@ def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
     from skimage.measure import ransac
     from skimage.transform import ProjectiveTransform
 
-    from .reconstruct import accumulate, load_schedule, match_windows
-    from .reconstruct.windows import Windows
-    from .simulate import DOTS_ID, dot_grid
-
     sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
     s, kernels, features = sched["schedule"], sched["kernels"], sched["features"]
     if not np.any(s.kernel_id == DOTS_ID):
@@ -225,7 +226,6 @@ def _pair(found, expected):
 
 def save_calibration(path, cal: Calibration):
     """Write a calibration as TOML (``.toml``) or JSON, atomically."""
-    from .io._atomic import AtomicFile
 
     path = os.fspath(path)
     d = cal.to_dict()
@@ -255,7 +255,6 @@ def load_calibration(path) -> Calibration:
 def plot_calibration(path, cal: Calibration):
     """PNG report of a calibration: the calibration captures' ON events with the dots found and the fitted
     map's prediction of every dot, and the residual of each dot (pixels)."""
-    from .plots import pyplot, save_png
 
     image, found, expected = getattr(cal, "_evidence", (None, None, None))
     if image is None:

@@ -24,6 +24,8 @@ import os
 import socket
 
 from .errors import EvtkError
+from .io import open as open_recording
+from .io._compression import workers as io_workers
 
 __all__ = ["dask_available", "default_scheduler", "scheduler", "run_tasks", "to_dask"]
 
@@ -116,7 +118,6 @@ def scheduler(spec=None):
         # the workers share out the threads the parent would use (decode threads, numba's parallel loops);
         # set inside each worker: the nanny's pre-spawn environment would also change this process's own
         from ._worker_plugin import WorkerThreads
-        from .io._compression import workers as io_workers
 
         client.register_plugin(WorkerThreads(max(1, io_workers() // n)))
         yield client
@@ -198,8 +199,6 @@ def to_dask(path, partitions=None, events_per_partition=5_000_000):
         raise EvtkError("to_dask needs Dask's dataframes: pip install 'evtk[cluster]'") from None
     import numpy as np
 
-    from .io import open as open_recording
-
     path = os.fspath(path)
     with open_recording(path) as rec:
         info = rec.info()
@@ -220,8 +219,6 @@ def to_dask(path, partitions=None, events_per_partition=5_000_000):
 
 def _time_range_frame(path, t_start_us, t_end_us):
     import pandas as pd
-
-    from .io import open as open_recording
 
     with open_recording(path) as rec:
         ev = rec.events(t_start_us=t_start_us, t_end_us=t_end_us)

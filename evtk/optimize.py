@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from .bcnn import BCNN, _as_input, bce_loss, pool_map, resample_matrix
+from .bcnn import BCNN, DigitalBackend, _as_input, bce_loss, pool_map, resample_matrix
 from .errors import EvtkError
 
 __all__ = ["metropolis", "train_layerwise", "train_ste", "fit_mask"]
@@ -266,7 +266,6 @@ def train_ste(model: BCNN, x, y, epochs=300, lr=0.02, seed=0) -> dict:
             mhat = adam_m[j] / (1 - 0.9 ** (ep + 1))
             vhat = adam_v[j] / (1 - 0.999 ** (ep + 1))
             q -= lr * mhat / (np.sqrt(vhat) + 1e-8)
-    from .bcnn import DigitalBackend
 
     model.kernels = [np.where(k >= 0, 1, -1).astype(np.int8) for k in w]
     model.masks = [np.where(m >= 0, 1, 0).astype(np.int8)] * model.n_layers

@@ -35,6 +35,7 @@ import os
 import numpy as np
 
 from .errors import EvtkError
+from .io._atomic import AtomicFile
 from .optics import Bench
 from .sensor import SensorModel
 from .settings import read_table
@@ -146,8 +147,6 @@ def dmd_frame(pattern, upsample, dmd_cols, dmd_rows) -> tuple[np.ndarray, tuple[
 def _save_1bit(path, frame, image_format):
     from PIL import Image
 
-    from .io._atomic import AtomicFile
-
     img = Image.fromarray(np.ascontiguousarray(frame, dtype=bool))  # mode "1": one bit a mirror
     with AtomicFile(path) as out:
         img.save(out.file, format=image_format.upper())
@@ -214,7 +213,6 @@ def write_patterns(sim: Simulation, out_dir, image_format="png") -> dict:
                     "to the dark frame",
         "captures": captures,
     }
-    from .io._atomic import AtomicFile
 
     schedule_path = os.path.join(out_dir, "schedule.json")
     with AtomicFile(schedule_path) as out:

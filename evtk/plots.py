@@ -10,6 +10,8 @@ from collections import defaultdict
 import numpy as np
 
 from .errors import EvtkError
+from .io._atomic import AtomicFile
+from .reconstruct import binarize, downsample
 
 __all__ = ["contact_sheet", "wilson_interval", "plot_enob", "plot_flips", "plot_tradeoff", "plot_recovery", "plot_success",
            "plot_robustness"]
@@ -27,7 +29,6 @@ def pyplot():
 
 def save_png(fig, path, dpi=100):
     """Write ``fig`` as a PNG at ``path`` (atomically) and close it; room is kept for a figure title."""
-    from .io._atomic import AtomicFile
 
     plt = pyplot()
     try:
@@ -53,8 +54,6 @@ def contact_sheet(path, result, rows_per_page=8) -> list:
     and repeat. Written atomically.
     """
     import os
-
-    from .reconstruct import binarize, downsample
 
     n = len(result.cells)
     if n == 0:

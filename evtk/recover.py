@@ -30,7 +30,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .cluster import run_tasks
 from .errors import EvtkError
+from .optics import Bench, ideal_response, response_origin_px, response_region
+from .reconstruct import _footprint_matrix
+from .sweeps import simulated_reconstruction
 
 __all__ = [
     "Recovery",
@@ -167,15 +171,11 @@ def response_matrix(features, size, bench=None, blurred=False):
     ``blurred`` they carry the optics' footprint blur (what a reconstruction
     without deblurring sees; needs matched scaling).
     """
-    from .optics import Bench, ideal_response
 
     s = _check_size(size)
     f = _as_binary("features", features, 2)
     my = mx = None
     if blurred:
-        from .optics import response_origin_px, response_region
-        from .reconstruct import _footprint_matrix
-
         bench = bench if bench is not None else Bench()
         if abs(bench.kernel_step_cells / bench.pixel_cells - 1.0) > 1e-9:
             raise EvtkError("the blurred model needs matched scaling (one pixel per cell)")
@@ -431,7 +431,6 @@ def device_responses(kernels, features, bench=None, sensor=None, seed=0, noise_s
     deblurred by default (compare with ``response_matrix(..., blurred=True)``).
     All-zero kernels show no light: their response is zero.
     """
-    from .sweeps import simulated_reconstruction
 
     k = np.asarray(kernels)
     lit = np.flatnonzero(k.reshape(len(k), -1).any(axis=1))
@@ -461,14 +460,12 @@ def success_rate(powers_mw, size=3, trials=100, method=None, bench=None, sensor=
     ``proven_pct``. Trials run as independent tasks (on ``client``'s
     workers when given).
     """
-    from .optics import Bench
 
     s = _check_size(size)
     method = method or ("brute" if s <= 3 else "search")
     if method not in ("brute", "search"):
         raise EvtkError(f"method must be 'brute' or 'search', not {method!r}")
     bench = bench if bench is not None else Bench()
-    from .cluster import run_tasks
 
     rows = []
     for pi, p in enumerate(powers_mw):

@@ -24,8 +24,14 @@ import time
 
 import numpy as np
 
+from .cluster import run_tasks
 from .errors import EvtkError
+from .io import open as open_recording
+from .limits import memory_limit_bytes
 from .metrics import SinadAccumulator, flip_rates
+from .optics import Bench
+from .reconstruct import WindowCounts, accumulate, plan, reconstruct, reconstruct_counts, response_error, window_bytes
+from .simulate import Simulation
 
 __all__ = ["scene_noise", "recording_noise", "random_kernels", "simulated_reconstruction", "flip_sweep", "tradeoff",
            "pareto_front"]
@@ -42,7 +48,6 @@ def scene_noise(result, interval="jackknife", per_pixel=False, seed=0) -> list:
     correlation and NRMSE of the repeats against the ideal). Scenes whose
     responses are all zero get ``sinad = None``.
     """
-    from .reconstruct import response_error
 
     out = []
     for (k, f), idx in result.groups().items():
@@ -90,8 +95,6 @@ def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval=
     whole. ``options`` go to :func:`evtk.reconstruct.reconstruct_counts`
     (``linear``, ``theta``, ``binarize_method``, ...).
     """
-    from .limits import memory_limit_bytes
-    from .reconstruct import accumulate, plan, reconstruct, reconstruct_counts, window_bytes
 
     sim, win, region = plan(rec, window, skip_us, length_us, options.pop("region", None), check_memory=False)
     if sim is not None:
@@ -144,8 +147,6 @@ def simulated_reconstruction(kernels, features, bench=None, sensor=None, window_
     runs a second time, warm, and ``(Reconstruction, Simulation, seconds)``
     is returned: the time of exactly the pipeline whose result is returned.
     """
-    from .reconstruct import WindowCounts, reconstruct, reconstruct_counts
-    from .simulate import Simulation
 
     sim = Simulation(kernels, features, bench=bench, sensor=sensor, window_us=window_us, settle_us=settle_us,
                      repeat=repeat, seed=seed, noise_seed=noise_seed, flat_field=flat_field)
@@ -163,7 +164,6 @@ def simulated_reconstruction(kernels, features, bench=None, sensor=None, window_
         return run(lambda: reconstruct_counts(counts, sim.record(), **options))
     if method != "events":
         raise EvtkError(f"method must be 'fast' or 'events', not {method!r}")
-    from .io import open as open_recording
 
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "run.aedat4")
@@ -191,8 +191,6 @@ def flip_sweep(powers_mw, kernels, features, repeats=10, bench=None, sensor=None
     ``correlation``. Powers run as independent tasks (on ``client``'s
     workers when given; :mod:`evtk.cluster`).
     """
-    from .cluster import run_tasks
-    from .optics import Bench
 
     powers = _positive_list(powers_mw, "powers_mw")
     if int(repeats) < 2:
@@ -259,7 +257,6 @@ def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, dec
     as independent tasks (on ``client``'s workers when given); each times
     its reconstruction after a warm-up in its own process.
     """
-    from .optics import Bench
 
     windows = _positive_list(windows_us, "windows_us")
     bench = bench if bench is not None else Bench()
@@ -272,7 +269,6 @@ def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, dec
                             f"e_min = {bench.min_window_us:g} us")
     settles = [None] if settles_us is None else _positive_list(settles_us, "settles_us")
     decs = [bench.decimation] if decimations is None else [int(d) for d in _positive_list(decimations, "decimations")]
-    from .cluster import run_tasks
 
     settings = [(p, w, z, d) for p in powers for w in windows for z in settles for d in decs]
     tasks = [(i, p, w, z, d, np.asarray(kernels), np.asarray(features), int(repeats), bench, sensor, seed,
@@ -289,8 +285,6 @@ def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, dec
 
 
 def _tradeoff_task(args):
-    from .reconstruct import response_error
-
     i, p, w, z, d, kernels, features, repeats, bench, sensor, seed, time_events = args
     b = bench.replace(power_mw=p, decimation=d)
     # error and time from one pipeline: the event path (the recording written once, its reconstruction timed)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 
 from ..errors import EvtkError
+from . import WRITE_EXTENSIONS, open_writer
+from . import open as open_recording
 from ._atomic import refuse_overwriting_inputs
 from ._checks import sorted_for_writing
 
@@ -27,8 +29,6 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
     Returns a summary: ``events``, ``triggers``, ``copied`` and ``left_out``
     (stream name -> packets).
     """
-    from . import WRITE_EXTENSIONS, open_writer
-    from . import open as open_recording
 
     ext = os.path.splitext(os.fspath(target))[1].lower()
     fmt = WRITE_EXTENSIONS.get(ext)

@@ -17,6 +17,8 @@ import zipfile
 import numpy as np
 
 from ..errors import EvtkError, FormatError
+from ._atomic import AtomicFile
+from .base import load_json
 
 __all__ = ["save_reconstruction", "load_reconstruction", "is_reconstruction", "describe_reconstruction",
            "LAYOUT_VERSION"]
@@ -47,12 +49,10 @@ def save_reconstruction(path, result, sensor_size, metadata=None):
             "sensor_size": [int(v) for v in sensor_size]}
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if ext == ".npz":
-        from ._atomic import AtomicFile
-
         with AtomicFile(path) as f:
             np.savez_compressed(f.file, summary=np.array(json.dumps(meta)), **arrays)
     elif ext in (".h5", ".hdf5"):
-        from .hdf5 import Hdf5Writer
+        from .hdf5 import Hdf5Writer  # HDF5 (and its compiled checks) load only for .h5 outputs
 
         with Hdf5Writer(path, sensor_size, "lz4", meta) as w:
             for name, a in arrays.items():
@@ -108,6 +108,7 @@ def load_reconstruction(path):
     >>> bool((back.responses == result.responses).all()), back.summary["sensor_size"]
     (True, [346, 260])
     """
+    # here, not at the top: describing a file (evtk info) must not load the reconstruction's compiled stages
     from ..reconstruct import Reconstruction, WindowCounts, Windows
 
     path = os.fspath(path)
@@ -152,7 +153,6 @@ def load_reconstruction(path):
 
 def _read(path):
     """``(arrays, metadata)`` of a reconstruction file in either container."""
-    from .base import load_json
 
     with open(path, "rb") as f:
         head = f.read(8)
@@ -160,7 +160,7 @@ def _read(path):
     if head.startswith(b"\x89HDF\r\n\x1a\n"):
         import h5py
 
-        from .hdf5 import Hdf5Recording
+        from .hdf5 import Hdf5Recording  # not at the top: describing an .npz must not load HDF5
 
         with Hdf5Recording(path) as rec:
             meta = rec.metadata

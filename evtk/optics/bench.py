@@ -10,6 +10,7 @@ import os
 from dataclasses import dataclass, field
 
 from ..errors import EvtkError, check_parameters
+from ..io._atomic import AtomicFile
 from ..settings import read_table, toml_value
 from .geometry import (
     PHOTON_ENERGY_J_PER_NM,
@@ -284,7 +285,6 @@ def save_bench(path, bench: Bench, sensor=None):
     ``sensor`` is an optional :class:`evtk.sensor.SensorModel` or dict. Unset
     optional values (None) are left out.
     """
-    from ..io._atomic import AtomicFile
 
     data = bench.to_dict()
     sdata = None

@@ -27,7 +27,6 @@ The stages, each a function usable alone:
 
 from __future__ import annotations
 
-from ..io.reconstruction import save_reconstruction
 from .accumulate import accumulate
 from .bench import load_schedule, match_windows, reconstruct_bench
 from .binarize import binarize, binarize_rule
@@ -56,14 +55,8 @@ __all__ = [
     "Windows", "WindowCounts", "windows_from_schedule", "windows_from_triggers", "windows_periodic",
     "ReconstructOptions", "reconstruct_bench", "match_windows", "load_schedule", "accumulate", "linearize",
     "combine_passes", "to_response_grid", "downsample", "binarize", "binarize_rule", "plan", "reconstruct",
-    "reconstruct_counts", "Reconstruction", "response_error", "save_reconstruction", "contact_sheet",
+    "reconstruct_counts", "Reconstruction", "response_error",
     "count_curve", "linearize_by_model", "linearize_by_timing", "timing_thresholds", "wants_times",
     "window_bytes", "flat_field_gain",
 ]
 
-
-def contact_sheet(path, result, max_rows=8):
-    """Moved to :func:`evtk.plots.contact_sheet` (kept here for existing scripts)."""
-    from ..plots import contact_sheet as draw
-
-    return draw(path, result, rows_per_page=max_rows)

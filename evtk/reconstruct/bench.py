@@ -19,12 +19,14 @@ import os
 import numpy as np
 
 from ..errors import EvtkError
-from ..simulate import FLAT_ID
+from ..optics import Bench, ideal_response, response_origin_px
+from ..simulate import FLAT_ID, Schedule
+from .accumulate import accumulate
 from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid
 from .linearize import flat_field_gain, linearize
-from .pipeline import Reconstruction, response_error
-from .windows import Windows, windows_from_triggers
+from .pipeline import Reconstruction, _check_crop, response_error
+from .windows import Windows, _trim, windows_from_triggers
 
 __all__ = ["load_schedule", "match_windows", "reconstruct_bench"]
 
@@ -37,8 +39,6 @@ def load_schedule(path) -> dict:
     ``window_us`` and ``settle_us``; a malformed file is one
     :class:`~evtk.EvtkError` naming what is wrong.
     """
-    from ..optics import Bench
-    from ..simulate import Schedule
 
     path = os.fspath(path)
     try:
@@ -166,10 +166,6 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     best scale (``error``: responses are relative intensity, not the ideal's
     units). Pairs with a pass that has no window are left out and listed.
     """
-    from ..optics import ideal_response, response_origin_px
-    from .accumulate import accumulate
-    from .pipeline import _check_crop
-    from .windows import _trim
 
     _check_crop(crop)
     sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
@@ -198,7 +194,6 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     complete = _complete_pairs(s, set(win.capture.tolist()))
     keep = np.array([(k, f, r) in complete or k < 0 for k, f, r in zip(sub["kernel_id"], sub["features_id"],
                                                                         sub["repeat"])], bool)
-    from ..simulate import Schedule
 
     kept = Schedule(**{c: v[keep] for c, v in sub.items()})
     combined, pairs = combine_passes(cells[keep], kept)

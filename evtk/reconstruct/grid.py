@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import EvtkError
+from ..optics import _axis_weights, shadow_magnification
+from ..simulate import Schedule
 
 __all__ = ["combine_passes", "to_response_grid", "downsample"]
 
@@ -26,7 +28,6 @@ def combine_passes(values, schedule):
         (kernel_id, features_id, repeat) rows, sorted. Flat-field captures
         (ids -1) are not responses and are left out.
     """
-    from ..simulate import Schedule
 
     if isinstance(schedule, dict):
         schedule = Schedule.from_dict(schedule)
@@ -121,7 +122,6 @@ def _footprint_matrix(bench, origin, p0, p1, n_cells, step):
     The optics' footprint (pixel width, source extent, diffuser blur) followed
     by :func:`to_response_grid`'s area overlap; valid for matched scaling.
     """
-    from ..optics import _axis_weights, shadow_magnification
 
     psf_cells = bench.psf_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
     w = _axis_weights(np.arange(p0, p1), n_cells, 1, bench, origin, psf_cells)[0]  # (pixels, cells)

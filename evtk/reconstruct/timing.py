@@ -8,6 +8,7 @@ import numba
 import numpy as np
 
 from ..errors import EvtkError
+from ..sensor import SensorModel, time_constant_us
 from .linearize import _count_bands, _thread_budget
 
 __all__ = ["linearize_by_timing", "timing_thresholds"]
@@ -22,7 +23,6 @@ def _settle_residual(u, t_on_us, t_off_us, sensor, blank_rate_e_per_s):
     time order, from a settled first window, with the light of each window
     taken as ``u`` (its log step over the dark level).
     """
-    from ..sensor import time_constant_us
 
     order = np.argsort(t_on_us, kind="stable")
     t_on = np.asarray(t_on_us, np.int64)[order]
@@ -216,7 +216,6 @@ def _log_dark_rate(rate_e_per_s):
 
 def _as_sensor(sensor):
     """A :class:`~evtk.sensor.SensorModel` from one or from its dict (a recording's record)."""
-    from ..sensor import SensorModel
 
     return sensor if isinstance(sensor, SensorModel) else SensorModel.from_dict(dict(sensor))
 

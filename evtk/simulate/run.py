@@ -9,6 +9,7 @@ import numpy as np
 from .._version import __version__
 from ..errors import EvtkError
 from ..events import Events, TriggerKind, Triggers
+from ..io import open_writer
 from ..limits import require_memory
 from ..optics import (
     Bench,
@@ -397,7 +398,6 @@ class Simulation:
 
     def write(self, path, compression="lz4", batch_captures=8, progress=None) -> dict:
         """Stream the run to ``path`` (.aedat4, .h5, .parquet) with triggers and metadata; atomic."""
-        from ..io import open_writer
 
         size = (self.bench.sensor_width, self.bench.sensor_height)
         n = 0

@@ -62,7 +62,6 @@ class Recording(_FileIndex, BaseRecording):
     def _stream_names(self):
         return [(s.name, s.type) for s in self._streams.values()]
 
-
     # -- streams ------------------------------------------------------------------
     @property
     def compression(self) -> str:
