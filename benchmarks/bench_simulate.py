@@ -60,7 +60,7 @@ def child(op, captures, noise):
         elif op == "write":
             n_events = sim.write(os.path.join(tmp, "run.aedat4"))["events"]
         else:
-            import evtk.simulate as es
+            import evtk.simulate.table as es
 
             if op == "table_cold":
                 es._TABLES.clear()

@@ -198,7 +198,7 @@ def test_ziggurat_normals_follow_the_normal_law():
     import numba
     from scipy import stats
 
-    from evtk.sensor import _ZIG_R, _normal, _rng_state
+    from evtk._rng import _ZIG_R, _normal, _rng_state
 
     @numba.njit
     def draw(n, seed):
