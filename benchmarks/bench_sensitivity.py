@@ -49,7 +49,7 @@ def _scaled_error(got, ideal):
     return response_error(got * scale, ideal)
 
 
-def run(draws):
+def run(draws, levels=6):
     import evtk
     from evtk.calibrate import calibrate
     from evtk.patterns import write_patterns
@@ -61,7 +61,7 @@ def run(draws):
     out = []
     with tempfile.TemporaryDirectory() as tmp:
         for name, factor in ROWS:
-            acc = {"oracle": [], "assumed default": [], "bench": []}
+            acc = {"oracle": [], "assumed default": [], "bench": [], "transfer": []}
             for d in range(draws):
                 rng = np.random.default_rng(2000 + d)
                 k, f = rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16))
@@ -70,7 +70,7 @@ def run(draws):
                     true[name] = default[name] * factor
                     if name == "theta_on":
                         true["theta_off"] = default["theta_off"] * factor
-                sim = Simulation(k, f, sensor=SensorModel(**true), seed=d, repeat=1, calibration=2)
+                sim = Simulation(k, f, sensor=SensorModel(**true), seed=d, repeat=1, calibration=2, levels=levels)
                 path = os.path.join(tmp, "run.aedat4")
                 sim.write(path)
                 write_patterns(sim, os.path.join(tmp, "p"))
@@ -82,8 +82,10 @@ def run(draws):
                     assumed = reconstruct_counts(counts, assumed_record)
                     schedule = os.path.join(tmp, "p", "schedule.json")
                     cal = calibrate(rec, schedule)
-                    bench = reconstruct_bench(rec, schedule, cal.region, cal.origin_px)
-                for key, r in (("oracle", oracle), ("assumed default", assumed), ("bench", bench)):
+                    bench = reconstruct_bench(rec, schedule, cal.region, cal.origin_px, transfer=False)
+                    measured = reconstruct_bench(rec, schedule, cal.region, cal.origin_px, transfer=True)
+                for key, r in (("oracle", oracle), ("assumed default", assumed), ("bench", bench),
+                               ("transfer", measured)):
                     e = _scaled_error(r.cells, r.ideal)
                     acc[key].append((e["correlation"], e["nrmse"]))
             row = {"parameter": name, "factor": factor}
@@ -97,7 +99,7 @@ def run(draws):
 
 def _line(r):
     cells = " | ".join(f"{r[k]['correlation']:.3f} / {r[k]['nrmse_scaled']:.2f}"
-                       for k in ("oracle", "assumed default", "bench"))
+                       for k in ("oracle", "assumed default", "bench", "transfer"))
     label = "none (default camera)" if r["parameter"] == "none" else f"{r['parameter']} x{r['factor']:g}"
     return f"| {label} | {cells} |"
 
@@ -106,10 +108,12 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--draws", type=int, default=4)
     ap.add_argument("--json", dest="json_out")
+    ap.add_argument("--levels", type=int, default=6, help="level captures in each run (the transfer curve's steps)")
     args = ap.parse_args()
-    print("| true camera differs in | oracle: correlation / NRMSE | assumed default model | bench (schedule only) |")
-    print("|---|---|---|---|")
-    rows = run(args.draws)
+    print("| true camera differs in | oracle: correlation / NRMSE | assumed default model | bench, exp(n theta) | "
+          "bench, measured transfer curve |")
+    print("|---|---|---|---|---|")
+    rows = run(args.draws, args.levels)
     if args.json_out:
         with open(args.json_out, "w") as fh:
             json.dump({"draws": args.draws, "rows": rows}, fh, indent=1)

@@ -20,6 +20,7 @@ Job keys (all optional but ``kernels``)::
     flat_field = 2                   # captures with every mirror on, first (per-pixel calibration)
     calibration = 2                  # dot-grid captures next (where the response lies: evtk calibrate)
     dot_spacing = 4                  # features elements between calibration dots
+    levels = 6                       # level captures next: a staircase of light (the pixels' transfer curve)
     window_us = 1000                 # how long each pattern is shown
     settle_us = 13340                # dark time after each pattern (default: the simulator's recommendation)
     [bench]                          # evtk.optics.Bench fields: DMD size and pitch, distances, rates, ...
@@ -46,7 +47,7 @@ __all__ = ["load_job", "job_simulation", "dmd_frame", "write_patterns", "SCHEDUL
 #: Version of the schedule file :func:`write_patterns` writes.
 SCHEDULE_VERSION = 1
 #: Keys a job file may hold.
-JOB_KEYS = ("kernels", "features", "signed", "repeat", "flat_field", "calibration", "dot_spacing", "window_us",
+JOB_KEYS = ("kernels", "features", "signed", "repeat", "flat_field", "calibration", "dot_spacing", "levels", "window_us",
             "settle_us", "seed", "bench", "sensor")
 
 
@@ -106,8 +107,8 @@ def load_job(path) -> dict:
     except (EvtkError, TypeError) as exc:
         raise EvtkError(f"{path}: {exc}") from None
     job = {"kernels": kernels, "features": features, "bench": bench, "sensor": sensor}
-    for key, default in (("repeat", 1), ("flat_field", 2), ("calibration", 0), ("dot_spacing", 4), ("window_us", 1000),
-                         ("settle_us", None), ("seed", 0)):
+    for key, default in (("repeat", 1), ("flat_field", 2), ("calibration", 0), ("dot_spacing", 4), ("levels", 0),
+                         ("window_us", 1000), ("settle_us", None), ("seed", 0)):
         v = data.get(key, default)
         if v is not None and (isinstance(v, bool) or not isinstance(v, int)):
             raise EvtkError(f"{path}: {key} must be a whole number, not {v!r}")
@@ -192,14 +193,16 @@ def write_patterns(sim: Simulation, out_dir, image_format="png") -> dict:
         captures.append({"capture": c, "t_on_us": int(s.t_on_us[c]), "t_off_us": int(s.t_off_us[c]),
                          "kernel_frame": kname, "features_frame": fname, "kernel_id": int(s.kernel_id[c]),
                          "features_id": int(s.features_id[c]), "kernel_sign": int(s.kernel_sign[c]),
-                         "features_sign": int(s.features_sign[c]), "repeat": int(s.repeat[c])})
+                         "features_sign": int(s.features_sign[c]), "repeat": int(s.repeat[c]),
+                         "level": int(s.level[c])})
     dark = f"dark.{fmt}"
     _save_1bit(os.path.join(out_dir, dark), np.zeros((b.dmd_rows, b.dmd_cols), bool), fmt)
     doc = {
         "evtk_schedule_version": SCHEDULE_VERSION,
         "window_us": int(sim.window_us), "settle_us": int(sim.settle_us), "start_us": int(sim.start_us),
         "repeat": int(sim.repeat), "flat_field": int(sim.flat_field),
-        "calibration": {"captures": int(sim.calibration), "dot_spacing": int(sim.dot_spacing)},
+        "calibration": {"captures": int(sim.calibration), "dot_spacing": int(sim.dot_spacing),
+                        "levels": int(sim.levels)},
         "kernels": sim.kernels.tolist(), "features": sim.features.tolist(),
         "dmd": {"cols": int(b.dmd_cols), "rows": int(b.dmd_rows), "mirror_pitch_um": float(b.mirror_pitch_um),
                 "kernel_mirrors_per_element": int(b.kernel_mirrors), "varsigma": float(b.varsigma),

@@ -158,7 +158,8 @@ def test_bench_reconstruction_from_the_schedule_alone(tmp_path):
     assert res.exit_code == 0 and "missing [3], 1 extra" in res.output, res.output
     assert "digital correlation of the schedule's patterns" in res.output
     assert evtk.load_reconstruction(tmp_path / "r.h5").responses.shape == (2, 16, 16)
-    for bad, msg in ((["--region", region, "--window", "triggers"], "leave out --window"), ([], "needs --region")):
+    for bad, msg in ((["--region", region, "--window", "triggers"], "leave out --window"),
+                     (["--oracle"], "--oracle reads the simulation record"), (["--origin-px", "3,4"], "with --region")):
         res = CliRunner().invoke(main, ["reconstruct", str(tmp_path / "cam.aedat4"), "--schedule",
                                         str(tmp_path / "p" / "schedule.json"), "-o", str(tmp_path / "x.h5"), *bad])
         assert res.exit_code == 2 and msg in res.output, res.output

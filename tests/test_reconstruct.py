@@ -374,7 +374,7 @@ def test_cli_reconstruct_outputs(tmp_path):
         lib = reconstruct(rec, size=(8, 8), binarize_method="mean")
     for out in ("r.npz", "r.h5"):
         res = CliRunner().invoke(main, ["reconstruct", str(src), "-o", str(tmp_path / out), "--size", "8x8",
-                                        "--binarize", "mean", "--json", "--png", str(tmp_path / "sheet.png")])
+                                        "--binarize", "mean", "--json", "--png", str(tmp_path / "sheet.png"), "--oracle"])
         assert res.exit_code == 0, res.output
         summary = json.loads(res.output)
         assert summary["responses"] == 2 and summary["size"] == [8, 8]
@@ -595,7 +595,7 @@ def test_reconstruction_files_read_back_and_describe_themselves(tmp_path):
     with evtk.open(rec_path) as rec:
         result = reconstruct(rec)
     for name in ("out.h5", "out.npz"):
-        res = CliRunner().invoke(main, ["reconstruct", str(rec_path), "-o", str(tmp_path / name)])
+        res = CliRunner().invoke(main, ["reconstruct", str(rec_path), "-o", str(tmp_path / name), "--oracle"])
         assert res.exit_code == 0, res.output
         assert is_reconstruction(tmp_path / name)
         back = load_reconstruction(tmp_path / name)

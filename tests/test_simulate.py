@@ -296,7 +296,7 @@ def test_cli_simulate(tmp_path):
                                     "--save-bench", str(tmp_path / "used.json")])
     assert res.exit_code == 0, res.output
     summary = json.loads(res.output)
-    assert summary["captures"] == 2 + 2 and summary["stride_eff"] == pytest.approx(1.0)
+    assert summary["captures"] == 2 + 6 + 2 and summary["stride_eff"] == pytest.approx(1.0)
     with evtk.open(out) as rec:
         assert len(rec.events()) == summary["events"]
         meta = rec.metadata[METADATA_KEY]
@@ -305,7 +305,7 @@ def test_cli_simulate(tmp_path):
     assert used["power_mw"] == 40.0 and used["sensor"]["background_rate_hz"] == 0.0
     # the same run from the library gives the same events
     sim = Simulation(K3, _features(5), bench=Bench(power_mw=40.0), sensor=SensorModel(background_rate_hz=0.0),
-                     repeat=2, seed=3)
+                     repeat=2, seed=3, levels=6)
     with evtk.open(out) as rec:
         assert rec.events() == sim.events()
 

@@ -235,13 +235,14 @@ _reconstruct_options = _options([
 
 
 def _reconstruct_settings(window_spec, skip_us, length_us, size, binarize_method, linearize, crop, flat_field,
-                          deblur, timing):
+                          deblur, timing, region=None):
     """The options of :data:`_reconstruct_options` as one :class:`evtk.reconstruct.ReconstructOptions`."""
     from ..reconstruct import ReconstructOptions
 
     return ReconstructOptions(window=window_spec, skip_us=skip_us, length_us=length_us,
                               size=size, binarize_method=binarize_method,
-                              linear=linearize, crop=crop, flat_field=flat_field, deblur=deblur, timing=timing)
+                              linear=linearize, crop=crop, flat_field=flat_field, deblur=deblur, timing=timing,
+                              region=region)
 
 
 def _number_list(text, name="the list", integer=False, allow_zero=False):
@@ -296,16 +297,18 @@ def _scene_rows(scenes, source=None, power=None):
     return rows
 
 
-def _reconstructed(path, **options):
-    """``reconstruct`` on one recording with a progress bar; returns (result, {events, sensor_size, power_mw})."""
-    from ..reconstruct import reconstruct
+def _reconstructed(path, oracle=False, schedule=None, calibration=None, origin_px=None, **options):
+    """:func:`evtk.workflow.reconstruct_recording` on one recording with a progress bar; returns
+    (result, {events, sensor_size, power_mw})."""
     from ..simulate import SimulationRecord
+    from ..workflow import reconstruct_recording
 
     with evio.open(path) as rec:
         n_events = rec.info()["events"]
         update, finish = _progress(n_events, f"reconstructing {path}")
         try:
-            result = reconstruct(rec, progress=update, **options)
+            result = reconstruct_recording(rec, oracle=oracle, schedule=schedule, calibration=calibration,
+                                           origin_px=origin_px, progress=update, **options)
         finally:
             finish()
         sim = SimulationRecord.from_metadata(rec.metadata)

@@ -6,7 +6,6 @@ import sys
 
 import click
 
-from ..errors import EvtkError
 from ._base import (
     _MAX_INT,
     POINT,
@@ -29,22 +28,27 @@ from ._base import (
 @click.option("--png", "png_path", type=click.Path(dir_okay=False),
               help="Also draw contact sheets: measured beside ideal, and both binarised.")
 @click.option("--schedule", "schedule_path", type=click.Path(dir_okay=False, exists=True),
-              help="A bench recording's schedule.json (evtk patterns): windows matched to its captures, no "
-                   "simulation record read. Needs --region.")
+              help="A bench run's schedule.json (evtk patterns): windows matched to its captures, a pixel model "
+                   "fitted to its level captures. A simulated recording needs none (its record holds the same).")
 @click.option("--calibration", "calibration_path", type=click.Path(dir_okay=False, exists=True),
-              help="With --schedule: where the response lies, from evtk calibrate (instead of --region/--origin-px).")
-@click.option("--region", type=REGION, help="With --schedule: sensor pixels X0,X1,Y0,Y1 the response lies on.")
-@click.option("--origin-px", type=POINT, help="With --schedule: sensor pixel X,Y of the response's cell (0, 0) "
-                                               "(default: the bench geometry's).")
+              help="Where the response lies, from evtk calibrate (default: the run's own dot captures, else the "
+                   "bench geometry).")
+@click.option("--region", type=REGION, help="Sensor pixels X0,X1,Y0,Y1 the response lies on (instead of a calibration).")
+@click.option("--origin-px", type=POINT, help="Sensor pixel X,Y of the response's cell (0, 0), with --region.")
+@click.option("--oracle", is_flag=True,
+              help="Simulated recordings: invert the simulation record's own pixel model and placement (what a "
+                   "perfect calibration gives; a bench has no such answer). Said in the output.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
-@click.pass_context
-def reconstruct_cmd(ctx, recording, output, png_path, schedule_path, calibration_path, region, origin_px, as_json,
+def reconstruct_cmd(recording, output, png_path, schedule_path, calibration_path, region, origin_px, oracle, as_json,
                     **settings):
     """Turn a recording into the convolution responses the device computed.
 
-    A simulated recording is windowed by its stored schedule; a bench
-    recording by its trigger edges, matched with --schedule against the
-    schedule evtk patterns wrote (lost or extra edges are reported).
+    By default every recording, simulated or from the bench, goes the
+    calibrated route: trigger windows matched to the schedule (lost or extra
+    edges reported), a pixel model fitted to the run's own level captures,
+    the response placed by a calibration. --oracle uses the simulator's
+    own model instead; --window triggers or period:US reconstructs fixed
+    windows without a schedule.
     """
     from ..io._atomic import refuse_overwriting_inputs
     from ..io.reconstruction import save_reconstruction
@@ -53,27 +57,22 @@ def reconstruct_cmd(ctx, recording, output, png_path, schedule_path, calibration
     refuse_overwriting_inputs(output, [recording])
     if png_path:
         refuse_overwriting_inputs(png_path, [recording, output])
-    options = _reconstruct_settings(**settings)
+    options = _reconstruct_settings(**settings, region=region)
     calibration = None
     if calibration_path:
         from ..calibrate import load_calibration
 
-        if not schedule_path or region is not None or origin_px is not None:
-            raise click.UsageError("--calibration goes with --schedule, and replaces --region and --origin-px")
-        calibration = load_calibration(calibration_path)
-        region, origin_px = tuple(calibration.region), tuple(calibration.origin_px)
-    if schedule_path:
-        not_here = [f"--{n.replace('_', '-')}" for n in ("window_spec", "linearize", "deblur", "timing")
-                    if ctx.get_parameter_source(n) == click.core.ParameterSource.COMMANDLINE]
-        if not_here or region is None:
-            raise click.UsageError("--schedule needs --region" if region is None else
-                                   f"--schedule reconstructs from the trigger windows by exp(n theta): leave out "
-                                   f"{', '.join(not_here)}")
-        result, about = _reconstructed_bench(recording, schedule_path, region, origin_px, options, calibration)
-    else:
         if region is not None or origin_px is not None:
-            raise click.UsageError("--region and --origin-px go with --schedule")
-        result, about = _reconstructed(recording, **options.kwargs())
+            raise click.UsageError("--calibration replaces --region and --origin-px")
+        calibration = load_calibration(calibration_path)
+    if origin_px is not None and region is None:
+        raise click.UsageError("--origin-px goes with --region")
+    if oracle and (schedule_path or calibration_path or region is not None):
+        raise click.UsageError("--oracle reads the simulation record: leave out --schedule, --calibration and --region")
+    if schedule_path and settings["window_spec"] != "schedule":
+        raise click.UsageError("--schedule takes the windows from the trigger edges matched to it: leave out --window")
+    result, about = _reconstructed(recording, oracle=oracle, schedule=schedule_path, calibration=calibration,
+                                   origin_px=origin_px, **options.kwargs())
     n_events, sensor = about["events"], about["sensor_size"]
     save_reconstruction(output, result, sensor, {"source": str(recording)})
     pages = contact_sheet(png_path, result) if png_path else []
@@ -89,7 +88,7 @@ def reconstruct_cmd(ctx, recording, output, png_path, schedule_path, calibration
         if err:
             fmt = lambda v, spec: "n/a" if v is None else format(v, spec)  # noqa: E731
             what = ("the digital correlation of the schedule's patterns (best scale)" if "scale_to_ideal" in summary
-                    else "ground truth")
+                    else "the digital correlation of the schedule's patterns")
             line += (f"\nagainst {what}: correlation {fmt(err['correlation'], '.4f')}, RMS error "
                      f"{fmt(err['nrmse'], '.1%')} of the ideal's RMS, {fmt(err['nrmse_range'], '.1%')} of its range")
         match = summary.get("match")
@@ -97,6 +96,11 @@ def reconstruct_cmd(ctx, recording, output, png_path, schedule_path, calibration
             line += (f"\ntrigger windows: {match['matched']} of {match['captures']} captures matched; missing "
                      f"{match['missing'][:10]}{' ...' if len(match['missing']) > 10 else ''}, {match['extra']} extra"
                      + (f"; pairs left out {summary['pairs_left_out']}" if summary.get("pairs_left_out") else ""))
+        if summary.get("route"):
+            line += f"\nroute: {summary['route']}" + (f"; response placed by {summary['placement']}"
+                                                       if summary.get("placement") else "")
+        if summary.get("pixel_model_note"):
+            line += f"\nnote: {summary['pixel_model_note']}"
         if summary.get("timing_skipped"):
             line += f"\nnote: event times were not used: {summary['timing_skipped']}"
         click.echo(line)
@@ -146,24 +150,4 @@ def batch_reconstruct_cmd(inputs, out_dir, fmt, force, split_events, scheduler_s
                 click.echo(f"  failed: {e['input']}: {e['error']}")
     if c["error"]:
         sys.exit(1)
-
-
-def _reconstructed_bench(path, schedule_path, region, origin_px, options, calibration=None):
-    from .. import io as evio
-    from ..reconstruct import reconstruct_bench
-
-    with evio.open(path) as rec:
-        if calibration is not None and tuple(calibration.sensor_size) != tuple(rec.sensor_size):
-            raise EvtkError(f"the calibration is of a {calibration.sensor_size[0]}x{calibration.sensor_size[1]} "
-                            f"sensor, {path} of a {rec.sensor_size[0]}x{rec.sensor_size[1]} one")
-        n_events = rec.info()["events"]
-        update, finish = _progress(n_events, f"reconstructing {path}")
-        try:
-            result = reconstruct_bench(rec, schedule_path, region, origin_px, size=options.size,
-                                       binarize_method=options.binarize_method, skip_us=options.skip_us,
-                                       length_us=options.length_us, crop=options.crop,
-                                       flat_field=options.flat_field, progress=update)
-        finally:
-            finish()
-        return result, {"events": n_events, "sensor_size": rec.sensor_size}
 

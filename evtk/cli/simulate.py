@@ -21,6 +21,11 @@ from ._base import _MAX_INT, _dumps, _fmt, _progress, main
               help="Times each pair is shown.")
 @click.option("--flat-field", type=click.IntRange(min=0, max=_MAX_INT), default=2, show_default=True,
               help="Flat-field captures (all mirrors on) shown first, for per-pixel threshold calibration.")
+@click.option("--levels", type=click.IntRange(min=0, max=_MAX_INT), default=6, show_default=True,
+              help="Level captures (a staircase of light) after the flat fields: the pixels' transfer curve, which "
+                   "reconstruction measures instead of assuming a pixel model. 0: none.")
+@click.option("--calibration", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True,
+              help="Dot-grid captures, for evtk calibrate (where the response lies on the sensor).")
 @click.option("--power-mw", type=float, help="Laser power (default: the bench's).")
 @click.option("--window-us", type=click.IntRange(min=1, max=_MAX_INT), default=1000, show_default=True,
               help="How long each pattern is shown.")
@@ -36,8 +41,8 @@ from ._base import _MAX_INT, _dumps, _fmt, _progress, main
               help="A job file (.toml/.json, as `evtk patterns` takes) instead of the pattern and timing options.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @click.pass_context
-def simulate(ctx, kernel_path, kernel_bits, features_path, signed, repeat, flat_field, power_mw, window_us, settle_us,
-             bench_path, seed, compression, output, save_bench, job_path, as_json):
+def simulate(ctx, kernel_path, kernel_bits, features_path, signed, repeat, flat_field, levels, calibration, power_mw,
+             window_us, settle_us, bench_path, seed, compression, output, save_bench, job_path, as_json):
     """Simulate the device and write the event recording it would produce."""
     from ..optics import Bench, load_bench
     from ..sensor import SensorModel
@@ -45,7 +50,8 @@ def simulate(ctx, kernel_path, kernel_bits, features_path, signed, repeat, flat_
 
     if job_path:
         given = [f"--{name.replace('_', '-')}" for name in ("kernel_path", "kernel_bits", "features_path", "signed",
-                                                             "repeat", "flat_field", "window_us", "settle_us",
+                                                             "repeat", "flat_field", "levels", "calibration",
+                                                             "window_us", "settle_us",
                                                              "bench_path", "seed")
                  if ctx.get_parameter_source(name) == click.core.ParameterSource.COMMANDLINE]
         if given:
@@ -72,7 +78,7 @@ def simulate(ctx, kernel_path, kernel_bits, features_path, signed, repeat, flat_
         bench = bench.replace(power_mw=power_mw)
     sensor = SensorModel.from_dict(sensor)
     sim = Simulation(kernel, features, bench, sensor, window_us=window_us, settle_us=settle_us, repeat=repeat,
-                     seed=seed, flat_field=flat_field)
+                     seed=seed, flat_field=flat_field, levels=levels, calibration=calibration)
     _write_simulation(sim, bench, sensor, compression, output, save_bench, as_json)
 
 

@@ -30,6 +30,8 @@ from __future__ import annotations
 from .accumulate import accumulate
 from .bench import load_schedule, match_windows, reconstruct_bench
 from .binarize import binarize, binarize_rule
+from .calibrated import nominal_placement, reconstruct_calibrated, schedule_of_record
+from .fit import PixelFit, fit_pixel_model, level_statistics
 from .grid import combine_passes, downsample, to_response_grid
 from .linearize import count_curve, flat_field_gain, linearize, linearize_by_model
 from .options import ReconstructOptions
@@ -57,6 +59,7 @@ __all__ = [
     "combine_passes", "to_response_grid", "downsample", "binarize", "binarize_rule", "plan", "reconstruct",
     "reconstruct_counts", "Reconstruction", "response_error",
     "count_curve", "linearize_by_model", "linearize_by_timing", "timing_thresholds", "wants_times",
-    "window_bytes", "flat_field_gain",
+    "window_bytes", "flat_field_gain", "reconstruct_calibrated", "schedule_of_record", "nominal_placement",
+    "fit_pixel_model", "level_statistics", "PixelFit",
 ]
 

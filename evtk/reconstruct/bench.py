@@ -52,7 +52,8 @@ def load_schedule(path) -> dict:
         raise EvtkError(f"{path}: not an evtk schedule (evtk_schedule_version 1); write one with evtk patterns")
     try:
         caps = doc["captures"]
-        cols = {c: [int(cap[c]) for cap in caps] for c in Schedule._COLUMNS}
+        cols = {c: [int(cap[c]) if c in cap or c not in Schedule._OPTIONAL else 0 for cap in caps]
+                for c in Schedule._COLUMNS}
         schedule = Schedule.from_dict(cols)
         kernels = np.asarray(doc["kernels"], dtype=np.int64)
         features = np.asarray(doc["features"], dtype=np.int64)

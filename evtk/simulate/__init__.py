@@ -35,16 +35,19 @@ from .run import Simulation
 from .schedule import (
     DOTS_ID,
     FLAT_ID,
+    LEVEL_ID,
     METADATA_KEY,  # noqa: F401  (the record's key in a recording's metadata)
     CaptureCounts,
     Schedule,
     default_features,
     dot_grid,
+    level_kernel,
+    level_steps,
     load_patterns,
     split_passes,
 )
 
 __all__ = [
     "split_passes", "Schedule", "Simulation", "SimulationRecord", "CaptureCounts", "load_patterns", "dot_grid", "FLAT_ID",
-    "DOTS_ID", "default_features", "METADATA_KEY",
+    "DOTS_ID", "LEVEL_ID", "level_kernel", "level_steps", "default_features", "METADATA_KEY",
 ]

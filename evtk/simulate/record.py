@@ -41,7 +41,7 @@ class SimulationRecord:
         Photoelectrons per second one unit of response adds to a pixel.
     blank_rate_e_per_s : float
         A pixel's photocurrent with both DMDs dark (dark current and glow).
-    seed, noise_seed, repeat, flat_field, calibration, dot_spacing, correlation, evtk_version
+    seed, noise_seed, repeat, flat_field, calibration, dot_spacing, levels, correlation, evtk_version
         The rest of the run's settings.
     """
 
@@ -64,6 +64,7 @@ class SimulationRecord:
     flat_field: int = 0
     calibration: bool = False
     dot_spacing: int = 4
+    levels: int = 0
     correlation: str = "correlation"
     evtk_version: str = ""
 

@@ -27,6 +27,7 @@ from .schedule import (
     _T_LIMIT,
     DOTS_ID,
     FLAT_ID,
+    LEVEL_ID,
     METADATA_KEY,
     CaptureCounts,
     Schedule,
@@ -34,6 +35,8 @@ from .schedule import (
     _int_param,
     _pass,
     dot_grid,
+    level_kernel,
+    level_steps,
     split_passes,
 )
 from .table import count_table, table_batches
@@ -80,6 +83,14 @@ class Simulation:
         (:data:`DOTS_ID`).
     dot_spacing : int
         Feature elements between dots.
+    levels : int
+        Level captures shown after the dots, a staircase of light: features
+        all on and ``level`` kernel elements on (:func:`level_kernel`), for
+        ``levels`` element counts from 1 to all (:func:`level_steps`). The
+        response's interior then sees 1, ..., K units of light, which
+        measures the pixels' transfer from light to counts without a pixel
+        model (:func:`evtk.reconstruct.transfer_curve`); ids -3
+        (:data:`LEVEL_ID`), the element count in the schedule's ``level``.
 
     Examples
     --------
@@ -90,7 +101,7 @@ class Simulation:
 
     def __init__(self, kernels, features, bench: Bench | None = None, sensor: SensorModel | None = None,
                  window_us=1000, settle_us=None, repeat=1, seed=0, start_us=0, noise_seed=None, flat_field=2,
-                 calibration=0, dot_spacing=4):
+                 calibration=0, dot_spacing=4, levels=0):
         self.bench = bench if bench is not None else Bench()
         self.sensor = sensor if sensor is not None else SensorModel()
         self.kernels = _as_patterns("kernels", kernels)
@@ -124,14 +135,18 @@ class Simulation:
         self.dot_spacing = _int_param("dot_spacing", dot_spacing, 2)
         if self.calibration and not dot_grid(self.features.shape[1:], self.dot_spacing).any():
             raise EvtkError(f"a dot spacing of {self.dot_spacing} leaves no dot on {self.features.shape[1:]} features")
-        rows = [(FLAT_ID, FLAT_ID, 1, 1, i) for i in range(self.flat_field)]
-        rows += [(DOTS_ID, DOTS_ID, 1, 1, i) for i in range(self.calibration)]
+        self.levels = _int_param("levels", levels, 0)
+        steps = level_steps(self.kernels.shape[1] * self.kernels.shape[2], self.levels)
+        rows = [(FLAT_ID, FLAT_ID, 1, 1, i, 0) for i in range(self.flat_field)]
+        rows += [(DOTS_ID, DOTS_ID, 1, 1, i, 0) for i in range(self.calibration)]
+        rows += [(LEVEL_ID, LEVEL_ID, 1, 1, 0, int(m)) for m in steps]
+        n_setup = len(rows)
         for r in range(self.repeat):
             for ki in range(len(self.kernels)):
                 for fi in range(len(self.features)):
                     for ks, fs, _kp, _fp in self._pair_passes(ki, fi):
-                        rows.append((ki, fi, ks, fs, r))
-        if len(rows) == self.flat_field + self.calibration:
+                        rows.append((ki, fi, ks, fs, r, 0))
+        if len(rows) == n_setup:
             raise EvtkError("nothing to show: every kernel or features pattern is all zero")
         n = len(rows)
         period = self.window_us + self.settle_us
@@ -141,7 +156,7 @@ class Simulation:
         rows = np.asarray(rows, dtype=np.int64)
         t_on = self.start_us + self.settle_us + np.arange(n, dtype=np.int64) * period
         self.schedule = Schedule(np.arange(n, dtype=np.int64), rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3],
-                                 t_on, t_on + self.window_us, rows[:, 4])
+                                 t_on, t_on + self.window_us, rows[:, 4], rows[:, 5])
         self.end_us = int(end)
 
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x5E5]))
@@ -166,6 +181,8 @@ class Simulation:
             k = np.zeros(self.kernels.shape[1:], np.int8)
             k[(k.shape[0] - 1) // 2, (k.shape[1] - 1) // 2] = 1
             return k, dot_grid(self.features.shape[1:], self.dot_spacing)
+        if s.kernel_id[c] == LEVEL_ID:  # a step of the staircase: ``level`` kernel elements over flat features
+            return level_kernel(self.kernels.shape[1:], s.level[c]), np.ones(self.features.shape[1:], np.int8)
         return _pass(self.kernels[s.kernel_id[c]], ks), _pass(self.features[s.features_id[c]], fs)
 
     def _rate(self, response):
@@ -218,7 +235,7 @@ class Simulation:
                                                                          self.features.shape[1:])),
             gain_e_per_s_per_unit=float(self.gain_e_per_s), blank_rate_e_per_s=float(self.blank_rate_e_per_s),
             seed=self.seed, noise_seed=self.noise_seed, repeat=self.repeat, flat_field=self.flat_field,
-            calibration=self.calibration, dot_spacing=self.dot_spacing,
+            calibration=self.calibration, dot_spacing=self.dot_spacing, levels=self.levels,
             correlation="convolution" if self.bench.kernel_flipped else "correlation", evtk_version=__version__)
 
     def metadata(self) -> dict:
@@ -270,9 +287,10 @@ class Simulation:
         return np.log(rates), time_constant_us(rates, self.sensor), log_noise_std(rates, self.sensor)
 
     def _pass_key(self, c):
-        """What capture ``c`` shows: (kernel id, features id, kernel sign, features sign)."""
+        """What capture ``c`` shows: (kernel id, features id, kernel sign, features sign, level)."""
         s = self.schedule
-        return int(s.kernel_id[c]), int(s.features_id[c]), int(s.kernel_sign[c]), int(s.features_sign[c])
+        return (int(s.kernel_id[c]), int(s.features_id[c]), int(s.kernel_sign[c]), int(s.features_sign[c]),
+                int(s.level[c]))
 
     def _glow_rate(self, c):
         """Photoelectron rate of the uniform glow outside the region during capture ``c`` (cached per pass)."""

@@ -11,7 +11,7 @@ from ..errors import EvtkError
 
 __all__ = [
     "split_passes", "Schedule", "CaptureCounts", "load_patterns", "dot_grid", "FLAT_ID",
-    "DOTS_ID", "default_features", "METADATA_KEY",
+    "DOTS_ID", "LEVEL_ID", "level_kernel", "level_steps", "default_features", "METADATA_KEY",
 ]
 
 
@@ -81,9 +81,16 @@ class Schedule:
     t_on_us: np.ndarray
     t_off_us: np.ndarray
     repeat: np.ndarray
+    #: mirrors on in the kernel of a level capture (:data:`LEVEL_ID`), 0 for the others
+    level: np.ndarray | None = None
 
     _COLUMNS = ("capture", "kernel_id", "features_id", "kernel_sign", "features_sign", "t_on_us", "t_off_us",
-                "repeat")
+                "repeat", "level")
+    _OPTIONAL = ("level",)  # columns older schedules do not have (read as zeros)
+
+    def __post_init__(self):
+        if self.level is None:
+            self.level = np.zeros(np.shape(self.capture), np.int64)
 
     def __len__(self):
         return int(self.capture.size)
@@ -94,7 +101,7 @@ class Schedule:
     @classmethod
     def from_dict(cls, d: dict) -> Schedule:
         try:
-            cols = {c: np.asarray(d[c], dtype=np.int64) for c in cls._COLUMNS}
+            cols = {c: np.asarray(d[c], dtype=np.int64) for c in cls._COLUMNS if c in d or c not in cls._OPTIONAL}
         except (KeyError, TypeError, ValueError) as exc:
             raise EvtkError(f"capture schedule is malformed: {exc}") from None
         n = {v.shape for v in cols.values()}
@@ -140,6 +147,41 @@ FLAT_ID = -1
 
 #: ``kernel_id``/``features_id`` of a calibration capture (kernel all on, a dot grid of features).
 DOTS_ID = -2
+
+
+#: ``kernel_id``/``features_id`` of a level capture: features all on, ``level`` kernel mirrors on
+#: (:func:`level_kernel`), so the flat response's interior is ``level`` units of light.
+LEVEL_ID = -3
+
+
+def level_kernel(shape, on):
+    """The kernel of a level capture: its first ``on`` elements in row-major order on, the rest off (int8).
+
+    Under features that are all on, every cell of the response's interior
+    sees exactly ``on`` units of light, whichever elements are on: a
+    staircase of these captures measures the pixels' transfer from light to
+    counts (:func:`evtk.reconstruct.transfer_curve`).
+
+    Examples
+    --------
+    >>> level_kernel((2, 3), 4).tolist()
+    [[1, 1, 1], [1, 0, 0]]
+    """
+    h, w = (int(v) for v in shape)
+    on = int(on)
+    if not 1 <= on <= h * w:
+        raise EvtkError(f"a level capture turns on 1 to {h * w} kernel elements, not {on}")
+    out = np.zeros(h * w, np.int8)
+    out[:on] = 1
+    return out.reshape(h, w)
+
+
+def level_steps(n_elements, levels):
+    """The ``levels`` kernel element counts a staircase shows: evenly spread from 1 to ``n_elements``, distinct."""
+    n, k = int(n_elements), int(levels)
+    if k <= 0:
+        return np.zeros(0, np.int64)
+    return np.unique(np.round(np.linspace(1, n, min(k, n))).astype(np.int64))
 
 
 def dot_grid(shape, spacing):

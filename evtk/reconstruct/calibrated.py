@@ -1,0 +1,137 @@
+"""The calibrated route: a recording, what the bench showed, where the response lies; the pixel model fitted.
+
+:func:`reconstruct_calibrated` is what ``evtk reconstruct`` runs by default,
+on a bench recording (``--schedule``) and on a simulated one alike. It reads
+no answer only the simulator knows:
+
+1. trigger windows matched to the schedule's captures (:func:`match_windows`);
+2. counts and event times over the response's region;
+3. a pixel model fitted to the run's own level captures
+   (:mod:`evtk.reconstruct.fit`), when it has any;
+4. then the oracle's stages on that model (:func:`reconstruct_counts`):
+   flat field, linearisation by the model and the event times, passes,
+   grid, deblurring, resampling, binarisation.
+
+Without level captures it falls back to :func:`reconstruct_bench`
+(``exp(n theta)``) and says so. A simulated recording's own record serves
+only for what a bench also has (the schedule, patterns and bench geometry:
+:func:`schedule_of_record`) and for the error against the ideal;
+``evtk reconstruct --oracle`` runs the model of the record instead.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import median_filter
+
+from ..optics import response_origin_px, response_region
+from ..simulate import FLAT_ID, LEVEL_ID, Schedule
+from ..simulate.record import SimulationRecord
+from .accumulate import accumulate
+from .bench import _all_pairs, _complete_pairs, load_schedule, match_windows, reconstruct_bench
+from .fit import fit_pixel_model, fitted_record, interior_pixels, level_statistics
+from .linearize import flat_field_gain
+from .pipeline import MAX_TIMING_STAMP_US, _check_crop, reconstruct_counts
+from .windows import WindowCounts, Windows, _trim
+
+__all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement"]
+
+
+def schedule_of_record(record) -> dict:
+    """What a simulated run's ``schedule.json`` would hold, from its record: no pixel model, no photon rates.
+
+    Returns the dict :func:`load_schedule` returns (schedule, kernels,
+    features, bench, window_us, settle_us, dot_spacing).
+    """
+    r = SimulationRecord.from_dict(record)
+    return {"schedule": r.schedule, "kernels": r.kernels, "features": r.features, "bench": r.bench,
+            "window_us": r.window_us, "settle_us": r.settle_us, "dot_spacing": r.dot_spacing}
+
+
+def nominal_placement(schedule) -> tuple:
+    """``(region, origin_px)`` the bench geometry alone predicts (the response centred on the sensor)."""
+    sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
+    b, ks, fs = sched["bench"], sched["kernels"].shape[1:], sched["features"].shape[1:]
+    return tuple(int(v) for v in response_region(b, ks, fs)), tuple(float(v) for v in response_origin_px(b, ks, fs))
+
+
+def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16, 16), binarize_method="auto",
+                           skip_us=0, length_us=None, crop="valid", flat_field=True, deblur=None, timing=None,
+                           linear=True, tolerance_us=None, progress=None):
+    """The whole pipeline with a pixel model fitted to the recording's own level captures.
+
+    Parameters
+    ----------
+    rec : Recording
+        Events and the DMD's trigger edges.
+    schedule : str, os.PathLike or dict
+        ``schedule.json`` (:func:`evtk.patterns.write_patterns`), :func:`load_schedule`'s
+        dict, or :func:`schedule_of_record`'s.
+    region, origin_px
+        Where the response lies (from :func:`evtk.calibrate.calibrate`);
+        default :func:`nominal_placement`.
+    size, binarize_method, skip_us, length_us, crop, flat_field, deblur, timing, linear
+        As :func:`~evtk.reconstruct.reconstruct`.
+    tolerance_us : float, optional
+        As :func:`match_windows`.
+
+    Returns a :class:`~evtk.reconstruct.Reconstruction`; its summary holds
+    the trigger match (``match``), the fitted model (``pixel_model``) and
+    the error against the ideal correlation of the schedule's patterns.
+    """
+    _check_crop(crop)
+    sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
+    s = sched["schedule"]
+    if region is None or origin_px is None:
+        nominal = nominal_placement(sched)
+        region = nominal[0] if region is None else region
+        origin_px = nominal[1] if origin_px is None else origin_px
+    if not np.any(s.kernel_id == LEVEL_ID):
+        result = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
+                                   skip_us=skip_us, length_us=length_us, crop=crop, flat_field=flat_field,
+                                   tolerance_us=tolerance_us, progress=progress)
+        result.summary["pixel_model"] = None
+        result.summary["pixel_model_note"] = ("the run has no level captures (a job with levels = N): no pixel model "
+                                              "fitted, counts linearised by exp(n theta)")
+        return result
+    win, report = match_windows(rec.triggers(), s, tolerance_us)
+    # every setup capture, and the pairs all of whose passes have a window
+    complete = _complete_pairs(s, set(win.capture.tolist()))
+    keep = np.array([s.kernel_id[c] < 0 or (int(s.kernel_id[c]), int(s.features_id[c]), int(s.repeat[c])) in complete
+                     for c in win.capture.tolist()], bool)
+    caps = win.capture[keep]
+    t_on, t_off = win.t_start_us[keep], win.t_end_us[keep]
+    start, end = _trim(t_on, t_off, skip_us, length_us, "matched")
+    counts = accumulate(rec, Windows(start, end, np.arange(caps.size), "triggers matched to the schedule",
+                                     win.dropped), region, progress=progress, times=True)
+    sub = Schedule(**{c: getattr(s, c)[caps] for c in Schedule._COLUMNS})
+    kh, kw = sched["kernels"].shape[1:]
+    fh, fw = sched["features"].shape[1:]
+    bench = sched["bench"]
+    step = bench.kernel_step_cells / bench.pixel_cells
+    inside = interior_pixels(counts.region, origin_px, step, (kh, kw), (fh, fw))
+    net = counts.on.astype(np.float64) - counts.off
+    flat = sub.kernel_id == FLAT_ID
+    gain = None
+    if flat.any():
+        net_flat = net[flat]
+        gain = flat_field_gain(net_flat, median_filter(net_flat.mean(axis=0), size=5, mode="nearest"))
+    stats = level_statistics(counts, sub.kernel_id == LEVEL_ID, sub.level, inside, gain)
+    spread = float(np.clip(np.std(gain[inside]) if gain is not None else 0.05, 0.005, 0.3))
+    # event times on a frame readout's grid are too coarse to time a pixel by: fit the counts alone
+    fine = counts.stamp_period_us is None or counts.stamp_period_us <= MAX_TIMING_STAMP_US
+    fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine)
+    record = fitted_record(fit, sub, t_on, t_off, sched["kernels"], sched["features"], bench, counts.region,
+                           origin_px, sched["window_us"], sched["settle_us"])
+    counts = WindowCounts(counts.on, counts.off, Windows(start, end, sub.capture, counts.windows.source,
+                                                         counts.windows.dropped),
+                          counts.region, counts.events_used, counts.on_first_us, counts.on_last_us,
+                          counts.stamp_period_us)
+    result = reconstruct_counts(counts, record, skip_us=skip_us, length_us=length_us, size=size,
+                                binarize_method=binarize_method, linear=linear, crop=crop, deblur=deblur,
+                                flat_field=flat_field, timing=timing)
+    result.summary.update(match=report, pairs_left_out=sorted(_all_pairs(s) - complete),
+                          response_origin_px=[float(v) for v in origin_px], pixel_model=fit.to_dict(),
+                          level_captures=int(np.sum(sub.kernel_id == LEVEL_ID)))
+    return result
+

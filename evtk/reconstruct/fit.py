@@ -1,0 +1,272 @@
+"""A pixel model fitted to the recording's own level captures, so the model-based stages run without a record.
+
+The level captures (:data:`evtk.simulate.LEVEL_ID`) light the response's
+interior with 1 ... K units (kernel elements) of light. Over their interior
+pixels :func:`level_statistics` takes, per step, the mean net count and the
+median time of the first and the last ON event. :func:`fit_pixel_model`
+then finds the pixel model whose noise-free response to the same steps, in
+the same windows, gives those numbers:
+
+* the contrast threshold ``theta`` and the light of the dark level
+  ``blank`` (in the same units: the pixel sees ``log(1 + light / blank)``)
+  from the counts;
+* the time constant in bright light ``tau_min_us`` and at the dark level
+  ``tau_dark_us`` (:func:`evtk.sensor.time_constant_us`: ``tau = tau_min +
+  tau_electrons / rate``) from the event times.
+
+Absolute photon rates are not observable from events; the fitted model
+states them relative to a nominal dark rate, which is all the
+reconstruction needs. :func:`fitted_record` wraps the model, the schedule,
+the placement and the windows into a :class:`~evtk.simulate.SimulationRecord`
+for :func:`~evtk.reconstruct.reconstruct_counts`: the oracle's pipeline,
+with a model the recording itself gave.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize
+
+from ..errors import EvtkError
+from ..optics import Bench
+from ..sensor import PixelState, SensorModel, simulate_pixels, time_constant_us
+from ..simulate import Schedule
+from ..simulate.record import SimulationRecord
+
+__all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "fit_pixel_model", "fitted_record"]
+
+#: Nominal dark-level photoelectron rate the fitted model is stated against (only ratios are observable).
+NOMINAL_BLANK_E_PER_S = 1e5
+
+
+@dataclass(frozen=True)
+class LevelStatistics:
+    """Per light step: ``light`` (units), mean net ``counts``, median ``first_us``/``last_us`` ON-event times
+    from the window start (NaN where no interior pixel fired), and ``pixels`` averaged."""
+
+    light: np.ndarray
+    counts: np.ndarray
+    first_us: np.ndarray
+    last_us: np.ndarray
+    pixels: int
+
+
+@dataclass(frozen=True)
+class PixelFit:
+    """The fitted pixel model: :class:`~evtk.sensor.SensorModel` plus the dark level's light ``blank``
+    (response units), the residuals and the statistics it was fitted to."""
+
+    sensor: SensorModel
+    blank: float
+    tau_dark_us: float
+    rms_counts: float
+    rms_time_us: float
+    statistics: LevelStatistics
+
+    def to_dict(self) -> dict:
+        s = self.sensor
+        return {"theta_on": s.theta_on, "theta_off": s.theta_off, "tau_min_us": s.tau_min_us,
+                "tau_dark_us": self.tau_dark_us, "blank_units": self.blank,
+                "rms_counts": self.rms_counts, "rms_time_us": self.rms_time_us,
+                "levels": self.statistics.light.tolist(), "level_counts": self.statistics.counts.tolist(),
+                "level_first_us": [None if not np.isfinite(v) else float(v) for v in self.statistics.first_us],
+                "level_last_us": [None if not np.isfinite(v) else float(v) for v in self.statistics.last_us]}
+
+
+def interior_pixels(region, origin_px, step_px, kernel_shape, features_shape, margin=1):
+    """Pixels of ``region`` (y, x) whose cell lies ``margin`` cells inside the flat response's interior.
+
+    Cell ``(i, j)`` is centred on ``origin + (j, i) * step_px`` (the
+    convention of :func:`~evtk.reconstruct.to_response_grid`); the interior
+    is where a flat features field overlaps every kernel element, cells
+    ``kernel - 1`` to ``features - 1`` along each axis.
+    """
+    x0, x1, y0, y1 = (int(v) for v in region)
+    kh, kw = (int(v) for v in kernel_shape)
+    fh, fw = (int(v) for v in features_shape)
+    step = float(step_px)
+    if not step > 0:
+        raise EvtkError(f"step_px must be positive, not {step_px!r}")
+    col = np.rint((np.arange(x0, x1) - float(origin_px[0])) / step)
+    row = np.rint((np.arange(y0, y1) - float(origin_px[1])) / step)
+    in_x = (col >= kw - 1 + margin) & (col <= fw - 1 - margin)
+    in_y = (row >= kh - 1 + margin) & (row <= fh - 1 - margin)
+    return in_y[:, None] & in_x[None, :]
+
+
+def level_statistics(counts, is_level, level, interior, gain=None) -> LevelStatistics:
+    """The numbers :func:`fit_pixel_model` fits, from accumulated counts (with ``times=True``).
+
+    ``is_level`` selects the level windows of ``counts``, ``level`` holds
+    their kernel element counts, ``interior`` the pixels whose light the step
+    sets (:func:`interior_pixels`), ``gain`` each
+    pixel's flat-field count gain (applied to the counts only).
+    """
+    if counts.on_first_us is None:
+        raise EvtkError("fitting the pixel model needs event times (accumulate with times=True)")
+    sel = np.flatnonzero(np.asarray(is_level, bool))
+    lv = np.asarray(level)[sel]
+    mask = np.asarray(interior, bool)
+    if sel.size == 0:
+        raise EvtkError("the recording has no level captures to fit a pixel model to (a job with levels = N)")
+    if not mask.any():
+        raise EvtkError("no pixel lies inside the flat response's interior: the region or origin misses the response")
+    net = counts.on[sel].astype(np.float64) - counts.off[sel]
+    if gain is not None:
+        net = net * gain
+    steps = np.unique(lv)
+    n, first, last = [], [], []
+    for m in steps:
+        w = lv == m
+        n.append(net[w][:, mask].mean())
+        f = counts.on_first_us[sel][w][:, mask]
+        la = counts.on_last_us[sel][w][:, mask]
+        fired = f >= 0
+        first.append(float(np.median(f[fired])) if fired.any() else np.nan)
+        last.append(float(np.median(la[fired])) if fired.any() else np.nan)
+    return LevelStatistics(steps.astype(np.float64), np.array(n), np.array(first), np.array(last), int(mask.sum()))
+
+
+def _model(params, refractory_us, mismatch):
+    theta, blank, tau_min, tau_dark = params
+    tau_e = max(tau_dark - tau_min, 1e-6) * 1e-6 * NOMINAL_BLANK_E_PER_S  # tau = tau_min + tau_e / rate (s)
+    return SensorModel(theta_on=theta, theta_off=theta, theta_mismatch=mismatch, refractory_us=refractory_us,
+                       tau_min_us=tau_min, tau_electrons=tau_e, dark_current_e_per_s=NOMINAL_BLANK_E_PER_S,
+                       shot_noise=False, background_rate_hz=0.0)
+
+
+def _predict(params, light, window_us, settle_us, skip_us, refractory_us, spread):
+    """Noise-free mean count and median first/last ON times of pixels whose thresholds spread by ``spread``."""
+    theta, blank = params[0], params[1]
+    sm = _model(params, refractory_us, 0.0)
+    rel = np.linspace(-2.0, 2.0, 9) * spread
+    weight = np.exp(-0.5 * (rel / spread) ** 2) if spread > 0 else np.ones(1)
+    rel = rel if spread > 0 else np.zeros(1)
+    weight = weight / weight.sum()
+    th = np.repeat(theta * (1 + rel)[None, :], light.size, axis=0).ravel()
+    u = np.repeat(np.log1p(light / blank), rel.size)
+    b0 = math.log(NOMINAL_BLANK_E_PER_S)
+    z, w = float(settle_us), float(window_us)
+    starts, ends = np.array([0.0, z, z + w]), np.array([z, z + w, 2 * z + w])
+    lvl = np.stack([np.full(u.size, b0), b0 + u, np.full(u.size, b0)])
+    a = z + float(skip_us)
+    slot = np.array([-1, 0, -1])
+    st = PixelState(lvl[0], 0.0, np.maximum(th, 1e-6), np.maximum(th, 1e-6), np.random.default_rng(0))
+    t, idx, p, on, off = simulate_pixels(st, lvl, time_constant_us(np.exp(lvl), sm), np.zeros_like(lvl), starts,
+                                         ends, sm, 0, emit=True, count_slot=slot, n_slots=1)
+    # the slot counts the whole lit segment; the reconstruction's window starts skip_us in
+    keep = (t >= a) & (t < z + w) & (p == 1)
+    first = np.full(u.size, np.nan)
+    last = np.full(u.size, np.nan)
+    if keep.any():
+        ti, ii = t[keep] - a, idx[keep]
+        order = np.lexsort((ti, ii))
+        ti, ii = ti[order], ii[order]
+        starts_i = np.r_[0, np.flatnonzero(np.diff(ii)) + 1]
+        ends_i = np.r_[starts_i[1:] - 1, ii.size - 1]
+        first[ii[starts_i]] = ti[starts_i]
+        last[ii[ends_i]] = ti[ends_i]
+    net = (on[0] - off[0]).astype(np.float64).reshape(light.size, rel.size)
+    counts = net @ weight
+    f = first.reshape(light.size, rel.size)
+    la = last.reshape(light.size, rel.size)
+    with np.errstate(invalid="ignore"):
+        first_m = np.nanmedian(np.where(np.isfinite(f), f, np.nan), axis=1) if np.isfinite(f).any() else \
+            np.full(light.size, np.nan)
+        last_m = np.nanmedian(np.where(np.isfinite(la), la, np.nan), axis=1) if np.isfinite(la).any() else \
+            np.full(light.size, np.nan)
+    return counts, first_m, last_m
+
+
+def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, refractory_us=1.0, spread=0.05,
+                    start: SensorModel | None = None, times=True) -> PixelFit:
+    """Fit ``theta``, ``blank``, ``tau_min_us`` and ``tau_dark_us`` to the level statistics.
+
+    Least squares over the steps of the counts (in counts) and of the first
+    and last ON times (in units of 20 µs), by Nelder-Mead from the counts'
+    log fit (:func:`_fit_log_response`) and the
+    ``start`` model's time constants. ``spread`` is the threshold mismatch
+    (relative standard deviation, e.g. of the flat-field gains), which
+    smooths the counts the same way the sensor's pixels do. With ``times``
+    False (time stamps too coarse, a frame readout) only the counts are
+    fitted and the time constants stay the ``start`` model's.
+    """
+    light, counts = stats.light, stats.counts
+    if light.size < 2:
+        raise EvtkError("fitting the pixel model needs at least two level steps (levels = 2 or more)")
+    if not np.any(counts > 1):
+        raise EvtkError("the level captures gave less than one event a pixel: too little light to fit a pixel model")
+    start = start or SensorModel()
+    b0, th0 = _fit_log_response(np.r_[0.0, np.maximum.accumulate(counts)], np.r_[0.0, light])
+    if not np.isfinite(b0):
+        b0, th0 = float(light.max()), start.theta_on
+    tau_dark0 = float(time_constant_us(NOMINAL_BLANK_E_PER_S * (1 + 0.0), start.replace(
+        dark_current_e_per_s=NOMINAL_BLANK_E_PER_S)))
+    x0 = np.log([th0, b0, start.tau_min_us, max(tau_dark0, start.tau_min_us * 1.5)])
+    t_scale = 20.0
+    has_t = np.isfinite(stats.first_us) & bool(times)
+
+    def loss(x):
+        p = np.exp(x)
+        if not times:
+            p[2:] = np.exp(x0[2:])
+        if p[3] <= p[2]:
+            return 1e6 + (p[2] - p[3])
+        n, f, la = _predict(p, light, window_us, settle_us, skip_us, refractory_us, spread)
+        r = np.sum((n - counts) ** 2)
+        ok = has_t & np.isfinite(f)
+        r += np.sum(((f - stats.first_us)[ok] / t_scale) ** 2) + np.sum(((la - stats.last_us)[ok] / t_scale) ** 2)
+        r += 25.0 * np.sum(has_t & ~np.isfinite(f))  # the model must fire where the pixels did
+        return float(r)
+
+    res = minimize(loss, x0, method="Nelder-Mead", options={"xatol": 1e-3, "fatol": 1e-4, "maxiter": 600})
+    if not times:
+        res.x[2:] = x0[2:]
+    theta, blank, tau_min, tau_dark = (float(v) for v in np.exp(res.x))
+    n, f, la = _predict(np.exp(res.x), light, window_us, settle_us, skip_us, refractory_us, spread)
+    ok = has_t & np.isfinite(f)
+    rms_t = float(np.sqrt(np.mean(np.r_[(f - stats.first_us)[ok], (la - stats.last_us)[ok]] ** 2))) if ok.any() \
+        else float("nan")
+    sensor = _model((theta, blank, tau_min, tau_dark), refractory_us, 0.0).replace(
+        theta_mismatch=float(spread) * theta, shot_noise=start.shot_noise)
+    return PixelFit(sensor, blank, tau_dark, float(np.sqrt(np.mean((n - counts) ** 2))), rms_t, stats)
+
+
+def fitted_record(fit: PixelFit, schedule: Schedule, t_on_us, t_off_us, kernels, features, bench: Bench,
+                  region, origin_px, window_us, settle_us) -> SimulationRecord:
+    """A record for :func:`~evtk.reconstruct.reconstruct_counts` holding what the bench knows and the fit.
+
+    ``schedule`` holds the matched captures, ``t_on_us``/``t_off_us`` their
+    windows on the recording's clock; the photon rates are the fit's,
+    relative to :data:`NOMINAL_BLANK_E_PER_S` (glow folded into the dark level).
+    """
+    sched = Schedule(**{c: getattr(schedule, c) for c in Schedule._COLUMNS if c not in ("t_on_us", "t_off_us")},
+                     t_on_us=np.asarray(t_on_us, np.int64), t_off_us=np.asarray(t_off_us, np.int64))
+    return SimulationRecord(
+        bench=bench, sensor=fit.sensor, kernels=np.asarray(kernels, np.int64), features=np.asarray(features, np.int64),
+        schedule=sched, window_us=int(window_us), settle_us=int(settle_us), start_us=int(sched.t_on_us.min()),
+        end_us=int(sched.t_off_us.max()), response_region=tuple(int(v) for v in region),
+        response_origin_px=tuple(float(v) for v in origin_px),
+        gain_e_per_s_per_unit=NOMINAL_BLANK_E_PER_S / fit.blank, blank_rate_e_per_s=NOMINAL_BLANK_E_PER_S)
+
+
+def _fit_log_response(counts, light):
+    """``(blank, theta)`` of ``counts = log(1 + light / blank) / theta`` by least squares over the curve's points.
+
+    The blank level is searched on a logarithmic grid (theta is then linear);
+    with a single step or a curve straighter than any log, ``(inf, nan)``.
+    """
+    c, x = counts[1:], light[1:]
+    if c.size < 2:
+        return np.inf, np.nan
+    grid = np.geomspace(1e-4, 1e4, 801) * float(x.max())
+    v = np.log1p(x[None, :] / grid[:, None])
+    inv_theta = np.sum(v * c, axis=1) / np.sum(v * v, axis=1)
+    sse = np.sum((c - inv_theta[:, None] * v) ** 2, axis=1)
+    i = int(np.argmin(sse))
+    if i == grid.size - 1:  # no curvature: the straight line is the fit
+        return np.inf, np.nan
+    return float(grid[i]), float(1.0 / inv_theta[i])

@@ -1,0 +1,95 @@
+"""Which reconstruction a recording gets: the calibrated route by default, the simulator's oracle on request.
+
+:func:`reconstruct_recording` is what ``evtk reconstruct`` and
+``evtk batch reconstruct`` run:
+
+* with a bench schedule (``schedule.json``), or on a simulated recording
+  (whose record stands in for the schedule file: patterns, timing, bench
+  geometry, nothing of the pixels), the calibrated route,
+  :func:`evtk.reconstruct.reconstruct_calibrated`: trigger windows, a pixel
+  model fitted to the run's own level captures, and placement from a
+  calibration, from the run's own dot captures, or from the bench geometry;
+* with ``oracle=True``, :func:`evtk.reconstruct.reconstruct` on the
+  simulation record's own pixel model and placement (what a perfect
+  calibration would give; not available on a bench);
+* with fixed windows (triggers or a period) or a fixed ``theta``, the plain
+  pipeline, :func:`evtk.reconstruct.reconstruct`.
+"""
+
+from __future__ import annotations
+
+from .calibrate import calibrate
+from .errors import EvtkError
+from .reconstruct import ReconstructOptions, load_schedule, reconstruct, reconstruct_calibrated, schedule_of_record
+from .simulate import DOTS_ID
+from .simulate.record import SimulationRecord
+
+__all__ = ["reconstruct_recording"]
+
+
+def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, origin_px=None, progress=None,
+                          **options):
+    """Reconstruct ``rec`` by the route its inputs allow (see the module docstring).
+
+    Parameters
+    ----------
+    rec : Recording
+    oracle : bool
+        Use the simulation record's pixel model and placement (simulated
+        recordings only); the summary says ``"oracle": true``.
+    schedule : path or dict, optional
+        A bench run's ``schedule.json`` (:func:`evtk.patterns.write_patterns`).
+    calibration : Calibration, optional
+        Where the response lies (:func:`evtk.calibrate.calibrate`); else
+        ``options["region"]`` and ``origin_px``, else the run's own dot
+        captures, else the bench geometry.
+    options
+        :class:`~evtk.reconstruct.ReconstructOptions` fields.
+    """
+    opts = ReconstructOptions(**options)
+    record = SimulationRecord.from_metadata(rec.metadata)
+    if calibration is not None and tuple(calibration.sensor_size) != tuple(rec.sensor_size):
+        raise EvtkError(f"the calibration is of a {calibration.sensor_size[0]}x{calibration.sensor_size[1]} sensor, "
+                        f"the recording of a {rec.sensor_size[0]}x{rec.sensor_size[1]} one")
+    fixed = opts.window != "schedule" or opts.theta is not None
+    if oracle:
+        if record is None:
+            raise EvtkError("the recording carries no simulation record: the oracle is for recordings evtk simulated")
+        if schedule is not None or calibration is not None:
+            raise EvtkError("the oracle reads the simulation record: leave out the schedule and the calibration")
+        result = reconstruct(rec, progress=progress, **opts.kwargs())
+        result.summary["route"] = "oracle: the simulation record's own pixel model and placement"
+        result.summary["oracle"] = True
+        return result
+    if schedule is None and (record is None or fixed):
+        if calibration is not None or origin_px is not None:
+            raise EvtkError("a calibration or response origin goes with a schedule (a bench run) or a simulated run")
+        result = reconstruct(rec, progress=progress, **opts.kwargs())
+        result.summary["route"] = "fixed windows" if fixed else "windows only: no schedule"
+        return result
+    if fixed:
+        raise EvtkError("the calibrated route takes its windows from the trigger edges matched to the schedule: "
+                        "leave out the window and theta settings, or ask for the oracle")
+    if schedule is None:
+        sched = schedule_of_record(record)
+    else:
+        sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
+    region, placed = opts.region, "given"
+    if calibration is not None:
+        region, origin_px, placed = tuple(calibration.region), tuple(calibration.origin_px), "calibration"
+    elif region is None and origin_px is None:
+        if (sched["schedule"].kernel_id == DOTS_ID).any():
+            cal = calibrate(rec, sched)
+            region, origin_px, placed = tuple(cal.region), tuple(cal.origin_px), "the run's own dot captures"
+        else:
+            placed = "the bench geometry"
+    result = reconstruct_calibrated(rec, sched, region, origin_px, size=opts.size,
+                                    binarize_method=opts.binarize_method, skip_us=opts.skip_us,
+                                    length_us=opts.length_us, crop=opts.crop, flat_field=opts.flat_field,
+                                    deblur=opts.deblur, timing=opts.timing, linear=opts.linear, progress=progress)
+    result.summary["route"] = "calibrated: " + ("a pixel model fitted to the run's level captures"
+                                                if result.summary.get("pixel_model") else "exp(n theta), no level "
+                                                "captures to fit a pixel model to")
+    result.summary["placement"] = placed
+    result.summary["oracle"] = False
+    return result
