@@ -21,6 +21,8 @@ only for what a bench also has (the schedule, patterns and bench geometry:
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy.ndimage import median_filter
 
@@ -29,7 +31,7 @@ from ..simulate import FLAT_ID, LEVEL_ID, Schedule
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .bench import _all_pairs, _complete_pairs, load_schedule, match_windows, reconstruct_bench
-from .fit import fit_pixel_model, fitted_record, interior_pixels, level_statistics
+from .fit import fit_pixel_model, fitted_record, interior_pixels, level_off_times, level_statistics
 from .linearize import flat_field_gain
 from .pipeline import MAX_TIMING_STAMP_US, _check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
@@ -116,7 +118,11 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     if flat.any():
         net_flat = net[flat]
         gain = flat_field_gain(net_flat, median_filter(net_flat.mean(axis=0), size=5, mode="nearest"))
-    stats = level_statistics(counts, sub.kernel_id == LEVEL_ID, sub.level, inside, gain)
+    is_level = sub.kernel_id == LEVEL_ID
+    stats = level_statistics(counts, is_level, sub.level, inside, gain)
+    stats = dataclasses.replace(stats, off_mean_us=level_off_times(rec, t_off[is_level], sub.level[is_level],
+                                                                   sched["settle_us"], counts.region, inside,
+                                                                   counts.stamp_period_us))
     spread = float(np.clip(np.std(gain[inside]) if gain is not None else 0.05, 0.005, 0.3))
     # event times on a frame readout's grid are too coarse to time a pixel by: fit the counts alone
     fine = counts.stamp_period_us is None or counts.stamp_period_us <= MAX_TIMING_STAMP_US

@@ -28,7 +28,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize
+from scipy.optimize import least_squares, minimize
 
 from ..errors import EvtkError
 from ..optics import Bench
@@ -36,7 +36,11 @@ from ..sensor import PixelState, SensorModel, simulate_pixels, time_constant_us
 from ..simulate import Schedule
 from ..simulate.record import SimulationRecord
 
-__all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "fit_pixel_model", "fitted_record"]
+__all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "level_off_times",
+            "fit_pixel_model", "fitted_record"]
+
+#: Thresholds sampled across the mismatch when predicting a step's mean count (smooths the counts' steps).
+SPREAD_POINTS = 25
 
 #: Nominal dark-level photoelectron rate the fitted model is stated against (only ratios are observable).
 NOMINAL_BLANK_E_PER_S = 1e5
@@ -45,13 +49,16 @@ NOMINAL_BLANK_E_PER_S = 1e5
 @dataclass(frozen=True)
 class LevelStatistics:
     """Per light step: ``light`` (units), mean net ``counts``, median ``first_us``/``last_us`` ON-event times
-    from the window start (NaN where no interior pixel fired), and ``pixels`` averaged."""
+    from the window start (NaN where no interior pixel fired), ``pixels`` averaged, and the mean time of the
+    OFF events after the step ends (``off_mean_us``, :func:`level_off_times`)."""
 
     light: np.ndarray
     counts: np.ndarray
     first_us: np.ndarray
     last_us: np.ndarray
     pixels: int
+    #: mean time of the OFF events after the pattern goes (from its falling edge): the decay to the dark level
+    off_mean_us: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -130,6 +137,32 @@ def level_statistics(counts, is_level, level, interior, gain=None) -> LevelStati
     return LevelStatistics(steps.astype(np.float64), np.array(n), np.array(first), np.array(last), int(mask.sum()))
 
 
+def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_period_us=None):
+    """Mean time (µs after the falling edge) of the interior pixels' OFF events while each level step decays.
+
+    The decay runs at the dark level's time constant, which the level
+    windows themselves (all bright) hardly show. Events stamped at the end of
+    a readout frame are moved back half a frame (their mean delay).
+    """
+    x0, x1, y0, y1 = (int(v) for v in region)
+    mask = np.asarray(interior, bool)
+    lv = np.asarray(level)
+    steps = np.unique(lv)
+    shift = 0.5 * float(stamp_period_us) if stamp_period_us and stamp_period_us > 1 else 0.0
+    out = []
+    for m in steps:
+        times = []
+        for t in np.asarray(t_off_us)[lv == m].tolist():
+            ev = rec.events(int(t), int(t) + int(settle_us))
+            inside = (ev.p == 0) & (ev.x >= x0) & (ev.x < x1) & (ev.y >= y0) & (ev.y < y1)
+            xs, ys = ev.x[inside].astype(np.int64) - x0, ev.y[inside].astype(np.int64) - y0
+            use = mask[ys, xs]
+            times.append(ev.t[inside][use].astype(np.float64) - t - shift)
+        allt = np.concatenate(times) if times else np.zeros(0)
+        out.append(float(allt.mean()) if allt.size else np.nan)
+    return np.array(out)
+
+
 def _model(params, refractory_us, mismatch):
     theta, blank, tau_min, tau_dark = params
     tau_e = max(tau_dark - tau_min, 1e-6) * 1e-6 * NOMINAL_BLANK_E_PER_S  # tau = tau_min + tau_e / rate (s)
@@ -142,7 +175,7 @@ def _predict(params, light, window_us, settle_us, skip_us, refractory_us, spread
     """Noise-free mean count and median first/last ON times of pixels whose thresholds spread by ``spread``."""
     theta, blank = params[0], params[1]
     sm = _model(params, refractory_us, 0.0)
-    rel = np.linspace(-2.0, 2.0, 9) * spread
+    rel = np.linspace(-2.0, 2.0, SPREAD_POINTS) * spread
     weight = np.exp(-0.5 * (rel / spread) ** 2) if spread > 0 else np.ones(1)
     rel = rel if spread > 0 else np.zeros(1)
     weight = weight / weight.sum()
@@ -158,6 +191,13 @@ def _predict(params, light, window_us, settle_us, skip_us, refractory_us, spread
     t, idx, p, on, off = simulate_pixels(st, lvl, time_constant_us(np.exp(lvl), sm), np.zeros_like(lvl), starts,
                                          ends, sm, 0, emit=True, count_slot=slot, n_slots=1)
     # the slot counts the whole lit segment; the reconstruction's window starts skip_us in
+    decay = (t >= z + w) & (p == 0)
+    off_mean = np.full(light.size, np.nan)
+    if decay.any():
+        tm = np.bincount(idx[decay], weights=t[decay] - (z + w), minlength=u.size)
+        cnt = np.bincount(idx[decay], minlength=u.size)
+        tm, cnt = tm.reshape(light.size, rel.size) @ weight, cnt.reshape(light.size, rel.size) @ weight
+        off_mean = np.where(cnt > 0, tm / np.maximum(cnt, 1e-12), np.nan)
     keep = (t >= a) & (t < z + w) & (p == 1)
     first = np.full(u.size, np.nan)
     last = np.full(u.size, np.nan)
@@ -178,7 +218,41 @@ def _predict(params, light, window_us, settle_us, skip_us, refractory_us, spread
             np.full(light.size, np.nan)
         last_m = np.nanmedian(np.where(np.isfinite(la), la, np.nan), axis=1) if np.isfinite(la).any() else \
             np.full(light.size, np.nan)
-    return counts, first_m, last_m
+    return counts, first_m, last_m, off_mean
+
+
+def _theta_for(counts, light, blank):
+    """The threshold of ``counts = log(1 + light / blank) / theta`` at a given blank (least squares)."""
+    v = np.log1p(light / blank)
+    return float(np.sum(v * v) / max(np.sum(v * counts), 1e-12))
+
+
+def _time_constants_guess(stats, theta, blank, start, times=True):
+    """``(tau_min_us, tau_dark_us)`` from closed forms: the first ON crossing of the brightest step,
+    ``t1 = -tau ln(1 - theta / u)``, and the mean OFF crossing of the decays, ``tau * mean_k(-ln(1 - k theta / u))``.
+    """
+    u = np.log1p(stats.light / blank)
+    tau_min, tau_dark = start.tau_min_us, None
+    if stats.off_mean_us is not None:
+        est = []
+        for uk, off in zip(u.tolist(), stats.off_mean_us.tolist()):
+            k = np.arange(1, int(uk / theta) + 1)
+            if k.size and np.isfinite(off):
+                est.append(off / float(np.mean(-np.log1p(-np.minimum(k * theta / uk, 0.999)))))
+        tau_dark = float(np.median(est)) if est else None
+    bright = int(np.argmax(u))
+    if times and np.isfinite(stats.first_us[bright]) and u[bright] > theta:
+        tau_b = stats.first_us[bright] / -np.log1p(-theta / u[bright])
+        if tau_dark is not None:  # tau = tau_min + (tau_dark - tau_min) / (1 + light / blank)
+            r = 1.0 / (1.0 + stats.light[bright] / blank)
+            tau_min = (tau_b - r * tau_dark) / (1 - r)
+        else:
+            tau_min = tau_b
+    tau_min = float(np.clip(tau_min, 1.0, 1e5)) if np.isfinite(tau_min) else start.tau_min_us
+    if tau_dark is None or not np.isfinite(tau_dark):
+        tau_dark = float(time_constant_us(NOMINAL_BLANK_E_PER_S, start.replace(
+            dark_current_e_per_s=NOMINAL_BLANK_E_PER_S)))
+    return tau_min, max(tau_dark, 1.5 * tau_min)
 
 
 def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, refractory_us=1.0, spread=0.05,
@@ -203,32 +277,50 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
     b0, th0 = _fit_log_response(np.r_[0.0, np.maximum.accumulate(counts)], np.r_[0.0, light])
     if not np.isfinite(b0):
         b0, th0 = float(light.max()), start.theta_on
-    tau_dark0 = float(time_constant_us(NOMINAL_BLANK_E_PER_S * (1 + 0.0), start.replace(
-        dark_current_e_per_s=NOMINAL_BLANK_E_PER_S)))
-    x0 = np.log([th0, b0, start.tau_min_us, max(tau_dark0, start.tau_min_us * 1.5)])
-    t_scale = 20.0
+    x0 = np.log([th0, b0] + list(_time_constants_guess(stats, th0, b0, start, times)))
+    t_scale = 1.0  # us: the time stamps' resolution
+    off_scale = 20.0  # us: the OFF events' mean time, over thousands of us
+    has_off = np.isfinite(stats.off_mean_us) if stats.off_mean_us is not None else np.zeros(light.size, bool)
+    # theta and blank from the counts; tau_min from the first ON times, tau_dark from them and the OFF decay
+    free = np.array([True, True, bool(times), bool(times) or bool(has_off.any())])
     has_t = np.isfinite(stats.first_us) & bool(times)
 
-    def loss(x):
-        p = np.exp(x)
-        if not times:
-            p[2:] = np.exp(x0[2:])
-        if p[3] <= p[2]:
-            return 1e6 + (p[2] - p[3])
-        n, f, la = _predict(p, light, window_us, settle_us, skip_us, refractory_us, spread)
-        r = np.sum((n - counts) ** 2)
-        ok = has_t & np.isfinite(f)
-        r += np.sum(((f - stats.first_us)[ok] / t_scale) ** 2) + np.sum(((la - stats.last_us)[ok] / t_scale) ** 2)
-        r += 25.0 * np.sum(has_t & ~np.isfinite(f))  # the model must fire where the pixels did
-        return float(r)
+    def residuals(x):
+        p = np.exp(x0)
+        p[free] = np.exp(x)
+        if p[3] <= p[2]:  # tau_dark below tau_min: outside the model, penalised smoothly
+            p[3] = p[2] * 1.001
+        n, f, _, off = _predict(p, light, window_us, settle_us, skip_us, refractory_us, spread)
+        parts = [n - counts]
+        if has_off.any():  # the decay after each step: the dark level's time constant
+            parts.append(np.where(np.isfinite(off), off - stats.off_mean_us, 5 * off_scale)[has_off] / off_scale)
+        # the first ON event times the rise; the last one jumps with every whole count, so it is left out
+        parts.append(np.where(np.isfinite(f), f - stats.first_us, 5 * t_scale)[has_t] / t_scale)
+        return np.concatenate(parts)
 
-    res = minimize(loss, x0, method="Nelder-Mead", options={"xatol": 1e-3, "fatol": 1e-4, "maxiter": 600})
-    if not times:
-        res.x[2:] = x0[2:]
+    def loss(x):
+        return float(np.sum(residuals(x) ** 2))
+
+    # a trust region on finite differences coarser than the counts' steps, then Nelder-Mead to polish
+    # from the log fit's blank level and from two either side of it: theta and blank trade off along a valley
+    tries = []
+    for db in (0.0, np.log(0.5), np.log(2.0)):
+        xs = x0.copy()
+        xs[1] += db
+        xs[0] = np.log(_theta_for(counts, light, np.exp(xs[1])))
+        tries.append(least_squares(residuals, xs[free], method="trf", diff_step=0.02, x_scale=0.3, max_nfev=150))
+    best = min(tries, key=lambda r: r.cost).x
+    res = minimize(loss, best, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-5, "maxiter": 400})
+    if res.fun > loss(best):
+        res.x = best
+    x_all = x0.copy()
+    x_all[free] = res.x
+    res.x = x_all
+    res.x[~free] = x0[~free]
     theta, blank, tau_min, tau_dark = (float(v) for v in np.exp(res.x))
-    n, f, la = _predict(np.exp(res.x), light, window_us, settle_us, skip_us, refractory_us, spread)
+    n, f, la, _ = _predict(np.exp(res.x), light, window_us, settle_us, skip_us, refractory_us, spread)
     ok = has_t & np.isfinite(f)
-    rms_t = float(np.sqrt(np.mean(np.r_[(f - stats.first_us)[ok], (la - stats.last_us)[ok]] ** 2))) if ok.any() \
+    rms_t = float(np.sqrt(np.mean((f - stats.first_us)[ok] ** 2))) if ok.any() \
         else float("nan")
     sensor = _model((theta, blank, tau_min, tau_dark), refractory_us, 0.0).replace(
         theta_mismatch=float(spread) * theta, shot_noise=start.shot_noise)
