@@ -36,10 +36,11 @@ from .reconstruct import (
     _check_crop,
     accumulate,
     plan,
-    reconstruct,
     reconstruct_counts,
     wants_times,
 )
+from .simulate.record import SimulationRecord
+from .workflow import reconstruct_recording
 
 __all__ = ["find_recordings", "batch_reconstruct", "reconstruct_split", "MANIFEST"]
 
@@ -98,7 +99,7 @@ def _reconstruct_one(args):
         if not os.path.exists(path) and any(c in path for c in "*?["):
             raise EvtkError(f"the pattern {path!r} matches no file")
         with open_recording(path) as rec:
-            result = reconstruct(rec, **options)
+            result = reconstruct_recording(rec, **options)
             events = rec.info()["events"]
             sensor = rec.sensor_size
         save_reconstruction(out, result, sensor, {"source": path})
@@ -135,6 +136,7 @@ def reconstruct_split(path, parts, client=None, chunk_events=4_000_000, **option
     """
 
     opts = dict(options)
+    opts.pop("oracle", None)  # the split runs the pipeline on the record's model: the oracle, for simulated runs
     window = opts.pop("window", "schedule")
     skip_us, length_us = opts.get("skip_us", 0), opts.get("length_us")
     _check_crop(opts.get("crop", "valid"))
@@ -166,10 +168,14 @@ def _split_large(todo, split_events, client, entries):
         try:
             with open_recording(path) as rec:
                 n, sensor = rec.info()["events"], rec.sensor_size
+                record = SimulationRecord.from_metadata(rec.metadata)
         except Exception:  # noqa: BLE001 - its own task reports the error
             rest.append((path, out, options))
             continue
-        if n <= split_events:
+        # the calibrated route fits its pixel model on the whole run: it is not split (its counting streams)
+        calibrated = (record is not None and not options.get("oracle") and options.get("theta") is None
+                      and options.get("window", "schedule") == "schedule")
+        if n <= split_events or calibrated:
             rest.append((path, out, options))
             continue
         t0 = time.perf_counter()

@@ -599,14 +599,14 @@ def test_batch_with_a_bad_input_records_it_and_does_the_rest(tmp_path, monkeypat
     good, bad = tmp_path / "good.h5", tmp_path / "bad.h5"
     _trig_recording(good, 1)
     _trig_recording(bad, 2)
-    real = rc.reconstruct
+    real = rc.reconstruct_recording
 
     def flaky(rec, **kw):  # an unexpected library error on one input only
         if rec.path.endswith("bad.h5"):
             raise ZeroDivisionError("division by zero")
         return real(rec, **kw)
 
-    monkeypatch.setattr(rc, "reconstruct", flaky)  # the name the batch module calls
+    monkeypatch.setattr(rc, "reconstruct_recording", flaky)  # the name the batch module calls
     from evtk.batch import batch_reconstruct
 
     m = batch_reconstruct([good, bad, str(tmp_path / "none*.aedat4")], tmp_path / "out",

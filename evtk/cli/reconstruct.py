@@ -118,11 +118,13 @@ def batch():
 @_reconstruct_options
 @click.option("--format", "fmt", type=click.Choice(["h5", "npz"]), default="h5", show_default=True)
 @click.option("--force", is_flag=True, help="Redo inputs whose output exists.")
+@click.option("--oracle", is_flag=True, help="Simulated recordings: the simulation record's own pixel model "
+                                              "(see evtk reconstruct --oracle).")
 @click.option("--split-events", type=click.IntRange(min=1, max=_MAX_INT), default=50_000_000, show_default=True,
               help="Split recordings with more events than this into tasks by time.")
 @_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print the manifest as one JSON object.")
-def batch_reconstruct_cmd(inputs, out_dir, fmt, force, split_events, scheduler_spec, as_json, **settings):
+def batch_reconstruct_cmd(inputs, out_dir, fmt, force, oracle, split_events, scheduler_spec, as_json, **settings):
     """Reconstruct every recording in INPUTS (files, folders, glob patterns) into OUT.
 
     Exit status 1 when any input failed; the others are still done, and
@@ -131,7 +133,7 @@ def batch_reconstruct_cmd(inputs, out_dir, fmt, force, split_events, scheduler_s
     from ..batch import batch_reconstruct
     from ..cluster import scheduler
 
-    options = _reconstruct_settings(**settings).kwargs()  # the same settings as `evtk reconstruct`
+    options = dict(_reconstruct_settings(**settings).kwargs(), oracle=oracle)  # the settings of `evtk reconstruct`
     update, finish = _progress(len(inputs), "batch")
     try:
         with scheduler(scheduler_spec) as client:

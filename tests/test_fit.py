@@ -1,0 +1,134 @@
+"""The calibrated route: a pixel model fitted to the run's own level captures, against the simulator's oracle.
+
+Oracles: the fit is checked on statistics the same noise-free pixel model
+generates from known parameters; the reconstruction against the oracle that
+inverts the simulation record's own (true) pixel model, on cameras that
+differ from the default one the fit starts from, on both readouts, with
+shot noise on.
+"""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import evtk
+from evtk import EvtkError
+from evtk.cli import main
+from evtk.reconstruct import fit_pixel_model, reconstruct, reconstruct_calibrated, schedule_of_record
+from evtk.reconstruct.fit import LevelStatistics, _predict, interior_pixels
+from evtk.sensor import SensorModel
+from evtk.simulate import LEVEL_ID, Simulation, SimulationRecord, level_kernel, level_steps
+
+LIGHT = np.array([1.0, 3.0, 4.0, 6.0, 7.0, 9.0])
+
+
+@pytest.mark.parametrize("truth", [(0.2, 0.025, 100.0, 2091.0), (0.25, 0.05, 150.0, 1500.0)])
+def test_the_fit_recovers_the_pixel_model_that_made_the_statistics(truth):
+    """Statistics from the model itself at known parameters: threshold within 3 %, the bright time constant within
+    3 %, the dark one within 2 %, the counts within half a count."""
+    n, first, last, off = _predict(np.array(truth), LIGHT, 1000, 13340, 0, 1.0, 0.03)
+    fit = fit_pixel_model(LevelStatistics(LIGHT, n, first, last, 100, off), 1000, 13340, spread=0.03)
+    theta, blank, tau_min, tau_dark = truth
+    assert fit.sensor.theta_on == pytest.approx(theta, rel=0.03)
+    assert fit.sensor.tau_min_us == pytest.approx(tau_min, rel=0.03)
+    assert fit.tau_dark_us == pytest.approx(tau_dark, rel=0.02)
+    assert fit.blank == pytest.approx(blank, rel=0.15)
+    assert fit.rms_counts < 0.5 and fit.rms_time_us < 1.0
+
+
+def test_level_captures_light_the_interior_by_their_element_count():
+    """A level capture's kernel has its first m elements on; under flat features each interior cell sees m."""
+    from scipy.signal import correlate2d
+
+    assert level_steps(9, 6).tolist() == [1, 3, 4, 6, 7, 9] and level_steps(4, 9).tolist() == [1, 2, 3, 4]
+    assert level_steps(9, 0).size == 0
+    for m in (1, 5, 9):
+        full = correlate2d(np.ones((8, 8)), level_kernel((3, 3), m), mode="valid")
+        assert np.all(full == m)
+    with pytest.raises(EvtkError, match="1 to 9"):
+        level_kernel((3, 3), 10)
+    inside = interior_pixels((0, 20, 0, 20), (2.0, 2.0), 1.0, (3, 3), (16, 16))
+    rows, cols = np.nonzero(inside)  # cells 3..14 (kernel - 1 + 1 margin to features - 1 - 1), at pixels + 2
+    assert rows.min() == 5 and rows.max() == 16 and cols.min() == 5 and cols.max() == 16
+
+
+def _signed_run(tmp_path, sensor, seed, name="r.aedat4"):
+    rng = np.random.default_rng(1000 + seed)
+    k, f = rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16))
+    sim = Simulation(k, f, seed=seed, levels=6, sensor=sensor)
+    sim.write(tmp_path / name)
+    return sim
+
+
+@pytest.mark.parametrize("camera", [
+    {},  # the default camera, asynchronous
+    {"tau_electrons": 200.0},  # slow in the dark: the model the fit starts from is off by 2x
+    {"theta_on": 0.23, "theta_off": 0.23, "dark_current_e_per_s": 1e5},
+    {"readout_period_us": 200.0},  # a DVXplorer-like frame readout
+    {"readout_period_us": 200.0, "tau_min_us": 130.0},
+])
+def test_the_calibrated_route_is_within_15_percent_of_the_oracle(tmp_path, camera):
+    """Shot noise on, the true camera differing from the default; the calibrated route reads only the schedule,
+    the patterns and the bench geometry from the record."""
+    _signed_run(tmp_path, SensorModel(**camera), 0)
+    with evtk.open(tmp_path / "r.aedat4") as rec:
+        oracle = reconstruct(rec)
+        calibrated = reconstruct_calibrated(rec, schedule_of_record(SimulationRecord.from_metadata(rec.metadata)))
+    assert calibrated.summary["pixel_model"] is not None and calibrated.summary["level_captures"] == 6
+    assert calibrated.summary["error"]["nrmse"] <= 1.15 * oracle.summary["error"]["nrmse"], (
+        calibrated.summary["error"], oracle.summary["error"])
+    coarse = camera.get("readout_period_us", 0) > 0
+    assert calibrated.summary["linearization"] == ("pixel model" if coarse else "pixel model and event times")
+
+
+def test_the_calibrated_route_needs_nothing_of_the_record(tmp_path):
+    """The camera's copy of the run (no record) with the schedule file evtk patterns wrote gives the responses the
+    simulated recording gives; the record only adds the error report when it is there."""
+    from evtk.patterns import write_patterns
+
+    sim = _signed_run(tmp_path, SensorModel(), 1, "sim.h5")
+    write_patterns(sim, tmp_path / "p")
+    with evtk.open(tmp_path / "sim.h5") as rec:
+        ev, tr = rec.events(), rec.triggers()
+        from_record = reconstruct_calibrated(rec, schedule_of_record(rec.metadata["simulation"]))
+    evtk.write_events(tmp_path / "cam.aedat4", ev, tr)
+    with evtk.open(tmp_path / "cam.aedat4") as rec:
+        assert rec.metadata.get("simulation") is None
+        bench = reconstruct_calibrated(rec, tmp_path / "p" / "schedule.json")
+    assert np.allclose(bench.responses, from_record.responses)
+    assert bench.summary["pixel_model"] == from_record.summary["pixel_model"]
+
+
+def test_cli_defaults_to_the_calibrated_route_and_says_which(tmp_path):
+    _signed_run(tmp_path, SensorModel(), 2)
+    out = {}
+    for flag in ([], ["--oracle"]):
+        res = CliRunner().invoke(main, ["reconstruct", str(tmp_path / "r.aedat4"), "-o", str(tmp_path / "o.h5"),
+                                        "--json", *flag])
+        assert res.exit_code == 0, res.output
+        out[bool(flag)] = json.loads(res.stdout)
+    assert out[False]["oracle"] is False and out[False]["route"].startswith("calibrated: a pixel model fitted")
+    assert out[False]["placement"] == "the bench geometry" and out[False]["pixel_model"]["theta_on"] > 0
+    assert out[True]["oracle"] is True and out[True]["route"].startswith("oracle")
+    res = CliRunner().invoke(main, ["reconstruct", str(tmp_path / "r.aedat4"), "-o", str(tmp_path / "o.h5")])
+    assert "route: calibrated" in res.output and "bench geometry" in res.output
+    res = CliRunner().invoke(main, ["reconstruct", str(tmp_path / "r.aedat4"), "-o", str(tmp_path / "o.h5"),
+                                    "--oracle"])
+    assert "route: oracle" in res.output
+
+
+def test_too_little_light_to_fit_is_one_clear_error(tmp_path):
+    from evtk.optics import Bench
+
+    rng = np.random.default_rng(5)
+    sim = Simulation(rng.choice([0, 1], (3, 3)), rng.choice([0, 1], (16, 16)), bench=Bench(power_mw=1e-6),
+                     levels=4, seed=5, sensor=SensorModel(shot_noise=False, background_rate_hz=0.0))
+    sim.write(tmp_path / "dark.h5")
+    with evtk.open(tmp_path / "dark.h5") as rec, pytest.raises(EvtkError, match="too little light"):
+        reconstruct_calibrated(rec, schedule_of_record(rec.metadata["simulation"]))
+    with pytest.raises(EvtkError, match="at least two level steps"):
+        fit_pixel_model(LevelStatistics(np.array([9.0]), np.array([20.0]), np.array([4.0]), np.array([400.0]), 10),
+                        1000, 13340)
+    assert np.all(sim.schedule.level[sim.schedule.kernel_id == LEVEL_ID] == level_steps(9, 4))
