@@ -28,10 +28,12 @@ import numpy as np
 from .errors import EvtkError
 from .io._atomic import AtomicFile
 from .plots import pyplot, save_png
-from .reconstruct import accumulate, load_schedule, match_windows
+from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
+from .reconstruct.calibrated import fit_on_counts
+from .reconstruct.fit import _predict
 from .reconstruct.windows import Windows
 from .settings import read_table, toml_value
-from .simulate import DOTS_ID, dot_grid
+from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, Schedule, dot_grid
 
 __all__ = ["Calibration", "calibrate", "load_calibration", "save_calibration", "plot_calibration", "MIN_DOTS"]
 
@@ -59,6 +61,12 @@ class Calibration:
     sensor_size : [width, height]
     response_shape : [rows, cols]
         Cells of the full response (features + kernel - 1).
+    pixel_model : dict or None
+        The pixel model fitted to the run's level captures
+        (:meth:`evtk.reconstruct.PixelFit.to_dict`: thresholds, the dark
+        level's light, time constants, the statistics fitted), when it has
+        any; ``evtk reconstruct --calibration`` uses it for runs without
+        level captures of their own.
     """
 
     matrix: list
@@ -72,6 +80,7 @@ class Calibration:
     inliers: int
     sensor_size: list
     response_shape: list
+    pixel_model: dict | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -191,6 +200,14 @@ def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
                       [x0, x1, y0, y1], float(np.sqrt(np.mean(res ** 2))), float(res.max()), len(expected),
                       len(found), int(inliers.sum()), [int(w), int(h)], [int(rows), int(cols)])
     cal._evidence = (image, found, expected)  # for plot_calibration; not saved
+    levels = s.kernel_id[win.capture] == LEVEL_ID
+    if levels.any():  # and the pixels' model, from the level captures (with the flat fields' spread)
+        use = levels | (s.kernel_id[win.capture] == FLAT_ID)
+        caps = win.capture[use]
+        counts = accumulate(rec, Windows(win.t_start_us[use], win.t_end_us[use], caps, win.source), cal.region,
+                            times=True)
+        sub = Schedule(**{c: getattr(s, c)[caps] for c in Schedule._COLUMNS})
+        cal.pixel_model = fit_on_counts(rec, counts, sub, win.t_end_us[use], sched, cal.origin_px).to_dict()
     return cal
 
 
@@ -224,14 +241,40 @@ def _pair(found, expected):
     return pairs
 
 
+def _plot_pixel_model(ax, fit):
+    """The level captures' mean counts against their light, and the fitted model's (noise-free) curve."""
+    st = fit.statistics
+    light = np.linspace(0.25, float(st.light.max()) * 1.05, 60)
+    params = np.array([fit.sensor.theta_on, fit.blank, fit.sensor.tau_min_us, fit.tau_dark_us])
+    spread = fit.sensor.theta_mismatch / fit.sensor.theta_on
+    n, _, _, _ = _predict(params, light, fit.window_us, fit.settle_us, 0, fit.sensor.refractory_us, spread)
+    ax.plot(light, n, "-", color="C0", label="fitted pixel model")
+    ax.plot(st.light, st.counts, "o", color="C1", label="level captures (mean)")
+    ax.set_xlabel("light (kernel elements on flat features)")
+    ax.set_ylabel("net events per pixel and window")
+    ax.set_title(f"pixel model: theta {fit.sensor.theta_on:.3f}, tau {fit.sensor.tau_min_us:.0f}"
+                 f"-{fit.tau_dark_us:.0f} µs", fontsize=10)
+    ax.legend(fontsize=8, loc="lower right")
+
+
+def _nan_free(x):
+    """A list element TOML can hold: a missing time (None, NaN) as -1."""
+    return -1.0 if x is None or (isinstance(x, float) and not np.isfinite(x)) else x
+
+
 def save_calibration(path, cal: Calibration):
     """Write a calibration as TOML (``.toml``) or JSON, atomically."""
 
     path = os.fspath(path)
     d = cal.to_dict()
     if path.lower().endswith(".toml"):
+        model = d.pop("pixel_model")
         text = "# evtk calibration (evtk calibrate): response cells -> sensor pixels\n" + \
             "".join(f"{k} = {toml_value(v, 'calibration')}\n" for k, v in d.items())
+        if model:
+            text += "\n[pixel_model]  # fitted to the level captures\n" + "".join(
+                f"{k} = {toml_value([_nan_free(x) for x in v] if isinstance(v, list) else v, 'calibration')}\n"
+                for k, v in model.items() if v is not None)
     else:
         text = json.dumps(d, indent=1)
     with AtomicFile(path) as out:
@@ -247,6 +290,10 @@ def load_calibration(path) -> Calibration:
         m = np.asarray(cal.matrix, dtype=np.float64)
         if m.shape != (3, 3) or not np.all(np.isfinite(m)) or len(cal.region) != 4 or len(cal.sensor_size) != 2:
             raise ValueError("matrix must be 3x3 and finite, region four numbers, sensor_size two")
+        if cal.pixel_model is not None:
+            PixelFit.from_dict(cal.pixel_model)
+    except EvtkError as exc:
+        raise EvtkError(f"{path}: {exc}") from None
     except (ValueError, TypeError) as exc:
         raise EvtkError(f"{path}: not an evtk calibration ({exc})") from None
     return cal
@@ -260,7 +307,12 @@ def plot_calibration(path, cal: Calibration):
     if image is None:
         raise EvtkError("a calibration read from a file holds no evidence to draw; calibrate the recording again")
     plt = pyplot()
-    fig, (ax, ax_r) = plt.subplots(1, 2, figsize=(10.0, 4.2), gridspec_kw={"width_ratios": [3, 2]})
+    model = PixelFit.from_dict(cal.pixel_model) if cal.pixel_model else None
+    if model is None:
+        fig, (ax, ax_r) = plt.subplots(1, 2, figsize=(10.0, 4.2), gridspec_kw={"width_ratios": [3, 2]})
+    else:
+        fig, (ax, ax_r, ax_m) = plt.subplots(1, 3, figsize=(15.0, 4.2), gridspec_kw={"width_ratios": [3, 2, 2]})
+        _plot_pixel_model(ax_m, model)
     x0, x1, y0, y1 = cal.region
     pad = 4
     xs = slice(max(0, x0 - pad), min(image.shape[1], x1 + pad))

@@ -86,7 +86,8 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
     result = reconstruct_calibrated(rec, sched, region, origin_px, size=opts.size,
                                     binarize_method=opts.binarize_method, skip_us=opts.skip_us,
                                     length_us=opts.length_us, crop=opts.crop, flat_field=opts.flat_field,
-                                    deblur=opts.deblur, timing=opts.timing, linear=opts.linear, progress=progress)
+                                    deblur=opts.deblur, timing=opts.timing, linear=opts.linear, progress=progress,
+                                    pixel_model=None if calibration is None else calibration.pixel_model)
     result.summary["route"] = "calibrated: " + ("a pixel model fitted to the run's level captures"
                                                 if result.summary.get("pixel_model") else "exp(n theta), no level "
                                                 "captures to fit a pixel model to")

@@ -132,3 +132,48 @@ def test_too_little_light_to_fit_is_one_clear_error(tmp_path):
         fit_pixel_model(LevelStatistics(np.array([9.0]), np.array([20.0]), np.array([4.0]), np.array([400.0]), 10),
                         1000, 13340)
     assert np.all(sim.schedule.level[sim.schedule.kernel_id == LEVEL_ID] == level_steps(9, 4))
+
+
+def test_a_calibration_run_brings_the_pixel_model_to_a_job_without_level_captures(tmp_path):
+    """The bench's day: a calibration run (dots, flat fields, levels) then the job (flat fields only), both
+    recorded by the camera without a record. calibrate fits placement and pixel model on the first; reconstruct
+    --calibration applies both to the second, within 15 % of the oracle on the job's own simulation."""
+    from evtk.calibrate import load_calibration
+    from evtk.patterns import job_simulation
+
+    base = 'kernels = ["010111010"]\nsigned = true\nrepeat = 1\nflat_field = 2\nwindow_us = 1000\nseed = 4\n'
+    (tmp_path / "cal.toml").write_text(base + "calibration = 2\nlevels = 6\n")
+    (tmp_path / "job.toml").write_text(base + "levels = 0\n")
+    paths = {}
+    for name in ("cal", "job"):
+        assert CliRunner().invoke(main, ["patterns", str(tmp_path / f"{name}.toml"), "-o",
+                                         str(tmp_path / name)]).exit_code == 0
+        job_simulation(tmp_path / f"{name}.toml").write(tmp_path / f"{name}_sim.h5")
+        with evtk.open(tmp_path / f"{name}_sim.h5") as rec:
+            evtk.write_events(tmp_path / f"{name}_cam.aedat4", rec.events(), rec.triggers())
+        paths[name] = tmp_path / f"{name}_cam.aedat4"
+    for ext in ("toml", "json"):
+        res = CliRunner().invoke(main, ["calibrate", str(paths["cal"]), "--schedule", str(tmp_path / "cal" /
+                                        "schedule.json"), "-o", str(tmp_path / f"c.{ext}"), "--json"])
+        assert res.exit_code == 0, res.output
+        model = json.loads(res.stdout)["pixel_model"]
+        back = load_calibration(tmp_path / f"c.{ext}").pixel_model
+        assert back["theta_on"] == pytest.approx(model["theta_on"]) and back["levels"] == model["levels"]
+    assert 0.1 < model["theta_on"] < 0.4 and model["tau_dark_us"] > model["tau_min_us"] > 10
+    res = CliRunner().invoke(main, ["reconstruct", str(paths["job"]), "--schedule", str(tmp_path / "job" /
+                                    "schedule.json"), "--calibration", str(tmp_path / "c.toml"), "-o",
+                                    str(tmp_path / "r.h5"), "--json"])
+    assert res.exit_code == 0, res.output
+    got = json.loads(res.stdout)
+    assert got["pixel_model_from"] == "the calibration" and got["placement"] == "calibration"
+    with evtk.open(tmp_path / "job_sim.h5") as rec:
+        oracle = reconstruct(rec)
+    assert got["error"]["nrmse"] <= 1.15 * oracle.summary["error"]["nrmse"], (got["error"], oracle.summary["error"])
+    # without the calibration's model the job falls back to exp(n theta), and says so
+    res = CliRunner().invoke(main, ["reconstruct", str(paths["job"]), "--schedule", str(tmp_path / "job" /
+                                    "schedule.json"), "-o", str(tmp_path / "r2.h5")])
+    assert res.exit_code == 0 and "no calibration brought a pixel model" in res.output, res.output
+    bad = (tmp_path / "c.toml").read_text().replace("tau_dark_us = ", "tau_dark_us = -")
+    (tmp_path / "bad.toml").write_text(bad)
+    with pytest.raises(EvtkError, match="must be finite and positive"):
+        load_calibration(tmp_path / "bad.toml")

@@ -179,21 +179,30 @@ def patterns(job_path, out_dir, image_format, as_json):
 
 @main.command(short_help="Where the response lies on the sensor, from the recording's calibration dots.")
 @click.argument("recording", type=click.Path(dir_okay=False, exists=True))
-@click.option("--schedule", "schedule_path", required=True, type=click.Path(dir_okay=False, exists=True),
-              help="The schedule.json evtk patterns wrote for the run (its job needs calibration = N).")
+@click.option("--schedule", "schedule_path", type=click.Path(dir_okay=False, exists=True),
+              help="The schedule.json evtk patterns wrote for the run (its job needs calibration = N; levels = N "
+                   "also fits the pixel model). A simulated recording's own record stands in for it.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
               help="Calibration to write (.toml or .json), for evtk reconstruct --calibration.")
 @click.option("--png", "png_path", type=click.Path(dir_okay=False), help="Also draw the dots, the fit and residuals.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def calibrate(recording, schedule_path, output, png_path, as_json):
-    """Fit the map from response cells to sensor pixels (projective, RANSAC) from the dot-grid captures."""
+    """Fit the map from response cells to sensor pixels (projective, RANSAC) from the dot-grid captures,
+    and the pixel model from the level captures when the run has them."""
     from .. import io as evio
     from ..calibrate import calibrate as run
     from ..calibrate import plot_calibration, save_calibration
     from ..io._atomic import refuse_overwriting_inputs
+    from ..reconstruct import schedule_of_record
+    from ..simulate import SimulationRecord
 
-    refuse_overwriting_inputs(output, [recording, schedule_path])
+    refuse_overwriting_inputs(output, [recording] + ([schedule_path] if schedule_path else []))
     with evio.open(recording) as rec:
+        if schedule_path is None:
+            record = SimulationRecord.from_metadata(rec.metadata)
+            if record is None:
+                raise click.UsageError("a bench recording needs --schedule (the schedule.json of its run)")
+            schedule_path = schedule_of_record(record)
         cal = run(rec, schedule_path)
     save_calibration(output, cal)
     if png_path:
@@ -205,4 +214,9 @@ def calibrate(recording, schedule_path, output, png_path, as_json):
                f"{cal.residual_rms_px:.3f} px (max {cal.residual_max_px:.3f}); response origin "
                f"({cal.origin_px[0]:.2f}, {cal.origin_px[1]:.2f}) px, {cal.step_px:.4f} px per cell, region "
                f"{cal.region}; written to {output}")
+    m = cal.pixel_model
+    if m:
+        click.echo(f"pixel model from {len(m['levels'])} level steps: threshold {m['theta_on']:.3f}, time constant "
+                   f"{m['tau_min_us']:.0f} us bright to {m['tau_dark_us']:.0f} us dark, dark level "
+                   f"{m['blank_units']:.4f} units of light, counts fitted to {m['rms_counts']:.2f} RMS")
 

@@ -31,12 +31,12 @@ from ..simulate import FLAT_ID, LEVEL_ID, Schedule
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .bench import _all_pairs, _complete_pairs, load_schedule, match_windows, reconstruct_bench
-from .fit import fit_pixel_model, fitted_record, interior_pixels, level_off_times, level_statistics
+from .fit import PixelFit, fit_pixel_model, fitted_record, interior_pixels, level_off_times, level_statistics
 from .linearize import flat_field_gain
 from .pipeline import MAX_TIMING_STAMP_US, _check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
 
-__all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement"]
+__all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement", "fit_on_counts"]
 
 
 def schedule_of_record(record) -> dict:
@@ -59,7 +59,7 @@ def nominal_placement(schedule) -> tuple:
 
 def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16, 16), binarize_method="auto",
                            skip_us=0, length_us=None, crop="valid", flat_field=True, deblur=None, timing=None,
-                           linear=True, tolerance_us=None, progress=None):
+                           linear=True, tolerance_us=None, progress=None, pixel_model=None):
     """The whole pipeline with a pixel model fitted to the recording's own level captures.
 
     Parameters
@@ -76,6 +76,10 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         As :func:`~evtk.reconstruct.reconstruct`.
     tolerance_us : float, optional
         As :func:`match_windows`.
+    pixel_model : PixelFit or dict, optional
+        A model fitted before (``evtk calibrate`` on a calibration run with
+        level captures), used when this run has no level captures of its own
+        (same bench, light and camera settings assumed).
 
     Returns a :class:`~evtk.reconstruct.Reconstruction`; its summary holds
     the trigger match (``match``), the fitted model (``pixel_model``) and
@@ -88,13 +92,14 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         nominal = nominal_placement(sched)
         region = nominal[0] if region is None else region
         origin_px = nominal[1] if origin_px is None else origin_px
-    if not np.any(s.kernel_id == LEVEL_ID):
+    levels_here = bool(np.any(s.kernel_id == LEVEL_ID))
+    if not levels_here and pixel_model is None:
         result = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
                                    skip_us=skip_us, length_us=length_us, crop=crop, flat_field=flat_field,
                                    tolerance_us=tolerance_us, progress=progress)
         result.summary["pixel_model"] = None
-        result.summary["pixel_model_note"] = ("the run has no level captures (a job with levels = N): no pixel model "
-                                              "fitted, counts linearised by exp(n theta)")
+        result.summary["pixel_model_note"] = ("the run has no level captures (a job with levels = N) and no "
+                                              "calibration brought a pixel model: counts linearised by exp(n theta)")
         return result
     win, report = match_windows(rec.triggers(), s, tolerance_us)
     # every setup capture, and the pairs all of whose passes have a window
@@ -107,26 +112,13 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     counts = accumulate(rec, Windows(start, end, np.arange(caps.size), "triggers matched to the schedule",
                                      win.dropped), region, progress=progress, times=True)
     sub = Schedule(**{c: getattr(s, c)[caps] for c in Schedule._COLUMNS})
-    kh, kw = sched["kernels"].shape[1:]
-    fh, fw = sched["features"].shape[1:]
     bench = sched["bench"]
-    step = bench.kernel_step_cells / bench.pixel_cells
-    inside = interior_pixels(counts.region, origin_px, step, (kh, kw), (fh, fw))
-    net = counts.on.astype(np.float64) - counts.off
-    flat = sub.kernel_id == FLAT_ID
-    gain = None
-    if flat.any():
-        net_flat = net[flat]
-        gain = flat_field_gain(net_flat, median_filter(net_flat.mean(axis=0), size=5, mode="nearest"))
-    is_level = sub.kernel_id == LEVEL_ID
-    stats = level_statistics(counts, is_level, sub.level, inside, gain)
-    stats = dataclasses.replace(stats, off_mean_us=level_off_times(rec, t_off[is_level], sub.level[is_level],
-                                                                   sched["settle_us"], counts.region, inside,
-                                                                   counts.stamp_period_us))
-    spread = float(np.clip(np.std(gain[inside]) if gain is not None else 0.05, 0.005, 0.3))
-    # event times on a frame readout's grid are too coarse to time a pixel by: fit the counts alone
-    fine = counts.stamp_period_us is None or counts.stamp_period_us <= MAX_TIMING_STAMP_US
-    fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine)
+    if levels_here:
+        fit = fit_on_counts(rec, counts, sub, t_off, sched, origin_px, skip_us)
+        source = "the run's own level captures"
+    else:
+        fit = pixel_model if isinstance(pixel_model, PixelFit) else PixelFit.from_dict(pixel_model)
+        source = "the calibration"
     record = fitted_record(fit, sub, t_on, t_off, sched["kernels"], sched["features"], bench, counts.region,
                            origin_px, sched["window_us"], sched["settle_us"])
     counts = WindowCounts(counts.on, counts.off, Windows(start, end, sub.capture, counts.windows.source,
@@ -136,8 +128,31 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     result = reconstruct_counts(counts, record, skip_us=skip_us, length_us=length_us, size=size,
                                 binarize_method=binarize_method, linear=linear, crop=crop, deblur=deblur,
                                 flat_field=flat_field, timing=timing)
-    result.summary.update(match=report, pairs_left_out=sorted(_all_pairs(s) - complete),
+    result.summary.update(match=report, pairs_left_out=sorted(_all_pairs(s) - complete), pixel_model_from=source,
                           response_origin_px=[float(v) for v in origin_px], pixel_model=fit.to_dict(),
                           level_captures=int(np.sum(sub.kernel_id == LEVEL_ID)))
     return result
 
+
+def fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us=0) -> PixelFit:
+    """:func:`fit_pixel_model` on accumulated counts (with times) of the captures ``sub`` (a schedule of the
+    windows counted, ``t_off_us`` their falling edges), the flat fields giving the pixels' threshold spread."""
+    kh, kw = sched["kernels"].shape[1:]
+    fh, fw = sched["features"].shape[1:]
+    bench = sched["bench"]
+    inside = interior_pixels(counts.region, origin_px, bench.kernel_step_cells / bench.pixel_cells, (kh, kw),
+                             (fh, fw))
+    flat = sub.kernel_id == FLAT_ID
+    gain = None
+    if flat.any():
+        net_flat = counts.on[flat].astype(np.float64) - counts.off[flat]
+        gain = flat_field_gain(net_flat, median_filter(net_flat.mean(axis=0), size=5, mode="nearest"))
+    is_level = sub.kernel_id == LEVEL_ID
+    stats = level_statistics(counts, is_level, sub.level, inside, gain)
+    stats = dataclasses.replace(stats, off_mean_us=level_off_times(rec, np.asarray(t_off_us)[is_level],
+                                                                   sub.level[is_level], sched["settle_us"],
+                                                                   counts.region, inside, counts.stamp_period_us))
+    spread = float(np.clip(np.std(gain[inside]) if gain is not None else 0.05, 0.005, 0.3))
+    # event times on a frame readout's grid are too coarse to time a pixel by: fit the counts and the decay
+    fine = counts.stamp_period_us is None or counts.stamp_period_us <= MAX_TIMING_STAMP_US
+    return fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine)

@@ -72,15 +72,54 @@ class PixelFit:
     rms_counts: float
     rms_time_us: float
     statistics: LevelStatistics
+    window_us: int = 1000
+    settle_us: int = 0
 
     def to_dict(self) -> dict:
         s = self.sensor
         return {"theta_on": s.theta_on, "theta_off": s.theta_off, "tau_min_us": s.tau_min_us,
                 "tau_dark_us": self.tau_dark_us, "blank_units": self.blank,
-                "rms_counts": self.rms_counts, "rms_time_us": self.rms_time_us,
+                "threshold_spread": s.theta_mismatch / s.theta_on, "refractory_us": s.refractory_us,
+                "rms_counts": _finite(self.rms_counts), "rms_time_us": _finite(self.rms_time_us),
                 "levels": self.statistics.light.tolist(), "level_counts": self.statistics.counts.tolist(),
                 "level_first_us": [None if not np.isfinite(v) else float(v) for v in self.statistics.first_us],
-                "level_last_us": [None if not np.isfinite(v) else float(v) for v in self.statistics.last_us]}
+                "level_last_us": [None if not np.isfinite(v) else float(v) for v in self.statistics.last_us],
+                "pixels": int(self.statistics.pixels), "window_us": int(self.window_us),
+                "settle_us": int(self.settle_us)}
+
+    @classmethod
+    def from_dict(cls, d) -> PixelFit:
+        """The model :meth:`to_dict` wrote (a calibration file's ``pixel_model``); a bad one is an EvtkError."""
+        try:
+            theta, blank = float(d["theta_on"]), float(d["blank_units"])
+            tau_min, tau_dark = float(d["tau_min_us"]), float(d["tau_dark_us"])
+            spread = float(d.get("threshold_spread", 0.02))
+            refractory = float(d.get("refractory_us", 1.0))
+            light = np.asarray(d.get("levels", []), np.float64)
+            counts = np.asarray(d.get("level_counts", np.zeros(light.size)), np.float64)
+            # a missing time: None in JSON, -1 in TOML
+            first = np.asarray([np.nan if v is None or v < 0 else v
+                                for v in d.get("level_first_us", [None] * light.size)], np.float64)
+            last = np.asarray([np.nan if v is None or v < 0 else v
+                               for v in d.get("level_last_us", [None] * light.size)], np.float64)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise EvtkError(f"a pixel model needs theta_on, blank_units, tau_min_us and tau_dark_us "
+                            f"({type(exc).__name__}: {exc})") from None
+        vals = (theta, blank, tau_min, tau_dark, spread, refractory)
+        if not all(np.isfinite(v) and v >= 0 for v in vals) or min(theta, blank, tau_min, tau_dark) <= 0 \
+                or tau_dark < tau_min:
+            raise EvtkError(f"a pixel model's values must be finite and positive, tau_dark_us >= tau_min_us: {d!r}")
+        sensor = _model((theta, blank, tau_min, tau_dark), max(refractory, 1.0), 0.0).replace(
+            theta_mismatch=spread * theta)
+        stats = LevelStatistics(light, counts, first, last, int(d.get("pixels", 0)))
+        rms_c, rms_t = d.get("rms_counts"), d.get("rms_time_us")
+        return cls(sensor, blank, tau_dark, np.nan if rms_c is None else float(rms_c),
+                   np.nan if rms_t is None else float(rms_t), stats, int(d.get("window_us", 1000)),
+                   int(d.get("settle_us", 0)))
+
+
+def _finite(v):
+    return float(v) if np.isfinite(v) else None
 
 
 def interior_pixels(region, origin_px, step_px, kernel_shape, features_shape, margin=1):
@@ -324,7 +363,8 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
         else float("nan")
     sensor = _model((theta, blank, tau_min, tau_dark), refractory_us, 0.0).replace(
         theta_mismatch=float(spread) * theta, shot_noise=start.shot_noise)
-    return PixelFit(sensor, blank, tau_dark, float(np.sqrt(np.mean((n - counts) ** 2))), rms_t, stats)
+    return PixelFit(sensor, blank, tau_dark, float(np.sqrt(np.mean((n - counts) ** 2))), rms_t, stats,
+                    int(window_us), int(settle_us))
 
 
 def fitted_record(fit: PixelFit, schedule: Schedule, t_on_us, t_off_us, kernels, features, bench: Bench,
