@@ -31,7 +31,7 @@ from ..simulate import FLAT_ID, LEVEL_ID, Schedule
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .bench import _all_pairs, _complete_pairs, load_schedule, match_windows, reconstruct_bench
-from .fit import PixelFit, fit_pixel_model, fitted_record, interior_pixels, level_off_times, level_statistics
+from .fit import PixelFit, fit_pixel_model, fitted_record, interior_pixels, level_off_times, level_statistics, refractory_bound
 from .linearize import flat_field_gain
 from .pipeline import MAX_TIMING_STAMP_US, _check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
@@ -155,4 +155,8 @@ def fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us=0) -> Pi
     spread = float(np.clip(np.std(gain[inside]) if gain is not None else 0.05, 0.005, 0.3))
     # event times on a frame readout's grid are too coarse to time a pixel by: fit the counts and the decay
     fine = counts.stamp_period_us is None or counts.stamp_period_us <= MAX_TIMING_STAMP_US
-    return fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine)
+    bright = is_level & (sub.level == sub.level[is_level].max()) if is_level.any() else is_level
+    t_on = np.asarray(t_off_us)[bright] - int(sched["window_us"])
+    bound = refractory_bound(rec, t_on, np.asarray(t_off_us)[bright], counts.region, inside) if fine else None
+    fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine)
+    return dataclasses.replace(fit, refractory_bound_us=bound)

@@ -36,7 +36,7 @@ from ..sensor import PixelState, SensorModel, simulate_pixels, time_constant_us
 from ..simulate import Schedule
 from ..simulate.record import SimulationRecord
 
-__all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "level_off_times",
+__all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "level_off_times", "refractory_bound",
             "fit_pixel_model", "fitted_record"]
 
 #: Thresholds sampled across the mismatch when predicting a step's mean count (smooths the counts' steps).
@@ -74,6 +74,8 @@ class PixelFit:
     statistics: LevelStatistics
     window_us: int = 1000
     settle_us: int = 0
+    #: shortest ON-event spacing at the brightest step (:func:`refractory_bound`): the refractory period is no longer
+    refractory_bound_us: float | None = None
 
     def to_dict(self) -> dict:
         s = self.sensor
@@ -85,6 +87,7 @@ class PixelFit:
                 "level_first_us": [None if not np.isfinite(v) else float(v) for v in self.statistics.first_us],
                 "level_last_us": [None if not np.isfinite(v) else float(v) for v in self.statistics.last_us],
                 "pixels": int(self.statistics.pixels), "window_us": int(self.window_us),
+                "refractory_bound_us": self.refractory_bound_us,
                 "settle_us": int(self.settle_us)}
 
     @classmethod
@@ -115,7 +118,7 @@ class PixelFit:
         rms_c, rms_t = d.get("rms_counts"), d.get("rms_time_us")
         return cls(sensor, blank, tau_dark, np.nan if rms_c is None else float(rms_c),
                    np.nan if rms_t is None else float(rms_t), stats, int(d.get("window_us", 1000)),
-                   int(d.get("settle_us", 0)))
+                   int(d.get("settle_us", 0)), d.get("refractory_bound_us"))
 
 
 def _finite(v):
@@ -200,6 +203,33 @@ def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_per
         allt = np.concatenate(times) if times else np.zeros(0)
         out.append(float(allt.mean()) if allt.size else np.nan)
     return np.array(out)
+
+
+def refractory_bound(rec, t_on_us, t_off_us, region, interior, quantile=0.01):
+    """An upper bound of the refractory period: the ``quantile`` of the gaps between a pixel's successive ON
+    events inside the given (bright) windows, over the interior pixels (None with fewer than 20 gaps).
+
+    A pixel cannot fire again sooner, but the crossings of a bright step are
+    themselves a few µs apart (``tau theta / u``), so the gaps bound the
+    period from above and do not measure it: the fit keeps the sensor's
+    1 µs minimum (a refractory period long enough to show, tens of µs,
+    saturates the bright pixels, which no linearisation recovers).
+    """
+    x0, x1, y0, y1 = (int(v) for v in region)
+    mask = np.asarray(interior, bool)
+    gaps = []
+    for a, b in zip(np.asarray(t_on_us).tolist(), np.asarray(t_off_us).tolist()):
+        ev = rec.events(int(a), int(b))
+        on = (ev.p == 1) & (ev.x >= x0) & (ev.x < x1) & (ev.y >= y0) & (ev.y < y1)
+        xs, ys, t = ev.x[on].astype(np.int64) - x0, ev.y[on].astype(np.int64) - y0, ev.t[on]
+        use = mask[ys, xs]
+        pix, t = (ys * (x1 - x0) + xs)[use], t[use]
+        order = np.lexsort((t, pix))
+        pix, t = pix[order], t[order]
+        same = pix[1:] == pix[:-1]
+        gaps.append(np.diff(t)[same])
+    g = np.concatenate(gaps) if gaps else np.zeros(0)
+    return float(np.quantile(g, quantile)) if g.size >= 20 else None
 
 
 def _model(params, refractory_us, mismatch):
