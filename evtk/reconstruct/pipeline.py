@@ -274,7 +274,11 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
             my = _footprint_matrix(bench, sim.response_origin_px[1], region[2], region[3], fh + kh - 1, step)
             mx = _footprint_matrix(bench, sim.response_origin_px[0], region[0], region[1], fw + kw - 1, step)
             combined = np.linalg.solve(my, np.linalg.solve(mx, combined.transpose(0, 2, 1)).transpose(0, 2, 1))
-        ideal = np.stack([ideal_response(kernels[k], features[f], bench) for k, f, _ in pairs])
+        per_pair = {}  # repeats of a pair share its ideal
+        for k, f, _ in pairs.tolist():
+            if (k, f) not in per_pair:
+                per_pair[(k, f)] = ideal_response(kernels[k], features[f], bench)
+        ideal = np.stack([per_pair[(k, f)] for k, f, _ in pairs.tolist()])
         if crop == "valid":
             sl = (slice(None), slice(kh - 1, fh), slice(kw - 1, fw))
             combined, ideal = combined[sl], ideal[sl]
