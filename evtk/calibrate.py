@@ -24,9 +24,16 @@ import os
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
+from scipy.optimize import least_squares
+from skimage.feature import peak_local_max
+from skimage.filters import threshold_otsu
+from skimage.measure import ransac
+from skimage.transform import ProjectiveTransform
 
 from .errors import EvtkError
 from .io._atomic import AtomicFile
+from .optics.camera import CellMap
 from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
 from .reconstruct.calibrated import fit_on_counts
@@ -36,6 +43,9 @@ from .settings import read_table, toml_value
 from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, Schedule, dot_grid
 
 __all__ = ["Calibration", "calibrate", "load_calibration", "save_calibration", "plot_calibration", "MIN_DOTS"]
+
+#: Fewest ON events at a dot's brightest pixel, over the calibration captures, for it to count as seen.
+MIN_DOT_EVENTS = 3
 
 #: Fewest dots a calibration needs (a projective map has 8 unknowns; RANSAC wants more).
 MIN_DOTS = 8
@@ -48,7 +58,11 @@ class Calibration:
     Attributes
     ----------
     matrix : list of 3 lists of 3 floats
-        Projective map from response cells (column, row) to sensor pixels (x, y), homogeneous.
+        Projective map from response cells (column, row) to sensor pixels (x, y), homogeneous, before
+        the lens's radial distortion.
+    k1 : float
+        Radial distortion about the sensor centre, at the half diagonal (0: none fitted);
+        :class:`evtk.optics.camera.CellMap` applies both.
     origin_px : [x, y]
         Sensor pixel that sees cell (0, 0) of the full response.
     step_px : float
@@ -81,41 +95,45 @@ class Calibration:
     sensor_size: list
     response_shape: list
     pixel_model: dict | None = None
+    k1: float = 0.0
 
     def to_dict(self) -> dict:
         return asdict(self)
 
+    def cell_map(self) -> CellMap:
+        """The fitted map as a :class:`evtk.optics.camera.CellMap` (projective, then radial ``k1``)."""
+        return CellMap(np.asarray(self.matrix, dtype=np.float64), float(self.k1), tuple(self.sensor_size))
+
     def to_pixels(self, cells_xy):
         """Sensor pixels (x, y) of response cells (column, row)."""
-        from skimage.transform import ProjectiveTransform
-
-        return ProjectiveTransform(np.asarray(self.matrix, dtype=np.float64))(np.atleast_2d(cells_xy))
+        return self.cell_map().to_pixels(cells_xy)
 
 
-def _blobs(image, min_pixels=2, radius=2):
+def _blobs(image, spacing_px=None, radius=2):
     """Centroids (x, y) of the bright spots of ``image``.
 
-    Spots are found as the connected areas above Otsu's threshold; each
-    spot's centre is then the count-weighted mean over the (2 radius + 1)^2
-    pixels around its brightest one, background (the window's lowest count)
-    taken off, so that the faint pixels a sub-pixel position spreads light
-    into count too (a thresholded centroid is biased towards the pixel grid).
+    Spots are the local maxima above Otsu's threshold, at least half a dot
+    spacing apart (``spacing_px``; blurred dots seen through the pixels'
+    log response are flat-topped and touch, so connected areas would merge
+    them). Each spot's centre is then the count-weighted mean over the
+    (2 radius + 1)^2 pixels around its maximum (radius at most a third of the
+    spacing), background (the window's lowest count) taken off, so that the
+    faint pixels a sub-pixel position spreads light into count too.
     """
-    from skimage.filters import threshold_otsu
-    from skimage.measure import label, regionprops
-
     img = np.asarray(image, dtype=np.float64)
     if not np.any(img > 0):
         return np.zeros((0, 2))
     thr = threshold_otsu(img) if np.ptp(img) > 0 else 0.0
-    labels = label(img > thr, connectivity=2)
+    sep = max(1, int(spacing_px // 2)) if spacing_px else 2
+    if spacing_px:
+        radius = int(max(1, min(radius, spacing_px // 3)))
+    # a plateau's pixels are all maxima: smooth a little first so each spot has one summit
+    peaks = peak_local_max(gaussian_filter(img, 0.7), min_distance=sep, threshold_abs=thr, exclude_border=False)
+    # a dot is a few events at least: a lone background event is not one
+    peaks = peaks[img[peaks[:, 0], peaks[:, 1]] >= max(thr, MIN_DOT_EVENTS)] if len(peaks) else peaks
     out = []
     h, w = img.shape
-    for reg in regionprops(labels, intensity_image=img):
-        if reg.area < min_pixels:
-            continue
-        coords = reg.coords
-        py, px = coords[np.argmax(img[coords[:, 0], coords[:, 1]])]
+    for py, px in peaks:
         y0, y1 = max(0, py - radius), min(h, py + radius + 1)
         x0, x1 = max(0, px - radius), min(w, px + radius + 1)
         win = img[y0:y1, x0:x1]
@@ -143,9 +161,6 @@ def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
     the inliers as well (RMS within 10 %), the affine one is kept, as its
     fewer parameters extrapolate better to the response's corners.
     """
-    from skimage.measure import ransac
-    from skimage.transform import ProjectiveTransform
-
     sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
     s, kernels, features = sched["schedule"], sched["kernels"], sched["features"]
     if not np.any(s.kernel_id == DOTS_ID):
@@ -159,7 +174,8 @@ def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
     sub = Windows(win.t_start_us[dots_win], win.t_end_us[dots_win], win.capture[dots_win], win.source)
     counts = accumulate(rec, sub, (0, w, 0, h))
     image = counts.on.sum(axis=0).astype(np.float64)
-    found = _blobs(image)
+    bench = sched["bench"]
+    found = _blobs(image, sched["dot_spacing"] * bench.kernel_step_cells / bench.pixel_cells)
     kh, kw = kernels.shape[1:]
     fh, fw = features.shape[1:]
     dots = np.argwhere(dot_grid((fh, fw), sched["dot_spacing"]) > 0)  # (row, col) of each dot
@@ -186,6 +202,7 @@ def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
         res_a = np.linalg.norm(affine(src[inliers]) - dst[inliers], axis=1)
         if np.sqrt(np.mean(res_a ** 2)) <= 1.1 * np.sqrt(np.mean(res ** 2)):
             model, res = ProjectiveTransform(affine.params), res_a
+    model, k1, res = _with_distortion(model, src[inliers], dst[inliers], res, (w, h))
     rows, cols = fh + kh - 1, fw + kw - 1
     origin = model(np.array([[0.0, 0.0]]))[0]
     centre = np.array([[(cols - 1) / 2, (rows - 1) / 2]])
@@ -198,7 +215,7 @@ def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
     y1 = int(min(h, np.ceil(corners[:, 1].max()) + 2))
     cal = Calibration(model.params.tolist(), [float(origin[0]), float(origin[1])], float((dx + dy) / 2),
                       [x0, x1, y0, y1], float(np.sqrt(np.mean(res ** 2))), float(res.max()), len(expected),
-                      len(found), int(inliers.sum()), [int(w), int(h)], [int(rows), int(cols)])
+                      len(found), int(inliers.sum()), [int(w), int(h)], [int(rows), int(cols)], None, k1)
     cal._evidence = (image, found, expected)  # for plot_calibration; not saved
     levels = s.kernel_id[win.capture] == LEVEL_ID
     if levels.any():  # and the pixels' model, from the level captures (with the flat fields' spread)
@@ -207,8 +224,34 @@ def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
         counts = accumulate(rec, Windows(win.t_start_us[use], win.t_end_us[use], caps, win.source), cal.region,
                             times=True)
         sub = Schedule(**{c: getattr(s, c)[caps] for c in Schedule._COLUMNS})
-        cal.pixel_model = fit_on_counts(rec, counts, sub, win.t_end_us[use], sched, cal.origin_px).to_dict()
+        cal.pixel_model = fit_on_counts(rec, counts, sub, win.t_end_us[use], sched, cal.origin_px,
+                                        cell_map=cal.cell_map()).to_dict()
     return cal
+
+
+def _with_distortion(model, src, dst, res, sensor_size):
+    """The map refined with radial distortion about the sensor centre, when that fits the dots better (RMS down
+    by more than 10 %): ``(map, k1, residuals)``; the projective part of a distorted map is returned as the
+    callable of the whole map (cells -> pixels)."""
+    if len(src) < 10:
+        return model, 0.0, res
+    h0 = np.asarray(model.params, np.float64) / model.params[2, 2]
+
+    def residuals(p):
+        m = np.append(p[:8], 1.0).reshape(3, 3)
+        return (CellMap(m, p[8], sensor_size).to_pixels(src) - dst).ravel()
+
+    fit = least_squares(residuals, np.append(h0.ravel()[:8], 0.0), x_scale="jac")
+    res_d = np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)
+    if not (fit.success and abs(fit.x[8]) < 0.3) or np.sqrt(np.mean(res_d ** 2)) > 0.9 * np.sqrt(np.mean(res ** 2)):
+        return model, 0.0, res
+    cmap = CellMap(np.append(fit.x[:8], 1.0).reshape(3, 3), float(fit.x[8]), sensor_size)
+
+    class _Distorted(ProjectiveTransform):  # the projective part as params, the whole map when called
+        def __call__(self, coords):
+            return cmap.to_pixels(coords)
+
+    return _Distorted(cmap.matrix), float(fit.x[8]), res_d
 
 
 def _affine(src, dst):
@@ -292,6 +335,8 @@ def load_calibration(path) -> Calibration:
             raise ValueError("matrix must be 3x3 and finite, region four numbers, sensor_size two")
         if cal.pixel_model is not None:
             PixelFit.from_dict(cal.pixel_model)
+        if not (isinstance(cal.k1, (int, float)) and -0.3 < cal.k1 < 0.3):
+            raise ValueError(f"k1 must be a number within -0.3 and 0.3, not {cal.k1!r}")
     except EvtkError as exc:
         raise EvtkError(f"{path}: {exc}") from None
     except (ValueError, TypeError) as exc:

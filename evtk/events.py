@@ -275,6 +275,8 @@ class Events:
         200.0
         """
         t = self.t[: int(max_events)]
+        if t.size < 64:
+            return None
         d = np.diff(t)
         u = t[np.r_[True, d > 0]] if np.all(d >= 0) else np.unique(t)  # sorted stamps: distinct in one pass
         if u.size < 64:

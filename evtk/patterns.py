@@ -25,6 +25,7 @@ Job keys (all optional but ``kernels``)::
     settle_us = 13340                # dark time after each pattern (default: the simulator's recommendation)
     [bench]                          # evtk.optics.Bench fields: DMD size and pitch, distances, rates, ...
     [sensor]                         # evtk.sensor.SensorModel fields (the simulator only)
+    [camera]                         # evtk.optics.camera.Camera fields: pose and lens (the simulator only)
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ import numpy as np
 from .errors import EvtkError
 from .io._atomic import AtomicFile
 from .optics import Bench
+from .optics.camera import Camera
 from .sensor import SensorModel
 from .settings import read_table
 from .simulate import Simulation, default_features, load_patterns
@@ -48,7 +50,7 @@ __all__ = ["load_job", "job_simulation", "dmd_frame", "write_patterns", "SCHEDUL
 SCHEDULE_VERSION = 1
 #: Keys a job file may hold.
 JOB_KEYS = ("kernels", "features", "signed", "repeat", "flat_field", "calibration", "dot_spacing", "levels", "window_us",
-            "settle_us", "seed", "bench", "sensor")
+            "settle_us", "seed", "bench", "sensor", "camera")
 
 
 def _read_table(path):
@@ -98,7 +100,7 @@ def load_job(path) -> dict:
         raise EvtkError(f"{path}: signed must be true or false, not {signed!r}")
     if signed:
         kernels, features = np.where(kernels > 0, 1, -1), np.where(features > 0, 1, -1)
-    for key in ("bench", "sensor"):
+    for key in ("bench", "sensor", "camera"):
         if not isinstance(data.get(key, {}), dict):
             raise EvtkError(f"{path}: [{key}] must be a table of parameters")
     try:
@@ -106,7 +108,11 @@ def load_job(path) -> dict:
         sensor = SensorModel.from_dict(data.get("sensor", {}))
     except (EvtkError, TypeError) as exc:
         raise EvtkError(f"{path}: {exc}") from None
-    job = {"kernels": kernels, "features": features, "bench": bench, "sensor": sensor}
+    try:
+        camera = Camera.from_dict(data["camera"]) if "camera" in data else None
+    except (EvtkError, TypeError) as exc:
+        raise EvtkError(f"{path}: {exc}") from None
+    job = {"kernels": kernels, "features": features, "bench": bench, "sensor": sensor, "camera": camera}
     for key, default in (("repeat", 1), ("flat_field", 2), ("calibration", 0), ("dot_spacing", 4), ("levels", 0),
                          ("window_us", 1000), ("settle_us", None), ("seed", 0)):
         v = data.get(key, default)

@@ -74,20 +74,23 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         sched = schedule_of_record(record)
     else:
         sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
-    region, placed = opts.region, "given"
+    region, placed, cell_map = opts.region, "given", None
     if calibration is not None:
         region, origin_px, placed = tuple(calibration.region), tuple(calibration.origin_px), "calibration"
+        cell_map = calibration.cell_map()
     elif region is None and origin_px is None:
         if (sched["schedule"].kernel_id == DOTS_ID).any():
             cal = calibrate(rec, sched)
             region, origin_px, placed = tuple(cal.region), tuple(cal.origin_px), "the run's own dot captures"
+            cell_map = cal.cell_map()
         else:
             placed = "the bench geometry"
     result = reconstruct_calibrated(rec, sched, region, origin_px, size=opts.size,
                                     binarize_method=opts.binarize_method, skip_us=opts.skip_us,
                                     length_us=opts.length_us, crop=opts.crop, flat_field=opts.flat_field,
                                     deblur=opts.deblur, timing=opts.timing, linear=opts.linear, progress=progress,
-                                    pixel_model=None if calibration is None else calibration.pixel_model)
+                                    pixel_model=None if calibration is None else calibration.pixel_model,
+                                    cell_map=cell_map)
     result.summary["route"] = "calibrated: " + ("a pixel model fitted to the run's level captures"
                                                 if result.summary.get("pixel_model") else "exp(n theta), no level "
                                                 "captures to fit a pixel model to")

@@ -59,7 +59,7 @@ def nominal_placement(schedule) -> tuple:
 
 def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16, 16), binarize_method="auto",
                            skip_us=0, length_us=None, crop="valid", flat_field=True, deblur=None, timing=None,
-                           linear=True, tolerance_us=None, progress=None, pixel_model=None):
+                           linear=True, tolerance_us=None, progress=None, pixel_model=None, cell_map=None):
     """The whole pipeline with a pixel model fitted to the recording's own level captures.
 
     Parameters
@@ -80,6 +80,11 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         A model fitted before (``evtk calibrate`` on a calibration run with
         level captures), used when this run has no level captures of its own
         (same bench, light and camera settings assumed).
+    cell_map : CellMap, optional
+        The calibration's whole map from cells to pixels
+        (:meth:`evtk.calibrate.Calibration.cell_map`); when the camera is
+        rotated, tilted or distorted the responses are sampled through it
+        (:func:`~evtk.reconstruct.grid.sample_response_grid`, not deblurred).
 
     Returns a :class:`~evtk.reconstruct.Reconstruction`; its summary holds
     the trigger match (``match``), the fitted model (``pixel_model``) and
@@ -92,6 +97,12 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         nominal = nominal_placement(sched)
         region = nominal[0] if region is None else region
         origin_px = nominal[1] if origin_px is None else origin_px
+    kh, kw = sched["kernels"].shape[1:]
+    fh, fw = sched["features"].shape[1:]
+    if cell_map is not None:  # a map that is a scale and shift is the origin and step: deblurring stays possible
+        aligned = cell_map.axis_aligned((fh + kh - 1, fw + kw - 1))
+        if aligned is not None:
+            origin_px, cell_map = aligned[0], None
     levels_here = bool(np.any(s.kernel_id == LEVEL_ID))
     if not levels_here and pixel_model is None:
         result = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
@@ -114,13 +125,14 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     sub = Schedule(**{c: getattr(s, c)[caps] for c in Schedule._COLUMNS})
     bench = sched["bench"]
     if levels_here:
-        fit = fit_on_counts(rec, counts, sub, t_off, sched, origin_px, skip_us)
+        fit = fit_on_counts(rec, counts, sub, t_off, sched, origin_px, skip_us, cell_map=cell_map)
         source = "the run's own level captures"
     else:
         fit = pixel_model if isinstance(pixel_model, PixelFit) else PixelFit.from_dict(pixel_model)
         source = "the calibration"
     record = fitted_record(fit, sub, t_on, t_off, sched["kernels"], sched["features"], bench, counts.region,
-                           origin_px, sched["window_us"], sched["settle_us"])
+                           origin_px, sched["window_us"], sched["settle_us"],
+                           cell_map=cell_map)
     counts = WindowCounts(counts.on, counts.off, Windows(start, end, sub.capture, counts.windows.source,
                                                          counts.windows.dropped),
                           counts.region, counts.events_used, counts.on_first_us, counts.on_last_us,
@@ -134,14 +146,14 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     return result
 
 
-def fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us=0) -> PixelFit:
+def fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us=0, cell_map=None) -> PixelFit:
     """:func:`fit_pixel_model` on accumulated counts (with times) of the captures ``sub`` (a schedule of the
     windows counted, ``t_off_us`` their falling edges), the flat fields giving the pixels' threshold spread."""
     kh, kw = sched["kernels"].shape[1:]
     fh, fw = sched["features"].shape[1:]
     bench = sched["bench"]
     inside = interior_pixels(counts.region, origin_px, bench.kernel_step_cells / bench.pixel_cells, (kh, kw),
-                             (fh, fw))
+                             (fh, fw), cell_map=cell_map)
     flat = sub.kernel_id == FLAT_ID
     gain = None
     if flat.any():

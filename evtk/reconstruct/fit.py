@@ -125,17 +125,24 @@ def _finite(v):
     return float(v) if np.isfinite(v) else None
 
 
-def interior_pixels(region, origin_px, step_px, kernel_shape, features_shape, margin=1):
+def interior_pixels(region, origin_px, step_px, kernel_shape, features_shape, margin=1, cell_map=None):
     """Pixels of ``region`` (y, x) whose cell lies ``margin`` cells inside the flat response's interior.
 
     Cell ``(i, j)`` is centred on ``origin + (j, i) * step_px`` (the
-    convention of :func:`~evtk.reconstruct.to_response_grid`); the interior
+    convention of :func:`~evtk.reconstruct.to_response_grid`), or wherever
+    ``cell_map`` (:class:`evtk.optics.camera.CellMap`) puts it; the interior
     is where a flat features field overlaps every kernel element, cells
     ``kernel - 1`` to ``features - 1`` along each axis.
     """
     x0, x1, y0, y1 = (int(v) for v in region)
     kh, kw = (int(v) for v in kernel_shape)
     fh, fw = (int(v) for v in features_shape)
+    if cell_map is not None:  # a general map (rotation, tilt, distortion): each pixel's cell through its inverse
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        cells = np.rint(cell_map.to_cells(np.stack([xx.ravel(), yy.ravel()], 1).astype(np.float64)))
+        col, row = cells[:, 0].reshape(xx.shape), cells[:, 1].reshape(xx.shape)
+        return ((col >= kw - 1 + margin) & (col <= fw - 1 - margin) & (row >= kh - 1 + margin)
+                & (row <= fh - 1 - margin))
     step = float(step_px)
     if not step > 0:
         raise EvtkError(f"step_px must be positive, not {step_px!r}")
@@ -398,7 +405,7 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
 
 
 def fitted_record(fit: PixelFit, schedule: Schedule, t_on_us, t_off_us, kernels, features, bench: Bench,
-                  region, origin_px, window_us, settle_us) -> SimulationRecord:
+                  region, origin_px, window_us, settle_us, cell_map=None) -> SimulationRecord:
     """A record for :func:`~evtk.reconstruct.reconstruct_counts` holding what the bench knows and the fit.
 
     ``schedule`` holds the matched captures, ``t_on_us``/``t_off_us`` their
@@ -412,7 +419,8 @@ def fitted_record(fit: PixelFit, schedule: Schedule, t_on_us, t_off_us, kernels,
         schedule=sched, window_us=int(window_us), settle_us=int(settle_us), start_us=int(sched.t_on_us.min()),
         end_us=int(sched.t_off_us.max()), response_region=tuple(int(v) for v in region),
         response_origin_px=tuple(float(v) for v in origin_px),
-        gain_e_per_s_per_unit=NOMINAL_BLANK_E_PER_S / fit.blank, blank_rate_e_per_s=NOMINAL_BLANK_E_PER_S)
+        gain_e_per_s_per_unit=NOMINAL_BLANK_E_PER_S / fit.blank, blank_rate_e_per_s=NOMINAL_BLANK_E_PER_S,
+        cell_map=None if cell_map is None else {"matrix": np.asarray(cell_map.matrix).tolist(), "k1": cell_map.k1})
 
 
 def _fit_log_response(counts, light):

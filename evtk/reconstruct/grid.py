@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import map_coordinates
 
 from ..errors import EvtkError
 from ..optics import _axis_weights, shadow_magnification
 from ..simulate import Schedule
 
-__all__ = ["combine_passes", "to_response_grid", "downsample"]
+__all__ = ["combine_passes", "to_response_grid", "sample_response_grid", "downsample"]
 
 
 def combine_passes(values, schedule):
@@ -52,6 +53,30 @@ def _overlap_matrix(n_cells, first_edge, step, n_pixels):
     hi = lo + step
     px = np.arange(n_pixels)[None, :]
     return np.clip(np.minimum(hi, px + 1) - np.maximum(lo, px), 0, None) / step
+
+
+def sample_response_grid(values, region, cell_map, shape):
+    """Responses over a sensor region on the response's cell grid through a general map (rotation, tilt,
+    distortion): each cell takes the bilinear interpolation of the pixels around where its centre lands
+    (:class:`evtk.optics.camera.CellMap`); cells landing outside the region count as zero light.
+
+    Parameters
+    ----------
+    values : ndarray, shape (..., y1 - y0, x1 - x0)
+    region : (x0, x1, y0, y1)
+    cell_map : CellMap
+    shape : (rows, cols)
+    """
+    values = np.asarray(values, dtype=np.float64)
+    x0, x1, y0, y1 = (int(v) for v in region)
+    rows, cols = (int(v) for v in shape)
+    jj, ii = np.meshgrid(np.arange(cols, dtype=np.float64), np.arange(rows, dtype=np.float64))
+    px = cell_map.to_pixels(np.stack([jj.ravel(), ii.ravel()], 1))
+    coords = [px[:, 1] - y0, px[:, 0] - x0]
+    lead = values.shape[:-2]
+    flat = values.reshape((-1,) + values.shape[-2:])
+    out = np.stack([map_coordinates(v, coords, order=1, mode="constant", cval=0.0) for v in flat])
+    return out.reshape(lead + (rows, cols))
 
 
 def to_response_grid(values, region, origin_px, step_px, shape):

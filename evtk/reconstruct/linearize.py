@@ -8,10 +8,12 @@ import json
 
 import numba
 import numpy as np
+from scipy.ndimage import map_coordinates
 
 from ..errors import EvtkError
 from ..io._compression import workers
 from ..optics import Bench, brightest_response, screen_response
+from ..optics.camera import Camera
 from ..sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
 from ..simulate.record import SimulationRecord
 
@@ -197,9 +199,32 @@ def _thread_budget():
 def _flat_log_step(sim, bench, region):
     """Log-light step ``u`` each pixel of ``region`` (y, x) sees in a flat-field window (every mirror on)."""
     sim = SimulationRecord.from_dict(sim)
-    light = screen_response(np.ones(sim.kernels.shape[1:]), np.ones(sim.features.shape[1:]), bench, tuple(region))
+    k, f = np.ones(sim.kernels.shape[1:], np.int8), np.ones(sim.features.shape[1:], np.int8)
+    if sim.cell_map is not None:  # a fitted general map: the flat on the cell grid, seen through it
+        light = _flat_through_map(k, f, bench, sim.placement(), tuple(region))
+    elif sim.camera is not None:  # the simulated camera's view of the flat field
+        light = Camera.from_dict(sim.camera).view(k, f, bench, tuple(region))
+    else:  # where the record places the response (a calibration's origin, or the bench's own)
+        light = screen_response(k, f, bench.replace(origin_px=tuple(sim.response_origin_px)), tuple(region))
     rate = sim.gain_e_per_s_per_unit * light + sim.sensor.dark_current_e_per_s
     return np.log(np.maximum(rate, 1e-300) / sim.blank_rate_e_per_s)
+
+
+def _flat_through_map(kernel, features, bench, cell_map, region):
+    """The flat response each pixel of ``region`` sees when cells land where ``cell_map`` puts them: rendered on
+    a nominal grid (origin 8 px in, the bench's step), sampled (bilinear) where each pixel's cell lies."""
+    x0, x1, y0, y1 = region
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    cells = cell_map.to_cells(np.stack([xx.ravel(), yy.ravel()], 1).astype(np.float64))
+    step = bench.kernel_step_cells / bench.pixel_cells
+    pad = 8.0
+    nominal = pad + step * cells
+    rows, cols = (features.shape[0] + kernel.shape[0] - 1), (features.shape[1] + kernel.shape[1] - 1)
+    nw, nh = int(np.ceil(2 * pad + step * cols)), int(np.ceil(2 * pad + step * rows))
+    img = screen_response(kernel, features, bench.replace(origin_px=(pad, pad), sensor_width=max(nw, 1),
+                                                          sensor_height=max(nh, 1)), (0, nw, 0, nh))
+    light = map_coordinates(img, [nominal[:, 1], nominal[:, 0]], order=1, mode="nearest")
+    return light.reshape(xx.shape)
 
 
 def _expected_flat_counts(sim, bench, region, curve, theta_on):

@@ -13,7 +13,7 @@ from ..simulate import FLAT_ID
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
-from .grid import _footprint_matrix, combine_passes, downsample, to_response_grid
+from .grid import _footprint_matrix, combine_passes, downsample, sample_response_grid, to_response_grid
 from .linearize import (
     _expected_flat_counts,
     _flat_log_step,
@@ -265,14 +265,24 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
         if linear:  # relative change -> light above the dark level, in response units
             values = values * sim.blank_rate_e_per_s / sim.gain_e_per_s_per_unit
         step = bench.kernel_step_cells / bench.pixel_cells
-        cells = to_response_grid(values, region, sim.response_origin_px, step, (fh + kh - 1, fw + kw - 1))
+        placement = sim.placement()
+        origin = sim.response_origin_px
+        aligned = None if placement is None else placement.axis_aligned((fh + kh - 1, fw + kw - 1))
+        if aligned is not None:  # shifted or scaled only: still along the sensor's axes
+            (origin, step), placement = aligned, None
+        if placement is not None:  # a rotated, tilted or distorted view
+            cells = sample_response_grid(values, region, placement, (fh + kh - 1, fw + kw - 1))
+        else:
+            cells = to_response_grid(values, region, origin, step, (fh + kh - 1, fw + kw - 1))
         combined, pairs = combine_passes(cells, schedule)
         if deblur is None:  # a decimated reconstruction does not have the neighbours deblurring needs
             deblur = gain is not None and bench.decimation == 1
-        deblurred = bool(deblur) and abs(bench.kernel_step_cells - 1.0) < 1e-9
+        # the footprint matrices run along the sensor's axes: a rotated or distorted view is not deblurred
+        deblurred = bool(deblur) and abs(bench.kernel_step_cells - 1.0) < 1e-9 and (
+            placement is None)
         if deblurred:  # undo the footprint blur of sources, pixels and diffuser
-            my = _footprint_matrix(bench, sim.response_origin_px[1], region[2], region[3], fh + kh - 1, step)
-            mx = _footprint_matrix(bench, sim.response_origin_px[0], region[0], region[1], fw + kw - 1, step)
+            my = _footprint_matrix(bench, origin[1], region[2], region[3], fh + kh - 1, step)
+            mx = _footprint_matrix(bench, origin[0], region[0], region[1], fw + kw - 1, step)
             combined = np.linalg.solve(my, np.linalg.solve(mx, combined.transpose(0, 2, 1)).transpose(0, 2, 1))
         per_pair = {}  # repeats of a pair share its ideal
         for k, f, _ in pairs.tolist():

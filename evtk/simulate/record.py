@@ -15,6 +15,7 @@ import numpy as np
 
 from ..errors import EvtkError
 from ..optics import Bench
+from ..optics.camera import Camera, CellMap
 from ..sensor import SensorModel
 from .schedule import METADATA_KEY, Schedule
 
@@ -65,11 +66,30 @@ class SimulationRecord:
     calibration: bool = False
     dot_spacing: int = 4
     levels: int = 0
+    #: the simulated camera's pose and lens (:class:`evtk.optics.camera.Camera` fields), None for the nominal view
+    camera: dict | None = None
+    #: a fitted map from cells to pixels ({"matrix": 3x3, "k1": float}: :class:`evtk.optics.camera.CellMap`), which
+    #: takes the place of ``response_origin_px`` (a calibration of a camera that is rotated, tilted or distorted)
+    cell_map: dict | None = None
     correlation: str = "correlation"
     evtk_version: str = ""
 
     _REQUIRED = ("bench", "sensor", "kernels", "features", "schedule", "window_us", "settle_us",
                  "response_region", "response_origin_px", "gain_e_per_s_per_unit", "blank_rate_e_per_s")
+
+    def placement(self) -> CellMap | None:
+        """The map from response cells to sensor pixels when it is more than ``response_origin_px`` and the
+        bench's step (a fitted ``cell_map``, or the simulated camera's pose and lens), else None."""
+        size = (self.bench.sensor_width, self.bench.sensor_height)
+        if self.cell_map is not None:
+            return CellMap(np.asarray(self.cell_map["matrix"], np.float64), float(self.cell_map["k1"]), size)
+        if self.camera is None:
+            return None
+        cam = Camera.from_dict(self.camera)
+        ox, oy = self.response_origin_px
+        step = self.bench.kernel_step_cells / self.bench.pixel_cells
+        nominal = np.array([[step, 0.0, ox], [0.0, step, oy], [0.0, 0.0, 1.0]])
+        return CellMap(cam.homography(size) @ nominal, cam.k1, size)
 
     @property
     def signed(self) -> bool:

@@ -20,6 +20,7 @@ from ..optics import (
     response_region,
     screen_response,
 )
+from ..optics.camera import Camera, CellMap
 from ..sensor import PixelState, SensorModel, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
 from .events import _sorted_events
 from .record import SimulationRecord
@@ -83,6 +84,10 @@ class Simulation:
         (:data:`DOTS_ID`).
     dot_spacing : int
         Feature elements between dots.
+    camera : Camera or dict, optional
+        The camera's pose and lens (:class:`evtk.optics.camera.Camera`):
+        rotation, tilt, offset, scale, radial distortion, vignetting,
+        defocus. Default: the nominal view.
     levels : int
         Level captures shown after the dots, a staircase of light: features
         all on and ``level`` kernel elements on (:func:`level_kernel`), for
@@ -101,7 +106,7 @@ class Simulation:
 
     def __init__(self, kernels, features, bench: Bench | None = None, sensor: SensorModel | None = None,
                  window_us=1000, settle_us=None, repeat=1, seed=0, start_us=0, noise_seed=None, flat_field=2,
-                 calibration=0, dot_spacing=4, levels=0):
+                 calibration=0, dot_spacing=4, levels=0, camera=None):
         self.bench = bench if bench is not None else Bench()
         self.sensor = sensor if sensor is not None else SensorModel()
         self.kernels = _as_patterns("kernels", kernels)
@@ -121,7 +126,10 @@ class Simulation:
             raise EvtkError(f"power_mw {self.bench.power_mw:g} makes the photon rates overflow float64; "
                             "no bench is that bright")
         self.settle_us = self.recommended_settle_us() if settle_us is None else _int_param("settle_us", settle_us, 1)
+        self.camera = None if camera is None or Camera.from_dict(camera).is_ideal else Camera.from_dict(camera)
         self.region = response_region(self.bench, kshape, self.features.shape[1:])
+        if self.camera is not None:  # where the camera's pose and lens put the nominal response
+            self.region = self.camera.sensor_region(self.region, self._sensor_size)
         self._passes = {}
         self._rate_cache = {}  # region (or "glow") -> {(kernel, features, signs): photoelectron rates}
         self.flat_field = _int_param("flat_field", flat_field, 0)
@@ -213,7 +221,18 @@ class Simulation:
     def pass_response(self, c, region=None):
         """Light (response units) each pixel of ``region`` receives during capture ``c``."""
         k, f = self._pass_patterns(c)
-        return screen_response(k, f, self.bench, region)
+        if self.camera is None:
+            return screen_response(k, f, self.bench, region)
+        region = (0, self.bench.sensor_width, 0, self.bench.sensor_height) if region is None else region
+        return self.camera.view(k, f, self.bench, region)
+
+    @property
+    def _sensor_size(self):
+        return (self.bench.sensor_width, self.bench.sensor_height)
+
+    def cell_map(self) -> CellMap:
+        """Where each cell (column, row) of the full response lands on the sensor (pose and lens included)."""
+        return self.record().placement() or self.record().replace(camera=Camera().to_dict()).placement()
 
     def ideal(self, c):
         """Ground truth of capture ``c``: the noise-free digital response of its pass (full correlation)."""
@@ -236,6 +255,7 @@ class Simulation:
             gain_e_per_s_per_unit=float(self.gain_e_per_s), blank_rate_e_per_s=float(self.blank_rate_e_per_s),
             seed=self.seed, noise_seed=self.noise_seed, repeat=self.repeat, flat_field=self.flat_field,
             calibration=self.calibration, dot_spacing=self.dot_spacing, levels=self.levels,
+            camera=None if self.camera is None else self.camera.to_dict(),
             correlation="convolution" if self.bench.kernel_flipped else "correlation", evtk_version=__version__)
 
     def metadata(self) -> dict:
