@@ -145,7 +145,8 @@ def demo(out_dir, repeat, seed, as_json):
         enob_txt = f"{s['enob_bits']:.2f} bits{ci}, SINAD {s['sinad_db']:.1f} dB"
     click.echo("\n".join([
         f"simulated {written['captures']} captures ({repeat} repeats of a 3x3 kernel on 16x16 binary features, "
-        f"2 flat fields): {written['events']:,} events",
+        f"2 flat fields, 6 level captures): {written['events']:,} events",
+        f"route: {summary['route']}",
         f"against the digital correlation: correlation {_fmt(err['correlation'], '.3f')}, RMS error "
         f"{_fmt(err['nrmse'], '.1%')} of the ideal's RMS ({_fmt(err['nrmse_range'], '.1%')} of its range)",
         f"effective bits (eq. 8): {enob_txt}",
