@@ -200,11 +200,10 @@ def test_demo_runs_on_the_embedded_defaults(tmp_path):
     for key in ("recording", "reconstruction", "enob_plot"):
         assert (out / s[key].split("/")[-1]).stat().st_size > 0
     assert [p.split("/")[-1] for p in s["contact_sheet"]] == ["responses.png"]  # three responses: one page
-    assert s["captures"] == 2 + 3 and s["repeats"] == 3
+    assert s["captures"] == 2 + 6 + 3 and s["repeats"] == 3  # flat fields, level captures, the repeats
+    assert s["route"].startswith("calibrated")
     with evtk.open(s["recording"]) as rec:
-        from evtk.reconstruct import reconstruct
-
-        again = reconstruct(rec, binarize_method="mean")
+        again = evtk.reconstruct_recording(rec, binarize_method="mean")
     assert s["error"]["correlation"] == pytest.approx(again.summary["error"]["correlation"])
     assert s["flips"]["pairwise_pct"] == pytest.approx(flip_rates(again.binary).pairwise_pct)
     text = CliRunner().invoke(main, ["demo", "--out", str(out), "--repeat", "2"])
