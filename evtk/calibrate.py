@@ -42,7 +42,8 @@ from .reconstruct.windows import Windows
 from .settings import read_table, toml_value
 from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, Schedule, dot_grid
 
-__all__ = ["Calibration", "calibrate", "load_calibration", "save_calibration", "plot_calibration", "MIN_DOTS"]
+__all__ = ["Calibration", "calibrate", "background_rate_hz", "load_calibration", "save_calibration", "plot_calibration",
+           "MIN_DOTS"]
 
 #: Fewest ON events at a dot's brightest pixel, over the calibration captures, for it to count as seen.
 MIN_DOT_EVENTS = 3
@@ -81,6 +82,9 @@ class Calibration:
         level's light, time constants, the statistics fitted), when it has
         any; ``evtk reconstruct --calibration`` uses it for runs without
         level captures of their own.
+    background_rate_hz : float or None
+        Background activity per pixel, from the pixels outside the response
+        while the DMDs are dark and the pixels settled (:func:`background_rate_hz`).
     """
 
     matrix: list
@@ -96,6 +100,7 @@ class Calibration:
     response_shape: list
     pixel_model: dict | None = None
     k1: float = 0.0
+    background_rate_hz: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -226,7 +231,28 @@ def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
         sub = Schedule(**{c: getattr(s, c)[caps] for c in Schedule._COLUMNS})
         cal.pixel_model = fit_on_counts(rec, counts, sub, win.t_end_us[use], sched, cal.origin_px,
                                         cell_map=cal.cell_map()).to_dict()
+    cal.background_rate_hz = background_rate_hz(rec, win.t_end_us, sched["settle_us"], cal.region)
     return cal
+
+
+def background_rate_hz(rec, t_off_us, settle_us, region, margin_px=3, max_windows=64):
+    """Background activity: events a pixel fires per second with nothing changing, from the pixels outside the
+    response (``region`` grown by ``margin_px``) in the second half of the darkness after each pattern (settled),
+    over at most ``max_windows`` of them. None when there is no such time or pixel."""
+    w, h = rec.sensor_size
+    x0, x1, y0, y1 = region
+    x0, x1, y0, y1 = max(0, x0 - margin_px), min(w, x1 + margin_px), max(0, y0 - margin_px), min(h, y1 + margin_px)
+    pixels = w * h - (x1 - x0) * (y1 - y0)
+    half = int(settle_us) // 2
+    if pixels <= 0 or half <= 0 or len(t_off_us) == 0:
+        return None
+    n = 0
+    ends = np.asarray(t_off_us)[:max_windows].tolist()
+    for t in ends:
+        ev = rec.events(int(t) + half, int(t) + int(settle_us))
+        inside = (ev.x >= x0) & (ev.x < x1) & (ev.y >= y0) & (ev.y < y1)
+        n += int(np.count_nonzero(~inside))
+    return float(n / (pixels * len(ends) * (int(settle_us) - half) * 1e-6))
 
 
 def _with_distortion(model, src, dst, res, sensor_size):
@@ -313,7 +339,7 @@ def save_calibration(path, cal: Calibration):
     if path.lower().endswith(".toml"):
         model = d.pop("pixel_model")
         text = "# evtk calibration (evtk calibrate): response cells -> sensor pixels\n" + \
-            "".join(f"{k} = {toml_value(v, 'calibration')}\n" for k, v in d.items())
+            "".join(f"{k} = {toml_value(v, 'calibration')}\n" for k, v in d.items() if v is not None)
         if model:
             text += "\n[pixel_model]  # fitted to the level captures\n" + "".join(
                 f"{k} = {toml_value([_nan_free(x) for x in v] if isinstance(v, list) else v, 'calibration')}\n"

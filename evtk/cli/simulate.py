@@ -215,6 +215,9 @@ def calibrate(recording, schedule_path, output, png_path, as_json):
                f"{cal.residual_rms_px:.3f} px (max {cal.residual_max_px:.3f}); response origin "
                f"({cal.origin_px[0]:.2f}, {cal.origin_px[1]:.2f}) px, {cal.step_px:.4f} px per cell, region "
                f"{cal.region}; written to {output}")
+    if cal.background_rate_hz is not None:
+        click.echo(f"background activity outside the response: {cal.background_rate_hz:.3g} events per pixel "
+                   "and second")
     m = cal.pixel_model
     if m:
         click.echo(f"pixel model from {len(m['levels'])} level steps: threshold {m['theta_on']:.3f}, time constant "
