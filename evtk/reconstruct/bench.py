@@ -17,6 +17,7 @@ import json
 import os
 
 import numpy as np
+from scipy.ndimage import median_filter
 
 from ..errors import EvtkError
 from ..optics import Bench, ideal_response, response_origin_px
@@ -182,19 +183,14 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     flat = s.kernel_id[win.capture] == FLAT_ID
     gain = None
     if flat_field and flat.any():
-        from scipy.ndimage import median_filter
-
-        net_flat = counts.on[flat].astype(np.float64) - counts.off[flat]
-        gain = flat_field_gain(net_flat, median_filter(net_flat.mean(axis=0), size=5, mode="nearest"))
+        gain = neighbourhood_flat_gain(counts.on[flat].astype(np.float64) - counts.off[flat])
     values = linearize(counts.on, counts.off, theta) if gain is None else \
         linearize(counts.on * gain, counts.off * gain, theta)
     step = bench.kernel_step_cells / bench.pixel_cells
     cells = to_response_grid(values, counts.region, origin, step, (fh + kh - 1, fw + kw - 1))
     # the passes of each (kernel, features, repeat) pair: only pairs whose every pass has a window
     sub = {c: getattr(s, c)[win.capture] for c in s._COLUMNS}
-    complete = _complete_pairs(s, set(win.capture.tolist()))
-    keep = np.array([(k, f, r) in complete or k < 0 for k, f, r in zip(sub["kernel_id"], sub["features_id"],
-                                                                        sub["repeat"])], bool)
+    keep, complete = _complete_mask(s, win.capture)
 
     kept = Schedule(**{c: v[keep] for c, v in sub.items()})
     combined, pairs = combine_passes(cells[keep], kept)
@@ -228,6 +224,22 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
 def _all_pairs(s):
     use = (s.kernel_id >= 0) & (s.features_id >= 0)
     return {(int(k), int(f), int(r)) for k, f, r in zip(s.kernel_id[use], s.features_id[use], s.repeat[use])}
+
+
+def neighbourhood_flat_gain(net_flat):
+    """:func:`flat_field_gain` without a pixel model: what a nominal pixel would count in the flat windows
+    ``net_flat`` (windows, rows, cols) is taken as the 5x5 median of its neighbours' mean (the flat response is
+    smooth; threshold mismatch is not)."""
+    return flat_field_gain(net_flat, median_filter(net_flat.mean(axis=0), size=5, mode="nearest"))
+
+
+def _complete_mask(s, captures):
+    """Which of the matched ``captures`` to keep (the setup captures, and every pass of the pairs all of whose
+    passes have a window), and the set of those complete (kernel, features, repeat) pairs."""
+    complete = _complete_pairs(s, set(np.asarray(captures).tolist()))
+    keep = np.array([s.kernel_id[c] < 0 or (int(s.kernel_id[c]), int(s.features_id[c]), int(s.repeat[c])) in complete
+                     for c in np.asarray(captures).tolist()], bool)
+    return keep, complete
 
 
 def _complete_pairs(s, have):

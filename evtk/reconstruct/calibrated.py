@@ -24,15 +24,13 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.ndimage import median_filter
 
 from ..optics import response_origin_px, response_region
 from ..simulate import FLAT_ID, LEVEL_ID, Schedule
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
-from .bench import _all_pairs, _complete_pairs, load_schedule, match_windows, reconstruct_bench
+from .bench import _all_pairs, _complete_mask, load_schedule, match_windows, neighbourhood_flat_gain, reconstruct_bench
 from .fit import PixelFit, fit_pixel_model, fitted_record, interior_pixels, level_off_times, level_statistics, refractory_bound
-from .linearize import flat_field_gain
 from .pipeline import MAX_TIMING_STAMP_US, _check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
 
@@ -114,9 +112,7 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         return result
     win, report = match_windows(rec.triggers(), s, tolerance_us)
     # every setup capture, and the pairs all of whose passes have a window
-    complete = _complete_pairs(s, set(win.capture.tolist()))
-    keep = np.array([s.kernel_id[c] < 0 or (int(s.kernel_id[c]), int(s.features_id[c]), int(s.repeat[c])) in complete
-                     for c in win.capture.tolist()], bool)
+    keep, complete = _complete_mask(s, win.capture)
     caps = win.capture[keep]
     t_on, t_off = win.t_start_us[keep], win.t_end_us[keep]
     start, end = _trim(t_on, t_off, skip_us, length_us, "matched")
@@ -158,7 +154,7 @@ def fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us=0, cell_
     gain = None
     if flat.any():
         net_flat = counts.on[flat].astype(np.float64) - counts.off[flat]
-        gain = flat_field_gain(net_flat, median_filter(net_flat.mean(axis=0), size=5, mode="nearest"))
+        gain = neighbourhood_flat_gain(net_flat)
     is_level = sub.kernel_id == LEVEL_ID
     stats = level_statistics(counts, is_level, sub.level, inside, gain)
     stats = dataclasses.replace(stats, off_mean_us=level_off_times(rec, np.asarray(t_off_us)[is_level],
