@@ -256,3 +256,25 @@ def test_fresnel_number_says_when_the_shadow_model_holds():
     assert "Fresnel number 0.0133" in b.shadow_model_note()
     near = b.replace(u_mm=1.0, feature_upsample=40)
     assert near.fresnel_number > 1 and near.shadow_model_note() is None
+
+
+def test_diffraction_blurs_the_shadows_by_its_gaussian_approximation():
+    """With diffraction on, the shadows are those of a diffuser blur of diffraction_sigma_um (added in quadrature):
+    the far-field width where the Fresnel number is below 1, the Fresnel zone above it, continuous at 1."""
+    import math
+
+    from evtk.optics import Bench, screen_response
+
+    b = Bench()
+    lam_u = b.wavelength_nm * 1e-3 * b.u_mm * 1e3
+    assert b.fresnel_number < 1 and b.diffraction_sigma_um == pytest.approx(0.376 * lam_u / b.feature_pitch_um)
+    near = Bench(u_mm=b.u_mm * b.fresnel_number / 20)  # Fresnel number 20
+    lam_u_near = near.wavelength_nm * 1e-3 * near.u_mm * 1e3
+    assert near.fresnel_number == pytest.approx(20) and near.diffraction_sigma_um == pytest.approx(
+        0.376 * math.sqrt(lam_u_near))
+    k, f = np.ones((3, 3)), (np.arange(256).reshape(16, 16) % 3 == 0).astype(int)
+    small = b.replace(u_mm=b.u_mm / 50, psf_sigma_um=20.0)
+    on = screen_response(k, f, small.replace(diffraction=True))
+    same = screen_response(k, f, small.replace(psf_sigma_um=math.hypot(20.0, small.diffraction_sigma_um)))
+    assert np.allclose(on, same) and not np.allclose(on, screen_response(k, f, small))
+    assert b.shadow_model_note() is not None and b.replace(diffraction=True).shadow_model_note() is None

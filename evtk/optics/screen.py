@@ -105,7 +105,7 @@ def response_region(bench: Bench, kernel_shape, features_shape):
     kappa = bench.kernel_step_cells
     # the footprint of a pixel spreads half a pixel and half a source element each way, plus blur
     spread = 0.5 * s1 + (0.5 * kappa if bench.source_extent == "area" else 0.0)
-    spread += 6.0 * bench.psf_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
+    spread += 6.0 * bench.shadow_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
 
     def span(origin, k, f, n):
         # pixel x sees cells (x - origin) * s1 + (j - (k-1)) * kappa + 1/2 +- spread, j in [0, k)
@@ -164,7 +164,7 @@ def screen_response(kernel, features, bench: Bench, region=None, *, leak=True):
     if ax1 <= ax0 or ay1 <= ay0 or not f.any():
         return out
     ox, oy = response_origin_px(bench, k.shape, f.shape)
-    psf_cells = bench.psf_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
+    psf_cells = bench.shadow_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
     wx = _axis_weights(np.arange(ax0, ax1), f.shape[1], k.shape[1], bench, ox, psf_cells)  # (kw, nx, fw)
     wy = _axis_weights(np.arange(ay0, ay1), f.shape[0], k.shape[0], bench, oy, psf_cells)  # (kh, ny, fh)
     patch = np.zeros((ay1 - ay0, ax1 - ax0))

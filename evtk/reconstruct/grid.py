@@ -148,7 +148,7 @@ def _footprint_matrix(bench, origin, p0, p1, n_cells, step):
     by :func:`to_response_grid`'s area overlap; valid for matched scaling.
     """
 
-    psf_cells = bench.psf_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
+    psf_cells = bench.shadow_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
     w = _axis_weights(np.arange(p0, p1), n_cells, 1, bench, origin, psf_cells)[0]  # (pixels, cells)
     t = _overlap_matrix(n_cells, origin + 0.5 - 0.5 * step - p0, step, p1 - p0)  # (cells, pixels)
     return t @ w
