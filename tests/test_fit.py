@@ -28,14 +28,16 @@ LIGHT = np.array([1.0, 3.0, 4.0, 6.0, 7.0, 9.0])
 def test_the_fit_recovers_the_pixel_model_that_made_the_statistics(truth):
     """Statistics from the model itself at known parameters: threshold within 3 %, the bright time constant within
     3 %, the dark one within 2 %, the counts within half a count."""
-    n, first, last, off = _predict(np.array(truth), LIGHT, 1000, 13340, 0, 1.0, 0.03)
-    fit = fit_pixel_model(LevelStatistics(LIGHT, n, first, last, 100, off), 1000, 13340, spread=0.03)
+    n, first, last, off, off_n = _predict(np.array(truth), LIGHT, 1000, 13340, 0, 1.0, 0.03)
+    fit = fit_pixel_model(LevelStatistics(LIGHT, n, first, last, 100, off, off_n * 0.8), 1000, 13340, spread=0.03)
     theta, blank, tau_min, tau_dark = truth
     assert fit.sensor.theta_on == pytest.approx(theta, rel=0.03)
     assert fit.sensor.tau_min_us == pytest.approx(tau_min, rel=0.03)
     assert fit.tau_dark_us == pytest.approx(tau_dark, rel=0.02)
     assert fit.blank == pytest.approx(blank, rel=0.15)
     assert fit.rms_counts < 0.5 and fit.rms_time_us < 1.0
+    # 20 % fewer OFF events in the decay than the model fires at theta_on: an OFF threshold 1.25x as high
+    assert fit.sensor.theta_off / fit.sensor.theta_on == pytest.approx(1.25, rel=0.02)
 
 
 def test_level_captures_light_the_interior_by_their_element_count():
@@ -66,6 +68,7 @@ def _signed_run(tmp_path, sensor, seed, name="r.aedat4"):
     {},  # the default camera, asynchronous
     {"tau_electrons": 200.0},  # slow in the dark: the model the fit starts from is off by 2x
     {"theta_on": 0.23, "theta_off": 0.23, "dark_current_e_per_s": 1e5},
+    {"theta_off": 0.26},  # OFF threshold 1.3x the ON one
     {"readout_period_us": 200.0},  # a DVXplorer-like frame readout
     {"readout_period_us": 200.0, "tau_min_us": 130.0},
 ])
@@ -77,6 +80,8 @@ def test_the_calibrated_route_is_within_15_percent_of_the_oracle(tmp_path, camer
         oracle = reconstruct(rec)
         calibrated = reconstruct_calibrated(rec, schedule_of_record(SimulationRecord.from_metadata(rec.metadata)))
     assert calibrated.summary["pixel_model"] is not None and calibrated.summary["level_captures"] == 6
+    m, true = calibrated.summary["pixel_model"], SensorModel(**camera)  # the ON/OFF ratio within 5 %
+    assert m["theta_off"] / m["theta_on"] == pytest.approx(true.theta_off / true.theta_on, rel=0.05)
     assert calibrated.summary["error"]["nrmse"] <= 1.15 * oracle.summary["error"]["nrmse"], (
         calibrated.summary["error"], oracle.summary["error"])
     coarse = camera.get("readout_period_us", 0) > 0

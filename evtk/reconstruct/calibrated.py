@@ -157,9 +157,9 @@ def fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us=0, cell_
         gain = neighbourhood_flat_gain(net_flat)
     is_level = sub.kernel_id == LEVEL_ID
     stats = level_statistics(counts, is_level, sub.level, inside, gain)
-    stats = dataclasses.replace(stats, off_mean_us=level_off_times(rec, np.asarray(t_off_us)[is_level],
-                                                                   sub.level[is_level], sched["settle_us"],
-                                                                   counts.region, inside, counts.stamp_period_us))
+    off_mean, off_counts = level_off_times(rec, np.asarray(t_off_us)[is_level], sub.level[is_level],
+                                           sched["settle_us"], counts.region, inside, counts.stamp_period_us)
+    stats = dataclasses.replace(stats, off_mean_us=off_mean, off_counts=off_counts)
     spread = float(np.clip(np.std(gain[inside]) if gain is not None else 0.05, 0.005, 0.3))
     # event times on a frame readout's grid are too coarse to time a pixel by: fit the counts and the decay
     fine = counts.stamp_period_us is None or counts.stamp_period_us <= MAX_TIMING_STAMP_US

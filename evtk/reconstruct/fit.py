@@ -59,6 +59,8 @@ class LevelStatistics:
     pixels: int
     #: mean time of the OFF events after the pattern goes (from its falling edge): the decay to the dark level
     off_mean_us: np.ndarray | None = None
+    #: mean number of those OFF events a pixel fires (the same log step down: the OFF threshold)
+    off_counts: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -113,7 +115,7 @@ class PixelFit:
                 or tau_dark < tau_min:
             raise EvtkError(f"a pixel model's values must be finite and positive, tau_dark_us >= tau_min_us: {d!r}")
         sensor = _model((theta, blank, tau_min, tau_dark), max(refractory, 1.0), 0.0).replace(
-            theta_mismatch=spread * theta)
+            theta_mismatch=spread * theta, theta_off=float(d.get("theta_off", theta)))
         stats = LevelStatistics(light, counts, first, last, int(d.get("pixels", 0)))
         rms_c, rms_t = d.get("rms_counts"), d.get("rms_time_us")
         return cls(sensor, blank, tau_dark, np.nan if rms_c is None else float(rms_c),
@@ -187,7 +189,8 @@ def level_statistics(counts, is_level, level, interior, gain=None) -> LevelStati
 
 
 def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_period_us=None):
-    """Mean time (µs after the falling edge) of the interior pixels' OFF events while each level step decays.
+    """Mean time (µs after the falling edge) of the interior pixels' OFF events while each level step decays, and
+    their mean number a pixel and step: ``(off_mean_us, off_counts)``.
 
     The decay runs at the dark level's time constant, which the level
     windows themselves (all bright) hardly show. Events stamped at the end of
@@ -198,7 +201,7 @@ def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_per
     lv = np.asarray(level)
     steps = np.unique(lv)
     shift = 0.5 * float(stamp_period_us) if stamp_period_us and stamp_period_us > 1 else 0.0
-    out = []
+    out, counts = [], []
     for m in steps:
         times = []
         for t in np.asarray(t_off_us)[lv == m].tolist():
@@ -209,7 +212,8 @@ def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_per
             times.append(ev.t[inside][use].astype(np.float64) - t - shift)
         allt = np.concatenate(times) if times else np.zeros(0)
         out.append(float(allt.mean()) if allt.size else np.nan)
-    return np.array(out)
+        counts.append(allt.size / max(1, len(times) * int(mask.sum())))
+    return np.array(out), np.array(counts)
 
 
 def refractory_bound(rec, t_on_us, t_off_us, region, interior, quantile=0.01):
@@ -274,6 +278,7 @@ def _predict(params, light, window_us, settle_us, skip_us, refractory_us, spread
         cnt = np.bincount(idx[decay], minlength=u.size)
         tm, cnt = tm.reshape(light.size, rel.size) @ weight, cnt.reshape(light.size, rel.size) @ weight
         off_mean = np.where(cnt > 0, tm / np.maximum(cnt, 1e-12), np.nan)
+    off_count = np.bincount(idx[decay], minlength=u.size).reshape(light.size, rel.size) @ weight
     keep = (t >= a) & (t < z + w) & (p == 1)
     first = np.full(u.size, np.nan)
     last = np.full(u.size, np.nan)
@@ -294,7 +299,7 @@ def _predict(params, light, window_us, settle_us, skip_us, refractory_us, spread
             np.full(light.size, np.nan)
         last_m = np.nanmedian(np.where(np.isfinite(la), la, np.nan), axis=1) if np.isfinite(la).any() else \
             np.full(light.size, np.nan)
-    return counts, first_m, last_m, off_mean
+    return counts, first_m, last_m, off_mean, off_count
 
 
 def _theta_for(counts, light, blank):
@@ -366,7 +371,7 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
         p[free] = np.exp(x)
         if p[3] <= p[2]:  # tau_dark below tau_min: outside the model, penalised smoothly
             p[3] = p[2] * 1.001
-        n, f, _, off = _predict(p, light, window_us, settle_us, skip_us, refractory_us, spread)
+        n, f, _, off, _ = _predict(p, light, window_us, settle_us, skip_us, refractory_us, spread)
         parts = [n - counts]
         if has_off.any():  # the decay after each step: the dark level's time constant
             parts.append(np.where(np.isfinite(off), off - stats.off_mean_us, 5 * off_scale)[has_off] / off_scale)
@@ -394,12 +399,16 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
     res.x = x_all
     res.x[~free] = x0[~free]
     theta, blank, tau_min, tau_dark = (float(v) for v in np.exp(res.x))
-    n, f, la, _ = _predict(np.exp(res.x), light, window_us, settle_us, skip_us, refractory_us, spread)
+    n, f, la, _, off_n = _predict(np.exp(res.x), light, window_us, settle_us, skip_us, refractory_us, spread)
     ok = has_t & np.isfinite(f)
     rms_t = float(np.sqrt(np.mean((f - stats.first_us)[ok] ** 2))) if ok.any() \
         else float("nan")
     sensor = _model((theta, blank, tau_min, tau_dark), refractory_us, 0.0).replace(
         theta_mismatch=float(spread) * theta, shot_noise=start.shot_noise)
+    if stats.off_counts is not None:  # OFF counts scale as 1 / theta_off: the model's at theta_on, over the data's
+        ok = np.isfinite(stats.off_counts) & (stats.off_counts > 0) & (off_n > 0)
+        if ok.any():
+            sensor = sensor.replace(theta_off=theta * float(np.sum(off_n[ok]) / np.sum(stats.off_counts[ok])))
     return PixelFit(sensor, blank, tau_dark, float(np.sqrt(np.mean((n - counts) ** 2))), rms_t, stats,
                     int(window_us), int(settle_us))
 
