@@ -33,8 +33,8 @@ from .io.reconstruction import save_reconstruction
 from .reconstruct import (
     WindowCounts,
     Windows,
-    _check_crop,
     accumulate,
+    check_crop,
     plan,
     reconstruct_counts,
     wants_times,
@@ -139,7 +139,7 @@ def reconstruct_split(path, parts, client=None, chunk_events=4_000_000, **option
     opts.pop("oracle", None)  # the split runs the pipeline on the record's model: the oracle, for simulated runs
     window = opts.pop("window", "schedule")
     skip_us, length_us = opts.get("skip_us", 0), opts.get("length_us")
-    _check_crop(opts.get("crop", "valid"))
+    check_crop(opts.get("crop", "valid"))
     with open_recording(path) as rec:
         sim, win, region = plan(rec, window, skip_us, length_us, opts.pop("region", None))
     order = np.argsort(win.t_start_us, kind="stable")

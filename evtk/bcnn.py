@@ -27,7 +27,7 @@ import numpy as np
 from .cluster import run_tasks
 from .errors import EvtkError
 from .optics import Bench
-from .reconstruct import _overlap_matrix
+from .reconstruct import overlap_matrix
 from .sweeps import simulated_reconstruction
 
 __all__ = ["binary_correlate", "BCNN", "DigitalBackend", "OpticalBackend", "resample_matrix", "bce_loss",
@@ -119,7 +119,7 @@ def resample_matrix(n_in, n_out):
     """Area-overlap resampling from ``n_in`` cells to ``n_out`` (rows sum to 1), as :func:`evtk.reconstruct.downsample`."""
 
     step = n_in / n_out
-    return _overlap_matrix(n_out, 0.0, step, n_in)
+    return overlap_matrix(n_out, 0.0, step, n_in)
 
 
 class DigitalBackend:

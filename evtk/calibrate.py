@@ -37,7 +37,7 @@ from .optics.camera import CellMap
 from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
 from .reconstruct.calibrated import fit_on_counts
-from .reconstruct.fit import _predict
+from .reconstruct.fit import predict_levels
 from .reconstruct.windows import Windows
 from .settings import read_table, toml_value
 from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, Schedule, dot_grid
@@ -316,7 +316,7 @@ def _plot_pixel_model(ax, fit):
     light = np.linspace(0.25, float(st.light.max()) * 1.05, 60)
     params = np.array([fit.sensor.theta_on, fit.blank, fit.sensor.tau_min_us, fit.tau_dark_us])
     spread = fit.sensor.theta_mismatch / fit.sensor.theta_on
-    n, _, _, _, _ = _predict(params, light, fit.window_us, fit.settle_us, 0, fit.sensor.refractory_us, spread)
+    n, _, _, _, _ = predict_levels(params, light, fit.window_us, fit.settle_us, 0, fit.sensor.refractory_us, spread)
     ax.plot(light, n, "-", color="C0", label="fitted pixel model")
     ax.plot(st.light, st.counts, "o", color="C1", label="level captures (mean)")
     ax.set_xlabel("light (kernel elements on flat features)")

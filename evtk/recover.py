@@ -33,7 +33,7 @@ import numpy as np
 from .cluster import run_tasks
 from .errors import EvtkError
 from .optics import Bench, ideal_response, response_origin_px, response_region
-from .reconstruct import _footprint_matrix
+from .reconstruct import footprint_matrix
 from .sweeps import simulated_reconstruction
 
 __all__ = [
@@ -181,8 +181,8 @@ def response_matrix(features, size, bench=None, blurred=False):
             raise EvtkError("the blurred model needs matched scaling (one pixel per cell)")
         region = response_region(bench, (s, s), f.shape)
         ox, oy = response_origin_px(bench, (s, s), f.shape)
-        my = _footprint_matrix(bench, oy, region[2], region[3], f.shape[0] + s - 1, 1.0)
-        mx = _footprint_matrix(bench, ox, region[0], region[1], f.shape[1] + s - 1, 1.0)
+        my = footprint_matrix(bench, oy, region[2], region[3], f.shape[0] + s - 1, 1.0)
+        mx = footprint_matrix(bench, ox, region[0], region[1], f.shape[1] + s - 1, 1.0)
     cols = []
     for j in range(s * s):
         e = np.zeros(s * s)

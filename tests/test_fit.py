@@ -17,7 +17,7 @@ import evtk
 from evtk import EvtkError
 from evtk.cli import main
 from evtk.reconstruct import fit_pixel_model, reconstruct, reconstruct_calibrated, schedule_of_record
-from evtk.reconstruct.fit import LevelStatistics, _predict, interior_pixels
+from evtk.reconstruct.fit import LevelStatistics, interior_pixels, predict_levels
 from evtk.sensor import SensorModel
 from evtk.simulate import LEVEL_ID, Simulation, SimulationRecord, level_kernel, level_steps
 
@@ -28,7 +28,7 @@ LIGHT = np.array([1.0, 3.0, 4.0, 6.0, 7.0, 9.0])
 def test_the_fit_recovers_the_pixel_model_that_made_the_statistics(truth):
     """Statistics from the model itself at known parameters: threshold within 3 %, the bright time constant within
     3 %, the dark one within 2 %, the counts within half a count."""
-    n, first, last, off, off_n = _predict(np.array(truth), LIGHT, 1000, 13340, 0, 1.0, 0.03)
+    n, first, last, off, off_n = predict_levels(np.array(truth), LIGHT, 1000, 13340, 0, 1.0, 0.03)
     fit = fit_pixel_model(LevelStatistics(LIGHT, n, first, last, 100, off, off_n * 0.8), 1000, 13340, spread=0.03)
     theta, blank, tau_min, tau_dark = truth
     assert fit.sensor.theta_on == pytest.approx(theta, rel=0.03)

@@ -419,7 +419,7 @@ def test_deblur_undoes_the_footprint_on_exact_light():
     from scipy import signal
 
     from evtk.optics import Bench, response_origin_px, response_region, screen_response
-    from evtk.reconstruct import _footprint_matrix, to_response_grid
+    from evtk.reconstruct import footprint_matrix, to_response_grid
 
     bench = Bench(source_extent="area", psf_sigma_um=60.0)
     rng = np.random.default_rng(8)
@@ -430,8 +430,8 @@ def test_deblur_undoes_the_footprint_on_exact_light():
     ox, oy = response_origin_px(bench, k.shape, f.shape)
     cells = to_response_grid(light, region, (ox, oy), 1.0, (18, 18))
     assert np.abs(cells - signal.correlate2d(f, k, "full")).max() > 0.1  # blurred
-    my = _footprint_matrix(bench, oy, region[2], region[3], 18, 1.0)
-    mx = _footprint_matrix(bench, ox, region[0], region[1], 18, 1.0)
+    my = footprint_matrix(bench, oy, region[2], region[3], 18, 1.0)
+    mx = footprint_matrix(bench, ox, region[0], region[1], 18, 1.0)
     restored = np.linalg.solve(my, np.linalg.solve(mx, cells.T).T)
     np.testing.assert_allclose(restored, signal.correlate2d(f, k, "full"), atol=1e-8)
 

@@ -46,7 +46,7 @@ from .geometry import (
     stride_mm,
 )
 from .screen import (
-    _axis_weights,  # noqa: F401  (the reconstruction's deblurring model)
+    axis_weights,  # noqa: F401  (the reconstruction's deblurring model)
     brightest_response,
     glow_response,
     ideal_response,

@@ -47,7 +47,7 @@ def _footprint_cdf(t, a, b, s):
                                       + _phi2((t - a - b) / s)), 0.0, 1.0)
 
 
-def _axis_weights(pixels, n_cells, k, bench: Bench, origin, psf_cells):
+def axis_weights(pixels, n_cells, k, bench: Bench, origin, psf_cells):
     """W[j, i, n]: share of pixel ``pixels[i]``'s view of kernel element ``j``'s shadow in cell ``n``."""
     pixels = np.asarray(pixels)
     if pixels.size and np.array_equal(pixels, np.arange(pixels[0], pixels[0] + pixels.size)):
@@ -165,8 +165,8 @@ def screen_response(kernel, features, bench: Bench, region=None, *, leak=True):
         return out
     ox, oy = response_origin_px(bench, k.shape, f.shape)
     psf_cells = bench.shadow_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
-    wx = _axis_weights(np.arange(ax0, ax1), f.shape[1], k.shape[1], bench, ox, psf_cells)  # (kw, nx, fw)
-    wy = _axis_weights(np.arange(ay0, ay1), f.shape[0], k.shape[0], bench, oy, psf_cells)  # (kh, ny, fh)
+    wx = axis_weights(np.arange(ax0, ax1), f.shape[1], k.shape[1], bench, ox, psf_cells)  # (kw, nx, fw)
+    wy = axis_weights(np.arange(ay0, ay1), f.shape[0], k.shape[0], bench, oy, psf_cells)  # (kh, ny, fh)
     patch = np.zeros((ay1 - ay0, ax1 - ax0))
     for r in range(k.shape[0]):
         a = wy[r] @ f  # (ny, fw)

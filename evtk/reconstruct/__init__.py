@@ -32,11 +32,19 @@ from .bench import load_schedule, match_windows, reconstruct_bench
 from .binarize import binarize, binarize_rule
 from .calibrated import nominal_placement, reconstruct_calibrated, schedule_of_record
 from .fit import PixelFit, fit_pixel_model, level_statistics
-from .grid import combine_passes, downsample, to_response_grid
+from .grid import (
+    combine_passes,
+    downsample,
+    footprint_matrix,
+    overlap_matrix,
+    sample_response_grid,
+    to_response_grid,
+)
 from .linearize import count_curve, flat_field_gain, linearize, linearize_by_model
 from .options import ReconstructOptions
 from .pipeline import (
     Reconstruction,
+    check_crop,
     plan,
     reconstruct,
     reconstruct_counts,
@@ -48,9 +56,7 @@ from .timing import linearize_by_timing, timing_thresholds
 from .windows import WindowCounts, Windows, windows_from_schedule, windows_from_triggers, windows_periodic
 
 # internals the tests and benchmarks check stage by stage
-from .grid import _footprint_matrix, _overlap_matrix  # noqa: F401, I001
-from .linearize import _count_curve, _expected_flat_counts, _flat_log_step  # noqa: F401
-from .pipeline import _check_crop  # noqa: F401
+from .linearize import _count_curve, _expected_flat_counts, _flat_log_step  # noqa: F401, I001
 from .timing import _timing_factor  # noqa: F401
 
 __all__ = [
@@ -60,6 +66,7 @@ __all__ = [
     "reconstruct_counts", "Reconstruction", "response_error",
     "count_curve", "linearize_by_model", "linearize_by_timing", "timing_thresholds", "wants_times",
     "window_bytes", "flat_field_gain", "reconstruct_calibrated", "schedule_of_record", "nominal_placement",
-    "fit_pixel_model", "level_statistics", "PixelFit",
+    "fit_pixel_model", "level_statistics", "PixelFit", "footprint_matrix", "overlap_matrix", "sample_response_grid",
+    "check_crop",
 ]
 

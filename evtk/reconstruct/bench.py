@@ -26,7 +26,7 @@ from .accumulate import accumulate
 from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid
 from .linearize import flat_field_gain, linearize
-from .pipeline import Reconstruction, _check_crop, response_error
+from .pipeline import Reconstruction, check_crop, response_error
 from .windows import Windows, _trim, windows_from_triggers
 
 __all__ = ["load_schedule", "match_windows", "reconstruct_bench"]
@@ -169,7 +169,7 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     units). Pairs with a pass that has no window are left out and listed.
     """
 
-    _check_crop(crop)
+    check_crop(crop)
     sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
     s, kernels, features, bench = sched["schedule"], sched["kernels"], sched["features"], sched["bench"]
     win, report = match_windows(rec.triggers(), s, tolerance_us)

@@ -31,7 +31,7 @@ from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .bench import _all_pairs, _complete_mask, load_schedule, match_windows, neighbourhood_flat_gain, reconstruct_bench
 from .fit import PixelFit, fit_pixel_model, fitted_record, interior_pixels, level_off_times, level_statistics, refractory_bound
-from .pipeline import MAX_TIMING_STAMP_US, _check_crop, reconstruct_counts
+from .pipeline import MAX_TIMING_STAMP_US, check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
 
 __all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement", "fit_on_counts"]
@@ -88,7 +88,7 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     the trigger match (``match``), the fitted model (``pixel_model``) and
     the error against the ideal correlation of the schedule's patterns.
     """
-    _check_crop(crop)
+    check_crop(crop)
     sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
     s = sched["schedule"]
     if region is None or origin_px is None:

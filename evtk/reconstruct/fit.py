@@ -37,7 +37,7 @@ from ..simulate import Schedule
 from ..simulate.record import SimulationRecord
 
 __all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "level_off_times", "refractory_bound",
-            "fit_pixel_model", "fitted_record"]
+           "predict_levels", "fit_pixel_model", "fitted_record"]
 
 #: Thresholds sampled across the mismatch when predicting a step's mean count (smooths the counts' steps).
 SPREAD_POINTS = 25
@@ -251,8 +251,11 @@ def _model(params, refractory_us, mismatch):
                        shot_noise=False, background_rate_hz=0.0)
 
 
-def _predict(params, light, window_us, settle_us, skip_us, refractory_us, spread):
-    """Noise-free mean count and median first/last ON times of pixels whose thresholds spread by ``spread``."""
+def predict_levels(params, light, window_us, settle_us, skip_us, refractory_us, spread):
+    """What the noise-free pixel model ``params`` (theta, blank, tau_min_us, tau_dark_us) gives on the level
+    steps ``light``, over thresholds spread by ``spread``: mean net count, median first and last ON times, mean
+    time and number of the OFF events of the decay (what :func:`level_statistics` and :func:`level_off_times`
+    measure)."""
     theta, blank = params[0], params[1]
     sm = _model(params, refractory_us, 0.0)
     rel = np.linspace(-2.0, 2.0, SPREAD_POINTS) * spread
@@ -371,7 +374,7 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
         p[free] = np.exp(x)
         if p[3] <= p[2]:  # tau_dark below tau_min: outside the model, penalised smoothly
             p[3] = p[2] * 1.001
-        n, f, _, off, _ = _predict(p, light, window_us, settle_us, skip_us, refractory_us, spread)
+        n, f, _, off, _ = predict_levels(p, light, window_us, settle_us, skip_us, refractory_us, spread)
         parts = [n - counts]
         if has_off.any():  # the decay after each step: the dark level's time constant
             parts.append(np.where(np.isfinite(off), off - stats.off_mean_us, 5 * off_scale)[has_off] / off_scale)
@@ -399,7 +402,7 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
     res.x = x_all
     res.x[~free] = x0[~free]
     theta, blank, tau_min, tau_dark = (float(v) for v in np.exp(res.x))
-    n, f, la, _, off_n = _predict(np.exp(res.x), light, window_us, settle_us, skip_us, refractory_us, spread)
+    n, f, la, _, off_n = predict_levels(np.exp(res.x), light, window_us, settle_us, skip_us, refractory_us, spread)
     ok = has_t & np.isfinite(f)
     rms_t = float(np.sqrt(np.mean((f - stats.first_us)[ok] ** 2))) if ok.any() \
         else float("nan")

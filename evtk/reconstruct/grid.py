@@ -6,10 +6,11 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from ..errors import EvtkError
-from ..optics import _axis_weights, shadow_magnification
+from ..optics import axis_weights, shadow_magnification
 from ..simulate import Schedule
 
-__all__ = ["combine_passes", "to_response_grid", "sample_response_grid", "downsample"]
+__all__ = ["combine_passes", "to_response_grid", "sample_response_grid", "downsample", "footprint_matrix",
+           "overlap_matrix"]
 
 
 def combine_passes(values, schedule):
@@ -47,7 +48,7 @@ def combine_passes(values, schedule):
     return out, pairs
 
 
-def _overlap_matrix(n_cells, first_edge, step, n_pixels):
+def overlap_matrix(n_cells, first_edge, step, n_pixels):
     """W[c, x]: share of cell c (an interval of ``step`` pixels from ``first_edge + c*step``) covered by pixel x."""
     lo = first_edge + step * np.arange(n_cells)[:, None]
     hi = lo + step
@@ -111,8 +112,8 @@ def to_response_grid(values, region, origin_px, step_px, shape):
     rows, cols = (int(v) for v in shape)
     ox, oy = (float(v) for v in origin_px)
     # in edge units (pixel x spans [x, x + 1)) cell c starts at origin + 1/2 - step/2 + c * step
-    wy = _overlap_matrix(rows, oy + 0.5 - 0.5 * step_px - y0, step_px, y1 - y0)
-    wx = _overlap_matrix(cols, ox + 0.5 - 0.5 * step_px - x0, step_px, x1 - x0)
+    wy = overlap_matrix(rows, oy + 0.5 - 0.5 * step_px - y0, step_px, y1 - y0)
+    wx = overlap_matrix(cols, ox + 0.5 - 0.5 * step_px - x0, step_px, x1 - x0)
     return wy @ values @ wx.T
 
 
@@ -136,12 +137,12 @@ def downsample(values, size=(16, 16)):
     if h % oh == 0 and w % ow == 0:
         fy, fx = h // oh, w // ow
         return values.reshape(values.shape[:-2] + (oh, fy, ow, fx)).mean(axis=(-3, -1))
-    wy = _overlap_matrix(oh, 0.0, h / oh, h)
-    wx = _overlap_matrix(ow, 0.0, w / ow, w)
+    wy = overlap_matrix(oh, 0.0, h / oh, h)
+    wx = overlap_matrix(ow, 0.0, w / ow, w)
     return wy @ values @ wx.T
 
 
-def _footprint_matrix(bench, origin, p0, p1, n_cells, step):
+def footprint_matrix(bench, origin, p0, p1, n_cells, step):
     """M[c, i]: what a unit response at full-response cell i puts into cell c after sampling (one axis).
 
     The optics' footprint (pixel width, source extent, diffuser blur) followed
@@ -149,6 +150,6 @@ def _footprint_matrix(bench, origin, p0, p1, n_cells, step):
     """
 
     psf_cells = bench.shadow_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
-    w = _axis_weights(np.arange(p0, p1), n_cells, 1, bench, origin, psf_cells)[0]  # (pixels, cells)
-    t = _overlap_matrix(n_cells, origin + 0.5 - 0.5 * step - p0, step, p1 - p0)  # (cells, pixels)
+    w = axis_weights(np.arange(p0, p1), n_cells, 1, bench, origin, psf_cells)[0]  # (pixels, cells)
+    t = overlap_matrix(n_cells, origin + 0.5 - 0.5 * step - p0, step, p1 - p0)  # (cells, pixels)
     return t @ w

@@ -13,7 +13,7 @@ from ..simulate import FLAT_ID
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
-from .grid import _footprint_matrix, combine_passes, downsample, sample_response_grid, to_response_grid
+from .grid import combine_passes, downsample, footprint_matrix, sample_response_grid, to_response_grid
 from .linearize import (
     _expected_flat_counts,
     _flat_log_step,
@@ -192,7 +192,7 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
     model (:func:`count_curve`, refined by event times); otherwise (or with
     ``theta`` given) it uses ``exp(n * theta) - 1``.
     """
-    _check_crop(crop)
+    check_crop(crop)
     sim, win, region = plan(rec, window, skip_us, length_us, region)
     counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress,
                         times=wants_times(sim, linear, theta, timing))
@@ -206,7 +206,7 @@ def wants_times(sim, linear=True, theta=None, timing=None):
     return timing is not False and sim is not None and bool(linear) and theta is None
 
 
-def _check_crop(crop):
+def check_crop(crop):
     if crop not in ("valid", "full"):
         raise EvtkError(f"crop must be 'valid' or 'full', not {crop!r}")
 
@@ -222,7 +222,7 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
     are :func:`reconstruct`'s; ``skip_us``/``length_us`` must be the ones
     the counts were taken with.
     """
-    _check_crop(crop)
+    check_crop(crop)
     sim = None if sim is None else SimulationRecord.from_dict(sim)
     win = counts.windows
     region = counts.region
@@ -281,8 +281,8 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
         deblurred = bool(deblur) and abs(bench.kernel_step_cells - 1.0) < 1e-9 and (
             placement is None)
         if deblurred:  # undo the footprint blur of sources, pixels and diffuser
-            my = _footprint_matrix(bench, origin[1], region[2], region[3], fh + kh - 1, step)
-            mx = _footprint_matrix(bench, origin[0], region[0], region[1], fw + kw - 1, step)
+            my = footprint_matrix(bench, origin[1], region[2], region[3], fh + kh - 1, step)
+            mx = footprint_matrix(bench, origin[0], region[0], region[1], fw + kw - 1, step)
             combined = np.linalg.solve(my, np.linalg.solve(mx, combined.transpose(0, 2, 1)).transpose(0, 2, 1))
         per_pair = {}  # repeats of a pair share its ideal
         for k, f, _ in pairs.tolist():
