@@ -13,7 +13,7 @@ from scipy.ndimage import map_coordinates
 from ..errors import EvtkError
 from ..io._compression import workers
 from ..optics import Bench, brightest_response, screen_response
-from ..optics.camera import Camera
+from ..optics.camera import Camera, render_nominal
 from ..sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
 from ..simulate.record import SimulationRecord
 
@@ -210,21 +210,30 @@ def _flat_log_step(sim, bench, region):
     return np.log(np.maximum(rate, 1e-300) / sim.blank_rate_e_per_s)
 
 
-def _flat_through_map(kernel, features, bench, cell_map, region):
-    """The flat response each pixel of ``region`` sees when cells land where ``cell_map`` puts them: rendered on
-    a nominal grid (origin 8 px in, the bench's step), sampled (bilinear) where each pixel's cell lies."""
+def _flat_through_map(kernel, features, bench, cell_map, region, supersample=4):
+    """The light each pixel of ``region`` sees of one pass when cells land where ``cell_map`` puts them.
+
+    Each pixel's footprint is sampled at ``supersample`` squared points; each
+    point's cell (through the map's inverse) is looked up, bilinearly, in the
+    pass rendered on a nominal grid ``supersample`` times finer
+    (:func:`evtk.optics.camera.render_nominal`); the pixel's light is their mean.
+    """
     x0, x1, y0, y1 = region
+    s = int(supersample)
     yy, xx = np.mgrid[y0:y1, x0:x1]
-    cells = cell_map.to_cells(np.stack([xx.ravel(), yy.ravel()], 1).astype(np.float64))
+    sub = (np.arange(s) + 0.5) / s - 0.5
+    sy, sx = np.meshgrid(sub, sub, indexing="ij")
+    pts = np.stack([(xx[..., None, None] + sx).ravel(), (yy[..., None, None] + sy).ravel()], 1).astype(np.float64)
+    cells = cell_map.to_cells(pts)
     step = bench.kernel_step_cells / bench.pixel_cells
     pad = 8.0
-    nominal = pad + step * cells
     rows, cols = (features.shape[0] + kernel.shape[0] - 1), (features.shape[1] + kernel.shape[1] - 1)
     nw, nh = int(np.ceil(2 * pad + step * cols)), int(np.ceil(2 * pad + step * rows))
-    img = screen_response(kernel, features, bench.replace(origin_px=(pad, pad), sensor_width=max(nw, 1),
-                                                          sensor_height=max(nh, 1)), (0, nw, 0, nh))
-    light = map_coordinates(img, [nominal[:, 1], nominal[:, 0]], order=1, mode="nearest")
-    return light.reshape(xx.shape)
+    nominal = bench.replace(origin_px=(pad, pad), sensor_width=max(nw, 1), sensor_height=max(nh, 1))
+    fine = (pad + step * cells + 0.5) * s - 0.5
+    img = render_nominal(kernel, features, nominal, (0, nw * s, 0, nh * s), s)
+    light = map_coordinates(img, [fine[:, 1], fine[:, 0]], order=1, mode="nearest")
+    return light.reshape(xx.shape + (s * s,)).mean(axis=-1)
 
 
 def _expected_flat_counts(sim, bench, region, curve, theta_on):
