@@ -61,6 +61,10 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         result.summary["route"] = "oracle: the simulation record's own pixel model and placement"
         result.summary["oracle"] = True
         return result
+    if schedule is None and record is None and not fixed:
+        raise EvtkError("the recording carries no simulation record and no schedule was given: give the bench run's "
+                        "schedule.json (evtk reconstruct --schedule S), or reconstruct fixed windows (--window "
+                        "triggers, --window period:US)")
     if schedule is None and (record is None or fixed):
         if calibration is not None or origin_px is not None:
             raise EvtkError("a calibration or response origin goes with a schedule (a bench run) or a simulated run")

@@ -397,7 +397,7 @@ def test_cli_reconstruct_outputs(tmp_path):
     bench = tmp_path / "bench.h5"
     evtk.write_events(bench, random_events(5000, seed=1, span_us=20_000), evtk.Triggers([100, 900], [R, F]))
     res = CliRunner().invoke(main, ["reconstruct", str(bench), "-o", str(tmp_path / "b.npz")])
-    assert res.exit_code == 1 and "no capture schedule" in res.output
+    assert res.exit_code == 1 and "no schedule was given" in res.output and "--schedule S" in res.output
     res = CliRunner().invoke(main, ["reconstruct", str(bench), "-o", str(tmp_path / "b.npz"), "--window", "triggers",
                                     "--size", "4x4", "--json"])
     assert res.exit_code == 0, res.output
