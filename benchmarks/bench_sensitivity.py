@@ -123,7 +123,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--draws", type=int, default=4)
     ap.add_argument("--json", dest="json_out")
-    ap.add_argument("--levels", type=int, default=6, help="level captures in each run (the transfer curve's steps)")
+    ap.add_argument("--levels", type=int, default=6, help="level captures in each run (the pixel model's fit)")
     args = ap.parse_args()
     print("| true camera differs in | oracle: correlation / NRMSE | assumed default model | bench, exp(n theta) | "
           "calibrated (fitted pixel model) |")

@@ -20,7 +20,7 @@ Job keys (all optional but ``kernels``)::
     flat_field = 2                   # captures with every mirror on, first (per-pixel calibration)
     calibration = 2                  # dot-grid captures next (where the response lies: evtk calibrate)
     dot_spacing = 4                  # features elements between calibration dots
-    levels = 6                       # level captures next: a staircase of light (the pixels' transfer curve)
+    levels = 6                       # level captures next: a staircase of light (the pixel model is fitted to it)
     window_us = 1000                 # how long each pattern is shown
     settle_us = 13340                # dark time after each pattern (default: the simulator's recommendation)
     [bench]                          # evtk.optics.Bench fields: DMD size and pitch, distances, rates, ...

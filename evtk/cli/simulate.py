@@ -22,8 +22,8 @@ from ._base import _MAX_INT, _dumps, _fmt, _progress, main
 @click.option("--flat-field", type=click.IntRange(min=0, max=_MAX_INT), default=2, show_default=True,
               help="Flat-field captures (all mirrors on) shown first, for per-pixel threshold calibration.")
 @click.option("--levels", type=click.IntRange(min=0, max=_MAX_INT), default=6, show_default=True,
-              help="Level captures (a staircase of light) after the flat fields: the pixels' transfer curve, which "
-                   "reconstruction measures instead of assuming a pixel model. 0: none.")
+              help="Level captures (a staircase of light) after the flat fields: reconstruction fits the pixel model "
+                   "to them instead of assuming one. 0: none.")
 @click.option("--calibration", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True,
               help="Dot-grid captures, for evtk calibrate (where the response lies on the sensor).")
 @click.option("--power-mw", type=float, help="Laser power (default: the bench's).")

@@ -92,9 +92,9 @@ class Simulation:
         Level captures shown after the dots, a staircase of light: features
         all on and ``level`` kernel elements on (:func:`level_kernel`), for
         ``levels`` element counts from 1 to all (:func:`level_steps`). The
-        response's interior then sees 1, ..., K units of light, which
-        measures the pixels' transfer from light to counts without a pixel
-        model (:func:`evtk.reconstruct.transfer_curve`); ids -3
+        response's interior then sees 1, ..., K units of light, to which the
+        reconstruction fits the pixel model instead of assuming one
+        (:func:`evtk.reconstruct.fit_pixel_model`); ids -3
         (:data:`LEVEL_ID`), the element count in the schedule's ``level``.
 
     Examples

@@ -160,7 +160,7 @@ def level_kernel(shape, on):
     Under features that are all on, every cell of the response's interior
     sees exactly ``on`` units of light, whichever elements are on: a
     staircase of these captures measures the pixels' transfer from light to
-    counts (:func:`evtk.reconstruct.transfer_curve`).
+    counts, to which :func:`evtk.reconstruct.fit_pixel_model` fits the pixel model.
 
     Examples
     --------
