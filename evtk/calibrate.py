@@ -40,7 +40,7 @@ from .reconstruct.calibrated import fit_on_counts
 from .reconstruct.fit import predict_levels
 from .reconstruct.windows import Windows
 from .settings import read_table, toml_value
-from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, Schedule, dot_grid
+from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, dot_grid
 
 __all__ = ["Calibration", "calibrate", "background_rate_hz", "load_calibration", "save_calibration", "plot_calibration",
            "MIN_DOTS"]
@@ -151,7 +151,7 @@ def _blobs(image, spacing_px=None, radius=2):
     return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
 
-def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
+def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration:
     """Fit the map from response cells to sensor pixels from a recording's calibration captures.
 
     ``schedule`` is a ``schedule.json`` path or :func:`evtk.reconstruct.load_schedule`'s
@@ -164,7 +164,9 @@ def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
     towards the pixel boundaries; linearising first amplified the noise
     more than it removed). The map is projective; when an affine map fits
     the inliers as well (RMS within 10 %), the affine one is kept, as its
-    fewer parameters extrapolate better to the response's corners.
+    fewer parameters extrapolate better to the response's corners. With
+    ``pixel_model`` and level captures in the run, the pixel model is fitted
+    too (:attr:`Calibration.pixel_model`).
     """
     sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
     s, kernels, features = sched["schedule"], sched["kernels"], sched["features"]
@@ -207,7 +209,9 @@ def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
         res_a = np.linalg.norm(affine(src[inliers]) - dst[inliers], axis=1)
         if np.sqrt(np.mean(res_a ** 2)) <= 1.1 * np.sqrt(np.mean(res ** 2)):
             model, res = ProjectiveTransform(affine.params), res_a
-    model, k1, res = _with_distortion(model, src[inliers], dst[inliers], res, (w, h))
+    cmap, res = _with_distortion(CellMap(np.asarray(model.params, np.float64), 0.0, (w, h)), src[inliers],
+                                 dst[inliers], res)
+    model = cmap.to_pixels
     rows, cols = fh + kh - 1, fw + kw - 1
     origin = model(np.array([[0.0, 0.0]]))[0]
     centre = np.array([[(cols - 1) / 2, (rows - 1) / 2]])
@@ -218,17 +222,17 @@ def calibrate(rec, schedule, tolerance_us=None) -> Calibration:
     x1 = int(min(w, np.ceil(corners[:, 0].max()) + 2))
     y0 = int(max(0, np.floor(corners[:, 1].min()) - 1))
     y1 = int(min(h, np.ceil(corners[:, 1].max()) + 2))
-    cal = Calibration(model.params.tolist(), [float(origin[0]), float(origin[1])], float((dx + dy) / 2),
+    cal = Calibration(np.asarray(cmap.matrix).tolist(), [float(origin[0]), float(origin[1])], float((dx + dy) / 2),
                       [x0, x1, y0, y1], float(np.sqrt(np.mean(res ** 2))), float(res.max()), len(expected),
-                      len(found), int(inliers.sum()), [int(w), int(h)], [int(rows), int(cols)], None, k1)
+                      len(found), int(inliers.sum()), [int(w), int(h)], [int(rows), int(cols)], None, cmap.k1)
     cal._evidence = (image, found, expected)  # for plot_calibration; not saved
     levels = s.kernel_id[win.capture] == LEVEL_ID
-    if levels.any():  # and the pixels' model, from the level captures (with the flat fields' spread)
+    if pixel_model and levels.any():  # and the pixels' model, from the level captures (with the flat fields' spread)
         use = levels | (s.kernel_id[win.capture] == FLAT_ID)
         caps = win.capture[use]
         counts = accumulate(rec, Windows(win.t_start_us[use], win.t_end_us[use], caps, win.source), cal.region,
                             times=True)
-        sub = Schedule(**{c: getattr(s, c)[caps] for c in Schedule._COLUMNS})
+        sub = s.take(caps)
         cal.pixel_model = fit_on_counts(rec, counts, sub, win.t_end_us[use], sched, cal.origin_px,
                                         cell_map=cal.cell_map()).to_dict()
     cal.background_rate_hz = background_rate_hz(rec, win.t_end_us, sched["settle_us"], cal.region)
@@ -255,29 +259,22 @@ def background_rate_hz(rec, t_off_us, settle_us, region, margin_px=3, max_window
     return float(n / (pixels * len(ends) * (int(settle_us) - half) * 1e-6))
 
 
-def _with_distortion(model, src, dst, res, sensor_size):
-    """The map refined with radial distortion about the sensor centre, when that fits the dots better (RMS down
-    by more than 10 %): ``(map, k1, residuals)``; the projective part of a distorted map is returned as the
-    callable of the whole map (cells -> pixels)."""
+def _with_distortion(cmap, src, dst, res):
+    """``cmap`` (a :class:`CellMap` without distortion) refined with radial distortion about the sensor centre,
+    when that fits the dots better (RMS down by more than 10 %): ``(map, residuals)``."""
     if len(src) < 10:
-        return model, 0.0, res
-    h0 = np.asarray(model.params, np.float64) / model.params[2, 2]
+        return cmap, res
+    h0 = np.asarray(cmap.matrix, np.float64) / cmap.matrix[2, 2]
 
     def residuals(p):
         m = np.append(p[:8], 1.0).reshape(3, 3)
-        return (CellMap(m, p[8], sensor_size).to_pixels(src) - dst).ravel()
+        return (CellMap(m, p[8], cmap.sensor_size).to_pixels(src) - dst).ravel()
 
     fit = least_squares(residuals, np.append(h0.ravel()[:8], 0.0), x_scale="jac")
     res_d = np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)
     if not (fit.success and abs(fit.x[8]) < 0.3) or np.sqrt(np.mean(res_d ** 2)) > 0.9 * np.sqrt(np.mean(res ** 2)):
-        return model, 0.0, res
-    cmap = CellMap(np.append(fit.x[:8], 1.0).reshape(3, 3), float(fit.x[8]), sensor_size)
-
-    class _Distorted(ProjectiveTransform):  # the projective part as params, the whole map when called
-        def __call__(self, coords):
-            return cmap.to_pixels(coords)
-
-    return _Distorted(cmap.matrix), float(fit.x[8]), res_d
+        return cmap, res
+    return CellMap(np.append(fit.x[:8], 1.0).reshape(3, 3), float(fit.x[8]), cmap.sensor_size), res_d
 
 
 def _affine(src, dst):

@@ -84,7 +84,7 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         cell_map = calibration.cell_map()
     elif region is None and origin_px is None:
         if (sched["schedule"].kernel_id == DOTS_ID).any():
-            cal = calibrate(rec, sched)
+            cal = calibrate(rec, sched, pixel_model=False)  # the reconstruction fits the model itself
             region, origin_px, placed = tuple(cal.region), tuple(cal.origin_px), "the run's own dot captures"
             cell_map = cal.cell_map()
         else:
@@ -95,9 +95,10 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
                                     deblur=opts.deblur, timing=opts.timing, linear=opts.linear, progress=progress,
                                     pixel_model=None if calibration is None else calibration.pixel_model,
                                     cell_map=cell_map)
-    result.summary["route"] = "calibrated: " + ("a pixel model fitted to the run's level captures"
-                                                if result.summary.get("pixel_model") else "exp(n theta), no level "
-                                                "captures to fit a pixel model to")
+    fitted_to = {"the run's own level captures": "the run's level captures",
+                 "the calibration": "the calibration run's level captures"}.get(result.summary.get("pixel_model_from"))
+    result.summary["route"] = "calibrated: " + (f"a pixel model fitted to {fitted_to}" if fitted_to else
+                                                "exp(n theta), no level captures to fit a pixel model to")
     result.summary["placement"] = placed
     result.summary["oracle"] = False
     return result

@@ -30,7 +30,7 @@ from .screen import response_origin_px, screen_response
 #: Largest deviation (pixels) over the response at which a map is still taken as a scale and shift.
 AXIS_TOLERANCE_PX = 0.05
 
-__all__ = ["Camera", "CellMap", "radial_distort", "radial_undistort", "render_nominal"]
+__all__ = ["Camera", "CellMap", "radial_distort", "radial_undistort", "render_nominal", "footprint_light"]
 
 
 def radial_distort(xy, centre, norm, k1):
@@ -175,29 +175,42 @@ class Camera:
         """
         size = (bench.sensor_width, bench.sensor_height)
         x0, x1, y0, y1 = region
-        s = int(supersample)
         pad = int(math.ceil(3.0 * self.defocus_px)) if self.defocus_px > 0 else 0
-        px0, px1, py0, py1 = x0 - pad, x1 + pad, y0 - pad, y1 + pad
-        yy, xx = np.mgrid[py0:py1, px0:px1]
-        sub = (np.arange(s) + 0.5) / s - 0.5
-        sy, sx = np.meshgrid(sub, sub, indexing="ij")
-        pts = np.stack([(xx[..., None, None] + sx).ravel(), (yy[..., None, None] + sy).ravel()], 1)
-        fine = (self.to_nominal(pts, size) + 0.5) * s - 0.5  # nominal pixels on the fine grid
-        fw, fh = size[0] * s, size[1] * s
-        fx0, fx1 = int(max(0, math.floor(fine[:, 0].min()) - 1)), int(min(fw, math.ceil(fine[:, 0].max()) + 2))
-        fy0, fy1 = int(max(0, math.floor(fine[:, 1].min()) - 1)), int(min(fh, math.ceil(fine[:, 1].max()) + 2))
-        if fx1 <= fx0 or fy1 <= fy0:  # the view misses the nominal sensor: only the glow
-            light = np.full(pts.shape[0], float(render_nominal(kernel, features, bench, (0, 1, 0, 1), s).mean()))
-        else:
-            img = render_nominal(kernel, features, bench, (fx0, fx1, fy0, fy1), s)
-            light = map_coordinates(img, [fine[:, 1] - fy0, fine[:, 0] - fx0], order=1, mode="nearest")
-        out = light.reshape(yy.shape + (s * s,)).mean(axis=-1)
+        out = footprint_light(kernel, features, bench, (x0 - pad, x1 + pad, y0 - pad, y1 + pad),
+                              lambda pts: self.to_nominal(pts, size), supersample)
+        yy, xx = np.mgrid[y0 - pad:y1 + pad, x0 - pad:x1 + pad]
         if self.vignetting:
             c, norm = self._frame(size)
             out = out * (1.0 - self.vignetting * ((xx - c[0]) ** 2 + (yy - c[1]) ** 2) / (norm * norm))
         if self.defocus_px > 0:
             out = gaussian_filter(out, self.defocus_px, mode="nearest")
         return out[pad:pad + (y1 - y0), pad:pad + (x1 - x0)]
+
+
+def footprint_light(kernel, features, bench, region, to_nominal, supersample=4):
+    """The light each sensor pixel of ``region`` collects of one pass, seen through any map.
+
+    Each pixel's footprint is sampled at ``supersample`` squared points,
+    ``to_nominal`` takes them (x, y) to the nominal grid of ``bench``, where
+    the pass is rendered ``supersample`` times finer (:func:`render_nominal`)
+    and looked up bilinearly; the pixel's light is the mean.
+    """
+    x0, x1, y0, y1 = region
+    s = int(supersample)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    sub = (np.arange(s) + 0.5) / s - 0.5
+    sy, sx = np.meshgrid(sub, sub, indexing="ij")
+    pts = np.stack([(xx[..., None, None] + sx).ravel(), (yy[..., None, None] + sy).ravel()], 1).astype(np.float64)
+    fine = (to_nominal(pts) + 0.5) * s - 0.5  # nominal pixels on the fine grid
+    fw, fh = bench.sensor_width * s, bench.sensor_height * s
+    fx0, fx1 = int(max(0, math.floor(fine[:, 0].min()) - 1)), int(min(fw, math.ceil(fine[:, 0].max()) + 2))
+    fy0, fy1 = int(max(0, math.floor(fine[:, 1].min()) - 1)), int(min(fh, math.ceil(fine[:, 1].max()) + 2))
+    if fx1 <= fx0 or fy1 <= fy0:  # the view misses the nominal grid: only the glow
+        light = np.full(pts.shape[0], float(render_nominal(kernel, features, bench, (0, 1, 0, 1), s).mean()))
+    else:
+        img = render_nominal(kernel, features, bench, (fx0, fx1, fy0, fy1), s)
+        light = map_coordinates(img, [fine[:, 1] - fy0, fine[:, 0] - fx0], order=1, mode="nearest")
+    return light.reshape(yy.shape + (s * s,)).mean(axis=-1)
 
 
 def render_nominal(kernel, features, bench, fine_region, supersample):

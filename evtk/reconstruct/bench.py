@@ -20,13 +20,13 @@ import numpy as np
 from scipy.ndimage import median_filter
 
 from ..errors import EvtkError
-from ..optics import Bench, ideal_response, response_origin_px
+from ..optics import Bench, response_origin_px
 from ..simulate import FLAT_ID, Schedule
 from .accumulate import accumulate
 from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid
 from .linearize import flat_field_gain, linearize
-from .pipeline import Reconstruction, check_crop, response_error
+from .pipeline import Reconstruction, check_crop, pair_ideals, response_error
 from .windows import Windows, _trim, windows_from_triggers
 
 __all__ = ["load_schedule", "match_windows", "reconstruct_bench"]
@@ -189,16 +189,10 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     step = bench.kernel_step_cells / bench.pixel_cells
     cells = to_response_grid(values, counts.region, origin, step, (fh + kh - 1, fw + kw - 1))
     # the passes of each (kernel, features, repeat) pair: only pairs whose every pass has a window
-    sub = {c: getattr(s, c)[win.capture] for c in s._COLUMNS}
     keep, complete = _complete_mask(s, win.capture)
-
-    kept = Schedule(**{c: v[keep] for c, v in sub.items()})
+    kept = s.take(win.capture[keep])
     combined, pairs = combine_passes(cells[keep], kept)
-    per_pair = {}
-    for k, f, _ in pairs.tolist():  # repeats of a pair share its ideal
-        if (k, f) not in per_pair:
-            per_pair[(k, f)] = ideal_response(kernels[k], features[f], bench)
-    ideal = np.stack([per_pair[(k, f)] for k, f, _ in pairs.tolist()])
+    ideal = pair_ideals(pairs, kernels, features, bench)
     if crop == "valid":
         sl = (slice(None), slice(kh - 1, fh), slice(kw - 1, fw))
         combined, ideal = combined[sl], ideal[sl]

@@ -26,7 +26,7 @@ import dataclasses
 import numpy as np
 
 from ..optics import response_origin_px, response_region
-from ..simulate import FLAT_ID, LEVEL_ID, Schedule
+from ..simulate import FLAT_ID, LEVEL_ID
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .bench import _all_pairs, _complete_mask, load_schedule, match_windows, neighbourhood_flat_gain, reconstruct_bench
@@ -80,9 +80,10 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         (same bench, light and camera settings assumed).
     cell_map : CellMap, optional
         The calibration's whole map from cells to pixels
-        (:meth:`evtk.calibrate.Calibration.cell_map`); when the camera is
-        rotated, tilted or distorted the responses are sampled through it
-        (:func:`~evtk.reconstruct.grid.sample_response_grid`, not deblurred).
+        (:meth:`evtk.calibrate.Calibration.cell_map`). The pipeline resamples
+        along the sensor's axes (and deblurs) when it is a scale and shift,
+        else samples through it (:func:`~evtk.reconstruct.grid.sample_response_grid`,
+        not deblurred).
 
     Returns a :class:`~evtk.reconstruct.Reconstruction`; its summary holds
     the trigger match (``match``), the fitted model (``pixel_model``) and
@@ -95,12 +96,6 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         nominal = nominal_placement(sched)
         region = nominal[0] if region is None else region
         origin_px = nominal[1] if origin_px is None else origin_px
-    kh, kw = sched["kernels"].shape[1:]
-    fh, fw = sched["features"].shape[1:]
-    if cell_map is not None:  # a map that is a scale and shift is the origin and step: deblurring stays possible
-        aligned = cell_map.axis_aligned((fh + kh - 1, fw + kw - 1))
-        if aligned is not None:
-            origin_px, cell_map = aligned[0], None
     levels_here = bool(np.any(s.kernel_id == LEVEL_ID))
     if not levels_here and pixel_model is None:
         result = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
@@ -118,7 +113,7 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     start, end = _trim(t_on, t_off, skip_us, length_us, "matched")
     counts = accumulate(rec, Windows(start, end, np.arange(caps.size), "triggers matched to the schedule",
                                      win.dropped), region, progress=progress, times=True)
-    sub = Schedule(**{c: getattr(s, c)[caps] for c in Schedule._COLUMNS})
+    sub = s.take(caps)
     bench = sched["bench"]
     if levels_here:
         fit = fit_on_counts(rec, counts, sub, t_off, sched, origin_px, skip_us, cell_map=cell_map)

@@ -188,6 +188,16 @@ def level_statistics(counts, is_level, level, interior, gain=None) -> LevelStati
     return LevelStatistics(steps.astype(np.float64), np.array(n), np.array(first), np.array(last), int(mask.sum()))
 
 
+def _interior_events(rec, t0_us, t1_us, polarity, region, interior):
+    """Times and region-flat pixel indices of the ``polarity`` events in ``[t0_us, t1_us)`` on ``interior`` pixels."""
+    x0, x1, y0, y1 = (int(v) for v in region)
+    ev = rec.events(int(t0_us), int(t1_us))
+    sel = (ev.p == polarity) & (ev.x >= x0) & (ev.x < x1) & (ev.y >= y0) & (ev.y < y1)
+    xs, ys = ev.x[sel].astype(np.int64) - x0, ev.y[sel].astype(np.int64) - y0
+    use = np.asarray(interior, bool)[ys, xs]
+    return ev.t[sel][use], (ys * (x1 - x0) + xs)[use]
+
+
 def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_period_us=None):
     """Mean time (µs after the falling edge) of the interior pixels' OFF events while each level step decays, and
     their mean number a pixel and step: ``(off_mean_us, off_counts)``.
@@ -196,8 +206,7 @@ def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_per
     windows themselves (all bright) hardly show. Events stamped at the end of
     a readout frame are moved back half a frame (their mean delay).
     """
-    x0, x1, y0, y1 = (int(v) for v in region)
-    mask = np.asarray(interior, bool)
+    n_pixels = int(np.asarray(interior, bool).sum())
     lv = np.asarray(level)
     steps = np.unique(lv)
     shift = 0.5 * float(stamp_period_us) if stamp_period_us and stamp_period_us > 1 else 0.0
@@ -205,14 +214,11 @@ def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_per
     for m in steps:
         times = []
         for t in np.asarray(t_off_us)[lv == m].tolist():
-            ev = rec.events(int(t), int(t) + int(settle_us))
-            inside = (ev.p == 0) & (ev.x >= x0) & (ev.x < x1) & (ev.y >= y0) & (ev.y < y1)
-            xs, ys = ev.x[inside].astype(np.int64) - x0, ev.y[inside].astype(np.int64) - y0
-            use = mask[ys, xs]
-            times.append(ev.t[inside][use].astype(np.float64) - t - shift)
+            t_ev, _ = _interior_events(rec, t, t + int(settle_us), 0, region, interior)
+            times.append(t_ev.astype(np.float64) - t - shift)
         allt = np.concatenate(times) if times else np.zeros(0)
         out.append(float(allt.mean()) if allt.size else np.nan)
-        counts.append(allt.size / max(1, len(times) * int(mask.sum())))
+        counts.append(allt.size / max(1, len(times) * n_pixels))
     return np.array(out), np.array(counts)
 
 
@@ -226,15 +232,9 @@ def refractory_bound(rec, t_on_us, t_off_us, region, interior, quantile=0.01):
     1 µs minimum (a refractory period long enough to show, tens of µs,
     saturates the bright pixels, which no linearisation recovers).
     """
-    x0, x1, y0, y1 = (int(v) for v in region)
-    mask = np.asarray(interior, bool)
     gaps = []
     for a, b in zip(np.asarray(t_on_us).tolist(), np.asarray(t_off_us).tolist()):
-        ev = rec.events(int(a), int(b))
-        on = (ev.p == 1) & (ev.x >= x0) & (ev.x < x1) & (ev.y >= y0) & (ev.y < y1)
-        xs, ys, t = ev.x[on].astype(np.int64) - x0, ev.y[on].astype(np.int64) - y0, ev.t[on]
-        use = mask[ys, xs]
-        pix, t = (ys * (x1 - x0) + xs)[use], t[use]
+        t, pix = _interior_events(rec, a, b, 1, region, interior)
         order = np.lexsort((t, pix))
         pix, t = pix[order], t[order]
         same = pix[1:] == pix[:-1]
@@ -275,13 +275,9 @@ def predict_levels(params, light, window_us, settle_us, skip_us, refractory_us, 
                                          ends, sm, 0, emit=True, count_slot=slot, n_slots=1)
     # the slot counts the whole lit segment; the reconstruction's window starts skip_us in
     decay = (t >= z + w) & (p == 0)
-    off_mean = np.full(light.size, np.nan)
-    if decay.any():
-        tm = np.bincount(idx[decay], weights=t[decay] - (z + w), minlength=u.size)
-        cnt = np.bincount(idx[decay], minlength=u.size)
-        tm, cnt = tm.reshape(light.size, rel.size) @ weight, cnt.reshape(light.size, rel.size) @ weight
-        off_mean = np.where(cnt > 0, tm / np.maximum(cnt, 1e-12), np.nan)
     off_count = np.bincount(idx[decay], minlength=u.size).reshape(light.size, rel.size) @ weight
+    off_time = np.bincount(idx[decay], weights=t[decay] - (z + w), minlength=u.size).reshape(light.size, rel.size)
+    off_mean = np.where(off_count > 0, (off_time @ weight) / np.maximum(off_count, 1e-12), np.nan)
     keep = (t >= a) & (t < z + w) & (p == 1)
     first = np.full(u.size, np.nan)
     last = np.full(u.size, np.nan)
@@ -343,14 +339,17 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
                     start: SensorModel | None = None, times=True) -> PixelFit:
     """Fit ``theta``, ``blank``, ``tau_min_us`` and ``tau_dark_us`` to the level statistics.
 
-    Least squares over the steps of the counts (in counts) and of the first
-    and last ON times (in units of 20 µs), by Nelder-Mead from the counts'
-    log fit (:func:`_fit_log_response`) and the
-    ``start`` model's time constants. ``spread`` is the threshold mismatch
-    (relative standard deviation, e.g. of the flat-field gains), which
-    smooths the counts the same way the sensor's pixels do. With ``times``
-    False (time stamps too coarse, a frame readout) only the counts are
-    fitted and the time constants stay the ``start`` model's.
+    Least squares over the steps of the counts (in counts), the first ON
+    times (in µs) and the mean OFF times of the decays (in units of 20 µs).
+    A trust-region fit starts from three points along the threshold/dark-level
+    valley (the counts' log fit, :func:`_fit_log_response`, and a blank level
+    half and twice it) with closed-form time constants
+    (:func:`_time_constants_guess`); Nelder-Mead polishes the best. ``spread``
+    is the threshold mismatch (relative standard deviation, e.g. of the
+    flat-field gains), which smooths the counts the same way the sensor's
+    pixels do. With ``times`` False (time stamps too coarse, a frame
+    readout) the first ON times are left out and ``tau_min_us`` stays the
+    ``start`` model's. The OFF threshold follows from the decays' OFF counts.
     """
     light, counts = stats.light, stats.counts
     if light.size < 2:
@@ -399,10 +398,8 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
         res.x = best
     x_all = x0.copy()
     x_all[free] = res.x
-    res.x = x_all
-    res.x[~free] = x0[~free]
-    theta, blank, tau_min, tau_dark = (float(v) for v in np.exp(res.x))
-    n, f, la, _, off_n = predict_levels(np.exp(res.x), light, window_us, settle_us, skip_us, refractory_us, spread)
+    theta, blank, tau_min, tau_dark = (float(v) for v in np.exp(x_all))
+    n, f, _, _, off_n = predict_levels(np.exp(x_all), light, window_us, settle_us, skip_us, refractory_us, spread)
     ok = has_t & np.isfinite(f)
     rms_t = float(np.sqrt(np.mean((f - stats.first_us)[ok] ** 2))) if ok.any() \
         else float("nan")

@@ -8,12 +8,11 @@ import json
 
 import numba
 import numpy as np
-from scipy.ndimage import map_coordinates
 
 from ..errors import EvtkError
 from ..io._compression import workers
 from ..optics import Bench, brightest_response, screen_response
-from ..optics.camera import Camera, render_nominal
+from ..optics.camera import Camera, footprint_light
 from ..sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
 from ..simulate.record import SimulationRecord
 
@@ -200,40 +199,36 @@ def _flat_log_step(sim, bench, region):
     """Log-light step ``u`` each pixel of ``region`` (y, x) sees in a flat-field window (every mirror on)."""
     sim = SimulationRecord.from_dict(sim)
     k, f = np.ones(sim.kernels.shape[1:], np.int8), np.ones(sim.features.shape[1:], np.int8)
-    if sim.cell_map is not None:  # a fitted general map: the flat on the cell grid, seen through it
-        light = _flat_through_map(k, f, bench, sim.placement(), tuple(region))
-    elif sim.camera is not None:  # the simulated camera's view of the flat field
+    origin = tuple(sim.response_origin_px)
+    if sim.cell_map is not None:  # a fitted map: a scale and shift is an origin, anything else is seen through
+        full = (k.shape[0] + f.shape[0] - 1, k.shape[1] + f.shape[1] - 1)
+        aligned = sim.placement().axis_aligned(full)
+        if aligned is None:
+            return _log_step(sim, _flat_through_map(k, f, bench, sim.placement(), tuple(region)))
+        origin = aligned[0]
+    if sim.camera is not None:  # the simulated camera's view of the flat field
         light = Camera.from_dict(sim.camera).view(k, f, bench, tuple(region))
     else:  # where the record places the response (a calibration's origin, or the bench's own)
-        light = screen_response(k, f, bench.replace(origin_px=tuple(sim.response_origin_px)), tuple(region))
+        light = screen_response(k, f, bench.replace(origin_px=origin), tuple(region))
+    return _log_step(sim, light)
+
+
+def _log_step(sim, light):
+    """Log-light step over the dark level of a pixel receiving ``light`` (response units)."""
     rate = sim.gain_e_per_s_per_unit * light + sim.sensor.dark_current_e_per_s
     return np.log(np.maximum(rate, 1e-300) / sim.blank_rate_e_per_s)
 
 
-def _flat_through_map(kernel, features, bench, cell_map, region, supersample=4):
-    """The light each pixel of ``region`` sees of one pass when cells land where ``cell_map`` puts them.
-
-    Each pixel's footprint is sampled at ``supersample`` squared points; each
-    point's cell (through the map's inverse) is looked up, bilinearly, in the
-    pass rendered on a nominal grid ``supersample`` times finer
-    (:func:`evtk.optics.camera.render_nominal`); the pixel's light is their mean.
-    """
-    x0, x1, y0, y1 = region
-    s = int(supersample)
-    yy, xx = np.mgrid[y0:y1, x0:x1]
-    sub = (np.arange(s) + 0.5) / s - 0.5
-    sy, sx = np.meshgrid(sub, sub, indexing="ij")
-    pts = np.stack([(xx[..., None, None] + sx).ravel(), (yy[..., None, None] + sy).ravel()], 1).astype(np.float64)
-    cells = cell_map.to_cells(pts)
+def _flat_through_map(kernel, features, bench, cell_map, region):
+    """The light each pixel of ``region`` sees of one pass when cells land where ``cell_map`` puts them: each
+    footprint point's cell (through the map's inverse) on a nominal grid of the bench's step, 8 px in
+    (:func:`evtk.optics.camera.footprint_light`)."""
     step = bench.kernel_step_cells / bench.pixel_cells
     pad = 8.0
     rows, cols = (features.shape[0] + kernel.shape[0] - 1), (features.shape[1] + kernel.shape[1] - 1)
     nw, nh = int(np.ceil(2 * pad + step * cols)), int(np.ceil(2 * pad + step * rows))
     nominal = bench.replace(origin_px=(pad, pad), sensor_width=max(nw, 1), sensor_height=max(nh, 1))
-    fine = (pad + step * cells + 0.5) * s - 0.5
-    img = render_nominal(kernel, features, nominal, (0, nw * s, 0, nh * s), s)
-    light = map_coordinates(img, [fine[:, 1], fine[:, 0]], order=1, mode="nearest")
-    return light.reshape(xx.shape + (s * s,)).mean(axis=-1)
+    return footprint_light(kernel, features, nominal, region, lambda pts: pad + step * cell_map.to_cells(pts))
 
 
 def _expected_flat_counts(sim, bench, region, curve, theta_on):

@@ -284,11 +284,7 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
             my = footprint_matrix(bench, origin[1], region[2], region[3], fh + kh - 1, step)
             mx = footprint_matrix(bench, origin[0], region[0], region[1], fw + kw - 1, step)
             combined = np.linalg.solve(my, np.linalg.solve(mx, combined.transpose(0, 2, 1)).transpose(0, 2, 1))
-        per_pair = {}  # repeats of a pair share its ideal
-        for k, f, _ in pairs.tolist():
-            if (k, f) not in per_pair:
-                per_pair[(k, f)] = ideal_response(kernels[k], features[f], bench)
-        ideal = np.stack([per_pair[(k, f)] for k, f, _ in pairs.tolist()])
+        ideal = pair_ideals(pairs, kernels, features, bench)
         if crop == "valid":
             sl = (slice(None), slice(kh - 1, fh), slice(kw - 1, fw))
             combined, ideal = combined[sl], ideal[sl]
@@ -330,6 +326,15 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
     if ideal is not None:
         summary["error"] = response_error(cells, ideal)
     return Reconstruction(responses, binary, pairs, cells, ideal, counts, summary)
+
+
+def pair_ideals(pairs, kernels, features, bench):
+    """The ideal response of each (kernel_id, features_id, repeat) row of ``pairs``, computed once per pair."""
+    per_pair = {}
+    for k, f, _ in pairs.tolist():
+        if (k, f) not in per_pair:
+            per_pair[(k, f)] = ideal_response(kernels[k], features[f], bench)
+    return np.stack([per_pair[(k, f)] for k, f, _ in pairs.tolist()])
 
 
 def _no_timing(counts, sim, schedule, curve, skip_us):

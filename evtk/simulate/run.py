@@ -232,7 +232,8 @@ class Simulation:
 
     def cell_map(self) -> CellMap:
         """Where each cell (column, row) of the full response lands on the sensor (pose and lens included)."""
-        return self.record().placement() or self.record().replace(camera=Camera().to_dict()).placement()
+        record = self.record()
+        return record.placement() or record.replace(camera=Camera().to_dict()).placement()
 
     def ideal(self, c):
         """Ground truth of capture ``c``: the noise-free digital response of its pass (full correlation)."""

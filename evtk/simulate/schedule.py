@@ -98,6 +98,10 @@ class Schedule:
     def to_dict(self) -> dict:
         return {c: getattr(self, c).tolist() for c in self._COLUMNS}
 
+    def take(self, rows) -> Schedule:
+        """The schedule of the captures ``rows`` (indices or a boolean mask), in that order."""
+        return Schedule(**{c: getattr(self, c)[rows] for c in self._COLUMNS})
+
     @classmethod
     def from_dict(cls, d: dict) -> Schedule:
         try:
