@@ -12,9 +12,11 @@ with its residuals in pixels. From the map follow the response's origin
 region to count. Nothing here reads a simulation record: the schedule
 (``schedule.json`` from ``evtk patterns``) and the events are enough.
 
-Not yet modelled: radial lens distortion (the map is projective), the
-blur of the kernel sources, and the pixels' gains, thresholds, time
-constant and dark rate (issue 22).
+When the map is not a scale and shift a radial lens distortion is fitted
+too. The dots' profiles give the camera's defocus (:func:`dot_blur_px`),
+the run's level captures the pixel model
+(:func:`evtk.reconstruct.fit.fit_pixel_model`), and the pixels outside the
+response in the dark the background rate (:func:`background_rate_hz`).
 """
 
 from __future__ import annotations
@@ -37,13 +39,14 @@ from .optics.camera import CellMap
 from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
 from .reconstruct.calibrated import fit_on_counts
+from .reconstruct.deblur import sampling_matrix
 from .reconstruct.fit import predict_levels
 from .reconstruct.windows import Windows
 from .settings import read_table, toml_value
 from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, dot_grid
 
-__all__ = ["Calibration", "calibrate", "background_rate_hz", "load_calibration", "save_calibration", "plot_calibration",
-           "MIN_DOTS"]
+__all__ = ["Calibration", "calibrate", "background_rate_hz", "dot_blur_px", "load_calibration", "save_calibration",
+           "plot_calibration", "MIN_DOTS"]
 
 #: Fewest ON events at a dot's brightest pixel, over the calibration captures, for it to count as seen.
 MIN_DOT_EVENTS = 3
@@ -85,6 +88,10 @@ class Calibration:
     background_rate_hz : float or None
         Background activity per pixel, from the pixels outside the response
         while the DMDs are dark and the pixels settled (:func:`background_rate_hz`).
+    blur_px : float
+        The camera's defocus, a Gaussian's standard deviation in pixels, beyond the footprint the bench
+        geometry predicts (:func:`dot_blur_px`); the reconstruction deblurs it. Below about 0.3 px it is
+        not told apart from none.
     """
 
     matrix: list
@@ -101,6 +108,7 @@ class Calibration:
     pixel_model: dict | None = None
     k1: float = 0.0
     background_rate_hz: float | None = None
+    blur_px: float = 0.0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -166,7 +174,9 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     the inliers as well (RMS within 10 %), the affine one is kept, as its
     fewer parameters extrapolate better to the response's corners. With
     ``pixel_model`` and level captures in the run, the pixel model is fitted
-    too (:attr:`Calibration.pixel_model`).
+    too (:attr:`Calibration.pixel_model`), and the defocus measured through it
+    (:attr:`Calibration.blur_px`; without a model, through a logarithmic
+    response, which reads it about a fifth low).
     """
     sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
     s, kernels, features = sched["schedule"], sched["kernels"], sched["features"]
@@ -179,8 +189,8 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
                         f"{report['missing'][:10]})")
     w, h = rec.sensor_size
     sub = Windows(win.t_start_us[dots_win], win.t_end_us[dots_win], win.capture[dots_win], win.source)
-    counts = accumulate(rec, sub, (0, w, 0, h))
-    image = counts.on.sum(axis=0).astype(np.float64)
+    dot_counts = accumulate(rec, sub, (0, w, 0, h))
+    image = dot_counts.on.sum(axis=0).astype(np.float64)
     bench = sched["bench"]
     found = _blobs(image, sched["dot_spacing"] * bench.kernel_step_cells / bench.pixel_cells)
     kh, kw = kernels.shape[1:]
@@ -235,8 +245,74 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
         sub = s.take(caps)
         cal.pixel_model = fit_on_counts(rec, counts, sub, win.t_end_us[use], sched, cal.origin_px,
                                         cell_map=cal.cell_map()).to_dict()
+    x0, x1, y0, y1 = cal.region
+    net = (dot_counts.on[:, y0:y1, x0:x1].astype(np.float64) - dot_counts.off[:, y0:y1, x0:x1]).mean(axis=0)
+    cal.blur_px = dot_blur_px(net, cal.region, cal.cell_map(), bench, np.rint(src[inliers]).astype(np.int64), (rows, cols),
+                              model=PixelFit.from_dict(cal.pixel_model) if cal.pixel_model else None)
     cal.background_rate_hz = background_rate_hz(rec, win.t_end_us, sched["settle_us"], cal.region)
     return cal
+
+
+def dot_blur_px(net, region, cell_map, bench, dot_cells, shape, model=None, radius_px=3, max_px=3.0):
+    """The camera's defocus (Gaussian standard deviation, pixels) that best explains the dots' counts.
+
+    Each dot lights one response cell. Through the fitted map, the bench's
+    footprint (pixel area, source extent, shadow blur) and a trial defocus,
+    :func:`~evtk.reconstruct.deblur.sampling_matrix` predicts the light each
+    pixel near the dot gets; the pixels' response turns it into counts,
+    by the fitted pixel model (``model``, a :class:`~evtk.reconstruct.PixelFit`:
+    its mean count at each light) or, without one, ``log(1 + a L) / theta``
+    with ``a`` and ``theta`` free. The defocus is searched on a grid of
+    0.05 px from 0 to ``max_px`` (then refined by a parabola), the
+    light's scale fitted at each step by least squares; the mean net counts
+    ``net`` (over the region, per dot capture) are the data, over the pixels
+    within ``radius_px`` of each dot.
+    """
+    x0, x1, y0, y1 = (int(v) for v in region)
+    net = np.asarray(net, np.float64)
+    rows, cols = (int(v) for v in shape)
+    cells = np.asarray(dot_cells, np.int64)  # (column, row)
+    a0 = sampling_matrix(bench, cell_map.to_cells, region, shape)[:, cells[:, 1] * cols + cells[:, 0]]
+    a0 = a0.reshape(y1 - y0, x1 - x0, -1)
+    centres = cell_map.to_pixels(cells.astype(np.float64)) - [x0, y0]
+    yy, xx = np.mgrid[0:y1 - y0, 0:x1 - x0]
+    near = np.stack([(xx - cx) ** 2 + (yy - cy) ** 2 <= radius_px ** 2 for cx, cy in centres], axis=-1)
+    near &= near.sum(axis=-1, keepdims=True) == 1  # a pixel near two dots is left out
+    owner = np.argmax(near, axis=-1)
+    use = near.any(axis=-1)
+    data = net[use]
+    if data.size < 3 * len(cells):
+        raise EvtkError("too few pixels near the calibration dots to measure the camera's blur")
+    if model is not None:
+        grid = np.linspace(0.0, 4.0, 81)
+        params = np.array([model.sensor.theta_on, model.blank, model.sensor.tau_min_us, model.tau_dark_us])
+        spread = model.sensor.theta_mismatch / model.sensor.theta_on
+        curve = predict_levels(params, grid, model.window_us, model.settle_us, 0, model.sensor.refractory_us, spread)[0]
+        curve = np.maximum.accumulate(np.nan_to_num(curve))
+
+        def counts(light, p):
+            return np.interp(p[0] * light, grid, curve)
+        start, lo, hi = [1.0], [0.05], [4.0]
+    else:
+        def counts(light, p):
+            return np.log1p(p[0] * light) / p[1]
+        start, lo, hi = [1.0, 0.2], [1e-3, 1e-3], [1e3, 10.0]
+
+    def misfit(sigma):
+        a = gaussian_filter(a0, (sigma, sigma, 0), mode="constant") if sigma > 0 else a0
+        light = np.take_along_axis(a, owner[..., None], axis=-1)[..., 0][use]
+        fit = least_squares(lambda p: counts(light, p) - data, start, bounds=(lo, hi))
+        return float(np.sum(fit.fun ** 2))
+
+    sigmas = np.arange(0.0, max_px + 1e-9, 0.05)
+    cost = np.array([misfit(v) for v in sigmas])
+    i = int(np.argmin(cost))
+    if 0 < i < sigmas.size - 1:  # the parabola's vertex through the best step and its neighbours
+        c0, c1, c2 = cost[i - 1:i + 2]
+        curv = c0 - 2 * c1 + c2
+        if curv > 0:
+            return float(sigmas[i] + 0.05 * 0.5 * (c0 - c2) / curv)
+    return float(sigmas[i])
 
 
 def background_rate_hz(rec, t_off_us, settle_us, region, margin_px=3, max_windows=64):
@@ -360,6 +436,8 @@ def load_calibration(path) -> Calibration:
             PixelFit.from_dict(cal.pixel_model)
         if not (isinstance(cal.k1, (int, float)) and -0.3 < cal.k1 < 0.3):
             raise ValueError(f"k1 must be a number within -0.3 and 0.3, not {cal.k1!r}")
+        if not (isinstance(cal.blur_px, (int, float)) and 0 <= cal.blur_px < 100):
+            raise ValueError(f"blur_px must be a number >= 0, not {cal.blur_px!r}")
     except EvtkError as exc:
         raise EvtkError(f"{path}: {exc}") from None
     except (ValueError, TypeError) as exc:
@@ -399,5 +477,5 @@ def plot_calibration(path, cal: Calibration):
     ax_r.bar(np.arange(len(d)), d, color="C0")
     ax_r.set_xlabel("dot")
     ax_r.set_ylabel("distance to the fitted map (pixels)")
-    ax_r.set_title(f"residual RMS {cal.residual_rms_px:.3f} px", fontsize=10)
+    ax_r.set_title(f"residual RMS {cal.residual_rms_px:.3f} px; defocus {cal.blur_px:.2f} px", fontsize=10)
     save_png(fig, path)

@@ -106,8 +106,8 @@ def scheduler(spec=None):
                  "distributed.nanny.pre-spawn-environ.MALLOC_ARENA_MAX": 1,
                  "distributed.worker.profile.enabled": False,
                  "distributed.admin.system-monitor.gil.enabled": False}
-        with dask.config.set(quiet):
-            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+        with dask.config.set(quiet):  # the HTTP server on any free port: a taken 8787 would warn on stderr
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
                                    silence_logs=50)
     except (RuntimeError, OSError, TimeoutError) as exc:
         _restore_environ(saved)

@@ -78,23 +78,26 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         sched = schedule_of_record(record)
     else:
         sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
-    region, placed, cell_map = opts.region, "given", None
+    region, placed, cell_map, blur_px, model, own = opts.region, "given", None, 0.0, None, True
     if calibration is not None:
         region, origin_px, placed = tuple(calibration.region), tuple(calibration.origin_px), "calibration"
-        cell_map = calibration.cell_map()
+        cell_map, blur_px, model = calibration.cell_map(), calibration.blur_px, calibration.pixel_model
     elif region is None and origin_px is None:
         if (sched["schedule"].kernel_id == DOTS_ID).any():
-            cal = calibrate(rec, sched, pixel_model=False)  # the reconstruction fits the model itself
+            # the run calibrates itself; its pixel model, fitted to its own level captures there, is not fitted again
+            cal = calibrate(rec, sched)
             region, origin_px, placed = tuple(cal.region), tuple(cal.origin_px), "the run's own dot captures"
-            cell_map = cal.cell_map()
+            cell_map, blur_px, model = cal.cell_map(), cal.blur_px, cal.pixel_model
+            own = model is None
         else:
             placed = "the bench geometry"
     result = reconstruct_calibrated(rec, sched, region, origin_px, size=opts.size,
                                     binarize_method=opts.binarize_method, skip_us=opts.skip_us,
                                     length_us=opts.length_us, crop=opts.crop, flat_field=opts.flat_field,
                                     deblur=opts.deblur, timing=opts.timing, linear=opts.linear, progress=progress,
-                                    pixel_model=None if calibration is None else calibration.pixel_model,
-                                    cell_map=cell_map)
+                                    pixel_model=model, cell_map=cell_map, blur_px=blur_px, own_levels=own)
+    if not own and result.summary.get("pixel_model_from"):
+        result.summary["pixel_model_from"] = "the run's own level captures"
     fitted_to = {"the run's own level captures": "the run's level captures",
                  "the calibration": "the calibration run's level captures"}.get(result.summary.get("pixel_model_from"))
     result.summary["route"] = "calibrated: " + (f"a pixel model fitted to {fitted_to}" if fitted_to else

@@ -127,3 +127,34 @@ def test_a_job_file_carries_the_camera(tmp_path):
     (tmp_path / "bad.toml").write_text('kernels = ["111111111"]\n[camera]\nspin = 3\n')
     with pytest.raises(EvtkError, match="a camera takes"):
         load_job(tmp_path / "bad.toml")
+
+
+@pytest.mark.parametrize("defocus", [0.0, 0.6, 1.0])
+def test_calibration_measures_the_cameras_defocus(tmp_path, defocus):
+    """The dots' profiles through the fitted map, the footprint and the fitted pixel model: within 0.08 px
+    (measured: 0, 0.56 and 0.97)."""
+    rng = np.random.default_rng(2)
+    k, f = rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16))
+    Simulation(k, f, seed=2, levels=6, calibration=2, camera=dict(defocus_px=defocus)).write(tmp_path / "r.h5")
+    with evtk.open(tmp_path / "r.h5") as rec:
+        cal = calibrate(rec, schedule_of_record(rec.metadata["simulation"]))
+    assert cal.blur_px == pytest.approx(defocus, abs=0.08)
+
+
+@pytest.mark.parametrize("readout_us, gain", [(0.0, 0.9), (200.0, 1.0)])
+def test_a_rotated_defocused_view_is_deblurred_in_two_dimensions(tmp_path, readout_us, gain):
+    """3 degrees of rotation and 0.6 px of defocus: the calibrated route deblurs through the fitted map and the
+    measured defocus, within 15 % of the oracle and below sampling without deblurring (measured: 0.81 of its
+    error; with a frame readout's coarser counts 0.98)."""
+    rng = np.random.default_rng(2)
+    k, f = rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16))
+    Simulation(k, f, seed=2, levels=6, calibration=2, camera=dict(rotation_deg=3.0, defocus_px=0.6),
+               sensor=SensorModel(readout_period_us=readout_us)).write(tmp_path / "r.h5")
+    with evtk.open(tmp_path / "r.h5") as rec:
+        oracle = reconstruct(rec)
+        calibrated = evtk.reconstruct_recording(rec)
+        sampled = evtk.reconstruct_recording(rec, deblur=False)
+    assert calibrated.summary["deblurred"] and calibrated.summary["deblur_regularisation"] is not None
+    err = calibrated.summary["error"]["nrmse"]
+    assert err <= 1.15 * oracle.summary["error"]["nrmse"]
+    assert err < gain * sampled.summary["error"]["nrmse"]

@@ -119,8 +119,9 @@ def test_sweeps_equal_serial_runs(client):
 
     f = np.where(default_features() > 0, 1, -1)
     k = random_kernels(2, seed=1)
-    assert flip_sweep([0.2, 5.0], k, f, repeats=3, seed=2, client=client) == flip_sweep([0.2, 5.0], k, f, repeats=3,
-                                                                                          seed=2)
+    # the same numbers, to the rounding of the deblur's linear algebra (BLAS threads differ between processes)
+    assert flip_sweep([0.2, 5.0], k, f, repeats=3, seed=2, client=client) == [
+        pytest.approx(row, rel=1e-12) for row in flip_sweep([0.2, 5.0], k, f, repeats=3, seed=2)]
     from evtk.recover import success_rate
 
     a = success_rate([20.0], size=4, trials=6, seed=3, client=client)
@@ -169,8 +170,9 @@ def test_batch_on_a_cluster_equals_serial_and_resumes(tmp_path):
         outs[spec] = out
     for i in range(3):
         with h5py.File(outs["serial"] / f"run{i}.h5") as a, h5py.File(outs["local:2"] / f"run{i}.h5") as b:
-            for name in ("reconstruction/responses", "reconstruction/binary", "reconstruction/cells"):
-                np.testing.assert_array_equal(a[name][...], b[name][...])
+            np.testing.assert_array_equal(a["reconstruction/binary"][...], b["reconstruction/binary"][...])
+            for name in ("reconstruction/responses", "reconstruction/cells"):  # to the linear algebra's rounding
+                np.testing.assert_allclose(a[name][...], b[name][...], rtol=1e-12, atol=1e-12)
         with evtk.open(src / f"run{i}.aedat4") as rec:
             from evtk.workflow import reconstruct_recording
 
@@ -208,9 +210,14 @@ def test_time_split_reconstruction_equals_the_whole(client, tmp_path):
         split = reconstruct_split(str(path), parts, c, size=(8, 8))
         np.testing.assert_array_equal(split.counts.on, whole.counts.on)
         np.testing.assert_array_equal(split.counts.off, whole.counts.off)
-        np.testing.assert_array_equal(split.cells, whole.cells)
+        # counts exactly; what the deblur's linear algebra gives, to its rounding (BLAS threads differ by process)
+        np.testing.assert_allclose(split.cells, whole.cells, rtol=1e-12, atol=1e-12)
         np.testing.assert_array_equal(split.binary, whole.binary)
-        assert split.summary == whole.summary
+        rounded = ("error", "deblur_regularisation")
+        assert {k: v for k, v in split.summary.items() if k not in rounded} == {
+            k: v for k, v in whole.summary.items() if k not in rounded}
+        assert split.summary["error"] == pytest.approx(whole.summary["error"], rel=1e-12)
+        assert split.summary["deblur_regularisation"] == pytest.approx(whole.summary["deblur_regularisation"], rel=1e-12)
     split = reconstruct_split(str(path), 4, client, window=("period", 7000), crop="full")
     np.testing.assert_array_equal(split.cells, by_period.cells)
     # through the batch command: a recording over --split-events goes in parts, with the same output
@@ -223,8 +230,9 @@ def test_time_split_reconstruction_equals_the_whole(client, tmp_path):
     m = json.loads((tmp_path / "b" / "batch.json").read_text())
     assert m["inputs"][0]["parts"] > 1 and m["inputs"][0]["status"] == "ok"
     with h5py.File(tmp_path / "a" / "long.h5") as fa, h5py.File(tmp_path / "b" / "long.h5") as fb:
-        for name in ("reconstruction/responses", "reconstruction/cells", "reconstruction/on"):
-            np.testing.assert_array_equal(fa[name][...], fb[name][...])
+        np.testing.assert_array_equal(fa["reconstruction/on"][...], fb["reconstruction/on"][...])
+        for name in ("reconstruction/responses", "reconstruction/cells"):
+            np.testing.assert_allclose(fa[name][...], fb[name][...], rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("ext", [".aedat4", ".h5", ".parquet"])

@@ -57,7 +57,8 @@ def nominal_placement(schedule) -> tuple:
 
 def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16, 16), binarize_method="auto",
                            skip_us=0, length_us=None, crop="valid", flat_field=True, deblur=None, timing=None,
-                           linear=True, tolerance_us=None, progress=None, pixel_model=None, cell_map=None):
+                           linear=True, tolerance_us=None, progress=None, pixel_model=None, cell_map=None,
+                           blur_px=0.0, own_levels=True):
     """The whole pipeline with a pixel model fitted to the recording's own level captures.
 
     Parameters
@@ -84,6 +85,14 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         along the sensor's axes (and deblurs) when it is a scale and shift,
         else samples through it (:func:`~evtk.reconstruct.grid.sample_response_grid`,
         not deblurred).
+    blur_px : float
+        The camera's defocus (:attr:`evtk.calibrate.Calibration.blur_px`),
+        deblurred with the footprint (:mod:`evtk.reconstruct.deblur`); it goes
+        with ``cell_map``.
+    own_levels : bool
+        Fit the pixel model to the run's own level captures when it has any
+        (default); False uses ``pixel_model`` even then (one fitted to these
+        very captures before).
 
     Returns a :class:`~evtk.reconstruct.Reconstruction`; its summary holds
     the trigger match (``match``), the fitted model (``pixel_model``) and
@@ -96,7 +105,7 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         nominal = nominal_placement(sched)
         region = nominal[0] if region is None else region
         origin_px = nominal[1] if origin_px is None else origin_px
-    levels_here = bool(np.any(s.kernel_id == LEVEL_ID))
+    levels_here = bool(np.any(s.kernel_id == LEVEL_ID)) and (own_levels or pixel_model is None)
     if not levels_here and pixel_model is None:
         result = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
                                    skip_us=skip_us, length_us=length_us, crop=crop, flat_field=flat_field,
@@ -123,7 +132,7 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         source = "the calibration"
     record = fitted_record(fit, sub, t_on, t_off, sched["kernels"], sched["features"], bench, counts.region,
                            origin_px, sched["window_us"], sched["settle_us"],
-                           cell_map=cell_map)
+                           cell_map=cell_map, blur_px=blur_px)
     counts = WindowCounts(counts.on, counts.off, Windows(start, end, sub.capture, counts.windows.source,
                                                          counts.windows.dropped),
                           counts.region, counts.events_used, counts.on_first_us, counts.on_last_us,

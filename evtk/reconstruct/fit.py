@@ -293,12 +293,17 @@ def predict_levels(params, light, window_us, settle_us, skip_us, refractory_us, 
     counts = net @ weight
     f = first.reshape(light.size, rel.size)
     la = last.reshape(light.size, rel.size)
-    with np.errstate(invalid="ignore"):
-        first_m = np.nanmedian(np.where(np.isfinite(f), f, np.nan), axis=1) if np.isfinite(f).any() else \
-            np.full(light.size, np.nan)
-        last_m = np.nanmedian(np.where(np.isfinite(la), la, np.nan), axis=1) if np.isfinite(la).any() else \
-            np.full(light.size, np.nan)
+    first_m, last_m = _row_median(f), _row_median(la)
     return counts, first_m, last_m, off_mean, off_count
+
+
+def _row_median(a):
+    """Median of each row's finite values; NaN for a row with none (a light too dim for any event)."""
+    out = np.full(a.shape[0], np.nan)
+    some = np.isfinite(a).any(axis=1)
+    if some.any():
+        out[some] = np.nanmedian(a[some], axis=1)
+    return out
 
 
 def _theta_for(counts, light, blank):
@@ -414,12 +419,13 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
 
 
 def fitted_record(fit: PixelFit, schedule: Schedule, t_on_us, t_off_us, kernels, features, bench: Bench,
-                  region, origin_px, window_us, settle_us, cell_map=None) -> SimulationRecord:
+                  region, origin_px, window_us, settle_us, cell_map=None, blur_px=0.0) -> SimulationRecord:
     """A record for :func:`~evtk.reconstruct.reconstruct_counts` holding what the bench knows and the fit.
 
     ``schedule`` holds the matched captures, ``t_on_us``/``t_off_us`` their
     windows on the recording's clock; the photon rates are the fit's,
-    relative to :data:`NOMINAL_BLANK_E_PER_S` (glow folded into the dark level).
+    relative to :data:`NOMINAL_BLANK_E_PER_S` (glow folded into the dark level);
+    ``blur_px`` is the calibration's defocus, kept with ``cell_map``.
     """
     sched = Schedule(**{c: getattr(schedule, c) for c in Schedule._COLUMNS if c not in ("t_on_us", "t_off_us")},
                      t_on_us=np.asarray(t_on_us, np.int64), t_off_us=np.asarray(t_off_us, np.int64))
@@ -429,7 +435,8 @@ def fitted_record(fit: PixelFit, schedule: Schedule, t_on_us, t_off_us, kernels,
         end_us=int(sched.t_off_us.max()), response_region=tuple(int(v) for v in region),
         response_origin_px=tuple(float(v) for v in origin_px),
         gain_e_per_s_per_unit=NOMINAL_BLANK_E_PER_S / fit.blank, blank_rate_e_per_s=NOMINAL_BLANK_E_PER_S,
-        cell_map=None if cell_map is None else {"matrix": np.asarray(cell_map.matrix).tolist(), "k1": cell_map.k1})
+        cell_map=None if cell_map is None else {"matrix": np.asarray(cell_map.matrix).tolist(), "k1": cell_map.k1,
+                                                "blur_px": float(blur_px)})
 
 
 def _fit_log_response(counts, light):

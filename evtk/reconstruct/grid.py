@@ -13,8 +13,9 @@ __all__ = ["combine_passes", "to_response_grid", "sample_response_grid", "downsa
            "overlap_matrix"]
 
 
-def combine_passes(values, schedule):
-    """Signed responses: ``sum(kernel_sign * features_sign * values[c])`` over each pair's captures.
+def combine_passes(values, schedule, signed=True):
+    """Signed responses: ``sum(kernel_sign * features_sign * values[c])`` over each pair's captures
+    (``signed=False``: the plain sum).
 
     Parameters
     ----------
@@ -42,7 +43,7 @@ def combine_passes(values, schedule):
     keys = np.stack([schedule.kernel_id, schedule.features_id, schedule.repeat], axis=1)[use]
     pairs, which = np.unique(keys, axis=0, return_inverse=True)
     which = np.asarray(which).reshape(-1)
-    sign = (schedule.kernel_sign * schedule.features_sign).astype(np.float64)[use]
+    sign = (schedule.kernel_sign * schedule.features_sign).astype(np.float64)[use] if signed else np.ones(int(use.sum()))
     out = np.zeros((len(pairs),) + values.shape[1:], dtype=np.float64)
     np.add.at(out, which, values[use] * sign.reshape((-1,) + (1,) * (values.ndim - 1)))
     return out, pairs

@@ -9,11 +9,14 @@ import numpy as np
 from ..errors import EvtkError
 from ..limits import require_memory
 from ..optics import ideal_response
-from ..simulate import FLAT_ID
+from ..optics.camera import CellMap
+from ..simulate import FLAT_ID, LEVEL_ID
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
-from .grid import combine_passes, downsample, footprint_matrix, sample_response_grid, to_response_grid
+from .deblur import DEFAULT_LAMBDA, relative_noise, sampling_matrix, solve_cells, wiener_lambda
+from .fit import interior_pixels
+from .grid import combine_passes, downsample, sample_response_grid, to_response_grid
 from .linearize import (
     _expected_flat_counts,
     _flat_log_step,
@@ -256,7 +259,7 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
     else:
         values = linearize(counts.on * gain, counts.off * gain, theta_on, theta_off)
 
-    pairs = ideal = None
+    pairs = ideal = regularisation = None
     deblurred = False
     if schedule is not None:
         kernels, features = sim.kernels, sim.features
@@ -270,20 +273,34 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
         aligned = None if placement is None else placement.axis_aligned((fh + kh - 1, fw + kw - 1))
         if aligned is not None:  # shifted or scaled only: still along the sensor's axes
             (origin, step), placement = aligned, None
-        if placement is not None:  # a rotated, tilted or distorted view
-            cells = sample_response_grid(values, region, placement, (fh + kh - 1, fw + kw - 1))
-        else:
-            cells = to_response_grid(values, region, origin, step, (fh + kh - 1, fw + kw - 1))
-        combined, pairs = combine_passes(cells, schedule)
+        shape = (fh + kh - 1, fw + kw - 1)
         if deblur is None:  # a decimated reconstruction does not have the neighbours deblurring needs
             deblur = gain is not None and bench.decimation == 1
-        # the footprint matrices run along the sensor's axes: a rotated or distorted view is not deblurred
-        deblurred = bool(deblur) and abs(bench.kernel_step_cells - 1.0) < 1e-9 and (
-            placement is None)
-        if deblurred:  # undo the footprint blur of sources, pixels and diffuser
-            my = footprint_matrix(bench, origin[1], region[2], region[3], fh + kh - 1, step)
-            mx = footprint_matrix(bench, origin[0], region[0], region[1], fw + kw - 1, step)
-            combined = np.linalg.solve(my, np.linalg.solve(mx, combined.transpose(0, 2, 1)).transpose(0, 2, 1))
+        deblurred = bool(deblur) and abs(bench.kernel_step_cells - 1.0) < 1e-9 and bench.decimation == 1
+        if deblurred:  # undo the footprint (sources, pixels, diffuser) and the defocus through the whole view
+            on_pixels, pairs = combine_passes(values, schedule)
+            view = placement if placement is not None else CellMap(
+                np.array([[step, 0.0, origin[0]], [0.0, step, origin[1]], [0.0, 0.0, 1.0]]), 0.0,
+                (bench.sensor_width, bench.sensor_height))
+            a_mat = sampling_matrix(bench, view.to_cells, region, shape, sim.blur_px)
+            v = on_pixels.reshape(len(pairs), -1)
+            share = relative_noise(values, schedule.level, schedule.kernel_id == LEVEL_ID,
+                                   schedule.kernel_id == FLAT_ID,
+                                   interior_pixels(region, origin, step, (kh, kw), (fh, fw), cell_map=view))
+            if share is not None:  # the run's own error against the responses' power
+                power, _ = combine_passes(values ** 2, schedule, signed=False)
+                regularisation = wiener_lambda(a_mat, v.T, share ** 2 * power.reshape(len(pairs), -1).T)
+            elif placement is None and sim.blur_px == 0:  # nothing to say how much: the plain inverse, as ever
+                regularisation = 0.0
+            else:
+                regularisation = DEFAULT_LAMBDA
+            combined = solve_cells(v, a_mat, regularisation).reshape((len(pairs),) + shape)
+        else:
+            if placement is not None:  # sampled through the map
+                cells = sample_response_grid(values, region, placement, shape)
+            else:
+                cells = to_response_grid(values, region, origin, step, shape)
+            combined, pairs = combine_passes(cells, schedule)
         ideal = pair_ideals(pairs, kernels, features, bench)
         if crop == "valid":
             sl = (slice(None), slice(kh - 1, fh), slice(kw - 1, fw))
@@ -315,6 +332,8 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
         "skip_us": int(skip_us),
         "length_us": None if length_us is None else int(length_us),
         "deblurred": bool(deblurred),
+        # the deblur's Tikhonov regularisation, relative to the sampling matrix's largest singular value
+        "deblur_regularisation": regularisation,
         "flat_field_captures": 0 if gain is None else int(np.sum(schedule.kernel_id == FLAT_ID)),
         "decimation": 1 if bench is None else int(bench.decimation),
         "linearization": ("counts" if not linear else "pixel model and event times" if timed_share is not None

@@ -69,7 +69,8 @@ class SimulationRecord:
     #: the simulated camera's pose and lens (:class:`evtk.optics.camera.Camera` fields), None for the nominal view
     camera: dict | None = None
     #: a fitted map from cells to pixels ({"matrix": 3x3, "k1": float}: :class:`evtk.optics.camera.CellMap`), which
-    #: takes the place of ``response_origin_px`` (a calibration of a camera that is rotated, tilted or distorted)
+    #: takes the place of ``response_origin_px`` (a calibration of a camera that is rotated, tilted or distorted);
+    #: an optional ``"blur_px"`` holds the defocus the calibration measured
     cell_map: dict | None = None
     correlation: str = "correlation"
     evtk_version: str = ""
@@ -90,6 +91,14 @@ class SimulationRecord:
         step = self.bench.kernel_step_cells / self.bench.pixel_cells
         nominal = np.array([[step, 0.0, ox], [0.0, step, oy], [0.0, 0.0, 1.0]])
         return CellMap(cam.homography(size) @ nominal, cam.k1, size)
+
+    @property
+    def blur_px(self) -> float:
+        """The camera's defocus on the sensor (Gaussian standard deviation, pixels): the calibration's
+        measurement with a fitted ``cell_map``, else the simulated camera's, else 0."""
+        if self.cell_map is not None:
+            return float(self.cell_map.get("blur_px", 0.0))
+        return 0.0 if self.camera is None else Camera.from_dict(self.camera).defocus_px
 
     @property
     def signed(self) -> bool:
