@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ..errors import EvtkError
 from ..limits import require_memory
@@ -226,6 +227,15 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
     the counts were taken with.
     """
     check_crop(crop)
+    # one BLAS thread: the matrices here are small, and OpenBLAS's threads spin after each call, taking a core
+    # from the next read's decompression
+    with threadpool_limits(1, user_api="blas"):
+        return _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, linear, theta, crop,
+                                   deblur, flat_field, timing)
+
+
+def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, linear, theta, crop, deblur,
+                        flat_field, timing):
     sim = None if sim is None else SimulationRecord.from_dict(sim)
     win = counts.windows
     region = counts.region

@@ -103,7 +103,7 @@ def _honest_table(rows, bodies):
     offset, stream, size, count, t0, t1 = ([] for _ in range(6))
     for (off, sid, n), (_, body) in zip(rows, bodies):
         b = np.frombuffer(body, np.uint8)
-        k = _fb.vector_length(b, a4._IDENT["EVTS" if sid == 0 else "TRIG"])
+        k = _fb.vector_length(b, a4._IDENT["EVTS" if sid == 0 else "TRIG"], 0)
         offset.append(off)
         stream.append(sid)
         size.append(n)

@@ -256,7 +256,7 @@ class Recording(_FileIndex, BaseRecording):
                 except _Stop:
                     return k
                 cap = int(counts[k])
-                n, st = decode(b, ident, t, x, y, p, int(starts[k]), cap, width, height)
+                n, st = decode(b, ident, t, x, y, p, int(starts[k]), cap, width, height, -2)
                 if (st == _fbpy.ST_OK and n != cap) or st == _fbpy.ST_CAPACITY:
                     raise _CountMismatch
                 if st != _fbpy.ST_OK:
@@ -395,7 +395,7 @@ class Recording(_FileIndex, BaseRecording):
                 except _Stop:
                     break
             cols = (np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8))
-            got, st = fb.decode_events(b, ident, *cols, 0, n, width, height)
+            got, st = fb.decode_events(b, ident, *cols, 0, n, width, height, -2)
             if st != _fbpy.ST_OK:
                 reason = (
                     f"event {got} of the packet lies outside the {width}x{height} sensor"
@@ -426,7 +426,7 @@ class Recording(_FileIndex, BaseRecording):
                 b = self._body(i)
             except _Stop:
                 break
-            n = _jit().vector_length(b, ident)
+            n = _jit().vector_length(b, ident, 0)
             if n < 0:
                 try:
                     self._fail(int(self._index.offset[i]), f"trigger packet: {_status(n)}")
