@@ -100,8 +100,10 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         result.summary["pixel_model_from"] = "the run's own level captures"
     fitted_to = {"the run's own level captures": "the run's level captures",
                  "the calibration": "the calibration run's level captures"}.get(result.summary.get("pixel_model_from"))
-    result.summary["route"] = "calibrated: " + (f"a pixel model fitted to {fitted_to}" if fitted_to else
-                                                "exp(n theta), no level captures to fit a pixel model to")
+    result.summary["route"] = "calibrated: " + (
+        f"a pixel model fitted to {fitted_to}" if fitted_to else
+        "exp(n theta), the fitted pixel model misreads the level captures" if result.summary.get(
+            "pixel_model_rejected") else "exp(n theta), no level captures to fit a pixel model to")
     result.summary["placement"] = placed
     result.summary["oracle"] = False
     return result

@@ -182,3 +182,33 @@ def test_a_calibration_run_brings_the_pixel_model_to_a_job_without_level_capture
     (tmp_path / "bad.toml").write_text(bad)
     with pytest.raises(EvtkError, match="must be finite and positive"):
         load_calibration(tmp_path / "bad.toml")
+
+
+@pytest.mark.parametrize("refractory_us, resolved", [(1.0, False), (10.0, True)])
+def test_the_refractory_period_is_measured_where_the_gaps_show_it(tmp_path, refractory_us, resolved):
+    """The brightest step's ON-event gaps: a 10 µs period is measured (9.5), a 1 µs one hides under the crossings'
+    own few µs and is only bounded from above (4 µs), the model keeping its least period."""
+    rng = np.random.default_rng(2)
+    k, f = rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16))
+    Simulation(k, f, seed=2, levels=6, sensor=SensorModel(refractory_us=refractory_us)).write(tmp_path / "r.h5")
+    with evtk.open(tmp_path / "r.h5") as rec:
+        model = evtk.reconstruct_recording(rec).summary["pixel_model"]
+    assert model["refractory_resolved"] is resolved
+    assert model["refractory_bound_us"] >= refractory_us
+    if resolved:
+        assert model["refractory_us"] == pytest.approx(refractory_us, abs=1.5)
+    else:
+        assert model["refractory_us"] == 1.0 and model["refractory_bound_us"] < 8
+
+
+def test_a_pixel_model_that_misreads_the_levels_is_given_up(tmp_path):
+    """A 40 µs refractory period flattens every bright count: the fitted model reads the level captures back up to
+    35 times too bright, so the route says so and linearises by exp(n theta) (before: NRMSE 191)."""
+    rng = np.random.default_rng(2)
+    k, f = rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16))
+    Simulation(k, f, seed=2, levels=6, calibration=2, sensor=SensorModel(refractory_us=40.0)).write(tmp_path / "r.h5")
+    with evtk.open(tmp_path / "r.h5") as rec:
+        s = evtk.reconstruct_recording(rec).summary
+    assert s["pixel_model_rejected"] and "misreads" in s["route"] and "exp(n theta)" in s["pixel_model_note"]
+    assert max(s["level_light_ratio"]) > 2.0
+    assert np.isfinite(s["error"]["nrmse"]) and s["error"]["nrmse"] < 1.05

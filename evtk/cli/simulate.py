@@ -223,6 +223,9 @@ def calibrate(recording, schedule_path, output, png_path, as_json):
         click.echo(f"pixel model from {len(m['levels'])} level steps: threshold {m['theta_on']:.3f}, time constant "
                    f"{m['tau_min_us']:.0f} us bright to {m['tau_dark_us']:.0f} us dark, dark level "
                    f"{m['blank_units']:.4f} units of light, counts fitted to {m['rms_counts']:.2f} RMS"
-                   + (f"; refractory period at most {m['refractory_bound_us']:.0f} us"
+                   + (f"; refractory period {m['refractory_us']:.1f} us" if m.get("refractory_resolved") else
+                      f"; refractory period at most {m['refractory_bound_us']:.0f} us"
                       if m.get("refractory_bound_us") is not None else ""))
+    if cal.blur_px > 0:
+        click.echo(f"camera defocus: {cal.blur_px:.2f} px (Gaussian sigma, beyond the bench's footprint)")
 

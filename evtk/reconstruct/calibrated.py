@@ -30,11 +30,25 @@ from ..simulate import FLAT_ID, LEVEL_ID
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .bench import _all_pairs, _complete_mask, load_schedule, match_windows, neighbourhood_flat_gain, reconstruct_bench
-from .fit import PixelFit, fit_pixel_model, fitted_record, interior_pixels, level_off_times, level_statistics, refractory_bound
+from .fit import (
+    PixelFit,
+    fit_pixel_model,
+    fit_refractory,
+    fitted_record,
+    interior_pixels,
+    level_off_times,
+    level_statistics,
+    on_gaps,
+    refractory_bound,
+)
 from .pipeline import MAX_TIMING_STAMP_US, check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
 
-__all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement", "fit_on_counts"]
+__all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement", "fit_on_counts", "MAX_LEVEL_ERROR"]
+
+#: The most a fitted pixel model may misread the level captures' light (as a factor, either way) before the
+#: calibrated route gives it up for exp(n theta).
+MAX_LEVEL_ERROR = 2.0
 
 
 def schedule_of_record(record) -> dict:
@@ -140,6 +154,18 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     result = reconstruct_counts(counts, record, skip_us=skip_us, length_us=length_us, size=size,
                                 binarize_method=binarize_method, linear=linear, crop=crop, deblur=deblur,
                                 flat_field=flat_field, timing=timing)
+    ratios = result.summary.get("level_light_ratio")
+    if ratios and not all(np.isfinite(r) and 1 / MAX_LEVEL_ERROR <= r <= MAX_LEVEL_ERROR for r in ratios):
+        # the model reads the run's own level captures back wrong: it does not describe these pixels
+        fallback = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
+                                     skip_us=skip_us, length_us=length_us, crop=crop, flat_field=flat_field,
+                                     tolerance_us=tolerance_us, progress=progress)
+        fallback.summary.update(pixel_model=fit.to_dict(), pixel_model_from=None, level_light_ratio=ratios,
+                                pixel_model_rejected=True, pixel_model_note=(
+                                    f"the fitted pixel model reads the level captures' light back as "
+                                    f"{min(ratios):.3g} to {max(ratios):.3g} times what it was: it does not describe "
+                                    "these pixels, so the counts were linearised by exp(n theta)"))
+        return fallback
     result.summary.update(match=report, pairs_left_out=sorted(_all_pairs(s) - complete), pixel_model_from=source,
                           response_origin_px=[float(v) for v in origin_px], pixel_model=fit.to_dict(),
                           level_captures=int(np.sum(sub.kernel_id == LEVEL_ID)))
@@ -169,6 +195,21 @@ def fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us=0, cell_
     fine = counts.stamp_period_us is None or counts.stamp_period_us <= MAX_TIMING_STAMP_US
     bright = is_level & (sub.level == sub.level[is_level].max()) if is_level.any() else is_level
     t_on = np.asarray(t_off_us)[bright] - int(sched["window_us"])
-    bound = refractory_bound(rec, t_on, np.asarray(t_off_us)[bright], counts.region, inside) if fine else None
+    gaps = on_gaps(rec, t_on, np.asarray(t_off_us)[bright], counts.region, inside) if fine else np.zeros(0)
     fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine)
-    return dataclasses.replace(fit, refractory_bound_us=bound)
+    refractory, resolved = fit_refractory(fit, stats.light.max(), gaps, skip_us)
+    if resolved is None:  # the model fits no gaps: a long period flattened the counts; refit from the gaps' floor
+        tries = []
+        for share in (0.5, 0.75, 0.9):
+            trial = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread,
+                                    times=fine, refractory_us=max(1.0, share * refractory_bound(gaps)))
+            r, ok = fit_refractory(trial, stats.light.max(), gaps, skip_us)
+            if ok is not None:
+                tries.append((trial.rms_counts, r, ok, trial))
+        if tries:
+            _, refractory, resolved, fit = min(tries, key=lambda t: t[0])
+        resolved = bool(resolved)
+    if resolved:  # a period that shows in the gaps limits the bright steps' counts too: the model again with it
+        fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, refractory_us=refractory,
+                              spread=spread, times=fine)
+    return dataclasses.replace(fit, refractory_bound_us=refractory_bound(gaps), refractory_resolved=resolved)

@@ -37,6 +37,7 @@ from ..simulate import Schedule
 from ..simulate.record import SimulationRecord
 
 __all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "level_off_times", "refractory_bound",
+           "on_gaps", "fit_refractory", "GAP_QUANTILES",
            "predict_levels", "fit_pixel_model", "fitted_record"]
 
 #: Thresholds sampled across the mismatch when predicting a step's mean count (smooths the counts' steps).
@@ -78,6 +79,8 @@ class PixelFit:
     settle_us: int = 0
     #: shortest ON-event spacing at the brightest step (:func:`refractory_bound`): the refractory period is no longer
     refractory_bound_us: float | None = None
+    #: whether the ON-event gaps measured the refractory period (:func:`fit_refractory`); else the model keeps 1 µs
+    refractory_resolved: bool = False
 
     def to_dict(self) -> dict:
         s = self.sensor
@@ -89,7 +92,7 @@ class PixelFit:
                 "level_first_us": [None if not np.isfinite(v) else float(v) for v in self.statistics.first_us],
                 "level_last_us": [None if not np.isfinite(v) else float(v) for v in self.statistics.last_us],
                 "pixels": int(self.statistics.pixels), "window_us": int(self.window_us),
-                "refractory_bound_us": self.refractory_bound_us,
+                "refractory_bound_us": self.refractory_bound_us, "refractory_resolved": self.refractory_resolved,
                 "settle_us": int(self.settle_us)}
 
     @classmethod
@@ -120,7 +123,7 @@ class PixelFit:
         rms_c, rms_t = d.get("rms_counts"), d.get("rms_time_us")
         return cls(sensor, blank, tau_dark, np.nan if rms_c is None else float(rms_c),
                    np.nan if rms_t is None else float(rms_t), stats, int(d.get("window_us", 1000)),
-                   int(d.get("settle_us", 0)), d.get("refractory_bound_us"))
+                   int(d.get("settle_us", 0)), d.get("refractory_bound_us"), bool(d.get("refractory_resolved", False)))
 
 
 def _finite(v):
@@ -222,16 +225,9 @@ def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_per
     return np.array(out), np.array(counts)
 
 
-def refractory_bound(rec, t_on_us, t_off_us, region, interior, quantile=0.01):
-    """An upper bound of the refractory period: the ``quantile`` of the gaps between a pixel's successive ON
-    events inside the given (bright) windows, over the interior pixels (None with fewer than 20 gaps).
-
-    A pixel cannot fire again sooner, but the crossings of a bright step are
-    themselves a few µs apart (``tau theta / u``), so the gaps bound the
-    period from above and do not measure it: the fit keeps the sensor's
-    1 µs minimum (a refractory period long enough to show, tens of µs,
-    saturates the bright pixels, which no linearisation recovers).
-    """
+def on_gaps(rec, t_on_us, t_off_us, region, interior):
+    """The gaps (µs) between each interior pixel's successive ON events inside the windows ``[t_on_us,
+    t_off_us)``, pooled over pixels and windows."""
     gaps = []
     for a, b in zip(np.asarray(t_on_us).tolist(), np.asarray(t_off_us).tolist()):
         t, pix = _interior_events(rec, a, b, 1, region, interior)
@@ -239,8 +235,71 @@ def refractory_bound(rec, t_on_us, t_off_us, region, interior, quantile=0.01):
         pix, t = pix[order], t[order]
         same = pix[1:] == pix[:-1]
         gaps.append(np.diff(t)[same])
-    g = np.concatenate(gaps) if gaps else np.zeros(0)
+    return np.concatenate(gaps).astype(np.float64) if gaps else np.zeros(0)
+
+
+def refractory_bound(gaps, quantile=0.01):
+    """An upper bound of the refractory period: the ``quantile`` of the ON-event gaps of a bright step
+    (:func:`on_gaps`; None with fewer than 20). A pixel cannot fire again sooner."""
+    g = np.asarray(gaps, np.float64)
     return float(np.quantile(g, quantile)) if g.size >= 20 else None
+
+
+#: Quantiles of the brightest step's ON-event gaps :func:`fit_refractory` matches.
+GAP_QUANTILES = (0.05, 0.1, 0.25)
+
+
+def fit_refractory(fit: PixelFit, light, gaps, skip_us=0, max_us=None):
+    """The refractory period that makes the fitted pixel model's ON-event gaps on a step of ``light`` match the
+    observed ``gaps`` (:func:`on_gaps`) at :data:`GAP_QUANTILES`: ``(refractory_us, resolved)``.
+
+    After an event a pixel is blind for the refractory period, then needs
+    the next threshold's worth of rise: a gap is the period plus a crossing
+    time. The model is searched on a grid of 0.5 µs from its least, 1 µs, to
+    ``max_us`` (default twice the smallest gap). ``resolved`` is False when
+    the fitted period moves the predicted gaps by less than a time stamp's
+    1 µs from the least period's (the crossings themselves are slower: the
+    gaps bound the period from above only), and None when the model gives
+    no gaps at all (a fit that failed, e.g. on counts a long period
+    flattened); the model then keeps its period.
+    """
+    g = np.asarray(gaps, np.float64)
+    if g.size < 20:
+        return fit.sensor.refractory_us, False
+    qs = np.asarray(GAP_QUANTILES)
+    observed = np.quantile(g, qs)
+    hi = float(max_us) if max_us is not None else 2.0 * float(np.quantile(g, 0.01))
+    grid = np.arange(1.0, max(hi, 1.0) + 0.25, 0.5)
+    params = np.array([fit.sensor.theta_on, fit.blank, fit.sensor.tau_min_us, fit.tau_dark_us])
+    spread = fit.sensor.theta_mismatch / fit.sensor.theta_on
+    predicted = np.array([_predicted_gaps(params, float(light), fit.window_us, fit.settle_us, skip_us, r, spread, qs)
+                          for r in grid])
+    if not np.isfinite(predicted).any(axis=1).all():
+        return fit.sensor.refractory_us, None
+    i = int(np.argmin(np.nansum((predicted - observed) ** 2, axis=1)))
+    if not np.nanmax(np.abs(predicted[i] - predicted[0])) > 1.0:
+        return fit.sensor.refractory_us, False
+    return float(grid[i]), True
+
+
+def _predicted_gaps(params, light, window_us, settle_us, skip_us, refractory_us, spread, qs):
+    """Quantiles ``qs`` of the noise-free model's ON-event gaps on one step of ``light``, over its thresholds'
+    spread (each pixel's gaps weighted by its share)."""
+    t, idx, p, _, _, weight, n_px = _simulate_steps(params, np.array([light]), window_us, settle_us, refractory_us,
+                                                    spread)
+    z, w = float(settle_us), float(window_us)
+    keep = (t >= z + float(skip_us)) & (t < z + w) & (p == 1)
+    ti, ii = t[keep], idx[keep]
+    order = np.lexsort((ti, ii))
+    ti, ii = ti[order], ii[order]
+    same = ii[1:] == ii[:-1]
+    gap, who = np.diff(ti)[same], ii[1:][same]
+    if gap.size == 0:
+        return np.full(len(qs), np.nan)
+    order = np.argsort(gap)
+    gap, wt = gap[order], weight[who[order] % weight.size]
+    cum = np.cumsum(wt) / wt.sum()
+    return np.interp(qs, cum, gap)
 
 
 def _model(params, refractory_us, mismatch):
@@ -256,6 +315,39 @@ def predict_levels(params, light, window_us, settle_us, skip_us, refractory_us, 
     steps ``light``, over thresholds spread by ``spread``: mean net count, median first and last ON times, mean
     time and number of the OFF events of the decay (what :func:`level_statistics` and :func:`level_off_times`
     measure)."""
+    t, idx, p, on, off, weight, _ = _simulate_steps(params, light, window_us, settle_us, refractory_us, spread)
+    rel_size = weight.size
+    z, w = float(settle_us), float(window_us)
+    a = z + float(skip_us)
+    u_size = light.size * rel_size
+    # the slot counts the whole lit segment; the reconstruction's window starts skip_us in
+    decay = (t >= z + w) & (p == 0)
+    off_count = np.bincount(idx[decay], minlength=u_size).reshape(light.size, rel_size) @ weight
+    off_time = np.bincount(idx[decay], weights=t[decay] - (z + w), minlength=u_size).reshape(light.size, rel_size)
+    off_mean = np.where(off_count > 0, (off_time @ weight) / np.maximum(off_count, 1e-12), np.nan)
+    keep = (t >= a) & (t < z + w) & (p == 1)
+    first = np.full(u_size, np.nan)
+    last = np.full(u_size, np.nan)
+    if keep.any():
+        ti, ii = t[keep] - a, idx[keep]
+        order = np.lexsort((ti, ii))
+        ti, ii = ti[order], ii[order]
+        starts_i = np.r_[0, np.flatnonzero(np.diff(ii)) + 1]
+        ends_i = np.r_[starts_i[1:] - 1, ii.size - 1]
+        first[ii[starts_i]] = ti[starts_i]
+        last[ii[ends_i]] = ti[ends_i]
+    net = (on[0] - off[0]).astype(np.float64).reshape(light.size, rel_size)
+    counts = net @ weight
+    f = first.reshape(light.size, rel_size)
+    la = last.reshape(light.size, rel_size)
+    first_m, last_m = _row_median(f), _row_median(la)
+    return counts, first_m, last_m, off_mean, off_count
+
+
+def _simulate_steps(params, light, window_us, settle_us, refractory_us, spread):
+    """The noise-free model's pixels through dark, a step of each ``light`` for ``window_us``, and dark again,
+    over :data:`SPREAD_POINTS` thresholds spread by ``spread``: ``(t, idx, p, on, off, weight, pixels)`` (the
+    events, each pixel's counts, the thresholds' weights; pixel ``i`` has light ``i // weight.size``)."""
     theta, blank = params[0], params[1]
     sm = _model(params, refractory_us, 0.0)
     rel = np.linspace(-2.0, 2.0, SPREAD_POINTS) * spread
@@ -268,33 +360,11 @@ def predict_levels(params, light, window_us, settle_us, skip_us, refractory_us, 
     z, w = float(settle_us), float(window_us)
     starts, ends = np.array([0.0, z, z + w]), np.array([z, z + w, 2 * z + w])
     lvl = np.stack([np.full(u.size, b0), b0 + u, np.full(u.size, b0)])
-    a = z + float(skip_us)
     slot = np.array([-1, 0, -1])
     st = PixelState(lvl[0], 0.0, np.maximum(th, 1e-6), np.maximum(th, 1e-6), np.random.default_rng(0))
     t, idx, p, on, off = simulate_pixels(st, lvl, time_constant_us(np.exp(lvl), sm), np.zeros_like(lvl), starts,
                                          ends, sm, 0, emit=True, count_slot=slot, n_slots=1)
-    # the slot counts the whole lit segment; the reconstruction's window starts skip_us in
-    decay = (t >= z + w) & (p == 0)
-    off_count = np.bincount(idx[decay], minlength=u.size).reshape(light.size, rel.size) @ weight
-    off_time = np.bincount(idx[decay], weights=t[decay] - (z + w), minlength=u.size).reshape(light.size, rel.size)
-    off_mean = np.where(off_count > 0, (off_time @ weight) / np.maximum(off_count, 1e-12), np.nan)
-    keep = (t >= a) & (t < z + w) & (p == 1)
-    first = np.full(u.size, np.nan)
-    last = np.full(u.size, np.nan)
-    if keep.any():
-        ti, ii = t[keep] - a, idx[keep]
-        order = np.lexsort((ti, ii))
-        ti, ii = ti[order], ii[order]
-        starts_i = np.r_[0, np.flatnonzero(np.diff(ii)) + 1]
-        ends_i = np.r_[starts_i[1:] - 1, ii.size - 1]
-        first[ii[starts_i]] = ti[starts_i]
-        last[ii[ends_i]] = ti[ends_i]
-    net = (on[0] - off[0]).astype(np.float64).reshape(light.size, rel.size)
-    counts = net @ weight
-    f = first.reshape(light.size, rel.size)
-    la = last.reshape(light.size, rel.size)
-    first_m, last_m = _row_median(f), _row_median(la)
-    return counts, first_m, last_m, off_mean, off_count
+    return t, idx, p, on, off, weight, u.size
 
 
 def _row_median(a):
@@ -355,6 +425,7 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
     pixels do. With ``times`` False (time stamps too coarse, a frame
     readout) the first ON times are left out and ``tau_min_us`` stays the
     ``start`` model's. The OFF threshold follows from the decays' OFF counts.
+    The refractory period is ``refractory_us`` (:func:`fit_refractory` measures it).
     """
     light, counts = stats.light, stats.counts
     if light.size < 2:

@@ -269,7 +269,7 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
     else:
         values = linearize(counts.on * gain, counts.off * gain, theta_on, theta_off)
 
-    pairs = ideal = regularisation = None
+    pairs = ideal = regularisation = level_check = None
     deblurred = False
     if schedule is not None:
         kernels, features = sim.kernels, sim.features
@@ -284,19 +284,22 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
         if aligned is not None:  # shifted or scaled only: still along the sensor's axes
             (origin, step), placement = aligned, None
         shape = (fh + kh - 1, fw + kw - 1)
+        view = placement if placement is not None else CellMap(
+            np.array([[step, 0.0, origin[0]], [0.0, step, origin[1]], [0.0, 0.0, 1.0]]), 0.0,
+            (bench.sensor_width, bench.sensor_height))
+        inner = interior_pixels(region, origin, step, (kh, kw), (fh, fw), cell_map=view)
+        is_level = schedule.kernel_id == LEVEL_ID
+        if linear and is_level.any() and inner.any():  # the level captures' known light, read back
+            level_check = [float(np.median(values[c][inner]) / schedule.level[c]) for c in np.flatnonzero(is_level)
+                           if schedule.level[c] > 0]
         if deblur is None:  # a decimated reconstruction does not have the neighbours deblurring needs
             deblur = gain is not None and bench.decimation == 1
         deblurred = bool(deblur) and abs(bench.kernel_step_cells - 1.0) < 1e-9 and bench.decimation == 1
         if deblurred:  # undo the footprint (sources, pixels, diffuser) and the defocus through the whole view
             on_pixels, pairs = combine_passes(values, schedule)
-            view = placement if placement is not None else CellMap(
-                np.array([[step, 0.0, origin[0]], [0.0, step, origin[1]], [0.0, 0.0, 1.0]]), 0.0,
-                (bench.sensor_width, bench.sensor_height))
             a_mat = sampling_matrix(bench, view.to_cells, region, shape, sim.blur_px)
             v = on_pixels.reshape(len(pairs), -1)
-            share = relative_noise(values, schedule.level, schedule.kernel_id == LEVEL_ID,
-                                   schedule.kernel_id == FLAT_ID,
-                                   interior_pixels(region, origin, step, (kh, kw), (fh, fw), cell_map=view))
+            share = relative_noise(values, schedule.level, is_level, schedule.kernel_id == FLAT_ID, inner)
             if share is not None:  # the run's own error against the responses' power
                 power, _ = combine_passes(values ** 2, schedule, signed=False)
                 regularisation = wiener_lambda(a_mat, v.T, share ** 2 * power.reshape(len(pairs), -1).T)
@@ -342,6 +345,9 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
         "skip_us": int(skip_us),
         "length_us": None if length_us is None else int(length_us),
         "deblurred": bool(deblurred),
+        # each level capture's light read back (median over the interior) over the light it had: 1 when the
+        # linearisation is right
+        "level_light_ratio": level_check,
         # the deblur's Tikhonov regularisation, relative to the sampling matrix's largest singular value
         "deblur_regularisation": regularisation,
         "flat_field_captures": 0 if gain is None else int(np.sum(schedule.kernel_id == FLAT_ID)),
