@@ -53,6 +53,11 @@ class Reconstruction:
     counts : WindowCounts
     summary : dict
         Captures, windows, events used and dropped, parameters, errors.
+    thresholds : ndarray (rows, cols) or None
+        Each pixel's ON threshold (log units) as the linearisation used it:
+        from the flat fields' event times where they fit the model, else
+        the nominal one scaled by the flat-field gain (None when the event
+        times were not used).
     """
 
     responses: np.ndarray
@@ -62,6 +67,7 @@ class Reconstruction:
     ideal: np.ndarray | None
     counts: WindowCounts
     summary: dict
+    thresholds: np.ndarray | None = None
 
     def groups(self) -> dict:
         """Indices of the responses of each scene: ``{(kernel_id, features_id): [i, ...]}`` over repeats.
@@ -253,14 +259,15 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
     gain = None
     if linear and flat_field and schedule is not None and np.any(schedule.kernel_id == FLAT_ID):
         gain = flat_field_gain(net[schedule.kernel_id == FLAT_ID], _expected_flat_counts(sim, bench, region, curve, theta_on))
-    timed_share = None
+    timed_share = thresholds = None
     why = _no_timing(counts, sim, schedule, curve, skip_us) if timing is not False else "not asked for"
     if why is not None and timing:
         raise EvtkError(f"timing linearisation is not possible: {why}")
     if not linear:
         values = net
     elif why is None:  # the pixel model, read below one threshold from the event times
-        values, timed_share = _refine_by_timing(net if gain is None else net * gain, counts, sim, bench, schedule,
+        values, timed_share, thresholds = _refine_by_timing(net if gain is None else net * gain, counts, sim, bench,
+                                                            schedule,
                                                 curve, gain, theta_on, skip_us)
     elif curve is not None:  # invert the recording's own pixel model
         values = linearize_by_model(net if gain is None else net * gain, curve)
@@ -360,7 +367,7 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
     }
     if ideal is not None:
         summary["error"] = response_error(cells, ideal)
-    return Reconstruction(responses, binary, pairs, cells, ideal, counts, summary)
+    return Reconstruction(responses, binary, pairs, cells, ideal, counts, summary, thresholds)
 
 
 def pair_ideals(pairs, kernels, features, bench):
@@ -397,7 +404,7 @@ def _refine_by_timing(net, counts, sim, bench, schedule, curve, gain, theta_on, 
 
     Thresholds: nominal, or per pixel from the flat-field windows' times
     (:func:`timing_thresholds`), else from the flat-field count gain.
-    Returns the values (``exp(u) - 1``) and the share of pixel-windows the times set.
+    Returns the values (``exp(u) - 1``), the share of pixel-windows the times set, and each pixel's threshold.
     """
     sm = sim.sensor
     blank = sim.blank_rate_e_per_s
@@ -416,4 +423,4 @@ def _refine_by_timing(net, counts, sim, bench, schedule, curve, gain, theta_on, 
     ok = np.isfinite(u)
     u[~ok] = _model_log_step(net[~ok], curve)
     u[ok] += _settle_residual(u, schedule.t_on_us, schedule.t_off_us, sm, blank)[ok]
-    return np.expm1(u), float(ok.mean()) if ok.size else 0.0
+    return np.expm1(u), float(ok.mean()) if ok.size else 0.0, theta
