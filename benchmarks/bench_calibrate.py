@@ -119,9 +119,11 @@ def main():
             read_cal = best(lambda: evtk.read_events(cal_path), args.runs)
             read_job = best(lambda: evtk.read_events(job_path), args.runs)
             cal_s = best(lambda: calibrate(rec_cal, cal_sched), args.runs)
+            placed = {"cell_map": cal.cell_map(), "blur_px": cal.blur_px}
             job_s = best(lambda: reconstruct_calibrated(rec_job, job_sched, cal.region, cal.origin_px,
-                                                        pixel_model=cal.pixel_model), args.runs)
-            fit_s = best(lambda: reconstruct_calibrated(rec_cal, cal_sched, cal.region, cal.origin_px), args.runs)
+                                                        pixel_model=cal.pixel_model, **placed), args.runs)
+            fit_s = best(lambda: reconstruct_calibrated(rec_cal, cal_sched, cal.region, cal.origin_px, **placed),
+                         args.runs)
             plain_s = best(lambda: reconstruct_bench(rec_job, job_sched, cal.region, cal.origin_px), args.runs)
             dv_s = best(lambda: dv_read(job_path), args.runs)
     out = {"writer": args.writer, "dv_read_job_s": dv_s, "events_job": n_job, "events_calibration_run": n_cal,

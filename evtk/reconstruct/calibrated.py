@@ -95,10 +95,9 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         (same bench, light and camera settings assumed).
     cell_map : CellMap, optional
         The calibration's whole map from cells to pixels
-        (:meth:`evtk.calibrate.Calibration.cell_map`). The pipeline resamples
-        along the sensor's axes (and deblurs) when it is a scale and shift,
-        else samples through it (:func:`~evtk.reconstruct.grid.sample_response_grid`,
-        not deblurred).
+        (:meth:`evtk.calibrate.Calibration.cell_map`), through which the
+        pipeline deblurs (:mod:`evtk.reconstruct.deblur`), or, without
+        deblurring, samples each cell (:func:`~evtk.reconstruct.grid.sample_response_grid`).
     blur_px : float
         The camera's defocus (:attr:`evtk.calibrate.Calibration.blur_px`),
         deblurred with the footprint (:mod:`evtk.reconstruct.deblur`); it goes

@@ -182,12 +182,12 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         the whole sensor.
     deblur : bool or None
         With a simulation record and matched scaling, undo the known footprint
-        blur (extended sources, pixel area, diffuser) by solving the linear
-        sampling model on the full response. It restores the scale but
-        amplifies what is left of count quantisation and threshold mismatch
-        (up to 4x at the finest detail). ``None`` (default): deblur when the
-        pixels are flat-field calibrated, where it helps on average (see
-        ``benchmarks/bench_accuracy.py``).
+        blur (extended sources, pixel area, diffuser, the camera's pose and
+        defocus) by solving the sampling model on the full response in two
+        dimensions (:mod:`evtk.reconstruct.deblur`), regularised by the noise
+        the recording's level captures or flat fields show. ``None``
+        (default): deblur when the pixels are flat-field calibrated, where it
+        helps on average (see ``benchmarks/bench_accuracy.py``).
     flat_field : bool
         Calibrate each pixel's threshold on the recording's flat-field
         captures, when it has any (:func:`flat_field_gain`).
