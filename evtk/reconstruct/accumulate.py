@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numba
 import numpy as np
 
@@ -11,8 +13,23 @@ from .windows import WindowCounts, Windows
 
 __all__ = ["accumulate"]
 
+_END = object()
 
-@numba.njit(cache=True)
+
+def _prefetched(chunks):
+    """Yield the items of the iterator ``chunks`` while the next one is produced on another thread: the next
+    chunk is read and decoded (on the I/O threads) while this one is counted."""
+    with ThreadPoolExecutor(1, thread_name_prefix="evtk-prefetch") as ex:
+        pending = ex.submit(next, chunks, _END)
+        while True:
+            item = pending.result()
+            if item is _END:
+                return
+            pending = ex.submit(next, chunks, _END)
+            yield item
+
+
+@numba.njit(cache=True, nogil=True)
 def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, started, first, last):
     """Add the chunk's events to every window; returns the number counted.
 
@@ -140,7 +157,7 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
     if isinstance(source, Events):
         chunks = [source.sorted()]
     else:
-        chunks = source.iter_events(chunk_events=chunk_events, t_start_us=span[0], t_end_us=span[1])
+        chunks = _prefetched(source.iter_events(chunk_events=chunk_events, t_start_us=span[0], t_end_us=span[1]))
     used = 0
     total = np.zeros(n_w, np.int64)
     flat = counts.reshape(-1)

@@ -44,9 +44,11 @@ def combine_passes(values, schedule, signed=True):
     pairs, which = np.unique(keys, axis=0, return_inverse=True)
     which = np.asarray(which).reshape(-1)
     sign = (schedule.kernel_sign * schedule.features_sign).astype(np.float64)[use] if signed else np.ones(int(use.sum()))
-    out = np.zeros((len(pairs),) + values.shape[1:], dtype=np.float64)
-    np.add.at(out, which, values[use] * sign.reshape((-1,) + (1,) * (values.ndim - 1)))
-    return out, pairs
+    # each capture belongs to one pair: sum the pairs' runs in one sorted pass (np.add.at is ten times slower)
+    order = np.argsort(which, kind="stable")
+    terms = values[use][order] * sign[order].reshape((-1,) + (1,) * (values.ndim - 1))
+    starts = np.flatnonzero(np.r_[True, np.diff(which[order]) != 0])
+    return np.add.reduceat(terms.astype(np.float64, copy=False), starts, axis=0), pairs
 
 
 def overlap_matrix(n_cells, first_edge, step, n_pixels):
