@@ -247,7 +247,7 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
                                         cell_map=cal.cell_map()).to_dict()
     x0, x1, y0, y1 = cal.region
     net = (dot_counts.on[:, y0:y1, x0:x1].astype(np.float64) - dot_counts.off[:, y0:y1, x0:x1]).mean(axis=0)
-    cal.blur_px = dot_blur_px(net, cal.region, cal.cell_map(), bench, np.rint(src[inliers]).astype(np.int64), (rows, cols),
+    cal.blur_px = dot_blur_px(net, cal.region, cal.cell_map(), bench, np.rint(expected).astype(np.int64), (rows, cols),
                               model=PixelFit.from_dict(cal.pixel_model) if cal.pixel_model else None)
     cal.background_rate_hz = background_rate_hz(rec, win.t_end_us, sched["settle_us"], cal.region)
     return cal
@@ -256,33 +256,34 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
 def dot_blur_px(net, region, cell_map, bench, dot_cells, shape, model=None, radius_px=3, max_px=3.0):
     """The camera's defocus (Gaussian standard deviation, pixels) that best explains the dots' counts.
 
-    Each dot lights one response cell. Through the fitted map, the bench's
-    footprint (pixel area, source extent, shadow blur) and a trial defocus,
-    :func:`~evtk.reconstruct.deblur.sampling_matrix` predicts the light each
-    pixel near the dot gets; the pixels' response turns it into counts,
-    by the fitted pixel model (``model``, a :class:`~evtk.reconstruct.PixelFit`:
-    its mean count at each light) or, without one, ``log(1 + a L) / theta``
-    with ``a`` and ``theta`` free. The defocus is searched on a grid of
-    0.05 px from 0 to ``max_px`` (then refined by a parabola), the
-    light's scale fitted at each step by least squares; the mean net counts
-    ``net`` (over the region, per dot capture) are the data, over the pixels
-    within ``radius_px`` of each dot.
+    Each dot lights one response cell, all of them at once. Through the
+    fitted map, the bench's footprint (pixel area, source extent, shadow
+    blur) and a trial defocus, :func:`~evtk.reconstruct.deblur.sampling_matrix`
+    predicts the light each pixel gets from all the dots ``dot_cells``
+    (column, row) together; the pixels' response turns it into counts, by the
+    fitted pixel model (``model``, a :class:`~evtk.reconstruct.PixelFit`: its
+    mean count at each light) or, without one, ``log(1 + a L) / theta`` with
+    ``a`` and ``theta`` free. The defocus is searched on a grid of 0.05 px
+    from 0 to ``max_px`` (then refined by a parabola), the light's scale
+    fitted at each step by least squares; the mean net counts ``net`` (over
+    the region, per dot capture) are the data, over the pixels within
+    ``radius_px`` of a dot.
     """
     x0, x1, y0, y1 = (int(v) for v in region)
     net = np.asarray(net, np.float64)
     rows, cols = (int(v) for v in shape)
     cells = np.asarray(dot_cells, np.int64)  # (column, row)
-    a0 = sampling_matrix(bench, cell_map.to_cells, region, shape)[:, cells[:, 1] * cols + cells[:, 0]]
-    a0 = a0.reshape(y1 - y0, x1 - x0, -1)
+    lit = np.zeros(rows * cols)
+    lit[cells[:, 1] * cols + cells[:, 0]] = 1.0
+    a0 = (sampling_matrix(bench, cell_map.to_cells, region, shape) @ lit).reshape(y1 - y0, x1 - x0)
     centres = cell_map.to_pixels(cells.astype(np.float64)) - [x0, y0]
     yy, xx = np.mgrid[0:y1 - y0, 0:x1 - x0]
-    near = np.stack([(xx - cx) ** 2 + (yy - cy) ** 2 <= radius_px ** 2 for cx, cy in centres], axis=-1)
-    near &= near.sum(axis=-1, keepdims=True) == 1  # a pixel near two dots is left out
-    owner = np.argmax(near, axis=-1)
-    use = near.any(axis=-1)
+    use = np.zeros(a0.shape, bool)
+    for cx, cy in centres:
+        use |= (xx - cx) ** 2 + (yy - cy) ** 2 <= radius_px ** 2
     data = net[use]
-    if data.size < 3 * len(cells):
-        raise EvtkError("too few pixels near the calibration dots to measure the camera's blur")
+    if data.size < 3 or not np.any(data > 0):
+        raise EvtkError("no counts near the calibration dots to measure the camera's blur from")
     if model is not None:
         grid = np.linspace(0.0, 4.0, 81)
         params = np.array([model.sensor.theta_on, model.blank, model.sensor.tau_min_us, model.tau_dark_us])
@@ -299,8 +300,7 @@ def dot_blur_px(net, region, cell_map, bench, dot_cells, shape, model=None, radi
         start, lo, hi = [1.0, 0.2], [1e-3, 1e-3], [1e3, 10.0]
 
     def misfit(sigma):
-        a = gaussian_filter(a0, (sigma, sigma, 0), mode="constant") if sigma > 0 else a0
-        light = np.take_along_axis(a, owner[..., None], axis=-1)[..., 0][use]
+        light = (gaussian_filter(a0, sigma, mode="constant") if sigma > 0 else a0)[use]
         fit = least_squares(lambda p: counts(light, p) - data, start, bounds=(lo, hi))
         return float(np.sum(fit.fun ** 2))
 
