@@ -285,8 +285,7 @@ def fit_refractory(fit: PixelFit, light, gaps, skip_us=0, max_us=None):
 def _predicted_gaps(params, light, window_us, settle_us, skip_us, refractory_us, spread, qs):
     """Quantiles ``qs`` of the noise-free model's ON-event gaps on one step of ``light``, over its thresholds'
     spread (each pixel's gaps weighted by its share)."""
-    t, idx, p, _, _, weight, n_px = _simulate_steps(params, np.array([light]), window_us, settle_us, refractory_us,
-                                                    spread)
+    t, idx, p, _, _, weight = _simulate_steps(params, np.array([light]), window_us, settle_us, refractory_us, spread)
     z, w = float(settle_us), float(window_us)
     keep = (t >= z + float(skip_us)) & (t < z + w) & (p == 1)
     ti, ii = t[keep], idx[keep]
@@ -315,7 +314,7 @@ def predict_levels(params, light, window_us, settle_us, skip_us, refractory_us, 
     steps ``light``, over thresholds spread by ``spread``: mean net count, median first and last ON times, mean
     time and number of the OFF events of the decay (what :func:`level_statistics` and :func:`level_off_times`
     measure)."""
-    t, idx, p, on, off, weight, _ = _simulate_steps(params, light, window_us, settle_us, refractory_us, spread)
+    t, idx, p, on, off, weight = _simulate_steps(params, light, window_us, settle_us, refractory_us, spread)
     rel_size = weight.size
     z, w = float(settle_us), float(window_us)
     a = z + float(skip_us)
@@ -346,8 +345,8 @@ def predict_levels(params, light, window_us, settle_us, skip_us, refractory_us, 
 
 def _simulate_steps(params, light, window_us, settle_us, refractory_us, spread):
     """The noise-free model's pixels through dark, a step of each ``light`` for ``window_us``, and dark again,
-    over :data:`SPREAD_POINTS` thresholds spread by ``spread``: ``(t, idx, p, on, off, weight, pixels)`` (the
-    events, each pixel's counts, the thresholds' weights; pixel ``i`` has light ``i // weight.size``)."""
+    over :data:`SPREAD_POINTS` thresholds spread by ``spread``: ``(t, idx, p, on, off, weight)`` (the events,
+    each pixel's counts, the thresholds' weights; pixel ``i`` has light ``i // weight.size``)."""
     theta, blank = params[0], params[1]
     sm = _model(params, refractory_us, 0.0)
     rel = np.linspace(-2.0, 2.0, SPREAD_POINTS) * spread
@@ -364,7 +363,7 @@ def _simulate_steps(params, light, window_us, settle_us, refractory_us, spread):
     st = PixelState(lvl[0], 0.0, np.maximum(th, 1e-6), np.maximum(th, 1e-6), np.random.default_rng(0))
     t, idx, p, on, off = simulate_pixels(st, lvl, time_constant_us(np.exp(lvl), sm), np.zeros_like(lvl), starts,
                                          ends, sm, 0, emit=True, count_slot=slot, n_slots=1)
-    return t, idx, p, on, off, weight, u.size
+    return t, idx, p, on, off, weight
 
 
 def _row_median(a):
