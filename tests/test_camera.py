@@ -104,8 +104,9 @@ def test_radial_distortion_is_fitted_where_it_shows():
 @pytest.mark.parametrize("readout_us", [0.0, 200.0])
 def test_reconstruction_through_a_random_pose_stays_near_the_oracle(tmp_path, readout_us):
     """The calibrated route (placement from the run's dots, model from its levels) against the oracle that knows
-    the camera, shot noise on, both readouts: within 15 % (measured: 1.02 to 1.10 over five poses on each
-    readout)."""
+    the camera, shot noise on, both readouts: within 15 % (this pose: 1.04 and 1.07; over five poses 0.98 to 1.16
+    asynchronous, the 1.16 from a pixel-model fit whose time constant came out 16 % low, and 0.98 to 1.07 on the
+    frame readout)."""
     rng = np.random.default_rng(2)
     cam = _random_camera(rng, rotation=2.0, defocus=0.3)
     k, f = rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16))
