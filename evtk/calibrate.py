@@ -176,7 +176,7 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     ``pixel_model`` and level captures in the run, the pixel model is fitted
     too (:attr:`Calibration.pixel_model`), and the defocus measured through it
     (:attr:`Calibration.blur_px`; without a model, through a logarithmic
-    response, which reads it about a fifth low).
+    response, which reads it low: 0.6 and 1.0 px as 0.44 and 0.92).
     """
     sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
     s, kernels, features = sched["schedule"], sched["kernels"], sched["features"]

@@ -63,15 +63,15 @@ def test_a_well_posed_system_is_solved_exactly_and_noise_is_damped_by_its_measur
     region, origin = _nominal(bench)
     truth = RNG.normal(size=(40, 18 * 18))
     a = sampling_matrix(bench, lambda p: p - origin, region, (18, 18))
-    assert np.allclose(solve_cells(truth @ a.T, a, lam=0.0), truth, atol=1e-8)
+    assert np.allclose(solve_cells(truth @ a.T, a, lam=0.0)[0], truth, atol=1e-8)
     blurred = sampling_matrix(bench, lambda p: p - origin, region, (18, 18), blur_px=1.0)
     clean = truth @ blurred.T
     lams, errors = [], []
     for sigma in (1e-4, 0.05, 0.5):
         noisy = clean + RNG.normal(scale=sigma, size=clean.shape)
         lam = wiener_lambda(blurred, noisy.T, np.full(noisy.T.shape, sigma ** 2))
-        plain = np.sqrt(np.mean((solve_cells(noisy, blurred, lam=0.0) - truth) ** 2))
-        damped = np.sqrt(np.mean((solve_cells(noisy, blurred, lam) - truth) ** 2))
+        plain = np.sqrt(np.mean((solve_cells(noisy, blurred, lam=0.0)[0] - truth) ** 2))
+        damped = np.sqrt(np.mean((solve_cells(noisy, blurred, lam)[0] - truth) ** 2))
         lams.append(lam)
         errors.append((damped, plain))
     assert lams[0] < 0.01 < lams[1] < lams[2]  # more noise, more regularisation; none to speak of without

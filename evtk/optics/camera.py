@@ -232,6 +232,13 @@ class CellMap:
     k1: float
     sensor_size: tuple
 
+    @classmethod
+    def scale_shift(cls, origin_px, step_px, sensor_size) -> CellMap:
+        """The map of a square view: cell ``(j, i)`` on pixel ``origin_px + (j, i) * step_px``."""
+        ox, oy = (float(v) for v in origin_px)
+        step = float(step_px)
+        return cls(np.array([[step, 0.0, ox], [0.0, step, oy], [0.0, 0.0, 1.0]]), 0.0, tuple(sensor_size))
+
     def _frame(self):
         w, h = (float(v) for v in self.sensor_size)
         return np.array([(w - 1) / 2, (h - 1) / 2]), 0.5 * math.hypot(w, h)

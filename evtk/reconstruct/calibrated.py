@@ -197,17 +197,6 @@ def fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us=0, cell_
     gaps = on_gaps(rec, t_on, np.asarray(t_off_us)[bright], counts.region, inside) if fine else np.zeros(0)
     fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine)
     refractory, resolved = fit_refractory(fit, stats.light.max(), gaps, skip_us)
-    if resolved is None:  # the model fits no gaps: a long period flattened the counts; refit from the gaps' floor
-        tries = []
-        for share in (0.5, 0.75, 0.9):
-            trial = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread,
-                                    times=fine, refractory_us=max(1.0, share * refractory_bound(gaps)))
-            r, ok = fit_refractory(trial, stats.light.max(), gaps, skip_us)
-            if ok is not None:
-                tries.append((trial.rms_counts, r, ok, trial))
-        if tries:
-            _, refractory, resolved, fit = min(tries, key=lambda t: t[0])
-        resolved = bool(resolved)
     if resolved:  # a period that shows in the gaps limits the bright steps' counts too: the model again with it
         fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, refractory_us=refractory,
                               spread=spread, times=fine)

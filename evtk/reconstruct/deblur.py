@@ -82,6 +82,8 @@ def sampling_matrix(bench, to_cells, region, shape, blur_px=0.0, supersample=4, 
     r = int(math.ceil(0.5 * (a + b) + 5.0 * psf)) + 1
     offsets = np.arange(-r, r + 1)
 
+    # the footprint of evtk.optics.axis_weights (a pixel a sample wide), but over the few cells around each sample:
+    # the dense form over every cell took four times as long here
     def weights(u, n_cells):  # (N, 2r + 1) shares of the cells around u, and their indices
         n = np.floor(u).astype(np.int64)[:, None] + offsets[None, :]
         low = u[:, None] - 0.5 * (a + b)
@@ -142,7 +144,7 @@ def _top_eigenvalue(gram):
     return top
 
 
-def wiener_lambda(a_mat, v, noise_var):
+def wiener_lambda(a_mat, v, noise_var, top=None):
     """The relative ``lam`` of a Gaussian prior on the cells against the measured noise: ``lam^2 s_max^2 =
     sigma_n^2 / sigma_c^2``.
 
@@ -150,18 +152,20 @@ def wiener_lambda(a_mat, v, noise_var):
     expected error variance; ``sigma_n^2`` is that variance averaged over the
     pixels weighted by the light each collects, ``sigma_c^2`` the cells'
     variance the responses' power leaves once the noise is taken off.
+    ``top`` is ``s_max^2`` when known.
     """
     rows = np.sum(a_mat * a_mat, axis=1)
     noise = float(rows @ noise_var.mean(axis=1) / max(rows.sum(), 1e-300))
     signal = (float(np.sum(v * v)) - float(np.sum(noise_var))) / v.shape[1] / max(float(rows.sum()), 1e-300)
-    with threadpool_limits(1, user_api="blas"):  # see solve_cells
-        top = _top_eigenvalue(a_mat.T @ a_mat)
+    if top is None:
+        with threadpool_limits(1, user_api="blas"):  # see solve_cells
+            top = _top_eigenvalue(a_mat.T @ a_mat)
     if signal <= 0:  # the responses are all noise: regularise as far as the range goes
         return 1.0
     return float(min(1.0, math.sqrt(noise / signal / top)))
 
 
-def solve_cells(values, a_mat, lam=0.0):
+def solve_cells(values, a_mat, lam=0.0, noise_var=None):
     """Cell values from pixel values through ``a_mat`` (:func:`sampling_matrix`), Tikhonov-regularised:
     ``argmin |A c - v|^2 + (lam s_max)^2 |c|^2`` for each response ``v``, ``s_max`` the largest singular value.
 
@@ -170,23 +174,30 @@ def solve_cells(values, a_mat, lam=0.0):
     values : ndarray (..., pixels)
     a_mat : ndarray (pixels, cells)
     lam : float
-        Relative regularisation (:func:`wiener_lambda`, :data:`DEFAULT_LAMBDA`); 0 is plain least squares.
+        Relative regularisation (:data:`DEFAULT_LAMBDA`); 0 is plain least squares.
+    noise_var : ndarray (..., pixels), optional
+        The values' expected error variance: ``lam`` is then
+        :func:`wiener_lambda`'s instead.
+
+    Returns ``(cells (..., cells), lam)``.
     """
     values = np.asarray(values, dtype=np.float64)
     lead = values.shape[:-1]
     v = values.reshape(-1, values.shape[-1]).T  # (pixels, m)
     if v.shape[0] != a_mat.shape[0]:
         raise EvtkError(f"{v.shape[0]} pixel values for a sampling matrix of {a_mat.shape[0]} pixels")
-    if not (math.isfinite(lam) and lam >= 0):
-        raise EvtkError(f"the regularisation must be a finite number >= 0, not {lam}")
     # one BLAS thread: these matrices are small, and OpenBLAS's threads spin for a while after each call,
     # taking a core from the next read's decompression (measured: 25 ms more on the next 3.8 M-event read)
     with threadpool_limits(1, user_api="blas"):
         gram = a_mat.T @ a_mat
         top = _top_eigenvalue(gram)
+        if noise_var is not None:
+            lam = wiener_lambda(a_mat, v, np.asarray(noise_var, np.float64).reshape(v.T.shape).T, top)
+        if not (math.isfinite(lam) and lam >= 0):
+            raise EvtkError(f"the regularisation must be a finite number >= 0, not {lam}")
         gram[np.diag_indices(gram.shape[0])] += lam * lam * top
         try:
             cells = cho_solve(cho_factor(gram), a_mat.T @ v)
         except LinAlgError:  # lam = 0 on a singular system
             cells = np.linalg.lstsq(a_mat, v, rcond=None)[0]
-    return cells.T.reshape(lead + (a_mat.shape[1],))
+    return cells.T.reshape(lead + (a_mat.shape[1],)), float(lam)

@@ -259,9 +259,10 @@ def fit_refractory(fit: PixelFit, light, gaps, skip_us=0, max_us=None):
     ``max_us`` (default twice the smallest gap). ``resolved`` is False when
     the fitted period moves the predicted gaps by less than a time stamp's
     1 µs from the least period's (the crossings themselves are slower: the
-    gaps bound the period from above only), and None when the model gives
-    no gaps at all (a fit that failed, e.g. on counts a long period
-    flattened); the model then keeps its period.
+    gaps bound the period from above only) or the model gives no gaps at
+    all (a fit that failed, e.g. on counts a long period flattened, which
+    the calibrated route then catches on the level captures); the model then
+    keeps its period.
     """
     g = np.asarray(gaps, np.float64)
     if g.size < 20:
@@ -275,7 +276,7 @@ def fit_refractory(fit: PixelFit, light, gaps, skip_us=0, max_us=None):
     predicted = np.array([_predicted_gaps(params, float(light), fit.window_us, fit.settle_us, skip_us, r, spread, qs)
                           for r in grid])
     if not np.isfinite(predicted).any(axis=1).all():
-        return fit.sensor.refractory_us, None
+        return fit.sensor.refractory_us, False
     i = int(np.argmin(np.nansum((predicted - observed) ** 2, axis=1)))
     if not np.nanmax(np.abs(predicted[i] - predicted[0])) > 1.0:
         return fit.sensor.refractory_us, False

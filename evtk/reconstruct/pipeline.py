@@ -15,7 +15,7 @@ from ..simulate import FLAT_ID, LEVEL_ID
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
-from .deblur import DEFAULT_LAMBDA, relative_noise, sampling_matrix, solve_cells, wiener_lambda
+from .deblur import DEFAULT_LAMBDA, relative_noise, sampling_matrix, solve_cells
 from .fit import interior_pixels
 from .grid import combine_passes, downsample, sample_response_grid, to_response_grid
 from .linearize import (
@@ -284,16 +284,15 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
         fh, fw = features.shape[1:]
         if linear:  # relative change -> light above the dark level, in response units
             values = values * sim.blank_rate_e_per_s / sim.gain_e_per_s_per_unit
+        shape = (fh + kh - 1, fw + kw - 1)
         step = bench.kernel_step_cells / bench.pixel_cells
         placement = sim.placement()
         origin = sim.response_origin_px
-        aligned = None if placement is None else placement.axis_aligned((fh + kh - 1, fw + kw - 1))
+        aligned = None if placement is None else placement.axis_aligned(shape)
         if aligned is not None:  # shifted or scaled only: still along the sensor's axes
             (origin, step), placement = aligned, None
-        shape = (fh + kh - 1, fw + kw - 1)
-        view = placement if placement is not None else CellMap(
-            np.array([[step, 0.0, origin[0]], [0.0, step, origin[1]], [0.0, 0.0, 1.0]]), 0.0,
-            (bench.sensor_width, bench.sensor_height))
+        view = placement if placement is not None else CellMap.scale_shift(
+            origin, step, (bench.sensor_width, bench.sensor_height))
         inner = interior_pixels(region, origin, step, (kh, kw), (fh, fw), cell_map=view)
         is_level = schedule.kernel_id == LEVEL_ID
         if linear and is_level.any() and inner.any():  # the level captures' known light, read back
@@ -305,16 +304,14 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
         if deblurred:  # undo the footprint (sources, pixels, diffuser) and the defocus through the whole view
             on_pixels, pairs = combine_passes(values, schedule)
             a_mat = sampling_matrix(bench, view.to_cells, region, shape, sim.blur_px)
-            v = on_pixels.reshape(len(pairs), -1)
             share = relative_noise(values, schedule.level, is_level, schedule.kernel_id == FLAT_ID, inner)
+            noise_var = None
             if share is not None:  # the run's own error against the responses' power
-                power, _ = combine_passes(values ** 2, schedule, signed=False)
-                regularisation = wiener_lambda(a_mat, v.T, share ** 2 * power.reshape(len(pairs), -1).T)
-            elif placement is None and sim.blur_px == 0:  # nothing to say how much: the plain inverse, as ever
-                regularisation = 0.0
-            else:
-                regularisation = DEFAULT_LAMBDA
-            combined = solve_cells(v, a_mat, regularisation).reshape((len(pairs),) + shape)
+                noise_var = share ** 2 * combine_passes(values ** 2, schedule, signed=False)[0].reshape(len(pairs), -1)
+            # else nothing says how much: the plain inverse for a square view, a measured default otherwise
+            lam = 0.0 if placement is None and sim.blur_px == 0 else DEFAULT_LAMBDA
+            solved, regularisation = solve_cells(on_pixels.reshape(len(pairs), -1), a_mat, lam, noise_var)
+            combined = solved.reshape((len(pairs),) + shape)
         else:
             if placement is not None:  # sampled through the map
                 cells = sample_response_grid(values, region, placement, shape)

@@ -87,10 +87,9 @@ class SimulationRecord:
         if self.camera is None:
             return None
         cam = Camera.from_dict(self.camera)
-        ox, oy = self.response_origin_px
-        step = self.bench.kernel_step_cells / self.bench.pixel_cells
-        nominal = np.array([[step, 0.0, ox], [0.0, step, oy], [0.0, 0.0, 1.0]])
-        return CellMap(cam.homography(size) @ nominal, cam.k1, size)
+        nominal = CellMap.scale_shift(self.response_origin_px, self.bench.kernel_step_cells / self.bench.pixel_cells,
+                                      size)
+        return CellMap(cam.homography(size) @ nominal.matrix, cam.k1, size)
 
     @property
     def blur_px(self) -> float:
