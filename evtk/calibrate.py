@@ -389,7 +389,7 @@ def _plot_pixel_model(ax, fit):
     light = np.linspace(0.25, float(st.light.max()) * 1.05, 60)
     params = np.array([fit.sensor.theta_on, fit.blank, fit.sensor.tau_min_us, fit.tau_dark_us])
     spread = fit.sensor.theta_mismatch / fit.sensor.theta_on
-    n, _, _, _, _ = predict_levels(params, light, fit.window_us, fit.settle_us, 0, fit.sensor.refractory_us, spread)
+    n = predict_levels(params, light, fit.window_us, fit.settle_us, 0, fit.sensor.refractory_us, spread)[0]
     ax.plot(light, n, "-", color="C0", label="fitted pixel model")
     ax.plot(st.light, st.counts, "o", color="C1", label="level captures (mean)")
     ax.set_xlabel("light (kernel elements on flat features)")

@@ -37,9 +37,11 @@ from .fit import (
     fitted_record,
     interior_pixels,
     level_off_times,
+    level_rise_times,
     level_statistics,
     on_gaps,
     refractory_bound,
+    rise_orders,
 )
 from .pipeline import MAX_TIMING_STAMP_US, check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
@@ -195,9 +197,16 @@ def fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us=0, cell_
     bright = is_level & (sub.level == sub.level[is_level].max()) if is_level.any() else is_level
     t_on = np.asarray(t_off_us)[bright] - int(sched["window_us"])
     gaps = on_gaps(rec, t_on, np.asarray(t_off_us)[bright], counts.region, inside) if fine else np.zeros(0)
+    # first timed by the first ON events, which no refractory period delays, so that the gaps can measure it
     fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine)
     refractory, resolved = fit_refractory(fit, stats.light.max(), gaps, skip_us)
-    if resolved:  # a period that shows in the gaps limits the bright steps' counts too: the model again with it
+    if fine:  # then timed half-way up the rise (fit_pixel_model), with the period where the gaps showed it
+        orders = rise_orders(stats.counts)
+        t_lv = np.asarray(t_off_us)[is_level]
+        rise = level_rise_times(rec, t_lv - int(sched["window_us"]) + int(skip_us), t_lv, sub.level[is_level], orders,
+                                counts.region, inside)
+        stats = dataclasses.replace(stats, rise_order=orders, rise_us=rise)
+    if fine or resolved:  # a period that shows in the gaps limits the bright steps' counts too
         fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, refractory_us=refractory,
-                              spread=spread, times=fine)
+                              spread=spread, times=fine, initial=fit)
     return dataclasses.replace(fit, refractory_bound_us=refractory_bound(gaps), refractory_resolved=resolved)
