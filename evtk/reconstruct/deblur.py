@@ -30,8 +30,8 @@ import numpy as np
 from numpy.linalg import LinAlgError
 from scipy.linalg import cho_factor, cho_solve, eigvalsh
 from scipy.ndimage import gaussian_filter
-from threadpoolctl import threadpool_limits
 
+from .._blas import one_blas_thread
 from ..errors import EvtkError
 from ..optics import shadow_magnification
 from ..optics.screen import _footprint_cdf
@@ -158,7 +158,7 @@ def wiener_lambda(a_mat, v, noise_var, top=None):
     noise = float(rows @ noise_var.mean(axis=1) / max(rows.sum(), 1e-300))
     signal = (float(np.sum(v * v)) - float(np.sum(noise_var))) / v.shape[1] / max(float(rows.sum()), 1e-300)
     if top is None:
-        with threadpool_limits(1, user_api="blas"):  # see solve_cells
+        with one_blas_thread():
             top = _top_eigenvalue(a_mat.T @ a_mat)
     if signal <= 0:  # the responses are all noise: regularise as far as the range goes
         return 1.0
@@ -186,9 +186,7 @@ def solve_cells(values, a_mat, lam=0.0, noise_var=None):
     v = values.reshape(-1, values.shape[-1]).T  # (pixels, m)
     if v.shape[0] != a_mat.shape[0]:
         raise EvtkError(f"{v.shape[0]} pixel values for a sampling matrix of {a_mat.shape[0]} pixels")
-    # one BLAS thread: these matrices are small, and OpenBLAS's threads spin for a while after each call,
-    # taking a core from the next read's decompression (measured: 25 ms more on the next 3.8 M-event read)
-    with threadpool_limits(1, user_api="blas"):
+    with one_blas_thread():
         gram = a_mat.T @ a_mat
         top = _top_eigenvalue(gram)
         if noise_var is not None:

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
+from .._blas import one_blas_thread
 from ..errors import EvtkError
 from ..limits import require_memory
 from ..optics import ideal_response
@@ -233,9 +233,7 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
     the counts were taken with.
     """
     check_crop(crop)
-    # one BLAS thread: the matrices here are small, and OpenBLAS's threads spin after each call, taking a core
-    # from the next read's decompression
-    with threadpool_limits(1, user_api="blas"):
+    with one_blas_thread():  # small matrices
         return _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, linear, theta, crop,
                                    deblur, flat_field, timing)
 
