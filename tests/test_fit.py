@@ -16,7 +16,7 @@ from click.testing import CliRunner
 import evtk
 from evtk import EvtkError
 from evtk.cli import main
-from evtk.reconstruct import fit_pixel_model, reconstruct, reconstruct_calibrated, schedule_of_record
+from evtk.reconstruct import PixelFit, fit_pixel_model, reconstruct, reconstruct_calibrated, schedule_of_record
 from evtk.reconstruct.fit import LevelStatistics, interior_pixels, level_rise_times, predict_levels, rise_orders
 from evtk.sensor import SensorModel
 from evtk.simulate import LEVEL_ID, Simulation, SimulationRecord, level_kernel, level_steps
@@ -200,6 +200,9 @@ def test_a_calibration_run_brings_the_pixel_model_to_a_job_without_level_capture
         model = json.loads(res.stdout)["pixel_model"]
         back = load_calibration(tmp_path / f"c.{ext}").pixel_model
         assert back["theta_on"] == pytest.approx(model["theta_on"]) and back["levels"] == model["levels"]
+        again = PixelFit.from_dict(back).to_dict()  # the rise statistics the fit used, through the file
+        assert again["level_rise_us"] == model["level_rise_us"] and len(model["level_rise_us"]) == 6
+        assert again["level_rise_order"] == model["level_rise_order"]
     assert 0.1 < model["theta_on"] < 0.4 and model["tau_dark_us"] > model["tau_min_us"] > 10
     res = CliRunner().invoke(main, ["reconstruct", str(paths["job"]), "--schedule", str(tmp_path / "job" /
                                     "schedule.json"), "--calibration", str(tmp_path / "c.toml"), "-o",

@@ -102,6 +102,10 @@ class PixelFit:
                 "levels": self.statistics.light.tolist(), "level_counts": self.statistics.counts.tolist(),
                 "level_first_us": [None if not np.isfinite(v) else float(v) for v in self.statistics.first_us],
                 "level_last_us": [None if not np.isfinite(v) else float(v) for v in self.statistics.last_us],
+                "level_rise_order": None if self.statistics.rise_order is None
+                else [int(v) for v in self.statistics.rise_order],
+                "level_rise_us": None if self.statistics.rise_us is None
+                else [None if not np.isfinite(v) else float(v) for v in self.statistics.rise_us],
                 "pixels": int(self.statistics.pixels), "window_us": int(self.window_us),
                 "refractory_bound_us": self.refractory_bound_us, "refractory_resolved": self.refractory_resolved,
                 "settle_us": int(self.settle_us)}
@@ -121,6 +125,10 @@ class PixelFit:
                                 for v in d.get("level_first_us", [None] * light.size)], np.float64)
             last = np.asarray([np.nan if v is None or v < 0 else v
                                for v in d.get("level_last_us", [None] * light.size)], np.float64)
+            rise_order = d.get("level_rise_order")
+            rise_order = None if rise_order is None else np.asarray(rise_order, np.int64)
+            rise = d.get("level_rise_us")
+            rise = None if rise is None else np.asarray([np.nan if v is None or v < 0 else v for v in rise], np.float64)
         except (KeyError, TypeError, ValueError) as exc:
             raise EvtkError(f"a pixel model needs theta_on, blank_units, tau_min_us and tau_dark_us "
                             f"({type(exc).__name__}: {exc})") from None
@@ -130,7 +138,8 @@ class PixelFit:
             raise EvtkError(f"a pixel model's values must be finite and positive, tau_dark_us >= tau_min_us: {d!r}")
         sensor = _model((theta, blank, tau_min, tau_dark), max(refractory, 1.0), 0.0).replace(
             theta_mismatch=spread * theta, theta_off=float(d.get("theta_off", theta)))
-        stats = LevelStatistics(light, counts, first, last, int(d.get("pixels", 0)))
+        stats = LevelStatistics(light, counts, first, last, int(d.get("pixels", 0)), rise_order=rise_order,
+                                rise_us=rise)
         rms_c, rms_t = d.get("rms_counts"), d.get("rms_time_us")
         return cls(sensor, blank, tau_dark, np.nan if rms_c is None else float(rms_c),
                    np.nan if rms_t is None else float(rms_t), stats, int(d.get("window_us", 1000)),
