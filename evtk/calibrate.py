@@ -38,7 +38,7 @@ from .io._atomic import AtomicFile
 from .optics.camera import CellMap
 from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
-from .reconstruct.calibrated import fit_on_counts
+from .reconstruct.calibrated import fit_on_edges
 from .reconstruct.deblur import sampling_matrix
 from .reconstruct.fit import predict_levels
 from .reconstruct.windows import Windows
@@ -239,12 +239,8 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     levels = s.kernel_id[win.capture] == LEVEL_ID
     if pixel_model and levels.any():  # and the pixels' model, from the level captures (with the flat fields' spread)
         use = levels | (s.kernel_id[win.capture] == FLAT_ID)
-        caps = win.capture[use]
-        counts = accumulate(rec, Windows(win.t_start_us[use], win.t_end_us[use], caps, win.source), cal.region,
-                            times=True)
-        sub = s.take(caps)
-        cal.pixel_model = fit_on_counts(rec, counts, sub, win.t_end_us[use], sched, cal.origin_px,
-                                        cell_map=cal.cell_map()).to_dict()
+        cal.pixel_model = fit_on_edges(rec, win.t_start_us[use], win.t_end_us[use], s.take(win.capture[use]), sched,
+                                       cal.region, cal.origin_px, cell_map=cal.cell_map()).to_dict()
     x0, x1, y0, y1 = cal.region
     net = (dot_counts.on[:, y0:y1, x0:x1].astype(np.float64) - dot_counts.off[:, y0:y1, x0:x1]).mean(axis=0)
     cal.blur_px = dot_blur_px(net, cal.region, cal.cell_map(), bench, np.rint(expected).astype(np.int64), (rows, cols),

@@ -50,7 +50,7 @@ __all__ = ["load_job", "job_simulation", "dmd_frame", "write_patterns", "SCHEDUL
 SCHEDULE_VERSION = 1
 #: Keys a job file may hold.
 JOB_KEYS = ("kernels", "features", "signed", "repeat", "flat_field", "calibration", "dot_spacing", "levels", "window_us",
-            "settle_us", "seed", "bench", "sensor", "camera")
+            "settle_us", "seed", "bench", "sensor", "camera", "light_delay_us")
 
 
 def _read_table(path):
@@ -114,7 +114,7 @@ def load_job(path) -> dict:
         raise EvtkError(f"{path}: {exc}") from None
     job = {"kernels": kernels, "features": features, "bench": bench, "sensor": sensor, "camera": camera}
     for key, default in (("repeat", 1), ("flat_field", 2), ("calibration", 0), ("dot_spacing", 4), ("levels", 0),
-                         ("window_us", 1000), ("settle_us", None), ("seed", 0)):
+                         ("window_us", 1000), ("settle_us", None), ("seed", 0), ("light_delay_us", 0)):
         v = data.get(key, default)
         if v is not None and (isinstance(v, bool) or not isinstance(v, int)):
             raise EvtkError(f"{path}: {key} must be a whole number, not {v!r}")

@@ -17,7 +17,15 @@ import evtk
 from evtk import EvtkError
 from evtk.cli import main
 from evtk.reconstruct import PixelFit, fit_pixel_model, reconstruct, reconstruct_calibrated, schedule_of_record
-from evtk.reconstruct.fit import LevelStatistics, interior_pixels, level_rise_times, predict_levels, rise_orders
+from evtk.reconstruct.fit import (
+    LevelStatistics,
+    _stamped_gap_quantiles,
+    gap_quantiles,
+    interior_pixels,
+    level_rise_times,
+    predict_levels,
+    rise_orders,
+)
 from evtk.sensor import SensorModel
 from evtk.simulate import LEVEL_ID, Simulation, SimulationRecord, level_kernel, level_steps
 
@@ -26,10 +34,12 @@ LIGHT = np.array([1.0, 3.0, 4.0, 6.0, 7.0, 9.0])
 
 @pytest.mark.parametrize("truth", [(0.2, 0.025, 100.0, 2091.0), (0.25, 0.05, 150.0, 1500.0)])
 def test_the_fit_recovers_the_pixel_model_that_made_the_statistics(truth):
-    """Statistics from the model itself at known parameters: threshold within 3 %, the bright time constant within
-    3 %, the dark one within 2 %, the counts within half a count."""
+    """Statistics from the model itself at known parameters, the first ON times as a camera's clock stamps them on
+    average (whole µs rounded down: half a µs early): threshold within 3 %, the bright time constant within 3 %, the
+    dark one within 2 %, the counts within half a count."""
     n, first, last, off, off_n, _ = predict_levels(np.array(truth), LIGHT, 1000, 13340, 0, 1.0, 0.03)
-    fit = fit_pixel_model(LevelStatistics(LIGHT, n, first, last, 100, off, off_n * 0.8), 1000, 13340, spread=0.03)
+    fit = fit_pixel_model(LevelStatistics(LIGHT, n, first - 0.5, last, 100, off, off_n * 0.8), 1000, 13340,
+                          spread=0.03)
     theta, blank, tau_min, tau_dark = truth
     assert fit.sensor.theta_on == pytest.approx(theta, rel=0.03)
     assert fit.sensor.tau_min_us == pytest.approx(tau_min, rel=0.03)
@@ -225,7 +235,7 @@ def test_a_calibration_run_brings_the_pixel_model_to_a_job_without_level_capture
 
 @pytest.mark.parametrize("refractory_us, resolved", [(1.0, False), (10.0, True)])
 def test_the_refractory_period_is_measured_where_the_gaps_show_it(tmp_path, refractory_us, resolved):
-    """The brightest step's ON-event gaps: a 10 µs period is measured (9.5), a 1 µs one hides under the crossings'
+    """The brightest step's ON-event gaps: a 10 µs period is measured (8.5), a 1 µs one hides under the crossings'
     own few µs and is only bounded from above (4 µs), the model keeping its least period."""
     rng = np.random.default_rng(2)
     k, f = rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16))
@@ -252,3 +262,60 @@ def test_a_pixel_model_that_misreads_the_levels_is_given_up(tmp_path):
     assert s["pixel_model_rejected"] and "misreads" in s["route"] and "exp(n theta)" in s["pixel_model_note"]
     assert max(s["level_light_ratio"]) > 2.0 or min(s["level_light_ratio"]) < 0.5
     assert np.isfinite(s["error"]["nrmse"]) and s["error"]["nrmse"] < 1.05
+
+
+def test_the_simulator_stamps_the_trigger_edges_before_a_late_light():
+    rng = np.random.default_rng(3)
+    k, f = rng.choice([0, 1], (3, 3)), rng.choice([0, 1], (16, 16))
+    sim = Simulation(k, f, seed=1, light_delay_us=7)
+    tr = sim.triggers()
+    assert np.array_equal(tr.t[0::2], sim.schedule.t_on_us - 7) and np.array_equal(tr.t[1::2], sim.schedule.t_off_us - 7)
+    assert sim.record().light_delay_us == 7
+    with pytest.raises(EvtkError, match="light_delay_us must be at least 0"):
+        Simulation(k, f, light_delay_us=-3)
+    with pytest.raises(EvtkError, match="shorter than the darkness"):
+        Simulation(k, f, settle_us=500, light_delay_us=500)
+
+
+def test_a_light_that_follows_its_trigger_edges_late_is_timed_and_the_windows_follow_it(tmp_path):
+    """The DMD's light comes 20 µs after each edge (shot noise on). The fit's first and half-way ON times give the
+    delay (measured 20.6 µs), the windows follow the light, and the error stays with the oracle's (measured 1.01x);
+    the same model with windows on the edges does worse (measured 1.41x). A calibration run carries the delay to a
+    job's reconstruction."""
+    from evtk.calibrate import calibrate
+
+    rng = np.random.default_rng(1002)
+    k, f = rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16))
+    Simulation(k, f, seed=2, levels=6, calibration=2, light_delay_us=20).write(tmp_path / "r.h5")
+    with evtk.open(tmp_path / "r.h5") as rec:
+        sched = schedule_of_record(rec.metadata["simulation"])
+        oracle = reconstruct(rec).summary["error"]["nrmse"]
+        own = evtk.reconstruct_recording(rec).summary
+        cal = calibrate(rec, sched)
+        placed = dict(cell_map=cal.cell_map(), blur_px=cal.blur_px, own_levels=False)
+        carried = reconstruct_calibrated(rec, sched, cal.region, cal.origin_px, pixel_model=cal.pixel_model, **placed)
+        on_edges = reconstruct_calibrated(rec, sched, cal.region, cal.origin_px,
+                                          pixel_model=dict(cal.pixel_model, light_delay_us=0.0), **placed)
+    assert own["pixel_model"]["light_delay_us"] == pytest.approx(20.0, abs=1.5)
+    assert own["windows_after_edges_us"] == round(own["pixel_model"]["light_delay_us"])
+    assert own["error"]["nrmse"] <= 1.05 * oracle
+    assert cal.pixel_model["light_delay_us"] == pytest.approx(20.0, abs=1.5)
+    assert carried.summary["windows_after_edges_us"] == round(cal.pixel_model["light_delay_us"])
+    assert carried.summary["error"]["nrmse"] <= 1.05 * oracle
+    assert on_edges.summary["error"]["nrmse"] >= 1.1 * carried.summary["error"]["nrmse"]
+    with pytest.raises(EvtkError, match="light_delay_us"):
+        PixelFit.from_dict(dict(cal.pixel_model, light_delay_us=float("nan")))
+
+
+def test_gap_quantiles_compare_a_model_with_a_cameras_whole_us_stamps():
+    """Continuous gaps stamped as a camera stamps events (each event's time rounded down to the µs, the first at
+    an even fraction of a µs) give the quantiles the model's estimator predicts from the continuous gaps; the
+    plain quantiles of the continuous gaps differ by about half a µs."""
+    rng = np.random.default_rng(0)
+    g = rng.gamma(5.0, 1.5, 200_000) + 3.0
+    t1 = rng.uniform(0, 1000, g.size)
+    stamped = np.floor(t1 + g) - np.floor(t1)
+    want = _stamped_gap_quantiles(g, np.ones(g.size), (0.05, 0.1, 0.25))
+    assert np.allclose(gap_quantiles(stamped), want, atol=0.02)
+    assert np.all(np.abs(np.quantile(g, [0.05, 0.1, 0.25]) - want) > 0.3)
+    assert np.isnan(gap_quantiles(stamped[:19])).all()

@@ -46,7 +46,7 @@ from .fit import (
 from .pipeline import MAX_TIMING_STAMP_US, check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
 
-__all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement", "fit_on_counts", "MAX_LEVEL_ERROR"]
+__all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement", "fit_on_edges", "MAX_LEVEL_ERROR", "LEAD_US"]
 
 #: The most a fitted pixel model may misread the level captures' light (as a factor, either way) before the
 #: calibrated route gives it up for exp(n theta).
@@ -133,18 +133,21 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     # every setup capture, and the pairs all of whose passes have a window
     keep, complete = _complete_mask(s, win.capture)
     caps = win.capture[keep]
-    t_on, t_off = win.t_start_us[keep], win.t_end_us[keep]
-    start, end = _trim(t_on, t_off, skip_us, length_us, "matched")
-    counts = accumulate(rec, Windows(start, end, np.arange(caps.size), "triggers matched to the schedule",
-                                     win.dropped), region, progress=progress, times=True)
+    edge_on, edge_off = win.t_start_us[keep], win.t_end_us[keep]
+
     sub = s.take(caps)
     bench = sched["bench"]
     if levels_here:
-        fit = fit_on_counts(rec, counts, sub, t_off, sched, origin_px, skip_us, cell_map=cell_map)
+        fit = fit_on_edges(rec, edge_on, edge_off, sub, sched, region, origin_px, skip_us, cell_map=cell_map)
         source = "the run's own level captures"
     else:
         fit = pixel_model if isinstance(pixel_model, PixelFit) else PixelFit.from_dict(pixel_model)
         source = "the calibration"
+    shift = int(round(fit.delay_us))  # the windows follow the light, shift us after the trigger edges
+    start, end = _trim(edge_on + shift, edge_off + shift, skip_us, length_us, "matched")
+    counts = accumulate(rec, Windows(start, end, np.arange(caps.size), "triggers matched to the schedule",
+                                     win.dropped), region, progress=progress, times=True)
+    t_on, t_off = edge_on + shift, edge_off + shift
     record = fitted_record(fit, sub, t_on, t_off, sched["kernels"], sched["features"], bench, counts.region,
                            origin_px, sched["window_us"], sched["settle_us"],
                            cell_map=cell_map, blur_px=blur_px)
@@ -169,13 +172,57 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         return fallback
     result.summary.update(match=report, pairs_left_out=sorted(_all_pairs(s) - complete), pixel_model_from=source,
                           response_origin_px=[float(v) for v in origin_px], pixel_model=fit.to_dict(),
-                          level_captures=int(np.sum(sub.kernel_id == LEVEL_ID)))
+                          level_captures=int(np.sum(sub.kernel_id == LEVEL_ID)), windows_after_edges_us=shift)
     return result
 
 
-def fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us=0, cell_map=None) -> PixelFit:
+#: How long before the trigger edges the pixel model's statistics are first counted (µs): a light that comes a
+#: little before its edge (a late trigger) still shows its whole rise, and the fit measures the delay either way.
+LEAD_US = 20
+
+#: A fitted delay of the light this much (µs) or more off the one the first pass took has the statistics counted
+#: and fitted again in windows that follow the light, up to :data:`RECOUNT_ROUNDS` times.
+RECOUNT_DELAY_US = 1.0
+RECOUNT_ROUNDS = 3
+
+
+def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, skip_us=0, cell_map=None) -> PixelFit:
+    """:func:`fit_pixel_model` on the level captures of ``sub`` (a schedule of captures whose trigger edges are
+    ``edge_on_us``/``edge_off_us``), the flat fields giving the pixels' threshold spread.
+
+    The captures are counted (with event times) in windows from
+    :data:`LEAD_US` before their edges. The fit's ``delay_us`` is the
+    light's delay after the edges (0 where the times cannot tell: a frame
+    readout). The first pass (:func:`_fit_on_counts`) takes the light to
+    come with the edges to time the refractory period from the gaps; where
+    the delay comes out :data:`RECOUNT_DELAY_US` or more from that, the
+    statistics are counted and fitted again in windows that start with the
+    light.
+    """
+    use = (sub.kernel_id == LEVEL_ID) | (sub.kernel_id == FLAT_ID)
+    sub = sub.take(np.flatnonzero(use))
+    edge_on, edge_off = np.asarray(edge_on_us)[use], np.asarray(edge_off_us)[use]
+
+    def fit_from(lead_us, delay_us):  # windows lead_us before the edges, the light taken delay_us after them
+        a, b = _trim(edge_on - lead_us, edge_off - lead_us, skip_us, None, "matched")
+        counts = accumulate(rec, Windows(a, b, np.arange(sub.capture.size), "level and flat-field captures"),
+                            region, times=True)
+        return _fit_on_counts(rec, counts, sub, edge_off - lead_us, sched, origin_px, skip_us, cell_map, lead_us,
+                              delay_us)
+
+    fit, assumed = fit_from(LEAD_US, 0.0), 0.0
+    for _ in range(RECOUNT_ROUNDS):
+        if abs(fit.delay_us - assumed) < RECOUNT_DELAY_US:
+            break
+        assumed = fit.delay_us
+        fit = fit_from(-int(round(assumed)), assumed)
+    return fit
+
+
+def _fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us, cell_map, lead_us, delay_us) -> PixelFit:
     """:func:`fit_pixel_model` on accumulated counts (with times) of the captures ``sub`` (a schedule of the
-    windows counted, ``t_off_us`` their falling edges), the flat fields giving the pixels' threshold spread."""
+    windows counted, ``t_off_us`` their ends, ``lead_us`` before the falling edges), the light taken to follow
+    the edges by ``delay_us`` until its delay is fitted."""
     kh, kw = sched["kernels"].shape[1:]
     fh, fw = sched["features"].shape[1:]
     bench = sched["bench"]
@@ -197,10 +244,12 @@ def fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us=0, cell_
     bright = is_level & (sub.level == sub.level[is_level].max()) if is_level.any() else is_level
     t_on = np.asarray(t_off_us)[bright] - int(sched["window_us"])
     gaps = on_gaps(rec, t_on, np.asarray(t_off_us)[bright], counts.region, inside) if fine else np.zeros(0)
-    # first timed by the first ON events, which no refractory period delays, so that the gaps can measure it
-    fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine)
+    # first timed by the first ON events, which no refractory period delays, the light taken to come with the
+    # edges, so that the gaps can measure the period
+    fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine,
+                          lead_us=lead_us, delay_us=delay_us)
     refractory, resolved = fit_refractory(fit, stats.light.max(), gaps, skip_us)
-    if fine:  # then timed half-way up the rise (fit_pixel_model), with the period where the gaps showed it
+    if fine:  # then timed half-way up the rise as well, with the period, and the light's delay fitted
         orders = rise_orders(stats.counts)
         t_lv = np.asarray(t_off_us)[is_level]
         rise = level_rise_times(rec, t_lv - int(sched["window_us"]) + int(skip_us), t_lv, sub.level[is_level], orders,
@@ -208,5 +257,6 @@ def fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us=0, cell_
         stats = dataclasses.replace(stats, rise_order=orders, rise_us=rise)
     if fine or resolved:  # a period that shows in the gaps limits the bright steps' counts too
         fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, refractory_us=refractory,
-                              spread=spread, times=fine, initial=fit)
+                              spread=spread, times=fine, lead_us=lead_us, delay_us=delay_us)
     return dataclasses.replace(fit, refractory_bound_us=refractory_bound(gaps), refractory_resolved=resolved)
+

@@ -50,6 +50,9 @@ SPREAD_POINTS = 25
 #: over nine simulated cameras and poses kept the calibrated route within 1.17, 1.06 and 1.23x the oracle).
 RISE_SCALE_US = 3.0
 
+#: Largest trigger-to-light delay (µs, either sign) :func:`fit_pixel_model` fits and a pixel model may hold.
+MAX_DELAY_US = 200.0
+
 #: Nominal dark-level photoelectron rate the fitted model is stated against (only ratios are observable).
 NOMINAL_BLANK_E_PER_S = 1e5
 
@@ -92,6 +95,9 @@ class PixelFit:
     refractory_bound_us: float | None = None
     #: whether the ON-event gaps measured the refractory period (:func:`fit_refractory`); else the model keeps 1 µs
     refractory_resolved: bool = False
+    #: time from a trigger edge to the light's change at the pixels (µs; the DMD's latency), fitted from the rise's
+    #: first and half-way ON times (:func:`fit_pixel_model`); windows follow the light by this much
+    delay_us: float = 0.0
 
     def to_dict(self) -> dict:
         s = self.sensor
@@ -108,7 +114,7 @@ class PixelFit:
                 else [None if not np.isfinite(v) else float(v) for v in self.statistics.rise_us],
                 "pixels": int(self.statistics.pixels), "window_us": int(self.window_us),
                 "refractory_bound_us": self.refractory_bound_us, "refractory_resolved": self.refractory_resolved,
-                "settle_us": int(self.settle_us)}
+                "settle_us": int(self.settle_us), "light_delay_us": float(self.delay_us)}
 
     @classmethod
     def from_dict(cls, d) -> PixelFit:
@@ -118,6 +124,7 @@ class PixelFit:
             tau_min, tau_dark = float(d["tau_min_us"]), float(d["tau_dark_us"])
             spread = float(d.get("threshold_spread", 0.02))
             refractory = float(d.get("refractory_us", 1.0))
+            delay = float(d.get("light_delay_us", 0.0))
             light = np.asarray(d.get("levels", []), np.float64)
             counts = np.asarray(d.get("level_counts", np.zeros(light.size)), np.float64)
             # a missing time: None in JSON, -1 in TOML
@@ -136,6 +143,9 @@ class PixelFit:
         if not all(np.isfinite(v) and v >= 0 for v in vals) or min(theta, blank, tau_min, tau_dark) <= 0 \
                 or tau_dark < tau_min:
             raise EvtkError(f"a pixel model's values must be finite and positive, tau_dark_us >= tau_min_us: {d!r}")
+        if not (np.isfinite(delay) and abs(delay) < MAX_DELAY_US):
+            raise EvtkError(f"a pixel model's light_delay_us must be finite and within +-{MAX_DELAY_US:g} us, "
+                            f"not {delay!r}")
         sensor = _model((theta, blank, tau_min, tau_dark), max(refractory, 1.0), 0.0).replace(
             theta_mismatch=spread * theta, theta_off=float(d.get("theta_off", theta)))
         stats = LevelStatistics(light, counts, first, last, int(d.get("pixels", 0)), rise_order=rise_order,
@@ -143,7 +153,8 @@ class PixelFit:
         rms_c, rms_t = d.get("rms_counts"), d.get("rms_time_us")
         return cls(sensor, blank, tau_dark, np.nan if rms_c is None else float(rms_c),
                    np.nan if rms_t is None else float(rms_t), stats, int(d.get("window_us", 1000)),
-                   int(d.get("settle_us", 0)), d.get("refractory_bound_us"), bool(d.get("refractory_resolved", False)))
+                   int(d.get("settle_us", 0)), d.get("refractory_bound_us"), bool(d.get("refractory_resolved", False)),
+                   delay)
 
 
 def _finite(v):
@@ -300,6 +311,37 @@ def refractory_bound(gaps, quantile=0.01):
 GAP_QUANTILES = (0.05, 0.1, 0.25)
 
 
+def _grouped_quantiles(n0, pmf, qs):
+    """Quantiles ``qs`` of a whole-µs distribution (``pmf`` over ``n0, n0 + 1, ...``), spread evenly over the
+    µs below each value: continuous in the probabilities, so a model's can be matched to a camera's."""
+    cdf = np.cumsum(pmf) / max(float(np.sum(pmf)), 1e-300)
+    j = np.minimum(np.searchsorted(cdf, np.asarray(qs, np.float64)), cdf.size - 1)
+    below = np.where(j > 0, cdf[np.maximum(j - 1, 0)], 0.0)
+    return n0 + j - 1 + (np.asarray(qs) - below) / np.maximum(cdf[j] - below, 1e-12)
+
+
+def gap_quantiles(gaps, qs=GAP_QUANTILES):
+    """Quantiles ``qs`` of whole-µs ON-event gaps (:func:`on_gaps`), spread over the µs below each value
+    (:func:`_grouped_quantiles`); NaN for fewer than 20 gaps."""
+    g = np.rint(np.asarray(gaps, np.float64)).astype(np.int64)
+    if g.size < 20:
+        return np.full(len(qs), np.nan)
+    return _grouped_quantiles(int(g.min()), np.bincount(g - g.min()).astype(np.float64), qs)
+
+
+def _stamped_gap_quantiles(gap_us, weight, qs):
+    """:func:`gap_quantiles` of noise-free gaps ``gap_us`` (weighted) as a camera stamps them: a gap ``g``
+    between two events stamped in whole µs rounded down reads ``floor(g) + 1`` with probability ``g - floor(g)``
+    (the first event's fraction of a µs being even), else ``floor(g)``."""
+    lo = np.floor(gap_us)
+    frac = gap_us - lo
+    n0 = int(lo.min())
+    k = (lo - n0).astype(np.int64)
+    pmf = np.bincount(k, weights=weight * (1 - frac), minlength=k.max() + 2) \
+        + np.bincount(k + 1, weights=weight * frac, minlength=k.max() + 2)
+    return _grouped_quantiles(n0, pmf, qs)
+
+
 def fit_refractory(fit: PixelFit, light, gaps, skip_us=0, max_us=None):
     """The refractory period that makes the fitted pixel model's ON-event gaps on a step of ``light`` match the
     observed ``gaps`` (:func:`on_gaps`) at :data:`GAP_QUANTILES`: ``(refractory_us, resolved)``.
@@ -319,7 +361,7 @@ def fit_refractory(fit: PixelFit, light, gaps, skip_us=0, max_us=None):
     if g.size < 20:
         return fit.sensor.refractory_us, False
     qs = np.asarray(GAP_QUANTILES)
-    observed = np.quantile(g, qs)
+    observed = gap_quantiles(g, qs)
     hi = float(max_us) if max_us is not None else 2.0 * float(np.quantile(g, 0.01))
     grid = np.arange(1.0, max(hi, 1.0) + 0.25, 0.5)
     params = np.array([fit.sensor.theta_on, fit.blank, fit.sensor.tau_min_us, fit.tau_dark_us])
@@ -347,10 +389,7 @@ def _predicted_gaps(params, light, window_us, settle_us, skip_us, refractory_us,
     gap, who = np.diff(ti)[same], ii[1:][same]
     if gap.size == 0:
         return np.full(len(qs), np.nan)
-    order = np.argsort(gap)
-    gap, wt = gap[order], weight[who[order] % weight.size]
-    cum = np.cumsum(wt) / wt.sum()
-    return np.interp(qs, cum, gap)
+    return _stamped_gap_quantiles(gap, weight[who % weight.size], qs)
 
 
 def _model(params, refractory_us, mismatch):
@@ -438,9 +477,10 @@ def _theta_for(counts, light, blank):
     return float(np.sum(v * v) / max(np.sum(v * counts), 1e-12))
 
 
-def _time_constants_guess(stats, theta, blank, start, times=True):
+def _time_constants_guess(stats, theta, blank, start, times=True, offset_us=0.0):
     """``(tau_min_us, tau_dark_us)`` from closed forms: the first ON crossing of the brightest step,
-    ``t1 = -tau ln(1 - theta / u)``, and the mean OFF crossing of the decays, ``tau * mean_k(-ln(1 - k theta / u))``.
+    ``t1 = -tau ln(1 - theta / u)``, and the mean OFF crossing of the decays, ``tau * mean_k(-ln(1 - k theta / u))``,
+    their times taken ``offset_us`` after the light's changes.
     """
     u = np.log1p(stats.light / blank)
     tau_min, tau_dark = start.tau_min_us, None
@@ -448,12 +488,12 @@ def _time_constants_guess(stats, theta, blank, start, times=True):
         est = []
         for uk, off in zip(u.tolist(), stats.off_mean_us.tolist()):
             k = np.arange(1, int(uk / theta) + 1)
-            if k.size and np.isfinite(off):
-                est.append(off / float(np.mean(-np.log1p(-np.minimum(k * theta / uk, 0.999)))))
+            if k.size and np.isfinite(off) and off > offset_us:
+                est.append((off - offset_us) / float(np.mean(-np.log1p(-np.minimum(k * theta / uk, 0.999)))))
         tau_dark = float(np.median(est)) if est else None
     bright = int(np.argmax(u))
     if times and np.isfinite(stats.first_us[bright]) and u[bright] > theta:
-        tau_b = stats.first_us[bright] / -np.log1p(-theta / u[bright])
+        tau_b = max(stats.first_us[bright] + 0.5 - offset_us, 0.5) / -np.log1p(-theta / u[bright])
         if tau_dark is not None:  # tau = tau_min + (tau_dark - tau_min) / (1 + light / blank)
             r = 1.0 / (1.0 + stats.light[bright] / blank)
             tau_min = (tau_b - r * tau_dark) / (1 - r)
@@ -467,7 +507,8 @@ def _time_constants_guess(stats, theta, blank, start, times=True):
 
 
 def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, refractory_us=1.0, spread=0.05,
-                    start: SensorModel | None = None, times=True, initial: PixelFit | None = None) -> PixelFit:
+                    start: SensorModel | None = None, times=True, initial: PixelFit | None = None,
+                    lead_us=0.0, delay_us=0.0) -> PixelFit:
     """Fit ``theta``, ``blank``, ``tau_min_us`` and ``tau_dark_us`` to the level statistics.
 
     Least squares over the steps of the counts (in counts), the rise's ON
@@ -489,6 +530,15 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
     ``start`` model's. The OFF threshold follows from the decays' OFF counts.
     The refractory period is ``refractory_us`` (:func:`fit_refractory` measures it).
     ``initial``, an earlier fit to the same steps, is the one start instead.
+
+    With the rise timed both by the first and the half-way ON events, a
+    delay of the light after the windows' edges is fitted too: it shifts
+    every time alike, and the first events (a few µs into the rise) say how
+    much, the half-way ones the time constant. The statistics' windows start
+    ``lead_us`` before the trigger edges; the light is taken to follow the
+    edges by ``delay_us`` where the delay is not fitted, and the fit starts
+    from it where it is. The returned ``delay_us`` is the light's after the
+    edges.
     """
     light, counts = stats.light, stats.counts
     if light.size < 2:
@@ -499,36 +549,50 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
     b0, th0 = _fit_log_response(np.r_[0.0, np.maximum.accumulate(counts)], np.r_[0.0, light])
     if not np.isfinite(b0):
         b0, th0 = float(light.max()), start.theta_on
-    x0 = np.log([th0, b0] + list(_time_constants_guess(stats, th0, b0, start, times)))
+    delay_scale = 10.0  # us: the delay's unit in the fit's parameter vector
+    offset = float(lead_us) + float(delay_us)  # the light's change after the statistics' window starts
+    x0 = np.r_[np.log([th0, b0] + list(_time_constants_guess(stats, th0, b0, start, times, offset))),
+               offset / delay_scale]
     off_scale = 20.0  # us: the OFF events' mean time, over thousands of us
     has_off = np.isfinite(stats.off_mean_us) if stats.off_mean_us is not None else np.zeros(light.size, bool)
-    # theta and blank from the counts; tau_min from the rise's ON times, tau_dark from them and the OFF decay
-    free = np.array([True, True, bool(times), bool(times) or bool(has_off.any())])
     # the rise is timed half-way up where measured (tens of us, far above a tick), else by the first ON event
     # (a few us: a tick is a quarter of it); the last ON event jumps with every whole count, so it is left out
     orders = stats.rise_order if stats.rise_us is not None and stats.rise_order is not None else None
     # time stamps are whole us rounded down (as the timing linearisation takes them): half a tick on average
-    observed_t = (stats.first_us if orders is None else stats.rise_us) + 0.5
-    has_t = np.isfinite(observed_t) & bool(times)
-    # us: the first ON time's tick; the rise's median, over pixels whose thresholds spread it by several us, is
-    # known to about as many us as the counts to a count tenth: weighted alike (1 or 10 us let one of them pull)
-    t_scale = RISE_SCALE_US if orders is not None else 1.0
+    first_t = stats.first_us + 0.5
+    rise_t = stats.rise_us + 0.5 if orders is not None else None
+    has_first = np.isfinite(first_t) & bool(times)
+    has_rise = np.isfinite(rise_t) & bool(times) if orders is not None else np.zeros(light.size, bool)
+    # a light that follows the trigger edges late shifts every time alike: the first ON events (a few us into the
+    # rise) then say how late, the half-way ones (tens of us) the time constant
+    fit_delay = bool(has_rise.any() and has_first.any())
+    # theta and blank from the counts; tau_min from the rise's ON times, tau_dark from them and the OFF decay
+    free = np.array([True, True, bool(times), bool(times) or bool(has_off.any()), fit_delay])
+    # us a unit residual: the first ON time's tick; the rise's median, over pixels whose thresholds spread it by
+    # several us, is known to about as many us as the counts to a count tenth (1 or 10 us let one of them pull)
+    first_scale, rise_scale = 1.0, RISE_SCALE_US
+    use_first = has_first & (fit_delay or orders is None)
 
-    def predicted(p):
-        n, f, _, off, off_n, rise = predict_levels(p, light, window_us, settle_us, skip_us, refractory_us, spread,
-                                                   orders)
-        return n, (f if orders is None else rise), off, off_n
-
-    def residuals(x):
-        p = np.exp(x0)
-        p[free] = np.exp(x)
+    def params(x):
+        full = x0.copy()
+        full[free] = x
+        p = np.exp(full[:4])
         if p[3] <= p[2]:  # tau_dark below tau_min: outside the model, penalised smoothly
             p[3] = p[2] * 1.001
-        n, t, off, _ = predicted(p)
+        return p, float(np.clip(full[4] * delay_scale, -MAX_DELAY_US, MAX_DELAY_US))
+
+    def residuals(x):
+        p, delay = params(x)
+        n, f, _, off, _, rise = predict_levels(p, light, window_us, settle_us, skip_us, refractory_us, spread,
+                                               orders)
         parts = [n - counts]
         if has_off.any():  # the decay after each step: the dark level's time constant
-            parts.append(np.where(np.isfinite(off), off - stats.off_mean_us, 5 * off_scale)[has_off] / off_scale)
-        parts.append(np.where(np.isfinite(t), t - observed_t, 5 * t_scale)[has_t] / t_scale)
+            parts.append(np.where(np.isfinite(off), off + delay - stats.off_mean_us, 5 * off_scale)[has_off]
+                         / off_scale)
+        if use_first.any():
+            parts.append(np.where(np.isfinite(f), f + delay - first_t, 5 * first_scale)[use_first] / first_scale)
+        if has_rise.any():
+            parts.append(np.where(np.isfinite(rise), rise + delay - rise_t, 5 * rise_scale)[has_rise] / rise_scale)
         return np.concatenate(parts)
 
     def loss(x):
@@ -543,19 +607,20 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
         xs[0] = np.log(_theta_for(counts, light, np.exp(xs[1])))
         starts.append(xs)
     if initial is not None:
-        starts = [np.log([initial.sensor.theta_on, initial.blank, initial.sensor.tau_min_us, initial.tau_dark_us])]
+        starts = [np.r_[np.log([initial.sensor.theta_on, initial.blank, initial.sensor.tau_min_us,
+                                initial.tau_dark_us]), (initial.delay_us + float(lead_us)) / delay_scale]]
     tries = [least_squares(residuals, xs[free], method="trf", diff_step=0.02, x_scale=0.3, max_nfev=150)
              for xs in starts]
     best = min(tries, key=lambda r: r.cost).x
     res = minimize(loss, best, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-5, "maxiter": 400})
     if res.fun > loss(best):
         res.x = best
-    x_all = x0.copy()
-    x_all[free] = res.x
-    theta, blank, tau_min, tau_dark = (float(v) for v in np.exp(x_all))
-    n, t, _, off_n = predicted(np.exp(x_all))
-    ok = has_t & np.isfinite(t)
-    rms_t = float(np.sqrt(np.mean((t - observed_t)[ok] ** 2))) if ok.any() else float("nan")
+    p, delay = params(res.x)
+    theta, blank, tau_min, tau_dark = (float(v) for v in p)
+    n, f, _, _, off_n, rise = predict_levels(p, light, window_us, settle_us, skip_us, refractory_us, spread, orders)
+    t, observed_t, ok = (f, first_t, has_first) if orders is None else (rise, rise_t, has_rise)
+    ok = ok & np.isfinite(t)
+    rms_t = float(np.sqrt(np.mean((t + delay - observed_t)[ok] ** 2))) if ok.any() else float("nan")
     sensor = _model((theta, blank, tau_min, tau_dark), refractory_us, 0.0).replace(
         theta_mismatch=float(spread) * theta, shot_noise=start.shot_noise)
     if stats.off_counts is not None:  # OFF counts scale as 1 / theta_off: the model's at theta_on, over the data's
@@ -563,7 +628,7 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
         if ok.any():
             sensor = sensor.replace(theta_off=theta * float(np.sum(off_n[ok]) / np.sum(stats.off_counts[ok])))
     return PixelFit(sensor, blank, tau_dark, float(np.sqrt(np.mean((n - counts) ** 2))), rms_t, stats,
-                    int(window_us), int(settle_us))
+                    int(window_us), int(settle_us), delay_us=delay - float(lead_us))
 
 
 def fitted_record(fit: PixelFit, schedule: Schedule, t_on_us, t_off_us, kernels, features, bench: Bench,

@@ -72,6 +72,8 @@ class SimulationRecord:
     #: takes the place of ``response_origin_px`` (a calibration of a camera that is rotated, tilted or distorted);
     #: an optional ``"blur_px"`` holds the defocus the calibration measured
     cell_map: dict | None = None
+    #: how long after each trigger edge the light changed (µs; the schedule holds the light's times)
+    light_delay_us: int = 0
     correlation: str = "correlation"
     evtk_version: str = ""
 
@@ -139,7 +141,8 @@ class SimulationRecord:
                       gain_e_per_s_per_unit=float(d["gain_e_per_s_per_unit"]),
                       blank_rate_e_per_s=float(d["blank_rate_e_per_s"]),
                       window_us=int(d["window_us"]), settle_us=int(d["settle_us"]),
-                      start_us=int(d.get("start_us", 0)), end_us=int(d.get("end_us", 0)))
+                      start_us=int(d.get("start_us", 0)), end_us=int(d.get("end_us", 0)),
+                      light_delay_us=int(d.get("light_delay_us", 0)))
         except EvtkError:
             raise
         except (TypeError, ValueError) as exc:

@@ -96,6 +96,12 @@ class Simulation:
         reconstruction fits the pixel model instead of assuming one
         (:func:`evtk.reconstruct.fit_pixel_model`); ids -3
         (:data:`LEVEL_ID`), the element count in the schedule's ``level``.
+    light_delay_us : int
+        How long the light takes to change after each trigger edge (a DMD's
+        trigger-to-mirror latency, 0 or more). The schedule keeps the
+        light's times, the trigger edges come this much earlier, as a bench
+        records them; the calibrated reconstruction fits the delay
+        (:attr:`evtk.reconstruct.PixelFit.delay_us`).
 
     Examples
     --------
@@ -106,7 +112,7 @@ class Simulation:
 
     def __init__(self, kernels, features, bench: Bench | None = None, sensor: SensorModel | None = None,
                  window_us=1000, settle_us=None, repeat=1, seed=0, start_us=0, noise_seed=None, flat_field=2,
-                 calibration=0, dot_spacing=4, levels=0, camera=None):
+                 calibration=0, dot_spacing=4, levels=0, camera=None, light_delay_us=0):
         self.bench = bench if bench is not None else Bench()
         self.sensor = sensor if sensor is not None else SensorModel()
         self.kernels = _as_patterns("kernels", kernels)
@@ -126,6 +132,10 @@ class Simulation:
             raise EvtkError(f"power_mw {self.bench.power_mw:g} makes the photon rates overflow float64; "
                             "no bench is that bright")
         self.settle_us = self.recommended_settle_us() if settle_us is None else _int_param("settle_us", settle_us, 1)
+        self.light_delay_us = _int_param("light_delay_us", light_delay_us, 0)
+        if self.light_delay_us >= self.settle_us:
+            raise EvtkError(f"light_delay_us={self.light_delay_us} must be shorter than the darkness between patterns "
+                            f"(settle_us={self.settle_us})")
         self.camera = None if camera is None or Camera.from_dict(camera).is_ideal else Camera.from_dict(camera)
         self.region = response_region(self.bench, kshape, self.features.shape[1:])
         if self.camera is not None:  # where the camera's pose and lens put the nominal response
@@ -256,7 +266,7 @@ class Simulation:
             gain_e_per_s_per_unit=float(self.gain_e_per_s), blank_rate_e_per_s=float(self.blank_rate_e_per_s),
             seed=self.seed, noise_seed=self.noise_seed, repeat=self.repeat, flat_field=self.flat_field,
             calibration=self.calibration, dot_spacing=self.dot_spacing, levels=self.levels,
-            camera=None if self.camera is None else self.camera.to_dict(),
+            camera=None if self.camera is None else self.camera.to_dict(), light_delay_us=self.light_delay_us,
             correlation="convolution" if self.bench.kernel_flipped else "correlation", evtk_version=__version__)
 
     def metadata(self) -> dict:
@@ -264,11 +274,11 @@ class Simulation:
         return {METADATA_KEY: self.record().to_dict()}
 
     def triggers(self) -> Triggers:
-        """Rising edge at each pattern's appearance, falling edge when it goes."""
+        """Rising edge at each pattern's appearance, falling edge when it goes (``light_delay_us`` earlier)."""
         s = self.schedule
         t = np.empty(2 * len(s), np.int64)
-        t[0::2] = s.t_on_us
-        t[1::2] = s.t_off_us
+        t[0::2] = s.t_on_us - self.light_delay_us
+        t[1::2] = s.t_off_us - self.light_delay_us
         kind = np.empty(2 * len(s), np.int8)
         kind[0::2] = TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE
         kind[1::2] = TriggerKind.EXTERNAL_SIGNAL_FALLING_EDGE
