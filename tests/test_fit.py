@@ -277,6 +277,16 @@ def test_the_simulator_stamps_the_trigger_edges_before_a_late_light():
         Simulation(k, f, settle_us=500, light_delay_us=500)
 
 
+def test_a_job_file_sets_the_lights_delay(tmp_path):
+    from evtk.patterns import job_simulation
+
+    (tmp_path / "j.toml").write_text('kernels = ["111111111"]\nlight_delay_us = 4\n')
+    assert job_simulation(tmp_path / "j.toml").triggers().t[0] == job_simulation(tmp_path / "j.toml").schedule.t_on_us[0] - 4
+    (tmp_path / "bad.toml").write_text('kernels = ["111111111"]\nlight_delay_us = 2.5\n')
+    with pytest.raises(EvtkError, match="light_delay_us must be a whole number"):
+        job_simulation(tmp_path / "bad.toml")
+
+
 def test_a_light_that_follows_its_trigger_edges_late_is_timed_and_the_windows_follow_it(tmp_path):
     """The DMD's light comes 20 µs after each edge (shot noise on). The fit's first and half-way ON times give the
     delay (measured 20.6 µs), the windows follow the light, and the error stays with the oracle's (measured 1.01x);
