@@ -329,3 +329,19 @@ def test_gap_quantiles_compare_a_model_with_a_cameras_whole_us_stamps():
     assert np.allclose(gap_quantiles(stamped), want, atol=0.02)
     assert np.all(np.abs(np.quantile(g, [0.05, 0.1, 0.25]) - want) > 0.3)
     assert np.isnan(gap_quantiles(stamped[:19])).all()
+
+
+def test_row_medians_match_numpys_nanmedian():
+    """The fit's fast row median (a sort) against numpy's nanmedian, rows with NaN, all NaN and odd/even counts."""
+    import warnings
+
+    from evtk.reconstruct.fit import _row_median
+
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        a = rng.normal(size=(int(rng.integers(1, 7)), int(rng.integers(1, 30))))
+        a[rng.random(a.shape) < rng.random()] = np.nan
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            want = np.nanmedian(a, axis=1)
+        assert np.allclose(_row_median(a), want, equal_nan=True)

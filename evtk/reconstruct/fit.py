@@ -464,11 +464,11 @@ def _simulate_steps(params, light, window_us, settle_us, refractory_us, spread):
 
 def _row_median(a):
     """Median of each row's finite values; NaN for a row with none (a light too dim for any event)."""
-    out = np.full(a.shape[0], np.nan)
-    some = np.isfinite(a).any(axis=1)
-    if some.any():
-        out[some] = np.nanmedian(a[some], axis=1)
-    return out
+    s = np.sort(a, axis=1)  # NaN sorts last
+    n = np.isfinite(a).sum(axis=1)
+    rows = np.arange(a.shape[0])
+    lo, hi = s[rows, np.maximum(n - 1, 0) // 2], s[rows, np.maximum(n, 1) // 2 - (n == 0)]
+    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
 def _theta_for(counts, light, blank):
@@ -507,18 +507,17 @@ def _time_constants_guess(stats, theta, blank, start, times=True, offset_us=0.0)
 
 
 def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, refractory_us=1.0, spread=0.05,
-                    start: SensorModel | None = None, times=True, initial: PixelFit | None = None,
-                    lead_us=0.0, delay_us=0.0) -> PixelFit:
+                    start: SensorModel | None = None, times=True, lead_us=0.0, delay_us=0.0) -> PixelFit:
     """Fit ``theta``, ``blank``, ``tau_min_us`` and ``tau_dark_us`` to the level statistics.
 
     Least squares over the steps of the counts (in counts), the rise's ON
     times (in µs) and the mean OFF times of the decays (in units of 20 µs).
-    The rise is timed by the median time of each pixel's
-    ``stats.rise_order``-th ON event (:func:`level_rise_times`, about half
-    its count: tens of µs, where a 1 µs tick hardly matters) when the
-    statistics have it, else by the median first ON event (a few µs, whose
-    ticks let the time constant wander by 15 % along the threshold/time
-    constant valley).
+    The rise is timed by the median first ON event (a few µs in, where a
+    1 µs tick lets the time constant wander by 15 % along the
+    threshold/time constant valley) and, when the statistics have it, by the
+    median time of each pixel's ``stats.rise_order``-th ON event
+    (:func:`level_rise_times`, about half its count: tens of µs, where a
+    tick hardly matters), which then pins the time constant.
     A trust-region fit starts from three points along the threshold/dark-level
     valley (the counts' log fit, :func:`_fit_log_response`, and a blank level
     half and twice it) with closed-form time constants
@@ -529,7 +528,6 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
     readout) the ON times are left out and ``tau_min_us`` stays the
     ``start`` model's. The OFF threshold follows from the decays' OFF counts.
     The refractory period is ``refractory_us`` (:func:`fit_refractory` measures it).
-    ``initial``, an earlier fit to the same steps, is the one start instead.
 
     With the rise timed both by the first and the half-way ON events, a
     delay of the light after the windows' edges is fitted too: it shifts
@@ -606,9 +604,6 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
         xs[1] += db
         xs[0] = np.log(_theta_for(counts, light, np.exp(xs[1])))
         starts.append(xs)
-    if initial is not None:
-        starts = [np.r_[np.log([initial.sensor.theta_on, initial.blank, initial.sensor.tau_min_us,
-                                initial.tau_dark_us]), (initial.delay_us + float(lead_us)) / delay_scale]]
     tries = [least_squares(residuals, xs[free], method="trf", diff_step=0.02, x_scale=0.3, max_nfev=150)
              for xs in starts]
     best = min(tries, key=lambda r: r.cost).x
