@@ -232,6 +232,13 @@ def _interior_events(rec, t0_us, t1_us, polarity, region, interior):
     return ev.t[sel][use], (ys * (x1 - x0) + xs)[use]
 
 
+def _on_events_by_pixel(rec, t0_us, t1_us, region, interior):
+    """:func:`_interior_events`' ON events, sorted by pixel and then time."""
+    t, pix = _interior_events(rec, t0_us, t1_us, 1, region, interior)
+    order = np.lexsort((t, pix))
+    return t[order], pix[order]
+
+
 def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_period_us=None):
     """Mean time (µs after the falling edge) of the interior pixels' OFF events while each level step decays, and
     their mean number a pixel and step: ``(off_mean_us, off_counts)``.
@@ -274,9 +281,7 @@ def level_rise_times(rec, t_on_us, t_off_us, level, orders, region, interior):
         k = int(orders[s])
         times = []
         for a, b in zip(np.asarray(t_on_us)[lv == m].tolist(), np.asarray(t_off_us)[lv == m].tolist()):
-            t, pix = _interior_events(rec, a, b, 1, region, interior)
-            order = np.lexsort((t, pix))
-            t, pix = t[order], pix[order]
+            t, pix = _on_events_by_pixel(rec, a, b, region, interior)
             start = np.r_[0, np.flatnonzero(np.diff(pix)) + 1]
             n = np.diff(np.r_[start, pix.size])
             ok = n >= k
@@ -292,9 +297,7 @@ def on_gaps(rec, t_on_us, t_off_us, region, interior):
     t_off_us)``, pooled over pixels and windows."""
     gaps = []
     for a, b in zip(np.asarray(t_on_us).tolist(), np.asarray(t_off_us).tolist()):
-        t, pix = _interior_events(rec, a, b, 1, region, interior)
-        order = np.lexsort((t, pix))
-        pix, t = pix[order], t[order]
+        t, pix = _on_events_by_pixel(rec, a, b, region, interior)
         same = pix[1:] == pix[:-1]
         gaps.append(np.diff(t)[same])
     return np.concatenate(gaps).astype(np.float64) if gaps else np.zeros(0)
