@@ -315,6 +315,11 @@ def test_a_light_that_follows_its_trigger_edges_late_is_timed_and_the_windows_fo
     assert on_edges.summary["error"]["nrmse"] >= 1.1 * carried.summary["error"]["nrmse"]
     with pytest.raises(EvtkError, match="light_delay_us"):
         PixelFit.from_dict(dict(cal.pixel_model, light_delay_us=float("nan")))
+    res = CliRunner().invoke(main, ["calibrate", str(tmp_path / "r.h5"), "-o", str(tmp_path / "c.toml")])
+    assert res.exit_code == 0 and "the light follows the trigger edges by 2" in res.output, res.output
+    res = CliRunner().invoke(main, ["reconstruct", str(tmp_path / "r.h5"), "-o", str(tmp_path / "o.h5"),
+                                    "--calibration", str(tmp_path / "c.toml")])
+    assert res.exit_code == 0 and f"windows: {carried.summary['windows_after_edges_us']} us after" in res.output
 
 
 def test_gap_quantiles_compare_a_model_with_a_cameras_whole_us_stamps():

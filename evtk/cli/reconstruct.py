@@ -101,6 +101,9 @@ def reconstruct_cmd(recording, output, png_path, schedule_path, calibration_path
                                                        if summary.get("placement") else "")
         if summary.get("pixel_model_note"):
             line += f"\nnote: {summary['pixel_model_note']}"
+        if abs(summary.get("windows_after_edges_us") or 0) >= 2:  # a µs or so is the fit's own spread
+            line += (f"\nwindows: {summary['windows_after_edges_us']} us after the trigger edges, where the fitted "
+                     "pixel model puts the light's change")
         if summary.get("timing_skipped"):
             line += f"\nnote: event times were not used: {summary['timing_skipped']}"
         click.echo(line)

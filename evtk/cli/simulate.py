@@ -226,6 +226,9 @@ def calibrate(recording, schedule_path, output, png_path, as_json):
                    + (f"; refractory period {m['refractory_us']:.1f} us" if m.get("refractory_resolved") else
                       f"; refractory period at most {m['refractory_bound_us']:.0f} us"
                       if m.get("refractory_bound_us") is not None else ""))
+        if abs(m.get("light_delay_us", 0.0)) >= 2:  # a µs or so is the fit's own spread
+            click.echo(f"the light follows the trigger edges by {m['light_delay_us']:.1f} us; reconstruction windows "
+                       "follow it")
     if cal.blur_px > 0:
         click.echo(f"camera defocus: {cal.blur_px:.2f} px (Gaussian sigma, beyond the bench's footprint)")
 
