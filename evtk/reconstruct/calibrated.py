@@ -244,8 +244,8 @@ def _fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us, cell_m
     bright = is_level & (sub.level == sub.level[is_level].max()) if is_level.any() else is_level
     t_on = np.asarray(t_off_us)[bright] - int(sched["window_us"])
     gaps = on_gaps(rec, t_on, np.asarray(t_off_us)[bright], counts.region, inside) if fine else np.zeros(0)
-    # first timed by the first ON events, which no refractory period delays, the light taken to come with the
-    # edges, so that the gaps can measure the period
+    # first timed by the first ON events, which no refractory period delays, the light taken to come delay_us
+    # after the edges, so that the gaps can measure the period
     fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine,
                           lead_us=lead_us, delay_us=delay_us)
     refractory, resolved = fit_refractory(fit, stats.light.max(), gaps, skip_us)
