@@ -7,6 +7,7 @@ differ from the default one the fit starts from, on both readouts, with
 shot noise on.
 """
 
+import dataclasses
 import json
 
 import numpy as np
@@ -64,6 +65,10 @@ def test_the_rise_timed_half_way_up_pins_the_time_constant():
     fit = fit_pixel_model(stats, 1000, 13340, spread=0.03)
     assert fit.sensor.tau_min_us == pytest.approx(truth[2], rel=0.03)
     assert fit.sensor.theta_on == pytest.approx(truth[0], rel=0.03)
+    # no pixel reached its half-way event anywhere: the first ON times alone, as without the rise
+    none = fit_pixel_model(dataclasses.replace(stats, rise_us=np.full(LIGHT.size, np.nan)), 1000, 13340, spread=0.03)
+    alone = fit_pixel_model(dataclasses.replace(stats, rise_us=None, rise_order=None), 1000, 13340, spread=0.03)
+    assert none.sensor.tau_min_us == alone.sensor.tau_min_us and np.isfinite(none.rms_time_us)
 
 
 def test_level_rise_times_take_each_pixels_kth_on_event(tmp_path):

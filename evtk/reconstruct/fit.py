@@ -558,7 +558,8 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
     has_off = np.isfinite(stats.off_mean_us) if stats.off_mean_us is not None else np.zeros(light.size, bool)
     # the rise is timed half-way up where measured (tens of us, far above a tick), else by the first ON event
     # (a few us: a tick is a quarter of it); the last ON event jumps with every whole count, so it is left out
-    orders = stats.rise_order if stats.rise_us is not None and stats.rise_order is not None else None
+    orders = stats.rise_order if stats.rise_us is not None and stats.rise_order is not None \
+        and bool(np.isfinite(stats.rise_us).any()) else None
     # time stamps are whole us rounded down (as the timing linearisation takes them): half a tick on average
     first_t = stats.first_us + 0.5
     rise_t = stats.rise_us + 0.5 if orders is not None else None
