@@ -40,7 +40,6 @@ from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
 from .reconstruct.calibrated import fit_on_edges
 from .reconstruct.deblur import sampling_matrix
-from .reconstruct.fit import predict_levels
 from .reconstruct.windows import Windows
 from .settings import read_table, toml_value
 from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, dot_grid
@@ -282,10 +281,7 @@ def dot_blur_px(net, region, cell_map, bench, dot_cells, shape, model=None, radi
         raise EvtkError("no counts near the calibration dots to measure the camera's blur from")
     if model is not None:
         grid = np.linspace(0.0, 4.0, 81)
-        params = np.array([model.sensor.theta_on, model.blank, model.sensor.tau_min_us, model.tau_dark_us])
-        spread = model.sensor.theta_mismatch / model.sensor.theta_on
-        curve = predict_levels(params, grid, model.window_us, model.settle_us, 0, model.sensor.refractory_us, spread)[0]
-        curve = np.maximum.accumulate(np.nan_to_num(curve))
+        curve = np.maximum.accumulate(np.nan_to_num(model.mean_counts(grid)))
 
         def counts(light, p):
             return np.interp(p[0] * light, grid, curve)
@@ -383,10 +379,7 @@ def _plot_pixel_model(ax, fit):
     """The level captures' mean counts against their light, and the fitted model's (noise-free) curve."""
     st = fit.statistics
     light = np.linspace(0.25, float(st.light.max()) * 1.05, 60)
-    params = np.array([fit.sensor.theta_on, fit.blank, fit.sensor.tau_min_us, fit.tau_dark_us])
-    spread = fit.sensor.theta_mismatch / fit.sensor.theta_on
-    n = predict_levels(params, light, fit.window_us, fit.settle_us, 0, fit.sensor.refractory_us, spread)[0]
-    ax.plot(light, n, "-", color="C0", label="fitted pixel model")
+    ax.plot(light, fit.mean_counts(light), "-", color="C0", label="fitted pixel model")
     ax.plot(st.light, st.counts, "o", color="C1", label="level captures (mean)")
     ax.set_xlabel("light (kernel elements on flat features)")
     ax.set_ylabel("net events per pixel and window")

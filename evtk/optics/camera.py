@@ -30,7 +30,8 @@ from .screen import response_origin_px, screen_response
 #: Largest deviation (pixels) over the response at which a map is still taken as a scale and shift.
 AXIS_TOLERANCE_PX = 0.05
 
-__all__ = ["Camera", "CellMap", "radial_distort", "radial_undistort", "render_nominal", "footprint_light"]
+__all__ = ["Camera", "CellMap", "radial_distort", "radial_undistort", "render_nominal", "footprint_light",
+           "footprint_points"]
 
 
 def radial_distort(xy, centre, norm, k1):
@@ -197,10 +198,7 @@ def footprint_light(kernel, features, bench, region, to_nominal, supersample=4):
     """
     x0, x1, y0, y1 = region
     s = int(supersample)
-    yy, xx = np.mgrid[y0:y1, x0:x1]
-    sub = (np.arange(s) + 0.5) / s - 0.5
-    sy, sx = np.meshgrid(sub, sub, indexing="ij")
-    pts = np.stack([(xx[..., None, None] + sx).ravel(), (yy[..., None, None] + sy).ravel()], 1).astype(np.float64)
+    pts = footprint_points(region, s)
     fine = (to_nominal(pts) + 0.5) * s - 0.5  # nominal pixels on the fine grid
     fw, fh = bench.sensor_width * s, bench.sensor_height * s
     fx0, fx1 = int(max(0, math.floor(fine[:, 0].min()) - 1)), int(min(fw, math.ceil(fine[:, 0].max()) + 2))
@@ -210,7 +208,18 @@ def footprint_light(kernel, features, bench, region, to_nominal, supersample=4):
     else:
         img = render_nominal(kernel, features, bench, (fx0, fx1, fy0, fy1), s)
         light = map_coordinates(img, [fine[:, 1] - fy0, fine[:, 0] - fx0], order=1, mode="nearest")
-    return light.reshape(yy.shape + (s * s,)).mean(axis=-1)
+    return light.reshape((y1 - y0, x1 - x0, s * s)).mean(axis=-1)
+
+
+def footprint_points(region, supersample):
+    """Sensor points (x, y) sampling each pixel of ``region`` (x0, x1, y0, y1) on a ``supersample`` squared grid
+    over its footprint: ``((y1 - y0) * (x1 - x0) * supersample**2, 2)``, pixel by pixel in row-major order."""
+    x0, x1, y0, y1 = (int(v) for v in region)
+    s = int(supersample)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    sub = (np.arange(s) + 0.5) / s - 0.5
+    sy, sx = np.meshgrid(sub, sub, indexing="ij")
+    return np.stack([(xx[..., None, None] + sx).ravel(), (yy[..., None, None] + sy).ravel()], 1).astype(np.float64)
 
 
 def render_nominal(kernel, features, bench, fine_region, supersample):

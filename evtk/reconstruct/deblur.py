@@ -16,10 +16,10 @@ light sensor pixel ``p`` collects from a unit response in cell ``n``:
   ``blur_px`` pixels.
 
 :func:`solve_cells` then finds the cell values ``c`` minimising
-``|A c - v|^2 + lam^2 |c|^2`` for every response ``v`` at once (Tikhonov
-regularisation, its weight chosen by generalised cross-validation:
-:func:`choose_lambda`), so that noise the blur would amplify is damped
-rather than inverted.
+``|A c - v|^2 + (lam s_max)^2 |c|^2`` for every response ``v`` at once
+(Tikhonov regularisation; ``lam`` from the run's own measured noise,
+:func:`relative_noise` and :func:`wiener_lambda`), so that noise the blur
+would amplify is damped rather than inverted.
 """
 
 from __future__ import annotations
@@ -34,12 +34,13 @@ from scipy.ndimage import gaussian_filter
 from .._blas import one_blas_thread
 from ..errors import EvtkError
 from ..optics import shadow_magnification
+from ..optics.camera import footprint_points
 from ..optics.screen import _footprint_cdf
 
 __all__ = ["sampling_matrix", "solve_cells", "relative_noise", "wiener_lambda", "DEFAULT_LAMBDA"]
 
 
-def sampling_matrix(bench, to_cells, region, shape, blur_px=0.0, supersample=4, step_px=None):
+def sampling_matrix(bench, to_cells, region, shape, blur_px=0.0, supersample=4):
     """``A[p, n]`` (pixels of ``region`` row-major, cells of ``shape`` row-major): pixel ``p``'s light from a
     unit response in cell ``n``.
 
@@ -55,10 +56,9 @@ def sampling_matrix(bench, to_cells, region, shape, blur_px=0.0, supersample=4, 
     blur_px : float
         Standard deviation of the camera's defocus, in pixels.
     supersample : int
-        Points per pixel side over which each footprint is integrated.
-    step_px : float, optional
-        Pixels per cell, to size each sample's share of a cell; default
-        from ``to_cells`` at the region's centre.
+        Points per pixel side over which each footprint is integrated; each
+        point's width in cells is taken from ``to_cells`` at the region's
+        centre.
     """
     x0, x1, y0, y1 = (int(v) for v in region)
     rows, cols = (int(v) for v in shape)
@@ -67,15 +67,10 @@ def sampling_matrix(bench, to_cells, region, shape, blur_px=0.0, supersample=4, 
     if not (math.isfinite(blur_px) and blur_px >= 0):
         raise EvtkError(f"blur_px must be a finite number >= 0, not {blur_px}")
     s = int(supersample)
-    yy, xx = np.mgrid[y0:y1, x0:x1]
-    sub = (np.arange(s) + 0.5) / s - 0.5
-    sy, sx = np.meshgrid(sub, sub, indexing="ij")
-    pts = np.stack([(xx[..., None, None] + sx).ravel(), (yy[..., None, None] + sy).ravel()], 1)
-    uv = np.asarray(to_cells(pts), dtype=np.float64)
-    if step_px is None:
-        c = np.array([[(x0 + x1 - 1) / 2, (y0 + y1 - 1) / 2]])
-        d = np.asarray(to_cells(np.concatenate([c - [0.5, 0], c + [0.5, 0], c - [0, 0.5], c + [0, 0.5]])))
-        step_px = 2.0 / (np.linalg.norm(d[1] - d[0]) + np.linalg.norm(d[3] - d[2]))
+    uv = np.asarray(to_cells(footprint_points(region, s)), dtype=np.float64)
+    c = np.array([[(x0 + x1 - 1) / 2, (y0 + y1 - 1) / 2]])
+    d = np.asarray(to_cells(np.concatenate([c - [0.5, 0], c + [0.5, 0], c - [0, 0.5], c + [0, 0.5]])))
+    step_px = 2.0 / (np.linalg.norm(d[1] - d[0]) + np.linalg.norm(d[3] - d[2]))
     a = 1.0 / (s * float(step_px))  # a sample's width, in cells
     b = bench.kernel_step_cells if bench.source_extent == "area" else 0.0
     psf = bench.shadow_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)

@@ -99,6 +99,22 @@ class PixelFit:
     #: first and half-way ON times (:func:`fit_pixel_model`); windows follow the light by this much
     delay_us: float = 0.0
 
+    @property
+    def params(self) -> np.ndarray:
+        """``(theta, blank, tau_min_us, tau_dark_us)``, as :func:`predict_levels` takes them."""
+        return np.array([self.sensor.theta_on, self.blank, self.sensor.tau_min_us, self.tau_dark_us])
+
+    @property
+    def spread(self) -> float:
+        """The thresholds' relative spread the model was fitted with."""
+        return self.sensor.theta_mismatch / self.sensor.theta_on
+
+    def mean_counts(self, light) -> np.ndarray:
+        """The model's mean net count for a step of each ``light`` (response units) in its windows."""
+        light = np.asarray(light, np.float64)
+        return predict_levels(self.params, light, self.window_us, self.settle_us, 0, self.sensor.refractory_us,
+                              self.spread)[0]
+
     def to_dict(self) -> dict:
         s = self.sensor
         return {"theta_on": s.theta_on, "theta_off": s.theta_off, "tau_min_us": s.tau_min_us,
@@ -232,11 +248,22 @@ def _interior_events(rec, t0_us, t1_us, polarity, region, interior):
     return ev.t[sel][use], (ys * (x1 - x0) + xs)[use]
 
 
-def _on_events_by_pixel(rec, t0_us, t1_us, region, interior):
-    """:func:`_interior_events`' ON events, sorted by pixel and then time."""
-    t, pix = _interior_events(rec, t0_us, t1_us, 1, region, interior)
+def _by_pixel(t, pix):
+    """Event times and pixels sorted by pixel, then time."""
     order = np.lexsort((t, pix))
     return t[order], pix[order]
+
+
+def _successive_gaps(t, pix):
+    """The gaps between each pixel's successive events (``t``, ``pix`` sorted by :func:`_by_pixel`), and the
+    pixel of each."""
+    same = pix[1:] == pix[:-1]
+    return np.diff(t)[same], pix[1:][same]
+
+
+def _on_events_by_pixel(rec, t0_us, t1_us, region, interior):
+    """:func:`_interior_events`' ON events, sorted by pixel and then time."""
+    return _by_pixel(*_interior_events(rec, t0_us, t1_us, 1, region, interior))
 
 
 def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_period_us=None):
@@ -297,9 +324,7 @@ def on_gaps(rec, t_on_us, t_off_us, region, interior):
     t_off_us)``, pooled over pixels and windows."""
     gaps = []
     for a, b in zip(np.asarray(t_on_us).tolist(), np.asarray(t_off_us).tolist()):
-        t, pix = _on_events_by_pixel(rec, a, b, region, interior)
-        same = pix[1:] == pix[:-1]
-        gaps.append(np.diff(t)[same])
+        gaps.append(_successive_gaps(*_on_events_by_pixel(rec, a, b, region, interior))[0])
     return np.concatenate(gaps).astype(np.float64) if gaps else np.zeros(0)
 
 
@@ -367,10 +392,8 @@ def fit_refractory(fit: PixelFit, light, gaps, skip_us=0, max_us=None):
     observed = gap_quantiles(g, qs)
     hi = float(max_us) if max_us is not None else 2.0 * float(np.quantile(g, 0.01))
     grid = np.arange(1.0, max(hi, 1.0) + 0.25, 0.5)
-    params = np.array([fit.sensor.theta_on, fit.blank, fit.sensor.tau_min_us, fit.tau_dark_us])
-    spread = fit.sensor.theta_mismatch / fit.sensor.theta_on
-    predicted = np.array([_predicted_gaps(params, float(light), fit.window_us, fit.settle_us, skip_us, r, spread, qs)
-                          for r in grid])
+    predicted = np.array([_predicted_gaps(fit.params, float(light), fit.window_us, fit.settle_us, skip_us, r,
+                                          fit.spread, qs) for r in grid])
     if not np.isfinite(predicted).any(axis=1).all():
         return fit.sensor.refractory_us, False
     i = int(np.argmin(np.nansum((predicted - observed) ** 2, axis=1)))
@@ -385,11 +408,7 @@ def _predicted_gaps(params, light, window_us, settle_us, skip_us, refractory_us,
     t, idx, p, _, _, weight = _simulate_steps(params, np.array([light]), window_us, settle_us, refractory_us, spread)
     z, w = float(settle_us), float(window_us)
     keep = (t >= z + float(skip_us)) & (t < z + w) & (p == 1)
-    ti, ii = t[keep], idx[keep]
-    order = np.lexsort((ti, ii))
-    ti, ii = ti[order], ii[order]
-    same = ii[1:] == ii[:-1]
-    gap, who = np.diff(ti)[same], ii[1:][same]
+    gap, who = _successive_gaps(*_by_pixel(t[keep], idx[keep]))
     if gap.size == 0:
         return np.full(len(qs), np.nan)
     return _stamped_gap_quantiles(gap, weight[who % weight.size], qs)
@@ -423,9 +442,7 @@ def predict_levels(params, light, window_us, settle_us, skip_us, refractory_us, 
     last = np.full(u_size, np.nan)
     rise = np.full(u_size, np.nan)
     if keep.any():
-        ti, ii = t[keep] - a, idx[keep]
-        order = np.lexsort((ti, ii))
-        ti, ii = ti[order], ii[order]
+        ti, ii = _by_pixel(t[keep] - a, idx[keep])
         starts_i = np.r_[0, np.flatnonzero(np.diff(ii)) + 1]
         ends_i = np.r_[starts_i[1:] - 1, ii.size - 1]
         first[ii[starts_i]] = ti[starts_i]
@@ -556,8 +573,8 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
                offset / delay_scale]
     off_scale = 20.0  # us: the OFF events' mean time, over thousands of us
     has_off = np.isfinite(stats.off_mean_us) if stats.off_mean_us is not None else np.zeros(light.size, bool)
-    # the rise is timed half-way up where measured (tens of us, far above a tick), else by the first ON event
-    # (a few us: a tick is a quarter of it); the last ON event jumps with every whole count, so it is left out
+    # the rise is timed by the first ON event (a few us: a tick is a quarter of it) and, where measured, half-way
+    # up (tens of us, far above a tick); the last ON event jumps with every whole count, so it is left out
     orders = stats.rise_order if stats.rise_us is not None and stats.rise_order is not None \
         and bool(np.isfinite(stats.rise_us).any()) else None
     # time stamps are whole us rounded down (as the timing linearisation takes them): half a tick on average

@@ -265,8 +265,7 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
         values = net
     elif why is None:  # the pixel model, read below one threshold from the event times
         values, timed_share, thresholds = _refine_by_timing(net if gain is None else net * gain, counts, sim, bench,
-                                                            schedule,
-                                                curve, gain, theta_on, skip_us)
+                                                            schedule, curve, gain, theta_on, skip_us)
     elif curve is not None:  # invert the recording's own pixel model
         values = linearize_by_model(net if gain is None else net * gain, curve)
     elif gain is None:
