@@ -162,11 +162,14 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
         taken as the 5x5 median of its neighbours' counts (the flat response
         is smooth; threshold mismatch is not), see :func:`flat_field_gain`.
 
-    Returns a :class:`~evtk.reconstruct.Reconstruction` whose ``ideal`` is the
-    digital correlation of the job's patterns and whose ``summary`` carries
-    the trigger match (``match``) and the error against the ideal after the
-    best scale (``error``: responses are relative intensity, not the ideal's
-    units). Pairs with a pass that has no window are left out and listed.
+    Returns
+    -------
+    Reconstruction
+        Its ``ideal`` is the digital correlation of the job's patterns and its
+        ``summary`` carries the trigger match (``match``) and the error against
+        the ideal after the best scale (``error``: responses are relative
+        intensity, not the ideal's units). Pairs with a pass that has no
+        window are left out and listed.
     """
 
     check_crop(crop)

@@ -109,9 +109,12 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         (default); False uses ``pixel_model`` even then (one fitted to these
         very captures before).
 
-    Returns a :class:`~evtk.reconstruct.Reconstruction`; its summary holds
-    the trigger match (``match``), the fitted model (``pixel_model``) and
-    the error against the ideal correlation of the schedule's patterns.
+    Returns
+    -------
+    Reconstruction
+        Its summary holds the trigger match (``match``), the fitted model
+        (``pixel_model``) and the error against the ideal correlation of the
+        schedule's patterns.
     """
     check_crop(crop)
     sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
