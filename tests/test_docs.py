@@ -6,8 +6,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PAGES = ["README.md", "docs/getting-started.md", "docs/walkthrough-simulated.md", "docs/walkthrough-bench.md",
-         "docs/guide.md"]
+PAGES = ["README.md", "docs/getting-started.md", "docs/guide.md"]
+#: pages whose shell commands and Python snippets run together, in page order, each on the files the page made
+WALKTHROUGHS = ["docs/walkthrough-simulated.md", "docs/walkthrough-bench.md"]
 
 
 def _blocks(page):
@@ -39,6 +40,48 @@ def test_snippets_run_as_written(page, tmp_path, monkeypatch):
     namespace = {"__name__": "__docs__"}
     for i, code in enumerate(blocks):
         exec(compile(code, f"{page} (snippet {i + 1})", "exec"), namespace)
+
+
+def _page_blocks(page):
+    """The page's ``bash`` and ``python`` blocks in page order, as (language, code); a block right after an
+    ``<!-- not run: ... -->`` comment, and shell lines that install packages, are left out."""
+    text = (ROOT / page).read_text()
+    out = []
+    for m in re.finditer(r"(<!-- not run[^>]*-->\s*)?```(bash|python)\n(.*?)```", text, re.S):
+        if m.group(1):
+            continue
+        code = m.group(3)
+        if m.group(2) == "bash":
+            code = "\n".join(line for line in code.splitlines() if "pip install" not in line)
+        out.append((m.group(2), code))
+    return out
+
+
+@pytest.mark.parametrize("page", WALKTHROUGHS)
+def test_walkthrough_runs_in_page_order(page, tmp_path, monkeypatch):
+    """A walkthrough's shell commands (with ``evtk`` as installed beside this Python) and Python snippets run one
+    after another in one fresh directory, as a reader following the page would: each step reads only the files
+    the page's earlier steps wrote. A step that fails names the page and the block."""
+    import os
+    import subprocess
+    import sys
+
+    blocks = _page_blocks(page)
+    assert any(lang == "bash" for lang, _ in blocks), f"{page} has no shell commands"
+    monkeypatch.chdir(tmp_path)
+    env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", ""),
+               MPLBACKEND="Agg")
+    namespace = {"__name__": "__docs__"}
+    for i, (lang, code) in enumerate(blocks):
+        where = f"{page} (block {i + 1}, {lang})"
+        if lang == "python":
+            exec(compile(code, where, "exec"), namespace)
+            continue
+        done = subprocess.run(["bash", "-euo", "pipefail", "-c", code], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, f"{where} failed ({done.returncode}):\n{code}\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}"
+        for line in done.stderr.splitlines():
+            assert "Traceback" not in line, f"{where} printed a traceback:\n{done.stderr[-2000:]}"
 
 
 def test_every_page_and_format_spec_is_in_the_site_navigation():
