@@ -89,3 +89,16 @@ def test_every_page_and_format_spec_is_in_the_site_navigation():
     pages = sorted(str(p.relative_to(ROOT / "docs")) for p in (ROOT / "docs").rglob("*.md"))
     missing = [p for p in pages if p not in nav]
     assert not missing, f"pages left out of mkdocs.yml's nav: {missing}"
+
+
+def test_every_environment_variable_is_documented_in_one_place():
+    """Each ``EVTK_*`` variable the package reads (a string literal in its source) has a row in the command-line
+    overview's table of environment variables."""
+    found = set()
+    for path in (ROOT / "evtk").rglob("*.py"):
+        found |= set(re.findall(r"[\"'](EVTK_[A-Z_]+)[\"']", path.read_text()))
+    found -= {"EVTK_FORMAT"}   # the HDF5 layout's name constant, not an environment variable
+    page = (ROOT / "docs/cli-overview.md").read_text()
+    table = page[page.index("## Environment variables"):]
+    missing = sorted(v for v in found if f"`{v}`" not in table)
+    assert found and not missing, f"environment variables read but not documented: {missing}"
