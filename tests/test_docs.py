@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PAGES = ["README.md", "docs/getting-started.md", "docs/guide.md"]
+PAGES = ["README.md", "docs/getting-started.md", "docs/guide.md", "docs/formats/foreign.md"]
 #: pages whose shell commands and Python snippets run together, in page order, each on the files the page made
 WALKTHROUGHS = ["docs/walkthrough-simulated.md", "docs/walkthrough-bench.md"]
 

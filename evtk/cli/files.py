@@ -77,18 +77,23 @@ def info(file, as_json, salvage, check):
               help="Events held in memory at a time while streaming.")
 @click.option("--events-only", is_flag=True,
               help="Write events and triggers only (no frames, IMU or other streams, and no warning about them).")
-def convert(source, target, compression, salvage, sort, chunk_events, events_only):
+@click.option("--format", "fmt", type=click.Choice(["aedat4", "hdf5", "parquet", "evt2", "evt3", "dat", "es", "csv"]),
+              help="TARGET's format where its extension does not say (.raw is EVT 3.0 unless --format evt2).")
+def convert(source, target, compression, salvage, sort, chunk_events, events_only, fmt):
     """Convert SOURCE to TARGET (format from TARGET's extension), streaming.
 
-    AEDAT4 to AEDAT4 copies frames, IMU and other streams and keeps the
-    camera's name; other targets get one warning naming what they cannot hold.
+    Any format evtk reads to AEDAT4, HDF5, Parquet, Prophesee RAW (EVT 2.0
+    or 3.0), DAT, Event Stream or CSV. AEDAT4 to AEDAT4 copies frames, IMU
+    and other streams and keeps the camera's name; other targets get one
+    warning naming what they cannot hold.
     """
     from ..io._convert import convert as run
 
     done = run(source, target, compression, salvage=salvage, sort=sort, chunk_events=chunk_events,
-               events_only=events_only)
+               events_only=events_only, fmt=fmt)
     if done["left_out"]:
-        what = ", ".join(f"{name} ({k:,} packets)" for name, k in done["left_out"].items())
+        what = ", ".join(f"{name} ({k:,}{'' if name in ('trigger edges', 'metadata keys') else ' packets'})"
+                         for name, k in done["left_out"].items())
         click.echo(f"evtk: warning: left out {what}: {target} cannot hold them (--events-only: no warning)", err=True)
     copied = "".join(f", {k:,} {name} packets" for name, k in done["copied"].items())
     click.echo(f"wrote {done['events']:,} events and {done['triggers']:,} triggers{copied} to {target}", err=True)

@@ -17,7 +17,7 @@ if TYPE_CHECKING:  # loaded lazily at run time (below)
     from .base import BaseRecording
 
 __all__ = ["open", "open_writer", "read_events", "write_events", "convert", "detect_format", "Recording", "BaseRecording",
-           "WRITE_EXTENSIONS"]
+           "WRITE_EXTENSIONS", "WRITE_FORMATS", "write_format"]
 
 # the readers and writers (numba, h5py, pyarrow) load on first use: `evtk --version` and `--help` start fast
 _LAZY = {"Recording": ("aedat4", "Recording"), "BaseRecording": ("base", "BaseRecording"),
@@ -33,7 +33,40 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 #: Extension -> format name for writing.
-WRITE_EXTENSIONS = {".aedat4": "aedat4", ".h5": "hdf5", ".hdf5": "hdf5", ".parquet": "parquet", ".pq": "parquet"}
+WRITE_EXTENSIONS = {".aedat4": "aedat4", ".h5": "hdf5", ".hdf5": "hdf5", ".parquet": "parquet", ".pq": "parquet",
+                    ".raw": "evt3", ".dat": "dat", ".es": "es", ".csv": "csv", ".txt": "csv"}
+#: Every format evtk writes: the extension's, or one named by ``fmt=`` (``.raw`` is EVT 3.0 unless ``fmt="evt2"``).
+WRITE_FORMATS = ("aedat4", "hdf5", "parquet", "evt2", "evt3", "dat", "es", "csv")
+#: What each format cannot hold, for the warning a conversion gives (None: everything evtk writes to it).
+LOSES = {"aedat4": None, "hdf5": None, "parquet": None, "evt2": "metadata beyond text lines",
+         "evt3": "metadata beyond text lines", "dat": "trigger edges", "es": "trigger edges and metadata",
+         "csv": "trigger edges and metadata"}
+
+
+def write_format(path, fmt: str | None = None) -> str:
+    """The format a write to ``path`` uses: ``fmt`` when given, else the one of its extension.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The target.
+    fmt : str, optional
+        One of :data:`WRITE_FORMATS`.
+
+    Returns
+    -------
+    str
+        The format's name.
+    """
+    if fmt is not None:
+        if fmt not in WRITE_FORMATS:
+            raise EvtkError(f"evtk writes {', '.join(WRITE_FORMATS)}; not {fmt!r}")
+        return fmt
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    found = WRITE_EXTENSIONS.get(ext)
+    if found is None:
+        raise EvtkError(f"cannot tell the format from the extension {ext!r}; use one of {sorted(WRITE_EXTENSIONS)}")
+    return found
 
 _SIGNATURES = (
     (b"#!AER-DAT4.0\r\n", "aedat4"),  # aedat4.MAGIC
@@ -67,8 +100,16 @@ def detect_format(path) -> str:
         with builtins.open(path, "rb") as f:
             if sniff(f.read(4096)):
                 return "prophesee"
+    from .decoded import sniff_nmnist, sniff_text
+
+    with builtins.open(path, "rb") as f:
+        if sniff_text(f.read(4096)):
+            return "text"
+    if sniff_nmnist(path):
+        return "nmnist"
     raise FormatError(path, 0, "unrecognised file: not AEDAT4 (#!AER-DAT4.0), HDF5, Parquet, Prophesee "
-                               "RAW/DAT (a '%' header) or Event Stream")
+                               "RAW/DAT (a '%' header), Event Stream, text events (t x y p lines) or an "
+                               "N-MNIST binary")
 
 
 def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # noqa: A001
@@ -130,6 +171,11 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         from .prophesee import EventStreamRecording
 
         return EventStreamRecording(path, salvage=salvage, sensor_size=sensor_size)
+    if fmt in ("text", "nmnist"):
+        from .decoded import NmnistRecording, TextRecording
+
+        cls = TextRecording if fmt == "text" else NmnistRecording
+        return cls(path, salvage=salvage, sensor_size=sensor_size)
     if fmt == "hdf5":
         from .hdf5 import Hdf5Recording
 
@@ -147,22 +193,44 @@ def read_events(path, t_start_us=None, t_end_us=None) -> Events:
         return rec.events(t_start_us, t_end_us)
 
 
-def write_events(path, events: Events, triggers: Triggers | None = None, compression: str = "lz4", metadata=None, **kwargs):
-    """Write ``events`` (and triggers) to ``path``; the extension picks the format.
+def write_events(path, events: Events, triggers: Triggers | None = None, compression: str = "lz4", metadata=None,
+                 fmt: str | None = None, **kwargs):
+    """Write ``events`` (and triggers) to ``path``; the extension (or ``fmt``) picks the format.
 
-    ``.aedat4``, ``.h5``/``.hdf5`` (evtk's layout) or ``.parquet``.  The file
-    appears under its name only once complete.  Extra keywords go to the
+    ``.aedat4``, ``.h5``/``.hdf5`` (evtk's layout), ``.parquet``, ``.raw``
+    (Prophesee EVT 3.0, or EVT 2.0 with ``fmt="evt2"``), ``.dat`` (Prophesee
+    DAT), ``.es`` (Event Stream) or ``.csv``/``.txt`` (text events). The file
+    appears under its name only once complete. Extra keywords go to the
     format's writer (for example ``packet_events`` for AEDAT4, ``sort`` and
-    ``chunk_events`` for HDF5, ``row_group_events`` for Parquet).
+    ``chunk_events`` for HDF5, ``row_group_events`` for Parquet). DAT, Event
+    Stream and CSV hold no triggers: passing some is an error there.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The target.
+    events : Events
+        The events (in time order for every format but AEDAT4 and Parquet).
+    triggers : Triggers, optional
+        Trigger edges, for the formats that hold them.
+    compression : str
+        AEDAT4, HDF5 and Parquet: the codec.
+    metadata : dict, optional
+        Text metadata, for the formats that hold it.
+    fmt : str, optional
+        One of :data:`WRITE_FORMATS`, overriding the extension.
+    **kwargs
+        The format writer's own options.
     """
-    ext = os.path.splitext(os.fspath(path))[1].lower()
-    fmt = WRITE_EXTENSIONS.get(ext)
-    if fmt is None:
-        raise EvtkError(f"cannot tell the format from the extension {ext!r}; use one of {sorted(WRITE_EXTENSIONS)}")
+    fmt = write_format(path, fmt)
     from ..events import Events
 
     if not isinstance(events, Events):
         raise EvtkError(f"events must be evtk.Events, got {type(events).__name__}")
+    if fmt in ("evt2", "evt3", "dat", "es", "csv"):
+        with open_writer(path, events.sensor_size, metadata=metadata, triggers=triggers, fmt=fmt) as w:
+            w.write_events(events)
+        return
     if fmt == "aedat4":
         from . import aedat4
 
@@ -178,19 +246,49 @@ def write_events(path, events: Events, triggers: Triggers | None = None, compres
 
 
 def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, triggers: Triggers | None = None,
-                **kwargs):
-    """A streaming writer for ``path`` (format from the extension).
+                fmt: str | None = None, **kwargs):
+    """A streaming writer for ``path`` (format from the extension, or ``fmt``).
 
     Call ``write_events`` as often as needed, then ``close`` (or use it as a
     context manager, which discards the partial file on an exception).
-    Triggers are written first; HDF5 needs events in time order. Extra
-    keywords go to the format's writer (for AEDAT4 ``source`` and
-    ``extra_streams``, see :class:`evtk.io.aedat4.Aedat4Writer`).
+    Triggers are written first (RAW files interleave them by time); HDF5,
+    RAW, DAT, Event Stream and CSV need events in time order. Extra keywords
+    go to the format's writer (for AEDAT4 ``source`` and ``extra_streams``,
+    see :class:`evtk.io.aedat4.Aedat4Writer`).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The target.
+    sensor_size : (int, int)
+        Width and height.
+    compression : str
+        AEDAT4, HDF5 and Parquet: the codec.
+    metadata : dict, optional
+        Text metadata, for the formats that hold it.
+    triggers : Triggers, optional
+        Trigger edges, for the formats that hold them.
+    fmt : str, optional
+        One of :data:`WRITE_FORMATS`, overriding the extension.
+    **kwargs
+        The format writer's own options.
+
+    Returns
+    -------
+    BaseWriter
+        The writer, a context manager.
     """
-    ext = os.path.splitext(os.fspath(path))[1].lower()
-    fmt = WRITE_EXTENSIONS.get(ext)
-    if fmt is None:
-        raise EvtkError(f"cannot tell the format from the extension {ext!r}; use one of {sorted(WRITE_EXTENSIONS)}")
+    fmt = write_format(path, fmt)
+    if fmt in ("evt2", "evt3", "dat", "es"):
+        from .foreign import ForeignWriter
+
+        return ForeignWriter(path, fmt, sensor_size, metadata, triggers)
+    if fmt == "csv":
+        from .decoded import CsvWriter
+
+        if triggers is not None and len(triggers):
+            raise EvtkError("CSV files hold no triggers; leave them out")
+        return CsvWriter(path, sensor_size)
     if fmt == "aedat4":
         import numpy as np
 

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import os
-
-from ..errors import EvtkError
-from . import WRITE_EXTENSIONS, open_writer
+from . import LOSES, open_writer, write_format
 from . import open as open_recording
 from ._atomic import refuse_overwriting_inputs
 from ._checks import sorted_for_writing
@@ -17,7 +14,7 @@ _OWN_KEYS = {"compression", "originalModuleName", "originalOutputName", "typeDes
 
 
 def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_events=4_000_000,
-            events_only=False) -> dict:
+            events_only=False, fmt=None) -> dict:
     """Write the recording ``source`` to ``target``, streaming the events ``chunk_events`` at a time.
 
     AEDAT4 to AEDAT4 also copies the other streams (frames, IMU, ...) packet
@@ -26,14 +23,16 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
     the camera's name as ``source``), and the result's ``left_out`` names what
     was not copied, unless ``events_only`` asks for exactly that.
 
-    Returns a summary: ``events``, ``triggers``, ``copied`` and ``left_out``
-    (stream name -> packets).
+    Prophesee RAW (EVT 2.0 and 3.0) keeps trigger edges with their
+    channels; DAT, Event Stream and CSV hold none, so they are left out and
+    named in ``left_out``. ``fmt`` names the target's format where the
+    extension does not (``.raw`` is EVT 3.0 unless ``fmt="evt2"``).
+
+    Returns a summary: ``events``, ``triggers`` (written), ``copied`` and
+    ``left_out`` (stream name -> packets; ``"trigger edges"`` -> count).
     """
 
-    ext = os.path.splitext(os.fspath(target))[1].lower()
-    fmt = WRITE_EXTENSIONS.get(ext)
-    if fmt is None:
-        raise EvtkError(f"cannot tell the format from the extension {ext!r}; use one of {sorted(WRITE_EXTENSIONS)}")
+    fmt = write_format(target, fmt)
     refuse_overwriting_inputs(target, [source])
     with open_recording(source, salvage=salvage) as rec:
         streams = rec.streams
@@ -54,7 +53,12 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
                 metadata.setdefault("source", str(camera))
             left_out = {s.name: s.packets for s in others}
             others = []
-            writer = open_writer(target, rec.sensor_size, compression, metadata or None, triggers)
+            if triggers is not None and len(triggers) and "trigger" in (LOSES[fmt] or ""):
+                left_out["trigger edges"] = len(triggers)
+                triggers = None
+            if metadata and "metadata" in (LOSES[fmt] or "") and fmt in ("es", "csv"):
+                left_out["metadata keys"] = len(metadata)
+            writer = open_writer(target, rec.sensor_size, compression, metadata or None, triggers, fmt=fmt)
         n = 0
         with writer:
             if sort:  # in memory: a stable sort by time

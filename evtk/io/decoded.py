@@ -1,0 +1,536 @@
+"""Formats decoded whole into memory: text events (CSV or whitespace) and the N-MNIST / N-Caltech101 binary.
+
+Neither format has an index or blocks, and both are small in practice (a
+text file a few million lines, an N-MNIST sample a few thousand events), so
+the file is decoded once, on first use, after its size is checked against
+the memory budget (:func:`evtk.limits.require_memory`); windows, streaming
+(``iter_events``) and ``evtk info`` then work on the decoded columns.
+
+Text events
+    One event a line: time, x, y, polarity, separated by commas, tabs or
+    spaces. An optional first line of column names (``t,x,y,p``,
+    ``timestamp x y polarity``, faery's ``t,x@W,y@H,on``) sets the column
+    order, and faery's names carry the sensor size. An optional first line
+    of two integers gives the sensor size; which is width and which height
+    is taken from the events (both orders are tried; when both fit, width
+    first, as E2VID's ``events.txt`` writes it, with a warning). Times with
+    a decimal point are seconds, whole numbers microseconds, unless
+    ``time_unit`` says otherwise. Polarity 1 (or ``true``) is ON; 0, -1 (or
+    ``false``) OFF.
+
+N-MNIST binary (Orchard et al. 2015; N-Caltech101 and N-CARS' ``.bin`` too)
+    Five bytes an event: x, y, then the polarity in bit 7 of the third byte
+    and a 23-bit microsecond time stamp in the rest of the third, the fourth
+    and the fifth (big-endian). An event with y = 240 is no event: it adds
+    2**13 us to every later time stamp (the dataset's overflow marker). The
+    files carry no sensor size: 34x34 (N-MNIST's) when every event fits,
+    else the smallest size that holds them, with a note.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import warnings
+from collections.abc import Iterator
+
+import numpy as np
+
+from ..errors import EvtkError, FormatError
+from ..events import Events, Triggers
+from ..limits import require_memory
+from ._atomic import AtomicFile
+from .base import BaseRecording, BaseWriter, Damage, StreamInfo, sensor_dims
+
+__all__ = ["DecodedRecording", "TextRecording", "NmnistRecording", "CsvWriter", "csv_lines", "sniff_text",
+           "sniff_nmnist", "TIME_UNITS"]
+
+#: microseconds per unit, for ``time_unit``
+TIME_UNITS = {"s": 1_000_000.0, "ms": 1_000.0, "us": 1.0, "ns": 1e-3}
+_MAX_TEXT_HEADER = 4096
+
+
+class DecodedRecording(BaseRecording):
+    """A recording decoded whole on first use; subclasses provide ``_decode() -> (Events, Triggers)``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    salvage : bool
+        Keep what decodes before the first damage instead of raising.
+    sensor_size : (int, int), optional
+        Overrides the size the file gives or its events imply.
+    """
+
+    def __init__(self, path, salvage: bool = False, sensor_size=None):
+        super().__init__(path, salvage)
+        self._given_size = None if sensor_size is None else sensor_dims(sensor_size[0], sensor_size[1], None,
+                                                                        "sensor_size")
+        self._events: Events | None = None
+        self._triggers = Triggers()
+        self._file_bytes = os.path.getsize(self.path)
+
+    def _decode(self) -> tuple[Events, Triggers]:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _stop(self, offset: int, reason: str):
+        """Damage at ``offset``: raise, or (salvage) note it; the caller keeps what came before."""
+        if not self.salvage:
+            raise FormatError(self.path, offset, reason)
+        if self.damage is None:
+            self.damage = Damage(offset, reason)
+
+    def _all(self) -> Events:
+        self._check_open()
+        if self._events is None:
+            self._events, self._triggers = self._decode()
+        return self._events
+
+    @property
+    def sensor_size(self):
+        return self._all().sensor_size
+
+    def events(self, t_start_us=None, t_end_us=None) -> Events:
+        """Events with ``t_start_us <= t < t_end_us`` (None leaves a side open).
+
+        Parameters
+        ----------
+        t_start_us, t_end_us : int, optional
+            The window in microseconds.
+
+        Returns
+        -------
+        Events
+            The events of the window, in file order.
+        """
+        ev = self._all()
+        if t_start_us is None and t_end_us is None:
+            return ev
+        return ev.between(t_start_us, t_end_us)
+
+    def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
+        """The file's trigger edges (text and N-MNIST files hold none).
+
+        Parameters
+        ----------
+        t_start_us, t_end_us : int, optional
+            The window in microseconds.
+
+        Returns
+        -------
+        Triggers
+            Empty for these formats.
+        """
+        self._all()
+        return self._triggers.between(t_start_us, t_end_us)
+
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None) -> Iterator[Events]:
+        """The events of a window, ``chunk_events`` at a time.
+
+        Parameters
+        ----------
+        chunk_events : int
+            Events per chunk (at least 1).
+        t_start_us, t_end_us : int, optional
+            The window in microseconds.
+
+        Yields
+        ------
+        Events
+            Consecutive chunks.
+        """
+        chunk_events = int(chunk_events)
+        if chunk_events < 1:
+            raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
+        ev = self.events(t_start_us, t_end_us)
+        for k in range(0, len(ev), chunk_events):
+            yield ev[k:k + chunk_events]
+
+    @property
+    def streams(self) -> list[StreamInfo]:
+        ev = self._all()
+        lo = int(ev.t.min()) if len(ev) else None
+        hi = int(ev.t.max()) if len(ev) else None
+        return [StreamInfo(0, "events", "EVTS", packets=1, count=len(ev), t_start_us=lo, t_end_us=hi,
+                           sensor_size=ev.sensor_size)]
+
+
+# -- text ---------------------------------------------------------------------------------------------------------
+
+_NAMES = {"t": "t", "ts": "t", "time": "t", "timestamp": "t", "timestamps": "t", "t_us": "t", "t_s": "t",
+          "x": "x", "y": "y", "p": "p", "pol": "p", "polarity": "p", "on": "p"}
+_TEXT_BYTES = re.compile(rb"[^\x09\x0a\x0d\x20-\x7e]")
+
+
+def sniff_text(head: bytes) -> bool:
+    """Whether ``head`` (a file's first bytes) looks like text events: printable ASCII, and a first data line
+    of four numbers (after an optional line of column names or of a sensor size).
+
+    Parameters
+    ----------
+    head : bytes
+        The file's first bytes (a few KiB).
+
+    Returns
+    -------
+    bool
+        True for text events.
+    """
+    if not head or _TEXT_BYTES.search(head):
+        return False
+    lines = [ln for ln in head.split(b"\n")[:4] if ln.strip()]
+    for ln in lines[:3]:
+        fields = [f for f in re.split(rb"[,\s]+", ln.strip()) if f]
+        if len(fields) == 4 and all(_is_number(f) for f in fields):
+            return True
+    return False
+
+
+def _is_number(text) -> bool:
+    text = text.decode("ascii") if isinstance(text, bytes) else text
+    try:
+        float(text)
+    except ValueError:
+        return text.lower() in ("true", "false")
+    return True
+
+
+class TextRecording(DecodedRecording):
+    """Text events, one ``t x y p`` a line (CSV, tab- or space-separated), as cameras' tools, the Event Camera
+    Dataset, E2VID and faery write them (see the module's description for the variants read).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    salvage : bool
+        Keep the lines before the first that does not parse.
+    sensor_size : (int, int), optional
+        Overrides the size from the file's first line or from the events.
+    time_unit : {"s", "ms", "us", "ns"}, optional
+        The time column's unit; by default seconds when it has a decimal point, else microseconds.
+    """
+
+    format = "text"
+
+    def __init__(self, path, salvage: bool = False, sensor_size=None, time_unit: str | None = None):
+        super().__init__(path, salvage, sensor_size)
+        if time_unit is not None and time_unit not in TIME_UNITS:
+            raise EvtkError(f"time_unit must be one of {sorted(TIME_UNITS)}, not {time_unit!r}")
+        self.time_unit = time_unit
+        self._notes: list[str] = []
+
+    def _decode(self) -> tuple[Events, Triggers]:
+        require_memory(10 * self._file_bytes, f"decoding the text events of {self.path}")
+        with open(self.path, "rb") as f:
+            data = f.read()
+        if _TEXT_BYTES.search(data[:1 << 20]):
+            raise FormatError(self.path, _TEXT_BYTES.search(data[:1 << 20]).start(), "a byte that is not text")
+        order, size, start = self._header(data)
+        body = data[start:]
+        cols, bad_at = self._parse(body)
+        if bad_at is not None:
+            keep = body.rfind(b"\n", 0, bad_at) + 1  # the bad line's start
+            line_no = body.count(b"\n", 0, keep) + 1 + data.count(b"\n", 0, start)
+            line = body[keep:body.find(b"\n", keep) if b"\n" in body[keep:] else len(body)]
+            self._stop(start + keep, f"line {line_no} is not four numbers: {line[:60].decode('ascii', 'replace')!r}")
+            cols, _ = self._parse(body[:keep])
+        t_raw, x, y, p = (cols[:, order[k]] for k in range(4))
+        t = self._times(t_raw, body)
+        if len(x) and (np.any(x < 0) or np.any(y < 0) or np.any(x != np.floor(x)) or np.any(y != np.floor(y))):
+            raise FormatError(self.path, start, "x and y must be whole numbers from 0")
+        pol = np.where(p > 0, 1, 0).astype(np.uint8)
+        if len(p) and not np.all(np.isin(p, (-1, 0, 1))):
+            raise FormatError(self.path, start, "polarity must be 1 (ON) or 0 / -1 (OFF)")
+        size = self._size(size, x, y)
+        xi, yi = x.astype(np.int64), y.astype(np.int64)
+        if len(xi) and (xi.max() >= size[0] or yi.max() >= size[1]):
+            k = int(np.flatnonzero((xi >= size[0]) | (yi >= size[1]))[0])
+            raise FormatError(self.path, start, f"event {k} at ({xi[k]}, {yi[k]}) lies off the "
+                                                f"{size[0]}x{size[1]} sensor")
+        ev = Events(t, xi.astype(np.uint16), yi.astype(np.uint16), pol, size)
+        for note in self._notes:
+            self._warn_once(note, self.path)
+        return ev, Triggers()
+
+    def _header(self, data: bytes):
+        """(column order t, x, y, p -> index; sensor size or None; offset of the first event line)."""
+        order = [0, 1, 2, 3]
+        size = None
+        start = 0
+        for _ in range(2):
+            end = data.find(b"\n", start, start + _MAX_TEXT_HEADER)
+            line = data[start:end if end >= 0 else len(data)].strip()
+            fields = [f for f in re.split(rb"[,\s]+", line) if f]
+            if len(fields) == 4 and all(_is_number(f) for f in fields):
+                break
+            if len(fields) == 2 and all(f.isdigit() for f in fields):
+                size = ("either", int(fields[0]), int(fields[1]))
+            elif len(fields) == 4:
+                names = []
+                for f in fields:
+                    name, _, dim = f.decode("ascii").lower().partition("@")
+                    names.append(_NAMES.get(name))
+                    if dim:
+                        if not dim.isdigit():
+                            raise FormatError(self.path, start, f"column {f.decode()!r}: the size after @ is not a number")
+                        size = (size or ("named", 0, 0))
+                        size = ("named", int(dim), size[2]) if name == "x" else ("named", size[1], int(dim))
+                if sorted(n or "?" for n in names) != ["p", "t", "x", "y"]:
+                    raise FormatError(self.path, start, f"the first line names columns {line.decode()!r}; evtk reads "
+                                                        "t (or timestamp), x, y and p (or polarity, on)")
+                order = [names.index(k) for k in "txyp"]
+            else:
+                raise FormatError(self.path, start, f"the line {line[:60].decode()!r} is neither column names, a "
+                                                    "sensor size (two numbers) nor an event (four numbers)")
+            if end < 0:
+                start = len(data)
+                break
+            start = end + 1
+        return order, size, start
+
+    def _parse(self, body: bytes):
+        """(columns as float64 (n, 4), offset of the first line that is not four numbers, or None)."""
+        text = body.replace(b",", b" ").replace(b"\t", b" ").replace(b"\r", b" ")
+        if re.search(rb"(?i)true|false", text):
+            text = re.sub(rb"(?i)\btrue\b", b"1   ", re.sub(rb"(?i)\bfalse\b", b"0    ", text))
+        arr = np.frombuffer(text, np.uint8)
+        gap = (arr == 32) | (arr == 10)
+        starts = np.flatnonzero(~gap & np.concatenate(([True], gap[:-1])))  # where each field begins
+        line_of = np.searchsorted(np.flatnonzero(arr == 10), starts)  # the line each field is on
+        per_line = np.bincount(line_of) if len(starts) else np.empty(0, np.int64)
+        try:
+            with warnings.catch_warnings():  # older numpy warns and stops where a field is no number
+                warnings.simplefilter("ignore")
+                values = np.fromstring(text, dtype=np.float64, sep=" ") if len(starts) else np.empty(0)
+        except ValueError:  # newer numpy refuses: find the first field that is no number, line by line
+            values = self._numbers_before_bad(text)
+        bad = []
+        odd = np.flatnonzero((per_line != 0) & (per_line != 4))
+        if len(odd):
+            bad.append(int(starts[np.searchsorted(line_of, odd[0])]))
+        if len(values) < len(starts):
+            bad.append(int(starts[len(values)]))
+        if bad:
+            return values[:len(values) - len(values) % 4].reshape(-1, 4), min(bad)
+        return values.reshape(-1, 4), None
+
+    @staticmethod
+    def _numbers_before_bad(text: bytes) -> np.ndarray:
+        """The fields of ``text`` up to the first one that is not a number (the slow path, for damage only)."""
+        out: list[float] = []
+        for field in text.split():
+            try:
+                out.append(float(field))
+            except ValueError:
+                break
+        return np.asarray(out, np.float64)
+
+    def _times(self, t_raw: np.ndarray, body: bytes) -> np.ndarray:
+        unit = self.time_unit
+        if unit is None:
+            unit = "s" if b"." in body[:4096] else "us"
+        scaled = np.rint(t_raw * TIME_UNITS[unit])
+        if len(scaled) and not np.all(np.abs(scaled) < 2.0**62):
+            raise FormatError(self.path, 0, f"time stamps in {unit} beyond what int64 microseconds hold")
+        return scaled.astype(np.int64)
+
+    def _size(self, size, x: np.ndarray, y: np.ndarray) -> tuple[int, int]:
+        if self._given_size is not None:
+            return self._given_size
+        mx = int(x.max()) + 1 if len(x) else 1
+        my = int(y.max()) + 1 if len(y) else 1
+        if size is None:
+            self._notes.append(f"no sensor size in the file: {mx}x{my} from the events (pass --sensor-size WxH)")
+            return sensor_dims(mx, my, self.path, "the events' extent")
+        kind, a, b = size
+        if kind == "named":
+            return sensor_dims(a, b, self.path, "the column names")
+        fits_wh, fits_hw = mx <= a and my <= b, mx <= b and my <= a
+        if fits_wh and fits_hw and a != b:
+            self._notes.append(f"the first line gives {a} {b}; both orders hold the events: read as width {a}, "
+                               f"height {b} (pass --sensor-size WxH if not)")
+        if fits_wh:
+            return sensor_dims(a, b, self.path, "the first line")
+        if fits_hw:
+            return sensor_dims(b, a, self.path, "the first line (height width)")
+        raise FormatError(self.path, 0, f"the first line gives a {a}x{b} sensor, but events reach x={mx - 1}, "
+                                        f"y={my - 1}")
+
+
+def _ascii_digits(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Decimal digits of integers as a (n, width) byte matrix, right-aligned, and the mask of the bytes used
+    (a leading '-' for negative values)."""
+    v = np.asarray(values, np.int64)
+    neg = v < 0
+    mag = np.abs(v).astype(np.uint64)
+    nd = np.ones(len(v), np.int64)
+    for k in range(1, 20):
+        nd += mag >= np.uint64(10**k)
+    nd += neg
+    width = int(nd.max()) if len(v) else 1
+    mat = np.empty((len(v), width), np.uint8)
+    rest = mag.copy()
+    for col in range(width - 1, -1, -1):
+        mat[:, col] = (rest % np.uint64(10)).astype(np.uint8) + 48
+        rest //= np.uint64(10)
+    if neg.any():
+        mat[neg, width - nd[neg]] = ord("-")
+    used = np.arange(width)[None, :] >= (width - nd)[:, None]
+    return mat, used
+
+
+def csv_lines(columns) -> bytes:
+    """``a,b,c,...`` lines (one a row, ``\\n`` ended) of integer columns, formatted with numpy alone.
+
+    Parameters
+    ----------
+    columns : list of array_like
+        Integer columns of equal length.
+
+    Returns
+    -------
+    bytes
+        The lines, ASCII.
+    """
+    n = len(columns[0])
+    if not n:
+        return b""
+    mats, masks = [], []
+    for i, col in enumerate(columns):
+        mat, used = _ascii_digits(col)
+        sep = np.full((n, 1), ord("," if i < len(columns) - 1 else "\n"), np.uint8)
+        mats += [mat, sep]
+        masks += [used, np.ones((n, 1), bool)]
+    return np.hstack(mats)[np.hstack(masks)].tobytes()
+
+
+class CsvWriter(BaseWriter):
+    """A streaming writer of CSV events: a ``t,x,y,p`` header line (with faery's ``x@W``/``y@H`` sizes), then
+    one ``t,x,y,p`` line an event, times in microseconds.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The target (``.csv`` or ``.txt``).
+    sensor_size : (int, int)
+        Width and height, written into the header.
+    """
+
+    def __init__(self, path, sensor_size):
+        self.path = os.fspath(path)
+        self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
+        self._file = AtomicFile(self.path)
+        self._closed = False
+        self._file.write(f"t,x@{self.sensor_size[0]},y@{self.sensor_size[1]},on\n".encode("ascii"))
+
+    def write_events(self, events: Events) -> None:
+        """Append a chunk of events.
+
+        Parameters
+        ----------
+        events : Events
+            The chunk; its sensor size must be the writer's.
+        """
+        self._check_open()
+        if tuple(events.sensor_size) != self.sensor_size:
+            raise EvtkError(f"{self.path}: events of a {events.sensor_size} sensor for a {self.sensor_size} file")
+        if not len(events):
+            return
+        for k in range(0, len(events), 1 << 20):  # a million lines at a time bounds the text held
+            part = events[k:k + (1 << 20)]
+            self._file.write(csv_lines([part.t, part.x, part.y, part.p]))
+
+    def _finish(self):
+        pass
+
+    def _commit(self):
+        self._file.commit()
+
+    def _discard(self):
+        self._file.discard()
+
+
+# -- N-MNIST ------------------------------------------------------------------------------------------------------
+
+_NMNIST_OVERFLOW_Y = 240
+_NMNIST_OVERFLOW_US = 1 << 13
+
+
+def sniff_nmnist(path) -> bool:
+    """Whether ``path`` looks like an N-MNIST binary: a whole number of 5-byte events (or a ``.bin`` file cut
+    inside its last one) whose first thousand have time stamps that never go back (after the overflow markers)
+    and do not all stand still; with fewer than 16 events, only a ``.bin`` file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+
+    Returns
+    -------
+    bool
+        True when the content fits the format.
+    """
+    size = os.path.getsize(path)
+    if size < 5 or (size % 5 and not os.fspath(path).lower().endswith(".bin")):  # a cut .bin: read, then refused
+        return False
+    with open(path, "rb") as f:
+        data = f.read(5000)
+    head = np.frombuffer(data[:len(data) - len(data) % 5], np.uint8).reshape(-1, 5)
+    t = _nmnist_times(head)
+    real = head[:, 1] != _NMNIST_OVERFLOW_Y
+    if not real.any() or np.any(np.diff(t[real]) < 0) or t[real][0] == t[real][-1]:
+        return False  # time going back, or no time passing (a file of zeros), is no N-MNIST recording
+    # a handful of events could be anything: then only a file named as the datasets name theirs
+    return bool(real.sum() >= 16 or os.fspath(path).lower().endswith(".bin"))
+
+
+def _nmnist_times(raw: np.ndarray) -> np.ndarray:
+    t = ((raw[:, 2].astype(np.int64) & 0x7F) << 16) | (raw[:, 3].astype(np.int64) << 8) | raw[:, 4]
+    overflow = (raw[:, 1] == _NMNIST_OVERFLOW_Y).astype(np.int64)
+    return t + np.cumsum(overflow) * _NMNIST_OVERFLOW_US
+
+
+class NmnistRecording(DecodedRecording):
+    """An N-MNIST / N-Caltech101 binary file (5 bytes an event; see the module's description).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    salvage : bool
+        Keep the whole events before a cut last one instead of raising.
+    sensor_size : (int, int), optional
+        Overrides the size taken from the events.
+    """
+
+    format = "nmnist"
+
+    def _decode(self) -> tuple[Events, Triggers]:
+        n = self._file_bytes // 5
+        if self._file_bytes % 5:
+            self._stop(5 * n, f"the file ends inside an event ({self._file_bytes % 5} of its 5 bytes)")
+        require_memory(27 * n, f"decoding the N-MNIST events of {self.path}")
+        raw = np.fromfile(self.path, np.uint8, count=5 * n).reshape(-1, 5)
+        t = _nmnist_times(raw)
+        real = raw[:, 1] != _NMNIST_OVERFLOW_Y
+        raw, t = raw[real], t[real]
+        back = np.flatnonzero(np.diff(t) < 0)
+        if len(back):
+            self._stop(5 * int(np.flatnonzero(real)[back[0] + 1]), "a time stamp goes back: not an N-MNIST file, "
+                                                                   "or a damaged one")
+            raw, t = raw[:back[0] + 1], t[:back[0] + 1]
+        x, y = raw[:, 0].astype(np.uint16), raw[:, 1].astype(np.uint16)
+        if self._given_size is not None:
+            size = self._given_size
+            if len(x) and (x.max() >= size[0] or y.max() >= size[1]):
+                raise FormatError(self.path, 0, f"events reach ({int(x.max())}, {int(y.max())}), off the given "
+                                                f"{size[0]}x{size[1]} sensor")
+        elif not len(x) or (x.max() < 34 and y.max() < 34):
+            size = (34, 34)
+        else:
+            size = (int(x.max()) + 1, int(y.max()) + 1)
+            self._warn_once("no sensor size in the file", f"{size[0]}x{size[1]} from the events; pass --sensor-size")
+        return Events(t, x, y, (raw[:, 2] >> 7).astype(np.uint8), size), Triggers()

@@ -1,0 +1,441 @@
+"""Writing Prophesee RAW (EVT 2.0, EVT 3.0), DAT and Event Stream (DVS) files.
+
+Each encoder turns time-ordered events (and, where the format holds them,
+trigger edges) into the format's words with numpy alone, so a write needs no
+compilation. The words are the inverse of what :mod:`evtk.io.prophesee.decoders`
+reads, and the files are read back exactly by the public readers
+(expelliarmus, evt3, faery, event_stream; tests/test_foreign_writers.py).
+
+What each format holds:
+
+- EVT 2.0: 32-bit words; x and y below 2048; any time from 0 (a TIME_HIGH
+  word is written whenever the time's upper 28 bits change, with extra ones
+  across long gaps so that the 34-bit counter's wraps are never ambiguous);
+  trigger edges with their channel (0-31).
+- EVT 3.0: 16-bit words; x and y below 2048; any time from 0 (the 24-bit
+  time's wraps likewise kept unambiguous); trigger edges with channels 0-15.
+- DAT (CD events, version 2): x and y below 16384; 32-bit time stamps, so
+  no gap between events may reach 2**31 us; no triggers.
+- Event Stream 2.0.0 DVS: x and y below 65536, y stored from the bottom row;
+  any time from 0 (a gap costs one byte per 127 us); no triggers.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+
+import numpy as np
+
+from ..errors import EvtkError
+from ..events import Events, Triggers
+from ..limits import require_memory
+from ._atomic import AtomicFile
+from .base import BaseWriter
+
+__all__ = ["FOREIGN_FORMATS", "ForeignWriter", "encode_evt2", "encode_evt3", "encode_dat", "encode_es_dvs",
+           "prophesee_header"]
+
+#: format name -> (what it cannot hold, or None)
+FOREIGN_FORMATS = {"evt2": None, "evt3": None, "dat": "trigger edges", "es": "trigger edges"}
+
+_RISING = {1, 4}  # TriggerKind: external signal / generator rising edge
+_EDGES = {1, 2, 4, 5}
+
+
+def _trigger_columns(triggers: Triggers | None, max_channel: int, fmt: str):
+    """(t, value, channel) of the edges a RAW format holds; other trigger kinds are refused by name."""
+    if triggers is None or not len(triggers):
+        return np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.int64)
+    kinds = np.asarray(triggers.kind)
+    bad = ~np.isin(kinds, list(_EDGES))
+    if bad.any():
+        raise EvtkError(f"{fmt} holds trigger edges only; {int(bad.sum())} triggers are of other kinds "
+                        f"(first: {int(kinds[bad][0])}); write them to AEDAT4, HDF5 or Parquet")
+    channel = getattr(triggers, "channel", None)
+    channel = np.zeros(len(triggers), np.int64) if channel is None else np.asarray(channel, np.int64)
+    if len(channel) and (channel.min() < 0 or channel.max() > max_channel):
+        raise EvtkError(f"{fmt} holds trigger channels 0-{max_channel}; the triggers use up to {int(channel.max())}")
+    value = np.isin(kinds, list(_RISING)).astype(np.int64)
+    return np.asarray(triggers.t, np.int64), value, channel
+
+
+def _merged(events: Events, tt: np.ndarray):
+    """The order that interleaves events and triggers by time (stable: at equal times, triggers first), as
+    (times, is_trigger, index into its own columns); without triggers, the events' own columns (no sort)."""
+    if not len(tt):
+        return np.asarray(events.t, np.int64), None, None
+    t = np.concatenate([tt, np.asarray(events.t, np.int64)])
+    is_trig = np.concatenate([np.ones(len(tt), bool), np.zeros(len(events), bool)])
+    idx = np.concatenate([np.arange(len(tt)), np.arange(len(events))])
+    order = np.argsort(t, kind="stable")
+    return t[order], is_trig[order], idx[order]
+
+
+def _split(events: Events, is_trig, idx):
+    """(positions of the events among the records, event columns in that order, trigger record mask, trigger
+    indices); the identity when there are no triggers."""
+    if is_trig is None:
+        return slice(None), events.x, events.y, events.p, None, None
+    ev = ~is_trig
+    ei = idx[ev]
+    return ev, events.x[ei], events.y[ei], events.p[ei], is_trig, idx[is_trig]
+
+
+def _check(events: Events, tt: np.ndarray, fmt: str, coord_limit: int):
+    for name, col in (("events", np.asarray(events.t)), ("triggers", tt)):
+        if len(col) and int(col.min()) < 0:
+            raise EvtkError(f"{fmt} stores time from 0; the {name} start at {int(col.min())} us "
+                            "(shift them, e.g. events.t - events.t.min())")
+        if len(col) > 1 and np.any(np.diff(col) < 0):
+            raise EvtkError(f"{fmt} needs the {name} in time order (sort them first, or convert with --sort)")
+    w, h = events.sensor_size
+    if w > coord_limit or h > coord_limit:
+        raise EvtkError(f"{fmt} holds coordinates below {coord_limit}; the sensor is {w}x{h}")
+
+
+def _time_words(high: np.ndarray, prev: int | None, step: int):
+    """For each record, how many time-high words precede it (0 when its high equals the last one's), how many
+    of those are fillers, and the previous high: across a long gap, consecutive high words advance by at most
+    ``step``, less than half the counter's period, so a reader sees each wrap of the counter as a drop."""
+    prev_high = np.empty_like(high)
+    if len(high):
+        prev_high[0] = -1 if prev is None else prev
+        prev_high[1:] = high[:-1]
+    changed = high != prev_high
+    gap = np.where(changed & (prev_high >= 0), high - prev_high, 0)
+    fillers = np.where(gap > step, (gap - 1) // step, 0)
+    return changed.astype(np.int64) + fillers, fillers, prev_high
+
+
+def encode_evt2(events: Events, triggers: Triggers | None = None, state: dict | None = None) -> bytes:
+    """EVT 2.0 words (little-endian uint32) for time-ordered ``events`` and trigger edges.
+
+    Parameters
+    ----------
+    events : Events
+        Time-ordered events, times from 0, x and y below 2048.
+    triggers : Triggers, optional
+        Rising and falling edges (kinds 1, 2, 4, 5), channels 0-31.
+    state : dict, optional
+        Carries the last TIME_HIGH value from one call to the next when a
+        file is written in chunks (updated in place).
+
+    Returns
+    -------
+    bytes
+        The words, ready to follow the file's text header.
+    """
+    state = {} if state is None else state
+    tt, tv, tc = _trigger_columns(triggers, 31, "EVT 2.0")
+    _check(events, tt, "EVT 2.0", 2048)
+    t, is_trig, idx = _merged(events, tt)
+    high = t >> 6
+    n_pre, fillers, prev_high = _time_words(high, state.get("high"), 1 << 26)
+    n = len(t)
+    extra = int(n_pre.sum())
+    require_memory(4 * (n + extra), "the EVT 2.0 words")
+    pos = np.arange(n) + np.cumsum(n_pre) if extra else np.arange(n)
+    out = np.empty(n + extra, np.uint32)
+    low = (t & 0x3F).astype(np.uint32) << 22
+    ev, x, y, p, trig, ti = _split(events, is_trig, idx)
+    out[pos[ev]] = (p.astype(np.uint32) & 1) << 28 | low[ev] | x.astype(np.uint32) << 11 | y.astype(np.uint32)
+    if trig is not None:
+        out[pos[trig]] = ((10 << 28) | low[trig] | tc[ti] << 8 | tv[ti]).astype(np.uint32)
+    changed = n_pre > 0
+    out[pos[changed] - 1] = ((8 << 28) | (high[changed] & 0xFFFFFFF)).astype(np.uint32)
+    for i in np.flatnonzero(fillers):  # long gaps (rare): intermediate highs, at most 2**26 apart
+        base = int(prev_high[i])
+        for k in range(int(fillers[i])):
+            out[pos[i] - 1 - int(fillers[i]) + k] = (8 << 28) | ((base + (k + 1) * (1 << 26)) & 0xFFFFFFF)
+    if n:
+        state["high"] = int(high[-1])
+    return out.astype("<u4", copy=False).tobytes()
+
+
+def encode_evt3(events: Events, triggers: Triggers | None = None, state: dict | None = None) -> bytes:
+    """EVT 3.0 words (little-endian uint16) for time-ordered ``events`` and trigger edges.
+
+    One EVT_ADDR_X word a event, an EVT_ADDR_Y word where the row changes, and
+    EVT_TIME_LOW / EVT_TIME_HIGH words where the time does (readers take the
+    event's time from the last two).
+
+    Parameters
+    ----------
+    events : Events
+        Time-ordered events, times from 0, x and y below 2048.
+    triggers : Triggers, optional
+        Rising and falling edges, channels 0-15.
+    state : dict, optional
+        Carries the last time and row between chunks (updated in place).
+
+    Returns
+    -------
+    bytes
+        The words, ready to follow the file's text header.
+    """
+    state = {} if state is None else state
+    tt, tv, tc = _trigger_columns(triggers, 15, "EVT 3.0")
+    _check(events, tt, "EVT 3.0", 2048)
+    t, is_trig, idx = _merged(events, tt)
+    n = len(t)
+    high = t >> 12
+    n_high, fillers, prev_high = _time_words(high, state.get("high"), 2047)
+    low_new = np.empty(n, bool)
+    if n:
+        low_new[0] = t[0] != state.get("t", -1)
+        np.not_equal(t[1:], t[:-1], out=low_new[1:])
+        low_new |= n_high > 0
+    ev, x, y, p, trig, ti = _split(events, is_trig, idx)
+    y_ev = np.asarray(y)
+    y_new = np.zeros(n, bool)
+    if len(y_ev):
+        y_chg = np.empty(len(y_ev), bool)
+        y_chg[0] = int(y_ev[0]) != state.get("y", -1)
+        np.not_equal(y_ev[1:], y_ev[:-1], out=y_chg[1:])
+        y_new[ev] = y_chg
+    n_pre = n_high + low_new + y_new
+    total = n + int(n_pre.sum())
+    require_memory(2 * total, "the EVT 3.0 words")
+    pos = np.arange(n) + np.cumsum(n_pre)
+    out = np.empty(total, np.uint16)
+    out[pos[ev]] = (2 << 12) | (p.astype(np.uint16) & 1) << 11 | x.astype(np.uint16)
+    if trig is not None:
+        out[pos[trig]] = ((10 << 12) | tc[ti] << 8 | tv[ti]).astype(np.uint16)
+    out[pos[y_new] - 1] = y_ev[y_chg].astype(np.uint16) if len(y_ev) else 0  # EVT_ADDR_Y (type 0)
+    lo_pos = pos - y_new
+    out[lo_pos[low_new] - 1] = ((6 << 12) | (t[low_new] & 0xFFF)).astype(np.uint16)
+    hi_pos = lo_pos - low_new
+    has_high = n_high > 0
+    out[hi_pos[has_high] - 1] = ((8 << 12) | (high[has_high] & 0xFFF)).astype(np.uint16)
+    for i in np.flatnonzero(fillers):
+        base = int(prev_high[i])
+        for k in range(int(fillers[i])):
+            out[hi_pos[i] - 1 - int(fillers[i]) + k] = (8 << 12) | ((base + (k + 1) * 2047) & 0xFFF)
+    if n:
+        state["high"], state["t"] = int(high[-1]), int(t[-1])
+    if len(y_ev):
+        state["y"] = int(y_ev[-1])
+    return out.astype("<u2", copy=False).tobytes()
+
+
+def encode_dat(events: Events, state: dict | None = None) -> bytes:
+    """DAT CD events (8 bytes each: uint32 time stamp, uint32 x | y << 14 | polarity << 28).
+
+    Parameters
+    ----------
+    events : Events
+        Time-ordered events, times from 0, x and y below 16384; no two
+        consecutive events 2**31 us or more apart (the 32-bit stamp's wraps
+        would be ambiguous).
+    state : dict, optional
+        Carries the last time between chunks (updated in place).
+
+    Returns
+    -------
+    bytes
+        The events, ready to follow the header and its two type/size bytes.
+    """
+    state = {} if state is None else state
+    _check(events, np.empty(0, np.int64), "DAT", 16384)
+    t = np.asarray(events.t, np.int64)
+    if len(t):
+        gaps = np.diff(t, prepend=state.get("t", t[0]))
+        if gaps.max() >= 1 << 31:
+            k = int(np.argmax(gaps))
+            raise EvtkError(f"DAT's 32-bit time stamps cannot hold a gap of {int(gaps[k])} us (before event {k}); "
+                            "write EVT 2.0, EVT 3.0 or AEDAT4")
+        state["t"] = int(t[-1])
+    require_memory(8 * len(t), "the DAT events")
+    out = np.empty((len(t), 2), "<u4")
+    out[:, 0] = t & 0xFFFFFFFF
+    out[:, 1] = (events.x.astype(np.uint32) | events.y.astype(np.uint32) << 14
+                 | (events.p.astype(np.uint32) & 1) << 28)
+    return out.tobytes()
+
+
+def encode_es_dvs(events: Events, state: dict | None = None) -> bytes:
+    """Event Stream 2.0.0 DVS bytes: per event, 0xFF bytes for each whole 127 us of the gap, then
+    ``gap % 127 << 1 | polarity``, x and y (little-endian uint16, y from the bottom row).
+
+    Parameters
+    ----------
+    events : Events
+        Time-ordered events, times from 0.
+    state : dict, optional
+        Carries the last time between chunks (updated in place).
+
+    Returns
+    -------
+    bytes
+        The event bytes, ready to follow the 20-byte header.
+    """
+    state = {} if state is None else state
+    _check(events, np.empty(0, np.int64), "Event Stream", 65536)
+    t = np.asarray(events.t, np.int64)
+    if not len(t):
+        return b""
+    gaps = np.diff(t, prepend=state.get("t", 0))
+    over = gaps // 127
+    total = 5 * len(t) + int(over.sum())
+    require_memory(total, "the Event Stream bytes")
+    out = np.full(total, 0xFF, np.uint8)
+    pos = np.arange(len(t)) * 5 + np.cumsum(over)  # each event's first byte, after its 0xFF bytes
+    out[pos] = ((gaps % 127) << 1 | (np.asarray(events.p, np.int64) & 1)).astype(np.uint8)
+    x = np.asarray(events.x, np.int64)
+    y = events.sensor_size[1] - 1 - np.asarray(events.y, np.int64)
+    out[pos + 1] = x & 0xFF
+    out[pos + 2] = x >> 8
+    out[pos + 3] = y & 0xFF
+    out[pos + 4] = y >> 8
+    state["t"] = int(t[-1])
+    return out.tobytes()
+
+
+def prophesee_header(fmt: str, sensor_size: tuple[int, int], metadata: dict | None = None) -> bytes:
+    """The text header of an EVT 2.0, EVT 3.0 or DAT file for a ``sensor_size`` (width, height) sensor.
+
+    Parameters
+    ----------
+    fmt : str
+        ``"evt2"``, ``"evt3"`` or ``"dat"``.
+    sensor_size : (int, int)
+        Width and height.
+    metadata : dict, optional
+        Extra ``% key value`` lines (single-line text values).
+
+    Returns
+    -------
+    bytes
+        The header, ending where the data begins.
+    """
+    w, h = sensor_size
+    date = datetime.datetime.now().strftime("%Y-%m-%d %H:%M:%S")
+    extra = []
+    for k, v in (metadata or {}).items():
+        if not isinstance(v, (str, int, float)) or str(k).lower() in ("header", "encoding", "header_t0_us"):
+            continue  # a source's own header lines are not carried over: this header is the file's own
+        text = f"{k} {v}"
+        if all(32 <= ord(c) < 127 for c in text) and not str(k).lower().startswith(("evt", "format", "geometry", "end")):
+            extra.append(f"% {text}")
+    if fmt == "dat":
+        lines = ["% Data file containing CD events.", "% Version 2", f"% Date {date}", f"% Height {h}",
+                 f"% Width {w}", *extra]
+    else:
+        name = {"evt2": ("2.0", "EVT2"), "evt3": ("3.0", "EVT3")}[fmt]
+        lines = [f"% date {date}", f"% evt {name[0]}", f"% format {name[1]};height={h};width={w}",
+                 f"% geometry {w}x{h}", "% integrator_name evtk", *extra, "% end"]
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def es_header(sensor_size: tuple[int, int]) -> bytes:
+    """The 20-byte header of an Event Stream 2.0.0 DVS file.
+
+    Parameters
+    ----------
+    sensor_size : (int, int)
+        Width and height.
+
+    Returns
+    -------
+    bytes
+        ``Event Stream``, version 2.0.0, type 1 (DVS), width and height (uint16 LE).
+    """
+    w, h = sensor_size
+    return b"Event Stream" + bytes([2, 0, 0, 1]) + int(w).to_bytes(2, "little") + int(h).to_bytes(2, "little")
+
+
+class ForeignWriter(BaseWriter):
+    """A streaming writer of EVT 2.0, EVT 3.0, DAT or Event Stream files (``evtk.io.open_writer`` makes one).
+
+    Events arrive in time order, a chunk at a time; trigger edges (EVT 2.0
+    and 3.0) are given once, when the writer is made, and are interleaved
+    with the events by time. The file appears under its name only when
+    :meth:`close` runs.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The target.
+    fmt : str
+        ``"evt2"``, ``"evt3"``, ``"dat"`` or ``"es"``.
+    sensor_size : (int, int)
+        Width and height.
+    metadata : dict, optional
+        Written as header lines (RAW and DAT).
+    triggers : Triggers, optional
+        Trigger edges (RAW only; DAT and Event Stream refuse them: leave them out, as
+        :func:`evtk.io.convert` does with a warning).
+    """
+
+    def __init__(self, path, fmt: str, sensor_size, metadata: dict | None = None, triggers: Triggers | None = None):
+        if fmt not in FOREIGN_FORMATS:
+            raise EvtkError(f"no foreign writer for {fmt!r}")
+        self.path = os.fspath(path)
+        self.fmt = fmt
+        self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
+        if triggers is not None and len(triggers) and FOREIGN_FORMATS[fmt]:
+            raise EvtkError(f"{fmt} files hold no {FOREIGN_FORMATS[fmt]}; leave the triggers out")
+        if triggers is not None and len(triggers):
+            triggers = triggers[np.argsort(triggers.t, kind="stable")]
+        self._triggers = triggers if triggers is not None and len(triggers) else None
+        self._state: dict = {}
+        self._last_t: int | None = None
+        self._file = AtomicFile(self.path)
+        self._closed = False
+        try:
+            if fmt == "es":
+                self._file.write(es_header(self.sensor_size))
+            else:
+                self._file.write(prophesee_header(fmt, self.sensor_size, metadata))
+                if fmt == "dat":
+                    self._file.write(bytes([0x0C, 8]))
+        except BaseException:
+            self._file.discard()
+            raise
+
+    def write_events(self, events: Events) -> None:
+        """Append a chunk of events (time-ordered, continuing the last chunk).
+
+        Parameters
+        ----------
+        events : Events
+            The chunk; its sensor size must be the writer's.
+        """
+        self._check_open()
+        if tuple(events.sensor_size) != self.sensor_size:
+            raise EvtkError(f"{self.path}: events of a {events.sensor_size} sensor for a {self.sensor_size} file")
+        if not len(events):
+            return
+        if self._last_t is not None and int(events.t[0]) < self._last_t:
+            raise EvtkError(f"{self.path}: events go back in time between chunks ({int(events.t[0])} us after "
+                            f"{self._last_t} us)")
+        triggers = None
+        if self._triggers is not None:  # the edges up to this chunk's last event go in with it
+            cut = int(np.searchsorted(self._triggers.t, int(events.t[-1]), side="right"))
+            triggers, self._triggers = self._triggers[:cut], (self._triggers[cut:] if cut < len(self._triggers)
+                                                               else None)
+        self._file.write(self._encode(events, triggers))
+        self._last_t = int(events.t[-1])
+
+    def _encode(self, events: Events, triggers: Triggers | None) -> bytes:
+        if self.fmt == "evt2":
+            return encode_evt2(events, triggers, self._state)
+        if self.fmt == "evt3":
+            return encode_evt3(events, triggers, self._state)
+        if self.fmt == "dat":
+            return encode_dat(events, self._state)
+        return encode_es_dvs(events, self._state)
+
+    def _finish(self):
+        if self._triggers is not None:  # edges after the last event
+            empty = Events(np.empty(0, np.int64), np.empty(0, np.uint16), np.empty(0, np.uint16),
+                           np.empty(0, np.uint8), self.sensor_size)
+            self._file.write(self._encode(empty, self._triggers))
+            self._triggers = None
+
+    def _commit(self):
+        self._file.commit()
+
+    def _discard(self):
+        self._file.discard()

@@ -1,0 +1,295 @@
+"""Writers of the formats other tools read (EVT 2.0, EVT 3.0, DAT, Event Stream, CSV) and the readers of text events
+and N-MNIST binaries (issue 33): each file evtk writes is read back exactly by the public readers."""
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from conftest import random_events
+
+import evtk
+from evtk.cli import main
+from evtk.errors import EvtkError, FormatError
+
+faery = pytest.importorskip("faery")
+expelliarmus = pytest.importorskip("expelliarmus")
+
+REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "real-files"
+
+
+def _events(n=20_000, seed=3, size=(640, 480), t0=1_000, span=5_000_000):
+    return random_events(n, seed=seed, sensor_size=size, t0=t0, span_us=span)
+
+
+def _triggers(seed=5, n=40, t0=1_000, span=5_000_000):
+    rng = np.random.default_rng(seed)
+    return evtk.Triggers(np.sort(rng.integers(t0, t0 + span, n)), rng.choice([1, 2], n))
+
+
+def _same(got, ev):
+    return all(np.array_equal(np.asarray(getattr(got, c), np.int64), np.asarray(getattr(ev, c), np.int64))
+               for c in "txyp")
+
+
+def _faery(path):
+    a = faery.events_stream_from_file(str(path)).to_array()
+    return a["t"].astype(np.int64), a["x"], a["y"], a["on"].astype(np.uint8)
+
+
+@pytest.mark.parametrize("fmt,ext", [("evt2", ".raw"), ("evt3", ".raw"), ("dat", ".dat"), ("es", ".es"),
+                                     ("csv", ".csv")])
+def test_each_written_file_reads_back_exactly_with_evtk_and_faery(fmt, ext, tmp_path):
+    ev = _events()
+    path = tmp_path / f"rec{ext}"
+    evtk.write_events(path, ev, fmt=fmt)
+    with evtk.open(path) as rec:
+        assert rec.sensor_size == ev.sensor_size
+        assert _same(rec.events(), ev)
+        w = rec.events(2_000_000, 3_000_000)
+        assert _same(w, ev.between(2_000_000, 3_000_000))
+        assert _same(evtk.Events.concatenate(list(rec.iter_events(3_000)), sensor_size=ev.sensor_size), ev)
+    t, x, y, p = _faery(path)
+    assert np.array_equal(x, ev.x) and np.array_equal(y, ev.y) and np.array_equal(p, ev.p)
+    assert np.array_equal(t, ev.t)
+
+
+@pytest.mark.parametrize("fmt,enc,ext", [("evt2", "evt2", "raw"), ("dat", "dat", "dat")])
+def test_expelliarmus_reads_evtk_s_raw_and_dat_files_exactly(fmt, enc, ext, tmp_path):
+    ev = _events(seed=8)
+    path = tmp_path / f"rec.{ext}"
+    evtk.write_events(path, ev, fmt=fmt)
+    a = expelliarmus.Wizard(encoding=enc).read(str(path))
+    for c in "txyp":
+        assert np.array_equal(np.asarray(a[c], np.int64), np.asarray(getattr(ev, c), np.int64)), c
+
+
+def test_evt3_events_and_trigger_channels_read_back_by_the_evt3_package(tmp_path):
+    evt3 = pytest.importorskip("evt3")
+    ev = _events(seed=9)
+    tr = _triggers()
+    path = tmp_path / "rec.raw"
+    evtk.write_events(path, ev, tr)
+    e, trig = evt3.decode_file_with_triggers(str(path))
+    assert np.array_equal(np.asarray(e.timestamp, np.int64), ev.t)
+    assert np.array_equal(e.x, ev.x) and np.array_equal(e.y, ev.y) and np.array_equal(e.polarity, ev.p.astype(bool))
+    assert (int(e.sensor_width), int(e.sensor_height)) == ev.sensor_size
+    assert np.array_equal(np.asarray(trig.timestamp, np.int64), tr.t)
+    assert np.array_equal(np.asarray(trig.value).astype(bool), tr.kind == 1)
+    if getattr(tr, "channel", None) is not None:
+        assert np.array_equal(np.asarray(trig.id), tr.channel)
+    with evtk.open(path) as rec:
+        got = rec.triggers()
+        assert np.array_equal(got.t, tr.t) and np.array_equal(got.kind, tr.kind)
+
+
+def test_event_stream_files_read_back_by_event_stream_with_y_from_the_bottom_row(tmp_path):
+    event_stream = pytest.importorskip("event_stream")
+    ev = _events(seed=10, size=(346, 260))
+    path = tmp_path / "rec.es"
+    evtk.write_events(path, ev)
+    d = event_stream.Decoder(str(path))
+    assert d.type == "dvs" and (d.width, d.height) == (346, 260)
+    a = np.concatenate(list(d))
+    assert np.array_equal(a["t"].astype(np.int64), ev.t) and np.array_equal(a["x"], ev.x)
+    assert np.array_equal(a["y"], 259 - ev.y.astype(np.int64)) and np.array_equal(a["p"], ev.p.astype(bool))
+
+
+@pytest.mark.parametrize("fmt,period_us", [("evt2", 1 << 34), ("evt3", 1 << 24), ("es", None), ("dat", 1 << 32)])
+def test_time_counters_wrap_unambiguously_across_long_gaps(fmt, period_us, tmp_path):
+    """Times past the format's counter and gaps longer than half its period: written so that every reader
+    counts the wraps (extra time-high words), or refused (DAT has none)."""
+    ev = _events(n=3_000, seed=11, t0=0, span=2_000_000)
+    t = ev.t.copy()
+    if period_us:
+        t[1000:] += period_us - 1_000_000   # across one wrap
+        t[2000:] += 3 * period_us // 4       # a gap of three quarters of a period
+    else:
+        t[1000:] += 50_000_000
+    ev2 = evtk.Events(t, ev.x, ev.y, ev.p, ev.sensor_size)
+    path = tmp_path / f"rec.{fmt}"
+    if fmt == "dat":
+        with pytest.raises(EvtkError, match="gap"):
+            evtk.write_events(path, ev2, fmt=fmt)
+        assert not path.exists()
+        return
+    evtk.write_events(path, ev2, fmt=fmt)
+    assert _same(evtk.read_events(path), ev2)
+    if fmt == "evt3":
+        evt3 = pytest.importorskip("evt3")
+        e, _ = evt3.decode_file_with_triggers(str(path))
+        assert np.array_equal(np.asarray(e.timestamp, np.int64), t)
+
+
+@pytest.mark.parametrize("bad,match", [("negative", "from 0"), ("unsorted", "time order"), ("wide", "below 2048")])
+def test_writers_refuse_what_the_format_cannot_hold_and_leave_no_file(bad, match, tmp_path):
+    ev = _events(n=100)
+    if bad == "negative":
+        ev = evtk.Events(ev.t - int(ev.t[50]), ev.x, ev.y, ev.p, ev.sensor_size)
+    elif bad == "unsorted":
+        ev = evtk.Events(ev.t[::-1].copy(), ev.x, ev.y, ev.p, ev.sensor_size)
+    else:
+        ev = evtk.Events(ev.t, ev.x, ev.y, ev.p, (4096, 480))
+    path = tmp_path / "rec.raw"
+    with pytest.raises(EvtkError, match=match):
+        evtk.write_events(path, ev)
+    assert not path.exists() and not list(tmp_path.iterdir())
+
+
+def test_triggers_into_formats_without_them_are_an_error_and_convert_names_them(tmp_path):
+    ev, tr = _events(n=2_000), _triggers()
+    with pytest.raises(EvtkError, match="trigger"):
+        evtk.write_events(tmp_path / "a.dat", ev, tr)
+    src = tmp_path / "src.aedat4"
+    evtk.write_events(src, ev, tr)
+    res = CliRunner().invoke(main, ["convert", str(src), str(tmp_path / "b.dat")])
+    assert res.exit_code == 0, res.output
+    assert "trigger edges (40)" in res.output
+    assert _same(evtk.read_events(tmp_path / "b.dat"), ev)
+    res = CliRunner().invoke(main, ["convert", str(src), str(tmp_path / "b.raw"), "--format", "evt2"])
+    assert res.exit_code == 0, res.output and "warning" not in res.output
+    with evtk.open(tmp_path / "b.raw") as rec:
+        assert rec.encoding == "evt2" and _same(rec.events(), ev) and rec.triggers() == tr
+
+
+@pytest.mark.parametrize("source_fmt", ["evt2", "evt3", "dat", "es", "csv", "aedat4", "hdf5", "parquet"])
+@pytest.mark.parametrize("target_fmt", ["evt2", "evt3", "dat", "es", "csv", "aedat4"])
+def test_convert_between_any_two_formats_keeps_every_event(source_fmt, target_fmt, tmp_path):
+    ev = _events(n=3_000, seed=12, size=(320, 240))
+    ext = {"aedat4": ".aedat4", "hdf5": ".h5", "parquet": ".parquet"}.get(source_fmt, ".x")
+    src = tmp_path / f"src{ext}"
+    evtk.write_events(src, ev, fmt=source_fmt)
+    dst = tmp_path / f"dst.{target_fmt}"
+    res = CliRunner().invoke(main, ["convert", str(src), str(dst), "--format", target_fmt])
+    assert res.exit_code == 0, res.output
+    assert _same(evtk.read_events(dst), ev)
+
+
+# -- text events ---------------------------------------------------------------------------------------------------
+
+def test_text_events_in_microseconds_with_a_height_width_line(tmp_path):
+    """As the DVS toolkit writes them: a 'rows cols' first line, then 't x y p' with runs of spaces."""
+    ev = _events(n=500, size=(240, 180), t0=1_645_793_388_095_964, span=1_000_000)
+    lines = ["180 240"] + [f"{t} {x:3d} {y:3d} {p}" for t, x, y, p in zip(ev.t, ev.x, ev.y, ev.p)]
+    path = tmp_path / "events.txt"
+    path.write_text("\n".join(lines) + "\n")
+    assert evtk.io.detect_format(path) == "text"
+    with evtk.open(path) as rec:
+        assert rec.sensor_size == (240, 180) and _same(rec.events(), ev)
+        info = rec.info()
+        assert info["events"] == 500 and info["format"] == "text"
+
+
+def test_text_events_in_seconds_with_column_names_and_minus_one_polarity(tmp_path):
+    ev = _events(n=300, size=(346, 260), t0=10_000, span=2_000_000)
+    lines = ["timestamp,x,y,polarity"] + [f"{t / 1e6:.6f},{x},{y},{1 if p else -1}"
+                                          for t, x, y, p in zip(ev.t, ev.x, ev.y, ev.p)]
+    path = tmp_path / "ev.csv"
+    path.write_text("\n".join(lines))
+    with evtk.open(path, sensor_size=(346, 260)) as rec:
+        assert _same(rec.events(), ev)
+
+
+def test_faery_csv_is_read_with_its_sensor_size(tmp_path):
+    ev = _events(n=1_000, size=(128, 96))
+    arr = np.zeros(len(ev), faery.EVENTS_DTYPE)
+    arr["t"], arr["x"], arr["y"], arr["on"] = ev.t, ev.x, ev.y, ev.p.astype(bool)
+    path = tmp_path / "f.csv"
+    faery.events_stream_from_array(arr, (128, 96)).to_file(str(path))
+    with evtk.open(path) as rec:
+        assert rec.sensor_size == (128, 96) and _same(rec.events(), ev)
+
+
+def test_a_bad_text_line_is_a_format_error_naming_it_and_salvage_keeps_the_lines_before(tmp_path):
+    path = tmp_path / "ev.txt"
+    path.write_text("1 2 3 1\n5 6 7 0\n9 10 oops 1\n12 1 1 1\n")
+    with pytest.raises(FormatError, match="line 3"):
+        evtk.read_events(path)
+    with evtk.open(path, salvage=True, sensor_size=(20, 20)) as rec:
+        got = rec.events()
+        assert list(got.t) == [1, 5] and rec.damage is not None and rec.damage.offset == 16
+    path.write_text("1 2 3 1\n5 6 7\n")
+    with pytest.raises(FormatError, match="line 2"):
+        evtk.read_events(path)
+
+
+def test_text_events_off_the_given_sensor_are_refused(tmp_path):
+    path = tmp_path / "ev.txt"
+    path.write_text("10 20\n1 25 3 1\n")
+    with pytest.raises(FormatError, match="sensor"):
+        evtk.read_events(path)
+
+
+# -- N-MNIST ------------------------------------------------------------------------------------------------------
+
+def _nmnist_bytes(x, y, p, t):
+    raw = np.zeros((len(x), 5), np.uint8)
+    raw[:, 0], raw[:, 1] = x, y
+    raw[:, 2] = (np.asarray(p, np.int64) << 7) | ((np.asarray(t) >> 16) & 0x7F)
+    raw[:, 3] = (np.asarray(t) >> 8) & 0xFF
+    raw[:, 4] = np.asarray(t) & 0xFF
+    return raw.tobytes()
+
+
+def test_nmnist_binary_agrees_with_tonic_including_the_overflow_marker(tmp_path):
+    tio = pytest.importorskip("tonic.io")
+    rng = np.random.default_rng(2)
+    n = 2_000
+    t = np.sort(rng.integers(0, 300_000, n))
+    x, y, p = rng.integers(0, 34, n), rng.integers(0, 34, n), rng.integers(0, 2, n)
+    data = _nmnist_bytes(x, y, p, t)
+    marker = _nmnist_bytes([0], [240], [0], [t[1500]])  # adds 2**13 us to every later event
+    path = tmp_path / "00001.bin"
+    path.write_bytes(data[:5 * 1500] + marker + data[5 * 1500:])
+    assert evtk.io.detect_format(path) == "nmnist"
+    ref = tio.read_mnist_file(str(path), dtype=np.dtype([("x", int), ("y", int), ("t", int), ("p", int)]))
+    with evtk.open(path) as rec:
+        got = rec.events()
+        assert rec.sensor_size == (34, 34) and len(got) == n
+    assert np.array_equal(got.t, ref["t"]) and np.array_equal(got.x, ref["x"]) and np.array_equal(got.y, ref["y"])
+    assert np.array_equal(got.p, ref["p"])
+    assert np.array_equal(got.t[1500:], t[1500:] + 8192)
+
+
+def test_a_cut_nmnist_file_is_an_error_and_salvage_keeps_the_whole_events(tmp_path):
+    data = _nmnist_bytes([1, 2, 3], [4, 5, 6], [1, 0, 1], [10, 20, 30])
+    path = tmp_path / "cut.bin"
+    path.write_bytes(data[:-2])
+    with pytest.raises(FormatError, match="ends inside an event"):
+        evtk.read_events(path)
+    from evtk.io.decoded import NmnistRecording
+
+    with NmnistRecording(path, salvage=True) as rec:
+        assert list(rec.events().t) == [10, 20] and rec.damage.offset == 10
+
+
+@pytest.mark.skipif(not (REAL / "tonic__sample_nmnist.bin").exists(), reason="../shared/real-files is not here")
+def test_the_real_nmnist_sample_reads_as_tonic_reads_it():
+    tio = pytest.importorskip("tonic.io")
+    path = REAL / "tonic__sample_nmnist.bin"
+    ref = tio.read_mnist_file(str(path), dtype=np.dtype([("x", int), ("y", int), ("t", int), ("p", int)]))
+    got = evtk.read_events(path)
+    assert len(got) == len(ref) > 0
+    assert np.array_equal(got.t, ref["t"]) and np.array_equal(got.x, ref["x"]) and np.array_equal(got.y, ref["y"])
+
+
+@pytest.mark.skipif(not (REAL / "taro-dvstoolkit__test-02.txt").exists(), reason="../shared/real-files is not here")
+def test_the_real_text_file_reads_line_for_line():
+    path = REAL / "taro-dvstoolkit__test-02.txt"
+    rows = np.loadtxt(path, skiprows=1, dtype=np.int64)
+    with evtk.open(path) as rec:
+        got = rec.events()
+        assert rec.sensor_size == (240, 180)
+    assert np.array_equal(got.t, rows[:, 0]) and np.array_equal(got.x, rows[:, 1])
+    assert np.array_equal(got.y, rows[:, 2]) and np.array_equal(got.p, rows[:, 3])
+
+
+def test_no_file_is_left_when_a_foreign_write_fails_midway(tmp_path):
+    ev = _events(n=1_000)
+    path = tmp_path / "x.es"
+    with pytest.raises(EvtkError):
+        with evtk.io.open_writer(path, ev.sensor_size) as w:
+            w.write_events(ev)
+            w.write_events(ev)  # goes back in time
+    assert not os.path.exists(path) and not list(tmp_path.iterdir())
