@@ -139,18 +139,18 @@ def train_layerwise(model: BCNN, backend, x, y, optimizer="anneal", steps=600, t
         if optimizer == "brute":
             if obj.n_kernel_bits > 12:
                 raise EvtkError(f"brute force over 2^{obj.n_kernel_bits} kernels is too many; anneal instead")
-            best, best_value, trace = None, np.inf, []
+            best, best_value, values = None, np.inf, []
             for code in range(2 ** obj.n_kernel_bits):
                 kb = ((code >> np.arange(obj.n_kernel_bits)) & 1).astype(np.int8)
                 act, _ = obj.activations(obj.split(np.r_[kb, np.zeros(n_bits - kb.size, np.int8)])[0])
                 bits = np.r_[kb, fit_mask(act, y, model.pool, len(obj.mask_shape) == 3).ravel()]
                 v = obj(bits)
-                trace.append(v)
+                values.append(v)
                 if v < best_value:
                     best, best_value = bits, v
                 if progress is not None:
                     progress(1)
-            trace = np.asarray(trace)
+            trace = np.asarray(values)
         else:
             start = np.r_[(model.kernels[i].ravel() > 0).astype(np.int8), model.masks[i].ravel()]
             best, best_value, trace = metropolis(obj, n_bits, steps, temperature,
@@ -222,7 +222,7 @@ def train_ste(model: BCNN, x, y, epochs=300, lr=0.02, seed=0) -> dict:
             co, ci, kh, kw = kb.shape
             cols = _im2col(a, kh, kw)
             full = np.einsum("ok,nkp->nop", kb.reshape(co, -1), cols).reshape(n, co, s + kh - 1, s + kw - 1)
-            if my is None:
+            if my is None or mx is None:
                 my, mx = resample_matrix(s + kh - 1, s), resample_matrix(s + kw - 1, s)
             r = np.einsum("ij,nojk,lk->noil", my, full, mx, optimize=True)
             mu = r.mean(axis=(0, 2, 3), keepdims=True)
@@ -251,6 +251,7 @@ def train_ste(model: BCNN, x, y, epochs=300, lr=0.02, seed=0) -> dict:
             g_z = g_a * (np.abs(z) <= 1)
             g_r = (g_z - g_z.mean(axis=(0, 2, 3), keepdims=True)
                    - z * (g_z * z).mean(axis=(0, 2, 3), keepdims=True)) / sd
+            assert my is not None and mx is not None  # set by the forward pass
             g_full = np.einsum("ji,nojk,kl->noil", my, g_r, mx, optimize=True)
             co_, ci, kh, kw = kb.shape
             gf = g_full.reshape(n, co_, -1)

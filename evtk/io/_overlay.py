@@ -67,7 +67,7 @@ class SplicedFile(io.RawIOBase):
             super().close()
 
 
-_OPEN = weakref.WeakSet()
+_OPEN: weakref.WeakSet = weakref.WeakSet()
 
 
 def close_at_exit(recording):

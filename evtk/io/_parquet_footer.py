@@ -117,7 +117,8 @@ class _Reader:
         return tuple(k) if isinstance(k, list) else (tuple(sorted(k.items())) if isinstance(k, dict) else k)
 
     def struct(self, depth: int = 0) -> dict:
-        out, last = {}, 0
+        out: dict = {}
+        last = 0
         while True:
             head = self.byte()
             kind = head & 0x0F

@@ -225,8 +225,9 @@ class TextRecording(DecodedRecording):
         require_memory(10 * self._file_bytes, f"decoding the text events of {self.path}")
         with open(self.path, "rb") as f:
             data = f.read()
-        if _TEXT_BYTES.search(data[:1 << 20]):
-            raise FormatError(self.path, _TEXT_BYTES.search(data[:1 << 20]).start(), "a byte that is not text")
+        binary = _TEXT_BYTES.search(data[:1 << 20])
+        if binary is not None:
+            raise FormatError(self.path, binary.start(), "a byte that is not text")
         order, size, start = self._header(data)
         body = data[start:]
         cols, bad_at = self._parse(body)

@@ -170,7 +170,7 @@ class Aedat4Writer(BaseWriter):
         # Serialise batches of about 2 M events into two staging buffers used in
         # turn: the next batch is encoded while the pool compresses this one.
         rows = max(1, (1 << 21) // self.packet_events)
-        staging = [None, None]
+        staging: list[np.ndarray | None] = [None, None]
         pending = None
         for k, b0 in enumerate(range(0, len(bounds) - 1, rows)):
             b = bounds[b0 : b0 + rows + 1]
@@ -180,7 +180,8 @@ class Aedat4Writer(BaseWriter):
             need = (hi - lo) * 16 + 40 * npk
             buf = staging[k % 2]
             if buf is None or len(buf) < need:
-                buf = staging[k % 2] = np.empty(need + (-need % 8), np.uint8)
+                buf = np.empty(need + (-need % 8), np.uint8)
+                staging[k % 2] = buf
             tt = events.t[lo:hi]
             _jit().encode_event_packets(tt, events.x[lo:hi], events.y[lo:hi], events.p[lo:hi], local, 0, buf)
             heads = local[:-1] * 16 + 40 * np.arange(npk)
@@ -192,10 +193,10 @@ class Aedat4Writer(BaseWriter):
             counts = np.diff(local)
             if self.code == cz.NONE:  # packet headers are already in place: one write
                 self._record_many(0, heads + 8 + self._pos, ends - heads - 8, counts, t0, t1)
-                self._f.write(memoryview(buf)[:need])
+                self._f.write(buf[:need].data)
                 self._pos += need
                 continue
-            mv = memoryview(buf)
+            mv = buf.data
             code = self.code
             futures = [cz.pool().submit(cz.compress, code, mv[a:z]) for a, z in zip(heads + 8, ends)]
             if pending is not None:
