@@ -347,10 +347,9 @@ def _load_array(path, what):
     ext = os.path.splitext(path)[1].lower()
     if ext != ".npy":
         raise EvtkError(f"{what} must be a .npy file, not {path!r}")
-    try:
-        return np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise EvtkError(f"cannot read {what} {path!r}: {exc}") from None
+    from .._loaders import read_npy
+
+    return read_npy(path, what)
 
 
 def _stats(values):

@@ -1,0 +1,241 @@
+"""Hostile inputs for what evtk loads and writes: no code from data files, no decoding past the memory budget,
+no output written over an input, no partial file left behind, no batch result lost."""
+
+from __future__ import annotations
+
+import gzip
+import io
+import os
+import pickle
+import struct
+import zlib
+
+import numpy as np
+import pytest
+
+from evtk.errors import EvtkError, FormatError
+
+# -- no code from a pickle ---------------------------------------------------------------------
+
+
+class _WritesMarker:
+    """Unpickling this writes a marker file (what a crafted batch could do with any command)."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+class _RunsShell:
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+def _cifar_dict(rng, n=5):
+    return {b"batch_label": b"training batch 1 of 5", b"labels": [int(v) for v in rng.integers(0, 10, n)],
+            b"data": (rng.random((n, 3072)) * 255).astype(np.uint8), b"filenames": [b"x.png"] * n}
+
+
+class _Py2Pickler(pickle._Pickler):
+    """Writes bytes as Python 2's str opcodes, as CIFAR-10's own batches (cPickle, protocol 2) hold them."""
+
+    dispatch = dict(pickle._Pickler.dispatch)
+
+    def save_bytes(self, obj):
+        n = len(obj)
+        head = pickle.SHORT_BINSTRING + bytes([n]) if n < 256 else pickle.BINSTRING + struct.pack("<i", n)
+        self.write(head + obj)
+        self.memoize(obj)
+
+    dispatch[bytes] = save_bytes
+
+
+@pytest.mark.parametrize("protocol", [0, 2, 4, 5, "python2"])
+def test_cifar_python_batch_reads_without_unpickling(tmp_path, protocol):
+    from evtk.datasets import read_cifar_batch
+
+    rng = np.random.default_rng(3)
+    d = _cifar_dict(rng)
+    path = tmp_path / "data_batch_1"
+    if protocol == "python2":
+        buf = io.BytesIO()
+        _Py2Pickler(buf, 2).dump(d)
+        path.write_bytes(buf.getvalue())
+    else:
+        path.write_bytes(pickle.dumps(d, protocol=protocol))
+    grey, labels = read_cifar_batch(path)
+    rgb = d[b"data"].reshape(-1, 3, 32, 32) / 255.0
+    np.testing.assert_allclose(grey, 0.2125 * rgb[:, 0] + 0.7154 * rgb[:, 1] + 0.0721 * rgb[:, 2])
+    assert labels.tolist() == d[b"labels"]
+
+
+@pytest.mark.parametrize("payload", ["data", "labels", "whole", "key"])
+@pytest.mark.parametrize("cls", [_WritesMarker, _RunsShell])
+@pytest.mark.parametrize("protocol", [0, 2, 5])
+def test_crafted_cifar_pickle_runs_no_code(tmp_path, payload, cls, protocol):
+    from evtk.datasets import read_cifar_batch
+
+    marker = tmp_path / "pwned"
+    evil = cls(marker)
+    d = _cifar_dict(np.random.default_rng(0))
+    if payload == "whole":
+        d = evil
+    elif payload == "key":
+        d[(evil,)] = 1
+    else:
+        d[payload.encode()] = evil
+    path = tmp_path / "data_batch_1"
+    path.write_bytes(pickle.dumps(d, protocol=protocol))
+    with pytest.raises(FormatError, match="does not load|does not read"):
+        read_cifar_batch(path)
+    assert not marker.exists()
+
+
+def test_crafted_cifar_batch_through_classify_runs_no_code(tmp_path):
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+
+    marker = tmp_path / "pwned"
+    data_dir = tmp_path / "data"
+    (data_dir / "lfw" / "A").mkdir(parents=True)
+    from PIL import Image
+
+    for j in range(3):
+        Image.fromarray((np.random.default_rng(j).random((40, 40, 3)) * 255).astype(np.uint8)).save(
+            data_dir / "lfw" / "A" / f"A_{j}.jpg")
+    (data_dir / "cifar-10-batches-py").mkdir()
+    (data_dir / "cifar-10-batches-py" / "data_batch_1").write_bytes(pickle.dumps(_WritesMarker(marker)))
+    r = CliRunner().invoke(main, ["classify", "--data-dir", str(data_dir), "--samples", "2", "--runs", "1",
+                                  "--backend", "digital", "--steps", "1", "--out", str(tmp_path / "o")])
+    assert r.exit_code == 1 and "evtk: error:" in r.output and "does not load" in r.output
+    assert not marker.exists()
+
+
+def test_pickle_walker_refuses_shared_and_cyclic_bombs(tmp_path):
+    from evtk._loaders import read_plain_pickle
+
+    # 60 levels of a list holding the previous one twice: 2**60 elements if expanded naively
+    a = []
+    for _ in range(60):
+        a = [a, a]
+    path = tmp_path / "shared"
+    path.write_bytes(pickle.dumps(a, protocol=2))
+    out = read_plain_pickle(path)
+    assert out[0] is out[1]
+    c = []
+    c.append(c)
+    path.write_bytes(pickle.dumps(c, protocol=2))
+    with pytest.raises(FormatError, match="contains itself"):
+        read_plain_pickle(path)
+    path.write_bytes(b"\x80\x02]q\x00")  # no STOP
+    with pytest.raises(FormatError):
+        read_plain_pickle(path)
+
+
+def test_cifar_binary_version(tmp_path):
+    from evtk.datasets import face_not_face, read_cifar_batch
+
+    rng = np.random.default_rng(5)
+    labels = rng.integers(0, 10, 7).astype(np.uint8)
+    imgs = (rng.random((7, 3072)) * 255).astype(np.uint8)
+    path = tmp_path / "cifar-10-batches-bin" / "data_batch_1.bin"
+    path.parent.mkdir()
+    path.write_bytes(np.hstack([labels[:, None], imgs]).tobytes())
+    grey, got = read_cifar_batch(path)
+    assert got.tolist() == labels.tolist() and grey.shape == (7, 32, 32)
+    rgb = imgs.reshape(-1, 3, 32, 32) / 255.0
+    np.testing.assert_allclose(grey, 0.2125 * rgb[:, 0] + 0.7154 * rgb[:, 1] + 0.0721 * rgb[:, 2])
+    bad = tmp_path / "short.bin"
+    bad.write_bytes(path.read_bytes()[:-1])
+    with pytest.raises(FormatError, match="whole number"):
+        read_cifar_batch(bad)
+    from PIL import Image
+
+    for j in range(3):
+        (tmp_path / "lfw" / "P").mkdir(parents=True, exist_ok=True)
+        Image.fromarray((rng.random((40, 40, 3)) * 255).astype(np.uint8)).save(tmp_path / "lfw" / "P" / f"{j}.jpg")
+    d = face_not_face(data_dir=str(tmp_path), n_per_class=3, test_fraction=0.5)
+    assert "CIFAR-10 (3 images)" in d.source
+
+
+# -- decoding bounded by the budget --------------------------------------------------------------
+
+def _idx(shape, body):
+    return bytes([0, 0, 0x08, len(shape)]) + b"".join(int(d).to_bytes(4, "big") for d in shape) + body
+
+
+def test_gzip_idx_declared_size_checked_before_inflating(tmp_path, monkeypatch):
+    from evtk.datasets import read_idx
+
+    monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "1")
+    path = tmp_path / "big.idx.gz"
+    with gzip.open(path, "wb") as fh:  # 8 MB of zeros in a few KB, and a header that declares them
+        fh.write(_idx((8, 1000, 1000), bytes(8_000_000)))
+    assert path.stat().st_size < 100_000
+    with pytest.raises(EvtkError, match="MiB"):
+        read_idx(path)
+
+
+def test_idx_trailing_and_short_data_refused(tmp_path):
+    from evtk.datasets import read_idx
+
+    path = tmp_path / "trail.idx.gz"
+    with gzip.open(path, "wb") as fh:  # the header declares 4 bytes; 50 MB follow
+        fh.write(_idx((2, 2), bytes(50_000_000)))
+    with pytest.raises(FormatError, match="follow"):
+        read_idx(path)
+    (tmp_path / "t.idx").write_bytes(_idx((2, 2), b"\x01\x02\x03\x04\x05"))
+    with pytest.raises(FormatError, match="follow"):
+        read_idx(tmp_path / "t.idx")
+    (tmp_path / "s.idx").write_bytes(_idx((2, 2), b"\x01\x02"))
+    with pytest.raises(FormatError, match="truncated"):
+        read_idx(tmp_path / "s.idx")
+
+
+def _png_header_only(width, height):
+    """A PNG whose header declares width x height grey pixels, with a few bytes of picture data."""
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(bytes(1000))) + chunk(b"IEND", b""))
+
+
+def test_image_dimensions_checked_before_decoding(tmp_path, monkeypatch):
+    from evtk._loaders import read_image
+    from evtk.simulate import load_patterns
+
+    path = tmp_path / "bomb.png"
+    path.write_bytes(_png_header_only(12000, 12000))
+    monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "64")
+    with pytest.raises(EvtkError, match="12000x12000 pixels"):
+        read_image(path)
+    with pytest.raises(EvtkError, match="12000x12000 pixels"):
+        load_patterns(str(path), "features")
+    ok = tmp_path / "ok.png"
+    from PIL import Image
+
+    Image.fromarray(np.array([[0, 255], [255, 0]], np.uint8)).save(ok)
+    assert load_patterns(str(ok), "features").tolist() == [[0, 1], [1, 0]]
+
+
+def test_npy_declared_size_checked(tmp_path, monkeypatch):
+    from evtk._loaders import read_npy
+
+    good = tmp_path / "a.npy"
+    np.save(good, np.arange(6).reshape(2, 3))
+    assert read_npy(good).tolist() == [[0, 1, 2], [3, 4, 5]]
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": "<i8", "fortran_order": False, "shape": (99999, 99999)})
+    (tmp_path / "big.npy").write_bytes(buf.getvalue() + bytes(48))  # 80 GB declared, 48 bytes held
+    with pytest.raises(FormatError, match="declares"):
+        read_npy(tmp_path / "big.npy")
+    np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(FormatError, match="pickle"):
+        read_npy(tmp_path / "obj.npy")
