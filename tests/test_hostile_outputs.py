@@ -239,3 +239,204 @@ def test_npy_declared_size_checked(tmp_path, monkeypatch):
     np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
     with pytest.raises(FormatError, match="pickle"):
         read_npy(tmp_path / "obj.npy")
+
+
+# -- no output over an input ----------------------------------------------------------------------
+
+_INPUT_BYTES = b"precious input bytes, not to be replaced\n"
+
+
+def _files(tmp_path):
+    """Inputs holding bytes that must survive (no command gets far enough to read them)."""
+    names = {"REC": "rec.aedat4", "REC2": "rec2.h5", "SCHED": "schedule.json", "CAL": "cal.toml",
+             "BENCH": "bench.toml", "NPY": "k.npy", "JOB": "job.toml"}
+    paths = {}
+    for key, name in names.items():
+        p = tmp_path / name
+        p.write_bytes(_INPUT_BYTES + name.encode())
+        paths[key] = str(p)
+    paths["NEW"] = str(tmp_path / "new-output.h5")
+    paths["NEWPNG"] = str(tmp_path / "new.png")
+    paths["LINK"] = str(tmp_path / "link.png")
+    os.symlink(paths["REC"], paths["LINK"])  # another name of the recording
+    paths["DOTREC"] = os.path.join(str(tmp_path), ".", "rec.aedat4")
+    return paths
+
+
+# every command and option that writes, given an input (or another output) of the same command as its target
+_OVERWRITES = [
+    ["calibrate", "REC", "-o", "REC"],
+    ["calibrate", "REC", "-o", "NEW", "--png", "REC"],
+    ["calibrate", "REC", "--schedule", "SCHED", "-o", "SCHED"],
+    ["calibrate", "REC", "--schedule", "SCHED", "-o", "NEW", "--png", "SCHED"],
+    ["calibrate", "REC", "-o", "NEW", "--png", "LINK"],
+    ["calibrate", "REC", "-o", "NEWPNG", "--png", "NEWPNG"],
+    ["reconstruct", "REC", "-o", "REC"],
+    ["reconstruct", "REC", "-o", "DOTREC"],
+    ["reconstruct", "REC", "-o", "NEW", "--png", "REC"],
+    ["reconstruct", "REC", "-o", "NEW", "--schedule", "SCHED", "--png", "SCHED"],
+    ["reconstruct", "REC", "-o", "NEW", "--calibration", "CAL", "--png", "CAL"],
+    ["reconstruct", "REC", "-o", "SCHED", "--schedule", "SCHED"],
+    ["reconstruct", "REC", "-o", "CAL", "--calibration", "CAL"],
+    ["reconstruct", "REC", "-o", "NEW", "--png", "NEW"],
+    ["enob", "REC", "--plot", "REC"],
+    ["enob", "REC", "--plot", "LINK"],
+    ["flips", "REC", "--plot", "REC"],
+    ["flips", "REC", "REC2", "--plot", "REC2"],
+    ["convert", "REC", "REC"],
+    ["convert", "REC", "LINK"],
+    ["simulate", "-o", "BENCH", "--bench", "BENCH"],
+    ["simulate", "-o", "NEW", "--bench", "BENCH", "--save-bench", "BENCH"],
+    ["simulate", "-o", "NEW", "--save-bench", "NEW"],
+    ["simulate", "-o", "NPY", "--kernel", "NPY"],
+    ["simulate", "-o", "JOB", "--job", "JOB"],
+    ["recover", "--target-kernel-bits", "010111010", "--features", "NPY", "--plot", "NPY"],
+]
+
+
+@pytest.mark.parametrize("args", _OVERWRITES, ids=[" ".join(a) for a in _OVERWRITES])
+def test_no_output_replaces_an_input(tmp_path, args):
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+
+    paths = _files(tmp_path)
+    before = {k: open(p, "rb").read() for k, p in paths.items() if os.path.isfile(p)}
+    r = CliRunner().invoke(main, [paths.get(a, a) for a in args])
+    assert r.exit_code == 1, r.output
+    assert r.output.startswith("evtk: error: the output") and "replace" in r.output, r.output
+    after = {k: open(p, "rb").read() for k, p in paths.items() if os.path.isfile(p)}
+    assert after == before
+    assert not os.path.exists(paths["NEW"]) and not os.path.exists(paths["NEWPNG"])
+    assert not [f for f in os.listdir(tmp_path) if f.endswith(".evtk-partial")]
+
+
+def test_a_file_a_command_writes_under_a_computed_name_replaces_no_input(tmp_path):
+    """`evtk patterns` writes schedule.json into its folder: the job file there is not replaced."""
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+
+    out = tmp_path / "frames"
+    out.mkdir()
+    job = out / "schedule.json"
+    job.write_text('{"kernels": ["010111010"]}')
+    before = job.read_bytes()
+    r = CliRunner().invoke(main, ["patterns", str(job), "-o", str(out)])
+    assert r.exit_code == 1 and "is the input" in r.output, r.output
+    assert job.read_bytes() == before
+    assert not [f for f in os.listdir(out) if f.endswith(".evtk-partial")]
+
+
+def test_guard_refuses_a_second_write_of_one_output(tmp_path):
+    from evtk.io._atomic import AtomicFile, guard_outputs
+
+    a = tmp_path / "a.bin"
+    with guard_outputs([str(a)], []):
+        with AtomicFile(a) as f:
+            f.write(b"first")
+        with pytest.raises(EvtkError, match="just written"):
+            with AtomicFile(tmp_path / "." / "a.bin") as f:
+                f.write(b"second")
+    assert a.read_bytes() == b"first"
+    with AtomicFile(a) as f:  # outside the command, a file is replaced as ever
+        f.write(b"third")
+    assert a.read_bytes() == b"third"
+
+
+# -- no partial file left behind --------------------------------------------------------------------
+
+_WRITER = r"""
+import sys, time
+import numpy as np
+import evtk
+from evtk.io import open_writer
+
+w = open_writer(sys.argv[1], (64, 48))
+n = 50_000
+t = np.arange(n, dtype=np.int64)
+w.write_events(evtk.Events(t, t % 64, t % 48, t % 2, (64, 48)))
+print("ready", flush=True)
+time.sleep(120)
+"""
+
+
+def _start_writer(tmp_path, name):
+    import subprocess
+    import sys
+
+    script = tmp_path / "writer.py"
+    script.write_text(_WRITER)
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    proc = subprocess.Popen([sys.executable, str(script), str(tmp_path / name)], stdout=subprocess.PIPE, env=env,
+                            cwd=str(tmp_path))
+    assert proc.stdout.readline().strip() == b"ready"
+    return proc
+
+
+def _partials(folder):
+    return [f for f in os.listdir(folder) if f.endswith(".evtk-partial")]
+
+
+@pytest.mark.parametrize("name", ["out.aedat4", "out.h5", "out.parquet"])
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_interrupted_writer_leaves_no_partial_file(tmp_path, name, sig):
+    import signal
+
+    proc = _start_writer(tmp_path, name)
+    try:
+        assert len(_partials(tmp_path)) == 1  # it is mid-write
+        proc.send_signal(getattr(signal, sig))
+        rc = proc.wait(timeout=60)
+    finally:
+        proc.kill()
+    if sig == "SIGTERM":
+        assert rc == -signal.SIGTERM  # it still dies of the signal
+    else:
+        assert rc != 0
+    assert _partials(tmp_path) == [] and not (tmp_path / name).exists()
+
+
+def test_killed_simulate_leaves_no_partial_file(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    proc = subprocess.Popen([sys.executable, "-m", "evtk.cli", "simulate", "--repeat", "100000", "-o", "run.aedat4"],
+                            cwd=str(tmp_path), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while not _partials(tmp_path) and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        assert _partials(tmp_path), "simulate never started writing"
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(timeout=60)
+    finally:
+        proc.kill()
+    assert rc == -signal.SIGTERM
+    assert _partials(tmp_path) == [] and not (tmp_path / "run.aedat4").exists()
+
+
+def test_stale_partial_of_a_dead_process_removed_by_the_next_write(tmp_path):
+    import signal
+
+    proc = _start_writer(tmp_path, "out.h5")
+    proc.send_signal(signal.SIGKILL)  # no chance to clean up
+    proc.wait(timeout=60)
+    stale = _partials(tmp_path)
+    assert len(stale) == 1
+    live = _start_writer(tmp_path, "out.h5")  # another writer of the same target, still running
+    try:
+        theirs = [f for f in _partials(tmp_path) if f not in stale]
+        import evtk
+
+        t = np.arange(10, dtype=np.int64)
+        evtk.write_events(tmp_path / "out.h5", evtk.Events(t, t, t, t % 2, (64, 48)))
+        assert _partials(tmp_path) == theirs  # the dead one's went, the live one's stays
+    finally:
+        live.kill()
+        live.wait()
+    with evtk.open(tmp_path / "out.h5") as rec:
+        assert len(rec.events()) == 10
