@@ -440,3 +440,115 @@ def test_stale_partial_of_a_dead_process_removed_by_the_next_write(tmp_path):
         live.wait()
     with evtk.open(tmp_path / "out.h5") as rec:
         assert len(rec.events()) == 10
+
+
+# -- batches: every format, one output per input, no result lost to a concurrent batch -------------------
+
+def _small(path, seed, sensor=(346, 260)):
+    """A recording of 3,000 events over 0.3 s in the format of ``path``'s extension."""
+    import sys
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from conftest import random_events
+
+    ev = random_events(3000, seed=seed, sensor_size=sensor, span_us=300_000)
+    ext = os.path.splitext(str(path))[1]
+    if ext in (".raw", ".dat", ".es"):
+        faery = pytest.importorskip("faery")
+        arr = np.zeros(len(ev), faery.EVENTS_DTYPE)
+        arr["t"], arr["x"], arr["y"], arr["on"] = ev.t, ev.x, ev.y, ev.p.astype(bool)
+        version = {".raw": {"version": "evt3"}, ".dat": {"version": "dat2"}, ".es": {}}[ext]
+        faery.events_stream_from_array(arr, tuple(ev.sensor_size)).to_file(str(path), **version)
+    elif ext == ".aedat":  # AEDAT 2.0 as jAER writes DAVIS346 events: big-endian, y from the bottom
+        head = b"#!AER-DAT2.0\r\n# AEChip: eu.seebetter.ini.chips.davis.DAVIS346B\r\n"
+        rec = np.empty(2 * len(ev), ">u4")
+        rec[0::2] = ((259 - ev.y.astype(np.uint32)) << 22) | (ev.x.astype(np.uint32) << 12) | \
+            (ev.p.astype(np.uint32) << 11)
+        rec[1::2] = ev.t.astype(np.uint32)
+        path.write_bytes(head + rec.tobytes())
+    else:
+        import evtk
+
+        evtk.write_events(path, ev)
+
+
+def test_batch_folder_takes_every_format_evtk_reads_and_names_what_it_leaves_out(tmp_path):
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+
+    src = tmp_path / "in"
+    src.mkdir()
+    names = ["a.aedat4", "b.h5", "c.parquet", "d.raw", "e.dat", "f.es", "g.aedat"]
+    for k, name in enumerate(names):
+        _small(src / name, k)
+    _small(src / "h.aedat4", 9)
+    os.rename(src / "h.aedat4", src / "h-recording")  # no extension: found by its first bytes
+    (src / "notes.txt").write_text("what was recorded\n")
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["batch", "reconstruct", str(src), "-o", str(out), "--window", "period:50000",
+                                  "--size", "4x4", "--scheduler", "serial"])
+    assert r.exit_code == 0, r.output
+    manifest = __import__("json").loads((out / "batch.json").read_text())
+    got = {os.path.basename(e["input"]): e["status"] for e in manifest["inputs"]}
+    assert got == {n: "ok" for n in names + ["h-recording"]}
+    assert [os.path.basename(e["file"]) for e in manifest["left_out"]] == ["notes.txt"]
+    assert "notes.txt" in r.output and "left out" in r.output
+
+
+def test_batch_inputs_of_one_name_get_outputs_of_their_own(tmp_path):
+    from evtk.batch import batch_reconstruct
+
+    a, b = tmp_path / "a" / "x", tmp_path / "b" / "x"  # the same folder name too
+    a.mkdir(parents=True)
+    b.mkdir(parents=True)
+    for k, p in enumerate([a / "rec.h5", b / "rec.h5", a / "rec.aedat4"]):
+        _small(p, k)
+    out = tmp_path / "out"
+    m = batch_reconstruct([a / "rec.h5", b / "rec.h5", a / "rec.aedat4"], out,
+                          {"window": ("period", 50_000), "size": (4, 4)})
+    outs = [e["output"] for e in m["inputs"]]
+    assert [e["status"] for e in m["inputs"]] == ["ok"] * 3 and len(set(outs)) == 3
+    from evtk.io.reconstruction import load_reconstruction
+
+    for e in m["inputs"]:
+        assert len(load_reconstruction(e["output"]).cells) >= 5  # 0.3 s in 50 ms windows
+
+
+@pytest.mark.parametrize("force", [False, True])
+def test_concurrent_batch_result_is_reported_not_lost(tmp_path, monkeypatch, force):
+    """Batch B reconstructs b/one.h5 while batch A writes a/one.h5's result under the same name: B reports it
+    and A's result stays (before, both said ok and A's result was replaced)."""
+    import json
+
+    import evtk.workflow
+    from evtk import batch as evbatch
+    from evtk.batch import batch_reconstruct
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    _small(tmp_path / "a" / "one.h5", 1)
+    _small(tmp_path / "b" / "one.h5", 2)
+    out = tmp_path / "out"
+    opts = {"window": ("period", 50_000), "size": (4, 4)}
+    if force:
+        batch_reconstruct([tmp_path / "a" / "one.h5"], out, opts)
+    real = evtk.workflow.reconstruct_recording
+    state = {}
+
+    def meanwhile(rec, **kw):  # while B computes, A runs to the end
+        result = real(rec, **kw)
+        if rec.path.endswith(os.path.join("b", "one.h5")) and "a" not in state:
+            monkeypatch.setattr(evbatch, "reconstruct_recording", real)
+            state["a"] = batch_reconstruct([tmp_path / "a" / "one.h5"], out, opts, force=True)
+            state["a_bytes"] = (out / "one.h5").read_bytes()
+        return result
+
+    monkeypatch.setattr(evbatch, "reconstruct_recording", meanwhile)
+    m = batch_reconstruct([tmp_path / "b" / "one.h5"], out, opts, force=force)
+    assert state["a"]["inputs"][0]["status"] == "ok"
+    assert m["inputs"][0]["status"] == "error" and "another process" in m["inputs"][0]["error"]
+    assert (out / "one.h5").read_bytes() == state["a_bytes"]
+    manifest = json.loads((out / "batch.json").read_text())
+    assert sorted(e["status"] for e in manifest["inputs"]) == ["error", "ok"]
+    assert not [f for f in os.listdir(out) if f.endswith(".evtk-partial")]

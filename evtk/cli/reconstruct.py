@@ -150,6 +150,8 @@ def batch_reconstruct_cmd(inputs, out_dir, fmt, force, oracle, split_events, sch
         for e in manifest["inputs"]:
             if e["status"] == "error":
                 click.echo(f"  failed: {e['input']}: {e['error']}")
+        for e in manifest.get("left_out", []):
+            click.echo(f"  left out (not a recording evtk reads): {e['file']}: {e['reason']}")
     if c["error"]:
         sys.exit(1)
 

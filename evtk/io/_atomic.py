@@ -18,6 +18,7 @@ batch output) can replace neither an input nor another output of the command.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import hashlib
 import io
 import os
@@ -185,7 +186,15 @@ class AtomicFile:
                 finally:
                     os.close(fd)
             _check_target(self.path)
-            os.replace(self.tmp_path, self.path)
+            expected = (_EXPECTED.get() or {}).get(os.path.abspath(self.path), _ANY)
+            if expected is _ANY:
+                os.replace(self.tmp_path, self.path)
+            elif expected is None:
+                self._create_exclusively()
+            else:
+                if _identity(self.path) != expected:
+                    raise EvtkError(_replaced_meanwhile(self.path))
+                os.replace(self.tmp_path, self.path)
         except BaseException:
             self.discard()
             raise
@@ -202,6 +211,19 @@ class AtomicFile:
             pass
         finally:
             os.close(dfd)
+
+    def _create_exclusively(self):
+        """Put the partial file under its name only if nothing is there (a hard link fails on an existing name)."""
+        try:
+            os.link(self.tmp_path, self.path)
+        except FileExistsError:
+            raise EvtkError(_replaced_meanwhile(self.path)) from None
+        except OSError:  # a file system without hard links: check, then rename (a narrow window remains)
+            if os.path.lexists(self.path):
+                raise EvtkError(_replaced_meanwhile(self.path)) from None
+            os.replace(self.tmp_path, self.path)
+            return
+        os.unlink(self.tmp_path)
 
     def discard(self):
         """Close and remove the partial file."""
@@ -227,6 +249,60 @@ class AtomicFile:
         else:
             self.discard()
         return False
+
+
+# -- targets another process may write at the same time ---------------------------------------------
+
+_ANY = object()
+_EXPECTED: contextvars.ContextVar = contextvars.ContextVar("evtk_expected_targets", default=None)
+
+
+def _replaced_meanwhile(path):
+    return (f"{path} was written by another process while this result was computed (another batch into the "
+            "same folder?); it was left as that process wrote it and this result was not saved")
+
+
+def file_identity(path):
+    """(device, inode) of the file at ``path``, or None where there is none.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+
+    Returns
+    -------
+    tuple of int or None
+        What :func:`expect_target` compares.
+    """
+    return _identity(path)
+
+
+@contextlib.contextmanager
+def expect_target(path, identity):
+    """Inside the block, an :class:`AtomicFile` commit to ``path`` replaces only the file seen before the work
+    began: ``identity`` (from :func:`file_identity`), or, when None, no file at all (the result is then created
+    exclusively). A file another process put there meanwhile is left alone and the commit raises
+    :class:`~evtk.EvtkError` saying so.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The target.
+    identity : tuple of int or None
+        Its :func:`file_identity` when the work began.
+
+    Yields
+    ------
+    None
+    """
+    expected = dict(_EXPECTED.get() or {})
+    expected[os.path.abspath(os.fspath(path))] = identity
+    token = _EXPECTED.set(expected)
+    try:
+        yield
+    finally:
+        _EXPECTED.reset(token)
 
 
 # -- the guard on outputs ----------------------------------------------------------------------
