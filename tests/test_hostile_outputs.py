@@ -552,3 +552,21 @@ def test_concurrent_batch_result_is_reported_not_lost(tmp_path, monkeypatch, for
     manifest = json.loads((out / "batch.json").read_text())
     assert sorted(e["status"] for e in manifest["inputs"]) == ["error", "ok"]
     assert not [f for f in os.listdir(out) if f.endswith(".evtk-partial")]
+
+
+def test_contact_sheet_page_replaces_no_other_output(tmp_path):
+    """A contact sheet's second page is named after the first (`<stem>-p2`): it may not replace `-o`."""
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+
+    rec = tmp_path / "rec.aedat4"
+    r = CliRunner().invoke(main, ["simulate", "--repeat", "10", "-o", str(rec)])
+    assert r.exit_code == 0, r.output
+    out = tmp_path / "sheet-p2.npz"
+    r = CliRunner().invoke(main, ["reconstruct", str(rec), "-o", str(out), "--png", str(tmp_path / "sheet.npz"),
+                                  "--oracle"])
+    assert r.exit_code == 1 and "just written" in r.output, r.output
+    from evtk.io.reconstruction import load_reconstruction
+
+    assert len(load_reconstruction(out).cells) >= 10  # still the reconstruction, not a picture of it

@@ -97,6 +97,24 @@ def _pid_alive(pid) -> bool:
     return True
 
 
+# the partial files of this host found in each folder when this process first wrote there: a folder is listed
+# once, so writing many files into one folder (evtk patterns' frames) stays linear
+_PARTIALS_SEEN: dict = {}
+
+
+def _partials_in(directory) -> set:
+    with _LIVE_LOCK:
+        names = _PARTIALS_SEEN.get(directory)
+    if names is None:
+        try:
+            names = {n for n in os.listdir(directory) if n.endswith(PARTIAL_SUFFIX) and f".{_HOST_TAG}-" in n}
+        except OSError:
+            names = set()
+        with _LIVE_LOCK:
+            names = _PARTIALS_SEEN.setdefault(directory, names)
+    return names
+
+
 def remove_stale_partials(path) -> list:
     """Remove the partial files of ``path`` left by processes of this machine that are gone; return them.
 
@@ -114,13 +132,9 @@ def remove_stale_partials(path) -> list:
     directory = os.path.dirname(os.path.abspath(path))
     prefix = os.path.basename(path) + f".{_HOST_TAG}-"
     removed = []
-    try:
-        names = os.listdir(directory)
-    except OSError:
-        return removed
-    for name in names:
-        if not (name.startswith(prefix) and name.endswith(PARTIAL_SUFFIX)):
-            continue
+    names = _partials_in(directory)
+    for name in [n for n in names if n.startswith(prefix)]:
+        names.discard(name)
         pid_text = name[len(prefix):-len(PARTIAL_SUFFIX)].split(".", 1)[0]
         if not pid_text.isdigit() or _pid_alive(int(pid_text)):
             continue
