@@ -239,13 +239,17 @@ def read_plain_pickle(path):
         The value: dicts, lists, tuples, str, bytes (Python 2 strings read as
         bytes), int, float, bool, None and numpy arrays.
     """
+    import io
+
     path = os.fspath(path)
     try:
         size = os.path.getsize(path)
-        fh = open(path, "rb")
+        require_memory(3 * size, f"reading the pickle {path}")  # its bytes, the strings in it and the arrays
+        with open(path, "rb") as f:
+            # from memory: a length field that lies makes a short read, never a read buffer of that length
+            fh = io.BytesIO(f.read(size + 1))
     except OSError as exc:
         raise EvtkError(f"cannot read {path}: {exc.strerror or exc}") from None
-    require_memory(3 * size, f"reading the pickle {path}")  # its strings, their bytes and the arrays
     stack, marks, memo = [], [], {}
     stopped = False
 

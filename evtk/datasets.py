@@ -255,8 +255,11 @@ def _lfw_faces(root, n, seed):
     rng = np.random.default_rng(seed)
     pick = rng.permutation(len(files))[:n]
     out = []
+    held = 0
     for i in pick:
         im = read_image(files[i], "LFW image")
+        held += im.size * 8
+        require_memory(held, f"{len(out) + 1} LFW images")
         if im.ndim == 3:
             im = im[..., :3]
         im = rgb2gray(im) if im.ndim == 3 else im.astype(np.float64)
@@ -280,7 +283,12 @@ def _cifar_images(data_dir, n, seed):
     if not files:
         raise EvtkError(f"no CIFAR-10 batches (cifar-10-batches-bin/data_batch_N.bin or "
                         f"cifar-10-batches-py/data_batch_N) in {data_dir}")
-    imgs = np.concatenate([read_cifar_batch(f)[0] for f in files])
+    batches, held = [], 0
+    for f in files:
+        batches.append(read_cifar_batch(f)[0])
+        held += batches[-1].nbytes
+        require_memory(2 * held, f"{len(batches)} CIFAR-10 batches")
+    imgs = np.concatenate(batches)
     rng = np.random.default_rng(seed + 1)
     return imgs[rng.permutation(len(imgs))[:n]]
 
