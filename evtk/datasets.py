@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import gzip
 import os
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -141,7 +142,7 @@ def read_idx(path):
                 raise FormatError(path, start + need, f"bytes follow the {need} bytes of data the IDX header declares")
     except FormatError:
         raise
-    except (OSError, EOFError, gzip.BadGzipFile) as exc:
+    except (OSError, EOFError, zlib.error) as exc:  # (gzip.BadGzipFile is an OSError)
         raise FormatError(path, 0, f"cannot read IDX file: {exc}") from None
     return np.frombuffer(body, dtype=dtype).reshape(shape).astype(dtype.newbyteorder("="))
 
