@@ -36,7 +36,7 @@ _HOST_TAG = hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdig
 
 # partial files being written, by the process that writes them (a forked child must not remove its parent's)
 _LIVE: dict = {}
-_LIVE_LOCK = threading.Lock()
+_LIVE_LOCK = threading.RLock()  # re-entrant: the signal handler may run while the main thread holds it
 _PREVIOUS_HANDLERS: dict = {}
 _SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
