@@ -52,17 +52,20 @@ from .workflow import reconstruct_recording
 __all__ = ["find_recordings", "batch_reconstruct", "reconstruct_split", "MANIFEST"]
 
 MANIFEST = "batch.json"
-#: Extensions of every format evtk reads; a folder's other files are included when their first bytes name a
-#: format evtk reads (:func:`evtk.io.detect_format`), and listed as left out otherwise.
-RECORDING_EXTENSIONS = (".aedat4", ".aedat", ".h5", ".hdf5", ".parquet", ".pq", ".raw", ".dat", ".es")
+#: Extensions of every format evtk reads. A folder's files with the first five are always taken (a damaged one
+#: is an error entry); the others (names other programs use too, or none) when their first bytes name a format
+#: evtk reads (:func:`evtk.io.detect_format`), and are listed as left out otherwise.
+RECORDING_EXTENSIONS = (".aedat4", ".h5", ".hdf5", ".parquet", ".pq", ".aedat", ".raw", ".dat", ".es")
+_ALWAYS = RECORDING_EXTENSIONS[:5]
 
 
 def find_recordings(inputs, left_out=None) -> list:
     """Files named, recordings inside directories named (not recursive), and glob patterns, sorted, without repeats.
 
-    A directory's files are recordings when their extension is one evtk
-    reads (:data:`RECORDING_EXTENSIONS`: AEDAT4, legacy AEDAT, HDF5, Parquet,
-    Prophesee RAW and DAT, Event Stream) or their first bytes name such a format.
+    A directory's files are recordings when their extension is one of
+    evtk's own formats (AEDAT4, HDF5, Parquet) or their first bytes name a
+    format evtk reads (legacy AEDAT, Prophesee RAW and DAT, Event Stream
+    too), whatever their extension.
 
     Parameters
     ----------
@@ -87,7 +90,7 @@ def find_recordings(inputs, left_out=None) -> list:
                 full = os.path.join(item, f)
                 if not os.path.isfile(full):
                     continue
-                if f.lower().endswith(RECORDING_EXTENSIONS):
+                if f.lower().endswith(_ALWAYS):
                     found.append(full)
                     continue
                 try:

@@ -485,6 +485,7 @@ def test_batch_folder_takes_every_format_evtk_reads_and_names_what_it_leaves_out
     _small(src / "h.aedat4", 9)
     os.rename(src / "h.aedat4", src / "h-recording")  # no extension: found by its first bytes
     (src / "notes.txt").write_text("what was recorded\n")
+    (src / "scope.dat").write_bytes(b"\x00\x01 an oscilloscope trace, not a Prophesee file")
     out = tmp_path / "out"
     r = CliRunner().invoke(main, ["batch", "reconstruct", str(src), "-o", str(out), "--window", "period:50000",
                                   "--size", "4x4", "--scheduler", "serial"])
@@ -492,8 +493,8 @@ def test_batch_folder_takes_every_format_evtk_reads_and_names_what_it_leaves_out
     manifest = __import__("json").loads((out / "batch.json").read_text())
     got = {os.path.basename(e["input"]): e["status"] for e in manifest["inputs"]}
     assert got == {n: "ok" for n in names + ["h-recording"]}
-    assert [os.path.basename(e["file"]) for e in manifest["left_out"]] == ["notes.txt"]
-    assert "notes.txt" in r.output and "left out" in r.output
+    assert [os.path.basename(e["file"]) for e in manifest["left_out"]] == ["notes.txt", "scope.dat"]
+    assert "notes.txt" in r.output and "scope.dat" in r.output and "left out" in r.output
 
 
 def test_batch_inputs_of_one_name_get_outputs_of_their_own(tmp_path):
