@@ -128,7 +128,8 @@ def batch_reconstruct_cmd(inputs, out_dir, fmt, force, oracle, split_events, sch
     """Reconstruct every recording in INPUTS (files, folders, glob patterns) into OUT.
 
     Exit status 1 when any input failed; the others are still done, and
-    batch.json says what happened to each.
+    batch.json says what happened to each. A folder's files that are not
+    recordings evtk reads are named as left out.
     """
     from ..batch import batch_reconstruct
     from ..cluster import scheduler
