@@ -8,6 +8,13 @@ events, windows, seconds and error. A damaged input is an "error" entry;
 the rest of the batch completes. Running it again skips inputs whose output
 exists (outputs only appear complete), so an interrupted batch resumes.
 
+Every input has its own output name (inputs of one name from different
+folders are told apart by folder, extension or a digest of their path), and
+an output is put in place only if the file there is still the one the batch
+saw when it began (or none): a result another batch wrote into the same folder
+meanwhile is left alone and this input is an "error" entry that says so. A
+folder's files of a format evtk does not read are listed under ``left_out``.
+
 A recording with more than ``split_events`` events is split into tasks by
 time: :func:`reconstruct_split` counts contiguous groups of whole windows
 in separate tasks (each reads only its time span, through the AEDAT4 data
@@ -28,7 +35,7 @@ import numpy as np
 from .cluster import run_tasks
 from .errors import EvtkError
 from .io import open as open_recording
-from .io._atomic import AtomicFile, refuse_overwriting_inputs
+from .io._atomic import AtomicFile, check_outputs, expect_target, file_identity
 from .io.reconstruction import save_reconstruction
 from .reconstruct import (
     WindowCounts,
@@ -45,17 +52,54 @@ from .workflow import reconstruct_recording
 __all__ = ["find_recordings", "batch_reconstruct", "reconstruct_split", "MANIFEST"]
 
 MANIFEST = "batch.json"
-RECORDING_EXTENSIONS = (".aedat4", ".h5", ".hdf5", ".parquet")
+#: Extensions of every format evtk reads. A folder's files with the first five are always taken (a damaged one
+#: is an error entry); the others (names other programs use too, or none) when their first bytes name a format
+#: evtk reads (:func:`evtk.io.detect_format`), and are listed as left out otherwise.
+RECORDING_EXTENSIONS = (".aedat4", ".h5", ".hdf5", ".parquet", ".pq", ".aedat", ".raw", ".dat", ".es")
+_ALWAYS = RECORDING_EXTENSIONS[:5]
 
 
-def find_recordings(inputs) -> list:
-    """Files named, files inside directories named (not recursive), and glob patterns, sorted, without repeats."""
+def find_recordings(inputs, left_out=None) -> list:
+    """Files named, recordings inside directories named (not recursive), and glob patterns, sorted, without repeats.
+
+    A directory's files are recordings when their extension is one of
+    evtk's own formats (AEDAT4, HDF5, Parquet) or their first bytes name a
+    format evtk reads (legacy AEDAT, Prophesee RAW and DAT, Event Stream
+    too), whatever their extension.
+
+    Parameters
+    ----------
+    inputs : iterable of str or os.PathLike
+        Files, folders and glob patterns.
+    left_out : list, optional
+        Receives (file, reason) for each file of a folder that is not a recording.
+
+    Returns
+    -------
+    list of str
+        The recordings (a missing file or a pattern matching nothing stays, to be reported as an error).
+    """
+    from .errors import one_line
+    from .io import detect_format
+
     found = []
     for item in inputs:
         item = os.fspath(item)
         if os.path.isdir(item):
-            found += [os.path.join(item, f) for f in sorted(os.listdir(item))
-                      if f.lower().endswith(RECORDING_EXTENSIONS) and os.path.isfile(os.path.join(item, f))]
+            for f in sorted(os.listdir(item)):
+                full = os.path.join(item, f)
+                if not os.path.isfile(full):
+                    continue
+                if f.lower().endswith(_ALWAYS):
+                    found.append(full)
+                    continue
+                try:
+                    detect_format(full)
+                except EvtkError as exc:
+                    if left_out is not None:
+                        left_out.append((full, one_line(str(exc))))
+                    continue
+                found.append(full)
         elif any(c in item for c in "*?["):
             # a pattern that matches nothing stays, to be reported as such
             found += sorted(glob.glob(item)) or [item]
@@ -71,27 +115,39 @@ def find_recordings(inputs) -> list:
 
 
 def _output_names(inputs, out_dir, ext):
-    names = {}
+    """One output name per input: the input's stem, or, where stems repeat, the shortest of stem and folder,
+    file name, file name and folder, and stem and a digest of the full path that tells them apart."""
+    import hashlib
+
+    def schemes(f):
+        stem, name = os.path.splitext(os.path.basename(f))[0], os.path.basename(f)
+        folder = os.path.basename(os.path.dirname(os.path.abspath(f))) or "root"
+        digest = hashlib.sha1(os.path.abspath(f).encode("utf-8", "surrogateescape")).hexdigest()[:10]
+        return [stem, f"{stem}.{folder}", name, f"{name}.{folder}", f"{stem}.{digest}"]
+
+    groups = {}
     for f in inputs:
-        stem = os.path.splitext(os.path.basename(f))[0]
-        names.setdefault(stem, []).append(f)
-    out = {}
-    for stem, files in names.items():
-        if len(files) == 1:
-            out[files[0]] = os.path.join(out_dir, stem + ext)
-        else:  # same name in different folders: keep them apart by their folder
-            for f in files:
-                tag = os.path.basename(os.path.dirname(os.path.abspath(f))) or "root"
-                out[f] = os.path.join(out_dir, f"{stem}.{tag}{ext}")
-    if len(set(out.values())) != len(out):
+        groups.setdefault(os.path.splitext(os.path.basename(f))[0], []).append(f)
+    out, taken = {}, set()
+    for stem, files in groups.items():
+        if len(files) == 1 and stem not in taken:
+            out[files[0]], taken = stem, taken | {stem}
+            continue
+        for k in range(5):  # the first scheme that tells the group's files apart and clashes with no other
+            names = [schemes(f)[k] for f in files]
+            if len(set(names)) == len(names) and not taken & set(names):
+                break
+        out.update(zip(files, names))
+        taken |= set(names)
+    if len(set(out.values())) != len(out):  # pragma: no cover - the digests differ
         raise EvtkError("inputs map to the same output name; rename them or run them in separate batches")
-    return out
+    return {f: os.path.join(out_dir, name + ext) for f, name in out.items()}
 
 
 def _reconstruct_one(args):
     """A batch task: reconstruct one recording into its output; never raises for a bad input."""
 
-    path, out, options = args
+    path, out, options, seen = args
     t0 = time.perf_counter()
     entry = {"input": path, "output": out, "status": "error", "events": None, "windows": None, "seconds": None,
              "error": None}
@@ -102,7 +158,8 @@ def _reconstruct_one(args):
             result = reconstruct_recording(rec, **options)
             events = rec.info()["events"]
             sensor = rec.sensor_size
-        save_reconstruction(out, result, sensor, {"source": path})
+        with expect_target(out, seen):  # what another batch wrote there meanwhile is reported, not replaced
+            save_reconstruction(out, result, sensor, {"source": path})
         entry.update(status="ok", events=int(events), windows=int(result.summary["windows"]))
     except Exception as exc:  # noqa: BLE001 - one bad input is recorded; the batch goes on
         entry["error"] = _error_text(exc)
@@ -164,19 +221,19 @@ def _split_large(todo, split_events, client, entries):
     """Reconstruct the inputs of more than ``split_events`` events in time-split tasks; return the others."""
 
     rest = []
-    for path, out, options in todo:
+    for path, out, options, seen in todo:
         try:
             with open_recording(path) as rec:
                 n, sensor = rec.info()["events"], rec.sensor_size
                 record = SimulationRecord.from_metadata(rec.metadata)
         except Exception:  # noqa: BLE001 - its own task reports the error
-            rest.append((path, out, options))
+            rest.append((path, out, options, seen))
             continue
         # the calibrated route fits its pixel model on the whole run: it is not split (its counting streams)
         calibrated = (record is not None and not options.get("oracle") and options.get("theta") is None
                       and options.get("window", "schedule") == "schedule")
         if n <= split_events or calibrated:
-            rest.append((path, out, options))
+            rest.append((path, out, options, seen))
             continue
         t0 = time.perf_counter()
         parts = math.ceil(n / split_events)
@@ -184,7 +241,8 @@ def _split_large(todo, split_events, client, entries):
                  "seconds": None, "error": None, "parts": parts}
         try:
             result = reconstruct_split(path, parts, client, **options)
-            save_reconstruction(out, result, sensor, {"source": path})
+            with expect_target(out, seen):
+                save_reconstruction(out, result, sensor, {"source": path})
             entry.update(status="ok", windows=int(result.summary["windows"]))
         except Exception as exc:  # noqa: BLE001 - recorded; the batch goes on
             entry["error"] = _error_text(exc)
@@ -209,14 +267,16 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
 
     if fmt not in ("h5", "npz"):
         raise EvtkError(f"batch output format must be h5 or npz, not {fmt!r}")
-    files = find_recordings(inputs)
+    left_out = []
+    files = find_recordings(inputs, left_out)
     if not files:
-        raise EvtkError("no recordings to reconstruct (give files, folders or glob patterns)")
+        what = f"; left out, not recordings: {', '.join(f for f, _ in left_out)}" if left_out else ""
+        raise EvtkError(f"no recordings to reconstruct (give files, folders or glob patterns){what}")
     os.makedirs(out_dir, exist_ok=True)
     outputs = _output_names(files, out_dir, "." + fmt)
-    refuse_overwriting_inputs(outputs.values(), files)
-    options = dict(options or {})
     manifest_path = os.path.join(out_dir, MANIFEST)
+    check_outputs([*outputs.values(), manifest_path], files)
+    options = dict(options or {})
     old = _read_manifest(manifest_path)
     owners = {os.path.abspath(e["output"]): key for key, e in old.items()
               if e.get("output") and e.get("status") in ("ok", "skipped")}
@@ -235,7 +295,7 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
             entries[f] = {**prev, "input": f, "output": out, "status": "skipped",
                           "error": None, "seconds": prev.get("seconds")}
         else:
-            todo.append((f, out, options))
+            todo.append((f, out, options, file_identity(out)))
     t0 = time.perf_counter()
     if split_events:
         todo = _split_large(todo, int(split_events), client, entries)
@@ -251,7 +311,7 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
             for entry in group:
                 entries[entry["input"]] = entry
     finally:  # interrupted or not, the manifest records what was done
-        for f, out, _ in todo:
+        for f, out, _, _ in todo:
             entries.setdefault(f, {"input": f, "output": out, "status": "error", "events": None, "windows": None,
                                    "seconds": None, "error": "not done: the batch was interrupted"})
         manifest = {
@@ -260,6 +320,7 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
             "format": fmt,
             "seconds": time.perf_counter() - t0,
             "inputs": [entries[f] for f in files],
+            "left_out": [{"file": f, "reason": why} for f, why in left_out],
         }
         manifest = _write_manifest(manifest_path, manifest)
     return manifest

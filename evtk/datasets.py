@@ -2,8 +2,10 @@
 
 * :func:`face_not_face`: scikit-image's bundled LFW subset (100 faces, 100
   non-faces); with ``data_dir`` holding Labeled Faces in the Wild
-  (``lfw/<person>/*.jpg``) and CIFAR-10's python pickles
-  (``cifar-10-batches-py/data_batch_*``), the paper's balanced FNF set.
+  (``lfw/<person>/*.jpg``) and CIFAR-10 (the binary version,
+  ``cifar-10-batches-bin/data_batch_N.bin``, or the python version,
+  ``cifar-10-batches-py/data_batch_N``, read without unpickling), the
+  paper's balanced FNF set.
 * :func:`letters_digits`: EMNIST from local IDX files (``data_dir`` with
   ``emnist-balanced-{train,test}-{images-idx3,labels-idx1}-ubyte[.gz]``);
   without them a synthetic glyph set rendered from the fonts matplotlib
@@ -17,12 +19,13 @@ from __future__ import annotations
 
 import gzip
 import os
-import pickle
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import EvtkError, FormatError
+from .limits import require_memory
 
 __all__ = ["Dataset", "face_not_face", "letters_digits", "read_idx", "read_cifar_batch", "binarize_images",
            "load_dataset", "baselines"]
@@ -97,42 +100,121 @@ def _open_maybe_gzip(path):
     return gzip.open(path, "rb") if head == b"\x1f\x8b" else open(path, "rb")
 
 
+_IDX_TYPES = {0x08: np.uint8, 0x09: np.int8, 0x0B: ">i2", 0x0C: ">i4", 0x0D: ">f4", 0x0E: ">f8"}
+
+
 def read_idx(path):
-    """An IDX file (the MNIST/EMNIST format, optionally gzip-compressed) as a numpy array."""
-    types = {0x08: np.uint8, 0x09: np.int8, 0x0B: ">i2", 0x0C: ">i4", 0x0D: ">f4", 0x0E: ">f8"}
+    """An IDX file (the MNIST/EMNIST format, optionally gzip-compressed) as a numpy array.
+
+    The header's shape is checked against the memory budget before the body
+    is read (or inflated), and exactly that many bytes are read: a short body
+    or bytes after it are refused.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The IDX file, plain or gzip.
+
+    Returns
+    -------
+    numpy.ndarray
+        The array in native byte order, of the shape the header declares.
+    """
+    path = os.fspath(path)
     try:
         with _open_maybe_gzip(path) as fh:
-            raw = fh.read()
-    except (OSError, EOFError) as exc:
+            magic = fh.read(4)
+            if len(magic) < 4 or magic[0] != 0 or magic[1] != 0 or magic[2] not in _IDX_TYPES or magic[3] == 0:
+                raise FormatError(path, 0, "not an IDX file (bad magic number)")
+            ndim = magic[3]
+            dims = fh.read(4 * ndim)
+            if len(dims) < 4 * ndim:
+                raise FormatError(path, 4, "IDX header is truncated")
+            shape = tuple(int.from_bytes(dims[4 * i: 4 * i + 4], "big") for i in range(ndim))
+            dtype = np.dtype(_IDX_TYPES[magic[2]])
+            need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+            start = 4 + 4 * ndim
+            require_memory(2 * need, f"the IDX file {path} ({'x'.join(map(str, shape))} values)")
+            body = fh.read(need)
+            if len(body) < need:
+                raise FormatError(path, start + len(body), f"IDX data is truncated: {len(body)} of {need} bytes")
+            if fh.read(1):
+                raise FormatError(path, start + need, f"bytes follow the {need} bytes of data the IDX header declares")
+    except FormatError:
+        raise
+    except (OSError, EOFError, zlib.error) as exc:  # (gzip.BadGzipFile is an OSError)
         raise FormatError(path, 0, f"cannot read IDX file: {exc}") from None
-    if len(raw) < 4 or raw[0] != 0 or raw[1] != 0 or raw[2] not in types or raw[3] == 0:
-        raise FormatError(path, 0, "not an IDX file (bad magic number)")
-    ndim = raw[3]
-    if len(raw) < 4 + 4 * ndim:
-        raise FormatError(path, 4, "IDX header is truncated")
-    shape = tuple(int.from_bytes(raw[4 + 4 * i: 8 + 4 * i], "big") for i in range(ndim))
-    dtype = np.dtype(types[raw[2]])
-    need = int(np.prod(shape)) * dtype.itemsize
-    body = raw[4 + 4 * ndim:]
-    if len(body) < need:
-        raise FormatError(path, 4 + 4 * ndim + len(body), f"IDX data is truncated: {len(body)} of {need} bytes")
-    return np.frombuffer(body[:need], dtype=dtype).reshape(shape).astype(dtype.newbyteorder("="))
+    return np.frombuffer(body, dtype=dtype).reshape(shape).astype(dtype.newbyteorder("="))
+
+
+_CIFAR_RECORD = 1 + 3072  # the binary version: a label byte, then 32x32 red, green and blue planes
+_CIFAR_KEYS = {"batch_label", "labels", "data", "filenames"}
 
 
 def read_cifar_batch(path):
-    """One CIFAR-10 python batch: (images (n, 32, 32) grey float in [0, 1], labels (n,))."""
+    """One CIFAR-10 batch, binary (``data_batch_N.bin``) or python version (``data_batch_N``), as grey images.
+
+    The binary version is records of one label byte and 3072 image bytes.
+    The python version is a pickle: it is walked opcode by opcode and
+    accepted only with the structure CIFAR-10's batches have (a dict of
+    ``data``, a uint8 array of 3072 columns, and ``labels``, a list of whole
+    numbers); it is never unpickled, so a crafted file runs no code.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The batch file.
+
+    Returns
+    -------
+    grey : numpy.ndarray
+        (n, 32, 32) float64 in [0, 1] (luminance of the colour image).
+    labels : numpy.ndarray
+        (n,) int64.
+    """
+    path = os.fspath(path)
     try:
         with open(path, "rb") as fh:
-            d = pickle.load(fh, encoding="bytes")
-        data = np.asarray(d[b"data"], dtype=np.uint8)
-        labels = np.asarray(d[b"labels"], dtype=np.int64)
-    except (OSError, EOFError, KeyError, pickle.UnpicklingError, TypeError, ValueError) as exc:
-        raise FormatError(path, 0, f"not a CIFAR-10 python batch: {exc}") from None
-    if data.ndim != 2 or data.shape[1] != 3072 or len(labels) != len(data):
-        raise FormatError(path, 0, f"CIFAR-10 batch has data of shape {data.shape} and {len(labels)} labels")
+            head = fh.read(2)
+        size = os.path.getsize(path)
+    except OSError as exc:
+        raise FormatError(path, 0, f"cannot read CIFAR-10 batch: {exc.strerror or exc}") from None
+    if head[:1] and head[0] > 9:  # not a label byte: a pickle, the python version
+        data, labels = _cifar_python(path)
+    else:
+        if size == 0 or size % _CIFAR_RECORD:
+            raise FormatError(path, size - size % _CIFAR_RECORD,
+                              f"not a CIFAR-10 binary batch: {size:,} bytes is not a whole number of "
+                              f"{_CIFAR_RECORD}-byte records")
+        require_memory(size, f"the CIFAR-10 batch {path}")
+        raw = np.fromfile(path, dtype=np.uint8).reshape(-1, _CIFAR_RECORD)
+        labels, data = raw[:, 0].astype(np.int64), raw[:, 1:]
+        bad = np.flatnonzero(labels > 9)
+        if bad.size:
+            raise FormatError(path, int(bad[0]) * _CIFAR_RECORD, f"label {labels[bad[0]]} is not a CIFAR-10 class")
+    require_memory(len(data) * 3072 * 8 * 2, f"the images of {path}")
     rgb = data.reshape(-1, 3, 32, 32).astype(np.float64) / 255.0
     grey = 0.2125 * rgb[:, 0] + 0.7154 * rgb[:, 1] + 0.0721 * rgb[:, 2]
     return grey, labels
+
+
+def _cifar_python(path):
+    """``data`` and ``labels`` of CIFAR-10's python version, read without unpickling."""
+    from ._loaders import read_plain_pickle
+
+    d = read_plain_pickle(path)
+    if isinstance(d, dict):
+        d = {k.decode("latin-1") if isinstance(k, bytes) else k: v for k, v in d.items()}
+    if not isinstance(d, dict) or not {"data", "labels"} <= set(d) or not set(d) <= _CIFAR_KEYS:
+        raise FormatError(path, 0, "not a CIFAR-10 python batch (a dict of data and labels); the binary version "
+                                   "(data_batch_N.bin) reads without a pickle")
+    data, labels = d["data"], d["labels"]
+    if not isinstance(data, np.ndarray) or data.ndim != 2 or data.shape[1] != 3072:
+        raise FormatError(path, 0, "CIFAR-10 batch data is not an array of 3072 bytes per image")
+    if not isinstance(labels, list) or not all(type(v) is int and 0 <= v <= 9 for v in labels) \
+            or len(labels) != len(data):
+        raise FormatError(path, 0, f"CIFAR-10 batch labels are not {len(data)} classes 0-9")
+    return data, np.asarray(labels, dtype=np.int64)
 
 
 # -- face / not face ---------------------------------------------------------------------
@@ -154,7 +236,7 @@ def face_not_face(seed=0, test_fraction=0.3, data_dir=None, size=16, n_per_class
     else:
         n = int(n_per_class or 1000)
         faces = _lfw_faces(os.path.join(data_dir, "lfw"), n, seed)
-        others = _cifar_images(os.path.join(data_dir, "cifar-10-batches-py"), n, seed)
+        others = _cifar_images(data_dir, n, seed)
         x = np.concatenate([binarize_images(faces, size), binarize_images(others, size)])
         y = np.r_[np.ones(len(faces), np.int8), np.zeros(len(others), np.int8)]
         source = f"LFW ({len(faces)} faces) and CIFAR-10 ({len(others)} images) from {data_dir}"
@@ -162,8 +244,9 @@ def face_not_face(seed=0, test_fraction=0.3, data_dir=None, size=16, n_per_class
 
 
 def _lfw_faces(root, n, seed):
-    from skimage import io
     from skimage.color import rgb2gray
+
+    from ._loaders import read_image
 
     if not os.path.isdir(root):
         raise EvtkError(f"no LFW folder at {root} (expected lfw/<person>/*.jpg)")
@@ -173,11 +256,13 @@ def _lfw_faces(root, n, seed):
     rng = np.random.default_rng(seed)
     pick = rng.permutation(len(files))[:n]
     out = []
+    held = 0
     for i in pick:
-        try:
-            im = io.imread(files[i])
-        except (OSError, ValueError) as exc:
-            raise FormatError(files[i], 0, f"cannot read image: {exc}") from None
+        im = read_image(files[i], "LFW image")
+        held += im.size * 8
+        require_memory(held, f"{len(out) + 1} LFW images")
+        if im.ndim == 3:
+            im = im[..., :3]
         im = rgb2gray(im) if im.ndim == 3 else im.astype(np.float64)
         h, w = im.shape
         c = min(h, w) // 2  # the face sits in the middle half of an LFW picture
@@ -188,12 +273,23 @@ def _lfw_faces(root, n, seed):
     return np.stack([resize(o, (side, side), anti_aliasing=True) for o in out])
 
 
-def _cifar_images(root, n, seed):
-    files = sorted(os.path.join(root, f) for f in os.listdir(root) if f.startswith("data_batch")) \
-        if os.path.isdir(root) else []
+def _cifar_images(data_dir, n, seed):
+    files = []
+    for folder in ("cifar-10-batches-bin", "cifar-10-batches-py"):  # the binary version first
+        root = os.path.join(data_dir, folder)
+        if os.path.isdir(root):
+            files = sorted(os.path.join(root, f) for f in os.listdir(root) if f.startswith("data_batch"))
+        if files:
+            break
     if not files:
-        raise EvtkError(f"no CIFAR-10 python batches (data_batch_*) in {root}")
-    imgs = np.concatenate([read_cifar_batch(f)[0] for f in files])
+        raise EvtkError(f"no CIFAR-10 batches (cifar-10-batches-bin/data_batch_N.bin or "
+                        f"cifar-10-batches-py/data_batch_N) in {data_dir}")
+    batches, held = [], 0
+    for f in files:
+        batches.append(read_cifar_batch(f)[0])
+        held += batches[-1].nbytes
+        require_memory(2 * held, f"{len(batches)} CIFAR-10 batches")
+    imgs = np.concatenate(batches)
     rng = np.random.default_rng(seed + 1)
     return imgs[rng.permutation(len(imgs))[:n]]
 

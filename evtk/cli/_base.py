@@ -16,8 +16,44 @@ from ..errors import EvtkError, one_line
 _MAX_INT = 2**62
 
 
+class OutputPath(click.Path):
+    """A path a command writes (a file, or a folder it writes into): checked against every input of the
+    command before it runs, and every file the command commits inside it (see :class:`_Command`)."""
+
+
+def _paths_of(ctx):
+    """The (label, path) pairs of a command's outputs (:class:`OutputPath` parameters) and inputs (every other
+    path parameter: the recording, the schedule, the calibration, the bench, ...)."""
+    outputs, inputs = [], []
+    for param in ctx.command.params:
+        if not isinstance(param.type, click.Path):
+            continue
+        value = ctx.params.get(param.name)
+        values = value if isinstance(value, (tuple, list)) else [value]
+        label = max(param.opts, key=len) if isinstance(param, click.Option) else param.human_readable_name
+        pairs = [(label, v) for v in values if v]
+        (outputs if isinstance(param.type, OutputPath) else inputs).extend(pairs)
+    return outputs, inputs
+
+
+class _Command(click.Command):
+    """A command whose outputs are checked against its inputs (:func:`evtk.io._atomic.guard_outputs`): an output
+    that is an input, or two outputs that are one file, is refused before anything runs, and every file written
+    while it runs may replace neither an input nor another of its outputs."""
+
+    def invoke(self, ctx):
+        from ..io._atomic import guard_outputs
+
+        outputs, inputs = _paths_of(ctx)
+        with guard_outputs(outputs, inputs):
+            return super().invoke(ctx)
+
+
 class _Group(click.Group):
     """Turns evtk errors and OS errors into one line on stderr and exit code 1; usage errors into one line and 2."""
+
+    command_class = _Command
+    group_class = type  # subgroups (evtk batch) are _Groups, their commands _Commands
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         if not standalone_mode:
@@ -347,10 +383,9 @@ def _load_array(path, what):
     ext = os.path.splitext(path)[1].lower()
     if ext != ".npy":
         raise EvtkError(f"{what} must be a .npy file, not {path!r}")
-    try:
-        return np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise EvtkError(f"cannot read {what} {path!r}: {exc}") from None
+    from .._loaders import read_npy
+
+    return read_npy(path, what)
 
 
 def _stats(values):

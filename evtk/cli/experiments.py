@@ -9,6 +9,7 @@ from .. import io as evio  # (light: its readers and writers load on first use)
 from ..errors import EvtkError
 from ._base import (
     _MAX_INT,
+    OutputPath,
     _dumps,
     _load_array,
     _progress,
@@ -67,7 +68,7 @@ def _recorded_candidates(path, size, features):
               help="Laser power of the simulated device; with --trials a comma-separated sweep.")
 @click.option("--trials", type=click.IntRange(min=1, max=_MAX_INT), help="Success rate over this many random trials per power.")
 @click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True)
-@click.option("--plot", "plot_path", type=click.Path(dir_okay=False),
+@click.option("--plot", "plot_path", type=OutputPath(dir_okay=False),
               help="PNG: Fig. 4 for one recovery, success against power for --trials.")
 @_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
@@ -217,7 +218,7 @@ def _classify_run(args):
               show_default=True, help="Exact binary correlations, or every correlation through the simulated device.")
 @click.option("--power-mw", type=float, help="Laser power of the simulated device (optical backend).")
 @click.option("--runs", type=click.IntRange(min=1, max=_MAX_INT), default=10, show_default=True)
-@click.option("--out", "out_dir", type=click.Path(file_okay=False), default="evtk-classify", show_default=True,
+@click.option("--out", "out_dir", type=OutputPath(file_okay=False), default="evtk-classify", show_default=True,
               help="Where the per-run curves (runs.json) go.")
 @_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
@@ -285,7 +286,7 @@ def classify(task, data_dir, optimizer, steps, temperature, final_temperature, e
               show_default=True,
               help="Poisson noise scales (response units per photon; 0 is noise-free).")
 @click.option("--target-accuracy", type=float, help="r of eq. 12 (default: noise-free accuracy minus 0.05).")
-@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Accuracy and flips against noise (PNG).")
+@click.option("--plot", "plot_path", type=OutputPath(dir_okay=False), help="Accuracy and flips against noise (PNG).")
 @_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def robustness(task, data_dir, optimizer, steps, temperature, final_temperature, epochs, channels, channel_masks,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from .. import io as evio  # (light: its readers and writers load on first use)
-from ._base import _MAX_INT, _dumps, main
+from ._base import _MAX_INT, OutputPath, _dumps, main
 
 
 def _human_info(info: dict) -> str:
@@ -63,7 +63,7 @@ def info(file, as_json, salvage, check):
 
 @main.command()
 @click.argument("source", type=click.Path(dir_okay=False))
-@click.argument("target", type=click.Path(dir_okay=False))
+@click.argument("target", type=OutputPath(dir_okay=False))
 @click.option(
     "--compression",
     type=click.Choice(["lz4", "zstd", "none", "lz4_high", "zstd_high"]),

@@ -8,6 +8,7 @@ import numpy as np
 from .. import io as evio  # (light: its readers and writers load on first use)
 from ._base import (
     _MAX_INT,
+    OutputPath,
     _dumps,
     _inf_if_free,
     _progress,
@@ -26,7 +27,7 @@ from ._base import (
 @click.option("--interval", type=click.Choice(["jackknife", "bootstrap", "none"]), default="jackknife",
               show_default=True, help="The 95 % interval over repeats (the bootstrap undercovers with few repeats).")
 @click.option("--per-pixel", is_flag=True, help="Also report each pixel's SINAD (JSON only).")
-@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="ENOB per scene as a PNG.")
+@click.option("--plot", "plot_path", type=OutputPath(dir_okay=False), help="ENOB per scene as a PNG.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def enob(recording, window_spec, skip_us, length_us, interval, per_pixel, plot_path, as_json):
     """SINAD and effective bits (eq. 8) of every scene captured more than once.
@@ -92,7 +93,7 @@ def _report_scenes(recording, scenes, plot_path, as_json):
 @click.option("--window-us", type=click.IntRange(min=1, max=_MAX_INT), default=1000, show_default=True,
               help="Without recordings: capture window.")
 @click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True)
-@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Flip rate against power as a PNG.")
+@click.option("--plot", "plot_path", type=OutputPath(dir_okay=False), help="Flip rate against power as a PNG.")
 @_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeats, window_us, seed, plot_path,
@@ -167,7 +168,7 @@ def flips(recordings, window_spec, skip_us, length_us, powers, n_kernels, repeat
 @click.option("--repeats", type=click.IntRange(min=2, max=_MAX_INT), default=10, show_default=True)
 @click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True)
 @click.option("--fast", is_flag=True, help="Time the reconstruction from counts instead of from a written recording.")
-@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), help="Work-precision plot as a PNG.")
+@click.option("--plot", "plot_path", type=OutputPath(dir_okay=False), help="Work-precision plot as a PNG.")
 @_scheduler_option
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def tradeoff(windows, powers, settles, decimations, n_kernels, repeats, seed, fast, plot_path, scheduler_spec,

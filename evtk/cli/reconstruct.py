@@ -10,6 +10,7 @@ from ._base import (
     _MAX_INT,
     POINT,
     REGION,
+    OutputPath,
     _count,
     _dumps,
     _progress,
@@ -23,9 +24,9 @@ from ._base import (
 
 @main.command("reconstruct")
 @click.argument("recording", type=click.Path(dir_okay=False, exists=True))
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Output: .npz, .h5 or .hdf5.")
+@click.option("-o", "--output", required=True, type=OutputPath(dir_okay=False), help="Output: .npz, .h5 or .hdf5.")
 @_reconstruct_options
-@click.option("--png", "png_path", type=click.Path(dir_okay=False),
+@click.option("--png", "png_path", type=OutputPath(dir_okay=False),
               help="Also draw contact sheets: measured beside ideal, and both binarised.")
 @click.option("--schedule", "schedule_path", type=click.Path(dir_okay=False, exists=True),
               help="A bench run's schedule.json (evtk patterns): windows matched to its captures, a pixel model "
@@ -50,13 +51,9 @@ def reconstruct_cmd(recording, output, png_path, schedule_path, calibration_path
     own model instead; --window triggers or period:US reconstructs fixed
     windows without a schedule.
     """
-    from ..io._atomic import refuse_overwriting_inputs
     from ..io.reconstruction import save_reconstruction
     from ..plots import contact_sheet
 
-    refuse_overwriting_inputs(output, [recording])
-    if png_path:
-        refuse_overwriting_inputs(png_path, [recording, output])
     options = _reconstruct_settings(**settings, region=region)
     calibration = None
     if calibration_path:
@@ -116,7 +113,7 @@ def batch():
 
 @batch.command("reconstruct")
 @click.argument("inputs", nargs=-1, required=True)
-@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
+@click.option("-o", "--out", "out_dir", required=True, type=OutputPath(file_okay=False),
               help="Folder for the outputs and batch.json.")
 @_reconstruct_options
 @click.option("--format", "fmt", type=click.Choice(["h5", "npz"]), default="h5", show_default=True)
@@ -131,7 +128,8 @@ def batch_reconstruct_cmd(inputs, out_dir, fmt, force, oracle, split_events, sch
     """Reconstruct every recording in INPUTS (files, folders, glob patterns) into OUT.
 
     Exit status 1 when any input failed; the others are still done, and
-    batch.json says what happened to each.
+    batch.json says what happened to each. A folder's files that are not
+    recordings evtk reads are named as left out.
     """
     from ..batch import batch_reconstruct
     from ..cluster import scheduler
@@ -153,6 +151,8 @@ def batch_reconstruct_cmd(inputs, out_dir, fmt, force, oracle, split_events, sch
         for e in manifest["inputs"]:
             if e["status"] == "error":
                 click.echo(f"  failed: {e['input']}: {e['error']}")
+        for e in manifest.get("left_out", []):
+            click.echo(f"  left out (not a recording evtk reads): {e['file']}: {e['reason']}")
     if c["error"]:
         sys.exit(1)
 

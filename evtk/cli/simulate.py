@@ -6,7 +6,7 @@ import click
 import numpy as np
 
 from ..errors import EvtkError
-from ._base import _MAX_INT, _dumps, _fmt, _progress, main
+from ._base import _MAX_INT, OutputPath, _dumps, _fmt, _progress, main
 
 
 @main.command()
@@ -34,9 +34,9 @@ from ._base import _MAX_INT, _dumps, _fmt, _progress, main
 @click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True)
 @click.option("--compression", type=click.Choice(["lz4", "zstd", "none", "lz4_high", "zstd_high", "gzip"]),
               default="lz4", show_default=True)
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+@click.option("-o", "--output", required=True, type=OutputPath(dir_okay=False),
               help="Recording to write: .aedat4, .h5/.hdf5 or .parquet.")
-@click.option("--save-bench", type=click.Path(dir_okay=False), help="Also write the bench used (.toml or .json).")
+@click.option("--save-bench", type=OutputPath(dir_okay=False), help="Also write the bench used (.toml or .json).")
 @click.option("--job", "job_path", type=click.Path(dir_okay=False, exists=True),
               help="A job file (.toml/.json, as `evtk patterns` takes) instead of the pattern and timing options.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
@@ -113,7 +113,7 @@ def _write_simulation(sim, bench, sensor, compression, output, save_bench, as_js
 
 
 @main.command()
-@click.option("--out", "out_dir", default="evtk-demo", show_default=True, type=click.Path(file_okay=False),
+@click.option("--out", "out_dir", default="evtk-demo", show_default=True, type=OutputPath(file_okay=False),
               help="Directory for the recording, the reconstruction and the plots.")
 @click.option("--repeat", type=click.IntRange(min=2, max=_MAX_INT), default=10, show_default=True)
 @click.option("--seed", type=click.IntRange(min=0, max=_MAX_INT), default=0, show_default=True)
@@ -159,7 +159,7 @@ def demo(out_dir, repeat, seed, as_json):
 
 @main.command(short_help="DMD frames and the capture schedule of a job, for the bench.")
 @click.argument("job_path", metavar="JOB", type=click.Path(dir_okay=False, exists=True))
-@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
+@click.option("-o", "--out", "out_dir", required=True, type=OutputPath(file_okay=False),
               help="Folder for the frames (kernel/, features/, dark) and schedule.json.")
 @click.option("--format", "image_format", type=click.Choice(["png", "bmp"]), default="png", show_default=True,
               help="1-bit images at the DMD's resolution.")
@@ -183,9 +183,9 @@ def patterns(job_path, out_dir, image_format, as_json):
 @click.option("--schedule", "schedule_path", type=click.Path(dir_okay=False, exists=True),
               help="The schedule.json evtk patterns wrote for the run (its job needs calibration = N; levels = N "
                    "also fits the pixel model). A simulated recording's own record stands in for it.")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+@click.option("-o", "--output", required=True, type=OutputPath(dir_okay=False),
               help="Calibration to write (.toml or .json), for evtk reconstruct --calibration.")
-@click.option("--png", "png_path", type=click.Path(dir_okay=False), help="Also draw the dots, the fit and residuals.")
+@click.option("--png", "png_path", type=OutputPath(dir_okay=False), help="Also draw the dots, the fit and residuals.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def calibrate(recording, schedule_path, output, png_path, as_json):
     """Fit the map from response cells to sensor pixels (projective, RANSAC) from the dot-grid captures,
@@ -193,11 +193,9 @@ def calibrate(recording, schedule_path, output, png_path, as_json):
     from .. import io as evio
     from ..calibrate import calibrate as run
     from ..calibrate import plot_calibration, save_calibration
-    from ..io._atomic import refuse_overwriting_inputs
     from ..reconstruct import schedule_of_record
     from ..simulate import SimulationRecord
 
-    refuse_overwriting_inputs(output, [recording] + ([schedule_path] if schedule_path else []))
     with evio.open(recording) as rec:
         if schedule_path is None:
             record = SimulationRecord.from_metadata(rec.metadata)

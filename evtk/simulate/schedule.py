@@ -217,18 +217,11 @@ def load_patterns(path_or_bits, name, side=None):
         if k * k != n:
             raise EvtkError(f"{name} bits {s!r}: {n} bits do not make a square pattern")
         return np.array([int(c) for c in s], dtype=np.int8).reshape(k, k)
-    if s.lower().endswith(".npy"):
-        try:
-            return np.load(s, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise EvtkError(f"{s}: cannot read {name} array: {exc}") from None
-    try:
-        from skimage import io as skio
+    from .._loaders import read_image, read_npy
 
-        img = skio.imread(s)
-    except Exception as exc:  # noqa: BLE001 - any reader failure is the user's file
-        raise EvtkError(f"{s}: cannot read {name} image: {exc}") from None
-    img = np.asarray(img, dtype=np.float64)
+    if s.lower().endswith(".npy"):
+        return read_npy(s, name)
+    img = np.asarray(read_image(s, f"{name} image"), dtype=np.float64)
     if img.ndim == 3:
         img = img[..., :3].mean(axis=2)
     lo, hi = float(img.min()), float(img.max())
