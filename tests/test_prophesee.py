@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import random_events
+from conftest import no_hang, random_events
 
 import evtk
 import evtk.io.prophesee.recording  # noqa: F401  (the block size the tests shrink)
@@ -211,3 +211,33 @@ def test_first_data_word_starting_with_a_percent_sign_is_data(tmp_path):
     assert ev.x.tolist() == [1, 2] and ev.y.tolist() == [0x25, 3]
     path.write_bytes(b"% evt 2.0\n% geometry 640x480\n% end\n" + np.asarray(words, "<u4").tobytes())
     assert evtk.read_events(path).t.tolist() == [64, 65]
+
+
+def test_dat_whose_events_spell_a_header_line_is_read_as_dat(tmp_path):
+    """The old sniffer searched the first 4096 bytes, events included, for '% evt 2.0' and took a valid DAT
+    file for EVT 2.0 (and refused it); only header lines count, and a DAT header ends at its type byte."""
+    header = b"% Data file containing Event2D events.\n% Version 2\n% Width 16384\n% Height 16384\n"
+    body = np.array([1000], "<u4").tobytes() + b"% evt 2.0\n\x00\x10" + np.array([2 << 30, 0], "<u4").tobytes()
+    path = tmp_path / "spell.dat"
+    path.write_bytes(header + bytes([0x0C, 8]) + body)
+    assert b"% evt 2.0" in path.read_bytes()[len(header):]
+    assert evtk.io.detect_format(path) == "prophesee"
+    with evtk.open(path) as rec:
+        assert rec.encoding == "dat"
+        got = rec.events()
+    ref = expelliarmus.Wizard(encoding="dat").read(str(path))
+    assert len(got) == 3 and np.array_equal(got.t, ref["t"]) and np.array_equal(got.x, ref["x"])
+    assert np.array_equal(got.y, ref["y"]) and np.array_equal(got.p, ref["p"] != 0)  # a 4-bit polarity: ON if set
+
+
+def test_long_percent_headers_are_refused_in_linear_time(tmp_path):
+    """A 16 MiB '%' header: refused past 1 MiB, in one pass (the guard stops a hang; it is no speed assertion)."""
+    path = tmp_path / "long.raw"
+    for line in (b"% evt 2.0\n", b"%\n", b"%" + b" " * 100_000 + b"\n"):
+        path.write_bytes(b"% format EVT2;width=640;height=480\n" + line * ((16 << 20) // len(line)))
+        with no_hang(10), pytest.raises(evtk.FormatError, match="header runs past 1 MiB"):
+            evtk.open(path)
+    path.write_bytes(b"% geometry 640x480\n" + b"% x\n" * 200_000 + b"% evt 2.0\n% end\n"
+                     + np.array([_cd(3, 1, 2)], "<u4").tobytes())
+    with no_hang(10):
+        assert evtk.read_events(path).x.tolist() == [1]

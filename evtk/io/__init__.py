@@ -64,9 +64,8 @@ def detect_format(path) -> str:
     if head.startswith(b"%"):
         from .prophesee import sniff
 
-        with builtins.open(path, "rb") as f:
-            if sniff(f.read(4096)):
-                return "prophesee"
+        if sniff(path):  # the header lines only, never the events after them
+            return "prophesee"
     raise FormatError(path, 0, "unrecognised file: not AEDAT4 (#!AER-DAT4.0), HDF5, Parquet, Prophesee "
                                "RAW/DAT (a '%' header) or Event Stream")
 

@@ -7,10 +7,9 @@ import re
 import numpy as np
 from numba import njit
 
-from ...errors import FormatError
-from ..base import sensor_dims
+from ..base import sensor_dims, text_header
 
-__all__ = ["sniff"]
+__all__ = ["sniff", "sniff_lines"]
 
 
 BLOCK_WORDS = 1 << 20  # decoding unit: 4 MiB of EVT 2.0 words, 8 MiB of DAT events
@@ -21,43 +20,62 @@ EVT2, EVT3, DAT = "evt2", "evt3", "dat"
 ST_OK, ST_COORD, ST_TYPE, ST_FULL = 0, -1, -2, -3
 
 
-def sniff(head: bytes) -> str | None:
-    """'evt2', 'evt3', 'dat' or None from a file's first bytes (its header)."""
-    if not head.startswith(b"%"):
-        return None
-    text = head[:4096].decode("latin-1").lower()
-    if "% evt 2.0" in text or "format evt2" in text:
-        return EVT2
-    if "% evt 3.0" in text or "format evt3" in text:
-        return EVT3
-    if "% version 2" in text or "% version 1" in text or "% width" in text:
+_END = re.compile(rb"^%[ \t]*end[ \t\r]*$", re.M)  # OpenEB closes newer headers with '% end'
+
+
+def _header(path):
+    """(header lines without '%', data offset) of a Prophesee file: the lines at its start that begin with
+    '%' and are text (:func:`~evtk.io.base.text_header`; a first data word whose low byte is '%' is data,
+    not header), up to a closing '% end'. Nothing past the header is looked at: DAT's type and size bytes
+    (0x0C, 8) are no text, so a DAT header ends before them."""
+    lines, end = text_header(path, b"%", _MAX_HEADER, _END)
+    lines = [line[1:].strip() for line in lines]
+    if lines and lines[-1] == "end":
+        lines.pop()
+    return lines, end
+
+
+def sniff_lines(lines) -> str | None:
+    """'evt2', 'evt3', 'dat', 'evt-other' or None from a Prophesee header's lines (without the '%').
+
+    Parameters
+    ----------
+    lines : list of str
+        The header's lines, as :func:`_header` gives them.
+
+    Returns
+    -------
+    str or None
+        The encoding the header names, or None when it names none.
+    """
+    low = [" ".join(line.lower().split()) for line in lines]
+    for line in low:
+        named = line[7:].split(";")[0].strip() if line.startswith("format ") else None
+        if line == "evt 2.0" or named == "evt2":
+            return EVT2
+        if line == "evt 3.0" or named == "evt3":
+            return EVT3
+    if any(line in ("version 1", "version 2") or line.startswith("width ") for line in low):
         return DAT
-    if "% evt" in text:
+    if any(line.startswith("evt") for line in low):
         return "evt-other"
     return None
 
 
-_TEXT_LINE = re.compile(rb"%[\x20-\x7e\t]*\r?\n\Z")
+def sniff(path) -> str | None:
+    """'evt2', 'evt3', 'dat', 'evt-other' or None from a file's '%' header (its header lines only).
 
+    Parameters
+    ----------
+    path : str
+        The file.
 
-def _header(path):
-    """(header lines without '%', data offset) of a Prophesee file. A line is header only if it is text ('%',
-    printable ASCII, a line end): a first data word whose low byte is '%' is data, not header."""
-    lines = []
-    with open(path, "rb") as f:
-        pos = 0
-        while True:
-            line = f.readline(_MAX_HEADER)
-            if not _TEXT_LINE.match(line):
-                break
-            pos += len(line)
-            if pos > _MAX_HEADER:
-                raise FormatError(path, 0, "the text header runs past 1 MiB")
-            text = line[1:].decode("utf-8", "replace").strip()
-            if text == "end":  # OpenEB closes newer headers with '% end'
-                break
-            lines.append(text)
-    return lines, pos
+    Returns
+    -------
+    str or None
+        What :func:`sniff_lines` says of the header's lines.
+    """
+    return sniff_lines(_header(path)[0])
 
 
 def _sensor_from_header(lines, path):

@@ -28,7 +28,7 @@ from .decoders import (
     ST_OK,
     _header,
     _sensor_from_header,
-    sniff,
+    sniff_lines,
 )
 
 __all__ = ["PropheseeRecording", "EventStreamRecording"]
@@ -51,12 +51,11 @@ class PropheseeRecording(BaseRecording):
 
     def __init__(self, path, salvage=False, sensor_size=None):
         super().__init__(path, salvage)
-        with open(self.path, "rb") as f:
-            kind = sniff(f.read(4096))
+        self._lines, self._start = _header(self.path)
+        kind = sniff_lines(self._lines)
         if kind not in (EVT2, EVT3, DAT):
             raise FormatError(self.path, 0, "not a Prophesee EVT 2.0, EVT 3.0 or DAT file (no recognised % header)")
         self.encoding = kind
-        self._lines, self._start = _header(self.path)
         size = _sensor_from_header(self._lines, self.path)
         if sensor_size is not None:
             size = sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size")
