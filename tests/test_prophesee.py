@@ -156,7 +156,7 @@ def test_evt3_vectors_triggers_and_wrapping_time(tmp_path):
     assert ev.x.tolist() == [100, 102, 111, 112, 119, 5, 9]
     assert ev.y.tolist() == [7] * 7 and ev.p.tolist() == [1, 1, 1, 1, 1, 0, 1]
     assert ev.t.tolist() == [t1] * 6 + [(1 << 24) | 3]
-    assert tr.t.tolist() == [t1] and tr.kind.tolist() == [1]
+    assert tr.t.tolist() == [t1] and tr.kind.tolist() == [1] and tr.channel.tolist() == [2]
     path.write_bytes(_evt3(words[:4] + [(4 << 12) | (1 << 11)] ))  # x = 100 + 11 on a 640-wide sensor: fine
     assert evtk.read_events(path).x.tolist() == [111]
     path.write_bytes(_evt3([(0 << 12) | 7, (2 << 12) | 700]))
@@ -241,3 +241,35 @@ def test_long_percent_headers_are_refused_in_linear_time(tmp_path):
                      + np.array([_cd(3, 1, 2)], "<u4").tobytes())
     with no_hang(10):
         assert evtk.read_events(path).x.tolist() == [1]
+
+
+def test_trigger_channels_are_kept_and_windows_use_one(tmp_path, monkeypatch):
+    """A camera with two trigger inputs: the old reader merged them, so `--window triggers` made windows from
+    the edges of both signals (the second one 642 us late). Each trigger keeps its channel; windows need one."""
+    from evtk.events import TRIGGER_CHANNEL_ENV
+    from evtk.reconstruct import windows_from_triggers
+
+    monkeypatch.delenv(TRIGGER_CHANNEL_ENV, raising=False)
+    words = []
+    for k in range(4):  # channel 0: a 1000 us window every 10 ms; channel 3: the same edges 642 us later
+        for t_us, edge in [(k * 10_000, 1), (k * 10_000 + 1000, 0)]:
+            for ch, late in [(0, 0), (3, 642)]:
+                t = t_us + late
+                words += [(8 << 28) | (t >> 6), (10 << 28) | ((t & 63) << 22) | (ch << 8) | edge]
+    words += [(8 << 28) | (40_000 >> 6), _cd(0, 1, 2)]
+    path = tmp_path / "two.raw"
+    path.write_bytes(_evt2(words))
+    with evtk.open(path) as rec:
+        tr = rec.triggers()
+    assert tr.channels == [0, 3] and len(tr) == 16
+    assert tr.of_channel(3).t.tolist() == [k * 10_000 + d + 642 for k in range(4) for d in (0, 1000)]
+    with pytest.raises(evtk.EvtkError, match=r"2 channels \(0, 3\)"):
+        windows_from_triggers(tr)
+    win = windows_from_triggers(tr, channel=0)
+    assert win.t_start_us.tolist() == [0, 10_000, 20_000, 30_000] and win.t_end_us.tolist() == [1000, 11_000, 21_000, 31_000]
+    monkeypatch.setenv(TRIGGER_CHANNEL_ENV, "3")  # what `evtk --trigger-channel 3` sets
+    assert windows_from_triggers(tr).t_start_us.tolist() == [642, 10_642, 20_642, 30_642]
+    with pytest.raises(evtk.EvtkError, match="no trigger comes from channel 5; the channels are 0, 3"):
+        windows_from_triggers(tr, channel=5)
+    monkeypatch.delenv(TRIGGER_CHANNEL_ENV)
+    assert windows_from_triggers(tr.of_channel(0)).t_start_us.tolist() == [0, 10_000, 20_000, 30_000]

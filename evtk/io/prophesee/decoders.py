@@ -105,7 +105,7 @@ _DAT_PREV, _DAT_EPOCH = range(2)
 
 
 @njit(cache=True, nogil=True)
-def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk):
+def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over EVT 2.0 words: counts, or with ``decode`` the events and triggers. Returns (events,
     triggers, status, word index of the problem, min t, max t); the min and max only when counting."""
     high = state[_E2_HIGH]
@@ -148,6 +148,7 @@ def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk):
                 tt[m] = base | ((w >> 22) & 0x3F)
                 # the edge in bit 0, the channel in bits 8..12: kind 1 rising, 2 falling (evtk's Triggers)
                 tk[m] = 1 if (w & 1) else 2
+                tch[m] = (w >> 8) & 0x1F
             m += 1
         elif kind != 14 and kind != 15:  # OTHERS and CONTINUED carry no events; no other type exists
             status = ST_TYPE
@@ -159,7 +160,7 @@ def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk):
 
 
 @njit(cache=True, nogil=True)
-def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk):
+def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over DAT CD events (pairs of uint32: time stamp, data), with :func:`_evt2_run`'s arguments
     and results (DAT files hold no triggers)."""
     prev = state[_DAT_PREV]
@@ -201,7 +202,7 @@ _E3_HIGH, _E3_LOW, _E3_EPOCH, _E3_Y, _E3_BASE, _E3_POL = range(6)
 
 
 @njit(cache=True, nogil=True)
-def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk):
+def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over EVT 3.0 words (16 bits, type in the top four): counts, or with ``decode`` the events
     and triggers. ``state`` (:data:`_E3_HIGH` ...) carries over from the previous block and is updated.
     Returns (events, triggers, status, word index of the problem, min t, max t)."""
@@ -272,6 +273,7 @@ def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk):
             if decode:
                 tt[m] = (epoch << 24) | (high << 12) | low
                 tk[m] = 1 if (v & 1) else 2
+                tch[m] = (v >> 8) & 0xF
             m += 1
         elif kind != 7 and kind != 14 and kind != 15:  # CONTINUED_4, OTHERS, CONTINUED_12
             status = ST_TYPE
@@ -293,7 +295,7 @@ ES_MAGIC = b"Event Stream"
 
 
 @njit(cache=True, nogil=True)
-def _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk):
+def _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over Event Stream 2.x DVS bytes: 0xFF adds 127 us, 0xFE is a reset (nothing), any other
     first byte adds its top seven bits to the time and gives the polarity in bit 0; four bytes follow (x,
     then y counted from the bottom row, little-endian). :func:`_evt2_run`'s arguments and results (no
@@ -355,4 +357,4 @@ _DTYPE = {EVT2: "<u4", EVT3: "<u2", DAT: "<u4", ES: "u1"}
 # where a word's type sits, and the types a format has (for the message about a word of another type)
 _TYPES = {EVT2: (28, "EVT 2.0 has 0, 1, 8, 10, 14 and 15"), EVT3: (12, "EVT 3.0 has 0, 2-8, 10, 14 and 15")}
 _NO_OUT = (np.empty(0, np.int64), np.empty(0, np.uint16), np.empty(0, np.uint16), np.empty(0, np.uint8),
-           np.empty(0, np.int64), np.empty(0, np.uint8))
+           np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.uint8))

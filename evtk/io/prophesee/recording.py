@@ -153,10 +153,10 @@ class PropheseeRecording(BaseRecording):
         while True:
             t, x, y, p = (np.empty(cap, np.int64), np.empty(cap, np.uint16), np.empty(cap, np.uint16),
                           np.empty(cap, np.uint8))
-            tt, tk = np.empty(cap_tr, np.int64), np.empty(cap_tr, np.uint8)
-            n, m, st, bad, _, _ = run(words[pos:], state, w, h, True, t, x, y, p, tt, tk)
+            tt, tk, tc = np.empty(cap_tr, np.int64), np.empty(cap_tr, np.uint8), np.empty(cap_tr, np.uint8)
+            n, m, st, bad, _, _ = run(words[pos:], state, w, h, True, t, x, y, p, tt, tk, tc)
             evs.append(Events._trusted(t[:n], x[:n], y[:n], p[:n], self._size))
-            trs.append(Triggers(tt[:m], tk[:m]))
+            trs.append(Triggers(tt[:m], tk[:m], tc[:m]))
             if st != ST_FULL:
                 break
             pos += bad
