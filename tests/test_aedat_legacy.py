@@ -202,3 +202,17 @@ def test_long_headers_parse_or_are_refused_in_linear_time(tmp_path):
     with no_hang(10), pytest.raises(evtk.FormatError, match="header runs past 4 MiB"):
         evtk.open(path)
 
+
+
+@pytest.mark.parametrize("n_bytes", [30, 65_530, 65_536, 65_545, 262_150, 1_048_600])
+def test_text_header_ends_where_the_text_lines_end(tmp_path, n_bytes):
+    """The header's end, across the reader's growing reads: text lines starting with '#', then a record whose
+    first byte is '#' but which holds binary (data, not header)."""
+    from evtk.io.base import text_header
+
+    line = b"# a header line of text\r\n"
+    head = line * (n_bytes // len(line)) + b"#" * (n_bytes % len(line) + 1) + b"\n"
+    path = tmp_path / "t.bin"
+    path.write_bytes(head + b"#\x00\x01\x02\x03\x04\x05\x06" + b"# trailing text\n")
+    lines, end = text_header(path, b"#", 4 << 20)
+    assert end == len(head) and len(lines) == head.count(b"\n") and lines[0] == line.strip().decode()
