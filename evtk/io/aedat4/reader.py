@@ -213,14 +213,8 @@ class Recording(_FileIndex, BaseRecording):
             n = len(rows)
             lo = np.full(n, np.iinfo(np.int64).min)
             hi = np.full(n, np.iinfo(np.int64).max)
-            if s.type == "TRIG":
-                damage = self.damage
-                packets = (self._decode_triggers(s, [r]) for r in rows)
-            else:
-                packets = self._event_packets(s, rows)
-            for k, got in enumerate(packets):
-                if s.type == "TRIG" and self.damage is not damage:
-                    break  # salvage stopped in this packet: it and those after stay in every window
+            packets = self._trigger_packets(s, rows) if s.type == "TRIG" else self._event_packets(s, rows)
+            for k, got in enumerate(packets):  # where salvage stops, the packets left stay in every window
                 t = got.t
                 lo[k], hi[k] = (t.min(), t.max()) if len(t) else (np.iinfo(np.int64).max, np.iinfo(np.int64).min)
             spans = self._spans[s.id] = (lo, hi)
@@ -458,19 +452,22 @@ class Recording(_FileIndex, BaseRecording):
         return trig
 
     def _decode_triggers(self, s, rows) -> Triggers:
-        parts = []
+        return Triggers.concatenate(self._trigger_packets(s, rows))
+
+    def _trigger_packets(self, s, rows):
+        """Yield the triggers of each packet of ``rows``, stopping where salvage stops."""
         ident = _IDENT["TRIG"]
         for i in rows:
             try:
                 b = self._body(i)
             except _Stop:
-                break
+                return
             n = _jit().vector_length(b, ident, 0)
             if n < 0:
                 try:
                     self._fail(int(self._index.offset[i]), f"trigger packet: {_status(n)}")
                 except _Stop:
-                    break
+                    return
             t = np.empty(n, np.int64)
             k = np.empty(n, np.uint8)
             got, st = _jit().decode_triggers(b, ident, t, k, 0, n)
@@ -478,9 +475,8 @@ class Recording(_FileIndex, BaseRecording):
                 try:
                     self._fail(int(self._index.offset[i]), f"trigger packet: {_status(st)}")
                 except _Stop:
-                    break
-            parts.append(Triggers(t, k))
-        return Triggers.concatenate(parts)
+                    return
+            yield Triggers(t, k)
 
     def other_streams(self) -> list[StreamInfo]:
         """Streams that are neither events nor triggers (frames, IMU, ...), which evtk copies but does not decode."""
