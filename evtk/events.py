@@ -39,6 +39,9 @@ STRUCTURED_LAYOUTS = {
 _T_NAMES = ("t", "timestamp", "ts")
 _P_NAMES = ("p", "polarity", "on")
 
+#: The environment variable that chooses the trigger channel windows come from (``evtk --trigger-channel``).
+TRIGGER_CHANNEL_ENV = "EVTK_TRIGGER_CHANNEL"
+
 T_MIN_US = np.iinfo(np.int64).min
 T_MAX_US = np.iinfo(np.int64).max
 
@@ -352,7 +355,7 @@ class Events:
 
 
 class Triggers:
-    """External trigger time stamps (int64 microseconds) and their kinds.
+    """External trigger time stamps (int64 microseconds), their kinds and the input channel of each.
 
     Parameters
     ----------
@@ -360,22 +363,41 @@ class Triggers:
         Time stamps in microseconds.
     kind : array_like
         :class:`TriggerKind` codes (uint8).
+    channel : array_like, optional
+        The camera's trigger input each came from (uint8; Prophesee cameras
+        number several). None: all from channel 0, as formats without
+        channels (AEDAT4) give them.
     """
 
-    __slots__ = ("t", "kind")
+    __slots__ = ("t", "kind", "channel")
 
-    def __init__(self, t=(), kind=()):
+    def __init__(self, t=(), kind=(), channel=None):
         self.t = _column(t, np.int64, "t")
         self.kind = _column(kind, np.uint8, "kind", 0, 255)
-        if len(self.t) != len(self.kind):
-            raise EvtkError(f"trigger columns differ in length: t={len(self.t)}, kind={len(self.kind)}")
+        self.channel = np.zeros(len(self.t), np.uint8) if channel is None else _column(channel, np.uint8, "channel")
+        if not (len(self.t) == len(self.kind) == len(self.channel)):
+            raise EvtkError(f"trigger columns differ in length: t={len(self.t)}, kind={len(self.kind)}, "
+                            f"channel={len(self.channel)}")
 
     @classmethod
     def concatenate(cls, parts: Iterable[Triggers]) -> Triggers:
+        """Join trigger lists end to end.
+
+        Parameters
+        ----------
+        parts : iterable of Triggers
+            The lists, in order.
+
+        Returns
+        -------
+        Triggers
+            Their triggers one after the other.
+        """
         parts = list(parts)
         if not parts:
             return cls()
-        return cls(np.concatenate([p.t for p in parts]), np.concatenate([p.kind for p in parts]))
+        return cls(np.concatenate([p.t for p in parts]), np.concatenate([p.kind for p in parts]),
+                   np.concatenate([p.channel for p in parts]))
 
     def __len__(self) -> int:
         return len(self.t)
@@ -386,14 +408,18 @@ class Triggers:
     def __eq__(self, other) -> bool:
         if not isinstance(other, Triggers):
             return NotImplemented
-        return np.array_equal(self.t, other.t) and np.array_equal(self.kind, other.kind)
+        return (np.array_equal(self.t, other.t) and np.array_equal(self.kind, other.kind)
+                and np.array_equal(self.channel, other.channel))
 
     __hash__ = None
+
+    def _take(self, index) -> Triggers:
+        return Triggers(self.t[index], self.kind[index], self.channel[index])
 
     def __getitem__(self, index) -> Triggers:
         if isinstance(index, (int, np.integer)):
             index = slice(index, index + 1 if index != -1 else None)
-        return Triggers(self.t[index], self.kind[index])
+        return self._take(index)
 
     def between(self, t_start_us=None, t_end_us=None) -> Triggers:
         """Triggers with ``t_start_us <= t < t_end_us`` (None leaves a side open)."""
@@ -402,9 +428,48 @@ class Triggers:
             mask &= self.t >= int(t_start_us)
         if t_end_us is not None:
             mask &= self.t < int(t_end_us)
-        return Triggers(self.t[mask], self.kind[mask])
+        return self._take(mask)
 
     def of_kind(self, kind) -> Triggers:
         """Only the triggers of one :class:`TriggerKind`."""
-        mask = self.kind == int(kind)
-        return Triggers(self.t[mask], self.kind[mask])
+        return self._take(self.kind == int(kind))
+
+    @property
+    def channels(self) -> list[int]:
+        """The channels the triggers came from, in increasing order."""
+        return [int(c) for c in np.unique(self.channel)]
+
+    def of_channel(self, channel=None) -> Triggers:
+        """The triggers of one input channel, so that windows come from one signal.
+
+        Parameters
+        ----------
+        channel : int, optional
+            The channel. None: the only channel there is (the triggers
+            as they are); with more than one, an error that names them.
+
+        Returns
+        -------
+        Triggers
+            Those of ``channel``.
+
+        Raises
+        ------
+        EvtkError
+            ``channel`` is None and the triggers come from several channels,
+            or no trigger comes from ``channel``.
+        """
+        found = self.channels
+        if channel is None:
+            if len(found) > 1:
+                raise EvtkError(f"the triggers come from {len(found)} channels ({', '.join(map(str, found))}): "
+                                "windows need one signal; choose its channel (evtk --trigger-channel N)")
+            return self
+        try:
+            channel = int(channel)
+        except (TypeError, ValueError):
+            raise EvtkError(f"a trigger channel is a whole number, got {channel!r}") from None
+        if channel not in found:
+            listed = ", ".join(map(str, found)) if found else "none: there are no triggers"
+            raise EvtkError(f"no trigger comes from channel {channel}; the channels are {listed}")
+        return self._take(self.channel == channel)

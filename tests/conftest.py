@@ -37,3 +37,29 @@ def random_events(n, seed=0, sensor_size=(320, 240), t0=0, span_us=1_000_000, so
 @pytest.fixture
 def fixtures_dir():
     return FIXTURES
+
+
+class Hang(Exception):
+    """What :func:`no_hang` raises when its block runs past the limit."""
+
+
+def no_hang(seconds=10.0):
+    """A context manager that stops its block with :class:`Hang` after ``seconds`` (SIGALRM): a guard
+    against parsers that hang or take minutes, not a speed assertion (the limit is generous)."""
+    import contextlib
+    import signal
+
+    @contextlib.contextmanager
+    def guard():
+        def fire(signum, frame):
+            raise Hang(f"still running after {seconds} s")
+
+        old = signal.signal(signal.SIGALRM, fire)
+        signal.setitimer(signal.ITIMER_REAL, seconds)
+        try:
+            yield
+        finally:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, old)
+
+    return guard()

@@ -400,3 +400,33 @@ def test_no_compiled_decoder_has_a_default_argument():
     for name, f in compiled.items():
         defaults = [p for p in inspect.signature(f.py_func).parameters.values() if p.default is not p.empty]
         assert not defaults, f"{name} has defaults {defaults}"
+
+
+def test_window_reads_find_an_out_of_order_stamp_inside_a_packet(tmp_path):
+    """A packet whose middle event is stamped before the packet's first (DV's data table gives each packet's
+    first and last stamp): `events(t0, t1)` and `iter_events` used to choose packets by those and miss the
+    event that `events().between(t0, t1)` has. Windows must equal reading everything and filtering."""
+    from evtk.io import _fb
+
+    ev = random_events(20 * PACKET, seed=22, span_us=200_000)
+    t = ev.t.copy()
+    t[15 * PACKET + PACKET // 2] = 5  # in the middle of packet 15, long before its first stamp
+    ev = evtk.Events(t, ev.x, ev.y, ev.p, ev.sensor_size)
+    path = tmp_path / "ooo.aedat4"
+    evtk.write_events(path, ev, compression="none", packet_events=PACKET, packet_us=None)
+    with evtk.open(path) as rec:
+        idx, dtp = rec._index, rec._data_table_pos
+        cols = [idx.offset, idx.stream, idx.size, idx.count, idx.t0.copy(), idx.t1.copy()]
+    cols[4][:] = ev.t[::PACKET]  # the table as DV writes it: first and last stamp of each packet
+    cols[5][:] = ev.t[PACKET - 1::PACKET]
+    buf = np.empty(_fb.data_table_size(len(cols[0])), np.uint8)
+    size = _fb.encode_data_table(*cols, buf)
+    data = bytearray(path.read_bytes())
+    data[dtp:dtp + size] = buf[:size].tobytes()
+    path.write_bytes(bytes(data))
+    for lo, hi in [(0, 100), (0, int(ev.t[3 * PACKET])), (int(ev.t[14 * PACKET]), int(ev.t[17 * PACKET])), (3, 6)]:
+        with evtk.open(path) as rec:
+            want = rec.events().between(lo, hi)
+            assert 5 in want.t or lo > 5
+            assert rec.events(lo, hi) == want
+            assert evtk.Events.concatenate(list(rec.iter_events(777, lo, hi)), sensor_size=ev.sensor_size) == want

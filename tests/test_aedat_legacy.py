@@ -4,7 +4,8 @@ import struct
 
 import numpy as np
 import pytest
-from conftest import random_events
+from click.testing import CliRunner
+from conftest import no_hang, random_events
 
 import evtk
 
@@ -122,3 +123,96 @@ def test_unknown_version_and_damaged_packet_are_one_error(tmp_path):
         evtk.open(path)
     with evtk.open(path, salvage=True) as rec:
         assert rec.events() == ev[:100]
+
+
+def _stamp_at(path, k):
+    """Byte offset of record ``k``'s time stamp in an AEDAT 2.0 file written without APS samples."""
+    data = path.read_bytes()
+    return data.index(b"DAVIS346B\r\n") + 11 + 8 * k + 4
+
+
+def test_aedat2_step_back_is_an_error_not_a_wrap(tmp_path):
+    """A stamp that goes back 1 ms (or from 3e9 to 2e9 us) is no 32-bit wrap: the old reader took every step
+    back for one and added 4295 s to every later event, and `info --check` passed."""
+    from evtk.cli import main
+
+    ev = random_events(2000, seed=11, sensor_size=(346, 260), t0=1_000_000, span_us=1_000_000)
+    for base, back in [(0, 1000), (3_000_000_000, 1_000_000_000)]:
+        shifted = evtk.Events(ev.t + base, ev.x, ev.y, ev.p, ev.sensor_size)
+        path = tmp_path / f"b{base}.aedat"
+        write_aedat2_davis(path, shifted, 260)
+        at = _stamp_at(path, 1500)
+        data = bytearray(path.read_bytes())
+        struct.pack_into(">I", data, at, int(shifted.t[1499]) - back)
+        path.write_bytes(bytes(data))
+        with pytest.raises(evtk.FormatError, match=f"at byte {at}: the time stamp steps back"):
+            evtk.read_events(path)
+        with evtk.open(path, salvage=True) as rec:
+            assert rec.events() == shifted[:1500]
+            assert rec.damage.offset == at
+        result = CliRunner().invoke(main, ["info", "--check", str(path)])
+        assert result.exit_code != 0 and "steps back" in result.output
+
+
+def test_aedat2_wrap_from_top_to_bottom_half_is_unwrapped(tmp_path):
+    """A wrap is a step from near 2**32 to near 0: the later events get 2**32 us added, in every read."""
+    ev = random_events(3000, seed=12, sensor_size=(346, 260), t0=(1 << 32) - 1_000, span_us=3_000)
+    assert ev.t[0] < 1 << 32 < ev.t[-1]
+    path = tmp_path / "w.aedat"
+    write_aedat2_davis(path, ev, 260)
+    with evtk.open(path) as rec:
+        assert rec.events() == ev
+        lo, hi = int(ev.t[100]), int(ev.t[2900])
+        assert rec.events(lo, hi) == ev.between(lo, hi)
+
+
+def test_aedat31_negative_overflow_counter_is_refused(tmp_path):
+    ev = random_events(500, seed=13, sensor_size=(346, 260))
+    path = tmp_path / "n.aedat"
+    write_aedat31(path, ev, packet=100, other=False)
+    data = bytearray(path.read_bytes())
+    at = data.index(b"#!END-HEADER\r\n") + 14 + 28 + 800 + 12  # the second packet's overflow counter
+    struct.pack_into("<i", data, at, -1)
+    path.write_bytes(bytes(data))
+    with pytest.raises(evtk.FormatError, match=f"at byte {at}: .*negative time-stamp overflow"):
+        evtk.read_events(path)
+    with evtk.open(path, salvage=True) as rec:
+        got = rec.events()
+    assert got == ev[:100] and got.t.min() >= 0
+
+
+def _long_header(path, n_bytes, line=b"# dvsSizeX 240\r\n"):
+    path.write_bytes(b"#!AER-DAT2.0\r\n# AEChip: eu.seebetter.ini.chips.davis.DAVIS240C\r\n"
+                     + line * (n_bytes // len(line)) + struct.pack(">II", 5 << 12, 7))
+
+
+def test_long_headers_parse_or_are_refused_in_linear_time(tmp_path):
+    """A header of many 'dvsSizeX' lines and no 'dvsSizeY' took the old reader's regular expression
+    quadratic time: 22-40 s for 257 KB, minutes for 1 MiB and more. The guard stops a hang; it is no
+    speed assertion."""
+    path = tmp_path / "h.aedat"
+    _long_header(path, 3 << 20)  # under the 4 MiB limit: read
+    with no_hang(10):
+        with evtk.open(path) as rec:
+            assert rec.sensor_size == (240, 180) and len(rec.events()) == 1
+    _long_header(path, 16 << 20)
+    with no_hang(10), pytest.raises(evtk.FormatError, match="header runs past 4 MiB"):
+        evtk.open(path)
+    _long_header(path, 16 << 20, b"#\n")  # 8 M one-character lines
+    with no_hang(10), pytest.raises(evtk.FormatError, match="header runs past 4 MiB"):
+        evtk.open(path)
+
+
+
+@pytest.mark.parametrize("n_bytes", [30, 65_530, 65_536, 65_545, 262_150, 1_048_600])
+def test_text_header_ends_where_the_text_lines_end(tmp_path, n_bytes):
+    """The header's end, across the reader's growing reads: text lines starting with '#', then a record whose
+    first byte is '#' but which holds binary (data, not header)."""
+    from evtk.io.base import text_header
+
+    line = b"# a header line of text\r\n"
+    head = line * (n_bytes // len(line)) + b"#" * (n_bytes % len(line) + 1) + b"\n"
+    path = tmp_path / "t.bin"
+    path.write_bytes(head + b"#\x00\x01\x02\x03\x04\x05\x06" + b"# trailing text\n")
+    lines, end = text_header(path, b"#", 4 << 20)
+    assert end == len(head) and len(lines) == head.count(b"\n") and lines[0] == line.strip().decode()

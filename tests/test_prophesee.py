@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import random_events
+from conftest import no_hang, random_events
 
 import evtk
 import evtk.io.prophesee.recording  # noqa: F401  (the block size the tests shrink)
@@ -156,7 +156,7 @@ def test_evt3_vectors_triggers_and_wrapping_time(tmp_path):
     assert ev.x.tolist() == [100, 102, 111, 112, 119, 5, 9]
     assert ev.y.tolist() == [7] * 7 and ev.p.tolist() == [1, 1, 1, 1, 1, 0, 1]
     assert ev.t.tolist() == [t1] * 6 + [(1 << 24) | 3]
-    assert tr.t.tolist() == [t1] and tr.kind.tolist() == [1]
+    assert tr.t.tolist() == [t1] and tr.kind.tolist() == [1] and tr.channel.tolist() == [2]
     path.write_bytes(_evt3(words[:4] + [(4 << 12) | (1 << 11)] ))  # x = 100 + 11 on a 640-wide sensor: fine
     assert evtk.read_events(path).x.tolist() == [111]
     path.write_bytes(_evt3([(0 << 12) | 7, (2 << 12) | 700]))
@@ -211,3 +211,65 @@ def test_first_data_word_starting_with_a_percent_sign_is_data(tmp_path):
     assert ev.x.tolist() == [1, 2] and ev.y.tolist() == [0x25, 3]
     path.write_bytes(b"% evt 2.0\n% geometry 640x480\n% end\n" + np.asarray(words, "<u4").tobytes())
     assert evtk.read_events(path).t.tolist() == [64, 65]
+
+
+def test_dat_whose_events_spell_a_header_line_is_read_as_dat(tmp_path):
+    """The old sniffer searched the first 4096 bytes, events included, for '% evt 2.0' and took a valid DAT
+    file for EVT 2.0 (and refused it); only header lines count, and a DAT header ends at its type byte."""
+    header = b"% Data file containing Event2D events.\n% Version 2\n% Width 16384\n% Height 16384\n"
+    body = np.array([1000], "<u4").tobytes() + b"% evt 2.0\n\x00\x10" + np.array([2 << 30, 0], "<u4").tobytes()
+    path = tmp_path / "spell.dat"
+    path.write_bytes(header + bytes([0x0C, 8]) + body)
+    assert b"% evt 2.0" in path.read_bytes()[len(header):]
+    assert evtk.io.detect_format(path) == "prophesee"
+    with evtk.open(path) as rec:
+        assert rec.encoding == "dat"
+        got = rec.events()
+    ref = expelliarmus.Wizard(encoding="dat").read(str(path))
+    assert len(got) == 3 and np.array_equal(got.t, ref["t"]) and np.array_equal(got.x, ref["x"])
+    assert np.array_equal(got.y, ref["y"]) and np.array_equal(got.p, ref["p"] != 0)  # a 4-bit polarity: ON if set
+
+
+def test_long_percent_headers_are_refused_in_linear_time(tmp_path):
+    """A 16 MiB '%' header: refused past 1 MiB, in one pass (the guard stops a hang; it is no speed assertion)."""
+    path = tmp_path / "long.raw"
+    for line in (b"% evt 2.0\n", b"%\n", b"%" + b" " * 100_000 + b"\n"):
+        path.write_bytes(b"% format EVT2;width=640;height=480\n" + line * ((16 << 20) // len(line)))
+        with no_hang(10), pytest.raises(evtk.FormatError, match="header runs past 1 MiB"):
+            evtk.open(path)
+    path.write_bytes(b"% geometry 640x480\n" + b"% x\n" * 200_000 + b"% evt 2.0\n% end\n"
+                     + np.array([_cd(3, 1, 2)], "<u4").tobytes())
+    with no_hang(10):
+        assert evtk.read_events(path).x.tolist() == [1]
+
+
+def test_trigger_channels_are_kept_and_windows_use_one(tmp_path, monkeypatch):
+    """A camera with two trigger inputs: the old reader merged them, so `--window triggers` made windows from
+    the edges of both signals (the second one 642 us late). Each trigger keeps its channel; windows need one."""
+    from evtk.events import TRIGGER_CHANNEL_ENV
+    from evtk.reconstruct import windows_from_triggers
+
+    monkeypatch.delenv(TRIGGER_CHANNEL_ENV, raising=False)
+    words = []
+    for k in range(4):  # channel 0: a 1000 us window every 10 ms; channel 3: the same edges 642 us later
+        for t_us, edge in [(k * 10_000, 1), (k * 10_000 + 1000, 0)]:
+            for ch, late in [(0, 0), (3, 642)]:
+                t = t_us + late
+                words += [(8 << 28) | (t >> 6), (10 << 28) | ((t & 63) << 22) | (ch << 8) | edge]
+    words += [(8 << 28) | (40_000 >> 6), _cd(0, 1, 2)]
+    path = tmp_path / "two.raw"
+    path.write_bytes(_evt2(words))
+    with evtk.open(path) as rec:
+        tr = rec.triggers()
+    assert tr.channels == [0, 3] and len(tr) == 16
+    assert tr.of_channel(3).t.tolist() == [k * 10_000 + d + 642 for k in range(4) for d in (0, 1000)]
+    with pytest.raises(evtk.EvtkError, match=r"2 channels \(0, 3\)"):
+        windows_from_triggers(tr)
+    win = windows_from_triggers(tr, channel=0)
+    assert win.t_start_us.tolist() == [0, 10_000, 20_000, 30_000] and win.t_end_us.tolist() == [1000, 11_000, 21_000, 31_000]
+    monkeypatch.setenv(TRIGGER_CHANNEL_ENV, "3")  # what `evtk --trigger-channel 3` sets
+    assert windows_from_triggers(tr).t_start_us.tolist() == [642, 10_642, 20_642, 30_642]
+    with pytest.raises(evtk.EvtkError, match="no trigger comes from channel 5; the channels are 0, 3"):
+        windows_from_triggers(tr, channel=5)
+    monkeypatch.delenv(TRIGGER_CHANNEL_ENV)
+    assert windows_from_triggers(tr.of_channel(0)).t_start_us.tolist() == [0, 10_000, 20_000, 30_000]

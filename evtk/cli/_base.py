@@ -95,11 +95,14 @@ class _Group(click.Group):
               help="Check the xxHash checksums of AEDAT4 LZ4 bodies that carry them (slower; structure is always checked).")
 @click.option("--memory-limit-mb", type=click.FloatRange(min=1, max=2**40),
               help="Largest allocation a command may plan (estimated first; default 8192).")
+@click.option("--trigger-channel", type=click.IntRange(min=0, max=255),
+              help="The trigger input whose edges make windows, when a camera records several (Prophesee).")
 @click.pass_context
-def main(ctx, debug, trust_external, verify_checksums, memory_limit_mb):
+def main(ctx, debug, trust_external, verify_checksums, memory_limit_mb, trigger_channel):
     """evtk: event recordings of the opto-electronic convolution accelerator."""
     import os
 
+    from ..events import TRIGGER_CHANNEL_ENV
     from ..limits import LIMIT_ENV
 
     ctx.meta["evtk.debug"] = debug
@@ -112,6 +115,8 @@ def main(ctx, debug, trust_external, verify_checksums, memory_limit_mb):
         changes["EVTK_VERIFY_CHECKSUMS"] = "1"
     if memory_limit_mb is not None:
         changes[LIMIT_ENV] = repr(float(memory_limit_mb))
+    if trigger_channel is not None:
+        changes[TRIGGER_CHANNEL_ENV] = str(trigger_channel)
     saved = {k: os.environ.get(k) for k in changes}
     os.environ.update(changes)
 

@@ -97,9 +97,8 @@ def detect_format(path) -> str:
     if head.startswith(b"%"):
         from .prophesee import sniff
 
-        with builtins.open(path, "rb") as f:
-            if sniff(f.read(4096)):
-                return "prophesee"
+        if sniff(path):  # the header lines only, never the events after them
+            return "prophesee"
     from .decoded import sniff_nmnist, sniff_text
 
     with builtins.open(path, "rb") as f:

@@ -2,19 +2,22 @@
 
 AEDAT 2.0: text header lines starting with ``#``, then 8-byte big-endian
 records (32-bit address, 32-bit time stamp in microseconds, unwrapped when it
-wraps). The address layout depends on the camera, which the header's
-``AEChip`` line names: DAVIS cameras keep y in bits 22-30, x in bits 12-21,
-the polarity in bit 11 and mark frame (APS) and IMU samples with bit 31 (left
-out, and counted); the DVS128 keeps x in bits 1-7 (mirrored), y in bits 8-14
-and OFF in bit 0. jAER counts y from the bottom row; evtk counts it from the
-top, so y is mirrored (``height - 1 - y``).
+wraps: a step back from the counter's top half to its bottom half that is
+shorter going forward, as jAER's 32-bit arithmetic takes it; any other step
+back is damage, reported with its byte offset, never taken for a wrap). The
+address layout depends on the camera, which the header's ``AEChip`` line
+names: DAVIS cameras keep y in bits 22-30, x in bits 12-21, the polarity in
+bit 11 and mark frame (APS) and IMU samples with bit 31 (left out, and
+counted); the DVS128 keeps x in bits 1-7 (mirrored), y in bits 8-14 and OFF in
+bit 0. jAER counts y from the bottom row; evtk counts it from the top, so y is
+mirrored (``height - 1 - y``).
 
 AEDAT 3.1: a text header ending ``#!END-HEADER``, then packets of a 28-byte
 little-endian header (type, source, event size, time-stamp offset, overflow
 counter, capacity, count, valid count) and their events. Polarity packets
 (type 1) hold 8-byte events: a 32-bit word with the valid flag (bit 0), the
 polarity (bit 1), y (bits 2-16) and x (bits 17-31), and a 31-bit time stamp
-extended by the packet's overflow counter. cAER counts y from the top, as
+extended by the packet's overflow counter (a negative counter is damage). cAER counts y from the top, as
 evtk does. Other packets (special, frame, IMU) are listed and left out.
 
 Both are decoded with numpy a block at a time: windows and streaming hold one
@@ -31,7 +34,7 @@ import numpy as np
 
 from ..errors import EvtkError, FormatError
 from ..events import Events
-from .base import BaseRecording, Damage, StreamInfo, sensor_dims
+from .base import BaseRecording, Damage, StreamInfo, sensor_dims, text_header
 
 __all__ = ["LegacyAedatRecording", "CHIP_SIZES"]
 
@@ -44,25 +47,75 @@ _TYPE_NAMES = {0: "special", 1: "polarity", 2: "frame", 3: "imu6", 4: "imu9", 5:
                8: "point1d", 9: "point2d", 10: "point3d", 11: "point4d", 12: "spike"}
 
 
-_TEXT = re.compile(rb"#[\x20-\x7e\t]*\r?\n\Z")
+#: The longest text header read (the largest jAER header among the real recordings evtk is checked
+#: against is 175 KB: every preference of a DAVIS240 camera).
+MAX_HEADER_BYTES = 4 << 20
+_END_V3 = re.compile(rb"^#!END-HEADER", re.M)
+_WRAP = 1 << 32  # AEDAT 2.0 time stamps are 32-bit counters
+_DIGITS = re.compile(r"\d+")
 
 
 def _header_lines(path, v3):
-    """Header lines and where the data starts. A line is header only if it is text: '#', printable ASCII and a
-    line end (jAER's own rule, a leading '#', would take a first record whose top byte is 0x23 for text)."""
-    lines, pos = [], 0
-    with open(path, "rb") as f:
-        while True:
-            line = f.readline(1 << 16)
-            if not _TEXT.match(line):
-                break
-            pos += len(line)
-            if pos > 1 << 24:
-                raise FormatError(path, 0, "the text header runs past 16 MiB")
-            lines.append(line.decode("utf-8", "replace").strip())
-            if v3 and line.startswith(b"#!END-HEADER"):
-                break
-    return lines, pos
+    """Header lines and where the data starts (:func:`~evtk.io.base.text_header`: a line is header only if it
+    is text, so a first record whose top byte is 0x23, '#', is not taken for one, as jAER's rule would)."""
+    return text_header(path, b"#", MAX_HEADER_BYTES, _END_V3 if v3 else None)
+
+
+def _size_from_header(text):
+    """``(width, height)`` digits from the first ``dvssizex`` ... ``dvssizey`` pair in the lowered, joined
+    header, or None: the values following each name, y named after x. Linear: each name is looked for once
+    (when the first x or y has no digits after it, no later one has)."""
+    i = text.find("dvssizex")
+    if i < 0:
+        return None
+    mx = _DIGITS.search(text, i + 8)
+    if mx is None:
+        return None
+    j = text.find("dvssizey", mx.end())
+    if j < 0:
+        return None
+    my = _DIGITS.search(text, j + 8)
+    return None if my is None else (mx.group(), my.group())
+
+
+def _unwrap(ts, state):
+    """AEDAT 2.0's 32-bit time stamps ``ts`` as 64-bit microseconds, given ``state`` = (wraps so far, the raw
+    stamp before ``ts[0]`` or -1).
+
+    A step back is a wrap of the counter only when going on past 2**32 is the shorter way, that is when the
+    stamp moves from the counter's top half to its bottom half by less than 2**31 us forward, as jAER's
+    32-bit time arithmetic takes it; any other step back is an error, not a wrap (jAER reports such steps
+    as non-monotonic time).
+
+    Returns
+    -------
+    t : numpy.ndarray
+        The stamps unwrapped (int64).
+    state : tuple of int
+        (wraps, last raw stamp) after ``ts`` or, when one steps back, before the first that does.
+    bad : int or None
+        The index of the first stamp that steps back without wrapping.
+    """
+    epoch, prev = state
+    if not len(ts):
+        return ts, state, None
+    before = np.empty(len(ts), np.int64)
+    before[0] = prev
+    before[1:] = ts[:-1]
+    step = ts - before
+    back = step < 0
+    if prev < 0:
+        back[0] = False
+    wrap = back & (step + _WRAP < _WRAP >> 1)
+    wrong = np.flatnonzero(back & ~wrap)
+    bad = int(wrong[0]) if len(wrong) else None
+    if bad is not None:
+        ts, wrap = ts[:bad], wrap[:bad]
+    wraps = np.cumsum(wrap) + epoch
+    t = ts + (wraps << 32)
+    if bad is not None:
+        return t, ((int(wraps[-1]) if len(ts) else epoch), int(ts[-1]) if len(ts) else prev), bad
+    return t, (int(wraps[-1]), int(ts[-1])), None
 
 
 class LegacyAedatRecording(BaseRecording):
@@ -96,15 +149,12 @@ class LegacyAedatRecording(BaseRecording):
             raise FormatError(self.path, self._start, f"the AEDAT {self.version} header never ends (no #!END-HEADER line)")
         self._file_bytes = os.path.getsize(self.path)
         text = "\n".join(self._lines).lower()
-        self.chip = None
-        for name in sorted(CHIP_SIZES, key=len, reverse=True):
-            if name in text.replace("_", ""):
-                self.chip = name
-                break
+        bare = text.replace("_", "")
+        self.chip = next((name for name in sorted(CHIP_SIZES, key=len, reverse=True) if name in bare), None)
         size = None
-        found = re.search(r"dvssizex[^0-9]*(\d+).*?dvssizey[^0-9]*(\d+)", text, re.S)
+        found = _size_from_header(text)
         if found:
-            size = sensor_dims(found.group(1), found.group(2), self.path, "the header's dvsSizeX/dvsSizeY")
+            size = sensor_dims(found[0], found[1], self.path, "the header's dvsSizeX/dvsSizeY")
         elif self.chip:
             size = CHIP_SIZES[self.chip]
         if sensor_size is not None:
@@ -145,6 +195,10 @@ class LegacyAedatRecording(BaseRecording):
                                        f"{self._file_bytes - pos - _PACKET_HEADER} remain")
                     break
                 if typ == 1:
+                    if overflow < 0:
+                        self._problem(pos + 12, f"polarity packet with a negative time-stamp overflow counter "
+                                                f"({overflow}): its time stamps would be negative")
+                        break
                     if size != 8:
                         self._problem(pos, f"polarity events of {size} bytes (8 expected)")
                         break
@@ -167,9 +221,14 @@ class LegacyAedatRecording(BaseRecording):
         if self.damage is None:
             self.damage = Damage(at, reason)
 
-    def _read_block(self, k, epoch=0):
-        """(t, x, y, p) of block ``k`` as stored (y not yet mirrored), the records left out of it, and (2.0)
-        how often the 32-bit time had wrapped by its end, given ``epoch`` wraps before it."""
+    def _read_block(self, k, state=(0, -1)):
+        """Block ``k``'s events as stored (y not yet mirrored) from ``state``, the (2.0) time state before it.
+
+        Returns ``(t, x, y, p, left_out, state_after, problem)``: ``left_out`` counts the records left out
+        (APS and IMU samples), ``state`` is ``(wraps of the 32-bit time, last raw stamp or -1)`` and
+        ``problem`` is None or ``(byte offset, reason)`` of a time stamp that steps back without wrapping;
+        the columns then stop before that event.
+        """
         parts = []
         with open(self.path, "rb") as f:
             for rng in self._blocks[k]:
@@ -178,21 +237,29 @@ class LegacyAedatRecording(BaseRecording):
         if not self._v3:
             raw = np.frombuffer(parts[0][0], ">u4")
             addr = raw[0::2].astype(np.int64)
-            ts = raw[1::2].astype(np.int64)
-            wraps = np.cumsum(np.diff(np.concatenate([[self._prev_ts(k)], ts])) < 0) + epoch
-            t = ts + (wraps << 32)
             if self.chip == "dvs128":
                 keep = np.ones(len(addr), bool)
+            else:
+                keep = (addr >> 31) == 0  # bit 31: an APS or IMU sample
+            rows = np.flatnonzero(keep)
+            addr = addr[rows]
+            t, state, bad = _unwrap(raw[1::2][rows].astype(np.int64), state)
+            problem = None
+            if bad is not None:
+                at = self._blocks[k][0][0] + 8 * int(rows[bad]) + 4
+                problem = (at, f"the time stamp steps back from {int(state[1])} to "
+                               f"{int(raw[2 * rows[bad] + 1])} us, which is no 32-bit wrap (a wrap goes from the "
+                               "top half of the counter to the bottom half)")
+                addr, t = addr[:bad], t[:bad]
+            if self.chip == "dvs128":
                 x = 127 - ((addr >> 1) & 0x7F)
                 yraw = (addr >> 8) & 0x7F
                 p = 1 - (addr & 1)
             else:
-                keep = (addr >> 31) == 0  # bit 31: an APS or IMU sample
                 x = (addr >> 12) & 0x3FF
                 yraw = (addr >> 22) & 0x1FF
                 p = (addr >> 11) & 1
-            end = int(wraps[-1]) if len(wraps) else epoch
-            return t[keep], x[keep], yraw[keep], p[keep], int(np.count_nonzero(~keep)), end
+            return t, x, yraw, p, len(keep) - len(rows), state, problem
         ts_parts, d_parts = [], []
         for raw, overflow in parts:
             a = np.frombuffer(raw, "<u4")
@@ -201,16 +268,7 @@ class LegacyAedatRecording(BaseRecording):
         d = np.concatenate(d_parts) if d_parts else np.zeros(0, np.int64)
         t = np.concatenate(ts_parts) if ts_parts else np.zeros(0, np.int64)
         keep = (d & 1) == 1  # the valid flag
-        return t[keep], (d[keep] >> 17) & 0x7FFF, (d[keep] >> 2) & 0x7FFF, (d[keep] >> 1) & 1, 0, 0
-
-    def _prev_ts(self, k):
-        """AEDAT 2.0: the raw time stamp before block ``k`` (to carry the wrap count over)."""
-        if k == 0:
-            return -1
-        at = self._blocks[k][0][0] - 4
-        with open(self.path, "rb") as f:
-            f.seek(at)
-            return int.from_bytes(f.read(4), "big")
+        return t[keep], (d[keep] >> 17) & 0x7FFF, (d[keep] >> 2) & 0x7FFF, (d[keep] >> 1) & 1, 0, state, None
 
     def _infer_size(self):
         mx, my = self._stats()[1]
@@ -219,24 +277,29 @@ class LegacyAedatRecording(BaseRecording):
                              "coordinates" + ("" if self._v3 else " (y is mirrored about that height)"))
 
     def _stats(self):
-        """One pass, on first use: per block (events, min t, max t, time wraps before it), and the largest
-        (x, y) stored; the records left out are counted on the way."""
+        """One pass, on first use: per block (events, min t, max t, the 2.0 time state before it), and the
+        largest (x, y) stored; the records left out are counted on the way. A time stamp that steps back
+        without wrapping raises, or with salvage ends the recording before it."""
         if self._block_stats is None:
-            rows, epoch, mx, my = [], 0, 0, 0
+            rows, state, mx, my = [], (0, -1), 0, 0
             for k in range(len(self._blocks)):
-                t, x, y, _, left_out, end = self._read_block(k, epoch)
+                t, x, y, _, left_out, after, problem = self._read_block(k, state)
                 if left_out:
                     self.skipped["aps/imu samples"] = self.skipped.get("aps/imu samples", 0) + left_out
-                rows.append((len(t), int(t.min()) if len(t) else 0, int(t.max()) if len(t) else -1, epoch))
+                rows.append((len(t), int(t.min()) if len(t) else 0, int(t.max()) if len(t) else -1, state))
                 if len(x):
                     mx, my = max(mx, int(x.max())), max(my, int(y.max()))
-                epoch = end
+                state = after
+                if problem:
+                    self._problem(*problem)
+                    del self._blocks[k + 1:]
+                    break
             self._block_stats = rows, (mx, my)
         return self._block_stats
 
     def _decode(self, k):
         """Events of block ``k`` in evtk's convention, or a FormatError / salvage stop."""
-        t, x, y, p, _, _ = self._read_block(k, self._stats()[0][k][3])
+        t, x, y, p, _, _, _ = self._read_block(k, self._stats()[0][k][3])
         w, h = self._size
         if not self._v3:
             y = (h - 1) - y

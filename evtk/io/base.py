@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
@@ -12,7 +13,84 @@ from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
 from .table import MAX_SENSOR_SIDE, load_json, sensor_dims  # noqa: F401  (part of this module's API)
 
-__all__ = ["BaseRecording", "BaseWriter", "StreamInfo", "Damage", "time_chunks", "window_blocks", "sensor_dims", "load_json"]
+__all__ = ["BaseRecording", "BaseWriter", "StreamInfo", "Damage", "time_chunks", "window_blocks", "sensor_dims", "load_json",
+           "text_header"]
+
+
+def _header_end(buf: bytes, cut: bool, prefix: int, last_line) -> tuple[int, bool]:
+    """Where the text header at the start of ``buf`` ends, and whether it may go on past ``buf`` (``cut``: the
+    file does); see :func:`text_header`."""
+    import numpy as np
+
+    a = np.frombuffer(buf, np.uint8)
+    text = ((a >= 0x20) & (a <= 0x7E)) | (a == 0x09)
+    feeds = a == 0x0A
+    text[:-1] |= (a[:-1] == 0x0D) & feeds[1:]  # a carriage return only right before a line feed
+    text |= feeds
+    first_binary = int(np.argmin(text)) if not text.all() else len(a)
+    ends = np.flatnonzero(feeds[:first_binary])  # complete lines before any binary byte
+    starts = np.concatenate(([0], ends[:-1] + 1)).astype(np.int64) if len(ends) else np.zeros(0, np.int64)
+    not_header = np.flatnonzero(a[starts] != prefix) if len(starts) else np.zeros(0, np.int64)
+    n_lines = int(not_header[0]) if len(not_header) else len(starts)
+    end = int(ends[n_lines - 1]) + 1 if n_lines else 0
+    if last_line is not None and n_lines and (m := last_line.search(buf, 0, end)) is not None:
+        return buf.index(b"\n", m.start()) + 1, False
+    # every byte read is header text, a line perhaps cut: the header may go on
+    more = cut and n_lines == len(starts) and first_binary == len(a) and (end == len(a) or a[end] == prefix)
+    return end, more
+
+
+def text_header(path, prefix: bytes, max_bytes: int, last_line: re.Pattern | None = None) -> tuple[list[str], int]:
+    """The text header at the start of a file: its lines and the offset where the data begins.
+
+    A header line is text: it starts with ``prefix``, holds printable ASCII
+    or tabs, and ends with a line feed (a carriage return may precede it).
+    The header ends at the first line that is not one (so a data word that
+    happens to start with the prefix byte but holds binary is data), or after
+    the line ``last_line`` matches, which then belongs to the header. The
+    work is linear in the header's length, whatever the lines hold:
+    vectorised passes over the file's start, read again four times longer
+    while the header goes on (64 KiB first), up to ``max_bytes + 1`` bytes.
+
+    Parameters
+    ----------
+    path : str
+        The file.
+    prefix : bytes
+        The single byte every header line starts with (``b"#"``, ``b"%"``).
+    max_bytes : int
+        The longest header accepted; a longer one raises.
+    last_line : re.Pattern, optional
+        A bytes pattern, compiled with ``re.MULTILINE`` and anchored with
+        ``^``, matching the line that closes the header.
+
+    Returns
+    -------
+    lines : list of str
+        The header lines, each stripped of surrounding white space (the prefix kept).
+    offset : int
+        The byte where the data begins.
+
+    Raises
+    ------
+    FormatError
+        The header runs past ``max_bytes``.
+    """
+    want = min(1 << 16, max_bytes)  # most headers are a few KB: read more only while the header goes on
+    with open(path, "rb") as f:
+        while True:
+            f.seek(0)
+            buf = f.read(want + 1)
+            end, more = _header_end(buf, len(buf) > want, prefix[0], last_line)
+            if not more:
+                break
+            if want >= max_bytes:
+                raise FormatError(path, 0, f"the text header runs past {max_bytes >> 20} MiB")
+            want = min(4 * want, max_bytes)
+    if end > max_bytes:
+        raise FormatError(path, 0, f"the text header runs past {max_bytes >> 20} MiB")
+    lines = buf[:end].decode("ascii").split("\n")[:-1]
+    return [line.strip() for line in lines], end
 
 @dataclass
 class StreamInfo:

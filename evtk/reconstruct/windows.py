@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import EvtkError
-from ..events import TriggerKind, Triggers
+from ..events import TRIGGER_CHANNEL_ENV, TriggerKind, Triggers
 from ..limits import require_memory
 from ..simulate import METADATA_KEY, Schedule
 from ..simulate.record import SimulationRecord
@@ -125,8 +126,12 @@ def windows_from_schedule(schedule, skip_us=0, length_us=None) -> Windows:
     return Windows(start, end, schedule.capture, "schedule")
 
 
-def windows_from_triggers(triggers: Triggers, skip_us=0, length_us=None) -> Windows:
+def windows_from_triggers(triggers: Triggers, skip_us=0, length_us=None, channel=None) -> Windows:
     """Windows from the DMD's trigger edges: each rising edge to the next falling edge.
+
+    The edges come from one trigger input (:meth:`evtk.Triggers.of_channel`): ``channel``, else
+    ``$EVTK_TRIGGER_CHANNEL`` (set by ``evtk --trigger-channel``), else the only one there is; triggers
+    from several channels and none chosen are refused, since two signals' edges would make wrong windows.
 
     Edge cases are defined, and counted in ``Windows.dropped``: a rising edge
     while a window is open (its falling edge is missing: that window is
@@ -134,6 +139,9 @@ def windows_from_triggers(triggers: Triggers, skip_us=0, length_us=None) -> Wind
     open when the triggers end (the recording ends mid-window: dropped).
     Triggers of other kinds are ignored.
     """
+    if channel is None:
+        channel = os.environ.get(TRIGGER_CHANNEL_ENV) or None
+    triggers = triggers.of_channel(channel)
     order = np.argsort(triggers.t, kind="stable")
     t = triggers.t[order]
     kind = triggers.kind[order]

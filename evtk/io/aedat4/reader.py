@@ -12,7 +12,7 @@ from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
 from .. import _compression as cz
 from .. import _fbpy
-from ..base import BaseRecording, StreamInfo, load_json, window_blocks
+from ..base import BaseRecording, StreamInfo, load_json
 from .common import _IDENT, _STRUCT_SIZE, _TYPE_NAMES, _VECTOR_TYPES, _jit, _status
 from .index import _CountMismatch, _FileIndex, _Stop
 
@@ -37,6 +37,7 @@ class Recording(_FileIndex, BaseRecording):
     def __init__(self, path, salvage: bool = False, verify_checksums: bool = False):
         super().__init__(path, salvage)
         self._fd = -1
+        self._spans = {}  # stream id -> each packet's (earliest, latest) stamp, read on the first window
         self.verify_checksums = bool(verify_checksums)
         try:
             self._fd = os.open(self.path, os.O_RDONLY)
@@ -176,22 +177,54 @@ class Recording(_FileIndex, BaseRecording):
         idx = self._index
         rows = np.flatnonzero(idx.stream == s.id)
         if idx.from_table and (t_start_us is not None or t_end_us is not None):
-            span = window_blocks(idx.t0[rows], idx.t1[rows], t_start_us, t_end_us,
-                                 lambda k: self._packet_span(s, rows[k]))
-            if span is None:
-                self._warn_once("the data table's packet times disagree with the packets or are out of order; "
-                                "windows read every packet", s.name)
-            else:
-                rows = rows[span[0]:span[1]]
+            lo, hi = self._packet_spans(s, rows)
+            keep = np.ones(len(rows), bool)
+            if t_start_us is not None:
+                keep &= hi >= int(t_start_us)
+            if t_end_us is not None:
+                keep &= lo < int(t_end_us)
+            rows = rows[keep]
         return s, rows
 
-    def _packet_span(self, s, row):
-        """(first, last) time stamp of packet ``row``, or None when it is empty or unreadable."""
-        if s.type == "TRIG":
-            t = self._decode_triggers(s, [row]).t
-        else:
-            t = next(self._event_packets(s, [row]), Events.empty(s.sensor_size)).t
-        return (int(t[0]), int(t[-1])) if len(t) else None
+    def _packet_spans(self, s, rows):
+        """The earliest and latest time stamp of each packet of ``rows`` (stream ``s``), as the packets hold
+        them: read once, on the first window, and kept.
+
+        The data table's times are each packet's first and last stamp; a packet whose stamps are out of
+        order can hold events outside them, so a window chosen by them could miss events that reading
+        everything and filtering finds. Windows go by what the packets hold instead (an empty packet meets
+        no window; packets after damage that stopped salvage meet every window). A table whose times differ
+        from them gets a warning.
+
+        Parameters
+        ----------
+        s : StreamInfo
+            The event or trigger stream.
+        rows : numpy.ndarray
+            Its packets' rows in the index, in file order.
+
+        Returns
+        -------
+        lo, hi : numpy.ndarray
+            int64 per row: the earliest and latest stamp.
+        """
+        spans = self._spans.get(s.id)
+        if spans is None:
+            n = len(rows)
+            lo = np.full(n, np.iinfo(np.int64).min)
+            hi = np.full(n, np.iinfo(np.int64).max)
+            packets = self._trigger_packets(s, rows) if s.type == "TRIG" else self._event_packets(s, rows)
+            for k, got in enumerate(packets):  # where salvage stops, the packets left stay in every window
+                t = got.t
+                lo[k], hi[k] = (t.min(), t.max()) if len(t) else (np.iinfo(np.int64).max, np.iinfo(np.int64).min)
+            spans = self._spans[s.id] = (lo, hi)
+            idx = self._index
+            table = (idx.t0[rows], idx.t1[rows])
+            read = lo <= hi
+            if np.any(read & ((table[0] != lo) | (table[1] != hi))):
+                self._warn_once("the data table's packet times disagree with the packets or are out of order; "
+                                "windows go by the times the packets hold", s.name)
+        return spans
 
     # -- events -------------------------------------------------------------------
     def events(self, t_start_us=None, t_end_us=None, stream=None) -> Events:
@@ -419,19 +452,22 @@ class Recording(_FileIndex, BaseRecording):
         return trig
 
     def _decode_triggers(self, s, rows) -> Triggers:
-        parts = []
+        return Triggers.concatenate(self._trigger_packets(s, rows))
+
+    def _trigger_packets(self, s, rows):
+        """Yield the triggers of each packet of ``rows``, stopping where salvage stops."""
         ident = _IDENT["TRIG"]
         for i in rows:
             try:
                 b = self._body(i)
             except _Stop:
-                break
+                return
             n = _jit().vector_length(b, ident, 0)
             if n < 0:
                 try:
                     self._fail(int(self._index.offset[i]), f"trigger packet: {_status(n)}")
                 except _Stop:
-                    break
+                    return
             t = np.empty(n, np.int64)
             k = np.empty(n, np.uint8)
             got, st = _jit().decode_triggers(b, ident, t, k, 0, n)
@@ -439,9 +475,8 @@ class Recording(_FileIndex, BaseRecording):
                 try:
                     self._fail(int(self._index.offset[i]), f"trigger packet: {_status(st)}")
                 except _Stop:
-                    break
-            parts.append(Triggers(t, k))
-        return Triggers.concatenate(parts)
+                    return
+            yield Triggers(t, k)
 
     def other_streams(self) -> list[StreamInfo]:
         """Streams that are neither events nor triggers (frames, IMU, ...), which evtk copies but does not decode."""

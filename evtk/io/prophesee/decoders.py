@@ -7,10 +7,9 @@ import re
 import numpy as np
 from numba import njit
 
-from ...errors import FormatError
-from ..base import sensor_dims
+from ..base import sensor_dims, text_header
 
-__all__ = ["sniff"]
+__all__ = ["sniff", "sniff_lines"]
 
 
 BLOCK_WORDS = 1 << 20  # decoding unit: 4 MiB of EVT 2.0 words, 8 MiB of DAT events
@@ -21,43 +20,62 @@ EVT2, EVT3, DAT = "evt2", "evt3", "dat"
 ST_OK, ST_COORD, ST_TYPE, ST_FULL = 0, -1, -2, -3
 
 
-def sniff(head: bytes) -> str | None:
-    """'evt2', 'evt3', 'dat' or None from a file's first bytes (its header)."""
-    if not head.startswith(b"%"):
-        return None
-    text = head[:4096].decode("latin-1").lower()
-    if "% evt 2.0" in text or "format evt2" in text:
-        return EVT2
-    if "% evt 3.0" in text or "format evt3" in text:
-        return EVT3
-    if "% version 2" in text or "% version 1" in text or "% width" in text:
+_END = re.compile(rb"^%[ \t]*end[ \t\r]*$", re.M)  # OpenEB closes newer headers with '% end'
+
+
+def _header(path):
+    """(header lines without '%', data offset) of a Prophesee file: the lines at its start that begin with
+    '%' and are text (:func:`~evtk.io.base.text_header`; a first data word whose low byte is '%' is data,
+    not header), up to a closing '% end'. Nothing past the header is looked at: DAT's type and size bytes
+    (0x0C, 8) are no text, so a DAT header ends before them."""
+    lines, end = text_header(path, b"%", _MAX_HEADER, _END)
+    lines = [line[1:].strip() for line in lines]
+    if lines and lines[-1] == "end":
+        lines.pop()
+    return lines, end
+
+
+def sniff_lines(lines) -> str | None:
+    """'evt2', 'evt3', 'dat', 'evt-other' or None from a Prophesee header's lines (without the '%').
+
+    Parameters
+    ----------
+    lines : list of str
+        The header's lines, as :func:`_header` gives them.
+
+    Returns
+    -------
+    str or None
+        The encoding the header names, or None when it names none.
+    """
+    low = [" ".join(line.lower().split()) for line in lines]
+    for line in low:
+        named = line[7:].split(";")[0].strip() if line.startswith("format ") else None
+        if line == "evt 2.0" or named == "evt2":
+            return EVT2
+        if line == "evt 3.0" or named == "evt3":
+            return EVT3
+    if any(line in ("version 1", "version 2") or line.startswith("width ") for line in low):
         return DAT
-    if "% evt" in text:
+    if any(line.startswith("evt") for line in low):
         return "evt-other"
     return None
 
 
-_TEXT_LINE = re.compile(rb"%[\x20-\x7e\t]*\r?\n\Z")
+def sniff(path) -> str | None:
+    """'evt2', 'evt3', 'dat', 'evt-other' or None from a file's '%' header (its header lines only).
 
+    Parameters
+    ----------
+    path : str
+        The file.
 
-def _header(path):
-    """(header lines without '%', data offset) of a Prophesee file. A line is header only if it is text ('%',
-    printable ASCII, a line end): a first data word whose low byte is '%' is data, not header."""
-    lines = []
-    with open(path, "rb") as f:
-        pos = 0
-        while True:
-            line = f.readline(_MAX_HEADER)
-            if not _TEXT_LINE.match(line):
-                break
-            pos += len(line)
-            if pos > _MAX_HEADER:
-                raise FormatError(path, 0, "the text header runs past 1 MiB")
-            text = line[1:].decode("utf-8", "replace").strip()
-            if text == "end":  # OpenEB closes newer headers with '% end'
-                break
-            lines.append(text)
-    return lines, pos
+    Returns
+    -------
+    str or None
+        What :func:`sniff_lines` says of the header's lines.
+    """
+    return sniff_lines(_header(path)[0])
 
 
 def _sensor_from_header(lines, path):
@@ -87,7 +105,7 @@ _DAT_PREV, _DAT_EPOCH = range(2)
 
 
 @njit(cache=True, nogil=True)
-def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk):
+def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over EVT 2.0 words: counts, or with ``decode`` the events and triggers. Returns (events,
     triggers, status, word index of the problem, min t, max t); the min and max only when counting."""
     high = state[_E2_HIGH]
@@ -130,6 +148,7 @@ def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk):
                 tt[m] = base | ((w >> 22) & 0x3F)
                 # the edge in bit 0, the channel in bits 8..12: kind 1 rising, 2 falling (evtk's Triggers)
                 tk[m] = 1 if (w & 1) else 2
+                tch[m] = (w >> 8) & 0x1F
             m += 1
         elif kind != 14 and kind != 15:  # OTHERS and CONTINUED carry no events; no other type exists
             status = ST_TYPE
@@ -141,7 +160,7 @@ def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk):
 
 
 @njit(cache=True, nogil=True)
-def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk):
+def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over DAT CD events (pairs of uint32: time stamp, data), with :func:`_evt2_run`'s arguments
     and results (DAT files hold no triggers)."""
     prev = state[_DAT_PREV]
@@ -183,7 +202,7 @@ _E3_HIGH, _E3_LOW, _E3_EPOCH, _E3_Y, _E3_BASE, _E3_POL = range(6)
 
 
 @njit(cache=True, nogil=True)
-def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk):
+def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over EVT 3.0 words (16 bits, type in the top four): counts, or with ``decode`` the events
     and triggers. ``state`` (:data:`_E3_HIGH` ...) carries over from the previous block and is updated.
     Returns (events, triggers, status, word index of the problem, min t, max t)."""
@@ -254,6 +273,7 @@ def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk):
             if decode:
                 tt[m] = (epoch << 24) | (high << 12) | low
                 tk[m] = 1 if (v & 1) else 2
+                tch[m] = (v >> 8) & 0xF
             m += 1
         elif kind != 7 and kind != 14 and kind != 15:  # CONTINUED_4, OTHERS, CONTINUED_12
             status = ST_TYPE
@@ -275,7 +295,7 @@ ES_MAGIC = b"Event Stream"
 
 
 @njit(cache=True, nogil=True)
-def _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk):
+def _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over Event Stream 2.x DVS bytes: 0xFF adds 127 us, 0xFE is a reset (nothing), any other
     first byte adds its top seven bits to the time and gives the polarity in bit 0; four bytes follow (x,
     then y counted from the bottom row, little-endian). :func:`_evt2_run`'s arguments and results (no
@@ -337,4 +357,4 @@ _DTYPE = {EVT2: "<u4", EVT3: "<u2", DAT: "<u4", ES: "u1"}
 # where a word's type sits, and the types a format has (for the message about a word of another type)
 _TYPES = {EVT2: (28, "EVT 2.0 has 0, 1, 8, 10, 14 and 15"), EVT3: (12, "EVT 3.0 has 0, 2-8, 10, 14 and 15")}
 _NO_OUT = (np.empty(0, np.int64), np.empty(0, np.uint16), np.empty(0, np.uint16), np.empty(0, np.uint8),
-           np.empty(0, np.int64), np.empty(0, np.uint8))
+           np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.uint8))

@@ -28,7 +28,7 @@ from .decoders import (
     ST_OK,
     _header,
     _sensor_from_header,
-    sniff,
+    sniff_lines,
 )
 
 __all__ = ["PropheseeRecording", "EventStreamRecording"]
@@ -51,12 +51,11 @@ class PropheseeRecording(BaseRecording):
 
     def __init__(self, path, salvage=False, sensor_size=None):
         super().__init__(path, salvage)
-        with open(self.path, "rb") as f:
-            kind = sniff(f.read(4096))
+        self._lines, self._start = _header(self.path)
+        kind = sniff_lines(self._lines)
         if kind not in (EVT2, EVT3, DAT):
             raise FormatError(self.path, 0, "not a Prophesee EVT 2.0, EVT 3.0 or DAT file (no recognised % header)")
         self.encoding = kind
-        self._lines, self._start = _header(self.path)
         size = _sensor_from_header(self._lines, self.path)
         if sensor_size is not None:
             size = sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size")
@@ -154,10 +153,10 @@ class PropheseeRecording(BaseRecording):
         while True:
             t, x, y, p = (np.empty(cap, np.int64), np.empty(cap, np.uint16), np.empty(cap, np.uint16),
                           np.empty(cap, np.uint8))
-            tt, tk = np.empty(cap_tr, np.int64), np.empty(cap_tr, np.uint8)
-            n, m, st, bad, _, _ = run(words[pos:], state, w, h, True, t, x, y, p, tt, tk)
+            tt, tk, tc = np.empty(cap_tr, np.int64), np.empty(cap_tr, np.uint8), np.empty(cap_tr, np.uint8)
+            n, m, st, bad, _, _ = run(words[pos:], state, w, h, True, t, x, y, p, tt, tk, tc)
             evs.append(Events._trusted(t[:n], x[:n], y[:n], p[:n], self._size))
-            trs.append(Triggers(tt[:m], tk[:m]))
+            trs.append(Triggers(tt[:m], tk[:m], tc[:m]))
             if st != ST_FULL:
                 break
             pos += bad
