@@ -97,8 +97,15 @@ class _Group(click.Group):
               help="Largest allocation a command may plan (estimated first; default 8192).")
 @click.option("--trigger-channel", type=click.IntRange(min=0, max=255),
               help="The trigger input whose edges make windows, when a camera records several (Prophesee).")
+@click.option("--sensor-size", type=click.STRING, metavar="WxH",
+              help="The sensor's size for files that do not give it (Prophesee without geometry, DAT, text, "
+                   "N-MNIST, HDF5 and Parquet without one).")
+@click.option("--layout", type=click.Choice(["dvs128", "davis"]),
+              help="AEDAT 2.0: the address layout, where the header names no camera (found from the addresses "
+                   "otherwise).")
 @click.pass_context
-def main(ctx, debug, trust_external, verify_checksums, memory_limit_mb, trigger_channel):
+def main(ctx, debug, trust_external, verify_checksums, memory_limit_mb, trigger_channel, sensor_size,
+         layout):
     """evtk: event recordings of the opto-electronic convolution accelerator."""
     import os
 
@@ -117,6 +124,10 @@ def main(ctx, debug, trust_external, verify_checksums, memory_limit_mb, trigger_
         changes[LIMIT_ENV] = repr(float(memory_limit_mb))
     if trigger_channel is not None:
         changes[TRIGGER_CHANNEL_ENV] = str(trigger_channel)
+    if sensor_size is not None:
+        changes["EVTK_SENSOR_SIZE"] = sensor_size.strip()
+    if layout is not None:
+        changes["EVTK_LAYOUT"] = layout
     saved = {k: os.environ.get(k) for k in changes}
     os.environ.update(changes)
 

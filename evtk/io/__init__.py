@@ -111,8 +111,23 @@ def detect_format(path) -> str:
                                "N-MNIST binary")
 
 
+#: Environment variables of ``evtk --sensor-size WxH`` and ``evtk --layout dvs128|davis`` (every command that reads).
+SENSOR_SIZE_ENV, LAYOUT_ENV = "EVTK_SENSOR_SIZE", "EVTK_LAYOUT"
+
+
+def _sensor_size_from_env():
+    text = os.environ.get(SENSOR_SIZE_ENV, "").strip().lower()
+    if not text:
+        return None
+    parts = text.split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+        raise EvtkError(f"{SENSOR_SIZE_ENV} (--sensor-size) must be WIDTHxHEIGHT, e.g. 640x480, not {text!r}")
+    return int(parts[0]), int(parts[1])
+
+
 def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # noqa: A001
-         trust_external: bool | None = None, verify_checksums: bool | None = None) -> BaseRecording:
+         trust_external: bool | None = None, verify_checksums: bool | None = None,
+         layout: str | None = None) -> BaseRecording:
     """Open a recording for reading; the format is found from the file's first bytes.
 
     Parameters
@@ -125,8 +140,11 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         Recover what is intact before damage instead of raising
         :class:`~evtk.FormatError`; ``recording.damage`` says where it stopped.
     sensor_size : (int, int), optional
-        For HDF5 or Parquet files that do not record it (otherwise inferred
-        from the largest coordinates, with a warning).
+        For files that do not record it: HDF5, Parquet, Prophesee RAW with
+        neither a geometry nor a known system ID, DAT, text and N-MNIST
+        files, legacy AEDAT without a known camera (otherwise sized as each
+        format's page says: from the system ID, or the events' extent with a
+        warning). None takes ``$EVTK_SENSOR_SIZE`` (``evtk --sensor-size WxH``).
     sort : bool
         HDF5 only: sort events whose time stamps go backwards instead of
         refusing the file.
@@ -141,6 +159,16 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         which halves the time such files take; the frames' structure is
         checked either way. None takes ``$EVTK_VERIFY_CHECKSUMS`` (set by
         ``evtk --verify-checksums``).
+    layout : {"dvs128", "davis"}, optional
+        AEDAT 2.0 only: the address layout, where the header names no camera
+        or names it wrongly (by default the header's ``AEChip``, else found
+        from the addresses' bits). None takes ``$EVTK_LAYOUT``
+        (``evtk --layout``).
+
+    Returns
+    -------
+    BaseRecording
+        The open recording (a context manager).
 
     Examples
     --------
@@ -152,10 +180,14 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     (320, 240) 2
     """
     fmt = detect_format(path)
+    if sensor_size is None:
+        sensor_size = _sensor_size_from_env()
+    if layout is None:
+        layout = os.environ.get(LAYOUT_ENV, "").strip().lower() or None
     if fmt == "aedat-other":
         from .aedat_legacy import LegacyAedatRecording
 
-        return LegacyAedatRecording(path, salvage=salvage, sensor_size=sensor_size)
+        return LegacyAedatRecording(path, salvage=salvage, sensor_size=sensor_size, layout=layout)
     if fmt == "aedat4":
         from .aedat4 import Recording
 

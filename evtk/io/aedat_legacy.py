@@ -36,7 +36,12 @@ from ..errors import EvtkError, FormatError
 from ..events import Events
 from .base import BaseRecording, Damage, StreamInfo, sensor_dims, text_header
 
-__all__ = ["LegacyAedatRecording", "CHIP_SIZES"]
+__all__ = ["LegacyAedatRecording", "CHIP_SIZES", "LAYOUTS"]
+
+#: The AEDAT 2.0 address layouts (``layout=``, ``evtk --layout``).
+LAYOUTS = ("dvs128", "davis")
+#: A sensor inferred from the coordinates narrower than this on a side is refused (a wrong layout's signature).
+MIN_INFERRED_SIDE = 16
 
 #: Sensor sizes of the cameras an AEDAT 2.0 header may name (its AEChip class, matched case-insensitively).
 CHIP_SIZES = {"dvs128": (128, 128), "davis240": (240, 180), "davis346": (346, 260), "davis640": (640, 480),
@@ -129,11 +134,14 @@ class LegacyAedatRecording(BaseRecording):
     sensor_size : (int, int), optional
         For files whose header names no known camera (else inferred from
         the largest coordinates, with a warning).
+    layout : {"dvs128", "davis"}, optional
+        AEDAT 2.0: the address layout, overriding the header's ``AEChip``
+        and the layout found from the addresses' bits.
     """
 
     format = "aedat-legacy"
 
-    def __init__(self, path, salvage=False, sensor_size=None):
+    def __init__(self, path, salvage=False, sensor_size=None, layout=None):
         super().__init__(path, salvage)
         with open(self.path, "rb") as f:
             first = f.readline(64)
@@ -151,11 +159,18 @@ class LegacyAedatRecording(BaseRecording):
         text = "\n".join(self._lines).lower()
         bare = text.replace("_", "")
         self.chip = next((name for name in sorted(CHIP_SIZES, key=len, reverse=True) if name in bare), None)
+        if layout is not None and layout not in LAYOUTS:
+            raise EvtkError(f"layout must be one of {', '.join(LAYOUTS)}, not {layout!r}")
+        if layout is not None and not self._v3:
+            self.chip = "dvs128" if layout == "dvs128" else (self.chip if self.chip not in (None, "dvs128") else
+                                                             "davis")
+        elif self.chip is None and not self._v3:
+            self.chip = self._chip_from_addresses()
         size = None
         found = _size_from_header(text)
         if found:
             size = sensor_dims(found[0], found[1], self.path, "the header's dvsSizeX/dvsSizeY")
-        elif self.chip:
+        elif self.chip in CHIP_SIZES:
             size = CHIP_SIZES[self.chip]
         if sensor_size is not None:
             size = sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size")
@@ -165,6 +180,20 @@ class LegacyAedatRecording(BaseRecording):
         self._blocks = self._index_blocks()
         if self._size is None:
             self._infer_size()
+
+    def _chip_from_addresses(self):
+        """AEDAT 2.0 without a named camera: "dvs128" when no address of the first records uses a bit above
+        14 (the DVS128 keeps x, y and the polarity in bits 0-14; a DAVIS's x and y start at bit 12 and 22),
+        else "davis". The choice is noted in :attr:`warnings`."""
+        with open(self.path, "rb") as f:
+            f.seek(self._start)
+            raw = f.read(8 * 65536)
+        addr = np.frombuffer(raw[:len(raw) - len(raw) % 8], ">u4")[0::2]
+        if len(addr) and int(addr.max()) < (1 << 15) and int(addr.max()) > 0:
+            self.warnings.append("the header names no camera; every address fits in bits 0-14, as a DVS128's do: "
+                                 "read as a 128x128 DVS128 (--layout davis to read it as a DAVIS)")
+            return "dvs128"
+        return "davis" if len(addr) else None
 
     # -- layout ---------------------------------------------------------------------------------------------
     def _index_blocks(self):
@@ -272,6 +301,11 @@ class LegacyAedatRecording(BaseRecording):
 
     def _infer_size(self):
         mx, my = self._stats()[1]
+        if mx + 1 < MIN_INFERRED_SIDE or my + 1 < MIN_INFERRED_SIDE:
+            raise FormatError(self.path, self._start, f"the events' addresses span only {mx + 1}x{my + 1} pixels "
+                                                      f"as {self.chip or 'DAVIS'} addresses: no camera has such a "
+                                                      "sensor; name the layout (--layout dvs128|davis) or the size "
+                                                      "(--sensor-size WxH)")
         self._size = (mx + 1, my + 1)
         self.warnings.append(f"the header names no known camera; the sensor size {self._size} is inferred from the "
                              "coordinates" + ("" if self._v3 else " (y is mirrored about that height)"))

@@ -57,12 +57,23 @@ class PropheseeRecording(BaseRecording):
             raise FormatError(self.path, 0, "not a Prophesee EVT 2.0, EVT 3.0 or DAT file (no recognised % header)")
         self.encoding = kind
         size = _sensor_from_header(self._lines, self.path)
+        #: where the sensor size came from: the header, the system ID, the events or the caller
+        self.size_source = "the header"
+        if size is None:
+            from .sensors import sensor_from_system_id
+
+            by_id = sensor_from_system_id(self._lines)
+            if by_id is not None:  # older headers name the camera board only, as Prophesee's reader takes it
+                size, board = by_id
+                self.size_source = f"the header's system ID ({board})"
         if sensor_size is not None:
             size = sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size")
-        if size is None:
-            raise FormatError(self.path, 0, "the header gives no sensor size (geometry, format or Width/Height); "
-                                            "pass sensor_size=(width, height)")
-        self._size = size
+            self.size_source = "the caller"
+        from_events = size is None and kind == DAT
+        if size is None and not from_events:
+            raise FormatError(self.path, 0, "the header gives no sensor size (geometry, format, Width/Height or a "
+                                            "known system_ID); pass --sensor-size WxH (sensor_size=(width, height))")
+        self._size = (1 << 14, 1 << 14) if from_events else size  # DAT coordinates have 14 bits
         self._file_bytes = os.path.getsize(self.path)
         item = 4
         if kind == DAT:
@@ -90,6 +101,12 @@ class PropheseeRecording(BaseRecording):
             self.damage = Damage(where, problem)
         self._blocks = None  # per block: start state, events, triggers, min t, max t
         self._triggers = None
+        if from_events:  # N-CARS and other DAT files without a size: the smallest sensor that holds the events
+            ev = self._whole()
+            self._size = (int(ev.x.max()) + 1, int(ev.y.max()) + 1) if len(ev) else (1, 1)
+            self.size_source = "the events"
+            self.warnings.append(f"the header gives no sensor size: {self._size[0]}x{self._size[1]}, the smallest "
+                                 "that holds the events (pass --sensor-size WxH for the camera's own)")
 
     # -- raw access ---------------------------------------------------------------------------------------------
     def _per_block(self):
@@ -207,7 +224,7 @@ class PropheseeRecording(BaseRecording):
 
     @property
     def metadata(self) -> dict:
-        out = {"encoding": self.encoding, "header": list(self._lines)}
+        out = {"encoding": self.encoding, "header": list(self._lines), "sensor_size_from": self.size_source}
         for line in self._lines:
             parts = line.split()
             if len(parts) == 2 and parts[0].lower() == "t0" and parts[1].lstrip("-").isdigit():
@@ -322,15 +339,17 @@ class EventStreamRecording(PropheseeRecording):
         if major != 2:
             raise FormatError(self.path, 12, f"Event Stream version {major}.{head[13]}.{head[14]}; evtk reads 2.x")
         if kind != 1:
-            names = {0: "generic", 2: "ATIS", 3: "colour"}
+            names = {0: "generic", 2: "ATIS", 4: "colour"}  # as the format and event_stream number them
             raise FormatError(self.path, 15, f"Event Stream of {names.get(kind, f'type {kind}')} events; evtk reads "
                                              "DVS events (type 1)")
         if len(head) < 20:
             raise FormatError(self.path, 16, "the file ends inside the Event Stream header")
         w, h = int.from_bytes(head[16:18], "little"), int.from_bytes(head[18:20], "little")
         self._size = sensor_dims(w, h, self.path, "the Event Stream header")
+        self.size_source = "the header"
         if sensor_size is not None:
             self._size = sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size")
+            self.size_source = "the caller"
         self.encoding = ES
         self._lines = [f"version {major}.{head[13]}.{head[14]}", "type dvs"]
         self._start = 20
