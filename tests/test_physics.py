@@ -145,3 +145,44 @@ def test_other_physics_are_validated():
     with pytest.raises(EvtkError, match="mirror"):
         Simulation(np.ones((3, 3)), np.eye(16), camera={"mirror": 1})
     assert not SensorModel().stepped and SensorModel(pixel="v2e").stepped
+
+
+def test_level_table_is_monotone_and_reads_its_levels_back():
+    from evtk.reconstruct.calibrated import held_out_table_error
+    from evtk.reconstruct.linearize import isotonic, level_curve, level_table_values, linearize_by_model
+
+    assert isotonic([3.0, 1.0, 2.0, 5.0]).tolist() == [2.0, 2.0, 2.0, 5.0]
+    light = np.array([1.0, 3.0, 4.0, 6.0, 7.0, 9.0])
+    counts = np.log1p(light / 0.05) / 0.2  # a log pixel of another form than evtk's model: no low-pass at all
+    read = level_table_values(counts, counts, light)
+    np.testing.assert_allclose(read, light)
+    assert level_table_values(np.array([-2.0]), counts, light)[0] < 0  # below the table: along its first segment
+    assert held_out_table_error(light, counts) < 0.15
+    assert held_out_table_error(light, 2 * light) == pytest.approx(0.0, abs=1e-12)
+    u, n = level_curve(light, counts, 0.05)
+    assert np.all(np.diff(n) >= 0) and np.all(n == np.round(n))
+    back = linearize_by_model(np.round(counts), (u, n)) * 0.05
+    np.testing.assert_allclose(back, light, rtol=0.15)
+    with pytest.raises(EvtkError, match="do not grow"):
+        level_table_values(np.zeros(3), [0.0, 0.0], [1.0, 2.0])
+
+
+def test_calibrated_route_holds_on_a_log_node_pixel(tmp_path):
+    """The fitted model cannot describe a pixel without a low-pass and misreads the level captures; the route
+    then reads them by their own table, deblurred, instead of falling back to exp(n theta)."""
+    import evtk
+
+    rng = np.random.default_rng(4000)
+    k, f = rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16))
+    sim = Simulation(k, f, sensor=SensorModel(pixel="log-node", theta_mismatch=0.008), seed=0, levels=6,
+                     calibration=2, light_rise_us=3.0)
+    path = tmp_path / "run.h5"
+    sim.write(path)
+    with evtk.open(path) as rec:
+        auto = evtk.reconstruct_recording(rec)
+        plain = evtk.reconstruct_recording(rec, deblur=False)
+    s = auto.summary
+    assert s["linearization"] == "the level captures' table" and s["pixel_model_rejected"]
+    assert "table" in s["pixel_model_note"] and s["deblurred"]
+    r_auto = s["error"]["correlation"]
+    assert r_auto > 0.93 and r_auto > plain.summary["error"]["correlation"] + 0.02
