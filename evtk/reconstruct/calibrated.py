@@ -230,9 +230,18 @@ def _level_error(ratios) -> float:
 def held_out_table_error(level_light, level_counts) -> float | None:
     """How well the level captures' table reads a level it did not see: each interior level (not the dimmest
     nor the brightest, which a table can only extrapolate to) left out, read through the table of the others
-    (:func:`~evtk.reconstruct.linearize.level_table_values`); the median ``|log(read / true)|``.
+    (:func:`~evtk.reconstruct.linearize.level_table_values`).
 
-    Returns None with fewer than three levels of light.
+    Parameters
+    ----------
+    level_light, level_counts : array_like, shape (levels,)
+        The level captures' light (response units) and mean net counts.
+
+    Returns
+    -------
+    float or None
+        The median ``|log(read / true)|`` over the levels left out; None with
+        fewer than three levels of light.
     """
     light = np.asarray(level_light, np.float64)
     counts = np.asarray(level_counts, np.float64)
