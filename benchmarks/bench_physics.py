@@ -67,6 +67,11 @@ PHYSICS = [  # (name, SensorModel fields, Simulation keywords, tuned on it)
     ("camera turned 180°", {}, {"camera": {"rotation_deg": 180.0}}, False),
     ("clock drift 50 ppm", {"clock_drift_ppm": 50.0}, {}, False),
     ("light rise 5 us, delay 10 us", {}, {"light_rise_us": 5.0, "light_delay_us": 10}, False),
+    ("all at once: v2e pixel, a pose (1.5°, tilt, k1, vignetting, 0.5 px defocus), drift, rise, delay",
+     {"pixel": "v2e", "tau_min_us": 80.0, "theta_mismatch": 0.008, "leak_rate_hz": 0.5, "shot_event_rate_hz": 1.0,
+      "hot_pixel_fraction": HOT, "hot_pixel_rate_hz": 2000.0, "clock_drift_ppm": 50.0},
+     {"camera": {"rotation_deg": 1.5, "tilt": (0.03, -0.02), "k1": 0.03, "vignetting": 0.2, "defocus_px": 0.5},
+      "light_rise_us": 5.0, "light_delay_us": 10}, False),
 ]
 
 ROUTES = ("calibrated", "model", "table", "not deblurred", "exp(n theta)", "level table", "oracle", "ceiling")

@@ -411,6 +411,22 @@ def simulate_pixels(state: PixelState, level, tau_us, noise_std, seg_start_us, s
     return out_t[:n], out_i[:n], out_p[:n], on_c, off_c
 
 
+@numba.njit(cache=True, inline="always")
+def _record(emit, n, tc, i, pol, slot, out_t, out_i, out_p, on_c, off_c):
+    """Write one event (when emitting) and count it in its slot; returns the events written."""
+    if emit:
+        out_t[n] = tc
+        out_i[n] = i
+        out_p[n] = pol
+        n += 1
+    if slot >= 0:
+        if pol == 1:
+            on_c[slot, i] += 1
+        else:
+            off_c[slot, i] += 1
+    return n
+
+
 @numba.njit(cache=True)
 def _advance(m, v, L, tau, s, dt):
     if dt <= 0.0:
@@ -556,17 +572,7 @@ def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step
                                 break
                     if tc < 0.0:
                         break
-                # an event at tc
-                if emit:
-                    out_t[n] = tc
-                    out_i[n] = i
-                    out_p[n] = pol
-                    n += 1
-                if slot >= 0:
-                    if pol == 1:
-                        on_c[slot, i] += 1
-                    else:
-                        off_c[slot, i] += 1
+                n = _record(emit, n, tc, i, pol, slot, out_t, out_i, out_p, on_c, off_c)  # an event at tc
                 t = tc
                 bl = tc + refr
         mean[i] = m
@@ -574,22 +580,6 @@ def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step
         vref[i] = vr
         blind[i] = bl
     return n_pix, n
-
-
-@numba.njit(cache=True, inline="always")
-def _record(emit, n, tc, i, pol, slot, out_t, out_i, out_p, on_c, off_c):
-    """Write one event (when emitting) and count it in its slot; returns the events written."""
-    if emit:
-        out_t[n] = tc
-        out_i[n] = i
-        out_p[n] = pol
-        n += 1
-    if slot >= 0:
-        if pol == 1:
-            on_c[slot, i] += 1
-        else:
-            off_c[slot, i] += 1
-    return n
 
 
 @numba.njit(cache=True, error_model="numpy")
