@@ -145,6 +145,13 @@ def test_other_physics_are_validated():
     with pytest.raises(EvtkError, match="mirror"):
         Simulation(np.ones((3, 3)), np.eye(16), camera={"mirror": 1})
     assert not SensorModel().stepped and SensorModel(pixel="v2e").stepped
+    # the count table models evtk's own pixel: another physics is counted exactly, or refused by name
+    sim = Simulation(np.ones((3, 3)), np.eye(16), sensor=SensorModel(pixel="v2e"), seed=1)
+    with pytest.raises(EvtkError, match="count table"):
+        sim.responses(method="table")
+    counts = sim.responses()
+    ev = sim.events()
+    assert counts.on.sum() > 0 and abs(int(counts.on.sum()) - int(np.sum(ev.p == 1))) < 0.2 * np.sum(ev.p == 1)
 
 
 def test_level_table_is_monotone_and_reads_its_levels_back():
