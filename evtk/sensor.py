@@ -40,6 +40,37 @@ bridge probability ``exp(-2 d0 d1 / (D h))``, ``D = 2 s^2 / tau``. Step size is
 tolerance, checked by the tests: at the default step (0.8 tau) mean window
 counts stay within 4 % and their variances within 15 % of those at a 20x
 finer step, from dim to bright light.
+
+Other physics
+-------------
+``SensorModel.pixel`` chooses the photoreceptor and change detector, so that
+reconstruction can be judged on pixels of another form than the one it fits
+(descriptions after the published models, not their code):
+
+* ``"evtk"`` (default): the model above.
+* ``"v2e"``: after Hu, Liu and Delbruck's v2e (2021). The photoreceptor is a
+  first-order low-pass of ``log(lam)`` whose time constant follows the light
+  down to a floor, ``tau = max(tau_min_us, tau_electrons / lam)``: a hard
+  bandwidth knee (:func:`time_constant_us`), flat above
+  ``lam = tau_electrons / tau_min_us``. The state is stepped (exact
+  Ornstein-Uhlenbeck transitions, steps of at most a quarter of ``tau``);
+  a crossing's time is interpolated linearly within its step, and after
+  each event the reference is reset to the photoreceptor's present level.
+  ``leak_rate_hz`` lets the reference sink by ``theta_on`` that often (leak
+  ON events), ``shot_event_rate_hz`` adds shot-noise events of either
+  polarity (most in the dark, their rate falling as ``sqrt(dark / lam)``).
+* ``"log-node"``: after ESIM (Rebecq, Gehrig and Scaramuzza 2018): no
+  low-pass, the pixel sees ``log(lam)`` itself, sampled every ``sample_us``
+  and linearly interpolated between samples; an event whenever it has moved
+  one threshold from the last event's level, the reference moving by exactly
+  one threshold per event, each crossing timed by the interpolation. No
+  refractory period and no photoreceptor noise (ESIM has none).
+
+``frame_compare`` (with ``readout_period_us`` > 0) replaces the stamped
+asynchronous readout by a synchronous one, as the DVXplorer family reads its
+pixels: once per frame each pixel compares its level with its reference and
+fires at most one event, stamped on the frame grid, its reference reset to
+the level it compared.
 """
 
 from __future__ import annotations
@@ -55,6 +86,7 @@ from ._rng import _normal, _normal_outlined, _rng_state, _uniform
 from .errors import EvtkError, check_parameters
 
 __all__ = [
+    "PIXELS",
     "SensorModel",
     "time_constant_us",
     "log_noise_std",
@@ -65,6 +97,9 @@ __all__ = [
 
 #: Standard deviations from a threshold beyond which the noisy state is advanced without sampling.
 FAR_SD = 5.0
+
+#: The pixel physics :class:`SensorModel` offers (its ``pixel`` field).
+PIXELS = ("evtk", "v2e", "log-node")
 
 
 @dataclass(frozen=True)
@@ -105,6 +140,26 @@ class SensorModel:
         as the DVXplorer family does (a few thousand readouts per second),
         every event stamped at the end of the readout frame it fell in, so
         time stamps are multiples of the period.
+    pixel : {"evtk", "v2e", "log-node"}
+        The pixel's physics (see the module's notes): evtk's own
+        (default), a v2e-style pixel with a hard bandwidth knee, or an
+        ESIM-like log-node pixel.
+    frame_compare : bool
+        With ``readout_period_us`` > 0: a synchronous readout that compares
+        each pixel once per frame and fires at most one event per pixel per
+        frame (False: asynchronous events stamped at their frame's end).
+    leak_rate_hz : float
+        Leak events per pixel per second from a sinking reference (``v2e`` and
+        ``log-node`` pixels, or a frame-compared readout; 0 otherwise).
+    shot_event_rate_hz : float
+        Shot-noise events per pixel per second in the dark (falling as
+        ``sqrt(dark / lam)``), of either polarity (as ``leak_rate_hz``).
+    sample_us : float
+        A ``log-node`` pixel's sampling of the light (linear interpolation in between).
+    clock_drift_ppm : float
+        The camera's clock against the DMD's: event time stamps run this many
+        parts per million fast (negative: slow) from the start of the run,
+        while the trigger edges keep the DMD's time.
     """
 
     theta_on: float = 0.2
@@ -121,6 +176,12 @@ class SensorModel:
     hot_pixel_fraction: float = 0.0
     hot_pixel_rate_hz: float = 1000.0
     readout_period_us: float = 0.0
+    pixel: str = "evtk"
+    frame_compare: bool = False
+    leak_rate_hz: float = 0.0
+    shot_event_rate_hz: float = 0.0
+    sample_us: float = 1.0
+    clock_drift_ppm: float = 0.0
 
     def __post_init__(self):
         def finite(name, low, strict):
@@ -132,28 +193,60 @@ class SensorModel:
             object.__setattr__(self, name, float(v))
 
         for name in ("theta_on", "theta_off", "tau_min_us", "tau_electrons", "dark_current_e_per_s",
-                     "noise_step_fraction", "noise_step_max_us"):
+                     "noise_step_fraction", "noise_step_max_us", "sample_us"):
             finite(name, 0.0, True)
         for name in ("theta_mismatch", "background_rate_hz", "hot_pixel_rate_hz", "hot_pixel_fraction",
-                     "readout_period_us"):
+                     "readout_period_us", "leak_rate_hz", "shot_event_rate_hz"):
             finite(name, 0.0, False)
+        finite("clock_drift_ppm", -1e5, True)
         finite("refractory_us", 1.0, False)
         if self.hot_pixel_fraction > 1:
             raise EvtkError(f"sensor hot_pixel_fraction must be at most 1, not {self.hot_pixel_fraction!r}")
-        if not isinstance(self.shot_noise, bool):
-            raise EvtkError(f"sensor shot_noise must be true or false, not {self.shot_noise!r}")
+        for name in ("shot_noise", "frame_compare"):
+            if not isinstance(getattr(self, name), bool):
+                raise EvtkError(f"sensor {name} must be true or false, not {getattr(self, name)!r}")
+        if self.pixel not in PIXELS:
+            raise EvtkError(f"sensor pixel must be one of {', '.join(PIXELS)}, not {self.pixel!r}")
+        if self.frame_compare and self.readout_period_us <= 0:
+            raise EvtkError("sensor frame_compare needs a readout_period_us above 0 (the frame period)")
+        if (self.leak_rate_hz or self.shot_event_rate_hz) and not self.stepped:
+            raise EvtkError("sensor leak_rate_hz and shot_event_rate_hz belong to the v2e and log-node pixels and "
+                            "to a frame-compared readout; evtk's asynchronous pixel has background_rate_hz")
+
+    @property
+    def stepped(self) -> bool:
+        """Whether the pixels are stepped in time (:func:`simulate_pixels`' second loop): any physics but evtk's
+        own asynchronous pixel."""
+        return self.pixel != "evtk" or self.frame_compare
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
-    def stamp(self, t_us):
-        """Event time stamps as the sensor reports them: unchanged when asynchronous, else the end of each
-        event's readout frame (``ceil(t / readout_period_us) * readout_period_us``, whole microseconds)."""
+    def stamp(self, t_us, origin_us=0):
+        """Event time stamps as the sensor reports them.
+
+        Parameters
+        ----------
+        t_us : array_like
+            The events' true times (whole us).
+        origin_us : int
+            Where the camera's clock agrees with the DMD's (the start of the run), for ``clock_drift_ppm``.
+
+        Returns
+        -------
+        ndarray
+            Unchanged when asynchronous, else the end of each event's readout
+            frame (``ceil(t / readout_period_us) * readout_period_us``, whole
+            microseconds); then run through the camera's clock,
+            ``t + round((t - origin_us) * clock_drift_ppm / 1e6)``.
+        """
         t_us = np.asarray(t_us)
-        if self.readout_period_us <= 0:
-            return t_us
-        period = self.readout_period_us
-        return (np.ceil(t_us / period) * period).round().astype(np.int64)
+        if self.readout_period_us > 0:
+            period = self.readout_period_us
+            t_us = (np.ceil(t_us / period) * period).round().astype(np.int64)
+        if self.clock_drift_ppm:
+            t_us = t_us + np.round((t_us - origin_us) * (self.clock_drift_ppm * 1e-6)).astype(np.int64)
+        return t_us
 
     @classmethod
     def from_dict(cls, d: dict) -> SensorModel:
@@ -165,12 +258,27 @@ class SensorModel:
 
 
 def time_constant_us(rate_e_per_s, model: SensorModel):
-    """Photoreceptor time constant ``tau = tau_min + tau_electrons / lam`` in us.
+    """Photoreceptor time constant in us.
 
-    Dim pixels are slow; the result is finite for any rate since the dark
-    current is added by the caller (``rate_e_per_s`` must be > 0).
+    Parameters
+    ----------
+    rate_e_per_s : array_like
+        Photocurrent, dark current included (must be > 0).
+    model : SensorModel
+
+    Returns
+    -------
+    ndarray
+        evtk's pixel: ``tau_min + tau_electrons / lam`` (dim pixels are slow,
+        smoothly). A v2e pixel: ``max(tau_min, tau_electrons / lam)``, a hard
+        knee at ``lam = tau_electrons / tau_min`` above which it is flat. A
+        log-node pixel: 0 (it follows the light at once).
     """
     lam_per_us = np.asarray(rate_e_per_s, dtype=np.float64) * 1e-6
+    if model.pixel == "v2e":
+        return np.maximum(model.tau_min_us, model.tau_electrons / lam_per_us)
+    if model.pixel == "log-node":
+        return np.zeros_like(lam_per_us)
     return model.tau_min_us + model.tau_electrons / lam_per_us
 
 
@@ -182,8 +290,10 @@ def log_noise_std(rate_e_per_s, model: SensorModel):
     bright light. Zero when shot noise is off.
     """
     lam_per_us = np.asarray(rate_e_per_s, dtype=np.float64) * 1e-6
-    if not model.shot_noise:
+    if not model.shot_noise or model.pixel == "log-node":
         return np.zeros_like(lam_per_us)
+    if model.pixel == "v2e":  # the same 1/sqrt(2 lam tau) with the knee's time constant
+        return 1.0 / np.sqrt(2.0 * lam_per_us * time_constant_us(rate_e_per_s, model))
     return 1.0 / np.sqrt(2.0 * (lam_per_us * model.tau_min_us + model.tau_electrons))
 
 
@@ -219,7 +329,7 @@ class PixelState:
 
 
 def simulate_pixels(state: PixelState, level, tau_us, noise_std, seg_start_us, seg_end_us, model: SensorModel,
-                    seed: int, *, emit=True, count_slot=None, n_slots=0):
+                    seed: int, *, emit=True, count_slot=None, n_slots=0, t0_us=0.0):
     """Advance pixels through segments of constant light; return events and/or counts.
 
     Parameters
@@ -236,6 +346,8 @@ def simulate_pixels(state: PixelState, level, tau_us, noise_std, seg_start_us, s
         Return the events (time in us as float64, pixel index, polarity).
     count_slot : ndarray of int, shape (n_segments,), optional
         Count ON/OFF events of segment k into slot ``count_slot[k]`` (-1: not counted).
+    t0_us : float
+        Absolute time of the call's start (a frame-compared readout's frames fall on multiples of the period).
 
     Returns
     -------
@@ -265,11 +377,30 @@ def simulate_pixels(state: PixelState, level, tau_us, noise_std, seg_start_us, s
     n = 0
     i0 = 0
     seed = int(seed) & 0x7FFFFFFF
+    if model.stepped:
+        period = model.readout_period_us if model.frame_compare else 0.0
+        if period > 0:  # at most one event per frame
+            per_pixel_bound = int(np.sum(np.floor(seg_len / period) + 2.0)) if n_seg else 0
+        per_pixel_bound += int(np.sum(seg_len) * 1e-6 * (model.leak_rate_hz + model.shot_event_rate_hz) * 4) + 16
+        cap = max(1 << 16, 4 * per_pixel_bound) if emit else 0
+        out_t = np.empty(cap, np.float64)
+        out_i = np.empty(cap, np.int64)
+        out_p = np.empty(cap, np.uint8)
+        mode = PIXELS.index(model.pixel)
+        params = np.array([refr, model.noise_step_max_us, period, float(t0_us) % period if period > 0 else 0.0,
+                           model.leak_rate_hz * 1e-6, model.shot_event_rate_hz * 1e-6,
+                           math.log(model.dark_current_e_per_s), model.sample_us])
     while True:
-        i0, n = _run_pixels(level, tau_us, noise_std, seg_start, seg_end, state.theta_on, state.theta_off,
-                            refr, model.noise_step_fraction, model.noise_step_max_us, state.mean, state.var,
-                            state.vref, state.blind_until_us, (seed + 7919 * i0) & 0x7FFFFFFF, emit, count_slot,
-                            on_c, off_c, i0, out_t, out_i, out_p, n, per_pixel_bound)
+        if model.stepped:
+            i0, n = _run_stepped(mode, params, level, tau_us, noise_std, seg_start, seg_end, state.theta_on,
+                                 state.theta_off, state.mean, state.vref, state.blind_until_us,
+                                 (seed + 7919 * i0) & 0x7FFFFFFF, emit, count_slot, on_c, off_c, i0, out_t, out_i,
+                                 out_p, n, per_pixel_bound)
+        else:
+            i0, n = _run_pixels(level, tau_us, noise_std, seg_start, seg_end, state.theta_on, state.theta_off,
+                                refr, model.noise_step_fraction, model.noise_step_max_us, state.mean, state.var,
+                                state.vref, state.blind_until_us, (seed + 7919 * i0) & 0x7FFFFFFF, emit, count_slot,
+                                on_c, off_c, i0, out_t, out_i, out_p, n, per_pixel_bound)
         if i0 >= n_pix:
             break
         grow = max(2 * out_t.size, n + per_pixel_bound)
@@ -278,6 +409,22 @@ def simulate_pixels(state: PixelState, level, tau_us, noise_std, seg_start_us, s
         out_p = np.concatenate([out_p[:n], np.empty(grow - n, np.uint8)])
     state.blind_until_us -= seg_end[-1] if n_seg else 0.0
     return out_t[:n], out_i[:n], out_p[:n], on_c, off_c
+
+
+@numba.njit(cache=True, inline="always")
+def _record(emit, n, tc, i, pol, slot, out_t, out_i, out_p, on_c, off_c):
+    """Write one event (when emitting) and count it in its slot; returns the events written."""
+    if emit:
+        out_t[n] = tc
+        out_i[n] = i
+        out_p[n] = pol
+        n += 1
+    if slot >= 0:
+        if pol == 1:
+            on_c[slot, i] += 1
+        else:
+            off_c[slot, i] += 1
+    return n
 
 
 @numba.njit(cache=True)
@@ -425,21 +572,140 @@ def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step
                                 break
                     if tc < 0.0:
                         break
-                # an event at tc
-                if emit:
-                    out_t[n] = tc
-                    out_i[n] = i
-                    out_p[n] = pol
-                    n += 1
-                if slot >= 0:
-                    if pol == 1:
-                        on_c[slot, i] += 1
-                    else:
-                        off_c[slot, i] += 1
+                n = _record(emit, n, tc, i, pol, slot, out_t, out_i, out_p, on_c, off_c)  # an event at tc
                 t = tc
                 bl = tc + refr
         mean[i] = m
         var[i] = v
+        vref[i] = vr
+        blind[i] = bl
+    return n_pix, n
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _run_stepped(mode, params, level, tau, noise, seg_start, seg_end, th_on, th_off, mean, vref, blind, seed,
+                 emit, count_slot, on_c, off_c, i0, out_t, out_i, out_p, n, per_pixel_bound):
+    """The stepped pixels (``mode``: index in :data:`PIXELS`), i0.. until done or the output might overflow.
+
+    ``params``: refractory (us), largest step (us), frame period (0: asynchronous), the call's start modulo the
+    period, leak and shot-event rates (per us), log of the dark current, the log-node's sampling (us).
+    Returns (next pixel, events written).
+    """
+    rs = _rng_state(seed)
+    n_seg, n_pix = level.shape
+    cap = out_t.size
+    refr, step_max, period, phase = params[0], params[1], params[2], params[3]
+    leak, shot, log_dark, sample = params[4], params[5], params[6], params[7]
+    lognode = mode == 2
+    for i in range(i0, n_pix):
+        if emit and n + per_pixel_bound > cap:
+            return i, n
+        m = mean[i]
+        vr = vref[i]
+        bl = blind[i]
+        ton = th_on[i]
+        toff = th_off[i]
+        # the next frame, relative to the call's start
+        tick = period - phase  # (a frame at the call's very start was the previous call's last)
+        for k in range(n_seg):
+            t = seg_start[k]
+            t_end = seg_end[k]
+            L = level[k, i]
+            tk = tau[k, i]
+            sk = noise[k, i]
+            slot = count_slot[k]
+            r_shot = shot * math.sqrt(min(1.0, math.exp(log_dark - L))) if shot > 0.0 else 0.0
+            if lognode:
+                if period <= 0.0 and L != m:
+                    # the light's change, linearly interpolated over one sample: one event per threshold
+                    ramp = min(sample, t_end - t)
+                    while L - vr >= ton:
+                        vr += ton
+                        tc = t + ramp * max(0.0, (vr - m) / (L - m))
+                        n = _record(emit, n, tc, i, 1, slot, out_t, out_i, out_p, on_c, off_c)
+                    while vr - L >= toff:
+                        vr -= toff
+                        tc = t + ramp * max(0.0, (vr - m) / (L - m))
+                        n = _record(emit, n, tc, i, 0, slot, out_t, out_i, out_p, on_c, off_c)
+                m = L
+                if period <= 0.0 and leak <= 0.0 and r_shot <= 0.0:
+                    continue
+            while t < t_end:
+                h = t_end - t
+                if period > 0.0:
+                    h = min(h, tick - t)
+                elif not lognode:
+                    h = min(h, 0.25 * tk, step_max)
+                else:
+                    h = min(h, step_max)
+                if bl > t:
+                    h = min(h, bl - t)
+                if h < 0.0:
+                    h = 0.0
+                # the photoreceptor over the step (exact OU transition), the reference sinking by the leak
+                if lognode:
+                    m1 = L
+                else:
+                    a = math.exp(-h / tk)
+                    m1 = L + (m - L) * a
+                    if sk > 0.0:
+                        m1 += sk * math.sqrt(1.0 - a * a) * _normal(rs)
+                vr1 = vr - leak * ton * h
+                t1 = t + h
+                awake = bl <= t
+                if period > 0.0:
+                    m = m1
+                    vr = vr1
+                    t = t1
+                    if t >= tick - 1e-9:  # a frame: compare once, fire at most once, reset to the level
+                        tick += period
+                        if bl <= t:
+                            pol = -1
+                            if m - vr >= ton:
+                                pol = 1
+                            elif vr - m >= toff:
+                                pol = 0
+                            if pol >= 0:
+                                n = _record(emit, n, t, i, pol, slot, out_t, out_i, out_p, on_c, off_c)
+                                vr = m
+                                bl = t + refr
+                    continue
+                if awake and r_shot > 0.0 and _uniform(rs) < r_shot * h:  # a shot-noise event in this step
+                    tc = t + h * _uniform(rs)
+                    pol = 1 if _uniform(rs) < 0.5 else 0
+                    n = _record(emit, n, tc, i, pol, slot, out_t, out_i, out_p, on_c, off_c)
+                    m = m + (m1 - m) * (tc - t) / h if h > 0.0 else m1
+                    vr = m
+                    t = tc
+                    bl = tc + refr
+                    continue
+                d0 = m - vr
+                d1 = m1 - vr1
+                pol = -1
+                if awake and d1 >= ton:
+                    pol = 1
+                    b = ton
+                elif awake and d1 <= -toff:
+                    pol = 0
+                    b = -toff
+                if pol < 0:
+                    m = m1
+                    vr = vr1
+                    t = t1
+                    continue
+                f = (b - d0) / (d1 - d0) if d1 != d0 else 1.0
+                f = min(max(f, 0.0), 1.0)
+                tc = t + h * f
+                n = _record(emit, n, tc, i, pol, slot, out_t, out_i, out_p, on_c, off_c)
+                m = m + (m1 - m) * f
+                if lognode:  # ESIM: the reference moves by one threshold
+                    vr = vr + (vr1 - vr) * f + b
+                else:  # v2e: reset to the present level
+                    vr = m
+                t = tc
+                if not lognode:
+                    bl = tc + refr
+        mean[i] = m
         vref[i] = vr
         blind[i] = bl
     return n_pix, n

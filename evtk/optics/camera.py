@@ -81,6 +81,11 @@ class Camera:
         Light lost at the sensor's corners (0 to 1), quadratic in the radius.
     defocus_px : float
         Standard deviation of the defocus blur.
+    mirror : bool
+        The view mirrored left to right about the sensor's centre before the
+        rotation (a camera that sees the screen from behind, through the
+        diffuser); with ``rotation_deg=180`` it is mirrored top to bottom.
+        A camera turned upside down is ``rotation_deg=180`` alone.
     """
 
     rotation_deg: float = 0.0
@@ -90,8 +95,11 @@ class Camera:
     k1: float = 0.0
     vignetting: float = 0.0
     defocus_px: float = 0.0
+    mirror: bool = False
 
     def __post_init__(self):
+        if not isinstance(self.mirror, bool):
+            raise EvtkError(f"camera mirror must be true or false, not {self.mirror!r}")
         for name in ("rotation_deg", "scale", "k1", "vignetting", "defocus_px"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
@@ -135,6 +143,8 @@ class Camera:
         c, _ = self._frame(sensor_size)
         a = math.radians(self.rotation_deg)
         rs = self.scale * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        if self.mirror:  # x -> -x about the centre, then the rotation
+            rs = rs @ np.diag([-1.0, 1.0])
         m = np.eye(3)
         m[:2, :2] = rs
         m[:2, 2] = c + np.asarray(self.offset_px) - rs @ c

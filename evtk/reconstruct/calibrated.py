@@ -25,6 +25,7 @@ import dataclasses
 
 import numpy as np
 
+from ..errors import EvtkError
 from ..optics import response_origin_px, response_region
 from ..simulate import FLAT_ID, LEVEL_ID
 from ..simulate.record import SimulationRecord
@@ -43,14 +44,21 @@ from .fit import (
     refractory_bound,
     rise_orders,
 )
+from .linearize import level_curve, level_table_values
 from .pipeline import MAX_TIMING_STAMP_US, check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
 
-__all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement", "fit_on_edges", "MAX_LEVEL_ERROR", "LEAD_US"]
+__all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement", "fit_on_edges", "MAX_LEVEL_ERROR",
+           "MAX_TABLE_ERROR", "LEAD_US", "held_out_table_error"]
 
 #: The most a fitted pixel model may misread the level captures' light (as a factor, either way) before the
 #: calibrated route gives it up for exp(n theta).
 MAX_LEVEL_ERROR = 2.0
+
+#: The most the level captures' table may misread a level left out of it (as a factor, median over the levels)
+#: for the calibrated route to read the counts through it where the pixel model misreads them: a pixel that
+#: saturates (a 40 µs refractory period) reads 1.5x off and is left to exp(n theta); a log-node pixel 1.04x.
+MAX_TABLE_ERROR = 1.25
 
 
 def schedule_of_record(record) -> dict:
@@ -74,7 +82,7 @@ def nominal_placement(schedule) -> tuple:
 def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16, 16), binarize_method="auto",
                            skip_us=0, length_us=None, crop="valid", flat_field=True, deblur=None, timing=None,
                            linear=True, tolerance_us=None, progress=None, pixel_model=None, cell_map=None,
-                           blur_px=0.0, own_levels=True):
+                           blur_px=0.0, own_levels=True, linearization="auto"):
     """The whole pipeline with a pixel model fitted to the recording's own level captures.
 
     Parameters
@@ -108,6 +116,16 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         Fit the pixel model to the run's own level captures when it has any
         (default); False uses ``pixel_model`` even then (one fitted to these
         very captures before).
+    linearization : {"auto", "model", "table"}
+        How counts become light: "model" inverts the fitted pixel model
+        (falling back to exp(n theta) when it misreads the level captures by
+        more than :data:`MAX_LEVEL_ERROR`); "table" reads them through the
+        level captures' own monotone table of mean counts against light
+        (:func:`~evtk.reconstruct.linearize.level_curve`, no model, no event
+        times); "auto" (default) takes the model while it reads the level
+        captures back within :data:`MAX_LEVEL_ERROR`, else the table where
+        the table reads each level left out of it within
+        :data:`MAX_TABLE_ERROR` (:func:`held_out_table_error`), else exp(n theta).
 
     Returns
     -------
@@ -162,6 +180,29 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
                                 binarize_method=binarize_method, linear=linear, crop=crop, deblur=deblur,
                                 flat_field=flat_field, timing=timing)
     ratios = result.summary.get("level_light_ratio")
+    if linearization not in ("auto", "model", "table"):
+        raise EvtkError(f"linearization must be 'auto', 'model' or 'table', not {linearization!r}")
+    # the level captures' statistics come with the fit, whether fitted here or by the calibration
+    table_error = held_out_table_error(fit.statistics.light, fit.statistics.counts)
+    model_error = _level_error(ratios)
+    misreads = bool(ratios) and not all(np.isfinite(r) and 1 / MAX_LEVEL_ERROR <= r <= MAX_LEVEL_ERROR
+                                        for r in ratios)
+    table_holds = (table_error is not None and table_error < min(model_error, np.log(MAX_TABLE_ERROR))
+                   and np.isfinite(fit.blank) and fit.blank > 0)
+    if linearization == "table" or (linearization == "auto" and misreads and table_holds):
+        curve = level_curve(fit.statistics.light, fit.statistics.counts, fit.blank)
+        result = reconstruct_counts(counts, record, skip_us=skip_us, length_us=length_us, size=size,
+                                    binarize_method=binarize_method, linear=linear, crop=crop, deblur=deblur,
+                                    flat_field=flat_field, timing=False, curve=curve)
+        result.summary.update(linearization="the level captures' table", level_table_error=table_error,
+                              pixel_model_level_error=model_error)
+        if misreads and linearization == "auto":
+            result.summary.update(pixel_model_rejected=True, pixel_model_note=(
+                f"the fitted pixel model reads the level captures' light back as {min(ratios):.3g} to "
+                f"{max(ratios):.3g} times what it was: it does not describe these pixels, so the counts were "
+                f"linearised by the level captures' own table (a level left out of it is read within a factor "
+                f"{np.exp(table_error):.3g})"))
+        ratios = None
     if ratios and not all(np.isfinite(r) and 1 / MAX_LEVEL_ERROR <= r <= MAX_LEVEL_ERROR for r in ratios):
         # the model reads the run's own level captures back wrong: it does not describe these pixels
         fallback = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
@@ -177,6 +218,46 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
                           response_origin_px=[float(v) for v in origin_px], pixel_model=fit.to_dict(),
                           level_captures=int(np.sum(sub.kernel_id == LEVEL_ID)), windows_after_edges_us=shift)
     return result
+
+
+def _level_error(ratios) -> float:
+    """The median misreading ``|log(read / true)|`` of the level captures' light (inf without any)."""
+    r = np.asarray(ratios if ratios else [], np.float64)
+    r = r[np.isfinite(r) & (r > 0)]
+    return float(np.median(np.abs(np.log(r)))) if r.size and r.size == len(ratios) else float("inf")
+
+
+def held_out_table_error(level_light, level_counts) -> float | None:
+    """How well the level captures' table reads a level it did not see: each interior level (not the dimmest
+    nor the brightest, which a table can only extrapolate to) left out, read through the table of the others
+    (:func:`~evtk.reconstruct.linearize.level_table_values`).
+
+    Parameters
+    ----------
+    level_light, level_counts : array_like, shape (levels,)
+        The level captures' light (response units) and mean net counts.
+
+    Returns
+    -------
+    float or None
+        The median ``|log(read / true)|`` over the levels left out; None with
+        fewer than three levels of light.
+    """
+    light = np.asarray(level_light, np.float64)
+    counts = np.asarray(level_counts, np.float64)
+    order = np.argsort(light, kind="stable")
+    light, counts = light[order], counts[order]
+    if np.sum(light > 0) < 3:
+        return None
+    errs = []
+    for j in range(1, light.size - 1):
+        rest = np.arange(light.size) != j
+        try:
+            read = float(level_table_values(counts[j], counts[rest], light[rest]))
+        except EvtkError:
+            return None
+        errs.append(abs(np.log(read / light[j])) if read > 0 and light[j] > 0 else np.inf)
+    return float(np.median(errs))
 
 
 #: How long before the trigger edges the pixel model's statistics are first counted (µs): a light that comes a

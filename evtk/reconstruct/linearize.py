@@ -16,7 +16,7 @@ from ..optics.camera import Camera, footprint_light
 from ..sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
 from ..simulate.record import SimulationRecord
 
-__all__ = ["linearize", "count_curve", "linearize_by_model", "flat_field_gain"]
+__all__ = ["linearize", "count_curve", "linearize_by_model", "flat_field_gain", "isotonic", "level_table_values", "level_curve"]
 
 
 def linearize(on, off=None, theta_on=0.2, theta_off=None):
@@ -295,3 +295,131 @@ def flat_field_gain(flat_counts, expected_counts, min_counts=3, limits=(0.5, 2.0
     gain = np.ones(exp_.shape)
     gain[ok] = exp_[ok] / obs[ok]
     return np.clip(gain, *limits)
+
+
+def isotonic(y, weights=None):
+    """The non-decreasing sequence nearest ``y`` in weighted least squares (pool adjacent violators).
+
+    Parameters
+    ----------
+    y : array_like, shape (n,)
+    weights : array_like, shape (n,), optional
+        Positive weights (default all 1).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Each run of violators replaced by its weighted mean.
+
+    Examples
+    --------
+    >>> isotonic([1.0, 3.0, 2.0, 4.0]).tolist()
+    [1.0, 2.5, 2.5, 4.0]
+    """
+    y = np.asarray(y, dtype=np.float64)
+    w = np.ones_like(y) if weights is None else np.asarray(weights, dtype=np.float64)
+    means, sizes, counts = [], [], []
+    for v, wv in zip(y, w):
+        means.append(v)
+        sizes.append(wv)
+        counts.append(1)
+        while len(means) > 1 and means[-2] > means[-1]:
+            m2, s2, c2 = means.pop(), sizes.pop(), counts.pop()
+            tot = sizes[-1] + s2
+            means[-1] = (means[-1] * sizes[-1] + m2 * s2) / tot
+            sizes[-1] = tot
+            counts[-1] += c2
+    return np.repeat(np.asarray(means), counts)
+
+
+def level_table_values(net_counts, level_counts, level_light):
+    """Light behind each net count, read from the level captures without a pixel model.
+
+    The level captures (known light ``level_light``, response units above
+    the dark level) give the mean net counts ``level_counts`` a pixel
+    makes at each light; with (0 counts, 0 light) added and the counts made
+    non-decreasing in light (:func:`isotonic`), the table is read by linear
+    interpolation, and beyond its ends along its first and last segments.
+
+    Parameters
+    ----------
+    net_counts : array_like
+        ON minus OFF counts (any shape; flat-field calibrated or not).
+    level_counts, level_light : array_like, shape (levels,)
+
+    Returns
+    -------
+    ndarray
+        Light in the units of ``level_light``, the shape of ``net_counts``.
+
+    Examples
+    --------
+    >>> level_table_values(np.array([0.0, 5.0, 15.0]), [10.0, 20.0], [1.0, 2.0]).tolist()
+    [0.0, 0.5, 1.5]
+    """
+    light = np.asarray(level_light, dtype=np.float64).ravel()
+    counts = np.asarray(level_counts, dtype=np.float64).ravel()
+    if light.size != counts.size or light.size == 0:
+        raise EvtkError("a level table needs one mean count per level capture, and at least one capture")
+    if not (np.all(np.isfinite(light)) and np.all(np.isfinite(counts))):
+        raise EvtkError("the level captures' light and counts must be finite")
+    order = np.argsort(light, kind="stable")
+    light = np.concatenate([[0.0], light[order]])
+    counts = isotonic(np.concatenate([[0.0], counts[order]]))
+    # equal counts (a saturated or flat stretch) stand for the mean of their lights
+    xs, inverse = np.unique(counts, return_inverse=True)
+    ys = np.bincount(inverse, weights=light) / np.bincount(inverse)
+    n = np.asarray(net_counts, dtype=np.float64)
+    if xs.size < 2:
+        raise EvtkError("the level captures' counts do not grow with their light: no table can be read from them")
+    out = np.interp(n, xs, ys)
+    lo_slope = (ys[1] - ys[0]) / (xs[1] - xs[0])
+    hi_slope = (ys[-1] - ys[-2]) / (xs[-1] - xs[-2])
+    out = np.where(n < xs[0], ys[0] + (n - xs[0]) * lo_slope, out)
+    return np.where(n > xs[-1], ys[-1] + (n - xs[-1]) * hi_slope, out)
+
+
+def level_curve(level_light, level_counts, blank_units, points=4000):
+    """A count curve (:func:`count_curve`'s form) read from level captures instead of simulated by a model.
+
+    The level captures' mean net counts against their known light
+    (:func:`level_table_values`' monotone table) give the count at each
+    log-light step ``u = log(1 + light / blank_units)``; rounded to whole
+    counts, a count ``n`` stands for the steps whose mean count rounds to
+    it, so :func:`linearize_by_model` reads ``n`` back as the light whose
+    mean count is ``n``. Up to 1.5 times the brightest level's step, along
+    the table's last segment beyond it.
+
+    Parameters
+    ----------
+    level_light : array_like, shape (levels,)
+        Each level capture's light (response units above the dark level).
+    level_counts : array_like, shape (levels,)
+        Their mean net counts (flat-field calibrated).
+    blank_units : float
+        The dark level in response units: ``u`` is the light's log step over it.
+    points : int
+        Grid of ``u``.
+
+    Returns
+    -------
+    (u, counts)
+        ``u`` from 0 upwards and whole counts non-decreasing in it.
+    """
+    light = np.asarray(level_light, dtype=np.float64).ravel()
+    if not (np.isfinite(blank_units) and blank_units > 0):
+        raise EvtkError(f"the dark level must be a positive number of response units, not {blank_units}")
+    if light.size == 0 or not np.all(np.isfinite(light)) or light.max() <= 0:
+        raise EvtkError("a level curve needs level captures of some light")
+    u = np.linspace(0.0, 1.5 * np.log1p(light.max() / blank_units), int(points))
+    counts_of_light = np.asarray(level_counts, dtype=np.float64).ravel()
+    order = np.argsort(light, kind="stable")
+    lx = np.concatenate([[0.0], light[order]])
+    cy = isotonic(np.concatenate([[0.0], counts_of_light[order]]))
+    target = np.expm1(u) * blank_units
+    n = np.interp(target, lx, cy)
+    slope = (cy[-1] - cy[-2]) / (lx[-1] - lx[-2])
+    n = np.where(target > lx[-1], cy[-1] + (target - lx[-1]) * max(slope, 0.0), n)
+    counts = np.maximum.accumulate(np.maximum(np.floor(n + 0.5), 0.0))
+    u.flags.writeable = counts.flags.writeable = False
+    return u, counts

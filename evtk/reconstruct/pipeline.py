@@ -222,7 +222,7 @@ def check_crop(crop):
 
 
 def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
-                       linear=True, theta=None, crop="valid", deblur=None, flat_field=True, timing=None):
+                       linear=True, theta=None, crop="valid", deblur=None, flat_field=True, timing=None, curve=None):
     """Every stage after accumulation, on window counts (:func:`reconstruct` without the recording).
 
     ``counts`` is a :class:`WindowCounts` (from :func:`accumulate`, or from
@@ -230,16 +230,17 @@ def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16
     :meth:`WindowCounts.from_capture_counts`); ``sim`` the simulation record
     (:class:`~evtk.simulate.SimulationRecord`, or its dict form) or None. The other parameters
     are :func:`reconstruct`'s; ``skip_us``/``length_us`` must be the ones
-    the counts were taken with.
+    the counts were taken with. ``curve`` (``(u, counts)``, as :func:`count_curve` returns) linearises
+    instead of the record's pixel model (:func:`evtk.reconstruct.linearize.level_curve`).
     """
     check_crop(crop)
     with one_blas_thread():  # small matrices
         return _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, linear, theta, crop,
-                                   deblur, flat_field, timing)
+                                   deblur, flat_field, timing, curve)
 
 
 def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, linear, theta, crop, deblur,
-                        flat_field, timing):
+                        flat_field, timing, curve=None):
     sim = None if sim is None else SimulationRecord.from_dict(sim)
     win = counts.windows
     region = counts.region
@@ -251,7 +252,8 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
     schedule = bench = None
     if sim is not None and len(win) == len(sim.schedule):
         schedule, bench = sim.schedule, sim.bench
-    curve = count_curve(sim, skip_us, length_us) if sim is not None and linear and theta is None else None
+    if curve is None:
+        curve = count_curve(sim, skip_us, length_us) if sim is not None and linear and theta is None else None
     needs_net = not linear or curve is not None or (flat_field and schedule is not None)
     net = counts.on.astype(np.float64) - counts.off if needs_net else None
     gain = None

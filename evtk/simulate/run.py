@@ -45,6 +45,11 @@ from .table import count_table, table_batches
 __all__ = ["Simulation"]
 
 
+def _decay(dt_us, tau_us):
+    """``exp(-dt / tau)``, 0 for a pixel that follows the light at once (``tau`` 0)."""
+    return math.exp(-dt_us / tau_us) if tau_us > 0 else 0.0
+
+
 class Simulation:
     """A simulated run of the device.
 
@@ -102,6 +107,12 @@ class Simulation:
         light's times, the trigger edges come this much earlier, as a bench
         records them; the calibrated reconstruction fits the delay
         (:attr:`evtk.reconstruct.PixelFit.delay_us`).
+    light_rise_us : float
+        How gradually the light follows each edge: it rises as ``1 -
+        exp(-t / light_rise_us)`` after the light's rising edge and falls as
+        ``exp(-t / light_rise_us)`` after its falling one (a lamp's or
+        diffuser's response; 0, the default: at once). Simulated as pieces
+        of constant light, finest at the edge.
 
     Examples
     --------
@@ -112,7 +123,7 @@ class Simulation:
 
     def __init__(self, kernels, features, bench: Bench | None = None, sensor: SensorModel | None = None,
                  window_us=1000, settle_us=None, repeat=1, seed=0, start_us=0, noise_seed=None, flat_field=2,
-                 calibration=0, dot_spacing=4, levels=0, camera=None, light_delay_us=0):
+                 calibration=0, dot_spacing=4, levels=0, camera=None, light_delay_us=0, light_rise_us=0.0):
         self.bench = bench if bench is not None else Bench()
         self.sensor = sensor if sensor is not None else SensorModel()
         self.kernels = _as_patterns("kernels", kernels)
@@ -136,6 +147,13 @@ class Simulation:
         if self.light_delay_us >= self.settle_us:
             raise EvtkError(f"light_delay_us={self.light_delay_us} must be shorter than the darkness between patterns "
                             f"(settle_us={self.settle_us})")
+        if isinstance(light_rise_us, bool) or not isinstance(light_rise_us, (int, float)) \
+                or not (math.isfinite(light_rise_us) and 0 <= light_rise_us):
+            raise EvtkError(f"light_rise_us must be a finite number >= 0, not {light_rise_us!r}")
+        self.light_rise_us = float(light_rise_us)
+        if 5 * self.light_rise_us >= min(self.window_us, self.settle_us):
+            raise EvtkError(f"light_rise_us={self.light_rise_us:g} must be under a fifth of the window "
+                            f"({self.window_us} us) and of the darkness ({self.settle_us} us)")
         self.camera = None if camera is None or Camera.from_dict(camera).is_ideal else Camera.from_dict(camera)
         self.region = response_region(self.bench, kshape, self.features.shape[1:])
         if self.camera is not None:  # where the camera's pose and lens put the nominal response
@@ -286,23 +304,35 @@ class Simulation:
 
     # -- the pixel simulation ---------------------------------------------------------
     def _segments(self, c0, c1, lead_in):
-        """Segment bounds (float us relative to the batch base) and which capture/light each has."""
+        """Segment bounds (float us relative to the batch base), which capture each counts for (-1: none),
+        whose light it has (-1: darkness) and what share of that light (:attr:`light_rise_us`)."""
         s = self.schedule
         base = int(s.t_on_us[c0]) - (self.settle_us if lead_in else 0)
-        starts, ends, which = [], [], []
+        starts, ends, which, light, share = [], [], [], [], []
         if lead_in:
             starts.append(0.0)
             ends.append(float(self.settle_us))
             which.append(-1)
+            light.append(-1)
+            share.append(1.0)
+        r = self.light_rise_us
+        # pieces of the rise (and of the fall), in units of the rise's time constant, finest at the edge
+        cuts = np.array([0.0, 0.1, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0]) * r if r > 0 else np.zeros(1)
+        rise = 1.0 - r * (np.exp(-cuts[:-1] / r) - np.exp(-cuts[1:] / r)) / np.diff(cuts) if r > 0 else cuts[:0]
         for c in range(c0, c1):
             on = float(s.t_on_us[c] - base)
-            starts += [on, on + self.window_us]
-            ends += [on + self.window_us, on + self.window_us + self.settle_us]
-            which += [c, -1]
-        return base, np.array(starts), np.array(ends), np.array(which, np.int64)
+            off = on + self.window_us
+            starts += list(on + cuts[:-1]) + [on + cuts[-1]] + list(off + cuts[:-1]) + [off + cuts[-1]]
+            ends += list(on + cuts[1:]) + [off] + list(off + cuts[1:]) + [off + self.settle_us]
+            which += [c] * cuts.size + [-1] * cuts.size
+            light += [c] * cuts.size + [c] * (cuts.size - 1) + [-1]
+            share += list(rise) + [1.0] + list(1.0 - rise) + [1.0]
+        return (base, np.array(starts), np.array(ends), np.array(which, np.int64), np.array(light, np.int64),
+                np.array(share))
 
-    def _levels(self, which, region):
-        """(level, tau, noise) arrays, shape (n_segments, n_pixels), for pixels of ``region``."""
+    def _levels(self, which, region, share=None):
+        """(level, tau, noise) arrays, shape (n_segments, n_pixels), for pixels of ``region``; ``which``
+        the capture whose light each segment has (-1: darkness), ``share`` the part of it come (default all)."""
         x0, x1, y0, y1 = region
         blank = self.blank_rate_e_per_s
         rates = np.empty((which.size, (x1 - x0) * (y1 - y0)))
@@ -315,6 +345,8 @@ class Simulation:
             if key not in cache:
                 cache[key] = self._rate(self.pass_response(c, region)).ravel()
             rates[k] = cache[key]
+            if share is not None and share[k] != 1.0:  # the light part-way between darkness and the pattern's
+                rates[k] = blank + share[k] * (rates[k] - blank)
         return np.log(rates), time_constant_us(rates, self.sensor), log_noise_std(rates, self.sensor)
 
     def _pass_key(self, c):
@@ -367,36 +399,39 @@ class Simulation:
                 for c in range(len(self.schedule)):
                     g = self._glow_rate(c)
                     lg = math.log(g)
-                    v = lg + (v - lg) * math.exp(-self.window_us / float(time_constant_us(g, self.sensor)))
+                    v = lg + (v - lg) * _decay(self.window_us, float(time_constant_us(g, self.sensor)))
                     reach = max(reach, abs(v - v0))
-                    v = v0 + (v - v0) * math.exp(-self.settle_us / tau_blank)
+                    v = v0 + (v - v0) * _decay(self.settle_us, tau_blank)
                     reach = max(reach, abs(v - v0))
                 th_min = min(self._theta_on[out_idx].min(), self._theta_off[out_idx].min())
                 # a pixel whose thresholds both exceed the reach of the glow can never fire
                 can = np.minimum(self._theta_on[out_idx], self._theta_off[out_idx]) <= reach
                 out_idx = out_idx[can]
                 if reach >= th_min:
-                    quiet = SensorModel.from_dict({**self.sensor.to_dict(), "shot_noise": False})
+                    quiet = SensorModel.from_dict({**self.sensor.to_dict(), "shot_noise": False, "leak_rate_hz": 0.0,
+                                                   "shot_event_rate_hz": 0.0})
                     outside = (out_idx, quiet, PixelState(np.full(out_idx.size, math.log(blank)), 0.0,
                                                           self._theta_on[out_idx], self._theta_off[out_idx], rng))
         n = len(self.schedule)
         for c0 in range(0, n, batch):
             c1 = min(n, c0 + batch)
-            base, st, en, which = self._segments(c0, c1, lead_in=(c0 == 0))
+            base, st, en, which, light, share = self._segments(c0, c1, lead_in=(c0 == 0))
             slot = np.where(which >= 0, which - c0, -1)
-            lvl, tau, noise = self._levels(which, region)
+            lvl, tau, noise = self._levels(light, region, share)
             seed_roi, seed_out, seed_ba = (int(v) for v in rng.integers(0, 2**31 - 1, 3))
             roi = simulate_pixels(roi_state, lvl, tau, noise, st, en, self.sensor, seed_roi,
-                                  emit=emit, count_slot=slot, n_slots=c1 - c0)
+                                  emit=emit, count_slot=slot, n_slots=c1 - c0, t0_us=base)
             out = None
             if outside is not None:
                 out_idx, quiet, ostate = outside
-                g = np.array([math.log(self._glow_rate(c)) if c >= 0 else math.log(blank) for c in which])
+                g = np.array([math.log(blank + f * (self._glow_rate(c) - blank)) if f != 1.0 else
+                              math.log(self._glow_rate(c)) if c >= 0 else math.log(blank)
+                              for c, f in zip(light, share)])
                 olvl = np.repeat(g[:, None], out_idx.size, axis=1)
                 rates = np.exp(g)
                 otau = np.repeat(time_constant_us(rates, quiet)[:, None], out_idx.size, axis=1)
                 onoise = np.zeros_like(olvl)
-                out = simulate_pixels(ostate, olvl, otau, onoise, st, en, quiet, seed_out)
+                out = simulate_pixels(ostate, olvl, otau, onoise, st, en, quiet, seed_out, t0_us=base)
             yield base, c0, c1, st, en, which, roi, out, seed_ba, roi_idx, (outside[0] if outside else None)
             if progress is not None:
                 progress(c1 - c0)
@@ -434,7 +469,8 @@ class Simulation:
             parts.append((nt, ni + every_base, npol))
             t_rel, local, pol = (np.concatenate([part[k] for part in parts]) for k in range(3))
             t, x, y, p = _sorted_events(t_rel, local, pol, int(math.ceil(span)), base, x_of, y_of)
-            yield Events._trusted(self.sensor.stamp(t), x, y, p, (w, h), is_sorted=True)  # frame readout, if any
+            # frame readout and the camera's clock, if any
+            yield Events._trusted(self.sensor.stamp(t, self.start_us), x, y, p, (w, h), is_sorted=True)
 
     def events(self) -> Events:
         """All events in memory (use :meth:`write` or :meth:`iter_events` for long runs)."""
@@ -481,8 +517,12 @@ class Simulation:
             raise EvtkError(f"region {region} is not inside the {b.sensor_width}x{b.sensor_height} sensor")
         if method not in ("auto", "table", "exact"):
             raise EvtkError(f"method must be 'auto', 'table' or 'exact', not {method!r}")
+        plain = not self.sensor.stepped and self.light_rise_us == 0
+        if method == "table" and not plain:
+            raise EvtkError("the count table models evtk's asynchronous pixel under sharp light: use method='exact' "
+                            "for another pixel, a frame-compared readout or a light with a rise time")
         if method == "auto":
-            method = "table" if self.settle_us >= self.recommended_settle_us() else "exact"
+            method = "table" if self.settle_us >= self.recommended_settle_us() and plain else "exact"
         n = len(self.schedule)
         ny, nx = y1 - y0, x1 - x0
         on = np.zeros((n, ny, nx), np.int32)
