@@ -10,7 +10,6 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import random_events
 
 import evtk
 from evtk.cli import main
