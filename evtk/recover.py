@@ -25,6 +25,7 @@ of the best are listed, so an ambiguous answer is visible.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -32,6 +33,7 @@ import numpy as np
 
 from .cluster import run_tasks
 from .errors import EvtkError
+from .limits import require_memory
 from .optics import Bench, ideal_response, response_origin_px, response_region
 from .reconstruct import footprint_matrix
 from .sweeps import simulated_reconstruction
@@ -114,6 +116,7 @@ def all_kernels(size):
     n = s * s
     if n > MAX_BRUTE_BITS:
         raise EvtkError(f"{2 ** n} kernels of {s}x{s} are too many to enumerate; use the search")
+    require_memory(2 ** n * n * 17, f"the {2 ** n:,} kernels of {s}x{s}")  # int64 bits, then int8
     idx = np.arange(2 ** n, dtype=np.int64)
     bits = (idx[:, None] >> np.arange(n - 1, -1, -1)) & 1
     return bits.astype(np.int8).reshape(-1, s, s)
@@ -174,6 +177,9 @@ def response_matrix(features, size, bench=None, blurred=False):
 
     s = _check_size(size)
     f = _as_binary("features", features, 2)
+    cells = (f.shape[0] + s - 1) * (f.shape[1] + s - 1)
+    # the columns, their stacked copy and one ideal response
+    require_memory(8 * cells * (2 * s * s + 1), f"the model of a {s}x{s} kernel on {f.shape[0]}x{f.shape[1]} features")
     my = mx = None
     if blurred:
         bench = bench if bench is not None else Bench()
@@ -244,7 +250,10 @@ def recover_brute(target, candidates, true_kernel=None, fit_scale=False, weights
     """
     t0 = time.perf_counter()
     y = np.asarray(target, dtype=np.float64).ravel()
-    r = np.asarray(candidates, dtype=np.float64)
+    given = np.asarray(candidates)
+    # a float64 copy of the candidates, its weighted copy and the squared errors
+    require_memory(3 * 8 * given.size, f"comparing {given.shape[0] if given.ndim else 0:,} candidate responses")
+    r = given.astype(np.float64, copy=False)
     n = r.shape[0]
     size = int(round(np.log2(n) ** 0.5)) if n > 1 else 0
     if n < 2 or 2 ** (size * size) != n:
@@ -439,6 +448,7 @@ def device_responses(kernels, features, bench=None, sensor=None, seed=0, noise_s
         raise EvtkError("every kernel is all zero: nothing to show")
     result, _ = simulated_reconstruction(k[lit], f, bench, sensor, repeat=1, seed=seed, noise_seed=noise_seed,
                                          method=method, crop=crop, deblur=deblur)
+    require_memory(8 * len(k) * math.prod(result.cells.shape[1:]), f"the responses of {len(k):,} kernels")
     out = np.zeros((len(k),) + result.cells.shape[1:])
     out[lit[result.pairs[:, 0]]] = result.cells
     return out
@@ -466,6 +476,8 @@ def success_rate(powers_mw, size=3, trials=100, method=None, bench=None, sensor=
     if method not in ("brute", "search"):
         raise EvtkError(f"method must be 'brute' or 'search', not {method!r}")
     bench = bench if bench is not None else Bench()
+    # every trial's kernel, features and task tuple are drawn before the trials run
+    require_memory(int(trials) * (512 + s * s + math.prod(features_shape)), f"the tasks of {int(trials):,} trials")
 
     rows = []
     for pi, p in enumerate(powers_mw):

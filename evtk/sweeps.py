@@ -27,8 +27,8 @@ import numpy as np
 from .cluster import run_tasks
 from .errors import EvtkError
 from .io import open as open_recording
-from .limits import memory_limit_bytes
-from .metrics import SinadAccumulator, flip_rates
+from .limits import memory_limit_bytes, require_memory, require_window_work
+from .metrics import SinadAccumulator, flip_rates, flip_rates_bytes
 from .optics import Bench
 from .reconstruct import WindowCounts, accumulate, plan, reconstruct, reconstruct_counts, response_error, window_bytes
 from .simulate import Simulation
@@ -92,8 +92,40 @@ def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval=
     :class:`evtk.metrics.SinadAccumulator`, so a minute of 10 ms windows over
     a whole sensor is measured in one pass. A scheduled (simulated) recording
     ties its windows together (passes, flat fields) and is reconstructed
-    whole. ``options`` go to :func:`evtk.reconstruct.reconstruct_counts`
-    (``linear``, ``theta``, ``binarize_method``, ...).
+    whole.
+
+    Before any window is counted, the memory of one batch, the accumulator
+    and the flip rates is checked against the budget
+    (:func:`evtk.limits.require_memory`), and the windows' work against
+    what the recording's events justify
+    (:func:`evtk.limits.require_window_work`): a file of two events
+    stamped far apart cannot ask for billions of windows.
+
+    Parameters
+    ----------
+    rec : Recording
+        An open recording.
+    window : "schedule", "triggers" or ("period", period_us)
+        How to cut the windows.
+    skip_us, length_us : int
+        Shorten or delay every window.
+    interval : "jackknife", "bootstrap" or None
+        The SINAD's interval over repeats (:func:`evtk.metrics.sinad`).
+    per_pixel : bool
+        Also report each pixel's SINAD.
+    seed : int
+        Seed of a bootstrap interval.
+    progress : callable, optional
+        Called with the number of events counted.
+    **options
+        Go to :func:`evtk.reconstruct.reconstruct_counts` (``linear``,
+        ``theta``, ``binarize_method``, ``size``, ...); ``region`` picks the
+        pixels.
+
+    Returns
+    -------
+    list of dict
+        One row per scene, as :func:`scene_noise` gives.
     """
 
     sim, win, region = plan(rec, window, skip_us, length_us, options.pop("region", None), check_memory=False)
@@ -102,7 +134,17 @@ def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval=
         return scene_noise(result, interval=interval, per_pixel=per_pixel, seed=seed)
     if len(win) < 2:
         raise EvtkError("no scene was captured at least twice: SINAD and flip rates need repeats")
-    batch = max(1, min(NOISE_BATCH_BYTES, memory_limit_bytes() // 2) // max(1, window_bytes(region, False)))
+    x0, x1, y0, y1 = region
+    pixels = (x1 - x0) * (y1 - y0)
+    spec = f"period:{window[1]}" if isinstance(window, tuple) else str(window)
+    span = f"--window {spec} over {int(win.t_start_us[0]):,} .. {int(win.t_end_us[-1]):,} us"
+    require_window_work(len(win), pixels, rec.info()["events"], span)
+    out_px = math.prod(options.get("size", (16, 16)))
+    # what stays for the whole run: the accumulator, and the binary responses with the flip rates' copies
+    fixed = SinadAccumulator.bytes_needed(len(win), pixels) + len(win) * out_px + flip_rates_bytes(len(win), out_px)
+    per_window = max(1, window_bytes(region, False))
+    require_memory(fixed + per_window, f"{span}: measuring {len(win):,} windows over {x1 - x0}x{y1 - y0} pixels")
+    batch = max(1, min(NOISE_BATCH_BYTES, (memory_limit_bytes() - fixed) // 2) // per_window)
     acc = binary = None
     for i in range(0, len(win), batch):
         counts = accumulate(rec, win[i:i + batch], region, progress=progress)

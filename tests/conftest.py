@@ -63,3 +63,69 @@ def no_hang(seconds=10.0):
             signal.signal(signal.SIGALRM, old)
 
     return guard()
+# -- the `slow` marker --------------------------------------------------------------------------------------------
+#
+# `pytest` (CI, README) runs everything; `pytest -m "not slow"` is the quick loop while developing. The tests
+# below took 2 s or more each here (`pytest --durations=0`, a few files at a time, on two shared cores); tests
+# whose time is mostly numba compiling a kernel for the first time stay in the quick loop, as the next test
+# would pay it instead. Marked here rather than in each file, so that one list says what the quick loop leaves
+# out; a name that no longer exists in its file is an error, not a silently unmarked test.
+SLOW = {
+    "test_bcnn.py": {"test_bundled_data_sets", "test_channel_masks_score_each_channel",
+                     "test_cli_classify_and_robustness", "test_layerwise_training_learns_a_separable_toy_task",
+                     "test_metropolis_improves_a_toy_objective_and_is_reproducible",
+                     "test_ste_reference_learns_and_yields_a_binary_network"},
+    "test_calibrate.py": {"test_bench_round_trip_patterns_simulate_calibrate_reconstruct",
+                          "test_calibration_bad_input_is_one_clear_error_each",
+                          "test_calibration_recovers_where_the_response_lies"},
+    "test_camera.py": {"test_a_rotated_defocused_view_is_deblurred_in_two_dimensions",
+                       "test_calibration_measures_the_cameras_defocus",
+                       "test_reconstruction_through_a_random_pose_stays_near_the_oracle"},
+    "test_cluster.py": {"test_batch_on_a_cluster_equals_serial_and_resumes", "test_sweeps_equal_serial_runs",
+                        "test_time_split_reconstruction_equals_the_whole", "test_to_dask_reads_lazily_by_time"},
+    "test_crash_safety.py": {"test_killed_writer_keeps_previous_file",
+                             "test_parquet_without_footer_salvages_complete_row_groups",
+                             "test_salvaged_recording_left_open_exits_cleanly",
+                             "test_writer_killed_at_random_moments"},
+    "test_docs.py": {"test_snippets_run_as_written"},
+    "test_fit.py": {"test_a_calibration_run_brings_the_pixel_model_to_a_job_without_level_captures",
+                    "test_a_light_that_follows_its_trigger_edges_late_is_timed_and_the_windows_follow_it",
+                    "test_a_pixel_model_that_misreads_the_levels_is_given_up",
+                    "test_cli_defaults_to_the_calibrated_route_and_says_which",
+                    "test_the_calibrated_route_is_within_15_percent_of_the_oracle",
+                    "test_the_calibrated_route_needs_nothing_of_the_record",
+                    "test_the_refractory_period_is_measured_where_the_gaps_show_it",
+                    "test_the_rise_timed_half_way_up_pins_the_time_constant"},
+    "test_hdf5_parquet.py": {"test_convert_every_pair", "test_damaged_dsec_blosc1_chunk_is_an_error_not_a_crash",
+                             "test_parquet_footer_with_a_bad_column_type_is_an_error_not_an_abort",
+                             "test_sound_blosc1_chunks_pass_the_check"},
+    "test_hostile.py": {"test_batch_onto_a_full_disk_writes_its_manifest",
+                        "test_writing_onto_a_full_disk_is_one_error_and_the_old_file_stays"},
+    "test_metrics.py": {"test_cumulative_factor_extremes_stay_finite_in_log_space",
+                        "test_poisson_counts_give_the_sinad_their_moments_imply"},
+    "test_reconstruct.py": {"test_cli_reconstruct_outputs"},
+    "test_recover.py": {"test_cli_recover", "test_search_agrees_with_brute_force_on_noisy_targets",
+                        "test_success_rate_rows_and_light"},
+    "test_simulate.py": {"test_extreme_light_and_patterns"},
+    "test_sweeps.py": {"test_cli_enob_flips_tradeoff", "test_demo_runs_on_the_embedded_defaults",
+                       "test_recording_noise_in_batches_equals_the_whole_reconstruction",
+                       "test_scene_noise_matches_the_metrics_on_each_scene"},
+}
+
+
+@pytest.hookimpl(tryfirst=True)  # before -k and -m deselect: every test of a collected file is seen
+def pytest_collection_modifyitems(config, items):
+    checked = set()
+    for item in items:
+        names = SLOW.get(item.path.name) if item.path.parent.name == "tests" else None
+        module = getattr(item, "module", None)
+        if names is None or module is None:
+            continue
+        if item.path not in checked:
+            checked.add(item.path)
+            missing = sorted(n for n in names if not callable(getattr(module, n, None)))
+            if missing:
+                raise pytest.UsageError(f"tests/conftest.py marks as slow what tests/{item.path.name} does not "
+                                        f"define: {', '.join(missing)}")
+        if getattr(item, "originalname", item.name) in names:
+            item.add_marker(pytest.mark.slow)

@@ -2,7 +2,6 @@
 
 import json
 import os
-import time
 
 import numpy as np
 import pytest
@@ -38,12 +37,41 @@ def test_scheduler_specs():
                 pass
 
 
-def test_a_dead_scheduler_address_fails_fast():
-    t0 = time.perf_counter()
-    with pytest.raises(EvtkError, match="no Dask scheduler"):
+def test_a_dead_scheduler_address_fails_fast(monkeypatch):
+    """A refused address is answered by one socket probe with a bounded time-out, before any Dask client (and
+    its own time-out) is made; an address that accepts but never answers gives the client the same bound."""
+    import socket
+
+    from evtk import cluster
+
+    probes, clients = [], []
+    real_connect = socket.create_connection
+
+    def probe(address, timeout=None, *args, **kwargs):
+        probes.append((address, timeout))
+        return real_connect(address, timeout, *args, **kwargs)
+
+    def silent_client(address, timeout=None, **kwargs):
+        clients.append((address, timeout))
+        raise TimeoutError("no handshake")
+
+    monkeypatch.setattr(socket, "create_connection", probe)
+    monkeypatch.setattr(distributed, "Client", silent_client)
+    with pytest.raises(EvtkError, match="no Dask scheduler at tcp://127.0.0.1:9"):
         with scheduler("tcp://127.0.0.1:9"):
             pass
-    assert time.perf_counter() - t0 < 20
+    assert probes == [(("127.0.0.1", 9), cluster.CONNECT_TIMEOUT_S)] and clients == []
+    assert 0 < cluster.CONNECT_TIMEOUT_S <= 10
+    with socket.socket() as listener:  # accepts connections (the probe succeeds) but never speaks Dask
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        address = f"tcp://127.0.0.1:{listener.getsockname()[1]}"
+        with pytest.raises(EvtkError, match=f"no Dask scheduler answered at {address} within "
+                                            f"{cluster.CONNECT_TIMEOUT_S} s"):
+            with scheduler(address):
+                pass
+    assert clients == [(address, f"{cluster.CONNECT_TIMEOUT_S}s")]
+    monkeypatch.undo()
     r = CliRunner().invoke(main, ["flips", "--scheduler", "tcp://127.0.0.1:9", "--power-mw", "1"])
     assert r.exit_code == 1 and len(r.output.strip().splitlines()) == 1 and "no Dask scheduler" in r.output
 

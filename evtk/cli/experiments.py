@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import math
+
 import click
 import numpy as np
 
 from .. import io as evio  # (light: its readers and writers load on first use)
 from ..errors import EvtkError
+from ..limits import require_memory
 from ._base import (
     _MAX_INT,
     OutputPath,
@@ -36,6 +39,8 @@ def _recorded_candidates(path, size, features):
     if feats.shape[0] != 1 or not np.array_equal(feats[0], features):
         raise EvtkError(f"{path}: its features are not the ones given")
     index = {kernel_bits(k): i for i, k in enumerate(np.asarray(sim["kernels"]))}
+    require_memory(8 * 2 ** (size * size) * math.prod(result.cells.shape[1:]),
+                   f"the responses of the {2 ** (size * size):,} candidate kernels")
     out = np.zeros((2 ** (size * size),) + result.cells.shape[1:])
     missing = 0
     for j, cand in enumerate(all_kernels(size)):

@@ -19,7 +19,7 @@ Every statistic is float64. Degenerate input is either a defined answer
 
 from __future__ import annotations
 
-from .flips import FlipReport, flip_rates
+from .flips import FlipReport, flip_rates, flip_rates_bytes
 from .poisson import (
     capture_terms,
     cumulative_factor,
@@ -31,6 +31,7 @@ from .poisson import (
 from .sinad import MAX_BOOTSTRAP_GROUPS, SinadAccumulator, SinadReport, _bootstrap_db, enob_bits, sinad  # noqa: F401  (the tests check the bootstrap)
 
 __all__ = [
-    "SinadReport", "sinad", "SinadAccumulator", "enob_bits", "FlipReport", "flip_rates", "poisson_log_pmf",
+    "SinadReport", "sinad", "SinadAccumulator", "enob_bits", "FlipReport", "flip_rates", "flip_rates_bytes",
+    "poisson_log_pmf",
     "poisson_pmf", "log_cumulative_factor", "cumulative_factor", "lowest_cumulative_factor", "capture_terms",
 ]

@@ -7,9 +7,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import EvtkError
+from ..limits import require_memory
 from .sinad import _as_repeats
 
-__all__ = ["FlipReport", "flip_rates"]
+__all__ = ["FlipReport", "flip_rates", "flip_rates_bytes"]
 
 
 @dataclass
@@ -34,6 +35,27 @@ class FlipReport:
                 "repeats": self.repeats, "pixels": self.pixels}
 
 
+def flip_rates_bytes(repeats: int, pixels: int, itemsize: int = 1) -> int:
+    """Memory :func:`flip_rates` needs beyond its input.
+
+    Parameters
+    ----------
+    repeats : int
+        Repeated captures.
+    pixels : int
+        Values in each capture.
+    itemsize : int
+        Bytes of one input value (int8: 1).
+
+    Returns
+    -------
+    int
+        Bytes: a sorted copy and a mask of the captures, and five per-pixel
+        float64 or int64 arrays.
+    """
+    return int(repeats) * int(pixels) * (int(itemsize) + 1) + 40 * int(pixels)
+
+
 def flip_rates(binary) -> FlipReport:
     """Flip rates of repeated binarised captures of one scene.
 
@@ -42,6 +64,18 @@ def flip_rates(binary) -> FlipReport:
     binary : array_like, shape (repeats, ...)
         Values in {-1, +1}, {0, 1} or bool.
 
+    Returns
+    -------
+    FlipReport
+        Pairwise and majority flip rates, and each pixel's share of
+        disagreeing repeats.
+
+    Raises
+    ------
+    EvtkError
+        Fewer than two repeats, values that are not binary, or more memory
+        than the budget (:func:`evtk.limits.require_memory`).
+
     Examples
     --------
     >>> r = flip_rates([[1, 1, -1, -1], [1, -1, -1, -1], [1, 1, -1, 1]])
@@ -49,6 +83,8 @@ def flip_rates(binary) -> FlipReport:
     (33.3333, 16.6667)
     """
     b = _as_repeats(binary, "flip rates")
+    require_memory(flip_rates_bytes(b.shape[0], b.size // b.shape[0], b.itemsize),
+                   f"flip rates of {b.shape[0]:,} captures of {b.size // b.shape[0]:,} pixels")
     vals = np.unique(b)
     if not (set(vals.tolist()) <= {-1, 1} or set(vals.tolist()) <= {0, 1}):
         raise EvtkError(f"flip rates need binary values (-1/+1, 0/1 or bool), found {vals[:6].tolist()}")

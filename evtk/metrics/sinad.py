@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import EvtkError
+from ..limits import require_memory
 
 __all__ = ["SinadReport", "sinad", "SinadAccumulator", "enob_bits"]
 
@@ -146,9 +147,10 @@ class SinadAccumulator:
         if repeats < 2:
             raise EvtkError(f"SINAD needs at least two repeated captures, got {repeats}")
         self.shape = tuple(int(s) for s in np.atleast_1d(shape)) if len(tuple(np.atleast_1d(shape))) else (1,)
-        p = int(np.prod(self.shape))
+        p = math.prod(self.shape)  # a Python int: a hostile shape cannot wrap int64
         if p == 0:
             raise EvtkError("SINAD: the captures hold no pixels")
+        require_memory(self.bytes_needed(repeats, p), f"SINAD of {repeats:,} captures of {p:,} pixels")
         self.repeats = repeats
         g = min(repeats, MAX_BOOTSTRAP_GROUPS)
         self._bounds = np.linspace(0, repeats, g + 1).round().astype(np.int64)
@@ -159,6 +161,27 @@ class SinadAccumulator:
         self._sq = np.zeros(g)  # squares of the group's values, summed
         self._sq_px = np.zeros(p)
         self.added = 0
+
+    @staticmethod
+    def bytes_needed(repeats: int, pixels: int) -> int:
+        """Peak memory of an accumulator and its report, before any is allocated.
+
+        Parameters
+        ----------
+        repeats : int
+            Repeats it will be given.
+        pixels : int
+            Values in one capture.
+
+        Returns
+        -------
+        int
+            Bytes: two groups x pixels float64 arrays (the groups' means
+            and, in the report, their centred copy) and eight per-pixel
+            ones.
+        """
+        groups = min(max(int(repeats), 0), MAX_BOOTSTRAP_GROUPS)
+        return 8 * int(pixels) * (2 * groups + 8)
 
     def add(self, captures):
         """Add the next repeats, shape ``(k, *shape)``, in their order."""
@@ -213,9 +236,9 @@ class SinadAccumulator:
         p = self._mean.shape[1]
         n = self._n
         off, between = self._centred()
-        s1 = n[:, None] * off  # per group: its centred values, summed over its repeats
         a = (self._m2 + n * between) / p  # per group: mean square of its centred repeats, summed
-        k = s1 @ s1.T / p
+        # products of the groups' centred sums (n_g times their centred mean), without a groups x pixels copy
+        k = n[:, None] * (off @ off.T) * n[None, :] / p
         m = (n[None, :] * a[:, None] + n[:, None] * a[None, :] - 2.0 * k) / 2.0  # between groups
         np.fill_diagonal(m, n * a - np.diag(k))  # twice the within-group sum
         pairs = np.outer(n, n)
@@ -254,7 +277,7 @@ class SinadAccumulator:
             report.ci_enob = (enob_bits(lo), enob_bits(hi))
             report.interval = interval
         if per_pixel:
-            var = (self._m2_px + n @ (off * off)) / (r - 1)
+            var = (self._m2_px + np.einsum("g,gp,gp->p", n, off, off)) / (r - 1)
             ms = self._sq_px / r
             pp = np.full(p, np.inf)
             noisy = var > 0
@@ -320,7 +343,8 @@ def _jackknife_interval_db(terms, estimate_db, confidence):
 
     Each leave-one-group-out estimate keeps only pairs of distinct repeats
     outside the left-out group (the estimate's own U-statistic). Where
-    leaving a group out leaves no noise, the interval reaches ``+inf``.
+    leaving a group out leaves no noise, the interval reaches ``+inf``; where
+    it leaves no signal (a few events in mostly empty windows), ``-inf``.
     """
     from scipy import stats
 
@@ -331,10 +355,15 @@ def _jackknife_interval_db(terms, estimate_db, confidence):
     pw = (keep @ power) / (keep @ sizes)
     if not math.isfinite(estimate_db):
         return math.inf, math.inf
-    if np.any(noise <= 0):  # some leave-outs see no noise: no finite upper end
-        finite = noise > 0
-        lo = min(float(np.min(10.0 * np.log10(pw[finite] / noise[finite]))), estimate_db)
-        return lo, math.inf
+    no_noise, no_signal = noise <= 0, pw <= 0
+    if np.any(no_noise | no_signal):
+        # some leave-outs see no noise (no finite upper end) or no signal (all of it was in the group left
+        # out: no finite lower end); the other end from the leave-outs that see both
+        ok = ~(no_noise | no_signal)
+        loo = 10.0 * np.log10(pw[ok] / noise[ok])
+        lo = -math.inf if no_signal.any() else min(float(np.min(loo, initial=estimate_db)), estimate_db)
+        hi = math.inf if no_noise.any() else max(float(np.max(loo, initial=estimate_db)), estimate_db)
+        return lo, hi
     loo = 10.0 * np.log10(pw / noise)
     se = math.sqrt((g - 1) / g * float(np.sum((loo - loo.mean()) ** 2)))
     t = float(stats.t.ppf(0.5 + confidence / 2, g - 1))

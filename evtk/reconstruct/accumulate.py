@@ -9,6 +9,7 @@ import numpy as np
 
 from ..errors import EvtkError
 from ..events import Events
+from ..limits import require_memory
 from .windows import WindowCounts, Windows
 
 __all__ = ["accumulate"]
@@ -118,6 +119,12 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         Counts are int32; a window holding more than 2**31 - 1 events raises
         rather than wrap.
 
+    Raises
+    ------
+    EvtkError
+        A region off the sensor, or counts larger than the memory budget
+        (:func:`evtk.limits.require_memory`, checked before they are allocated).
+
     Examples
     --------
     >>> ev = Events([5, 15, 16, 30], [1, 1, 2, 0], [0, 0, 1, 1], [1, 0, 1, 1], (3, 2))
@@ -134,6 +141,9 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         raise EvtkError(f"region {tuple(region)} is not a non-empty part of the {sensor[0]}x{sensor[1]} sensor")
     n_w = len(windows)
     shape = (2, n_w, y1 - y0, x1 - x0)
+    # int32 ON and OFF counts (and the first and last ON times) of every window, and 17 bytes a window
+    require_memory(n_w * ((y1 - y0) * (x1 - x0) * 4 * ((0 if out is not None else 2) + (2 if times else 0)) + 17),
+                   f"counting {n_w:,} windows over {x1 - x0}x{y1 - y0} pixels")
     if out is None:
         counts = np.empty(shape, np.int32)  # each window zeroed when first reached
     else:

@@ -130,7 +130,7 @@ def plan(rec, window="schedule", skip_us=0, length_us=None, region=None, check_m
     elif isinstance(window, tuple) and len(window) == 2 and window[0] == "period":
         info = rec.info()
         end = None if info["t_end_us"] is None else info["t_end_us"] + 1
-        win = windows_periodic(info["t_start_us"], end, window[1], skip_us, length_us)
+        win = windows_periodic(info["t_start_us"], end, window[1], skip_us, length_us, events=info["events"])
     else:
         raise EvtkError(f"window must be 'schedule', 'triggers' or ('period', US), not {window!r}")
     if region is None:

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..errors import EvtkError
 from ..events import TRIGGER_CHANNEL_ENV, TriggerKind, Triggers
-from ..limits import require_memory
+from ..limits import require_memory, require_window_work
 from ..simulate import METADATA_KEY, Schedule
 from ..simulate.record import SimulationRecord
 
@@ -20,6 +20,14 @@ _RISING = (TriggerKind.EXTERNAL_SIGNAL_RISING_EDGE, TriggerKind.EXTERNAL_GENERAT
 
 
 _FALLING = (TriggerKind.EXTERNAL_SIGNAL_FALLING_EDGE, TriggerKind.EXTERNAL_GENERATOR_FALLING_EDGE)
+
+#: Largest time stamp: windows are int64 microseconds, and no window may end past it or be longer than it.
+_T_MAX = int(np.iinfo(np.int64).max)
+
+
+def _too_long(t_start_us, t_end_us):
+    """Mask of windows longer than 2**63 - 1 us, whose length int64 arithmetic would wrap (starts before 0 only)."""
+    return (t_start_us < 0) & (t_end_us > t_start_us + _T_MAX)
 
 
 @dataclass
@@ -46,6 +54,9 @@ class Windows:
         if np.any(self.t_end_us <= self.t_start_us):
             i = int(np.flatnonzero(self.t_end_us <= self.t_start_us)[0])
             raise EvtkError(f"window {i} is empty or reversed: [{self.t_start_us[i]}, {self.t_end_us[i]}) us")
+        if np.any(_too_long(self.t_start_us, self.t_end_us)):
+            i = int(np.flatnonzero(_too_long(self.t_start_us, self.t_end_us))[0])
+            raise EvtkError(f"window {i} is longer than 2**63 - 1 us: [{self.t_start_us[i]}, {self.t_end_us[i]}) us")
 
     def __len__(self):
         return int(self.t_start_us.size)
@@ -92,19 +103,26 @@ class WindowCounts:
 
 
 def _trim(t_on, t_off, skip_us, length_us, what):
+    """Each window's start delayed by ``skip_us`` and its length cut to ``length_us``, without int64 overflow."""
     skip_us = int(skip_us)
     if skip_us < 0:
         raise EvtkError(f"skip_us must be >= 0, not {skip_us}")
-    start = t_on + skip_us
+    t_on = np.asarray(t_on, np.int64)
+    t_off = np.asarray(t_off, np.int64)
+    if np.any(_too_long(t_on, t_off)):
+        i = int(np.flatnonzero(_too_long(t_on, t_off))[0])
+        raise EvtkError(f"{what} window {i} is longer than 2**63 - 1 us: [{t_on[i]}, {t_off[i]}) us")
+    lengths = t_off - t_on  # exact: no window is longer than int64 holds
+    if np.any(lengths <= skip_us):
+        shortest = int(np.min(lengths)) if t_on.size else 0
+        raise EvtkError(f"skip_us={skip_us} leaves nothing of the {what} windows (shortest: {shortest} us)")
+    start = t_on + skip_us  # before each window's end: no overflow
     end = t_off.copy()
     if length_us is not None:
         length_us = int(length_us)
         if length_us < 1:
             raise EvtkError(f"length_us must be >= 1, not {length_us}")
-        end = np.minimum(end, start + length_us)
-    if np.any(end <= start):
-        shortest = int(np.min(t_off - t_on)) if t_on.size else 0
-        raise EvtkError(f"skip_us={skip_us} leaves nothing of the {what} windows (shortest: {shortest} us)")
+        end = start + np.minimum(lengths - skip_us, length_us)
     return start, end
 
 
@@ -177,19 +195,59 @@ def windows_from_triggers(triggers: Triggers, skip_us=0, length_us=None, channel
     return Windows(start, end, np.arange(t_on.size), "triggers", {k: v for k, v in dropped.items() if v})
 
 
-def windows_periodic(t_start_us, t_end_us, period_us, skip_us=0, length_us=None) -> Windows:
-    """Back-to-back windows of ``period_us`` from ``t_start_us``; a last partial period is dropped."""
+def windows_periodic(t_start_us, t_end_us, period_us, skip_us=0, length_us=None, events=None) -> Windows:
+    """Back-to-back windows of ``period_us`` from ``t_start_us``; a last partial period is dropped.
+
+    The number of windows follows from the time span, not from the file's
+    size, so it is checked before anything is allocated: against the memory
+    budget (:func:`evtk.limits.require_memory`) and, given the recording's
+    ``events``, against the work they justify
+    (:func:`evtk.limits.require_window_work`), both naming the period and
+    the span. Windows that would end past the largest int64 time stamp are
+    dropped (and counted).
+
+    Parameters
+    ----------
+    t_start_us, t_end_us : int or None
+        The span to cut (half-open); None when the recording has no events.
+    period_us : int
+        Length of each window.
+    skip_us, length_us : int
+        Delay every window's start, and cut its length.
+    events : int, optional
+        Events of the recording, to bound the work (unchecked when None).
+
+    Returns
+    -------
+    Windows
+        Source ``"period"``, captures numbered from 0.
+
+    Raises
+    ------
+    EvtkError
+        No span, a span shorter than one period, or more windows than the
+        memory budget or the events allow.
+    """
     period_us = int(period_us)
     if period_us < 1:
         raise EvtkError(f"period_us must be >= 1, not {period_us}")
     if t_start_us is None or t_end_us is None:
         raise EvtkError("the recording has no events, so no time span to cut into periods")
     t0, t1 = int(t_start_us), int(t_end_us)
-    n = (t1 - t0) // period_us if t1 > t0 else 0
+    n = (t1 - t0) // period_us if t1 > t0 else 0  # Python integers: a span of 2**64 us does not wrap
     if n < 1:
         raise EvtkError(f"the recording ({t0} .. {t1} us) is shorter than one period of {period_us} us")
-    require_memory(n * 40, f"{n:,} windows of {period_us} us")
+    past = max(0, n - (_T_MAX - t0) // period_us)  # windows that would end past the largest int64 stamp
+    n -= past
+    if n < 1:
+        raise EvtkError(f"a period of {period_us} us from {t0} us ends past the largest time stamp (2**63 - 1 us)")
+    span = f"--window period:{period_us} over {t0:,} .. {t1:,} us"
+    require_memory(n * 40, f"{span}: {n:,} windows of {period_us} us")
+    if events is not None:
+        require_window_work(n, 0, events, span)
     t_on = t0 + period_us * np.arange(n, dtype=np.int64)
     start, end = _trim(t_on, t_on + period_us, skip_us, length_us, "periodic")
-    dropped = {"partial last period": 1} if t0 + n * period_us < t1 else {}
+    dropped = {"partial last period": 1} if t0 + (n + past) * period_us < t1 else {}
+    if past:
+        dropped["ends past the largest time stamp"] = past
     return Windows(start, end, np.arange(n), "period", dropped)

@@ -46,7 +46,7 @@ def _assemble(t_rel, local, pol, span, base, x_of, y_of):
     y = np.empty(n, np.uint16)
     p = np.empty(n, np.uint8)
     for i in range(n):
-        k = key[i]
+        k = np.int64(key[i])  # int64 as compiled; in Python (NUMBA_DISABLE_JIT) int32 + base would overflow
         j = counts[k]
         counts[k] += 1
         t[j] = base + k
