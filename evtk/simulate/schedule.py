@@ -188,20 +188,34 @@ def level_steps(n_elements, levels):
     return np.unique(np.round(np.linspace(1, n, min(k, n))).astype(np.int64))
 
 
-def dot_grid(shape, spacing):
+def dot_grid(shape, spacing, marker=True):
     """The calibration pattern: 1 at every ``spacing``-th features element along each axis, starting
     ``spacing // 2`` in, 0 elsewhere (int8).
+
+    With ``marker`` (default) the first two dots of the grid's top row are left out when the grid has at
+    least 2 rows, 3 columns and 10 dots (:data:`DOT_MARKER_MIN`): no rotation or reflection of the grid
+    maps the gap onto itself, so :func:`evtk.calibrate.calibrate` tells a mirrored or rotated camera
+    apart from an upright one. ``marker=False`` gives the whole grid.
 
     Examples
     --------
     >>> dot_grid((6, 6), 3).nonzero()
     (array([1, 1, 4, 4]), array([1, 4, 1, 4]))
+    >>> int(dot_grid((16, 16), 4).sum()), int(dot_grid((16, 16), 4, marker=False).sum())
+    (14, 16)
     """
     h, w = (int(v) for v in shape)
     s = int(spacing)
     out = np.zeros((h, w), np.int8)
     out[s // 2::s, s // 2::s] = 1
+    rows, cols = len(range(s // 2, h, s)), len(range(s // 2, w, s))
+    if marker and rows >= 2 and cols >= 3 and rows * cols >= DOT_MARKER_MIN:
+        out[s // 2, s // 2] = out[s // 2, s // 2 + s] = 0
     return out
+
+
+#: Fewest dots a grid needs before :func:`dot_grid` leaves two out as an orientation marker.
+DOT_MARKER_MIN = 10
 
 
 def load_patterns(path_or_bits, name, side=None):
