@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
@@ -91,6 +91,11 @@ class Calibration:
         The camera's defocus, a Gaussian's standard deviation in pixels, beyond the footprint the bench
         geometry predicts (:func:`dot_blur_px`); the reconstruction deblurs it. Below about 0.3 px it is
         not told apart from none.
+    orientation : str or None
+        How the camera sees the screen (a key of :data:`ORIENTATIONS`: upright, mirrored, rotated), measured
+        from the dot grid's marker; None where the grid carries none (then upright was assumed, and said).
+    warnings : list of str
+        What the calibration assumed or left out (hot pixels, a refused pixel model, an assumed orientation).
     """
 
     matrix: list
@@ -108,6 +113,8 @@ class Calibration:
     k1: float = 0.0
     background_rate_hz: float | None = None
     blur_px: float = 0.0
+    orientation: str | None = None
+    warnings: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -194,18 +201,21 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     found = _blobs(image, sched["dot_spacing"] * bench.kernel_step_cells / bench.pixel_cells)
     kh, kw = kernels.shape[1:]
     fh, fw = features.shape[1:]
-    dots = np.argwhere(dot_grid((fh, fw), sched["dot_spacing"]) > 0)  # (row, col) of each dot
+    grid = np.argwhere(dot_grid((fh, fw), sched["dot_spacing"], marker=False) > 0)  # (row, col) of every grid place
+    lit = dot_grid((fh, fw), sched["dot_spacing"])[grid[:, 0], grid[:, 1]] > 0  # the marker's places are dark
     # the kernel's centre element (ck) and a dot at features (r, c) light full-response cell (r + kh-1 - ck, ...)
     ck_r, ck_c = (kh - 1) // 2, (kw - 1) // 2
-    expected = np.stack([dots[:, 1] + (kw - 1) - ck_c, dots[:, 0] + (kh - 1) - ck_r], axis=1).astype(np.float64)
+    places = np.stack([grid[:, 1] + (kw - 1) - ck_c, grid[:, 0] + (kh - 1) - ck_r], axis=1).astype(np.float64)
+    expected = places[lit]
     if len(found) < MIN_DOTS:
         raise EvtkError(f"only {len(found)} calibration dots were seen ({len(expected)} shown); at least {MIN_DOTS} "
                         "are needed: more light, a longer window, or a coarser dot spacing")
-    pairs = _pair(found, expected)
+    pairs, orientation, note = _orient(found, places, lit)
+    warnings = [] if note is None else [note]
     if len(pairs) < MIN_DOTS:
         raise EvtkError(f"only {len(pairs)} of the {len(found)} dots seen could be paired with the "
                         f"{len(expected)} shown: is the schedule that of this recording?")
-    src = expected[[j for _, j in pairs]]
+    src = places[[j for _, j in pairs]]
     dst = found[[i for i, _ in pairs]]
     model, inliers = ransac((src, dst), ProjectiveTransform, min_samples=4, residual_threshold=1.0,
                             max_trials=500, rng=0)
@@ -233,7 +243,8 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     y1 = int(min(h, np.ceil(corners[:, 1].max()) + 2))
     cal = Calibration(np.asarray(cmap.matrix).tolist(), [float(origin[0]), float(origin[1])], float((dx + dy) / 2),
                       [x0, x1, y0, y1], float(np.sqrt(np.mean(res ** 2))), float(res.max()), len(expected),
-                      len(found), int(inliers.sum()), [int(w), int(h)], [int(rows), int(cols)], None, cmap.k1)
+                      len(found), int(inliers.sum()), [int(w), int(h)], [int(rows), int(cols)], None, cmap.k1,
+                      orientation=orientation, warnings=warnings)
     cal._evidence = (image, found, expected)  # for plot_calibration; not saved
     levels = s.kernel_id[win.capture] == LEVEL_ID
     if pixel_model and levels.any():  # and the pixels' model, from the level captures (with the flat fields' spread)
@@ -354,6 +365,66 @@ def _affine(src, dst):
         return model if model else None
     model = AffineTransform()
     return model if model.estimate(src, dst) else None
+
+
+#: The eight ways a camera can see the dot grid (cell axes to sensor axes, up to scale), by name: 2x2 matrices
+#: applied to cell offsets (column, row) about the grid's centre.
+ORIENTATIONS = {
+    "upright": ((1, 0), (0, 1)),
+    "mirrored left-right": ((-1, 0), (0, 1)),
+    "mirrored top-bottom": ((1, 0), (0, -1)),
+    "rotated 180 degrees": ((-1, 0), (0, -1)),
+    "transposed (mirrored and rotated 90 degrees)": ((0, 1), (1, 0)),
+    "rotated 90 degrees": ((0, -1), (1, 0)),
+    "rotated 270 degrees": ((0, 1), (-1, 0)),
+    "anti-transposed (mirrored and rotated 270 degrees)": ((0, -1), (-1, 0)),
+}
+
+
+def _orient(found, places, lit):
+    """Pair the blobs ``found`` with the grid's ``places`` (cells, column and row) in whichever of the
+    :data:`ORIENTATIONS` the marker (the grid places not ``lit``, :func:`evtk.simulate.dot_grid`) says.
+
+    Each orientation turns the grid about its centre before :func:`_pair` lays its bounding box on the blobs';
+    its misfit is the lit places no blob pairs with plus the dark places one does. The best must be alone: a
+    tie, or a dot on every marker place whichever way (a pattern without the marker), cannot tell a mirrored
+    camera from an upright one.
+
+    Returns
+    -------
+    pairs : list of (int, int)
+        (blob index, place index) of the lit places paired.
+    orientation : str or None
+        The name of the orientation found; None when the grid carries no marker.
+    warning : str or None
+        Why the orientation was assumed rather than measured.
+    """
+    lit = np.asarray(lit, bool)
+    centre = places.mean(axis=0)
+    if lit.all():
+        return ([(i, j) for i, j in _pair(found, places)], None,
+                f"the dot grid ({len(places)} dots) is too small to carry the orientation marker (at least 2 rows, "
+                "3 columns and 10 dots): the camera was taken to see the screen upright, not mirrored or rotated")
+    scores = {}
+    for name, m in ORIENTATIONS.items():
+        turned = (places - centre) @ np.asarray(m, np.float64).T + centre
+        pairs = _pair(found, turned)
+        got = np.zeros(len(places), bool)
+        got[[j for _, j in pairs]] = True
+        scores[name] = (int(np.sum(lit & ~got)) + int(np.sum(~lit & got)), int(np.sum(~lit & got)),
+                        [(i, j) for i, j in pairs if lit[j]])
+    if all(v[1] == int(np.sum(~lit)) for v in scores.values()):  # the marker's places lit whichever way
+        pairs = [(i, j) for i, j in _pair(found, places)]
+        return (pairs, None, "a dot shows on every place of the grid, the orientation marker's too (patterns written "
+                "before evtk drew the marker?): the camera was taken to see the screen upright; write the patterns again")
+    ranked = sorted(scores, key=lambda k: scores[k][0])
+    best, second = ranked[0], ranked[1]
+    if scores[second][0] <= scores[best][0]:
+        raise EvtkError(f"the calibration dots do not tell the camera's orientation: '{best}' and '{second}' both "
+                        f"leave {scores[best][0]} dots unexplained (the marker is the two dots missing from the "
+                        "grid's top row; a dot lost at the grid's edge or a hot pixel can hide it): more light or "
+                        "a longer window for the calibration captures")
+    return scores[best][2], best, None
 
 
 def _pair(found, expected):
