@@ -403,8 +403,8 @@ def _orient(found, places, lit):
     centre = places.mean(axis=0)
     if lit.all():
         return ([(i, j) for i, j in _pair(found, places)], None,
-                f"the dot grid ({len(places)} dots) is too small to carry the orientation marker (at least 2 rows, "
-                "3 columns and 10 dots): the camera was taken to see the screen upright, not mirrored or rotated")
+                f"the dot grid ({len(places)} dots) is too small to carry the orientation marker (at least 10 dots, 3 "
+                "rows and 4 columns or 4 and 3): the camera was taken to see the screen upright, not mirrored or rotated")
     scores = {}
     for name, m in ORIENTATIONS.items():
         turned = (places - centre) @ np.asarray(m, np.float64).T + centre
@@ -421,8 +421,8 @@ def _orient(found, places, lit):
     best, second = ranked[0], ranked[1]
     if scores[second][0] <= scores[best][0]:
         raise EvtkError(f"the calibration dots do not tell the camera's orientation: '{best}' and '{second}' both "
-                        f"leave {scores[best][0]} dots unexplained (the marker is the two dots missing from the "
-                        "grid's top row; a dot lost at the grid's edge or a hot pixel can hide it): more light or "
+                        f"leave {scores[best][0]} dots unexplained (the marker is the two dots missing near the grid's "
+                        "first corner, not a corner; a dot lost at the grid's edge or a hot pixel can hide it): more light or "
                         "a longer window for the calibration captures")
     return scores[best][2], best, None
 

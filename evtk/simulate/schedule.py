@@ -192,9 +192,11 @@ def dot_grid(shape, spacing, marker=True):
     """The calibration pattern: 1 at every ``spacing``-th features element along each axis, starting
     ``spacing // 2`` in, 0 elsewhere (int8).
 
-    With ``marker`` (default) the first two dots of the grid's top row are left out when the grid has at
-    least 2 rows, 3 columns and 10 dots (:data:`DOT_MARKER_MIN`): no rotation or reflection of the grid
-    maps the gap onto itself, so :func:`evtk.calibrate.calibrate` tells a mirrored or rotated camera
+    With ``marker`` (default) two dots are left out when the grid has at least 10 dots
+    (:data:`DOT_MARKER_MIN`) and 3 rows and 4 columns (or 4 and 3): the second dot of the second row and the third
+    of the first (on a taller grid the first of the third row), no corner, so the map's extrapolation to the
+    response's corners keeps its support. No rotation or reflection of
+    the grid maps that gap onto itself, so :func:`evtk.calibrate.calibrate` tells a mirrored or rotated camera
     apart from an upright one. ``marker=False`` gives the whole grid.
 
     Examples
@@ -209,8 +211,12 @@ def dot_grid(shape, spacing, marker=True):
     out = np.zeros((h, w), np.int8)
     out[s // 2::s, s // 2::s] = 1
     rows, cols = len(range(s // 2, h, s)), len(range(s // 2, w, s))
-    if marker and rows >= 2 and cols >= 3 and rows * cols >= DOT_MARKER_MIN:
-        out[s // 2, s // 2] = out[s // 2, s // 2 + s] = 0
+    if marker and rows * cols >= DOT_MARKER_MIN:
+        r0 = c0 = s // 2
+        if cols >= 4 and rows >= 3:  # grid places (1, 1) and (0, 2): no corner, for the map's extrapolation
+            out[r0 + s, c0 + s] = out[r0, c0 + 2 * s] = 0
+        elif rows >= 4 and cols >= 3:  # a tall grid: (1, 1) and (2, 0)
+            out[r0 + s, c0 + s] = out[r0 + 2 * s, c0] = 0
     return out
 
 
