@@ -76,3 +76,50 @@ def test_a_mirrored_or_rotated_camera_is_measured_not_assumed(tmp_path, flip):
     with evtk.open(tmp_path / "sim3.h5") as rec:
         upright = calibrate(rec, schedule)
     assert upright.orientation == "upright" and upright.warnings == []
+
+
+def test_an_inverted_result_is_reported_with_its_sign(tmp_path):
+    """Failure 2: a camera whose polarity is the other way round (ON for darker). exp(n theta) then gives the
+    negative of the responses; the least-squares scale to the ideal is negative, and before, the error was taken
+    after it, so a correlation of -0.9 printed as +0.9. Now the correlation keeps its sign and a warning says why."""
+    from evtk.reconstruct import reconstruct_bench
+
+    schedule, ev, tr, record = _run(tmp_path, seed=4)
+    cam = _write(tmp_path / "cam.aedat4", ev, tr, p=(1 - ev.p.astype(np.int64)).astype(ev.p.dtype))
+    with evtk.open(cam) as rec:
+        res = reconstruct_bench(rec, schedule, record["response_region"], record["response_origin_px"])
+    s = res.summary
+    assert s["scale_to_ideal"] < 0 and s["error"]["correlation"] < -0.5, s["error"]
+    assert any("inverted" in w for w in s["warnings"])
+    with evtk.open(tmp_path / "sim4.h5") as rec:  # the upright camera: a positive score and no warning
+        good = reconstruct_bench(rec, schedule, record["response_region"], record["response_origin_px"]).summary
+    assert good["error"]["correlation"] > 0.5 and good["warnings"] == []
+
+
+def test_empty_windows_and_kernels_without_a_response_are_warnings_with_counts(tmp_path):
+    """Failure 8: a recording that lost the events of three pattern windows (a USB stall) read them as darkness,
+    and a kernel with every mirror off vanished from the output, both without a word. Now the summary counts
+    both and the CLI prints them."""
+    job = tmp_path / "job.toml"
+    job.write_text('kernels = ["010111010", "000000000"]\nrepeat = 4\nflat_field = 2\nwindow_us = 1000\nseed = 5\n')
+    sim = job_simulation(job)
+    write_patterns(sim, tmp_path / "p")
+    sim.write(tmp_path / "sim.h5")
+    with evtk.open(tmp_path / "sim.h5") as rec:
+        ev, tr = rec.events(), rec.triggers()
+    s = sim.schedule
+    lost = np.flatnonzero(s.kernel_id >= 0)[[0, 2, 3]]
+    drop = np.zeros(ev.t.size, bool)
+    for c in lost:  # the whole window and its decay: nothing of it reached the file
+        drop |= (ev.t >= s.t_on_us[c]) & (ev.t < s.t_off_us[c] + sim.settle_us // 2)
+    keep = ~drop
+    cam = _write(tmp_path / "cam.aedat4", ev, tr, t=ev.t[keep], x=ev.x[keep], y=ev.y[keep], p=ev.p[keep])
+    res = CliRunner().invoke(main, ["reconstruct", str(cam), "--schedule", str(tmp_path / "p" / "schedule.json"),
+                                    "-o", str(tmp_path / "o.h5"), "--json"])
+    assert res.exit_code == 0, res.output
+    got = json.loads(res.stdout)
+    assert got["empty_windows"] == 3 and got["kernels_without_response"] == [1]
+    assert any("3 of" in w and "no event" in w for w in got["warnings"])
+    res = CliRunner().invoke(main, ["reconstruct", str(cam), "--schedule", str(tmp_path / "p" / "schedule.json"),
+                                    "-o", str(tmp_path / "o.h5")])
+    assert res.exit_code == 0 and "warning: 3 of" in res.output and "warning: 1 of 2 kernels" in res.output, res.output

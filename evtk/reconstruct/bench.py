@@ -26,7 +26,7 @@ from .accumulate import accumulate
 from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid
 from .linearize import flat_field_gain, linearize
-from .pipeline import Reconstruction, check_crop, pair_ideals, response_error
+from .pipeline import Reconstruction, check_crop, pair_ideals, response_error, silent_failures
 from .windows import Windows, _trim, windows_from_triggers
 
 __all__ = ["load_schedule", "match_windows", "reconstruct_bench"]
@@ -204,6 +204,12 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     responses = downsample(combined, size)
     binary = binarize(responses, method)
     scale = float(np.sum(combined * ideal) / np.sum(combined * combined)) if np.any(combined) else 1.0
+    checks = silent_failures(counts, pairs, combined, len(kernels))
+    if scale < 0:  # scored after the scale's size only: an inverted result keeps its sign
+        checks["warnings"].append(
+            f"the responses are inverted against the ideal (best scale {scale:.3g}): the correlation is reported "
+            "with its sign. Is the camera's polarity swapped, or does exp(n theta) not describe these pixels "
+            "(a frame readout, a pixel model that failed)?")
     summary = {
         "captures": int(len(s)), "windows": int(len(win)), "window_source": win.source,
         "windows_dropped": win.dropped, "events_used": counts.events_used, "region": list(counts.region),
@@ -213,7 +219,7 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
         "deblurred": False, "flat_field_captures": int(flat.sum()) if gain is not None else 0,
         "decimation": int(bench.decimation),
         "match": report, "pairs_left_out": sorted(_all_pairs(s) - complete),
-        "error": response_error(combined * scale, ideal), "scale_to_ideal": scale,
+        "error": response_error(combined * abs(scale), ideal), "scale_to_ideal": scale, **checks,
     }
     return Reconstruction(responses, binary, pairs, combined, ideal, counts, summary)
 
