@@ -26,7 +26,7 @@ import os
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
+from scipy.ndimage import gaussian_filter, median_filter
 from scipy.optimize import least_squares
 from skimage.feature import peak_local_max
 from skimage.filters import threshold_otsu
@@ -40,6 +40,7 @@ from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
 from .reconstruct.calibrated import fit_on_edges
 from .reconstruct.deblur import sampling_matrix
+from .reconstruct.fit import describe_pixels, hot_pixels
 from .reconstruct.windows import Windows
 from .settings import read_table, toml_value
 from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, dot_grid
@@ -196,7 +197,9 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     w, h = rec.sensor_size
     sub = Windows(win.t_start_us[dots_win], win.t_end_us[dots_win], win.capture[dots_win], win.source)
     dot_counts = accumulate(rec, sub, (0, w, 0, h))
-    image = dot_counts.on.sum(axis=0).astype(np.float64)
+    # pixels that fire in the dark would be dots of their own: each takes its neighbours' median
+    hot = hot_pixels(rec, win.t_start_us, win.t_end_us)
+    image = _without(dot_counts.on.sum(axis=0).astype(np.float64), hot)
     bench = sched["bench"]
     found = _blobs(image, sched["dot_spacing"] * bench.kernel_step_cells / bench.pixel_cells)
     kh, kw = kernels.shape[1:]
@@ -212,6 +215,9 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
                         "are needed: more light, a longer window, or a coarser dot spacing")
     pairs, orientation, note = _orient(found, places, lit)
     warnings = [] if note is None else [note]
+    if hot.any():
+        warnings.append(f"left {describe_pixels(hot)} out of the dot search and the pixel model's fit: they fire "
+                        "in the dark far more than the rest (hot pixels)")
     if len(pairs) < MIN_DOTS:
         raise EvtkError(f"only {len(pairs)} of the {len(found)} dots seen could be paired with the "
                         f"{len(expected)} shown: is the schedule that of this recording?")
@@ -250,9 +256,9 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     if pixel_model and levels.any():  # and the pixels' model, from the level captures (with the flat fields' spread)
         use = levels | (s.kernel_id[win.capture] == FLAT_ID)
         cal.pixel_model = fit_on_edges(rec, win.t_start_us[use], win.t_end_us[use], s.take(win.capture[use]), sched,
-                                       cal.region, cal.origin_px, cell_map=cal.cell_map()).to_dict()
+                                       cal.region, cal.origin_px, cell_map=cal.cell_map(), hot=hot).to_dict()
     x0, x1, y0, y1 = cal.region
-    net = (dot_counts.on[:, y0:y1, x0:x1].astype(np.float64) - dot_counts.off[:, y0:y1, x0:x1]).mean(axis=0)
+    net = _without((dot_counts.on.astype(np.float64) - dot_counts.off).mean(axis=0), hot)[y0:y1, x0:x1]
     cal.blur_px = dot_blur_px(net, cal.region, cal.cell_map(), bench, np.rint(expected).astype(np.int64), (rows, cols),
                               model=PixelFit.from_dict(cal.pixel_model) if cal.pixel_model else None)
     cal.background_rate_hz = background_rate_hz(rec, win.t_end_us, sched["settle_us"], cal.region)
@@ -336,6 +342,15 @@ def background_rate_hz(rec, t_off_us, settle_us, region, margin_px=3, max_window
         inside = (ev.x >= x0) & (ev.x < x1) & (ev.y >= y0) & (ev.y < y1)
         n += int(np.count_nonzero(~inside))
     return float(n / (pixels * len(ends) * (int(settle_us) - half) * 1e-6))
+
+
+def _without(image, mask):
+    """``image`` with the pixels of ``mask`` replaced by the median of their 3x3 neighbourhood."""
+    if not np.any(mask):
+        return image
+    out = image.copy()
+    out[mask] = median_filter(image, size=3, mode="nearest")[mask]
+    return out
 
 
 def _with_distortion(cmap, src, dst, res):

@@ -32,9 +32,11 @@ from .accumulate import accumulate
 from .bench import _all_pairs, _complete_mask, load_schedule, match_windows, neighbourhood_flat_gain, reconstruct_bench
 from .fit import (
     PixelFit,
+    describe_pixels,
     fit_pixel_model,
     fit_refractory,
     fitted_record,
+    hot_pixels,
     interior_pixels,
     level_off_times,
     level_rise_times,
@@ -140,8 +142,13 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
 
     sub = s.take(caps)
     bench = sched["bench"]
+    warnings = []
     if levels_here:
-        fit = fit_on_edges(rec, edge_on, edge_off, sub, sched, region, origin_px, skip_us, cell_map=cell_map)
+        hot = hot_pixels(rec, win.t_start_us, win.t_end_us)
+        if hot.any():
+            warnings.append(f"left {describe_pixels(hot)} out of the pixel model's fit: they fire in the dark far "
+                            "more than the rest (hot pixels)")
+        fit = fit_on_edges(rec, edge_on, edge_off, sub, sched, region, origin_px, skip_us, cell_map=cell_map, hot=hot)
         source = "the run's own level captures"
     else:
         fit = pixel_model if isinstance(pixel_model, PixelFit) else PixelFit.from_dict(pixel_model)
@@ -172,10 +179,12 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
                                     f"the fitted pixel model reads the level captures' light back as "
                                     f"{min(ratios):.3g} to {max(ratios):.3g} times what it was: it does not describe "
                                     "these pixels, so the counts were linearised by exp(n theta)"))
+        fallback.summary["warnings"] = warnings + [fallback.summary["pixel_model_note"]] + fallback.summary["warnings"]
         return fallback
     result.summary.update(match=report, pairs_left_out=sorted(_all_pairs(s) - complete), pixel_model_from=source,
                           response_origin_px=[float(v) for v in origin_px], pixel_model=fit.to_dict(),
                           level_captures=int(np.sum(sub.kernel_id == LEVEL_ID)), windows_after_edges_us=shift)
+    result.summary["warnings"] = warnings + result.summary.get("warnings", [])
     return result
 
 
@@ -189,7 +198,8 @@ RECOUNT_DELAY_US = 1.0
 RECOUNT_ROUNDS = 3
 
 
-def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, skip_us=0, cell_map=None) -> PixelFit:
+def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, skip_us=0, cell_map=None,
+                 hot=None) -> PixelFit:
     """:func:`fit_pixel_model` on the level captures of ``sub`` (a schedule of captures whose trigger edges are
     ``edge_on_us``/``edge_off_us``), the flat fields giving the pixels' threshold spread.
 
@@ -200,7 +210,7 @@ def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, sk
     come with the edges to time the refractory period from the gaps; where
     the delay comes out :data:`RECOUNT_DELAY_US` or more from that, the
     statistics are counted and fitted again in windows that start with the
-    light.
+    light. ``hot`` (a sensor mask, :func:`~evtk.reconstruct.fit.hot_pixels`) leaves pixels out of the fit.
     """
     use = (sub.kernel_id == LEVEL_ID) | (sub.kernel_id == FLAT_ID)
     sub = sub.take(np.flatnonzero(use))
@@ -211,7 +221,7 @@ def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, sk
         counts = accumulate(rec, Windows(a, b, np.arange(sub.capture.size), "level and flat-field captures"),
                             region, times=True)
         return _fit_on_counts(rec, counts, sub, edge_off - lead_us, sched, origin_px, skip_us, cell_map, lead_us,
-                              delay_us)
+                              delay_us, hot)
 
     fit, assumed = fit_from(LEAD_US, 0.0), 0.0
     for _ in range(RECOUNT_ROUNDS):
@@ -222,7 +232,8 @@ def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, sk
     return fit
 
 
-def _fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us, cell_map, lead_us, delay_us) -> PixelFit:
+def _fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us, cell_map, lead_us, delay_us,
+                   hot=None) -> PixelFit:
     """:func:`fit_pixel_model` on accumulated counts (with times) of the captures ``sub`` (a schedule of the
     windows counted, ``t_off_us`` their ends, ``lead_us`` before the falling edges), the light taken to follow
     the edges by ``delay_us`` until its delay is fitted."""
@@ -231,6 +242,9 @@ def _fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us, cell_m
     bench = sched["bench"]
     inside = interior_pixels(counts.region, origin_px, bench.kernel_step_cells / bench.pixel_cells, (kh, kw),
                              (fh, fw), cell_map=cell_map)
+    if hot is not None:
+        x0, x1, y0, y1 = counts.region
+        inside = inside & ~np.asarray(hot, bool)[y0:y1, x0:x1]
     flat = sub.kernel_id == FLAT_ID
     gain = None
     if flat.any():

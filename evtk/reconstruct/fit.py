@@ -30,6 +30,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import median_filter
 from scipy.optimize import least_squares, minimize
 
 from ..errors import EvtkError
@@ -41,7 +42,7 @@ from ..simulate.record import SimulationRecord
 __all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "level_off_times", "level_rise_times",
            "rise_orders", "refractory_bound",
            "on_gaps", "fit_refractory", "GAP_QUANTILES",
-           "predict_levels", "fit_pixel_model", "fitted_record"]
+           "predict_levels", "fit_pixel_model", "fitted_record", "hot_pixels", "describe_pixels"]
 
 #: Thresholds sampled across the mismatch when predicting a step's mean count (smooths the counts' steps).
 SPREAD_POINTS = 25
@@ -236,6 +237,66 @@ def level_statistics(counts, is_level, level, interior, gain=None) -> LevelStati
         first.append(float(np.median(f[fired])) if fired.any() else np.nan)
         last.append(float(np.median(la[fired])) if fired.any() else np.nan)
     return LevelStatistics(steps.astype(np.float64), np.array(n), np.array(first), np.array(last), int(mask.sum()))
+
+
+#: Longest stretch before the first trigger edge (µs) :func:`hot_pixels` reads.
+HOT_LEAD_US = 200_000
+
+#: Fewest events in the dark for a pixel to count as hot (:func:`hot_pixels`).
+HOT_MIN_EVENTS = 5
+
+
+def hot_pixels(rec, t_on_us, t_off_us, max_gaps=64):
+    """Pixels that fire in the dark far more than the rest: a bool mask (height, width) over the sensor.
+
+    The dark is the time before the first trigger edge (at most :data:`HOT_LEAD_US`) and the last quarter of
+    the gaps between windows ``[t_on_us, t_off_us)`` (at most ``max_gaps`` of them), where the pixels lit
+    before have settled. A pixel is hot when it fires there at least :data:`HOT_MIN_EVENTS` times, more than
+    four times the median count of its 5x5 neighbourhood plus six of its Poisson deviations (a response's
+    pixels, noisier in the dark than the bare sensor, are judged against each other), and in a third of the
+    dark stretches or more (a pixel still decaying from a bright window fires in a few, not steadily). A hot pixel
+    inside the response would be a dot of its own and a pixel of its own model.
+
+    Parameters
+    ----------
+    rec : Recording
+    t_on_us, t_off_us : array of int
+        The trigger windows (any order).
+
+    Returns
+    -------
+    ndarray of bool, shape (height, width)
+    """
+    w, h = (int(v) for v in rec.sensor_size)
+    order = np.argsort(np.asarray(t_on_us, np.int64))
+    on, off = np.asarray(t_on_us, np.int64)[order], np.asarray(t_off_us, np.int64)[order]
+    stretches = []
+    if on.size:
+        stretches.append((int(on[0]) - HOT_LEAD_US, int(on[0]) - 1))
+    for a, b in list(zip(off[:-1].tolist(), on[1:].tolist()))[:int(max_gaps)]:
+        if b - a >= 8:
+            stretches.append((b - (b - a) // 4, b))
+    counts = np.zeros(w * h, np.int64)
+    seen = np.zeros(w * h, np.int64)
+    for a, b in stretches:
+        ev = rec.events(a, b)
+        if ev.t.size == 0:
+            continue
+        n = np.bincount(ev.y.astype(np.int64) * w + ev.x.astype(np.int64), minlength=w * h)
+        counts += n
+        seen += n > 0
+    counts = counts.reshape(h, w)
+    # against its own neighbourhood: a response's pixels fire in the dark more than the bare sensor around it
+    local = median_filter(counts.astype(np.float64), size=5, mode="nearest")
+    limit = np.maximum(HOT_MIN_EVENTS, 4.0 * local + 6.0 * np.sqrt(local + 1.0))
+    return (counts >= limit) & (3 * seen.reshape(h, w) >= max(1, len(stretches)))
+
+
+def describe_pixels(mask, most=8) -> str:
+    """``"N pixels at (x, y), ..."`` for a sensor mask (the first ``most`` of them)."""
+    ys, xs = np.nonzero(np.asarray(mask, bool))
+    where = ", ".join(f"({x}, {y})" for x, y in zip(xs[:most].tolist(), ys[:most].tolist()))
+    return f"{xs.size} pixel{'s' if xs.size != 1 else ''} at {where}{' ...' if xs.size > most else ''}"
 
 
 def _interior_events(rec, t0_us, t1_us, polarity, region, interior):
