@@ -38,7 +38,7 @@ from .io._atomic import AtomicFile
 from .optics.camera import CellMap
 from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
-from .reconstruct.calibrated import fit_on_edges
+from .reconstruct.calibrated import fit_on_edges, refuse_pixel_fit
 from .reconstruct.deblur import sampling_matrix
 from .reconstruct.fit import describe_pixels, hot_pixels
 from .reconstruct.windows import Windows
@@ -255,8 +255,12 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     levels = s.kernel_id[win.capture] == LEVEL_ID
     if pixel_model and levels.any():  # and the pixels' model, from the level captures (with the flat fields' spread)
         use = levels | (s.kernel_id[win.capture] == FLAT_ID)
-        cal.pixel_model = fit_on_edges(rec, win.t_start_us[use], win.t_end_us[use], s.take(win.capture[use]), sched,
-                                       cal.region, cal.origin_px, cell_map=cal.cell_map(), hot=hot).to_dict()
+        fit = fit_on_edges(rec, win.t_start_us[use], win.t_end_us[use], s.take(win.capture[use]), sched, cal.region,
+                           cal.origin_px, cell_map=cal.cell_map(), hot=hot)
+        refused = refuse_pixel_fit(fit)  # a model no camera has is neither used nor saved
+        cal.pixel_model = fit.to_dict() if refused is None else None
+        if refused is not None:
+            cal.warnings.append(refused)
     x0, x1, y0, y1 = cal.region
     net = _without((dot_counts.on.astype(np.float64) - dot_counts.off).mean(axis=0), hot)[y0:y1, x0:x1]
     cal.blur_px = dot_blur_px(net, cal.region, cal.cell_map(), bench, np.rint(expected).astype(np.int64), (rows, cols),

@@ -155,3 +155,27 @@ def test_hot_pixels_are_left_out_of_the_dot_search_and_the_fit_and_named(tmp_pat
     cells = np.array([[0.0, 0.0], [cal.response_shape[1] - 1.0, cal.response_shape[0] - 1.0]])
     assert np.allclose(cal.to_pixels(cells), cells + np.array(record["response_origin_px"]), atol=0.25)
     assert cal.pixel_model is not None and 0.1 < cal.pixel_model["theta_on"] < 0.4
+
+
+def test_a_pixel_model_no_camera_has_is_refused_and_never_saved(tmp_path):
+    """Failure 7: the trigger edges come 150 us after the light (a bench whose DMD signals late), so the level
+    captures' rise falls before the windows. Before, the fit explained that with absurd values and calibrate saved
+    them into cal.toml without a word; now a model outside a camera's range, or one that reads its own level
+    captures back more than 2x off, is refused with what to change, neither used nor saved."""
+    from evtk.calibrate import save_calibration
+    from evtk.reconstruct import reconstruct_calibrated
+
+    schedule, ev, tr, record = _run(tmp_path, seed=7, levels=6)
+    cam = _write(tmp_path / "cam.aedat4", ev, tr, t=ev.t - 150)
+    with evtk.open(cam) as rec:
+        cal = calibrate(rec, schedule)
+        res = reconstruct_calibrated(rec, schedule, cal.region, cal.origin_px, cell_map=cal.cell_map())
+    assert cal.pixel_model is None
+    assert any("refused" in w and "What to change" in w for w in cal.warnings), cal.warnings
+    save_calibration(tmp_path / "cal.toml", cal)
+    assert "[pixel_model]" not in (tmp_path / "cal.toml").read_text()
+    s = res.summary
+    assert s["pixel_model"] is None and s["pixel_model_rejected"] and s["linearization"] == "exp(n theta)"
+    assert any("refused" in w for w in s["warnings"])
+    with evtk.open(tmp_path / "sim7.h5") as rec:  # the same run with its edges on time: the model is kept
+        assert calibrate(rec, schedule).pixel_model is not None

@@ -31,6 +31,7 @@ from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
 from .bench import _all_pairs, _complete_mask, load_schedule, match_windows, neighbourhood_flat_gain, reconstruct_bench
 from .fit import (
+    MAX_DELAY_US,
     PixelFit,
     describe_pixels,
     fit_pixel_model,
@@ -48,7 +49,8 @@ from .fit import (
 from .pipeline import MAX_TIMING_STAMP_US, check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
 
-__all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement", "fit_on_edges", "MAX_LEVEL_ERROR", "LEAD_US"]
+__all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement", "fit_on_edges", "MAX_LEVEL_ERROR", "LEAD_US",
+           "PHYSICAL_RANGE", "level_readback", "refuse_pixel_fit"]
 
 #: The most a fitted pixel model may misread the level captures' light (as a factor, either way) before the
 #: calibrated route gives it up for exp(n theta).
@@ -153,6 +155,17 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     else:
         fit = pixel_model if isinstance(pixel_model, PixelFit) else PixelFit.from_dict(pixel_model)
         source = "the calibration"
+    refused = refuse_pixel_fit(fit)
+    if refused is not None:  # a model no camera has, or one that misreads its own level captures: not used
+        fallback = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
+                                     skip_us=skip_us, length_us=length_us, crop=crop, flat_field=flat_field,
+                                     tolerance_us=tolerance_us, progress=progress)
+        note = refused + "; the counts were linearised by exp(n theta)"
+        fallback.summary.update(pixel_model=None, refused_pixel_model=fit.to_dict(), pixel_model_from=None,
+                                level_light_ratio=level_readback(fit).tolist(), pixel_model_rejected=True,
+                                pixel_model_note=note)
+        fallback.summary["warnings"] = warnings + [note] + fallback.summary["warnings"]
+        return fallback
     shift = int(round(fit.delay_us))  # the windows follow the light, shift us after the trigger edges
     start, end = _trim(edge_on + shift, edge_off + shift, skip_us, length_us, "matched")
     counts = accumulate(rec, Windows(start, end, np.arange(caps.size), "triggers matched to the schedule",
@@ -191,6 +204,72 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
 #: How long before the trigger edges the pixel model's statistics are first counted (µs): a light that comes a
 #: little before its edge (a late trigger) still shows its whole rise, and the fit measures the delay either way.
 LEAD_US = 20
+
+#: The range (low, high) of each fitted value a pixel model may hold (:func:`refuse_pixel_fit`): a fit beyond
+#: them explains the level captures with a pixel no camera has (threshold 7.9, a dark time constant of 347 s, a
+#: light 100 µs before its trigger edge, all seen on benches the model did not describe).
+PHYSICAL_RANGE = {
+    "theta_on": (0.02, 1.5),
+    "theta_off": (0.02, 1.5),
+    "tau_min_us": (1.0, 1e4),
+    "tau_dark_us": (1.0, 1e6),
+    "light_delay_us": (-float(LEAD_US), MAX_DELAY_US),
+}
+
+
+def level_readback(fit: PixelFit) -> np.ndarray:
+    """The light each level step's mean count reads back through the fitted model, over the light it had.
+
+    The model's mean count (:meth:`PixelFit.mean_counts`, made monotonic) is inverted on a grid up to twice
+    the brightest step; 1 where the model describes the pixels. A count beyond the model's reach reads 2x.
+
+    Parameters
+    ----------
+    fit : PixelFit
+
+    Returns
+    -------
+    ndarray
+        One ratio per level step of ``fit.statistics``.
+    """
+    st = fit.statistics
+    light = np.asarray(st.light, np.float64)
+    if light.size == 0:
+        return np.zeros(0)
+    grid = np.linspace(0.0, 2.0 * float(light.max()), 81)
+    curve = np.maximum.accumulate(np.nan_to_num(fit.mean_counts(grid)))
+    read = np.interp(np.asarray(st.counts, np.float64), curve, grid)
+    return read / np.maximum(light, 1e-12)
+
+
+def refuse_pixel_fit(fit: PixelFit) -> str | None:
+    """Why a fitted pixel model must not be used, with what to change; None when it may.
+
+    Refused: a value outside :data:`PHYSICAL_RANGE`, or a model that reads its own level captures back
+    (:func:`level_readback`) more than :data:`MAX_LEVEL_ERROR` times off, either way.
+
+    Parameters
+    ----------
+    fit : PixelFit
+
+    Returns
+    -------
+    str or None
+    """
+    d = fit.to_dict()
+    problems = [f"{name} {d[name]:.4g} (a camera's lies within {lo:g} to {hi:g})"
+                for name, (lo, hi) in PHYSICAL_RANGE.items() if not (np.isfinite(d[name]) and lo <= d[name] <= hi)]
+    ratios = level_readback(fit)
+    if ratios.size and not np.all((ratios >= 1 / MAX_LEVEL_ERROR) & (ratios <= MAX_LEVEL_ERROR)):
+        problems.append(f"it reads the level captures' light back as {ratios.min():.3g} to {ratios.max():.3g} "
+                        "times what it was")
+    if not problems:
+        return None
+    return ("the pixel model fitted to the level captures was refused: " + "; ".join(problems) + ". What to "
+            "change: check that the camera reads out asynchronously and its trigger edges come with the light "
+            "(a light before its edge by more than 20 us is cut off), show more level steps spanning the job's "
+            "light (levels = 6 or more), with windows long enough for the brightest (window_us) and dark time "
+            "for the decay (settle_us)")
 
 #: A fitted delay of the light this much (µs) or more off the one the first pass took has the statistics counted
 #: and fitted again in windows that follow the light, up to :data:`RECOUNT_ROUNDS` times.

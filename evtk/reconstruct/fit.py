@@ -30,7 +30,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import median_filter
+from scipy.ndimage import percentile_filter
 from scipy.optimize import least_squares, minimize
 
 from ..errors import EvtkError
@@ -250,11 +250,12 @@ def hot_pixels(rec, t_on_us, t_off_us, max_gaps=64):
     """Pixels that fire in the dark far more than the rest: a bool mask (height, width) over the sensor.
 
     The dark is the time before the first trigger edge (at most :data:`HOT_LEAD_US`) and the last quarter of
-    the gaps between windows ``[t_on_us, t_off_us)`` (at most ``max_gaps`` of them), where the pixels lit
-    before have settled. A pixel is hot when it fires there at least :data:`HOT_MIN_EVENTS` times, more than
-    four times the median count of its 5x5 neighbourhood plus six of its Poisson deviations (a response's
-    pixels, noisier in the dark than the bare sensor, are judged against each other), and in a third of the
-    dark stretches or more (a pixel still decaying from a bright window fires in a few, not steadily). A hot pixel
+    the gaps between windows ``[t_on_us, t_off_us)`` but their last sixteenth (at most ``max_gaps`` of them),
+    where the pixels lit before have settled and a light a little ahead of its edge has not come. A pixel is
+    hot when it fires there at least :data:`HOT_MIN_EVENTS` times, more than four times the 90th percentile of
+    its 11x11 neighbourhood's counts plus six of its Poisson deviations (a response's pixels, noisier in the
+    dark than the bare sensor, are judged against each other), and in a third of the dark stretches or more
+    (a pixel still decaying from a bright window fires in a few, not steadily). A hot pixel
     inside the response would be a dot of its own and a pixel of its own model.
 
     Parameters
@@ -271,11 +272,13 @@ def hot_pixels(rec, t_on_us, t_off_us, max_gaps=64):
     order = np.argsort(np.asarray(t_on_us, np.int64))
     on, off = np.asarray(t_on_us, np.int64)[order], np.asarray(t_off_us, np.int64)[order]
     stretches = []
+    gaps = (on[1:] - off[:-1]).tolist()
+    margin = int(max(gaps) // 16) if gaps else 0  # a light a little before its trigger edge is not darkness
     if on.size:
-        stretches.append((int(on[0]) - HOT_LEAD_US, int(on[0]) - 1))
+        stretches.append((int(on[0]) - HOT_LEAD_US, int(on[0]) - margin - 1))
     for a, b in list(zip(off[:-1].tolist(), on[1:].tolist()))[:int(max_gaps)]:
-        if b - a >= 8:
-            stretches.append((b - (b - a) // 4, b))
+        if b - a >= 16:
+            stretches.append((b - (b - a) // 4, b - (b - a) // 16))
     counts = np.zeros(w * h, np.int64)
     seen = np.zeros(w * h, np.int64)
     for a, b in stretches:
@@ -286,8 +289,9 @@ def hot_pixels(rec, t_on_us, t_off_us, max_gaps=64):
         counts += n
         seen += n > 0
     counts = counts.reshape(h, w)
-    # against its own neighbourhood: a response's pixels fire in the dark more than the bare sensor around it
-    local = median_filter(counts.astype(np.float64), size=5, mode="nearest")
+    # against its own neighbourhood: a response's pixels fire in the dark more than the bare sensor around it,
+    # and at the response's edge half the neighbours are outside: the busiest tenth of 11x11 is the reference
+    local = percentile_filter(counts.astype(np.float64), 90, size=11, mode="nearest")
     limit = np.maximum(HOT_MIN_EVENTS, 4.0 * local + 6.0 * np.sqrt(local + 1.0))
     return (counts >= limit) & (3 * seen.reshape(h, w) >= max(1, len(stretches)))
 
