@@ -38,6 +38,7 @@ from .io._atomic import AtomicFile
 from .optics.camera import CellMap
 from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
+from .reconstruct.bench import refuse_synchronous
 from .reconstruct.calibrated import fit_on_edges, refuse_pixel_fit
 from .reconstruct.deblur import sampling_matrix
 from .reconstruct.fit import describe_pixels, hot_pixels
@@ -253,8 +254,14 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
                       orientation=orientation, warnings=warnings)
     cal._evidence = (image, found, expected)  # for plot_calibration; not saved
     levels = s.kernel_id[win.capture] == LEVEL_ID
+    use = levels | (s.kernel_id[win.capture] == FLAT_ID)
+    if pixel_model and levels.any():  # a synchronous readout's counts fall in bright light: no model fits them
+        try:
+            refuse_synchronous(rec, win.t_start_us[use], win.t_end_us[use])
+        except EvtkError as exc:
+            cal.warnings.append(f"no pixel model: {exc}")
+            pixel_model = False
     if pixel_model and levels.any():  # and the pixels' model, from the level captures (with the flat fields' spread)
-        use = levels | (s.kernel_id[win.capture] == FLAT_ID)
         fit = fit_on_edges(rec, win.t_start_us[use], win.t_end_us[use], s.take(win.capture[use]), sched, cal.region,
                            cal.origin_px, cell_map=cal.cell_map(), hot=hot)
         refused = refuse_pixel_fit(fit)  # a model no camera has is neither used nor saved

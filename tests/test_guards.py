@@ -179,3 +179,38 @@ def test_a_pixel_model_no_camera_has_is_refused_and_never_saved(tmp_path):
     assert any("refused" in w for w in s["warnings"])
     with evtk.open(tmp_path / "sim7.h5") as rec:  # the same run with its edges on time: the model is kept
         assert calibrate(rec, schedule).pixel_model is not None
+
+
+def _frames(ev, period_us=150):
+    """``ev`` read out synchronously: each pixel's first event of every ``period_us`` frame, stamped at the frame's
+    end; any more that frame are lost (at most one event a pixel and frame)."""
+    t = (ev.t.astype(np.int64) + period_us - 1) // period_us * period_us
+    pix = ev.y.astype(np.int64) * ev.sensor_size[0] + ev.x
+    order = np.lexsort((ev.t, t, pix))
+    first = np.r_[True, (pix[order][1:] != pix[order][:-1]) | (t[order][1:] != t[order][:-1])]
+    keep = order[first]
+    return t[keep], ev.x[keep], ev.y[keep], ev.p[keep]
+
+
+def test_a_synchronous_frame_readout_is_named_not_reconstructed(tmp_path):
+    """Failure 3: a camera that reads its pixels out every 150 us and fires at most one event a pixel and frame:
+    counts stop growing with the light. Before, evtk fitted theta to them and reported a wrong answer (or an
+    inverted one); now both routes and calibrate's pixel model name the readout and say what to do."""
+    from evtk.reconstruct import reconstruct_bench, reconstruct_calibrated
+
+    schedule, ev, tr, record = _run(tmp_path, seed=8, levels=4)
+    t, x, y, p = _frames(ev)
+    cam = _write(tmp_path / "cam.aedat4", ev, tr, t=t, x=x, y=y, p=p)
+    with evtk.open(cam) as rec:
+        for route in (reconstruct_calibrated, reconstruct_bench):
+            with pytest.raises(EvtkError, match="synchronous frame readout .*150 us grid.*asynchronous readout"):
+                route(rec, schedule, record["response_region"], record["response_origin_px"])
+        cal = calibrate(rec, schedule)  # the dots still place the response; no pixel model is fitted
+    assert cal.pixel_model is None and any("synchronous frame readout" in w for w in cal.warnings)
+    res = CliRunner().invoke(main, ["reconstruct", str(cam), "--schedule", str(schedule), "-o", str(tmp_path / "o.h5")])
+    assert res.exit_code != 0 and "synchronous frame readout" in res.output and "Traceback" not in res.output
+    # the same pixels stamped on the frame grid but read out asynchronously (several events a frame) pass
+    tq = (ev.t.astype(np.int64) + 149) // 150 * 150
+    with evtk.open(_write(tmp_path / "async.aedat4", ev, tr, t=tq)) as rec:
+        assert reconstruct_calibrated(rec, schedule, record["response_region"],
+                                      record["response_origin_px"]).summary["pixel_model"] is not None

@@ -29,7 +29,15 @@ from ..optics import response_origin_px, response_region
 from ..simulate import FLAT_ID, LEVEL_ID
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
-from .bench import _all_pairs, _complete_mask, load_schedule, match_windows, neighbourhood_flat_gain, reconstruct_bench
+from .bench import (
+    _all_pairs,
+    _complete_mask,
+    load_schedule,
+    match_windows,
+    neighbourhood_flat_gain,
+    reconstruct_bench,
+    refuse_synchronous,
+)
 from .fit import (
     MAX_DELAY_US,
     PixelFit,
@@ -144,6 +152,9 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
 
     sub = s.take(caps)
     bench = sched["bench"]
+    lit = (sub.kernel_id == FLAT_ID) | (sub.kernel_id == LEVEL_ID)
+    lit = lit if lit.any() else np.ones(caps.size, bool)
+    refuse_synchronous(rec, edge_on[lit], edge_off[lit])  # counts that fall in bright light: named, not fitted
     warnings = []
     if levels_here:
         hot = hot_pixels(rec, win.t_start_us, win.t_end_us)
