@@ -447,8 +447,8 @@ def _orient(found, places, lit):
     best, second = ranked[0], ranked[1]
     if scores[second][0] <= scores[best][0]:
         raise EvtkError(f"the calibration dots do not tell the camera's orientation: '{best}' and '{second}' both "
-                        f"leave {scores[best][0]} dots unexplained (the marker is the two dots missing near the grid's "
-                        "first corner, not a corner; a dot lost at the grid's edge or a hot pixel can hide it): more light or "
+                        f"leave {scores[best][0]} dots unexplained (the marker is the dot missing next to the grid's "
+                        "first corner; a dot lost at the grid's edge or a hot pixel can hide it): more light or "
                         "a longer window for the calibration captures")
     return scores[best][2], best, None
 

@@ -150,7 +150,7 @@ def test_hot_pixels_are_left_out_of_the_dot_search_and_the_fit_and_named(tmp_pat
     cam = _write(tmp_path / "cam.aedat4", ev, tr, t=t, x=x, y=y, p=p)
     with evtk.open(cam) as rec:
         cal = calibrate(rec, schedule)
-    assert cal.dots_found == cal.dots_expected == 14 and cal.orientation == "upright"
+    assert cal.dots_found == cal.dots_expected == 15 and cal.orientation == "upright"
     assert any("5 pixels at" in w and "(10, 12)" in w and "hot" in w for w in cal.warnings), cal.warnings
     cells = np.array([[0.0, 0.0], [cal.response_shape[1] - 1.0, cal.response_shape[0] - 1.0]])
     assert np.allclose(cal.to_pixels(cells), cells + np.array(record["response_origin_px"]), atol=0.25)

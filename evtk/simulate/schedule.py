@@ -192,19 +192,19 @@ def dot_grid(shape, spacing, marker=True):
     """The calibration pattern: 1 at every ``spacing``-th features element along each axis, starting
     ``spacing // 2`` in, 0 elsewhere (int8).
 
-    With ``marker`` (default) two dots are left out when the grid has at least 10 dots
-    (:data:`DOT_MARKER_MIN`) and 3 rows and 4 columns (or 4 and 3): the second dot of the second row and the third
-    of the first (on a taller grid the first of the third row), no corner, so the map's extrapolation to the
-    response's corners keeps its support. No rotation or reflection of
-    the grid maps that gap onto itself, so :func:`evtk.calibrate.calibrate` tells a mirrored or rotated camera
-    apart from an upright one. ``marker=False`` gives the whole grid.
+    With ``marker`` (default) one dot is left out when the grid has at least 10 dots
+    (:data:`DOT_MARKER_MIN`) and 3 rows and 4 columns (or 4 and 3): the second of the first row (on a taller
+    grid the first of the second row). That place lies on no axis of the grid's symmetry, so no rotation or
+    reflection maps the gap onto itself and :func:`evtk.calibrate.calibrate` tells a mirrored or rotated camera
+    apart from an upright one; the corners stay, for the map's extrapolation. ``marker=False`` gives the whole
+    grid.
 
     Examples
     --------
     >>> dot_grid((6, 6), 3).nonzero()
     (array([1, 1, 4, 4]), array([1, 4, 1, 4]))
     >>> int(dot_grid((16, 16), 4).sum()), int(dot_grid((16, 16), 4, marker=False).sum())
-    (14, 16)
+    (15, 16)
     """
     h, w = (int(v) for v in shape)
     s = int(spacing)
@@ -213,14 +213,14 @@ def dot_grid(shape, spacing, marker=True):
     rows, cols = len(range(s // 2, h, s)), len(range(s // 2, w, s))
     if marker and rows * cols >= DOT_MARKER_MIN:
         r0 = c0 = s // 2
-        if cols >= 4 and rows >= 3:  # grid places (1, 1) and (0, 2): no corner, for the map's extrapolation
-            out[r0 + s, c0 + s] = out[r0, c0 + 2 * s] = 0
-        elif rows >= 4 and cols >= 3:  # a tall grid: (1, 1) and (2, 0)
-            out[r0 + s, c0 + s] = out[r0 + 2 * s, c0] = 0
+        if cols >= 4 and rows >= 3:  # grid place (0, 1): on no axis of symmetry, and not a corner
+            out[r0, c0 + s] = 0
+        elif rows >= 4 and cols >= 3:  # a tall grid: (1, 0)
+            out[r0 + s, c0] = 0
     return out
 
 
-#: Fewest dots a grid needs before :func:`dot_grid` leaves two out as an orientation marker.
+#: Fewest dots a grid needs before :func:`dot_grid` leaves one out as an orientation marker.
 DOT_MARKER_MIN = 10
 
 
