@@ -403,6 +403,12 @@ def refractory_bound(gaps, quantile=0.01):
 #: Quantiles of the brightest step's ON-event gaps :func:`fit_refractory` matches.
 GAP_QUANTILES = (0.05, 0.1, 0.25)
 
+#: How many times the gaps' own spread (their 25 % quantile less their 5 %) the lowest quantile must stand above
+#: the model's at the least period before :func:`fit_refractory` reads a period from them (a 10 µs period: 8.2 µs
+#: above, 2.2 of spread; a v2e-like pixel with a 1 µs period and an 8 µs rise of the light: 2.4 above, 1.9 of
+#: spread, which was read as 3.5 µs).
+REFRACTORY_SIGNIFICANCE = 2.0
+
 
 def _grouped_quantiles(n0, pmf, qs):
     """Quantiles ``qs`` of a whole-µs distribution (``pmf`` over ``n0, n0 + 1, ...``), spread evenly over the
@@ -445,8 +451,11 @@ def fit_refractory(fit: PixelFit, light, gaps, skip_us=0, max_us=None):
     ``max_us`` (default twice the smallest gap). ``resolved`` is False when
     the fitted period moves the predicted gaps by less than a time stamp's
     1 µs from the least period's (the crossings themselves are slower: the
-    gaps bound the period from above only) or the model gives no gaps at
-    all (a fit that failed, e.g. on counts a long period flattened, which
+    gaps bound the period from above only), when the gaps' lowest quantile
+    stands above the least period's prediction by no more than
+    :data:`REFRACTORY_SIGNIFICANCE` times the gaps' own spread (a pixel
+    slower to its first crossings than the model, not a period), or the
+    model gives no gaps at all (a fit that failed, e.g. on counts a long period flattened, which
     the calibrated route then catches on the level captures); the model then
     keeps its period.
     """
@@ -460,6 +469,12 @@ def fit_refractory(fit: PixelFit, light, gaps, skip_us=0, max_us=None):
     predicted = np.array([_predicted_gaps(fit.params, float(light), fit.window_us, fit.settle_us, skip_us, r,
                                           fit.spread, qs) for r in grid])
     if not np.isfinite(predicted).any(axis=1).all():
+        return fit.sensor.refractory_us, False
+    # significant only when the gaps' floor stands above the least period's prediction by more than the gaps' own
+    # spread can explain: slower first crossings than the model's (a light that rises over microseconds, a
+    # bandwidth with a hard floor) lengthen every gap a little, which a period must not be read from
+    excess = observed[0] - predicted[0][0]
+    if not excess > REFRACTORY_SIGNIFICANCE * (observed[-1] - observed[0]):
         return fit.sensor.refractory_us, False
     i = int(np.argmin(np.nansum((predicted - observed) ** 2, axis=1)))
     if not np.nanmax(np.abs(predicted[i] - predicted[0])) > 1.0:
