@@ -276,3 +276,15 @@ def test_a_refractory_period_is_resolved_only_on_significant_evidence(tmp_path):
         m = reconstruct_calibrated(rec, schedule_of_record(sim.record())).summary["pixel_model"]
     assert m is not None and m["refractory_resolved"] is False and m["refractory_us"] == 1.0
     assert m["refractory_bound_us"] >= 1.0
+
+
+def test_evtk_calibrate_says_the_orientation_and_the_hot_pixels(tmp_path):
+    """The CLI prints what calibrate measured and left out: a mirrored camera, hot pixels by count and place."""
+    schedule, ev, tr, record = _run(tmp_path, seed=9)
+    w = ev.sensor_size[0]
+    t, x, y, p = _with_hot_pixels(ev, [(20, 30), (250, 40)])
+    cam = _write(tmp_path / "cam.aedat4", ev, tr, t=t, x=(w - 1 - x.astype(np.int64)).astype(np.uint16), y=y, p=p)
+    res = CliRunner().invoke(main, ["calibrate", str(cam), "--schedule", str(schedule), "-o", str(tmp_path / "c.toml")])
+    assert res.exit_code == 0, res.output
+    assert "sees the screen mirrored left-right" in res.output
+    assert "warning: left 2 pixels at (299, 30), (69, 40)" in res.output, res.output
