@@ -166,17 +166,19 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     else:
         fit = pixel_model if isinstance(pixel_model, PixelFit) else PixelFit.from_dict(pixel_model)
         source = "the calibration"
+
+    def fall_back(note, **about):  # exp(n theta) on the bench route, saying why
+        out = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
+                                skip_us=skip_us, length_us=length_us, crop=crop, flat_field=flat_field,
+                                tolerance_us=tolerance_us, progress=progress)
+        out.summary.update(pixel_model_from=None, pixel_model_rejected=True, pixel_model_note=note, **about)
+        out.summary["warnings"] = warnings + [note] + out.summary["warnings"]
+        return out
+
     refused = refuse_pixel_fit(fit)
     if refused is not None:  # a model no camera has, or one that misreads its own level captures: not used
-        fallback = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
-                                     skip_us=skip_us, length_us=length_us, crop=crop, flat_field=flat_field,
-                                     tolerance_us=tolerance_us, progress=progress)
-        note = refused + "; the counts were linearised by exp(n theta)"
-        fallback.summary.update(pixel_model=None, refused_pixel_model=fit.to_dict(), pixel_model_from=None,
-                                level_light_ratio=level_readback(fit).tolist(), pixel_model_rejected=True,
-                                pixel_model_note=note)
-        fallback.summary["warnings"] = warnings + [note] + fallback.summary["warnings"]
-        return fallback
+        return fall_back(refused + "; the counts were linearised by exp(n theta)", pixel_model=None,
+                         refused_pixel_model=fit.to_dict(), level_light_ratio=level_readback(fit).tolist())
     shift = int(round(fit.delay_us))  # the windows follow the light, shift us after the trigger edges
     start, end = _trim(edge_on + shift, edge_off + shift, skip_us, length_us, "matched")
     counts = accumulate(rec, Windows(start, end, np.arange(caps.size), "triggers matched to the schedule",
@@ -195,16 +197,9 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     ratios = result.summary.get("level_light_ratio")
     if ratios and not all(np.isfinite(r) and 1 / MAX_LEVEL_ERROR <= r <= MAX_LEVEL_ERROR for r in ratios):
         # the model reads the run's own level captures back wrong: it does not describe these pixels
-        fallback = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
-                                     skip_us=skip_us, length_us=length_us, crop=crop, flat_field=flat_field,
-                                     tolerance_us=tolerance_us, progress=progress)
-        fallback.summary.update(pixel_model=fit.to_dict(), pixel_model_from=None, level_light_ratio=ratios,
-                                pixel_model_rejected=True, pixel_model_note=(
-                                    f"the fitted pixel model reads the level captures' light back as "
-                                    f"{min(ratios):.3g} to {max(ratios):.3g} times what it was: it does not describe "
-                                    "these pixels, so the counts were linearised by exp(n theta)"))
-        fallback.summary["warnings"] = warnings + [fallback.summary["pixel_model_note"]] + fallback.summary["warnings"]
-        return fallback
+        return fall_back(f"the fitted pixel model reads the level captures' light back as {min(ratios):.3g} to "
+                         f"{max(ratios):.3g} times what it was: it does not describe these pixels, so the counts "
+                         "were linearised by exp(n theta)", pixel_model=fit.to_dict(), level_light_ratio=ratios)
     result.summary.update(match=report, pairs_left_out=sorted(_all_pairs(s) - complete), pixel_model_from=source,
                           response_origin_px=[float(v) for v in origin_px], pixel_model=fit.to_dict(),
                           level_captures=int(np.sum(sub.kernel_id == LEVEL_ID)), windows_after_edges_us=shift)

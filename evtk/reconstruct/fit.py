@@ -297,7 +297,19 @@ def hot_pixels(rec, t_on_us, t_off_us, max_gaps=64):
 
 
 def describe_pixels(mask, most=8) -> str:
-    """``"N pixels at (x, y), ..."`` for a sensor mask (the first ``most`` of them)."""
+    """Where a sensor mask's pixels are, for a message.
+
+    Parameters
+    ----------
+    mask : ndarray of bool, shape (height, width)
+    most : int
+        How many to name.
+
+    Returns
+    -------
+    str
+        ``"N pixels at (x, y), ..."``, the first ``most`` of them in row order.
+    """
     ys, xs = np.nonzero(np.asarray(mask, bool))
     where = ", ".join(f"({x}, {y})" for x, y in zip(xs[:most].tolist(), ys[:most].tolist()))
     return f"{xs.size} pixel{'s' if xs.size != 1 else ''} at {where}{' ...' if xs.size > most else ''}"
