@@ -51,24 +51,35 @@ def _write(path, ev, tr, x=None, y=None, p=None, t=None):
     return path
 
 
-@pytest.mark.parametrize("flip", ["mirrored left-right", "rotated 180 degrees"])
+def _turned(x, y, flip, w, h):
+    """Sensor pixels (x, y) as a camera mirrored, upside down or turned a quarter about the centre sees them."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    if flip == "mirrored left-right":
+        return w - 1 - x, y
+    if flip == "rotated 180 degrees":
+        return w - 1 - x, h - 1 - y
+    cx, cy = (w - 1) / 2, (h - 1) / 2  # a quarter turn: x' = cx + (y - cy), y' = cy - (x - cx)
+    return cx + (y - cy), cy - (x - cx)
+
+
+@pytest.mark.parametrize("flip", ["mirrored left-right", "rotated 180 degrees", "rotated 270 degrees"])
 def test_a_mirrored_or_rotated_camera_is_measured_not_assumed(tmp_path, flip):
-    """Failure 1: the camera behind the diffuser sees the screen mirrored (x -> W-1-x), or upside down. Before,
-    the symmetric grid paired with positive scales fitted a wrong map with a tiny residual (10 px from the truth);
-    now the grid's marker says which way the camera looks, and the map holds every cell within 0.2 px."""
+    """Failure 1: the camera behind the diffuser sees the screen mirrored (x -> W-1-x), upside down, or turned
+    a quarter. Before, the symmetric grid paired with positive scales fitted a wrong map with a tiny residual (10
+    px from the truth); now the grid's marker says which way the camera looks, and the map holds every cell
+    within 0.2 px."""
     schedule, ev, tr, record = _run(tmp_path)
     w, h = ev.sensor_size
-    x = (w - 1 - ev.x.astype(np.int64)).astype(np.uint16)
-    y = ev.y if flip == "mirrored left-right" else (h - 1 - ev.y.astype(np.int64)).astype(np.uint16)
-    cam = _write(tmp_path / "cam.aedat4", ev, tr, x=x, y=y)
+    x, y = _turned(ev.x, ev.y, flip, w, h)
+    on = (x >= 0) & (x < w) & (y >= 0) & (y < h)  # a quarter turn takes the sensor's sides off it
+    cam = _write(tmp_path / "cam.aedat4", ev, tr, t=ev.t[on], x=x[on].astype(np.uint16), y=y[on].astype(np.uint16),
+                 p=ev.p[on])
     with evtk.open(cam) as rec:
         cal = calibrate(rec, schedule)
     rows, cols = cal.response_shape
     cells = np.stack(np.meshgrid(np.arange(cols), np.arange(rows)), -1).reshape(-1, 2).astype(float)
     truth = cells + np.array(record["response_origin_px"])  # the simulated camera: one pixel per cell
-    truth[:, 0] = w - 1 - truth[:, 0]
-    if flip != "mirrored left-right":
-        truth[:, 1] = h - 1 - truth[:, 1]
+    truth = np.stack(_turned(truth[:, 0], truth[:, 1], flip, w, h), axis=1)
     err = np.linalg.norm(cal.to_pixels(cells) - truth, axis=1)
     assert np.sqrt(np.mean(err ** 2)) < 0.2, np.sqrt(np.mean(err ** 2))  # before: 10 px
     assert cal.orientation == flip
