@@ -299,3 +299,23 @@ def test_evtk_calibrate_says_the_orientation_and_the_hot_pixels(tmp_path):
     assert res.exit_code == 0, res.output
     assert "sees the screen mirrored left-right" in res.output
     assert "warning: left 2 pixels at (299, 30), (69, 40)" in res.output, res.output
+
+
+def test_a_mirrored_camera_reconstructs_as_the_upright_one(tmp_path):
+    """Failure 1, end to end: the default route on the mirrored camera's copy (its own dots placing the response,
+    its own level captures fitting the pixel model) gives the upright copy's error (before: correlation -0.03)."""
+    job = tmp_path / "job.toml"
+    job.write_text('kernels = ["010111010"]\nsigned = true\nrepeat = 1\nflat_field = 2\ncalibration = 2\nlevels = 6\n'
+                   'window_us = 1000\nseed = 11\n')
+    sim = job_simulation(job)
+    write_patterns(sim, tmp_path / "p")
+    sim.write(tmp_path / "sim.h5")
+    with evtk.open(tmp_path / "sim.h5") as rec:
+        ev, tr = rec.events(), rec.triggers()
+    got = {}
+    for flip in ("upright", "mirrored left-right"):
+        x = ev.x if flip == "upright" else _turned(ev.x, ev.y, flip, *ev.sensor_size)[0].astype(np.uint16)
+        with evtk.open(_write(tmp_path / f"{flip}.aedat4", ev, tr, x=x)) as rec:
+            got[flip] = evtk.reconstruct_recording(rec, schedule=str(tmp_path / "p" / "schedule.json")).summary
+    assert got["mirrored left-right"]["error"]["nrmse"] == pytest.approx(got["upright"]["error"]["nrmse"], rel=0.02)
+    assert got["upright"]["error"]["correlation"] > 0.8 and got["upright"]["warnings"] == []
