@@ -23,10 +23,10 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
+from scipy.ndimage import gaussian_filter, median_filter
 from scipy.optimize import least_squares
 from skimage.feature import peak_local_max
 from skimage.filters import threshold_otsu
@@ -38,8 +38,10 @@ from .io._atomic import AtomicFile
 from .optics.camera import CellMap
 from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
-from .reconstruct.calibrated import fit_on_edges
+from .reconstruct.bench import refuse_synchronous
+from .reconstruct.calibrated import fit_on_edges, refuse_pixel_fit
 from .reconstruct.deblur import sampling_matrix
+from .reconstruct.fit import describe_pixels, hot_pixels
 from .reconstruct.windows import Windows
 from .settings import read_table, toml_value
 from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, dot_grid
@@ -91,6 +93,11 @@ class Calibration:
         The camera's defocus, a Gaussian's standard deviation in pixels, beyond the footprint the bench
         geometry predicts (:func:`dot_blur_px`); the reconstruction deblurs it. Below about 0.3 px it is
         not told apart from none.
+    orientation : str or None
+        How the camera sees the screen (a key of :data:`ORIENTATIONS`: upright, mirrored, rotated), measured
+        from the dot grid's marker; None where the grid carries none (then upright was assumed, and said).
+    warnings : list of str
+        What the calibration assumed or left out (hot pixels, a refused pixel model, an assumed orientation).
     """
 
     matrix: list
@@ -108,6 +115,8 @@ class Calibration:
     k1: float = 0.0
     background_rate_hz: float | None = None
     blur_px: float = 0.0
+    orientation: str | None = None
+    warnings: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -189,23 +198,31 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     w, h = rec.sensor_size
     sub = Windows(win.t_start_us[dots_win], win.t_end_us[dots_win], win.capture[dots_win], win.source)
     dot_counts = accumulate(rec, sub, (0, w, 0, h))
-    image = dot_counts.on.sum(axis=0).astype(np.float64)
+    # pixels that fire in the dark would be dots of their own: each takes its neighbours' median
+    hot = hot_pixels(rec, win.t_start_us, win.t_end_us)
+    image = _without(dot_counts.on.sum(axis=0).astype(np.float64), hot)
     bench = sched["bench"]
     found = _blobs(image, sched["dot_spacing"] * bench.kernel_step_cells / bench.pixel_cells)
     kh, kw = kernels.shape[1:]
     fh, fw = features.shape[1:]
-    dots = np.argwhere(dot_grid((fh, fw), sched["dot_spacing"]) > 0)  # (row, col) of each dot
+    grid = np.argwhere(dot_grid((fh, fw), sched["dot_spacing"], marker=False) > 0)  # (row, col) of every grid place
+    lit = dot_grid((fh, fw), sched["dot_spacing"])[grid[:, 0], grid[:, 1]] > 0  # the marker's places are dark
     # the kernel's centre element (ck) and a dot at features (r, c) light full-response cell (r + kh-1 - ck, ...)
     ck_r, ck_c = (kh - 1) // 2, (kw - 1) // 2
-    expected = np.stack([dots[:, 1] + (kw - 1) - ck_c, dots[:, 0] + (kh - 1) - ck_r], axis=1).astype(np.float64)
+    places = np.stack([grid[:, 1] + (kw - 1) - ck_c, grid[:, 0] + (kh - 1) - ck_r], axis=1).astype(np.float64)
+    expected = places[lit]
     if len(found) < MIN_DOTS:
         raise EvtkError(f"only {len(found)} calibration dots were seen ({len(expected)} shown); at least {MIN_DOTS} "
                         "are needed: more light, a longer window, or a coarser dot spacing")
-    pairs = _pair(found, expected)
+    pairs, orientation, note = _orient(found, places, lit)
+    warnings = [] if note is None else [note]
+    if hot.any():
+        warnings.append(f"left {describe_pixels(hot)} out of the dot search and the pixel model's fit: they fire "
+                        "in the dark far more than the rest (hot pixels)")
     if len(pairs) < MIN_DOTS:
         raise EvtkError(f"only {len(pairs)} of the {len(found)} dots seen could be paired with the "
                         f"{len(expected)} shown: is the schedule that of this recording?")
-    src = expected[[j for _, j in pairs]]
+    src = places[[j for _, j in pairs]]
     dst = found[[i for i, _ in pairs]]
     model, inliers = ransac((src, dst), ProjectiveTransform, min_samples=4, residual_threshold=1.0,
                             max_trials=500, rng=0)
@@ -233,15 +250,26 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     y1 = int(min(h, np.ceil(corners[:, 1].max()) + 2))
     cal = Calibration(np.asarray(cmap.matrix).tolist(), [float(origin[0]), float(origin[1])], float((dx + dy) / 2),
                       [x0, x1, y0, y1], float(np.sqrt(np.mean(res ** 2))), float(res.max()), len(expected),
-                      len(found), int(inliers.sum()), [int(w), int(h)], [int(rows), int(cols)], None, cmap.k1)
+                      len(found), int(inliers.sum()), [int(w), int(h)], [int(rows), int(cols)], None, cmap.k1,
+                      orientation=orientation, warnings=warnings)
     cal._evidence = (image, found, expected)  # for plot_calibration; not saved
     levels = s.kernel_id[win.capture] == LEVEL_ID
+    use = levels | (s.kernel_id[win.capture] == FLAT_ID)
+    if pixel_model and levels.any():  # a synchronous readout's counts fall in bright light: no model fits them
+        try:
+            refuse_synchronous(rec, win.t_start_us[use], win.t_end_us[use])
+        except EvtkError as exc:
+            cal.warnings.append(f"no pixel model: {exc}")
+            pixel_model = False
     if pixel_model and levels.any():  # and the pixels' model, from the level captures (with the flat fields' spread)
-        use = levels | (s.kernel_id[win.capture] == FLAT_ID)
-        cal.pixel_model = fit_on_edges(rec, win.t_start_us[use], win.t_end_us[use], s.take(win.capture[use]), sched,
-                                       cal.region, cal.origin_px, cell_map=cal.cell_map()).to_dict()
+        fit = fit_on_edges(rec, win.t_start_us[use], win.t_end_us[use], s.take(win.capture[use]), sched, cal.region,
+                           cal.origin_px, cell_map=cal.cell_map(), hot=hot)
+        refused = refuse_pixel_fit(fit)  # a model no camera has is neither used nor saved
+        cal.pixel_model = fit.to_dict() if refused is None else None
+        if refused is not None:
+            cal.warnings.append(refused)
     x0, x1, y0, y1 = cal.region
-    net = (dot_counts.on[:, y0:y1, x0:x1].astype(np.float64) - dot_counts.off[:, y0:y1, x0:x1]).mean(axis=0)
+    net = _without((dot_counts.on.astype(np.float64) - dot_counts.off).mean(axis=0), hot)[y0:y1, x0:x1]
     cal.blur_px = dot_blur_px(net, cal.region, cal.cell_map(), bench, np.rint(expected).astype(np.int64), (rows, cols),
                               model=PixelFit.from_dict(cal.pixel_model) if cal.pixel_model else None)
     cal.background_rate_hz = background_rate_hz(rec, win.t_end_us, sched["settle_us"], cal.region)
@@ -327,6 +355,15 @@ def background_rate_hz(rec, t_off_us, settle_us, region, margin_px=3, max_window
     return float(n / (pixels * len(ends) * (int(settle_us) - half) * 1e-6))
 
 
+def _without(image, mask):
+    """``image`` with the pixels of ``mask`` replaced by the median of their 3x3 neighbourhood."""
+    if not np.any(mask):
+        return image
+    out = image.copy()
+    out[mask] = median_filter(image, size=3, mode="nearest")[mask]
+    return out
+
+
 def _with_distortion(cmap, src, dst, res):
     """``cmap`` (a :class:`CellMap` without distortion) refined with radial distortion about the sensor centre,
     when that fits the dots better (RMS down by more than 10 %): ``(map, residuals)``."""
@@ -354,6 +391,66 @@ def _affine(src, dst):
         return model if model else None
     model = AffineTransform()
     return model if model.estimate(src, dst) else None
+
+
+#: The eight ways a camera can see the dot grid (cell axes to sensor axes, up to scale), by name: 2x2 matrices
+#: applied to cell offsets (column, row) about the grid's centre.
+ORIENTATIONS = {
+    "upright": ((1, 0), (0, 1)),
+    "mirrored left-right": ((-1, 0), (0, 1)),
+    "mirrored top-bottom": ((1, 0), (0, -1)),
+    "rotated 180 degrees": ((-1, 0), (0, -1)),
+    "transposed (mirrored and rotated 90 degrees)": ((0, 1), (1, 0)),
+    "rotated 90 degrees": ((0, -1), (1, 0)),
+    "rotated 270 degrees": ((0, 1), (-1, 0)),
+    "anti-transposed (mirrored and rotated 270 degrees)": ((0, -1), (-1, 0)),
+}
+
+
+def _orient(found, places, lit):
+    """Pair the blobs ``found`` with the grid's ``places`` (cells, column and row) in whichever of the
+    :data:`ORIENTATIONS` the marker (the grid places not ``lit``, :func:`evtk.simulate.dot_grid`) says.
+
+    Each orientation turns the grid about its centre before :func:`_pair` lays its bounding box on the blobs';
+    its misfit is the lit places no blob pairs with plus the dark places one does. The best must be alone: a
+    tie, or a dot on every marker place whichever way (a pattern without the marker), cannot tell a mirrored
+    camera from an upright one.
+
+    Returns
+    -------
+    pairs : list of (int, int)
+        (blob index, place index) of the lit places paired.
+    orientation : str or None
+        The name of the orientation found; None when the grid carries no marker.
+    warning : str or None
+        Why the orientation was assumed rather than measured.
+    """
+    lit = np.asarray(lit, bool)
+    centre = places.mean(axis=0)
+    if lit.all():
+        return ([(i, j) for i, j in _pair(found, places)], None,
+                f"the dot grid ({len(places)} dots) is too small to carry the orientation marker (at least 10 dots, 3 "
+                "rows and 4 columns or 4 and 3): the camera was taken to see the screen upright, not mirrored or rotated")
+    scores = {}
+    for name, m in ORIENTATIONS.items():
+        turned = (places - centre) @ np.asarray(m, np.float64).T + centre
+        pairs = _pair(found, turned)
+        got = np.zeros(len(places), bool)
+        got[[j for _, j in pairs]] = True
+        scores[name] = (int(np.sum(lit & ~got)) + int(np.sum(~lit & got)), int(np.sum(~lit & got)),
+                        [(i, j) for i, j in pairs if lit[j]])
+    if all(v[1] == int(np.sum(~lit)) for v in scores.values()):  # the marker's places lit whichever way
+        pairs = [(i, j) for i, j in _pair(found, places)]
+        return (pairs, None, "a dot shows on every place of the grid, the orientation marker's too (patterns written "
+                "before evtk drew the marker?): the camera was taken to see the screen upright; write the patterns again")
+    ranked = sorted(scores, key=lambda k: scores[k][0])
+    best, second = ranked[0], ranked[1]
+    if scores[second][0] <= scores[best][0]:
+        raise EvtkError(f"the calibration dots do not tell the camera's orientation: '{best}' and '{second}' both "
+                        f"leave {scores[best][0]} dots unexplained (the marker is the dot missing next to the grid's "
+                        "first corner; a dot lost at the grid's edge or a hot pixel can hide it): more light or "
+                        "a longer window for the calibration captures")
+    return scores[best][2], best, None
 
 
 def _pair(found, expected):

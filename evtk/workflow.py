@@ -79,9 +79,11 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
     else:
         sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
     region, placed, cell_map, blur_px, model, own = opts.region, "given", None, 0.0, None, True
+    told = []  # what the calibration assumed or left out, said again with the result
     if calibration is not None:
         region, origin_px, placed = tuple(calibration.region), tuple(calibration.origin_px), "calibration"
         cell_map, blur_px, model = calibration.cell_map(), calibration.blur_px, calibration.pixel_model
+        told = list(calibration.warnings)
     elif region is None and origin_px is None:
         if (sched["schedule"].kernel_id == DOTS_ID).any():
             # the run calibrates itself; its pixel model, fitted to its own level captures there, is not fitted again
@@ -89,6 +91,8 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
             region, origin_px, placed = tuple(cal.region), tuple(cal.origin_px), "the run's own dot captures"
             cell_map, blur_px, model = cal.cell_map(), cal.blur_px, cal.pixel_model
             own = model is None
+            # fitted again below when the calibration kept no model: what it says of the fit is said again there
+            told = [w for w in cal.warnings if not (own and "pixel model" in w)]
         else:
             placed = "the bench geometry"
     result = reconstruct_calibrated(rec, sched, region, origin_px, size=opts.size,
@@ -105,5 +109,6 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         "exp(n theta), the fitted pixel model misreads the level captures" if result.summary.get(
             "pixel_model_rejected") else "exp(n theta), no level captures to fit a pixel model to")
     result.summary["placement"] = placed
+    result.summary["warnings"] = told + result.summary.get("warnings", [])
     result.summary["oracle"] = False
     return result

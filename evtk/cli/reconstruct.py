@@ -103,6 +103,8 @@ def reconstruct_cmd(recording, output, png_path, schedule_path, calibration_path
                      "pixel model puts the light's change")
         if summary.get("timing_skipped"):
             line += f"\nnote: event times were not used: {summary['timing_skipped']}"
+        for warning in summary.get("warnings") or []:  # what would otherwise pass unseen (empty windows, ...)
+            line += f"\nwarning: {warning}"
         click.echo(line)
 
 

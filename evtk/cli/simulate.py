@@ -229,4 +229,8 @@ def calibrate(recording, schedule_path, output, png_path, as_json):
                        "follow it")
     if cal.blur_px > 0:
         click.echo(f"camera defocus: {cal.blur_px:.2f} px (Gaussian sigma, beyond the bench's footprint)")
+    if cal.orientation not in (None, "upright"):
+        click.echo(f"the camera sees the screen {cal.orientation} (from the dot grid's marker); the map holds it")
+    for warning in cal.warnings:  # what the calibration assumed or left out
+        click.echo(f"warning: {warning}")
 

@@ -21,15 +21,15 @@ from scipy.ndimage import median_filter
 
 from ..errors import EvtkError
 from ..optics import Bench, response_origin_px
-from ..simulate import FLAT_ID, Schedule
+from ..simulate import FLAT_ID, LEVEL_ID, Schedule
 from .accumulate import accumulate
 from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid
 from .linearize import flat_field_gain, linearize
-from .pipeline import Reconstruction, check_crop, pair_ideals, response_error
+from .pipeline import MAX_TIMING_STAMP_US, Reconstruction, check_crop, pair_ideals, response_error, silent_failures
 from .windows import Windows, _trim, windows_from_triggers
 
-__all__ = ["load_schedule", "match_windows", "reconstruct_bench"]
+__all__ = ["load_schedule", "match_windows", "reconstruct_bench", "synchronous_readout", "refuse_synchronous"]
 
 
 def load_schedule(path) -> dict:
@@ -182,8 +182,11 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     fh, fw = features.shape[1:]
     origin = tuple(float(v) for v in (origin_px if origin_px is not None
                                       else response_origin_px(bench, (kh, kw), (fh, fw))))
-    counts = accumulate(rec, win, region, progress=progress)
     flat = s.kernel_id[win.capture] == FLAT_ID
+    lit = flat | (s.kernel_id[win.capture] == LEVEL_ID)
+    lit = lit if lit.any() else np.ones(len(win), bool)
+    refuse_synchronous(rec, win.t_start_us[lit], win.t_end_us[lit])
+    counts = accumulate(rec, win, region, progress=progress)
     gain = None
     if flat_field and flat.any():
         gain = neighbourhood_flat_gain(counts.on[flat].astype(np.float64) - counts.off[flat])
@@ -204,6 +207,12 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     responses = downsample(combined, size)
     binary = binarize(responses, method)
     scale = float(np.sum(combined * ideal) / np.sum(combined * combined)) if np.any(combined) else 1.0
+    checks = silent_failures(counts, pairs, combined, len(kernels))
+    if scale < 0:  # scored after the scale's size only: an inverted result keeps its sign
+        checks["warnings"].append(
+            f"the responses are inverted against the ideal (best scale {scale:.3g}): the correlation is reported "
+            "with its sign. Is the camera's polarity swapped, or does exp(n theta) not describe these pixels "
+            "(a frame readout, a pixel model that failed)?")
     summary = {
         "captures": int(len(s)), "windows": int(len(win)), "window_source": win.source,
         "windows_dropped": win.dropped, "events_used": counts.events_used, "region": list(counts.region),
@@ -213,9 +222,77 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
         "deblurred": False, "flat_field_captures": int(flat.sum()) if gain is not None else 0,
         "decimation": int(bench.decimation),
         "match": report, "pairs_left_out": sorted(_all_pairs(s) - complete),
-        "error": response_error(combined * scale, ideal), "scale_to_ideal": scale,
+        "error": response_error(combined * abs(scale), ideal), "scale_to_ideal": scale, **checks,
     }
     return Reconstruction(responses, binary, pairs, combined, ideal, counts, summary)
+
+
+#: Pixel-frames a synchronous readout must show fired in the next frame too (busy pixels) before the absence of
+#: two events from one pixel in one frame names it (:func:`synchronous_readout`).
+SYNC_MIN_RUNS = 50
+
+
+def synchronous_readout(rec, t_on_us, t_off_us, max_windows=16):
+    """The frame period (µs) when the recording's pixels are read out synchronously, else None.
+
+    A synchronous readout (a frame every period, at most one event a pixel and frame) stamps every event on
+    the frame grid, and never stamps two from one pixel in one frame, however bright: its counts stop growing
+    with the light and even fall, which no linearisation undoes. Asynchronous pixels stamped on a frame grid
+    (the DVXplorer's) fire several times a frame at a bright onset. Read from the events of the first
+    ``max_windows`` windows ``[t_on_us, t_off_us)``: a grid coarser than
+    :data:`~evtk.reconstruct.pipeline.MAX_TIMING_STAMP_US`, no pixel twice in one stamp, and at least
+    :data:`SYNC_MIN_RUNS` pixel-frames followed by the same pixel in the next frame (busy enough that
+    asynchronous pixels would have doubled).
+
+    Parameters
+    ----------
+    rec : Recording
+    t_on_us, t_off_us : array of int
+        Windows with light in them (flat fields, level captures).
+
+    Returns
+    -------
+    float or None
+    """
+    w = int(rec.sensor_size[0])
+    parts = [rec.events(int(a), int(b)) for a, b in zip(np.asarray(t_on_us)[:max_windows].tolist(),
+                                                      np.asarray(t_off_us)[:max_windows].tolist())]
+    parts = [e for e in parts if e.t.size]
+    if not parts:
+        return None
+    t = np.concatenate([e.t for e in parts]).astype(np.int64)
+    pix = np.concatenate([e.y.astype(np.int64) * w + e.x for e in parts])
+    stamps = np.unique(t)
+    if stamps.size < 16:  # a few windows of a few frames each: the grid's step is the stamps' common divisor
+        return None
+    period = int(np.gcd.reduce(np.diff(stamps)))
+    if period <= MAX_TIMING_STAMP_US:
+        return None
+    order = np.lexsort((t, pix))
+    t, pix = t[order], pix[order]
+    same = pix[1:] == pix[:-1]
+    dt = np.diff(t)
+    doubled = int(np.sum(same & (dt == 0)))
+    runs = int(np.sum(same & (np.abs(dt - period) <= 1)))
+    return float(period) if doubled <= 1e-4 * t.size and runs >= SYNC_MIN_RUNS else None
+
+
+def refuse_synchronous(rec, t_on_us, t_off_us):
+    """Raise :class:`~evtk.EvtkError`, naming the readout and what to do, when :func:`synchronous_readout`
+    finds one in the windows ``[t_on_us, t_off_us)``.
+
+    Parameters
+    ----------
+    rec : Recording
+    t_on_us, t_off_us : array of int
+    """
+    period = synchronous_readout(rec, t_on_us, t_off_us)
+    if period is not None:
+        raise EvtkError(
+            f"the recording comes from a synchronous frame readout (events on a {period:g} us grid, never two from "
+            "one pixel in a frame): a pixel's count stops growing with its light and falls again when bright, so "
+            "no linearisation of its counts is right; record with the camera's asynchronous readout (or a readout "
+            "period far below the pixels' rise)")
 
 
 def _all_pairs(s):

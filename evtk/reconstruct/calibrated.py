@@ -30,12 +30,23 @@ from ..optics import response_origin_px, response_region
 from ..simulate import FLAT_ID, LEVEL_ID
 from ..simulate.record import SimulationRecord
 from .accumulate import accumulate
-from .bench import _all_pairs, _complete_mask, load_schedule, match_windows, neighbourhood_flat_gain, reconstruct_bench
+from .bench import (
+    _all_pairs,
+    _complete_mask,
+    load_schedule,
+    match_windows,
+    neighbourhood_flat_gain,
+    reconstruct_bench,
+    refuse_synchronous,
+)
 from .fit import (
+    MAX_DELAY_US,
     PixelFit,
+    describe_pixels,
     fit_pixel_model,
     fit_refractory,
     fitted_record,
+    hot_pixels,
     interior_pixels,
     level_off_times,
     level_rise_times,
@@ -49,7 +60,8 @@ from .pipeline import MAX_TIMING_STAMP_US, check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
 
 __all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement", "fit_on_edges", "MAX_LEVEL_ERROR",
-           "MAX_TABLE_ERROR", "LEAD_US", "held_out_table_error"]
+           "MAX_TABLE_ERROR", "LEAD_US", "held_out_table_error", "PHYSICAL_RANGE", "level_readback",
+           "refuse_pixel_fit"]
 
 #: The most a fitted pixel model may misread the level captures' light (as a factor, either way) before the
 #: calibrated route gives it up for exp(n theta).
@@ -158,12 +170,35 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
 
     sub = s.take(caps)
     bench = sched["bench"]
+    lit = (sub.kernel_id == FLAT_ID) | (sub.kernel_id == LEVEL_ID)
+    lit = lit if lit.any() else np.ones(caps.size, bool)
+    refuse_synchronous(rec, edge_on[lit], edge_off[lit])  # counts that fall in bright light: named, not fitted
+    warnings = []
     if levels_here:
-        fit = fit_on_edges(rec, edge_on, edge_off, sub, sched, region, origin_px, skip_us, cell_map=cell_map)
+        hot = hot_pixels(rec, win.t_start_us, win.t_end_us)
+        if hot.any():
+            warnings.append(f"left {describe_pixels(hot)} out of the pixel model's fit: they fire in the dark far "
+                            "more than the rest (hot pixels)")
+        fit = fit_on_edges(rec, edge_on, edge_off, sub, sched, region, origin_px, skip_us, cell_map=cell_map, hot=hot)
         source = "the run's own level captures"
     else:
         fit = pixel_model if isinstance(pixel_model, PixelFit) else PixelFit.from_dict(pixel_model)
         source = "the calibration"
+
+    def fall_back(note, **about):  # exp(n theta) on the bench route, saying why
+        out = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
+                                skip_us=skip_us, length_us=length_us, crop=crop, flat_field=flat_field,
+                                tolerance_us=tolerance_us, progress=progress)
+        out.summary.update(pixel_model_from=None, pixel_model_rejected=True, pixel_model_note=note, **about)
+        out.summary["warnings"] = warnings + [note] + out.summary["warnings"]
+        return out
+
+    # a model no camera has is not used; one that only misreads its own level captures is judged below, where
+    # the level captures' own table may read the counts instead (else exp(n theta), saying why)
+    refused = refuse_pixel_fit(fit, readback=False)
+    if refused is not None:
+        return fall_back(refused + "; the counts were linearised by exp(n theta)", pixel_model=None,
+                         refused_pixel_model=fit.to_dict(), level_light_ratio=level_readback(fit).tolist())
     shift = int(round(fit.delay_us))  # the windows follow the light, shift us after the trigger edges
     start, end = _trim(edge_on + shift, edge_off + shift, skip_us, length_us, "matched")
     counts = accumulate(rec, Windows(start, end, np.arange(caps.size), "triggers matched to the schedule",
@@ -205,18 +240,13 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         ratios = None
     if ratios and not all(np.isfinite(r) and 1 / MAX_LEVEL_ERROR <= r <= MAX_LEVEL_ERROR for r in ratios):
         # the model reads the run's own level captures back wrong: it does not describe these pixels
-        fallback = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
-                                     skip_us=skip_us, length_us=length_us, crop=crop, flat_field=flat_field,
-                                     tolerance_us=tolerance_us, progress=progress)
-        fallback.summary.update(pixel_model=fit.to_dict(), pixel_model_from=None, level_light_ratio=ratios,
-                                pixel_model_rejected=True, pixel_model_note=(
-                                    f"the fitted pixel model reads the level captures' light back as "
-                                    f"{min(ratios):.3g} to {max(ratios):.3g} times what it was: it does not describe "
-                                    "these pixels, so the counts were linearised by exp(n theta)"))
-        return fallback
+        return fall_back(f"the fitted pixel model reads the level captures' light back as {min(ratios):.3g} to "
+                         f"{max(ratios):.3g} times what it was: it does not describe these pixels, so the counts "
+                         "were linearised by exp(n theta)", pixel_model=fit.to_dict(), level_light_ratio=ratios)
     result.summary.update(match=report, pairs_left_out=sorted(_all_pairs(s) - complete), pixel_model_from=source,
                           response_origin_px=[float(v) for v in origin_px], pixel_model=fit.to_dict(),
                           level_captures=int(np.sum(sub.kernel_id == LEVEL_ID)), windows_after_edges_us=shift)
+    result.summary["warnings"] = warnings + result.summary.get("warnings", [])
     return result
 
 
@@ -264,13 +294,85 @@ def held_out_table_error(level_light, level_counts) -> float | None:
 #: little before its edge (a late trigger) still shows its whole rise, and the fit measures the delay either way.
 LEAD_US = 20
 
+#: The range (low, high) of each fitted value a pixel model may hold (:func:`refuse_pixel_fit`): a fit beyond
+#: them explains the level captures with a pixel no camera has (threshold 7.9, a dark time constant of 347 s, a
+#: light 100 µs before its trigger edge, all seen on benches the model did not describe).
+PHYSICAL_RANGE = {
+    "theta_on": (0.02, 1.5),
+    "theta_off": (0.02, 1.5),
+    "tau_min_us": (1.0, 1e4),
+    "tau_dark_us": (1.0, 1e6),
+    "light_delay_us": (-float(LEAD_US), MAX_DELAY_US),
+}
+
+
+def level_readback(fit: PixelFit) -> np.ndarray:
+    """The light each level step's mean count reads back through the fitted model, over the light it had.
+
+    The model's mean count (:meth:`PixelFit.mean_counts`, made monotonic) is inverted on a grid up to twice
+    the brightest step; 1 where the model describes the pixels. A count beyond the model's reach reads 2x.
+
+    Parameters
+    ----------
+    fit : PixelFit
+
+    Returns
+    -------
+    ndarray
+        One ratio per level step of ``fit.statistics``.
+    """
+    st = fit.statistics
+    light = np.asarray(st.light, np.float64)
+    if light.size == 0:
+        return np.zeros(0)
+    grid = np.linspace(0.0, 2.0 * float(light.max()), 81)
+    curve = np.maximum.accumulate(np.nan_to_num(fit.mean_counts(grid)))
+    read = np.interp(np.asarray(st.counts, np.float64), curve, grid)
+    return read / np.maximum(light, 1e-12)
+
+
+def refuse_pixel_fit(fit: PixelFit, readback: bool = True) -> str | None:
+    """Why a fitted pixel model must not be used, with what to change; None when it may.
+
+    Refused: a value outside :data:`PHYSICAL_RANGE`, or (with ``readback``) a model that reads its own level
+    captures back (:func:`level_readback`) more than :data:`MAX_LEVEL_ERROR` times off, either way.
+
+    Parameters
+    ----------
+    fit : PixelFit
+        The fitted model, with the level statistics it was fitted to.
+    readback : bool
+        Also refuse a model that misreads its own level captures (``evtk calibrate`` saves no such model; the
+        reconstruction judges it itself, where the level captures' table may take over).
+
+    Returns
+    -------
+    str or None
+        The reason and what to change, or None.
+    """
+    d = fit.to_dict()
+    problems = [f"{name} {d[name]:.4g} (a camera's lies within {lo:g} to {hi:g})"
+                for name, (lo, hi) in PHYSICAL_RANGE.items() if not (np.isfinite(d[name]) and lo <= d[name] <= hi)]
+    ratios = level_readback(fit) if readback else np.zeros(0)
+    if ratios.size and not np.all((ratios >= 1 / MAX_LEVEL_ERROR) & (ratios <= MAX_LEVEL_ERROR)):
+        problems.append(f"it reads the level captures' light back as {ratios.min():.3g} to {ratios.max():.3g} "
+                        "times what it was")
+    if not problems:
+        return None
+    return ("the pixel model fitted to the level captures was refused: " + "; ".join(problems) + ". What to "
+            "change: check that the camera reads out asynchronously and its trigger edges come with the light "
+            "(a light before its edge by more than 20 us is cut off), show more level steps spanning the job's "
+            "light (levels = 6 or more), with windows long enough for the brightest (window_us) and dark time "
+            "for the decay (settle_us)")
+
 #: A fitted delay of the light this much (µs) or more off the one the first pass took has the statistics counted
 #: and fitted again in windows that follow the light, up to :data:`RECOUNT_ROUNDS` times.
 RECOUNT_DELAY_US = 1.0
 RECOUNT_ROUNDS = 3
 
 
-def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, skip_us=0, cell_map=None) -> PixelFit:
+def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, skip_us=0, cell_map=None,
+                 hot=None) -> PixelFit:
     """:func:`fit_pixel_model` on the level captures of ``sub`` (a schedule of captures whose trigger edges are
     ``edge_on_us``/``edge_off_us``), the flat fields giving the pixels' threshold spread.
 
@@ -281,7 +383,7 @@ def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, sk
     come with the edges to time the refractory period from the gaps; where
     the delay comes out :data:`RECOUNT_DELAY_US` or more from that, the
     statistics are counted and fitted again in windows that start with the
-    light.
+    light. ``hot`` (a sensor mask, :func:`~evtk.reconstruct.fit.hot_pixels`) leaves pixels out of the fit.
     """
     use = (sub.kernel_id == LEVEL_ID) | (sub.kernel_id == FLAT_ID)
     sub = sub.take(np.flatnonzero(use))
@@ -292,7 +394,7 @@ def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, sk
         counts = accumulate(rec, Windows(a, b, np.arange(sub.capture.size), "level and flat-field captures"),
                             region, times=True)
         return _fit_on_counts(rec, counts, sub, edge_off - lead_us, sched, origin_px, skip_us, cell_map, lead_us,
-                              delay_us)
+                              delay_us, hot)
 
     fit, assumed = fit_from(LEAD_US, 0.0), 0.0
     for _ in range(RECOUNT_ROUNDS):
@@ -303,7 +405,8 @@ def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, sk
     return fit
 
 
-def _fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us, cell_map, lead_us, delay_us) -> PixelFit:
+def _fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us, cell_map, lead_us, delay_us,
+                   hot=None) -> PixelFit:
     """:func:`fit_pixel_model` on accumulated counts (with times) of the captures ``sub`` (a schedule of the
     windows counted, ``t_off_us`` their ends, ``lead_us`` before the falling edges), the light taken to follow
     the edges by ``delay_us`` until its delay is fitted."""
@@ -312,6 +415,9 @@ def _fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us, cell_m
     bench = sched["bench"]
     inside = interior_pixels(counts.region, origin_px, bench.kernel_step_cells / bench.pixel_cells, (kh, kw),
                              (fh, fw), cell_map=cell_map)
+    if hot is not None:
+        x0, x1, y0, y1 = counts.region
+        inside = inside & ~np.asarray(hot, bool)[y0:y1, x0:x1]
     flat = sub.kernel_id == FLAT_ID
     gain = None
     if flat.any():

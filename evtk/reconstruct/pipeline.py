@@ -31,7 +31,7 @@ from .timing import _settle_residual, linearize_by_timing, timing_thresholds
 from .windows import WindowCounts, windows_from_schedule, windows_from_triggers, windows_periodic
 
 __all__ = ["Reconstruction", "response_error", "plan", "window_bytes", "reconstruct", "wants_times",
-    "reconstruct_counts"]
+    "reconstruct_counts", "silent_failures"]
 
 
 @dataclass
@@ -288,7 +288,7 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
         placement = sim.placement()
         origin = sim.response_origin_px
         aligned = None if placement is None else placement.axis_aligned(shape)
-        if aligned is not None:  # shifted or scaled only: still along the sensor's axes
+        if aligned is not None and aligned[1] > 0:  # shifted or scaled only: along the sensor's axes, not turned
             (origin, step), placement = aligned, None
         view = placement if placement is not None else CellMap.scale_shift(
             origin, step, (bench.sensor_width, bench.sensor_height))
@@ -363,7 +363,57 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
     }
     if ideal is not None:
         summary["error"] = response_error(cells, ideal)
+    if schedule is not None:
+        summary.update(silent_failures(counts, pairs, cells, len(sim.kernels)))
     return Reconstruction(responses, binary, pairs, cells, ideal, counts, summary, thresholds)
+
+
+def silent_failures(counts, pairs, cells, n_kernels) -> dict:
+    """What would otherwise pass unseen in a reconstruction's counts and responses, as summary entries.
+
+    A window with no event over the region reads as darkness, though every capture of a schedule shows light
+    (:func:`~evtk.simulate.split_passes` leaves dark passes out); a kernel with no capture (all mirrors off,
+    nothing to show) has no response; a response that is zero everywhere has vanished.
+
+    Parameters
+    ----------
+    counts : WindowCounts
+        The windows' counts (``counts.windows.capture``: the capture each shows).
+    pairs : ndarray (n, 3)
+        (kernel_id, features_id, repeat) of each response.
+    cells : ndarray (n, ...)
+        The responses.
+    n_kernels : int
+        Kernels the job holds.
+
+    Returns
+    -------
+    dict
+        ``empty_windows`` (the number of windows with no event), ``vanished_responses`` (responses zero
+        everywhere), ``kernels_without_response`` (kernel ids), and ``warnings``: one sentence for each that
+        is not zero or empty.
+    """
+    events = counts.on.reshape(len(counts.on), -1).sum(axis=1) + counts.off.reshape(len(counts.off), -1).sum(axis=1)
+    empty = np.flatnonzero(events == 0)
+    caps = np.asarray(counts.windows.capture)[empty] if len(counts.windows.capture) == len(events) else empty
+    flat = np.asarray(cells, np.float64).reshape(len(cells), -1)
+    vanished = np.flatnonzero(~np.any(flat != 0, axis=1)) if flat.size else np.zeros(0, np.int64)
+    shown = set(np.asarray(pairs)[:, 0].tolist()) if len(pairs) else set()
+    missing = sorted(set(range(int(n_kernels))) - shown)
+    warnings = []
+    if empty.size:
+        warnings.append(f"{empty.size} of {len(events)} windows hold no event over the region and read as darkness "
+                        f"(captures {caps[:10].tolist()}{' ...' if empty.size > 10 else ''}): a lost stretch of the "
+                        "recording, windows off the light, or a region off the response?")
+    if vanished.size:
+        which = sorted({int(pairs[i][0]) for i in vanished})
+        warnings.append(f"{vanished.size} of {len(flat)} responses are zero everywhere (kernels {which[:10]}): "
+                        "their windows saw nothing")
+    if missing:
+        warnings.append(f"{len(missing)} of {int(n_kernels)} kernels have no capture and no response (kernels "
+                        f"{missing[:10]}: all mirrors off, nothing to show)")
+    return {"empty_windows": int(empty.size), "vanished_responses": int(vanished.size),
+            "kernels_without_response": missing, "warnings": warnings}
 
 
 def pair_ideals(pairs, kernels, features, bench):

@@ -188,20 +188,40 @@ def level_steps(n_elements, levels):
     return np.unique(np.round(np.linspace(1, n, min(k, n))).astype(np.int64))
 
 
-def dot_grid(shape, spacing):
+def dot_grid(shape, spacing, marker=True):
     """The calibration pattern: 1 at every ``spacing``-th features element along each axis, starting
     ``spacing // 2`` in, 0 elsewhere (int8).
+
+    With ``marker`` (default) one dot is left out when the grid has at least 10 dots
+    (:data:`DOT_MARKER_MIN`) and 3 rows and 4 columns (or 4 and 3): the second of the first row (on a taller
+    grid the first of the second row). That place lies on no axis of the grid's symmetry, so no rotation or
+    reflection maps the gap onto itself and :func:`evtk.calibrate.calibrate` tells a mirrored or rotated camera
+    apart from an upright one; the corners stay, for the map's extrapolation. ``marker=False`` gives the whole
+    grid.
 
     Examples
     --------
     >>> dot_grid((6, 6), 3).nonzero()
     (array([1, 1, 4, 4]), array([1, 4, 1, 4]))
+    >>> int(dot_grid((16, 16), 4).sum()), int(dot_grid((16, 16), 4, marker=False).sum())
+    (15, 16)
     """
     h, w = (int(v) for v in shape)
     s = int(spacing)
     out = np.zeros((h, w), np.int8)
     out[s // 2::s, s // 2::s] = 1
+    rows, cols = len(range(s // 2, h, s)), len(range(s // 2, w, s))
+    if marker and rows * cols >= DOT_MARKER_MIN:
+        r0 = c0 = s // 2
+        if cols >= 4 and rows >= 3:  # grid place (0, 1): on no axis of symmetry, and not a corner
+            out[r0, c0 + s] = 0
+        elif rows >= 4 and cols >= 3:  # a tall grid: (1, 0)
+            out[r0 + s, c0] = 0
     return out
+
+
+#: Fewest dots a grid needs before :func:`dot_grid` leaves one out as an orientation marker.
+DOT_MARKER_MIN = 10
 
 
 def load_patterns(path_or_bits, name, side=None):
