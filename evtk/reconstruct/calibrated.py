@@ -195,8 +195,17 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
 
     # a model no camera has is not used; one that only misreads its own level captures is judged below, where
     # the level captures' own table may read the counts instead (else exp(n theta), saying why)
+    if linearization not in ("auto", "model", "table"):
+        raise EvtkError(f"linearization must be 'auto', 'model' or 'table', not {linearization!r}")
     refused = refuse_pixel_fit(fit, readback=False)
-    if refused is not None:
+    # the level captures' statistics come with the fit, whether fitted here or by the calibration; their own
+    # table needs no model, so a refused model can still leave it to read the counts (its delay in range)
+    table_error = held_out_table_error(fit.statistics.light, fit.statistics.counts)
+    table_ok = (table_error is not None and table_error < np.log(MAX_TABLE_ERROR) and np.isfinite(fit.blank)
+                and fit.blank > 0)
+    delay_ok = np.isfinite(fit.delay_us) and PHYSICAL_RANGE["light_delay_us"][0] <= fit.delay_us \
+        <= PHYSICAL_RANGE["light_delay_us"][1]
+    if refused is not None and not (linearization != "model" and table_ok and delay_ok):
         return fall_back(refused + "; the counts were linearised by exp(n theta)", pixel_model=None,
                          refused_pixel_model=fit.to_dict(), level_light_ratio=level_readback(fit).tolist())
     shift = int(round(fit.delay_us))  # the windows follow the light, shift us after the trigger edges
@@ -211,19 +220,17 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
                                                          counts.windows.dropped),
                           counts.region, counts.events_used, counts.on_first_us, counts.on_last_us,
                           counts.stamp_period_us)
-    result = reconstruct_counts(counts, record, skip_us=skip_us, length_us=length_us, size=size,
-                                binarize_method=binarize_method, linear=linear, crop=crop, deblur=deblur,
-                                flat_field=flat_field, timing=timing)
-    ratios = result.summary.get("level_light_ratio")
-    if linearization not in ("auto", "model", "table"):
-        raise EvtkError(f"linearization must be 'auto', 'model' or 'table', not {linearization!r}")
-    # the level captures' statistics come with the fit, whether fitted here or by the calibration
-    table_error = held_out_table_error(fit.statistics.light, fit.statistics.counts)
-    model_error = _level_error(ratios)
-    misreads = bool(ratios) and not all(np.isfinite(r) and 1 / MAX_LEVEL_ERROR <= r <= MAX_LEVEL_ERROR
-                                        for r in ratios)
-    table_holds = (table_error is not None and table_error < min(model_error, np.log(MAX_TABLE_ERROR))
-                   and np.isfinite(fit.blank) and fit.blank > 0)
+    if refused is None:
+        result = reconstruct_counts(counts, record, skip_us=skip_us, length_us=length_us, size=size,
+                                    binarize_method=binarize_method, linear=linear, crop=crop, deblur=deblur,
+                                    flat_field=flat_field, timing=timing)
+        ratios = result.summary.get("level_light_ratio")
+        model_error = _level_error(ratios)
+        misreads = bool(ratios) and not all(np.isfinite(r) and 1 / MAX_LEVEL_ERROR <= r <= MAX_LEVEL_ERROR
+                                            for r in ratios)
+    else:  # a model outside physical ranges: the table reads the counts, and the note says why
+        ratios, model_error, misreads = None, float("inf"), True
+    table_holds = table_ok and table_error < model_error
     if linearization == "table" or (linearization == "auto" and misreads and table_holds):
         curve = level_curve(fit.statistics.light, fit.statistics.counts, fit.blank)
         result = reconstruct_counts(counts, record, skip_us=skip_us, length_us=length_us, size=size,
@@ -232,11 +239,12 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         result.summary.update(linearization="the level captures' table", level_table_error=table_error,
                               pixel_model_level_error=model_error)
         if misreads and linearization == "auto":
+            why = (refused if refused is not None else
+                   f"the fitted pixel model reads the level captures' light back as {min(ratios):.3g} to "
+                   f"{max(ratios):.3g} times what it was: it does not describe these pixels")
             result.summary.update(pixel_model_rejected=True, pixel_model_note=(
-                f"the fitted pixel model reads the level captures' light back as {min(ratios):.3g} to "
-                f"{max(ratios):.3g} times what it was: it does not describe these pixels, so the counts were "
-                f"linearised by the level captures' own table (a level left out of it is read within a factor "
-                f"{np.exp(table_error):.3g})"))
+                f"{why}; so the counts were linearised by the level captures' own table (a level left out of it "
+                f"is read within a factor {np.exp(table_error):.3g})"))
         ratios = None
     if ratios and not all(np.isfinite(r) and 1 / MAX_LEVEL_ERROR <= r <= MAX_LEVEL_ERROR for r in ratios):
         # the model reads the run's own level captures back wrong: it does not describe these pixels
