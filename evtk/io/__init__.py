@@ -96,11 +96,14 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         evtk read any file); None takes ``$EVTK_TRUST_EXTERNAL`` (set by
         ``evtk --trust-external``).
     verify_checksums : bool, optional
-        AEDAT4 only: check the xxHash checksums LZ4 packet bodies may carry
-        (faery writes them; DV and dv-processing do not). Off by default,
-        which halves the time such files take; the frames' structure is
-        checked either way. None takes ``$EVTK_VERIFY_CHECKSUMS`` (set by
-        ``evtk --verify-checksums``).
+        AEDAT4 only: check the checksums packet bodies carry (xxHash32 block
+        and content checksums in LZ4 frames, which faery writes and DV and
+        dv-processing do not; Zstandard frames' content checksums are checked
+        either way). On by default: a body that fails one raises
+        :class:`~evtk.FormatError`. False reads such files unchecked (the
+        frames' structure is still checked). None takes
+        ``$EVTK_VERIFY_CHECKSUMS`` (``0`` turns it off; set by
+        ``evtk --no-verify-checksums`` and ``evtk --verify-checksums``).
 
     Examples
     --------
@@ -120,7 +123,9 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         from .aedat4 import Recording
 
         if verify_checksums is None:
-            verify_checksums = os.environ.get("EVTK_VERIFY_CHECKSUMS", "") not in ("", "0")
+            from ._compression import verify_by_default
+
+            verify_checksums = verify_by_default()
         return Recording(path, salvage=salvage, verify_checksums=verify_checksums)
     if fmt == "prophesee":
         from .prophesee import PropheseeRecording
