@@ -187,3 +187,50 @@ def test_lz4_checksums_named():
             cz.decompress(cz.LZ4, bytes(bad), 1 << 20)
         if what != "header":  # unchecked, the frame is read (the descriptor's own check byte is rewritten)
             assert cz.decompress(cz.LZ4, bytes(bad), 1 << 20, verify=False) == raw
+
+
+def _flip_inside(path, data_at, bit=0x01):
+    """Flip one bit of ``path`` at byte ``data_at``."""
+    data = bytearray(path.read_bytes())
+    data[data_at] ^= bit
+    path.write_bytes(bytes(data))
+
+
+def test_parquet_page_checksums_verified(tmp_path):
+    """A Parquet file whose data pages carry CRC-32s (pyarrow's write_page_checksum) is refused when one
+    fails, as a FormatError naming the file and row group; verify_checksums=False reads it unchecked."""
+    pa = pytest.importorskip("pyarrow")
+    pq = pytest.importorskip("pyarrow.parquet")
+    ev = random_events(50_000, seed=4)
+    table = pa.table({"t": ev.t, "x": ev.x, "y": ev.y, "p": ev.p})
+    path = tmp_path / "crc.parquet"
+    pq.write_table(table, path, write_page_checksum=True, compression="none", use_dictionary=False)
+    assert evtk.open(path, sensor_size=(320, 240)).events() == ev
+    _flip_inside(path, 4 + 8 * 20_000 + 3)  # inside the t column's page (time stamp 20,000's third byte)
+    with pytest.raises(evtk.FormatError, match="row group 0") as err:
+        evtk.open(path, sensor_size=(320, 240)).events()
+    assert err.value.path == str(path) and "CRC" in str(err.value)
+    got = evtk.open(path, sensor_size=(320, 240), verify_checksums=False).events()
+    assert not got == ev
+
+
+def test_hdf5_fletcher32_verified(tmp_path):
+    """An HDF5 event file written with the Fletcher-32 filter is refused when a chunk fails it."""
+    h5py = pytest.importorskip("h5py")
+    ev = random_events(20_000, seed=5)
+    path = tmp_path / "f32.h5"
+    evtk.write_events(path, ev)
+    with h5py.File(path, "r") as f:
+        root, attrs = dict(f.attrs), dict(f["events"].attrs)
+    with h5py.File(path, "w") as f:
+        f.attrs.update(root)
+        g = f.create_group("events")
+        g.attrs.update(attrs)
+        for name in ("t", "x", "y", "p"):
+            g.create_dataset(name, data=getattr(ev, name), chunks=(4096,), fletcher32=True)
+        at = g["t"].id.get_chunk_info(0).byte_offset
+    assert evtk.read_events(path) == ev
+    _flip_inside(path, at + 100)
+    with pytest.raises(evtk.FormatError) as err:
+        evtk.read_events(path)
+    assert err.value.path == str(path)

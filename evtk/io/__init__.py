@@ -96,10 +96,12 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         evtk read any file); None takes ``$EVTK_TRUST_EXTERNAL`` (set by
         ``evtk --trust-external``).
     verify_checksums : bool, optional
-        AEDAT4 only: check the checksums packet bodies carry (xxHash32 block
-        and content checksums in LZ4 frames, which faery writes and DV and
+        Check the checksums a file carries: in AEDAT4 the xxHash32 block and
+        content checksums of LZ4 packet bodies (faery writes them; DV and
         dv-processing do not; Zstandard frames' content checksums are checked
-        either way). On by default: a body that fails one raises
+        either way), in Parquet the CRC-32 of data pages that have one
+        (HDF5's Fletcher-32 filter is always checked by libhdf5). On by
+        default: a body or page that fails one raises
         :class:`~evtk.FormatError`. False reads such files unchecked (the
         frames' structure is still checked). None takes
         ``$EVTK_VERIFY_CHECKSUMS`` (``0`` turns it off; set by
@@ -115,6 +117,10 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     (320, 240) 2
     """
     fmt = detect_format(path)
+    if verify_checksums is None:
+        from ._compression import verify_by_default
+
+        verify_checksums = verify_by_default()
     if fmt == "aedat-other":
         from .aedat_legacy import LegacyAedatRecording
 
@@ -122,10 +128,6 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     if fmt == "aedat4":
         from .aedat4 import Recording
 
-        if verify_checksums is None:
-            from ._compression import verify_by_default
-
-            verify_checksums = verify_by_default()
         return Recording(path, salvage=salvage, verify_checksums=verify_checksums)
     if fmt == "prophesee":
         from .prophesee import PropheseeRecording
@@ -143,7 +145,7 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         return Hdf5Recording(path, salvage=salvage, sensor_size=sensor_size, sort=sort, trust_external=trust_external)
     from .arrow import ParquetRecording
 
-    return ParquetRecording(path, salvage=salvage, sensor_size=sensor_size)
+    return ParquetRecording(path, salvage=salvage, sensor_size=sensor_size, verify_checksums=verify_checksums)
 
 
 def read_events(path, t_start_us=None, t_end_us=None) -> Events:
