@@ -3,6 +3,8 @@ naming the file and the byte, never other events; the opt-out reads what the che
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import peers
 import pytest
@@ -234,3 +236,327 @@ def test_hdf5_fletcher32_verified(tmp_path):
     with pytest.raises(evtk.FormatError) as err:
         evtk.read_events(path)
     assert err.value.path == str(path)
+
+
+# -- reconstruction files: the HDF5 policy and the memory budget ---------------------------------------------
+
+def _reconstruction(n=3, size=8, windows=3):
+    """A small, valid reconstruction (hand-made: no recording needed)."""
+    from evtk.reconstruct import Reconstruction, WindowCounts, Windows
+
+    rng = np.random.default_rng(7)
+    responses = rng.normal(size=(n, size, size))
+    counts = WindowCounts(rng.integers(0, 5, (windows, 4, 4)).astype(np.int32),
+                          rng.integers(0, 5, (windows, 4, 4)).astype(np.int32),
+                          Windows(np.arange(windows) * 100, np.arange(windows) * 100 + 50, np.arange(windows), "period"),
+                          (0, 4, 0, 4), 10)
+    return Reconstruction(responses, np.where(responses > 0, 1, -1).astype(np.int8), None,
+                          rng.normal(size=(n, 3, 3)), None, counts, {"window_source": "period"})
+
+
+@pytest.fixture
+def recon_h5(tmp_path):
+    """A valid reconstruction in evtk HDF5 (its path)."""
+    from evtk.io.reconstruction import save_reconstruction
+
+    path = tmp_path / "recon.h5"
+    save_reconstruction(path, _reconstruction(), (32, 32))
+    return path
+
+
+def _replace(path, name, make):
+    """Replace ``/reconstruction/name`` in ``path`` by what ``make(group, name, data)`` creates."""
+    import h5py
+
+    with h5py.File(path, "a") as f:
+        g = f["reconstruction"]
+        data = g[name][()] if name in g else None
+        if data is not None:
+            del g[name]
+        make(g, name, data)
+
+
+def _cli(*args, env=None):
+    return CliRunner().invoke(main, list(map(str, args)), env=env)
+
+
+def test_reconstruction_external_link_refused(recon_h5, tmp_path):
+    """/reconstruction/responses as an external link to another file's dataset: info, enob and
+    load_reconstruction refuse it without --trust-external (before: the other file's bytes came back)."""
+    import h5py
+
+    from evtk.io.reconstruction import load_reconstruction
+
+    other = tmp_path / "secret.h5"
+    with h5py.File(other, "w") as f:
+        f["data"] = np.full((3, 8, 8), 42.0)
+    _replace(recon_h5, "responses", lambda g, n, d: g.__setitem__(n, h5py.ExternalLink(str(other), "/data")))
+    with pytest.raises(evtk.FormatError, match="external link"):
+        load_reconstruction(recon_h5)
+    for args in (["info", recon_h5], ["enob", recon_h5]):
+        res = _cli(*args)
+        assert res.exit_code == 1 and "external link" in res.output and res.output.count("\n") == 1, res.output
+    assert load_reconstruction(recon_h5, trust_external=True).responses[0, 0, 0] == 42.0
+    assert _cli("--trust-external", "info", recon_h5).exit_code == 0
+
+
+def test_reconstruction_group_as_external_link_refused(recon_h5, tmp_path):
+    """The whole /reconstruction group an external link: refused, not followed."""
+    import h5py
+
+    from evtk.io.reconstruction import load_reconstruction
+
+    other = tmp_path / "other.h5"
+    with h5py.File(recon_h5, "r") as src, h5py.File(other, "w") as dst:
+        src.copy("reconstruction", dst)
+    with h5py.File(recon_h5, "a") as f:
+        del f["reconstruction"]
+        f["reconstruction"] = h5py.ExternalLink(str(other), "/reconstruction")
+    with pytest.raises(evtk.FormatError, match="external link"):
+        load_reconstruction(recon_h5)
+    res = _cli("info", recon_h5)
+    assert res.exit_code == 1 and "external link" in res.output, res.output
+
+
+def test_reconstruction_external_storage_refused(recon_h5, tmp_path):
+    """A dataset whose bytes live in a raw file beside it: refused unless trusted."""
+    from evtk.io.reconstruction import load_reconstruction
+
+    raw = tmp_path / "raw.bin"
+    raw.write_bytes(np.full((3, 8, 8), 7.0).tobytes())
+
+    def external(g, name, data):
+        g.create_dataset(name, shape=data.shape, dtype=data.dtype, external=[(str(raw), 0, raw.stat().st_size)])
+
+    _replace(recon_h5, "responses", external)
+    with pytest.raises(evtk.FormatError, match="external file"):
+        load_reconstruction(recon_h5)
+    res = _cli("enob", recon_h5)
+    assert res.exit_code == 1 and "external file" in res.output, res.output
+    assert load_reconstruction(recon_h5, trust_external=True).responses[1, 2, 3] == 7.0
+
+
+def test_reconstruction_virtual_dataset_refused(recon_h5, tmp_path):
+    import h5py
+
+    from evtk.io.reconstruction import load_reconstruction
+
+    other = tmp_path / "src.h5"
+    with h5py.File(other, "w") as f:
+        f["data"] = np.ones((3, 8, 8))
+
+    def virtual(g, name, data):
+        layout = h5py.VirtualLayout(shape=data.shape, dtype=data.dtype)
+        layout[:] = h5py.VirtualSource(str(other), "data", shape=data.shape)
+        g.create_virtual_dataset(name, layout)
+
+    _replace(recon_h5, "responses", virtual)
+    with pytest.raises(evtk.FormatError, match="virtual dataset"):
+        load_reconstruction(recon_h5)
+
+
+def test_reconstruction_hdf5_bomb_refused(recon_h5, monkeypatch):
+    """A few-KB file whose gzip chunks of zeros declare gigabytes: refused from the declared shape, before
+    anything is allocated (before: 3.7-4.8 GB)."""
+    import tracemalloc
+
+    from evtk.io.reconstruction import load_reconstruction
+
+    def bomb(g, name, data):  # 2 GiB of float64 zeros, in 16 MiB chunks of which only one is written
+        ds = g.create_dataset(name, shape=(4096, 256, 256), dtype=np.float64, chunks=(32, 256, 256),
+                              compression="gzip", fillvalue=0.0)
+        ds[0] = 0.0
+
+    _replace(recon_h5, "responses", bomb)
+    _replace(recon_h5, "binary", bomb)
+    assert recon_h5.stat().st_size < 200_000
+    tracemalloc.start()
+    with pytest.raises((evtk.FormatError, evtk.EvtkError), match="claims|chunks|memory|allowed|written"):
+        load_reconstruction(recon_h5)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 64 << 20
+    res = _cli("info", recon_h5)
+    assert res.exit_code == 1 and res.output.count("\n") == 1, res.output
+
+
+def test_reconstruction_hdf5_over_the_memory_budget(recon_h5):
+    """Arrays that the file does hold but that need more than --memory-limit-mb: refused before reading."""
+    from evtk.io.reconstruction import load_reconstruction
+
+    def big(g, name, data):  # 24 MiB of random float64 (incompressible), stored
+        g.create_dataset(name, data=np.random.default_rng(0).normal(size=(3, 1024, 1024)))
+
+    _replace(recon_h5, "responses", big)
+    res = _cli("--memory-limit-mb", "16", "info", recon_h5)
+    assert res.exit_code == 1 and "memory-limit-mb" in res.output, res.output
+    with pytest.raises(evtk.FormatError, match="binary and responses differ"):
+        load_reconstruction(recon_h5)  # within the default budget: read, and its shapes then refused
+
+
+def test_reconstruction_non_numeric_dataset_refused(recon_h5):
+    import h5py
+
+    from evtk.io.reconstruction import load_reconstruction
+
+    def strings(g, name, data):
+        g.create_dataset(name, data=np.array([b"a", b"b", b"c"], dtype=h5py.string_dtype()))
+
+    _replace(recon_h5, "pairs", strings)
+    with pytest.raises(evtk.FormatError, match="pairs has dtype"):
+        load_reconstruction(recon_h5)
+
+
+def _npz_members(path):
+    import zipfile
+
+    with zipfile.ZipFile(path) as z:
+        return {i.filename: z.read(i) for i in z.infolist()}
+
+
+def test_npz_bomb_refused(tmp_path):
+    """A zero-filled NPZ of a few MB declaring gigabytes is refused from its members' declared sizes
+    (before: 2.8 MB became 3.8 GB); a header that claims more than its member holds likewise."""
+    import tracemalloc
+    import zipfile
+
+    from evtk.io.reconstruction import load_reconstruction, save_reconstruction
+
+    good = tmp_path / "good.npz"
+    save_reconstruction(good, _reconstruction(), (32, 32))
+    members = _npz_members(good)
+    bomb = tmp_path / "bomb.npz"
+    header = {"descr": "<f8", "fortran_order": False, "shape": (64, 1024, 1024)}  # 512 MiB of zeros
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as z:
+        for name, data in members.items():
+            if name != "responses.npy":
+                z.writestr(name, data)
+        with z.open("responses.npy", "w", force_zip64=True) as f:
+            np.lib.format.write_array_header_1_0(f, header)
+            chunk = bytes(1 << 24)
+            for _ in range(32):
+                f.write(chunk)
+    assert bomb.stat().st_size < 1_000_000
+    tracemalloc.start()
+    with pytest.raises(evtk.FormatError, match="claim"):
+        load_reconstruction(bomb)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 64 << 20
+    res = _cli("enob", bomb)
+    assert res.exit_code == 1 and "claim" in res.output, res.output
+
+    liar = tmp_path / "liar.npz"  # a header claiming 1 GiB in a member of a few hundred bytes
+    with zipfile.ZipFile(liar, "w", zipfile.ZIP_DEFLATED) as z:
+        for name, data in members.items():
+            if name == "responses.npy":
+                buf = __import__("io").BytesIO()
+                np.lib.format.write_array_header_1_0(buf, {**header, "shape": (128, 1024, 1024)})
+                data = buf.getvalue() + data[-3 * 8 * 8 * 8:]
+            z.writestr(name, data)
+    tracemalloc.start()
+    with pytest.raises(evtk.FormatError, match="header gives"):
+        load_reconstruction(liar)
+    assert tracemalloc.get_traced_memory()[1] < 64 << 20
+    tracemalloc.stop()
+
+
+def test_npz_object_array_refused(tmp_path):
+    """An NPZ member holding Python objects (a pickle) is refused from its header, never unpickled."""
+    import zipfile
+
+    from evtk.io.reconstruction import load_reconstruction, save_reconstruction
+
+    good = tmp_path / "good.npz"
+    save_reconstruction(good, _reconstruction(), (32, 32))
+    members = _npz_members(good)
+    buf = __import__("io").BytesIO()
+    np.save(buf, np.array([1, "x"], dtype=object), allow_pickle=True)
+    members["pairs.npy"] = buf.getvalue()
+    bad = tmp_path / "objects.npz"
+    with zipfile.ZipFile(bad, "w") as z:
+        for name, data in members.items():
+            z.writestr(name, data)
+    with pytest.raises(evtk.FormatError, match="Python objects"):
+        load_reconstruction(bad)
+
+
+def test_recording_with_reconstruction_group_is_a_recording(tmp_path):
+    """A recording that also holds /reconstruction: every command reads its events (info and enob too, where
+    they used to measure the group), info says so in a warning, and load_reconstruction reads the group
+    when asked by name."""
+    import h5py
+
+    from evtk.io.reconstruction import is_reconstruction, load_reconstruction, save_reconstruction
+
+    ev = random_events(5000, seed=8, sensor_size=(32, 32))
+    rec = tmp_path / "both.h5"
+    evtk.write_events(rec, ev)
+    recon = tmp_path / "recon.h5"
+    save_reconstruction(recon, _reconstruction(), (32, 32))
+    with h5py.File(recon, "r") as src, h5py.File(rec, "a") as dst:
+        src.copy("reconstruction", dst)
+    assert is_reconstruction(recon) and not is_reconstruction(rec)
+    res = _cli("info", rec)
+    assert res.exit_code == 0 and "events       5,000" in res.output, res.output
+    assert "warning: the file also holds a /reconstruction group" in res.output
+    assert "load_reconstruction" in res.output
+    res = _cli("enob", rec, "--window", "period:100000", "--json")
+    assert res.exit_code == 0, res.output
+    assert load_reconstruction(rec).responses.shape == (3, 8, 8)
+
+
+# -- external storage, when trusted: regular files holding what the dataset declares ---------------------------
+
+def _external_t(path, target, offset=0, size=None, n=4, columns="t"):
+    """An evtk HDF5 file of ``n`` events whose ``columns`` live in ``target`` (segment at ``offset`` of
+    ``size`` bytes; None: to the end of the file), the others zeros in the file."""
+    import h5py
+
+    with h5py.File(path, "w") as f:
+        f.attrs["evtk_format"] = np.bytes_("evtk.events")
+        f.attrs["sensor_size"] = np.array([320, 240])
+        g = f.create_group("events")
+        for name, dt in (("t", np.int64), ("x", np.uint16), ("y", np.uint16), ("p", np.uint8)):
+            if name in columns:
+                g.create_dataset(name, shape=(n,), dtype=dt,
+                                 external=[(str(target), offset, h5py.h5f.UNLIMITED if size is None else size)])
+            else:
+                g.create_dataset(name, data=np.zeros(n, dt))
+
+
+@pytest.mark.parametrize("device", ["/dev/zero", "link"])
+def test_trusted_external_storage_on_a_device_refused(tmp_path, device):
+    """External storage on /dev/zero (or a link to it) is refused even when trusted: a device is no file
+    of data, and one declared unlimited never ends (before: 4 zeros read, or 2**34 events read forever)."""
+    if not os.path.exists("/dev/zero"):
+        pytest.skip("no /dev/zero")
+    target = "/dev/zero"
+    if device == "link":
+        target = tmp_path / "zeros"
+        os.symlink("/dev/zero", target)
+    for n in (4, 2**34):
+        path = tmp_path / f"dev{n}.h5"
+        _external_t(path, target, n=n, columns="txyp")
+        with pytest.raises(evtk.FormatError, match="not a regular file"):
+            evtk.open(path, trust_external=True).events()
+        res = _cli("--trust-external", "info", "--check", path)
+        assert res.exit_code == 1 and "not a regular file" in res.output, res.output
+
+
+def test_trusted_external_storage_shorter_than_declared_refused(tmp_path):
+    """A trusted external file that ends before the bytes the dataset reads from it: refused, naming the
+    file and the sizes; one that holds them (longer is fine: only the segment is read) reads."""
+    raw = tmp_path / "t.bin"
+    raw.write_bytes(np.arange(2, dtype=np.int64).tobytes())  # 16 bytes for 4 time stamps (32)
+    short = tmp_path / "short.h5"
+    _external_t(short, raw, size=32)
+    with pytest.raises(evtk.FormatError, match="reads 32 bytes at byte 0 of external file .*t.bin, which holds 16"):
+        evtk.open(short, trust_external=True).events()
+    unlimited = tmp_path / "unlimited.h5"
+    _external_t(unlimited, raw, offset=8)
+    with pytest.raises(evtk.FormatError, match="which holds 16"):
+        evtk.open(unlimited, trust_external=True).events()
+    raw.write_bytes(np.arange(4, dtype=np.int64).tobytes() + b"more bytes the segment leaves out")
+    with evtk.open(short, trust_external=True) as rec:
+        assert rec.events().t.tolist() == [0, 1, 2, 3]

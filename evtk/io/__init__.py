@@ -138,10 +138,10 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
 
         return EventStreamRecording(path, salvage=salvage, sensor_size=sensor_size)
     if fmt == "hdf5":
-        from .hdf5 import Hdf5Recording
+        from .hdf5 import Hdf5Recording, trust_external_by_default
 
         if trust_external is None:
-            trust_external = os.environ.get("EVTK_TRUST_EXTERNAL", "") not in ("", "0")
+            trust_external = trust_external_by_default()
         return Hdf5Recording(path, salvage=salvage, sensor_size=sensor_size, sort=sort, trust_external=trust_external)
     from .arrow import ParquetRecording
 
