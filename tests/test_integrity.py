@@ -560,3 +560,38 @@ def test_trusted_external_storage_shorter_than_declared_refused(tmp_path):
     raw.write_bytes(np.arange(4, dtype=np.int64).tobytes() + b"more bytes the segment leaves out")
     with evtk.open(short, trust_external=True) as rec:
         assert rec.events().t.tolist() == [0, 1, 2, 3]
+
+
+@pytest.mark.parametrize("key, value, match", [
+    ("on", lambda a: a.astype(np.int64) + 2**40, "on holds values outside"),
+    ("off", lambda a: a.astype(np.float64) + 0.5, "off must hold integers"),
+    ("binary", lambda a: a.astype(np.int16) * 300, "binary holds values outside"),
+])
+def test_reconstruction_values_that_would_wrap_refused(tmp_path, key, value, match):
+    """Counts beyond int32 and binary values beyond int8 would wrap silently when converted: refused."""
+    from evtk.io.reconstruction import load_reconstruction, save_reconstruction
+
+    good = tmp_path / "good.npz"
+    save_reconstruction(good, _reconstruction(), (32, 32))
+    arrays = dict(np.load(good))
+    arrays[key] = value(arrays[key])
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(evtk.FormatError, match=match):
+        load_reconstruction(tmp_path / "bad.npz")
+
+
+def test_reconstruction_summary_region_not_integers_refused(tmp_path):
+    import json
+
+    from evtk.io.reconstruction import save_reconstruction
+
+    good = tmp_path / "good.npz"
+    save_reconstruction(good, _reconstruction(), (32, 32))
+    arrays = dict(np.load(good))
+    summary = json.loads(str(arrays["summary"]))
+    for region in (["a", "b", 0, 1], [0, 1]):
+        summary["reconstruction"]["region"] = region
+        arrays["summary"] = np.array(json.dumps(summary))
+        np.savez(tmp_path / "bad.npz", **arrays)
+        res = _cli("info", tmp_path / "bad.npz")
+        assert res.exit_code == 1 and "region" in res.output and res.output.count("\n") == 1, res.output

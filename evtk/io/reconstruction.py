@@ -27,6 +27,8 @@ __all__ = ["save_reconstruction", "load_reconstruction", "is_reconstruction", "d
 LAYOUT_VERSION = 1
 _REQUIRED = ("responses", "binary", "cells", "window_start_us", "window_end_us", "on", "off")
 _OPTIONAL = ("ideal", "pairs")
+_I32_MAX = np.iinfo(np.int32).max
+_I64_MAX = np.iinfo(np.int64).max
 
 
 def save_reconstruction(path, result, sensor_size, metadata=None):
@@ -187,6 +189,14 @@ def load_reconstruction(path, trust_external: bool | None = None):
     for k in ("responses", "cells", "ideal"):
         if k in arrays and not np.all(np.isfinite(arrays[k])):
             raise FormatError(path, None, f"{k} holds NaN or infinite values")
+    for k, lo, hi in (("binary", -1, 1), ("on", 0, _I32_MAX), ("off", 0, _I32_MAX), ("pairs", 0, _I64_MAX)):
+        a = arrays.get(k)
+        if a is None or a.size == 0:
+            continue
+        if a.dtype.kind not in "biu":
+            raise FormatError(path, None, f"{k} must hold integers, not {a.dtype}")
+        if int(a.min()) < lo or int(a.max()) > hi:
+            raise FormatError(path, None, f"{k} holds values outside {lo}..{hi}")
     start, end = arrays["window_start_us"], arrays["window_end_us"]
     on, off = arrays["on"], arrays["off"]
     if on.shape != off.shape or on.ndim != 3 or on.shape[0] != start.shape[0] or start.shape != end.shape:
@@ -200,10 +210,16 @@ def load_reconstruction(path, trust_external: bool | None = None):
         windows = Windows(start, end, np.arange(start.shape[0]), str(summary.get("window_source", "file")))
     except EvtkError as exc:
         raise FormatError(path, None, f"window times: {exc}") from None
-    region = tuple(int(v) for v in summary.get("region", (0, on.shape[2], 0, on.shape[1])))
+    try:
+        region = tuple(int(v) for v in summary.get("region", (0, on.shape[2], 0, on.shape[1])))
+        events_used = int(summary.get("events_used", int(on.sum()) + int(off.sum())))
+    except (TypeError, ValueError, OverflowError):
+        raise FormatError(path, None, "the summary's region or events_used is not made of integers") from None
+    if len(region) != 4:
+        raise FormatError(path, None, f"the summary's region must be [x0, x1, y0, y1], not {list(region)}")
     counts = WindowCounts(on.astype(np.int32, copy=False), off.astype(np.int32, copy=False), windows, region,
-                          int(summary.get("events_used", int(on.sum()) + int(off.sum()))))
-    return Reconstruction(arrays["responses"].astype(np.float64, copy=False), arrays["binary"].astype(np.int8),
+                          events_used)
+    return Reconstruction(arrays["responses"].astype(np.float64, copy=False), arrays["binary"].astype(np.int8, copy=False),
                           arrays.get("pairs"), arrays["cells"].astype(np.float64, copy=False), arrays.get("ideal"),
                           counts, summary)
 
@@ -218,9 +234,9 @@ def _plan(path, found: dict, file_bytes: int) -> None:
     """Refuse arrays ``found`` (name -> (shape, dtype)) that are not numeric or whose claims
     the file cannot back, and check what reading them needs against the memory budget, before any is read.
 
-    A member's claim is bounded as an HDF5 dataset's is: :data:`~evtk.io.hdf5.checks.DATA_BUDGET_BYTES`
-    plus :data:`~evtk.io.hdf5.checks.DATA_RATIO` times the file (responses and counts compress a few times;
-    a zero-filled array a thousand times).
+    What the arrays need, with the copies converting them takes, is bounded as an HDF5 dataset's claim is:
+    :data:`~evtk.io.hdf5.checks.DATA_BUDGET_BYTES` plus :data:`~evtk.io.hdf5.checks.DATA_RATIO` times the
+    file (responses and counts compress a few times; a zero-filled array a thousand times).
     """
     from ..limits import require_memory
     from .hdf5.checks import DATA_BUDGET_BYTES, DATA_RATIO
@@ -235,9 +251,9 @@ def _plan(path, found: dict, file_bytes: int) -> None:
         target = _AS.get(name)
         need += nbytes + (0 if target is None or np.dtype(target) == dtype
                           else int(np.prod(shape, dtype=object)) * np.dtype(target).itemsize)
-    if claimed > DATA_BUDGET_BYTES + DATA_RATIO * file_bytes:
-        raise FormatError(path, None, f"the arrays claim {claimed} bytes, far more than a file of {file_bytes} "
-                                      "bytes can hold")
+    if need > DATA_BUDGET_BYTES + DATA_RATIO * file_bytes:
+        raise FormatError(path, None, f"the arrays claim {claimed} bytes ({need} with their conversions), far "
+                                      f"more than a file of {file_bytes} bytes can hold")
     require_memory(need, f"reading the reconstruction {path}")
 
 
