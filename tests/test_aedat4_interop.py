@@ -278,10 +278,10 @@ def test_convert_aedat4_to_aedat4_keeps_frames_imu_and_the_camera(tmp_path):
     assert r.exit_code == 0 and "warning" not in r.output
 
 
-def test_faery_checksums_checked_only_when_asked(tmp_path):
-    """faery's LZ4 bodies carry xxHash block and content checksums: skipped by default (the frame is rebuilt
-    without them), checked with verify_checksums; a damaged checksum is invisible to the first, fatal to the
-    second."""
+def test_faery_checksums_checked_unless_opted_out(tmp_path):
+    """faery's LZ4 bodies carry xxHash block and content checksums: checked by default, skipped (the frame is
+    rebuilt without them) with verify_checksums=False, --no-verify-checksums or EVTK_VERIFY_CHECKSUMS=0; a
+    damaged checksum is fatal to the first, invisible to the second."""
     ev = random_events(20_000, seed=13, t0=5)
     path = tmp_path / "faery.aedat4"
     peers.faery_write(path, ev, "lz4")
@@ -296,24 +296,32 @@ def test_faery_checksums_checked_only_when_asked(tmp_path):
     bad = tmp_path / "bad_checksum.aedat4"
     bad.write_bytes(bytes(data))
     assert evtk.read_events(path) == ev
-    assert evtk.read_events(bad) == ev
-    with evtk.open(path, verify_checksums=True) as rec:
+    with pytest.raises(evtk.FormatError, match="block checksum"):
+        evtk.read_events(bad)
+    for verify in (True, None):
+        with evtk.open(path, verify_checksums=verify) as rec:
+            assert rec.events() == ev
+        with evtk.open(bad, verify_checksums=verify) as rec, pytest.raises(evtk.FormatError, match="LZ4"):
+            rec.events()
+    with evtk.open(bad, verify_checksums=False) as rec:
         assert rec.events() == ev
-    with evtk.open(bad, verify_checksums=True) as rec, pytest.raises(evtk.FormatError, match="LZ4"):
-        rec.events()
     from click.testing import CliRunner
 
     from evtk.cli import main
 
-    res = CliRunner().invoke(main, ["--verify-checksums", "convert", str(bad), str(tmp_path / "out.h5")])
-    assert res.exit_code == 1 and "LZ4" in res.output, res.output
-    res = CliRunner().invoke(main, ["convert", str(bad), str(tmp_path / "out.h5")])
+    for flags in ([], ["--verify-checksums"]):
+        res = CliRunner().invoke(main, [*flags, "convert", str(bad), str(tmp_path / "out.h5")])
+        assert res.exit_code == 1 and "checksum" in res.output, res.output
+    res = CliRunner().invoke(main, ["--no-verify-checksums", "convert", str(bad), str(tmp_path / "out.h5")])
+    assert res.exit_code == 0, res.output
+    res = CliRunner().invoke(main, ["info", "--check", str(bad)], env={"EVTK_VERIFY_CHECKSUMS": "0"})
     assert res.exit_code == 0, res.output
 
 
 def test_lz4_checksum_stripping_matches_lz4(tmp_path):
-    """Every frame layout lz4 writes decompresses to the same bytes without its checksums; xxh32 is checked
-    against lz4's own header check byte and a truncated frame is left for the decompressor to refuse."""
+    """Every frame layout lz4 writes decompresses to the same bytes without its checksums (and the check byte
+    evtk recomputes for the new descriptor is lz4's own); a truncated frame is left for the decompressor to
+    refuse."""
     import lz4.frame
 
     from evtk.io import _compression as cz
@@ -327,11 +335,10 @@ def test_lz4_checksum_stripping_matches_lz4(tmp_path):
                 g = cz.lz4_without_checksums(f)
                 info = lz4.frame.get_frame_info(g)
                 assert not info["content_checksum"] and not info["block_checksum"]
-                assert cz.decompress(cz.LZ4, f, 1 << 22) == data == lz4.frame.decompress(g)
-                assert cz.decompress(cz.LZ4, f, 1 << 22, verify=True) == data
-    # xxHash32's published test values (empty, short, and over one 16-byte stripe)
-    assert cz.xxh32(b"") == 0x02CC5D05 and cz.xxh32(b"abc") == 0x32D153FF
-    assert cz.xxh32(b"Nobody inspects the spammish repetition") == 0xE2293B2F
+                assert cz.decompress(cz.LZ4, f, 1 << 22, verify=False) == data == lz4.frame.decompress(g)
+                assert cz.decompress(cz.LZ4, f, 1 << 22) == data
+                desc_end = 6 + (8 if store_size else 0)
+                assert cz._lz4_header_checksum(bytes(f[4:desc_end]))[0] == f[desc_end]
     cut = f[: len(f) // 2]
     assert cz.lz4_without_checksums(cut) is cut
     with pytest.raises(cz.CodecError):

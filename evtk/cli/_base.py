@@ -91,8 +91,10 @@ class _Group(click.Group):
 @click.option("--debug", is_flag=True, help="Show the full traceback on errors.")
 @click.option("--trust-external", is_flag=True,
               help="Let HDF5 files read other files (external links, external storage, virtual datasets).")
-@click.option("--verify-checksums", is_flag=True,
-              help="Check the xxHash checksums of AEDAT4 LZ4 bodies that carry them (slower; structure is always checked).")
+@click.option("--verify-checksums/--no-verify-checksums", default=None,
+              help="Check the checksums AEDAT4 packet bodies carry (LZ4 xxHash32 block and content checksums, "
+                   "Zstandard content checksums): on by default; --no-verify-checksums reads damaged files "
+                   "unchecked (EVTK_VERIFY_CHECKSUMS=0 does the same).")
 @click.option("--memory-limit-mb", type=click.FloatRange(min=1, max=2**40),
               help="Largest allocation a command may plan (estimated first; default 8192).")
 @click.option("--trigger-channel", type=click.IntRange(min=0, max=255),
@@ -118,8 +120,8 @@ def main(ctx, debug, trust_external, verify_checksums, memory_limit_mb, trigger_
     changes = {}
     if trust_external:
         changes["EVTK_TRUST_EXTERNAL"] = "1"
-    if verify_checksums:
-        changes["EVTK_VERIFY_CHECKSUMS"] = "1"
+    if verify_checksums is not None:
+        changes["EVTK_VERIFY_CHECKSUMS"] = "1" if verify_checksums else "0"
     if memory_limit_mb is not None:
         changes[LIMIT_ENV] = repr(float(memory_limit_mb))
     if trigger_channel is not None:

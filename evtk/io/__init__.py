@@ -154,11 +154,16 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         evtk read any file); None takes ``$EVTK_TRUST_EXTERNAL`` (set by
         ``evtk --trust-external``).
     verify_checksums : bool, optional
-        AEDAT4 only: check the xxHash checksums LZ4 packet bodies may carry
-        (faery writes them; DV and dv-processing do not). Off by default,
-        which halves the time such files take; the frames' structure is
-        checked either way. None takes ``$EVTK_VERIFY_CHECKSUMS`` (set by
-        ``evtk --verify-checksums``).
+        Check the checksums a file carries: in AEDAT4 the xxHash32 block and
+        content checksums of LZ4 packet bodies (faery writes them; DV and
+        dv-processing do not; Zstandard frames' content checksums are checked
+        either way), in Parquet the CRC-32 of data pages that have one
+        (HDF5's Fletcher-32 filter is always checked by libhdf5). On by
+        default: a body or page that fails one raises
+        :class:`~evtk.FormatError`. False reads such files unchecked (the
+        frames' structure is still checked). None takes
+        ``$EVTK_VERIFY_CHECKSUMS`` (``0`` turns it off; set by
+        ``evtk --no-verify-checksums`` and ``evtk --verify-checksums``).
     layout : {"dvs128", "davis"}, optional
         AEDAT 2.0 only: the address layout, where the header names no camera
         or names it wrongly (by default the header's ``AEChip``, else found
@@ -184,6 +189,10 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         sensor_size = _sensor_size_from_env()
     if layout is None:
         layout = os.environ.get(LAYOUT_ENV, "").strip().lower() or None
+    if verify_checksums is None:
+        from ._compression import verify_by_default
+
+        verify_checksums = verify_by_default()
     if fmt == "aedat-other":
         from .aedat_legacy import LegacyAedatRecording
 
@@ -191,8 +200,6 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     if fmt == "aedat4":
         from .aedat4 import Recording
 
-        if verify_checksums is None:
-            verify_checksums = os.environ.get("EVTK_VERIFY_CHECKSUMS", "") not in ("", "0")
         return Recording(path, salvage=salvage, verify_checksums=verify_checksums)
     if fmt == "prophesee":
         from .prophesee import PropheseeRecording
@@ -208,14 +215,14 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
         cls = TextRecording if fmt == "text" else NmnistRecording
         return cls(path, salvage=salvage, sensor_size=sensor_size)
     if fmt == "hdf5":
-        from .hdf5 import Hdf5Recording
+        from .hdf5 import Hdf5Recording, trust_external_by_default
 
         if trust_external is None:
-            trust_external = os.environ.get("EVTK_TRUST_EXTERNAL", "") not in ("", "0")
+            trust_external = trust_external_by_default()
         return Hdf5Recording(path, salvage=salvage, sensor_size=sensor_size, sort=sort, trust_external=trust_external)
     from .arrow import ParquetRecording
 
-    return ParquetRecording(path, salvage=salvage, sensor_size=sensor_size)
+    return ParquetRecording(path, salvage=salvage, sensor_size=sensor_size, verify_checksums=verify_checksums)
 
 
 def read_events(path, t_start_us=None, t_end_us=None) -> Events:

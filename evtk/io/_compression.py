@@ -12,6 +12,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import lz4.frame
+import xxhash
 import zstandard
 
 NONE, LZ4, LZ4_HIGH, ZSTD, ZSTD_HIGH = range(5)
@@ -44,6 +45,22 @@ def workers() -> int:
     except AttributeError:  # pragma: no cover - not Linux
         n = os.cpu_count() or 1
     return max(1, min(4, n))
+
+
+#: The environment variable that turns checksum verification off (``0``); ``evtk --no-verify-checksums`` sets it.
+VERIFY_ENV = "EVTK_VERIFY_CHECKSUMS"
+
+
+def verify_by_default() -> bool:
+    """Whether readers check the checksums a file carries when not told: yes, unless ``$EVTK_VERIFY_CHECKSUMS``
+    says ``0``, ``false``, ``no`` or ``off``.
+
+    Returns
+    -------
+    bool
+        True to verify.
+    """
+    return os.environ.get(VERIFY_ENV, "").strip().lower() not in ("0", "false", "no", "off")
 
 
 def pool() -> ThreadPoolExecutor:
@@ -87,14 +104,34 @@ def output_limit(compressed_bytes: int) -> int:
     return min(MAX_PACKET_BYTES, BODY_FLOOR_BYTES + BODY_RATIO * max(0, int(compressed_bytes)))
 
 
-def decompress(code: int, body, limit: int, verify: bool = False):
+def decompress(code: int, body, limit: int, verify: bool = True):
     """Decompress one packet body, refusing to produce more than ``limit`` bytes.
 
-    LZ4 frames that carry xxHash checksums (faery writes block and content
-    checksums) are checked only with ``verify``: otherwise the checksums are
-    left out before decompressing (:func:`lz4_without_checksums`), which
-    halves the time such a frame takes. The structure of every frame is
-    still checked, and a damaged block still fails to decode.
+    Parameters
+    ----------
+    code : int
+        The compression code (:data:`NONE`, :data:`LZ4`, :data:`LZ4_HIGH`, :data:`ZSTD`, :data:`ZSTD_HIGH`).
+    body : bytes-like
+        The packet body as stored in the file.
+    limit : int
+        Most bytes the body may decompress to (:func:`output_limit`).
+    verify : bool
+        Check every checksum the frame carries: an LZ4 frame's xxHash32 block and content checksums (faery
+        writes both), a Zstandard frame's content checksum. lz4 and zstandard check them in C while they
+        decompress, in the decode threads. ``False`` leaves LZ4 checksums out before decompressing
+        (:func:`lz4_without_checksums`; Zstandard frames are checked either way); the frames' structure is
+        checked and a damaged block still fails to decode, but damage a block survives goes unnoticed.
+
+    Returns
+    -------
+    bytes-like
+        The decompressed body (``body`` itself for :data:`NONE`).
+
+    Raises
+    ------
+    CodecError
+        When the frame is damaged, fails a checksum, is of another kind than ``code`` or holds more than
+        ``limit`` bytes.
     """
     limit = min(int(limit), MAX_PACKET_BYTES)
     if code == NONE:
@@ -102,7 +139,7 @@ def decompress(code: int, body, limit: int, verify: bool = False):
     if code in (LZ4, LZ4_HIGH):
         if bytes(body[:4]) != _LZ4_MAGIC:
             raise CodecError(_mismatch("LZ4", body))
-        if not verify and len(body) > 6 and body[4] & _LZ4_CHECKSUMS:
+        if not verify and len(body) > 6 and body[4] & _LZ4_CHECKSUMS:  # opted out: the checksums go unread
             body = lz4_without_checksums(body)
         try:
             size = _lz4_content_size(body)
@@ -128,7 +165,7 @@ def decompress(code: int, body, limit: int, verify: bool = False):
         except CodecError:
             raise
         except Exception as exc:  # lz4 raises RuntimeError for damaged frames
-            raise CodecError(f"damaged LZ4 frame ({exc})") from None
+            raise CodecError(_lz4_error(exc)) from None
         if len(out) > limit:
             raise CodecError(f"LZ4 frame decompresses to more than {limit} bytes")
         if size > 0 and len(out) != size:
@@ -162,6 +199,8 @@ def decompress(code: int, body, limit: int, verify: bool = False):
         except CodecError:
             raise
         except zstandard.ZstdError as exc:
+            if "checksum" in str(exc):
+                raise CodecError("ZSTD frame fails its content checksum (damaged data)") from None
             raise CodecError(f"damaged ZSTD frame ({exc})") from None
     raise CodecError(f"unknown compression code {code}")
 
@@ -200,42 +239,16 @@ def lz4_without_checksums(body):
 @functools.lru_cache(maxsize=64)
 def _lz4_header_checksum(desc: bytes) -> bytes:
     """The frame descriptor's check byte: the second byte of its xxHash32 (seed 0)."""
-    return bytes([(xxh32(desc) >> 8) & 0xFF])
+    return bytes([(xxhash.xxh32_intdigest(desc) >> 8) & 0xFF])
 
 
-def xxh32(data: bytes, seed: int = 0) -> int:
-    """xxHash32 of ``data`` (the LZ4 frame format's checksum), in plain Python: for a few bytes only."""
-    p1, p2, p3, p4, p5 = 2654435761, 2246822519, 3266489917, 668265263, 374761393
-    mask = 0xFFFFFFFF
-
-    def rotl(v, r):
-        return ((v << r) | (v >> (32 - r))) & mask
-
-    def lane(acc, word):
-        return rotl((acc + word * p2) & mask, 13) * p1 & mask
-
-    n, i = len(data), 0
-    if n >= 16:
-        acc = [(seed + p1 + p2) & mask, (seed + p2) & mask, seed & mask, (seed - p1) & mask]
-        while i + 16 <= n:
-            for j in range(4):
-                acc[j] = lane(acc[j], int.from_bytes(data[i:i + 4], "little"))
-                i += 4
-        h = (rotl(acc[0], 1) + rotl(acc[1], 7) + rotl(acc[2], 12) + rotl(acc[3], 18)) & mask
-    else:
-        h = (seed + p5) & mask
-    h = (h + n) & mask
-    while i + 4 <= n:
-        h = rotl((h + int.from_bytes(data[i:i + 4], "little") * p3) & mask, 17) * p4 & mask
-        i += 4
-    while i < n:
-        h = rotl((h + data[i] * p5) & mask, 11) * p1 & mask
-        i += 1
-    h ^= h >> 15
-    h = h * p2 & mask
-    h ^= h >> 13
-    h = h * p3 & mask
-    return h ^ (h >> 16)
+def _lz4_error(exc: Exception) -> str:
+    """What lz4's error ``exc`` says about a frame, its failed checksums named plainly."""
+    msg = str(exc)
+    for code, what in (("contentChecksum", "content"), ("blockChecksum", "block"), ("headerChecksum", "header")):
+        if code in msg:
+            return f"LZ4 frame fails its xxHash32 {what} checksum (damaged data)"
+    return f"damaged LZ4 frame ({msg})"
 
 
 def _lz4_content_size(body) -> int:

@@ -124,17 +124,31 @@ def from_arrow(table, sensor_size=None) -> Events:
 
 
 class ParquetRecording(BaseRecording):
-    """A Parquet file of events; windows skip row groups by their ``t`` statistics."""
+    """A Parquet file of events; windows skip row groups by their ``t`` statistics.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    salvage : bool
+        Return the complete row groups before the first damage instead of raising.
+    sensor_size : (int, int), optional
+        For files that do not record it.
+    verify_checksums : bool
+        Check the CRC-32 of every data page that carries one (pyarrow writes them with
+        ``write_page_checksum=True``); a page that fails is a :class:`~evtk.FormatError`.
+    """
 
     format = "parquet"
 
-    def __init__(self, path, salvage=False, sensor_size=None):
+    def __init__(self, path, salvage=False, sensor_size=None, verify_checksums: bool = True):
         super().__init__(path, salvage)
         import pyarrow.parquet as pq
 
         self._overlay = None
+        self._verify = bool(verify_checksums)
         try:
-            self._pf = pq.ParquetFile(self.path)
+            self._pf = pq.ParquetFile(self.path, page_checksum_verification=self._verify)
         except Exception as exc:  # pyarrow raises ArrowInvalid / OSError subclasses
             self._pf = self._without_footer(pq, exc)
         schema = self._pf.schema_arrow
@@ -219,7 +233,7 @@ class ParquetRecording(BaseRecording):
             try:
                 overlay = SplicedFile(self.path, end, _footer.encode_footer(found, codec, repetition))
                 try:
-                    pf = pq.ParquetFile(overlay)
+                    pf = pq.ParquetFile(overlay, page_checksum_verification=self._verify)
                     if groups:  # does the guessed repetition decode?
                         pf.read_row_group(0, columns=["t"])
                 except BaseException:

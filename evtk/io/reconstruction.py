@@ -27,6 +27,8 @@ __all__ = ["save_reconstruction", "load_reconstruction", "is_reconstruction", "d
 LAYOUT_VERSION = 1
 _REQUIRED = ("responses", "binary", "cells", "window_start_us", "window_end_us", "on", "off")
 _OPTIONAL = ("ideal", "pairs")
+_I32_MAX = np.iinfo(np.int32).max
+_I64_MAX = np.iinfo(np.int64).max
 
 
 def save_reconstruction(path, result, sensor_size, metadata=None):
@@ -61,38 +63,95 @@ def save_reconstruction(path, result, sensor_size, metadata=None):
         raise EvtkError(f"cannot tell the output format from {ext!r}: use .npz, .h5 or .hdf5")
 
 
-def is_reconstruction(path) -> bool:
-    """Whether ``path`` is a reconstruction file (HDF5 with ``/reconstruction``, or an NPZ with a summary)."""
+def is_reconstruction(path, trust_external: bool | None = None) -> bool:
+    """Whether ``path`` is a reconstruction file: an NPZ with a summary, or an HDF5 file with a
+    ``/reconstruction`` group and no events.
+
+    A recording that also holds a ``/reconstruction`` group is a recording (its events win, for every
+    command; reading it notes the group it leaves aside): :func:`load_reconstruction` still reads the group
+    when asked by name.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    trust_external : bool, optional
+        Let an HDF5 file's ``/reconstruction`` be an external link; None takes ``$EVTK_TRUST_EXTERNAL``.
+
+    Returns
+    -------
+    bool
+        True for a reconstruction file; False for anything else, unreadable files included.
+
+    """
     path = os.fspath(path)
     try:
         with open(path, "rb") as f:
             head = f.read(8)
     except OSError:
         return False
-    if head.startswith(b"\x89HDF\r\n\x1a\n"):
-        import h5py
-
-        try:
-            with h5py.File(path, "r") as f:
-                return f.get("reconstruction", getclass=True) is h5py.Group
-        except (OSError, ValueError):
-            return False
+    if head.startswith(_HDF5_MAGIC):
+        return _hdf5_kind(path, trust_external) == "reconstruction"
     if head.startswith(b"PK"):
         try:
             with zipfile.ZipFile(path) as z:
                 return "summary.npy" in z.namelist()
-        except (zipfile.BadZipFile, OSError):
+        except (zipfile.BadZipFile, OSError, ValueError):
             return False
     return False
 
 
-def load_reconstruction(path):
+def _hdf5_kind(path, trust_external) -> str | None:
+    """"reconstruction" (a /reconstruction group, no events), "recording" (events, with or without such a
+    group) or None (no /reconstruction link; not HDF5 evtk reads)."""
+    from .hdf5 import Hdf5Recording, root_link
+
+    if not root_link(path, "reconstruction"):  # the common case, without opening the file as a recording
+        return None
+    try:
+        rec = Hdf5Recording(path, trust_external=_trusted(trust_external))
+    except FormatError:  # opened as a recording, it says the same
+        return None
+    with rec:
+        if rec.info()["events"]:
+            return "recording"
+        return "reconstruction" if rec.holds_group("reconstruction") else None
+
+
+def _trusted(trust_external) -> bool:
+    from .hdf5 import trust_external_by_default
+
+    return trust_external_by_default() if trust_external is None else bool(trust_external)
+
+
+def load_reconstruction(path, trust_external: bool | None = None):
     """Read a file written by :func:`save_reconstruction` (or ``evtk reconstruct``) back.
 
-    Returns a :class:`~evtk.reconstruct.Reconstruction` whose ``counts``
-    holds the windows and ON/OFF counts, and whose ``summary`` also carries
-    the file's ``metadata`` (``source``, ``sensor_size``). Missing or
-    inconsistent arrays are a :class:`~evtk.FormatError` naming them.
+    The file is held to the policy event files are (``docs/formats/reconstruction.md``): an HDF5 file may
+    not read other files unless trusted (external links, external storage, virtual datasets), nor claim
+    more data than it can hold; an NPZ member may not claim more than the file can hold. What the arrays
+    need in memory is checked against the budget (``evtk --memory-limit-mb``) before any is read.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        An ``.npz``, ``.h5`` or ``.hdf5`` reconstruction file; an HDF5 recording that also holds a
+        ``/reconstruction`` group gives that group.
+    trust_external : bool, optional
+        Let an HDF5 file read other files; None takes ``$EVTK_TRUST_EXTERNAL`` (``evtk --trust-external``).
+
+    Returns
+    -------
+    Reconstruction
+        Its ``counts`` hold the windows and ON/OFF counts; its ``summary`` also carries the file's
+        ``metadata`` (``source``, ``sensor_size``).
+
+    Raises
+    ------
+    FormatError
+        When arrays are missing, inconsistent, of a type that is not numeric, or refused by the policy.
+    EvtkError
+        When the arrays would need more memory than the budget allows.
 
     Examples
     --------
@@ -112,7 +171,7 @@ def load_reconstruction(path):
     from ..reconstruct import Reconstruction, WindowCounts, Windows
 
     path = os.fspath(path)
-    arrays, meta = _read(path)
+    arrays, meta = _read(path, _trusted(trust_external))
     missing = [k for k in _REQUIRED if k not in arrays]
     if missing:
         raise FormatError(path, None, f"not a reconstruction file: no {', '.join(missing)}")
@@ -130,6 +189,14 @@ def load_reconstruction(path):
     for k in ("responses", "cells", "ideal"):
         if k in arrays and not np.all(np.isfinite(arrays[k])):
             raise FormatError(path, None, f"{k} holds NaN or infinite values")
+    for k, lo, hi in (("binary", -1, 1), ("on", 0, _I32_MAX), ("off", 0, _I32_MAX), ("pairs", 0, _I64_MAX)):
+        a = arrays.get(k)
+        if a is None or a.size == 0:
+            continue
+        if a.dtype.kind not in "biu":
+            raise FormatError(path, None, f"{k} must hold integers, not {a.dtype}")
+        if int(a.min()) < lo or int(a.max()) > hi:
+            raise FormatError(path, None, f"{k} holds values outside {lo}..{hi}")
     start, end = arrays["window_start_us"], arrays["window_end_us"]
     on, off = arrays["on"], arrays["off"]
     if on.shape != off.shape or on.ndim != 3 or on.shape[0] != start.shape[0] or start.shape != end.shape:
@@ -143,46 +210,135 @@ def load_reconstruction(path):
         windows = Windows(start, end, np.arange(start.shape[0]), str(summary.get("window_source", "file")))
     except EvtkError as exc:
         raise FormatError(path, None, f"window times: {exc}") from None
-    region = tuple(int(v) for v in summary.get("region", (0, on.shape[2], 0, on.shape[1])))
+    try:
+        region = tuple(int(v) for v in summary.get("region", (0, on.shape[2], 0, on.shape[1])))
+        events_used = int(summary.get("events_used", int(on.sum()) + int(off.sum())))
+    except (TypeError, ValueError, OverflowError):
+        raise FormatError(path, None, "the summary's region or events_used is not made of integers") from None
+    if len(region) != 4:
+        raise FormatError(path, None, f"the summary's region must be [x0, x1, y0, y1], not {list(region)}")
     counts = WindowCounts(on.astype(np.int32, copy=False), off.astype(np.int32, copy=False), windows, region,
-                          int(summary.get("events_used", int(on.sum()) + int(off.sum()))))
-    return Reconstruction(arrays["responses"].astype(np.float64, copy=False), arrays["binary"].astype(np.int8),
+                          events_used)
+    return Reconstruction(arrays["responses"].astype(np.float64, copy=False), arrays["binary"].astype(np.int8, copy=False),
                           arrays.get("pairs"), arrays["cells"].astype(np.float64, copy=False), arrays.get("ideal"),
                           counts, summary)
 
 
-def _read(path):
-    """``(arrays, metadata)`` of a reconstruction file in either container."""
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+#: The dtype each array is converted to on reading (None: kept): what it may need in memory beside its own.
+_AS = {"responses": np.float64, "cells": np.float64, "ideal": np.float64, "binary": np.int8, "on": np.int32,
+       "off": np.int32}
 
+
+def _plan(path, found: dict, file_bytes: int) -> None:
+    """Refuse arrays ``found`` (name -> (shape, dtype)) that are not numeric or whose claims
+    the file cannot back, and check what reading them needs against the memory budget, before any is read.
+
+    What the arrays need, with the copies converting them takes, is bounded as an HDF5 dataset's claim is:
+    :data:`~evtk.io.hdf5.checks.DATA_BUDGET_BYTES` plus :data:`~evtk.io.hdf5.checks.DATA_RATIO` times the
+    file (responses and counts compress a few times; a zero-filled array a thousand times).
+    """
+    from ..limits import require_memory
+    from .hdf5.checks import DATA_BUDGET_BYTES, DATA_RATIO
+
+    need = 0
+    claimed = 0
+    for name, (shape, dtype) in found.items():
+        if dtype.kind not in "biuf" or dtype.fields is not None or dtype.subdtype is not None:
+            raise FormatError(path, None, f"{name} has dtype {dtype}, not a number type")
+        nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
+        claimed += nbytes
+        target = _AS.get(name)
+        need += nbytes + (0 if target is None or np.dtype(target) == dtype
+                          else int(np.prod(shape, dtype=object)) * np.dtype(target).itemsize)
+    if need > DATA_BUDGET_BYTES + DATA_RATIO * file_bytes:
+        raise FormatError(path, None, f"the arrays claim {claimed} bytes ({need} with their conversions), far "
+                                      f"more than a file of {file_bytes} bytes can hold")
+    require_memory(need, f"reading the reconstruction {path}")
+
+
+def _read(path, trust_external):
+    """``(arrays, metadata)`` of a reconstruction file in either container, checked before reading."""
     with open(path, "rb") as f:
         head = f.read(8)
-    names = _REQUIRED + _OPTIONAL
-    if head.startswith(b"\x89HDF\r\n\x1a\n"):
-        import h5py
-
-        from .hdf5 import Hdf5Recording  # not at the top: describing an .npz must not load HDF5
-
-        with Hdf5Recording(path) as rec:
-            meta = rec.metadata
-        with h5py.File(path, "r") as f:
-            group = f.get("reconstruction")
-            if not isinstance(group, h5py.Group):
-                raise FormatError(path, None, "not a reconstruction file: no /reconstruction group")
-            arrays = {k: group[k][...] for k in names if isinstance(group.get(k), h5py.Dataset)}
-        return arrays, meta
+    if head.startswith(_HDF5_MAGIC):
+        return _read_hdf5(path, trust_external)
     if head.startswith(b"PK"):
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                if "summary" not in z.files:
-                    raise FormatError(path, None, "not a reconstruction file: the NPZ has no summary")
-                meta = load_json(str(z["summary"]), path, "the summary")
-                arrays = {k: z[k] for k in names if k in z.files}
-        except (zipfile.BadZipFile, ValueError, OSError) as exc:
-            raise FormatError(path, None, f"unreadable NPZ ({exc})") from None
-        if not isinstance(meta, dict):
-            raise FormatError(path, None, "the summary must be a JSON object")
-        return arrays, meta
+        return _read_npz(path)
     raise FormatError(path, 0, "not a reconstruction file (neither HDF5 nor NPZ)")
+
+
+def _read_hdf5(path, trust_external):
+    from .hdf5 import Hdf5Recording  # not at the top: describing an .npz must not load HDF5
+
+    with Hdf5Recording(path, trust_external=trust_external) as rec:
+        if not rec.holds_group("reconstruction"):
+            raise FormatError(path, None, "not a reconstruction file: no /reconstruction group")
+        arrays = rec.read_arrays("reconstruction", _REQUIRED + _OPTIONAL,
+                                 before=lambda found: _plan(path, found, os.path.getsize(path)))
+        return arrays, rec.metadata
+
+
+def _read_npz(path):
+    """An NPZ's arrays, each member's declared size and ``.npy`` header checked before it is read."""
+    names = ("summary",) + _REQUIRED + _OPTIONAL
+    try:
+        with zipfile.ZipFile(path) as z:
+            members = {i.filename[:-4]: i for i in z.infolist() if i.filename.endswith(".npy")}
+            if "summary" not in members:
+                raise FormatError(path, None, "not a reconstruction file: the NPZ has no summary")
+            found, headers = {}, {}
+            for name in names:
+                info = members.get(name)
+                if info is None:
+                    continue
+                with z.open(info) as f:
+                    shape, dtype, start = _npy_header(path, name, f)
+                if name == "summary":
+                    if dtype.kind != "U" or shape != () or dtype.itemsize > info.file_size:
+                        raise FormatError(path, info.header_offset, "the summary must be one string")
+                    found[name] = ((dtype.itemsize,), np.dtype(np.uint8))
+                else:
+                    found[name] = (shape, dtype)
+                nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                if start + nbytes != info.file_size:
+                    raise FormatError(path, info.header_offset,
+                                      f"{name}: its header gives {shape} of {dtype} ({nbytes} bytes) but the member "
+                                      f"holds {info.file_size - start}")
+                headers[name] = info
+            _plan(path, found, os.path.getsize(path))
+            arrays = {}
+            for name, info in headers.items():
+                with z.open(info) as f:
+                    arrays[name] = np.lib.format.read_array(f, allow_pickle=False)
+                    if f.read(1):  # (the member's CRC-32 is checked at its end)
+                        raise FormatError(path, info.header_offset, f"{name}: bytes after the array")
+    except FormatError:
+        raise
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, NotImplementedError, RuntimeError) as exc:
+        raise FormatError(path, None, f"unreadable NPZ ({exc})") from None
+    meta = load_json(str(arrays.pop("summary")), path, "the summary")
+    if not isinstance(meta, dict):
+        raise FormatError(path, None, "the summary must be a JSON object")
+    return arrays, meta
+
+
+def _npy_header(path, name, f):
+    """``(shape, dtype, bytes before the data)`` of the ``.npy`` stream ``f``, from its header alone."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = fmt.read_array_header_1_0(f)
+        elif version in ((2, 0), (3, 0)):
+            shape, fortran, dtype = fmt.read_array_header_2_0(f)
+        else:
+            raise ValueError(f"unsupported .npy version {version}")
+    except (ValueError, TypeError, SyntaxError, EOFError) as exc:
+        raise FormatError(path, None, f"{name}: unreadable .npy header ({exc})") from None
+    if dtype.hasobject:
+        raise FormatError(path, None, f"{name} holds Python objects, which evtk does not load")
+    return tuple(int(v) for v in shape), dtype, f.tell()
 
 
 def describe_reconstruction(path) -> dict:

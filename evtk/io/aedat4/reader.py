@@ -30,11 +30,13 @@ class Recording(_FileIndex, BaseRecording):
     salvage : bool
         Return what is intact before the first damage instead of raising
         :class:`~evtk.FormatError`; :attr:`damage` then says where it stopped.
+    verify_checksums : bool
+        Check the checksums packet bodies carry (on by default; see :func:`evtk.open`).
     """
 
     format = "aedat4"
 
-    def __init__(self, path, salvage: bool = False, verify_checksums: bool = False):
+    def __init__(self, path, salvage: bool = False, verify_checksums: bool = True):
         super().__init__(path, salvage)
         self._fd = -1
         self._spans = {}  # stream id -> each packet's (earliest, latest) stamp, read on the first window

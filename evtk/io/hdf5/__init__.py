@@ -8,10 +8,10 @@ Prophesee and event_utils layouts, recognised by their structure.
 
 from __future__ import annotations
 
-from .checks import blosc1_chunk_damage
+from .checks import blosc1_chunk_damage, root_link, trust_external_by_default
 from .common import COMPRESSIONS, DEFAULT_CHUNK, EVTK_FORMAT, FORMAT_VERSION, INTERRUPTED
 from .reader import Hdf5Recording
 from .writer import Hdf5Writer, write_hdf5
 
 __all__ = ["Hdf5Recording", "Hdf5Writer", "write_hdf5", "COMPRESSIONS", "EVTK_FORMAT", "FORMAT_VERSION",
-           "DEFAULT_CHUNK", "INTERRUPTED", "blosc1_chunk_damage"]
+           "DEFAULT_CHUNK", "INTERRUPTED", "blosc1_chunk_damage", "root_link", "trust_external_by_default"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 import struct
 
 import numpy as np
@@ -219,6 +220,42 @@ DATA_RATIO = 64
 _TRUST_HINT = "evtk does not read outside a file unless told to trust it (trust_external=True, --trust-external)"
 
 
+def trust_external_by_default() -> bool:
+    """Whether HDF5 files may read other files when the caller does not say: ``$EVTK_TRUST_EXTERNAL``
+    (``evtk --trust-external`` sets it) set to anything but ``0``.
+
+    Returns
+    -------
+    bool
+        True to trust.
+    """
+    return os.environ.get("EVTK_TRUST_EXTERNAL", "") not in ("", "0")
+
+
+def root_link(path, name: str) -> bool:
+    """Whether the HDF5 file ``path`` has a link ``name`` at its root; the link itself is looked at, nothing
+    it points to (an external file is not opened).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    name : str
+        A member of the root group.
+
+    Returns
+    -------
+    bool
+        False too when the file does not open as HDF5.
+    """
+    h5py = _h5()
+    try:
+        with h5py.File(path, "r") as f:
+            return f.get(name, getlink=True) is not None
+    except (OSError, ValueError):
+        return False
+
+
 def _source_path(policy, name):
     """Where HDF5 looks for a file another one names (its directory first, then the working directory)."""
     if name in (".", ""):
@@ -280,7 +317,7 @@ def _storage_problem(ds, policy) -> tuple[str | None, int | None]:
         missing = [f for f in files if not os.path.exists(_source_path(policy, f))]
         if missing:
             return f"{name} keeps its data in external file {missing[0]}, which does not exist", None
-        return None, None
+        return _external_problem(ds, plist, policy), None
     n = int(ds.size)
     item = int(ds.dtype.itemsize)
     if n == 0:
@@ -306,6 +343,46 @@ def _storage_problem(ds, policy) -> tuple[str | None, int | None]:
         if ds.id.get_offset() is None or ds.id.get_storage_size() < claimed:
             return f"{name} was never written (no storage for its {n} elements)", 0
     return None, None
+
+
+#: What HDF5 stores as the size of an external segment that runs to the end of its file.
+_UNLIMITED = 2**64 - 1
+
+
+def _external_problem(ds, plist, policy) -> str | None:
+    """Why a trusted dataset's external storage cannot be read as declared, or None.
+
+    Each file must be a regular file (not ``/dev/zero``, a FIFO or a device, which never end or never
+    answer) that holds the part of its segment the dataset reads: the dataset's bytes are taken from the
+    segments in order, and a file shorter than the part taken from it is refused. A segment that runs to
+    the end of its file (declared unlimited) is bounded by the dataset's own size, so the bytes read
+    never exceed what the files hold.
+    """
+    need = int(ds.size) * int(ds.dtype.itemsize)
+    for i in range(plist.get_external_count()):
+        raw, offset, size = plist.get_external(i)
+        name = raw.decode("utf-8", "replace")
+        for where in _candidates(policy, name):
+            try:
+                st = os.stat(where)
+            except OSError:
+                continue
+            if not stat.S_ISREG(st.st_mode):
+                return f"{ds.name} keeps its data in {where}, which is not a regular file"
+            use = min(need, size if size != _UNLIMITED else need)
+            if st.st_size < offset + use:
+                return (f"{ds.name} reads {use} bytes at byte {offset} of external file {where}, which holds "
+                        f"{st.st_size}")
+        need -= min(need, size)
+    if need > 0:
+        return f"{ds.name}: its external files are declared {need} bytes short of its {ds.size} elements"
+    return None
+
+
+def _candidates(policy, name):
+    """The paths HDF5 may read for an external file ``name``: beside the file, and as given."""
+    beside = _source_path(policy, name)
+    return [beside] if beside == name else [beside, name]
 
 
 def _written_prefix(ds) -> int:

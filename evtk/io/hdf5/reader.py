@@ -84,6 +84,10 @@ class Hdf5Recording(BaseRecording):
             self._root = _CheckedGroup(self._f, self._policy)
             self._layout = _guard(Hdf5Recording._detect)(self)
             self._clip_unwritten()
+            if self._layout.n and self._f.get("reconstruction", getlink=True) is not None:
+                self.warnings.append(
+                    f"the file also holds a /reconstruction group, left aside: it is read as the recording of its "
+                    f"{self._layout.n} events (evtk.load_reconstruction reads the group)")
             if getattr(self._layout, "interrupted", False):
                 self._interrupted()
             if getattr(self._layout, "index_problem", None):
@@ -103,6 +107,67 @@ class Hdf5Recording(BaseRecording):
         except BaseException:
             self._f.close()
             raise
+
+    @_guard
+    def holds_group(self, name: str) -> bool:
+        """Whether the file holds the group ``name`` (reached by the file's policy: a link out of the file
+        that is not trusted is a :class:`~evtk.FormatError`).
+
+        Parameters
+        ----------
+        name : str
+            Path of the group in the file.
+
+        Returns
+        -------
+        bool
+            True when ``name`` exists and is a group.
+        """
+        if self._f.get(name, getlink=True) is None:  # the link alone: nothing followed yet
+            return False
+        return isinstance(self._root[name], _CheckedGroup)
+
+    @_guard
+    def read_arrays(self, group: str, names, before=None) -> dict:
+        """The datasets ``names`` of ``group`` that exist, read whole, each checked by the file's policy first:
+        links and storage out of the file unless trusted, virtual datasets, chunk sizes and the data a
+        dataset claims against the file's size (``evtk.io.hdf5.checks``).
+
+        Parameters
+        ----------
+        group : str
+            Path of the group.
+        names : iterable of str
+            The members wanted.
+        before : callable, optional
+            Called with ``{name: (shape, dtype)}`` of the members found, before any is read (to refuse them,
+            or check what they need against the memory budget).
+
+        Returns
+        -------
+        dict
+            Name to NumPy array, for the members present.
+
+        Raises
+        ------
+        FormatError
+            When ``group`` is not a group, a member is not a dataset, or the policy refuses one.
+        """
+        h5py = _h5()
+        if not self.holds_group(group):
+            raise FormatError(self.path, None, f"no /{group} group")
+        g = self._root[group]
+        found = {}
+        for name in names:
+            if g.get(name, getlink=True) is None:
+                continue
+            ds = g[name]
+            if not isinstance(getattr(ds, "_ds", ds), h5py.Dataset):
+                raise FormatError(self.path, None, f"/{group}/{name} is not a dataset")
+            found[name] = ds
+        if before is not None:
+            before({k: (ds.shape, ds.dtype) for k, ds in found.items()})
+        return {k: np.asarray(ds[()]) for k, ds in found.items()}
 
     def _close(self):
         try:
