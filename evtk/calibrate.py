@@ -492,6 +492,8 @@ def load_calibration(path) -> Calibration:
             PixelFit.from_dict(cal.pixel_model)
         except EvtkError as exc:
             raise EvtkError(f"{path}: pixel_model: {exc}") from None
+        except (TypeError, ValueError) as exc:  # a list where a number belongs, or the reverse
+            raise EvtkError(f"{path}: pixel_model is malformed ({exc})") from None
     return cal
 
 

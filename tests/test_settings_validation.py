@@ -1,0 +1,298 @@
+"""Every value a user can write in a job, bench, schedule, calibration or simulation record is checked where it is
+read: a hostile value is a clean EvtkError naming the file and key, or a correct run; never a traceback, NaN, a
+silently wrong answer or an allocation before the check."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+from evtk import EvtkError
+from evtk import io as evio
+from evtk.calibrate import calibrate, load_calibration, save_calibration
+from evtk.optics import Bench, load_bench, save_bench
+from evtk.patterns import job_simulation, load_job, write_patterns
+from evtk.reconstruct import load_schedule, nominal_placement, schedule_of_record
+from evtk.simulate import SimulationRecord
+
+HOSTILE = [math.inf, -math.inf, math.nan, 1e308, -1e308, 2 ** 63, 10 ** 18, 0, -3, -5, 0.5, "ab", "", [], [[]],
+           [1e308, 1e308], True, None]
+
+JOB = {"kernels": ["010111010"], "repeat": 1, "flat_field": 1, "calibration": 1, "levels": 3, "window_us": 1000}
+
+
+def _toml_scalar(v):
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf") if math.isinf(v) else repr(v)
+    if isinstance(v, (int, str)):
+        return json.dumps(v) if isinstance(v, str) else str(v)
+    return "[" + ", ".join(_toml_scalar(x) for x in v) + "]"
+
+
+def _write(path, data):
+    """``data`` as TOML (``.toml``: nan and inf written as TOML has them; None keys left out) or JSON (NaN and
+    Infinity as Python's json writes them)."""
+    path = str(path)
+    if path.endswith(".toml"):
+        flat = [f"{k} = {_toml_scalar(v)}" for k, v in data.items() if v is not None and not isinstance(v, dict)]
+        for k, v in data.items():
+            if isinstance(v, dict):
+                flat += ["", f"[{k}]"] + [f"{kk} = {_toml_scalar(vv)}" for kk, vv in v.items() if vv is not None
+                                           and not isinstance(vv, dict)]
+        text = "\n".join(flat) + "\n"
+    else:
+        text = json.dumps(data)
+    with open(path, "w") as f:
+        f.write(text)
+    return path
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    """A small run: its job, bench, schedule.json, calibration and simulation record."""
+    d = tmp_path_factory.mktemp("settings")
+    _write(d / "job.json", JOB)
+    sim = job_simulation(d / "job.json")
+    sim.write(d / "rec.aedat4")
+    write_patterns(sim, d / "pat")
+    with evio.open(d / "rec.aedat4") as rec:
+        cal = calibrate(rec, d / "pat" / "schedule.json")
+    save_calibration(d / "cal.json", cal)
+    save_bench(d / "bench.json", Bench())
+    return {"dir": d, "job": JOB, "bench": json.loads((d / "bench.json").read_text()),
+            "schedule": json.loads((d / "pat" / "schedule.json").read_text()),
+            "cal": json.loads((d / "cal.json").read_text()), "record": sim.record().to_dict(), "sim": sim}
+
+
+def _finite(*values):
+    for v in values:
+        a = np.asarray(v, dtype=np.float64)
+        assert np.all(np.isfinite(a)), f"a non-finite result {v!r}"
+
+
+def _use_job(path):
+    job = load_job(path)
+    sim = job_simulation(path)
+    rec = sim.record()
+    _finite(rec.response_origin_px, rec.gain_e_per_s_per_unit, rec.blank_rate_e_per_s, sim.settle_us)
+    return job
+
+
+def _use_bench(path):
+    b, _ = load_bench(path)
+    _finite(b.sigma, b.varsigma, b.stride_eff, b.min_window_us, b.pixel_cells, b.electrons_per_s_per_unit((3, 3)))
+    return b
+
+
+def _use_schedule(path):
+    s = load_schedule(path)
+    region, origin = nominal_placement(s)
+    _finite(region, origin, s["schedule"].t_on_us)
+    return s
+
+
+def _use_calibration(path):
+    cal = load_calibration(path)
+    x0, x1, y0, y1 = cal.region
+    corners = np.array([[x0, y0], [x1, y1]], np.float64)
+    _finite(cal.cell_map().to_cells(corners), cal.to_pixels(np.zeros((1, 2))), cal.blur_px, cal.step_px)
+    return cal
+
+
+def _use_record(d):
+    r = SimulationRecord.from_dict(d)
+    s = schedule_of_record(r)
+    m = r.placement()
+    _finite(r.blur_px, nominal_placement(s)[1], r.response_origin_px)
+    if m is not None:
+        _finite(m.to_cells(np.array([[10.0, 10.0]])))
+    return r
+
+
+def _mutations(doc, tables):
+    """(label, mutated document setter) for every top-level key and every key of the named sub-tables."""
+    keys = [(k,) for k in doc]
+    for t in tables:
+        sub = doc.get(t)
+        if isinstance(sub, dict):
+            keys += [(t, k) for k in sub]
+        elif isinstance(sub, list) and sub and isinstance(sub[0], dict):
+            keys += [(t, 0, k) for k in sub[0]]
+    return keys
+
+
+def _set(doc, key, value):
+    out = copy.deepcopy(doc)
+    node = out
+    for k in key[:-1]:
+        node = node[k]
+    node[key[-1]] = value
+    return out
+
+
+def _check_all(doc, tables, write_and_use, value):
+    """Mutate each key to ``value``; collect every outcome that is neither a success nor an EvtkError."""
+    bad = []
+    for key in _mutations(doc, tables):
+        try:
+            write_and_use(_set(doc, key, value))
+        except EvtkError as exc:
+            assert str(exc) and "\n" not in str(exc).strip(), str(exc)
+        except Exception as exc:  # noqa: BLE001 - what this test looks for
+            bad.append(f"{'.'.join(map(str, key))} = {value!r}: {type(exc).__name__}: {exc}")
+    return bad
+
+
+@pytest.mark.parametrize("value", HOSTILE, ids=repr)
+@pytest.mark.parametrize("kind", ["job.toml", "job.json", "bench.toml", "bench.json", "schedule.json", "cal.toml",
+                                  "cal.json", "record"])
+def test_every_key_of_every_settings_file_set_to_a_hostile_value_is_a_clean_error_or_a_correct_run(
+        base, tmp_path, kind, value):
+    if kind == "record":
+        bad = _check_all(base["record"], ("bench", "sensor", "schedule"), _use_record, value)
+    else:
+        name, ext = kind.split(".")
+        doc = {"job": dict(base["job"], bench={"u_mm": 300.0, "dmd_cols": 1920}, sensor={"theta_on": 0.2},
+                           camera={"rotation_deg": 0.5, "defocus_px": 0.2, "tilt": [0.01, 0.0],
+                                   "offset_px": [0.5, -0.5], "k1": 0.01}),
+               "bench": base["bench"], "schedule": base["schedule"], "cal": base["cal"]}[name]
+        use = {"job": _use_job, "bench": _use_bench, "schedule": _use_schedule, "cal": _use_calibration}[name]
+        tables = {"job": ("bench", "sensor", "camera"), "bench": (), "schedule": ("calibration", "captures", "bench"),
+                  "cal": ("pixel_model",)}[name]
+        path = tmp_path / kind
+
+        def write_and_use(d):
+            return use(_write(path, d))
+
+        bad = _check_all(doc, tables, write_and_use, value)
+    assert not bad, "\n".join(bad)
+
+
+def _schedule(base, tmp_path, **changes):
+    doc = copy.deepcopy(base["schedule"])
+    for k, v in changes.items():
+        if k == "dot_spacing":
+            doc["calibration"][k] = v
+        elif k in ("kernel_id", "features_id"):
+            doc["captures"][-1][k] = v
+        else:
+            doc[k] = v
+    return _write(tmp_path / "schedule.json", doc)
+
+
+@pytest.mark.parametrize("key, value, needle", [
+    ("dot_spacing", -3, "dot_spacing = -3 must be a whole number from 2"),
+    ("window_us", -5, "window_us = -5 must be a whole number from 1"),
+    ("kernel_id", -9, "kernel_id = -9 names no pattern"),
+    ("kernel_id", 7, "kernel_id = 7 names no pattern"),
+    ("features_id", -7, "features_id = -7 names no pattern"),
+])
+def test_schedule_values_that_would_silently_change_the_result_are_refused(base, tmp_path, key, value, needle):
+    path = _schedule(base, tmp_path, **{key: value})
+    with pytest.raises(EvtkError, match=needle) as err:
+        load_schedule(path)
+    assert str(path) in str(err.value)
+
+
+def test_schedule_dot_spacing_refused_before_calibrate_places_wrong_dots(base, tmp_path):
+    path = _schedule(base, tmp_path, dot_spacing=-3)
+    with evio.open(base["dir"] / "rec.aedat4") as rec, pytest.raises(EvtkError, match="dot_spacing"):
+        calibrate(rec, path)
+
+
+@pytest.mark.parametrize("key, value, needle", [
+    ("blur_px", 99.9, r"blur_px = 99.9 must be a finite number from 0 to 4"),
+    ("origin_px", [float("nan"), 100.0], "origin_px"),
+    ("origin_px", [1e308, 100.0], "origin_px"),
+    ("origin_px", [100.0, 100.0], "not where the matrix puts cell"),
+    ("matrix", [[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [0.0, 0.0, 1.0]], "singular"),
+    ("matrix", [[1.0, 0.0, 150.0], [0.0, 1.0, 110.0], [0.1, 0.0, -1.0]], "infinity"),
+    ("region", [0, 1000, 0, 10], "region"),
+    ("step_px", -1.0, "step_px"),
+])
+def test_calibration_values_no_fit_could_give_are_refused(base, tmp_path, key, value, needle):
+    doc = dict(base["cal"], **{key: value})
+    path = tmp_path / "cal.toml"
+    _write(path, doc)
+    with pytest.raises(EvtkError, match=needle) as err:
+        load_calibration(path)
+    assert str(path) in str(err.value)
+
+
+@pytest.mark.parametrize("origin", ["ab", [float("nan"), 1.0], [1e308, 1e308], [1.0]])
+def test_bench_origin_that_is_not_a_pixel_is_one_error(tmp_path, origin):
+    path = tmp_path / "bench.json"
+    path.write_text(json.dumps({"origin_px": origin}).replace("NaN", "1e999"))
+    with pytest.raises(EvtkError, match="origin_px"):
+        load_bench(path)
+
+
+def test_record_with_a_bad_origin_or_unknown_pattern_is_refused(base):
+    for key, value in (("response_origin_px", [float("nan"), 1.0]), ("response_origin_px", [1e308, 0.0]),
+                       ("window_us", -5), ("dot_spacing", -3)):
+        with pytest.raises(EvtkError, match=key):
+            SimulationRecord.from_dict(dict(base["record"], **{key: value}))
+    sched = dict(base["record"]["schedule"], kernel_id=[-9] + base["record"]["schedule"]["kernel_id"][1:])
+    with pytest.raises(EvtkError, match="names no pattern"):
+        SimulationRecord.from_dict(dict(base["record"], schedule=sched))
+
+
+@pytest.mark.parametrize("name", ["job.toml", "bench.toml", "cal.toml", "schedule.json"])
+def test_a_settings_file_that_is_a_device_is_refused_unread(name, tmp_path):
+    if not os.path.exists("/dev/zero"):
+        pytest.skip("no /dev/zero")
+    link = tmp_path / name
+    link.symlink_to("/dev/zero")
+    reader = {"job": load_job, "bench": load_bench, "cal": load_calibration, "schedule": load_schedule}
+    with pytest.raises(EvtkError, match="regular file"):
+        reader[name.split(".")[0]](link)
+
+
+def test_a_settings_file_past_the_size_cap_is_refused(tmp_path):
+    path = tmp_path / "job.toml"
+    with open(path, "w") as f:
+        f.write('kernels = ["1"]\n')
+        f.write(("#" * 1023 + "\n") * (17 * 1024))
+    with pytest.raises(EvtkError, match="too large"):
+        load_job(path)
+
+
+def test_a_huge_dmd_is_refused_before_its_frames_are_allocated(tmp_path, monkeypatch):
+    job = tmp_path / "job.toml"
+    job.write_text('kernels = ["1"]\n[bench]\ndmd_cols = 60000\ndmd_rows = 60000\n')
+    with pytest.raises(EvtkError, match="dmd_cols = 60000 must be a whole number from 1 to 16384"):
+        load_job(job)
+    # within the physical range, the frame is still sized against the budget first
+    monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "64")
+    job.write_text('kernels = ["1"]\n[bench]\ndmd_cols = 16000\ndmd_rows = 16000\n')
+    with pytest.raises(EvtkError, match="DMD frame would need"):
+        write_patterns(job_simulation(job), tmp_path / "out")
+    assert not list((tmp_path / "out").rglob("*.png"))
+
+
+def test_a_job_of_a_hundred_thousand_repeats_is_sized_before_it_runs(tmp_path):
+    path = _write(tmp_path / "job.toml", dict(JOB, repeat=100000))
+    with pytest.raises(EvtkError, match=r"100,000 repeats.*fewer repeats") as err:
+        job_simulation(path)
+    assert str(path) in str(err.value)
+
+
+def test_a_job_with_values_in_range_still_runs_and_keeps_them(tmp_path):
+    path = _write(tmp_path / "job.toml", dict(JOB, repeat=2, dot_spacing=3, seed=2 ** 63 - 1, settle_us=20000))
+    job = load_job(path)
+    assert (job["repeat"], job["dot_spacing"], job["seed"], job["settle_us"]) == (2, 3, 2 ** 63 - 1, 20000)
+    assert job_simulation(path).settle_us == 20000
+
+
+def test_patterns_draws_each_distinct_frame_once_whatever_the_repeats(tmp_path):
+    path = _write(tmp_path / "job.toml", dict(JOB, repeat=50, calibration=0, levels=0))
+    summary = write_patterns(job_simulation(path), tmp_path / "out")
+    assert summary["captures"] == 51
+    assert summary["kernel_frames"] == 2 and summary["features_frames"] == 2  # flat fields and the one pair
