@@ -56,7 +56,7 @@ def read_table(path, what, max_bytes=MAX_SETTINGS_BYTES) -> dict:
     Returns
     -------
     dict
-        The table. JSON's non-standard ``NaN`` and ``Infinity`` are refused.
+        The table (JSON's ``NaN`` and ``Infinity`` read as floats, which the checks refuse by key).
     """
     path = os.fspath(path)
     try:
@@ -80,16 +80,12 @@ def read_table(path, what, max_bytes=MAX_SETTINGS_BYTES) -> dict:
                 import tomli as tomllib
             data = tomllib.loads(raw.decode("utf-8"))
         else:
-            data = json.loads(raw.decode("utf-8"), parse_constant=_no_constant)
+            data = json.loads(raw.decode("utf-8"))  # NaN and Infinity are read, for the checks to name their key
     except Exception as exc:  # noqa: BLE001 - any parse failure is the user's file
         raise EvtkError(f"{path}: not a valid {what} file: {exc}") from None
     if not isinstance(data, dict):
         raise EvtkError(f"{path}: not an evtk {what} (a {what} file holds a table of parameters)")
     return data
-
-
-def _no_constant(name):
-    raise ValueError(f"{name} is not a JSON number")
 
 
 @dataclass(frozen=True)
@@ -137,7 +133,10 @@ class Spec:
         noun = "a whole number" if self.kind == "int" else "a finite number"
         lo = None if self.lo is None else f"{self.lo:g}" if self.kind == "float" else f"{int(self.lo)}"
         hi = None if self.hi is None else f"{self.hi:g}" if self.kind == "float" else f"{int(self.hi)}"
-        if lo is not None and hi is not None:
+        if self.lo == 0 and self.lo_open:
+            noun = "a positive " + noun[2:]
+            rng = "" if hi is None else f" up to {hi}"
+        elif lo is not None and hi is not None:
             rng = f" above {lo} and at most {hi}" if self.lo_open else f" from {lo} to {hi}"
         elif lo is not None:
             rng = f" above {lo}" if self.lo_open else f" of at least {lo}"

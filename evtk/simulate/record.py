@@ -178,6 +178,7 @@ class SimulationRecord:
         if missing:
             raise EvtkError(f"{where} lacks {', '.join(missing)}")
         known = {f.name for f in dataclasses.fields(cls)}
+        where = f"{where} is malformed"
         kw = check_table(where, {k: v for k, v in d.items() if k in known}, RECORD_SPECS, unknown="keep")
         for key, build in (("bench", Bench.from_dict), ("sensor", SensorModel.from_dict)):
             if not isinstance(d[key], dict):

@@ -172,17 +172,18 @@ def check_schedule(where, s: Schedule, n_kernels=None, n_features=None, kernel_e
         first(s.t_off_us <= s.t_on_us, "t_off_us must come after t_on_us")
     if n > 1 and np.any(s.t_on_us[1:] < s.t_off_us[:-1]):
         first(np.r_[False, s.t_on_us[1:] < s.t_off_us[:-1]], "t_on_us comes before the previous capture's t_off_us")
+    for col, count in (("kernel_id", n_kernels), ("features_id", n_features)):
+        ids = getattr(s, col)
+        bad = ~np.isin(ids, _SETUP_IDS) & ((ids < 0) | (ids >= (count if count is not None else _T_LIMIT)))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            held = f"ids 0 to {count - 1}" if count is not None else "ids from 0"
+            raise EvtkError(f"{where}: capture {i}: {col} = {int(ids[i])} names no pattern; the run holds "
+                            f"{held}, or -1, -2, -3 for setup captures")
     setup = np.isin(s.kernel_id, _SETUP_IDS)
     if np.any(setup != np.isin(s.features_id, _SETUP_IDS)) or np.any(setup & (s.kernel_id != s.features_id)):
         first((setup != np.isin(s.features_id, _SETUP_IDS)) | (setup & (s.kernel_id != s.features_id)),
               "a flat-field (-1), dot (-2) or level (-3) capture has that id as both kernel_id and features_id")
-    for col, count in (("kernel_id", n_kernels), ("features_id", n_features)):
-        ids = getattr(s, col)
-        bad = ~setup & ((ids < 0) | (ids >= (count if count is not None else _T_LIMIT)))
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise EvtkError(f"{where}: capture {i}: {col} = {int(ids[i])} names no pattern; the run holds "
-                            f"{count} (ids 0 to {count - 1}, or -1, -2, -3 for setup captures)")
     for col in ("kernel_sign", "features_sign"):
         sign = getattr(s, col)
         if np.any((sign != 1) & (sign != -1)) or np.any(setup & (sign != 1)):
