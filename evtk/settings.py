@@ -22,12 +22,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import EvtkError
+from .limits import require_memory
 
 __all__ = ["read_table", "toml_value", "Spec", "check_value", "check_table", "check_array", "check_matrix",
-           "check_origin", "check_region", "MAX_SETTINGS_BYTES", "MAX_BLUR_PX", "MAX_US", "MAX_COUNT", "MAX_SIDE"]
+           "check_origin", "check_region", "MAX_SETTINGS_BYTES", "MAX_SCHEDULE_BYTES", "MAX_BLUR_PX", "MAX_US",
+           "MAX_COUNT", "MAX_SIDE"]
 
-#: Largest settings file evtk reads (bytes): a job, bench or calibration is a few KiB, a schedule a few MiB.
+#: Largest settings file evtk reads (bytes): a job, bench or calibration is a few KiB.
 MAX_SETTINGS_BYTES = 16 << 20
+#: Largest ``schedule.json`` evtk reads (bytes): about 300 bytes a capture.
+MAX_SCHEDULE_BYTES = 1 << 30
 #: Longest time a setting may give (µs): 2^52, where float64 still holds every microsecond.
 MAX_US = 2 ** 52
 #: Largest count (captures, repeats, dots) a setting may give.
@@ -40,7 +44,7 @@ MAX_SIDE = 32767
 MAX_BLUR_PX = 4.0
 
 
-def read_table(path, what, max_bytes=MAX_SETTINGS_BYTES) -> dict:
+def read_table(path, what, max_bytes=MAX_SETTINGS_BYTES, parse_factor=None) -> dict:
     """The top-level table of a TOML (``.toml``) or JSON (anything else) settings file.
 
     Parameters
@@ -52,6 +56,10 @@ def read_table(path, what, max_bytes=MAX_SETTINGS_BYTES) -> dict:
         What the file is ("job", "bench", "calibration"), for messages.
     max_bytes : int
         Size cap (default :data:`MAX_SETTINGS_BYTES`).
+    parse_factor : float, optional
+        Bytes of Python objects the parsed file takes per byte of it, for a
+        large file (a schedule): its size times this is checked against the
+        memory budget (:func:`evtk.limits.require_memory`) before it is read.
 
     Returns
     -------
@@ -67,6 +75,8 @@ def read_table(path, what, max_bytes=MAX_SETTINGS_BYTES) -> dict:
             if st.st_size > max_bytes:
                 raise EvtkError(f"{path}: {st.st_size:,} bytes is too large for a {what} file "
                                 f"(at most {max_bytes:,})")
+            if parse_factor is not None:
+                require_memory(st.st_size * parse_factor, f"reading the {st.st_size:,}-byte {what} file {path}")
             raw = f.read(max_bytes + 1)
     except OSError as exc:
         raise EvtkError(f"{path}: cannot read {what} file: {exc.strerror or exc}") from None

@@ -296,3 +296,31 @@ def test_patterns_draws_each_distinct_frame_once_whatever_the_repeats(tmp_path):
     summary = write_patterns(job_simulation(path), tmp_path / "out")
     assert summary["captures"] == 51
     assert summary["kernel_frames"] == 2 and summary["features_frames"] == 2  # flat fields and the one pair
+
+
+def test_a_pattern_image_is_sized_from_its_header_before_it_is_decoded(tmp_path, monkeypatch):
+    from PIL import Image
+
+    from evtk.simulate import load_patterns
+
+    png = tmp_path / "features.png"
+    Image.new("1", (3000, 3000)).save(png)  # a few KiB that decode to 9 million pixels (72 MB as float64)
+    monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "16")
+    with pytest.raises(EvtkError, match="3000x3000 features image"):
+        load_patterns(png, "features")
+    job = _write(tmp_path / "job.toml", {"kernels": ["1"], "features": "features.png"})
+    with pytest.raises(EvtkError, match="3000x3000 features image"):
+        load_job(job)
+
+
+def test_a_pattern_array_is_sized_from_its_header_before_it_is_read(tmp_path, monkeypatch):
+    from evtk.simulate import load_patterns
+
+    npy = tmp_path / "k.npy"
+    np.save(npy, np.zeros((64, 512, 512), np.int8))
+    monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "4")
+    with pytest.raises(EvtkError, match="kernel array"):
+        load_patterns(npy, "kernel")
+    np.save(npy, np.zeros((2, 2, 2, 2), np.int8))
+    with pytest.raises(EvtkError, match=r"\(h, w\) or \(n, h, w\)"):
+        load_patterns(npy, "kernel")

@@ -9,7 +9,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import EvtkError
-from ..settings import MAX_COUNT, MAX_SETTINGS_BYTES, MAX_SIDE, MAX_US, Spec, check_array, check_table, check_value, read_table
+from ..limits import require_memory
+from ..settings import (
+    MAX_COUNT,
+    MAX_SCHEDULE_BYTES,
+    MAX_SETTINGS_BYTES,
+    MAX_SIDE,
+    MAX_US,
+    Spec,
+    check_array,
+    check_table,
+    check_value,
+    read_table,
+)
 
 __all__ = [
     "split_passes", "Schedule", "CaptureCounts", "load_patterns", "dot_grid", "FLAT_ID",
@@ -254,7 +266,7 @@ def read_schedule(path) -> dict:
     from ..optics import Bench
 
     path = os.fspath(path)
-    doc = read_table(path, "schedule")
+    doc = read_table(path, "schedule", MAX_SCHEDULE_BYTES, parse_factor=40)  # JSON's lists of ints: ~40x
     if doc.get("evtk_schedule_version") != 1 or isinstance(doc.get("evtk_schedule_version"), bool):
         raise EvtkError(f"{path}: not an evtk schedule (evtk_schedule_version 1); write one with evtk patterns")
     missing = [k for k in ("captures", "kernels", "features", "bench", "window_us", "settle_us") if k not in doc]
@@ -396,7 +408,23 @@ def load_patterns(path_or_bits, name, side=None):
     """Patterns from a ``.npy`` file, an image (PNG etc.) or a bit string like ``101010101``.
 
     Images are binarised at half their range; a bit string fills a square
-    pattern row by row.
+    pattern row by row. A file's size is read from its header and checked
+    (at most :data:`evtk.settings.MAX_SIDE` a side, within the memory budget)
+    before its data are.
+
+    Parameters
+    ----------
+    path_or_bits : str or os.PathLike
+        A ``.npy`` path, an image path or a string of 0s and 1s.
+    name : str
+        What the patterns are ("kernel", "features"), for messages.
+    side : int, optional
+        Unused; kept for callers that pass it.
+
+    Returns
+    -------
+    ndarray
+        The pattern(s), as the file holds them (an image as int8 0/1).
     """
     s = str(path_or_bits)
     if set(s) <= {"0", "1"} and s:
@@ -407,9 +435,26 @@ def load_patterns(path_or_bits, name, side=None):
         return np.array([int(c) for c in s], dtype=np.int8).reshape(k, k)
     if s.lower().endswith(".npy"):
         try:
-            return np.load(s, allow_pickle=False)
+            head = np.load(s, mmap_mode="r", allow_pickle=False)  # the header alone: shape and type
+            require_memory(head.nbytes, f"the {name} array {s} ({'x'.join(map(str, head.shape))})")
+            if head.ndim not in (2, 3) or max(head.shape[-2:], default=0) > MAX_SIDE:
+                raise EvtkError(f"{s}: a {name} array is (h, w) or (n, h, w) of at most {MAX_SIDE} a side, "
+                                f"not {head.shape}")
+            return np.array(head)
         except (OSError, ValueError) as exc:
             raise EvtkError(f"{s}: cannot read {name} array: {exc}") from None
+    try:
+        from PIL import Image
+
+        with Image.open(s) as probe:  # the header alone: a small file can declare gigapixels
+            w, h = probe.size
+        if max(w, h) > MAX_SIDE:
+            raise EvtkError(f"{s}: a {w}x{h} {name} image is larger than {MAX_SIDE} pixels a side")
+        require_memory(8 * 4 * w * h, f"the {w}x{h} {name} image {s}")
+    except EvtkError:
+        raise
+    except Exception:  # noqa: BLE001, S110 - not an image PIL knows: the reader below says why
+        pass
     try:
         from skimage import io as skio
 
