@@ -159,7 +159,8 @@ def test_every_key_of_every_settings_file_set_to_a_hostile_value_is_a_clean_erro
         bad = _check_all(base["record"], ("bench", "sensor", "schedule"), _use_record, value)
     else:
         name, ext = kind.split(".")
-        doc = {"job": dict(base["job"], bench={"u_mm": 300.0, "dmd_cols": 1920}, sensor={"theta_on": 0.2},
+        doc = {"job": dict(base["job"], bench={"u_mm": 300.0, "dmd_cols": 1920},
+                           sensor={"theta_on": 0.2, "tau_min_us": 100.0, "noise_step_max_us": 1000.0},
                            camera={"rotation_deg": 0.5, "defocus_px": 0.2, "tilt": [0.01, 0.0],
                                    "offset_px": [0.5, -0.5], "k1": 0.01}),
                "bench": base["bench"], "schedule": base["schedule"], "cal": base["cal"]}[name]
@@ -324,3 +325,14 @@ def test_a_pattern_array_is_sized_from_its_header_before_it_is_read(tmp_path, mo
     np.save(npy, np.zeros((2, 2, 2, 2), np.int8))
     with pytest.raises(EvtkError, match=r"\(h, w\) or \(n, h, w\)"):
         load_patterns(npy, "kernel")
+
+
+@pytest.mark.parametrize("key, value", [("theta_on", 1e18), ("theta_mismatch", 1e308), ("tau_min_us", 1e9),
+                                        ("noise_step_fraction", 1e-300), ("noise_step_max_us", 1e-300)])
+def test_sensor_values_that_overflow_or_never_finish_are_refused_where_the_job_is_read(tmp_path, key, value):
+    """theta_on = 1e18 indexed outside a pixel's events, tau_min_us = 1e9 asked for 380 GiB, a noise step of
+    1e-300 us never reached the end of a window."""
+    path = _write(tmp_path / "job.json", dict(JOB, sensor={key: value}))
+    with pytest.raises(EvtkError, match=f"sensor {key}") as err:
+        load_job(path)
+    assert str(path) in str(err.value)
