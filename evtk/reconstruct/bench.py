@@ -19,7 +19,7 @@ from scipy.ndimage import median_filter
 from ..errors import EvtkError
 from ..optics import response_origin_px
 from ..simulate import FLAT_ID
-from ..simulate.schedule import read_schedule
+from ..simulate.schedule import read_schedule as load_schedule  # the checked reader, under its older name
 from .accumulate import accumulate
 from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid
@@ -28,26 +28,6 @@ from .pipeline import Reconstruction, check_crop, pair_ideals, response_error
 from .windows import Windows, _trim, windows_from_triggers
 
 __all__ = ["load_schedule", "match_windows", "reconstruct_bench"]
-
-
-def load_schedule(path) -> dict:
-    """Read a ``schedule.json`` written by :func:`evtk.patterns.write_patterns`, every value checked.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The file.
-
-    Returns
-    -------
-    dict
-        ``schedule`` (:class:`evtk.simulate.Schedule`), ``kernels``,
-        ``features`` (int arrays), ``bench`` (:class:`evtk.optics.Bench`),
-        ``window_us``, ``settle_us`` and ``dot_spacing``, as
-        :func:`evtk.simulate.schedule.read_schedule` checks them; a bad file is
-        one :class:`~evtk.EvtkError` naming the key and what is allowed.
-    """
-    return read_schedule(path)
 
 
 def match_windows(triggers, schedule, tolerance_us=None):
