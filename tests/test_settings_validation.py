@@ -336,3 +336,32 @@ def test_sensor_values_that_overflow_or_never_finish_are_refused_where_the_job_i
     with pytest.raises(EvtkError, match=f"sensor {key}") as err:
         load_job(path)
     assert str(path) in str(err.value)
+
+
+def _cli(*args):
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+
+    r = CliRunner().invoke(main, list(map(str, args)))
+    return r.exit_code, r.output
+
+
+def test_the_commands_print_one_line_naming_the_file_and_key(base, tmp_path):
+    d = base["dir"]
+    bench = tmp_path / "bench.toml"
+    bench.write_text('origin_px = "ab"\n')
+    code, out = _cli("simulate", "--bench", bench, "-o", tmp_path / "s.aedat4")
+    assert code == 1 and "origin_px" in out and str(bench) in out and len(out.strip().splitlines()) == 1, out
+    cal = tmp_path / "cal.json"
+    cal.write_text(json.dumps(dict(base["cal"], blur_px=99.9)))
+    code, out = _cli("reconstruct", d / "rec.aedat4", "--schedule", d / "pat" / "schedule.json", "--calibration", cal,
+                     "-o", tmp_path / "r.h5")
+    assert code == 1 and "blur_px = 99.9" in out and len(out.strip().splitlines()) == 1, out
+    code, out = _cli("calibrate", d / "rec.aedat4", "--schedule", _schedule(base, tmp_path, dot_spacing=-3),
+                     "-o", tmp_path / "c.toml")
+    assert code == 1 and "dot_spacing = -3" in out and len(out.strip().splitlines()) == 1, out
+    job = _write(tmp_path / "job.toml", dict(JOB, window_us=-5))
+    code, out = _cli("patterns", job, "-o", tmp_path / "frames")
+    assert code == 1 and "window_us = -5" in out and len(out.strip().splitlines()) == 1, out
+    assert not list(tmp_path.glob("*.h5")) and not (tmp_path / "c.toml").exists()
