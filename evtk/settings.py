@@ -293,7 +293,8 @@ def check_array(where, key, value, ndim, lo=None, hi=None, kind="int", shape=Non
     if arr.ndim not in ndims:
         raise EvtkError(f"{where}: {key} must be a {want}, not of shape {arr.shape}")
     if arr.dtype.kind not in ("iufb" if kind == "int" else "iuf"):
-        raise EvtkError(f"{where}: {key} must be a {want}: it holds {'text' if arr.dtype.kind in 'US' else 'other values'}")
+        holds = "text" if arr.dtype.kind in "US" else "other values (or numbers beyond the int64 range)"
+        raise EvtkError(f"{where}: {key} must be a {want}: it holds {holds}")
     if shape is not None and (len(shape) != arr.ndim or any(s is not None and s != n for s, n in zip(shape, arr.shape))):
         raise EvtkError(f"{where}: {key} must have shape {tuple('*' if s is None else s for s in shape)}, "
                         f"not {arr.shape}")
@@ -306,6 +307,8 @@ def check_array(where, key, value, ndim, lo=None, hi=None, kind="int", shape=Non
             raise EvtkError(f"{where}: {key} must be a {want}: it holds infinity or NaN")
         if kind == "int" and not np.all(arr == np.round(arr)):
             raise EvtkError(f"{where}: {key} must be a {want}: it holds a fraction")
+        if kind == "int" and arr.size and np.max(np.abs(arr)) > 2.0 ** 62:
+            raise EvtkError(f"{where}: {key} holds a number beyond the int64 range")
     if arr.size and ((lo is not None and np.min(arr) < lo) or (hi is not None and np.max(arr) > hi)):
         bad = arr[(arr < lo) if lo is not None and np.min(arr) < lo else (arr > hi)].flat[0]
         raise EvtkError(f"{where}: {key} holds {_show(bad.item())}; it must be a {want}")

@@ -365,3 +365,21 @@ def test_the_commands_print_one_line_naming_the_file_and_key(base, tmp_path):
     code, out = _cli("patterns", job, "-o", tmp_path / "frames")
     assert code == 1 and "window_us = -5" in out and len(out.strip().splitlines()) == 1, out
     assert not list(tmp_path.glob("*.h5")) and not (tmp_path / "c.toml").exists()
+
+
+def test_the_validator_tells_numbers_from_flags_text_and_overflow():
+    from evtk.settings import Spec, check_array, check_value
+
+    count = Spec("int", 1, 10 ** 7)
+    assert check_value("f", "repeat", 2.0, count) == 2 and type(check_value("f", "repeat", 2.0, count)) is int
+    for bad in (2.5, True, "3", None, math.inf, 2 ** 63, 10 ** 18, 0, [], {}):
+        with pytest.raises(EvtkError, match=r"f: repeat = .* must be a whole number from 1 to 10000000"):
+            check_value("f", "repeat", bad, count)
+    with pytest.raises(EvtkError, match="must be a positive finite number"):
+        check_value("f", "u_mm", -3, Spec("float", 0, 1e6, lo_open=True))
+    assert check_value("f", "seed", None, Spec("int", 0, 5, optional=True)) is None
+    assert check_array("f", "k", [[0, 1], [1, 0]], 2, -1, 1).dtype == np.int64
+    for bad, needle in (([[0, 1], [1]], "equal length"), ([[0, "a"]], "text"), ([], "empty"), ([[2.0 ** 70]], "int64"),
+                        ([[0.5]], "fraction"), ([[math.nan]], "NaN"), ([[2]], "holds 2"), ([2 ** 64 + 5], "int64")):
+        with pytest.raises(EvtkError, match=needle):
+            check_array("f", "k", bad, (1, 2), -1, 1 if bad != [[2.0 ** 70]] else None)
