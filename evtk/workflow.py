@@ -95,6 +95,11 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
     region, placed, cell_map, blur_px, model, own = opts.region, "given", None, 0.0, None, True
     if calibration is not None:
+        (kh, kw), (fh, fw) = sched["kernels"].shape[1:], sched["features"].shape[1:]
+        if list(calibration.response_shape) != [fh + kh - 1, fw + kw - 1]:
+            raise EvtkError(f"the calibration is of a {calibration.response_shape[0]}x{calibration.response_shape[1]} "
+                            f"response, this run's is {fh + kh - 1}x{fw + kw - 1}: calibrate with a run of the same "
+                            "kernel and features sizes")
         region, origin_px, placed = tuple(calibration.region), tuple(calibration.origin_px), "calibration"
         cell_map, blur_px, model = calibration.cell_map(), calibration.blur_px, calibration.pixel_model
     elif region is None and origin_px is None:

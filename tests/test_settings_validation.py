@@ -383,3 +383,13 @@ def test_the_validator_tells_numbers_from_flags_text_and_overflow():
                         ([[0.5]], "fraction"), ([[math.nan]], "NaN"), ([[2]], "holds 2"), ([2 ** 64 + 5], "int64")):
         with pytest.raises(EvtkError, match=needle):
             check_array("f", "k", bad, (1, 2), -1, 1 if bad != [[2.0 ** 70]] else None)
+
+
+def test_a_calibration_of_another_response_size_is_refused(base, tmp_path):
+    from evtk.workflow import reconstruct_recording
+
+    cal = dict(base["cal"], response_shape=[base["cal"]["response_shape"][0] + 4, base["cal"]["response_shape"][1]])
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(cal))
+    with evio.open(base["dir"] / "rec.aedat4") as rec, pytest.raises(EvtkError, match="response"):
+        reconstruct_recording(rec, schedule=base["dir"] / "pat" / "schedule.json", calibration=load_calibration(path))
