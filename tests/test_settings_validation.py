@@ -8,6 +8,7 @@ import copy
 import json
 import math
 import os
+import signal
 
 import numpy as np
 import pytest
@@ -140,13 +141,24 @@ def _set(doc, key, value):
 def _check_all(doc, tables, write_and_use, value):
     """Mutate each key to ``value``; collect every outcome that is neither a success nor an EvtkError."""
     bad = []
-    for key in _mutations(doc, tables):
-        try:
-            write_and_use(_set(doc, key, value))
-        except EvtkError as exc:
-            assert str(exc) and "\n" not in str(exc).strip(), str(exc)
-        except Exception as exc:  # noqa: BLE001 - what this test looks for
-            bad.append(f"{'.'.join(map(str, key))} = {value!r}: {type(exc).__name__}: {exc}")
+
+    def hang(*_):
+        raise TimeoutError("still running after 60 s")
+
+    old = signal.signal(signal.SIGALRM, hang)
+    try:
+        for key in _mutations(doc, tables):
+            signal.alarm(60)  # a hang is a failure too
+            try:
+                write_and_use(_set(doc, key, value))
+            except EvtkError as exc:
+                assert str(exc) and "\n" not in str(exc).strip(), str(exc)
+            except Exception as exc:  # noqa: BLE001 - what this test looks for
+                bad.append(f"{'.'.join(map(str, key))} = {value!r}: {type(exc).__name__}: {exc}")
+            finally:
+                signal.alarm(0)
+    finally:
+        signal.signal(signal.SIGALRM, old)
     return bad
 
 
