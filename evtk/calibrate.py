@@ -21,6 +21,7 @@ response in the dark the background rate (:func:`background_rate_hz`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from dataclasses import asdict, dataclass, field
@@ -43,7 +44,20 @@ from .reconstruct.calibrated import fit_on_edges, refuse_pixel_fit
 from .reconstruct.deblur import sampling_matrix
 from .reconstruct.fit import describe_pixels, hot_pixels
 from .reconstruct.windows import Windows
-from .settings import read_table, toml_value
+from .settings import (
+    MAX_BLUR_PX,
+    MAX_COUNT,
+    MAX_SIDE,
+    Spec,
+    check_array,
+    check_matrix,
+    check_origin,
+    check_region,
+    check_table,
+    check_value,
+    read_table,
+    toml_value,
+)
 from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, dot_grid
 
 __all__ = ["Calibration", "calibrate", "background_rate_hz", "dot_blur_px", "load_calibration", "save_calibration",
@@ -509,25 +523,74 @@ def save_calibration(path, cal: Calibration):
         out.file.write(text.encode())
 
 
+#: The range of each number a calibration file holds (the map, pixels and region are checked on their own).
+CALIBRATION_SPECS = {
+    "step_px": Spec("float", 0, MAX_SIDE, lo_open=True, unit="sensor pixels per response cell"),
+    "residual_rms_px": Spec("float", 0, MAX_SIDE, unit="px"),
+    "residual_max_px": Spec("float", 0, MAX_SIDE, unit="px"),
+    "dots_expected": Spec("int", 0, MAX_COUNT),
+    "dots_found": Spec("int", 0, MAX_COUNT),
+    "inliers": Spec("int", 0, MAX_COUNT),
+    "k1": Spec("float", -0.3, 0.3, unit="radial distortion at the half diagonal"),
+    "background_rate_hz": Spec("float", 0, 1e9, unit="events per pixel and second", optional=True),
+    "blur_px": Spec("float", 0, MAX_BLUR_PX, unit="px, the camera's defocus; evtk calibrate measures 0 to 3"),
+}
+
+
 def load_calibration(path) -> Calibration:
-    """Read :func:`save_calibration`'s file; a malformed one is one :class:`~evtk.EvtkError`."""
+    """Read :func:`save_calibration`'s file, every value checked.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A ``.toml`` or JSON calibration.
+
+    Returns
+    -------
+    Calibration
+        A bad value is one :class:`~evtk.EvtkError` naming the file, the key
+        and what is allowed: numbers finite and within :data:`CALIBRATION_SPECS`,
+        a non-singular map whose horizon misses the response, the origin
+        where the map puts cell (0, 0), the region on the sensor.
+    """
     path = os.fspath(path)
     d = read_table(path, "calibration")
-    try:
-        cal = Calibration(**d)
-        m = np.asarray(cal.matrix, dtype=np.float64)
-        if m.shape != (3, 3) or not np.all(np.isfinite(m)) or len(cal.region) != 4 or len(cal.sensor_size) != 2:
-            raise ValueError("matrix must be 3x3 and finite, region four numbers, sensor_size two")
-        if cal.pixel_model is not None:
+    fields = {f.name for f in dataclasses.fields(Calibration)}
+    unknown = sorted(set(d) - fields)
+    if unknown:
+        raise EvtkError(f"{path}: not an evtk calibration (unknown keys {', '.join(unknown)})")
+    missing = sorted(f.name for f in dataclasses.fields(Calibration)
+                     if f.default is dataclasses.MISSING and f.name not in d)
+    if missing:
+        raise EvtkError(f"{path}: not an evtk calibration (it lacks {', '.join(missing)})")
+    kw = check_table(path, d, CALIBRATION_SPECS, unknown="keep")
+    size = check_array(path, "sensor_size", d["sensor_size"], 1, 1, MAX_SIDE, shape=(2,))
+    shape = check_array(path, "response_shape", d["response_shape"], 1, 1, MAX_SIDE, shape=(2,))
+    rows, cols = (int(v) for v in shape)
+    m = check_matrix(path, "matrix", d["matrix"], [(0, 0), (cols, 0), (0, rows), (cols, rows)])
+    kw.update(sensor_size=[int(v) for v in size], response_shape=[rows, cols], matrix=m.tolist(),
+              origin_px=list(check_origin(path, "origin_px", d["origin_px"], size)),
+              region=list(check_region(path, "region", d["region"], size)))
+    cal = Calibration(**kw)
+    at = cal.to_pixels(np.zeros((1, 2)))[0]
+    if not np.all(np.abs(at - cal.origin_px) <= 0.5):
+        raise EvtkError(f"{path}: origin_px = {cal.origin_px} is not where the matrix puts cell (0, 0) "
+                        f"({at[0]:.2f}, {at[1]:.2f}); the file was edited by hand?")
+    if cal.pixel_model is not None:
+        if not isinstance(cal.pixel_model, dict):
+            raise EvtkError(f"{path}: pixel_model must be a table")
+        for k, v in cal.pixel_model.items():  # numbers finite and of sane size; lists of them
+            if isinstance(v, list):
+                check_array(path, f"pixel_model.{k}", [-1.0 if x is None else x for x in v], 1, -1e12, 1e12,
+                            kind="float", max_elements=MAX_COUNT, allow_empty=True)
+            elif not isinstance(v, bool) and v is not None:
+                check_value(path, f"pixel_model.{k}", v, Spec("float", -1e12, 1e12))
+        try:
             PixelFit.from_dict(cal.pixel_model)
-        if not (isinstance(cal.k1, (int, float)) and -0.3 < cal.k1 < 0.3):
-            raise ValueError(f"k1 must be a number within -0.3 and 0.3, not {cal.k1!r}")
-        if not (isinstance(cal.blur_px, (int, float)) and 0 <= cal.blur_px < 100):
-            raise ValueError(f"blur_px must be a number >= 0, not {cal.blur_px!r}")
-    except EvtkError as exc:
-        raise EvtkError(f"{path}: {exc}") from None
-    except (ValueError, TypeError) as exc:
-        raise EvtkError(f"{path}: not an evtk calibration ({exc})") from None
+        except EvtkError as exc:
+            raise EvtkError(f"{path}: pixel_model: {exc}") from None
+        except (TypeError, ValueError) as exc:  # a list where a number belongs, or the reverse
+            raise EvtkError(f"{path}: pixel_model is malformed ({exc})") from None
     return cal
 
 

@@ -38,13 +38,15 @@ import numpy as np
 
 from .errors import EvtkError
 from .io._atomic import AtomicFile
+from .limits import require_memory
 from .optics import Bench
 from .optics.camera import Camera
 from .sensor import SensorModel
-from .settings import read_table
+from .settings import MAX_COUNT, MAX_SIDE, MAX_US, Spec, check_table, read_table
 from .simulate import Simulation, default_features, load_patterns
+from .simulate.schedule import check_patterns
 
-__all__ = ["load_job", "job_simulation", "dmd_frame", "write_patterns", "SCHEDULE_VERSION", "JOB_KEYS"]
+__all__ = ["load_job", "job_simulation", "dmd_frame", "write_patterns", "SCHEDULE_VERSION", "JOB_KEYS", "JOB_SPECS"]
 
 #: Version of the schedule file :func:`write_patterns` writes.
 SCHEDULE_VERSION = 1
@@ -53,52 +55,72 @@ JOB_KEYS = ("kernels", "features", "signed", "repeat", "flat_field", "calibratio
             "settle_us", "seed", "bench", "sensor", "camera", "light_delay_us")
 
 
-def _read_table(path):
-    data = read_table(path, "job")
-    unknown = sorted(set(data) - set(JOB_KEYS))
-    if unknown:
-        raise EvtkError(f"{path}: unknown job settings {unknown}; a job holds {list(JOB_KEYS)}")
-    return data
+#: The range of each number a job may set (the ``bench``, ``sensor`` and ``camera`` tables are checked by
+#: :class:`~evtk.optics.Bench`, :class:`~evtk.sensor.SensorModel` and :class:`~evtk.optics.camera.Camera`).
+JOB_SPECS = {
+    "signed": Spec("bool"),
+    "repeat": Spec("int", 1, MAX_COUNT),
+    "flat_field": Spec("int", 0, MAX_COUNT),
+    "calibration": Spec("int", 0, MAX_COUNT),
+    "dot_spacing": Spec("int", 2, MAX_SIDE, unit="features elements between dots"),
+    "levels": Spec("int", 0, MAX_COUNT),
+    "window_us": Spec("int", 1, MAX_US, unit="µs"),
+    "settle_us": Spec("int", 1, MAX_US, unit="µs", optional=True),
+    "seed": Spec("int", 0, 2 ** 63 - 1),
+    "light_delay_us": Spec("int", 0, MAX_US, unit="µs"),
+}
 
 
-def _patterns(value, name, base_dir):
-    """One or more 2-D 0/1 (or -1/0/1) patterns from a job value."""
+def _patterns(path, value, name, base_dir):
+    """One or more 2-D 0/1 (or -1/0/1) patterns from a job value: bit strings, file paths or nested lists."""
     if isinstance(value, str):
-        text = value if set(value) <= {"0", "1"} else os.path.join(base_dir, value)
-        return np.asarray(load_patterns(text, name))
+        value = [value]
+        one = True
+    else:
+        one = False
     if isinstance(value, list) and value and all(isinstance(v, str) for v in value):
-        pats = [np.asarray(load_patterns(v if set(v) <= {"0", "1"} else os.path.join(base_dir, v), name))
+        pats = [np.asarray(load_patterns(v if v and set(v) <= {"0", "1"} else os.path.join(base_dir, v), name))
                 for v in value]
         if len({p.shape for p in pats}) != 1:
-            raise EvtkError(f"the job's {name} differ in shape: {[p.shape for p in pats]}")
-        return np.stack(pats)
-    try:
-        arr = np.asarray(value, dtype=np.int64)
-    except (TypeError, ValueError):
-        raise EvtkError(f"the job's {name} must be bit strings, nested lists of numbers or a file path") from None
-    if arr.ndim not in (2, 3) or arr.size == 0:
-        raise EvtkError(f"the job's {name} must be a 2-D pattern or a list of them, not shape {arr.shape}")
-    return arr
+            raise EvtkError(f"{path}: the job's {name} differ in shape: {[p.shape for p in pats]}")
+        return pats[0] if one else np.stack(pats)
+    if isinstance(value, list) and value and isinstance(value[0], list) and value[0] \
+            and not isinstance(value[0][0], list):
+        return check_patterns(path, name, [value])[0]  # one 2-D pattern
+    return check_patterns(path, name, value)
 
 
 def load_job(path) -> dict:
     """Read a job file (TOML or JSON; see the module docstring) into :class:`~evtk.simulate.Simulation`'s arguments.
 
-    Returns a dict with ``kernels``, ``features``, ``bench`` (a
-    :class:`~evtk.optics.Bench`), ``sensor`` (a :class:`~evtk.sensor.SensorModel`),
-    ``repeat``, ``flat_field``, ``window_us``, ``settle_us`` and ``seed``.
-    Paths in the job are relative to the job file.
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The job file; paths in it are relative to it.
+
+    Returns
+    -------
+    dict
+        ``kernels``, ``features``, ``bench`` (a :class:`~evtk.optics.Bench`),
+        ``sensor`` (a :class:`~evtk.sensor.SensorModel`), ``camera``, and
+        ``repeat``, ``flat_field``, ``calibration``, ``dot_spacing``,
+        ``levels``, ``window_us``, ``settle_us``, ``seed``,
+        ``light_delay_us``, each checked against :data:`JOB_SPECS` (a bad
+        value is an :class:`~evtk.EvtkError` naming the file, the key and
+        the range).
     """
-    data = _read_table(path)
-    base = os.path.dirname(os.path.abspath(os.fspath(path)))
+    path = os.fspath(path)
+    data = read_table(path, "job")
+    unknown = sorted(set(data) - set(JOB_KEYS))
+    if unknown:
+        raise EvtkError(f"{path}: unknown job settings {unknown}; a job holds {list(JOB_KEYS)}")
+    values = check_table(path, {k: v for k, v in data.items() if k in JOB_SPECS}, JOB_SPECS)
+    base = os.path.dirname(os.path.abspath(path))
     if "kernels" not in data:
         raise EvtkError(f"{path}: the job names no kernels")
-    kernels = _patterns(data["kernels"], "kernels", base)
-    features = _patterns(data["features"], "features", base) if "features" in data else default_features()
-    signed = data.get("signed", False)
-    if not isinstance(signed, bool):
-        raise EvtkError(f"{path}: signed must be true or false, not {signed!r}")
-    if signed:
+    kernels = _patterns(path, data["kernels"], "kernels", base)
+    features = _patterns(path, data["features"], "features", base) if "features" in data else default_features()
+    if values.get("signed", False):
         kernels, features = np.where(kernels > 0, 1, -1), np.where(features > 0, 1, -1)
     for key in ("bench", "sensor", "camera"):
         if not isinstance(data.get(key, {}), dict):
@@ -106,25 +128,23 @@ def load_job(path) -> dict:
     try:
         bench = Bench.from_dict(data.get("bench", {}))
         sensor = SensorModel.from_dict(data.get("sensor", {}))
-    except (EvtkError, TypeError) as exc:
-        raise EvtkError(f"{path}: {exc}") from None
-    try:
         camera = Camera.from_dict(data["camera"]) if "camera" in data else None
     except (EvtkError, TypeError) as exc:
         raise EvtkError(f"{path}: {exc}") from None
     job = {"kernels": kernels, "features": features, "bench": bench, "sensor": sensor, "camera": camera}
     for key, default in (("repeat", 1), ("flat_field", 2), ("calibration", 0), ("dot_spacing", 4), ("levels", 0),
                          ("window_us", 1000), ("settle_us", None), ("seed", 0), ("light_delay_us", 0)):
-        v = data.get(key, default)
-        if v is not None and (isinstance(v, bool) or not isinstance(v, int)):
-            raise EvtkError(f"{path}: {key} must be a whole number, not {v!r}")
-        job[key] = v
+        job[key] = values.get(key, default)
     return job
 
 
 def job_simulation(path) -> Simulation:
     """The :class:`~evtk.simulate.Simulation` of a job file: the same schedule :func:`write_patterns` writes."""
-    return Simulation(**load_job(path))
+    job = load_job(path)
+    try:
+        return Simulation(**job)
+    except EvtkError as exc:
+        raise EvtkError(f"{os.fspath(path)}: {exc}") from None
 
 
 def dmd_frame(pattern, upsample, dmd_cols, dmd_rows) -> tuple[np.ndarray, tuple[int, int]]:
@@ -179,12 +199,16 @@ def write_patterns(sim: Simulation, out_dir, image_format="png") -> dict:
     out_dir = os.fspath(out_dir)
     os.makedirs(os.path.join(out_dir, "kernel"), exist_ok=True)
     os.makedirs(os.path.join(out_dir, "features"), exist_ok=True)
+    # one frame at a time: the bool frame, its upsampled pattern, the packed bits and the 1-bit image
+    require_memory(4 * b.dmd_rows * b.dmd_cols, f"a {b.dmd_cols}x{b.dmd_rows} DMD frame")
     written = {}
 
     def frame_file(kind, pattern, upsample):
-        frame, at = dmd_frame(pattern, upsample, b.dmd_cols, b.dmd_rows)
-        key = (kind, hashlib.sha1(np.packbits(frame).tobytes()).hexdigest())
+        # frames are told apart by their pattern (a few elements), so a run of many repeats draws each once
+        pat = np.asarray(pattern) > 0
+        key = (kind, pat.shape, hashlib.sha1(np.packbits(pat).tobytes()).hexdigest())
         if key not in written:
+            frame, at = dmd_frame(pat, upsample, b.dmd_cols, b.dmd_rows)
             name = f"{kind}/{kind[0]}{sum(k[0] == kind for k in written):03d}.{fmt}"
             _save_1bit(os.path.join(out_dir, name), frame, fmt)
             written[key] = (name, at)
@@ -234,7 +258,7 @@ def write_patterns(sim: Simulation, out_dir, image_format="png") -> dict:
 
 def _top_left(written, kind):
     """Top-left mirror (row, column) of the frames of ``kind`` (all centred alike)."""
-    for (k, _), (_, at) in written.items():
+    for (k, *_), (_, at) in written.items():
         if k == kind:
             return at
     return (0, 0)

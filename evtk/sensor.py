@@ -212,6 +212,18 @@ class SensorModel:
         if (self.leak_rate_hz or self.shot_event_rate_hz) and not self.stepped:
             raise EvtkError("sensor leak_rate_hz and shot_event_rate_hz belong to the v2e and log-node pixels and "
                             "to a frame-compared readout; evtk's asynchronous pixel has background_rate_hz")
+        # physical ceilings: beyond them thresholds never cross (a threshold of 1e18 log units indexed outside
+        # the pixel's events) or time constants overflow the simulator's steps
+        for name, top in (("theta_on", 100.0), ("theta_off", 100.0), ("theta_mismatch", 10.0), ("tau_min_us", 1e6),
+                          ("tau_electrons", 1e12), ("dark_current_e_per_s", 1e15), ("noise_step_fraction", 1.0),
+                          ("noise_step_max_us", 1e9), ("background_rate_hz", 1e6), ("hot_pixel_rate_hz", 1e6),
+                          ("readout_period_us", 1e9), ("refractory_us", 1e9)):
+            if getattr(self, name) > top:
+                raise EvtkError(f"sensor {name} = {getattr(self, name)!r} must be at most {top:g}")
+        # floors of the noise step: a step of 1e-300 us never reaches the end of a window
+        for name, low in (("noise_step_fraction", 0.01), ("noise_step_max_us", 10.0)):
+            if getattr(self, name) < low:
+                raise EvtkError(f"sensor {name} = {getattr(self, name)!r} must be at least {low:g}")
 
     @property
     def stepped(self) -> bool:

@@ -21,6 +21,7 @@ from __future__ import annotations
 from .calibrate import calibrate
 from .errors import EvtkError
 from .reconstruct import ReconstructOptions, load_schedule, reconstruct, reconstruct_calibrated, schedule_of_record
+from .settings import check_origin, check_region
 from .simulate import DOTS_ID
 from .simulate.record import SimulationRecord
 
@@ -43,8 +44,18 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         Where the response lies (:func:`evtk.calibrate.calibrate`); else
         ``options["region"]`` and ``origin_px``, else the run's own dot
         captures, else the bench geometry.
+    origin_px : (x, y), optional
+        Sensor pixel of the response's cell (0, 0), with ``options["region"]``;
+        checked to be two finite numbers near the sensor.
+    progress : callable, optional
+        Called with the captures done.
     options
         :class:`~evtk.reconstruct.ReconstructOptions` fields.
+
+    Returns
+    -------
+    Reconstruction
+        The result; its summary says the route and the placement.
     """
     opts = ReconstructOptions(**options)
     record = SimulationRecord.from_metadata(rec.metadata)
@@ -74,6 +85,10 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
     if fixed:
         raise EvtkError("the calibrated route takes its windows from the trigger edges matched to the schedule: "
                         "leave out the window and theta settings, or ask for the oracle")
+    if origin_px is not None:
+        origin_px = check_origin("the response origin", "origin_px", origin_px, rec.sensor_size)
+    if opts.region is not None and schedule is not None:
+        check_region("the region", "region", opts.region, rec.sensor_size)
     if schedule is None:
         sched = schedule_of_record(record)
     else:
@@ -81,6 +96,11 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
     region, placed, cell_map, blur_px, model, own = opts.region, "given", None, 0.0, None, True
     told = []  # what the calibration assumed or left out, said again with the result
     if calibration is not None:
+        (kh, kw), (fh, fw) = sched["kernels"].shape[1:], sched["features"].shape[1:]
+        if list(calibration.response_shape) != [fh + kh - 1, fw + kw - 1]:
+            raise EvtkError(f"the calibration is of a {calibration.response_shape[0]}x{calibration.response_shape[1]} "
+                            f"response, this run's is {fh + kh - 1}x{fw + kw - 1}: calibrate with a run of the same "
+                            "kernel and features sizes")
         region, origin_px, placed = tuple(calibration.region), tuple(calibration.origin_px), "calibration"
         cell_map, blur_px, model = calibration.cell_map(), calibration.blur_px, calibration.pixel_model
         told = list(calibration.warnings)

@@ -288,7 +288,7 @@ def test_a_job_file_sets_the_lights_delay(tmp_path):
     (tmp_path / "j.toml").write_text('kernels = ["111111111"]\nlight_delay_us = 4\n')
     assert job_simulation(tmp_path / "j.toml").triggers().t[0] == job_simulation(tmp_path / "j.toml").schedule.t_on_us[0] - 4
     (tmp_path / "bad.toml").write_text('kernels = ["111111111"]\nlight_delay_us = 2.5\n')
-    with pytest.raises(EvtkError, match="light_delay_us must be a whole number"):
+    with pytest.raises(EvtkError, match="light_delay_us = 2.5 must be a whole number"):
         job_simulation(tmp_path / "bad.toml")
 
 

@@ -62,7 +62,10 @@ def simulate(ctx, kernel_path, kernel_bits, features_path, signed, repeat, flat_
         if power_mw is not None:
             job["bench"] = job["bench"].replace(power_mw=power_mw)
         kernel, features, bench, sensor = job.pop("kernels"), job.pop("features"), job.pop("bench"), job.pop("sensor")
-        sim = Simulation(kernel, features, bench, sensor, **job)
+        try:
+            sim = Simulation(kernel, features, bench, sensor, **job)
+        except EvtkError as exc:
+            raise EvtkError(f"{job_path}: {exc}") from None
         return _write_simulation(sim, bench, sensor, compression, output, save_bench, as_json)
     if kernel_path and kernel_bits:
         raise EvtkError("give --kernel or --kernel-bits, not both")

@@ -11,10 +11,9 @@ from dataclasses import dataclass, field
 
 from ..errors import EvtkError, check_parameters
 from ..io._atomic import AtomicFile
-from ..settings import read_table, toml_value
+from ..settings import MAX_SIDE, Spec, check_origin, check_value, read_table, toml_value
 from .geometry import (
     PHOTON_ENERGY_J_PER_NM,
-    _positive,
     effective_stride,
     min_capture_window_us,
     optical_scaling,
@@ -22,7 +21,37 @@ from .geometry import (
     software_scaling,
 )
 
-__all__ = ["Bench", "load_bench", "save_bench"]
+__all__ = ["Bench", "load_bench", "save_bench", "BENCH_SPECS", "MAX_DMD_SIDE"]
+
+#: Most mirrors along one side of a DMD (the largest made have 3840 x 2160).
+MAX_DMD_SIDE = 16384
+
+#: The physical range of each bench setting (``origin_px`` is checked against the sensor on its own).
+BENCH_SPECS = {
+    "u_mm": Spec("float", 0, 1e6, lo_open=True, unit="mm"),
+    "z_mm": Spec("float", 0, 1e6, lo_open=True, unit="mm"),
+    "mirror_pitch_um": Spec("float", 0, 1e4, lo_open=True, unit="µm"),
+    "dmd_cols": Spec("int", 1, MAX_DMD_SIDE, unit="mirrors"),
+    "dmd_rows": Spec("int", 1, MAX_DMD_SIDE, unit="mirrors"),
+    "feature_upsample": Spec("int", 1, MAX_DMD_SIDE, unit="mirrors per features element"),
+    "kernel_upsample": Spec("int", 1, MAX_DMD_SIDE, unit="mirrors per kernel element", optional=True),
+    "sensor_pitch_um": Spec("float", 0, 1e7, lo_open=True, unit="µm"),
+    "decimation": Spec("int", 1, MAX_SIDE),
+    "sensor_width": Spec("int", 1, MAX_SIDE, unit="pixels"),
+    "sensor_height": Spec("int", 1, MAX_SIDE, unit="pixels"),
+    "kernel_hz": Spec("float", 0, 1e7, lo_open=True, unit="Hz"),
+    "features_hz": Spec("float", 0, 1e7, lo_open=True, unit="Hz"),
+    "pixel_latency_us": Spec("float", 0, 1e9, lo_open=True, unit="µs"),
+    "wavelength_nm": Spec("float", 10, 1e6, unit="nm"),
+    "power_mw": Spec("float", 0, 1e9, unit="mW"),
+    "efficiency": Spec("float", 0, 1, unit="photoelectrons per photon"),
+    "dmd_contrast": Spec("float", 1, 1e12),
+    "stray_light": Spec("float", 0, 1e9, unit="units of light"),
+    "psf_sigma_um": Spec("float", 0, 1e7, unit="µm"),
+    "source_extent": Spec("str", choices=("point", "area")),
+    "kernel_flipped": Spec("bool"),
+    "diffraction": Spec("bool"),
+}
 
 
 @dataclass(frozen=True)
@@ -109,35 +138,12 @@ class Bench:
     diffraction: bool = False
 
     def __post_init__(self):
-        _positive(u_mm=self.u_mm, z_mm=self.z_mm, mirror_pitch_um=self.mirror_pitch_um,
-                  sensor_pitch_um=self.sensor_pitch_um, kernel_hz=self.kernel_hz, features_hz=self.features_hz,
-                  pixel_latency_us=self.pixel_latency_us, wavelength_nm=self.wavelength_nm,
-                  dmd_contrast=self.dmd_contrast)
-        for name in ("dmd_cols", "dmd_rows", "feature_upsample", "decimation", "sensor_width", "sensor_height"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < 1:
-                raise EvtkError(f"bench {name} must be a positive integer, not {v!r}")
-            object.__setattr__(self, name, int(v))
-        if self.sensor_width > 32767 or self.sensor_height > 32767:
-            raise EvtkError("bench sensor size must be at most 32767 pixels per side")
-        if self.kernel_upsample is not None:
-            v = self.kernel_upsample
-            if isinstance(v, bool) or int(v) != v or v < 1:
-                raise EvtkError(f"bench kernel_upsample must be a positive integer or None, not {v!r}")
-            object.__setattr__(self, "kernel_upsample", int(v))
-        for name in ("power_mw", "efficiency", "stray_light", "psf_sigma_um"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise EvtkError(f"bench {name} must be a finite number >= 0, not {v!r}")
-        if self.dmd_contrast < 1:
-            raise EvtkError(f"bench dmd_contrast must be >= 1, not {self.dmd_contrast!r}")
-        if self.source_extent not in ("point", "area"):
-            raise EvtkError(f"bench source_extent must be 'point' or 'area', not {self.source_extent!r}")
+        where = "bench"
+        for name, spec in BENCH_SPECS.items():
+            object.__setattr__(self, name, check_value(where, name, getattr(self, name), spec))
         if self.origin_px is not None:
-            o = tuple(float(v) for v in self.origin_px)
-            if len(o) != 2 or not all(math.isfinite(v) for v in o):
-                raise EvtkError(f"bench origin_px must be two finite numbers (x, y), not {self.origin_px!r}")
-            object.__setattr__(self, "origin_px", o)
+            object.__setattr__(self, "origin_px", check_origin(where, "origin_px", self.origin_px,
+                                                               (self.sensor_width, self.sensor_height)))
 
     # derived geometry ------------------------------------------------------------
     @functools.cached_property  # fields are frozen: compute once

@@ -114,6 +114,11 @@ class Camera:
             raise EvtkError(f"camera scale must be within 0.5 and 2, not {self.scale}")
         if not (-0.3 < self.k1 < 0.3 and 0 <= self.vignetting < 1 and self.defocus_px >= 0):
             raise EvtkError("camera k1 must be within -0.3 and 0.3, vignetting within 0 and 1, defocus_px >= 0")
+        # a view still on the sensor: beyond these the projected region overflows or leaves every sensor behind
+        if not (self.defocus_px <= 100 and abs(self.rotation_deg) <= 360 and max(map(abs, self.tilt)) <= 1
+                and max(map(abs, self.offset_px)) <= 32767):
+            raise EvtkError("camera defocus_px must be at most 100, rotation_deg within +-360, tilt within +-1 "
+                            "(per 1000 px) and offset_px within +-32767 px")
 
     @property
     def is_ideal(self) -> bool:

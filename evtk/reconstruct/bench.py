@@ -13,15 +13,13 @@ correlation of the job's patterns, which the bench knows too.
 
 from __future__ import annotations
 
-import json
-import os
-
 import numpy as np
 from scipy.ndimage import median_filter
 
 from ..errors import EvtkError
-from ..optics import Bench, response_origin_px
-from ..simulate import FLAT_ID, LEVEL_ID, Schedule
+from ..optics import response_origin_px
+from ..simulate import FLAT_ID, LEVEL_ID
+from ..simulate.schedule import read_schedule as load_schedule  # the checked reader, under its older name
 from .accumulate import accumulate
 from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid
@@ -30,45 +28,6 @@ from .pipeline import MAX_TIMING_STAMP_US, Reconstruction, check_crop, pair_idea
 from .windows import Windows, _trim, windows_from_triggers
 
 __all__ = ["load_schedule", "match_windows", "reconstruct_bench", "synchronous_readout", "refuse_synchronous"]
-
-
-def load_schedule(path) -> dict:
-    """Read a ``schedule.json`` written by :func:`evtk.patterns.write_patterns`.
-
-    Returns ``schedule`` (:class:`evtk.simulate.Schedule`), ``kernels``,
-    ``features`` (int arrays), ``bench`` (:class:`evtk.optics.Bench`),
-    ``window_us`` and ``settle_us``; a malformed file is one
-    :class:`~evtk.EvtkError` naming what is wrong.
-    """
-
-    path = os.fspath(path)
-    try:
-        with open(path, "rb") as f:
-            doc = json.loads(f.read().decode("utf-8"))
-    except OSError as exc:
-        raise EvtkError(f"{path}: cannot read the schedule: {exc.strerror or exc}") from None
-    except ValueError as exc:
-        raise EvtkError(f"{path}: not a schedule file (invalid JSON: {exc})") from None
-    if not isinstance(doc, dict) or doc.get("evtk_schedule_version") != 1:
-        raise EvtkError(f"{path}: not an evtk schedule (evtk_schedule_version 1); write one with evtk patterns")
-    try:
-        caps = doc["captures"]
-        cols = {c: [int(cap[c]) if c in cap or c not in Schedule._OPTIONAL else 0 for cap in caps]
-                for c in Schedule._COLUMNS}
-        schedule = Schedule.from_dict(cols)
-        kernels = np.asarray(doc["kernels"], dtype=np.int64)
-        features = np.asarray(doc["features"], dtype=np.int64)
-        bench = Bench.from_dict(doc["bench"])
-        window_us, settle_us = int(doc["window_us"]), int(doc["settle_us"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise EvtkError(f"{path}: the schedule is malformed ({type(exc).__name__}: {exc})") from None
-    if kernels.ndim != 3 or features.ndim != 3 or len(schedule) == 0:
-        raise EvtkError(f"{path}: the schedule needs kernels, features and at least one capture")
-    if np.any(schedule.kernel_id >= len(kernels)) or np.any(schedule.features_id >= len(features)):
-        raise EvtkError(f"{path}: a capture names a kernel or features pattern the schedule does not hold")
-    cal = doc.get("calibration") or {}
-    return {"schedule": schedule, "kernels": kernels, "features": features, "bench": bench,
-            "window_us": window_us, "settle_us": settle_us, "dot_spacing": int(cal.get("dot_spacing", 4))}
 
 
 def match_windows(triggers, schedule, tolerance_us=None):

@@ -17,9 +17,44 @@ from ..errors import EvtkError
 from ..optics import Bench
 from ..optics.camera import Camera, CellMap
 from ..sensor import SensorModel
-from .schedule import METADATA_KEY, Schedule
+from ..settings import MAX_BLUR_PX, MAX_COUNT, MAX_US, Spec, check_matrix, check_origin, check_region, check_table, check_value
+from .schedule import METADATA_KEY, Schedule, check_patterns
 
-__all__ = ["SimulationRecord"]
+#: What each number of a simulation record may be (the arrays, tables and pixels are checked on their own).
+RECORD_SPECS = {
+    "window_us": Spec("int", 1, MAX_US, unit="µs"),
+    "settle_us": Spec("int", 1, MAX_US, unit="µs"),
+    "start_us": Spec("int", -MAX_US, MAX_US, unit="µs"),
+    "end_us": Spec("int", -MAX_US, 2 * MAX_US, unit="µs"),
+    "gain_e_per_s_per_unit": Spec("float", 0, 1e30, unit="photoelectrons per second and unit of light"),
+    "blank_rate_e_per_s": Spec("float", 0, 1e30, lo_open=True, unit="photoelectrons per second"),
+    "seed": Spec("int", 0, 2 ** 63 - 1, optional=True),
+    "noise_seed": Spec("int", 0, 2 ** 63 - 1, optional=True),
+    "repeat": Spec("int", 1, MAX_COUNT),
+    "flat_field": Spec("int", 0, MAX_COUNT),
+    "calibration": Spec("int", 0, MAX_COUNT),
+    "dot_spacing": Spec("int", 2, 32767, unit="features elements between dots"),
+    "levels": Spec("int", 0, MAX_COUNT),
+    "light_delay_us": Spec("int", 0, MAX_US, unit="µs"),
+    "correlation": Spec("str", choices=("correlation", "convolution")),
+    "evtk_version": Spec("str"),
+}
+
+
+def _check_cell_map(where, cm, sensor_size, kernel_shape, features_shape) -> dict:
+    """A record's fitted ``cell_map`` ({"matrix", "k1", "blur_px"}), checked: a non-singular map that keeps the
+    response on one side of its horizon, a distortion within +-0.3 and a blur up to :data:`MAX_BLUR_PX`."""
+    if not isinstance(cm, dict) or "matrix" not in cm or "k1" not in cm:
+        raise EvtkError(f"{where}: cell_map must be a table with matrix (3x3), k1 and optionally blur_px")
+    rows, cols = (a + b - 1 for a, b in zip(features_shape, kernel_shape))
+    corners = [(0, 0), (cols, 0), (0, rows), (cols, rows)]
+    out = dict(cm, matrix=check_matrix(where, "cell_map.matrix", cm["matrix"], corners).tolist())
+    out["k1"] = check_value(where, "cell_map.k1", cm["k1"], Spec("float", -0.3, 0.3))
+    if "blur_px" in cm:
+        out["blur_px"] = check_value(where, "cell_map.blur_px", cm["blur_px"], Spec("float", 0, MAX_BLUR_PX, unit="px"))
+    return out
+
+__all__ = ["SimulationRecord", "RECORD_SPECS"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -120,37 +155,57 @@ class SimulationRecord:
         return d
 
     @classmethod
-    def from_dict(cls, d) -> SimulationRecord:
-        """Read the record from its dict form (or pass a record through); a bad one is an :class:`EvtkError`."""
+    def from_dict(cls, d, where="the simulation record") -> SimulationRecord:
+        """Read the record from its dict form (or pass a record through), every value checked.
+
+        Parameters
+        ----------
+        d : dict or SimulationRecord
+            :meth:`to_dict`'s form.
+        where : str
+            Where it was read from, for messages.
+
+        Returns
+        -------
+        SimulationRecord
+            A bad value is one :class:`EvtkError` naming the key and what is allowed.
+        """
         if isinstance(d, cls):
             return d
         if not isinstance(d, dict):
-            raise EvtkError(f"a simulation record must be a dict, not {type(d).__name__}")
+            raise EvtkError(f"{where} must be a dict, not {type(d).__name__}")
         missing = [k for k in cls._REQUIRED if k not in d]
         if missing:
-            raise EvtkError(f"the simulation record lacks {', '.join(missing)}")
+            raise EvtkError(f"{where} lacks {', '.join(missing)}")
         known = {f.name for f in dataclasses.fields(cls)}
-        try:
-            kw = {k: v for k, v in d.items() if k in known}
-            kw.update(bench=Bench.from_dict(d["bench"]), sensor=SensorModel.from_dict(d["sensor"]),
-                      kernels=np.asarray(d["kernels"], dtype=np.int64),
-                      features=np.asarray(d["features"], dtype=np.int64),
-                      schedule=Schedule.from_dict(d["schedule"]),
-                      response_region=tuple(int(v) for v in d["response_region"]),
-                      response_origin_px=tuple(float(v) for v in d["response_origin_px"]),
-                      gain_e_per_s_per_unit=float(d["gain_e_per_s_per_unit"]),
-                      blank_rate_e_per_s=float(d["blank_rate_e_per_s"]),
-                      window_us=int(d["window_us"]), settle_us=int(d["settle_us"]),
-                      start_us=int(d.get("start_us", 0)), end_us=int(d.get("end_us", 0)),
-                      light_delay_us=int(d.get("light_delay_us", 0)))
-        except EvtkError:
-            raise
-        except (TypeError, ValueError) as exc:
-            raise EvtkError(f"the simulation record is malformed ({type(exc).__name__}: {exc})") from None
-        if kw["kernels"].ndim != 3 or kw["features"].ndim != 3 or len(kw["response_region"]) != 4 \
-                or len(kw["response_origin_px"]) != 2:
-            raise EvtkError("the simulation record is malformed (kernels and features must be (n, h, w), "
-                            "the region four numbers and the origin two)")
+        where = f"{where} is malformed"
+        kw = check_table(where, {k: v for k, v in d.items() if k in known}, RECORD_SPECS, unknown="keep")
+        for key, build in (("bench", Bench.from_dict), ("sensor", SensorModel.from_dict)):
+            if not isinstance(d[key], dict):
+                raise EvtkError(f"{where}: {key} must be a table of parameters")
+            try:
+                kw[key] = build(d[key])
+            except (EvtkError, TypeError) as exc:
+                raise EvtkError(f"{where}: {exc}") from None
+        size = (kw["bench"].sensor_width, kw["bench"].sensor_height)
+        kw["kernels"] = check_patterns(where, "kernels", d["kernels"])
+        kw["features"] = check_patterns(where, "features", d["features"])
+        k = kw["kernels"]
+        kw["schedule"] = Schedule.from_dict(d["schedule"], where, len(k), len(kw["features"]), k.shape[1] * k.shape[2])
+        kw["response_region"] = check_region(where, "response_region", d["response_region"], size)
+        kw["response_origin_px"] = check_origin(where, "response_origin_px", d["response_origin_px"], size)
+        kw.setdefault("start_us", 0)
+        kw.setdefault("end_us", 0)
+        if kw.get("light_delay_us", 0) >= kw["settle_us"]:
+            raise EvtkError(f"{where}: light_delay_us = {kw['light_delay_us']} must be shorter than settle_us = "
+                            f"{kw['settle_us']}")
+        if d.get("camera") is not None:
+            try:
+                kw["camera"] = Camera.from_dict(d["camera"]).to_dict()
+            except (EvtkError, TypeError, ValueError) as exc:
+                raise EvtkError(f"{where}: {exc}") from None
+        if d.get("cell_map") is not None:
+            kw["cell_map"] = _check_cell_map(where, d["cell_map"], size, k.shape[1:], kw["features"].shape[1:])
         return cls(**kw)
 
     @classmethod

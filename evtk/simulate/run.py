@@ -189,6 +189,7 @@ class Simulation:
         end = self.start_us + self.settle_us + n * period
         if end >= _T_LIMIT:
             raise EvtkError(f"the run would end at t = {end} us, beyond the int64 timestamp range")
+        self._check_size(n, end - self.start_us)
         rows = np.asarray(rows, dtype=np.int64)
         t_on = self.start_us + self.settle_us + np.arange(n, dtype=np.int64) * period
         self.schedule = Schedule(np.arange(n, dtype=np.int64), rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3],
@@ -200,6 +201,29 @@ class Simulation:
         self._theta_on, self._theta_off = pixel_thresholds(self.sensor, w * h, rng)
         n_hot = int(round(self.sensor.hot_pixel_fraction * w * h))
         self._hot = np.sort(rng.choice(w * h, size=n_hot, replace=False)) if n_hot else np.zeros(0, np.int64)
+
+    def _check_size(self, n_captures, span_us):
+        """Refuse, before any work, a run whose events or per-pixel state exceed the memory budget.
+
+        Each pixel of the response region can give at most about ``ln(bright /
+        blank) / theta`` events as the light rises and as many as it falls,
+        per capture (the brightest pattern bounds every capture's light); the
+        background activity and hot pixels add their rates over the whole
+        sensor and span. The simulator keeps state for every sensor pixel.
+        """
+        b, sm = self.bench, self.sensor
+        w, h = b.sensor_width, b.sensor_height
+        require_memory(48 * w * h, f"the per-pixel state of a {w}x{h} sensor")
+        blank = self.blank_rate_e_per_s
+        bright = self._rate(brightest_response(self.kernels.shape[1:], b))
+        theta = min(sm.theta_on, sm.theta_off)
+        x0, x1, y0, y1 = self.region
+        per_capture = (x1 - x0) * (y1 - y0) * 2 * (math.log(max(bright / blank, 1.0)) / theta + 1)
+        span_s = span_us * 1e-6
+        noise = span_s * (sm.background_rate_hz * w * h + sm.hot_pixel_rate_hz * sm.hot_pixel_fraction * w * h)
+        events = n_captures * per_capture + noise
+        require_memory(16 * events, f"a run of {n_captures:,} captures ({self.repeat:,} repeats over {span_s:,.0f} s: "
+                       f"up to about {events:.3g} events at 16 bytes; fewer repeats or patterns make it smaller)")
 
     # -- patterns and light -----------------------------------------------------------
     def _pair_passes(self, ki, fi):
