@@ -319,10 +319,10 @@ def test_a_pattern_image_is_sized_from_its_header_before_it_is_decoded(tmp_path,
     png = tmp_path / "features.png"
     Image.new("1", (3000, 3000)).save(png)  # a few KiB that decode to 9 million pixels (72 MB as float64)
     monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "16")
-    with pytest.raises(EvtkError, match="3000x3000 features image"):
+    with pytest.raises(EvtkError, match=r"features image.*3000x3000"):
         load_patterns(png, "features")
     job = _write(tmp_path / "job.toml", {"kernels": ["1"], "features": "features.png"})
-    with pytest.raises(EvtkError, match="3000x3000 features image"):
+    with pytest.raises(EvtkError, match=r"features image.*3000x3000"):
         load_job(job)
 
 
@@ -332,7 +332,7 @@ def test_a_pattern_array_is_sized_from_its_header_before_it_is_read(tmp_path, mo
     npy = tmp_path / "k.npy"
     np.save(npy, np.zeros((64, 512, 512), np.int8))
     monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "4")
-    with pytest.raises(EvtkError, match="kernel array"):
+    with pytest.raises(EvtkError, match=r"kernel .*k\.npy"):
         load_patterns(npy, "kernel")
     np.save(npy, np.zeros((2, 2, 2, 2), np.int8))
     with pytest.raises(EvtkError, match=r"\(h, w\) or \(n, h, w\)"):
