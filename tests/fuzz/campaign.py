@@ -64,8 +64,9 @@ class Cases:
         self.tg = tg
         self.folder, self.scratch = Path(folder), Path(scratch)
         self.events = tg.load_event_targets(folder)
-        self.settings = tg.load_settings_targets(folder)
-        self.recon = {n: tg.reconstruction_state(self.folder / n) for n in ("r.h5", "r.npz")}
+        runs = (self.folder / "r.h5").exists()  # built with the simulated run (targets.build(runs=True))
+        self.settings = tg.load_settings_targets(folder) if runs else {}
+        self.recon = {n: tg.reconstruction_state(self.folder / n) for n in ("r.h5", "r.npz")} if runs else {}
         self.names = sorted(self.events) + sorted(self.recon) + sorted(self.settings)
         if only:
             self.names = [n for n in self.names if n in only]
@@ -281,6 +282,10 @@ def worker(args):
             vm = next(int(ln.split()[1]) for ln in f if ln.startswith("VmSize:")) * 1024
         limit = vm + (args.as_limit_mb << 20)
         resource.setrlimit(resource.RLIMIT_AS, (limit, resource.getrlimit(resource.RLIMIT_AS)[1]))
+    import atexit
+    import shutil
+
+    atexit.register(shutil.rmtree, scratch, True)
     with open(args.log, "a") as log:
         for case in range(args.start, args.end):
             log.write(f"S {case}\n")
