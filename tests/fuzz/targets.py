@@ -26,6 +26,39 @@ the container valid) and one oracle call, which returns an outcome:
 
 The runner (``campaign.py``) adds ``traceback`` (any other exception),
 ``hang``, ``memory`` and ``crash``.
+
+What a mutation may change, per format (:func:`judge_events`):
+
+* every event read: the full read, five windows, ``iter_events`` in chunks
+  and in a window must agree (strict and salvage alike); coordinates outside
+  the sensor, or negative stamps from a format whose stamps are unsigned,
+  need a warning;
+* a cut file reads as a prefix of the events written (or an error), strict
+  or salvaged;
+* a change inside the text header may change what the header says (sensor
+  size, camera), so any consistent read is allowed;
+* ``fixed`` formats (AEDAT 1.0/2.0/3.1 polarity events, DAT: one record per
+  event, no checksum): ``k`` records changed in place may change, drop or add
+  at most ``k`` events -- unless the later stamps moved by whole 32-bit wraps,
+  each where the raw stamp steps back by more than half the range (what the
+  wrap rule makes of a stamp flipped high); a wrap from a small backward step
+  is silently wrong;
+* ``checksummed`` (faery's AEDAT4, LZ4 frames with xxHash32): after the
+  header, nothing but the events written or an error;
+* ``stateful`` formats (EVT 2.0/3.0, Event Stream, where a time-high word or
+  an overflow code moves every later event): any consistent, bounded read;
+* ``container`` formats (evtk's AEDAT4, HDF5, Parquet; no checksum on the
+  payload): a byte change may alter events; a structure-aware change that
+  touches no event payload (``structured.py``) must read exactly or fail.
+
+Reconstruction files: the arrays and summary as written, or an error; a
+value change may load only if the counts stay whole and non-negative, the
+responses finite, windows end after they start and the summary's sensor size
+and region are sane; links, external storage and sizes must be refused; an
+NPZ member is CRC-checked, so a byte change must be an error or nothing.
+Settings: the values as written, an error, or values obeying :data:`RULES`
+(finite; durations, sizes and rates of the right sign; patterns of -1/0/1;
+captures in order; a region inside the sensor; a non-singular matrix).
 """
 
 from __future__ import annotations
