@@ -690,8 +690,8 @@ def _recon_valid(state) -> list:
     bad = []
     for k in ("responses", "cells", "ideal"):
         a = state[k]
-        if a is not None and (a.dtype.kind not in "fiu" or not np.all(np.isfinite(a))):
-            bad.append(f"{k} not finite numbers")
+        if a is not None and (a.dtype.kind not in "fiub" or not np.all(np.isfinite(a))):
+            bad.append(f"{k} not finite real numbers ({a.dtype})")
     for k in ("on", "off"):
         if state[k].dtype.kind not in "iu" or (state[k].size and int(state[k].min()) < 0):
             bad.append(f"{k} counts negative or not whole")
