@@ -23,7 +23,8 @@ worker process died). Cases run in a worker subprocess with the evtk budget
 (``RLIMIT_AS``); the parent restarts it after a crash or a hang it had to
 kill, so one bad case costs one case.
 
-``--save DIR`` keeps the mutated file of the first few cases of each failing
+``--rerun LOG`` runs again only the failing cases of an earlier run's
+``--log`` (after a fix). ``--save DIR`` keeps the mutated file of the first few cases of each failing
 (target, outcome, kind). The exit status is 1 when any case failed.
 """
 
@@ -287,7 +288,7 @@ def worker(args):
 
     atexit.register(shutil.rmtree, scratch, True)
     with open(args.log, "a") as log:
-        for case in range(args.start, args.end):
+        for case in map(int, Path(args.case_list).read_text().split()):
             log.write(f"S {case}\n")
             log.flush()
             res = guarded(cases, args.seed, case, args.hang_seconds, args.memory_growth_mb)
@@ -313,17 +314,19 @@ def _save(folder, res):
 
 
 # --------------------------------------------------------------------------------------------------- parent
-def run_campaign(args):
-    """Run the cases in worker subprocesses; the list of result dicts."""
+def run_campaign(args, todo=None):
+    """Run the cases (``todo``, else ``--start`` onwards) in worker subprocesses; the list of result dicts."""
     results = {}
     log = Path(args.log or tempfile.mktemp(prefix="evtk-fuzz-", suffix=".jsonl"))
-    start, end = args.start, args.start + args.cases
-    nxt = start
+    todo = list(todo) if todo is not None else list(range(args.start, args.start + args.cases))
     kill_after = max(6 * args.hang_seconds, args.hang_seconds + 60)  # wall seconds without progress (in C code)
     t_report = time.time()
-    while nxt < end:
+    errors = Path(str(log) + ".stderr")
+    while todo:
+        listing = Path(str(log) + ".todo")
+        listing.write_text("\n".join(map(str, todo)))
         cmd = [sys.executable, "-m", "fuzz.campaign", "--worker", "--dir", str(args.dir), "--log", str(log),
-               "--seed", str(args.seed), "--start", str(nxt), "--end", str(end), "--hang-seconds",
+               "--seed", str(args.seed), "--case-list", str(listing), "--hang-seconds",
                str(args.hang_seconds), "--memory-mb", str(args.memory_mb), "--as-limit-mb", str(args.as_limit_mb),
                "--memory-growth-mb", str(args.memory_growth_mb), "--cli-every", str(args.cli_every)]
         if args.only:
@@ -332,26 +335,28 @@ def run_campaign(args):
             cmd += ["--save", str(args.save)]
         env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE.parent.parent), str(HERE.parent),
                                                              os.environ.get("PYTHONPATH", "")])}
-        proc = subprocess.Popen(cmd, env=env, cwd=str(HERE.parent), stdout=subprocess.DEVNULL,
-                                stderr=subprocess.PIPE)
-        started, last_change, pos = None, time.time(), 0
+        with open(errors, "ab") as err_file:  # a file, not a pipe: a worker never blocks on its warnings
+            proc = subprocess.Popen(cmd, env=env, cwd=str(HERE.parent), stdout=subprocess.DEVNULL,
+                                    stderr=err_file)
+        started, last_change, pos = None, time.time(), log.stat().st_size if log.exists() else 0
         killed = False
+        done = set()
         while True:
             rc = proc.poll()
             if log.exists():
-                with open(log) as f:
+                with open(log, "rb") as f:
                     f.seek(pos)
                     chunk = f.read()
-                complete = chunk[:chunk.rfind("\n") + 1]
-                pos += len(complete.encode())
-                for line in complete.splitlines():
+                complete = chunk[:chunk.rfind(b"\n") + 1]
+                pos += len(complete)
+                for line in complete.decode().splitlines():
                     if line.startswith("S "):
                         started, last_change = int(line[2:]), time.time()
                     elif line.strip():
                         r = json.loads(line)
                         results[r["case"]] = r
+                        done.add(r["case"])
                         started, last_change = None, time.time()
-                        nxt = r["case"] + 1
             if rc is not None:
                 break
             if started is not None and time.time() - last_change > kill_after:
@@ -361,15 +366,16 @@ def run_campaign(args):
                 t_report = time.time()
                 _write_report(args, [results[k] for k in sorted(results)], partial=True)
             time.sleep(0.2)
-        err = proc.stderr.read().decode(errors="replace")[-2000:]
+        tail = errors.read_bytes()[-2000:].decode(errors="replace") if errors.exists() else ""
         if started is not None:  # the case in progress when the worker died
             outcome = "hang" if killed else "crash"
             results[started] = {"case": started, "target": "?", "kind": "?", "outcome": outcome,
-                                "detail": f"worker exit {proc.returncode}: {err.strip()[-300:]}", "seconds": None,
+                                "detail": f"worker exit {proc.returncode}: {tail.strip()[-300:]}", "seconds": None,
                                 "grew_mb": None, "path": None}
-            nxt = started + 1
-        elif rc != 0 and nxt < end:
-            raise SystemExit(f"the worker failed before case {nxt}: exit {rc}\n{err}")
+            done.add(started)
+        elif rc != 0 and len(done) < len(todo):
+            raise SystemExit(f"the worker failed: exit {rc}\n{tail}")
+        todo = [c for c in todo if c not in done]
     return [results[k] for k in sorted(results)]
 
 
@@ -430,7 +436,9 @@ def main(argv=None):
     ap.add_argument("--log", type=Path, help="the per-case JSON lines (kept; a temporary file if not given)")
     ap.add_argument("--progress", type=float, default=60.0, help="rewrite --out every this many seconds")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--end", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--case-list", help=argparse.SUPPRESS)
+    ap.add_argument("--rerun", type=Path,
+                    help="rerun only the failing cases of this per-case log (--log of an earlier run, same --seed)")
     args = ap.parse_args(argv)
     if args.worker:
         return worker(args)
@@ -441,7 +449,11 @@ def main(argv=None):
 
             args.dir = Path(d)
             tg.build(args.dir)
-        results = run_campaign(args)
+        todo = None
+        if args.rerun:
+            todo = sorted({json.loads(ln)["case"] for ln in args.rerun.read_text().splitlines()
+                           if ln.startswith("{") and json.loads(ln)["outcome"] in FAILURES})
+        results = run_campaign(args, todo)
     summary = summarize(results)
     _write_report(args, results)
     print(f"{summary['cases']} cases (seed {args.seed}) in {time.time() - t0:.0f} s")
