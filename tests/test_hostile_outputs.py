@@ -403,8 +403,9 @@ def test_killed_simulate_leaves_no_partial_file(tmp_path):
     import sys
     import time
 
+    # 3000 repeats: long enough to be killed while writing, within the memory budget (100,000 is now refused)
     env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    proc = subprocess.Popen([sys.executable, "-m", "evtk.cli", "simulate", "--repeat", "100000", "-o", "run.aedat4"],
+    proc = subprocess.Popen([sys.executable, "-m", "evtk.cli", "simulate", "--repeat", "3000", "-o", "run.aedat4"],
                             cwd=str(tmp_path), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 120
