@@ -13,12 +13,13 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+import zlib
 
 import numpy as np
 
 from ..errors import EvtkError, FormatError
 from ._atomic import AtomicFile
-from .base import load_json
+from .base import load_json, sensor_dims
 
 __all__ = ["save_reconstruction", "load_reconstruction", "is_reconstruction", "describe_reconstruction",
            "LAYOUT_VERSION"]
@@ -202,7 +203,10 @@ def load_reconstruction(path, trust_external: bool | None = None):
     if on.shape != off.shape or on.ndim != 3 or on.shape[0] != start.shape[0] or start.shape != end.shape:
         raise FormatError(path, None, f"window times {start.shape}/{end.shape} and counts {on.shape}/{off.shape} "
                                       "do not match")
-    summary = dict(meta.get("reconstruction") or {})
+    inner = meta.get("reconstruction") or {}
+    if not isinstance(inner, dict):
+        raise FormatError(path, None, "the summary's reconstruction entry must be a JSON object")
+    summary = dict(inner)
     for k, v in meta.items():
         if k != "reconstruction":
             summary.setdefault(k, v)
@@ -217,6 +221,15 @@ def load_reconstruction(path, trust_external: bool | None = None):
         raise FormatError(path, None, "the summary's region or events_used is not made of integers") from None
     if len(region) != 4:
         raise FormatError(path, None, f"the summary's region must be [x0, x1, y0, y1], not {list(region)}")
+    size = summary.get("sensor_size")
+    if not (isinstance(size, (list, tuple)) and len(size) == 2):
+        raise FormatError(path, None, f"the summary's sensor_size must be [width, height], not {size!r}")
+    summary["sensor_size"] = list(sensor_dims(size[0], size[1], path, "the summary's sensor_size"))
+    w, h = summary["sensor_size"]
+    x0, x1, y0, y1 = region
+    if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h and (y1 - y0, x1 - x0) == tuple(on.shape[1:])):
+        raise FormatError(path, None, f"the summary's region {list(region)} is not the counts' "
+                                      f"{on.shape[2]}x{on.shape[1]} pixels on the {w}x{h} sensor")
     counts = WindowCounts(on.astype(np.int32, copy=False), off.astype(np.int32, copy=False), windows, region,
                           events_used)
     return Reconstruction(arrays["responses"].astype(np.float64, copy=False), arrays["binary"].astype(np.int8, copy=False),
@@ -276,7 +289,10 @@ def _read_hdf5(path, trust_external):
             raise FormatError(path, None, "not a reconstruction file: no /reconstruction group")
         arrays = rec.read_arrays("reconstruction", _REQUIRED + _OPTIONAL,
                                  before=lambda found: _plan(path, found, os.path.getsize(path)))
-        return arrays, rec.metadata
+        meta = dict(rec.metadata)
+        if "sensor_size" not in meta and rec.sensor_size:  # the file's own (a group copied into a recording)
+            meta["sensor_size"] = list(rec.sensor_size)
+        return arrays, meta
 
 
 def _read_npz(path):
@@ -287,6 +303,9 @@ def _read_npz(path):
             members = {i.filename[:-4]: i for i in z.infolist() if i.filename.endswith(".npy")}
             if "summary" not in members:
                 raise FormatError(path, None, "not a reconstruction file: the NPZ has no summary")
+            unknown = sorted(set(i.filename for i in z.infolist()) - {f"{k}.npy" for k in names})
+            if unknown:  # evtk writes none: a member renamed (damage) would otherwise vanish without a word
+                raise FormatError(path, None, f"members no reconstruction file has: {', '.join(unknown[:5])}")
             found, headers = {}, {}
             for name in names:
                 info = members.get(name)
@@ -315,7 +334,8 @@ def _read_npz(path):
                         raise FormatError(path, info.header_offset, f"{name}: bytes after the array")
     except FormatError:
         raise
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, NotImplementedError, RuntimeError) as exc:
+    except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, NotImplementedError,
+            RuntimeError) as exc:
         raise FormatError(path, None, f"unreadable NPZ ({exc})") from None
     meta = load_json(str(arrays.pop("summary")), path, "the summary")
     if not isinstance(meta, dict):

@@ -252,7 +252,7 @@ def root_link(path, name: str) -> bool:
     try:
         with h5py.File(path, "r") as f:
             return f.get(name, getlink=True) is not None
-    except (OSError, ValueError):
+    except (OSError, ValueError, RuntimeError, KeyError):  # damaged metadata: h5py raises RuntimeError too
         return False
 
 
