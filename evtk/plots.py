@@ -148,7 +148,8 @@ def contact_sheet(path, result, rows_per_page=8) -> list:
     response and the ideal one (when known), which share one colour scale
     per row (symmetric about zero on a diverging map when the responses are
     signed) with a colour bar labelled with the quantity and its unit
-    (:func:`response_quantity`); then the measured binary response and the
+    (:func:`response_quantity`; unlinearised counts and the ideal's light
+    get a scale and bar each); then the measured binary response and the
     ideal's, binarised by the same rule (``result.summary["binarize"]``) at
     the same size, so each flipped pixel shows. Row labels name kernel,
     features and repeat. Written atomically.
@@ -183,6 +184,8 @@ def contact_sheet(path, result, rows_per_page=8) -> list:
         ideal_binary = binarize(downsample(result.ideal, result.binary.shape[1:]), method)
     signed = _is_signed(result.ideal if result.ideal is not None else result.cells)
     quantity = response_quantity(result)
+    ideal_quantity = "light (kernel elements)"  # the digital correlation of the binary patterns
+    one_scale = quantity == ideal_quantity
     stem, ext = os.path.splitext(os.fspath(path))
     paths = []
     plt = pyplot()
@@ -193,12 +196,13 @@ def contact_sheet(path, result, rows_per_page=8) -> list:
     corr = err.get("correlation")
     for page in range(pages):
         rows = range(page * per_page, min(n, (page + 1) * per_page))
-        cols = [("measured", result.cells, True)]
+        # (title, arrays, quantity: panels of one quantity share a colour scale and bar; None: binary)
+        cols = [("measured", result.cells, quantity)]
         if result.ideal is not None:
-            cols.append(("ideal", result.ideal, True))
-        cols.append((f"measured, binary ({method})", result.binary, False))
+            cols.append(("ideal", result.ideal, ideal_quantity))
+        cols.append((f"measured, binary ({method})", result.binary, None))
         if ideal_binary is not None:
-            cols.append(("ideal, binary", ideal_binary, False))
+            cols.append(("ideal, binary", ideal_binary, None))
         width_in = 2.5 * len(cols) + 1.6
         fig, axes = plt.subplots(len(rows), len(cols), figsize=(width_in, 2.2 * len(rows) + 1.1), squeeze=False,
                                  layout="constrained")
@@ -206,37 +210,41 @@ def contact_sheet(path, result, rows_per_page=8) -> list:
         fig.get_layout_engine().set(w_pad=0.15)
         binary_im = None
         for r, i in enumerate(rows):
-            vmin, vmax, cmap = _scale([arr[i] for _, arr, bar in cols if bar], signed)
-            shared = []
-            for c, (title, arr, bar) in enumerate(cols):
+            groups = {}
+            for c, col in enumerate(cols):
+                if col[2] is not None:
+                    groups.setdefault(col[2], []).append(c)
+            for what, members in groups.items():
+                vmin, vmax, cmap = _scale([cols[c][1][i] for c in members], signed)
+                for c in members:
+                    im = axes[r][c].imshow(cols[c][1][i], cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
+                cb = fig.colorbar(im, ax=[axes[r][c] for c in members], shrink=0.9)
+                cb.set_label(what, fontsize=8)
+                cb.ax.tick_params(labelsize=7)
+            for c, (title, arr, what) in enumerate(cols):
                 ax = axes[r][c]
-                if bar:
-                    im = ax.imshow(arr[i], cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
-                    shared.append(ax)
-                else:
+                if what is None:
                     binary_im = ax.imshow(arr[i], cmap=two_tone, vmin=-1, vmax=1, interpolation="nearest")
                 ax.set_xticks([])
                 ax.set_yticks([])
                 if r == 0:
                     ax.set_title(title, fontsize=9)
-            cb = fig.colorbar(im, ax=shared, shrink=0.9)
-            cb.set_label(quantity, fontsize=8)
-            cb.ax.tick_params(labelsize=7)
             if result.pairs is not None:
                 k, f, rep = (int(v) for v in result.pairs[i])
                 axes[r][0].set_ylabel(f"kernel {k}, features {f}\nrepeat {rep}", fontsize=8)
             else:
                 axes[r][0].set_ylabel(f"window {i}", fontsize=8)
         # the binary key beside the first row only (a bar spanning rows upsets constrained layout's margins)
-        cb = fig.colorbar(binary_im, ax=[axes[0][c] for c, col in enumerate(cols) if not col[2]], shrink=0.9)
+        cb = fig.colorbar(binary_im, ax=[axes[0][c] for c, col in enumerate(cols) if col[2] is None], shrink=0.9)
         cb.set_ticks([-0.5, 0.5], labels=["-1", "+1"])
         cb.set_label("binary response (-1 or +1)", fontsize=8)
         cb.ax.tick_params(labelsize=7)
         title = (f"responses {rows[0] + 1}-{rows[-1] + 1} of {n}" + (f" (page {page + 1} of {pages})" if pages > 1
                                                                      else "")
                  + ("" if corr is None else f"; correlation with the ideal {corr:.3f}")
-                 + ("\nmeasured and ideal share one colour scale per row" if result.ideal is not None else
-                    "\neach response on its own colour scale"))
+                 + ("\nmeasured and ideal share one colour scale per row" if result.ideal is not None and one_scale
+                    else "\nmeasured (counts) and ideal (light) each on their own colour scale"
+                    if result.ideal is not None else "\neach response on its own colour scale"))
         fig.suptitle(wrap_title(title, width_in, 10), fontsize=10)
         out = os.fspath(path) if page == 0 else f"{stem}-p{page + 1}{ext}"
         save_png(fig, out, dpi=80)

@@ -133,15 +133,20 @@ def problems(fig):
                 lo, hi = im.get_clim()
                 if im.get_cmap().name not in DIVERGING or not np.isclose(lo, -hi):
                     out.append(f"signed image in {ax.get_title()!r} on {im.get_cmap().name} from {lo:g} to {hi:g}")
-    # continuous images side by side (one row of panels) share one colour scale
+    # continuous images side by side (one row of panels) share one colour scale, unless colour bars of different
+    # quantities say they differ
+    bar_of = {id(ax._colorbar.mappable): ax.get_ylabel() or ax.get_xlabel() for ax in fig.axes if _is_colorbar(ax)}
     rows = {}
     for ax in fig.axes:
         for im in ax.get_images():
             if np.unique(np.asarray(im.get_array(), dtype=float)).size > 2:
-                rows.setdefault(round(ax.get_position().y0, 3), []).append(tuple(np.round(im.get_clim(), 9)))
-    for y, clims in rows.items():
-        if len(set(clims)) > 1:
-            out.append(f"the images of the row at y={y} have different colour scales {sorted(set(clims))}")
+                row = rows.setdefault(round(ax.get_position().y0, 3), {"clims": set(), "quantities": set()})
+                row["clims"].add(tuple(np.round(im.get_clim(), 9)))
+                if id(im) in bar_of:
+                    row["quantities"].add(bar_of[id(im)])
+    for y, row in rows.items():
+        if len(row["clims"]) > max(1, len(row["quantities"])):
+            out.append(f"the images of the row at y={y} have different colour scales {sorted(row['clims'])}")
     # legends: every entry a drawn artist with data; none over data or an image
     named = {}
     for ax in fig.axes:
@@ -201,6 +206,18 @@ def test_contact_sheet_without_ideal_names_its_quantity(tmp_path, figures):
     plots.contact_sheet(tmp_path / "sheet.png", res)
     assert problems(figures[0]) == []
     assert any("net events" in ax.get_ylabel() for ax in figures[0].axes if _is_colorbar(ax))
+
+
+def test_contact_sheet_of_counts_gives_counts_and_light_a_bar_each(tmp_path, figures):
+    res = _result(n=2)
+    res.summary["linear"] = False
+    res.cells = res.cells * 9.0  # net events: not the ideal's units
+    plots.contact_sheet(tmp_path / "sheet.png", res)
+    fig = figures[0]
+    assert problems(fig) == []
+    assert {ax.get_ylabel() for ax in fig.axes if _is_colorbar(ax)} >= {"light (kernel elements)",
+                                                                          "net events (ON - OFF, count per cell)"}
+    assert "own colour scale" in fig._suptitle.get_text()
 
 
 def _report(enob, noise_free=False, interval="bootstrap"):
