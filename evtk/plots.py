@@ -276,17 +276,24 @@ def plot_enob(scenes, path):
         r = s["sinad"]
         if r is None or r.noise_free:
             continue
-        finite.append(r.enob_bits)
         lo, hi = r.ci_enob if r.ci_enob is not None else (r.enob_bits, r.enob_bits)
         lo = lo if np.isfinite(lo) else r.enob_bits
-        hi = hi if np.isfinite(hi) else r.enob_bits
-        handles["enob"] = ax.errorbar(i, r.enob_bits, yerr=[[r.enob_bits - lo], [hi - r.enob_bits]], fmt="o",
-                                      color="C0", capsize=3,
+        finite += [r.enob_bits] + ([hi] if np.isfinite(hi) else [])
+        handles["enob"] = ax.errorbar(i, r.enob_bits, yerr=[[r.enob_bits - lo],
+                                                            [hi - r.enob_bits if np.isfinite(hi) else 0.0]],
+                                      fmt="o", color="C0", capsize=3,
                                       label="ENOB" + (f" and its 95 % {kind} interval" if kind else ""))
     top = max(finite) + 1 if finite else 1.0
     for i, s in enumerate(scenes):
-        if s["sinad"] is not None and s["sinad"].noise_free:
-            handles["free"], = ax.plot(i, top, "^", color="C2", label="noise-free: ENOB unbounded (drawn at the top)")
+        r = s["sinad"]
+        if r is None:
+            continue
+        if r.noise_free:
+            handles["free"], = ax.plot(i, top, "*", ms=10, color="C2",
+                                       label="noise-free: ENOB unbounded (drawn at the top)")
+        elif r.ci_enob is not None and not np.isfinite(r.ci_enob[1]):  # the interval has no upper end
+            handles["open"], = ax.plot([i, i], [r.enob_bits, top], "--", lw=0.8, color="C0", marker="^",
+                                       markevery=[1], label="interval unbounded above")
     ax.set_xticks(range(len(scenes)))
     ax.set_xticklabels(labels, rotation=90 if len(scenes) > 8 else 0, fontsize=8)
     ax.set_xlim(-0.6, len(scenes) - 0.4)
@@ -393,13 +400,20 @@ def plot_tradeoff(rows, path):
     if x.max() / max(x.min(), 1e-9) > 20:
         ax.set_xscale("log")
     ax.margins(x=0.12, y=0.08)
+    # each point is labelled with the settings that vary; the ones all share go in the axis label
+    settings = [("window_us", "window", "{} µs"), ("settle_us", "settle", "{} µs"), ("decimation", "decimation", "{}")]
+    varying = [s for s in settings if len({r.get(s[0], 1) for r in pts}) > 1] or settings[:1]
+    fixed = [f"{name} " + unit.format(pts[0].get(key, 1)) for key, name, unit in settings if (key, name, unit)
+             not in varying and not (key == "decimation" and pts[0].get(key, 1) == 1)]
     mid = np.median(x)
     for r in pts:
-        label = f"{r['window_us']}/{r['settle_us']}" + (f"/d{r['decimation']}" if r.get("decimation", 1) > 1 else "")
+        label = "/".join(str(r.get(key, 1)) for key, _, _ in varying)
         right = r["device_us_per_capture"] > mid
         ax.annotate(label, (r["device_us_per_capture"], r["nrmse"]), fontsize=7, xytext=(-5 if right else 5, 4),
                     textcoords="offset points", ha="right" if right else "left")
-    ax.set_xlabel("device time per capture (µs; labels: window/settle µs)")
+    ax.set_xlabel(wrap_title("device time per capture (µs); labels: " + "/".join(
+        name + (" (µs)" if unit.endswith("µs") else "") for _, name, unit in varying)
+        + ("; " + ", ".join(fixed) if fixed else ""), 5.5, 10))
     ax.set_ylabel("RMS error / RMS of ideal")
     ax.set_title("error against device time per capture (bars: sd over responses)", fontsize=9)
     pipeline = {r.get("pipeline", "events") for r in pts}

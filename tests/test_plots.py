@@ -236,6 +236,7 @@ def test_enob_title_fits_and_the_noise_free_marker_is_named(tmp_path, figures, c
     assert problems(fig) == []
     labels = [t.get_text() for leg in fig.legends for t in leg.get_texts()]
     assert any("noise-free" in lab for lab in labels)
+    assert any("unbounded above" in lab for lab in labels)  # the intervals' infinite upper ends are drawn as such
 
 
 def test_flips_against_power_and_against_recordings(tmp_path, figures):
