@@ -327,15 +327,16 @@ def plot_flips(rows, path, x_key="power_mw", x_label="laser power (mW)"):
     for r in rows:
         by_kernel[r["kernel_id"]].append((r[x_key], r["pairwise_pct"]))
     handles = []
+    join = "-" if x_key != "file_index" else ""  # recordings are categories: points, not a line through them
     for j, (_k, pts) in enumerate(sorted(by_kernel.items())):
         pts.sort()
-        line, = ax.plot([p[0] for p in pts], [p[1] for p in pts], ".-", color="0.65", lw=0.8, ms=4,
+        line, = ax.plot([p[0] for p in pts], [p[1] for p in pts], "." + join, color="0.65", lw=0.8, ms=4,
                         label="each kernel" if j == 0 else "_nolegend_")
         if j == 0:
             handles.append(line)
     xs = sorted({r[x_key] for r in rows})
     mean = [np.mean([r["pairwise_pct"] for r in rows if r[x_key] == x]) for x in xs]
-    handles += ax.plot(xs, mean, "o-", color="C3", label=f"mean of {len(by_kernel)} kernels")
+    handles += ax.plot(xs, mean, "o" + join, color="C3", label=f"mean of {len(by_kernel)} kernels")
     if len(xs) > 1 and min(xs) > 0 and max(xs) / min(xs) > 20:
         ax.set_xscale("log")
     names = None
@@ -446,7 +447,7 @@ def plot_recovery(path, features, target_response, solution_response, result, tr
     binary = [("input features", features)]
     if true_kernel is not None:
         binary.append(("target kernel", true_kernel))
-    binary.append((f"solution kernel ({result.status or '?'})", result.kernel))
+    binary.append(("solution kernel" + (f" ({result.status})" if result.status else ""), result.kernel))
     responses = [("target response", np.asarray(target_response, dtype=float)),
                  ("solution response", np.asarray(solution_response, dtype=float))]
     n_panels = len(binary) + len(responses)
