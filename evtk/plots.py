@@ -265,7 +265,7 @@ def plot_enob(scenes, path):
     if not scenes:
         raise EvtkError("no scenes to plot")
     plt = pyplot()
-    width_in = max(5.0, 0.5 * len(scenes) + 2)
+    width_in = max(5.5, 0.5 * len(scenes) + 2)
     fig, ax = plt.subplots(figsize=(width_in, 3.8), layout="constrained")
     kinds = {s["sinad"].interval for s in scenes if s["sinad"] is not None and s["sinad"].interval}
     kind = kinds.pop() if len(kinds) == 1 else None
@@ -300,7 +300,7 @@ def plot_enob(scenes, path):
     ax.set_xlabel("scene (kernel, features; n repeats)")
     ax.set_ylabel("ENOB (bits)")
     ax.set_title(wrap_title("effective bits per scene (eq. 8)" + (f", 95 % {kind} interval" if kind else ""),
-                            width_in - 1.0, 10), fontsize=10)
+                            width_in - 0.6, 10), fontsize=10)
     if handles:
         _legend_below(fig, list(handles.values()), ncols=1)
     save_png(fig, path)
