@@ -247,7 +247,7 @@ def contact_sheet(path, result, rows_per_page=8) -> list:
                     if result.ideal is not None else "\neach response on its own colour scale"))
         fig.suptitle(wrap_title(title, width_in, 10), fontsize=10)
         out = os.fspath(path) if page == 0 else f"{stem}-p{page + 1}{ext}"
-        save_png(fig, out, dpi=80)
+        save_png(fig, out, dpi=100)  # 7 pt labels stay legible
         paths.append(out)
     return paths
 
