@@ -2,7 +2,7 @@
 
 Each test draws one figure from inputs it builds itself, keeps the Figure that
 :func:`evtk.plots.save_png` writes, and checks it after drawing: every text on
-the canvas, no font below 7 pt, every colour bar labelled with a quantity and
+the canvas, no font below 7 pt, no title, axis label or legend over another, every colour bar labelled with a quantity and
 its unit, signed continuous images on a diverging map centred on zero,
 continuous images in one row of panels on one scale, every legend entry naming
 a drawn artist with data, no legend over data or an image, no empty axes.
@@ -116,6 +116,15 @@ def problems(fig):
             out.append(f"text {t.get_text()!r} runs off the canvas")
         if t.get_fontsize() < MIN_FONT_PT:
             out.append(f"text {t.get_text()!r} is {t.get_fontsize():g} pt")
+    labels = [t for ax in fig.axes for t in (ax.title, ax.xaxis.label, ax.yaxis.label)
+              if t.get_visible() and t.get_text().strip()]
+    labels += [fig._suptitle] if fig._suptitle is not None else []
+    boxes = [(t.get_text(), t.get_window_extent(renderer)) for t in labels]
+    boxes += [("a legend", leg.get_window_extent(renderer)) for leg in fig.legends]
+    for i, (a, box_a) in enumerate(boxes):
+        for b, box_b in boxes[i + 1:]:
+            if box_a.overlaps(box_b):
+                out.append(f"{a!r} overlaps {b!r}")
     for ax in fig.axes:
         if not inside(ax.get_tightbbox(renderer)):
             out.append(f"axes {ax.get_title() or ax.get_ylabel()!r} runs off the canvas")
