@@ -496,7 +496,7 @@ def _plot_pixel_model(ax, fit):
     ax.set_ylabel("net events per pixel and window")
     ax.set_title(f"pixel model: theta {fit.sensor.theta_on:.3f}, tau {fit.sensor.tau_min_us:.0f}"
                  f"-{fit.tau_dark_us:.0f} µs", fontsize=10)
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncols=2, frameon=False)  # off the data
 
 
 def _nan_free(x):
@@ -604,9 +604,11 @@ def plot_calibration(path, cal: Calibration):
     plt = pyplot()
     model = PixelFit.from_dict(cal.pixel_model) if cal.pixel_model else None
     if model is None:
-        fig, (ax, ax_r) = plt.subplots(1, 2, figsize=(10.0, 4.2), gridspec_kw={"width_ratios": [3, 2]})
+        fig, (ax, ax_r) = plt.subplots(1, 2, figsize=(10.0, 4.8), gridspec_kw={"width_ratios": [3, 2]},
+                                       layout="constrained")
     else:
-        fig, (ax, ax_r, ax_m) = plt.subplots(1, 3, figsize=(15.0, 4.2), gridspec_kw={"width_ratios": [3, 2, 2]})
+        fig, (ax, ax_r, ax_m) = plt.subplots(1, 3, figsize=(15.0, 4.8), gridspec_kw={"width_ratios": [3, 2, 2]},
+                                             layout="constrained")
         _plot_pixel_model(ax_m, model)
     x0, x1, y0, y1 = cal.region
     pad = 4
@@ -614,17 +616,18 @@ def plot_calibration(path, cal: Calibration):
     ys = slice(max(0, y0 - pad), min(image.shape[0], y1 + pad))
     im = ax.imshow(image[ys, xs], cmap="gray", interpolation="nearest",
                    extent=(xs.start - 0.5, xs.stop - 0.5, ys.stop - 0.5, ys.start - 0.5))
-    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="ON events")
+    fig.colorbar(im, ax=ax, label="ON events per pixel (dot captures)")
     pred = cal.to_pixels(expected)
     ax.plot(found[:, 0], found[:, 1], "o", mfc="none", color="C1", label="dots found")
     ax.plot(pred[:, 0], pred[:, 1], "+", color="C0", label="fitted map")
     ax.set_xlabel("sensor x (pixels)")
     ax.set_ylabel("sensor y (pixels)")
     ax.set_title(f"calibration dots: {cal.dots_found} found of {cal.dots_expected}", fontsize=10)
-    ax.legend(fontsize=8, loc="upper right")
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncols=2, frameon=False)  # off the image
     d = np.linalg.norm(found[:, None, :] - pred[None, :, :], axis=2).min(axis=1)
     ax_r.bar(np.arange(len(d)), d, color="C0")
-    ax_r.set_xlabel("dot")
+    ax_r.xaxis.get_major_locator().set_params(integer=True)  # dots are numbered
+    ax_r.set_xlabel("dot (index)")
     ax_r.set_ylabel("distance to the fitted map (pixels)")
     ax_r.set_title(f"residual RMS {cal.residual_rms_px:.3f} px; defocus {cal.blur_px:.2f} px", fontsize=10)
     save_png(fig, path)
