@@ -571,6 +571,11 @@ def load_calibration(path) -> Calibration:
     kw.update(sensor_size=[int(v) for v in size], response_shape=[rows, cols], matrix=m.tolist(),
               origin_px=list(check_origin(path, "origin_px", d["origin_px"], size)),
               region=list(check_region(path, "region", d["region"], size)))
+    notes = d.get("warnings", [])
+    if not (isinstance(notes, list) and all(isinstance(n, str) for n in notes)):
+        raise EvtkError(f"{path}: warnings must be a list of text lines, not {notes!r:.60}")
+    if d.get("orientation") is not None and not isinstance(d["orientation"], str):
+        raise EvtkError(f"{path}: orientation must be text (how the camera sees the grid), not {d['orientation']!r:.60}")
     cal = Calibration(**kw)
     at = cal.to_pixels(np.zeros((1, 2)))[0]
     if not np.all(np.abs(at - cal.origin_px) <= 0.5):

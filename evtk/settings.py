@@ -77,7 +77,7 @@ def read_table(path, what, max_bytes=MAX_SETTINGS_BYTES, parse_factor=None) -> d
                                 f"(at most {max_bytes:,})")
             if parse_factor is not None:
                 require_memory(st.st_size * parse_factor, f"reading the {st.st_size:,}-byte {what} file {path}")
-            raw = f.read(max_bytes + 1)
+            raw = f.read(min(max_bytes, st.st_size) + 1)  # read(n) reserves n bytes first: ask for what is there
     except OSError as exc:
         raise EvtkError(f"{path}: cannot read {what} file: {exc.strerror or exc}") from None
     if len(raw) > max_bytes:  # grew while read

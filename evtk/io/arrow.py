@@ -352,6 +352,8 @@ class ParquetRecording(BaseRecording):
 
     def events(self, t_start_us=None, t_end_us=None) -> Events:
         self._check_open()
+        if self.salvage and (t_start_us is not None or t_end_us is not None):
+            return self._salvaged_window(t_start_us, t_end_us)
         groups = self._rows(t_start_us, t_end_us)
         try:  # all row groups at once, on pyarrow's threads
             table = self._pf.read_row_groups(groups, columns=["t", "x", "y", "p"], use_threads=True)
@@ -368,7 +370,10 @@ class ParquetRecording(BaseRecording):
         chunk_events = int(chunk_events)
         if chunk_events < 1:
             raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
-        for ev in self._groups_events(t_start_us, t_end_us):
+        windowed = t_start_us is not None or t_end_us is not None
+        parts = [self._salvaged_window(t_start_us, t_end_us)] if self.salvage and windowed else \
+            self._groups_events(t_start_us, t_end_us)
+        for ev in parts:
             for i in range(0, len(ev), chunk_events):
                 yield ev[i : i + chunk_events]
 

@@ -234,6 +234,7 @@ class BaseRecording:
 
     # -- interface -------------------------------------------------------------
     sensor_size: tuple[int, int] | None = None
+    _salvage_cache: Events | None = None
 
     @property
     def streams(self) -> list[StreamInfo]:  # pragma: no cover - overridden
@@ -337,6 +338,14 @@ class BaseRecording:
 
     def _extra_info(self) -> dict:
         return {}
+
+    def _salvaged_window(self, t_start_us, t_end_us) -> Events:
+        """With salvage, a time window is cut from what the whole read recovers (read once, then kept): a window
+        must never hold events from beyond the damage that ends the full read. Readers whose index could reach
+        past the damage call this for windowed reads in salvage mode."""
+        if getattr(self, "_salvage_cache", None) is None:
+            self._salvage_cache = self.events()
+        return self._salvage_cache.between(t_start_us, t_end_us)
 
 
 def time_chunks(t: np.ndarray, max_events: int, max_us: int | None, is_sorted: bool) -> np.ndarray:

@@ -433,6 +433,8 @@ class Hdf5Recording(BaseRecording):
         self._check_open()
         if self._sort:
             return self._all_sorted().between(t_start_us, t_end_us)
+        if self.salvage and (t_start_us is not None or t_end_us is not None):
+            return self._salvaged_window(t_start_us, t_end_us)
         i0, i1, before = self._span(t_start_us, t_end_us)
         ev = self._load(i0, i1, before)
         if self.damage is not None and (t_start_us is not None or t_end_us is not None):
@@ -446,8 +448,9 @@ class Hdf5Recording(BaseRecording):
         chunk_events = int(chunk_events)
         if chunk_events < 1:
             raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
-        if self._sort:
-            ev = self._all_sorted().between(t_start_us, t_end_us)
+        if self._sort or (self.salvage and (t_start_us is not None or t_end_us is not None)):
+            ev = (self._all_sorted().between(t_start_us, t_end_us) if self._sort
+                  else self._salvaged_window(t_start_us, t_end_us))
             for i in range(0, len(ev), chunk_events):
                 yield ev[i : i + chunk_events]
             return
