@@ -24,14 +24,6 @@ from fuzz.campaign import FAILURES, Cases, guarded  # noqa: E402
 SEED = 7
 CASES = 16  # per target: 8 byte mutations, 8 structure-aware ones
 
-#: Targets whose slice fails on code without the round-3 hardening, and why (the owners' fixes make them pass).
-#: The other targets' slices pass there too; the full campaign finds more (see docs/robustness.md).
-KNOWN = {
-    "l2.aedat": "AEDAT 2.0 reads any backward step of a stamp as a 32-bit wrap (issue 29, item 5)",
-    "r.h5": "reconstruction .h5 values, links and sizes are not checked (issue 29, item 4)",
-    "schedule.json": "schedule values unchecked: overflow tracebacks, patterns from floats (issue 29, items 2, 8)",
-    "record.json": "simulation record values unchecked: infinities, negative counts (issue 29, items 2 and 8)",
-}
 EVENT_TARGETS = ["f.es", "f2.raw", "f3.raw", "l1.aedat", "l3.aedat", "p.parquet", "z.aedat4", "l2.aedat", "f.dat",
                  "f.aedat4", "l.aedat4", "d.h5", "e.h5"]
 RUN_TARGETS = ["r.h5", "r.npz", "job.toml", "schedule.json", "cal.toml", "record.json"]
@@ -44,13 +36,7 @@ def built(tmp_path_factory):
     return folder
 
 
-def _param(name):
-    if name in KNOWN:
-        return pytest.param(name, marks=pytest.mark.xfail(strict=False, reason=KNOWN[name]))
-    return name
-
-
-@pytest.mark.parametrize("target", [_param(n) for n in EVENT_TARGETS + RUN_TARGETS])
+@pytest.mark.parametrize("target", EVENT_TARGETS + RUN_TARGETS)
 def test_campaign_slice_has_no_failures(built, tmp_path, monkeypatch, target):
     monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "256")
     cases = Cases(built, tmp_path, cli_every=6, only={target})
