@@ -381,6 +381,13 @@ def test_event_decoder_reads_the_vector_at_any_alignment(shift):
         k = got[0]
         for c, ref in zip(cols, (t, x, y, p)):
             assert np.array_equal(c[5:5 + k], ref[:k]) and not c[:5].any()
+    # the polarity is a bool: any byte but 0 reads as ON
+    root = _fbpy.fb_root(body, b"EVTS")
+    start, _ = _fbpy.fb_vector(body, root, 0, 16)
+    body[start + 16 * 10 + 12] = 200
+    cols = (np.zeros(n, np.int64), np.zeros(n, np.uint16), np.zeros(n, np.uint16), np.zeros(n, np.uint8))
+    assert _fbpy.decode_events(body, b"EVTS", *cols, 0, n, 320, 240) == (n, _fbpy.ST_OK)
+    assert cols[3][10] == 1 and np.array_equal(np.delete(cols[3], 10), np.delete(p, 10))
 
 
 def test_no_compiled_encoder_has_a_default_argument():

@@ -211,7 +211,10 @@ def decode_events(b, ident: bytes, t, x, y, p, offset: int, capacity: int, width
         np.not_equal(ev["p"][:first], 0, out=p[offset:offset + first].view(np.bool_))
         return first, ST_COORD
     t[offset:end] = ev["t"]
-    np.not_equal(ev["p"], 0, out=p[offset:end].view(np.bool_))
+    ps = p[offset:end]
+    ps[...] = ev["p"]  # a bool on disk: 0 or 1 but for a damaged file, where any other byte means ON
+    if count and int(ps.max()) > 1:
+        np.not_equal(ps, 0, out=ps.view(np.bool_))
     return count, ST_OK
 
 
