@@ -1,9 +1,14 @@
-"""The FlatBuffers reads of an AEDAT4 file's header and data table, in plain Python and numpy.
+"""Every FlatBuffers read of an AEDAT4 file, in plain Python and numpy: the header, the data table and the
+event and trigger packets.
 
-Opening a file and describing it (``evtk info``) needs only these, so they
-load no compiler: the header is one table, and the data table's entries are
-read all at once with numpy (every offset checked, as :mod:`evtk.io._fb` does
-in its compiled loops for packet bodies). Status codes are :mod:`evtk.io._fb`'s.
+Reading loads no compiler. The header is one table; the data table's entries
+and a trigger packet's tables are read all at once with numpy; an event
+packet's vector of 16-byte structs is viewed as :data:`EVENT_DTYPE` records
+and its columns copied out. Every offset is checked against the buffer: a
+lying one yields a negative status (``ST_*``, turned into
+:class:`~evtk.FormatError` messages by :mod:`evtk.io.aedat4`), never a read
+outside it. The layouts are in ``docs/formats/aedat4.md``; the encoders are
+:mod:`evtk.io._fb`'s.
 """
 
 from __future__ import annotations
