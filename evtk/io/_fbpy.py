@@ -55,7 +55,20 @@ def i64(b, pos):
 
 
 def fb_root(b, ident: bytes) -> int:
-    """Position of the root table (size-prefixed or plain buffer, told apart by the identifier), or a status."""
+    """Position of the root table (size-prefixed or plain buffer, told apart by the identifier).
+
+    Parameters
+    ----------
+    b : numpy.ndarray or bytes
+        The buffer.
+    ident : bytes
+        The four-byte identifier (or the uint8 array of them).
+
+    Returns
+    -------
+    int
+        The root table's position, or a negative status.
+    """
     n = len(b)
     ident = bytes(ident)  # bytes, or the uint8 array of them
     for base in (4, 0):
@@ -306,7 +319,20 @@ def decode_triggers(b, ident: bytes, t, kind, offset: int, capacity: int):
 
 
 def decode_data_table(b, ident: bytes):
-    """A FileDataTable (FTAB): ``(columns, status)`` with columns (offset, stream, size, count, t0, t1)."""
+    """Read a FileDataTable (FTAB), every entry at once.
+
+    Parameters
+    ----------
+    b : bytes or numpy.ndarray
+        The decompressed table.
+    ident : bytes
+        ``b"FTAB"``.
+
+    Returns
+    -------
+    columns, status : tuple or None, int
+        int64 columns (offset, stream, size, count, t0, t1) and ``ST_OK``, or None and the status.
+    """
     b = np.frombuffer(b, np.uint8)
     root = fb_root(b, ident)
     if root < 0:
