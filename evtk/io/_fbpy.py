@@ -192,7 +192,7 @@ def decode_events(b, ident: bytes, t, x, y, p, offset: int, capacity: int, width
 
     Parameters
     ----------
-    b : numpy.ndarray
+    b : numpy.ndarray or bytes
         The decompressed packet body (uint8).
     ident : bytes
         ``b"EVTS"``.
@@ -213,6 +213,8 @@ def decode_events(b, ident: bytes, t, x, y, p, offset: int, capacity: int, width
         are written), with ``ST_CAPACITY`` the vector's length; any other status says where the FlatBuffer is
         damaged (nothing written).
     """
+    if not isinstance(b, np.ndarray):
+        b = np.frombuffer(b, np.uint8)
     start, count = _root_vector(b, ident, EVENT_STRUCT)
     if start < 0:
         return 0, start
