@@ -206,14 +206,14 @@ def test_data_table_lies_about_counts(tmp_path, good, claimed, warning):
     data = bytearray(path.read_bytes())
     import lz4.frame
 
-    from evtk.io import _fb
+    from evtk.io import _fbpy
 
     table = bytearray(lz4.frame.decompress(bytes(data[dtp:])))
     b = np.frombuffer(bytes(table), np.uint8)
-    root = _fb.fb_root(b, np.frombuffer(b"FTAB", np.uint8))
-    start, n = _fb.fb_vector(b, root, 0, 4)
-    entry = _fb.fb_deref(b, start)
-    f_count = _fb.fb_field(b, entry, 2)
+    root = _fbpy.fb_root(b, b"FTAB")
+    start, n = _fbpy.fb_vector(b, root, 0, 4)
+    entry = _fbpy.fb_deref(b, start)
+    f_count = _fbpy.fb_field(b, entry, 2, 8)
     struct.pack_into("<q", table, f_count, claimed)
     data = data[:dtp] + lz4.frame.compress(bytes(table))
     p = tmp_path / "lying.aedat4"
@@ -348,10 +348,11 @@ def test_bit_flips_in_a_dv_recording(tmp_path, fixtures_dir, seed):
 
 
 @pytest.mark.parametrize("shift", range(8))
-def test_event_decoder_word_path_equals_byte_path(shift):
-    """The word-wise decoder (aligned vectors) and the byte-wise one (unaligned or unknown address) agree on
-    every event and on where the first out-of-sensor event is, whatever the body's alignment in memory."""
-    from evtk.io import _fb
+def test_event_decoder_reads_the_vector_at_any_alignment(shift):
+    """The numpy decoder views the event vector as records wherever the body lies in memory (a damaged file
+    can leave it unaligned): every event exact, and the first out-of-sensor event found by its index, with the
+    events before it written."""
+    from evtk.io import _fb, _fbpy
 
     rng = np.random.default_rng(shift)
     n = 1000
@@ -362,33 +363,37 @@ def test_event_decoder_word_path_equals_byte_path(shift):
     out = np.zeros(40 + 16 * n, np.uint8)
     _fb.encode_event_packets(t, x, y, p, np.array([0, n]), 0, out)
     body = out[8:]  # past the packet header (stream id, size)
-    for bad in (None, 517):
+    for bad, value, field in ((None, 0, 8), (517, 320, 8), (3, 0xFFFF, 10), (999, 240, 10)):
         b = body.copy()
-        if bad is not None:  # event 517 lies outside a 320-wide sensor
-            root = _fb.fb_root(b, np.frombuffer(b"EVTS", np.uint8))
-            start, _ = _fb.fb_vector(b, root, 0, 16)
-            b[start + 16 * bad + 8 : start + 16 * bad + 10] = np.frombuffer(np.uint16(320).tobytes(), np.uint8)
+        if bad is not None:  # x = 320 or y = 240 lies outside the sensor; y = -1 reads as 65535
+            root = _fbpy.fb_root(b, b"EVTS")
+            start, _ = _fbpy.fb_vector(b, root, 0, 16)
+            b[start + 16 * bad + field:start + 16 * bad + field + 2] = np.frombuffer(np.uint16(value).tobytes(), np.uint8)
         holder = np.zeros(len(b) + 16, np.uint8)
-        off = (shift - _fb.address_mod8(holder)) % 8
-        shifted = holder[off : off + len(b)]
+        off = (shift - holder.ctypes.data % 8) % 8
+        shifted = holder[off:off + len(b)]
         shifted[:] = b
-        assert _fb.address_mod8(shifted) == shift
-        got = []
-        for mod in (_fb.address_mod8(shifted), -1):
-            cols = (np.zeros(n, np.int64), np.zeros(n, np.uint16), np.zeros(n, np.uint16), np.zeros(n, np.uint8))
-            got.append((_fb.decode_events(shifted, np.frombuffer(b"EVTS", np.uint8), *cols, 0, n, 320, 240, mod),
-                        cols))
-        (res_w, cols_w), (res_b, cols_b) = got
-        assert res_w == res_b == ((n, _fb.ST_OK) if bad is None else (bad, _fb.ST_COORD))
-        k = res_w[0]
-        for a, c, ref in zip(cols_w, cols_b, (t, x, y, p)):
-            assert np.array_equal(a[:k], c[:k]) and np.array_equal(a[:k], ref[:k])
+        assert shifted.ctypes.data % 8 == shift
+        cols = (np.zeros(n + 5, np.int64), np.zeros(n + 5, np.uint16), np.zeros(n + 5, np.uint16),
+                np.zeros(n + 5, np.uint8))
+        got = _fbpy.decode_events(shifted, b"EVTS", *cols, 5, n, 320, 240)
+        assert got == ((n, _fbpy.ST_OK) if bad is None else (bad, _fbpy.ST_COORD))
+        k = got[0]
+        for c, ref in zip(cols, (t, x, y, p)):
+            assert np.array_equal(c[5:5 + k], ref[:k]) and not c[:5].any()
+    # the polarity is a bool: any byte but 0 reads as ON
+    root = _fbpy.fb_root(body, b"EVTS")
+    start, _ = _fbpy.fb_vector(body, root, 0, 16)
+    body[start + 16 * 10 + 12] = 200
+    cols = (np.zeros(n, np.int64), np.zeros(n, np.uint16), np.zeros(n, np.uint16), np.zeros(n, np.uint8))
+    assert _fbpy.decode_events(body, b"EVTS", *cols, 0, n, 320, 240) == (n, _fbpy.ST_OK)
+    assert cols[3][10] == 1 and np.array_equal(np.delete(cols[3], 10), np.delete(p, 10))
 
 
-def test_no_compiled_decoder_has_a_default_argument():
+def test_no_compiled_encoder_has_a_default_argument():
     """A numba function called with an argument left to its default made numba type every later call of every
     compiled function in Python (decoding a packet took 120 us instead of 11 after the triggers were read): the
-    decoders take every argument explicitly."""
+    encoders take every argument explicitly."""
     import inspect
 
     from numba.core.registry import CPUDispatcher
@@ -396,10 +401,40 @@ def test_no_compiled_decoder_has_a_default_argument():
     from evtk.io import _fb
 
     compiled = {name: f for name, f in vars(_fb).items() if isinstance(f, CPUDispatcher)}
-    assert {"decode_events", "decode_triggers", "vector_length"} <= set(compiled)
+    assert {"encode_trigger_packet", "encode_data_table"} <= set(compiled)
     for name, f in compiled.items():
         defaults = [p for p in inspect.signature(f.py_func).parameters.values() if p.default is not p.empty]
         assert not defaults, f"{name} has defaults {defaults}"
+
+
+def test_reading_loads_no_compiler(tmp_path, good):
+    """A fresh process spent about a second of a 20 M-event read importing numba and loading its cached
+    decoders: reading an AEDAT4 file (events, windows, chunks, triggers, and a file without a data table,
+    counted packet by packet) must import no numba at all."""
+    import subprocess
+    import sys
+
+    path, ev, layout = good
+    bare = tmp_path / "no_table.aedat4"
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<q", data, aedat4._DTP_FIELD, -1)
+    bare.write_bytes(bytes(data[:layout["dtp"]]))
+    code = (
+        "import sys, evtk\n"
+        f"for f in ({str(path)!r}, {str(bare)!r}):\n"
+        "    with evtk.open(f) as rec:\n"
+        "        n = len(rec.events()) + len(rec.events(0, 50_000)) + len(rec.triggers())\n"
+        "        n += sum(len(c) for c in rec.iter_events(777)) + sum(s.count or 0 for s in rec.streams)\n"
+        "    print(n, 'numba' in sys.modules)\n"
+    )
+    import os
+    from pathlib import Path
+
+    env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))  # this checkout's evtk
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+    lines = res.stdout.split()
+    assert lines[1::2] == ["False", "False"], res.stdout
+    assert int(lines[0]) == int(lines[2]) > 2 * len(ev)
 
 
 def test_window_reads_find_an_out_of_order_stamp_inside_a_packet(tmp_path):

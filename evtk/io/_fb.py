@@ -1,32 +1,23 @@
-"""Bounds-checked FlatBuffers access for the AEDAT4 packet bodies evtk decodes and encodes (numba).
+"""The FlatBuffers encoders of the AEDAT4 packet bodies, data table and trigger packets evtk writes (numba).
 
-The header and the data table are read by :mod:`evtk.io._fbpy` (plain Python and numpy, no compiler).
-
-Every function takes the packet body as a uint8 array and never reads outside
-it: a lying offset yields a negative status instead of a crash.  The layouts
-are specified in ``docs/formats/aedat4.md`` and ``docs/formats/aedat4.fbs``.
+Reading needs none of them: :mod:`evtk.io._fbpy` reads the header, the data
+table and the event and trigger packets with plain Python and numpy, every
+offset bounds-checked, so opening and reading a file loads no compiler. The
+layouts are specified in ``docs/formats/aedat4.md`` and
+``docs/formats/aedat4.fbs``.
 
 Callers pass every argument: a compiled function called with an argument
 left to its default makes numba type every later call of every compiled
-function in Python, about ten times slower (measured: 11 to 120 us a
-packet), so none of them has defaults.
-
-Status codes (``ST_*``) are shared with :mod:`evtk.io.aedat4`, which turns
-them into :class:`~evtk.FormatError` messages.
+function in Python, about ten times slower, so none of them has defaults.
 """
 
 from __future__ import annotations
 
-import sys
-
 import numpy as np
 from numba import njit
 
-# the word-wise event decoder reinterprets little-endian bytes as native words
-_LITTLE_ENDIAN = sys.byteorder == "little"
-
-# constants and status codes shared with the plain-Python header reader
-from ._fbpy import (  # noqa: E402,F401
+# constants and status codes of the plain-Python reader, for the callers that build packets
+from ._fbpy import (  # noqa: F401
     EVENT_PACKET_HEADER,
     EVENT_STRUCT,
     ST_BAD_IDENT,
@@ -38,213 +29,6 @@ from ._fbpy import (  # noqa: E402,F401
     ST_SLACK,
     STATUS_TEXT,
 )
-
-
-@njit(cache=True, nogil=True)
-def _u16(b, pos):
-    return np.int64(b[pos]) | (np.int64(b[pos + 1]) << 8)
-
-
-@njit(cache=True, nogil=True)
-def _u32(b, pos):
-    return np.int64(b[pos]) | (np.int64(b[pos + 1]) << 8) | (np.int64(b[pos + 2]) << 16) | (np.int64(b[pos + 3]) << 24)
-
-
-@njit(cache=True, nogil=True)
-def _i32(b, pos):
-    v = _u32(b, pos)
-    if v >= 2147483648:
-        v -= 4294967296
-    return v
-
-
-@njit(cache=True, nogil=True)
-def _i64(b, pos):
-    v = np.uint64(0)
-    for k in range(8):
-        v |= np.uint64(b[pos + k]) << np.uint64(8 * k)
-    return np.int64(v)
-
-
-@njit(cache=True, nogil=True)
-def fb_root(b, ident):
-    """Position of the root table, or a negative status.
-
-    Accepts both the size-prefixed form AEDAT4 writers use and a plain buffer;
-    the four identifier bytes decide which one it is.
-    """
-    n = len(b)
-    for base in (4, 0):
-        if base + 8 > n:
-            continue
-        ok = True
-        for k in range(4):
-            if b[base + 4 + k] != ident[k]:
-                ok = False
-                break
-        if ok:
-            root = base + _u32(b, base)
-            if root + 4 > n:
-                return ST_BAD_OFFSET
-            return root
-    return ST_BAD_IDENT
-
-
-@njit(cache=True, nogil=True)
-def fb_field(b, table, slot):
-    """Absolute position of field ``slot`` of ``table``; 0 if absent, <0 if corrupt."""
-    n = len(b)
-    if table < 0 or table + 4 > n:
-        return ST_BAD_OFFSET
-    vt = table - _i32(b, table)
-    if vt < 0 or vt + 4 > n:
-        return ST_BAD_OFFSET
-    vt_size = _u16(b, vt)
-    tb_size = _u16(b, vt + 2)
-    if vt_size < 4 or vt + vt_size > n or table + tb_size > n:
-        return ST_BAD_OFFSET
-    entry = 4 + 2 * slot
-    if entry + 2 > vt_size:
-        return 0
-    off = _u16(b, vt + entry)
-    if off == 0:
-        return 0
-    if off + 1 > tb_size:
-        return ST_BAD_OFFSET
-    # (only the field's first byte is known to lie in the buffer: callers check the rest for its size)
-    return table + off
-
-
-@njit(cache=True, nogil=True)
-def fb_deref(b, pos):
-    """Follow the unsigned offset stored at ``pos``."""
-    if pos < 0 or pos + 4 > len(b):
-        return ST_BAD_OFFSET
-    target = pos + _u32(b, pos)
-    if target + 4 > len(b):
-        return ST_BAD_OFFSET
-    return target
-
-
-@njit(cache=True, nogil=True)
-def fb_vector(b, table, slot, elem_size):
-    """(start, length) of the vector in field ``slot``; length 0 if the field is absent."""
-    f = fb_field(b, table, slot)
-    if f < 0:
-        return f, 0
-    if f == 0:
-        return 0, 0
-    v = fb_deref(b, f)
-    if v < 0:
-        return v, 0
-    count = _u32(b, v)
-    if v + 4 + count * elem_size > len(b):
-        return ST_BAD_OFFSET, 0
-    return v + 4, count
-
-
-@njit(cache=True, nogil=True)
-def decode_events(b, ident, t, x, y, p, offset, capacity, width, height, address_mod8):
-    """Decode an EVTS packet body into the columns, starting at ``offset``.
-
-    Returns ``(count, status)``; with ``ST_COORD`` the count is the index of
-    the first event outside ``width`` x ``height``. ``address_mod8`` is the
-    body's memory address modulo 8 (:func:`address_mod8`; -2: found here): when the event
-    vector is 8-byte aligned, as FlatBuffers lays it out, each 16-byte event
-    is read as two little-endian words; otherwise (a damaged file, or -1)
-    byte by byte.
-    """
-    root = fb_root(b, ident)
-    if root < 0:
-        return 0, root
-    start, count = fb_vector(b, root, 0, 16)
-    if start < 0:
-        return 0, start
-    # writers build the event vector first, so it ends the buffer (FlatBuffers fills from the back): room
-    # for another event after it means a length that shrank, whose events would vanish without a word
-    if len(b) - (start + EVENT_STRUCT * count) >= EVENT_STRUCT:
-        return 0, ST_SLACK
-    if count > capacity:
-        return count, ST_CAPACITY
-    if address_mod8 == -2:  # the body's own address: no Python call per packet to find it
-        address_mod8 = b.ctypes.data % 8
-    if address_mod8 >= 0 and (address_mod8 + start) % 8 == 0 and _LITTLE_ENDIAN:
-        w = b[start : start + 16 * count].view(np.uint64)
-        for i in range(count):
-            hi = w[2 * i + 1]
-            xi = np.int64(hi & np.uint64(0xFFFF))
-            yi = np.int64((hi >> np.uint64(16)) & np.uint64(0xFFFF))
-            if xi >= width or yi >= height:  # int16 on disk: negative values appear as >= 32768
-                return i, ST_COORD
-            j = offset + i
-            t[j] = np.int64(w[2 * i])
-            x[j] = xi
-            y[j] = yi
-            p[j] = 1 if (hi >> np.uint64(32)) & np.uint64(0xFF) else 0
-        return count, ST_OK
-    for i in range(count):
-        pos = start + 16 * i
-        xi = _u16(b, pos + 8)
-        yi = _u16(b, pos + 10)
-        # int16 on disk: negative values appear as >= 32768 and fail the test
-        if xi >= width or yi >= height:
-            return i, ST_COORD
-        j = offset + i
-        t[j] = _i64(b, pos)
-        x[j] = xi
-        y[j] = yi
-        p[j] = 1 if b[pos + 12] != 0 else 0
-    return count, ST_OK
-
-
-def address_mod8(b) -> int:
-    """Memory address of a numpy buffer modulo 8 (for :func:`decode_events`)."""
-    return b.__array_interface__["data"][0] % 8
-
-
-@njit(cache=True, nogil=True)
-def decode_triggers(b, ident, t, kind, offset, capacity):
-    """Decode a TRIG packet (a vector of ``Trigger`` tables)."""
-    root = fb_root(b, ident)
-    if root < 0:
-        return 0, root
-    start, count = fb_vector(b, root, 0, 4)
-    if start < 0:
-        return 0, start
-    if count > capacity:
-        return count, ST_CAPACITY
-    for i in range(count):
-        tb = fb_deref(b, start + 4 * i)
-        if tb < 0:
-            return i, tb
-        ft = fb_field(b, tb, 0)
-        fk = fb_field(b, tb, 1)
-        if ft < 0 or fk < 0:
-            return i, ST_BAD_OFFSET
-        if ft + 8 > len(b):
-            return i, ST_BAD_OFFSET
-        t[offset + i] = _i64(b, ft) if ft > 0 else 0
-        kind[offset + i] = b[fk] if fk > 0 else 0
-    return count, ST_OK
-
-
-@njit(cache=True, nogil=True)
-def vector_length(b, ident, struct_size):
-    """Length of the vector in field 0 of the root table (IMU and other packets).
-
-    With ``struct_size`` (16 for events), a vector of structs must end the buffer as writers lay it out
-    (less than one element after it), else ``ST_SLACK``.
-    """
-    root = fb_root(b, ident)
-    if root < 0:
-        return root
-    start, count = fb_vector(b, root, 0, max(1, struct_size))
-    if start < 0:
-        return start
-    if struct_size > 0 and len(b) - (start + struct_size * count) >= struct_size:
-        return ST_SLACK
-    return count
-
 
 # ---------------------------------------------------------------------------
 # Writing.  Layouts are fixed and aligned so that every 8-byte scalar sits at

@@ -1,9 +1,14 @@
-"""The FlatBuffers reads of an AEDAT4 file's header and data table, in plain Python and numpy.
+"""Every FlatBuffers read of an AEDAT4 file, in plain Python and numpy: the header, the data table and the
+event and trigger packets.
 
-Opening a file and describing it (``evtk info``) needs only these, so they
-load no compiler: the header is one table, and the data table's entries are
-read all at once with numpy (every offset checked, as :mod:`evtk.io._fb` does
-in its compiled loops for packet bodies). Status codes are :mod:`evtk.io._fb`'s.
+Reading loads no compiler. The header is one table; the data table's entries
+and a trigger packet's tables are read all at once with numpy; an event
+packet's vector of 16-byte structs is viewed as :data:`EVENT_DTYPE` records
+and its columns copied out. Every offset is checked against the buffer: a
+lying one yields a negative status (``ST_*``, turned into
+:class:`~evtk.FormatError` messages by :mod:`evtk.io.aedat4`), never a read
+outside it. The layouts are in ``docs/formats/aedat4.md``; the encoders are
+:mod:`evtk.io._fb`'s.
 """
 
 from __future__ import annotations
@@ -50,8 +55,22 @@ def i64(b, pos):
 
 
 def fb_root(b, ident: bytes) -> int:
-    """Position of the root table (size-prefixed or plain buffer, told apart by the identifier), or a status."""
+    """Position of the root table (size-prefixed or plain buffer, told apart by the identifier).
+
+    Parameters
+    ----------
+    b : numpy.ndarray or bytes
+        The buffer.
+    ident : bytes
+        The four-byte identifier (or the uint8 array of them).
+
+    Returns
+    -------
+    int
+        The root table's position, or a negative status.
+    """
     n = len(b)
+    ident = bytes(ident)  # bytes, or the uint8 array of them
     for base in (4, 0):
         if base + 8 <= n and bytes(b[base + 4:base + 8]) == ident:
             root = base + u32(b, base)
@@ -89,6 +108,136 @@ def fb_deref(b, pos: int) -> int:
     return target if target + 4 <= len(b) else ST_BAD_OFFSET
 
 
+def fb_vector(b, table: int, slot: int, elem_size: int):
+    """``(start, length)`` of the vector in field ``slot`` of ``table``.
+
+    Parameters
+    ----------
+    b : numpy.ndarray or bytes
+        The buffer.
+    table : int
+        Position of the table.
+    slot : int
+        The field's index in the table's vtable.
+    elem_size : int
+        Bytes of one element: ``length`` of them must lie inside the buffer.
+
+    Returns
+    -------
+    start, length : int, int
+        ``(0, 0)`` when the field is absent; ``(status, 0)`` when the field, the offset to the vector or its
+        elements lie outside the buffer.
+    """
+    f = fb_field(b, table, slot, 1)
+    if f <= 0:
+        return f, 0
+    v = fb_deref(b, f)
+    if v < 0:
+        return v, 0
+    count = u32(b, v)
+    if v + 4 + count * elem_size > len(b):
+        return ST_BAD_OFFSET, 0
+    return v + 4, count
+
+
+def _root_vector(b, ident: bytes, struct_size: int):
+    """``(start, length)`` of the vector in field 0 of the root table, or ``(status, 0)``; a vector of
+    ``struct_size``-byte structs (``struct_size`` > 0) must end the buffer, as writers lay it out."""
+    root = fb_root(b, ident)
+    if root < 0:
+        return root, 0
+    start, count = fb_vector(b, root, 0, max(1, struct_size))
+    if start < 0:
+        return start, 0
+    # writers build a vector of structs first, so it ends the buffer (FlatBuffers fills from the back): room
+    # for another element after it means a length that shrank, whose elements would vanish without a word
+    if struct_size > 0 and len(b) - (start + struct_size * count) >= struct_size:
+        return ST_SLACK, 0
+    return start, count
+
+
+def vector_length(b, ident: bytes, struct_size: int) -> int:
+    """Length of the vector in field 0 of the root table (the element count of EVTS, TRIG and IMUS packets).
+
+    Parameters
+    ----------
+    b : numpy.ndarray or bytes
+        The packet body.
+    ident : bytes
+        The four-byte FlatBuffers identifier the body must carry.
+    struct_size : int
+        Bytes of one element when the vector holds structs (16 for events), which must then end the body
+        (else ``ST_SLACK``); 0 for a vector of offsets.
+
+    Returns
+    -------
+    int
+        The length, or a negative status.
+    """
+    start, count = _root_vector(b, ident, struct_size)
+    return start if start < 0 else count
+
+
+# one event of an EVTS packet's vector, as FlatBuffers lays the struct out (little-endian, 16 bytes)
+EVENT_DTYPE = np.dtype({"names": ["t", "x", "y", "p"], "formats": ["<i8", "<u2", "<u2", "u1"],
+                        "offsets": [0, 8, 10, 12], "itemsize": EVENT_STRUCT})
+
+
+def decode_events(b, ident: bytes, t, x, y, p, offset: int, capacity: int, width: int, height: int):
+    """Decode an EVTS packet body into the columns ``t, x, y, p`` from index ``offset``, with numpy.
+
+    The event vector is viewed as :data:`EVENT_DTYPE` records (at any alignment) and each column copied out
+    at once; numpy releases the GIL for the copies, so packets decode in parallel threads, and nothing is
+    compiled at run time.
+
+    Parameters
+    ----------
+    b : numpy.ndarray or bytes
+        The decompressed packet body (uint8).
+    ident : bytes
+        ``b"EVTS"``.
+    t, x, y, p : numpy.ndarray
+        The output columns (int64, uint16, uint16, uint8).
+    offset : int
+        Where the packet's first event goes.
+    capacity : int
+        The most events the packet may hold (room in the columns).
+    width, height : int
+        The sensor: every event must lie on it.
+
+    Returns
+    -------
+    count, status : int, int
+        ``(events, ST_OK)``; with ``ST_COORD`` the count is the index of the first event outside the sensor
+        (x and y are int16 on disk: a negative one reads as 32768 or more and fails too; the events before it
+        are written), with ``ST_CAPACITY`` the vector's length; any other status says where the FlatBuffer is
+        damaged (nothing written).
+    """
+    if not isinstance(b, np.ndarray):
+        b = np.frombuffer(b, np.uint8)
+    start, count = _root_vector(b, ident, EVENT_STRUCT)
+    if start < 0:
+        return 0, start
+    if count > capacity:
+        return count, ST_CAPACITY
+    ev = b[start:start + EVENT_STRUCT * count].view(EVENT_DTYPE)
+    end = offset + count
+    xs, ys = x[offset:end], y[offset:end]
+    xs[...] = ev["x"]
+    ys[...] = ev["y"]
+    if count and (int(xs.max()) >= width or int(ys.max()) >= height):
+        first = int(np.argmax((xs >= width) | (ys >= height)))
+        t[offset:offset + first] = ev["t"][:first]
+        np.not_equal(ev["p"][:first], 0, out=p[offset:offset + first].view(np.bool_))
+        return first, ST_COORD
+    t[offset:end] = ev["t"]
+    ps = p[offset:end]
+    ps[...] = ev["p"]  # a bool on disk: 0 or 1 but for a damaged file, where any other byte means ON
+    if count and int(ps.max()) > 1:
+        np.not_equal(ps, 0, out=ps.view(np.bool_))
+    return count, ST_OK
+
+
 def _gather(b, pos, width, signed):
     """Little-endian integers of ``width`` bytes at the positions ``pos`` (all already checked)."""
     out = np.zeros(len(pos), np.uint64)
@@ -99,53 +248,115 @@ def _gather(b, pos, width, signed):
     return out.astype(np.int64)
 
 
-def decode_data_table(b, ident: bytes):
-    """A FileDataTable (FTAB): ``(columns, status)`` with columns (offset, stream, size, count, t0, t1)."""
-    b = np.frombuffer(b, np.uint8)
+def _tables(b, slots):
+    """The tables that the offsets stored at ``slots`` (a vector of offsets, checked) point to.
+
+    Returns ``(tables, vtables, vt_size, tb_size, bad)``: ``bad`` marks each table that, or whose vtable,
+    lies outside the buffer (their other entries are then 0, safe to gather at).
+    """
     n = len(b)
+    tables = slots + _gather(b, slots, 4, False)
+    bad = tables + 4 > n
+    tables = np.where(bad, 0, tables)
+    vts = tables - _gather(b, tables, 4, True)
+    bad |= (vts < 0) | (vts + 4 > n)
+    vts = np.where(bad, 0, vts)
+    vt_size = _gather(b, vts, 2, False)
+    tb_size = _gather(b, vts + 2, 2, False)
+    bad |= (vt_size < 4) | (vts + vt_size > n) | (tables + tb_size > n)
+    zero = np.zeros_like(tables)
+    return (np.where(bad, zero, tables), vts, np.where(bad, zero, vt_size), np.where(bad, zero, tb_size), bad)
+
+
+def _fields(b, tables, vts, vt_size, tb_size, slot, size):
+    """Position of field ``slot`` of each table (0 when absent) and where ``size`` bytes of it would leave
+    the table or the buffer."""
+    entry = 4 + 2 * slot
+    present = entry + 2 <= vt_size
+    off = np.where(present, _gather(b, np.where(present, vts + entry, 0), 2, False), 0)
+    bad = (off > 0) & ((off + size > tb_size) | (tables + off + size > len(b)))
+    return np.where((off > 0) & ~bad, tables + off, 0), bad
+
+
+def decode_triggers(b, ident: bytes, t, kind, offset: int, capacity: int):
+    """Decode a TRIG packet body (a vector of ``Trigger`` tables) into ``t`` and ``kind`` from ``offset``.
+
+    Parameters
+    ----------
+    b : numpy.ndarray
+        The decompressed packet body (uint8).
+    ident : bytes
+        ``b"TRIG"``.
+    t, kind : numpy.ndarray
+        The output columns (int64 time stamps in us, uint8 kinds).
+    offset : int
+        Where the packet's first trigger goes.
+    capacity : int
+        The most triggers the packet may hold.
+
+    Returns
+    -------
+    count, status : int, int
+        ``(triggers, ST_OK)``; else the index of the first damaged trigger (those before it are written) and
+        the status, or ``ST_CAPACITY`` with the vector's length.
+    """
+    b = np.frombuffer(b, np.uint8)
+    root = fb_root(b, ident)
+    if root < 0:
+        return 0, root
+    start, count = fb_vector(b, root, 0, 4)
+    if start < 0:
+        return 0, start
+    if count > capacity:
+        return count, ST_CAPACITY
+    tables, vts, vt_size, tb_size, bad = _tables(b, start + 4 * np.arange(count, dtype=np.int64))
+    f_t, bad_t = _fields(b, tables, vts, vt_size, tb_size, 0, 1)
+    f_k, bad_k = _fields(b, tables, vts, vt_size, tb_size, 1, 1)
+    bad |= bad_t | bad_k | (f_t + 8 > len(b))  # the stamp's 8 bytes must lie in the buffer
+    done = int(np.argmax(bad)) if bad.any() else count
+    f_t, f_k = f_t[:done], f_k[:done]
+    t[offset:offset + done] = np.where(f_t > 0, _gather(b, f_t, 8, True), 0)
+    kind[offset:offset + done] = np.where(f_k > 0, b[f_k], 0)
+    return (count, ST_OK) if done == count else (done, ST_BAD_OFFSET)
+
+
+def decode_data_table(b, ident: bytes):
+    """Read a FileDataTable (FTAB), every entry at once.
+
+    Parameters
+    ----------
+    b : bytes or numpy.ndarray
+        The decompressed table.
+    ident : bytes
+        ``b"FTAB"``.
+
+    Returns
+    -------
+    columns, status : tuple or None, int
+        int64 columns (offset, stream, size, count, t0, t1) and ``ST_OK``, or None and the status.
+    """
+    b = np.frombuffer(b, np.uint8)
     root = fb_root(b, ident)
     if root < 0:
         return None, root
     field = fb_field(b, root, 0, 4)
     if field <= 0:
         return None, ST_MISSING if field == 0 else field
-    vec = fb_deref(b, field)
-    if vec < 0:
-        return None, vec
-    count = u32(b, vec)
-    start = vec + 4
-    if start + 4 * count > n:
+    start, count = fb_vector(b, root, 0, 4)
+    if start < 0:
+        return None, start
+    tables, vts, vt_size, tb_size, bad = _tables(b, start + 4 * np.arange(count, dtype=np.int64))
+    if np.any(bad):
         return None, ST_BAD_OFFSET
-    slots = start + 4 * np.arange(count, dtype=np.int64)
-    tables = slots + _gather(b, slots, 4, False)
-    if np.any(tables + 4 > n):
-        return None, ST_BAD_OFFSET
-    vts = tables - _gather(b, tables, 4, True)
-    if np.any(vts < 0) or np.any(vts + 4 > n):
-        return None, ST_BAD_OFFSET
-    vt_size = _gather(b, vts, 2, False)
-    tb_size = _gather(b, vts + 2, 2, False)
-    if np.any(vt_size < 4) or np.any(vts + vt_size > n) or np.any(tables + tb_size > n):
-        return None, ST_BAD_OFFSET
-
-    def column(slot, size, signed, required):
-        entry = 4 + 2 * slot
-        present = entry + 2 <= vt_size
-        off = np.where(present, _gather(b, np.where(present, vts + entry, 0), 2, False), 0)
-        if required and np.any(off == 0):
-            return None, ST_MISSING
-        if np.any((off > 0) & ((off + size > tb_size) | (tables + off + size > n))):
-            return None, ST_BAD_OFFSET
-        pos = np.where(off > 0, tables + off, 0)
-        return np.where(off > 0, _gather(b, pos, size, signed), 0), ST_OK
-
     out = []
     for slot, size, signed, required in ((0, 8, True, True), (1, 8, False, True), (2, 8, True, False),
                                          (3, 8, True, False), (4, 8, True, False)):
-        col, st = column(slot, size, signed, required)
-        if st != ST_OK:
-            return None, st
-        out.append(col)
+        pos, bad = _fields(b, tables, vts, vt_size, tb_size, slot, size)
+        if required and np.any((pos == 0) & ~bad):
+            return None, ST_MISSING
+        if np.any(bad):
+            return None, ST_BAD_OFFSET
+        out.append(np.where(pos > 0, _gather(b, pos, size, signed), 0))
     offset, header, cnt, t0, t1 = out
     stream = (header & 0xFFFFFFFF).astype(np.int64)
     stream = np.where(stream >= 2**31, stream - 2**32, stream)

@@ -45,7 +45,7 @@ from conftest import random_events  # noqa: E402
 
 import evtk  # noqa: E402
 from evtk.io import _compression as cz  # noqa: E402
-from evtk.io import _fb  # noqa: E402
+from evtk.io import _fb, _fbpy  # noqa: E402
 from evtk.io import aedat4 as a4  # noqa: E402
 
 WINDOWS = [(0, 10_000), (20_000, 20_500), (33_333, 49_999), (-5, 1)]
@@ -103,7 +103,7 @@ def _honest_table(rows, bodies):
     offset, stream, size, count, t0, t1 = ([] for _ in range(6))
     for (off, sid, n), (_, body) in zip(rows, bodies):
         b = np.frombuffer(body, np.uint8)
-        k = _fb.vector_length(b, a4._IDENT["EVTS" if sid == 0 else "TRIG"], 0)
+        k = _fbpy.vector_length(b, a4._IDENT["EVTS" if sid == 0 else "TRIG"], 0)
         offset.append(off)
         stream.append(sid)
         size.append(n)

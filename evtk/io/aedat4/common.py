@@ -1,4 +1,4 @@
-"""The AEDAT4 constants and the compiled FlatBuffers codecs, loaded on first use."""
+"""The AEDAT4 constants, and the compiled FlatBuffers encoders the writer loads on first use."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ _IDENT = {name: np.frombuffer(name.encode(), np.uint8) for name in ("EVTS", "TRI
 
 
 def _jit():
-    """The compiled FlatBuffers decoders and encoders (numba loads on first use: opening and describing a file
-    with a data table needs none of them)."""
+    """The compiled FlatBuffers encoders (numba loads on first use: only writing needs them; reading decodes
+    with :mod:`evtk.io._fbpy`)."""
     from .. import _fb
 
     return _fb

@@ -13,7 +13,7 @@ from ...events import Events, Triggers
 from .. import _compression as cz
 from .. import _fbpy
 from ..base import BaseRecording, StreamInfo, load_json
-from .common import _IDENT, _STRUCT_SIZE, _TYPE_NAMES, _VECTOR_TYPES, _jit, _status
+from .common import _STRUCT_SIZE, _TYPE_NAMES, _VECTOR_TYPES, _status
 from .index import _CountMismatch, _FileIndex, _Stop
 
 
@@ -120,7 +120,7 @@ class Recording(_FileIndex, BaseRecording):
                 b = self._body(i)
             except _Stop:
                 return out[:k]
-            n = _jit().vector_length(b, _IDENT[typ], _STRUCT_SIZE.get(typ, 0))
+            n = _fbpy.vector_length(b, typ.encode(), _STRUCT_SIZE.get(typ, 0))
             if n < 0:
                 try:
                     self._fail(int(self._index.offset[i]), f"{typ} packet: {_status(n)}")
@@ -280,8 +280,8 @@ class Recording(_FileIndex, BaseRecording):
         starts = np.full(len(rows) + 1, offset, np.int64)
         np.cumsum(counts, out=starts[1:])
         starts[1:] += offset
-        ident = _IDENT["EVTS"]
-        decode = _jit().decode_events
+        ident = b"EVTS"
+        decode = _fbpy.decode_events
 
         def work(k0, k1):
             for k in range(k0, k1):
@@ -291,7 +291,7 @@ class Recording(_FileIndex, BaseRecording):
                 except _Stop:
                     return k
                 cap = int(counts[k])
-                n, st = decode(b, ident, t, x, y, p, int(starts[k]), cap, width, height, -2)
+                n, st = decode(b, ident, t, x, y, p, int(starts[k]), cap, width, height)
                 if (st == _fbpy.ST_OK and n != cap) or st == _fbpy.ST_CAPACITY:
                     raise _CountMismatch
                 if st != _fbpy.ST_OK:
@@ -416,21 +416,20 @@ class Recording(_FileIndex, BaseRecording):
 
     def _event_packets(self, s, rows):
         width, height = s.sensor_size
-        ident = _IDENT["EVTS"]
-        fb = _jit()
+        ident = b"EVTS"
         for i in rows:
             try:
                 b = self._body(i)
             except _Stop:
                 break
-            n = fb.vector_length(b, ident, _fbpy.EVENT_STRUCT)
+            n = _fbpy.vector_length(b, ident, _fbpy.EVENT_STRUCT)
             if n < 0:
                 try:
                     self._fail(int(self._index.offset[i]), f"event packet: {_status(n)}")
                 except _Stop:
                     break
             cols = (np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8))
-            got, st = fb.decode_events(b, ident, *cols, 0, n, width, height, -2)
+            got, st = _fbpy.decode_events(b, ident, *cols, 0, n, width, height)
             if st != _fbpy.ST_OK:
                 reason = (
                     f"event {got} of the packet lies outside the {width}x{height} sensor"
@@ -458,13 +457,13 @@ class Recording(_FileIndex, BaseRecording):
 
     def _trigger_packets(self, s, rows):
         """Yield the triggers of each packet of ``rows``, stopping where salvage stops."""
-        ident = _IDENT["TRIG"]
+        ident = b"TRIG"
         for i in rows:
             try:
                 b = self._body(i)
             except _Stop:
                 return
-            n = _jit().vector_length(b, ident, 0)
+            n = _fbpy.vector_length(b, ident, 0)
             if n < 0:
                 try:
                     self._fail(int(self._index.offset[i]), f"trigger packet: {_status(n)}")
@@ -472,7 +471,7 @@ class Recording(_FileIndex, BaseRecording):
                     return
             t = np.empty(n, np.int64)
             k = np.empty(n, np.uint8)
-            got, st = _jit().decode_triggers(b, ident, t, k, 0, n)
+            got, st = _fbpy.decode_triggers(b, ident, t, k, 0, n)
             if st != _fbpy.ST_OK:
                 try:
                     self._fail(int(self._index.offset[i]), f"trigger packet: {_status(st)}")
@@ -536,8 +535,8 @@ def _run_split(work, n_rows, counts) -> int:
     parts = nw * 4
     cum = np.cumsum(counts)
     cuts = np.searchsorted(cum, np.linspace(0, total, parts + 1)[1:-1], side="left")
-    bounds = np.unique(np.concatenate([[0], cuts, [n_rows]]))
-    futures = [cz.pool().submit(work, int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+    bounds = sorted({0, n_rows, *cuts.tolist()})  # (np.unique would import numpy.ma, 7-8 ms of a first read)
+    futures = [cz.pool().submit(work, a, b) for a, b in zip(bounds[:-1], bounds[1:])]
     done = n_rows
     for b, fut in zip(bounds[1:], futures):
         got = fut.result()
