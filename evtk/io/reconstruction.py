@@ -303,6 +303,7 @@ def _read_npz(path):
             members = {i.filename[:-4]: i for i in z.infolist() if i.filename.endswith(".npy")}
             if "summary" not in members:
                 raise FormatError(path, None, "not a reconstruction file: the NPZ has no summary")
+            _check_zip_layout(z, path)
             unknown = sorted(set(i.filename for i in z.infolist()) - {f"{k}.npy" for k in names})
             if unknown:  # evtk writes none: a member renamed (damage) would otherwise vanish without a word
                 raise FormatError(path, None, f"members no reconstruction file has: {', '.join(unknown[:5])}")
@@ -341,6 +342,31 @@ def _read_npz(path):
     if not isinstance(meta, dict):
         raise FormatError(path, None, "the summary must be a JSON object")
     return arrays, meta
+
+
+def _check_zip_layout(z: zipfile.ZipFile, path) -> None:
+    """Refuse an NPZ whose members do not tile its data: each member's local header and data must end where
+    the next begins, and the last where the central directory starts. A damaged directory that lost a member
+    (an optional array, which would then vanish without a word) leaves bytes no member names."""
+    infos = sorted(z.infolist(), key=lambda i: i.header_offset)
+    pos = 0
+    for info in infos:
+        if info.header_offset != pos:
+            raise FormatError(path, pos, f"bytes {pos}..{info.header_offset} belong to no member of the NPZ "
+                                         "(its directory is damaged)")
+        z.fp.seek(info.header_offset)
+        head = z.fp.read(30)
+        if len(head) < 30 or head[:4] != b"PK\x03\x04":
+            raise FormatError(path, info.header_offset, f"{info.filename}: no local header where the directory "
+                                                        "points")
+        name_len, extra_len = int.from_bytes(head[26:28], "little"), int.from_bytes(head[28:30], "little")
+        pos = info.header_offset + 30 + name_len + extra_len + info.compress_size
+        if info.flag_bits & 0x08:  # a data descriptor follows the data (signature optional)
+            z.fp.seek(pos)
+            pos += 16 if z.fp.read(4) == b"PK\x07\x08" else 12
+    if pos != z.start_dir:
+        raise FormatError(path, pos, f"bytes {pos}..{z.start_dir} belong to no member of the NPZ (its directory "
+                                     "is damaged)")
 
 
 def _npy_header(path, name, f):

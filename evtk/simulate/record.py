@@ -24,8 +24,8 @@ from .schedule import METADATA_KEY, Schedule, check_patterns
 RECORD_SPECS = {
     "window_us": Spec("int", 1, MAX_US, unit="µs"),
     "settle_us": Spec("int", 1, MAX_US, unit="µs"),
-    "start_us": Spec("int", -MAX_US, MAX_US, unit="µs"),
-    "end_us": Spec("int", -MAX_US, 2 * MAX_US, unit="µs"),
+    "start_us": Spec("int", 0, MAX_US, unit="µs, where the run's first capture starts (time is from 0)"),
+    "end_us": Spec("int", 0, 2 * MAX_US, unit="µs, where the run ends (time is from 0)"),
     "gain_e_per_s_per_unit": Spec("float", 0, 1e30, unit="photoelectrons per second and unit of light"),
     "blank_rate_e_per_s": Spec("float", 0, 1e30, lo_open=True, unit="photoelectrons per second"),
     "seed": Spec("int", 0, 2 ** 63 - 1, optional=True),
@@ -196,6 +196,8 @@ class SimulationRecord:
         kw["response_origin_px"] = check_origin(where, "response_origin_px", d["response_origin_px"], size)
         kw.setdefault("start_us", 0)
         kw.setdefault("end_us", 0)
+        if kw["end_us"] < kw["start_us"]:
+            raise EvtkError(f"{where}: end_us = {kw['end_us']} comes before start_us = {kw['start_us']}")
         if kw.get("light_delay_us", 0) >= kw["settle_us"]:
             raise EvtkError(f"{where}: light_delay_us = {kw['light_delay_us']} must be shorter than settle_us = "
                             f"{kw['settle_us']}")

@@ -84,7 +84,7 @@ class Hdf5Recording(BaseRecording):
             self._root = _CheckedGroup(self._f, self._policy)
             self._layout = _guard(Hdf5Recording._detect)(self)
             self._clip_unwritten()
-            if self._layout.n and self._f.get("reconstruction", getlink=True) is not None:
+            if self._layout.n and self._links_to("reconstruction"):
                 self.warnings.append(
                     f"the file also holds a /reconstruction group, left aside: it is read as the recording of its "
                     f"{self._layout.n} events (evtk.load_reconstruction reads the group)")
@@ -107,6 +107,11 @@ class Hdf5Recording(BaseRecording):
         except BaseException:
             self._f.close()
             raise
+
+    @_guard
+    def _links_to(self, name: str) -> bool:
+        """Whether the file has a link named ``name`` (damaged metadata: a FormatError, not h5py's error)."""
+        return self._f.get(name, getlink=True) is not None
 
     @_guard
     def holds_group(self, name: str) -> bool:
