@@ -317,16 +317,10 @@ def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, trig
         The writer, a context manager.
     """
     fmt = write_format(path, fmt)
-    if fmt in ("evt2", "evt3", "dat", "es"):
+    if fmt in ("evt2", "evt3", "dat", "es", "csv"):
         from .foreign import ForeignWriter
 
         return ForeignWriter(path, fmt, sensor_size, metadata, triggers)
-    if fmt == "csv":
-        from .decoded import CsvWriter
-
-        if triggers is not None and len(triggers):
-            raise EvtkError("CSV files hold no triggers; leave them out")
-        return CsvWriter(path, sensor_size)
     if fmt == "aedat4":
         import numpy as np
 

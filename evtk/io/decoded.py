@@ -39,11 +39,10 @@ import numpy as np
 from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
 from ..limits import require_memory
-from ._atomic import AtomicFile
-from .base import BaseRecording, BaseWriter, Damage, StreamInfo, sensor_dims
+from .base import BaseRecording, Damage, StreamInfo, sensor_dims
 
-__all__ = ["DecodedRecording", "TextRecording", "NmnistRecording", "CsvWriter", "csv_lines", "sniff_text",
-           "sniff_nmnist", "TIME_UNITS"]
+__all__ = ["DecodedRecording", "TextRecording", "NmnistRecording", "csv_lines", "sniff_text", "sniff_nmnist",
+           "TIME_UNITS"]
 
 #: microseconds per unit, for ``time_unit``
 TIME_UNITS = {"s": 1_000_000.0, "ms": 1_000.0, "us": 1.0, "ns": 1e-3}
@@ -405,52 +404,6 @@ def csv_lines(columns) -> bytes:
         mats += [mat, sep]
         masks += [used, np.ones((n, 1), bool)]
     return np.hstack(mats)[np.hstack(masks)].tobytes()
-
-
-class CsvWriter(BaseWriter):
-    """A streaming writer of CSV events: a ``t,x,y,p`` header line (with faery's ``x@W``/``y@H`` sizes), then
-    one ``t,x,y,p`` line an event, times in microseconds.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The target (``.csv`` or ``.txt``).
-    sensor_size : (int, int)
-        Width and height, written into the header.
-    """
-
-    def __init__(self, path, sensor_size):
-        self.path = os.fspath(path)
-        self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
-        self._file = AtomicFile(self.path)
-        self._closed = False
-        self._file.write(f"t,x@{self.sensor_size[0]},y@{self.sensor_size[1]},on\n".encode("ascii"))
-
-    def write_events(self, events: Events) -> None:
-        """Append a chunk of events.
-
-        Parameters
-        ----------
-        events : Events
-            The chunk; its sensor size must be the writer's.
-        """
-        self._check_open()
-        if tuple(events.sensor_size) != self.sensor_size:
-            raise EvtkError(f"{self.path}: events of a {events.sensor_size} sensor for a {self.sensor_size} file")
-        if not len(events):
-            return
-        for k in range(0, len(events), 1 << 20):  # a million lines at a time bounds the text held
-            part = events[k:k + (1 << 20)]
-            self._file.write(csv_lines([part.t, part.x, part.y, part.p]))
-
-    def _finish(self):
-        pass
-
-    def _commit(self):
-        self._file.commit()
-
-    def _discard(self):
-        self._file.discard()
 
 
 # -- N-MNIST ------------------------------------------------------------------------------------------------------

@@ -37,7 +37,7 @@ __all__ = ["FOREIGN_FORMATS", "ForeignWriter", "encode_evt2", "encode_evt3", "en
            "prophesee_header"]
 
 #: format name -> (what it cannot hold, or None)
-FOREIGN_FORMATS = {"evt2": None, "evt3": None, "dat": "trigger edges", "es": "trigger edges"}
+FOREIGN_FORMATS = {"evt2": None, "evt3": None, "dat": "trigger edges", "es": "trigger edges", "csv": "trigger edges"}
 
 _RISING = {1, 4}  # TriggerKind: external signal / generator rising edge
 _EDGES = {1, 2, 4, 5}
@@ -346,7 +346,7 @@ def es_header(sensor_size: tuple[int, int]) -> bytes:
 
 
 class ForeignWriter(BaseWriter):
-    """A streaming writer of EVT 2.0, EVT 3.0, DAT or Event Stream files (``evtk.io.open_writer`` makes one).
+    """A streaming writer of EVT 2.0, EVT 3.0, DAT, Event Stream or CSV files (``evtk.io.open_writer`` makes one).
 
     Events arrive in time order, a chunk at a time; trigger edges (EVT 2.0
     and 3.0) are given once, when the writer is made, and are interleaved
@@ -358,7 +358,7 @@ class ForeignWriter(BaseWriter):
     path : str or os.PathLike
         The target.
     fmt : str
-        ``"evt2"``, ``"evt3"``, ``"dat"`` or ``"es"``.
+        ``"evt2"``, ``"evt3"``, ``"dat"``, ``"es"`` or ``"csv"``.
     sensor_size : (int, int)
         Width and height.
     metadata : dict, optional
@@ -384,7 +384,9 @@ class ForeignWriter(BaseWriter):
         self._file = AtomicFile(self.path)
         self._closed = False
         try:
-            if fmt == "es":
+            if fmt == "csv":  # faery's header: the columns, with the sensor's size on x and y
+                self._file.write(f"t,x@{self.sensor_size[0]},y@{self.sensor_size[1]},on\n".encode("ascii"))
+            elif fmt == "es":
                 self._file.write(es_header(self.sensor_size))
             else:
                 self._file.write(prophesee_header(fmt, self.sensor_size, metadata))
@@ -425,6 +427,11 @@ class ForeignWriter(BaseWriter):
             return encode_evt3(events, triggers, self._state)
         if self.fmt == "dat":
             return encode_dat(events, self._state)
+        if self.fmt == "csv":  # a million lines at a time bounds the text held
+            from .decoded import csv_lines
+
+            return b"".join(csv_lines([p.t, p.x, p.y, p.p]) for p in
+                            (events[k:k + (1 << 20)] for k in range(0, len(events), 1 << 20)))
         return encode_es_dvs(events, self._state)
 
     def _finish(self):
