@@ -98,14 +98,26 @@ def _time_words(high: np.ndarray, prev: int | None, step: int):
     """For each record, how many time-high words precede it (0 when its high equals the last one's), how many
     of those are fillers, and the previous high: across a long gap, consecutive high words advance by at most
     ``step``, less than half the counter's period, so a reader sees each wrap of the counter as a drop."""
-    prev_high = np.empty_like(high)
-    if len(high):
-        prev_high[0] = -1 if prev is None else prev
-        prev_high[1:] = high[:-1]
-    changed = high != prev_high
-    gap = np.where(changed & (prev_high >= 0), high - prev_high, 0)
-    fillers = np.where(gap > step, (gap - 1) // step, 0)
-    return changed.astype(np.int64) + fillers, fillers, prev_high
+    n = len(high)
+    n_pre = np.zeros(n, np.int64)
+    fillers = np.zeros(n, np.int64)
+    if not n:
+        return n_pre, fillers, high
+    first_prev = -1 if prev is None else prev
+    changed = np.empty(n, bool)
+    changed[0] = high[0] != first_prev
+    np.not_equal(high[1:], high[:-1], out=changed[1:])
+    n_pre += changed
+    gap = np.empty(n, np.int64)
+    gap[0] = high[0] - first_prev if first_prev >= 0 else 0
+    np.subtract(high[1:], high[:-1], out=gap[1:])
+    long = np.flatnonzero(gap > step)  # rare: a gap of more than half the counter's period
+    prev_high = high  # read only at the long gaps (the record before each), made below when there are any
+    if len(long):
+        prev_high = np.concatenate([[first_prev], high[:-1]])
+        fillers[long] = (gap[long] - 1) // step
+        n_pre[long] += fillers[long]
+    return n_pre, fillers, prev_high
 
 
 def encode_evt2(events: Events, triggers: Triggers | None = None, state: dict | None = None) -> bytes:
@@ -134,20 +146,22 @@ def encode_evt2(events: Events, triggers: Triggers | None = None, state: dict | 
     n_pre, fillers, prev_high = _time_words(high, state.get("high"), 1 << 26)
     n = len(t)
     extra = int(n_pre.sum())
-    require_memory(4 * (n + extra), "the EVT 2.0 words")
-    pos = np.arange(n) + np.cumsum(n_pre) if extra else np.arange(n)
-    out = np.empty(n + extra, np.uint32)
+    require_memory(4 * (n + extra) * 2, "the EVT 2.0 words")
     low = (t & 0x3F).astype(np.uint32) << 22
     ev, x, y, p, trig, ti = _split(events, is_trig, idx)
-    out[pos[ev]] = (p.astype(np.uint32) & 1) << 28 | low[ev] | x.astype(np.uint32) << 11 | y.astype(np.uint32)
+    words = np.empty(n, np.uint32)  # one word a record, in time order; the time-high words go in before
+    words[ev] = (p.astype(np.uint32) & 1) << 28 | low[ev] | x.astype(np.uint32) << 11 | y.astype(np.uint32)
     if trig is not None:
-        out[pos[trig]] = ((10 << 28) | low[trig] | tc[ti] << 8 | tv[ti]).astype(np.uint32)
+        words[trig] = ((10 << 28) | low[trig] | tc[ti] << 8 | tv[ti]).astype(np.uint32)
     changed = n_pre > 0
-    out[pos[changed] - 1] = ((8 << 28) | (high[changed] & 0xFFFFFFF)).astype(np.uint32)
+    highs = np.empty(extra, np.uint32)
+    last = np.cumsum(n_pre)[changed] - 1  # each record's own time-high word ends its run of inserted words
+    highs[last] = ((8 << 28) | (high[changed] & 0xFFFFFFF)).astype(np.uint32)
     for i in np.flatnonzero(fillers):  # long gaps (rare): intermediate highs, at most 2**26 apart
-        base = int(prev_high[i])
+        base, end = int(prev_high[i]), int(np.cumsum(n_pre)[i]) - 1
         for k in range(int(fillers[i])):
-            out[pos[i] - 1 - int(fillers[i]) + k] = (8 << 28) | ((base + (k + 1) * (1 << 26)) & 0xFFFFFFF)
+            highs[end - int(fillers[i]) + k] = (8 << 28) | ((base + (k + 1) * (1 << 26)) & 0xFFFFFFF)
+    out = np.insert(words, np.repeat(np.arange(n), n_pre), highs) if extra else words
     if n:
         state["high"] = int(high[-1])
     return out.astype("<u4", copy=False).tobytes()
@@ -277,17 +291,19 @@ def encode_es_dvs(events: Events, state: dict | None = None) -> bytes:
         return b""
     gaps = np.diff(t, prepend=state.get("t", 0))
     over = gaps // 127
-    total = 5 * len(t) + int(over.sum())
-    require_memory(total, "the Event Stream bytes")
-    out = np.full(total, 0xFF, np.uint8)
-    pos = np.arange(len(t)) * 5 + np.cumsum(over)  # each event's first byte, after its 0xFF bytes
-    out[pos] = ((gaps % 127) << 1 | (np.asarray(events.p, np.int64) & 1)).astype(np.uint8)
-    x = np.asarray(events.x, np.int64)
-    y = events.sensor_size[1] - 1 - np.asarray(events.y, np.int64)
-    out[pos + 1] = x & 0xFF
-    out[pos + 2] = x >> 8
-    out[pos + 3] = y & 0xFF
-    out[pos + 4] = y >> 8
+    n_over = int(over.sum())
+    require_memory(5 * len(t) + n_over, "the Event Stream bytes")
+    rows = np.empty((len(t), 5), np.uint8)  # each event's five bytes; the 0xFF bytes go in before them
+    rows[:, 0] = (gaps % 127).astype(np.uint8) << 1 | (events.p.astype(np.uint8) & 1)
+    x = events.x
+    y = (events.sensor_size[1] - 1) - events.y.astype(np.int32)
+    rows[:, 1] = x.astype(np.uint8)  # the low byte (a cast keeps the low bits)
+    rows[:, 2] = (x >> 8).astype(np.uint8)
+    rows[:, 3] = y.astype(np.uint8)
+    rows[:, 4] = (y >> 8).astype(np.uint8)
+    out = rows.reshape(-1)
+    if n_over:
+        out = np.insert(out, np.repeat(np.arange(len(t)) * 5, over), np.uint8(0xFF))
     state["t"] = int(t[-1])
     return out.tobytes()
 
