@@ -208,24 +208,31 @@ def encode_evt3(events: Events, triggers: Triggers | None = None, state: dict | 
         y_chg[0] = int(y_ev[0]) != state.get("y", -1)
         np.not_equal(y_ev[1:], y_ev[:-1], out=y_chg[1:])
         y_new[ev] = y_chg
-    n_pre = n_high + low_new + y_new
-    total = n + int(n_pre.sum())
-    require_memory(2 * total, "the EVT 3.0 words")
-    pos = np.arange(n) + np.cumsum(n_pre)
-    out = np.empty(total, np.uint16)
-    out[pos[ev]] = (2 << 12) | (p.astype(np.uint16) & 1) << 11 | x.astype(np.uint16)
-    if trig is not None:
-        out[pos[trig]] = ((10 << 12) | tc[ti] << 8 | tv[ti]).astype(np.uint16)
-    out[pos[y_new] - 1] = y_ev[y_chg].astype(np.uint16) if len(y_ev) else 0  # EVT_ADDR_Y (type 0)
-    lo_pos = pos - y_new
-    out[lo_pos[low_new] - 1] = ((6 << 12) | (t[low_new] & 0xFFF)).astype(np.uint16)
-    hi_pos = lo_pos - low_new
-    has_high = n_high > 0
-    out[hi_pos[has_high] - 1] = ((8 << 12) | (high[has_high] & 0xFFF)).astype(np.uint16)
-    for i in np.flatnonzero(fillers):
-        base = int(prev_high[i])
-        for k in range(int(fillers[i])):
-            out[hi_pos[i] - 1 - int(fillers[i]) + k] = (8 << 12) | ((base + (k + 1) * 2047) & 0xFFF)
+    require_memory(16 * n, "the EVT 3.0 words")
+    # a row a record: [EVT_TIME_HIGH, EVT_TIME_LOW, EVT_ADDR_Y, the record's own word], kept where needed, then
+    # read out row by row in one pass; the fillers of long gaps (rare) go in before their records' rows
+    rows = np.empty((n, 4), np.uint16)
+    keep = np.empty((n, 4), bool)
+    rows[:, 0] = (8 << 12) | (high & 0xFFF).astype(np.uint16)
+    keep[:, 0] = n_high > 0
+    rows[:, 1] = (6 << 12) | (t & 0xFFF).astype(np.uint16)
+    keep[:, 1] = low_new
+    keep[:, 2] = y_new
+    keep[:, 3] = True
+    if trig is None:
+        rows[:, 2] = y_ev.astype(np.uint16)  # EVT_ADDR_Y (type 0)
+        rows[:, 3] = (2 << 12) | (p.astype(np.uint16) & 1) << 11 | x.astype(np.uint16)
+    else:
+        rows[ev, 2] = y_ev.astype(np.uint16)
+        rows[ev, 3] = (2 << 12) | (p.astype(np.uint16) & 1) << 11 | x.astype(np.uint16)
+        rows[trig, 3] = ((10 << 12) | tc[ti] << 8 | tv[ti]).astype(np.uint16)
+    out = rows[keep]
+    long = np.flatnonzero(fillers)
+    if len(long):
+        starts = np.cumsum(keep.sum(axis=1)) - keep.sum(axis=1)  # where each record's row begins in out
+        at = np.repeat(starts[long], fillers[long])
+        vals = [(8 << 12) | ((int(prev_high[i]) + (k + 1) * 2047) & 0xFFF) for i in long for k in range(fillers[i])]
+        out = np.insert(out, at, np.asarray(vals, np.uint16))
     if n:
         state["high"], state["t"] = int(high[-1]), int(t[-1])
     if len(y_ev):
