@@ -95,5 +95,9 @@ def convert(source, target, compression, salvage, sort, chunk_events, events_onl
         what = ", ".join(f"{name} ({k:,}{'' if name in ('trigger edges', 'metadata keys') else ' packets'})"
                          for name, k in done["left_out"].items())
         click.echo(f"evtk: warning: left out {what}: {target} cannot hold them (--events-only: no warning)", err=True)
+    if done["channels_lost"]:
+        lost = ", ".join(map(str, done["channels_lost"]))
+        click.echo(f"evtk: warning: {target} holds no trigger channels: the triggers of channel(s) {lost} "
+                   "are written without theirs (they read back as channel 0)", err=True)
     copied = "".join(f", {k:,} {name} packets" for name, k in done["copied"].items())
     click.echo(f"wrote {done['events']:,} events and {done['triggers']:,} triggers{copied} to {target}", err=True)

@@ -9,6 +9,8 @@ from ._checks import sorted_for_writing
 
 __all__ = ["convert"]
 
+# targets that hold trigger edges but not their channels (all read back as channel 0)
+_NO_CHANNELS = {"aedat4"}
 # attributes the AEDAT4 writer sets itself for every stream
 _OWN_KEYS = {"compression", "originalModuleName", "originalOutputName", "typeDescription", "typeIdentifier"}
 
@@ -23,13 +25,17 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
     the camera's name as ``source``), and the result's ``left_out`` names what
     was not copied, unless ``events_only`` asks for exactly that.
 
-    Prophesee RAW (EVT 2.0 and 3.0) keeps trigger edges with their
-    channels; DAT, Event Stream and CSV hold none, so they are left out and
-    named in ``left_out``. ``fmt`` names the target's format where the
-    extension does not (``.raw`` is EVT 3.0 unless ``fmt="evt2"``).
+    Prophesee RAW (EVT 2.0 and 3.0), HDF5 and Parquet keep trigger edges
+    with their channels; AEDAT4 keeps the edges but not their channels (those
+    lost are listed in ``channels_lost``); DAT, Event Stream and CSV hold no
+    triggers, so they are left out and named in ``left_out``. ``fmt`` names
+    the target's format where the extension does not (``.raw`` is EVT 3.0
+    unless ``fmt="evt2"``).
 
-    Returns a summary: ``events``, ``triggers`` (written), ``copied`` and
-    ``left_out`` (stream name -> packets; ``"trigger edges"`` -> count).
+    Returns a summary: ``events``, ``triggers`` (written), ``copied``,
+    ``left_out`` (stream name -> packets; ``"trigger edges"`` -> count) and
+    ``channels_lost`` (the non-zero trigger channels the target cannot hold,
+    in increasing order; empty when none).
     """
 
     fmt = write_format(target, fmt)
@@ -44,6 +50,9 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
             camera = None
         metadata = dict(rec.metadata or {})
         copied, left_out = {}, {}
+        channels_lost = []
+        if triggers is not None and fmt in _NO_CHANNELS:
+            channels_lost = [c for c in triggers.channels if c != 0]
         if fmt == "aedat4":  # the camera's name and the other streams go along
             extra = [(s.name, s.type, {k: v for k, v in s.attributes.items() if k not in _OWN_KEYS}) for s in others]
             writer = open_writer(target, rec.sensor_size, compression, metadata or None, triggers,
@@ -56,6 +65,7 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
             if triggers is not None and len(triggers) and "trigger" in (LOSES[fmt] or ""):
                 left_out["trigger edges"] = len(triggers)
                 triggers = None
+                channels_lost = []  # the edges themselves are named as left out
             if metadata and "metadata" in (LOSES[fmt] or "") and fmt in ("es", "csv"):
                 left_out["metadata keys"] = len(metadata)
             writer = open_writer(target, rec.sensor_size, compression, metadata or None, triggers, fmt=fmt)
@@ -76,4 +86,4 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
                     k += 1
                 copied[s.name] = k
     return {"events": n, "triggers": 0 if triggers is None else len(triggers), "copied": copied,
-            "left_out": left_out}
+            "left_out": left_out, "channels_lost": channels_lost}

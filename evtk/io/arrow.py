@@ -169,8 +169,8 @@ class ParquetRecording(BaseRecording):
         if KEY_TRIGGERS in meta:
             d = load_json(meta[KEY_TRIGGERS], self.path, "schema metadata evtk.triggers")
             try:
-                self._triggers = Triggers(d["t"], d["kind"])
-            except (ValueError, KeyError, TypeError, EvtkError):
+                self._triggers = Triggers(d["t"], d["kind"], d.get("channel"))
+            except (ValueError, KeyError, TypeError, AttributeError, EvtkError):
                 raise FormatError(self.path, None, "schema metadata evtk.triggers is malformed") from None
         self._t_col = schema.names.index("t")
         md = self._pf.metadata

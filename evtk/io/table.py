@@ -78,7 +78,10 @@ def _schema_metadata(sensor_size, metadata=None, triggers=None) -> dict:
         except (TypeError, ValueError) as exc:
             raise EvtkError(f"metadata must be JSON-serialisable: {exc}") from None
     if triggers is not None:
-        out[KEY_TRIGGERS] = json.dumps({"t": triggers.t.tolist(), "kind": triggers.kind.tolist()}).encode()
+        d = {"t": triggers.t.tolist(), "kind": triggers.kind.tolist()}
+        if triggers.channel.any():  # channel 0 throughout: no key, as files before channels were kept
+            d["channel"] = triggers.channel.tolist()
+        out[KEY_TRIGGERS] = json.dumps(d).encode()
     return out
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...errors import FormatError, one_line
+from ...errors import EvtkError, FormatError, one_line
 from ...events import Triggers
 from ..base import load_json, sensor_dims
 from .checks import _T_MAX, _as_us, _check_int, _check_lengths, _describe_filters, _fixed_text, _need, _seconds_as_us
@@ -88,7 +88,16 @@ class _EvtkLayout(_Layout):
         t, k = _need(self.f["triggers"], self.path, ["t", "kind"], "evtk")
         if t.shape != k.shape:
             raise FormatError(self.path, None, "datasets /triggers/t and /triggers/kind differ in length")
-        return Triggers(t[...], k[...])
+        channel = None  # no dataset (files of channel 0 only, and those written before channels were kept)
+        if "channel" in self.f["triggers"]:
+            c = self.f["triggers/channel"]
+            if c.shape != t.shape:
+                raise FormatError(self.path, None, "datasets /triggers/t and /triggers/channel differ in length")
+            channel = c[...]
+        try:
+            return Triggers(t[...], k[...], channel)
+        except EvtkError as exc:
+            raise FormatError(self.path, None, f"the triggers cannot be read: {exc}") from None
 
     def compression(self):
         ids = _describe_filters(self.t)

@@ -207,6 +207,8 @@ class Hdf5Writer(BaseWriter):
             tg = self._f.create_group("triggers")
             tg.create_dataset("t", data=tr.t[order])
             tg.create_dataset("kind", data=tr.kind[order])
+            if tr.channel.any():  # channel 0 throughout: no dataset, as files before channels were kept
+                tg.create_dataset("channel", data=tr.channel[order])
         del self._f.attrs[INTERRUPTED]
         self._f.close()
 
