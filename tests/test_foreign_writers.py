@@ -291,3 +291,14 @@ def test_no_file_is_left_when_a_foreign_write_fails_midway(tmp_path):
             w.write_events(ev)
             w.write_events(ev)  # goes back in time
     assert not os.path.exists(path) and not list(tmp_path.iterdir())
+
+
+def test_csv_lines_equal_python_s_own_formatting():
+    """The numpy-only integer formatting of the CSV writer, against str() on every width and sign."""
+    from evtk.io.decoded import csv_lines
+
+    rng = np.random.default_rng(13)
+    cols = [np.concatenate([[0, -1, 9, 10, -10, 2**62, -(2**62)], rng.integers(-(10**12), 10**15, 500)]),
+            rng.integers(0, 65536, 507), np.zeros(507, np.int64), rng.integers(0, 2, 507)]
+    want = "".join(",".join(str(int(c[i])) for c in cols) + "\n" for i in range(507)).encode()
+    assert csv_lines(cols) == want

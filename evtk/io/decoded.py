@@ -365,16 +365,21 @@ def _ascii_digits(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     v = np.asarray(values, np.int64)
     neg = v < 0
     mag = np.abs(v).astype(np.uint64)
-    nd = np.ones(len(v), np.int64)
-    for k in range(1, 20):
-        nd += mag >= np.uint64(10**k)
+    top = int(mag.max()) if len(v) else 0
+    digits = len(str(top))  # the widest number's digits: the loops below run no further
+    if top < 1 << 32:
+        mag = mag.astype(np.uint32)  # whole-number division is faster in 32 bits
+    nd = np.ones(len(v), np.int8)
+    for k in range(1, digits):
+        nd += mag >= 10**k
     nd += neg
-    width = int(nd.max()) if len(v) else 1
+    width = digits + int(neg.any())
     mat = np.empty((len(v), width), np.uint8)
     rest = mag.copy()
-    for col in range(width - 1, -1, -1):
-        mat[:, col] = (rest % np.uint64(10)).astype(np.uint8) + 48
-        rest //= np.uint64(10)
+    ten = rest.dtype.type(10)
+    for col in range(width - 1, width - 1 - digits, -1):
+        mat[:, col] = (rest % ten).astype(np.uint8) + 48
+        rest //= ten
     if neg.any():
         mat[neg, width - nd[neg]] = ord("-")
     used = np.arange(width)[None, :] >= (width - nd)[:, None]
