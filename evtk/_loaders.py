@@ -95,7 +95,7 @@ def read_image(path, what="image") -> np.ndarray:
     with warnings.catch_warnings():  # the budget below is the check; Pillow's own warning is noise
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)
         try:
-            im = Image.open(path)
+            im: Image.Image = Image.open(path)
         except Exception as exc:  # noqa: BLE001 - any reader failure is the user's file
             raise EvtkError(f"cannot read {what} {path!r}: {exc}") from None
     with im:

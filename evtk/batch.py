@@ -267,7 +267,7 @@ def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, prog
 
     if fmt not in ("h5", "npz"):
         raise EvtkError(f"batch output format must be h5 or npz, not {fmt!r}")
-    left_out = []
+    left_out: list = []
     files = find_recordings(inputs, left_out)
     if not files:
         what = f"; left out, not recordings: {', '.join(f for f, _ in left_out)}" if left_out else ""

@@ -266,7 +266,7 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
                       [x0, x1, y0, y1], float(np.sqrt(np.mean(res ** 2))), float(res.max()), len(expected),
                       len(found), int(inliers.sum()), [int(w), int(h)], [int(rows), int(cols)], None, cmap.k1,
                       orientation=orientation, warnings=warnings)
-    cal._evidence = (image, found, expected)  # for plot_calibration; not saved
+    cal._evidence = (image, found, expected)  # type: ignore[attr-defined]  # for plot_calibration; not saved
     levels = s.kernel_id[win.capture] == LEVEL_ID
     use = levels | (s.kernel_id[win.capture] == FLAT_ID)
     if pixel_model and levels.any():  # a synchronous readout's counts fall in bright light: no model fits them
@@ -603,9 +603,10 @@ def plot_calibration(path, cal: Calibration):
     """PNG report of a calibration: the calibration captures' ON events with the dots found and the fitted
     map's prediction of every dot, and the residual of each dot (pixels)."""
 
-    image, found, expected = getattr(cal, "_evidence", (None, None, None))
-    if image is None:
+    evidence = getattr(cal, "_evidence", None)
+    if evidence is None:
         raise EvtkError("a calibration read from a file holds no evidence to draw; calibrate the recording again")
+    image, found, expected = evidence
     plt = pyplot()
     model = PixelFit.from_dict(cal.pixel_model) if cal.pixel_model else None
     if model is None:

@@ -76,7 +76,7 @@ def binarize_images(images, size=16, method="mean"):
     return np.where(small > thr, 1, -1).astype(np.int8)
 
 
-def _split(x, y, test_fraction, seed):
+def _split(x, y, test_fraction, seed) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Stratified split: the same share of each class in the test set."""
     if not 0 < test_fraction < 1:
         raise EvtkError(f"test_fraction must be between 0 and 1, not {test_fraction}")

@@ -212,7 +212,7 @@ class Events:
         if layout == "dv" and len(self) and max(int(self.x.max()), int(self.y.max())) > 32767:
             raise EvtkError("dv-processing stores int16 coordinates; this stream has coordinates above 32767")
         out = np.zeros(len(self), dtype=dtype)
-        tname, pname = [n for n in dtype.names if n not in ("x", "y")]
+        tname, pname = [n for n in (dtype.names or ()) if n not in ("x", "y")]
         out[tname] = self.t
         out["x"] = self.x
         out["y"] = self.y
@@ -254,7 +254,7 @@ class Events:
             and np.array_equal(self.p, other.p)
         )
 
-    __hash__ = None
+    __hash__ = None  # type: ignore[assignment]  # mutable columns: not hashable
 
     @property
     def is_sorted(self) -> bool:
@@ -411,7 +411,7 @@ class Triggers:
         return (np.array_equal(self.t, other.t) and np.array_equal(self.kind, other.kind)
                 and np.array_equal(self.channel, other.channel))
 
-    __hash__ = None
+    __hash__ = None  # type: ignore[assignment]  # mutable columns: not hashable
 
     def _take(self, index) -> Triggers:
         return Triggers(self.t[index], self.kind[index], self.channel[index])

@@ -201,7 +201,7 @@ def write_patterns(sim: Simulation, out_dir, image_format="png") -> dict:
     os.makedirs(os.path.join(out_dir, "features"), exist_ok=True)
     # one frame at a time: the bool frame, its upsampled pattern, the packed bits and the 1-bit image
     require_memory(4 * b.dmd_rows * b.dmd_cols, f"a {b.dmd_cols}x{b.dmd_rows} DMD frame")
-    written = {}
+    written: dict = {}
 
     def frame_file(kind, pattern, upsample):
         # frames are told apart by their pattern (a few elements), so a run of many repeats draws each once
@@ -224,7 +224,7 @@ def write_patterns(sim: Simulation, out_dir, image_format="png") -> dict:
                          "kernel_frame": kname, "features_frame": fname, "kernel_id": int(s.kernel_id[c]),
                          "features_id": int(s.features_id[c]), "kernel_sign": int(s.kernel_sign[c]),
                          "features_sign": int(s.features_sign[c]), "repeat": int(s.repeat[c]),
-                         "level": int(s.level[c])})
+                         "level": int(s.level[c]) if s.level is not None else 0})
     dark = f"dark.{fmt}"
     _save_1bit(os.path.join(out_dir, dark), np.zeros((b.dmd_rows, b.dmd_cols), bool), fmt)
     doc = {

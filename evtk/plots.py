@@ -197,7 +197,7 @@ def contact_sheet(path, result, rows_per_page=8) -> list:
     for page in range(pages):
         rows = range(page * per_page, min(n, (page + 1) * per_page))
         # (title, arrays, quantity: panels of one quantity share a colour scale and bar; None: binary)
-        cols = [("measured", result.cells, quantity)]
+        cols: list[tuple[str, np.ndarray, str | None]] = [("measured", result.cells, quantity)]
         if result.ideal is not None:
             cols.append(("ideal", result.ideal, ideal_quantity))
         cols.append((f"measured, binary ({method})", result.binary, None))
@@ -210,7 +210,7 @@ def contact_sheet(path, result, rows_per_page=8) -> list:
         fig.get_layout_engine().set(w_pad=0.15)
         binary_im = None
         for r, i in enumerate(rows):
-            groups = {}
+            groups: dict = {}
             for c, col in enumerate(cols):
                 if col[2] is not None:
                     groups.setdefault(col[2], []).append(c)

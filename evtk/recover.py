@@ -352,7 +352,8 @@ def recover_search(target, a_mat, size, true_kernel=None, fit_scale=True, weight
     w = _relative_weights(y, weights, floor)
     if w is not None:
         y, a_mat = y * w, a_mat * w[:, None]
-    scale, total_nodes, seen = (_initial_scale(a_mat, y) if fit_scale else 1.0), 0, {}
+    seen: dict = {}
+    scale, total_nodes = (_initial_scale(a_mat, y) if fit_scale else 1.0), 0
     for _ in range(4 if fit_scale else 1):
         am = scale * a_mat
         k, q, proven, nodes = _branch_and_bound(am, y, max_nodes, seen)

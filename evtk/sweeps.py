@@ -145,13 +145,15 @@ def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval=
     per_window = max(1, window_bytes(region, False))
     require_memory(fixed + per_window, f"{span}: measuring {len(win):,} windows over {x1 - x0}x{y1 - y0} pixels")
     batch = max(1, min(NOISE_BATCH_BYTES, (memory_limit_bytes() - fixed) // 2) // per_window)
-    acc = binary = None
+    acc: SinadAccumulator | None = None
+    binary: np.ndarray | None = None
     for i in range(0, len(win), batch):
         counts = accumulate(rec, win[i:i + batch], region, progress=progress)
         part = reconstruct_counts(counts, None, skip_us=skip_us, length_us=length_us, **options)
         if acc is None:
             acc = SinadAccumulator(len(win), part.cells.shape[1:])
             binary = np.empty((len(win),) + part.binary.shape[1:], part.binary.dtype)
+        assert acc is not None and binary is not None  # made by the first batch
         acc.add(part.cells)
         binary[i:i + batch] = part.binary
     return [_scene_row(-1, -1, acc, binary, interval, per_pixel, seed)]

@@ -336,10 +336,10 @@ def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, trig
     if fmt == "hdf5":
         from .hdf5 import Hdf5Writer
 
-        w = Hdf5Writer(path, sensor_size, compression, metadata, **kwargs)
+        h5 = Hdf5Writer(path, sensor_size, compression, metadata, **kwargs)
         if triggers is not None:
-            w.write_triggers(triggers)
-        return w
+            h5.write_triggers(triggers)
+        return h5
     from .arrow import ParquetWriter
 
     return ParquetWriter(path, sensor_size, compression, metadata, triggers, **kwargs)

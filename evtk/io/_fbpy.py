@@ -358,8 +358,8 @@ def decode_data_table(b, ident: bytes):
             return None, ST_BAD_OFFSET
         out.append(np.where(pos > 0, _gather(b, pos, size, signed), 0))
     offset, header, cnt, t0, t1 = out
-    stream = (header & 0xFFFFFFFF).astype(np.int64)
-    stream = np.where(stream >= 2**31, stream - 2**32, stream)
-    size = (header >> 32).astype(np.int64)
-    size = np.where(size >= 2**31, size - 2**32, size)
-    return (offset, stream, size, cnt, t0, t1), ST_OK
+    low = (header & 0xFFFFFFFF).astype(np.int64)
+    stream = np.where(low >= 2**31, low - 2**32, low)
+    high = (header >> 32).astype(np.int64)
+    sizes = np.where(high >= 2**31, high - 2**32, high)
+    return (offset, stream, sizes, cnt, t0, t1), ST_OK

@@ -174,7 +174,7 @@ class ParquetRecording(BaseRecording):
                 raise FormatError(self.path, None, "schema metadata evtk.triggers is malformed") from None
         self._t_col = schema.names.index("t")
         md = self._pf.metadata
-        self._groups = []  # (rows, t_min, t_max) per row group; None when no statistics
+        self._groups: list[tuple[int, int | None, int | None]] = []  # (rows, t_min, t_max); None: no statistics
         expected = [md.schema.column(j).physical_type for j in range(md.num_columns)]
         fatal = _first_fatal_row_group(self._pf, self._t_col)
         for g in range(md.num_row_groups):

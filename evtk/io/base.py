@@ -294,7 +294,7 @@ class BaseRecording:
         return out
 
     def _damage_info(self) -> dict:
-        out = {}
+        out: dict = {}
         if self.warnings:
             out["warnings"] = list(self.warnings)
         if self.salvage:
@@ -343,7 +343,7 @@ class BaseRecording:
         """With salvage, a time window is cut from what the whole read recovers (read once, then kept): a window
         must never hold events from beyond the damage that ends the full read. Readers whose index could reach
         past the damage call this for windowed reads in salvage mode."""
-        if getattr(self, "_salvage_cache", None) is None:
+        if self._salvage_cache is None:
             self._salvage_cache = self.events()
         return self._salvage_cache.between(t_start_us, t_end_us)
 

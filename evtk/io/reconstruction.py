@@ -349,21 +349,23 @@ def _check_zip_layout(z: zipfile.ZipFile, path) -> None:
     the next begins, and the last where the central directory starts. A damaged directory that lost a member
     (an optional array, which would then vanish without a word) leaves bytes no member names."""
     infos = sorted(z.infolist(), key=lambda i: i.header_offset)
+    fp = z.fp
+    assert fp is not None  # an open archive
     pos = 0
     for info in infos:
         if info.header_offset != pos:
             raise FormatError(path, pos, f"bytes {pos}..{info.header_offset} belong to no member of the NPZ "
                                          "(its directory is damaged)")
-        z.fp.seek(info.header_offset)
-        head = z.fp.read(30)
+        fp.seek(info.header_offset)
+        head = fp.read(30)
         if len(head) < 30 or head[:4] != b"PK\x03\x04":
             raise FormatError(path, info.header_offset, f"{info.filename}: no local header where the directory "
                                                         "points")
         name_len, extra_len = int.from_bytes(head[26:28], "little"), int.from_bytes(head[28:30], "little")
         pos = info.header_offset + 30 + name_len + extra_len + info.compress_size
         if info.flag_bits & 0x08:  # a data descriptor follows the data (signature optional)
-            z.fp.seek(pos)
-            pos += 16 if z.fp.read(4) == b"PK\x07\x08" else 12
+            fp.seek(pos)
+            pos += 16 if fp.read(4) == b"PK\x07\x08" else 12
     if pos != z.start_dir:
         raise FormatError(path, pos, f"bytes {pos}..{z.start_dir} belong to no member of the NPZ (its directory "
                                      "is damaged)")

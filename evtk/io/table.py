@@ -110,7 +110,7 @@ def _sensor_from(meta, path=None):
     return sensor_dims(value[0], value[1], path, f"schema metadata {KEY_SENSOR.decode()}")
 
 
-def _columns(table, path=None):
+def _columns(table, path=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     names = table.schema.names if hasattr(table, "schema") else table.names
     missing = [c for c in ("t", "x", "y", "p") if c not in names]
     if missing:
@@ -124,7 +124,8 @@ def _columns(table, path=None):
         if arr.dtype.kind not in "iub":
             raise FormatError(path, None, f"column {name!r} has type {col.type}, expected an integer type")
         cols.append(arr)
-    return cols
+    t, x, y, p = cols
+    return t, x, y, p
 
 
 def table_to_columns(table, sensor_size=None):

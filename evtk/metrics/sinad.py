@@ -89,8 +89,11 @@ class SinadReport:
         }
         if self.per_pixel_db is not None:
             pp = self.per_pixel_db
-            d["per_pixel_db"] = np.where(pp.mask | ~np.isfinite(pp.filled(0.0)), None,
-                                         pp.filled(0.0)).tolist()
+            values = pp.filled(0.0)
+            missing = np.asarray(pp.mask | ~np.isfinite(values))
+            d["per_pixel_db"] = np.where(missing, np.nan, values).astype(object)
+            d["per_pixel_db"][missing] = None
+            d["per_pixel_db"] = d["per_pixel_db"].tolist()
         return d
 
 

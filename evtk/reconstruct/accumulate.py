@@ -151,7 +151,8 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         if counts.shape != shape or counts.dtype != np.int32 or not counts.flags.c_contiguous:
             raise EvtkError(f"out must be a C-contiguous int32 array of shape {shape}")
     on, off = counts[1], counts[0]
-    first = last = None
+    first: np.ndarray | None = None
+    last: np.ndarray | None = None
     if times:
         if n_w and int(windows.length_us.max()) >= 2**31:
             raise EvtkError("event times are kept relative to their window as int32: windows must be "
@@ -172,8 +173,8 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
     total = np.zeros(n_w, np.int64)
     flat = counts.reshape(-1)
     no_times = np.empty(0, np.int32)  # the numba loop keeps no times when given empty arrays
-    first_flat = first.reshape(-1) if times else no_times
-    last_flat = last.reshape(-1) if times else no_times
+    first_flat = first.reshape(-1) if first is not None else no_times
+    last_flat = last.reshape(-1) if last is not None else no_times
     period = None
     for ev in chunks:
         if times and period is None:
@@ -186,7 +187,7 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         if progress is not None:
             progress(len(ev))
     counts[:, ~started] = 0  # windows no event reached (positions in start order)
-    if times:
+    if first is not None and last is not None:
         first[~started] = -1
         last[~started] = -1
     if not np.array_equal(order, np.arange(n_w)):  # back to the caller's window order
@@ -194,6 +195,6 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         inv[order] = np.arange(n_w)
         counts[:] = counts[:, inv]
         on, off = counts[1], counts[0]
-        if times:
+        if first is not None and last is not None:
             first, last = first[inv], last[inv]
     return WindowCounts(on, off, windows, (x0, x1, y0, y1), int(used), first, last, period)

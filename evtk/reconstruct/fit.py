@@ -672,9 +672,9 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
         and bool(np.isfinite(stats.rise_us).any()) else None
     # time stamps are whole us rounded down (as the timing linearisation takes them): half a tick on average
     first_t = stats.first_us + 0.5
-    rise_t = stats.rise_us + 0.5 if orders is not None else None
+    rise_t = stats.rise_us + 0.5 if orders is not None and stats.rise_us is not None else None
     has_first = np.isfinite(first_t) & bool(times)
-    has_rise = np.isfinite(rise_t) & bool(times) if orders is not None else np.zeros(light.size, bool)
+    has_rise = np.isfinite(rise_t) & bool(times) if rise_t is not None else np.zeros(light.size, bool)
     # a light that follows the trigger edges late shifts every time alike: the first ON events (a few us into the
     # rise) then say how late, the half-way ones (tens of us) the time constant
     fit_delay = bool(has_rise.any() and has_first.any())

@@ -76,7 +76,7 @@ class Reconstruction:
         """
         if self.pairs is None:
             return {(-1, -1): np.arange(self.cells.shape[0])}
-        out = {}
+        out: dict = {}
         for i, (k, f, _) in enumerate(self.pairs.tolist()):
             out.setdefault((k, f), []).append(i)
         return {key: np.asarray(v) for key, v in out.items()}

@@ -158,8 +158,8 @@ class Simulation:
         self.region = response_region(self.bench, kshape, self.features.shape[1:])
         if self.camera is not None:  # where the camera's pose and lens put the nominal response
             self.region = self.camera.sensor_region(self.region, self._sensor_size)
-        self._passes = {}
-        self._rate_cache = {}  # region (or "glow") -> {(kernel, features, signs): photoelectron rates}
+        self._passes: dict = {}
+        self._rate_cache: dict = {}  # region (or "glow") -> {(kernel, features, signs): photoelectron rates}
         self.flat_field = _int_param("flat_field", flat_field, 0)
         per_pair = max(len(self._pair_passes(0, 0)), 1) if len(self.kernels) and len(self.features) else 1
         n_est = self.flat_field + self.repeat * len(self.kernels) * len(self.features) * per_pair
@@ -190,10 +190,10 @@ class Simulation:
         if end >= _T_LIMIT:
             raise EvtkError(f"the run would end at t = {end} us, beyond the int64 timestamp range")
         self._check_size(n, end - self.start_us)
-        rows = np.asarray(rows, dtype=np.int64)
+        table = np.asarray(rows, dtype=np.int64)
         t_on = self.start_us + self.settle_us + np.arange(n, dtype=np.int64) * period
-        self.schedule = Schedule(np.arange(n, dtype=np.int64), rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3],
-                                 t_on, t_on + self.window_us, rows[:, 4], rows[:, 5])
+        self.schedule = Schedule(np.arange(n, dtype=np.int64), table[:, 0], table[:, 1], table[:, 2], table[:, 3],
+                                 t_on, t_on + self.window_us, table[:, 4], table[:, 5])
         self.end_us = int(end)
 
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x5E5]))
@@ -285,7 +285,9 @@ class Simulation:
     def cell_map(self) -> CellMap:
         """Where each cell (column, row) of the full response lands on the sensor (pose and lens included)."""
         record = self.record()
-        return record.placement() or record.replace(camera=Camera().to_dict()).placement()
+        found = record.placement() or record.replace(camera=Camera().to_dict()).placement()
+        assert found is not None  # a record with a camera always has a placement
+        return found
 
     def ideal(self, c):
         """Ground truth of capture ``c``: the noise-free digital response of its pass (full correlation)."""

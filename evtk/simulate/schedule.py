@@ -202,9 +202,10 @@ def check_schedule(where, s: Schedule, n_kernels=None, n_features=None, kernel_e
     if np.any(s.repeat < 0) or np.any(s.repeat > MAX_COUNT):
         first((s.repeat < 0) | (s.repeat > MAX_COUNT), f"repeat must be from 0 to {MAX_COUNT}")
     is_level = s.kernel_id == LEVEL_ID
-    top = kernel_elements if kernel_elements is not None else MAX_SIDE ** 2
-    if np.any(is_level & ((s.level < 1) | (s.level > top))) or np.any(~is_level & (s.level != 0)):
-        first(is_level & ((s.level < 1) | (s.level > top)) | (~is_level & (s.level != 0)),
+    top: int = kernel_elements if kernel_elements is not None else MAX_SIDE ** 2
+    level = s.level if s.level is not None else np.zeros(len(s.kernel_id), np.int64)
+    if np.any(is_level & ((level < 1) | (level > top))) or np.any(~is_level & (level != 0)):
+        first(is_level & ((level < 1) | (level > top)) | (~is_level & (level != 0)),
               f"level must be from 1 to {top} (kernel elements on) on a level capture and 0 elsewhere")
 
 

@@ -83,7 +83,7 @@ def _parse_xml(text: str, path) -> dict:
         raise FormatError(path, _HEADER_START, "the header's XML has no 'outInfo' node describing the streams")
     for node in outinfo.findall("node"):
         try:
-            sid = int(node.get("name"))
+            sid = int(node.get("name") or "")
         except (TypeError, ValueError):
             continue
         info = node.find("node[@name='info']")
@@ -98,6 +98,10 @@ class _FileIndex:
 
     Expects ``path``, ``salvage``, ``damage``, ``warnings`` and ``_fd`` on the instance.
     """
+
+    path: str
+    salvage: bool
+    _size: int
 
     def _pread(self, n, offset):
         if self._fd < 0:

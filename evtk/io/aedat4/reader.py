@@ -39,7 +39,7 @@ class Recording(_FileIndex, BaseRecording):
     def __init__(self, path, salvage: bool = False, verify_checksums: bool = True):
         super().__init__(path, salvage)
         self._fd = -1
-        self._spans = {}  # stream id -> each packet's (earliest, latest) stamp, read on the first window
+        self._spans: dict = {}  # stream id -> each packet's (earliest, latest) stamp, read on the first window
         self.verify_checksums = bool(verify_checksums)
         try:
             self._fd = os.open(self.path, os.O_RDONLY)
@@ -74,7 +74,7 @@ class Recording(_FileIndex, BaseRecording):
         if stream is None:
             candidates = [s for s in self._streams.values() if s.type == typ]
             preferred = [s for s in candidates if s.name == _TYPE_NAMES[typ]]
-            return (preferred or candidates or [None])[0]
+            return (preferred or candidates)[0] if (preferred or candidates) else None
         for s in self._streams.values():
             if stream == s.id or stream == s.name:
                 if s.type != typ:

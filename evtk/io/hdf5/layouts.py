@@ -28,7 +28,7 @@ class _Layout:
     def __len__(self):
         return self.n
 
-    def read(self, i0, i1):  # pragma: no cover - overridden
+    def read(self, i0, i1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
         raise NotImplementedError
 
     def triggers(self) -> Triggers:

@@ -374,9 +374,10 @@ class Hdf5Recording(BaseRecording):
             n = i1 - i0
             out = (np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8))
             good = self._salvage_block(i0, i1, out, 0, t_before)
-            return Events._trusted(*(c[:good] for c in out), self.sensor_size)
+            t, x, y, p = (c[:good] for c in out)
+            return Events._trusted(t, x, y, p, self.sensor_size)
         try:
-            ev = Events(*cols, self.sensor_size)
+            ev = Events(cols[0], cols[1], cols[2], cols[3], self.sensor_size)
         except EvtkError as exc:
             raise FormatError(self.path, None, f"event datasets hold invalid values: {exc}") from None
         good = self._check(ev, i0, t_before)
@@ -409,7 +410,7 @@ class Hdf5Recording(BaseRecording):
         if best is None:
             return 0
         try:
-            ev = Events(*best, self.sensor_size)
+            ev = Events(best[0], best[1], best[2], best[3], self.sensor_size)
         except EvtkError as exc:
             self.damage = Damage(None, f"events from index {a} hold invalid values ({exc})")
             return 0
