@@ -25,7 +25,7 @@ SEED = 7
 CASES = 16  # per target: 8 byte mutations, 8 structure-aware ones
 
 EVENT_TARGETS = ["f.es", "f2.raw", "f3.raw", "l1.aedat", "l3.aedat", "p.parquet", "z.aedat4", "l2.aedat", "f.dat",
-                 "f.aedat4", "l.aedat4", "d.h5", "e.h5"]
+                 "f.aedat4", "l.aedat4", "d.h5", "e.h5", "t.csv", "t.txt", "n.bin"]
 RUN_TARGETS = ["r.h5", "r.npz", "job.toml", "schedule.json", "cal.toml", "record.json"]
 
 
