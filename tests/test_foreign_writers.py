@@ -179,6 +179,18 @@ def test_text_events_in_microseconds_with_a_height_width_line(tmp_path):
         assert info["events"] == 500 and info["format"] == "text"
 
 
+def test_one_stray_decimal_point_does_not_read_a_microsecond_file_as_seconds(tmp_path):
+    """A separator changed to '.' on one line ("1234. 56 7 1") left four numbers there, and the first dot in
+    the file made every stamp seconds: a million times every time written, silently (fuzz campaign, t.txt)."""
+    ev = _events(n=400, size=(240, 180), t0=5_000, span=100_000)
+    lines = ["180 240"] + [f"{t}  {x:3d} {y:3d} {p}" for t, x, y, p in zip(ev.t, ev.x, ev.y, ev.p)]
+    lines[20] = lines[20].replace("  ", ". ", 1)
+    path = tmp_path / "events.txt"
+    path.write_text("\n".join(lines) + "\n")
+    with evtk.open(path) as rec:
+        assert _same(rec.events(), ev)
+
+
 def test_text_events_in_seconds_with_column_names_and_minus_one_polarity(tmp_path):
     ev = _events(n=300, size=(346, 260), t0=10_000, span=2_000_000)
     lines = ["timestamp,x,y,polarity"] + [f"{t / 1e6:.6f},{x},{y},{1 if p else -1}"

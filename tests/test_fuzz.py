@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import collections
 
+import numpy as np
 import pytest
 
 pytest.importorskip("faery")
@@ -25,7 +26,7 @@ SEED = 7
 CASES = 16  # per target: 8 byte mutations, 8 structure-aware ones
 
 EVENT_TARGETS = ["f.es", "f2.raw", "f3.raw", "l1.aedat", "l3.aedat", "p.parquet", "z.aedat4", "l2.aedat", "f.dat",
-                 "f.aedat4", "l.aedat4", "d.h5", "e.h5"]
+                 "f.aedat4", "l.aedat4", "d.h5", "e.h5", "t.csv", "t.txt", "n.bin"]
 RUN_TARGETS = ["r.h5", "r.npz", "job.toml", "schedule.json", "cal.toml", "record.json"]
 
 
@@ -80,3 +81,34 @@ def test_oracle_accepts_a_true_wrap_after_a_stamp_flipped_high(built):
     got_t[601:] += 2**32
     got = evtk.Events(got_t, truth.x, truth.y, truth.p, truth.sensor_size)
     assert tg.judge_events(t, got, {"kind": "bitflip", "touched": [(at + 3, at + 4)], "in_place": True}) == "altered"
+
+
+def test_nmnist_oracle_allows_the_marker_rule_and_nothing_more(built):
+    """A record made an overflow marker drops its event and moves every later stamp by 2**13 us; the same
+    shift with no marker gained is a change that spread."""
+    import evtk
+
+    t = tg.load_event_targets(built)["n.bin"]
+    truth, data = t.truth, bytearray(t.path.read_bytes())
+    data[5 * 100 + 1] = 240  # record 100 (before the file's own marker) becomes a marker
+    got_t = truth.t.copy()
+    got_t[100:] += 8192
+    keep = np.arange(len(truth)) != 100
+    got = evtk.Events(got_t[keep], truth.x[keep], truth.y[keep], truth.p[keep], truth.sensor_size)
+    mutation = {"kind": "nmnist/record0", "touched": [(500, 505)], "in_place": True, "data": bytes(data)}
+    assert tg.judge_events(t, got, mutation) == "altered"
+    spread = evtk.Events(got_t[keep] + 1, truth.x[keep], truth.y[keep], truth.p[keep], truth.sensor_size)
+    with pytest.raises(tg.Wrong, match="untouched event"):
+        tg.judge_events(t, spread, mutation)
+
+
+def test_text_oracle_refutes_a_change_that_spreads(built):
+    """One line of the text file changed may change one event, not rescale them all (a stray '.')."""
+    import evtk
+
+    t = tg.load_event_targets(built)["t.txt"]
+    truth = t.truth
+    at = t.data_start + 3
+    scaled = evtk.Events(truth.t * 10**6, truth.x, truth.y, truth.p, truth.sensor_size)
+    with pytest.raises(tg.Wrong, match="spread"):
+        tg.judge_events(t, scaled, {"kind": "text/separator", "touched": [(at, at + 1)], "in_place": True})

@@ -13,8 +13,9 @@ Text events
     order, and faery's names carry the sensor size. An optional first line
     of two integers gives the sensor size; which is width and which height
     is taken from the events (both orders are tried; when both fit, width
-    first, as E2VID's ``events.txt`` writes it, with a warning). Times with
-    a decimal point are seconds, whole numbers microseconds, unless
+    first, as E2VID's ``events.txt`` writes it, with a warning). Times are
+    seconds when most lines have a decimal point, else whole microseconds
+    (a stray dot on one line does not rescale the file), unless
     ``time_unit`` says otherwise. Polarity 1 (or ``true``) is ON; 0, -1 (or
     ``false``) OFF.
 
@@ -329,8 +330,8 @@ class TextRecording(DecodedRecording):
 
     def _times(self, t_raw: np.ndarray, body: bytes) -> np.ndarray:
         unit = self.time_unit
-        if unit is None:
-            unit = "s" if b"." in body[:4096] else "us"
+        if unit is None:  # seconds when most lines have a decimal point: one stray dot does not rescale the file
+            unit = "s" if 2 * _dotted_lines(body) > max(1, len(t_raw)) else "us"
         scaled = np.rint(t_raw * TIME_UNITS[unit])
         if len(scaled) and not np.all(np.abs(scaled) < 2.0**62):
             raise FormatError(self.path, 0, f"time stamps in {unit} beyond what int64 microseconds hold")
@@ -357,6 +358,15 @@ class TextRecording(DecodedRecording):
             return sensor_dims(b, a, self.path, "the first line (height width)")
         raise FormatError(self.path, 0, f"the first line gives a {a}x{b} sensor, but events reach x={mx - 1}, "
                                         f"y={my - 1}")
+
+
+def _dotted_lines(body: bytes) -> int:
+    """Number of lines of ``body`` with a decimal point."""
+    arr = np.frombuffer(body, np.uint8)
+    dots = np.flatnonzero(arr == 46)
+    if not len(dots):
+        return 0
+    return len(np.unique(np.searchsorted(np.flatnonzero(arr == 10), dots)))
 
 
 def _ascii_digits(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

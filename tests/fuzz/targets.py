@@ -4,7 +4,7 @@ Three kinds of target, each built once into a folder (:func:`build`) and
 loaded by every worker (``load_*_targets``):
 
 * event files (AEDAT4, evtk and DSEC HDF5, Parquet, legacy AEDAT 1.0/2.0/3.1,
-  Prophesee EVT 2.0/EVT 3.0/DAT, Event Stream): the truth is the events
+  Prophesee EVT 2.0/EVT 3.0/DAT, Event Stream, text events, N-MNIST): the truth is the events
   written, checked at build time against the reader of the unmutated file;
 * reconstruction files (``.h5`` and ``.npz`` from ``evtk.save_reconstruction``):
   the truth is every array and the summary;
@@ -43,6 +43,14 @@ What a mutation may change, per format (:func:`judge_events`):
   each where the raw stamp steps back by more than half the range (what the
   wrap rule makes of a stamp flipped high); a wrap from a small backward step
   is silently wrong;
+* ``text`` (CSV as evtk writes it, ``t x y p`` after a "H W" line): ``k``
+  bytes changed in place after the first lines may change, drop or add at
+  most one event for each line touched (a changed digit changes that
+  event; a changed separator may leave a line that does not parse, a clean
+  error), and never the sensor size;
+* ``nmnist`` (5-byte records): a record changed in place may change its
+  event, or become (or stop being) an overflow marker, which moves every
+  later stamp by 2**13 us; every other event keeps its values;
 * ``checksummed`` (faery's AEDAT4, LZ4 frames with xxHash32): after the
   header, nothing but the events written or an error;
 * ``stateful`` formats (EVT 2.0/3.0, Event Stream, where a time-high word or
@@ -336,6 +344,8 @@ def check_events(target: EventTarget, path, mutation) -> str:
         got = None
     if got is not None:
         _bounds(got, warnings, target)
+        if target.family == "nmnist":
+            mutation = dict(mutation, data=Path(path).read_bytes())
         outcome = judge_events(target, got, mutation)
     # salvage: never a traceback, read paths agree, a truncated file gives a prefix
     try:
@@ -371,6 +381,18 @@ def judge_events(target, got, mutation) -> str:
     if target.family == "checksummed":
         raise Wrong(f"{kind} after byte {target.data_start}, which a checksum covers: a read of {len(got)} events "
                     f"that differ from the {len(truth)} written")
+    if target.family == "text" and mutation["in_place"] and first >= target.data_start:
+        k = len(_text_lines_touched(target, touched))
+        if got.sensor_size != truth.sensor_size:
+            raise Wrong(f"the sensor size changed to {got.sensor_size} with only event lines touched")
+        lost, added = _multiset_diff(truth, got)
+        if lost > k or added > k:
+            raise Wrong(f"{k} event line(s) changed, yet {lost} events written are missing and {added} events read "
+                        "were not written (a change that spread past the lines touched)")
+        return "altered"
+    if target.family == "nmnist" and mutation["in_place"]:
+        _judge_nmnist(target, got, touched, mutation["data"])
+        return "altered"
     if target.family == "fixed" and mutation["in_place"]:
         k = _records_touched(target, touched)
         if k is not None:
@@ -381,6 +403,49 @@ def judge_events(target, got, mutation) -> str:
                 raise Wrong(f"{k} event record(s) changed, yet {lost} events written are missing and {added} "
                             "events read were not written (a change that spread past the records touched)")
     return "altered"
+
+
+def _text_lines_touched(target, touched) -> set:
+    """Indices of the source file's lines (from ``data_start``) that the byte ranges touch; a separator's line
+    counts, and a changed line end also counts the line after it."""
+    data = target.path.read_bytes()
+    ends = np.flatnonzero(np.frombuffer(data, np.uint8) == 10)
+    out = set()
+    for a, b in touched:
+        first, last = np.searchsorted(ends, [a, b - 1])
+        out.update(range(int(first), int(last) + 1))
+        if last < len(ends) and ends[last] == b - 1:
+            out.add(int(last) + 1)  # a line end changed: the next line may join this one
+    return out
+
+
+def _judge_nmnist(target, got, touched, mutated: bytes) -> None:
+    """N-MNIST, records changed in place: each touched record may change its event (or become or stop being an
+    overflow marker); every untouched event keeps x, y and p, and its stamp moves by 2**13 us for each marker
+    gained before it (less each one lost). :class:`Wrong` otherwise."""
+    src = np.frombuffer(target.path.read_bytes(), np.uint8)
+    n = len(src) // 5
+    old_marker = src[1:5 * n:5] == 240
+    new_y = np.frombuffer(mutated[:5 * n], np.uint8)[1::5]
+    new_marker = new_y == 240
+    hit = np.zeros(n, bool)
+    for a, b in touched:
+        hit[a // 5:min(n, (b - 1) // 5 + 1)] = True
+    if len(got) != int((~new_marker).sum()):
+        raise Wrong(f"{len(got)} events read from {int((~new_marker).sum())} records that are not overflow markers")
+    keep = ~hit & ~old_marker
+    old_pos = np.cumsum(~old_marker) - 1
+    new_pos = np.cumsum(~new_marker) - 1
+    shift = (np.cumsum(new_marker) - np.cumsum(old_marker)) * 8192
+    truth = target.truth
+    i, j = old_pos[keep], new_pos[keep]
+    ok = ((got.x[j] == truth.x[i]) & (got.y[j] == truth.y[i]) & (got.p[j] == truth.p[i])
+          & (got.t[j] - truth.t[i] == shift[keep]))
+    if not ok.all():
+        k = int(np.flatnonzero(~ok)[0])
+        raise Wrong(f"{int(hit.sum())} record(s) changed, yet the untouched event {int(i[k])} reads as "
+                    f"t={int(got.t[j[k]])} ({int(got.x[j[k]])}, {int(got.y[j[k]])}), written t={int(truth.t[i[k]])} "
+                    f"({int(truth.x[i[k]])}, {int(truth.y[i[k]])}), marker shift {int(shift[keep][k])} us")
 
 
 # --------------------------------------------------------------------------------------------------- word mutations
@@ -412,6 +477,10 @@ def header_mutation(data: bytes, start: int, rng):
 def word_mutation(target: EventTarget, data: bytes, rng):
     """A record-aware change for the legacy and Prophesee formats: ``(bytes, kind, touched, in_place)``."""
     fmt = target.structured
+    if fmt == "text":
+        return _text_mutation(target, data, rng)
+    if fmt == "nmnist":
+        return _nmnist_mutation(data, rng)
     text_end = 0 if fmt == "es" else target.data_start - 2 if fmt == "dat" else target.data_start
     if rng.integers(0, 4) == 0 and text_end > 0:
         out, end = header_mutation(data, text_end, rng)
@@ -498,6 +567,67 @@ def word_mutation(target: EventTarget, data: bytes, rng):
         data[at] = int(rng.choice([0xFF, 0xFE, 0xFD, 0x00, 0x80, 0x7F, int(rng.integers(0, 256))]))
         return bytes(data), kind, [(at, at + 1)], True
     return bytes(data), kind, [(at, at + size)], True
+
+
+def _text_mutation(target: EventTarget, data: bytes, rng):
+    """A text event file's change: a digit of an event line replaced by another, a separator replaced (by another
+    separator, a dot, a letter), a line dropped or repeated, or (where there is one) the first lines changed."""
+    start = target.data_start
+    if rng.integers(0, 4) == 0 and start > 0:
+        out, end = header_mutation(data, start, rng)
+        return out, "text/header", [(0, end)], False
+    body = data[start:]
+    what = int(rng.integers(0, 3))
+    if what == 0:
+        spots = [m.start() for m in re.finditer(rb"\d", body)]
+        at = start + spots[int(rng.integers(0, len(spots)))]
+        new = bytes([48 + int(rng.integers(0, 10))])
+        return data[:at] + new + data[at + 1:], "text/digit", [(at, at + 1)], True
+    if what == 1:
+        spots = [m.start() for m in re.finditer(rb"[,\t ]+", body)]
+        at = start + spots[int(rng.integers(0, len(spots)))]
+        new = bytes([rng.choice(list(b",; \t.:|x-"))])
+        return data[:at] + new + data[at + 1:], "text/separator", [(at, at + 1)], True
+    ends = [m.end() for m in re.finditer(rb"\n", body)]
+    i = int(rng.integers(0, len(ends)))
+    a, b = start + (ends[i - 1] if i else 0), start + ends[i]
+    if rng.integers(0, 2):
+        return data[:a] + data[b:], "text/line_dropped", [(a, len(data))], False
+    return data[:b] + data[a:b] + data[b:], "text/line_repeated", [(b, len(data) + b - a)], False
+
+
+def _nmnist_mutation(data: bytes, rng):
+    """An N-MNIST record changed: made an overflow marker (y = 240), a marker made an event, its stamp set
+    back or far ahead, or its x, y and polarity byte set at random."""
+    data = bytearray(data)
+    n = len(data) // 5
+    markers = [k for k in range(n) if data[5 * k + 1] == 240]
+    what = int(rng.integers(0, 4))
+    i = int(rng.integers(0, n))
+    if what == 1 and markers:
+        i = markers[int(rng.integers(0, len(markers)))]
+    at = 5 * i
+    if what == 0:
+        data[at + 1] = 240
+    elif what == 1:
+        data[at + 1] = int(rng.integers(0, 34))
+    elif what == 2:
+        t = int(rng.choice([0, 2**23 - 1, int(rng.integers(0, 2**23))]))
+        data[at + 2] = (data[at + 2] & 0x80) | (t >> 16)
+        data[at + 3:at + 5] = (t & 0xFFFF).to_bytes(2, "big")
+    else:
+        data[at:at + 3] = bytes(int(v) for v in rng.integers(0, 256, 3))
+    return bytes(data), f"nmnist/record{what}", [(at, at + 5)], True
+
+
+def nmnist_bytes(ev) -> bytes:
+    """``ev`` as N-MNIST records (x, y, polarity in bit 7 and a 23-bit big-endian stamp), with no marker."""
+    raw = np.zeros((len(ev), 5), np.uint8)
+    t = ev.t.astype(np.int64)
+    raw[:, 0], raw[:, 1] = ev.x, ev.y
+    raw[:, 2] = (ev.p.astype(np.int64) << 7) | ((t >> 16) & 0x7F)
+    raw[:, 3], raw[:, 4] = (t >> 8) & 0xFF, t & 0xFF
+    return raw.tobytes()
 
 
 # --------------------------------------------------------------------------------------------------- writers
@@ -627,7 +757,31 @@ def build(folder, files=True, runs=True) -> None:
         with evtk.open(folder / "f.aedat4") as rec:
             s = rec._data_start
         add("f.aedat4", "checksummed", s, unsigned_t=False, structured="aedat4")
+    _build_decoded(folder, ev, add)
     (folder / "events.json").write_text(json.dumps(meta))
+
+
+def _build_decoded(folder, ev, add) -> None:
+    """The formats evtk decodes whole: text events as evtk writes them (CSV, with faery's column names), as
+    the DVS tools write them (a "H W" line, then ``t x y p`` with runs of spaces), and an N-MNIST binary
+    (34x34, with an overflow marker in the middle)."""
+    evtk.write_events(folder / "t.csv", ev, fmt="csv")
+    data = (folder / "t.csv").read_bytes()
+    add("t.csv", "text", data.index(b"\n") + 1, unsigned_t=False, structured="text", truth=ev)
+    small = evtk.Events(ev.t, ev.x % 240, ev.y % 180, ev.p, (240, 180))
+    lines = ["180 240"] + [f"{t} {x:3d} {y:3d} {p}" for t, x, y, p in zip(small.t, small.x, small.y, small.p)]
+    (folder / "t.txt").write_text("\n".join(lines) + "\n")
+    add("t.txt", "text", len(lines[0]) + 1, unsigned_t=False, structured="text", truth=small)
+    digit = evtk.Events(ev.t, ev.x % 34, ev.y % 34, ev.p, (34, 34))
+    body = nmnist_bytes(digit)
+    mid = 5 * (len(digit) // 2)
+    marker = bytes([0, 240]) + body[mid + 2:mid + 5]  # no event: 2**13 us more for every later one
+    (folder / "n.bin").write_bytes(body[:mid] + marker + body[mid:])
+    later = np.arange(len(digit)) >= len(digit) // 2
+    truth = evtk.Events(digit.t + later * 8192, digit.x, digit.y, digit.p, (34, 34))
+    add("n.bin", "nmnist", 0, [(0, len(body) + 5, 5)], structured="nmnist", truth=truth)
+    for name in ("t.csv", "t.txt", "n.bin"):
+        assert evtk.read_events(folder / name) == (small if name == "t.txt" else truth if name == "n.bin" else ev)
 
 
 def load_event_targets(folder) -> dict:
