@@ -189,12 +189,18 @@ class ParquetRecording(BaseRecording):
             # pyarrow then aborts the process (an uncaught C++ exception) on its statistics
             # or data, so check before touching them
             found = [rg.column(j).physical_type for j in range(rg.num_columns)]
+            damaged: str | None = None
+            values = [rg.column(j).num_values for j in range(rg.num_columns)] if found == expected else []
             if found != expected:
-                problem = (f"row group {g} of the footer is damaged: column chunk types {found} "
+                damaged = (f"row group {g} of the footer is damaged: column chunk types {found} "
                            f"do not match the schema's {expected}")
+            elif any(v != rg.num_rows for v in values):  # the event columns have no nulls: one value a row
+                damaged = (f"row group {g} of the footer is damaged: it counts {rg.num_rows} rows but its columns "
+                           f"hold {values} values")
+            if damaged is not None:
                 if not self.salvage:
-                    raise FormatError(self.path, None, problem)
-                self.damage = Damage(None, problem)
+                    raise FormatError(self.path, None, damaged)
+                self.damage = Damage(None, damaged)
                 break
             st = rg.column(self._t_col).statistics
             if st is not None and st.has_min_max:

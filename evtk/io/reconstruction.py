@@ -97,7 +97,7 @@ def is_reconstruction(path, trust_external: bool | None = None) -> bool:
         try:
             with zipfile.ZipFile(path) as z:
                 return "summary.npy" in z.namelist()
-        except (zipfile.BadZipFile, OSError, ValueError):
+        except (zipfile.BadZipFile, OSError, ValueError, NotImplementedError):  # a damaged header's "version 17.3"
             return False
     return False
 
