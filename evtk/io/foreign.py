@@ -120,6 +120,14 @@ def _time_words(high: np.ndarray, prev: int | None, step: int):
     return n_pre, fillers, prev_high
 
 
+def _filler_words(prev_high: np.ndarray, fillers: np.ndarray, step: int, type_bits: int, mask: int, dtype):
+    """The records that follow a long gap, and the intermediate time-high words that go before each of them, in
+    order (each ``step`` past the one before, as :func:`_time_words` counts them)."""
+    long = np.flatnonzero(fillers)
+    values = [type_bits | ((int(prev_high[i]) + (k + 1) * step) & mask) for i in long for k in range(int(fillers[i]))]
+    return long, np.asarray(values, dtype)
+
+
 def encode_evt2(events: Events, triggers: Triggers | None = None, state: dict | None = None) -> bytes:
     """EVT 2.0 words (little-endian uint32) for time-ordered ``events`` and trigger edges.
 
@@ -153,15 +161,13 @@ def encode_evt2(events: Events, triggers: Triggers | None = None, state: dict | 
     words[ev] = (p.astype(np.uint32) & 1) << 28 | low[ev] | x.astype(np.uint32) << 11 | y.astype(np.uint32)
     if trig is not None:
         words[trig] = ((10 << 28) | low[trig] | tc[ti] << 8 | tv[ti]).astype(np.uint32)
-    changed = n_pre > 0
-    highs = np.empty(extra, np.uint32)
-    last = np.cumsum(n_pre)[changed] - 1  # each record's own time-high word ends its run of inserted words
-    highs[last] = ((8 << 28) | (high[changed] & 0xFFFFFFF)).astype(np.uint32)
-    for i in np.flatnonzero(fillers):  # long gaps (rare): intermediate highs, at most 2**26 apart
-        base, end = int(prev_high[i]), int(np.cumsum(n_pre)[i]) - 1
-        for k in range(int(fillers[i])):
-            highs[end - int(fillers[i]) + k] = (8 << 28) | ((base + (k + 1) * (1 << 26)) & 0xFFFFFFF)
-    out = np.insert(words, np.repeat(np.arange(n), n_pre), highs) if extra else words
+    own = n_pre > fillers  # records whose time high differs from the last: their EVT_TIME_HIGH goes before them
+    highs = ((8 << 28) | (high[own] & 0xFFFFFFF)).astype(np.uint32)
+    out = np.insert(words, np.flatnonzero(own), highs) if extra else words
+    long, vals = _filler_words(prev_high, fillers, 1 << 26, 8 << 28, 0xFFFFFFF, np.uint32)
+    if len(long):  # long gaps (rare): intermediate highs before the record's own, at most 2**26 apart
+        own_at = np.arange(n) + np.cumsum(own) - 1  # where each record's own time-high word now stands
+        out = np.insert(out, np.repeat(own_at[long], fillers[long]), vals)
     if n:
         state["high"] = int(high[-1])
     return out.astype("<u4", copy=False).tobytes()
@@ -227,12 +233,11 @@ def encode_evt3(events: Events, triggers: Triggers | None = None, state: dict | 
         rows[ev, 3] = (2 << 12) | (p.astype(np.uint16) & 1) << 11 | x.astype(np.uint16)
         rows[trig, 3] = ((10 << 12) | tc[ti] << 8 | tv[ti]).astype(np.uint16)
     out = rows[keep]
-    long = np.flatnonzero(fillers)
+    long, vals = _filler_words(prev_high, fillers, 2047, 8 << 12, 0xFFF, np.uint16)
     if len(long):
-        starts = np.cumsum(keep.sum(axis=1)) - keep.sum(axis=1)  # where each record's row begins in out
-        at = np.repeat(starts[long], fillers[long])
-        vals = [(8 << 12) | ((int(prev_high[i]) + (k + 1) * 2047) & 0xFFF) for i in long for k in range(fillers[i])]
-        out = np.insert(out, at, np.asarray(vals, np.uint16))
+        per_row = keep.sum(axis=1)
+        starts = np.cumsum(per_row) - per_row  # where each record's row begins in out
+        out = np.insert(out, np.repeat(starts[long], fillers[long]), vals)
     if n:
         state["high"], state["t"] = int(high[-1]), int(t[-1])
     if len(y_ev):
