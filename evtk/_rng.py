@@ -14,7 +14,7 @@ import numpy as np
 
 
 @numba.njit(cache=True)
-def _rng_state(seed):
+def rng_state(seed):
     """xoshiro256+ state from a seed through splitmix64."""
     st = np.empty(4, np.uint64)
     z = np.uint64(seed) + np.uint64(0x9E3779B97F4A7C15)
@@ -44,7 +44,7 @@ def _next_u64(st):
 
 
 @numba.njit(cache=True, inline="always")
-def _uniform(st):
+def uniform(st):
     """A double in [0, 1) from the 53 high bits of a draw."""
     return float(_next_u64(st) >> np.uint64(11)) * 1.1102230246251565e-16
 
@@ -84,14 +84,14 @@ _ZIG_W, _ZIG_IN, _ZIG_LO, _ZIG_HI = _ziggurat_tables()
 def _normal_tail(st):
     """A normal deviate conditioned on exceeding the ziggurat's r (Marsaglia's method)."""
     while True:
-        a = -math.log(1.0 - _uniform(st)) / _ZIG_R
-        b = -math.log(1.0 - _uniform(st))
+        a = -math.log(1.0 - uniform(st)) / _ZIG_R
+        b = -math.log(1.0 - uniform(st))
         if 2.0 * b > a * a:
             return _ZIG_R + a
 
 
 @numba.njit(cache=True, inline="always")
-def _normal(st):
+def normal(st):
     """A standard normal deviate by the ziggurat (exact up to rounding; one 64-bit draw 99 % of the time).
 
     Bits 4-11 of the draw pick the strip, bit 3 the sign and bits 12-63 the
@@ -106,11 +106,11 @@ def _normal(st):
         if j == 0:
             x = _normal_tail(st)
             return -x if (word >> np.uint64(3)) & np.uint64(1) else x
-        if _ZIG_LO[j] + _uniform(st) * (_ZIG_HI[j] - _ZIG_LO[j]) < math.exp(-0.5 * x * x):  # in the wedge
+        if _ZIG_LO[j] + uniform(st) * (_ZIG_HI[j] - _ZIG_LO[j]) < math.exp(-0.5 * x * x):  # in the wedge
             return -x if (word >> np.uint64(3)) & np.uint64(1) else x
 
 
 @numba.njit(cache=True)
-def _normal_outlined(st):
-    """:func:`_normal` as a call, for the less frequent draws (keeps the pixel loop's code small)."""
-    return _normal(st)
+def normal_outlined(st):
+    """:func:`normal` as a call, for the less frequent draws (keeps the pixel loop's code small)."""
+    return normal(st)

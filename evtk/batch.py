@@ -32,10 +32,10 @@ import time
 
 import numpy as np
 
+from ._atomic import AtomicFile, check_outputs, expect_target, file_identity
 from .cluster import run_tasks
 from .errors import EvtkError
 from .io import open as open_recording
-from .io._atomic import AtomicFile, check_outputs, expect_target, file_identity
 from .io.reconstruction import save_reconstruction
 from .reconstruct import (
     WindowCounts,

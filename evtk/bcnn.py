@@ -244,7 +244,7 @@ class BCNN:
 
     def forward(self, backend, x, upto=None):
         """Binary activations after layer ``upto`` (default the last), with the stored thresholds."""
-        a = _as_input(x)
+        a = as_binary_input(x)
         for i in range(self.n_layers if upto is None else upto + 1):
             a, _, _ = self.layer(backend, a, i, self.thresholds[i])
         return a
@@ -271,7 +271,24 @@ def pool_map(a, pool, per_channel=False):
     return blocks.mean(axis=(1, 3, 5))
 
 
-def _as_input(x):
+def as_binary_input(x: np.ndarray) -> np.ndarray:
+    """Network inputs as int8 ``(n, c, s, s)`` images of +-1, checked.
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        +-1 images, ``(n, s, s)`` (one channel) or ``(n, c, s, s)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``int8``, shape ``(n, c, s, s)``.
+
+    Raises
+    ------
+    evtk.EvtkError
+        When ``x`` has another shape or a value other than -1 and +1.
+    """
     x = np.asarray(x)
     if x.ndim == 3:
         x = x[:, None]
@@ -295,7 +312,7 @@ def poisson_robustness(model: BCNN, x, y, scales, seed=0, target_accuracy=None, 
     """
 
     backend = backend if backend is not None else DigitalBackend(model.size)
-    x = _as_input(x)
+    x = as_binary_input(x)
     y = np.asarray(y)
     scales = [float(s) for s in scales]
     if not scales or any(not np.isfinite(s) or s < 0 for s in scales):

@@ -34,8 +34,8 @@ from skimage.filters import threshold_otsu
 from skimage.measure import ransac
 from skimage.transform import ProjectiveTransform
 
+from ._atomic import AtomicFile
 from .errors import EvtkError
-from .io._atomic import AtomicFile
 from .optics.camera import CellMap
 from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, load_schedule, match_windows

@@ -23,9 +23,9 @@ import contextlib
 import os
 import socket
 
+from ._threads import workers as io_workers
 from .errors import EvtkError
 from .io import open as open_recording
-from .io._compression import workers as io_workers
 
 __all__ = ["dask_available", "default_scheduler", "scheduler", "run_tasks", "to_dask"]
 

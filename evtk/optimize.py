@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from .bcnn import BCNN, DigitalBackend, _as_input, bce_loss, pool_map, resample_matrix
+from .bcnn import BCNN, DigitalBackend, as_binary_input, bce_loss, pool_map, resample_matrix
 from .errors import EvtkError
 
 __all__ = ["metropolis", "train_layerwise", "train_ste", "fit_mask"]
@@ -125,7 +125,7 @@ def train_layerwise(model: BCNN, backend, x, y, optimizer="anneal", steps=600, t
     """
     if optimizer not in ("anneal", "walk", "brute"):
         raise EvtkError(f"optimizer must be 'anneal', 'walk' or 'brute', not {optimizer!r}")
-    x = _as_input(x)
+    x = as_binary_input(x)
     y = np.asarray(y)
     if len(y) != len(x) or not np.isin(y, (0, 1)).all():
         raise EvtkError("labels must be 0/1, one per image")
@@ -201,7 +201,7 @@ def train_ste(model: BCNN, x, y, epochs=300, lr=0.02, seed=0) -> dict:
     loss the mean binary cross-entropy. The trained model's kernels, output
     mask and thresholds are set for the digital or optical backend.
     """
-    x = _as_input(x).astype(np.float64)
+    x = as_binary_input(x).astype(np.float64)
     y = np.asarray(y, np.float64)
     rng = np.random.default_rng(seed)
     n, _, s, _ = x.shape
@@ -271,7 +271,7 @@ def train_ste(model: BCNN, x, y, epochs=300, lr=0.02, seed=0) -> dict:
     model.kernels = [np.where(k >= 0, 1, -1).astype(np.int8) for k in w]
     model.masks = [np.where(m >= 0, 1, 0).astype(np.int8)] * model.n_layers
     backend = DigitalBackend(model.size)
-    a = _as_input(x.astype(np.int8))
+    a = as_binary_input(x.astype(np.int8))
     for i in range(model.n_layers):
         a, _, model.thresholds[i] = model.layer(backend, a, i)
     return {"optimizer": "ste", "losses": losses, "epochs": int(epochs)}

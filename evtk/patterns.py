@@ -36,8 +36,8 @@ import os
 
 import numpy as np
 
+from ._atomic import AtomicFile
 from .errors import EvtkError
-from .io._atomic import AtomicFile
 from .limits import require_memory
 from .optics import Bench
 from .optics.camera import Camera

@@ -12,8 +12,8 @@ from collections import defaultdict
 
 import numpy as np
 
+from ._atomic import AtomicFile
 from .errors import EvtkError
-from .io._atomic import AtomicFile
 from .reconstruct import binarize, downsample
 
 __all__ = ["contact_sheet", "wilson_interval", "plot_enob", "plot_flips", "plot_tradeoff", "plot_recovery", "plot_success",

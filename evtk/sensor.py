@@ -82,7 +82,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from ._rng import _normal, _normal_outlined, _rng_state, _uniform
+from ._rng import normal, normal_outlined, rng_state, uniform
 from .errors import EvtkError, check_parameters
 
 __all__ = [
@@ -454,7 +454,7 @@ def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step
                 mean, var, vref, blind, seed, emit, count_slot, on_c, off_c, i0, out_t, out_i, out_p, n,
                 per_pixel_bound):
     """Pixels i0.. until done or the output might overflow; returns (next pixel, events written)."""
-    rs = _rng_state(seed)
+    rs = rng_state(seed)
     n_seg, n_pix = level.shape
     cap = out_t.size
     Z = FAR_SD
@@ -487,14 +487,14 @@ def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step
                             q_refr = sk * math.sqrt(1.0 - a_refr * a_refr)
                         m = L + (m - L) * a_refr
                         if sk > 0.0:
-                            m += q_refr * _normal(rs)
+                            m += q_refr * normal(rs)
                     else:
                         m, v = _advance(m, v, L, tk, sk, tr - t)
                     t = tr
                     if bl >= t_end:
                         break
                     if v > 0.0:
-                        m = m + math.sqrt(v) * _normal_outlined(rs)
+                        m = m + math.sqrt(v) * normal_outlined(rs)
                         v = 0.0
                     vr = m
                 bon = vr + ton
@@ -529,7 +529,7 @@ def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step
                         m, v = _advance(m, v, L, tk, sk, dt)
                         t += dt
                     if v > 0.0:
-                        m = m + math.sqrt(v) * _normal_outlined(rs)
+                        m = m + math.sqrt(v) * normal_outlined(rs)
                         v = 0.0
                     if h0 < 0.0:
                         h0 = min(step_frac * tk, step_max)
@@ -545,7 +545,7 @@ def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step
                             h = t_end - t
                             a = math.exp(-h / tk)
                             q = sk * math.sqrt(1.0 - a * a)
-                        m1 = L + (m - L) * a + q * _normal(rs)
+                        m1 = L + (m - L) * a + q * normal(rs)
                         if m1 >= bon or m1 <= boff:
                             # crossed within the step: where the mean path crosses, if it does in
                             # this step (exact without noise), else by linear interpolation
@@ -563,12 +563,12 @@ def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step
                             if x_on < 35.0 * dh or x_off < 35.0 * dh:
                                 p_on = math.exp(-x_on / dh) if x_on < 35.0 * dh else 0.0
                                 p_off = math.exp(-x_off / dh) if x_off < 35.0 * dh else 0.0
-                                u = _uniform(rs)
+                                u = uniform(rs)
                                 if u < p_on:
-                                    tc = t + h * _uniform(rs)
+                                    tc = t + h * uniform(rs)
                                     pol = 1
                                 elif u < p_on + p_off:
-                                    tc = t + h * _uniform(rs)
+                                    tc = t + h * uniform(rs)
                                     pol = 0
                         if tc >= 0.0:
                             m = bon if pol == 1 else boff
@@ -603,7 +603,7 @@ def _run_stepped(mode, params, level, tau, noise, seg_start, seg_end, th_on, th_
     period, leak and shot-event rates (per us), log of the dark current, the log-node's sampling (us).
     Returns (next pixel, events written).
     """
-    rs = _rng_state(seed)
+    rs = rng_state(seed)
     n_seg, n_pix = level.shape
     cap = out_t.size
     refr, step_max, period, phase = params[0], params[1], params[2], params[3]
@@ -661,7 +661,7 @@ def _run_stepped(mode, params, level, tau, noise, seg_start, seg_end, th_on, th_
                     a = math.exp(-h / tk)
                     m1 = L + (m - L) * a
                     if sk > 0.0:
-                        m1 += sk * math.sqrt(1.0 - a * a) * _normal(rs)
+                        m1 += sk * math.sqrt(1.0 - a * a) * normal(rs)
                 vr1 = vr - leak * ton * h
                 t1 = t + h
                 awake = bl <= t
@@ -682,9 +682,9 @@ def _run_stepped(mode, params, level, tau, noise, seg_start, seg_end, th_on, th_
                                 vr = m
                                 bl = t + refr
                     continue
-                if awake and r_shot > 0.0 and _uniform(rs) < r_shot * h:  # a shot-noise event in this step
-                    tc = t + h * _uniform(rs)
-                    pol = 1 if _uniform(rs) < 0.5 else 0
+                if awake and r_shot > 0.0 and uniform(rs) < r_shot * h:  # a shot-noise event in this step
+                    tc = t + h * uniform(rs)
+                    pol = 1 if uniform(rs) < 0.5 else 0
                     n = _record(emit, n, tc, i, pol, slot, out_t, out_i, out_p, on_c, off_c)
                     m = m + (m1 - m) * (tc - t) / h if h > 0.0 else m1
                     vr = m

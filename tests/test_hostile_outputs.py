@@ -329,7 +329,7 @@ def test_a_file_a_command_writes_under_a_computed_name_replaces_no_input(tmp_pat
 
 
 def test_guard_refuses_a_second_write_of_one_output(tmp_path):
-    from evtk.io._atomic import AtomicFile, guard_outputs
+    from evtk._atomic import AtomicFile, guard_outputs
 
     a = tmp_path / "a.bin"
     with guard_outputs([str(a)], []):

@@ -198,14 +198,14 @@ def test_ziggurat_normals_follow_the_normal_law():
     import numba
     from scipy import stats
 
-    from evtk._rng import _ZIG_R, _normal, _rng_state
+    from evtk._rng import _ZIG_R, normal, rng_state
 
     @numba.njit
     def draw(n, seed):
-        st = _rng_state(seed)
+        st = rng_state(seed)
         out = np.empty(n)
         for i in range(n):
-            out[i] = _normal(st)
+            out[i] = normal(st)
         return out
 
     n = 2_000_000

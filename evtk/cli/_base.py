@@ -37,12 +37,12 @@ def _paths_of(ctx):
 
 
 class _Command(click.Command):
-    """A command whose outputs are checked against its inputs (:func:`evtk.io._atomic.guard_outputs`): an output
+    """A command whose outputs are checked against its inputs (:func:`evtk._atomic.guard_outputs`): an output
     that is an input, or two outputs that are one file, is refused before anything runs, and every file written
     while it runs may replace neither an input nor another of its outputs."""
 
     def invoke(self, ctx):
-        from ..io._atomic import guard_outputs
+        from .._atomic import guard_outputs
 
         outputs, inputs = _paths_of(ctx)
         with guard_outputs(outputs, inputs):

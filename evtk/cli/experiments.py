@@ -263,7 +263,7 @@ def classify(task, data_dir, optimizer, steps, temperature, final_temperature, e
         "baselines": floor,
     }
     os.makedirs(out_dir, exist_ok=True)
-    from ..io._atomic import AtomicFile
+    from .._atomic import AtomicFile
 
     with AtomicFile(os.path.join(out_dir, "runs.json")) as fh:
         fh.write(_dumps({"summary": summary, "runs": per_run}).encode())

@@ -87,7 +87,7 @@ def convert(source, target, compression, salvage, sort, chunk_events, events_onl
     and other streams and keeps the camera's name; other targets get one
     warning naming what they cannot hold.
     """
-    from ..io._convert import convert as run
+    from ..io import convert as run
 
     done = run(source, target, compression, salvage=salvage, sort=sort, chunk_events=chunk_events,
                events_only=events_only, fmt=fmt)

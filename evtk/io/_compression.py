@@ -15,6 +15,8 @@ import lz4.frame
 import xxhash
 import zstandard
 
+from .._threads import workers
+
 NONE, LZ4, LZ4_HIGH, ZSTD, ZSTD_HIGH = range(5)
 
 #: Names used in the AEDAT4 header XML, indexed by the IOHeader code.
@@ -30,21 +32,6 @@ MAX_PACKET_BYTES = 2**31 - 1
 _local = threading.local()
 _pool = None
 _pool_lock = threading.Lock()
-
-
-def workers() -> int:
-    """Threads used for (de)compression: ``EVTK_IO_THREADS`` if set, else the usable cores, at most 4."""
-    env = os.environ.get("EVTK_IO_THREADS")
-    if env:
-        try:
-            return max(1, int(env))
-        except ValueError:
-            pass
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        n = os.cpu_count() or 1
-    return max(1, min(4, n))
 
 
 #: The environment variable that turns checksum verification off (``0``); ``evtk --no-verify-checksums`` sets it.

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+from .._atomic import refuse_overwriting_inputs
 from . import LOSES, open_writer, write_format
 from . import open as open_recording
-from ._atomic import refuse_overwriting_inputs
 from ._checks import sorted_for_writing
 
 __all__ = ["convert"]

@@ -15,10 +15,10 @@ import time
 
 import numpy as np
 
+from .._atomic import AtomicFile
 from ..errors import EvtkError, FormatError, one_line
 from ..events import Events, Triggers
 from . import _parquet_footer as _footer
-from ._atomic import AtomicFile
 from ._checks import require_readable, scan_events, sorted_for_writing
 from ._overlay import SplicedFile, close_at_exit
 from .base import BaseRecording, BaseWriter, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks

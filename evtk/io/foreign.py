@@ -27,10 +27,10 @@ import os
 
 import numpy as np
 
+from .._atomic import AtomicFile
 from ..errors import EvtkError
 from ..events import Events, Triggers
 from ..limits import require_memory
-from ._atomic import AtomicFile
 from .base import BaseWriter
 
 __all__ = ["FOREIGN_FORMATS", "ForeignWriter", "encode_evt2", "encode_evt3", "encode_dat", "encode_es_dvs",

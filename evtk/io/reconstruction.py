@@ -17,8 +17,8 @@ import zlib
 
 import numpy as np
 
+from .._atomic import AtomicFile
 from ..errors import EvtkError, FormatError
-from ._atomic import AtomicFile
 from .base import load_json, sensor_dims
 
 __all__ = ["save_reconstruction", "load_reconstruction", "is_reconstruction", "describe_reconstruction",

@@ -9,8 +9,8 @@ import math
 import os
 from dataclasses import dataclass, field
 
+from .._atomic import AtomicFile
 from ..errors import EvtkError, check_parameters
-from ..io._atomic import AtomicFile
 from ..settings import MAX_SIDE, Spec, check_origin, check_value, read_table, toml_value
 from .geometry import (
     PHOTON_ENERGY_J_PER_NM,

@@ -28,11 +28,27 @@ def _phi2(x):
     return 0.5 * ((x * x + 1.0) * special.ndtr(x) + x * np.exp(-0.5 * x * x) / math.sqrt(2 * math.pi))
 
 
-def _footprint_cdf(t, a, b, s):
+def footprint_cdf(t: np.ndarray | float, a: float, b: float, s: float) -> np.ndarray:
     """CDF at ``t`` of U(0,a) + U(0,b) + N(0,s^2); ``b`` and ``s`` may be 0.
 
-    ``a`` is the pixel footprint, ``b`` the source extent and ``s`` the blur,
-    all in feature elements. Closed forms only, so the ideal case is exact.
+    Closed forms only, so the ideal case is exact. The deblur
+    (:mod:`evtk.reconstruct.deblur`) builds its weights from the same function.
+
+    Parameters
+    ----------
+    t : numpy.ndarray or float
+        Where to evaluate, in feature elements.
+    a : float
+        The pixel footprint, in feature elements (> 0).
+    b : float
+        The source extent, in feature elements (0: a point source).
+    s : float
+        The blur's standard deviation, in feature elements (0: none).
+
+    Returns
+    -------
+    numpy.ndarray
+        The probability, in [0, 1], shaped like ``t``.
     """
     t = np.asarray(t, dtype=np.float64)
     tiny = 1e-4 * a
@@ -75,7 +91,7 @@ def _axis_weights_of(pixels, n_cells, k, s1, kappa, source_extent, flipped, orig
     centre = (np.asarray(pixels, np.float64)[None, :] - origin) * s1 + (j[:, None] - (k - 1)) * kappa + 0.5
     low = centre - 0.5 * (s1 + b)  # start of U(0, s1) + U(0, b)
     edges = np.arange(n_cells + 1, dtype=np.float64)
-    cdf = _footprint_cdf(edges[None, None, :] - low[:, :, None], s1, b, psf_cells)
+    cdf = footprint_cdf(edges[None, None, :] - low[:, :, None], s1, b, psf_cells)
     # rounding in the blurred closed form can make the CDF dip by ~1e-15: keep light non-negative
     return np.diff(np.maximum.accumulate(cdf, axis=2), axis=2)
 

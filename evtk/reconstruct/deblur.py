@@ -35,7 +35,7 @@ from .._blas import one_blas_thread
 from ..errors import EvtkError
 from ..optics import shadow_magnification
 from ..optics.camera import footprint_points
-from ..optics.screen import _footprint_cdf
+from ..optics.screen import footprint_cdf
 
 __all__ = ["sampling_matrix", "solve_cells", "relative_noise", "wiener_lambda", "DEFAULT_LAMBDA"]
 
@@ -82,7 +82,7 @@ def sampling_matrix(bench, to_cells, region, shape, blur_px=0.0, supersample=4):
     def weights(u, n_cells):  # (N, 2r + 1) shares of the cells around u, and their indices
         n = np.floor(u).astype(np.int64)[:, None] + offsets[None, :]
         low = u[:, None] - 0.5 * (a + b)
-        w = _footprint_cdf(n + 0.5 - low, a, b, psf) - _footprint_cdf(n - 0.5 - low, a, b, psf)
+        w = footprint_cdf(n + 0.5 - low, a, b, psf) - footprint_cdf(n - 0.5 - low, a, b, psf)
         return np.where((n >= 0) & (n < n_cells), np.maximum(w, 0.0), 0.0), np.clip(n, 0, n_cells - 1)
 
     wx, nx = weights(uv[:, 0], cols)

@@ -9,8 +9,8 @@ import json
 import numba
 import numpy as np
 
+from .._threads import workers
 from ..errors import EvtkError
-from ..io._compression import workers
 from ..optics import Bench, brightest_response, screen_response
 from ..optics.camera import Camera, footprint_light
 from ..sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us

@@ -8,11 +8,11 @@ from html import escape as _html_escape
 
 import numpy as np
 
+from ..._atomic import AtomicFile
 from ..._version import __version__
 from ...errors import EvtkError
 from ...events import Events, Triggers
 from .. import _compression as cz
-from .._atomic import AtomicFile
 from ..base import BaseWriter, time_chunks
 from .common import _HEADER_START, DEFAULT_PACKET_EVENTS, DEFAULT_PACKET_US, MAGIC, _jit
 

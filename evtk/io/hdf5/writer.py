@@ -8,10 +8,10 @@ import os
 
 import numpy as np
 
+from ..._atomic import AtomicFile, FailSafeFile
 from ..._version import __version__
 from ...errors import EvtkError
 from ...events import Events, Triggers
-from .._atomic import AtomicFile, FailSafeFile
 from .._checks import require_readable, sorted_for_writing
 from ..base import BaseWriter
 from .common import _FILL, DEFAULT_CHUNK, EVTK_FORMAT, FORMAT_VERSION, INTERRUPTED, _filter, _h5

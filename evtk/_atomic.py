@@ -27,7 +27,7 @@ import socket
 import tempfile
 import threading
 
-from ..errors import EvtkError
+from .errors import EvtkError
 
 PARTIAL_SUFFIX = ".evtk-partial"
 

@@ -1,0 +1,68 @@
+"""The package's layers (issue 30, item 2): no private name crosses from one part of evtk into another.
+
+A part is a top-level module (``evtk/bcnn.py``) or subpackage (``evtk/io/``). Inside a part, private names are
+shared freely; across parts only public names are imported. ``evtk``'s own private top-level modules
+(``evtk/_atomic.py``, ``evtk/_threads.py``, ...) are the library's shared internals and may be imported anywhere in it.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import evtk
+
+ROOT = Path(evtk.__file__).resolve().parent
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT.parent).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _imports(path: Path):
+    """(target module, imported name) for every ``from ... import`` in ``path``, relative ones resolved."""
+    mod = _module_name(path).split(".")
+    package = mod if path.name == "__init__.py" else mod[:-1]
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package[: len(package) - (node.level - 1)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            for alias in node.names:
+                yield target, alias.name
+
+
+def _part(dotted: str) -> str:
+    parts = dotted.split(".")
+    return parts[1] if len(parts) > 1 else ""
+
+
+def private_crossings() -> list[str]:
+    found = []
+    for path in sorted(ROOT.rglob("*.py")):
+        here = _module_name(path)
+        for target, name in _imports(path):
+            if not target.startswith("evtk") or _part(target) == _part(here):
+                continue
+            shared = _part(target).startswith("_") and target.count(".") == 1  # evtk/_x.py
+            private_module = any(p.startswith("_") for p in target.split(".")[2:])
+            if (name.startswith("_") and not name.startswith("__")) or private_module or (
+                _part(target).startswith("_") and not shared
+            ):
+                found.append(f"{here} imports {name} from {target}")
+    return found
+
+
+def test_the_scan_sees_relative_and_absolute_imports():
+    bench = ROOT / "optics" / "bench.py"
+    targets = {t for t, _ in _imports(bench)}
+    assert "evtk._atomic" in targets and "evtk.errors" in targets
+
+
+def test_no_private_name_crosses_parts():
+    assert private_crossings() == []
