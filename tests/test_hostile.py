@@ -774,3 +774,34 @@ def test_two_batch_runs_at_once_into_one_folder_lose_no_entry(tmp_path):
     manifest = json.loads((out / "batch.json").read_text())
     assert sorted(os.path.basename(e["input"]) for e in manifest["inputs"]) == names
     assert manifest["counts"]["ok"] == 6
+
+
+def test_an_unfiltered_chunk_shorter_than_a_chunk_is_an_error_not_uninitialised_memory(tmp_path):
+    """Fuzz case 52382 (seed 29): a bit flip removed the Blosc filter from a DSEC column, leaving a 1,536-byte chunk
+    where an unfiltered chunk holds 2,400; libhdf5 filled the rest of each read from uninitialised memory, so two
+    reads of the file disagreed. A chunk stored without filters must hold exactly its chunk's bytes."""
+    from evtk.io.hdf5.checks import _storage_problem
+
+    n = 1200
+    path = tmp_path / "dsec.h5"
+    with h5py.File(path, "w") as f:
+        g = f.create_group("events")
+        g.create_dataset("t", data=np.arange(n, dtype=np.uint32))
+        g.create_dataset("p", data=np.ones(n, np.uint8))
+        g.create_dataset("x", data=np.full(n, 3, np.uint16))
+        y = g.create_dataset("y", shape=(n,), dtype=np.uint16, chunks=(n,))
+        y.id.write_direct_chunk((0,), np.full(n, 7, np.uint16).tobytes()[:1536])  # short, as the flip left it
+        f.create_dataset("ms_to_idx", data=np.array([0, n], np.uint64))
+        f.create_dataset("t_offset", data=np.int64(0))
+    with pytest.raises(evtk.FormatError, match=r"/events/y.*unfiltered in 1536 bytes, but a chunk holds 2400"):
+        with evtk.open(path, sensor_size=(16, 16)) as rec:
+            rec.events()
+    with h5py.File(path) as f:  # the check looks at the chunk index only; a sound chunk passes
+        g = f["events"]
+        assert _storage_problem(g["x"], _Policy())[0] is None
+        assert "unfiltered" in _storage_problem(g["y"], _Policy())[0]
+
+
+class _Policy:
+    trust_external = False
+    file_bytes = None

@@ -339,10 +339,41 @@ def _storage_problem(ds, policy) -> tuple[str | None, int | None]:
         if written < needed:
             return (f"{name} has {written} of its {needed} chunks written (the rest would read as fill values)",
                     _written_prefix(ds) if ds.ndim == 1 else 0)
+        short = _raw_chunk_of_wrong_size(ds, plist, chunk_bytes)
+        if short is not None:
+            return short, None
     elif layout == h5d.CONTIGUOUS:
         if ds.id.get_offset() is None or ds.id.get_storage_size() < claimed:
             return f"{name} was never written (no storage for its {n} elements)", 0
     return None, None
+
+
+def _raw_chunk_of_wrong_size(ds, plist, chunk_bytes: int) -> str | None:
+    """Why a chunk stored without its filters cannot be read, or None.
+
+    A chunk that no filter touched (the dataset has none, or the chunk's filter mask skips them all) holds exactly
+    its chunk's bytes. When the chunk index or the filter pipeline message is damaged, it may claim fewer: libhdf5
+    then fills the rest of the read from memory it never wrote, so the same read returns different values from one
+    call to the next. Every chunk is checked once, from the chunk index (no data is read).
+    """
+    nfilters = plist.get_nfilters()
+    every = (1 << nfilters) - 1
+    found: list = []
+
+    def visit(info) -> None:
+        if not found and (nfilters == 0 or info.filter_mask & every == every) and info.size != chunk_bytes:
+            found.append(info)
+
+    if hasattr(ds.id, "chunk_iter"):
+        ds.id.chunk_iter(visit)
+    elif nfilters == 0:  # older HDF5: one call a chunk, for the datasets that can have such chunks
+        for i in range(ds.id.get_num_chunks()):
+            visit(ds.id.get_chunk_info(i))
+    if not found:
+        return None
+    info = found[0]
+    return (f"{ds.name}: the chunk at {tuple(int(v) for v in info.chunk_offset)} (byte {info.byte_offset}) is stored "
+            f"unfiltered in {info.size} bytes, but a chunk holds {chunk_bytes}")
 
 
 #: What HDF5 stores as the size of an external segment that runs to the end of its file.
