@@ -50,12 +50,15 @@ def scene_noise(result, interval="jackknife", per_pixel=False, seed=0) -> list:
     """
 
     out = []
+    route = result.summary.get("route")
     for (k, f), idx in result.groups().items():
         if idx.size < 2:
             continue
         acc = SinadAccumulator(idx.size, result.cells.shape[1:])
         acc.add(result.cells[idx])
         row = _scene_row(k, f, acc, result.binary[idx], interval, per_pixel, seed)
+        if route:
+            row["route"] = route
         if result.ideal is not None:
             errs = [response_error(result.cells[i], result.ideal[i]) for i in idx]
             row["error"] = {key: _mean_defined([e[key] for e in errs]) for key in ("correlation", "nrmse",
@@ -76,6 +79,11 @@ def _scene_row(kernel_id, features_id, acc, binary, interval, per_pixel, seed):
     return {"kernel_id": int(kernel_id), "features_id": int(features_id), "repeats": int(acc.repeats), "sinad": s,
             "flips": flip_rates(binary)}
 
+
+#: The route :func:`recording_noise` takes on a simulated recording with its schedule (as ``evtk reconstruct
+#: --oracle``): its answers differ from those on the same recording's ``evtk reconstruct`` output (the calibrated
+#: route), and each row says which it measured.
+ORACLE_ROUTE = "oracle: the simulation record's own pixel model and placement"
 
 #: Most memory one batch of windows of :func:`recording_noise` may take, in bytes.
 NOISE_BATCH_BYTES = 256 << 20
@@ -131,6 +139,7 @@ def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval=
     sim, win, region = plan(rec, window, skip_us, length_us, options.pop("region", None), check_memory=False)
     if sim is not None:
         result = reconstruct(rec, window, skip_us, length_us, region=region, progress=progress, **options)
+        result.summary["route"] = ORACLE_ROUTE
         return scene_noise(result, interval=interval, per_pixel=per_pixel, seed=seed)
     if len(win) < 2:
         raise EvtkError("no scene was captured at least twice: SINAD and flip rates need repeats")
@@ -156,7 +165,12 @@ def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval=
         assert acc is not None and binary is not None  # made by the first batch
         acc.add(part.cells)
         binary[i:i + batch] = part.binary
-    return [_scene_row(-1, -1, acc, binary, interval, per_pixel, seed)]
+    row = _scene_row(-1, -1, acc, binary, interval, per_pixel, seed)
+    theta = options.get("theta")
+    row["route"] = f"fixed windows (--window {spec}): " + (
+        f"exp(n theta), theta = {0.2 if theta is None else float(theta):g}" if options.get("linear", True)
+        else "net counts (ON - OFF), not linearised")
+    return [row]
 
 
 def _mean_defined(values):

@@ -241,3 +241,27 @@ def test_wilson_interval_matches_its_closed_form_values():
 
     lo, hi = wilson_interval([0.0, 0.5, 1.0], [10, 10, 10])
     assert np.allclose(lo, [0.0, 0.2366, 0.7225], atol=1e-4) and np.allclose(hi, [0.2775, 0.7634, 1.0], atol=1e-4)
+
+
+def test_enob_says_which_route_it_measured(tmp_path):
+    """Issue 30: `evtk enob` on a simulated recording (the oracle route) and on that recording's own `evtk
+    reconstruct` output (the calibrated route) give different figures; each says which route it measured."""
+    sim = Simulation(random_kernels(1, seed=2), F16[:8, :8], repeat=3, seed=4)
+    rec_path, out = tmp_path / "run.aedat4", tmp_path / "run.h5"
+    sim.write(rec_path)
+    on_rec = CliRunner().invoke(main, ["enob", str(rec_path), "--json", "--interval", "none"])
+    assert on_rec.exit_code == 0, on_rec.output
+    assert json.loads(on_rec.output)["route"].startswith("oracle: the simulation record's own pixel model")
+    res = CliRunner().invoke(main, ["reconstruct", str(rec_path), "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    on_out = CliRunner().invoke(main, ["enob", str(out)])
+    assert on_out.exit_code == 0, on_out.output
+    first = on_out.output.splitlines()[0]
+    assert first.startswith(f"route: the responses stored in {out} (calibrated: "), first
+    bench = tmp_path / "bench.h5"
+    rng = np.random.default_rng(0)
+    t = np.sort(rng.integers(0, 50_000, 20_000))
+    evtk.write_events(bench, evtk.Events(t, rng.integers(0, 8, t.size).astype(np.uint16), np.zeros(t.size, np.uint16),
+                                         (rng.random(t.size) < 0.8).astype(np.uint8), (8, 1)))
+    fixed = CliRunner().invoke(main, ["enob", str(bench), "--window", "period:5000", "--json", "--interval", "none"])
+    assert json.loads(fixed.output)["route"] == "fixed windows (--window period:5000): exp(n theta), theta = 0.2"

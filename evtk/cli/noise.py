@@ -41,6 +41,8 @@ def enob(recording, window_spec, skip_us, length_us, interval, per_pixel, plot_p
     if is_reconstruction(recording):  # the responses of an earlier `evtk reconstruct`
         scenes = scene_noise(load_reconstruction(recording), interval=None if interval == "none" else interval,
                              per_pixel=per_pixel)
+        for s in scenes:
+            s["route"] = f"the responses stored in {recording}" + (f" ({s['route']})" if s.get("route") else "")
     else:
         scenes = _recording_noise(recording, window_spec, skip_us, length_us, interval, per_pixel)
     _report_scenes(recording, scenes, plot_path, as_json)
@@ -66,9 +68,12 @@ def _report_scenes(recording, scenes, plot_path, as_json):
 
         plot_enob(scenes, plot_path)
     rows = _scene_rows(scenes)
+    routes = list(dict.fromkeys(s["route"] for s in scenes if s.get("route")))
     if as_json:
-        click.echo(_dumps({"file": str(recording), "scenes": rows}))
+        click.echo(_dumps({"file": str(recording), "route": "; ".join(routes) or None, "scenes": rows}))
         return
+    for route in routes:  # a recording and its own reconstruction can be measured by different routes: say which
+        click.echo(f"route: {route}")
     ci = lambda r, i: None if r["sinad"] is None or r["sinad"]["ci_enob"] is None else r["sinad"]["ci_enob"][i]  # noqa: E731
     sin = lambda key: lambda r: None if r["sinad"] is None else r["sinad"][key]  # noqa: E731
     click.echo(_table(rows, [
