@@ -94,7 +94,7 @@ def _view(cal, shape, bench):
 
     placement = cal.cell_map()
     aligned = placement.axis_aligned(shape)
-    if aligned is None:
+    if aligned is None or aligned[1] <= 0:  # as the pipeline: a negative step (a turned view) goes through the map
         return placement
     return CellMap.scale_shift(aligned[0], aligned[1], (bench.sensor_width, bench.sensor_height))
 

@@ -203,7 +203,7 @@ def _flat_log_step(sim, bench, region):
     if sim.cell_map is not None:  # a fitted map: a scale and shift is an origin, anything else is seen through
         full = (k.shape[0] + f.shape[0] - 1, k.shape[1] + f.shape[1] - 1)
         aligned = sim.placement().axis_aligned(full)
-        if aligned is None:
+        if aligned is None or aligned[1] <= 0:  # turned (a negative step is a 180-degree view) or distorted
             return _log_step(sim, _flat_through_map(k, f, bench, sim.placement(), tuple(region)))
         origin = aligned[0]
     if sim.camera is not None:  # the simulated camera's view of the flat field
