@@ -286,13 +286,6 @@ PENDING: set[str] = set(
     evtk.optics.camera.radial_distort
     evtk.optics.camera.radial_undistort
     evtk.optics.camera.render_nominal
-    evtk.optics.geometry.effective_extents_um
-    evtk.optics.geometry.effective_stride
-    evtk.optics.geometry.min_capture_window_us
-    evtk.optics.geometry.optical_scaling
-    evtk.optics.geometry.shadow_magnification
-    evtk.optics.geometry.software_scaling
-    evtk.optics.geometry.stride_mm
     evtk.optics.screen.brightest_response
     evtk.optics.screen.glow_response
     evtk.optics.screen.ideal_response
