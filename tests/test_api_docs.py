@@ -258,41 +258,6 @@ PENDING: set[str] = set(
     evtk.metrics.sinad.SinadReport.to_dict
     evtk.metrics.sinad.enob_bits
     evtk.metrics.sinad.sinad
-    evtk.optics.bench.Bench
-    evtk.optics.bench.Bench.check_pattern
-    evtk.optics.bench.Bench.electrons_per_s_per_unit
-    evtk.optics.bench.Bench.from_dict
-    evtk.optics.bench.Bench.photons_per_s
-    evtk.optics.bench.Bench.replace
-    evtk.optics.bench.Bench.shadow_model_note
-    evtk.optics.bench.Bench.to_dict
-    evtk.optics.bench.load_bench
-    evtk.optics.bench.save_bench
-    evtk.optics.camera.Camera
-    evtk.optics.camera.Camera.from_dict
-    evtk.optics.camera.Camera.homography
-    evtk.optics.camera.Camera.sensor_region
-    evtk.optics.camera.Camera.to_dict
-    evtk.optics.camera.Camera.to_nominal
-    evtk.optics.camera.Camera.to_sensor
-    evtk.optics.camera.Camera.view
-    evtk.optics.camera.CellMap
-    evtk.optics.camera.CellMap.axis_aligned
-    evtk.optics.camera.CellMap.scale_shift
-    evtk.optics.camera.CellMap.to_cells
-    evtk.optics.camera.CellMap.to_pixels
-    evtk.optics.camera.footprint_light
-    evtk.optics.camera.footprint_points
-    evtk.optics.camera.radial_distort
-    evtk.optics.camera.radial_undistort
-    evtk.optics.camera.render_nominal
-    evtk.optics.screen.brightest_response
-    evtk.optics.screen.glow_response
-    evtk.optics.screen.ideal_response
-    evtk.optics.screen.response_origin_px
-    evtk.optics.screen.response_region
-    evtk.optics.screen.response_to_sensor_grid
-    evtk.optics.screen.screen_response
     evtk.optimize.fit_mask
     evtk.optimize.metropolis
     evtk.optimize.train_layerwise
