@@ -242,22 +242,6 @@ PENDING: set[str] = set(
     evtk.io.table.table_to_columns
     evtk.io.write_events
     evtk.io.write_format
-    evtk.metrics.flips.FlipReport
-    evtk.metrics.flips.FlipReport.to_dict
-    evtk.metrics.flips.flip_rates
-    evtk.metrics.poisson.capture_terms
-    evtk.metrics.poisson.cumulative_factor
-    evtk.metrics.poisson.log_cumulative_factor
-    evtk.metrics.poisson.lowest_cumulative_factor
-    evtk.metrics.poisson.poisson_log_pmf
-    evtk.metrics.poisson.poisson_pmf
-    evtk.metrics.sinad.SinadAccumulator
-    evtk.metrics.sinad.SinadAccumulator.add
-    evtk.metrics.sinad.SinadAccumulator.report
-    evtk.metrics.sinad.SinadReport
-    evtk.metrics.sinad.SinadReport.to_dict
-    evtk.metrics.sinad.enob_bits
-    evtk.metrics.sinad.sinad
     evtk.optimize.fit_mask
     evtk.optimize.metropolis
     evtk.optimize.train_layerwise
