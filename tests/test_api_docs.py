@@ -338,15 +338,6 @@ PENDING: set[str] = set(
     evtk.recover.recover_search
     evtk.recover.response_matrix
     evtk.recover.success_rate
-    evtk.sensor.SensorModel
-    evtk.sensor.SensorModel.from_dict
-    evtk.sensor.SensorModel.replace
-    evtk.sensor.SensorModel.stamp
-    evtk.sensor.SensorModel.to_dict
-    evtk.sensor.log_noise_std
-    evtk.sensor.pixel_thresholds
-    evtk.sensor.simulate_pixels
-    evtk.sensor.time_constant_us
     evtk.settings.Spec
     evtk.settings.Spec.describe
     evtk.settings.check_array
