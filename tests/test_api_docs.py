@@ -101,22 +101,6 @@ PENDING: set[str] = set(
     evtk.batch.batch_reconstruct
     evtk.batch.find_recordings
     evtk.batch.reconstruct_split
-    evtk.bcnn.BCNN
-    evtk.bcnn.BCNN.accuracy
-    evtk.bcnn.BCNN.decide
-    evtk.bcnn.BCNN.forward
-    evtk.bcnn.BCNN.layer
-    evtk.bcnn.BCNN.predict
-    evtk.bcnn.BCNN.random
-    evtk.bcnn.BCNN.scores
-    evtk.bcnn.DigitalBackend
-    evtk.bcnn.DigitalBackend.correlate
-    evtk.bcnn.OpticalBackend
-    evtk.bcnn.OpticalBackend.correlate
-    evtk.bcnn.bce_loss
-    evtk.bcnn.binary_correlate
-    evtk.bcnn.poisson_robustness
-    evtk.bcnn.resample_matrix
     evtk.calibrate.Calibration
     evtk.calibrate.Calibration.cell_map
     evtk.calibrate.Calibration.to_dict
