@@ -310,18 +310,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.windows.windows_from_schedule
     evtk.reconstruct.windows.windows_from_triggers
     evtk.reconstruct.windows.windows_periodic
-    evtk.recover.Recovery
-    evtk.recover.Recovery.to_dict
-    evtk.recover.all_kernels
-    evtk.recover.classify
-    evtk.recover.device_responses
-    evtk.recover.is_shift
-    evtk.recover.kernel_bits
-    evtk.recover.kernel_from_bits
-    evtk.recover.recover_brute
-    evtk.recover.recover_search
-    evtk.recover.response_matrix
-    evtk.recover.success_rate
     evtk.settings.Spec
     evtk.settings.Spec.describe
     evtk.settings.check_array
