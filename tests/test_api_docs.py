@@ -101,16 +101,6 @@ PENDING: set[str] = set(
     evtk.batch.batch_reconstruct
     evtk.batch.find_recordings
     evtk.batch.reconstruct_split
-    evtk.calibrate.Calibration
-    evtk.calibrate.Calibration.cell_map
-    evtk.calibrate.Calibration.to_dict
-    evtk.calibrate.Calibration.to_pixels
-    evtk.calibrate.background_rate_hz
-    evtk.calibrate.calibrate
-    evtk.calibrate.dot_blur_px
-    evtk.calibrate.load_calibration
-    evtk.calibrate.plot_calibration
-    evtk.calibrate.save_calibration
     evtk.cluster.dask_available
     evtk.cluster.default_scheduler
     evtk.cluster.run_tasks
