@@ -106,15 +106,6 @@ PENDING: set[str] = set(
     evtk.cluster.run_tasks
     evtk.cluster.scheduler
     evtk.cluster.to_dask
-    evtk.datasets.Dataset
-    evtk.datasets.Dataset.summary
-    evtk.datasets.baselines
-    evtk.datasets.binarize_images
-    evtk.datasets.face_not_face
-    evtk.datasets.letters_digits
-    evtk.datasets.load_dataset
-    evtk.datasets.read_cifar_batch
-    evtk.datasets.read_idx
     evtk.demo.run_demo
     evtk.errors.EvtkError
     evtk.errors.FormatError
