@@ -211,10 +211,6 @@ PENDING: set[str] = set(
     evtk.optimize.metropolis
     evtk.optimize.train_layerwise
     evtk.optimize.train_ste
-    evtk.patterns.dmd_frame
-    evtk.patterns.job_simulation
-    evtk.patterns.load_job
-    evtk.patterns.write_patterns
     evtk.plots.contact_sheet
     evtk.plots.plot_enob
     evtk.plots.plot_flips
