@@ -220,7 +220,7 @@ class OpticalBackend:
     ----------
     bench : Bench or None
         The simulated bench; None takes the default :class:`~evtk.optics.Bench`.
-    sensor : SensorModel or dict or None
+    sensor : SensorModel or None
         The event pixels (None: the simulator's default).
     seed : int
         The device (fixed pattern: thresholds, mismatch); every call draws fresh shot noise.
@@ -230,7 +230,7 @@ class OpticalBackend:
 
     name = "optical"
 
-    def __init__(self, bench: Bench | None = None, sensor: SensorModel | dict | None = None, seed: int = 0,
+    def __init__(self, bench: Bench | None = None, sensor: SensorModel | None = None, seed: int = 0,
                  size: int = 16) -> None:
         self.bench = bench if bench is not None else Bench()
         self.sensor = sensor
@@ -262,6 +262,7 @@ class OpticalBackend:
                 r, _ = simulated_reconstruction(k[o, c], x[:, c], self.bench, self.sensor, repeat=1, seed=self.seed,
                                                 noise_seed=self.seed * 1_000_003 + self.calls, crop="full",
                                                 size=(self.size, self.size))
+                assert r.pairs is not None  # a simulated run knows its pairs
                 out[:, o] += r.responses[np.argsort(r.pairs[:, 1], kind="stable")]
         return out
 

@@ -581,7 +581,7 @@ def _branch_and_bound(am, y, max_nodes, seen):
 
 
 def device_responses(kernels: npt.ArrayLike, features: npt.ArrayLike, bench: Bench | None = None,
-                     sensor: SensorModel | dict | None = None, seed: int = 0, noise_seed: int | None = None,
+                     sensor: SensorModel | None = None, seed: int = 0, noise_seed: int | None = None,
                      crop: str = "full", method: str = "fast", deblur: bool = False) -> np.ndarray:
     """Each kernel's response as the device captures it (simulated, one capture each), on the cell grid.
 
@@ -598,7 +598,7 @@ def device_responses(kernels: npt.ArrayLike, features: npt.ArrayLike, bench: Ben
         0/1 features, 2-D.
     bench : Bench or None
         The simulated bench (None: the default).
-    sensor : SensorModel or dict or None
+    sensor : SensorModel or None
         The event pixels (None: the simulator's default).
     seed : int
         The device (fixed pattern noise).
@@ -631,12 +631,13 @@ def device_responses(kernels: npt.ArrayLike, features: npt.ArrayLike, bench: Ben
                                          method=method, crop=crop, deblur=deblur)
     require_memory(8 * len(k) * math.prod(result.cells.shape[1:]), f"the responses of {len(k):,} kernels")
     out = np.zeros((len(k),) + result.cells.shape[1:])
+    assert result.pairs is not None  # a simulated run knows its pairs
     out[lit[result.pairs[:, 0]]] = result.cells
     return out
 
 
 def success_rate(powers_mw: Iterable[float], size: int = 3, trials: int = 100, method: str | None = None,
-                 bench: Bench | None = None, sensor: SensorModel | dict | None = None,
+                 bench: Bench | None = None, sensor: SensorModel | None = None,
                  features_shape: tuple[int, int] = (16, 16), seed: int = 0, weights: str | None = "relative",
                  progress: Callable[[int], Any] | None = None, client: Any = None) -> list:
     """Share of random (kernel, features) trials recovered exactly or up to a shift, per laser power.
@@ -665,7 +666,7 @@ def success_rate(powers_mw: Iterable[float], size: int = 3, trials: int = 100, m
         Recovery method; None picks brute force up to 3x3, else the search.
     bench : Bench or None
         The simulated bench (None: the default); its power is replaced by each of ``powers_mw``.
-    sensor : SensorModel or dict or None
+    sensor : SensorModel or None
         The event pixels (None: the simulator's default).
     features_shape : tuple of int
         ``(rows, cols)`` of the random features.

@@ -333,13 +333,6 @@ PENDING: set[str] = set(
     evtk.simulate.schedule.split_passes
     evtk.simulate.table.count_table
     evtk.simulate.table.table_batches
-    evtk.sweeps.flip_sweep
-    evtk.sweeps.pareto_front
-    evtk.sweeps.random_kernels
-    evtk.sweeps.recording_noise
-    evtk.sweeps.scene_noise
-    evtk.sweeps.simulated_reconstruction
-    evtk.sweeps.tradeoff
     evtk.workflow.reconstruct_recording
 """.split()
 )
