@@ -207,10 +207,6 @@ PENDING: set[str] = set(
     evtk.io.table.table_to_columns
     evtk.io.write_events
     evtk.io.write_format
-    evtk.optimize.fit_mask
-    evtk.optimize.metropolis
-    evtk.optimize.train_layerwise
-    evtk.optimize.train_ste
     evtk.plots.contact_sheet
     evtk.plots.plot_enob
     evtk.plots.plot_flips
