@@ -207,14 +207,6 @@ PENDING: set[str] = set(
     evtk.io.table.table_to_columns
     evtk.io.write_events
     evtk.io.write_format
-    evtk.plots.contact_sheet
-    evtk.plots.plot_enob
-    evtk.plots.plot_flips
-    evtk.plots.plot_recovery
-    evtk.plots.plot_robustness
-    evtk.plots.plot_success
-    evtk.plots.plot_tradeoff
-    evtk.plots.wilson_interval
     evtk.reconstruct.accumulate.accumulate
     evtk.reconstruct.bench.match_windows
     evtk.reconstruct.bench.reconstruct_bench
