@@ -508,8 +508,22 @@ class BCNN:
 
 
 def pool_map(a: np.ndarray, pool: int, per_channel: bool = False) -> np.ndarray:
-    """Mean over ``pool`` x ``pool`` blocks of activations (n, c, s, s): (n, s/p, s/p) averaged over the
-    channels too, or (n, c, s/p, s/p) divided by c with ``per_channel`` (so both sum to the same scale)."""
+    """Mean over ``pool`` x ``pool`` blocks of activations, averaged over the channels or per channel.
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        Activations, shape ``(n, c, s, s)``; ``pool`` must divide ``s``.
+    pool : int
+        Side of the blocks.
+    per_channel : bool
+        Keep the channels, each divided by ``c`` (so both forms sum to the same scale).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, ``(n, s/p, s/p)`` averaged over the channels too, or ``(n, c, s/p, s/p)`` with ``per_channel``.
+    """
     n, c, s, _ = a.shape
     blocks = a.reshape(n, c, s // pool, pool, s // pool, pool)
     if per_channel:

@@ -474,8 +474,25 @@ def _glyph_bitmaps(chars, res=48):
     return out
 
 
-def synthetic_glyphs(n_per_class, size=16, seed=0):
-    """Letters and digits drawn alike: random font, affine jitter, stroke noise; +-1 images and labels (letter = 1)."""
+def synthetic_glyphs(n_per_class: int, size: int = 16, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Letters and digits drawn alike: random font, affine jitter, stroke noise; +-1 images and labels (letter = 1).
+
+    Parameters
+    ----------
+    n_per_class : int
+        Images of each class.
+    size : int
+        Side of the images, pixels.
+    seed : int
+        Seed of the fonts, glyphs, jitter and noise.
+
+    Returns
+    -------
+    images : numpy.ndarray
+        int8 in {-1, +1}, shape ``(2 * n_per_class, size, size)``: the digits first.
+    labels : numpy.ndarray
+        int8, 0 for a digit and 1 for a letter.
+    """
     from skimage.transform import AffineTransform, warp
 
     letters = "ABCDEFGHJKLMNPQRSTUVWXYZabdefghnqrt"

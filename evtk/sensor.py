@@ -401,9 +401,23 @@ class PixelState:
     ``mean``/``var`` describe the photoreceptor output (a Gaussian when not
     yet sampled), ``vref`` the reference level and ``blind_until_us`` the end of
     the refractory period, relative to the start of the next call.
+
+    Parameters
+    ----------
+    level : array_like
+        ``log(lam)`` of each pixel in the first light (``lam`` in photoelectrons per second), shape ``(n,)``.
+    noise_std : array_like
+        Log-domain noise standard deviation, per pixel or one for all.
+    theta_on : array_like
+        Per-pixel ON thresholds (:func:`pixel_thresholds`), natural-log units.
+    theta_off : array_like
+        Per-pixel OFF thresholds.
+    rng : numpy.random.Generator
+        Draws the starting state (steady state in the first light, freshly reset).
     """
 
-    def __init__(self, level, noise_std, theta_on, theta_off, rng: np.random.Generator):
+    def __init__(self, level: npt.ArrayLike, noise_std: npt.ArrayLike, theta_on: npt.ArrayLike,
+                 theta_off: npt.ArrayLike, rng: np.random.Generator) -> None:
         level = np.asarray(level, dtype=np.float64)
         n = level.size
         self.theta_on = np.ascontiguousarray(theta_on, dtype=np.float64)
@@ -415,7 +429,7 @@ class PixelState:
         self.vref = self.mean.copy()
         self.blind_until_us = np.full(n, -np.inf)
 
-    def __len__(self):
+    def __len__(self) -> int:
         return self.mean.size
 
 

@@ -64,8 +64,35 @@ def footprint_cdf(t: np.ndarray | float, a: float, b: float, s: float) -> np.nda
                                       + _phi2((t - a - b) / s)), 0.0, 1.0)
 
 
-def axis_weights(pixels, n_cells, k, bench: Bench, origin, psf_cells):
-    """W[j, i, n]: share of pixel ``pixels[i]``'s view of kernel element ``j``'s shadow in cell ``n``."""
+def axis_weights(
+    pixels: npt.ArrayLike, n_cells: int, k: int, bench: Bench, origin: float, psf_cells: float
+) -> np.ndarray:
+    """W[j, i, n]: share of pixel ``pixels[i]``'s view of kernel element ``j``'s shadow in cell ``n``.
+
+    One axis of the separable footprint model (:func:`footprint_cdf`); :func:`screen_response` and the
+    reconstruction's deblurring both use it.
+
+    Parameters
+    ----------
+    pixels : array_like of int
+        Sensor pixel indices along the axis.
+    n_cells : int
+        Feature elements along the axis.
+    k : int
+        Kernel elements along the axis.
+    bench : Bench
+        The bench (pixel footprint, kernel step, source extent, flip).
+    origin : float
+        Sensor pixel that sees cell 0 of the full response (:func:`response_origin_px`, one coordinate).
+    psf_cells : float
+        Standard deviation of the shadow blur, in feature elements.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``(k, len(pixels), n_cells)``, each entry in [0, 1]; read-only for a run of consecutive
+        pixels (a cached array).
+    """
     pixels = np.asarray(pixels)
     if pixels.size and np.array_equal(pixels, np.arange(pixels[0], pixels[0] + pixels.size)):
         # the usual call: a run of pixels; the same geometry recurs for every capture of a run
