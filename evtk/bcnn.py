@@ -19,15 +19,19 @@ Backends compute the layer responses:
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numba
 import numpy as np
+import numpy.typing as npt
 
 from .cluster import run_tasks
 from .errors import EvtkError
 from .optics import Bench
 from .reconstruct import overlap_matrix
+from .sensor import SensorModel
 from .sweeps import simulated_reconstruction
 
 __all__ = ["binary_correlate", "BCNN", "DigitalBackend", "OpticalBackend", "resample_matrix", "bce_loss",
@@ -84,17 +88,34 @@ def _xnor_correlate(x, k):
     return out
 
 
-def _plus_minus_one(a):
+def _plus_minus_one(a: np.ndarray) -> bool:
     return bool(np.all(np.abs(a) == 1)) if np.issubdtype(a.dtype, np.number) else False
 
 
-def binary_correlate(x, k):
+def binary_correlate(x: npt.ArrayLike, k: npt.ArrayLike) -> np.ndarray:
     """Full 2-D correlation of +-1 images with a +-1 kernel, by XNOR and popcount on bit-packed rows.
 
     Equals ``scipy.signal.correlate2d(x[i], k, "full")`` for each image
     (zero outside the image), as int32. The ``kh`` rows under the kernel sit
     side by side in one 64-bit word, so ``kh * (w + 2 (kw - 1))`` must not
     exceed 64 (16-pixel rows with a 3x3 kernel use 60 bits).
+
+    Parameters
+    ----------
+    x : array_like
+        +-1 images, shape ``(n, h, w)`` or one ``(h, w)`` image.
+    k : array_like
+        +-1 kernel, shape ``(kh, kw)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        int32, shape ``(n, h + kh - 1, w + kw - 1)`` (``n = 1`` for a single image).
+
+    Raises
+    ------
+    EvtkError
+        Other shapes, empty arrays, values other than -1 and +1, or rows too wide for a 64-bit word.
 
     Examples
     --------
@@ -115,23 +136,42 @@ def binary_correlate(x, k):
     return _xnor_correlate(np.ascontiguousarray(x, dtype=np.int8), np.ascontiguousarray(k, dtype=np.int8))
 
 
-def resample_matrix(n_in, n_out):
-    """Area-overlap resampling from ``n_in`` cells to ``n_out`` (rows sum to 1), as :func:`evtk.reconstruct.downsample`."""
+def resample_matrix(n_in: int, n_out: int) -> np.ndarray:
+    """Area-overlap resampling from ``n_in`` cells to ``n_out`` (rows sum to 1), as :func:`evtk.reconstruct.downsample`.
+
+    Parameters
+    ----------
+    n_in : int
+        Cells along the axis before.
+    n_out : int
+        Cells along the axis after.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``(n_out, n_in)``: output cell ``i`` is row ``i`` dotted with the input.
+    """
 
     step = n_in / n_out
     return overlap_matrix(n_out, 0.0, step, n_in)
 
 
 class DigitalBackend:
-    """Exact binary correlations (bit-packed), resampled to ``size``."""
+    """Exact binary correlations (bit-packed), resampled to ``size``.
+
+    Parameters
+    ----------
+    size : int
+        Side of the resampled responses, cells.
+    """
 
     name = "digital"
 
-    def __init__(self, size=16):
+    def __init__(self, size: int = 16) -> None:
         self.size = int(size)
-        self._mats = {}
+        self._mats: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
-    def _resample(self, r):
+    def _resample(self, r: np.ndarray) -> np.ndarray:
         h, w = r.shape[-2:]
         key = (h, w)
         if key not in self._mats:
@@ -139,15 +179,32 @@ class DigitalBackend:
         my, mx = self._mats[key]
         return np.einsum("ij,...jk,lk->...il", my, r, mx, optimize=True)
 
-    def correlate(self, x, k):
-        """(n, c_in, s, s) +-1 inputs and (c_out, c_in, kh, kw) kernels: (n, c_out, size, size) responses."""
+    def correlate(self, x: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """(n, c_in, s, s) +-1 inputs and (c_out, c_in, kh, kw) kernels: (n, c_out, size, size) responses.
+
+        Each output channel sums the full correlations (:func:`binary_correlate`) over the input channels,
+        then resamples them by area overlap to ``size`` x ``size``.
+
+        Parameters
+        ----------
+        x : numpy.ndarray
+            +-1 inputs, shape ``(n, c_in, s, s)``.
+        k : numpy.ndarray
+            +-1 kernels, shape ``(c_out, c_in, kh, kw)``.
+
+        Returns
+        -------
+        numpy.ndarray
+            float64, shape ``(n, c_out, size, size)``.
+        """
         n, c_in = x.shape[:2]
         out = np.zeros((n, k.shape[0], self.size, self.size))
         for o in range(k.shape[0]):
-            acc = None
+            acc: np.ndarray | None = None
             for c in range(c_in):
                 r = binary_correlate(x[:, c], k[o, c]).astype(np.float64)
                 acc = r if acc is None else acc + r
+            assert acc is not None, "no input channel"
             out[:, o] = self._resample(acc)
         return out
 
@@ -158,18 +215,45 @@ class OpticalBackend:
     Each (kernel, input channel) is one simulated run over all images: +-
     passes, flat fields, reconstruction on the full grid resampled to
     ``size``, summed over input channels.
+
+    Parameters
+    ----------
+    bench : Bench or None
+        The simulated bench; None takes the default :class:`~evtk.optics.Bench`.
+    sensor : SensorModel or None
+        The event pixels (None: the simulator's default).
+    seed : int
+        The device (fixed pattern: thresholds, mismatch); every call draws fresh shot noise.
+    size : int
+        Side of the resampled responses, cells.
     """
 
     name = "optical"
 
-    def __init__(self, bench=None, sensor=None, seed=0, size=16):
+    def __init__(self, bench: Bench | None = None, sensor: SensorModel | None = None, seed: int = 0,
+                 size: int = 16) -> None:
         self.bench = bench if bench is not None else Bench()
         self.sensor = sensor
         self.seed = int(seed)
         self.size = int(size)
         self.calls = 0
 
-    def correlate(self, x, k):
+    def correlate(self, x: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """The layer's responses captured on the simulated device, one run per (kernel, input channel).
+
+        Parameters
+        ----------
+        x : numpy.ndarray
+            +-1 inputs, shape ``(n, c_in, s, s)``.
+        k : numpy.ndarray
+            +-1 kernels, shape ``(c_out, c_in, kh, kw)``.
+
+        Returns
+        -------
+        numpy.ndarray
+            float64, shape ``(n, c_out, size, size)``: reconstructed responses summed over input channels, in
+            the reconstruction's linearised units (noisy; a new trial per call).
+        """
         n, c_in = x.shape[:2]
         out = np.zeros((n, k.shape[0], self.size, self.size))
         for o in range(k.shape[0]):
@@ -178,12 +262,34 @@ class OpticalBackend:
                 r, _ = simulated_reconstruction(k[o, c], x[:, c], self.bench, self.sensor, repeat=1, seed=self.seed,
                                                 noise_seed=self.seed * 1_000_003 + self.calls, crop="full",
                                                 size=(self.size, self.size))
+                assert r.pairs is not None  # a simulated run knows its pairs
                 out[:, o] += r.responses[np.argsort(r.pairs[:, 1], kind="stable")]
         return out
 
 
-def bce_loss(scores0, scores1, labels, beta):
-    """Summed binary cross-entropy of ``p(label 1) = sigmoid(beta * (s0 - s1))`` (the lower score wins)."""
+#: What computes a layer's correlations for :class:`BCNN`.
+Backend = DigitalBackend | OpticalBackend
+
+
+def bce_loss(scores0: npt.ArrayLike, scores1: npt.ArrayLike, labels: npt.ArrayLike, beta: float) -> float:
+    """Summed binary cross-entropy of ``p(label 1) = sigmoid(beta * (s0 - s1))`` (the lower score wins).
+
+    Parameters
+    ----------
+    scores0 : array_like
+        Scores of the complement mask, one per sample.
+    scores1 : array_like
+        Scores of the mask, one per sample.
+    labels : array_like
+        0/1 labels.
+    beta : float
+        Sharpness of the sigmoid.
+
+    Returns
+    -------
+    float
+        The loss in nats, summed over samples (computed without overflow).
+    """
     z = beta * (np.asarray(scores0, np.float64) - np.asarray(scores1, np.float64))
     y = np.asarray(labels, np.float64)
     # log(1 + exp(-z)) for y = 1, log(1 + exp(z)) for y = 0, without overflow
@@ -197,19 +303,61 @@ class BCNN:
     ``thresholds`` are the batch-normalisation means fixed on the training
     set; ``masks[-1]`` scores the output, the others scored hidden layers
     while they were optimised.
+
+    Parameters
+    ----------
+    kernels : list of numpy.ndarray
+        Per layer, int8 +-1 kernels of shape ``(c_out, c_in, 3, 3)``.
+    masks : list of numpy.ndarray
+        Per layer, a 0/1 mask of shape ``(size/pool, size/pool)`` or ``(c, size/pool, size/pool)``.
+    thresholds : list
+        Per layer, the batch-normalisation means (one per channel), or None where not fixed yet (each batch
+        then uses its own mean).
+    pool : int
+        Side of the average pooling before scoring.
+    size : int
+        Side of every layer's resampled responses, cells.
+    beta : float
+        Sharpness of the sigmoid in :func:`bce_loss`.
     """
 
-    kernels: list
-    masks: list
-    thresholds: list = field(default_factory=list)
+    kernels: list[np.ndarray]
+    masks: list[np.ndarray]
+    thresholds: list[Any] = field(default_factory=list)
     pool: int = 2
     size: int = 16
     beta: float = 0.25
 
     @classmethod
-    def random(cls, layers=3, channels=1, size=16, pool=2, seed=0, channel_masks=False):
-        """Random kernels and masks; ``channel_masks``: one mask plane per channel (c, s/p, s/p) instead of
-        one plane scoring the channels' mean."""
+    def random(cls, layers: int = 3, channels: int = 1, size: int = 16, pool: int = 2, seed: int = 0,
+               channel_masks: bool = False) -> BCNN:
+        """Random kernels and masks, thresholds not fixed.
+
+        Parameters
+        ----------
+        layers : int
+            Number of layers (>= 1).
+        channels : int
+            Channels of every layer (>= 1); the first layer takes one input channel.
+        size : int
+            Side of the responses, cells; ``pool`` must divide it.
+        pool : int
+            Side of the average pooling.
+        seed : int
+            Seed of the draw.
+        channel_masks : bool
+            One mask plane per channel ``(c, s/p, s/p)`` instead of one plane scoring the channels' mean.
+
+        Returns
+        -------
+        BCNN
+            The network, with ``thresholds`` all None.
+
+        Raises
+        ------
+        EvtkError
+            No layer or channel, or a size the pooling does not divide.
+        """
         rng = np.random.default_rng(seed)
         if layers < 1 or channels < 1 or size % pool:
             raise EvtkError("need at least one layer and one channel, and a size the pooling divides")
@@ -222,48 +370,160 @@ class BCNN:
         return cls(kernels, masks, [None] * layers, pool, size)
 
     @property
-    def n_layers(self):
+    def n_layers(self) -> int:
+        """Number of layers."""
         return len(self.kernels)
 
-    def layer(self, backend, x, i, threshold=None):
-        """Layer ``i`` on +-1 inputs (n, c, s, s): (binary output, responses, threshold used)."""
+    def layer(self, backend: Backend, x: np.ndarray, i: int,
+              threshold: npt.ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Layer ``i`` on +-1 inputs (n, c, s, s): (binary output, responses, threshold used).
+
+        Parameters
+        ----------
+        backend : DigitalBackend or OpticalBackend
+            Computes the correlations.
+        x : numpy.ndarray
+            +-1 inputs, shape ``(n, c_in, s, s)``.
+        i : int
+            Which layer.
+        threshold : array_like or None
+            Batch-normalisation mean per output channel; None takes this batch's mean.
+
+        Returns
+        -------
+        binary : numpy.ndarray
+            int8 +-1 activations, shape ``(n, c_out, size, size)`` (+1 where the response reaches the threshold).
+        responses : numpy.ndarray
+            float64 responses before binarisation, same shape.
+        threshold : numpy.ndarray
+            The threshold used, one per output channel.
+        """
         r = backend.correlate(x, self.kernels[i])
         thr = r.mean(axis=(0, 2, 3)) if threshold is None else np.asarray(threshold)
         a = np.where(r >= thr[None, :, None, None], 1, -1).astype(np.int8)
         return a, r, thr
 
-    def scores(self, a, mask):
+    def scores(self, a: np.ndarray, mask: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Dot products of the pooled map with ``mask`` and its complement: (s0, s1).
 
         A 2-D mask scores the channels' mean; a 3-D one (c, s/p, s/p) each
         channel with its own plane (scaled by 1/c, like the mean).
+
+        Parameters
+        ----------
+        a : numpy.ndarray
+            +-1 activations, shape ``(n, c, size, size)``.
+        mask : array_like
+            0/1 mask, ``(size/pool, size/pool)`` or ``(c, size/pool, size/pool)``.
+
+        Returns
+        -------
+        s0 : numpy.ndarray
+            float64, shape ``(n,)``: scores against the complement ``1 - mask`` (label 0).
+        s1 : numpy.ndarray
+            float64, shape ``(n,)``: scores against ``mask`` (label 1).
         """
         pooled = pool_map(a, self.pool, per_channel=np.ndim(mask) == 3).reshape(a.shape[0], -1)
         m = np.asarray(mask, np.float64).ravel()
         return pooled @ (1 - m), pooled @ m
 
-    def forward(self, backend, x, upto=None):
-        """Binary activations after layer ``upto`` (default the last), with the stored thresholds."""
+    def forward(self, backend: Backend, x: np.ndarray, upto: int | None = None) -> np.ndarray:
+        """Binary activations after layer ``upto`` (default the last), with the stored thresholds.
+
+        Parameters
+        ----------
+        backend : DigitalBackend or OpticalBackend
+            Computes the correlations.
+        x : numpy.ndarray
+            +-1 images, ``(n, s, s)`` or ``(n, c, s, s)``.
+        upto : int or None
+            Last layer to run (0-based); None runs them all.
+
+        Returns
+        -------
+        numpy.ndarray
+            int8 +-1 activations, shape ``(n, c, size, size)``.
+
+        Raises
+        ------
+        EvtkError
+            If ``x`` is not +-1 images.
+        """
         a = as_binary_input(x)
         for i in range(self.n_layers if upto is None else upto + 1):
             a, _, _ = self.layer(backend, a, i, self.thresholds[i])
         return a
 
-    def decide(self, a):
-        """Labels from the last layer's activations: the lower mask score gives the label."""
+    def decide(self, a: np.ndarray) -> np.ndarray:
+        """Labels from the last layer's activations: the lower mask score gives the label.
+
+        Parameters
+        ----------
+        a : numpy.ndarray
+            +-1 activations of the last layer, shape ``(n, c, size, size)``.
+
+        Returns
+        -------
+        numpy.ndarray
+            int8 labels, shape ``(n,)``: 1 where the mask's score is below its complement's.
+        """
         s0, s1 = self.scores(a, self.masks[-1])
         return (s1 < s0).astype(np.int8)
 
-    def predict(self, backend, x):
+    def predict(self, backend: Backend, x: np.ndarray) -> np.ndarray:
+        """Labels of images: :meth:`forward` then :meth:`decide`.
+
+        Parameters
+        ----------
+        backend : DigitalBackend or OpticalBackend
+            Computes the correlations.
+        x : numpy.ndarray
+            +-1 images, ``(n, s, s)`` or ``(n, c, s, s)``.
+
+        Returns
+        -------
+        numpy.ndarray
+            int8 labels (0/1), shape ``(n,)``.
+        """
         return self.decide(self.forward(backend, x))
 
-    def accuracy(self, backend, x, y):
+    def accuracy(self, backend: Backend, x: np.ndarray, y: npt.ArrayLike) -> float:
+        """Share of images whose predicted label equals ``y``.
+
+        Parameters
+        ----------
+        backend : DigitalBackend or OpticalBackend
+            Computes the correlations.
+        x : numpy.ndarray
+            +-1 images, ``(n, s, s)`` or ``(n, c, s, s)``.
+        y : array_like
+            0/1 labels, shape ``(n,)``.
+
+        Returns
+        -------
+        float
+            Accuracy in [0, 1].
+        """
         return float(np.mean(self.predict(backend, x) == np.asarray(y)))
 
 
-def pool_map(a, pool, per_channel=False):
-    """Mean over ``pool`` x ``pool`` blocks of activations (n, c, s, s): (n, s/p, s/p) averaged over the
-    channels too, or (n, c, s/p, s/p) divided by c with ``per_channel`` (so both sum to the same scale)."""
+def pool_map(a: np.ndarray, pool: int, per_channel: bool = False) -> np.ndarray:
+    """Mean over ``pool`` x ``pool`` blocks of activations, averaged over the channels or per channel.
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        Activations, shape ``(n, c, s, s)``; ``pool`` must divide ``s``.
+    pool : int
+        Side of the blocks.
+    per_channel : bool
+        Keep the channels, each divided by ``c`` (so both forms sum to the same scale).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, ``(n, s/p, s/p)`` averaged over the channels too, or ``(n, c, s/p, s/p)`` with ``per_channel``.
+    """
     n, c, s, _ = a.shape
     blocks = a.reshape(n, c, s // pool, pool, s // pool, pool)
     if per_channel:
@@ -297,7 +557,9 @@ def as_binary_input(x: np.ndarray) -> np.ndarray:
     return x.astype(np.int8)
 
 
-def poisson_robustness(model: BCNN, x, y, scales, seed=0, target_accuracy=None, backend=None, client=None) -> dict:
+def poisson_robustness(model: BCNN, x: np.ndarray, y: npt.ArrayLike, scales: Iterable[float], seed: int = 0,
+                       target_accuracy: float | None = None, backend: Backend | None = None,
+                       client: Any = None) -> dict:
     """Fig. 3 (left) and eq. 12: accuracy and flipped pixels with scaled Poisson noise in every layer.
 
     At noise scale ``s`` each layer's response ``r`` becomes
@@ -309,6 +571,36 @@ def poisson_robustness(model: BCNN, x, y, scales, seed=0, target_accuracy=None, 
     ``R`` the largest flip percentage among the scales that keep it. Each
     scale is an independent task seeded by ``(seed, its index)`` (on
     ``client``'s workers when given).
+
+    Parameters
+    ----------
+    model : BCNN
+        The network, its thresholds fixed (they are used as stored).
+    x : numpy.ndarray
+        +-1 images, ``(n, s, s)`` or ``(n, c, s, s)``.
+    y : array_like
+        0/1 labels, shape ``(n,)``.
+    scales : iterable of float
+        Noise scales ``s`` (finite, >= 0; 0 is noise-free), in response units per photon.
+    seed : int
+        Seed of the noise (each scale gets ``(seed, index)``).
+    target_accuracy : float or None
+        The accuracy ``r`` to keep; None takes the noise-free accuracy minus 0.05.
+    backend : DigitalBackend or OpticalBackend or None
+        Computes the correlations; None takes a :class:`DigitalBackend` of the model's size.
+    client : distributed.Client or None
+        Runs the scales on its workers (:mod:`evtk.cluster`); None runs them here.
+
+    Returns
+    -------
+    dict
+        ``rows`` (per scale: ``scale``, ``accuracy``, ``flip_pct``, ``flip_pct_per_layer``), ``clean_accuracy``,
+        ``r`` (the accuracy kept) and ``R_pct`` (the largest flip percentage that keeps it, None if no scale does).
+
+    Raises
+    ------
+    EvtkError
+        Inputs that are not +-1 images, or no scales, or a scale negative or not finite.
     """
 
     backend = backend if backend is not None else DigitalBackend(model.size)

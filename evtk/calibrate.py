@@ -25,8 +25,10 @@ import dataclasses
 import json
 import os
 from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 from scipy.ndimage import gaussian_filter, median_filter
 from scipy.optimize import least_squares
 from skimage.feature import peak_local_max
@@ -60,6 +62,10 @@ from .settings import (
 )
 from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, dot_grid
 
+if TYPE_CHECKING:
+    from .io.base import BaseRecording
+    from .optics import Bench
+
 __all__ = ["Calibration", "calibrate", "background_rate_hz", "dot_blur_px", "load_calibration", "save_calibration",
            "plot_calibration", "MIN_DOTS"]
 
@@ -74,7 +80,7 @@ MIN_DOTS = 8
 class Calibration:
     """What :func:`calibrate` measured.
 
-    Attributes
+    Parameters
     ----------
     matrix : list of 3 lists of 3 floats
         Projective map from response cells (column, row) to sensor pixels (x, y), homogeneous, before
@@ -88,10 +94,18 @@ class Calibration:
         Sensor pixels per response cell (mean of the map's two axes at the response's centre).
     region : [x0, x1, y0, y1]
         Sensor pixels covering the full response plus a pixel of margin (half-open), clipped to the sensor.
-    residual_rms_px, residual_max_px : float
-        Distances between the dots found and the fitted map, over the inliers.
-    dots_expected, dots_found, inliers : int
+    residual_rms_px : float
+        RMS distance between the dots found and the fitted map, over the inliers, pixels.
+    residual_max_px : float
+        The largest such distance, pixels.
+    dots_expected : int
+        Dots the calibration captures showed (the marker's places dark).
+    dots_found : int
+        Blobs found in the ON events.
+    inliers : int
+        Dots the fitted map agrees with (within a pixel).
     sensor_size : [width, height]
+        The sensor, pixels.
     response_shape : [rows, cols]
         Cells of the full response (features + kernel - 1).
     pixel_model : dict or None
@@ -133,14 +147,38 @@ class Calibration:
     warnings: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
+        """The calibration as a plain dict (what :func:`save_calibration` writes).
+
+        Returns
+        -------
+        dict
+            Field name to value.
+        """
         return asdict(self)
 
     def cell_map(self) -> CellMap:
-        """The fitted map as a :class:`evtk.optics.camera.CellMap` (projective, then radial ``k1``)."""
+        """The fitted map as a :class:`evtk.optics.camera.CellMap` (projective, then radial ``k1``).
+
+        Returns
+        -------
+        CellMap
+            The map from response cells to sensor pixels.
+        """
         return CellMap(np.asarray(self.matrix, dtype=np.float64), float(self.k1), tuple(self.sensor_size))
 
-    def to_pixels(self, cells_xy):
-        """Sensor pixels (x, y) of response cells (column, row)."""
+    def to_pixels(self, cells_xy: npt.ArrayLike) -> np.ndarray:
+        """Sensor pixels (x, y) of response cells (column, row).
+
+        Parameters
+        ----------
+        cells_xy : array_like
+            Cells as (column, row), shape ``(2,)`` or ``(n, 2)``; fractional cells allowed.
+
+        Returns
+        -------
+        numpy.ndarray
+            float64, shape ``(n, 2)``, sensor pixels.
+        """
         return self.cell_map().to_pixels(cells_xy)
 
 
@@ -181,7 +219,8 @@ def _blobs(image, spacing_px=None, radius=2):
     return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
 
-def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration:
+def calibrate(rec: BaseRecording, schedule: str | os.PathLike[str] | dict, tolerance_us: int | None = None,
+              pixel_model: bool = True) -> Calibration:
     """Fit the map from response cells to sensor pixels from a recording's calibration captures.
 
     ``schedule`` is a ``schedule.json`` path or :func:`evtk.reconstruct.load_schedule`'s
@@ -199,6 +238,29 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     too (:attr:`Calibration.pixel_model`), and the defocus measured through it
     (:attr:`Calibration.blur_px`; without a model, through a logarithmic
     response, which reads it low: 0.6 and 1.0 px as 0.44 and 0.92).
+
+    Parameters
+    ----------
+    rec : Recording
+        The open recording of the run, with its trigger edges.
+    schedule : str, os.PathLike or dict
+        The run's ``schedule.json``, or :func:`evtk.reconstruct.load_schedule`'s dict of it.
+    tolerance_us : int or None
+        How far a trigger edge may sit from the schedule's time, us
+        (:func:`evtk.reconstruct.match_windows`; None: its default).
+    pixel_model : bool
+        Fit the pixel model to the run's level captures when it has any.
+
+    Returns
+    -------
+    Calibration
+        The map, its residuals, the region, and (when measured) the pixel model, the background rate and the
+        defocus; ``warnings`` says what was assumed or left out.
+
+    Raises
+    ------
+    EvtkError
+        As above: no calibration captures scheduled or recorded, too few dots seen or paired, or no single map.
     """
     sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
     s, kernels, features = sched["schedule"], sched["kernels"], sched["features"]
@@ -209,7 +271,7 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     if not dots_win.any():
         raise EvtkError(f"none of the schedule's calibration captures has a trigger window (missing: "
                         f"{report['missing'][:10]})")
-    w, h = rec.sensor_size
+    w, h = rec.sensor_size  # type: ignore[misc]  # an open recording knows its size (None only on the base class)
     sub = Windows(win.t_start_us[dots_win], win.t_end_us[dots_win], win.capture[dots_win], win.source)
     dot_counts = accumulate(rec, sub, (0, w, 0, h))
     # pixels that fire in the dark would be dots of their own: each takes its neighbours' median
@@ -290,7 +352,9 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     return cal
 
 
-def dot_blur_px(net, region, cell_map, bench, dot_cells, shape, model=None, radius_px=3, max_px=3.0):
+def dot_blur_px(net: npt.ArrayLike, region: tuple[int, int, int, int] | list[int], cell_map: CellMap, bench: Bench,
+                dot_cells: npt.ArrayLike, shape: tuple[int, int], model: PixelFit | None = None,
+                radius_px: float = 3, max_px: float = 3.0) -> float:
     """The camera's defocus (Gaussian standard deviation, pixels) that best explains the dots' counts.
 
     Each dot lights one response cell, all of them at once. Through the
@@ -305,6 +369,37 @@ def dot_blur_px(net, region, cell_map, bench, dot_cells, shape, model=None, radi
     fitted at each step by least squares; the mean net counts ``net`` (over
     the region, per dot capture) are the data, over the pixels within
     ``radius_px`` of a dot.
+
+    Parameters
+    ----------
+    net : array_like
+        Mean net (ON minus OFF) counts per dot capture, shape ``(y1 - y0, x1 - x0)`` of ``region``.
+    region : tuple of int
+        ``(x0, x1, y0, y1)`` sensor pixels, half-open.
+    cell_map : CellMap
+        The fitted map from response cells to sensor pixels.
+    bench : Bench
+        The bench whose footprint (pixel area, source extent, shadow blur) is predicted.
+    dot_cells : array_like
+        int, shape ``(n, 2)``: the response cells (column, row) the dots light.
+    shape : tuple of int
+        ``(rows, cols)`` of the full response, cells.
+    model : PixelFit or None
+        The fitted pixel model; None fits a logarithmic response instead.
+    radius_px : float
+        Pixels within this distance of a dot's centre are the data.
+    max_px : float
+        Largest defocus searched, pixels.
+
+    Returns
+    -------
+    float
+        The defocus, a Gaussian's standard deviation in pixels, in ``[0, max_px]``.
+
+    Raises
+    ------
+    EvtkError
+        When fewer than three pixels near the dots, or none with counts above zero, are left to fit.
     """
     x0, x1, y0, y1 = (int(v) for v in region)
     net = np.asarray(net, np.float64)
@@ -349,11 +444,35 @@ def dot_blur_px(net, region, cell_map, bench, dot_cells, shape, model=None, radi
     return float(sigmas[i])
 
 
-def background_rate_hz(rec, t_off_us, settle_us, region, margin_px=3, max_windows=64):
-    """Background activity: events a pixel fires per second with nothing changing, from the pixels outside the
-    response (``region`` grown by ``margin_px``) in the second half of the darkness after each pattern (settled),
-    over at most ``max_windows`` of them. None when there is no such time or pixel."""
-    w, h = rec.sensor_size
+def background_rate_hz(rec: BaseRecording, t_off_us: np.ndarray, settle_us: int,
+                       region: tuple[int, int, int, int] | list[int], margin_px: int = 3,
+                       max_windows: int = 64) -> float | None:
+    """Background activity: events a pixel fires per second with nothing changing.
+
+    Counted on the pixels outside the response (``region`` grown by ``margin_px``) in the second half of the
+    darkness after each pattern (settled), over at most ``max_windows`` of them.
+
+    Parameters
+    ----------
+    rec : Recording
+        The open recording.
+    t_off_us : numpy.ndarray
+        Where each pattern's darkness begins (the windows' ends), us.
+    settle_us : int
+        Length of the darkness after each pattern, us.
+    region : tuple of int
+        ``(x0, x1, y0, y1)``: the response's sensor pixels, half-open.
+    margin_px : int
+        Pixels around ``region`` left out too.
+    max_windows : int
+        Most dark intervals read.
+
+    Returns
+    -------
+    float or None
+        Events per pixel per second, or None when there is no such time or pixel.
+    """
+    w, h = rec.sensor_size  # type: ignore[misc]  # an open recording knows its size (None only on the base class)
     x0, x1, y0, y1 = region
     x0, x1, y0, y1 = max(0, x0 - margin_px), min(w, x1 + margin_px), max(0, y0 - margin_px), min(h, y1 + margin_px)
     pixels = w * h - (x1 - x0) * (y1 - y0)
@@ -504,8 +623,17 @@ def _nan_free(x):
     return -1.0 if x is None or (isinstance(x, float) and not np.isfinite(x)) else x
 
 
-def save_calibration(path, cal: Calibration):
-    """Write a calibration as TOML (``.toml``) or JSON, atomically."""
+def save_calibration(path: str | os.PathLike[str], cal: Calibration) -> None:
+    """Write a calibration as TOML (``.toml``) or JSON, atomically.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Where to write; a name ending ``.toml`` writes TOML (the pixel model as a ``[pixel_model]`` table,
+        missing times as -1), anything else JSON.
+    cal : Calibration
+        What to write.
+    """
 
     path = os.fspath(path)
     d = cal.to_dict()
@@ -537,7 +665,7 @@ CALIBRATION_SPECS = {
 }
 
 
-def load_calibration(path) -> Calibration:
+def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     """Read :func:`save_calibration`'s file, every value checked.
 
     Parameters
@@ -548,6 +676,11 @@ def load_calibration(path) -> Calibration:
     Returns
     -------
     Calibration
+        The calibration as saved (without the evidence :func:`plot_calibration` draws).
+
+    Raises
+    ------
+    EvtkError
         A bad value is one :class:`~evtk.EvtkError` naming the file, the key
         and what is allowed: numbers finite and within :data:`CALIBRATION_SPECS`,
         a non-singular map whose horizon misses the response, the origin
@@ -599,9 +732,24 @@ def load_calibration(path) -> Calibration:
     return cal
 
 
-def plot_calibration(path, cal: Calibration):
-    """PNG report of a calibration: the calibration captures' ON events with the dots found and the fitted
-    map's prediction of every dot, and the residual of each dot (pixels)."""
+def plot_calibration(path: str | os.PathLike[str], cal: Calibration) -> None:
+    """PNG report of a calibration.
+
+    The calibration captures' ON events with the dots found and the fitted map's prediction of every dot,
+    and the residual of each dot (pixels); with a pixel model, its curve against the level captures.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The PNG to write.
+    cal : Calibration
+        A calibration just made by :func:`calibrate` (it carries the evidence drawn).
+
+    Raises
+    ------
+    EvtkError
+        For a calibration read from a file, which holds no evidence.
+    """
 
     evidence = getattr(cal, "_evidence", None)
     if evidence is None:

@@ -23,6 +23,7 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from .errors import EvtkError, FormatError
 from .limits import require_memory
@@ -38,6 +39,25 @@ class Dataset:
     ``x_*`` are int8 (n, size, size) in {-1, +1}; ``y_*`` int8 labels in {0, 1}
     (``classes[1]`` is label 1); ``synthetic`` says the images are not real
     data; ``source`` says where they came from.
+
+    Parameters
+    ----------
+    name : str
+        The task (``"fnf"``, ``"letters-digits"``).
+    x_train : numpy.ndarray
+        int8 training images in {-1, +1}, shape ``(n, size, size)``.
+    y_train : numpy.ndarray
+        int8 training labels in {0, 1}, shape ``(n,)``.
+    x_test : numpy.ndarray
+        int8 test images, like ``x_train``.
+    y_test : numpy.ndarray
+        int8 test labels, like ``y_train``.
+    classes : tuple of str
+        Names of label 0 and label 1.
+    source : str
+        Where the images came from.
+    synthetic : bool
+        The images are not real data (rendered glyphs).
     """
 
     name: str
@@ -50,13 +70,41 @@ class Dataset:
     synthetic: bool = False
 
     def summary(self) -> dict:
+        """What the set holds, for reports and JSON.
+
+        Returns
+        -------
+        dict
+            ``name``, ``train`` and ``test`` (sample counts), ``classes``, ``source``, ``synthetic`` and ``size``
+            (the image shape).
+        """
         return {"name": self.name, "train": int(len(self.y_train)), "test": int(len(self.y_test)),
                 "classes": list(self.classes), "source": self.source, "synthetic": self.synthetic,
                 "size": list(self.x_train.shape[1:])}
 
 
-def binarize_images(images, size=16, method="mean"):
-    """Area-downsample grey images to ``size`` x ``size`` and threshold each at its own mean (or Otsu's): +-1 int8."""
+def binarize_images(images: npt.ArrayLike, size: int = 16, method: str = "mean") -> np.ndarray:
+    """Area-downsample grey images to ``size`` x ``size`` and threshold each at its own mean (or Otsu's): +-1 int8.
+
+    Parameters
+    ----------
+    images : array_like
+        Grey images, shape ``(n, h, w)``, finite.
+    size : int
+        Side of the output images, pixels.
+    method : {"mean", "otsu"}
+        Each image's threshold: its mean, or Otsu's.
+
+    Returns
+    -------
+    numpy.ndarray
+        int8 in {-1, +1}, shape ``(n, size, size)``: +1 above the threshold.
+
+    Raises
+    ------
+    EvtkError
+        An empty or non-3-D stack, NaN or infinite values, or an unknown method.
+    """
     from skimage.transform import resize
 
     imgs = np.asarray(images, dtype=np.float64)
@@ -76,7 +124,8 @@ def binarize_images(images, size=16, method="mean"):
     return np.where(small > thr, 1, -1).astype(np.int8)
 
 
-def _split(x, y, test_fraction, seed) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _split(x: np.ndarray, y: np.ndarray, test_fraction: float,
+           seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Stratified split: the same share of each class in the test set."""
     if not 0 < test_fraction < 1:
         raise EvtkError(f"test_fraction must be between 0 and 1, not {test_fraction}")
@@ -100,10 +149,10 @@ def _open_maybe_gzip(path):
     return gzip.open(path, "rb") if head == b"\x1f\x8b" else open(path, "rb")
 
 
-_IDX_TYPES = {0x08: np.uint8, 0x09: np.int8, 0x0B: ">i2", 0x0C: ">i4", 0x0D: ">f4", 0x0E: ">f8"}
+_IDX_TYPES: dict[int, npt.DTypeLike] = {0x08: np.uint8, 0x09: np.int8, 0x0B: ">i2", 0x0C: ">i4", 0x0D: ">f4", 0x0E: ">f8"}
 
 
-def read_idx(path):
+def read_idx(path: str | os.PathLike[str]) -> np.ndarray:
     """An IDX file (the MNIST/EMNIST format, optionally gzip-compressed) as a numpy array.
 
     The header's shape is checked against the memory budget before the body
@@ -119,6 +168,14 @@ def read_idx(path):
     -------
     numpy.ndarray
         The array in native byte order, of the shape the header declares.
+
+    Raises
+    ------
+    FormatError
+        A bad magic number, a truncated header or body, bytes after the body, or a file that cannot be read
+        (naming the file and byte offset).
+    EvtkError
+        More memory than the budget.
     """
     path = os.fspath(path)
     try:
@@ -151,7 +208,7 @@ _CIFAR_RECORD = 1 + 3072  # the binary version: a label byte, then 32x32 red, gr
 _CIFAR_KEYS = {"batch_label", "labels", "data", "filenames"}
 
 
-def read_cifar_batch(path):
+def read_cifar_batch(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     """One CIFAR-10 batch, binary (``data_batch_N.bin``) or python version (``data_batch_N``), as grey images.
 
     The binary version is records of one label byte and 3072 image bytes.
@@ -171,6 +228,14 @@ def read_cifar_batch(path):
         (n, 32, 32) float64 in [0, 1] (luminance of the colour image).
     labels : numpy.ndarray
         (n,) int64.
+
+    Raises
+    ------
+    FormatError
+        A file that cannot be read, is not whole records, holds a label above 9, or a pickle of another
+        structure (naming the file and byte offset).
+    EvtkError
+        More memory than the budget.
     """
     path = os.fspath(path)
     try:
@@ -219,12 +284,38 @@ def _cifar_python(path):
 
 # -- face / not face ---------------------------------------------------------------------
 
-def face_not_face(seed=0, test_fraction=0.3, data_dir=None, size=16, n_per_class=None) -> Dataset:
+def face_not_face(seed: int = 0, test_fraction: float = 0.3, data_dir: str | os.PathLike[str] | None = None,
+                  size: int = 16, n_per_class: int | None = None) -> Dataset:
     """Faces against non-faces, binarised to ``size`` x ``size``.
 
     Without ``data_dir``: scikit-image's LFW subset (100 and 100). With it:
     ``n_per_class`` (default 1000) LFW faces, centre-cropped, against as many
     CIFAR-10 images, all grey.
+
+    Parameters
+    ----------
+    seed : int
+        Seed of the sampling and of the stratified split.
+    test_fraction : float
+        Share of each class in the test set, in (0, 1).
+    data_dir : str, os.PathLike or None
+        Folder holding ``lfw/`` and a CIFAR-10 batches folder; None uses the bundled subset.
+    size : int
+        Side of the images, pixels.
+    n_per_class : int or None
+        Images per class from ``data_dir`` (None: 1000); ignored without it.
+
+    Returns
+    -------
+    Dataset
+        ``"fnf"``, faces labelled 1.
+
+    Raises
+    ------
+    EvtkError
+        Missing LFW or CIFAR-10 files, a bad ``test_fraction``, or more memory than the budget.
+    FormatError
+        A damaged image or batch.
     """
     if data_dir is None:
         from skimage import data
@@ -296,12 +387,38 @@ def _cifar_images(data_dir, n, seed):
 
 # -- letters / digits --------------------------------------------------------------------
 
-def letters_digits(seed=0, test_fraction=0.3, data_dir=None, size=16, n_per_class=1000) -> Dataset:
+def letters_digits(seed: int = 0, test_fraction: float = 0.3, data_dir: str | os.PathLike[str] | None = None,
+                   size: int = 16, n_per_class: int = 1000) -> Dataset:
     """Letters (label 1) against digits (label 0), ``n_per_class`` of each.
 
     With ``data_dir``: EMNIST "balanced" IDX files (digits are classes 0-9,
     letters 10-46), drawn from the training file. Without: a synthetic set
     rendered from matplotlib's bundled fonts.
+
+    Parameters
+    ----------
+    seed : int
+        Seed of the sampling, the rendering and the split.
+    test_fraction : float
+        Share of each class in the test set, in (0, 1).
+    data_dir : str, os.PathLike or None
+        Folder holding the EMNIST balanced IDX files; None renders synthetic glyphs.
+    size : int
+        Side of the images, pixels.
+    n_per_class : int
+        Images per class.
+
+    Returns
+    -------
+    Dataset
+        ``"letters-digits"``, letters labelled 1; ``synthetic`` when rendered.
+
+    Raises
+    ------
+    EvtkError
+        No EMNIST files in ``data_dir``, a bad ``test_fraction``, or more memory than the budget.
+    FormatError
+        A damaged IDX file.
     """
     if data_dir is not None:
         imgs, labels = _emnist(data_dir)
@@ -357,8 +474,25 @@ def _glyph_bitmaps(chars, res=48):
     return out
 
 
-def synthetic_glyphs(n_per_class, size=16, seed=0):
-    """Letters and digits drawn alike: random font, affine jitter, stroke noise; +-1 images and labels (letter = 1)."""
+def synthetic_glyphs(n_per_class: int, size: int = 16, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Letters and digits drawn alike: random font, affine jitter, stroke noise; +-1 images and labels (letter = 1).
+
+    Parameters
+    ----------
+    n_per_class : int
+        Images of each class.
+    size : int
+        Side of the images, pixels.
+    seed : int
+        Seed of the fonts, glyphs, jitter and noise.
+
+    Returns
+    -------
+    images : numpy.ndarray
+        int8 in {-1, +1}, shape ``(2 * n_per_class, size, size)``: the digits first.
+    labels : numpy.ndarray
+        int8, 0 for a digit and 1 for a letter.
+    """
     from skimage.transform import AffineTransform, warp
 
     letters = "ABCDEFGHJKLMNPQRSTUVWXYZabdefghnqrt"
@@ -382,8 +516,33 @@ def synthetic_glyphs(n_per_class, size=16, seed=0):
     return binarize_images(np.stack(imgs), size, method="otsu"), np.asarray(labels, np.int8)
 
 
-def load_dataset(task, seed=0, data_dir=None, test_fraction=0.3, n_per_class=None) -> Dataset:
-    """``"fnf"`` or ``"letters-digits"``; ``n_per_class`` None: the task's default."""
+def load_dataset(task: str, seed: int = 0, data_dir: str | os.PathLike[str] | None = None,
+                 test_fraction: float = 0.3, n_per_class: int | None = None) -> Dataset:
+    """``"fnf"`` or ``"letters-digits"``; ``n_per_class`` None: the task's default.
+
+    Parameters
+    ----------
+    task : {"fnf", "letters-digits"}
+        Which set (:func:`face_not_face` or :func:`letters_digits`).
+    seed : int
+        Seed of the sampling and the split.
+    data_dir : str, os.PathLike or None
+        Local data (see the two functions); None uses what is installed.
+    test_fraction : float
+        Share of each class in the test set.
+    n_per_class : int or None
+        Samples per class (at least 2); None takes the task's default.
+
+    Returns
+    -------
+    Dataset
+        The binarised 16x16 set.
+
+    Raises
+    ------
+    EvtkError
+        An unknown task, fewer than 2 samples per class, or a sample count for the bundled LFW subset.
+    """
     if n_per_class is not None and int(n_per_class) < 2:
         raise EvtkError(f"need at least 2 samples per class, not {n_per_class}")
     if task == "fnf":
@@ -396,7 +555,7 @@ def load_dataset(task, seed=0, data_dir=None, test_fraction=0.3, n_per_class=Non
     raise EvtkError(f"task must be 'fnf' or 'letters-digits', not {task!r}")
 
 
-def baselines(data: Dataset, l2=1e-2, iterations=200) -> dict:
+def baselines(data: Dataset, l2: float = 1e-2, iterations: int = 200) -> dict:
     """Test accuracy of two plain classifiers on ``data``'s own split: the floor a binary CNN should clear.
 
     ``nearest_centroid``: the label of the closer class mean (Euclidean, on
@@ -404,6 +563,25 @@ def baselines(data: Dataset, l2=1e-2, iterations=200) -> dict:
     weights, not the bias) logistic regression on the pixels, fitted by
     Newton's method (``iterations`` at most; it converges in a few dozen on
     these sizes). Both see exactly the train and test images the CNN sees.
+
+    Parameters
+    ----------
+    data : Dataset
+        The set, with both classes in its training split.
+    l2 : float
+        Regularisation of the logistic regression's weights (times the training samples).
+    iterations : int
+        Most Newton steps.
+
+    Returns
+    -------
+    dict
+        ``nearest_centroid`` and ``logistic_regression`` test accuracies in [0, 1], and ``test_images``.
+
+    Raises
+    ------
+    EvtkError
+        When the training split holds one class only.
     """
     xtr = data.x_train.reshape(len(data.x_train), -1).astype(np.float64)
     xte = data.x_test.reshape(len(data.x_test), -1).astype(np.float64)

@@ -17,22 +17,61 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
-from .bcnn import BCNN, DigitalBackend, as_binary_input, bce_loss, pool_map, resample_matrix
+from .bcnn import BCNN, Backend, DigitalBackend, as_binary_input, bce_loss, pool_map, resample_matrix
 from .errors import EvtkError
 
 __all__ = ["metropolis", "train_layerwise", "train_ste", "fit_mask"]
 
 
-def metropolis(objective, n_bits, steps, temperature, final_temperature=None, seed=0, start=None, progress=None):
+def metropolis(objective: Callable[[np.ndarray], float], n_bits: int, steps: int, temperature: float,
+               final_temperature: float | None = None, seed: int = 0, start: npt.ArrayLike | None = None,
+               progress: Callable[[int], Any] | None = None) -> tuple[np.ndarray, float, np.ndarray]:
     """Minimise ``objective(bits)`` over 0/1 vectors by single-bit Metropolis moves.
 
     With ``final_temperature`` the temperature falls geometrically from
     ``temperature`` to it over ``steps`` (simulated annealing); without, it
     stays at ``temperature`` (a random walk). Returns ``(best_bits,
     best_value, trace)``: ``trace`` holds the current value after each step.
+
+    Parameters
+    ----------
+    objective : callable
+        Takes an int8 0/1 vector of ``n_bits`` (modified in place between calls: copy it to keep it) and
+        returns the value to minimise.
+    n_bits : int
+        Length of the bit vector (>= 1).
+    steps : int
+        Proposed single-bit flips (>= 0).
+    temperature : float
+        Starting (or constant) temperature, in the objective's units (positive, finite).
+    final_temperature : float or None
+        Temperature at the last step, in ``(0, temperature]``; None keeps it constant.
+    seed : int
+        Seed of the start and the moves.
+    start : array_like or None
+        Starting bits; None draws them.
+    progress : callable, optional
+        Called with 1 after each step.
+
+    Returns
+    -------
+    best_bits : numpy.ndarray
+        int8 0/1, shape ``(n_bits,)``: the best vector met.
+    best_value : float
+        Its objective.
+    trace : numpy.ndarray
+        float64, shape ``(steps,)``: the current value after each step.
+
+    Raises
+    ------
+    EvtkError
+        No bits, negative steps, or a temperature that is not positive and finite (or a final one above it).
 
     Examples
     --------
@@ -70,8 +109,25 @@ def metropolis(objective, n_bits, steps, temperature, final_temperature=None, se
     return best, best_value, trace
 
 
-def fit_mask(a, y, pool, per_channel=False):
-    """The mask rule: a pooled cell scores class 1 where class 1's mean activation is lower there."""
+def fit_mask(a: np.ndarray, y: npt.ArrayLike, pool: int, per_channel: bool = False) -> np.ndarray:
+    """The mask rule: a pooled cell scores class 1 where class 1's mean activation is lower there.
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        +-1 activations, shape ``(n, c, s, s)``.
+    y : array_like
+        0/1 labels, shape ``(n,)``.
+    pool : int
+        Side of the average pooling.
+    per_channel : bool
+        One mask plane per channel (as :meth:`evtk.bcnn.BCNN.scores` takes a 3-D mask).
+
+    Returns
+    -------
+    numpy.ndarray
+        int8 0/1 mask, ``(s/pool, s/pool)`` or ``(c, s/pool, s/pool)`` with ``per_channel``.
+    """
     pooled = pool_map(a, pool, per_channel)
     y = np.asarray(y)
     m1 = pooled[y == 1].mean(axis=0) if np.any(y == 1) else np.zeros(pooled.shape[1:])
@@ -114,14 +170,50 @@ class _LayerObjective:
         return bce_loss(s0, s1, self.y, self.model.beta)
 
 
-def train_layerwise(model: BCNN, backend, x, y, optimizer="anneal", steps=600, temperature=10.0,
-                    final_temperature=0.01, seed=0, progress=None) -> dict:
+def train_layerwise(model: BCNN, backend: Backend, x: np.ndarray, y: npt.ArrayLike, optimizer: str = "anneal",
+                    steps: int = 600, temperature: float = 10.0, final_temperature: float = 0.01, seed: int = 0,
+                    progress: Callable[[int], Any] | None = None) -> dict:
     """Optimise ``model`` layer by layer on (x, y); returns a record with per-layer traces and timing.
 
     ``optimizer``: "anneal" (``temperature`` falling to ``final_temperature``
     over ``steps`` per layer), "walk" (constant ``temperature``) or "brute"
     (every kernel of a layer, mask by :func:`fit_mask`; at most 2^12 kernel
     bits combinations). The loss is the summed binary cross-entropy.
+
+    Parameters
+    ----------
+    model : BCNN
+        The network; its kernels, masks and thresholds are replaced in place, layer by layer.
+    backend : DigitalBackend or OpticalBackend
+        Computes the correlations.
+    x : numpy.ndarray
+        +-1 training images, ``(n, s, s)`` or ``(n, c, s, s)``.
+    y : array_like
+        0/1 labels, one per image.
+    optimizer : {"anneal", "walk", "brute"}
+        The search.
+    steps : int
+        Metropolis steps per layer (not used by "brute").
+    temperature : float
+        Starting (anneal) or constant (walk) temperature, in nats of the loss.
+    final_temperature : float
+        The annealing's last temperature.
+    seed : int
+        Seed of the searches.
+    progress : callable, optional
+        Called with 1 after each step or kernel tried.
+
+    Returns
+    -------
+    dict
+        ``optimizer``, ``steps_per_layer``, ``layers`` (per layer: ``loss``, ``trace``,
+        ``kernel_evaluations``), ``seconds`` and ``steps``.
+
+    Raises
+    ------
+    EvtkError
+        An unknown optimizer, labels that are not 0/1 one per image, inputs that are not +-1 images, or brute
+        force over more than 2^12 kernels.
     """
     if optimizer not in ("anneal", "walk", "brute"):
         raise EvtkError(f"optimizer must be 'anneal', 'walk' or 'brute', not {optimizer!r}")
@@ -130,7 +222,7 @@ def train_layerwise(model: BCNN, backend, x, y, optimizer="anneal", steps=600, t
     if len(y) != len(x) or not np.isin(y, (0, 1)).all():
         raise EvtkError("labels must be 0/1, one per image")
     t0 = time.perf_counter()
-    record = {"optimizer": optimizer, "layers": [], "steps_per_layer": int(steps)}
+    record: dict[str, Any] = {"optimizer": optimizer, "layers": [], "steps_per_layer": int(steps)}
     a = x
     rng = np.random.default_rng(seed)
     for i in range(model.n_layers):
@@ -193,13 +285,39 @@ def _col2im(g, shape, kh, kw):
     return p[:, :, kh - 1:kh - 1 + h, kw - 1:kw - 1 + w]
 
 
-def train_ste(model: BCNN, x, y, epochs=300, lr=0.02, seed=0) -> dict:
+def train_ste(model: BCNN, x: np.ndarray, y: npt.ArrayLike, epochs: int = 300, lr: float = 0.02,
+              seed: int = 0) -> dict:
     """Train ``model`` end to end with straight-through gradients (sign forward, clipped identity back) and Adam.
 
     Latent real weights for kernels and the output mask; batch normalisation
     divides by the batch standard deviation (which does not change a sign);
     loss the mean binary cross-entropy. The trained model's kernels, output
     mask and thresholds are set for the digital or optical backend.
+
+    Parameters
+    ----------
+    model : BCNN
+        The network (its shapes, pooling and ``beta``); kernels, masks and thresholds are replaced in place.
+    x : numpy.ndarray
+        +-1 training images, ``(n, s, s)`` or ``(n, c, s, s)``.
+    y : array_like
+        0/1 labels, one per image.
+    epochs : int
+        Full-batch Adam steps.
+    lr : float
+        Adam's learning rate.
+    seed : int
+        Seed of the latent weights.
+
+    Returns
+    -------
+    dict
+        ``optimizer`` (``"ste"``), ``losses`` (the mean loss, nats, per epoch) and ``epochs``.
+
+    Raises
+    ------
+    EvtkError
+        If ``x`` is not +-1 images.
     """
     x = as_binary_input(x).astype(np.float64)
     y = np.asarray(y, np.float64)

@@ -35,6 +35,7 @@ import json
 import os
 
 import numpy as np
+import numpy.typing as npt
 
 from ._atomic import AtomicFile
 from .errors import EvtkError
@@ -90,7 +91,7 @@ def _patterns(path, value, name, base_dir):
     return check_patterns(path, name, value)
 
 
-def load_job(path) -> dict:
+def load_job(path: str | os.PathLike[str]) -> dict:
     """Read a job file (TOML or JSON; see the module docstring) into :class:`~evtk.simulate.Simulation`'s arguments.
 
     Parameters
@@ -108,6 +109,12 @@ def load_job(path) -> dict:
         ``light_delay_us``, each checked against :data:`JOB_SPECS` (a bad
         value is an :class:`~evtk.EvtkError` naming the file, the key and
         the range).
+
+    Raises
+    ------
+    EvtkError
+        An unreadable file, unknown keys, no kernels, patterns that are not 0/1 or differ in shape, or a value
+        out of range (naming the file).
     """
     path = os.fspath(path)
     data = read_table(path, "job")
@@ -138,8 +145,24 @@ def load_job(path) -> dict:
     return job
 
 
-def job_simulation(path) -> Simulation:
-    """The :class:`~evtk.simulate.Simulation` of a job file: the same schedule :func:`write_patterns` writes."""
+def job_simulation(path: str | os.PathLike[str]) -> Simulation:
+    """The :class:`~evtk.simulate.Simulation` of a job file: the same schedule :func:`write_patterns` writes.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The job file (:func:`load_job`).
+
+    Returns
+    -------
+    Simulation
+        The simulated run of the job, nothing simulated yet.
+
+    Raises
+    ------
+    EvtkError
+        A bad job, or settings the simulator refuses (naming the file).
+    """
     job = load_job(path)
     try:
         return Simulation(**job)
@@ -147,11 +170,35 @@ def job_simulation(path) -> Simulation:
         raise EvtkError(f"{os.fspath(path)}: {exc}") from None
 
 
-def dmd_frame(pattern, upsample, dmd_cols, dmd_rows) -> tuple[np.ndarray, tuple[int, int]]:
+def dmd_frame(pattern: npt.ArrayLike, upsample: int, dmd_cols: int,
+              dmd_rows: int) -> tuple[np.ndarray, tuple[int, int]]:
     """One DMD frame: ``pattern`` (elements > 0 on) with each element ``upsample`` x ``upsample`` mirrors, centred.
 
     Returns the boolean frame (``dmd_rows`` x ``dmd_cols``) and the mirror
     (row, column) of the pattern's top-left element.
+
+    Parameters
+    ----------
+    pattern : array_like
+        2-D pattern; elements above 0 are on.
+    upsample : int
+        Mirrors per element along each axis.
+    dmd_cols : int
+        Mirrors per DMD row.
+    dmd_rows : int
+        Mirror rows of the DMD.
+
+    Returns
+    -------
+    frame : numpy.ndarray
+        bool, shape ``(dmd_rows, dmd_cols)``.
+    top_left : tuple of int
+        Mirror ``(row, column)`` of the pattern's top-left element.
+
+    Raises
+    ------
+    EvtkError
+        If the upsampled pattern needs more mirrors than the DMD has.
 
     Examples
     --------
@@ -179,7 +226,7 @@ def _save_1bit(path, frame, image_format):
         img.save(out.file, format=image_format.upper())
 
 
-def write_patterns(sim: Simulation, out_dir, image_format="png") -> dict:
+def write_patterns(sim: Simulation, out_dir: str | os.PathLike[str], image_format: str = "png") -> dict:
     """Write every DMD frame of a run and its schedule into ``out_dir``.
 
     Files: ``kernel/kNNN.<fmt>`` and ``features/fNNN.<fmt>`` (each distinct
@@ -191,6 +238,26 @@ def write_patterns(sim: Simulation, out_dir, image_format="png") -> dict:
     kernels, features, timing and bench geometry (see
     ``docs/formats/schedule.md``). It holds no pixel model: nothing a bench
     would not know. Returns a summary (frames written, captures, paths).
+
+    Parameters
+    ----------
+    sim : Simulation
+        The run (its schedule, patterns and bench), e.g. from :func:`job_simulation`.
+    out_dir : str or os.PathLike
+        The folder to write into (made when missing).
+    image_format : {"png", "bmp"}
+        Format of the 1-bit frames.
+
+    Returns
+    -------
+    dict
+        ``out_dir``, ``schedule`` (the path of ``schedule.json``), ``captures``, ``kernel_frames``,
+        ``features_frames``, ``format`` and ``dmd`` (``[cols, rows]``).
+
+    Raises
+    ------
+    EvtkError
+        An unknown image format, a pattern larger than its DMD, or more memory than the budget.
     """
     fmt = str(image_format).lower()
     if fmt not in ("png", "bmp"):

@@ -9,12 +9,22 @@ from __future__ import annotations
 import os
 import textwrap
 from collections import defaultdict
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from ._atomic import AtomicFile
 from .errors import EvtkError
-from .reconstruct import binarize, downsample
+from .reconstruct import Reconstruction, binarize, downsample
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from .recover import Recovery
+
+#: A file path as the plots take it.
+PathLike = str | os.PathLike[str]
 
 __all__ = ["contact_sheet", "wilson_interval", "plot_enob", "plot_flips", "plot_tradeoff", "plot_recovery", "plot_success",
            "plot_robustness"]
@@ -25,7 +35,7 @@ DIVERGING_CMAP = "RdBu_r"
 MIN_FONT_PT = 7.0
 
 
-def pyplot():
+def pyplot() -> Any:
     """matplotlib.pyplot on the off-screen backend.
 
     Returns
@@ -41,7 +51,7 @@ def pyplot():
     return plt
 
 
-def save_png(fig, path, dpi=100):
+def save_png(fig: Figure, path: PathLike, dpi: int = 100) -> None:
     """Write ``fig`` as a PNG at ``path`` (atomically) and close it.
 
     A figure made without a layout engine gets matplotlib's constrained layout, which keeps titles, colour
@@ -66,7 +76,7 @@ def save_png(fig, path, dpi=100):
         plt.close(fig)
 
 
-def wrap_title(text, width_in, fontsize):
+def wrap_title(text: str, width_in: float, fontsize: float) -> str:
     """``text`` broken into lines that fit ``width_in`` inches at ``fontsize`` points.
 
     Parameters
@@ -95,12 +105,12 @@ def _legend_below(fig, handles, labels=None, ncols=None):
                frameon=False)
 
 
-def response_quantity(result) -> str:
+def response_quantity(result: Reconstruction) -> str:
     """What a reconstruction's response values are, with their unit, for a colour bar.
 
     Parameters
     ----------
-    result : evtk.reconstruct.ReconstructionResult
+    result : evtk.reconstruct.Reconstruction
         The reconstruction (its ``summary["linear"]`` and whether the ideal is known).
 
     Returns
@@ -139,7 +149,7 @@ def _scale(arrays, signed):
     return lo, hi, "gray"
 
 
-def contact_sheet(path, result, rows_per_page=8) -> list:
+def contact_sheet(path: PathLike, result: Reconstruction, rows_per_page: int = 8) -> list:
     """PNG pages of every response: measured and ideal on the cell grid, and both binarised.
 
     One row per response, at most ``rows_per_page`` rows a page and the rows
@@ -158,7 +168,7 @@ def contact_sheet(path, result, rows_per_page=8) -> list:
     ----------
     path : str or os.PathLike
         The first page's PNG.
-    result : evtk.reconstruct.ReconstructionResult
+    result : evtk.reconstruct.Reconstruction
         The reconstruction to draw.
     rows_per_page : int
         Most responses on one page.
@@ -167,6 +177,11 @@ def contact_sheet(path, result, rows_per_page=8) -> list:
     -------
     list of str
         The pages written, in order.
+
+    Raises
+    ------
+    EvtkError
+        When the reconstruction holds no responses.
     """
     n = len(result.cells)
     if n == 0:
@@ -252,7 +267,7 @@ def contact_sheet(path, result, rows_per_page=8) -> list:
     return paths
 
 
-def plot_enob(scenes, path):
+def plot_enob(scenes: list[dict], path: PathLike) -> None:
     """ENOB (eq. 8) of each scene with its interval; noise-free scenes drawn as a marker at the top.
 
     Parameters
@@ -261,6 +276,11 @@ def plot_enob(scenes, path):
         :func:`evtk.sweeps.recording_noise`'s scenes (``kernel_id``, ``features_id``, ``repeats``, ``sinad``).
     path : str or os.PathLike
         The PNG.
+
+    Raises
+    ------
+    EvtkError
+        When there are no scenes.
     """
     if not scenes:
         raise EvtkError("no scenes to plot")
@@ -306,7 +326,7 @@ def plot_enob(scenes, path):
     save_png(fig, path)
 
 
-def plot_flips(rows, path, x_key="power_mw", x_label="laser power (mW)"):
+def plot_flips(rows: list[dict], path: PathLike, x_key: str = "power_mw", x_label: str = "laser power (mW)") -> None:
     """Flip rate against ``x_key`` (laser power), one line per kernel and their mean (the paper's Fig. 3, right).
 
     Parameters
@@ -316,8 +336,15 @@ def plot_flips(rows, path, x_key="power_mw", x_label="laser power (mW)"):
         ``"file_index"``: the ticks then name the files).
     path : str or os.PathLike
         The PNG.
-    x_key, x_label : str
-        The abscissa's key in ``rows`` and its axis label.
+    x_key : str
+        The abscissa's key in ``rows``.
+    x_label : str
+        The abscissa's axis label.
+
+    Raises
+    ------
+    EvtkError
+        When there are no rows.
     """
     if not rows:
         raise EvtkError("no flip rates to plot")
@@ -363,7 +390,7 @@ def _tick_at(ax, xs, names=None):
                        ha="right" if len(xs) > 5 or names is not None else "center")
 
 
-def plot_tradeoff(rows, path):
+def plot_tradeoff(rows: list[dict], path: PathLike) -> None:
     """Work-precision plot: NRMSE against device time per capture, the Pareto front joined.
 
     Both panels share the error axis; the right one puts the same settings against compute time.
@@ -374,6 +401,11 @@ def plot_tradeoff(rows, path):
         :func:`evtk.sweeps.tradeoff`'s rows.
     path : str or os.PathLike
         The PNG.
+
+    Raises
+    ------
+    EvtkError
+        When no setting has a defined error.
     """
     pts = [r for r in rows if r["nrmse"] is not None]
     if not pts:
@@ -425,7 +457,8 @@ def plot_tradeoff(rows, path):
     save_png(fig, path)
 
 
-def plot_recovery(path, features, target_response, solution_response, result, true_kernel=None):
+def plot_recovery(path: PathLike, features: npt.ArrayLike, target_response: npt.ArrayLike,
+                  solution_response: npt.ArrayLike, result: Recovery, true_kernel: npt.ArrayLike | None = None) -> None:
     """The paper's Fig. 4 for one recovery: features, target and solution kernels and responses, loss per candidate.
 
     The two responses share one colour scale (one colour bar, in the target's units).
@@ -436,8 +469,10 @@ def plot_recovery(path, features, target_response, solution_response, result, tr
         The PNG.
     features : array_like
         The binary features.
-    target_response, solution_response : array_like
-        The captured response and the solution's.
+    target_response : array_like
+        The captured response (2-D, cells).
+    solution_response : array_like
+        The solution kernel's response, same shape.
     result : evtk.recover.Recovery
         The recovery (its kernel, status and, for brute force, every candidate's loss).
     true_kernel : array_like, optional
@@ -451,7 +486,8 @@ def plot_recovery(path, features, target_response, solution_response, result, tr
     responses = [("target response", np.asarray(target_response, dtype=float)),
                  ("solution response", np.asarray(solution_response, dtype=float))]
     n_panels = len(binary) + len(responses)
-    with_curve = result.losses is not None
+    losses = result.losses
+    with_curve = losses is not None
     width_in = 2.4 * n_panels + 1.2
     fig = plt.figure(figsize=(width_in, 5.2 if with_curve else 3.0), layout="constrained")
     grid = fig.add_gridspec(2 if with_curve else 1, n_panels)
@@ -476,28 +512,33 @@ def plot_recovery(path, features, target_response, solution_response, result, tr
     cb.ax.tick_params(labelsize=7)
     fig.suptitle(wrap_title("kernel recovery (Fig. 4): features and kernels black 0, white 1; "
                             "the responses share one colour scale", width_in, 9), fontsize=9)
-    if with_curve:
+    if losses is not None:
         ax = fig.add_subplot(grid[1, :])
-        ax.plot(result.losses, lw=0.6, color="0.3")
-        best = int(np.argmin(result.losses))
-        ax.plot(best, result.losses[best], "o", color="C3")
-        ax.set_yscale("log" if np.all(result.losses > 0) else "linear")
+        ax.plot(losses, lw=0.6, color="0.3")
+        best = int(np.argmin(losses))
+        ax.plot(best, losses[best], "o", color="C3")
+        ax.set_yscale("log" if np.all(losses > 0) else "linear")
         ax.set_xlabel("candidate kernel (bits as a number)")
         ax.set_ylabel("loss (weighted mean square)")
         ax.set_title(f"loss of every candidate; red dot: the solution (candidate {best})", fontsize=8)
     save_png(fig, path)
 
 
-def plot_success(rows, path):
+def plot_success(rows: list[dict], path: PathLike) -> None:
     """Share of kernels recovered (exactly or up to a shift) against laser power.
 
     Parameters
     ----------
     rows : list of dict
-        :func:`evtk.recover.success_rates`'s rows (``size``, ``method``, ``weights``, ``power_mw``,
+        :func:`evtk.recover.success_rate`'s rows (``size``, ``method``, ``weights``, ``power_mw``,
         ``recovered_pct``, ``exact_pct``, ``trials``).
     path : str or os.PathLike
         The PNG.
+
+    Raises
+    ------
+    EvtkError
+        When there are no rows.
     """
     if not rows:
         raise EvtkError("no success rates to plot")
@@ -530,7 +571,8 @@ def plot_success(rows, path):
     save_png(fig, path)
 
 
-def wilson_interval(share, n, z=1.959963984540054):
+def wilson_interval(share: npt.ArrayLike, n: npt.ArrayLike,
+                    z: float = 1.959963984540054) -> tuple[np.ndarray, np.ndarray]:
     """Wilson score interval of binomial shares ``share`` out of ``n`` trials (95 % by default).
 
     Parameters
@@ -544,17 +586,19 @@ def wilson_interval(share, n, z=1.959963984540054):
 
     Returns
     -------
-    tuple of ndarray
-        Lower and upper bounds, within 0 and 1.
+    low : numpy.ndarray
+        Lower bounds, float64 within 0 and 1, of the broadcast shape.
+    high : numpy.ndarray
+        Upper bounds, likewise.
     """
-    share = np.asarray(share, dtype=float)
-    n = np.maximum(np.asarray(n, dtype=float), 1.0)
-    centre = (share + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * np.sqrt(share * (1 - share) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    p = np.asarray(share, dtype=float)
+    trials = np.maximum(np.asarray(n, dtype=float), 1.0)
+    centre = (p + z * z / (2 * trials)) / (1 + z * z / trials)
+    half = z * np.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / (1 + z * z / trials)
     return np.clip(centre - half, 0.0, 1.0), np.clip(centre + half, 0.0, 1.0)
 
 
-def plot_robustness(result, path):
+def plot_robustness(result: dict[str, Any], path: PathLike) -> None:
     """Fig. 3 (left): accuracy and flipped pixels against the Poisson noise scale.
 
     Parameters
@@ -564,6 +608,11 @@ def plot_robustness(result, path):
         ``r``, the accuracy eq. 12 keeps).
     path : str or os.PathLike
         The PNG.
+
+    Raises
+    ------
+    EvtkError
+        When there are no rows.
     """
     rows = result["rows"]
     if not rows:

@@ -27,15 +27,19 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from .cluster import run_tasks
 from .errors import EvtkError
 from .limits import require_memory
 from .optics import Bench, ideal_response, response_origin_px, response_region
 from .reconstruct import footprint_matrix
+from .sensor import SensorModel
 from .sweeps import simulated_reconstruction
 
 __all__ = [
@@ -59,9 +63,10 @@ MAX_BRUTE_BITS = 25
 class Recovery:
     """What a recovery found.
 
-    Attributes
+    Parameters
     ----------
     kernel : ndarray (s, s) of int8 (0/1)
+        The kernel found.
     loss : float
         Mean squared error of the (scaled) candidate response against the target.
     scale : float
@@ -74,19 +79,21 @@ class Recovery:
     losses : ndarray or None
         Brute force: the loss of every candidate, indexed by :func:`all_kernels`.
     method : str
+        "brute" or "search".
     proven : bool
         The loss is the global minimum over all binary kernels (brute force
         always; search when branch and bound finished).
     nodes : int
         Branch-and-bound nodes (search only).
     seconds : float
+        Wall time of the recovery, s.
     """
 
     kernel: np.ndarray
     loss: float
     scale: float
     status: str | None
-    near: list = field(default_factory=list)
+    near: list[tuple[str, float]] = field(default_factory=list)
     losses: np.ndarray | None = None
     method: str = "brute"
     proven: bool = True
@@ -94,23 +101,47 @@ class Recovery:
     seconds: float = 0.0
 
     def to_dict(self) -> dict:
+        """The recovery as a JSON-ready dict (``losses`` left out).
+
+        Returns
+        -------
+        dict
+            ``kernel_bits``, ``kernel`` (nested lists), ``loss``, ``scale``, ``status``, ``method``, ``proven``,
+            ``nodes``, ``seconds`` and ``near`` (a list of ``{kernel_bits, loss}``).
+        """
         return {"kernel_bits": kernel_bits(self.kernel), "kernel": self.kernel.tolist(), "loss": self.loss,
                 "scale": self.scale, "status": self.status, "method": self.method, "proven": self.proven,
                 "nodes": self.nodes, "seconds": self.seconds,
                 "near": [{"kernel_bits": b, "loss": v} for b, v in self.near]}
 
 
-def _check_size(size):
+def _check_size(size: int) -> int:
     s = int(size)
     if s != size or s < 1 or s * s > 62:
         raise EvtkError(f"kernel size must be a whole number from 1 to 7, not {size!r}")
     return s
 
 
-def all_kernels(size):
+def all_kernels(size: int) -> np.ndarray:
     """Every binary ``size`` x ``size`` kernel, index ``i`` holding the bits of ``i``.
 
     Row-major, the first element the most significant bit.
+
+    Parameters
+    ----------
+    size : int
+        Side of the kernels (``size * size`` at most 25 bits).
+
+    Returns
+    -------
+    numpy.ndarray
+        int8 0/1, shape ``(2 ** (size * size), size, size)``.
+
+    Raises
+    ------
+    EvtkError
+        A size that is not a whole number from 1 to 7, too many kernels to enumerate, or more memory than the
+        budget.
     """
     s = _check_size(size)
     n = s * s
@@ -122,14 +153,43 @@ def all_kernels(size):
     return bits.astype(np.int8).reshape(-1, s, s)
 
 
-def kernel_bits(kernel) -> str:
-    """Row-major bit string of a binary kernel, e.g. ``"010111010"``."""
+def kernel_bits(kernel: npt.ArrayLike) -> str:
+    """Row-major bit string of a binary kernel, e.g. ``"010111010"``.
+
+    Parameters
+    ----------
+    kernel : array_like
+        0/1 kernel, any shape.
+
+    Returns
+    -------
+    str
+        One character per element, row-major.
+    """
     k = np.asarray(kernel)
     return "".join(str(int(v)) for v in k.ravel())
 
 
-def kernel_from_bits(bits: str, size=None):
-    """A square binary kernel from its row-major bit string."""
+def kernel_from_bits(bits: str, size: int | None = None) -> np.ndarray:
+    """A square binary kernel from its row-major bit string.
+
+    Parameters
+    ----------
+    bits : str
+        ``"0"`` and ``"1"`` characters, a square number of them.
+    size : int or None
+        The side the kernel must have; None accepts any square.
+
+    Returns
+    -------
+    numpy.ndarray
+        int8 0/1, shape ``(s, s)``.
+
+    Raises
+    ------
+    EvtkError
+        Empty or non-binary text, a length that is not a square, or not ``size`` squared.
+    """
     if not bits or set(bits) - {"0", "1"}:
         raise EvtkError(f"kernel bits must be a non-empty string of 0s and 1s, not {bits!r}")
     s = int(round(len(bits) ** 0.5))
@@ -138,7 +198,7 @@ def kernel_from_bits(bits: str, size=None):
     return np.array([int(c) for c in bits], np.int8).reshape(s, s)
 
 
-def _as_binary(name, a, ndim):
+def _as_binary(name: str, a: npt.ArrayLike, ndim: int) -> np.ndarray:
     a = np.asarray(a)
     if a.ndim != ndim or a.size == 0:
         raise EvtkError(f"{name} must be a non-empty {ndim}-D array, got shape {a.shape}")
@@ -147,32 +207,83 @@ def _as_binary(name, a, ndim):
     return a.astype(np.int8)
 
 
-def is_shift(a, b) -> bool:
-    """True when ``b`` is ``a``'s pattern translated (not by zero) without losing a lit element."""
-    a = np.asarray(a, bool)
-    b = np.asarray(b, bool)
-    if a.shape != b.shape or a.sum() != b.sum() or not a.any() or np.array_equal(a, b):
+def is_shift(a: npt.ArrayLike, b: npt.ArrayLike) -> bool:
+    """True when ``b`` is ``a``'s pattern translated (not by zero) without losing a lit element.
+
+    Parameters
+    ----------
+    a : array_like
+        0/1 (or boolean) kernel.
+    b : array_like
+        0/1 kernel of the same shape.
+
+    Returns
+    -------
+    bool
+        Whether ``b`` is a non-zero translation of ``a`` within the window (False for different shapes or
+        counts of lit elements, an empty ``a``, or ``b`` equal to ``a``).
+    """
+    ab = np.asarray(a, bool)
+    bb = np.asarray(b, bool)
+    if ab.shape != bb.shape or ab.sum() != bb.sum() or not ab.any() or np.array_equal(ab, bb):
         return False
-    ya, xa = np.nonzero(a)
-    yb, xb = np.nonzero(b)
+    ya, xa = np.nonzero(ab)
+    yb, xb = np.nonzero(bb)
     dy, dx = yb.min() - ya.min(), xb.min() - xa.min()
-    return bool(np.array_equal(np.sort((ya + dy) * a.shape[1] + xa + dx), np.sort(yb * a.shape[1] + xb)))
+    return bool(np.array_equal(np.sort((ya + dy) * ab.shape[1] + xa + dx), np.sort(yb * ab.shape[1] + xb)))
 
 
-def classify(found, true_kernel):
-    """``"exact"``, ``"shift"`` or ``"wrong"``."""
+def classify(found: npt.ArrayLike, true_kernel: npt.ArrayLike) -> str:
+    """``"exact"``, ``"shift"`` or ``"wrong"``.
+
+    Parameters
+    ----------
+    found : array_like
+        The recovered 0/1 kernel.
+    true_kernel : array_like
+        The kernel that made the response.
+
+    Returns
+    -------
+    str
+        ``"exact"`` when equal, ``"shift"`` when ``found`` is ``true_kernel`` translated (:func:`is_shift`),
+        else ``"wrong"``.
+    """
     if np.array_equal(np.asarray(found), np.asarray(true_kernel)):
         return "exact"
     return "shift" if is_shift(true_kernel, found) else "wrong"
 
 
-def response_matrix(features, size, bench=None, blurred=False):
+def response_matrix(features: npt.ArrayLike, size: int, bench: Bench | None = None,
+                    blurred: bool = False) -> np.ndarray:
     """The device's linear model: column ``j`` is the full response to a kernel with only element ``j`` lit.
 
     Cells are :func:`evtk.optics.ideal_response`'s (what a deblurred,
     calibrated reconstruction approximates), flattened row-major; with
     ``blurred`` they carry the optics' footprint blur (what a reconstruction
     without deblurring sees; needs matched scaling).
+
+    Parameters
+    ----------
+    features : array_like
+        0/1 features, 2-D ``(fh, fw)``.
+    size : int
+        Side ``s`` of the kernels (1 to 7).
+    bench : Bench or None
+        The bench (its ``kernel_flipped``, and the blur when ``blurred``); None takes the default.
+    blurred : bool
+        Carry the optics' footprint blur.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``((fh + s - 1) * (fw + s - 1), s * s)``, in response units per lit element.
+
+    Raises
+    ------
+    EvtkError
+        Non-binary features, a bad size, a blurred model without matched scaling, or more memory than the
+        budget.
     """
 
     s = _check_size(size)
@@ -180,7 +291,8 @@ def response_matrix(features, size, bench=None, blurred=False):
     cells = (f.shape[0] + s - 1) * (f.shape[1] + s - 1)
     # the columns, their stacked copy and one ideal response
     require_memory(8 * cells * (2 * s * s + 1), f"the model of a {s}x{s} kernel on {f.shape[0]}x{f.shape[1]} features")
-    my = mx = None
+    my: np.ndarray | None = None
+    mx: np.ndarray | None = None
     if blurred:
         bench = bench if bench is not None else Bench()
         if abs(bench.kernel_step_cells / bench.pixel_cells - 1.0) > 1e-9:
@@ -194,7 +306,7 @@ def response_matrix(features, size, bench=None, blurred=False):
         e = np.zeros(s * s)
         e[j] = 1.0
         r = ideal_response(e.reshape(s, s), f, bench)
-        cols.append((r if my is None else my @ r @ mx.T).ravel())
+        cols.append((r if my is None or mx is None else my @ r @ mx.T).ravel())
     return np.stack(cols, axis=1)
 
 
@@ -225,8 +337,9 @@ def _relative_weights(y, weights, floor):
     return 1.0 / np.maximum(np.abs(y), float(floor))
 
 
-def recover_brute(target, candidates, true_kernel=None, fit_scale=False, weights="relative", floor=1.0, rtol=0.05,
-                  atol=1e-9) -> Recovery:
+def recover_brute(target: npt.ArrayLike, candidates: npt.ArrayLike, true_kernel: npt.ArrayLike | None = None,
+                  fit_scale: bool = False, weights: str | None = "relative", floor: float = 1.0, rtol: float = 0.05,
+                  atol: float = 1e-9) -> Recovery:
     """Brute force (paper 4.4): the candidate whose response is closest to ``target`` in (weighted) MSE.
 
     Parameters
@@ -241,12 +354,27 @@ def recover_brute(target, candidates, true_kernel=None, fit_scale=False, weights
         Compare ``a * response`` with ``a`` fitted per candidate (for
         candidates from a model in other units); off for responses captured
         the same way as the target.
-    weights, floor
+    weights : "relative" or None
         As in :func:`recover_search`; ``weights=None`` is the paper's plain
         MSE (which recovers slightly fewer kernels on the simulated device:
         99 of 100 against 100 at nominal light).
-    rtol, atol : float
+    floor : float
+        As in :func:`recover_search`.
+    rtol : float
         Candidates with loss at most ``best * (1 + rtol) + atol`` are listed as near.
+    atol : float
+        The absolute part of that tolerance.
+
+    Returns
+    -------
+    Recovery
+        The best candidate, every candidate's loss (``losses``) and the near ones; ``proven`` is True.
+
+    Raises
+    ------
+    EvtkError
+        Candidates that are not every kernel of one size, responses of another size than the target, NaN or
+        infinite values, bad weights, or more memory than the budget.
     """
     t0 = time.perf_counter()
     y = np.asarray(target, dtype=np.float64).ravel()
@@ -316,8 +444,9 @@ def _local_search(k, g, b, c0):
         q += float(best_delta)
 
 
-def recover_search(target, a_mat, size, true_kernel=None, fit_scale=True, weights="relative", floor=1.0,
-                   max_nodes=20_000, rtol=0.05, atol=1e-9) -> Recovery:
+def recover_search(target: npt.ArrayLike, a_mat: npt.ArrayLike, size: int, true_kernel: npt.ArrayLike | None = None,
+                   fit_scale: bool = True, weights: str | None = "relative", floor: float = 1.0,
+                   max_nodes: int = 20_000, rtol: float = 0.05, atol: float = 1e-9) -> Recovery:
     """Kernel recovery without enumeration: relaxation, rounding, bit-flip search, branch and bound.
 
     Parameters
@@ -326,6 +455,10 @@ def recover_search(target, a_mat, size, true_kernel=None, fit_scale=True, weight
         Captured response, flattened to match ``a_mat``'s rows.
     a_mat : ndarray (cells, s * s)
         The device's linear model (:func:`response_matrix`).
+    size : int
+        Side ``s`` of the kernel (1 to 7).
+    true_kernel : array_like, optional
+        To classify the answer.
     fit_scale : bool
         Start from a scale read off the unconstrained least-squares kernel,
         refit it for the kernel found and search again until it settles (at
@@ -339,26 +472,41 @@ def recover_search(target, a_mat, size, true_kernel=None, fit_scale=True, weight
         Response level below which cells are not weighted up further.
     max_nodes : int
         Branch-and-bound budget; ``proven`` is False when it runs out.
+    rtol : float
+        Kernels met on the way with loss at most ``best * (1 + rtol) + atol`` are listed as near.
+    atol : float
+        The absolute part of that tolerance.
+
+    Returns
+    -------
+    Recovery
+        The kernel found, its loss (mean over cells of the weighted squared error), the scale, whether it is
+        proven optimal and the nodes visited (``losses`` is None).
+
+    Raises
+    ------
+    EvtkError
+        A bad size, a model that does not fit the target, NaN or infinite values, or bad weights.
     """
     t0 = time.perf_counter()
     s = _check_size(size)
     n = s * s
-    a_mat = np.asarray(a_mat, dtype=np.float64)
+    model = np.asarray(a_mat, dtype=np.float64)
     y = np.asarray(target, dtype=np.float64).ravel()
-    if a_mat.shape != (y.size, n):
-        raise EvtkError(f"model matrix {a_mat.shape} does not fit a target of {y.size} values and {n} kernel bits")
-    if not (np.all(np.isfinite(a_mat)) and np.all(np.isfinite(y))):
+    if model.shape != (y.size, n):
+        raise EvtkError(f"model matrix {model.shape} does not fit a target of {y.size} values and {n} kernel bits")
+    if not (np.all(np.isfinite(model)) and np.all(np.isfinite(y))):
         raise EvtkError("target or model holds NaN or infinite values")
     w = _relative_weights(y, weights, floor)
     if w is not None:
-        y, a_mat = y * w, a_mat * w[:, None]
-    seen: dict = {}
-    scale, total_nodes = (_initial_scale(a_mat, y) if fit_scale else 1.0), 0
+        y, model = y * w, model * w[:, None]
+    seen: dict[str, float] = {}
+    scale, total_nodes = (_initial_scale(model, y) if fit_scale else 1.0), 0
     for _ in range(4 if fit_scale else 1):
-        am = scale * a_mat
+        am = scale * model
         k, q, proven, nodes = _branch_and_bound(am, y, max_nodes, seen)
         total_nodes += nodes
-        new_scale = _fit_scale(a_mat @ k, y) if fit_scale else 1.0
+        new_scale = _fit_scale(model @ k, y) if fit_scale else 1.0
         if abs(new_scale - scale) <= 1e-3 * max(scale, 1e-12):
             break
         scale = new_scale
@@ -432,14 +580,46 @@ def _branch_and_bound(am, y, max_nodes, seen):
     return k, q, True, nodes
 
 
-def device_responses(kernels, features, bench=None, sensor=None, seed=0, noise_seed=None, crop="full",
-                     method="fast", deblur=False):
+def device_responses(kernels: npt.ArrayLike, features: npt.ArrayLike, bench: Bench | None = None,
+                     sensor: SensorModel | None = None, seed: int = 0, noise_seed: int | None = None,
+                     crop: str = "full", method: str = "fast", deblur: bool = False) -> np.ndarray:
     """Each kernel's response as the device captures it (simulated, one capture each), on the cell grid.
 
     ``method="fast"`` uses the simulator's count path; ``"events"`` writes the
     event stream and reconstructs it, as a bench recording would be. Not
     deblurred by default (compare with ``response_matrix(..., blurred=True)``).
     All-zero kernels show no light: their response is zero.
+
+    Parameters
+    ----------
+    kernels : array_like
+        0/1 kernels, shape ``(n, s, s)``.
+    features : array_like
+        0/1 features, 2-D.
+    bench : Bench or None
+        The simulated bench (None: the default).
+    sensor : SensorModel or None
+        The event pixels (None: the simulator's default).
+    seed : int
+        The device (fixed pattern noise).
+    noise_seed : int or None
+        The trial's shot noise (None: derived from ``seed``).
+    crop : str
+        The reconstruction's crop (``"full"``: the full correlation).
+    method : {"fast", "events"}
+        Count path or written event stream.
+    deblur : bool
+        Deblur the reconstruction.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``(n, *cells)``: the reconstructed responses, zero for all-zero kernels.
+
+    Raises
+    ------
+    EvtkError
+        Non-binary features, every kernel all zero, or more memory than the budget.
     """
 
     k = np.asarray(kernels)
@@ -451,12 +631,15 @@ def device_responses(kernels, features, bench=None, sensor=None, seed=0, noise_s
                                          method=method, crop=crop, deblur=deblur)
     require_memory(8 * len(k) * math.prod(result.cells.shape[1:]), f"the responses of {len(k):,} kernels")
     out = np.zeros((len(k),) + result.cells.shape[1:])
+    assert result.pairs is not None  # a simulated run knows its pairs
     out[lit[result.pairs[:, 0]]] = result.cells
     return out
 
 
-def success_rate(powers_mw, size=3, trials=100, method=None, bench=None, sensor=None, features_shape=(16, 16),
-                 seed=0, weights="relative", progress=None, client=None) -> list:
+def success_rate(powers_mw: Iterable[float], size: int = 3, trials: int = 100, method: str | None = None,
+                 bench: Bench | None = None, sensor: SensorModel | None = None,
+                 features_shape: tuple[int, int] = (16, 16), seed: int = 0, weights: str | None = "relative",
+                 progress: Callable[[int], Any] | None = None, client: Any = None) -> list:
     """Share of random (kernel, features) trials recovered exactly or up to a shift, per laser power.
 
     Each trial draws a random non-zero binary kernel and random binary
@@ -470,6 +653,41 @@ def success_rate(powers_mw, size=3, trials=100, method=None, bench=None, sensor=
     ``median_s``/``max_s`` per recovery (target capture excluded),
     ``proven_pct``. Trials run as independent tasks (on ``client``'s
     workers when given).
+
+    Parameters
+    ----------
+    powers_mw : iterable of float
+        Laser powers, mW (positive).
+    size : int
+        Side of the kernels (1 to 7).
+    trials : int
+        Trials per power.
+    method : {"brute", "search"} or None
+        Recovery method; None picks brute force up to 3x3, else the search.
+    bench : Bench or None
+        The simulated bench (None: the default); its power is replaced by each of ``powers_mw``.
+    sensor : SensorModel or None
+        The event pixels (None: the simulator's default).
+    features_shape : tuple of int
+        ``(rows, cols)`` of the random features.
+    seed : int
+        Seed of the draws and of the device.
+    weights : "relative" or None
+        The loss's cell weights (:func:`recover_search`).
+    progress : callable, optional
+        Called with 1 after each power.
+    client : distributed.Client or None
+        Runs the trials on its workers (:mod:`evtk.cluster`).
+
+    Returns
+    -------
+    list of dict
+        One row per power, with the keys above (and ``size``, ``method``, ``weights``).
+
+    Raises
+    ------
+    EvtkError
+        A bad size or method, a power that is not positive, or more memory than the budget.
     """
 
     s = _check_size(size)

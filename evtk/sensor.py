@@ -78,9 +78,11 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numba
 import numpy as np
+import numpy.typing as npt
 
 from ._rng import normal, normal_outlined, rng_state, uniform
 from .errors import EvtkError, check_parameters
@@ -109,10 +111,12 @@ class SensorModel:
     The defaults are plausible for a DVXplorer-class sensor; they are not a
     calibration of one.
 
-    Attributes
+    Parameters
     ----------
-    theta_on, theta_off : float
-        Contrast thresholds in natural-log units.
+    theta_on : float
+        ON contrast threshold in natural-log units.
+    theta_off : float
+        OFF contrast threshold in natural-log units.
     theta_mismatch : float
         Standard deviation of the per-pixel thresholds (log units).
     refractory_us : float
@@ -122,18 +126,19 @@ class SensorModel:
     tau_electrons : float
         Photoelectrons per time constant in dim light (``tau -> tau_electrons/lam``).
     dark_current_e_per_s : float
-        Photodiode dark current (must be positive).
+        Photodiode dark current, photoelectrons per second (must be positive).
     shot_noise : bool
         Simulate photon shot noise (False: deterministic, exact crossings).
     noise_step_fraction : float
         Noise step as a fraction of the time constant.
     noise_step_max_us : float
-        Upper bound of the noise step.
+        Upper bound of the noise step, us.
     background_rate_hz : float
         Background-activity (leak) events per pixel per second, random polarity.
     hot_pixel_fraction : float
         Fraction of pixels that fire at ``hot_pixel_rate_hz`` regardless of light.
     hot_pixel_rate_hz : float
+        Event rate of a hot pixel, per second.
     readout_period_us : float
         How the sensor reads its pixels out. 0 (default): asynchronously,
         each event stamped when it happens (DAVIS-like). Above 0: in frames,
@@ -160,6 +165,12 @@ class SensorModel:
         The camera's clock against the DMD's: event time stamps run this many
         parts per million fast (negative: slow) from the start of the run,
         while the trigger edges keep the DMD's time.
+
+    Raises
+    ------
+    EvtkError
+        If a value is not finite, of the wrong kind or outside its physical range, the pixel is unknown, or
+        the rates and readout settings do not fit the chosen pixel.
     """
 
     theta_on: float = 0.2
@@ -183,8 +194,8 @@ class SensorModel:
     sample_us: float = 1.0
     clock_drift_ppm: float = 0.0
 
-    def __post_init__(self):
-        def finite(name, low, strict):
+    def __post_init__(self) -> None:
+        def finite(name: str, low: float, strict: bool) -> None:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                     or (v <= low if strict else v < low):
@@ -232,9 +243,16 @@ class SensorModel:
         return self.pixel != "evtk" or self.frame_compare
 
     def to_dict(self) -> dict:
+        """The parameters as a plain dict, for TOML/JSON.
+
+        Returns
+        -------
+        dict
+            Field name to value; :meth:`from_dict` reads it back.
+        """
         return dataclasses.asdict(self)
 
-    def stamp(self, t_us, origin_us=0):
+    def stamp(self, t_us: npt.ArrayLike, origin_us: int = 0) -> np.ndarray:
         """Event time stamps as the sensor reports them.
 
         Parameters
@@ -246,41 +264,72 @@ class SensorModel:
 
         Returns
         -------
-        ndarray
+        numpy.ndarray
             Unchanged when asynchronous, else the end of each event's readout
             frame (``ceil(t / readout_period_us) * readout_period_us``, whole
             microseconds); then run through the camera's clock,
             ``t + round((t - origin_us) * clock_drift_ppm / 1e6)``.
         """
-        t_us = np.asarray(t_us)
+        t: np.ndarray = np.asarray(t_us)
         if self.readout_period_us > 0:
             period = self.readout_period_us
-            t_us = (np.ceil(t_us / period) * period).round().astype(np.int64)
+            t = (np.ceil(t / period) * period).round().astype(np.int64)
         if self.clock_drift_ppm:
-            t_us = t_us + np.round((t_us - origin_us) * (self.clock_drift_ppm * 1e-6)).astype(np.int64)
-        return t_us
+            t = t + np.round((t - origin_us) * (self.clock_drift_ppm * 1e-6)).astype(np.int64)
+        return t
 
     @classmethod
     def from_dict(cls, d: dict) -> SensorModel:
+        """A sensor model from a dict of parameters (missing ones take their defaults).
+
+        Parameters
+        ----------
+        d : dict
+            Field name to value, as :meth:`to_dict` writes (a bench file's ``sensor`` table).
+
+        Returns
+        -------
+        SensorModel
+            The checked model.
+
+        Raises
+        ------
+        EvtkError
+            If a key is not a parameter, a value has the wrong kind or is out of range.
+        """
         check_parameters("sensor", cls, d)
         return cls(**d)
 
-    def replace(self, **changes) -> SensorModel:
+    def replace(self, **changes: Any) -> SensorModel:
+        """A copy with some parameters changed (checked again).
+
+        Parameters
+        ----------
+        **changes : Any
+            Field name to new value.
+
+        Returns
+        -------
+        SensorModel
+            The new model.
+        """
         return dataclasses.replace(self, **changes)
 
 
-def time_constant_us(rate_e_per_s, model: SensorModel):
+def time_constant_us(rate_e_per_s: npt.ArrayLike, model: SensorModel) -> np.ndarray:
     """Photoreceptor time constant in us.
 
     Parameters
     ----------
     rate_e_per_s : array_like
-        Photocurrent, dark current included (must be > 0).
+        Photocurrent, dark current included, photoelectrons per second (must be > 0).
     model : SensorModel
+        The pixel model (its ``pixel``, ``tau_min_us`` and ``tau_electrons``).
 
     Returns
     -------
-    ndarray
+    numpy.ndarray
+        float64, shaped like ``rate_e_per_s``, us.
         evtk's pixel: ``tau_min + tau_electrons / lam`` (dim pixels are slow,
         smoothly). A v2e pixel: ``max(tau_min, tau_electrons / lam)``, a hard
         knee at ``lam = tau_electrons / tau_min`` above which it is flat. A
@@ -294,12 +343,25 @@ def time_constant_us(rate_e_per_s, model: SensorModel):
     return model.tau_min_us + model.tau_electrons / lam_per_us
 
 
-def log_noise_std(rate_e_per_s, model: SensorModel):
+def log_noise_std(rate_e_per_s: npt.ArrayLike, model: SensorModel) -> np.ndarray:
     """Stationary shot-noise std of the log photoreceptor, ``1/sqrt(2*lam*tau)`` (eqs. 9-10).
 
     ``lam*tau = lam*tau_min + tau_electrons``: bounded above by
     ``1/sqrt(2*tau_electrons)`` in the dark and falling as ``1/sqrt(lam)`` in
     bright light. Zero when shot noise is off.
+
+    Parameters
+    ----------
+    rate_e_per_s : array_like
+        Photocurrent, dark current included, photoelectrons per second (must be > 0).
+    model : SensorModel
+        The pixel model (its ``shot_noise``, ``pixel`` and time-constant parameters).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shaped like ``rate_e_per_s``: the standard deviation in natural-log units (zeros when shot noise
+        is off or for a log-node pixel).
     """
     lam_per_us = np.asarray(rate_e_per_s, dtype=np.float64) * 1e-6
     if not model.shot_noise or model.pixel == "log-node":
@@ -309,8 +371,25 @@ def log_noise_std(rate_e_per_s, model: SensorModel):
     return 1.0 / np.sqrt(2.0 * (lam_per_us * model.tau_min_us + model.tau_electrons))
 
 
-def pixel_thresholds(model: SensorModel, n_pixels: int, rng: np.random.Generator):
-    """Per-pixel ON and OFF thresholds with mismatch, never below 1 % of nominal."""
+def pixel_thresholds(model: SensorModel, n_pixels: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel ON and OFF thresholds with mismatch, never below 1 % of nominal.
+
+    Parameters
+    ----------
+    model : SensorModel
+        Nominal thresholds and their mismatch (standard deviation), natural-log units.
+    n_pixels : int
+        How many pixels.
+    rng : numpy.random.Generator
+        Draws the mismatch (ON thresholds first, then OFF).
+
+    Returns
+    -------
+    theta_on : numpy.ndarray
+        float64, shape ``(n_pixels,)``, natural-log units.
+    theta_off : numpy.ndarray
+        float64, shape ``(n_pixels,)``, natural-log units.
+    """
     on = model.theta_on + model.theta_mismatch * rng.standard_normal(n_pixels)
     off = model.theta_off + model.theta_mismatch * rng.standard_normal(n_pixels)
     return np.maximum(on, 0.01 * model.theta_on), np.maximum(off, 0.01 * model.theta_off)
@@ -322,9 +401,23 @@ class PixelState:
     ``mean``/``var`` describe the photoreceptor output (a Gaussian when not
     yet sampled), ``vref`` the reference level and ``blind_until_us`` the end of
     the refractory period, relative to the start of the next call.
+
+    Parameters
+    ----------
+    level : array_like
+        ``log(lam)`` of each pixel in the first light (``lam`` in photoelectrons per second), shape ``(n,)``.
+    noise_std : array_like
+        Log-domain noise standard deviation, per pixel or one for all.
+    theta_on : array_like
+        Per-pixel ON thresholds (:func:`pixel_thresholds`), natural-log units.
+    theta_off : array_like
+        Per-pixel OFF thresholds.
+    rng : numpy.random.Generator
+        Draws the starting state (steady state in the first light, freshly reset).
     """
 
-    def __init__(self, level, noise_std, theta_on, theta_off, rng: np.random.Generator):
+    def __init__(self, level: npt.ArrayLike, noise_std: npt.ArrayLike, theta_on: npt.ArrayLike,
+                 theta_off: npt.ArrayLike, rng: np.random.Generator) -> None:
         level = np.asarray(level, dtype=np.float64)
         n = level.size
         self.theta_on = np.ascontiguousarray(theta_on, dtype=np.float64)
@@ -336,36 +429,67 @@ class PixelState:
         self.vref = self.mean.copy()
         self.blind_until_us = np.full(n, -np.inf)
 
-    def __len__(self):
+    def __len__(self) -> int:
         return self.mean.size
 
 
-def simulate_pixels(state: PixelState, level, tau_us, noise_std, seg_start_us, seg_end_us, model: SensorModel,
-                    seed: int, *, emit=True, count_slot=None, n_slots=0, t0_us=0.0):
+def simulate_pixels(
+    state: PixelState,
+    level: npt.ArrayLike,
+    tau_us: npt.ArrayLike,
+    noise_std: npt.ArrayLike,
+    seg_start_us: npt.ArrayLike,
+    seg_end_us: npt.ArrayLike,
+    model: SensorModel,
+    seed: int,
+    *,
+    emit: bool = True,
+    count_slot: npt.ArrayLike | None = None,
+    n_slots: int = 0,
+    t0_us: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Advance pixels through segments of constant light; return events and/or counts.
 
     Parameters
     ----------
     state : PixelState
         Updated in place; times in it are shifted to be relative to ``seg_end_us[-1]``.
-    level, tau_us, noise_std : ndarray, shape (n_segments, n_pixels)
-        ``log(lam)``, the time constant and the log-domain noise std per segment.
-    seg_start_us, seg_end_us : ndarray, shape (n_segments,)
-        Contiguous segment bounds (float us, relative to the call's start).
+    level : array_like, shape (n_segments, n_pixels)
+        ``log(lam)`` per segment and pixel (``lam`` in photoelectrons per second).
+    tau_us : array_like, shape (n_segments, n_pixels)
+        The photoreceptor time constant (:func:`time_constant_us`), us.
+    noise_std : array_like, shape (n_segments, n_pixels)
+        The log-domain noise standard deviation (:func:`log_noise_std`).
+    seg_start_us : array_like, shape (n_segments,)
+        Segment starts (float us, relative to the call's start).
+    seg_end_us : array_like, shape (n_segments,)
+        Segment ends; segments are contiguous.
+    model : SensorModel
+        The pixel physics and readout.
     seed : int
         Seeds numba's generator for this call (determinism).
     emit : bool
         Return the events (time in us as float64, pixel index, polarity).
     count_slot : ndarray of int, shape (n_segments,), optional
         Count ON/OFF events of segment k into slot ``count_slot[k]`` (-1: not counted).
+    n_slots : int
+        Number of count slots (ignored when ``count_slot`` is None).
     t0_us : float
         Absolute time of the call's start (a frame-compared readout's frames fall on multiples of the period).
 
     Returns
     -------
-    (t_us, pixel, polarity, on_counts, off_counts)
-        Events in pixel order, not sorted by time. Counts have shape
-        ``(n_slots, n_pixels)`` (empty when ``count_slot`` is None).
+    t_us : numpy.ndarray
+        float64 event times, us relative to the call's start; events in pixel order, not sorted by time
+        (empty when ``emit`` is False).
+    pixel : numpy.ndarray
+        int64 pixel index of each event.
+    polarity : numpy.ndarray
+        uint8 polarity of each event (1 ON, 0 OFF).
+    on_counts : numpy.ndarray
+        int32, shape ``(n_slots, n_pixels)``: ON events per slot (empty when ``count_slot`` is None).
+    off_counts : numpy.ndarray
+        int32, the same for OFF events.
     """
     level = np.ascontiguousarray(level, dtype=np.float64)
     tau_us = np.ascontiguousarray(tau_us, dtype=np.float64)

@@ -21,8 +21,11 @@ import math
 import os
 import tempfile
 import time
+from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 import numpy as np
+import numpy.typing as npt
 
 from .cluster import run_tasks
 from .errors import EvtkError
@@ -30,14 +33,28 @@ from .io import open as open_recording
 from .limits import memory_limit_bytes, require_memory, require_window_work
 from .metrics import SinadAccumulator, flip_rates, flip_rates_bytes
 from .optics import Bench
-from .reconstruct import WindowCounts, accumulate, plan, reconstruct, reconstruct_counts, response_error, window_bytes
+from .reconstruct import (
+    Reconstruction,
+    WindowCounts,
+    accumulate,
+    plan,
+    reconstruct,
+    reconstruct_counts,
+    response_error,
+    window_bytes,
+)
+from .sensor import SensorModel
 from .simulate import Simulation
+
+if TYPE_CHECKING:
+    from .io.base import BaseRecording
 
 __all__ = ["scene_noise", "recording_noise", "random_kernels", "simulated_reconstruction", "flip_sweep", "tradeoff",
            "pareto_front"]
 
 
-def scene_noise(result, interval="jackknife", per_pixel=False, seed=0) -> list:
+def scene_noise(result: Reconstruction, interval: str | None = "jackknife", per_pixel: bool = False,
+                seed: int = 0) -> list:
     """SINAD/ENOB (eq. 8) and flip rates of each scene of a reconstruction, over its repeats.
 
     Returns one dict per scene with at least two repeats: ``kernel_id``,
@@ -47,6 +64,27 @@ def scene_noise(result, interval="jackknife", per_pixel=False, seed=0) -> list:
     of the binary responses) and, for simulated recordings, ``error`` (mean
     correlation and NRMSE of the repeats against the ideal). Scenes whose
     responses are all zero get ``sinad = None``.
+
+    Parameters
+    ----------
+    result : Reconstruction
+        A reconstruction (:func:`evtk.reconstruct.reconstruct`).
+    interval : "jackknife", "bootstrap" or None
+        The SINAD's interval over repeats (:func:`evtk.metrics.sinad`).
+    per_pixel : bool
+        Also report each cell's SINAD.
+    seed : int
+        Seed of a bootstrap interval.
+
+    Returns
+    -------
+    list of dict
+        One row per scene captured at least twice, with the keys above.
+
+    Raises
+    ------
+    EvtkError
+        When no scene was captured at least twice.
     """
 
     out = []
@@ -89,8 +127,9 @@ ORACLE_ROUTE = "oracle: the simulation record's own pixel model and placement"
 NOISE_BATCH_BYTES = 256 << 20
 
 
-def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval="jackknife", per_pixel=False,
-                    seed=0, progress=None, **options) -> list:
+def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedule", skip_us: int = 0,
+                    length_us: int | None = None, interval: str | None = "jackknife", per_pixel: bool = False,
+                    seed: int = 0, progress: Callable[[int], Any] | None = None, **options: Any) -> list:
     """:func:`scene_noise` of an open recording, in memory bounded by a batch of windows when it can be.
 
     Windows without a capture schedule (``"triggers"`` or ``("period",
@@ -115,8 +154,10 @@ def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval=
         An open recording.
     window : "schedule", "triggers" or ("period", period_us)
         How to cut the windows.
-    skip_us, length_us : int
-        Shorten or delay every window.
+    skip_us : int
+        Delay the start of every window, us.
+    length_us : int or None
+        Cut every window to this length, us (None: as long as it is).
     interval : "jackknife", "bootstrap" or None
         The SINAD's interval over repeats (:func:`evtk.metrics.sinad`).
     per_pixel : bool
@@ -125,7 +166,7 @@ def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval=
         Seed of a bootstrap interval.
     progress : callable, optional
         Called with the number of events counted.
-    **options
+    **options : Any
         Go to :func:`evtk.reconstruct.reconstruct_counts` (``linear``,
         ``theta``, ``binarize_method``, ``size``, ...); ``region`` picks the
         pixels.
@@ -134,6 +175,11 @@ def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval=
     -------
     list of dict
         One row per scene, as :func:`scene_noise` gives.
+
+    Raises
+    ------
+    EvtkError
+        No scene captured twice, more memory than the budget, or more windows than the events justify.
     """
 
     sim, win, region = plan(rec, window, skip_us, length_us, options.pop("region", None), check_memory=False)
@@ -178,13 +224,34 @@ def _mean_defined(values):
     return float(np.mean(v)) if v else None
 
 
-def random_kernels(n, shape=(3, 3), seed=0):
-    """``n`` distinct signed (+-1) kernels, drawn uniformly (at most ``2 ** size`` of them)."""
+def random_kernels(n: int, shape: tuple[int, int] = (3, 3), seed: int = 0) -> np.ndarray:
+    """``n`` distinct signed (+-1) kernels, drawn uniformly (at most ``2 ** size`` of them).
+
+    Parameters
+    ----------
+    n : int
+        How many (>= 1).
+    shape : tuple of int
+        ``(rows, cols)`` of each kernel.
+    seed : int
+        Seed of the draw.
+
+    Returns
+    -------
+    numpy.ndarray
+        int8 in {-1, +1}, shape ``(n, rows, cols)``, no two alike.
+
+    Raises
+    ------
+    EvtkError
+        When ``n`` is below 1 or more than the distinct kernels of that shape.
+    """
     size = int(np.prod(shape))
     if n < 1 or (size < 63 and n > 2 ** size):
         raise EvtkError(f"cannot draw {n} distinct {shape[0]}x{shape[1]} kernels")
     rng = np.random.default_rng(seed)
-    seen, out = set(), []
+    seen: set[bytes] = set()
+    out: list[np.ndarray] = []
     while len(out) < n:
         k = rng.choice(np.array([-1, 1], np.int8), size)
         if k.tobytes() not in seen:
@@ -193,8 +260,30 @@ def random_kernels(n, shape=(3, 3), seed=0):
     return np.stack(out)
 
 
-def simulated_reconstruction(kernels, features, bench=None, sensor=None, window_us=1000, repeat=10, seed=0,
-                             noise_seed=None, settle_us=None, flat_field=2, method="fast", timed=False, **options):
+@overload
+def simulated_reconstruction(
+    kernels: npt.ArrayLike, features: npt.ArrayLike, bench: Bench | None = None,
+    sensor: SensorModel | None = None, window_us: int = 1000, repeat: int = 10, seed: int = 0,
+    noise_seed: int | None = None, settle_us: int | None = None, flat_field: int = 2, method: str = "fast",
+    timed: Literal[False] = False, **options: Any,
+) -> tuple[Reconstruction, Simulation]: ...
+
+
+@overload
+def simulated_reconstruction(
+    kernels: npt.ArrayLike, features: npt.ArrayLike, bench: Bench | None = None,
+    sensor: SensorModel | None = None, window_us: int = 1000, repeat: int = 10, seed: int = 0,
+    noise_seed: int | None = None, settle_us: int | None = None, flat_field: int = 2, method: str = "fast", *,
+    timed: Literal[True], **options: Any,
+) -> tuple[Reconstruction, Simulation, float]: ...
+
+
+def simulated_reconstruction(
+    kernels: npt.ArrayLike, features: npt.ArrayLike, bench: Bench | None = None,
+    sensor: SensorModel | None = None, window_us: int = 1000, repeat: int = 10, seed: int = 0,
+    noise_seed: int | None = None, settle_us: int | None = None, flat_field: int = 2, method: str = "fast",
+    timed: bool = False, **options: Any,
+) -> tuple[Reconstruction, Simulation] | tuple[Reconstruction, Simulation, float]:
     """Simulate a run and reconstruct it; returns ``(Reconstruction, Simulation)``.
 
     ``method="fast"`` reconstructs the simulator's fast-path counts
@@ -204,12 +293,52 @@ def simulated_reconstruction(kernels, features, bench=None, sensor=None, window_
     binarize_method, crop, deblur, ...). With ``timed`` the reconstruction
     runs a second time, warm, and ``(Reconstruction, Simulation, seconds)``
     is returned: the time of exactly the pipeline whose result is returned.
+
+    Parameters
+    ----------
+    kernels : array_like
+        Kernels, ``(n, kh, kw)`` or one ``(kh, kw)``; 0/1, or signed (split into +- passes).
+    features : array_like
+        Features, ``(m, fh, fw)`` or one ``(fh, fw)``.
+    bench : Bench or None
+        The simulated bench (None: the default).
+    sensor : SensorModel or None
+        The event pixels (None: the simulator's default).
+    window_us : int
+        How long each pattern is shown, us.
+    repeat : int
+        Captures of each (kernel, features) pair.
+    seed : int
+        The device (fixed pattern noise).
+    noise_seed : int or None
+        The trial's shot noise (None: derived from ``seed``).
+    settle_us : int or None
+        Dark time after each pattern, us (None: the simulator's recommendation).
+    flat_field : int
+        Flat-field captures before the run.
+    method : {"fast", "events"}
+        Count path or a written event stream.
+    timed : bool
+        Time a second, warm reconstruction.
+    **options : Any
+        Go to the reconstruction.
+
+    Returns
+    -------
+    tuple
+        ``(Reconstruction, Simulation)``, or ``(Reconstruction, Simulation, seconds)`` with ``timed``.
+
+    Raises
+    ------
+    EvtkError
+        An unknown method, or what the simulator or the reconstruction refuses.
     """
 
     sim = Simulation(kernels, features, bench=bench, sensor=sensor, window_us=window_us, settle_us=settle_us,
                      repeat=repeat, seed=seed, noise_seed=noise_seed, flat_field=flat_field)
 
-    def run(work):
+    def run(work: Callable[[], Reconstruction]) -> tuple[Reconstruction, Simulation] | tuple[
+            Reconstruction, Simulation, float]:
         result = work()  # with timed, also the warm-up: JIT caches, the count curve, imports
         if not timed:
             return result, sim
@@ -230,15 +359,16 @@ def simulated_reconstruction(kernels, features, bench=None, sensor=None, window_
             return run(lambda: reconstruct(rec, **options))
 
 
-def _positive_list(values, name):
+def _positive_list(values: Iterable[float], name: str) -> list[float]:
     v = [float(x) for x in values]
     if not v or not all(math.isfinite(x) and x > 0 for x in v):
         raise EvtkError(f"{name} must be one or more positive numbers")
     return v
 
 
-def flip_sweep(powers_mw, kernels, features, repeats=10, bench=None, sensor=None, window_us=1000, seed=0,
-               progress=None, client=None) -> list:
+def flip_sweep(powers_mw: Iterable[float], kernels: npt.ArrayLike, features: npt.ArrayLike, repeats: int = 10,
+               bench: Bench | None = None, sensor: SensorModel | None = None, window_us: int = 1000,
+               seed: int = 0, progress: Callable[[int], Any] | None = None, client: Any = None) -> list:
     """Flip rates against laser power (the paper's Fig. 3, right), on the simulated bench.
 
     For each power, every kernel is paired with ``features`` and captured
@@ -248,6 +378,39 @@ def flip_sweep(powers_mw, kernels, features, repeats=10, bench=None, sensor=None
     ``pairwise_pct``, ``majority_pct``, ``enob_bits`` (None when noise-free),
     ``correlation``. Powers run as independent tasks (on ``client``'s
     workers when given; :mod:`evtk.cluster`).
+
+    Parameters
+    ----------
+    powers_mw : iterable of float
+        Laser powers, mW (positive).
+    kernels : array_like
+        Kernels, ``(n, kh, kw)``.
+    features : array_like
+        The features every kernel is paired with.
+    repeats : int
+        Captures of each pair (>= 2).
+    bench : Bench or None
+        The simulated bench (None: the default); its power is replaced.
+    sensor : SensorModel or None
+        The event pixels (None: the simulator's default).
+    window_us : int
+        How long each pattern is shown, us.
+    seed : int
+        The device; each power gets its own shot noise.
+    progress : callable, optional
+        Called with 1 after each power.
+    client : distributed.Client or None
+        Runs the powers on its workers.
+
+    Returns
+    -------
+    list of dict
+        One row per (power, kernel), with the keys above.
+
+    Raises
+    ------
+    EvtkError
+        A power that is not positive, or fewer than two repeats.
     """
 
     powers = _positive_list(powers_mw, "powers_mw")
@@ -273,8 +436,25 @@ def _flip_task(args):
     return rows
 
 
-def pareto_front(cost, error):
+def pareto_front(cost: npt.ArrayLike, error: npt.ArrayLike) -> np.ndarray:
     """Mask of the points no other point beats in both (lower cost and lower error, one strictly).
+
+    Parameters
+    ----------
+    cost : array_like
+        1-D costs (e.g. device time per capture), finite.
+    error : array_like
+        1-D errors, same length, finite.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool, same length: True for the points on the front.
+
+    Raises
+    ------
+    EvtkError
+        Arrays that are not 1-D of equal length, or values that are not finite.
 
     Examples
     --------
@@ -289,11 +469,14 @@ def pareto_front(cost, error):
         raise EvtkError("cost and error must be finite")
     dominated = ((c[None, :] <= c[:, None]) & (e[None, :] <= e[:, None])
                  & ((c[None, :] < c[:, None]) | (e[None, :] < e[:, None]))).any(axis=1)
-    return ~dominated
+    return np.asarray(~dominated)
 
 
-def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, decimations=None, repeats=10,
-             bench=None, sensor=None, seed=0, time_events=True, progress=None, client=None) -> list:
+def tradeoff(windows_us: Iterable[float], kernels: npt.ArrayLike, features: npt.ArrayLike,
+             powers_mw: Iterable[float] | None = None, settles_us: Iterable[float] | None = None,
+             decimations: Iterable[int] | None = None, repeats: int = 10, bench: Bench | None = None,
+             sensor: SensorModel | None = None, seed: int = 0, time_events: bool = True,
+             progress: Callable[[int], Any] | None = None, client: Any = None) -> list:
     """Error against run time over capture windows (and powers, settle times, decimations) on the simulated bench.
 
     Each setting is simulated ``repeats`` times per (kernel, features), with
@@ -314,6 +497,45 @@ def tradeoff(windows_us, kernels, features, powers_mw=None, settles_us=None, dec
     beaten in both device time and NRMSE by another setting). Settings run
     as independent tasks (on ``client``'s workers when given); each times
     its reconstruction after a warm-up in its own process.
+
+    Parameters
+    ----------
+    windows_us : iterable of float
+        Capture windows, whole us of at least eq. 7's ``e_min``.
+    kernels : array_like
+        Kernels, ``(n, kh, kw)``.
+    features : array_like
+        Features, ``(m, fh, fw)`` or one ``(fh, fw)``.
+    powers_mw : iterable of float or None
+        Laser powers, mW (None: the bench's).
+    settles_us : iterable of float or None
+        Dark times after each pattern, us (None: the simulator's recommendation).
+    decimations : iterable of int or None
+        Decimation factors ``Delta`` of eq. 6 (None: the bench's).
+    repeats : int
+        Captures per (kernel, features) pair (>= 2).
+    bench : Bench or None
+        The simulated bench (None: the default).
+    sensor : SensorModel or None
+        The event pixels (None: the simulator's default).
+    seed : int
+        The device; each setting gets its own shot noise.
+    time_events : bool
+        Time and measure the event path (a written AEDAT4 file); False: the fast path's counts.
+    progress : callable, optional
+        Called with 1 after each setting.
+    client : distributed.Client or None
+        Runs the settings on its workers.
+
+    Returns
+    -------
+    list of dict
+        One row per setting (``power_mw``, ``window_us``, ``settle_us``, ``decimation``, the keys above).
+
+    Raises
+    ------
+    EvtkError
+        Values that are not positive, windows shorter than ``e_min`` or fractional, or fewer than two repeats.
     """
 
     windows = _positive_list(windows_us, "windows_us")

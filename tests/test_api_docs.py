@@ -101,46 +101,11 @@ PENDING: set[str] = set(
     evtk.batch.batch_reconstruct
     evtk.batch.find_recordings
     evtk.batch.reconstruct_split
-    evtk.bcnn.BCNN
-    evtk.bcnn.BCNN.accuracy
-    evtk.bcnn.BCNN.decide
-    evtk.bcnn.BCNN.forward
-    evtk.bcnn.BCNN.layer
-    evtk.bcnn.BCNN.predict
-    evtk.bcnn.BCNN.random
-    evtk.bcnn.BCNN.scores
-    evtk.bcnn.DigitalBackend
-    evtk.bcnn.DigitalBackend.correlate
-    evtk.bcnn.OpticalBackend
-    evtk.bcnn.OpticalBackend.correlate
-    evtk.bcnn.bce_loss
-    evtk.bcnn.binary_correlate
-    evtk.bcnn.poisson_robustness
-    evtk.bcnn.resample_matrix
-    evtk.calibrate.Calibration
-    evtk.calibrate.Calibration.cell_map
-    evtk.calibrate.Calibration.to_dict
-    evtk.calibrate.Calibration.to_pixels
-    evtk.calibrate.background_rate_hz
-    evtk.calibrate.calibrate
-    evtk.calibrate.dot_blur_px
-    evtk.calibrate.load_calibration
-    evtk.calibrate.plot_calibration
-    evtk.calibrate.save_calibration
     evtk.cluster.dask_available
     evtk.cluster.default_scheduler
     evtk.cluster.run_tasks
     evtk.cluster.scheduler
     evtk.cluster.to_dask
-    evtk.datasets.Dataset
-    evtk.datasets.Dataset.summary
-    evtk.datasets.baselines
-    evtk.datasets.binarize_images
-    evtk.datasets.face_not_face
-    evtk.datasets.letters_digits
-    evtk.datasets.load_dataset
-    evtk.datasets.read_cifar_batch
-    evtk.datasets.read_idx
     evtk.demo.run_demo
     evtk.errors.EvtkError
     evtk.errors.FormatError
@@ -242,80 +207,6 @@ PENDING: set[str] = set(
     evtk.io.table.table_to_columns
     evtk.io.write_events
     evtk.io.write_format
-    evtk.metrics.flips.FlipReport
-    evtk.metrics.flips.FlipReport.to_dict
-    evtk.metrics.flips.flip_rates
-    evtk.metrics.poisson.capture_terms
-    evtk.metrics.poisson.cumulative_factor
-    evtk.metrics.poisson.log_cumulative_factor
-    evtk.metrics.poisson.lowest_cumulative_factor
-    evtk.metrics.poisson.poisson_log_pmf
-    evtk.metrics.poisson.poisson_pmf
-    evtk.metrics.sinad.SinadAccumulator
-    evtk.metrics.sinad.SinadAccumulator.add
-    evtk.metrics.sinad.SinadAccumulator.report
-    evtk.metrics.sinad.SinadReport
-    evtk.metrics.sinad.SinadReport.to_dict
-    evtk.metrics.sinad.enob_bits
-    evtk.metrics.sinad.sinad
-    evtk.optics.bench.Bench
-    evtk.optics.bench.Bench.check_pattern
-    evtk.optics.bench.Bench.electrons_per_s_per_unit
-    evtk.optics.bench.Bench.from_dict
-    evtk.optics.bench.Bench.photons_per_s
-    evtk.optics.bench.Bench.replace
-    evtk.optics.bench.Bench.shadow_model_note
-    evtk.optics.bench.Bench.to_dict
-    evtk.optics.bench.load_bench
-    evtk.optics.bench.save_bench
-    evtk.optics.camera.Camera
-    evtk.optics.camera.Camera.from_dict
-    evtk.optics.camera.Camera.homography
-    evtk.optics.camera.Camera.sensor_region
-    evtk.optics.camera.Camera.to_dict
-    evtk.optics.camera.Camera.to_nominal
-    evtk.optics.camera.Camera.to_sensor
-    evtk.optics.camera.Camera.view
-    evtk.optics.camera.CellMap
-    evtk.optics.camera.CellMap.axis_aligned
-    evtk.optics.camera.CellMap.scale_shift
-    evtk.optics.camera.CellMap.to_cells
-    evtk.optics.camera.CellMap.to_pixels
-    evtk.optics.camera.footprint_light
-    evtk.optics.camera.footprint_points
-    evtk.optics.camera.radial_distort
-    evtk.optics.camera.radial_undistort
-    evtk.optics.camera.render_nominal
-    evtk.optics.geometry.effective_extents_um
-    evtk.optics.geometry.effective_stride
-    evtk.optics.geometry.min_capture_window_us
-    evtk.optics.geometry.optical_scaling
-    evtk.optics.geometry.shadow_magnification
-    evtk.optics.geometry.software_scaling
-    evtk.optics.geometry.stride_mm
-    evtk.optics.screen.brightest_response
-    evtk.optics.screen.glow_response
-    evtk.optics.screen.ideal_response
-    evtk.optics.screen.response_origin_px
-    evtk.optics.screen.response_region
-    evtk.optics.screen.response_to_sensor_grid
-    evtk.optics.screen.screen_response
-    evtk.optimize.fit_mask
-    evtk.optimize.metropolis
-    evtk.optimize.train_layerwise
-    evtk.optimize.train_ste
-    evtk.patterns.dmd_frame
-    evtk.patterns.job_simulation
-    evtk.patterns.load_job
-    evtk.patterns.write_patterns
-    evtk.plots.contact_sheet
-    evtk.plots.plot_enob
-    evtk.plots.plot_flips
-    evtk.plots.plot_recovery
-    evtk.plots.plot_robustness
-    evtk.plots.plot_success
-    evtk.plots.plot_tradeoff
-    evtk.plots.wilson_interval
     evtk.reconstruct.accumulate.accumulate
     evtk.reconstruct.bench.match_windows
     evtk.reconstruct.bench.reconstruct_bench
@@ -384,27 +275,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.windows.windows_from_schedule
     evtk.reconstruct.windows.windows_from_triggers
     evtk.reconstruct.windows.windows_periodic
-    evtk.recover.Recovery
-    evtk.recover.Recovery.to_dict
-    evtk.recover.all_kernels
-    evtk.recover.classify
-    evtk.recover.device_responses
-    evtk.recover.is_shift
-    evtk.recover.kernel_bits
-    evtk.recover.kernel_from_bits
-    evtk.recover.recover_brute
-    evtk.recover.recover_search
-    evtk.recover.response_matrix
-    evtk.recover.success_rate
-    evtk.sensor.SensorModel
-    evtk.sensor.SensorModel.from_dict
-    evtk.sensor.SensorModel.replace
-    evtk.sensor.SensorModel.stamp
-    evtk.sensor.SensorModel.to_dict
-    evtk.sensor.log_noise_std
-    evtk.sensor.pixel_thresholds
-    evtk.sensor.simulate_pixels
-    evtk.sensor.time_constant_us
     evtk.settings.Spec
     evtk.settings.Spec.describe
     evtk.settings.check_array
@@ -451,13 +321,6 @@ PENDING: set[str] = set(
     evtk.simulate.schedule.split_passes
     evtk.simulate.table.count_table
     evtk.simulate.table.table_batches
-    evtk.sweeps.flip_sweep
-    evtk.sweeps.pareto_front
-    evtk.sweeps.random_kernels
-    evtk.sweeps.recording_noise
-    evtk.sweeps.scene_noise
-    evtk.sweeps.simulated_reconstruction
-    evtk.sweeps.tradeoff
     evtk.workflow.reconstruct_recording
 """.split()
 )

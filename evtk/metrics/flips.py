@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import EvtkError
 from ..limits import require_memory
@@ -17,11 +18,19 @@ __all__ = ["FlipReport", "flip_rates", "flip_rates_bytes"]
 class FlipReport:
     """What :func:`flip_rates` measured (percentages of pixels).
 
-    ``pairwise_pct``: mean over all pairs of repeats of the share of pixels
-    that differ; ``majority_pct``: share of (repeat, pixel) values that differ
-    from the pixel's majority vote (ties count as +1, as
-    :func:`evtk.reconstruct.binarize` maps 0 to +1); ``per_pixel``: each
-    pixel's share of repeats that disagree with its majority.
+    Parameters
+    ----------
+    pairwise_pct : float
+        Mean over all pairs of repeats of the share of pixels that differ, percent.
+    majority_pct : float
+        Share of (repeat, pixel) values that differ from the pixel's majority vote, percent (ties count as +1,
+        as :func:`evtk.reconstruct.binarize` maps 0 to +1).
+    repeats : int
+        Repeated captures compared.
+    pixels : int
+        Values in each capture.
+    per_pixel : numpy.ndarray
+        float64, shaped like one capture: each pixel's share (0 to 1) of repeats that disagree with its majority.
     """
 
     pairwise_pct: float
@@ -31,6 +40,13 @@ class FlipReport:
     per_pixel: np.ndarray
 
     def to_dict(self) -> dict:
+        """The scalar figures as a dict (``per_pixel`` left out), for JSON.
+
+        Returns
+        -------
+        dict
+            ``pairwise_pct``, ``majority_pct``, ``repeats`` and ``pixels``.
+        """
         return {"pairwise_pct": self.pairwise_pct, "majority_pct": self.majority_pct,
                 "repeats": self.repeats, "pixels": self.pixels}
 
@@ -56,7 +72,7 @@ def flip_rates_bytes(repeats: int, pixels: int, itemsize: int = 1) -> int:
     return int(repeats) * int(pixels) * (int(itemsize) + 1) + 40 * int(pixels)
 
 
-def flip_rates(binary) -> FlipReport:
+def flip_rates(binary: npt.ArrayLike) -> FlipReport:
     """Flip rates of repeated binarised captures of one scene.
 
     Parameters

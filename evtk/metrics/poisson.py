@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import EvtkError
 
@@ -64,7 +65,7 @@ def _check_lam(lam, name="lam"):
     return lam
 
 
-def poisson_log_pmf(k, lam):
+def poisson_log_pmf(k: npt.ArrayLike, lam: npt.ArrayLike) -> float | np.ndarray:
     """Natural log of the Poisson probability of ``k`` photons at expected count ``lam`` (eq. 9).
 
     ``log P(X = k) = k log(lam) - lam - log(k!)``, computed through
@@ -72,6 +73,23 @@ def poisson_log_pmf(k, lam):
     and ``lam`` are large and close (1e12 photons: about 1e-15 relative
     error, where the textbook formula loses three digits). ``lam = 0`` gives
     0 for ``k = 0`` and ``-inf`` otherwise.
+
+    Parameters
+    ----------
+    k : array_like of int
+        Photon counts, whole numbers >= 0 (integer or whole float values).
+    lam : array_like of float
+        Expected photon counts ``lambda``, finite and >= 0; broadcast against ``k``.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        ``log P(X = k)`` in nats: a float for scalar inputs, else float64 of the broadcast shape.
+
+    Raises
+    ------
+    EvtkError
+        If ``k`` holds a negative or fractional count, or ``lam`` a negative or non-finite value.
 
     Examples
     --------
@@ -99,20 +117,56 @@ def poisson_log_pmf(k, lam):
     return float(out) if out.ndim == 0 else out
 
 
-def poisson_pmf(k, lam):
-    """Poisson probability of ``k`` photons at expected count ``lam`` (eq. 9); underflows to 0 honestly."""
+def poisson_pmf(k: npt.ArrayLike, lam: npt.ArrayLike) -> float | np.ndarray:
+    """Poisson probability of ``k`` photons at expected count ``lam`` (eq. 9); underflows to 0 honestly.
+
+    Parameters
+    ----------
+    k : array_like of int
+        Photon counts, whole numbers >= 0.
+    lam : array_like of float
+        Expected photon counts, finite and >= 0; broadcast against ``k``.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        ``P(X = k)`` in [0, 1]: a float for scalar inputs, else float64 of the broadcast shape.
+
+    Raises
+    ------
+    EvtkError
+        As :func:`poisson_log_pmf`.
+    """
     v = np.exp(poisson_log_pmf(k, lam))
     return float(v) if np.ndim(v) == 0 else v
 
 
-def capture_terms(window_us, time_unit_us=1.0):
-    """``N_e`` of eq. 10: whole time units in a capture window of ``window_us``."""
+def capture_terms(window_us: float, time_unit_us: float = 1.0) -> int:
+    """``N_e`` of eq. 10: whole time units in a capture window of ``window_us``.
+
+    Parameters
+    ----------
+    window_us : float
+        Temporal capture window ``e``, us (>= 0).
+    time_unit_us : float, optional
+        The time unit of the photon flux ``phi``, us (> 0).
+
+    Returns
+    -------
+    int
+        ``floor(window_us / time_unit_us)`` (a window a hair short of a whole unit, 1e-9 units, counts it).
+
+    Raises
+    ------
+    EvtkError
+        If either value is not finite, the window is negative or the unit not positive.
+    """
     if not (np.isfinite(window_us) and np.isfinite(time_unit_us)) or window_us < 0 or time_unit_us <= 0:
         raise EvtkError("window_us must be >= 0 and time_unit_us > 0, both finite")
     return int(math.floor(window_us / time_unit_us + 1e-9))
 
 
-def _log_cf_scalar(lam, phi, n):
+def _log_cf_scalar(lam: float, phi: int, n: int) -> float:
     if n <= 0 or lam == 0.0:
         return -math.inf  # no term, or no photon can arrive: C = 0
     # P(X = i phi) is unimodal in i: start at the best multiple of phi inside [1, n], sum outwards
@@ -134,7 +188,9 @@ def _log_cf_scalar(lam, phi, n):
     return top + math.log(total)
 
 
-def log_cumulative_factor(lam, photons_per_unit=1, n_terms=1):
+def log_cumulative_factor(
+    lam: npt.ArrayLike, photons_per_unit: int = 1, n_terms: int = 1
+) -> float | np.ndarray:
     """Natural log of the cumulative factor ``C`` of eq. 10.
 
     ``C = sum_{i=1}^{N_e} P(X = i * phi)``: the Poisson probabilities (eq. 9,
@@ -146,6 +202,26 @@ def log_cumulative_factor(lam, photons_per_unit=1, n_terms=1):
     grows. Summed in log space from its largest term outward, so it stays
     finite where ``C`` itself would underflow (``lam = 1e12`` with a short
     window gives about ``-1e12``).
+
+    Parameters
+    ----------
+    lam : array_like of float
+        Expected photon counts ``lambda``, finite and >= 0 (any shape).
+    photons_per_unit : int, optional
+        Photon flux ``phi`` in photons per time unit, a whole number >= 1.
+    n_terms : int, optional
+        ``N_e``, the time units in the capture window, a whole number >= 0.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        ``log C`` in nats (<= 0, ``-inf`` where ``C = 0``): a float for a scalar ``lam``, else float64 shaped
+        like ``lam``.
+
+    Raises
+    ------
+    EvtkError
+        If ``lam`` is negative or not finite, or ``photons_per_unit`` / ``n_terms`` not whole numbers in range.
 
     Examples
     --------
@@ -165,18 +241,70 @@ def log_cumulative_factor(lam, photons_per_unit=1, n_terms=1):
     return float(out) if out.ndim == 0 else out
 
 
-def cumulative_factor(lam, photons_per_unit=1, n_terms=1):
-    """The cumulative factor ``C`` of eq. 10 (``exp`` of :func:`log_cumulative_factor`)."""
+def cumulative_factor(
+    lam: npt.ArrayLike, photons_per_unit: int = 1, n_terms: int = 1
+) -> float | np.ndarray:
+    """The cumulative factor ``C`` of eq. 10 (``exp`` of :func:`log_cumulative_factor`).
+
+    Parameters
+    ----------
+    lam : array_like of float
+        Expected photon counts ``lambda``, finite and >= 0.
+    photons_per_unit : int, optional
+        Photon flux ``phi`` in photons per time unit, a whole number >= 1.
+    n_terms : int, optional
+        ``N_e``, the time units in the capture window, a whole number >= 0.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        ``C`` in [0, 1] (underflows to 0 where :func:`log_cumulative_factor` stays finite), shaped like ``lam``.
+
+    Raises
+    ------
+    EvtkError
+        As :func:`log_cumulative_factor`.
+    """
     v = np.exp(log_cumulative_factor(lam, photons_per_unit, n_terms))
     return float(v) if np.ndim(v) == 0 else v
 
 
-def lowest_cumulative_factor(intensities, photons_per_intensity, photons_per_unit=1, n_terms=1, log=False):
+def lowest_cumulative_factor(
+    intensities: npt.ArrayLike,
+    photons_per_intensity: float,
+    photons_per_unit: int = 1,
+    n_terms: int = 1,
+    log: bool = False,
+) -> float | np.ndarray:
     """``C_low`` of eq. 11: the cumulative factor of the dimmest input.
 
     ``lam_low = photons_per_intensity * min(intensities)`` (``rho_B`` times
     the lowest feature intensity); the bound of eq. 11 scales every
     convolution by this constant. ``log=True`` returns ``log C_low``.
+
+    Parameters
+    ----------
+    intensities : array_like of float
+        Feature intensities ``I_F`` over all inputs and layers, finite and >= 0, non-empty.
+    photons_per_intensity : float
+        ``rho_B``: expected photons per unit of intensity at the source's brightness (finite, >= 0).
+    photons_per_unit : int, optional
+        Photon flux ``phi`` in photons per time unit, a whole number >= 1.
+    n_terms : int, optional
+        ``N_e``, the time units in the capture window (:func:`capture_terms`).
+    log : bool, optional
+        Return ``log C_low`` (nats) instead of ``C_low``.
+
+    Returns
+    -------
+    float
+        ``C_low`` in [0, 1], or its natural log.
+
+    Raises
+    ------
+    EvtkError
+        If ``intensities`` is empty or holds negative or non-finite values, ``photons_per_intensity`` is
+        negative or not finite, or the other arguments are out of range.
 
     Examples
     --------

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import overload
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import EvtkError
 from ..limits import require_memory
@@ -18,10 +20,33 @@ def _json_float(v):
     return float(v) if v is not None and np.isfinite(v) else None
 
 
-def enob_bits(sinad_db):
+@overload
+def enob_bits(sinad_db: float) -> float: ...
+
+
+@overload
+def enob_bits(sinad_db: npt.ArrayLike) -> float | np.ndarray: ...
+
+
+def enob_bits(sinad_db: npt.ArrayLike) -> float | np.ndarray:
     """Effective number of bits from SINAD in dB (eq. 8): ``(SINAD - 1.76) / 6.02``.
 
     ``+inf`` (noise-free) stays ``+inf``.
+
+    Parameters
+    ----------
+    sinad_db : float or array_like
+        SINAD in dB (may be infinite, not NaN).
+
+    Returns
+    -------
+    float or numpy.ndarray
+        ENOB in bits: a float for a scalar, else float64 shaped like ``sinad_db``.
+
+    Raises
+    ------
+    EvtkError
+        If any value is NaN.
 
     Examples
     --------
@@ -39,24 +64,33 @@ def enob_bits(sinad_db):
 class SinadReport:
     """What :func:`sinad` measured.
 
-    Attributes
+    Parameters
     ----------
-    sinad_db, enob_bits : float
-        Pooled over pixels; ``+inf`` when no pixel varies between repeats.
+    sinad_db : float
+        SINAD of eq. 8 in dB, pooled over pixels; ``+inf`` when no pixel varies between repeats.
+    enob_bits : float
+        Effective number of bits from ``sinad_db`` (eq. 8); ``+inf`` likewise.
     noise_free : bool
         True when the pooled noise is exactly zero.
-    signal_rms, noise_std : float
-        ``RMS`` over all captures and pixels, and the pooled per-pixel
-        standard deviation over repeats (ddof 1).
-    repeats, pixels : int
-    ci_db, ci_enob : (low, high) or None
-        Confidence interval over repeats (may reach ``+inf``).
+    signal_rms : float
+        ``RMS`` over all captures and pixels, in the captures' units.
+    noise_std : float
+        The pooled per-pixel standard deviation over repeats (ddof 1), in the captures' units.
+    repeats : int
+        Repeated captures measured.
+    pixels : int
+        Values in one capture.
+    ci_db : (low, high) or None
+        Confidence interval of ``sinad_db`` over repeats, dB (may reach ``+inf``); None when not formed.
+    ci_enob : (low, high) or None
+        The same interval in bits.
     confidence : float
+        Nominal coverage of the interval.
+    per_pixel_db : numpy.ma.MaskedArray or None
+        Per-pixel SINAD, dB (shape of one capture), masked where a pixel has no
+        signal at all; ``+inf`` where it has signal but no noise.
     interval : str or None
         How the interval was formed (``"jackknife"`` or ``"bootstrap"``).
-    per_pixel_db : numpy.ma.MaskedArray or None
-        Per-pixel SINAD (shape of one capture), masked where a pixel has no
-        signal at all; ``+inf`` where it has signal but no noise.
     """
 
     sinad_db: float
@@ -73,7 +107,14 @@ class SinadReport:
     interval: str | None = None
 
     def to_dict(self) -> dict:
-        """JSON-safe: infinities become ``null`` (see ``noise_free``)."""
+        """The report as a JSON-safe dict: infinities become ``null`` (see ``noise_free``).
+
+        Returns
+        -------
+        dict
+            Every field; intervals as lists, ``per_pixel_db`` (when measured) as nested lists with ``null``
+            where masked or infinite.
+        """
         d = {
             "sinad_db": _json_float(self.sinad_db),
             "enob_bits": _json_float(self.enob_bits),
@@ -131,8 +172,14 @@ class SinadAccumulator:
     ----------
     repeats : int
         How many repeats will be added in all (at least two).
-    shape : tuple of int
+    shape : int or tuple of int
         Shape of one capture.
+
+    Raises
+    ------
+    EvtkError
+        Fewer than two repeats, a capture of no pixels, or more memory than the budget
+        (:func:`evtk.limits.require_memory`).
 
     Examples
     --------
@@ -145,7 +192,7 @@ class SinadAccumulator:
     True
     """
 
-    def __init__(self, repeats, shape):
+    def __init__(self, repeats: int, shape: int | tuple[int, ...]) -> None:
         repeats = int(repeats)
         if repeats < 2:
             raise EvtkError(f"SINAD needs at least two repeated captures, got {repeats}")
@@ -186,8 +233,19 @@ class SinadAccumulator:
         groups = min(max(int(repeats), 0), MAX_BOOTSTRAP_GROUPS)
         return 8 * int(pixels) * (2 * groups + 8)
 
-    def add(self, captures):
-        """Add the next repeats, shape ``(k, *shape)``, in their order."""
+    def add(self, captures: npt.ArrayLike) -> None:
+        """Add the next repeats, shape ``(k, *shape)``, in their order.
+
+        Parameters
+        ----------
+        captures : array_like
+            ``k`` repeats, numeric (any shape whose size is ``k`` times the pixels of one capture).
+
+        Raises
+        ------
+        EvtkError
+            Values not numeric, NaN or infinite, captures of the wrong size, or more repeats than announced.
+        """
         x = np.asarray(captures)
         if x.dtype == object or not (np.issubdtype(x.dtype, np.number) or x.dtype == bool):
             raise EvtkError(f"SINAD: the captures must be numeric, not {x.dtype}")
@@ -248,9 +306,33 @@ class SinadAccumulator:
         np.fill_diagonal(pairs, n * (n - 1))
         return m, pairs, self._sq / p, n
 
-    def report(self, per_pixel=False, interval="jackknife", confidence=0.95, resamples=1000,
-               seed=0) -> SinadReport:
-        """The :class:`SinadReport` of the repeats (all ``repeats`` must have been added); see :func:`sinad`."""
+    def report(self, per_pixel: bool = False, interval: str | None = "jackknife", confidence: float = 0.95,
+               resamples: int = 1000, seed: int = 0) -> SinadReport:
+        """The :class:`SinadReport` of the repeats (all ``repeats`` must have been added); see :func:`sinad`.
+
+        Parameters
+        ----------
+        per_pixel : bool
+            Also report each pixel's own SINAD.
+        interval : "jackknife", "bootstrap" or None
+            Confidence interval over repeats (needs at least three); see :func:`sinad`.
+        confidence : float
+            Nominal coverage of the interval, in (0, 1).
+        resamples : int
+            Resamples of the bootstrap interval.
+        seed : int
+            Seed of the resampling.
+
+        Returns
+        -------
+        SinadReport
+            SINAD and ENOB (eq. 8), with the interval and per-pixel values when asked for.
+
+        Raises
+        ------
+        EvtkError
+            Repeats missing, an unknown interval, a confidence outside (0, 1), or an all-zero signal.
+        """
         if self.added != self.repeats:
             raise EvtkError(f"SINAD: {self.added} of the {self.repeats} repeats announced were added")
         if interval not in INTERVALS:
@@ -289,8 +371,8 @@ class SinadAccumulator:
         return report
 
 
-def sinad(captures, per_pixel=False, interval="jackknife", confidence=0.95, resamples=1000,
-          seed=0) -> SinadReport:
+def sinad(captures: npt.ArrayLike, per_pixel: bool = False, interval: str | None = "jackknife",
+          confidence: float = 0.95, resamples: int = 1000, seed: int = 0) -> SinadReport:
     """Signal-to-noise-and-distortion ratio of repeated captures of one scene (eq. 8).
 
     ``SINAD = 10 log10(RMS(I)^2 / std(I)^2)``: ``RMS`` over every capture and
@@ -321,6 +403,11 @@ def sinad(captures, per_pixel=False, interval="jackknife", confidence=0.95, resa
         Resamples of the bootstrap interval.
     seed : int
         Seed of the resampling.
+
+    Returns
+    -------
+    SinadReport
+        Pooled SINAD and ENOB, the signal and noise levels, the interval and (when asked) per-pixel SINAD.
 
     Raises
     ------

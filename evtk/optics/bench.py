@@ -8,6 +8,7 @@ import json
 import math
 import os
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 from .._atomic import AtomicFile
 from ..errors import EvtkError, check_parameters
@@ -20,6 +21,9 @@ from .geometry import (
     shadow_magnification,
     software_scaling,
 )
+
+if TYPE_CHECKING:
+    from ..sensor import SensorModel
 
 __all__ = ["Bench", "load_bench", "save_bench", "BENCH_SPECS", "MAX_DMD_SIDE"]
 
@@ -64,30 +68,40 @@ class Bench:
     the defaults are chosen so that scaling is matched (eq. 4 gives a whole
     number of mirrors) and the effective stride is 1 (eq. 6).
 
-    Attributes
+    Parameters
     ----------
-    u_mm, z_mm : float
-        Feature DMD to screen, and diffuser to feature DMD distances.
+    u_mm : float
+        Feature DMD to screen distance ``u``, mm.
+    z_mm : float
+        Diffuser to feature DMD distance ``z``, mm.
     mirror_pitch_um : float
-        Mirror pitch of both DMDs (``K_pt`` for the kernel).
-    dmd_cols, dmd_rows : int
-        Mirrors per DMD; a displayed pattern must fit.
+        Mirror pitch of both DMDs (``K_pt`` for the kernel), um.
+    dmd_cols : int
+        Mirrors per row of each DMD; a displayed pattern must fit.
+    dmd_rows : int
+        Mirror rows of each DMD.
     feature_upsample : int
         Mirrors per feature element along each axis (``F_pt`` = this x pitch).
     kernel_upsample : int or None
         Mirrors per kernel element; None takes eq. 4 rounded to a whole number.
     sensor_pitch_um : float
-        Footprint of one sensor pixel on the screen (``Phi_pt``).
+        Footprint of one sensor pixel on the screen (``Phi_pt``), um.
     decimation : int
         Keep every ``decimation``-th sensor pixel when reconstructing (``Delta``).
-    sensor_width, sensor_height : int
-        Event camera resolution.
-    kernel_hz, features_hz : float
-        Pattern rates of the two DMDs.
+    sensor_width : int
+        Event camera resolution along x, pixels.
+    sensor_height : int
+        Event camera resolution along y, pixels.
+    kernel_hz : float
+        Pattern rate ``K_hz`` of the kernel DMD (eq. 7), Hz.
+    features_hz : float
+        Pattern rate ``F_hz`` of the feature DMD (eq. 7), Hz.
     pixel_latency_us : float
-        Event camera pixel latency (``S_I`` of eq. 7).
-    wavelength_nm, power_mw : float
-        Laser.
+        Event camera pixel latency (``S_I`` of eq. 7), us.
+    wavelength_nm : float
+        Laser wavelength, nm.
+    power_mw : float
+        Laser power, mW.
     efficiency : float
         Photoelectrons produced in the pixel that images one feature element
         per photon leaving one kernel element (diffuser spread, feature DMD,
@@ -97,19 +111,24 @@ class Bench:
     stray_light : float
         Ambient light on the screen, in response units (a floor).
     psf_sigma_um : float
-        Gaussian blur of the diffuser on the screen (standard deviation).
+        Gaussian blur of the diffuser on the screen (standard deviation), um.
     source_extent : {"point", "area"}
         "area": each kernel element is a uniform square source; "point": it
         emits from its centre (the idealised device).
     kernel_flipped : bool
         The relay inverts the kernel image, turning correlation into convolution.
+    origin_px : tuple of float or None
+        Sensor pixel (x, y) where the full response begins; None centres it.
     diffraction : bool
         Blur the feature elements' shadows by their diffraction too
         (:attr:`diffraction_sigma_um`, a Gaussian approximation), which
         matters when :attr:`fresnel_number` is below about 1. Off by default:
         the ray-optics shadows.
-    origin_px : tuple of float or None
-        Sensor pixel (x, y) where the full response begins; None centres it.
+
+    Raises
+    ------
+    EvtkError
+        If a setting is outside its physical range (``BENCH_SPECS``) or ``origin_px`` is off the sensor.
     """
 
     u_mm: float = 300.0
@@ -137,7 +156,7 @@ class Bench:
     origin_px: tuple | None = field(default=None)
     diffraction: bool = False
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         where = "bench"
         for name, spec in BENCH_SPECS.items():
             object.__setattr__(self, name, check_value(where, name, getattr(self, name), spec))
@@ -240,7 +259,13 @@ class Bench:
         return math.hypot(self.psf_sigma_um, self.diffraction_sigma_um if self.diffraction else 0.0)
 
     def shadow_model_note(self) -> str | None:
-        """A sentence saying why the ray-optics shadow model does not hold for this bench, or None when it does."""
+        """A sentence saying why the ray-optics shadow model does not hold for this bench, or None when it does.
+
+        Returns
+        -------
+        str or None
+            The warning (Fresnel number below 1 and diffraction not modelled), or None.
+        """
         if self.fresnel_number >= 1.0 or self.diffraction:
             return None
         pixels = self.diffraction_spread_um / self.sensor_pitch_um
@@ -250,20 +275,49 @@ class Bench:
                 "[bench] diffraction = true blurs them by it)")
 
     def photons_per_s(self) -> float:
-        """Laser photon rate."""
+        """Laser photon rate, ``P lambda / (h c)``.
+
+        Returns
+        -------
+        float
+            Photons per second leaving the laser.
+        """
         return self.power_mw * 1e-3 * self.wavelength_nm / PHOTON_ENERGY_J_PER_NM
 
-    def electrons_per_s_per_unit(self, kernel_shape) -> float:
+    def electrons_per_s_per_unit(self, kernel_shape: tuple[int, int]) -> float:
         """Photoelectron rate of a pixel per response unit (see :func:`screen_response`).
 
         The laser is spread over the kernel's footprint (all its elements, lit
         or not); a pixel collects in proportion to its footprint area.
+
+        Parameters
+        ----------
+        kernel_shape : tuple of int
+            ``(rows, cols)`` of the kernel, in kernel elements.
+
+        Returns
+        -------
+        float
+            Photoelectrons per second per response unit.
         """
         kh, kw = kernel_shape
         return self.photons_per_s() / (kh * kw) * self.efficiency * self.pixel_cells ** 2
 
-    def check_pattern(self, kernel_shape, features_shape):
-        """Raise if a kernel or feature pattern does not fit its DMD."""
+    def check_pattern(self, kernel_shape: tuple[int, int], features_shape: tuple[int, int]) -> None:
+        """Raise if a kernel or feature pattern does not fit its DMD.
+
+        Parameters
+        ----------
+        kernel_shape : tuple of int
+            ``(rows, cols)`` of the kernel, in elements (each :attr:`kernel_mirrors` mirrors wide).
+        features_shape : tuple of int
+            ``(rows, cols)`` of the features, in elements (each ``feature_upsample`` mirrors wide).
+
+        Raises
+        ------
+        EvtkError
+            If either pattern needs more mirrors than its DMD has.
+        """
         kh, kw = kernel_shape
         fh, fw = features_shape
         m = self.kernel_mirrors
@@ -276,6 +330,13 @@ class Bench:
                             f"the feature DMD has {self.dmd_cols}x{self.dmd_rows}")
 
     def to_dict(self) -> dict:
+        """The fields as a plain dict (``origin_px`` as a list), for TOML/JSON.
+
+        Returns
+        -------
+        dict
+            Field name to value; :meth:`from_dict` reads it back.
+        """
         d = dataclasses.asdict(self)
         if d["origin_px"] is not None:
             d["origin_px"] = list(d["origin_px"])
@@ -283,20 +344,67 @@ class Bench:
 
     @classmethod
     def from_dict(cls, d: dict) -> Bench:
+        """A bench from a dict of fields (as :meth:`to_dict` writes; missing fields take their defaults).
+
+        Parameters
+        ----------
+        d : dict
+            Field name to value.
+
+        Returns
+        -------
+        Bench
+            The checked bench.
+
+        Raises
+        ------
+        EvtkError
+            If a key is not a field, a value has the wrong kind or is out of range.
+        """
         check_parameters("bench", cls, d)
         return cls(**d)
 
-    def replace(self, **changes) -> Bench:
+    def replace(self, **changes: Any) -> Bench:
+        """A copy with some fields changed (checked again).
+
+        Parameters
+        ----------
+        **changes : Any
+            Field name to new value.
+
+        Returns
+        -------
+        Bench
+            The new bench.
+        """
         return dataclasses.replace(self, **changes)
 
 
 
-def load_bench(path):
+def load_bench(path: str | os.PathLike[str]) -> tuple[Bench, dict]:
     """Read a bench description; returns ``(Bench, sensor_dict)``.
 
     TOML (``.toml``) or JSON (anything else). Top-level keys are :class:`Bench`
     fields; an optional ``sensor`` table holds :class:`evtk.sensor.SensorModel`
     fields.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The bench file.
+
+    Returns
+    -------
+    bench : Bench
+        The bench.
+    sensor : dict
+        The ``sensor`` table's parameters (empty when the file has none), for
+        :meth:`evtk.sensor.SensorModel.from_dict`.
+
+    Raises
+    ------
+    EvtkError
+        If the file cannot be read or parsed, or a setting is unknown or out of range (the message names the file).
     """
     path = os.fspath(path)
     data = read_table(path, "bench")
@@ -312,11 +420,20 @@ def load_bench(path):
         raise EvtkError(f"{path}: {exc}") from None
 
 
-def save_bench(path, bench: Bench, sensor=None):
+def save_bench(path: str | os.PathLike[str], bench: Bench, sensor: SensorModel | dict | None = None) -> None:
     """Write a bench description as TOML (``.toml``) or JSON; atomic.
 
     ``sensor`` is an optional :class:`evtk.sensor.SensorModel` or dict. Unset
     optional values (None) are left out.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Where to write; a name ending ``.toml`` writes TOML, anything else JSON.
+    bench : Bench
+        The bench.
+    sensor : SensorModel or dict or None, optional
+        Sensor parameters written as the ``sensor`` table; None writes none.
     """
 
     data = bench.to_dict()

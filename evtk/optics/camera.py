@@ -19,12 +19,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from scipy.ndimage import gaussian_filter, map_coordinates
 
 from ..errors import EvtkError
+from .bench import Bench
 from .screen import response_origin_px, screen_response
 
 #: Largest deviation (pixels) over the response at which a map is still taken as a scale and shift.
@@ -34,16 +38,54 @@ __all__ = ["Camera", "CellMap", "radial_distort", "radial_undistort", "render_no
            "footprint_points"]
 
 
-def radial_distort(xy, centre, norm, k1):
-    """``c + (1 + k1 r^2) (p - c)`` with ``r = |p - c| / norm``."""
+def radial_distort(xy: npt.ArrayLike, centre: npt.ArrayLike, norm: float, k1: float) -> np.ndarray:
+    """``c + (1 + k1 r^2) (p - c)`` with ``r = |p - c| / norm``.
+
+    Parameters
+    ----------
+    xy : array_like
+        Points ``p``, shape ``(..., 2)`` as (x, y), pixels.
+    centre : array_like
+        Centre of distortion ``c``, shape ``(2,)``, pixels.
+    norm : float
+        Radius (pixels) at which ``r = 1``: the sensor's half diagonal in evtk's maps.
+    k1 : float
+        Radial coefficient (barrel < 0 < pincushion).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, the distorted points, shaped like ``xy``.
+    """
     xy = np.asarray(xy, np.float64)
     d = xy - centre
     r2 = np.sum(d * d, axis=-1, keepdims=True) / (norm * norm)
     return centre + d * (1.0 + k1 * r2)
 
 
-def radial_undistort(xy, centre, norm, k1, iterations=20):
-    """The inverse of :func:`radial_distort` (fixed-point iteration; exact to 1e-9 px for |k1| < 0.3)."""
+def radial_undistort(
+    xy: npt.ArrayLike, centre: npt.ArrayLike, norm: float, k1: float, iterations: int = 20
+) -> np.ndarray:
+    """The inverse of :func:`radial_distort` (fixed-point iteration; exact to 1e-9 px for |k1| < 0.3).
+
+    Parameters
+    ----------
+    xy : array_like
+        Distorted points, shape ``(..., 2)`` as (x, y), pixels.
+    centre : array_like
+        Centre of distortion, shape ``(2,)``, pixels.
+    norm : float
+        Radius (pixels) at which ``r = 1``.
+    k1 : float
+        Radial coefficient, as given to :func:`radial_distort`.
+    iterations : int, optional
+        Fixed-point iterations.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, the undistorted points, shaped like ``xy`` (a copy when ``k1 == 0``).
+    """
     xy = np.asarray(xy, np.float64)
     if k1 == 0:
         return xy.copy()
@@ -55,7 +97,7 @@ def radial_undistort(xy, centre, norm, k1, iterations=20):
     return centre + u
 
 
-def _apply_h(h, xy):
+def _apply_h(h: npt.ArrayLike, xy: npt.ArrayLike) -> np.ndarray:
     xy = np.asarray(xy, np.float64)
     ph = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1) @ np.asarray(h).T
     return ph[..., :2] / ph[..., 2:3]
@@ -65,27 +107,32 @@ def _apply_h(h, xy):
 class Camera:
     """Pose and lens of the event camera (defaults: the ideal, nominal view).
 
-    Attributes
+    Parameters
     ----------
     rotation_deg : float
-        Rotation about the sensor centre.
+        Rotation about the sensor centre, degrees (within +-360).
     tilt : (float, float)
-        Projective terms (per 1000 px) of a sensor not parallel to the screen.
+        Projective terms (per 1000 px) of a sensor not parallel to the screen (within +-1).
     offset_px : (float, float)
-        Shift on the sensor.
+        Shift on the sensor, pixels.
     scale : float
-        Magnification against the nominal one.
+        Magnification against the nominal one (0.5 to 2).
     k1 : float
-        Radial distortion (barrel < 0 < pincushion), at the half diagonal.
+        Radial distortion (barrel < 0 < pincushion), at the half diagonal (within +-0.3).
     vignetting : float
         Light lost at the sensor's corners (0 to 1), quadratic in the radius.
     defocus_px : float
-        Standard deviation of the defocus blur.
+        Standard deviation of the defocus blur, pixels (0 to 100).
     mirror : bool
         The view mirrored left to right about the sensor's centre before the
         rotation (a camera that sees the screen from behind, through the
         diffuser); with ``rotation_deg=180`` it is mirrored top to bottom.
         A camera turned upside down is ``rotation_deg=180`` alone.
+
+    Raises
+    ------
+    EvtkError
+        If a value is not finite, of the wrong kind, or outside the ranges above.
     """
 
     rotation_deg: float = 0.0
@@ -97,7 +144,7 @@ class Camera:
     defocus_px: float = 0.0
     mirror: bool = False
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not isinstance(self.mirror, bool):
             raise EvtkError(f"camera mirror must be true or false, not {self.mirror!r}")
         for name in ("rotation_deg", "scale", "k1", "vignetting", "defocus_px"):
@@ -122,29 +169,65 @@ class Camera:
 
     @property
     def is_ideal(self) -> bool:
+        """True when every setting is its default (the nominal view)."""
         return self == Camera()
 
     def to_dict(self) -> dict:
+        """The settings as a plain dict (tuples as lists), for TOML/JSON.
+
+        Returns
+        -------
+        dict
+            Field name to value; :meth:`from_dict` reads it back.
+        """
         d = dataclasses.asdict(self)
         d["tilt"], d["offset_px"] = list(self.tilt), list(self.offset_px)
         return d
 
     @classmethod
-    def from_dict(cls, d) -> Camera:
-        if isinstance(d, cls):
+    def from_dict(cls, d: Mapping[str, Any] | Camera) -> Camera:
+        """A camera from a dict of settings (missing ones take their defaults), or the camera itself.
+
+        Parameters
+        ----------
+        d : Mapping or Camera
+            Field name to value, as :meth:`to_dict` writes; a :class:`Camera` is returned as it is.
+
+        Returns
+        -------
+        Camera
+            The checked camera.
+
+        Raises
+        ------
+        EvtkError
+            If a key is not a setting or a value is out of range.
+        """
+        if isinstance(d, Camera):
             return d
         try:
             return cls(**dict(d))
         except TypeError as exc:
             raise EvtkError(f"a camera takes {', '.join(f.name for f in dataclasses.fields(cls))}: {exc}") from None
 
-    def _frame(self, sensor_size):
+    def _frame(self, sensor_size: tuple[int, int]) -> tuple[np.ndarray, float]:
         w, h = (float(v) for v in sensor_size)
         centre = np.array([(w - 1) / 2, (h - 1) / 2])
         return centre, 0.5 * math.hypot(w, h)
 
-    def homography(self, sensor_size) -> np.ndarray:
-        """The projective part ``P`` (3x3, nominal pixel -> undistorted sensor pixel)."""
+    def homography(self, sensor_size: tuple[int, int]) -> np.ndarray:
+        """The projective part ``P`` (3x3, nominal pixel -> undistorted sensor pixel).
+
+        Parameters
+        ----------
+        sensor_size : tuple of int
+            ``(width, height)`` of the sensor, pixels; rotation, scale and tilt act about its centre.
+
+        Returns
+        -------
+        numpy.ndarray
+            float64, shape ``(3, 3)``, acting on homogeneous ``(x, y, 1)`` columns.
+        """
         c, _ = self._frame(sensor_size)
         a = math.radians(self.rotation_deg)
         rs = self.scale * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
@@ -158,18 +241,60 @@ class Camera:
         tilt[2, 2] = 1.0 - tilt[2, :2] @ c  # about the centre: the centre stays put
         return m @ tilt
 
-    def to_sensor(self, xy, sensor_size):
-        """Sensor pixels (x, y) where nominal pixels ``xy`` land."""
+    def to_sensor(self, xy: npt.ArrayLike, sensor_size: tuple[int, int]) -> np.ndarray:
+        """Sensor pixels (x, y) where nominal pixels ``xy`` land.
+
+        Parameters
+        ----------
+        xy : array_like
+            Nominal points, shape ``(..., 2)`` as (x, y), pixels.
+        sensor_size : tuple of int
+            ``(width, height)`` of the sensor, pixels.
+
+        Returns
+        -------
+        numpy.ndarray
+            float64, sensor points shaped like ``xy``.
+        """
         c, norm = self._frame(sensor_size)
         return radial_distort(_apply_h(self.homography(sensor_size), xy), c, norm, self.k1)
 
-    def to_nominal(self, xy, sensor_size):
-        """Nominal pixels (x, y) seen at sensor pixels ``xy`` (the inverse of :meth:`to_sensor`)."""
+    def to_nominal(self, xy: npt.ArrayLike, sensor_size: tuple[int, int]) -> np.ndarray:
+        """Nominal pixels (x, y) seen at sensor pixels ``xy`` (the inverse of :meth:`to_sensor`).
+
+        Parameters
+        ----------
+        xy : array_like
+            Sensor points, shape ``(..., 2)`` as (x, y), pixels.
+        sensor_size : tuple of int
+            ``(width, height)`` of the sensor, pixels.
+
+        Returns
+        -------
+        numpy.ndarray
+            float64, nominal points shaped like ``xy``.
+        """
         c, norm = self._frame(sensor_size)
         return _apply_h(np.linalg.inv(self.homography(sensor_size)), radial_undistort(xy, c, norm, self.k1))
 
-    def sensor_region(self, nominal_region, sensor_size):
-        """The sensor pixels ``(x0, x1, y0, y1)`` a nominal region's light can reach (blur included)."""
+    def sensor_region(
+        self, nominal_region: tuple[int, int, int, int], sensor_size: tuple[int, int]
+    ) -> tuple[int, int, int, int]:
+        """The sensor pixels ``(x0, x1, y0, y1)`` a nominal region's light can reach (blur included).
+
+        Parameters
+        ----------
+        nominal_region : tuple of int
+            ``(x0, x1, y0, y1)`` on the nominal grid, half-open, pixels.
+        sensor_size : tuple of int
+            ``(width, height)`` of the sensor, pixels.
+
+        Returns
+        -------
+        tuple of int
+            ``(x0, x1, y0, y1)`` on the sensor, half-open, clipped to it; padded by three defocus
+            standard deviations and two pixels.
+        """
         x0, x1, y0, y1 = nominal_region
         xs, ys = np.linspace(x0 - 0.5, x1 - 0.5, 9), np.linspace(y0 - 0.5, y1 - 0.5, 9)
         edge = np.concatenate([np.stack([xs, np.full(9, v)], 1) for v in (ys[0], ys[-1])]
@@ -180,7 +305,14 @@ class Camera:
         return (int(max(0, math.floor(q[:, 0].min() - pad))), int(min(w, math.ceil(q[:, 0].max() + pad) + 1)),
                 int(max(0, math.floor(q[:, 1].min() - pad))), int(min(h, math.ceil(q[:, 1].max() + pad) + 1)))
 
-    def view(self, kernel, features, bench, region, supersample=4):
+    def view(
+        self,
+        kernel: npt.ArrayLike,
+        features: npt.ArrayLike,
+        bench: Bench,
+        region: tuple[int, int, int, int],
+        supersample: int = 4,
+    ) -> np.ndarray:
         """The light (response units) each sensor pixel of ``region`` sees of one displayed pass.
 
         Each sensor pixel's footprint is sampled at ``supersample`` squared
@@ -188,6 +320,24 @@ class Camera:
         rendered ``supersample`` times finer (:func:`render_nominal`); their
         mean is the pixel's light, which is then vignetted and blurred by the
         defocus.
+
+        Parameters
+        ----------
+        kernel : array_like of {0, 1}
+            The kernel pattern shown (one pass), 2-D.
+        features : array_like of {0, 1}
+            The feature pattern shown, 2-D.
+        bench : Bench
+            The bench; its sensor size is the sensor's.
+        region : tuple of int
+            ``(x0, x1, y0, y1)`` sensor pixels to compute, half-open.
+        supersample : int, optional
+            Samples per pixel along each axis.
+
+        Returns
+        -------
+        numpy.ndarray
+            float64, shape ``(y1 - y0, x1 - x0)``, in the units of :func:`~evtk.optics.screen_response`.
         """
         size = (bench.sensor_width, bench.sensor_height)
         x0, x1, y0, y1 = region
@@ -203,13 +353,41 @@ class Camera:
         return out[pad:pad + (y1 - y0), pad:pad + (x1 - x0)]
 
 
-def footprint_light(kernel, features, bench, region, to_nominal, supersample=4):
+def footprint_light(
+    kernel: npt.ArrayLike,
+    features: npt.ArrayLike,
+    bench: Bench,
+    region: tuple[int, int, int, int],
+    to_nominal: Callable[[np.ndarray], np.ndarray],
+    supersample: int = 4,
+) -> np.ndarray:
     """The light each sensor pixel of ``region`` collects of one pass, seen through any map.
 
     Each pixel's footprint is sampled at ``supersample`` squared points,
     ``to_nominal`` takes them (x, y) to the nominal grid of ``bench``, where
     the pass is rendered ``supersample`` times finer (:func:`render_nominal`)
     and looked up bilinearly; the pixel's light is the mean.
+
+    Parameters
+    ----------
+    kernel : array_like of {0, 1}
+        The kernel pattern shown (one pass), 2-D.
+    features : array_like of {0, 1}
+        The feature pattern shown, 2-D.
+    bench : Bench
+        The bench whose nominal grid the pass is rendered on.
+    region : tuple of int
+        ``(x0, x1, y0, y1)`` sensor pixels, half-open.
+    to_nominal : callable
+        Takes sensor points, shape ``(n, 2)`` as (x, y), to nominal points of the same shape.
+    supersample : int, optional
+        Samples per pixel along each axis (and the fineness of the rendering).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``(y1 - y0, x1 - x0)``, in response units. A view that misses the nominal grid sees only
+        the glow.
     """
     x0, x1, y0, y1 = region
     s = int(supersample)
@@ -226,9 +404,21 @@ def footprint_light(kernel, features, bench, region, to_nominal, supersample=4):
     return light.reshape((y1 - y0, x1 - x0, s * s)).mean(axis=-1)
 
 
-def footprint_points(region, supersample):
-    """Sensor points (x, y) sampling each pixel of ``region`` (x0, x1, y0, y1) on a ``supersample`` squared grid
-    over its footprint: ``((y1 - y0) * (x1 - x0) * supersample**2, 2)``, pixel by pixel in row-major order."""
+def footprint_points(region: tuple[int, int, int, int], supersample: int) -> np.ndarray:
+    """Sensor points (x, y) sampling each pixel of a region on a ``supersample`` squared grid over its footprint.
+
+    Parameters
+    ----------
+    region : tuple of int
+        ``(x0, x1, y0, y1)`` sensor pixels, half-open.
+    supersample : int
+        Samples per pixel along each axis, at the centres of a regular sub-grid.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``((y1 - y0) * (x1 - x0) * supersample**2, 2)``, pixel by pixel in row-major order.
+    """
     x0, x1, y0, y1 = (int(v) for v in region)
     s = int(supersample)
     yy, xx = np.mgrid[y0:y1, x0:x1]
@@ -237,9 +427,35 @@ def footprint_points(region, supersample):
     return np.stack([(xx[..., None, None] + sx).ravel(), (yy[..., None, None] + sy).ravel()], 1).astype(np.float64)
 
 
-def render_nominal(kernel, features, bench, fine_region, supersample):
-    """:func:`~evtk.optics.screen_response` on a nominal sensor ``supersample`` times finer (the same response
-    origin, pixels a ``supersample``-th of the size); ``fine_region`` in fine pixels."""
+def render_nominal(
+    kernel: npt.ArrayLike,
+    features: npt.ArrayLike,
+    bench: Bench,
+    fine_region: tuple[int, int, int, int],
+    supersample: int,
+) -> np.ndarray:
+    """:func:`~evtk.optics.screen_response` on a nominal sensor ``supersample`` times finer.
+
+    The fine sensor keeps the response origin; its pixels are a ``supersample``-th of the size.
+
+    Parameters
+    ----------
+    kernel : array_like of {0, 1}
+        The kernel pattern shown (one pass), 2-D.
+    features : array_like of {0, 1}
+        The feature pattern shown, 2-D.
+    bench : Bench
+        The bench at nominal resolution.
+    fine_region : tuple of int
+        ``(x0, x1, y0, y1)`` in fine pixels, half-open.
+    supersample : int
+        How many times finer.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``(y1 - y0, x1 - x0)`` of ``fine_region``, in response units.
+    """
     s = int(supersample)
     ox, oy = response_origin_px(bench, np.shape(kernel), np.shape(features))
     fine = bench.replace(sensor_pitch_um=bench.sensor_pitch_um / s, sensor_width=bench.sensor_width * s,
@@ -249,35 +465,106 @@ def render_nominal(kernel, features, bench, fine_region, supersample):
 
 @dataclass(frozen=True)
 class CellMap:
-    """Response cells (column, row) to sensor pixels (x, y): a projective map then radial distortion about the
-    sensor centre (what :func:`evtk.calibrate.calibrate` fits; the camera's pose and lens in one)."""
+    """Response cells (column, row) to sensor pixels (x, y): a projective map then radial distortion.
+
+    The distortion acts about the sensor centre, normalised by its half diagonal (as :class:`Camera`'s);
+    :func:`evtk.calibrate.calibrate` fits it. The camera's pose and lens in one.
+
+    Parameters
+    ----------
+    matrix : numpy.ndarray
+        float64, shape ``(3, 3)``: homogeneous cell ``(column, row, 1)`` to undistorted sensor pixel.
+    k1 : float
+        Radial distortion coefficient at the half diagonal.
+    sensor_size : tuple of int
+        ``(width, height)`` of the sensor, pixels.
+    """
 
     matrix: np.ndarray
     k1: float
     sensor_size: tuple
 
     @classmethod
-    def scale_shift(cls, origin_px, step_px, sensor_size) -> CellMap:
-        """The map of a square view: cell ``(j, i)`` on pixel ``origin_px + (j, i) * step_px``."""
+    def scale_shift(
+        cls, origin_px: tuple[float, float], step_px: float, sensor_size: tuple[int, int]
+    ) -> CellMap:
+        """The map of a square view: cell ``(j, i)`` on pixel ``origin_px + (j, i) * step_px``.
+
+        Parameters
+        ----------
+        origin_px : tuple of float
+            Sensor pixel ``(x, y)`` of cell (0, 0).
+        step_px : float
+            Pixels per cell along both axes.
+        sensor_size : tuple of int
+            ``(width, height)`` of the sensor, pixels.
+
+        Returns
+        -------
+        CellMap
+            The map, without distortion.
+        """
         ox, oy = (float(v) for v in origin_px)
         step = float(step_px)
         return cls(np.array([[step, 0.0, ox], [0.0, step, oy], [0.0, 0.0, 1.0]]), 0.0, tuple(sensor_size))
 
-    def _frame(self):
+    def _frame(self) -> tuple[np.ndarray, float]:
         w, h = (float(v) for v in self.sensor_size)
         return np.array([(w - 1) / 2, (h - 1) / 2]), 0.5 * math.hypot(w, h)
 
-    def to_pixels(self, cells_xy):
+    def to_pixels(self, cells_xy: npt.ArrayLike) -> np.ndarray:
+        """Sensor pixels (x, y) of response cells (column, row).
+
+        Parameters
+        ----------
+        cells_xy : array_like
+            Cells as (column, row), shape ``(2,)`` or ``(n, 2)``; fractional cells allowed.
+
+        Returns
+        -------
+        numpy.ndarray
+            float64, shape ``(n, 2)`` (a single cell comes back as one row).
+        """
         c, norm = self._frame()
         return radial_distort(_apply_h(self.matrix, np.atleast_2d(cells_xy)), c, norm, self.k1)
 
-    def to_cells(self, pixels_xy):
+    def to_cells(self, pixels_xy: npt.ArrayLike) -> np.ndarray:
+        """Response cells (column, row) seen at sensor pixels (x, y): the inverse of :meth:`to_pixels`.
+
+        Parameters
+        ----------
+        pixels_xy : array_like
+            Sensor points as (x, y), shape ``(2,)`` or ``(n, 2)``.
+
+        Returns
+        -------
+        numpy.ndarray
+            float64, shape ``(n, 2)``, fractional cells.
+        """
         c, norm = self._frame()
         return _apply_h(np.linalg.inv(self.matrix), radial_undistort(np.atleast_2d(pixels_xy), c, norm, self.k1))
 
-    def axis_aligned(self, shape, tolerance_px=AXIS_TOLERANCE_PX):
-        """``(origin_px, step_px)`` of the scale-and-shift map that matches this one within ``tolerance_px``
-        over a response of ``shape`` (rows, cols) cells, or None when none does (rotation, tilt, distortion)."""
+    def axis_aligned(
+        self, shape: tuple[int, int], tolerance_px: float = AXIS_TOLERANCE_PX
+    ) -> tuple[tuple[float, float], float] | None:
+        """The scale-and-shift map that matches this one over a response, if any.
+
+        One step for both axes and an origin per axis are fitted by least squares to the map's pixels of
+        every cell of the response.
+
+        Parameters
+        ----------
+        shape : tuple of int
+            ``(rows, cols)`` of the response, cells.
+        tolerance_px : float, optional
+            Largest deviation, pixels, at which the fit still counts as matching.
+
+        Returns
+        -------
+        tuple or None
+            ``((origin_x_px, origin_y_px), step_px)``, as :meth:`scale_shift` takes them, or None when no
+            scale and shift matches (rotation, tilt, distortion).
+        """
         rows, cols = (int(v) for v in shape)
         jj, ii = np.meshgrid(np.arange(cols, dtype=np.float64), np.arange(rows, dtype=np.float64))
         cells = np.stack([jj.ravel(), ii.ravel()], 1)

@@ -6,6 +6,7 @@ import functools
 import math
 
 import numpy as np
+import numpy.typing as npt
 from scipy import special
 
 from ..errors import EvtkError
@@ -63,8 +64,35 @@ def footprint_cdf(t: np.ndarray | float, a: float, b: float, s: float) -> np.nda
                                       + _phi2((t - a - b) / s)), 0.0, 1.0)
 
 
-def axis_weights(pixels, n_cells, k, bench: Bench, origin, psf_cells):
-    """W[j, i, n]: share of pixel ``pixels[i]``'s view of kernel element ``j``'s shadow in cell ``n``."""
+def axis_weights(
+    pixels: npt.ArrayLike, n_cells: int, k: int, bench: Bench, origin: float, psf_cells: float
+) -> np.ndarray:
+    """W[j, i, n]: share of pixel ``pixels[i]``'s view of kernel element ``j``'s shadow in cell ``n``.
+
+    One axis of the separable footprint model (:func:`footprint_cdf`); :func:`screen_response` and the
+    reconstruction's deblurring both use it.
+
+    Parameters
+    ----------
+    pixels : array_like of int
+        Sensor pixel indices along the axis.
+    n_cells : int
+        Feature elements along the axis.
+    k : int
+        Kernel elements along the axis.
+    bench : Bench
+        The bench (pixel footprint, kernel step, source extent, flip).
+    origin : float
+        Sensor pixel that sees cell 0 of the full response (:func:`response_origin_px`, one coordinate).
+    psf_cells : float
+        Standard deviation of the shadow blur, in feature elements.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``(k, len(pixels), n_cells)``, each entry in [0, 1]; read-only for a run of consecutive
+        pixels (a cached array).
+    """
     pixels = np.asarray(pixels)
     if pixels.size and np.array_equal(pixels, np.arange(pixels[0], pixels[0] + pixels.size)):
         # the usual call: a run of pixels; the same geometry recurs for every capture of a run
@@ -96,11 +124,27 @@ def _axis_weights_of(pixels, n_cells, k, s1, kappa, source_extent, flipped, orig
     return np.diff(np.maximum.accumulate(cdf, axis=2), axis=2)
 
 
-def response_origin_px(bench: Bench, kernel_shape, features_shape):
+def response_origin_px(
+    bench: Bench, kernel_shape: tuple[int, int], features_shape: tuple[int, int]
+) -> tuple[float, float]:
     """Sensor pixel (x, y) whose footprint sees cell (0, 0) of the full response.
 
     ``bench.origin_px`` when set, else the position that centres the full
     response on the sensor.
+
+    Parameters
+    ----------
+    bench : Bench
+        The bench (its ``origin_px``, geometry and sensor size).
+    kernel_shape : tuple of int
+        ``(rows, cols)`` of the kernel, in elements.
+    features_shape : tuple of int
+        ``(rows, cols)`` of the features, in elements.
+
+    Returns
+    -------
+    tuple of float
+        ``(x, y)`` in sensor pixels (whole numbers when centred, as set when ``bench.origin_px`` is given).
     """
     if bench.origin_px is not None:
         return bench.origin_px
@@ -112,8 +156,28 @@ def response_origin_px(bench: Bench, kernel_shape, features_shape):
     return (math.floor((bench.sensor_width - span_x) / 2), math.floor((bench.sensor_height - span_y) / 2))
 
 
-def response_region(bench: Bench, kernel_shape, features_shape):
-    """Sensor pixels the pattern's shadow can reach: ``(x0, x1, y0, y1)``, half-open, clipped."""
+def response_region(
+    bench: Bench, kernel_shape: tuple[int, int], features_shape: tuple[int, int]
+) -> tuple[int, int, int, int]:
+    """Sensor pixels the pattern's shadow can reach: ``(x0, x1, y0, y1)``, half-open, clipped.
+
+    The reach includes half a pixel footprint, half a source element (area sources) and six standard
+    deviations of the shadow blur on each side.
+
+    Parameters
+    ----------
+    bench : Bench
+        The bench.
+    kernel_shape : tuple of int
+        ``(rows, cols)`` of the kernel, in elements.
+    features_shape : tuple of int
+        ``(rows, cols)`` of the features, in elements.
+
+    Returns
+    -------
+    tuple of int
+        ``(x0, x1, y0, y1)`` in sensor pixels, clipped to the sensor (possibly empty: ``x1 == x0``).
+    """
     kh, kw = kernel_shape
     fh, fw = features_shape
     ox, oy = response_origin_px(bench, kernel_shape, features_shape)
@@ -123,7 +187,7 @@ def response_region(bench: Bench, kernel_shape, features_shape):
     spread = 0.5 * s1 + (0.5 * kappa if bench.source_extent == "area" else 0.0)
     spread += 6.0 * bench.shadow_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
 
-    def span(origin, k, f, n):
+    def span(origin: float, k: int, f: int, n: int) -> tuple[int, int]:
         # pixel x sees cells (x - origin) * s1 + (j - (k-1)) * kappa + 1/2 +- spread, j in [0, k)
         lo = origin + (-(spread + 0.5)) / s1
         hi = origin + (f - 0.5 + (k - 1) * kappa + spread) / s1
@@ -143,14 +207,22 @@ def _binary(name, a):
     return a.astype(np.float64)
 
 
-def screen_response(kernel, features, bench: Bench, region=None, *, leak=True):
+def screen_response(
+    kernel: npt.ArrayLike,
+    features: npt.ArrayLike,
+    bench: Bench,
+    region: tuple[int, int, int, int] | None = None,
+    *,
+    leak: bool = True,
+) -> np.ndarray:
     """Light collected by each sensor pixel for one displayed (kernel, features) pair.
 
     Parameters
     ----------
     kernel, features : array_like of {0, 1}
-        The binary patterns shown on the two DMDs (one pass).
+        The binary patterns shown on the two DMDs (one pass), 2-D.
     bench : Bench
+        The bench: geometry, blur, leakage and stray light.
     region : (x0, x1, y0, y1), optional
         Sensor pixels to compute (half-open); default the whole sensor.
     leak : bool
@@ -162,6 +234,11 @@ def screen_response(kernel, features, bench: Bench, region=None, *, leak=True):
         In units of one lit kernel element seen through one open feature
         element, averaged over the pixel's footprint. Pixels away from the
         pattern see the uniform glow of leaking mirrors plus stray light.
+
+    Raises
+    ------
+    EvtkError
+        If a pattern is not a non-empty 2-D array of 0/1, or does not fit its DMD.
     """
     k = _binary("kernel", kernel)
     f = _binary("features", features)
@@ -193,29 +270,68 @@ def screen_response(kernel, features, bench: Bench, region=None, *, leak=True):
     return out
 
 
-def glow_response(kernel, bench: Bench) -> float:
+def glow_response(kernel: npt.ArrayLike, bench: Bench) -> float:
     """Light every pixel gets whatever the features show: off feature mirrors leak.
 
     ``leak * sum(K')`` with ``K' = K + leak * (1 - K)`` (off kernel mirrors
     leak too), plus stray light, in the units of :func:`screen_response`.
     With both DMDs dark (``kernel`` all zero) it is the blank level.
+
+    Parameters
+    ----------
+    kernel : array_like
+        The kernel pattern shown (0/1 per element).
+    bench : Bench
+        The bench (its ``leak`` and ``stray_light``).
+
+    Returns
+    -------
+    float
+        The glow, in response units.
     """
     k = np.asarray(kernel, dtype=np.float64)
     lk = bench.leak
     return float(lk * (k + lk * (1.0 - k)).sum() + bench.stray_light)
 
 
-def brightest_response(kernel_shape, bench: Bench) -> float:
-    """The most light a pixel can get: every kernel element through open features, plus stray light."""
+def brightest_response(kernel_shape: tuple[int, int], bench: Bench) -> float:
+    """The most light a pixel can get: every kernel element through open features, plus stray light.
+
+    Parameters
+    ----------
+    kernel_shape : tuple of int
+        ``(rows, cols)`` of the kernel, in elements.
+    bench : Bench
+        The bench (its ``stray_light``).
+
+    Returns
+    -------
+    float
+        ``rows * cols + stray_light``, in response units.
+    """
     kh, kw = kernel_shape
     return float(kh * kw + bench.stray_light)
 
 
-def ideal_response(kernel, features, bench: Bench | None = None):
+def ideal_response(kernel: npt.ArrayLike, features: npt.ArrayLike, bench: Bench | None = None) -> np.ndarray:
     """The digital response the device approximates: full 2-D correlation (or convolution).
 
     ``scipy.signal.correlate2d(features, kernel, mode="full")``, or
     ``convolve2d`` when ``bench.kernel_flipped``. Accepts signed patterns.
+
+    Parameters
+    ----------
+    kernel : array_like
+        2-D kernel, any real values.
+    features : array_like
+        2-D features, any real values.
+    bench : Bench or None, optional
+        Only its ``kernel_flipped`` is read; None correlates.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``(fh + kh - 1, fw + kw - 1)``.
     """
     from scipy import signal
 
@@ -226,13 +342,31 @@ def ideal_response(kernel, features, bench: Bench | None = None):
     return signal.correlate2d(f, k, mode="full")
 
 
-def response_to_sensor_grid(bench: Bench, kernel_shape, features_shape):
+def response_to_sensor_grid(
+    bench: Bench, kernel_shape: tuple[int, int], features_shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
     """Sensor pixel centres (x, y) of each cell of the full ideal response, in pixel units.
 
     Cell ``(i, j)`` of :func:`ideal_response` is centred on sensor coordinate
     ``origin + i * kappa / s1`` (kappa the kernel step, s1 the pixel footprint,
     both in feature elements; pixel ``x`` is centred on ``x``). At stride 1
     that cell is exactly pixel ``origin + i``'s footprint.
+
+    Parameters
+    ----------
+    bench : Bench
+        The bench.
+    kernel_shape : tuple of int
+        ``(rows, cols)`` of the kernel, in elements.
+    features_shape : tuple of int
+        ``(rows, cols)`` of the features, in elements.
+
+    Returns
+    -------
+    xs : numpy.ndarray
+        float64, shape ``(fw + kw - 1,)``: the x centre of each response column, sensor pixels.
+    ys : numpy.ndarray
+        float64, shape ``(fh + kh - 1,)``: the y centre of each response row, sensor pixels.
     """
     kh, kw = kernel_shape
     fh, fw = features_shape
