@@ -43,8 +43,9 @@ def scene_means(result):
 
 
 def run(repeats, draws):
-    import evtk
     from bench_physics import _scaled_error, ceiling
+
+    import evtk
     from evtk.calibrate import calibrate
     from evtk.reconstruct.calibrated import schedule_of_record
     from evtk.simulate import Simulation
