@@ -107,31 +107,32 @@ _E2_HIGH, _E2_EPOCH = range(2)
 _DAT_PREV, _DAT_EPOCH = range(2)
 
 
-@njit(cache=True, nogil=True)
-def _time_high34(w, high, epoch):
-    """(time high, epoch) after an EVT 2.0 / 2.1 EV_TIME_HIGH word ``w`` (its 28 low bits: bits 6..33 of the
-    34-bit time); a drop of more than half the counter's range is a wrap of the counter."""
-    new = w & 0xFFFFFFF
-    if new < high and high - new > (1 << 27):  # the 28-bit counter wrapped
-        epoch += 1
-    return new, epoch
+# EVT 2.1 decoder state: EVT 2.0's (time high, epoch), and the word layout (1: OpenEB's "endianness=legacy", the
+# IMX636's: the 32 bits with the type first in the file, the mask after them; 0: one little-endian 64-bit word)
+_E21_LEGACY = 2
+_LOW32 = np.uint64(0xFFFFFFFF)
+_SHIFT32 = np.uint64(32)
+# a set bit's index from the bit alone, by a de Bruijn sequence: (bit * _DEBRUIJN) mod 2**32 has a distinct top five
+# bits for each of the 32 bits
+_DEBRUIJN = 0x077CB531
+_BIT_INDEX = np.zeros(32, np.int64)
+_BIT_INDEX[[((1 << k) * _DEBRUIJN & 0xFFFFFFFF) >> 27 for k in range(32)]] = np.arange(32)
 
 
 @njit(cache=True, nogil=True)
-def _trigger32(w, base, m, tt, tk, tch):
-    """Trigger ``m`` from an EVT 2.0 / 2.1 EXT_TRIGGER word ``w`` (its 32 bits with the type): the six low time
-    bits at 22..27, the channel in bits 8..12, the edge in bit 0 (kind 1 rising, 2 falling: evtk's Triggers)."""
-    tt[m] = base | ((w >> 22) & 0x3F)
-    tk[m] = 1 if (w & 1) else 2
-    tch[m] = (w >> 8) & 0x1F
+def _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, wide):
+    """One pass over EVT 2.0 words (uint32) or, with ``wide``, EVT 2.1 words (uint64): counts, or with
+    ``decode`` the events and triggers. Returns (events, triggers, status, word index of the problem, min t,
+    max t); the min and max only when counting.
 
-
-@njit(cache=True, nogil=True)
-def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """One pass over EVT 2.0 words: counts, or with ``decode`` the events and triggers. Returns (events,
-    triggers, status, word index of the problem, min t, max t); the min and max only when counting."""
+    An EVT 2.1 word's upper half (by the layout in ``state``) is an EVT 2.0 word whose CD types carry the base
+    x of 32 pixels, its lower half their validity mask (bit k: the pixel at base x + k); an EVT 2.0 CD word is
+    the one pixel at its x. A CD word whose events no longer fit the outputs stops with ST_FULL, for the
+    caller to resume at it."""
     high = state[_E2_HIGH]
     epoch = state[_E2_EPOCH]
+    legacy = wide and state[_E21_LEGACY] != 0
+    room = 32 if wide else 1
     base = (epoch << 34) | (high << 6)
     n = 0
     m = 0
@@ -140,31 +141,55 @@ def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     status = ST_OK
     bad = -1
     for i in range(len(words)):
-        w = np.int64(words[i])
+        if not wide:
+            w = np.int64(words[i])
+            mask = np.int64(1)
+        elif legacy:
+            w = np.int64(words[i] & _LOW32)
+            mask = np.int64(words[i] >> _SHIFT32)
+        else:
+            w = np.int64(words[i] >> _SHIFT32)
+            mask = np.int64(words[i] & _LOW32)
         kind = w >> 28
-        if kind <= 1:  # CD_OFF, CD_ON: most words
-            xi = (w >> 11) & 0x7FF
-            yi = w & 0x7FF
-            if xi >= width or yi >= height:
-                status = ST_COORD
+        if kind <= 1:  # CD_OFF / EV_NEG, CD_ON / EV_POS: most words
+            if decode and n + room > len(t):
+                status = ST_FULL
                 bad = i
                 break
+            yi = w & 0x7FF
+            first = (w >> 11) & 0x7FF
             tc = base | ((w >> 22) & 0x3F)
-            if decode:
-                t[n] = tc
-                x[n] = xi
-                y[n] = yi
-                p[n] = kind
-            else:
-                t_min = min(t_min, tc)
-                t_max = max(t_max, tc)
-            n += 1
+            while mask:  # the set bits, lowest first
+                low = mask & -mask
+                mask ^= low
+                xi = first + _BIT_INDEX[((low * _DEBRUIJN) & 0xFFFFFFFF) >> 27]
+                if xi >= width or yi >= height:
+                    status = ST_COORD
+                    break
+                if decode:
+                    t[n] = tc
+                    x[n] = xi
+                    y[n] = yi
+                    p[n] = kind
+                else:
+                    t_min = min(t_min, tc)
+                    t_max = max(t_max, tc)
+                n += 1
+            if status != ST_OK:
+                bad = i
+                break
         elif kind == 8:
-            high, epoch = _time_high34(w, high, epoch)
+            new = w & 0xFFFFFFF
+            if new < high and high - new > (1 << 27):  # the 28-bit counter wrapped
+                epoch += 1
+            high = new
             base = (epoch << 34) | (high << 6)
         elif kind == 10:
             if decode:
-                _trigger32(w, base, m, tt, tk, tch)
+                tt[m] = base | ((w >> 22) & 0x3F)
+                # the edge in bit 0, the channel in bits 8..12: kind 1 rising, 2 falling (evtk's Triggers)
+                tk[m] = 1 if (w & 1) else 2
+                tch[m] = (w >> 8) & 0x1F
             m += 1
         elif kind != 14 and kind != 15:  # OTHERS and CONTINUED carry no events; no other type exists
             status = ST_TYPE
@@ -173,6 +198,18 @@ def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     state[_E2_HIGH] = high
     state[_E2_EPOCH] = epoch
     return n, m, status, bad, t_min, t_max
+
+
+@njit(cache=True, nogil=True)
+def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """:func:`_evt2x_run` over EVT 2.0 words."""
+    return _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, False)
+
+
+@njit(cache=True, nogil=True)
+def _evt21_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """:func:`_evt2x_run` over EVT 2.1 words."""
+    return _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, True)
 
 
 @njit(cache=True, nogil=True)
@@ -211,82 +248,6 @@ def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
     state[_DAT_PREV] = prev
     state[_DAT_EPOCH] = epoch
     return n, 0, status, bad, t_min, t_max
-
-
-# EVT 2.1 decoder state: EVT 2.0's (time high, epoch), and the word layout (1: OpenEB's "endianness=legacy", the
-# IMX636's: the 32 bits with the type first in the file, the mask after them; 0: one little-endian 64-bit word)
-_E21_LEGACY = 2
-_LOW32 = np.uint64(0xFFFFFFFF)
-_SHIFT32 = np.uint64(32)
-
-
-@njit(cache=True, nogil=True)
-def _evt21_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """One pass over EVT 2.1 words (uint64), with :func:`_evt2_run`'s arguments and results. A word's upper
-    half (by the layout in ``state``) is an EVT 2.0 word whose CD types carry the base x of 32 pixels; its
-    lower half is their validity mask (bit k: the pixel at base x + k). A CD word whose events no longer fit
-    the outputs stops with ST_FULL, for the caller to resume at it."""
-    high = state[_E2_HIGH]
-    epoch = state[_E2_EPOCH]
-    legacy = state[_E21_LEGACY] != 0
-    base = (epoch << 34) | (high << 6)
-    n = 0
-    m = 0
-    t_min = np.int64(2**62)
-    t_max = np.int64(-(2**62))
-    status = ST_OK
-    bad = -1
-    for i in range(len(words)):
-        if legacy:
-            w = np.int64(words[i] & _LOW32)
-            mask = np.int64(words[i] >> _SHIFT32)
-        else:
-            w = np.int64(words[i] >> _SHIFT32)
-            mask = np.int64(words[i] & _LOW32)
-        kind = w >> 28
-        if kind <= 1:  # EV_NEG, EV_POS
-            if decode and n + 32 > len(t):
-                status = ST_FULL
-                bad = i
-                break
-            first = (w >> 11) & 0x7FF
-            yi = w & 0x7FF
-            tc = base | ((w >> 22) & 0x3F)
-            while mask:
-                k = 0
-                while not (mask >> k) & 1:
-                    k += 1
-                mask &= mask - 1
-                xi = first + k
-                if xi >= width or yi >= height:
-                    status = ST_COORD
-                    break
-                if decode:
-                    t[n] = tc
-                    x[n] = xi
-                    y[n] = yi
-                    p[n] = kind
-                else:
-                    t_min = min(t_min, tc)
-                    t_max = max(t_max, tc)
-                n += 1
-            if status != ST_OK:
-                bad = i
-                break
-        elif kind == 8:
-            high, epoch = _time_high34(w, high, epoch)
-            base = (epoch << 34) | (high << 6)
-        elif kind == 10:
-            if decode:
-                _trigger32(w, base, m, tt, tk, tch)
-            m += 1
-        elif kind != 14 and kind != 15:  # OTHERS and CONTINUED carry no events; no other type exists
-            status = ST_TYPE
-            bad = i
-            break
-    state[_E2_HIGH] = high
-    state[_E2_EPOCH] = epoch
-    return n, m, status, bad, t_min, t_max
 
 
 def word_type(encoding: str, word: int, legacy: bool = False) -> int:
