@@ -191,6 +191,17 @@ def test_chunked_writer_equals_one_write_and_long_gaps_keep_the_time(tmp_path):
     assert evtk.read_events(one) == ev == evtk.read_events(two)
 
 
+def test_triggers_before_between_and_after_the_events_across_a_wrap(tmp_path):
+    ev = evtk.Events([5, 9], [1, 40], [0, 1], [1, 0], (64, 8))
+    tr = evtk.Triggers([1, 9, 100, 2**35], [1, 2, 1, 2], [3, 4, 5, 31])
+    path = tmp_path / "t.raw"
+    evtk.write_events(path, ev, tr, fmt="evt21")
+    with evtk.open(path) as rec:
+        got = rec.triggers()
+        assert rec.events() == ev and got.t.tolist() == tr.t.tolist() and got.channel.tolist() == [3, 4, 5, 31]
+        assert got.kind.tolist() == [1, 2, 1, 2]
+
+
 def test_what_evt21_cannot_hold_is_refused_by_name(tmp_path):
     ev = _events(n=1000)
     with pytest.raises(evtk.EvtkError, match="EVT 2.1 holds trigger channels 0-31"):
