@@ -28,6 +28,8 @@ CASES = 16  # per target: 8 byte mutations, 8 structure-aware ones
 EVENT_TARGETS = ["f.es", "f2.raw", "f3.raw", "l1.aedat", "l3.aedat", "p.parquet", "z.aedat4", "l2.aedat", "f.dat",
                  "f.aedat4", "l.aedat4", "d.h5", "e.h5", "t.csv", "t.txt", "n.bin", "f21.raw", "f21l.raw"]
 RUN_TARGETS = ["r.h5", "r.npz", "job.toml", "schedule.json", "cal.toml", "record.json"]
+#: targets added after the 100,000-case campaign whose findings are replayed below (they would shift its cases)
+LATER_TARGETS = {"f21.raw", "f21l.raw"}
 
 
 @pytest.fixture(scope="module")
@@ -148,6 +150,9 @@ def test_the_hundred_thousand_case_campaign_s_last_findings_stay_fixed(built, tm
     whose damaged header made zipfile raise NotImplementedError. Each case is rebuilt here and must now end
     exact, altered or a clean error."""
     monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "256")
-    cases = Cases(built, tmp_path, cli_every=25)  # as the campaign ran: every 25th case through evtk info
+    everything = Cases(built, tmp_path).names
+    # as the campaign ran: its targets (case i takes target i % their number; the EVT 2.1 ones came later), every
+    # 25th case through evtk info
+    cases = Cases(built, tmp_path, cli_every=25, only=set(everything) - LATER_TARGETS)
     r = guarded(cases, 29, case, hang_seconds=20.0, growth_mb=400.0)
     assert r["target"] in ("p.parquet", "r.npz") and r["outcome"] not in FAILURES, r
