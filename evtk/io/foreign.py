@@ -411,21 +411,24 @@ def encode_evt21(events: Events, triggers: Triggers | None = None, state: dict |
     n = len(events)
     require_memory(64 * n + 48 * len(tt), "the EVT 2.1 words")
     t = np.asarray(events.t, np.int64)
-    x = events.x.astype(np.int64)
-    y, p = events.y, events.p
+    x = events.x.astype(np.int32)
+    key = events.y.astype(np.int32) << 7 | (events.p.astype(np.int32) & 1) << 6 | x >> 5  # row, polarity, group
     new = np.ones(n, bool)  # where a CD word begins
     if n > 1:
-        new[1:] = ((t[1:] != t[:-1]) | (y[1:] != y[:-1]) | (p[1:] != p[:-1]) | ((x[1:] >> 5) != (x[:-1] >> 5))
-                   | (x[1:] <= x[:-1]))
-    starts = np.flatnonzero(new)
-    bits = np.left_shift(np.uint64(1), (x & 31).astype(np.uint64))
-    masks = np.bitwise_or.reduceat(bits, starts) if n else np.empty(0, np.uint64)
-    groups = Events._trusted(t[starts], (x[starts] & ~31).astype(np.uint16), y[starts], p[starts],
-                             events.sensor_size)
+        new[1:] = (t[1:] != t[:-1]) | (key[1:] != key[:-1]) | (x[1:] <= x[:-1])
+    bits = np.left_shift(np.uint32(1), (x & 31).astype(np.uint32))
+    if new.all():  # no two events share a word
+        masks, groups = bits, Events._trusted(t, (x & ~31).astype(np.uint16), events.y, events.p, events.sensor_size)
+    else:
+        starts = np.flatnonzero(new)
+        masks = np.bitwise_or.reduceat(bits, starts)
+        groups = Events._trusted(t[starts], (x[starts] & ~31).astype(np.uint16), events.y[starts], events.p[starts],
+                                 events.sensor_size)
     upper = np.frombuffer(encode_evt2(groups, triggers, state), "<u4")
-    out = upper.astype(np.uint64) << np.uint64(32)
-    out[(upper >> 28) <= 1] |= masks  # the CD words, in the events' order
-    return out.astype("<u8", copy=False).tobytes()
+    out = np.zeros((len(upper), 2), "<u4")  # each word: the mask (low half), then the EVT 2.0 word (high half)
+    out[:, 1] = upper
+    out[(upper >> 28) <= 1, 0] = masks  # the CD words, in the events' order
+    return out.tobytes()
 
 
 class ForeignWriter(BaseWriter):
