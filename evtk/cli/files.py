@@ -77,13 +77,14 @@ def info(file, as_json, salvage, check):
               help="Events held in memory at a time while streaming.")
 @click.option("--events-only", is_flag=True,
               help="Write events and triggers only (no frames, IMU or other streams, and no warning about them).")
-@click.option("--format", "fmt", type=click.Choice(["aedat4", "hdf5", "parquet", "evt2", "evt3", "dat", "es", "csv"]),
-              help="TARGET's format where its extension does not say (.raw is EVT 3.0 unless --format evt2).")
+@click.option("--format", "fmt", type=click.Choice(["aedat4", "hdf5", "parquet", "evt2", "evt21", "evt3", "dat", "es",
+                                                          "csv"]),
+              help="TARGET's format where its extension does not say (.raw is EVT 3.0 unless --format evt2 or evt21).")
 def convert(source, target, compression, salvage, sort, chunk_events, events_only, fmt):
     """Convert SOURCE to TARGET (format from TARGET's extension), streaming.
 
-    Any format evtk reads to AEDAT4, HDF5, Parquet, Prophesee RAW (EVT 2.0
-    or 3.0), DAT, Event Stream or CSV. AEDAT4 to AEDAT4 copies frames, IMU
+    Any format evtk reads to AEDAT4, HDF5, Parquet, Prophesee RAW (EVT 2.0,
+    2.1 or 3.0), DAT, Event Stream or CSV. AEDAT4 to AEDAT4 copies frames, IMU
     and other streams and keeps the camera's name; other targets get one
     warning naming what they cannot hold.
     """

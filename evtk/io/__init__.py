@@ -36,9 +36,10 @@ def __getattr__(name):
 WRITE_EXTENSIONS = {".aedat4": "aedat4", ".h5": "hdf5", ".hdf5": "hdf5", ".parquet": "parquet", ".pq": "parquet",
                     ".raw": "evt3", ".dat": "dat", ".es": "es", ".csv": "csv", ".txt": "csv"}
 #: Every format evtk writes: the extension's, or one named by ``fmt=`` (``.raw`` is EVT 3.0 unless ``fmt="evt2"``).
-WRITE_FORMATS = ("aedat4", "hdf5", "parquet", "evt2", "evt3", "dat", "es", "csv")
+WRITE_FORMATS = ("aedat4", "hdf5", "parquet", "evt2", "evt21", "evt3", "dat", "es", "csv")
 #: What each format cannot hold, for the warning a conversion gives (None: everything evtk writes to it).
 LOSES = {"aedat4": None, "hdf5": None, "parquet": None, "evt2": "metadata beyond text lines",
+         "evt21": "metadata beyond text lines",
          "evt3": "metadata beyond text lines", "dat": "trigger edges", "es": "trigger edges and metadata",
          "csv": "trigger edges and metadata"}
 
@@ -265,7 +266,7 @@ def write_events(path, events: Events, triggers: Triggers | None = None, compres
 
     if not isinstance(events, Events):
         raise EvtkError(f"events must be evtk.Events, got {type(events).__name__}")
-    if fmt in ("evt2", "evt3", "dat", "es", "csv"):
+    if fmt in ("evt2", "evt21", "evt3", "dat", "es", "csv"):
         with open_writer(path, events.sensor_size, metadata=metadata, triggers=triggers, fmt=fmt) as w:
             w.write_events(events)
         return
@@ -317,7 +318,7 @@ def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, trig
         The writer, a context manager.
     """
     fmt = write_format(path, fmt)
-    if fmt in ("evt2", "evt3", "dat", "es", "csv"):
+    if fmt in ("evt2", "evt21", "evt3", "dat", "es", "csv"):
         from .foreign import ForeignWriter
 
         return ForeignWriter(path, fmt, sensor_size, metadata, triggers)

@@ -1,4 +1,4 @@
-"""Writing Prophesee RAW (EVT 2.0, EVT 3.0), DAT and Event Stream (DVS) files.
+"""Writing Prophesee RAW (EVT 2.0, EVT 2.1, EVT 3.0), DAT and Event Stream (DVS) files.
 
 Each encoder turns time-ordered events (and, where the format holds them,
 trigger edges) into the format's words with numpy alone, so a write needs no
@@ -12,6 +12,11 @@ What each format holds:
   word is written whenever the time's upper 28 bits change, with extra ones
   across long gaps so that the 34-bit counter's wraps are never ambiguous);
   trigger edges with their channel (0-31).
+- EVT 2.1: 64-bit words (one little-endian 64-bit value each, the layout
+  OpenEB reads by default): EVT 2.0's, with a CD word for each run of
+  consecutive events at one time, row and polarity whose x rise inside one
+  group of 32 pixels (its base x a multiple of 32, a 32-bit mask of the
+  pixels); x and y below 2048; trigger edges with their channel (0-31).
 - EVT 3.0: 16-bit words; x and y below 2048; any time from 0 (the 24-bit
   time's wraps likewise kept unambiguous); trigger edges with channels 0-15.
 - DAT (CD events, version 2): x and y below 16384; 32-bit time stamps, so
@@ -33,11 +38,12 @@ from ..events import Events, Triggers
 from ..limits import require_memory
 from .base import BaseWriter
 
-__all__ = ["FOREIGN_FORMATS", "ForeignWriter", "encode_evt2", "encode_evt3", "encode_dat", "encode_es_dvs",
-           "prophesee_header"]
+__all__ = ["FOREIGN_FORMATS", "ForeignWriter", "encode_evt2", "encode_evt21", "encode_evt3", "encode_dat",
+           "encode_es_dvs", "prophesee_header"]
 
 #: format name -> (what it cannot hold, or None)
-FOREIGN_FORMATS = {"evt2": None, "evt3": None, "dat": "trigger edges", "es": "trigger edges", "csv": "trigger edges"}
+FOREIGN_FORMATS = {"evt2": None, "evt21": None, "evt3": None, "dat": "trigger edges", "es": "trigger edges",
+                   "csv": "trigger edges"}
 
 _RISING = {1, 4}  # TriggerKind: external signal / generator rising edge
 _EDGES = {1, 2, 4, 5}
@@ -321,12 +327,12 @@ def encode_es_dvs(events: Events, state: dict | None = None) -> bytes:
 
 
 def prophesee_header(fmt: str, sensor_size: tuple[int, int], metadata: dict | None = None) -> bytes:
-    """The text header of an EVT 2.0, EVT 3.0 or DAT file for a ``sensor_size`` (width, height) sensor.
+    """The text header of an EVT 2.0, EVT 2.1, EVT 3.0 or DAT file for a ``sensor_size`` (width, height) sensor.
 
     Parameters
     ----------
     fmt : str
-        ``"evt2"``, ``"evt3"`` or ``"dat"``.
+        ``"evt2"``, ``"evt21"``, ``"evt3"`` or ``"dat"``.
     sensor_size : (int, int)
         Width and height.
     metadata : dict, optional
@@ -350,7 +356,7 @@ def prophesee_header(fmt: str, sensor_size: tuple[int, int], metadata: dict | No
         lines = ["% Data file containing CD events.", "% Version 2", f"% Date {date}", f"% Height {h}",
                  f"% Width {w}", *extra]
     else:
-        name = {"evt2": ("2.0", "EVT2"), "evt3": ("3.0", "EVT3")}[fmt]
+        name = {"evt2": ("2.0", "EVT2"), "evt21": ("2.1", "EVT21"), "evt3": ("3.0", "EVT3")}[fmt]
         lines = [f"% date {date}", f"% evt {name[0]}", f"% format {name[1]};height={h};width={w}",
                  f"% geometry {w}x{h}", "% integrator_name evtk", *extra, "% end"]
     return ("\n".join(lines) + "\n").encode("ascii")
@@ -373,11 +379,63 @@ def es_header(sensor_size: tuple[int, int]) -> bytes:
     return b"Event Stream" + bytes([2, 0, 0, 1]) + int(w).to_bytes(2, "little") + int(h).to_bytes(2, "little")
 
 
-class ForeignWriter(BaseWriter):
-    """A streaming writer of EVT 2.0, EVT 3.0, DAT, Event Stream or CSV files (``evtk.io.open_writer`` makes one).
+# -- EVT 2.1 -------------------------------------------------------------------------------------------------------
 
-    Events arrive in time order, a chunk at a time; trigger edges (EVT 2.0
-    and 3.0) are given once, when the writer is made, and are interleaved
+
+def encode_evt21(events: Events, triggers: Triggers | None = None, state: dict | None = None) -> bytes:
+    """EVT 2.1 words (little-endian uint64) for time-ordered ``events`` and trigger edges.
+
+    A word's upper 32 bits are an EVT 2.0 word (:func:`encode_evt2` makes
+    them, with the time-high words between), its lower 32 bits the mask of a
+    CD word: each run of consecutive events at one time, row and polarity
+    whose x rise inside one 32-pixel group becomes one CD word with the
+    group's first x as its base and bit ``x % 32`` set for each event, so a
+    reader gives the events back in their order.
+
+    Parameters
+    ----------
+    events : Events
+        Time-ordered events, times from 0, x and y below 2048.
+    triggers : Triggers, optional
+        Rising and falling edges (kinds 1, 2, 4, 5), channels 0-31.
+    state : dict, optional
+        Carries the last time-high value between chunks (updated in place).
+
+    Returns
+    -------
+    bytes
+        The words, ready to follow the file's text header.
+    """
+    tt = _trigger_columns(triggers, 31, "EVT 2.1")[0]
+    _check(events, tt, "EVT 2.1", 2048)
+    n = len(events)
+    require_memory(64 * n + 48 * len(tt), "the EVT 2.1 words")
+    t = np.asarray(events.t, np.int64)
+    x = events.x.astype(np.int32)
+    key = events.y.astype(np.int32) << 7 | (events.p.astype(np.int32) & 1) << 6 | x >> 5  # row, polarity, group
+    new = np.ones(n, bool)  # where a CD word begins
+    if n > 1:
+        new[1:] = (t[1:] != t[:-1]) | (key[1:] != key[:-1]) | (x[1:] <= x[:-1])
+    bits = np.left_shift(np.uint32(1), (x & 31).astype(np.uint32))
+    if new.all():  # no two events share a word
+        masks, groups = bits, Events._trusted(t, (x & ~31).astype(np.uint16), events.y, events.p, events.sensor_size)
+    else:
+        starts = np.flatnonzero(new)
+        masks = np.bitwise_or.reduceat(bits, starts)
+        groups = Events._trusted(t[starts], (x[starts] & ~31).astype(np.uint16), events.y[starts], events.p[starts],
+                                 events.sensor_size)
+    upper = np.frombuffer(encode_evt2(groups, triggers, state), "<u4")
+    out = np.zeros((len(upper), 2), "<u4")  # each word: the mask (low half), then the EVT 2.0 word (high half)
+    out[:, 1] = upper
+    out[(upper >> 28) <= 1, 0] = masks  # the CD words, in the events' order
+    return out.tobytes()
+
+
+class ForeignWriter(BaseWriter):
+    """A streaming writer of EVT 2.0, EVT 2.1, EVT 3.0, DAT, Event Stream or CSV files (``evtk.io.open_writer`` makes one).
+
+    Events arrive in time order, a chunk at a time; trigger edges (EVT 2.0,
+    2.1 and 3.0) are given once, when the writer is made, and are interleaved
     with the events by time. The file appears under its name only when
     :meth:`close` runs.
 
@@ -386,7 +444,7 @@ class ForeignWriter(BaseWriter):
     path : str or os.PathLike
         The target.
     fmt : str
-        ``"evt2"``, ``"evt3"``, ``"dat"``, ``"es"`` or ``"csv"``.
+        ``"evt2"``, ``"evt21"``, ``"evt3"``, ``"dat"``, ``"es"`` or ``"csv"``.
     sensor_size : (int, int)
         Width and height.
     metadata : dict, optional
@@ -453,6 +511,8 @@ class ForeignWriter(BaseWriter):
             return encode_evt2(events, triggers, self._state)
         if self.fmt == "evt3":
             return encode_evt3(events, triggers, self._state)
+        if self.fmt == "evt21":
+            return encode_evt21(events, triggers, self._state)
         if self.fmt == "dat":
             return encode_dat(events, self._state)
         if self.fmt == "csv":  # a million lines at a time bounds the text held

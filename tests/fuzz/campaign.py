@@ -4,7 +4,7 @@
 
 Targets (``targets.py``): AEDAT4 (LZ4, ZSTD, and faery's with checksums),
 evtk and DSEC HDF5, Parquet, legacy AEDAT 1.0/2.0/3.1, Prophesee EVT 2.0,
-EVT 3.0 and DAT, Event Stream; reconstruction files (``.h5``, ``.npz``);
+EVT 2.1 (both word layouts), EVT 3.0 and DAT, Event Stream; reconstruction files (``.h5``, ``.npz``);
 settings files (job TOML, ``schedule.json``, ``cal.toml``, the simulation
 record). Case ``i`` takes target ``i % T``; even rounds mutate bytes
 (bit flips, a cut, a lying 4-byte field, a duplicated or zeroed span), odd

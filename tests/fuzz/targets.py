@@ -4,7 +4,7 @@ Three kinds of target, each built once into a folder (:func:`build`) and
 loaded by every worker (``load_*_targets``):
 
 * event files (AEDAT4, evtk and DSEC HDF5, Parquet, legacy AEDAT 1.0/2.0/3.1,
-  Prophesee EVT 2.0/EVT 3.0/DAT, Event Stream, text events, N-MNIST): the truth is the events
+  Prophesee EVT 2.0/EVT 2.1/EVT 3.0/DAT, Event Stream, text events, N-MNIST): the truth is the events
   written, checked at build time against the reader of the unmutated file;
 * reconstruction files (``.h5`` and ``.npz`` from ``evtk.save_reconstruction``):
   the truth is every array and the summary;
@@ -53,7 +53,7 @@ What a mutation may change, per format (:func:`judge_events`):
   later stamp by 2**13 us; every other event keeps its values;
 * ``checksummed`` (faery's AEDAT4, LZ4 frames with xxHash32): after the
   header, nothing but the events written or an error;
-* ``stateful`` formats (EVT 2.0/3.0, Event Stream, where a time-high word or
+* ``stateful`` formats (EVT 2.0/2.1/3.0, Event Stream, where a time-high word or
   an overflow code moves every later event): any consistent, bounded read;
 * ``container`` formats (evtk's AEDAT4, HDF5, Parquet; no checksum on the
   payload): a byte change may alter events; a structure-aware change that
@@ -393,6 +393,9 @@ def judge_events(target, got, mutation) -> str:
     if target.family == "nmnist" and mutation["in_place"]:
         _judge_nmnist(target, got, touched, mutation["data"])
         return "altered"
+    if kind.endswith("/mask") and target.structured in ("evt21", "evt21l"):
+        _judge_evt21_mask(target, got, touched)
+        return "altered"
     if target.family == "fixed" and mutation["in_place"]:
         k = _records_touched(target, touched)
         if k is not None:
@@ -417,6 +420,30 @@ def _text_lines_touched(target, touched) -> set:
         if last < len(ends) and ends[last] == b - 1:
             out.add(int(last) + 1)  # a line end changed: the next line may join this one
     return out
+
+
+def _judge_evt21_mask(target, got, touched) -> None:
+    """EVT 2.1, one word's 32-bit mask changed in place: a CD word's events become the pixels of the new mask, at
+    the word's time, row and polarity, in rising x; every other event keeps its values (a mask changes no
+    state). A mask of a word of another type changes nothing."""
+    data = target.path.read_bytes()
+    words = np.frombuffer(data[target.data_start:], "<u4").reshape(-1, 2)
+    upper, mask = (words[:, 0], words[:, 1]) if target.structured == "evt21l" else (words[:, 1], words[:, 0])
+    counts = np.unpackbits(mask.astype("<u4").view(np.uint8)).reshape(-1, 32).sum(axis=1) * ((upper >> 28) <= 1)
+    k = (touched[0][0] - target.data_start) // 8
+    truth = target.truth
+    a, b = int(counts[:k].sum()), int(counts[:k + 1].sum())
+    if (upper[k] >> 28) > 1:
+        raise Wrong(f"the mask of word {k}, of type {int(upper[k] >> 28)}, changed the events read")
+    new = len(got) - (len(truth) - (b - a))
+    if new < 0 or not _columns_equal(got[:a], truth[:a]) or not _columns_equal(got[a + new:], truth[b:]):
+        raise Wrong(f"the mask of word {k} (events {a}..{b}) changed, yet other events differ")
+    part = got[a:a + new]
+    ref = truth[a:b]
+    base = int(ref.x[0]) & ~31
+    if new and (np.any(part.t != ref.t[0]) or np.any(part.y != ref.y[0]) or np.any(part.p != ref.p[0])
+                or np.any(np.diff(part.x.astype(np.int64)) <= 0) or int(part.x[0]) < base or int(part.x[-1]) >= base + 32):
+        raise Wrong(f"the mask of word {k} changed, and its events moved in time, row or polarity, or off its group")
 
 
 def _judge_nmnist(target, got, touched, mutated: bytes) -> None:
@@ -562,6 +589,25 @@ def word_mutation(target: EventTarget, data: bytes, rng):
             return bytes(data), "evt3/removed", [(at, len(data))], False
         struct.pack_into("<H", data, at, w)
         return bytes(data), kind, [(at, at + 2)], True
+    elif fmt in ("evt21", "evt21l"):  # 64-bit words: the half with the type, and a 32-pixel mask
+        legacy = fmt == "evt21l"
+        up_at, mask_at = (at, at + 4) if legacy else (at + 4, at)
+        w = struct.unpack_from("<I", data, up_at)[0]
+        if what == 0:
+            w = (0x8 << 28) | int(rng.choice([0, 0x0FFFFFFF, int(rng.integers(0, 1 << 28))]))  # a TIME_HIGH
+        elif what == 1:
+            w = (int(rng.choice([0x0, 0x1, 0x2, 0x5, 0x9, 0xA, 0xE, 0xF])) << 28) | (w & 0x0FFFFFFF)
+        elif what == 2:  # base x, y or the mask at their extremes
+            field = int(rng.integers(0, 3))
+            if field == 2:
+                struct.pack_into("<I", data, mask_at, int(rng.choice([0, 0xFFFFFFFF, 1 << 31, 1])))
+                return bytes(data), f"{fmt}/mask", [(mask_at, mask_at + 4)], True
+            w = (w & ~(0x7FF << (11 * (1 - field)))) | (int(rng.choice([0x7FF, 0x7E0, 0])) << (11 * (1 - field)))
+        else:  # a word removed
+            del data[at:at + 8]
+            return bytes(data), f"{fmt}/removed", [(at, len(data))], False
+        struct.pack_into("<I", data, up_at, w)
+        return bytes(data), kind, [(up_at, up_at + 4)], True
     else:  # es: a byte of the variable-length stream set to an overflow, reset or plain code
         at = lo + int(rng.integers(0, hi - lo))
         data[at] = int(rng.choice([0xFF, 0xFE, 0xFD, 0x00, 0x80, 0x7F, int(rng.integers(0, 256))]))
@@ -758,6 +804,7 @@ def build(folder, files=True, runs=True) -> None:
             s = rec._data_start
         add("f.aedat4", "checksummed", s, unsigned_t=False, structured="aedat4")
     _build_decoded(folder, ev, add)
+    _build_evt21(folder, ev, add)
     (folder / "events.json").write_text(json.dumps(meta))
 
 
@@ -782,6 +829,30 @@ def _build_decoded(folder, ev, add) -> None:
     add("n.bin", "nmnist", 0, [(0, len(body) + 5, 5)], structured="nmnist", truth=truth)
     for name in ("t.csv", "t.txt", "n.bin"):
         assert evtk.read_events(folder / name) == (small if name == "t.txt" else truth if name == "n.bin" else ev)
+
+
+def _build_evt21(folder, ev, add) -> None:
+    """EVT 2.1 as evtk writes it (one little-endian 64-bit word each), and the same words in the IMX636's layout
+    (OpenEB's ``endianness=legacy``: the two 32-bit halves swapped); events in runs at one time and row, so
+    that words hold vectors of several pixels, and trigger edges on three channels."""
+    t = ev.t // 2000 * 2000
+    y, x = ev.y % 3, ev.x % 96
+    order = np.lexsort((x, ev.p, y, t))
+    vec = evtk.Events(t[order], x[order], y[order], ev.p[order], ev.sensor_size)
+    tr = evtk.Triggers([10, 20_000, 30_000], [1, 2, 1], [0, 5, 31])
+    evtk.write_events(folder / "f21.raw", vec, tr, fmt="evt21")
+    data = (folder / "f21.raw").read_bytes()
+    s = _evt_start(data)
+    words = np.frombuffer(data[s:], "<u4").reshape(-1, 2)
+    assert len(words) < len(vec) // 2  # vectors of several pixels
+    head = data[:s].replace(b"% format EVT21;", b"% format EVT21;endianness=legacy;")
+    (folder / "f21l.raw").write_bytes(head + words[:, ::-1].tobytes())
+    for name, fmt in (("f21.raw", "evt21"), ("f21l.raw", "evt21l")):
+        start = _evt_start((folder / name).read_bytes())
+        add(name, "stateful", start, [(start, (folder / name).stat().st_size, 8)], structured=fmt, truth=vec)
+        with evtk.open(folder / name) as rec:
+            got = rec.triggers()
+            assert rec.events() == vec and got.channel.tolist() == [0, 5, 31] and got.t.tolist() == tr.t.tolist()
 
 
 def load_event_targets(folder) -> dict:

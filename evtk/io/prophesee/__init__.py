@@ -1,4 +1,4 @@
-"""Prophesee RAW (EVT 2.0 and 3.0) and DAT (CD, version 2) recordings, read by content.
+"""Prophesee RAW (EVT 2.0, 2.1 and 3.0) and DAT (CD, version 2) recordings, read by content.
 
 Both start with a text header of lines beginning with ``%``. EVT 2.0 then
 holds little-endian 32-bit words whose top four bits give their type:
@@ -7,7 +7,12 @@ bits) and y (11 bits); EV_TIME_HIGH (8) carries the 28 high bits of the time
 stamp; EXT_TRIGGER (10) carries the six low bits, a channel (5 bits) and the
 edge (bit 0). DAT files follow the header with two bytes (event type 0x0C,
 event size 8) and then 8-byte events: a 32-bit time stamp and a 32-bit word
-with x (14 bits), y (14 bits) and the polarity (4 bits). EVT 3.0 holds 16-bit
+with x (14 bits), y (14 bits) and the polarity (4 bits). EVT 2.1 holds 64-bit
+words: 32 bits laid out as an EVT 2.0 word (a CD word's x the base of 32
+pixels) and a 32-bit mask of those pixels; by default one little-endian 64-bit
+value (the mask in its low half), or, where the format line says
+``endianness=legacy`` (the IMX636's output), the half with the type first.
+EVT 3.0 holds 16-bit
 words (type in the top four bits): y (0), a single x with its polarity (2),
 the base x and polarity of a vector (3), 12- and 8-pixel vector masks (4, 5),
 the low and high twelve bits of a 24-bit time stamp (6, 8) and triggers (10),

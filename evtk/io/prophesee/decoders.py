@@ -1,4 +1,5 @@
-"""Prophesee RAW (EVT 2.0, EVT 3.0), DAT and Event Stream: recognising them, their headers, and the numba decoders."""
+"""Prophesee RAW (EVT 2.0, EVT 2.1, EVT 3.0), DAT and Event Stream: recognising them, their headers, and the numba
+decoders."""
 
 from __future__ import annotations
 
@@ -9,13 +10,13 @@ from numba import njit
 
 from ..base import sensor_dims, text_header
 
-__all__ = ["sniff", "sniff_lines"]
+__all__ = ["sniff", "sniff_lines", "word_type", "evt21_legacy"]
 
 
 BLOCK_WORDS = 1 << 20  # decoding unit: 4 MiB of EVT 2.0 words, 8 MiB of DAT events
 _MAX_HEADER = 1 << 20
 
-EVT2, EVT3, DAT = "evt2", "evt3", "dat"
+EVT2, EVT21, EVT3, DAT = "evt2", "evt21", "evt3", "dat"
 
 ST_OK, ST_COORD, ST_TYPE, ST_FULL = 0, -1, -2, -3
 
@@ -36,7 +37,7 @@ def _header(path):
 
 
 def sniff_lines(lines) -> str | None:
-    """'evt2', 'evt3', 'dat', 'evt-other' or None from a Prophesee header's lines (without the '%').
+    """'evt2', 'evt21', 'evt3', 'dat', 'evt-other' or None from a Prophesee header's lines (without the '%').
 
     Parameters
     ----------
@@ -53,6 +54,8 @@ def sniff_lines(lines) -> str | None:
         named = line[7:].split(";")[0].strip() if line.startswith("format ") else None
         if line == "evt 2.0" or named == "evt2":
             return EVT2
+        if line == "evt 2.1" or named == "evt21":
+            return EVT21
         if line == "evt 3.0" or named == "evt3":
             return EVT3
     if any(line in ("version 1", "version 2") or line.startswith("width ") for line in low):
@@ -63,7 +66,7 @@ def sniff_lines(lines) -> str | None:
 
 
 def sniff(path) -> str | None:
-    """'evt2', 'evt3', 'dat', 'evt-other' or None from a file's '%' header (its header lines only).
+    """'evt2', 'evt21', 'evt3', 'dat', 'evt-other' or None from a file's '%' header (its header lines only).
 
     Parameters
     ----------
@@ -104,12 +107,32 @@ _E2_HIGH, _E2_EPOCH = range(2)
 _DAT_PREV, _DAT_EPOCH = range(2)
 
 
+# EVT 2.1 decoder state: EVT 2.0's (time high, epoch), and the word layout (1: OpenEB's "endianness=legacy", the
+# IMX636's: the 32 bits with the type first in the file, the mask after them; 0: one little-endian 64-bit word)
+_E21_LEGACY = 2
+_LOW32 = np.uint64(0xFFFFFFFF)
+_SHIFT32 = np.uint64(32)
+# a set bit's index from the bit alone, by a de Bruijn sequence: (bit * _DEBRUIJN) mod 2**32 has a distinct top five
+# bits for each of the 32 bits
+_DEBRUIJN = 0x077CB531
+_BIT_INDEX = np.zeros(32, np.int64)
+_BIT_INDEX[[((1 << k) * _DEBRUIJN & 0xFFFFFFFF) >> 27 for k in range(32)]] = np.arange(32)
+
+
 @njit(cache=True, nogil=True)
-def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """One pass over EVT 2.0 words: counts, or with ``decode`` the events and triggers. Returns (events,
-    triggers, status, word index of the problem, min t, max t); the min and max only when counting."""
+def _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, wide):
+    """One pass over EVT 2.0 words (uint32) or, with ``wide``, EVT 2.1 words (uint64): counts, or with
+    ``decode`` the events and triggers. Returns (events, triggers, status, word index of the problem, min t,
+    max t); the min and max only when counting.
+
+    An EVT 2.1 word's upper half (by the layout in ``state``) is an EVT 2.0 word whose CD types carry the base
+    x of 32 pixels, its lower half their validity mask (bit k: the pixel at base x + k); an EVT 2.0 CD word is
+    the one pixel at its x. A CD word whose events no longer fit the outputs stops with ST_FULL, for the
+    caller to resume at it."""
     high = state[_E2_HIGH]
     epoch = state[_E2_EPOCH]
+    legacy = wide and state[_E21_LEGACY] != 0
+    room = 32 if wide else 1
     base = (epoch << 34) | (high << 6)
     n = 0
     m = 0
@@ -118,25 +141,43 @@ def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     status = ST_OK
     bad = -1
     for i in range(len(words)):
-        w = np.int64(words[i])
+        if not wide:
+            w = np.int64(words[i])
+            mask = np.int64(1)
+        elif legacy:
+            w = np.int64(words[i] & _LOW32)
+            mask = np.int64(words[i] >> _SHIFT32)
+        else:
+            w = np.int64(words[i] >> _SHIFT32)
+            mask = np.int64(words[i] & _LOW32)
         kind = w >> 28
-        if kind <= 1:  # CD_OFF, CD_ON: most words
-            xi = (w >> 11) & 0x7FF
-            yi = w & 0x7FF
-            if xi >= width or yi >= height:
-                status = ST_COORD
+        if kind <= 1:  # CD_OFF / EV_NEG, CD_ON / EV_POS: most words
+            if decode and n + room > len(t):
+                status = ST_FULL
                 bad = i
                 break
+            yi = w & 0x7FF
+            first = (w >> 11) & 0x7FF
             tc = base | ((w >> 22) & 0x3F)
-            if decode:
-                t[n] = tc
-                x[n] = xi
-                y[n] = yi
-                p[n] = kind
-            else:
-                t_min = min(t_min, tc)
-                t_max = max(t_max, tc)
-            n += 1
+            while mask:  # the set bits, lowest first
+                low = mask & -mask
+                mask ^= low
+                xi = first + _BIT_INDEX[((low * _DEBRUIJN) & 0xFFFFFFFF) >> 27]
+                if xi >= width or yi >= height:
+                    status = ST_COORD
+                    break
+                if decode:
+                    t[n] = tc
+                    x[n] = xi
+                    y[n] = yi
+                    p[n] = kind
+                else:
+                    t_min = min(t_min, tc)
+                    t_max = max(t_max, tc)
+                n += 1
+            if status != ST_OK:
+                bad = i
+                break
         elif kind == 8:
             new = w & 0xFFFFFFF
             if new < high and high - new > (1 << 27):  # the 28-bit counter wrapped
@@ -157,6 +198,18 @@ def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     state[_E2_HIGH] = high
     state[_E2_EPOCH] = epoch
     return n, m, status, bad, t_min, t_max
+
+
+@njit(cache=True, nogil=True)
+def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """:func:`_evt2x_run` over EVT 2.0 words."""
+    return _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, False)
+
+
+@njit(cache=True, nogil=True)
+def _evt21_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """:func:`_evt2x_run` over EVT 2.1 words."""
+    return _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, True)
 
 
 @njit(cache=True, nogil=True)
@@ -195,6 +248,49 @@ def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
     state[_DAT_PREV] = prev
     state[_DAT_EPOCH] = epoch
     return n, 0, status, bad, t_min, t_max
+
+
+def word_type(encoding: str, word: int, legacy: bool = False) -> int:
+    """The type (top four bits) of a RAW word, for messages about a word of an unknown type.
+
+    Parameters
+    ----------
+    encoding : str
+        ``"evt2"``, ``"evt21"`` or ``"evt3"``.
+    word : int
+        The word as read (EVT 2.1: the 64-bit little-endian value).
+    legacy : bool
+        EVT 2.1 in the IMX636's layout (the type in bits 28..31).
+
+    Returns
+    -------
+    int
+        The type, 0 to 15.
+    """
+    shift = 28 if legacy else _TYPES[encoding][0]
+    return (int(word) >> shift) & 0xF
+
+
+def evt21_legacy(lines: list[str]) -> bool:
+    """Whether an EVT 2.1 header names OpenEB's ``endianness=legacy`` layout on its ``format`` line.
+
+    Parameters
+    ----------
+    lines : list of str
+        The header's lines without their leading ``%``.
+
+    Returns
+    -------
+    bool
+        True for the IMX636's layout (each 64-bit word as two little-endian
+        32-bit halves, the half with the type first); False for one
+        little-endian 64-bit word (the default, and GenX320's).
+    """
+    for line in lines:
+        low = "".join(line.lower().split())
+        if low.startswith("format") and "endianness=legacy" in low.split(";"):
+            return True
+    return False
 
 
 # EVT 3.0 decoder state: time high, time low, epoch (wraps of the 24-bit time), y, vector base x, polarity
@@ -351,10 +447,11 @@ def _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
     return n, 0, ST_OK, -1, t_min, t_max
 
 
-_RUNNERS = {EVT2: _evt2_run, EVT3: _evt3_run, DAT: _dat_run, ES: _es_dvs_run}
-_STATE_SIZE = {EVT2: 2, EVT3: 6, DAT: 2, ES: 5}
-_DTYPE = {EVT2: "<u4", EVT3: "<u2", DAT: "<u4", ES: "u1"}
+_RUNNERS = {EVT2: _evt2_run, EVT21: _evt21_run, EVT3: _evt3_run, DAT: _dat_run, ES: _es_dvs_run}
+_STATE_SIZE = {EVT2: 2, EVT21: 3, EVT3: 6, DAT: 2, ES: 5}
+_DTYPE = {EVT2: "<u4", EVT21: "<u8", EVT3: "<u2", DAT: "<u4", ES: "u1"}
 # where a word's type sits, and the types a format has (for the message about a word of another type)
-_TYPES = {EVT2: (28, "EVT 2.0 has 0, 1, 8, 10, 14 and 15"), EVT3: (12, "EVT 3.0 has 0, 2-8, 10, 14 and 15")}
+_TYPES = {EVT2: (28, "EVT 2.0 has 0, 1, 8, 10, 14 and 15"), EVT21: (60, "EVT 2.1 has 0, 1, 8, 10, 14 and 15"),
+          EVT3: (12, "EVT 3.0 has 0, 2-8, 10, 14 and 15")}
 _NO_OUT = (np.empty(0, np.int64), np.empty(0, np.uint16), np.empty(0, np.uint16), np.empty(0, np.uint8),
            np.empty(0, np.int64), np.empty(0, np.uint8), np.empty(0, np.uint8))

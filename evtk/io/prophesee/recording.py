@@ -8,10 +8,12 @@ import numpy as np
 
 from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
+from ...limits import require_memory
 from ..base import BaseRecording, Damage, StreamInfo, sensor_dims
 from .decoders import (
     _DAT_PREV,
     _DTYPE,
+    _E21_LEGACY,
     _ES_PHASE,
     _NO_OUT,
     _RUNNERS,
@@ -23,19 +25,22 @@ from .decoders import (
     ES_MAGIC,
     EVT2,
     EVT3,
+    EVT21,
     ST_COORD,
     ST_FULL,
     ST_OK,
     _header,
     _sensor_from_header,
+    evt21_legacy,
     sniff_lines,
+    word_type,
 )
 
 __all__ = ["PropheseeRecording", "EventStreamRecording"]
 
 
 class PropheseeRecording(BaseRecording):
-    """A Prophesee RAW (EVT 2.0 or 3.0) or DAT recording.
+    """A Prophesee RAW (EVT 2.0, 2.1 or 3.0) or DAT recording.
 
     Parameters
     ----------
@@ -48,14 +53,18 @@ class PropheseeRecording(BaseRecording):
     """
 
     format = "prophesee"
+    legacy_layout = False
 
     def __init__(self, path, salvage=False, sensor_size=None):
         super().__init__(path, salvage)
         self._lines, self._start = _header(self.path)
         kind = sniff_lines(self._lines)
-        if kind not in (EVT2, EVT3, DAT):
-            raise FormatError(self.path, 0, "not a Prophesee EVT 2.0, EVT 3.0 or DAT file (no recognised % header)")
+        if kind not in (EVT2, EVT21, EVT3, DAT):
+            raise FormatError(self.path, 0, "not a Prophesee EVT 2.0, EVT 2.1, EVT 3.0 or DAT file (no recognised % "
+                                            "header)")
         self.encoding = kind
+        #: EVT 2.1 only: the IMX636's word layout (OpenEB's ``endianness=legacy``)
+        self.legacy_layout = kind == EVT21 and evt21_legacy(self._lines)
         size = _sensor_from_header(self._lines, self.path)
         #: where the sensor size came from: the header, the system ID, the events or the caller
         self.size_source = "the header"
@@ -90,6 +99,8 @@ class PropheseeRecording(BaseRecording):
             item = 8
         if kind == EVT3:
             item = 2
+        if kind == EVT21:
+            item = 8
         self._item = item
         body = self._file_bytes - self._start
         self._count = body // item
@@ -131,6 +142,8 @@ class PropheseeRecording(BaseRecording):
         state = np.zeros(_STATE_SIZE[self.encoding], np.int64)
         if self.encoding == DAT:
             state[_DAT_PREV] = -1
+        if self.encoding == EVT21:
+            state[_E21_LEGACY] = int(self.legacy_layout)
         return state
 
     def _index(self):
@@ -160,14 +173,18 @@ class PropheseeRecording(BaseRecording):
     def _decode(self, words, state, first):
         """Decode ``words`` (item ``first`` of the file onwards) from ``state``, which is updated: ``(events,
         triggers, problem)``. Outputs are sized by what the words could hold (pages never written cost no
-        memory); EVT 3.0, with up to 12 events a word, goes on where a whole vector no longer fits."""
+        memory); EVT 3.0 and 2.1, with up to 12 and 32 events a word, go on where a whole vector no longer fits,
+        each further output checked against the memory budget first."""
         run = _RUNNERS[self.encoding]
         w, h = self._size
         size = len(words)
-        cap = {EVT2: size, EVT3: size + 12, DAT: size // 2, ES: size // 5 + 1}[self.encoding]
-        cap_tr = cap if self.encoding in (EVT2, EVT3) else 0
-        evs, trs, pos = [], [], 0
+        cap = {EVT2: size, EVT21: size + 32, EVT3: size + 12, DAT: size // 2, ES: size // 5 + 1}[self.encoding]
+        cap_tr = cap if self.encoding in (EVT2, EVT21, EVT3) else 0
+        evs, trs, pos, held = [], [], 0, 0
         while True:
+            if evs:  # a further output (ST_FULL): what is held, this one, and their join
+                held += len(evs[-1])
+                require_memory(2 * 13 * (held + cap), f"decoding the events of {self.path}")
             t, x, y, p = (np.empty(cap, np.int64), np.empty(cap, np.uint16), np.empty(cap, np.uint16),
                           np.empty(cap, np.uint8))
             tt, tk, tc = np.empty(cap_tr, np.int64), np.empty(cap_tr, np.uint8), np.empty(cap_tr, np.uint8)
@@ -183,8 +200,9 @@ class PropheseeRecording(BaseRecording):
             if st == ST_COORD:
                 problem = (at, f"an event lies outside the {w}x{h} sensor")
             else:
-                shift, known = _TYPES[self.encoding]
-                problem = (at, f"word of unknown type {int(words[pos + bad]) >> shift} ({known})")
+                known = _TYPES[self.encoding][1]
+                kind = word_type(self.encoding, int(words[pos + bad]), self.legacy_layout)
+                problem = (at, f"word of unknown type {kind} ({known})")
         ev = evs[0] if len(evs) == 1 else Events.concatenate(evs, sensor_size=self._size)
         tr = trs[0] if len(trs) == 1 else Triggers.concatenate(trs)
         return ev, tr, problem
@@ -225,6 +243,8 @@ class PropheseeRecording(BaseRecording):
     @property
     def metadata(self) -> dict:
         out = {"encoding": self.encoding, "header": list(self._lines), "sensor_size_from": self.size_source}
+        if self.encoding == EVT21:
+            out["evt21_layout"] = "legacy" if self.legacy_layout else "64-bit"
         for line in self._lines:
             parts = line.split()
             if len(parts) == 2 and parts[0].lower() == "t0" and parts[1].lstrip("-").isdigit():
