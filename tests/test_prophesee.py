@@ -273,3 +273,26 @@ def test_trigger_channels_are_kept_and_windows_use_one(tmp_path, monkeypatch):
         windows_from_triggers(tr, channel=5)
     monkeypatch.delenv(TRIGGER_CHANNEL_ENV)
     assert windows_from_triggers(tr.of_channel(0)).t_start_us.tolist() == [0, 10_000, 20_000, 30_000]
+
+
+def test_a_word_of_unknown_type_stops_the_index_not_only_a_full_read(tmp_path, monkeypatch):
+    """`evtk info` (no --check) counted a Prophesee file's events up to a word of unknown type and exited 0, and the
+    blocks after it were indexed from the state where the count stopped (a window there read from a wrong state).
+    Now the index stops at that word: an error naming its byte offset, or with salvage the intact prefix."""
+    monkeypatch.setattr(prophesee.recording, "BLOCK_WORDS", 64)
+    words = [(8 << 28) | 1] + [_cd(k % 64, k % 640, k % 480) for k in range(400)]
+    words[100] = 5 << 28  # a type EVT 2.0 does not have, in the second block
+    path = tmp_path / "u.raw"
+    path.write_bytes(_evt2(words))
+    at = len(_evt2([])) + 4 * 100
+    with pytest.raises(evtk.FormatError, match=rf"byte {at}.*unknown type 5"):
+        with evtk.open(path) as rec:
+            rec.info()
+    with pytest.raises(evtk.FormatError, match="unknown type 5"):
+        with evtk.open(path) as rec:
+            rec.events(0, 1 << 40)
+    res = CliRunner().invoke(main, ["info", str(path)])
+    assert res.exit_code == 1 and "unknown type 5" in res.output, res.output
+    with evtk.open(path, salvage=True) as rec:
+        assert rec.info()["events"] == 99 and rec.damage is not None
+        assert len(rec.events()) == 99 and len(rec.events(0, 1 << 40)) == 99

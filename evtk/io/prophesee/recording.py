@@ -155,8 +155,12 @@ class PropheseeRecording(BaseRecording):
             state = self._initial_state()
             for b in range(self._n_blocks()):
                 start = state.copy()
-                n_ev, n_tr, _, _, lo, hi = run(self._words(b), state, 1 << 16, 1 << 16, False, *_NO_OUT)
+                words = self._words(b)
+                n_ev, n_tr, st, bad, lo, hi = run(words, state, 1 << 16, 1 << 16, False, *_NO_OUT)
                 rows.append((start, int(n_ev), int(n_tr), int(lo), int(hi)))
+                if st != ST_OK:  # the later blocks' states would follow a stop: the index ends here (salvage)
+                    self._stop(self._word_problem(words, st, bad, b * self._per_block()))
+                    break
             self._blocks = rows
             self._check_es_end(state)
         return self._blocks
@@ -194,18 +198,20 @@ class PropheseeRecording(BaseRecording):
             if st != ST_FULL:
                 break
             pos += bad
-        problem = None
-        if st != ST_OK:
-            at = self._start + self._item * (first + pos + bad)
-            if st == ST_COORD:
-                problem = (at, f"an event lies outside the {w}x{h} sensor")
-            else:
-                known = _TYPES[self.encoding][1]
-                kind = word_type(self.encoding, int(words[pos + bad]), self.legacy_layout)
-                problem = (at, f"word of unknown type {kind} ({known})")
+        problem = None if st == ST_OK else self._word_problem(words, st, pos + bad, first)
         ev = evs[0] if len(evs) == 1 else Events.concatenate(evs, sensor_size=self._size)
         tr = trs[0] if len(trs) == 1 else Triggers.concatenate(trs)
         return ev, tr, problem
+
+    def _word_problem(self, words, st, bad, first):
+        """``(byte offset, why)`` of the word ``words[bad]`` (item ``first + bad`` of the file) that stopped a
+        decoder with status ``st``."""
+        at = self._start + self._item * (first + bad)
+        if st == ST_COORD:
+            w, h = self._size
+            return at, f"an event lies outside the {w}x{h} sensor"
+        kind = word_type(self.encoding, int(words[bad]), self.legacy_layout)
+        return at, f"word of unknown type {kind} ({_TYPES[self.encoding][1]})"
 
     def _decode_block(self, b):
         """(Events, Triggers, problem) of block ``b``, from its state in the index; a problem stops salvage."""
