@@ -17,14 +17,17 @@ import json
 import math
 import os
 import stat
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import tomli_w
 
 from .errors import EvtkError
 from .limits import require_memory
 
-__all__ = ["read_table", "toml_value", "Spec", "check_value", "check_table", "check_array", "check_matrix",
+__all__ = ["read_table", "toml_text", "Spec", "check_value", "check_table", "check_array", "check_matrix",
            "check_origin", "check_region", "MAX_SETTINGS_BYTES", "MAX_SCHEDULE_BYTES", "MAX_BLUR_PX", "MAX_US",
            "MAX_COUNT", "MAX_SIDE"]
 
@@ -408,28 +411,58 @@ def _show(v) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def toml_value(v, what="settings") -> str:
-    """``v`` (bool, number, string or a list of them) as a TOML value.
+def toml_text(table: Mapping[str, Any], what: str = "settings", comment: str | None = None) -> str:
+    """``table`` as the text of a TOML file, written by ``tomli-w`` so that reading it back gives ``table`` again.
+
+    A value that is itself a table becomes a ``[name]`` section. Values are booleans, whole numbers, finite
+    floats (written exactly: read back, they are the same float64), strings, and lists or tables of them;
+    numpy scalars are taken as the Python number they hold.
 
     Parameters
     ----------
-    v : bool, int, float, str or list
-        The value.
+    table : Mapping of str to object
+        The settings, by name (callers leave out unset, ``None``, values: TOML has no null).
     what : str
-        The file kind, for the message when ``v`` cannot be stored.
+        The file kind ("bench", "calibration"), for the message when a value cannot be stored.
+    comment : str, optional
+        Text put first, each of its lines as a ``#`` comment.
 
     Returns
     -------
     str
+        The TOML text, ending in a newline.
+
+    Raises
+    ------
+    EvtkError
+        When a value cannot be stored in TOML: ``None``, NaN or infinity (which evtk's readers refuse), or an
+        object that is not one of the types above. The message names the key.
     """
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        if isinstance(v, float) and not math.isfinite(v):
-            raise EvtkError(f"cannot store {v!r} in a {what} file")
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
+    text = tomli_w.dumps(_toml_ready(table, what, ""))
+    head = "".join(f"# {line}".rstrip() + "\n" for line in comment.splitlines()) if comment else ""
+    return head + text
+
+
+def _toml_ready(v: Any, what: str, key: str) -> Any:
+    """``v`` with numpy scalars as Python numbers, or an EvtkError naming ``key`` if TOML cannot hold it."""
+    if isinstance(v, Mapping):
+        out = {}
+        for k, x in v.items():
+            if not isinstance(k, str):
+                raise EvtkError(f"cannot store the key {k!r} in a {what} file (keys are text)")
+            out[k] = _toml_ready(x, what, f"{key}.{k}" if key else k)
+        return out
     if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(toml_value(x, what) for x in v) + "]"
-    raise EvtkError(f"cannot store {v!r} in a {what} file")
+        return [_toml_ready(x, what, f"{key}[{i}]") for i, x in enumerate(v)]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        if not math.isfinite(v):
+            raise EvtkError(f"cannot store {key} = {float(v)!r} in a {what} file (only finite numbers)")
+        return float(v)
+    if isinstance(v, str):
+        return v
+    raise EvtkError(f"cannot store {key} = {_show(v)} in a {what} file "
+                    f"(a {type(v).__name__}: TOML holds true/false, numbers, text, and lists or tables of them)")

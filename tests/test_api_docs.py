@@ -414,7 +414,6 @@ PENDING: set[str] = set(
     evtk.settings.check_table
     evtk.settings.check_value
     evtk.settings.read_table
-    evtk.settings.toml_value
     evtk.simulate.record.SimulationRecord
     evtk.simulate.record.SimulationRecord.from_dict
     evtk.simulate.record.SimulationRecord.from_metadata
