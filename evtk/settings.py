@@ -17,11 +17,12 @@ import json
 import math
 import os
 import stat
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import tomli_w
 
 from .errors import EvtkError
@@ -47,7 +48,8 @@ MAX_SIDE = 32767
 MAX_BLUR_PX = 4.0
 
 
-def read_table(path, what, max_bytes=MAX_SETTINGS_BYTES, parse_factor=None) -> dict:
+def read_table(path: str | os.PathLike[str], what: str, max_bytes: int = MAX_SETTINGS_BYTES,
+               parse_factor: float | None = None) -> dict[str, Any]:
     """The top-level table of a TOML (``.toml``) or JSON (anything else) settings file.
 
     Parameters
@@ -105,7 +107,7 @@ def read_table(path, what, max_bytes=MAX_SETTINGS_BYTES, parse_factor=None) -> d
 class Spec:
     """What one setting may hold.
 
-    Attributes
+    Parameters
     ----------
     kind : {"int", "float", "bool", "str"}
         A whole number (an integral float such as ``2.0`` too), any finite
@@ -136,6 +138,7 @@ class Spec:
         Returns
         -------
         str
+            For messages, e.g. "a whole number from 2 to 16384 (features elements)" or "one of 'a', 'b'".
         """
         if self.choices is not None:
             return "one of " + ", ".join(repr(c) for c in self.choices)
@@ -164,7 +167,7 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
-def check_value(where, key, value, spec: Spec):
+def check_value(where: str, key: str, value: Any, spec: Spec) -> int | float | bool | str | None:
     """``value`` checked against ``spec``, as the Python type the spec names.
 
     Parameters
@@ -182,6 +185,11 @@ def check_value(where, key, value, spec: Spec):
     -------
     int, float, bool, str or None
         The value (an integral float as an int for ``kind="int"``).
+
+    Raises
+    ------
+    EvtkError
+        Naming ``where``, ``key``, the value and what is allowed, when it does not fit.
     """
     bad = EvtkError(f"{where}: {key} = {_show(value)} must be {spec.describe()}")
     if value is None:
@@ -216,7 +224,8 @@ def check_value(where, key, value, spec: Spec):
     return value
 
 
-def check_table(where, data, specs, required=(), unknown="refuse") -> dict:
+def check_table(where: str, data: object, specs: Mapping[str, Spec], required: Iterable[str] = (),
+                unknown: str = "refuse") -> dict[str, Any]:
     """The values of ``data`` that ``specs`` names, each checked by :func:`check_value`.
 
     Parameters
@@ -254,8 +263,9 @@ def check_table(where, data, specs, required=(), unknown="refuse") -> dict:
     return out
 
 
-def check_array(where, key, value, ndim, lo=None, hi=None, kind="int", shape=None, max_elements=None,
-                allow_empty=False) -> np.ndarray:
+def check_array(where: str, key: str, value: object, ndim: int | Iterable[int], lo: float | None = None,
+                hi: float | None = None, kind: str = "int", shape: tuple[int | None, ...] | None = None,
+                max_elements: int | None = None, allow_empty: bool = False) -> np.ndarray:
     """A nested list (or array) of numbers, checked before it is used.
 
     Parameters
@@ -280,7 +290,14 @@ def check_array(where, key, value, ndim, lo=None, hi=None, kind="int", shape=Non
     Returns
     -------
     ndarray
-        int64 or float64.
+        int64 (``kind="int"``) or float64, of the shape given.
+
+    Raises
+    ------
+    EvtkError
+        Naming ``where`` and ``key`` when the value is not such an array: text, ragged rows, another
+        dimension or shape, too many or no elements, NaN or infinity, a fraction for ``kind="int"``, a
+        number outside ``[lo, hi]`` or beyond the int64 range.
     """
     ndims = (ndim,) if isinstance(ndim, int) else tuple(ndim)
     what = f"{'whole' if kind == 'int' else 'finite'} numbers"
@@ -322,7 +339,7 @@ def check_array(where, key, value, ndim, lo=None, hi=None, kind="int", shape=Non
     return arr.astype(np.float64)
 
 
-def check_matrix(where, key, value, corners=None) -> np.ndarray:
+def check_matrix(where: str, key: str, value: object, corners: npt.ArrayLike | None = None) -> np.ndarray:
     """A projective map (3x3, finite, non-singular) from cells to pixels.
 
     Parameters
@@ -339,7 +356,13 @@ def check_matrix(where, key, value, corners=None) -> np.ndarray:
     Returns
     -------
     ndarray
-        float64 (3, 3).
+        float64 (3, 3), as given (not normalised).
+
+    Raises
+    ------
+    EvtkError
+        When it is not a finite 3x3 array, is singular (or nearly so: condition number above 1e12), or
+        its horizon crosses ``corners``.
     """
     m = check_array(where, key, value, 2, kind="float", shape=(3, 3))
     scale = float(np.max(np.abs(m)))
@@ -353,7 +376,7 @@ def check_matrix(where, key, value, corners=None) -> np.ndarray:
     return m
 
 
-def check_origin(where, key, value, sensor_size) -> tuple:
+def check_origin(where: str, key: str, value: object, sensor_size: Sequence[int] | np.ndarray) -> tuple[float, float]:
     """A sensor pixel (x, y) where a response begins: two finite numbers within one sensor size of the sensor.
 
     Parameters
@@ -362,12 +385,13 @@ def check_origin(where, key, value, sensor_size) -> tuple:
         File and setting, for messages.
     value : list or tuple
         What it holds.
-    sensor_size : (width, height)
-        The sensor.
+    sensor_size : sequence of two int
+        The sensor (width, height) in pixels.
 
     Returns
     -------
-    tuple of float
+    tuple of (float, float)
+        The pixel (x, y); x within ``[-width, 2 width]``, y within ``[-height, 2 height]``.
     """
     try:
         o = check_array(where, key, value, 1, kind="float", shape=(2,))
@@ -380,7 +404,8 @@ def check_origin(where, key, value, sensor_size) -> tuple:
     return float(o[0]), float(o[1])
 
 
-def check_region(where, key, value, sensor_size) -> tuple:
+def check_region(where: str, key: str, value: object,
+                 sensor_size: Sequence[int] | np.ndarray) -> tuple[int, int, int, int]:
     """A sensor region ``(x0, x1, y0, y1)``, half-open, non-empty and on the sensor.
 
     Parameters
@@ -389,12 +414,13 @@ def check_region(where, key, value, sensor_size) -> tuple:
         File and setting, for messages.
     value : list or tuple
         What it holds.
-    sensor_size : (width, height)
-        The sensor.
+    sensor_size : sequence of two int
+        The sensor (width, height) in pixels.
 
     Returns
     -------
-    tuple of int
+    tuple of (int, int, int, int)
+        ``(x0, x1, y0, y1)`` with ``0 <= x0 < x1 <= width`` and ``0 <= y0 < y1 <= height``.
     """
     r = check_array(where, key, value, 1, shape=(4,))
     x0, x1, y0, y1 = (int(v) for v in r)

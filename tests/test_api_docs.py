@@ -142,10 +142,6 @@ PENDING: set[str] = set(
     evtk.datasets.read_cifar_batch
     evtk.datasets.read_idx
     evtk.demo.run_demo
-    evtk.errors.EvtkError
-    evtk.errors.FormatError
-    evtk.errors.check_parameters
-    evtk.errors.one_line
     evtk.events.Events
     evtk.events.Events.between
     evtk.events.Events.concatenate
@@ -405,15 +401,6 @@ PENDING: set[str] = set(
     evtk.sensor.pixel_thresholds
     evtk.sensor.simulate_pixels
     evtk.sensor.time_constant_us
-    evtk.settings.Spec
-    evtk.settings.Spec.describe
-    evtk.settings.check_array
-    evtk.settings.check_matrix
-    evtk.settings.check_origin
-    evtk.settings.check_region
-    evtk.settings.check_table
-    evtk.settings.check_value
-    evtk.settings.read_table
     evtk.simulate.record.SimulationRecord
     evtk.simulate.record.SimulationRecord.from_dict
     evtk.simulate.record.SimulationRecord.from_metadata
