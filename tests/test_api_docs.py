@@ -127,11 +127,6 @@ PENDING: set[str] = set(
     evtk.calibrate.load_calibration
     evtk.calibrate.plot_calibration
     evtk.calibrate.save_calibration
-    evtk.cluster.dask_available
-    evtk.cluster.default_scheduler
-    evtk.cluster.run_tasks
-    evtk.cluster.scheduler
-    evtk.cluster.to_dask
     evtk.datasets.Dataset
     evtk.datasets.Dataset.summary
     evtk.datasets.baselines
