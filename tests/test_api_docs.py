@@ -98,9 +98,6 @@ def problems(dotted: str) -> list[str]:
 #: Not yet typed and documented; remove a name when its callable passes (the list only shrinks).
 PENDING: set[str] = set(
     """
-    evtk.batch.batch_reconstruct
-    evtk.batch.find_recordings
-    evtk.batch.reconstruct_split
     evtk.bcnn.BCNN
     evtk.bcnn.BCNN.accuracy
     evtk.bcnn.BCNN.decide
@@ -136,7 +133,6 @@ PENDING: set[str] = set(
     evtk.datasets.load_dataset
     evtk.datasets.read_cifar_batch
     evtk.datasets.read_idx
-    evtk.demo.run_demo
     evtk.events.Events
     evtk.events.Events.between
     evtk.events.Events.concatenate
@@ -439,7 +435,6 @@ PENDING: set[str] = set(
     evtk.sweeps.scene_noise
     evtk.sweeps.simulated_reconstruction
     evtk.sweeps.tradeoff
-    evtk.workflow.reconstruct_recording
 """.split()
 )
 
