@@ -133,22 +133,6 @@ PENDING: set[str] = set(
     evtk.datasets.load_dataset
     evtk.datasets.read_cifar_batch
     evtk.datasets.read_idx
-    evtk.events.Events
-    evtk.events.Events.between
-    evtk.events.Events.concatenate
-    evtk.events.Events.empty
-    evtk.events.Events.from_arrow
-    evtk.events.Events.from_structured
-    evtk.events.Events.out_of_bounds
-    evtk.events.Events.sorted
-    evtk.events.Events.stamp_period_us
-    evtk.events.Events.to_arrow
-    evtk.events.Events.to_structured
-    evtk.events.TriggerKind
-    evtk.events.Triggers
-    evtk.events.Triggers.between
-    evtk.events.Triggers.of_channel
-    evtk.events.Triggers.of_kind
     evtk.io._convert.convert
     evtk.io.aedat4.reader.Recording
     evtk.io.aedat4.reader.Recording.events
