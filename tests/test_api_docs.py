@@ -155,21 +155,6 @@ PENDING: set[str] = set(
     evtk.io.arrow.from_arrow
     evtk.io.arrow.to_arrow
     evtk.io.arrow.write_parquet
-    evtk.io.base.BaseRecording
-    evtk.io.base.BaseRecording.close
-    evtk.io.base.BaseRecording.events
-    evtk.io.base.BaseRecording.info
-    evtk.io.base.BaseRecording.iter_events
-    evtk.io.base.BaseRecording.scan
-    evtk.io.base.BaseRecording.triggers
-    evtk.io.base.BaseWriter.abort
-    evtk.io.base.BaseWriter.close
-    evtk.io.base.Damage
-    evtk.io.base.StreamInfo
-    evtk.io.base.StreamInfo.as_dict
-    evtk.io.base.text_header
-    evtk.io.base.time_chunks
-    evtk.io.base.window_blocks
     evtk.io.decoded.DecodedRecording
     evtk.io.decoded.DecodedRecording.events
     evtk.io.decoded.DecodedRecording.iter_events
