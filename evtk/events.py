@@ -325,14 +325,14 @@ class Events:
         return columns_to_table(self.t, self.x, self.y, self.p, self.sensor_size, metadata)
 
     @classmethod
-    def from_arrow(cls, table: pa.Table, sensor_size: SensorSize | None = None) -> Events:
+    def from_arrow(cls, table: pa.Table, sensor_size: Sequence[int] | None = None) -> Events:
         """Events from a ``pyarrow.Table`` (sensor size from its metadata unless given).
 
         Parameters
         ----------
         table : pyarrow.Table
             Columns t, x, y, p (:func:`evtk.io.table.table_to_columns` names what it accepts).
-        sensor_size : tuple of (int, int), optional
+        sensor_size : sequence of two int, optional
             ``(width, height)``; default: the one the table's metadata holds.
 
         Returns

@@ -192,10 +192,6 @@ PENDING: set[str] = set(
     evtk.io.reconstruction.is_reconstruction
     evtk.io.reconstruction.load_reconstruction
     evtk.io.reconstruction.save_reconstruction
-    evtk.io.table.columns_to_table
-    evtk.io.table.load_json
-    evtk.io.table.sensor_dims
-    evtk.io.table.table_to_columns
     evtk.io.write_events
     evtk.io.write_format
     evtk.metrics.flips.FlipReport
