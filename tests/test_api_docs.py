@@ -133,7 +133,6 @@ PENDING: set[str] = set(
     evtk.datasets.load_dataset
     evtk.datasets.read_cifar_batch
     evtk.datasets.read_idx
-    evtk.io._convert.convert
     evtk.io.aedat4.reader.Recording
     evtk.io.aedat4.reader.Recording.events
     evtk.io.aedat4.reader.Recording.iter_events
@@ -163,8 +162,6 @@ PENDING: set[str] = set(
     evtk.io.decoded.TextRecording
     evtk.io.decoded.csv_lines
     evtk.io.decoded.sniff_nmnist
-    evtk.io.detect_format
-    evtk.io.foreign.ForeignWriter
     evtk.io.hdf5.checks.blosc1_chunk_damage
     evtk.io.hdf5.checks.root_link
     evtk.io.hdf5.reader.Hdf5Recording
@@ -178,8 +175,6 @@ PENDING: set[str] = set(
     evtk.io.hdf5.writer.Hdf5Writer.write_events
     evtk.io.hdf5.writer.Hdf5Writer.write_triggers
     evtk.io.hdf5.writer.write_hdf5
-    evtk.io.open
-    evtk.io.open_writer
     evtk.io.prophesee.decoders.sniff
     evtk.io.prophesee.decoders.sniff_lines
     evtk.io.prophesee.recording.EventStreamRecording
@@ -187,13 +182,10 @@ PENDING: set[str] = set(
     evtk.io.prophesee.recording.PropheseeRecording.events
     evtk.io.prophesee.recording.PropheseeRecording.iter_events
     evtk.io.prophesee.recording.PropheseeRecording.triggers
-    evtk.io.read_events
     evtk.io.reconstruction.describe_reconstruction
     evtk.io.reconstruction.is_reconstruction
     evtk.io.reconstruction.load_reconstruction
     evtk.io.reconstruction.save_reconstruction
-    evtk.io.write_events
-    evtk.io.write_format
     evtk.metrics.flips.FlipReport
     evtk.metrics.flips.FlipReport.to_dict
     evtk.metrics.flips.flip_rates

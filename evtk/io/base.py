@@ -199,6 +199,23 @@ class BaseWriter:
         if self._closed:
             raise EvtkError(f"{self.path}: writer is closed")
 
+    def write_events(self, events: Events) -> None:  # pragma: no cover - overridden
+        """Append events to the file.
+
+        Parameters
+        ----------
+        events : Events
+            The next events, of the writer's sensor size (in time order for the formats that need it:
+            HDF5, Prophesee RAW and DAT, Event Stream, CSV).
+
+        Raises
+        ------
+        EvtkError
+            When the writer is closed, or the events do not fit the format (coordinates beyond the sensor or
+            the format's range, time going backwards where it may not).
+        """
+        raise NotImplementedError
+
     def close(self) -> None:
         """Finish the file and move it into place (atomically); a second call does nothing.
 
