@@ -133,17 +133,6 @@ PENDING: set[str] = set(
     evtk.datasets.load_dataset
     evtk.datasets.read_cifar_batch
     evtk.datasets.read_idx
-    evtk.io.aedat4.reader.Recording
-    evtk.io.aedat4.reader.Recording.events
-    evtk.io.aedat4.reader.Recording.iter_events
-    evtk.io.aedat4.reader.Recording.other_streams
-    evtk.io.aedat4.reader.Recording.packets
-    evtk.io.aedat4.reader.Recording.triggers
-    evtk.io.aedat4.writer.Aedat4Writer
-    evtk.io.aedat4.writer.Aedat4Writer.write_events
-    evtk.io.aedat4.writer.Aedat4Writer.write_packet
-    evtk.io.aedat4.writer.Aedat4Writer.write_triggers
-    evtk.io.aedat4.writer.write_aedat4
     evtk.io.aedat_legacy.LegacyAedatRecording
     evtk.io.aedat_legacy.LegacyAedatRecording.events
     evtk.io.aedat_legacy.LegacyAedatRecording.iter_events
