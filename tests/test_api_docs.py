@@ -136,17 +136,7 @@ PENDING: set[str] = set(
     evtk.io.aedat_legacy.LegacyAedatRecording
     evtk.io.aedat_legacy.LegacyAedatRecording.events
     evtk.io.aedat_legacy.LegacyAedatRecording.iter_events
-    evtk.io.arrow.ParquetRecording
-    evtk.io.arrow.ParquetRecording.events
-    evtk.io.arrow.ParquetRecording.iter_events
-    evtk.io.arrow.ParquetRecording.triggers
-    evtk.io.arrow.from_arrow
-    evtk.io.arrow.to_arrow
-    evtk.io.arrow.write_parquet
     evtk.io.decoded.DecodedRecording
-    evtk.io.decoded.DecodedRecording.events
-    evtk.io.decoded.DecodedRecording.iter_events
-    evtk.io.decoded.DecodedRecording.triggers
     evtk.io.decoded.NmnistRecording
     evtk.io.decoded.TextRecording
     evtk.io.decoded.csv_lines
@@ -164,13 +154,6 @@ PENDING: set[str] = set(
     evtk.io.hdf5.writer.Hdf5Writer.write_events
     evtk.io.hdf5.writer.Hdf5Writer.write_triggers
     evtk.io.hdf5.writer.write_hdf5
-    evtk.io.prophesee.decoders.sniff
-    evtk.io.prophesee.decoders.sniff_lines
-    evtk.io.prophesee.recording.EventStreamRecording
-    evtk.io.prophesee.recording.PropheseeRecording
-    evtk.io.prophesee.recording.PropheseeRecording.events
-    evtk.io.prophesee.recording.PropheseeRecording.iter_events
-    evtk.io.prophesee.recording.PropheseeRecording.triggers
     evtk.io.reconstruction.describe_reconstruction
     evtk.io.reconstruction.is_reconstruction
     evtk.io.reconstruction.load_reconstruction

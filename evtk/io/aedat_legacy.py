@@ -29,6 +29,7 @@ from __future__ import annotations
 import os
 import re
 import struct
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -354,7 +355,8 @@ class LegacyAedatRecording(BaseRecording):
     def metadata(self) -> dict:
         return {"aedat_version": self.version, "chip": self.chip, "header": list(self._lines)}
 
-    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us: int | None = None,
+                    t_end_us: int | None = None) -> Iterator[Events]:
         self._check_open()
         chunk_events = int(chunk_events)
         if chunk_events < 1:
@@ -386,7 +388,7 @@ class LegacyAedatRecording(BaseRecording):
         if self.damage is None:
             self.damage = Damage(None, reason)
 
-    def events(self, t_start_us=None, t_end_us=None) -> Events:
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Events:
         parts = list(self.iter_events(1 << 62, t_start_us, t_end_us))
         return Events.concatenate(parts, sensor_size=self._size) if parts else Events.empty(self._size)
 

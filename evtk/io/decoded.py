@@ -91,7 +91,7 @@ class DecodedRecording(BaseRecording):
     def sensor_size(self):
         return self._all().sensor_size
 
-    def events(self, t_start_us=None, t_end_us=None) -> Events:
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Events:
         """Events with ``t_start_us <= t < t_end_us`` (None leaves a side open).
 
         Parameters
@@ -109,7 +109,7 @@ class DecodedRecording(BaseRecording):
             return ev
         return ev.between(t_start_us, t_end_us)
 
-    def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
+    def triggers(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Triggers:
         """The file's trigger edges (text and N-MNIST files hold none).
 
         Parameters
@@ -125,7 +125,8 @@ class DecodedRecording(BaseRecording):
         self._all()
         return self._triggers.between(t_start_us, t_end_us)
 
-    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None) -> Iterator[Events]:
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us: int | None = None,
+                    t_end_us: int | None = None) -> Iterator[Events]:
         """The events of a window, ``chunk_events`` at a time.
 
         Parameters

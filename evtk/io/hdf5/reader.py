@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -434,7 +435,7 @@ class Hdf5Recording(BaseRecording):
         return self._sorted_cache
 
     @_guard
-    def events(self, t_start_us=None, t_end_us=None) -> Events:
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Events:
         """Events with ``t_start_us <= t < t_end_us``; reads only the blocks the window needs."""
         self._check_open()
         if self._sort:
@@ -448,7 +449,8 @@ class Hdf5Recording(BaseRecording):
         return ev
 
     @_guard_gen
-    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us: int | None = None,
+                    t_end_us: int | None = None) -> Iterator[Events]:
         """Yield events in order, ``chunk_events`` at a time (memory bounded by the chunk)."""
         self._check_open()
         chunk_events = int(chunk_events)
@@ -471,7 +473,7 @@ class Hdf5Recording(BaseRecording):
                 return
 
     @_guard
-    def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
+    def triggers(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Triggers:
         self._check_open()
         tr = self._layout.triggers()
         if t_start_us is not None or t_end_us is not None:
