@@ -133,14 +133,6 @@ PENDING: set[str] = set(
     evtk.datasets.load_dataset
     evtk.datasets.read_cifar_batch
     evtk.datasets.read_idx
-    evtk.io.aedat_legacy.LegacyAedatRecording
-    evtk.io.aedat_legacy.LegacyAedatRecording.events
-    evtk.io.aedat_legacy.LegacyAedatRecording.iter_events
-    evtk.io.decoded.DecodedRecording
-    evtk.io.decoded.NmnistRecording
-    evtk.io.decoded.TextRecording
-    evtk.io.decoded.csv_lines
-    evtk.io.decoded.sniff_nmnist
     evtk.io.hdf5.checks.blosc1_chunk_damage
     evtk.io.hdf5.checks.root_link
     evtk.io.hdf5.reader.Hdf5Recording
