@@ -133,19 +133,6 @@ PENDING: set[str] = set(
     evtk.datasets.load_dataset
     evtk.datasets.read_cifar_batch
     evtk.datasets.read_idx
-    evtk.io.hdf5.checks.blosc1_chunk_damage
-    evtk.io.hdf5.checks.root_link
-    evtk.io.hdf5.reader.Hdf5Recording
-    evtk.io.hdf5.reader.Hdf5Recording.events
-    evtk.io.hdf5.reader.Hdf5Recording.iter_events
-    evtk.io.hdf5.reader.Hdf5Recording.read_array
-    evtk.io.hdf5.reader.Hdf5Recording.read_arrays
-    evtk.io.hdf5.reader.Hdf5Recording.triggers
-    evtk.io.hdf5.writer.Hdf5Writer
-    evtk.io.hdf5.writer.Hdf5Writer.write_array
-    evtk.io.hdf5.writer.Hdf5Writer.write_events
-    evtk.io.hdf5.writer.Hdf5Writer.write_triggers
-    evtk.io.hdf5.writer.write_hdf5
     evtk.io.reconstruction.describe_reconstruction
     evtk.io.reconstruction.is_reconstruction
     evtk.io.reconstruction.load_reconstruction
