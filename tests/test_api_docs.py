@@ -133,10 +133,6 @@ PENDING: set[str] = set(
     evtk.datasets.load_dataset
     evtk.datasets.read_cifar_batch
     evtk.datasets.read_idx
-    evtk.io.reconstruction.describe_reconstruction
-    evtk.io.reconstruction.is_reconstruction
-    evtk.io.reconstruction.load_reconstruction
-    evtk.io.reconstruction.save_reconstruction
     evtk.metrics.flips.FlipReport
     evtk.metrics.flips.FlipReport.to_dict
     evtk.metrics.flips.flip_rates

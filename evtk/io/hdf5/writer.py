@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -64,7 +64,7 @@ class Hdf5Writer(BaseWriter):
     ----------
     path : str or os.PathLike
         The target (``.h5`` / ``.hdf5``).
-    sensor_size : tuple of (int, int)
+    sensor_size : sequence of two int
         Width and height in pixels, stored in the root attribute ``sensor_size``.
     compression : str
         One of :data:`COMPRESSIONS`; default Blosc2-LZ4 with byte shuffle
@@ -80,7 +80,7 @@ class Hdf5Writer(BaseWriter):
         For an unknown compression, ``chunk_events`` below 1, or metadata that is not JSON-serialisable.
     """
 
-    def __init__(self, path: str | os.PathLike[str], sensor_size: tuple[int, int], compression: str = "lz4",
+    def __init__(self, path: str | os.PathLike[str], sensor_size: Sequence[int], compression: str = "lz4",
                  metadata: Mapping[str, Any] | None = None, chunk_events: int = DEFAULT_CHUNK) -> None:
         h5py = _h5()
         self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
