@@ -515,8 +515,10 @@ def save_calibration(path, cal: Calibration):
         if model:
             table["pixel_model"] = {k: [_nan_free(x) for x in v] if isinstance(v, list) else v
                                     for k, v in model.items() if v is not None}
-        text = toml_text(table, "calibration", comment="evtk calibration (evtk calibrate): response cells -> "
-                         "sensor pixels\n[pixel_model]: fitted to the level captures")
+        comment = "evtk calibration (evtk calibrate): response cells -> sensor pixels"
+        if model:
+            comment += "\nthe pixel_model table: fitted to the level captures"
+        text = toml_text(table, "calibration", comment=comment)
     else:
         text = json.dumps(d, indent=1)
     with AtomicFile(path) as out:
