@@ -50,7 +50,8 @@ def run_demo(out_dir: str | os.PathLike[str] = "evtk-demo", repeat: int = 10, se
     repeat : int
         Captures of each kernel and feature pair (the SINAD of eq. 8 is measured over them).
     seed : int
-        Seed of the simulated pixels' noise and of the noise measurement.
+        The simulated device's seed (its threshold mismatch and hot pixels follow from it), also passed to
+        :func:`evtk.sweeps.scene_noise`.
     status : callable, optional
         Called with a line of text as each stage starts.
     progress_factory : callable, optional

@@ -216,7 +216,7 @@ class Events:
         Raises
         ------
         EvtkError
-            When no ``sensor_size`` is given and the parts' sizes differ, or there are no parts.
+            When no ``sensor_size`` is given and the parts' sizes differ or there are no parts.
         """
         parts = list(parts)
         if sensor_size is None:

@@ -89,7 +89,7 @@ def detect_format(path: str | os.PathLike[str]) -> str:
     Parameters
     ----------
     path : str or os.PathLike
-        The file; only its first bytes (and, for text and N-MNIST files, its first 4 KiB) are read.
+        The file; only its start is read (16 bytes, more to tell text events and N-MNIST binaries apart).
 
     Returns
     -------

@@ -404,8 +404,8 @@ class ParquetRecording(BaseRecording):
     def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Events:
         """The events with ``t_start_us <= t < t_end_us``, read at once.
 
-        Only the row groups whose ``t`` statistics overlap the window are read (all of them, on pyarrow's
-        threads); with salvage, a window is cut from what the whole read recovers.
+        Only the row groups whose ``t`` statistics overlap the window are read, together, on pyarrow's
+        threads; with salvage, a window is cut from what the whole read recovers.
 
         Parameters
         ----------
