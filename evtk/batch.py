@@ -29,6 +29,8 @@ import json
 import math
 import os
 import time
+from collections.abc import Callable, Iterable, Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -38,6 +40,7 @@ from .errors import EvtkError
 from .io import open as open_recording
 from .io.reconstruction import save_reconstruction
 from .reconstruct import (
+    Reconstruction,
     WindowCounts,
     Windows,
     accumulate,
@@ -49,6 +52,9 @@ from .reconstruct import (
 from .simulate.record import SimulationRecord
 from .workflow import reconstruct_recording
 
+if TYPE_CHECKING:
+    from distributed import Client
+
 __all__ = ["find_recordings", "batch_reconstruct", "reconstruct_split", "MANIFEST"]
 
 MANIFEST = "batch.json"
@@ -59,7 +65,8 @@ RECORDING_EXTENSIONS = (".aedat4", ".h5", ".hdf5", ".parquet", ".pq", ".aedat", 
 _ALWAYS = RECORDING_EXTENSIONS[:5]
 
 
-def find_recordings(inputs, left_out=None) -> list:
+def find_recordings(inputs: Iterable[str | os.PathLike[str]],
+                    left_out: list[tuple[str, str]] | None = None) -> list[str]:
     """Files named, recordings inside directories named (not recursive), and glob patterns, sorted, without repeats.
 
     A directory's files are recordings when their extension is one of
@@ -71,8 +78,8 @@ def find_recordings(inputs, left_out=None) -> list:
     ----------
     inputs : iterable of str or os.PathLike
         Files, folders and glob patterns.
-    left_out : list, optional
-        Receives (file, reason) for each file of a folder that is not a recording.
+    left_out : list of (str, str), optional
+        Receives ``(file, reason)`` for each file of a folder that is not a recording.
 
     Returns
     -------
@@ -184,12 +191,38 @@ def _accumulate_part(args):
     return c.on, c.off, c.events_used, c.on_first_us, c.on_last_us
 
 
-def reconstruct_split(path, parts, client=None, chunk_events=4_000_000, **options):
+def reconstruct_split(path: str | os.PathLike[str], parts: int, client: Client | None = None,
+                      chunk_events: int = 4_000_000, **options: Any) -> Reconstruction:
     """:func:`evtk.reconstruct.reconstruct` of one recording as ``parts`` tasks over groups of whole windows.
 
     Equals the single-process result exactly (the counts are the same
     integers). ``options`` are ``reconstruct``'s (window, skip_us, length_us,
     region, size, ...).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The recording; each task opens it and reads only its windows' time span.
+    parts : int
+        Number of tasks (at most one per window): the windows, in time order, split into this many groups.
+    client : distributed.Client, optional
+        Where the tasks run (:func:`evtk.cluster.scheduler`); None: one after another in this process.
+    chunk_events : int
+        Events a task reads at a time.
+    **options : Any
+        :func:`evtk.reconstruct.reconstruct`'s keyword arguments (``oracle`` is ignored: the split runs on the
+        record's own model).
+
+    Returns
+    -------
+    evtk.reconstruct.Reconstruction
+        The same result as :func:`evtk.reconstruct.reconstruct` on the whole recording.
+
+    Raises
+    ------
+    EvtkError
+        As :func:`evtk.reconstruct.reconstruct`: an unreadable recording, no schedule for ``window="schedule"``,
+        a bad crop or region, counts over the memory budget.
     """
 
     opts = dict(options)
@@ -211,7 +244,7 @@ def reconstruct_split(path, parts, client=None, chunk_events=4_000_000, **option
     used = 0
     for g, (on_g, off_g, used_g, first_g, last_g) in zip(groups, run_tasks(_accumulate_part, tasks, client)):
         on[g], off[g] = on_g, off_g
-        if times:
+        if first is not None and last is not None:  # (with times)
             first[g], last[g] = first_g, last_g
         used += used_g
     return reconstruct_counts(WindowCounts(on, off, win, region, int(used), first, last), sim, **opts)
@@ -255,14 +288,50 @@ def _reconstruct_group(group):
     return [_reconstruct_one(args) for args in group]
 
 
-def batch_reconstruct(inputs, out_dir, options=None, fmt="h5", client=None, progress=None, force=False,
-                      split_events=None) -> dict:
+def batch_reconstruct(inputs: Iterable[str | os.PathLike[str]], out_dir: str | os.PathLike[str],
+                      options: Mapping[str, Any] | None = None, fmt: str = "h5", client: Client | None = None,
+                      progress: Callable[[int], object] | None = None, force: bool = False,
+                      split_events: int | None = None) -> dict[str, Any]:
     """Reconstruct every recording of ``inputs`` into ``out_dir``; returns the manifest (also written there).
 
-    ``options`` are :func:`evtk.reconstruct.reconstruct` keyword arguments.
+    ``options`` are :func:`evtk.workflow.reconstruct_recording` keyword arguments.
     Inputs whose output already exists are "skipped" unless ``force``.
     Recordings of more than ``split_events`` events are split by time into
     about ``events / split_events`` tasks (:func:`reconstruct_split`).
+
+    Parameters
+    ----------
+    inputs : iterable of str or os.PathLike
+        Files, folders (their recordings, not recursive) and glob patterns (:func:`find_recordings`).
+    out_dir : str or os.PathLike
+        Where the reconstructions and :data:`MANIFEST` (``batch.json``) go; made if missing.
+    options : Mapping of str to object, optional
+        Keyword arguments of :func:`evtk.workflow.reconstruct_recording` (``oracle``, ``size``, ``window``, ...),
+        the same for every input; recorded in the manifest.
+    fmt : {"h5", "npz"}
+        Output format (:func:`evtk.io.reconstruction.save_reconstruction`).
+    client : distributed.Client, optional
+        Where the tasks run (:func:`evtk.cluster.scheduler`); None: one after another in this process.
+    progress : callable, optional
+        Called with the number of inputs each finished task reconstructed.
+    force : bool
+        Reconstruct inputs whose output exists too (else they are "skipped").
+    split_events : int, optional
+        Recordings of more events are split by time into tasks (not those the calibrated route reads whole).
+
+    Returns
+    -------
+    dict
+        The manifest: ``evtk_batch`` (1), ``options``, ``format``, ``seconds``, ``inputs`` (one entry per
+        input: ``input``, ``output``, ``status`` "ok", "skipped" or "error", ``events``, ``windows``,
+        ``seconds``, ``error``), ``left_out`` (files of a folder that are not recordings) and ``counts``
+        (inputs by status). The file also keeps the entries another batch wrote into the same folder.
+
+    Raises
+    ------
+    EvtkError
+        When ``fmt`` is not h5 or npz, ``inputs`` hold no recording, or an output is an input. A bad
+        input is an "error" entry, not an exception.
     """
 
     if fmt not in ("h5", "npz"):

@@ -58,7 +58,7 @@ from .settings import (
     check_table,
     check_value,
     read_table,
-    toml_value,
+    toml_text,
 )
 from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, dot_grid
 
@@ -639,12 +639,14 @@ def save_calibration(path: str | os.PathLike[str], cal: Calibration) -> None:
     d = cal.to_dict()
     if path.lower().endswith(".toml"):
         model = d.pop("pixel_model")
-        text = "# evtk calibration (evtk calibrate): response cells -> sensor pixels\n" + \
-            "".join(f"{k} = {toml_value(v, 'calibration')}\n" for k, v in d.items() if v is not None)
+        table = {k: v for k, v in d.items() if v is not None}
         if model:
-            text += "\n[pixel_model]  # fitted to the level captures\n" + "".join(
-                f"{k} = {toml_value([_nan_free(x) for x in v] if isinstance(v, list) else v, 'calibration')}\n"
-                for k, v in model.items() if v is not None)
+            table["pixel_model"] = {k: [_nan_free(x) for x in v] if isinstance(v, list) else v
+                                    for k, v in model.items() if v is not None}
+        comment = "evtk calibration (evtk calibrate): response cells -> sensor pixels"
+        if model:
+            comment += "\nthe pixel_model table: fitted to the level captures"
+        text = toml_text(table, "calibration", comment=comment)
     else:
         text = json.dumps(d, indent=1)
     with AtomicFile(path) as out:

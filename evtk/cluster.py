@@ -22,10 +22,19 @@ from __future__ import annotations
 import contextlib
 import os
 import socket
+from collections.abc import Callable, Iterable, Iterator
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from ._threads import workers as io_workers
 from .errors import EvtkError
 from .io import open as open_recording
+
+if TYPE_CHECKING:
+    import dask.dataframe as dd
+    from distributed import Client
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 __all__ = ["dask_available", "default_scheduler", "scheduler", "run_tasks", "to_dask"]
 
@@ -33,13 +42,26 @@ CONNECT_TIMEOUT_S = 5
 
 
 def dask_available() -> bool:
+    """Whether Dask's ``distributed`` package can be imported (``pip install 'evtk[cluster]'``).
+
+    Returns
+    -------
+    bool
+        True when ``distributed`` is installed; it is looked up, not imported.
+    """
     import importlib.util
 
     return importlib.util.find_spec("distributed") is not None
 
 
 def default_scheduler() -> str:
-    """``$EVTK_SCHEDULER`` if set, else local with Dask installed, else serial."""
+    """The scheduler a command uses without ``--scheduler``.
+
+    Returns
+    -------
+    str
+        ``$EVTK_SCHEDULER`` if set (and not blank), else ``"local"`` with Dask installed, else ``"serial"``.
+    """
     env = os.environ.get("EVTK_SCHEDULER", "").strip()
     if env:
         return env
@@ -47,8 +69,29 @@ def default_scheduler() -> str:
 
 
 @contextlib.contextmanager
-def scheduler(spec=None):
-    """A ``distributed.Client`` for ``spec`` (None for serial), closed on exit."""
+def scheduler(spec: str | None = None) -> Iterator[Client | None]:
+    """A ``distributed.Client`` for ``spec`` (None for serial), closed on exit.
+
+    A context manager: a local cluster it starts is stopped, and the environment variables Dask's nanny
+    changed in this process are put back, when the ``with`` block ends.
+
+    Parameters
+    ----------
+    spec : str, optional
+        ``"serial"``, ``"local"``, ``"local:N"`` (N worker processes, one thread each) or
+        ``"tcp://HOST:PORT"`` (a running ``dask scheduler``); None or empty: :func:`default_scheduler`.
+
+    Yields
+    ------
+    distributed.Client or None
+        The client (None for serial).
+
+    Raises
+    ------
+    EvtkError
+        For a malformed ``spec``, N below 1 or above :func:`max_local_workers`, Dask not installed, no
+        scheduler answering at a ``tcp://`` address within 5 s, or a local cluster that cannot start.
+    """
     spec = default_scheduler() if spec in (None, "") else str(spec)
     if spec == "serial":
         yield None
@@ -158,11 +201,31 @@ def _restore_environ(saved):
             os.environ[key] = value
 
 
-def run_tasks(fn, items, client=None, progress=None, retries=2):
-    """``[fn(item) for item in items]``, on ``client``'s workers when given (in order, retried on worker loss)."""
+def run_tasks(fn: Callable[[T], R], items: Iterable[T], client: Client | None = None,
+              progress: Callable[[int], object] | None = None, retries: int = 2) -> list[R]:
+    """``[fn(item) for item in items]``, on ``client``'s workers when given (in order, retried on worker loss).
+
+    Parameters
+    ----------
+    fn : callable
+        A module-level function of one argument (it is pickled to the workers).
+    items : iterable
+        Its arguments.
+    client : distributed.Client, optional
+        Where to run; None runs each in this process, one after another.
+    progress : callable, optional
+        Called with 1 as each task finishes (in completion order on a cluster).
+    retries : int
+        How many times Dask reruns a task whose worker was lost.
+
+    Returns
+    -------
+    list
+        ``fn``'s results, in the order of ``items``.
+    """
     items = list(items)
+    out: list[Any] = []
     if client is None:
-        out = []
         for it in items:
             out.append(fn(it))
             if progress is not None:
@@ -172,7 +235,7 @@ def run_tasks(fn, items, client=None, progress=None, retries=2):
 
     futures = client.map(fn, items, pure=False, retries=retries)
     index = {f.key: i for i, f in enumerate(futures)}
-    out = [None] * len(items)
+    out = [None] * len(items)  # each slot filled as its task completes
     for fut in as_completed(futures):
         out[index[fut.key]] = fut.result()
         if progress is not None:
@@ -180,7 +243,8 @@ def run_tasks(fn, items, client=None, progress=None, retries=2):
     return out
 
 
-def to_dask(path, partitions=None, events_per_partition=5_000_000):
+def to_dask(path: str | os.PathLike[str], partitions: int | None = None,
+            events_per_partition: int = 5_000_000) -> dd.DataFrame:
     """A recording's events as a lazily read ``dask.dataframe`` (columns t, x, y, p), partitioned by time.
 
     Each partition reads one time range through the recording's index (the
@@ -188,6 +252,26 @@ def to_dask(path, partitions=None, events_per_partition=5_000_000):
     so nothing is read until computed; about ``events_per_partition`` events
     each, or ``partitions`` equal time ranges. Needs ``pip install
     'evtk[cluster]'``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A recording in any format :func:`evtk.io.open` reads.
+    partitions : int, optional
+        Number of equal time ranges; default: enough for ``events_per_partition`` events each.
+    events_per_partition : int
+        Events a partition should hold, about (the recording's event rate is taken as uniform).
+
+    Returns
+    -------
+    dask.dataframe.DataFrame
+        Columns ``t`` (int64, µs), ``x``, ``y`` (uint16, pixels) and ``p`` (uint8, 1 ON, 0 OFF); nothing is
+        read until it is computed.
+
+    Raises
+    ------
+    EvtkError
+        When Dask's dataframes are not installed, ``partitions`` is below 1, or the recording cannot be read.
     """
     import math
 

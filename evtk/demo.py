@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
+from typing import Any
 
 from .io import open as open_recording
 from .io.reconstruction import save_reconstruction
@@ -23,7 +25,13 @@ DEMO_LEVELS = 6
 DEMO_KERNEL_BITS = "010111010"
 
 
-def run_demo(out_dir="evtk-demo", repeat=10, seed=0, status=None, progress_factory=None) -> dict:
+#: ``progress_factory(total, label)``: the ``(update, finish)`` callbacks of one long stage.
+ProgressFactory = Callable[[int, str], "tuple[Callable[[int], object] | None, Callable[[], object]]"]
+
+
+def run_demo(out_dir: str | os.PathLike[str] = "evtk-demo", repeat: int = 10, seed: int = 0,
+             status: Callable[[str], object] | None = None,
+             progress_factory: ProgressFactory | None = None) -> dict[str, Any]:
     """Simulate a 3x3 plus-shaped kernel on scikit-image's 16x16 binarised camera picture, reconstruct, measure.
 
     Writes ``demo.aedat4`` (the recording), ``reconstruction.h5``,
@@ -34,6 +42,29 @@ def run_demo(out_dir="evtk-demo", repeat=10, seed=0, status=None, progress_facto
     stages. Returns the file names, event and capture counts, the error
     against the ideal correlation, the SINAD report (eq. 8) and the flip
     rates of the binary responses, and the seconds taken.
+
+    Parameters
+    ----------
+    out_dir : str or os.PathLike
+        Folder for the four files; made if missing.
+    repeat : int
+        Captures of each kernel and feature pair (the SINAD of eq. 8 is measured over them).
+    seed : int
+        The simulated device's seed (its threshold mismatch and hot pixels follow from it), also passed to
+        :func:`evtk.sweeps.scene_noise`.
+    status : callable, optional
+        Called with a line of text as each stage starts.
+    progress_factory : callable, optional
+        Called as ``progress_factory(total, label)`` for the simulating (total: captures) and reconstructing
+        (total: events) stages; returns ``(update, finish)``: ``update(n)`` (or None) as work is done,
+        ``finish()`` when the stage ends.
+
+    Returns
+    -------
+    dict
+        ``recording``, ``reconstruction``, ``contact_sheet`` (the sheets' paths), ``enob_plot``: the files;
+        ``events``, ``captures``, ``repeats``; ``binarize``, ``error``, ``route``: from the reconstruction's
+        summary; ``sinad`` (the SINAD and ENOB report as a dict, or None), ``flips`` (flip rates); ``seconds``.
     """
     say = status or (lambda text: None)
     bar = progress_factory or (lambda total, label: (None, lambda: None))

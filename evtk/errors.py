@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 
 __all__ = ["EvtkError", "FormatError", "check_parameters"]
 
@@ -11,7 +12,15 @@ class EvtkError(Exception):
     """Base class of every error evtk raises on purpose.
 
     The command line prints such errors as one line and exits non-zero.
+
+    Parameters
+    ----------
+    *args : object
+        The message (one string, as a rule), as for :class:`Exception`.
     """
+
+    def __init__(self, *args: object) -> None:
+        super().__init__(*args)
 
 
 class FormatError(EvtkError):
@@ -27,7 +36,7 @@ class FormatError(EvtkError):
         What was wrong, in words a user can act on.
     """
 
-    def __init__(self, path, offset, reason):
+    def __init__(self, path: str | os.PathLike[str] | None, offset: int | None, reason: str) -> None:
         self.path = None if path is None else os.fspath(path)
         self.offset = None if offset is None else int(offset)
         self.reason = str(reason)
@@ -37,16 +46,43 @@ class FormatError(EvtkError):
         super().__init__(f"{where}: {self.reason}")
 
 
-def one_line(exc) -> str:
-    """A library's error message on one line (pyarrow's and libhdf5's span several)."""
+def one_line(exc: BaseException | str) -> str:
+    """A library's error message on one line (pyarrow's and libhdf5's span several).
+
+    Parameters
+    ----------
+    exc : BaseException or str
+        The error (or its message).
+
+    Returns
+    -------
+    str
+        Its message with every run of whitespace, line breaks included, made one space.
+    """
     return " ".join(str(exc).split())
 
 
+def check_parameters(kind: str, cls: type, values: Mapping[str, object]) -> None:
+    """Check settings against the fields of a dataclass before it is built from them.
 
-def check_parameters(kind: str, cls, values: dict):
-    """Raise :class:`EvtkError` naming the first of ``values`` that is not a parameter of the dataclass
-    ``cls`` or does not fit its field: a number (finite) where the default is a number, text where it is
-    text, true/false where it is a flag. ``kind`` names the parameters in the message ("bench", "sensor")."""
+    Each of ``values`` must be a field of ``cls`` and fit its default's type: a finite number where the
+    default is a number, text where it is text, true/false where it is a flag (a field whose default is
+    None or missing takes anything here; its own checks follow).
+
+    Parameters
+    ----------
+    kind : str
+        What the parameters are ("bench", "sensor"), for the message.
+    cls : type
+        The dataclass.
+    values : Mapping of str to object
+        The settings, by field name.
+
+    Raises
+    ------
+    EvtkError
+        Naming the first unknown parameter, or the first value that does not fit its field.
+    """
     import dataclasses
     import math
 

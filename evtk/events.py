@@ -10,12 +10,21 @@ external-signal time stamps that the camera records beside the events.
 from __future__ import annotations
 
 import enum
-from collections.abc import Iterable, Sequence
+import inspect
+from collections.abc import Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from .errors import EvtkError
 from .io.table import columns_to_table, table_to_columns
+
+if TYPE_CHECKING:
+    import pyarrow as pa
+
+#: A sensor size as the API takes it: ``(width, height)`` in pixels, any two whole numbers (checked).
+SensorSize = Sequence[int] | np.ndarray
 
 __all__ = ["Events", "Triggers", "TriggerKind", "STRUCTURED_LAYOUTS"]
 
@@ -47,7 +56,21 @@ T_MAX_US = np.iinfo(np.int64).max
 
 
 class TriggerKind(enum.IntEnum):
-    """Trigger type codes, numbered as in the AEDAT4 ``Trigger`` table."""
+    """Trigger type codes, numbered as in the AEDAT4 ``Trigger`` table.
+
+    Parameters
+    ----------
+    value : int
+        The code (0 to 9): ``TriggerKind(1)`` is ``EXTERNAL_SIGNAL_RISING_EDGE``; any other value raises
+        ``ValueError``.
+    """
+
+    # what calling the class takes (a code), for the signature help and the API reference shows
+    __signature__ = inspect.Signature([inspect.Parameter("value", inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                                         annotation=int)])
+
+    def __init__(self, value: int) -> None:  # each member is made with its code; nothing more to set
+        super().__init__()
 
     TIMESTAMP_RESET = 0
     EXTERNAL_SIGNAL_RISING_EDGE = 1
@@ -61,7 +84,7 @@ class TriggerKind(enum.IntEnum):
     APS_EXPOSURE_END = 9
 
 
-def _as_sensor_size(sensor_size) -> tuple[int, int]:
+def _as_sensor_size(sensor_size: SensorSize) -> tuple[int, int]:
     try:
         width, height = (int(v) for v in sensor_size)
     except (TypeError, ValueError):
@@ -108,8 +131,15 @@ class Events:
         Time stamps in microseconds, column, row and polarity (1 = ON).
         Converted to int64, uint16, uint16 and uint8; values that do not fit
         raise :class:`~evtk.EvtkError` rather than wrap around.
-    sensor_size : (int, int)
-        ``(width, height)`` of the sensor in pixels.
+    sensor_size : tuple of (int, int)
+        ``(width, height)`` of the sensor in pixels, each from 1 to 65536.
+
+    Raises
+    ------
+    EvtkError
+        When a column is not one-dimensional, not numeric, holds NaN, a fraction or a value outside its
+        dtype's range (p outside 0 and 1), the columns differ in length, or the sensor size is not two
+        positive whole numbers up to 65536.
 
     Examples
     --------
@@ -121,7 +151,8 @@ class Events:
 
     __slots__ = ("t", "x", "y", "p", "sensor_size", "_sorted")
 
-    def __init__(self, t, x, y, p, sensor_size):
+    def __init__(self, t: npt.ArrayLike, x: npt.ArrayLike, y: npt.ArrayLike, p: npt.ArrayLike,
+                 sensor_size: SensorSize) -> None:
         self.sensor_size = _as_sensor_size(sensor_size)
         self.t = _column(t, np.int64, "t")
         self.x = _column(x, np.uint16, "x")
@@ -132,12 +163,23 @@ class Events:
             raise EvtkError(
                 f"event columns differ in length: t={n}, x={len(self.x)}, y={len(self.y)}, p={len(self.p)}"
             )
-        self._sorted = None
+        self._sorted: bool | None = None
 
     # -- construction -----------------------------------------------------
     @classmethod
-    def empty(cls, sensor_size) -> Events:
-        """An event stream with no events."""
+    def empty(cls, sensor_size: SensorSize) -> Events:
+        """An event stream with no events.
+
+        Parameters
+        ----------
+        sensor_size : tuple of (int, int)
+            ``(width, height)`` of the sensor in pixels.
+
+        Returns
+        -------
+        Events
+            Zero-length columns of the usual dtypes.
+        """
         return cls._trusted(
             np.zeros(0, np.int64), np.zeros(0, np.uint16), np.zeros(0, np.uint16), np.zeros(0, np.uint8), sensor_size
         )
@@ -152,11 +194,29 @@ class Events:
         return ev
 
     @classmethod
-    def concatenate(cls, parts: Sequence[Events], sensor_size=None) -> Events:
+    def concatenate(cls, parts: Iterable[Events], sensor_size: SensorSize | None = None) -> Events:
         """Join event streams end to end.
 
         The sensor size is ``sensor_size`` if given, else that of the parts,
         which must then agree.
+
+        Parameters
+        ----------
+        parts : iterable of Events
+            The streams, in order (not sorted again: the result is in time order only when they are, one
+            after the other).
+        sensor_size : tuple of (int, int), optional
+            ``(width, height)`` of the result.
+
+        Returns
+        -------
+        Events
+            Their events one after the other, in new arrays.
+
+        Raises
+        ------
+        EvtkError
+            When no ``sensor_size`` is given and the parts' sizes differ or there are no parts.
         """
         parts = list(parts)
         if sensor_size is None:
@@ -177,10 +237,28 @@ class Events:
         )
 
     @classmethod
-    def from_structured(cls, array: np.ndarray, sensor_size) -> Events:
-        """Build from a structured array with fields named as dv-processing,
-        faery or tonic name them (``t``/``timestamp``/``ts``, ``x``, ``y``,
-        ``p``/``polarity``/``on``).
+    def from_structured(cls, array: np.ndarray, sensor_size: SensorSize) -> Events:
+        """Build from a structured array of another library.
+
+        Its fields are named as dv-processing, faery or tonic name them (``t``/``timestamp``/``ts``, ``x``,
+        ``y``, ``p``/``polarity``/``on``), of any integer (or boolean polarity) dtypes that fit evtk's.
+
+        Parameters
+        ----------
+        array : numpy.ndarray
+            One-dimensional structured array (see :data:`STRUCTURED_LAYOUTS`).
+        sensor_size : tuple of (int, int)
+            ``(width, height)`` of the sensor in pixels.
+
+        Returns
+        -------
+        Events
+            The events, in copied columns of evtk's dtypes.
+
+        Raises
+        ------
+        EvtkError
+            When a field is missing or a value does not fit (as :class:`Events`).
         """
         array = np.asarray(array)
         names = array.dtype.names or ()
@@ -202,6 +280,17 @@ class Events:
         layout : {'dv', 'faery', 'tonic'}
             Which library's field names and dtypes to use, see
             :data:`STRUCTURED_LAYOUTS`.
+
+        Returns
+        -------
+        numpy.ndarray
+            A new structured array, one record per event, in this stream's order.
+
+        Raises
+        ------
+        EvtkError
+            For an unknown layout, negative time stamps for faery (unsigned), or coordinates above 32767
+            for dv (int16).
         """
         try:
             dtype = STRUCTURED_LAYOUTS[layout]
@@ -219,13 +308,43 @@ class Events:
         out[pname] = self.p
         return out
 
-    def to_arrow(self, metadata=None):
-        """A ``pyarrow.Table`` with columns t, x, y, p and the sensor size in its schema metadata."""
+    def to_arrow(self, metadata: Mapping[str, Any] | None = None) -> pa.Table:
+        """A ``pyarrow.Table`` with columns t, x, y, p and the sensor size in its schema metadata.
+
+        Parameters
+        ----------
+        metadata : Mapping of str to object, optional
+            Stored as JSON in the schema metadata too (:func:`evtk.io.table.columns_to_table`).
+
+        Returns
+        -------
+        pyarrow.Table
+            Columns ``t`` (int64, µs), ``x``, ``y`` (uint16) and ``p`` (uint8), sharing this stream's memory
+            where Arrow can.
+        """
         return columns_to_table(self.t, self.x, self.y, self.p, self.sensor_size, metadata)
 
     @classmethod
-    def from_arrow(cls, table, sensor_size=None) -> Events:
-        """Events from a ``pyarrow.Table`` (sensor size from its metadata unless given)."""
+    def from_arrow(cls, table: pa.Table, sensor_size: Sequence[int] | None = None) -> Events:
+        """Events from a ``pyarrow.Table`` (sensor size from its metadata unless given).
+
+        Parameters
+        ----------
+        table : pyarrow.Table
+            Columns t, x, y, p (:func:`evtk.io.table.table_to_columns` names what it accepts).
+        sensor_size : sequence of two int, optional
+            ``(width, height)``; default: the one the table's metadata holds.
+
+        Returns
+        -------
+        Events
+            The events, checked as :class:`Events` checks them.
+
+        Raises
+        ------
+        EvtkError
+            When a column is missing or its values do not fit, or there is no sensor size.
+        """
         t, x, y, p, size = table_to_columns(table, sensor_size)
         return cls(t, x, y, p, size)
 
@@ -263,13 +382,23 @@ class Events:
             self._sorted = bool(len(self.t) < 2 or np.all(self.t[1:] >= self.t[:-1]))
         return self._sorted
 
-    def stamp_period_us(self, max_events=200_000):
+    def stamp_period_us(self, max_events: int = 200_000) -> float | None:
         """The spacing of the time stamps' grid: 1.0 for an asynchronous sensor, the readout period for one that
         reads its pixels in frames (the DVXplorer family), or None with fewer than 64 distinct stamps.
 
         Looks at the first ``max_events`` events. The grid is the greatest common divisor of the gaps between
         distinct stamps; when that is 1 but every gap is, within 5 %, a whole number of the shortest gap (a
         period that is not a whole number of microseconds, rounded), that gap's mean is returned.
+
+        Parameters
+        ----------
+        max_events : int
+            How many events, from the first, to look at.
+
+        Returns
+        -------
+        float or None
+            The period in µs (1.0: no grid), or None with fewer than 64 distinct stamps.
 
         Examples
         --------
@@ -301,6 +430,11 @@ class Events:
 
         Events with equal time stamps keep their order.
 
+        Returns
+        -------
+        Events
+            Sorted by time (``is_sorted`` is True).
+
         Examples
         --------
         >>> ev = Events([5, 1, 5, 3], [0, 1, 2, 3], [0, 0, 0, 0], [1, 0, 0, 1], (4, 1))
@@ -323,11 +457,23 @@ class Events:
         """Last time stamp, or None for an empty stream."""
         return int(self.t.max()) if len(self) else None
 
-    def between(self, t_start_us=None, t_end_us=None) -> Events:
+    def between(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Events:
         """Events with ``t_start_us <= t < t_end_us`` (None leaves a side open).
 
         Sorted streams are cut with a binary search and the result shares
         memory with this stream; unsorted ones are filtered with a mask.
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive).
+        t_end_us : int, optional
+            End of the span (µs, exclusive).
+
+        Returns
+        -------
+        Events
+            Those events, in this stream's order.
         """
         lo = T_MIN_US if t_start_us is None else int(t_start_us)
         if t_end_us is None:
@@ -347,7 +493,13 @@ class Events:
         return ev
 
     def out_of_bounds(self) -> int:
-        """Number of events whose coordinates fall outside the sensor."""
+        """Number of events whose coordinates fall outside the sensor.
+
+        Returns
+        -------
+        int
+            Events with ``x >= width`` or ``y >= height``.
+        """
         w, h = self.sensor_size
         if not len(self):
             return 0
@@ -371,7 +523,7 @@ class Triggers:
 
     __slots__ = ("t", "kind", "channel")
 
-    def __init__(self, t=(), kind=(), channel=None):
+    def __init__(self, t: npt.ArrayLike = (), kind: npt.ArrayLike = (), channel: npt.ArrayLike | None = None) -> None:
         self.t = _column(t, np.int64, "t")
         self.kind = _column(kind, np.uint8, "kind", 0, 255)
         self.channel = np.zeros(len(self.t), np.uint8) if channel is None else _column(channel, np.uint8, "channel")
@@ -421,8 +573,21 @@ class Triggers:
             index = slice(index, index + 1 if index != -1 else None)
         return self._take(index)
 
-    def between(self, t_start_us=None, t_end_us=None) -> Triggers:
-        """Triggers with ``t_start_us <= t < t_end_us`` (None leaves a side open)."""
+    def between(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Triggers:
+        """Triggers with ``t_start_us <= t < t_end_us`` (None leaves a side open).
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive).
+        t_end_us : int, optional
+            End of the span (µs, exclusive).
+
+        Returns
+        -------
+        Triggers
+            Those triggers, in order, copied.
+        """
         mask = np.ones(len(self), bool)
         if t_start_us is not None:
             mask &= self.t >= int(t_start_us)
@@ -430,8 +595,19 @@ class Triggers:
             mask &= self.t < int(t_end_us)
         return self._take(mask)
 
-    def of_kind(self, kind) -> Triggers:
-        """Only the triggers of one :class:`TriggerKind`."""
+    def of_kind(self, kind: TriggerKind | int) -> Triggers:
+        """Only the triggers of one :class:`TriggerKind`.
+
+        Parameters
+        ----------
+        kind : TriggerKind or int
+            The kind (its AEDAT4 code).
+
+        Returns
+        -------
+        Triggers
+            Those of that kind, in order, copied.
+        """
         return self._take(self.kind == int(kind))
 
     @property
@@ -439,7 +615,7 @@ class Triggers:
         """The channels the triggers came from, in increasing order."""
         return [int(c) for c in np.unique(self.channel)]
 
-    def of_channel(self, channel=None) -> Triggers:
+    def of_channel(self, channel: int | None = None) -> Triggers:
         """The triggers of one input channel, so that windows come from one signal.
 
         Parameters

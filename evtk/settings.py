@@ -17,14 +17,18 @@ import json
 import math
 import os
 import stat
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
+import tomli_w
 
 from .errors import EvtkError
 from .limits import require_memory
 
-__all__ = ["read_table", "toml_value", "Spec", "check_value", "check_table", "check_array", "check_matrix",
+__all__ = ["read_table", "toml_text", "Spec", "check_value", "check_table", "check_array", "check_matrix",
            "check_origin", "check_region", "MAX_SETTINGS_BYTES", "MAX_SCHEDULE_BYTES", "MAX_BLUR_PX", "MAX_US",
            "MAX_COUNT", "MAX_SIDE"]
 
@@ -44,7 +48,8 @@ MAX_SIDE = 32767
 MAX_BLUR_PX = 4.0
 
 
-def read_table(path, what, max_bytes=MAX_SETTINGS_BYTES, parse_factor=None) -> dict:
+def read_table(path: str | os.PathLike[str], what: str, max_bytes: int = MAX_SETTINGS_BYTES,
+               parse_factor: float | None = None) -> dict[str, Any]:
     """The top-level table of a TOML (``.toml``) or JSON (anything else) settings file.
 
     Parameters
@@ -102,7 +107,7 @@ def read_table(path, what, max_bytes=MAX_SETTINGS_BYTES, parse_factor=None) -> d
 class Spec:
     """What one setting may hold.
 
-    Attributes
+    Parameters
     ----------
     kind : {"int", "float", "bool", "str"}
         A whole number (an integral float such as ``2.0`` too), any finite
@@ -133,6 +138,7 @@ class Spec:
         Returns
         -------
         str
+            For messages, e.g. "a whole number from 2 to 16384 (features elements)" or "one of 'a', 'b'".
         """
         if self.choices is not None:
             return "one of " + ", ".join(repr(c) for c in self.choices)
@@ -161,7 +167,7 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
-def check_value(where, key, value, spec: Spec):
+def check_value(where: str, key: str, value: Any, spec: Spec) -> int | float | bool | str | None:
     """``value`` checked against ``spec``, as the Python type the spec names.
 
     Parameters
@@ -179,6 +185,11 @@ def check_value(where, key, value, spec: Spec):
     -------
     int, float, bool, str or None
         The value (an integral float as an int for ``kind="int"``).
+
+    Raises
+    ------
+    EvtkError
+        Naming ``where``, ``key``, the value and what is allowed, when it does not fit.
     """
     bad = EvtkError(f"{where}: {key} = {_show(value)} must be {spec.describe()}")
     if value is None:
@@ -213,7 +224,8 @@ def check_value(where, key, value, spec: Spec):
     return value
 
 
-def check_table(where, data, specs, required=(), unknown="refuse") -> dict:
+def check_table(where: str, data: object, specs: Mapping[str, Spec], required: Iterable[str] = (),
+                unknown: str = "refuse") -> dict[str, Any]:
     """The values of ``data`` that ``specs`` names, each checked by :func:`check_value`.
 
     Parameters
@@ -251,8 +263,9 @@ def check_table(where, data, specs, required=(), unknown="refuse") -> dict:
     return out
 
 
-def check_array(where, key, value, ndim, lo=None, hi=None, kind="int", shape=None, max_elements=None,
-                allow_empty=False) -> np.ndarray:
+def check_array(where: str, key: str, value: object, ndim: int | Iterable[int], lo: float | None = None,
+                hi: float | None = None, kind: str = "int", shape: tuple[int | None, ...] | None = None,
+                max_elements: int | None = None, allow_empty: bool = False) -> np.ndarray:
     """A nested list (or array) of numbers, checked before it is used.
 
     Parameters
@@ -277,7 +290,14 @@ def check_array(where, key, value, ndim, lo=None, hi=None, kind="int", shape=Non
     Returns
     -------
     ndarray
-        int64 or float64.
+        int64 (``kind="int"``) or float64, of the shape given.
+
+    Raises
+    ------
+    EvtkError
+        Naming ``where`` and ``key`` when the value is not such an array: text, ragged rows, another
+        dimension or shape, too many or no elements, NaN or infinity, a fraction for ``kind="int"``, a
+        number outside ``[lo, hi]`` or beyond the int64 range.
     """
     ndims = (ndim,) if isinstance(ndim, int) else tuple(ndim)
     what = f"{'whole' if kind == 'int' else 'finite'} numbers"
@@ -319,7 +339,7 @@ def check_array(where, key, value, ndim, lo=None, hi=None, kind="int", shape=Non
     return arr.astype(np.float64)
 
 
-def check_matrix(where, key, value, corners=None) -> np.ndarray:
+def check_matrix(where: str, key: str, value: object, corners: npt.ArrayLike | None = None) -> np.ndarray:
     """A projective map (3x3, finite, non-singular) from cells to pixels.
 
     Parameters
@@ -336,7 +356,13 @@ def check_matrix(where, key, value, corners=None) -> np.ndarray:
     Returns
     -------
     ndarray
-        float64 (3, 3).
+        float64 (3, 3), as given (not normalised).
+
+    Raises
+    ------
+    EvtkError
+        When it is not a finite 3x3 array, is singular (or nearly so: condition number above 1e12), or
+        its horizon crosses ``corners``.
     """
     m = check_array(where, key, value, 2, kind="float", shape=(3, 3))
     scale = float(np.max(np.abs(m)))
@@ -350,7 +376,7 @@ def check_matrix(where, key, value, corners=None) -> np.ndarray:
     return m
 
 
-def check_origin(where, key, value, sensor_size) -> tuple:
+def check_origin(where: str, key: str, value: object, sensor_size: Sequence[int] | np.ndarray) -> tuple[float, float]:
     """A sensor pixel (x, y) where a response begins: two finite numbers within one sensor size of the sensor.
 
     Parameters
@@ -359,12 +385,13 @@ def check_origin(where, key, value, sensor_size) -> tuple:
         File and setting, for messages.
     value : list or tuple
         What it holds.
-    sensor_size : (width, height)
-        The sensor.
+    sensor_size : sequence of two int
+        The sensor (width, height) in pixels.
 
     Returns
     -------
-    tuple of float
+    tuple of (float, float)
+        The pixel (x, y); x within ``[-width, 2 width]``, y within ``[-height, 2 height]``.
     """
     try:
         o = check_array(where, key, value, 1, kind="float", shape=(2,))
@@ -377,7 +404,8 @@ def check_origin(where, key, value, sensor_size) -> tuple:
     return float(o[0]), float(o[1])
 
 
-def check_region(where, key, value, sensor_size) -> tuple:
+def check_region(where: str, key: str, value: object,
+                 sensor_size: Sequence[int] | np.ndarray) -> tuple[int, int, int, int]:
     """A sensor region ``(x0, x1, y0, y1)``, half-open, non-empty and on the sensor.
 
     Parameters
@@ -386,12 +414,13 @@ def check_region(where, key, value, sensor_size) -> tuple:
         File and setting, for messages.
     value : list or tuple
         What it holds.
-    sensor_size : (width, height)
-        The sensor.
+    sensor_size : sequence of two int
+        The sensor (width, height) in pixels.
 
     Returns
     -------
-    tuple of int
+    tuple of (int, int, int, int)
+        ``(x0, x1, y0, y1)`` with ``0 <= x0 < x1 <= width`` and ``0 <= y0 < y1 <= height``.
     """
     r = check_array(where, key, value, 1, shape=(4,))
     x0, x1, y0, y1 = (int(v) for v in r)
@@ -408,28 +437,58 @@ def _show(v) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def toml_value(v, what="settings") -> str:
-    """``v`` (bool, number, string or a list of them) as a TOML value.
+def toml_text(table: Mapping[str, Any], what: str = "settings", comment: str | None = None) -> str:
+    """``table`` as the text of a TOML file, written by ``tomli-w`` so that reading it back gives ``table`` again.
+
+    A value that is itself a table becomes a ``[name]`` section. Values are booleans, whole numbers, finite
+    floats (written exactly: read back, they are the same float64), strings, and lists or tables of them;
+    numpy scalars are taken as the Python number they hold.
 
     Parameters
     ----------
-    v : bool, int, float, str or list
-        The value.
+    table : Mapping of str to object
+        The settings, by name (callers leave out unset, ``None``, values: TOML has no null).
     what : str
-        The file kind, for the message when ``v`` cannot be stored.
+        The file kind ("bench", "calibration"), for the message when a value cannot be stored.
+    comment : str, optional
+        Text put first, each of its lines as a ``#`` comment.
 
     Returns
     -------
     str
+        The TOML text, ending in a newline.
+
+    Raises
+    ------
+    EvtkError
+        When a value cannot be stored in TOML: ``None``, NaN or infinity (which evtk's readers refuse), or an
+        object that is not one of the types above. The message names the key.
     """
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        if isinstance(v, float) and not math.isfinite(v):
-            raise EvtkError(f"cannot store {v!r} in a {what} file")
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
+    text = tomli_w.dumps(_toml_ready(table, what, ""))
+    head = "".join(f"# {line}".rstrip() + "\n" for line in comment.splitlines()) if comment else ""
+    return head + text
+
+
+def _toml_ready(v: Any, what: str, key: str) -> Any:
+    """``v`` with numpy scalars as Python numbers, or an EvtkError naming ``key`` if TOML cannot hold it."""
+    if isinstance(v, Mapping):
+        out = {}
+        for k, x in v.items():
+            if not isinstance(k, str):
+                raise EvtkError(f"cannot store the key {k!r} in a {what} file (keys are text)")
+            out[k] = _toml_ready(x, what, f"{key}.{k}" if key else k)
+        return out
     if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(toml_value(x, what) for x in v) + "]"
-    raise EvtkError(f"cannot store {v!r} in a {what} file")
+        return [_toml_ready(x, what, f"{key}[{i}]") for i, x in enumerate(v)]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        if not math.isfinite(v):
+            raise EvtkError(f"cannot store {key} = {float(v)!r} in a {what} file (only finite numbers)")
+        return float(v)
+    if isinstance(v, str):
+        return v
+    raise EvtkError(f"cannot store {key} = {_show(v)} in a {what} file "
+                    f"(a {type(v).__name__}: TOML holds true/false, numbers, text, and lists or tables of them)")

@@ -18,9 +18,21 @@
 
 from __future__ import annotations
 
-from .calibrate import calibrate
+import os
+from collections.abc import Callable, Sequence
+from typing import Any, cast
+
+from .calibrate import Calibration, calibrate
 from .errors import EvtkError
-from .reconstruct import ReconstructOptions, load_schedule, reconstruct, reconstruct_calibrated, schedule_of_record
+from .io.base import BaseRecording
+from .reconstruct import (
+    Reconstruction,
+    ReconstructOptions,
+    load_schedule,
+    reconstruct,
+    reconstruct_calibrated,
+    schedule_of_record,
+)
 from .settings import check_origin, check_region
 from .simulate import DOTS_ID
 from .simulate.record import SimulationRecord
@@ -28,40 +40,53 @@ from .simulate.record import SimulationRecord
 __all__ = ["reconstruct_recording"]
 
 
-def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, origin_px=None, progress=None,
-                          **options):
+def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
+                          schedule: str | os.PathLike[str] | dict[str, Any] | None = None,
+                          calibration: Calibration | None = None, origin_px: Sequence[float] | None = None,
+                          progress: Callable[[int], object] | None = None, **options: Any) -> Reconstruction:
     """Reconstruct ``rec`` by the route its inputs allow (see the module docstring).
 
     Parameters
     ----------
-    rec : Recording
+    rec : evtk.io.base.BaseRecording
+        An open recording (:func:`evtk.io.open`), of a bench run or simulated by evtk.
     oracle : bool
         Use the simulation record's pixel model and placement (simulated
         recordings only); the summary says ``"oracle": true``.
-    schedule : path or dict, optional
-        A bench run's ``schedule.json`` (:func:`evtk.patterns.write_patterns`).
+    schedule : str or os.PathLike or dict, optional
+        A bench run's ``schedule.json`` (:func:`evtk.patterns.write_patterns`), or the dict
+        :func:`evtk.reconstruct.load_schedule` reads from it.
     calibration : Calibration, optional
         Where the response lies (:func:`evtk.calibrate.calibrate`); else
         ``options["region"]`` and ``origin_px``, else the run's own dot
         captures, else the bench geometry.
-    origin_px : (x, y), optional
+    origin_px : sequence of two float, optional
         Sensor pixel of the response's cell (0, 0), with ``options["region"]``;
         checked to be two finite numbers near the sensor.
     progress : callable, optional
         Called with the captures done.
-    options
-        :class:`~evtk.reconstruct.ReconstructOptions` fields.
+    **options : Any
+        :class:`~evtk.reconstruct.ReconstructOptions` fields (``size``, ``window``, ``skip_us``, ``region``, ...).
 
     Returns
     -------
     Reconstruction
         The result; its summary says the route and the placement.
+
+    Raises
+    ------
+    EvtkError
+        When the inputs allow no route: the oracle asked of a recording with no simulation record (or with a
+        schedule or calibration), no schedule for a recording that is not simulated (and no fixed windows), a
+        calibration of another sensor or response size, fixed windows with the calibrated route, or an
+        ``origin_px`` or region off the sensor; and whatever the route itself raises.
     """
     opts = ReconstructOptions(**options)
     record = SimulationRecord.from_metadata(rec.metadata)
-    if calibration is not None and tuple(calibration.sensor_size) != tuple(rec.sensor_size):
+    sensor = cast("tuple[int, int]", rec.sensor_size)  # evtk.io.open sizes every recording's sensor
+    if calibration is not None and tuple(calibration.sensor_size) != tuple(sensor):
         raise EvtkError(f"the calibration is of a {calibration.sensor_size[0]}x{calibration.sensor_size[1]} sensor, "
-                        f"the recording of a {rec.sensor_size[0]}x{rec.sensor_size[1]} one")
+                        f"the recording of a {sensor[0]}x{sensor[1]} one")
     fixed = opts.window != "schedule" or opts.theta is not None
     if oracle:
         if record is None:
@@ -86,9 +111,9 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         raise EvtkError("the calibrated route takes its windows from the trigger edges matched to the schedule: "
                         "leave out the window and theta settings, or ask for the oracle")
     if origin_px is not None:
-        origin_px = check_origin("the response origin", "origin_px", origin_px, rec.sensor_size)
+        origin_px = check_origin("the response origin", "origin_px", origin_px, sensor)
     if opts.region is not None and schedule is not None:
-        check_region("the region", "region", opts.region, rec.sensor_size)
+        check_region("the region", "region", opts.region, sensor)
     if schedule is None:
         sched = schedule_of_record(record)
     else:

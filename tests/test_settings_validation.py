@@ -8,12 +8,18 @@ import copy
 import json
 import math
 import os
+import re
 import signal
 
 import numpy as np
 import pytest
 
 from evtk import EvtkError
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
 from evtk import io as evio
 from evtk.calibrate import calibrate, load_calibration, save_calibration
 from evtk.optics import Bench, load_bench, save_bench
@@ -405,3 +411,43 @@ def test_a_calibration_of_another_response_size_is_refused(base, tmp_path):
     path.write_text(json.dumps(cal))
     with evio.open(base["dir"] / "rec.aedat4") as rec, pytest.raises(EvtkError, match="response"):
         reconstruct_recording(rec, schedule=base["dir"] / "pat" / "schedule.json", calibration=load_calibration(path))
+
+
+def test_toml_text_reads_back_exactly():
+    """The TOML evtk writes (tomli-w) reads back to the same table: every float to the last bit, text with
+    quotes, escapes, control characters and characters beyond the BMP (the hand-written writer spelt those as JSON
+    surrogate pairs, which no TOML reader accepts), nested arrays and a sub-table."""
+    from evtk.settings import toml_text
+
+    table = {
+        "third": 0.1 + 0.2, "tiny": 5e-324, "huge": 1.7976931348623157e308, "neg": -0.0, "big": 2 ** 62,
+        "flag": False, "label": 'say "hi"\\ \t\x7f \U0001F600 é', "matrix": [[1.0, 1e-300, -3.5], [0, 1, 2]],
+        "empty": [], "np_float": np.float64(1) / 3, "np_int": np.int64(-7), "np_bool": np.bool_(True),
+        "sensor": {"theta_on": 0.123456789012345678, "times_us": [1.0, 2.5e6], "name": "dvx"},
+    }
+    text = toml_text(table, "bench", comment="evtk bench\nsecond line")
+    assert text.startswith("# evtk bench\n# second line\n")
+    back = tomllib.loads(text)
+    want = dict(table, np_float=float(table["np_float"]), np_int=-7, np_bool=True)
+    assert back == want
+    assert math.copysign(1, back["neg"]) == -1 and type(back["np_int"]) is int
+
+
+@pytest.mark.parametrize("value, named", [(None, "k"), (math.nan, "k"), ([1.0, math.inf], "k[1]"),
+                                          ({"inner": -math.inf}, "k.inner"), (object(), "k"), (b"raw", "k")])
+def test_toml_text_refuses_what_toml_cannot_hold(value, named):
+    from evtk.settings import toml_text
+
+    with pytest.raises(EvtkError, match=rf"cannot store {re.escape(named)} = .* in a calibration file"):
+        toml_text({"k": value}, "calibration")
+
+
+def test_saved_bench_and_calibration_toml_read_back(tmp_path):
+    """save_bench writes its TOML with tomli-w; what load_bench reads is what was saved."""
+    b = Bench()
+    save_bench(tmp_path / "b.toml", b, {"theta_on": 0.1 + 0.2})
+    got, sensor = load_bench(tmp_path / "b.toml")
+    assert got == b and sensor == {"theta_on": 0.1 + 0.2}
+    with open(tmp_path / "b.toml", "rb") as f:
+        assert tomllib.load(f) == dict({k: v for k, v in b.to_dict().items() if v is not None},
+                                       sensor={"theta_on": 0.1 + 0.2})

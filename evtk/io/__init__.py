@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import builtins
 import os
-from typing import TYPE_CHECKING
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from ..errors import EvtkError, FormatError
 
 if TYPE_CHECKING:  # loaded lazily at run time (below)
     from ..events import Events, Triggers
-    from .base import BaseRecording
+    from .base import BaseRecording, BaseWriter
 
 __all__ = ["open", "open_writer", "read_events", "write_events", "convert", "detect_format", "Recording", "BaseRecording",
            "WRITE_EXTENSIONS", "WRITE_FORMATS", "write_format"]
@@ -44,7 +45,7 @@ LOSES = {"aedat4": None, "hdf5": None, "parquet": None, "evt2": "metadata beyond
          "csv": "trigger edges and metadata"}
 
 
-def write_format(path, fmt: str | None = None) -> str:
+def write_format(path: str | os.PathLike[str], fmt: str | None = None) -> str:
     """The format a write to ``path`` uses: ``fmt`` when given, else the one of its extension.
 
     Parameters
@@ -58,6 +59,11 @@ def write_format(path, fmt: str | None = None) -> str:
     -------
     str
         The format's name.
+
+    Raises
+    ------
+    EvtkError
+        When ``fmt`` is not one of :data:`WRITE_FORMATS`, or the extension is not one evtk writes.
     """
     if fmt is not None:
         if fmt not in WRITE_FORMATS:
@@ -78,8 +84,27 @@ _SIGNATURES = (
 )
 
 
-def detect_format(path) -> str:
-    """Name the format of ``path`` from its first bytes."""
+def detect_format(path: str | os.PathLike[str]) -> str:
+    """Name the format of ``path`` from its first bytes.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file; only its start is read (16 bytes, more to tell text events and N-MNIST binaries apart).
+
+    Returns
+    -------
+    str
+        ``"aedat4"``, ``"aedat-other"`` (AEDAT 2.0 or 3.1), ``"hdf5"``, ``"parquet"``, ``"event_stream"``,
+        ``"prophesee"`` (RAW or DAT), ``"text"`` or ``"nmnist"``.
+
+    Raises
+    ------
+    FormatError
+        When the file is empty or of none of these formats.
+    EvtkError
+        When it is missing, a directory or unreadable.
+    """
     path = os.fspath(path)
     try:
         with builtins.open(path, "rb") as f:
@@ -126,7 +151,8 @@ def _sensor_size_from_env():
     return int(parts[0]), int(parts[1])
 
 
-def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # noqa: A001
+def open(path: str | os.PathLike[str], salvage: bool = False,  # noqa: A001
+         sensor_size: tuple[int, int] | None = None, sort: bool = False,
          trust_external: bool | None = None, verify_checksums: bool | None = None,
          layout: str | None = None) -> BaseRecording:
     """Open a recording for reading; the format is found from the file's first bytes.
@@ -140,8 +166,8 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     salvage : bool
         Recover what is intact before damage instead of raising
         :class:`~evtk.FormatError`; ``recording.damage`` says where it stopped.
-    sensor_size : (int, int), optional
-        For files that do not record it: HDF5, Parquet, Prophesee RAW with
+    sensor_size : tuple of (int, int), optional
+        ``(width, height)`` in pixels, for files that do not record it: HDF5, Parquet, Prophesee RAW with
         neither a geometry nor a known system ID, DAT, text and N-MNIST
         files, legacy AEDAT without a known camera (otherwise sized as each
         format's page says: from the system ID, or the events' extent with a
@@ -175,6 +201,14 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     -------
     BaseRecording
         The open recording (a context manager).
+
+    Raises
+    ------
+    FormatError
+        When the file is empty, of no format evtk reads, or damaged where its header is read (without
+        ``salvage``; damage in the events is met as they are read).
+    EvtkError
+        When the file is missing, a directory or unreadable, or ``$EVTK_SENSOR_SIZE`` is malformed.
 
     Examples
     --------
@@ -226,14 +260,30 @@ def open(path, salvage: bool = False, sensor_size=None, sort: bool = False,  # n
     return ParquetRecording(path, salvage=salvage, sensor_size=sensor_size, verify_checksums=verify_checksums)
 
 
-def read_events(path, t_start_us=None, t_end_us=None) -> Events:
-    """All events of ``path`` with ``t_start_us <= t < t_end_us``."""
+def read_events(path: str | os.PathLike[str], t_start_us: int | None = None, t_end_us: int | None = None) -> Events:
+    """All events of ``path`` with ``t_start_us <= t < t_end_us``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A recording in any format :func:`open` reads (opened with its defaults).
+    t_start_us : int, optional
+        First time kept (µs, inclusive); None: from the start.
+    t_end_us : int, optional
+        End of the window (µs, exclusive); None: to the end.
+
+    Returns
+    -------
+    Events
+        The events, in file order.
+    """
     with open(path) as rec:
         return rec.events(t_start_us, t_end_us)
 
 
-def write_events(path, events: Events, triggers: Triggers | None = None, compression: str = "lz4", metadata=None,
-                 fmt: str | None = None, **kwargs):
+def write_events(path: str | os.PathLike[str], events: Events, triggers: Triggers | None = None,
+                 compression: str = "lz4", metadata: Mapping[str, Any] | None = None, fmt: str | None = None,
+                 **kwargs: Any) -> None:
     """Write ``events`` (and triggers) to ``path``; the extension (or ``fmt``) picks the format.
 
     ``.aedat4``, ``.h5``/``.hdf5`` (evtk's layout), ``.parquet``, ``.raw``
@@ -254,12 +304,18 @@ def write_events(path, events: Events, triggers: Triggers | None = None, compres
         Trigger edges, for the formats that hold them.
     compression : str
         AEDAT4, HDF5 and Parquet: the codec.
-    metadata : dict, optional
-        Text metadata, for the formats that hold it.
+    metadata : Mapping of str to object, optional
+        JSON-ready metadata, for the formats that hold it.
     fmt : str, optional
         One of :data:`WRITE_FORMATS`, overriding the extension.
-    **kwargs
+    **kwargs : Any
         The format writer's own options.
+
+    Raises
+    ------
+    EvtkError
+        When the format is unknown, ``events`` is not :class:`~evtk.Events`, triggers are given to a format
+        without them, or the writer refuses the events; no file is left under ``path`` then.
     """
     fmt = write_format(path, fmt)
     from ..events import Events
@@ -284,8 +340,9 @@ def write_events(path, events: Events, triggers: Triggers | None = None, compres
         write_parquet(path, events, triggers, compression=compression, metadata=metadata, **kwargs)
 
 
-def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, triggers: Triggers | None = None,
-                fmt: str | None = None, **kwargs):
+def open_writer(path: str | os.PathLike[str], sensor_size: tuple[int, int], compression: str = "lz4",
+                metadata: Mapping[str, Any] | None = None, triggers: Triggers | None = None, fmt: str | None = None,
+                **kwargs: Any) -> BaseWriter:
     """A streaming writer for ``path`` (format from the extension, or ``fmt``).
 
     Call ``write_events`` as often as needed, then ``close`` (or use it as a
@@ -299,17 +356,17 @@ def open_writer(path, sensor_size, compression: str = "lz4", metadata=None, trig
     ----------
     path : str or os.PathLike
         The target.
-    sensor_size : (int, int)
-        Width and height.
+    sensor_size : tuple of (int, int)
+        Width and height in pixels.
     compression : str
         AEDAT4, HDF5 and Parquet: the codec.
-    metadata : dict, optional
-        Text metadata, for the formats that hold it.
+    metadata : Mapping of str to object, optional
+        JSON-ready metadata, for the formats that hold it.
     triggers : Triggers, optional
         Trigger edges, for the formats that hold them.
     fmt : str, optional
         One of :data:`WRITE_FORMATS`, overriding the extension.
-    **kwargs
+    **kwargs : Any
         The format writer's own options.
 
     Returns

@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import os
+from typing import TYPE_CHECKING, Any, cast
+
 from .._atomic import refuse_overwriting_inputs
 from . import LOSES, open_writer, write_format
 from . import open as open_recording
 from ._checks import sorted_for_writing
+
+if TYPE_CHECKING:
+    from .aedat4 import Aedat4Writer, Recording
 
 __all__ = ["convert"]
 
@@ -15,8 +21,9 @@ _NO_CHANNELS = {"aedat4"}
 _OWN_KEYS = {"compression", "originalModuleName", "originalOutputName", "typeDescription", "typeIdentifier"}
 
 
-def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_events=4_000_000,
-            events_only=False, fmt=None) -> dict:
+def convert(source: str | os.PathLike[str], target: str | os.PathLike[str], compression: str = "lz4",
+            salvage: bool = False, sort: bool = False, chunk_events: int = 4_000_000, events_only: bool = False,
+            fmt: str | None = None) -> dict[str, Any]:
     """Write the recording ``source`` to ``target``, streaming the events ``chunk_events`` at a time.
 
     AEDAT4 to AEDAT4 also copies the other streams (frames, IMU, ...) packet
@@ -32,10 +39,40 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
     the target's format where the extension does not (``.raw`` is EVT 3.0
     unless ``fmt="evt2"``).
 
-    Returns a summary: ``events``, ``triggers`` (written), ``copied``,
-    ``left_out`` (stream name -> packets; ``"trigger edges"`` -> count) and
-    ``channels_lost`` (the non-zero trigger channels the target cannot hold,
-    in increasing order; empty when none).
+    Parameters
+    ----------
+    source : str or os.PathLike
+        A recording in any format :func:`evtk.io.open` reads.
+    target : str or os.PathLike
+        The file to write; it appears only once complete, and may not be the source (by any name).
+    compression : str
+        AEDAT4, HDF5 and Parquet targets: the codec.
+    salvage : bool
+        Convert what is intact before damage in the source instead of raising at it.
+    sort : bool
+        Read all events and sort them by time (stably) first, in memory, for a source out of order.
+    chunk_events : int
+        Events read and written at a time, without ``sort``.
+    events_only : bool
+        AEDAT4 to AEDAT4: copy only the events and triggers, not the other streams.
+    fmt : str, optional
+        One of :data:`evtk.io.WRITE_FORMATS`, overriding the target's extension.
+
+    Returns
+    -------
+    dict
+        ``events``, ``triggers`` (written), ``copied`` (stream name -> packets copied), ``left_out``
+        (stream name -> packets; ``"trigger edges"`` -> count; ``"metadata keys"`` -> count) and
+        ``channels_lost`` (the non-zero trigger channels the target cannot hold, in increasing order;
+        empty when none).
+
+    Raises
+    ------
+    EvtkError
+        When the target's format is unknown, the target is the source, or the events do not fit the target's
+        format (time going backwards for a format that needs order, without ``sort``).
+    FormatError
+        Damage in the source, without ``salvage``.
     """
 
     fmt = write_format(target, fmt)
@@ -81,8 +118,9 @@ def convert(source, target, compression="lz4", salvage=False, sort=False, chunk_
                     n += len(chunk)
             for s in others:
                 k = 0
-                for body, count, t0, t1 in rec.packets(s.id):
-                    writer.write_packet(s.name, body, count, t0 if t0 is not None else 0, t1 if t1 is not None else 0)
+                aedat_writer = cast("Aedat4Writer", writer)  # (AEDAT4 to AEDAT4 only)
+                for body, count, t0, t1 in cast("Recording", rec).packets(s.id):
+                    aedat_writer.write_packet(s.name, body, count, t0 if t0 is not None else 0, t1 if t1 is not None else 0)
                     k += 1
                 copied[s.name] = k
     return {"events": n, "triggers": 0 if triggers is None else len(triggers), "copied": copied,

@@ -29,6 +29,8 @@ from __future__ import annotations
 import os
 import re
 import struct
+from collections.abc import Iterator
+from typing import cast
 
 import numpy as np
 
@@ -129,9 +131,10 @@ class LegacyAedatRecording(BaseRecording):
     Parameters
     ----------
     path : str or os.PathLike
+        The ``.aedat`` file (``#!AER-DAT2.0`` or ``#!AER-DAT3.1``).
     salvage : bool
         Read what is intact before damage instead of raising.
-    sensor_size : (int, int), optional
+    sensor_size : tuple of (int, int), optional
         For files whose header names no known camera (else inferred from
         the largest coordinates, with a warning).
     layout : {"dvs128", "davis"}, optional
@@ -141,7 +144,8 @@ class LegacyAedatRecording(BaseRecording):
 
     format = "aedat-legacy"
 
-    def __init__(self, path, salvage=False, sensor_size=None, layout=None):
+    def __init__(self, path: str | os.PathLike[str], salvage: bool = False,
+                 sensor_size: tuple[int, int] | None = None, layout: str | None = None) -> None:
         super().__init__(path, salvage)
         with open(self.path, "rb") as f:
             first = f.readline(64)
@@ -174,8 +178,8 @@ class LegacyAedatRecording(BaseRecording):
             size = CHIP_SIZES[self.chip]
         if sensor_size is not None:
             size = sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size")
-        self._size = size
-        self.skipped = {}  # what was left out: {"frame": n, "imu6": n, ...}
+        self._size: tuple[int, int] = cast("tuple[int, int]", size)  # None only until _infer_size, below, sets it
+        self.skipped: dict[str, int] = {}  # what was left out: {"frame": n, "imu6": n, ...}
         self._block_stats = None
         self._blocks = self._index_blocks()
         if self._size is None:
@@ -354,7 +358,35 @@ class LegacyAedatRecording(BaseRecording):
     def metadata(self) -> dict:
         return {"aedat_version": self.version, "chip": self.chip, "header": list(self._lines)}
 
-    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us: int | None = None,
+                    t_end_us: int | None = None) -> Iterator[Events]:
+        """The events with ``t_start_us <= t < t_end_us``, at most ``chunk_events`` at a time.
+
+        The file is read in blocks of whole events; a window skips blocks that end before it or begin
+        after it.
+
+        Parameters
+        ----------
+        chunk_events : int
+            Most events a chunk holds (at least 1).
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Yields
+        ------
+        Events
+            The next chunk, in file order; together, what ``events`` returns.
+
+        Raises
+        ------
+        FormatError
+            At damage (a file cut inside an event, time going backwards), without salvage (with it, the
+            chunks end there).
+        EvtkError
+            When ``chunk_events`` is below 1.
+        """
         self._check_open()
         chunk_events = int(chunk_events)
         if chunk_events < 1:
@@ -386,7 +418,28 @@ class LegacyAedatRecording(BaseRecording):
         if self.damage is None:
             self.damage = Damage(None, reason)
 
-    def events(self, t_start_us=None, t_end_us=None) -> Events:
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Events:
+        """The events with ``t_start_us <= t < t_end_us``, read at once.
+
+        The polarity events only (AEDAT 3.1's other event types and APS samples are skipped).
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Returns
+        -------
+        Events
+            The events, in file order.
+
+        Raises
+        ------
+        FormatError
+            At damage (a file cut inside an event, time going backwards), without salvage.
+        """
         parts = list(self.iter_events(1 << 62, t_start_us, t_end_us))
         return Events.concatenate(parts, sensor_size=self._size) if parts else Events.empty(self._size)
 

@@ -12,6 +12,8 @@ import os
 import select
 import signal
 import time
+from collections.abc import Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -23,6 +25,9 @@ from ._checks import require_readable, scan_events, sorted_for_writing
 from ._overlay import SplicedFile, close_at_exit
 from .base import BaseRecording, BaseWriter, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
 from .table import KEY_META, KEY_TRIGGERS, _columns, _pa, _schema, _sensor_from, columns_to_table
+
+if TYPE_CHECKING:
+    import pyarrow as pa
 
 __all__ = ["to_arrow", "from_arrow", "ParquetRecording", "write_parquet", "COMPRESSIONS"]
 
@@ -108,13 +113,52 @@ def _unreadable(g, exc):
     return f"row group {g} cannot be read ({one_line(exc)})"
 
 
-def to_arrow(events: Events, metadata=None, triggers=None):
-    """A ``pyarrow.Table`` sharing the event columns (no copy); :meth:`evtk.Events.to_arrow`."""
+def to_arrow(events: Events, metadata: Mapping[str, Any] | None = None,
+             triggers: Triggers | None = None) -> pa.Table:
+    """A ``pyarrow.Table`` sharing the event columns (no copy); :meth:`evtk.Events.to_arrow`.
+
+    Parameters
+    ----------
+    events : Events
+        The events.
+    metadata : Mapping of str to object, optional
+        Stored as JSON in the schema metadata (``evtk.metadata``).
+    triggers : Triggers, optional
+        Stored as JSON in the schema metadata (``evtk.triggers``).
+
+    Returns
+    -------
+    pyarrow.Table
+        Columns ``t`` (int64, µs), ``x``, ``y`` (uint16), ``p`` (uint8); the sensor size in the schema metadata.
+
+    Raises
+    ------
+    EvtkError
+        When ``metadata`` is not JSON-serialisable.
+    """
     return columns_to_table(events.t, events.x, events.y, events.p, events.sensor_size, metadata, triggers)
 
 
-def from_arrow(table, sensor_size=None) -> Events:
-    """Events from a ``pyarrow.Table`` (or anything with columns t, x, y, p); :meth:`evtk.Events.from_arrow`."""
+def from_arrow(table: pa.Table, sensor_size: Sequence[int] | None = None) -> Events:
+    """Events from a ``pyarrow.Table`` (or anything with columns t, x, y, p); :meth:`evtk.Events.from_arrow`.
+
+    Parameters
+    ----------
+    table : pyarrow.Table
+        Integer columns t, x, y, p without nulls.
+    sensor_size : sequence of two int, optional
+        ``(width, height)``; default: the table's ``evtk.sensor_size`` metadata.
+
+    Returns
+    -------
+    Events
+        The events, checked as :class:`evtk.Events` checks them.
+
+    Raises
+    ------
+    EvtkError
+        When there is no sensor size, or the columns are missing or do not fit.
+    """
     return Events.from_arrow(table, sensor_size)
 
 
@@ -132,8 +176,8 @@ class ParquetRecording(BaseRecording):
         The file.
     salvage : bool
         Return the complete row groups before the first damage instead of raising.
-    sensor_size : (int, int), optional
-        For files that do not record it.
+    sensor_size : tuple of (int, int), optional
+        ``(width, height)`` in pixels, for files that do not record it (evtk's own record it).
     verify_checksums : bool
         Check the CRC-32 of every data page that carries one (pyarrow writes them with
         ``write_page_checksum=True``); a page that fails is a :class:`~evtk.FormatError`.
@@ -141,7 +185,8 @@ class ParquetRecording(BaseRecording):
 
     format = "parquet"
 
-    def __init__(self, path, salvage=False, sensor_size=None, verify_checksums: bool = True):
+    def __init__(self, path: str | os.PathLike[str], salvage: bool = False, sensor_size: tuple[int, int] | None = None,
+                 verify_checksums: bool = True) -> None:
         super().__init__(path, salvage)
         import pyarrow.parquet as pq
 
@@ -356,7 +401,30 @@ class ParquetRecording(BaseRecording):
                 before = int(ev.t[-1])
                 yield ev.between(t_start_us, t_end_us)
 
-    def events(self, t_start_us=None, t_end_us=None) -> Events:
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Events:
+        """The events with ``t_start_us <= t < t_end_us``, read at once.
+
+        Only the row groups whose ``t`` statistics overlap the window are read, together, on pyarrow's
+        threads; with salvage, a window is cut from what the whole read recovers.
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Returns
+        -------
+        Events
+            The events, in file order.
+
+        Raises
+        ------
+        FormatError
+            At a damaged or unreadable row group, a failed page checksum, time going backwards or an event off
+            the sensor, without salvage.
+        """
         self._check_open()
         if self.salvage and (t_start_us is not None or t_end_us is not None):
             return self._salvaged_window(t_start_us, t_end_us)
@@ -371,7 +439,32 @@ class ParquetRecording(BaseRecording):
             return Events.concatenate(list(self._groups_events(t_start_us, t_end_us)), sensor_size=self._sensor)
         return ev.between(t_start_us, t_end_us)
 
-    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us: int | None = None,
+                    t_end_us: int | None = None) -> Iterator[Events]:
+        """The events with ``t_start_us <= t < t_end_us``, at most ``chunk_events`` at a time.
+
+        One row group is read at a time (cut into chunks); a window skips row groups by their ``t``
+        statistics.
+
+        Parameters
+        ----------
+        chunk_events : int
+            Most events a chunk holds (at least 1).
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Yields
+        ------
+        Events
+            The next chunk, in file order; together, what ``events`` returns.
+
+        Raises
+        ------
+        FormatError
+            At damage, without salvage (with it, the chunks end there).
+        """
         self._check_open()
         chunk_events = int(chunk_events)
         if chunk_events < 1:
@@ -383,7 +476,23 @@ class ParquetRecording(BaseRecording):
             for i in range(0, len(ev), chunk_events):
                 yield ev[i : i + chunk_events]
 
-    def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
+    def triggers(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Triggers:
+        """The trigger edges with ``t_start_us <= t < t_end_us``.
+
+        Parquet keeps them in the schema metadata (``evtk.triggers``), read when the file was opened.
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Returns
+        -------
+        Triggers
+            Their times (µs), kinds and channels, in file order.
+        """
         return self._triggers.between(t_start_us, t_end_us)
 
     @property
@@ -465,10 +574,39 @@ class ParquetWriter(BaseWriter):
             self._atomic.discard()
 
 
-def write_parquet(path, events: Events, triggers: Triggers | None = None, compression="lz4", metadata=None,
-                  row_group_events=ROW_GROUP_EVENTS, row_group_us=ROW_GROUP_US, sort=False):
-    """Write events as Parquet (atomically), one row group per time slice; events out of time order are an
-    error unless ``sort`` (the reader requires them in order)."""
+def write_parquet(path: str | os.PathLike[str], events: Events, triggers: Triggers | None = None,
+                  compression: str = "lz4", metadata: Mapping[str, Any] | None = None,
+                  row_group_events: int = ROW_GROUP_EVENTS, row_group_us: int | None = ROW_GROUP_US,
+                  sort: bool = False) -> None:
+    """Write events as Parquet (atomically), one row group per time slice.
+
+    Events out of time order are an error unless ``sort`` (the reader requires them in order).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The target (``.parquet``); it appears only once complete.
+    events : Events
+        The events, in time order (or any order with ``sort``).
+    triggers : Triggers, optional
+        Stored in the schema metadata.
+    compression : str
+        The codec, one of ``COMPRESSIONS`` (``"lz4"``, ``"zstd"``, ``"gzip"``, ``"none"``, ...).
+    metadata : Mapping of str to object, optional
+        JSON-serialisable; stored in the schema metadata.
+    row_group_events : int
+        Most events in a row group.
+    row_group_us : int or None
+        Longest time a row group spans (µs), so a short window reads few of them; None: by count only.
+    sort : bool
+        Sort the events by time (stably) before writing, instead of refusing them.
+
+    Raises
+    ------
+    EvtkError
+        For an unknown codec, time going backwards (without ``sort``), events off the sensor, or metadata
+        that is not JSON-serialisable; no file is left under ``path`` then.
+    """
     events = sorted_for_writing(events, sort, "Parquet")
     with ParquetWriter(path, events.sensor_size, compression, metadata, triggers, row_group_events, row_group_us) as w:
         w.write_events(events)

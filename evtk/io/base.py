@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -40,7 +41,8 @@ def _header_end(buf: bytes, cut: bool, prefix: int, last_line) -> tuple[int, boo
     return end, more
 
 
-def text_header(path, prefix: bytes, max_bytes: int, last_line: re.Pattern | None = None) -> tuple[list[str], int]:
+def text_header(path: str | os.PathLike[str], prefix: bytes, max_bytes: int,
+                last_line: re.Pattern | None = None) -> tuple[list[str], int]:
     """The text header at the start of a file: its lines and the offset where the data begins.
 
     A header line is text: it starts with ``prefix``, holds printable ASCII
@@ -54,7 +56,7 @@ def text_header(path, prefix: bytes, max_bytes: int, last_line: re.Pattern | Non
 
     Parameters
     ----------
-    path : str
+    path : str or os.PathLike
         The file.
     prefix : bytes
         The single byte every header line starts with (``b"#"``, ``b"%"``).
@@ -94,7 +96,27 @@ def text_header(path, prefix: bytes, max_bytes: int, last_line: re.Pattern | Non
 
 @dataclass
 class StreamInfo:
-    """One stream of a recording: name, type, element count and time range."""
+    """One stream of a recording: name, type, element count and time range.
+
+    Parameters
+    ----------
+    id : int
+        The stream's number in the file (AEDAT4 stream id; 0 for formats of one stream).
+    name : str
+        Its name ("events", "triggers", or the AEDAT4 stream's name).
+    type : str
+        AEDAT4 type identifier: ``EVTS`` (events), ``TRIG`` (triggers), ``IMUS``, ``FRME``, ...
+    packets : int
+        Packets (AEDAT4), chunks (HDF5) or row groups (Parquet) holding it.
+    count : int or None
+        Elements (events, triggers), as the file's index states it; None when it does not say.
+    t_start_us, t_end_us : int or None
+        First and last time stamp (µs) as the index states them; None when unknown or empty.
+    sensor_size : tuple of (int, int) or None
+        ``(width, height)`` in pixels, for an event or frame stream.
+    attributes : dict
+        Anything else the file says of the stream (compression, source, ...).
+    """
 
     id: int
     name: str
@@ -108,7 +130,16 @@ class StreamInfo:
 
     KINDS = {"EVTS": "events", "TRIG": "triggers", "IMUS": "imu", "FRME": "frame"}
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
+        """The stream as ``evtk info --json`` prints it.
+
+        Returns
+        -------
+        dict
+            ``id``, ``name``, ``type``, ``kind`` ("events", "triggers", "imu", "frame" or "other"),
+            ``packets``, ``count``, ``t_start_us``, ``t_end_us`` and ``sensor_size`` (a list, or None);
+            not the attributes.
+        """
         return {
             "id": self.id,
             "name": self.name,
@@ -124,7 +155,16 @@ class StreamInfo:
 
 @dataclass
 class Damage:
-    """Where salvage stopped: the byte offset (or dataset) and what was wrong there."""
+    """Where salvage stopped: the byte offset (or dataset) and what was wrong there.
+
+    Parameters
+    ----------
+    offset : int or None
+        Byte offset in the file of the first damaged byte (None where the format has no such offset, as an
+        HDF5 dataset).
+    reason : str
+        What was wrong there, in words.
+    """
 
     offset: int | None
     reason: str
@@ -159,8 +199,29 @@ class BaseWriter:
         if self._closed:
             raise EvtkError(f"{self.path}: writer is closed")
 
-    def close(self):
-        """Finish the file and move it into place (atomically); a second call does nothing."""
+    def write_events(self, events: Events) -> None:  # pragma: no cover - overridden
+        """Append events to the file.
+
+        Parameters
+        ----------
+        events : Events
+            The next events, of the writer's sensor size (in time order for the formats that need it:
+            HDF5, Prophesee RAW and DAT, Event Stream, CSV).
+
+        Raises
+        ------
+        EvtkError
+            When the writer is closed, or the events do not fit the format (coordinates beyond the sensor or
+            the format's range, time going backwards where it may not).
+        """
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Finish the file and move it into place (atomically); a second call does nothing.
+
+        On an error while finishing, the temporary file is removed (any previous file under the name is
+        untouched) and the error raised.
+        """
         if self._closed:
             return
         self._closed = True
@@ -171,7 +232,7 @@ class BaseWriter:
             self._discard()
             raise
 
-    def abort(self):
+    def abort(self) -> None:
         """Give up: remove the temporary file and leave any previous file alone."""
         if not self._closed:
             self._closed = True
@@ -193,11 +254,20 @@ class BaseRecording:
 
     Subclasses provide ``sensor_size``, ``streams``, ``metadata``,
     ``events()``, ``triggers()``, ``iter_events()`` and ``_close()``.
+    A recording is a context manager: leaving the ``with`` block closes it.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    salvage : bool
+        Read what precedes damage instead of raising :class:`~evtk.FormatError` at it; where reading stopped
+        is kept in ``damage`` (a :class:`Damage`) and said in ``warnings``.
     """
 
     format = "?"
 
-    def __init__(self, path, salvage: bool = False):
+    def __init__(self, path: str | os.PathLike[str], salvage: bool = False) -> None:
         self.path = os.fspath(path)
         self.salvage = bool(salvage)
         self.damage: Damage | None = None
@@ -205,7 +275,8 @@ class BaseRecording:
         self._closed = False
 
     # -- lifetime -------------------------------------------------------------
-    def close(self):
+    def close(self) -> None:
+        """Release the file (and its decoder threads); a second call does nothing."""
         if not self._closed:
             self._closed = True
             self._close()
@@ -244,13 +315,79 @@ class BaseRecording:
     def metadata(self) -> dict:
         return {}
 
-    def events(self, t_start_us=None, t_end_us=None) -> Events:  # pragma: no cover - overridden
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Events:  # pragma: no cover
+        """The events with ``t_start_us <= t < t_end_us``, read at once.
+
+        Readers with an index (AEDAT4's data table, the HDF5 time index, Parquet row-group statistics) read
+        only the blocks the window needs, after checking the index against the data at its edges.
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Returns
+        -------
+        Events
+            The events in file order, with the recording's sensor size.
+
+        Raises
+        ------
+        FormatError
+            Damage met while reading (not with ``salvage=True``: the events before it are returned).
+        EvtkError
+            When the events would not fit the memory budget (:func:`evtk.limits.require_memory`), or the
+            recording is closed.
+        """
         raise NotImplementedError
 
-    def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
+    def triggers(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Triggers:
+        """The trigger edges with ``t_start_us <= t < t_end_us``.
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Returns
+        -------
+        Triggers
+            Their times, kinds and channels, in file order (none for a format without triggers).
+
+        Raises
+        ------
+        FormatError
+            Damage met while reading them (not with ``salvage=True``).
+        """
         return Triggers()
 
-    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None) -> Iterator[Events]:
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us: int | None = None,
+                    t_end_us: int | None = None) -> Iterator[Events]:
+        """The events with ``t_start_us <= t < t_end_us`` in chunks, in file order, never all in memory at once.
+
+        Parameters
+        ----------
+        chunk_events : int
+            Events a chunk holds, about (a reader may give chunks of its blocks' sizes).
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Yields
+        ------
+        Events
+            One chunk after another; together, what :meth:`events` returns.
+
+        Raises
+        ------
+        FormatError
+            Damage met while reading (not with ``salvage=True``: the iteration ends at it).
+        """
         raise NotImplementedError  # pragma: no cover
 
     @property
@@ -271,9 +408,20 @@ class BaseRecording:
         s = self._main("EVTS")
         return s.t_end_us if s else None
 
-    def info(self) -> dict:
-        """A JSON-ready summary (what ``evtk info --json`` prints): counts and times as the file's
-        headers and indexes give them, without reading the events (:meth:`scan` reads them)."""
+    def info(self) -> dict[str, Any]:
+        """A JSON-ready summary (what ``evtk info --json`` prints).
+
+        Counts and times are as the file's headers and indexes give them, without reading the events
+        (:meth:`scan` reads them).
+
+        Returns
+        -------
+        dict
+            ``path``, ``format``, ``compression``, ``events`` and ``triggers`` (counts), ``sensor_size``
+            (``[width, height]`` or None), ``t_start_us`` and ``t_end_us`` (µs, or None), ``streams``
+            (:meth:`StreamInfo.as_dict` each), ``metadata``, the format's own entries, and ``warnings`` and
+            (with salvage) ``damage`` where there are any.
+        """
         streams = self.streams
         ev = next((s for s in streams if s.type == "EVTS"), None)
         tr = next((s for s in streams if s.type == "TRIG"), None)
@@ -315,15 +463,30 @@ class BaseRecording:
                 n, last = n + len(ev), int(ev.t[-1])
         return n, first, last
 
-    def scan(self, chunk_events: int = 1_000_000) -> dict:
-        """Read every event and trigger once (``chunk_events`` at a time) and report what reads:
-        ``events``, ``t_start_us``, ``t_end_us``, ``triggers``, ``scanned`` (True), with ``warnings``
-        and (salvage) ``damage`` as they stand after the pass.
+    def scan(self, chunk_events: int = 1_000_000) -> dict[str, Any]:
+        """Read every event and trigger once and report what reads.
 
         :meth:`info` reports what the file's headers and indexes say; with
         ``salvage=True`` this reports what :meth:`events` recovers, which
         damage found only by reading can make fewer. In strict mode it
         raises :class:`~evtk.FormatError` at the first damage instead.
+
+        Parameters
+        ----------
+        chunk_events : int
+            Events read at a time (:meth:`iter_events`).
+
+        Returns
+        -------
+        dict
+            ``events`` (count), ``t_start_us``, ``t_end_us`` (first and last stamp read, µs, or None),
+            ``triggers`` (count), ``scanned`` (True), with ``warnings`` and (salvage) ``damage`` as they
+            stand after the pass.
+
+        Raises
+        ------
+        FormatError
+            At the first damage, without salvage.
         """
         n, first, last = self._read_span(chunk_events)
         try:
@@ -354,6 +517,23 @@ def time_chunks(t: np.ndarray, max_events: int, max_us: int | None, is_sorted: b
     A chunk holds at most ``max_events`` events and, for a sorted stream, spans
     less than ``max_us`` microseconds.  Used for AEDAT4 packets and Parquet
     row groups alike, so a short time window touches few of them.
+
+    Parameters
+    ----------
+    t : numpy.ndarray
+        Time stamps (int64, µs).
+    max_events : int
+        Most events in a chunk (at least 1).
+    max_us : int or None
+        Longest span of a chunk (µs), for a sorted stream; None: by count only.
+    is_sorted : bool
+        Whether ``t`` never decreases (an unsorted stream is cut by count only).
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 boundaries ``[0, ..., len(t)]``: chunk ``k`` is ``t[b[k]:b[k + 1]]`` (just ``[0]`` for no
+        events when cut by time).
     """
     n = len(t)
     if max_us is None or not is_sorted:
@@ -369,7 +549,8 @@ def time_chunks(t: np.ndarray, max_events: int, max_us: int | None, is_sorted: b
     return np.asarray(cuts, np.int64)
 
 
-def window_blocks(t_lo, t_hi, t_start_us, t_end_us, actual) -> tuple[int, int] | None:
+def window_blocks(t_lo: Sequence[int | None], t_hi: Sequence[int | None], t_start_us: int | None,
+                  t_end_us: int | None, actual: Callable[[int], tuple[int, int] | None]) -> tuple[int, int] | None:
     """The blocks (packets, row groups) a time window needs, by a file's index, checked against the data.
 
     ``t_lo[k]``/``t_hi[k]`` are the first and last time an index gives block ``k`` (None when it gives
@@ -379,6 +560,20 @@ def window_blocks(t_lo, t_hi, t_start_us, t_end_us, actual) -> tuple[int, int] |
     the readers verify as they read). Returns None when the index cannot be used: some block without
     times, times out of order, or an edge block whose stamps contradict it (an index that lies); the caller
     then reads every block.
+
+    Parameters
+    ----------
+    t_lo, t_hi : sequence of int or None
+        First and last time stamp (µs) of each block, as the file's index states them.
+    t_start_us, t_end_us : int or None
+        The window, ``t_start_us <= t < t_end_us`` (None: open on that side).
+    actual : callable
+        ``actual(k)``: block ``k``'s true ``(first, last)`` stamps, read from it, or None.
+
+    Returns
+    -------
+    tuple of (int, int) or None
+        ``(a, b)``, the blocks ``a..b-1`` to read, or None when the index cannot be trusted.
     """
     n = len(t_lo)
     if any(v is None for v in t_lo) or any(v is None for v in t_hi):

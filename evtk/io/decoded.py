@@ -33,7 +33,7 @@ from __future__ import annotations
 import os
 import re
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
@@ -59,11 +59,12 @@ class DecodedRecording(BaseRecording):
         The file.
     salvage : bool
         Keep what decodes before the first damage instead of raising.
-    sensor_size : (int, int), optional
+    sensor_size : tuple of (int, int), optional
         Overrides the size the file gives or its events imply.
     """
 
-    def __init__(self, path, salvage: bool = False, sensor_size=None):
+    def __init__(self, path: str | os.PathLike[str], salvage: bool = False,
+                 sensor_size: tuple[int, int] | None = None) -> None:
         super().__init__(path, salvage)
         self._given_size = None if sensor_size is None else sensor_dims(sensor_size[0], sensor_size[1], None,
                                                                         "sensor_size")
@@ -91,7 +92,7 @@ class DecodedRecording(BaseRecording):
     def sensor_size(self):
         return self._all().sensor_size
 
-    def events(self, t_start_us=None, t_end_us=None) -> Events:
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Events:
         """Events with ``t_start_us <= t < t_end_us`` (None leaves a side open).
 
         Parameters
@@ -109,7 +110,7 @@ class DecodedRecording(BaseRecording):
             return ev
         return ev.between(t_start_us, t_end_us)
 
-    def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
+    def triggers(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Triggers:
         """The file's trigger edges (text and N-MNIST files hold none).
 
         Parameters
@@ -125,7 +126,8 @@ class DecodedRecording(BaseRecording):
         self._all()
         return self._triggers.between(t_start_us, t_end_us)
 
-    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None) -> Iterator[Events]:
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us: int | None = None,
+                    t_end_us: int | None = None) -> Iterator[Events]:
         """The events of a window, ``chunk_events`` at a time.
 
         Parameters
@@ -206,7 +208,7 @@ class TextRecording(DecodedRecording):
         The file.
     salvage : bool
         Keep the lines before the first that does not parse.
-    sensor_size : (int, int), optional
+    sensor_size : tuple of (int, int), optional
         Overrides the size from the file's first line or from the events.
     time_unit : {"s", "ms", "us", "ns"}, optional
         The time column's unit; by default seconds when it has a decimal point, else microseconds.
@@ -214,7 +216,8 @@ class TextRecording(DecodedRecording):
 
     format = "text"
 
-    def __init__(self, path, salvage: bool = False, sensor_size=None, time_unit: str | None = None):
+    def __init__(self, path: str | os.PathLike[str], salvage: bool = False,
+                 sensor_size: tuple[int, int] | None = None, time_unit: str | None = None) -> None:
         super().__init__(path, salvage, sensor_size)
         if time_unit is not None and time_unit not in TIME_UNITS:
             raise EvtkError(f"time_unit must be one of {sorted(TIME_UNITS)}, not {time_unit!r}")
@@ -396,12 +399,12 @@ def _ascii_digits(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mat, used
 
 
-def csv_lines(columns) -> bytes:
+def csv_lines(columns: Sequence[np.ndarray]) -> bytes:
     """``a,b,c,...`` lines (one a row, ``\\n`` ended) of integer columns, formatted with numpy alone.
 
     Parameters
     ----------
-    columns : list of array_like
+    columns : sequence of numpy.ndarray
         Integer columns of equal length.
 
     Returns
@@ -427,7 +430,7 @@ _NMNIST_OVERFLOW_Y = 240
 _NMNIST_OVERFLOW_US = 1 << 13
 
 
-def sniff_nmnist(path) -> bool:
+def sniff_nmnist(path: str | os.PathLike[str]) -> bool:
     """Whether ``path`` looks like an N-MNIST binary: a whole number of 5-byte events (or a ``.bin`` file cut
     inside its last one) whose first thousand have time stamps that never go back (after the overflow markers)
     and do not all stand still; with fewer than 16 events, only a ``.bin`` file.
@@ -471,7 +474,7 @@ class NmnistRecording(DecodedRecording):
         The file.
     salvage : bool
         Keep the whole events before a cut last one instead of raising.
-    sensor_size : (int, int), optional
+    sensor_size : tuple of (int, int), optional
         Overrides the size taken from the events.
     """
 

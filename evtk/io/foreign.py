@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import datetime
 import os
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -326,7 +328,7 @@ def encode_es_dvs(events: Events, state: dict | None = None) -> bytes:
     return out.tobytes()
 
 
-def prophesee_header(fmt: str, sensor_size: tuple[int, int], metadata: dict | None = None) -> bytes:
+def prophesee_header(fmt: str, sensor_size: tuple[int, int], metadata: Mapping[str, Any] | None = None) -> bytes:
     """The text header of an EVT 2.0, EVT 2.1, EVT 3.0 or DAT file for a ``sensor_size`` (width, height) sensor.
 
     Parameters
@@ -445,16 +447,17 @@ class ForeignWriter(BaseWriter):
         The target.
     fmt : str
         ``"evt2"``, ``"evt21"``, ``"evt3"``, ``"dat"``, ``"es"`` or ``"csv"``.
-    sensor_size : (int, int)
-        Width and height.
-    metadata : dict, optional
+    sensor_size : tuple of (int, int)
+        Width and height in pixels.
+    metadata : Mapping of str to object, optional
         Written as header lines (RAW and DAT).
     triggers : Triggers, optional
         Trigger edges (RAW only; DAT and Event Stream refuse them: leave them out, as
         :func:`evtk.io.convert` does with a warning).
     """
 
-    def __init__(self, path, fmt: str, sensor_size, metadata: dict | None = None, triggers: Triggers | None = None):
+    def __init__(self, path: str | os.PathLike[str], fmt: str, sensor_size: tuple[int, int],
+                 metadata: Mapping[str, Any] | None = None, triggers: Triggers | None = None) -> None:
         if fmt not in FOREIGN_FORMATS:
             raise EvtkError(f"no foreign writer for {fmt!r}")
         self.path = os.fspath(path)

@@ -14,12 +14,17 @@ import json
 import os
 import zipfile
 import zlib
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .._atomic import AtomicFile
 from ..errors import EvtkError, FormatError
 from .base import load_json, sensor_dims
+
+if TYPE_CHECKING:
+    from ..reconstruct import Reconstruction
 
 __all__ = ["save_reconstruction", "load_reconstruction", "is_reconstruction", "describe_reconstruction",
            "LAYOUT_VERSION"]
@@ -32,7 +37,8 @@ _I32_MAX = np.iinfo(np.int32).max
 _I64_MAX = np.iinfo(np.int64).max
 
 
-def save_reconstruction(path, result, sensor_size, metadata=None):
+def save_reconstruction(path: str | os.PathLike[str], result: Reconstruction, sensor_size: Sequence[int],
+                        metadata: Mapping[str, Any] | None = None) -> None:
     """Write a :class:`~evtk.reconstruct.Reconstruction` as ``.npz`` or evtk HDF5 (``.h5``/``.hdf5``), atomically.
 
     Arrays: ``responses``, ``binary``, ``cells``, ``ideal`` (when known),
@@ -40,6 +46,24 @@ def save_reconstruction(path, result, sensor_size, metadata=None):
     the summary (parameters, errors), the sensor size and ``metadata`` as
     JSON (``summary`` in NPZ, the ``/metadata`` dataset in HDF5). Read back
     with :func:`load_reconstruction`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The target; its extension (``.npz``, ``.h5``, ``.hdf5``) picks the container. It appears only once
+        complete.
+    result : evtk.reconstruct.Reconstruction
+        What :func:`evtk.reconstruct.reconstruct` (or ``evtk reconstruct``) returned.
+    sensor_size : sequence of two int
+        ``(width, height)`` of the recording's sensor, in pixels.
+    metadata : Mapping of str to object, optional
+        JSON-serialisable entries stored beside the summary (``source``: the recording's path, ...).
+
+    Raises
+    ------
+    EvtkError
+        When the extension is none of those, the metadata or summary is not JSON-serialisable, or the disk
+        refuses the write.
     """
     arrays = {"responses": result.responses, "binary": result.binary, "cells": result.cells,
               "window_start_us": result.counts.windows.t_start_us, "window_end_us": result.counts.windows.t_end_us,
@@ -53,7 +77,8 @@ def save_reconstruction(path, result, sensor_size, metadata=None):
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if ext == ".npz":
         with AtomicFile(path) as f:
-            np.savez_compressed(f.file, summary=np.array(json.dumps(meta)), **arrays)
+            # (the stubs read **arrays as possibly allow_pickle; its keys are the array names above)
+            np.savez_compressed(f.file, summary=np.array(json.dumps(meta)), **arrays)  # type: ignore[arg-type]
     elif ext in (".h5", ".hdf5"):
         from .hdf5 import Hdf5Writer  # HDF5 (and its compiled checks) load only for .h5 outputs
 
@@ -64,7 +89,7 @@ def save_reconstruction(path, result, sensor_size, metadata=None):
         raise EvtkError(f"cannot tell the output format from {ext!r}: use .npz, .h5 or .hdf5")
 
 
-def is_reconstruction(path, trust_external: bool | None = None) -> bool:
+def is_reconstruction(path: str | os.PathLike[str], trust_external: bool | None = None) -> bool:
     """Whether ``path`` is a reconstruction file: an NPZ with a summary, or an HDF5 file with a
     ``/reconstruction`` group and no events.
 
@@ -125,7 +150,7 @@ def _trusted(trust_external) -> bool:
     return trust_external_by_default() if trust_external is None else bool(trust_external)
 
 
-def load_reconstruction(path, trust_external: bool | None = None):
+def load_reconstruction(path: str | os.PathLike[str], trust_external: bool | None = None) -> Reconstruction:
     """Read a file written by :func:`save_reconstruction` (or ``evtk reconstruct``) back.
 
     The file is held to the policy event files are (``docs/formats/reconstruction.md``): an HDF5 file may
@@ -389,8 +414,29 @@ def _npy_header(path, name, f):
     return tuple(int(v) for v in shape), dtype, f.tell()
 
 
-def describe_reconstruction(path) -> dict:
-    """What ``evtk info`` says about a reconstruction file: its container, responses, windows, scenes and run."""
+def describe_reconstruction(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """What ``evtk info`` says about a reconstruction file: its container, responses, windows, scenes and run.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A reconstruction file (read whole, as :func:`load_reconstruction` reads it).
+
+    Returns
+    -------
+    dict
+        JSON-ready: ``path``, ``format``, ``container`` ("npz" or "hdf5"), ``layout_version``, ``source``,
+        ``sensor_size``, ``region``, ``responses`` (count), ``size`` (resampled response shape), ``cells``
+        (cell-grid shape), ``windows``, ``window_source``, ``scenes``, ``most_repeats``, ``linearization``,
+        ``binarize``, ``ideal`` (whether the ideal responses are stored) and ``error``.
+
+    Raises
+    ------
+    FormatError
+        When the file is not a readable reconstruction.
+    EvtkError
+        When its arrays would not fit the memory budget.
+    """
     result = load_reconstruction(path)
     s = result.summary
     scenes = result.groups()

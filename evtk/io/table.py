@@ -8,11 +8,19 @@ each other.
 from __future__ import annotations
 
 import json
+import os
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .._version import __version__
 from ..errors import EvtkError, FormatError
+
+if TYPE_CHECKING:
+    import pyarrow as pa
+
+    from ..events import Triggers
 
 __all__ = ["columns_to_table", "table_to_columns", "sensor_dims", "load_json", "MAX_SENSOR_SIDE"]
 
@@ -25,9 +33,28 @@ KEY_VERSION = b"evtk.version"
 MAX_SENSOR_SIDE = 65536
 
 
-def sensor_dims(width, height, path, where) -> tuple[int, int]:
-    """``(width, height)`` from a file's header values (numbers, or their text), or a FormatError naming
-    ``where`` they came from when they are not whole numbers from 1 to 65536."""
+def sensor_dims(width: Any, height: Any, path: str | os.PathLike[str] | None, where: str) -> tuple[int, int]:
+    """``(width, height)`` from a file's header values (numbers, or their text), checked.
+
+    Parameters
+    ----------
+    width, height : Any
+        The values as the header holds them: numbers, text or bytes of a number, or one-element arrays.
+    path : str or os.PathLike or None
+        The file, for the error.
+    where : str
+        Which header entry they came from, for the error.
+
+    Returns
+    -------
+    tuple of (int, int)
+        ``(width, height)`` in pixels.
+
+    Raises
+    ------
+    FormatError
+        Naming ``where``, when either is not a whole number from 1 to :data:`MAX_SENSOR_SIDE` (65536).
+    """
     out = []
     for v in (width, height):
         if isinstance(v, (bytes, np.bytes_)):
@@ -50,9 +77,29 @@ def _no_constant(name):
     raise ValueError(f"{name} is not a JSON number")
 
 
-def load_json(text, path, what):
-    """JSON metadata a file carries, or a FormatError naming ``what`` when it is not valid JSON, nests too
-    deeply to read, or holds NaN or infinities (which would make evtk's own JSON output invalid)."""
+def load_json(text: str | bytes | bytearray | memoryview, path: str | os.PathLike[str] | None, what: str) -> Any:
+    """JSON metadata a file carries, parsed and checked.
+
+    Parameters
+    ----------
+    text : str or bytes-like
+        The JSON (bytes as UTF-8).
+    path : str or os.PathLike or None
+        The file, for the error.
+    what : str
+        Which entry of the file it is, for the error.
+
+    Returns
+    -------
+    object
+        The parsed value (dict, list, str, number, bool or None).
+
+    Raises
+    ------
+    FormatError
+        Naming ``what`` when it is not valid JSON or UTF-8, nests too deeply to read, or holds NaN or
+        infinities (which would make evtk's own JSON output invalid).
+    """
     try:
         if isinstance(text, (bytes, bytearray, memoryview)):
             text = bytes(text).decode("utf-8")
@@ -93,8 +140,32 @@ def _schema(sensor_size, metadata=None, triggers=None):
     )
 
 
-def columns_to_table(t, x, y, p, sensor_size, metadata=None, triggers=None):
-    """A ``pyarrow.Table`` of the event columns t, x, y, p (no copy), the sensor size in its schema metadata."""
+def columns_to_table(t: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray, sensor_size: Sequence[int],
+                     metadata: Mapping[str, Any] | None = None, triggers: Triggers | None = None) -> pa.Table:
+    """A ``pyarrow.Table`` of the event columns t, x, y, p (no copy), the sensor size in its schema metadata.
+
+    Parameters
+    ----------
+    t, x, y, p : numpy.ndarray
+        The columns: int64 µs, uint16 pixels, uint16 pixels, uint8 polarity (1 ON); other dtypes are cast
+        by the schema.
+    sensor_size : sequence of two int
+        ``(width, height)`` in pixels, stored as ``evtk.sensor_size`` in the schema metadata.
+    metadata : Mapping of str to object, optional
+        Stored as JSON (``evtk.metadata``).
+    triggers : Triggers, optional
+        Stored as JSON lists (``evtk.triggers``): times, kinds, and channels where any is not 0.
+
+    Returns
+    -------
+    pyarrow.Table
+        Columns ``t``, ``x``, ``y``, ``p``; the schema metadata also holds ``evtk.version``.
+
+    Raises
+    ------
+    EvtkError
+        When ``metadata`` is not JSON-serialisable.
+    """
     pa = _pa()
     return pa.Table.from_arrays([pa.array(t), pa.array(x), pa.array(y), pa.array(p)],
                                 schema=_schema(sensor_size, metadata, triggers))
@@ -128,11 +199,34 @@ def _columns(table, path=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
     return t, x, y, p
 
 
-def table_to_columns(table, sensor_size=None):
+def table_to_columns(table: pa.Table, sensor_size: Sequence[int] | None = None,
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, ...]]:
     """``(t, x, y, p, sensor_size)`` of a ``pyarrow.Table`` (or anything with columns t, x, y, p).
 
     The sensor size comes from ``sensor_size`` or from the schema metadata
     evtk writes.
+
+    Parameters
+    ----------
+    table : pyarrow.Table
+        Integer columns t, x, y, p without nulls (others are ignored).
+    sensor_size : sequence of two int, optional
+        ``(width, height)``; default: the table's ``evtk.sensor_size`` metadata.
+
+    Returns
+    -------
+    t, x, y, p : numpy.ndarray
+        The columns as Arrow gives them (no copy where it can; dtypes not converted).
+    sensor_size : tuple of int
+        ``(width, height)``.
+
+    Raises
+    ------
+    EvtkError
+        When no sensor size is given or stored.
+    FormatError
+        When a column is missing, holds nulls or is not of an integer type, or the stored size is not two
+        whole numbers from 1 to 65536.
     """
     size = sensor_size or _sensor_from(table.schema.metadata)
     if size is None:

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from .._atomic import AtomicFile
 from ..errors import EvtkError, check_parameters
-from ..settings import MAX_SIDE, Spec, check_origin, check_value, read_table, toml_value
+from ..settings import MAX_SIDE, Spec, check_origin, check_value, read_table, toml_text
 from .geometry import (
     PHOTON_ENERGY_J_PER_NM,
     effective_stride,
@@ -442,11 +442,10 @@ def save_bench(path: str | os.PathLike[str], bench: Bench, sensor: SensorModel |
         sdata = sensor.to_dict() if hasattr(sensor, "to_dict") else dict(sensor)
     path = os.fspath(path)
     if path.lower().endswith(".toml"):
-        lines = ["# evtk bench description"]
-        lines += [f"{k} = {toml_value(v)}" for k, v in data.items() if v is not None]
+        table: dict[str, object] = {k: v for k, v in data.items() if v is not None}
         if sdata:
-            lines += ["", "[sensor]"] + [f"{k} = {toml_value(v)}" for k, v in sdata.items() if v is not None]
-        text = "\n".join(lines) + "\n"
+            table["sensor"] = {k: v for k, v in sdata.items() if v is not None}
+        text = toml_text(table, "bench", comment="evtk bench description")
     else:
         out = {k: v for k, v in data.items() if v is not None}
         if sdata:

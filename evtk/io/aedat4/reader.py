@@ -27,6 +27,7 @@ class Recording(_FileIndex, BaseRecording):
     Parameters
     ----------
     path : str or os.PathLike
+        The ``.aedat4`` file.
     salvage : bool
         Return what is intact before the first damage instead of raising
         :class:`~evtk.FormatError`; :attr:`damage` then says where it stopped.
@@ -36,7 +37,7 @@ class Recording(_FileIndex, BaseRecording):
 
     format = "aedat4"
 
-    def __init__(self, path, salvage: bool = False, verify_checksums: bool = True):
+    def __init__(self, path: str | os.PathLike[str], salvage: bool = False, verify_checksums: bool = True) -> None:
         super().__init__(path, salvage)
         self._fd = -1
         self._spans: dict = {}  # stream id -> each packet's (earliest, latest) stamp, read on the first window
@@ -229,11 +230,33 @@ class Recording(_FileIndex, BaseRecording):
         return spans
 
     # -- events -------------------------------------------------------------------
-    def events(self, t_start_us=None, t_end_us=None, stream=None) -> Events:
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None,
+               stream: int | str | None = None) -> Events:
         """Events with ``t_start_us <= t < t_end_us`` (None: no bound).
 
         With a data table only the packets that overlap the window are
         decoded; both cores decompress.
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+        stream : int or str, optional
+            The event stream (id or name) of a file with several; None: the first.
+
+        Returns
+        -------
+        Events
+            The events, in file order.
+
+        Raises
+        ------
+        FormatError
+            When the file has no event stream, or at damage (without salvage), a failed checksum included.
+        EvtkError
+            When the events would not fit the memory budget.
         """
         try:
             return self._events(t_start_us, t_end_us, stream)
@@ -309,11 +332,35 @@ class Recording(_FileIndex, BaseRecording):
         stopped = _run_split(work, len(rows), counts)
         return int(starts[stopped]) - offset, stopped == len(rows)
 
-    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None, stream=None) -> Iterator[Events]:
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us: int | None = None, t_end_us: int | None = None,
+                    stream: int | str | None = None) -> Iterator[Events]:
         """Yield the events in order, at most ``chunk_events`` at a time.
 
         Memory stays bounded by the chunk (plus one packet), whatever the
         size of the file.
+
+        Parameters
+        ----------
+        chunk_events : int
+            Most events a chunk holds (at least 1).
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+        stream : int or str, optional
+            The event stream (id or name); None: the first.
+
+        Yields
+        ------
+        Events
+            The next chunk; together, what :meth:`events` returns.
+
+        Raises
+        ------
+        FormatError
+            When the file has no event stream, or at damage (without salvage).
+        EvtkError
+            When ``chunk_events`` is below 1.
         """
         chunk_events = int(chunk_events)
         if chunk_events < 1:
@@ -442,8 +489,29 @@ class Recording(_FileIndex, BaseRecording):
             yield Events._trusted(*cols, s.sensor_size)
 
     # -- triggers -------------------------------------------------------------------
-    def triggers(self, t_start_us=None, t_end_us=None, stream=None) -> Triggers:
-        """Trigger time stamps and kinds (empty when the file has no trigger stream)."""
+    def triggers(self, t_start_us: int | None = None, t_end_us: int | None = None,
+                 stream: int | str | None = None) -> Triggers:
+        """Trigger time stamps and kinds (empty when the file has no trigger stream).
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+        stream : int or str, optional
+            The trigger stream (id or name); None: the first.
+
+        Returns
+        -------
+        Triggers
+            In file order; all of channel 0 (AEDAT4 has no channels).
+
+        Raises
+        ------
+        FormatError
+            At damage in a trigger packet (without salvage).
+        """
         s, rows = self._select("TRIG", stream, t_start_us, t_end_us)
         if s is None:
             return Triggers()
@@ -480,13 +548,37 @@ class Recording(_FileIndex, BaseRecording):
             yield Triggers(t, k)
 
     def other_streams(self) -> list[StreamInfo]:
-        """Streams that are neither events nor triggers (frames, IMU, ...), which evtk copies but does not decode."""
+        """Streams that are neither events nor triggers (frames, IMU, ...), which evtk copies but does not decode.
+
+        Returns
+        -------
+        list of StreamInfo
+            Those streams, in the header's order.
+        """
         return [st for st in self._streams.values() if st.type not in ("EVTS", "TRIG")]
 
-    def packets(self, stream):
-        """Yield ``(body, count, t_start_us, t_end_us)`` for every packet of ``stream`` (name or id), the body
-        decompressed and as the file holds it; counts from the data table or the packets, times from the data
-        table (None without one)."""
+    def packets(self, stream: int | str) -> Iterator[tuple[bytes, int, int | None, int | None]]:
+        """Every packet of one stream, decompressed, as the file holds it (for copying the stream as it is).
+
+        Parameters
+        ----------
+        stream : int or str
+            The stream's id or name.
+
+        Yields
+        ------
+        tuple of (bytes, int, int or None, int or None)
+            ``(body, count, t_start_us, t_end_us)``: the decompressed FlatBuffer body, the elements it holds
+            (from the data table or the packets; a frame packet counts 1), and its first and last time (µs)
+            from the data table (None without one).
+
+        Raises
+        ------
+        EvtkError
+            When there is no such stream.
+        FormatError
+            At damage (without salvage: with it, the packets end there).
+        """
         s = next((st for st in self._streams.values() if stream in (st.id, st.name)), None)
         if s is None:
             raise EvtkError(f"{self.path}: no stream {stream!r}")

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 import struct
+from collections.abc import Iterable, Mapping
 from html import escape as _html_escape
+from typing import Any
 
 import numpy as np
 
@@ -103,19 +106,35 @@ class Aedat4Writer(BaseWriter):
     Parameters
     ----------
     path : str or os.PathLike
-    sensor_size : (int, int)
+        The target (``.aedat4``).
+    sensor_size : tuple of (int, int)
+        Width and height in pixels, each at most 32768 (AEDAT4 stores int16 coordinates).
     compression : {'lz4', 'zstd', 'none', 'lz4_high', 'zstd_high'}
+        The packets' codec, as DV names them.
     triggers : bool
         Declare a trigger stream.
-    metadata : dict, optional
+    metadata : Mapping of str to object, optional
         JSON-serialisable; stored in the event stream's ``evtkMetadata``.
     packet_events, packet_us : int
-        A packet closes after this many events or this many microseconds.
+        A packet closes after this many events or this many microseconds (``packet_us`` None: by count
+        only); with the data table, a short window then decodes few packets.
+    source : str
+        The streams' ``source`` attribute: the camera's name (``"evtk"`` for what evtk made).
+    extra_streams : iterable of (str, str, Mapping)
+        Other streams to declare, as ``(name, type identifier, attributes)`` (frames ``FRME``, IMU
+        ``IMUS``, ...), whose packets :meth:`write_packet` then copies.
+
+    Raises
+    ------
+    EvtkError
+        For an unknown compression, a sensor size that does not fit int16, packet limits below 1, or
+        metadata that is not JSON-serialisable.
     """
 
-    def __init__(self, path, sensor_size, compression="lz4", triggers=True, metadata=None,
-                 packet_events=DEFAULT_PACKET_EVENTS, packet_us=DEFAULT_PACKET_US, source="evtk",
-                 extra_streams=()):
+    def __init__(self, path: str | os.PathLike[str], sensor_size: tuple[int, int], compression: str = "lz4",
+                 triggers: bool = True, metadata: Mapping[str, Any] | None = None,
+                 packet_events: int = DEFAULT_PACKET_EVENTS, packet_us: int | None = DEFAULT_PACKET_US,
+                 source: str = "evtk", extra_streams: Iterable[tuple[str, str, Mapping[str, Any]]] = ()) -> None:
         name = str(compression).lower()
         if name not in cz.BY_NAME:
             raise EvtkError(f"unknown compression {compression!r}; choose one of {sorted(cz.BY_NAME)}")
@@ -147,7 +166,7 @@ class Aedat4Writer(BaseWriter):
             streams.append((name, typ, {k: (_xml_type(v), v) for k, v in attrs.items()}))
         self._file = AtomicFile(path)
         self.path = self._file.path
-        self._table = [[] for _ in range(6)]  # offset, stream, size, count, t0, t1
+        self._table: list[list[np.ndarray]] = [[] for _ in range(6)]  # offset, stream, size, count, t0, t1
         self._closed = False
         try:
             header = _io_header(self.code, -1, _header_xml(streams, self.code))
@@ -173,8 +192,20 @@ class Aedat4Writer(BaseWriter):
         for col, v in zip(self._table, (offsets, np.full(n, sid), sizes, counts, t0, t1)):
             col.append(np.asarray(v, np.int64))
 
-    def write_events(self, events: Events):
-        """Append events (one or more packets)."""
+    def write_events(self, events: Events) -> None:
+        """Append events (one or more packets).
+
+        Parameters
+        ----------
+        events : Events
+            Of the writer's sensor size; any order (each packet's first and last time in the data table are
+            its smallest and largest stamp).
+
+        Raises
+        ------
+        EvtkError
+            When the writer is closed, the sensor sizes differ, or an event lies outside the sensor.
+        """
         self._check_open()
         if tuple(events.sensor_size) != self.sensor_size:
             raise EvtkError(f"events are for a {events.sensor_size} sensor, the file for {self.sensor_size}")
@@ -228,16 +259,44 @@ class Aedat4Writer(BaseWriter):
         for k, fut in enumerate(futures):
             self._emit(0, fut.result(), int(counts[k]), int(t0[k]), int(t1[k]))
 
-    def write_packet(self, stream: str, body, count: int, t_start_us: int, t_end_us: int):
-        """Append one packet of a stream declared in ``extra_streams``: ``body`` is its (decompressed)
-        FlatBuffer, written as it is under this file's compression (frames, IMU samples, ...)."""
+    def write_packet(self, stream: str, body: bytes | bytearray | memoryview | np.ndarray, count: int,
+                     t_start_us: int, t_end_us: int) -> None:
+        """Append one packet of a stream declared in ``extra_streams`` (frames, IMU samples, ...).
+
+        Parameters
+        ----------
+        stream : str
+            The stream's name, as declared.
+        body : bytes-like
+            The packet's decompressed FlatBuffer, written as it is under this file's compression.
+        count : int
+            Elements it holds, for the data table.
+        t_start_us, t_end_us : int
+            Its first and last time (µs), for the data table.
+
+        Raises
+        ------
+        EvtkError
+            When the writer is closed or the stream was not declared.
+        """
         self._check_open()
         if stream not in self._extra:
             raise EvtkError(f"no stream {stream!r} was declared; declared: {sorted(self._extra)}")
         self._emit(self._extra[stream], cz.compress(self.code, body), int(count), int(t_start_us), int(t_end_us))
 
-    def write_triggers(self, triggers: Triggers):
-        """Append triggers (one packet per 8192)."""
+    def write_triggers(self, triggers: Triggers) -> None:
+        """Append triggers (one packet per 8192).
+
+        Parameters
+        ----------
+        triggers : Triggers
+            Their times and kinds (AEDAT4 holds no channels: those are not written).
+
+        Raises
+        ------
+        EvtkError
+            When the writer is closed or was made with ``triggers=False``.
+        """
         self._check_open()
         if self._trigger_sid is None:
             raise EvtkError("this writer was opened without a trigger stream (triggers=False)")
@@ -268,8 +327,33 @@ class Aedat4Writer(BaseWriter):
         self._file.discard()
 
 
-def write_aedat4(path, events: Events, triggers: Triggers | None = None, compression="lz4", metadata=None, **kwargs):
-    """Write a whole recording to ``path`` (atomically); see :class:`Aedat4Writer`."""
+def write_aedat4(path: str | os.PathLike[str], events: Events, triggers: Triggers | None = None,
+                 compression: str = "lz4", metadata: Mapping[str, Any] | None = None, **kwargs: Any) -> None:
+    """Write a whole recording to ``path`` (atomically); see :class:`Aedat4Writer`.
+
+    Trigger packets are interleaved with the event packets by time (when the events are sorted), as a
+    camera writes them.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The target (``.aedat4``).
+    events : Events
+        The events.
+    triggers : Triggers, optional
+        Trigger edges (sorted by time here); their channels are not kept.
+    compression : str
+        The codec (:class:`Aedat4Writer`).
+    metadata : Mapping of str to object, optional
+        JSON-serialisable; stored in the event stream's ``evtkMetadata``.
+    **kwargs : Any
+        :class:`Aedat4Writer`'s other options (``packet_events``, ``packet_us``, ``source``).
+
+    Raises
+    ------
+    EvtkError
+        As :class:`Aedat4Writer` and its ``write_events``; no file is left under ``path`` then.
+    """
     with Aedat4Writer(path, events.sensor_size, compression, triggers=triggers is not None, metadata=metadata, **kwargs) as w:
         if triggers is not None and len(triggers):
             # interleave by time: each trigger packet follows the events before it

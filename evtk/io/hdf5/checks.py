@@ -65,7 +65,7 @@ _BLOSC_MEMCPYED, _BLOSC_DONT_SPLIT = 0x02, 0x10
 _BLOSC_MAX_SPLITS, _BLOSC_MIN_BUFFERSIZE = 16, 128
 
 
-def blosc1_chunk_damage(raw, expected_nbytes) -> str | None:
+def blosc1_chunk_damage(raw: bytes | bytearray | memoryview, expected_nbytes: int) -> str | None:
     """Why a Blosc (v1) chunk would make c-blosc read outside it, or None if its layout is sound.
 
     c-blosc 1 trusts the sizes and offsets inside a chunk (the HDF5 filter
@@ -74,6 +74,19 @@ def blosc1_chunk_damage(raw, expected_nbytes) -> str | None:
     (uncompressed size equal to the HDF5 chunk's, compressed size equal to
     the stored length), every block start, and every stream's length inside
     each block, split into ``typesize`` streams where c-blosc splits them.
+
+    Parameters
+    ----------
+    raw : bytes-like
+        The chunk as stored in the file (still compressed).
+    expected_nbytes : int
+        Its uncompressed size, as the dataset's chunk shape and dtype give it (bytes).
+
+    Returns
+    -------
+    str or None
+        What is wrong, in words naming the byte or block, or None when the layout is sound (the compressed
+        streams themselves are left to the decoder).
     """
     n = len(raw)
     if n < 16:
@@ -232,7 +245,7 @@ def trust_external_by_default() -> bool:
     return os.environ.get("EVTK_TRUST_EXTERNAL", "") not in ("", "0")
 
 
-def root_link(path, name: str) -> bool:
+def root_link(path: str | os.PathLike[str], name: str) -> bool:
     """Whether the HDF5 file ``path`` has a link ``name`` at its root; the link itself is looked at, nothing
     it points to (an external file is not opened).
 

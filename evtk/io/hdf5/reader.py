@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -54,10 +55,11 @@ class Hdf5Recording(BaseRecording):
     Parameters
     ----------
     path : str or os.PathLike
+        The ``.h5`` / ``.hdf5`` file.
     salvage : bool
         Return the events before the first out-of-order or out-of-sensor
         event instead of raising.
-    sensor_size : (int, int), optional
+    sensor_size : tuple of (int, int), optional
         For foreign files that do not record it; otherwise inferred from the
         largest coordinates (with a warning).
     sort : bool
@@ -71,7 +73,9 @@ class Hdf5Recording(BaseRecording):
 
     format = "hdf5"
 
-    def __init__(self, path, salvage=False, sensor_size=None, sort=False, trust_external=False):
+    def __init__(self, path: str | os.PathLike[str], salvage: bool = False,
+                 sensor_size: tuple[int, int] | None = None, sort: bool = False,
+                 trust_external: bool = False) -> None:
         super().__init__(path, salvage)
         h5py = _h5()
         self._spliced = None
@@ -97,7 +101,7 @@ class Hdf5Recording(BaseRecording):
             if sensor_size is not None:
                 self._layout.sensor_size = sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size")
             self._sort = bool(sort)
-            self._sorted_cache = None
+            self._sorted_cache: Events | None = None
             self._intact = None
             self._checked = False
             if self._layout.sensor_size is None:
@@ -133,7 +137,9 @@ class Hdf5Recording(BaseRecording):
         return isinstance(self._root[name], _CheckedGroup)
 
     @_guard
-    def read_arrays(self, group: str, names, before=None) -> dict:
+    def read_arrays(self, group: str, names: Iterable[str],
+                    before: Callable[[dict[str, tuple[tuple[int, ...], np.dtype]]], object] | None = None,
+                    ) -> dict[str, np.ndarray]:
         """The datasets ``names`` of ``group`` that exist, read whole, each checked by the file's policy first:
         links and storage out of the file unless trusted, virtual datasets, chunk sizes and the data a
         dataset claims against the file's size (``evtk.io.hdf5.checks``).
@@ -434,8 +440,32 @@ class Hdf5Recording(BaseRecording):
         return self._sorted_cache
 
     @_guard
-    def events(self, t_start_us=None, t_end_us=None) -> Events:
-        """Events with ``t_start_us <= t < t_end_us``; reads only the blocks the window needs."""
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Events:
+        """Events with ``t_start_us <= t < t_end_us``; reads only the blocks the window needs.
+
+        The window is found through the layout's time index where it has one (evtk's, DSEC's ``ms_to_idx``),
+        else by bisecting the stored time stamps; with ``sort`` the whole file is read and sorted once.
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Returns
+        -------
+        Events
+            The events, in file order (time order with ``sort``).
+
+        Raises
+        ------
+        FormatError
+            When time goes backwards (without ``sort``), an event lies off the sensor, or a dataset is damaged
+            or refused by the file's policy, without salvage.
+        EvtkError
+            When the events would not fit the memory budget.
+        """
         self._check_open()
         if self._sort:
             return self._all_sorted().between(t_start_us, t_end_us)
@@ -448,8 +478,31 @@ class Hdf5Recording(BaseRecording):
         return ev
 
     @_guard_gen
-    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
-        """Yield events in order, ``chunk_events`` at a time (memory bounded by the chunk)."""
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us: int | None = None,
+                    t_end_us: int | None = None) -> Iterator[Events]:
+        """Yield events in order, ``chunk_events`` at a time (memory bounded by the chunk).
+
+        Parameters
+        ----------
+        chunk_events : int
+            Most events a chunk holds (at least 1).
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Yields
+        ------
+        Events
+            The next chunk; together, what :meth:`events` returns.
+
+        Raises
+        ------
+        FormatError
+            At damage, without salvage (with it, the chunks end there).
+        EvtkError
+            When ``chunk_events`` is below 1.
+        """
         self._check_open()
         chunk_events = int(chunk_events)
         if chunk_events < 1:
@@ -471,7 +524,24 @@ class Hdf5Recording(BaseRecording):
                 return
 
     @_guard
-    def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
+    def triggers(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Triggers:
+        """The trigger edges with ``t_start_us <= t < t_end_us``.
+
+        As the file's layout keeps them: evtk's ``/triggers`` group, Prophesee's ``/EXT_TRIGGER/events``
+(polarity 1 a rising edge, 0 a falling one); the other layouts hold none (empty).
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Returns
+        -------
+        Triggers
+            Their times (µs), kinds and channels, in file order.
+        """
         self._check_open()
         tr = self._layout.triggers()
         if t_start_us is not None or t_end_us is not None:
@@ -523,7 +593,25 @@ class Hdf5Recording(BaseRecording):
     # -- extra arrays (responses, schedules) --------------------------------------
     @_guard
     def read_array(self, name: str) -> np.ndarray:
-        """A dataset stored beside the events (for example reconstructed responses)."""
+        """A dataset stored beside the events (for example reconstructed responses), read whole.
+
+        Parameters
+        ----------
+        name : str
+            Its path in the file.
+
+        Returns
+        -------
+        numpy.ndarray
+            Its values, checked by the file's policy first (links, storage and sizes).
+
+        Raises
+        ------
+        EvtkError
+            When there is no such dataset.
+        FormatError
+            When the policy refuses it or it cannot be read.
+        """
         self._check_open()
         if name not in self._f:
             raise EvtkError(f"{self.path}: no dataset {name!r}")

@@ -5,8 +5,11 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from ..._atomic import AtomicFile, FailSafeFile
 from ..._version import __version__
@@ -60,17 +63,25 @@ class Hdf5Writer(BaseWriter):
     Parameters
     ----------
     path : str or os.PathLike
-    sensor_size : (int, int)
+        The target (``.h5`` / ``.hdf5``).
+    sensor_size : sequence of two int
+        Width and height in pixels, stored in the root attribute ``sensor_size``.
     compression : str
         One of :data:`COMPRESSIONS`; default Blosc2-LZ4 with byte shuffle
         (chosen by measurement and robustness, see ``docs/formats/hdf5.md``).
-    metadata : dict, optional
+    metadata : Mapping of str to object, optional
         JSON-serialisable, stored in the root attribute ``metadata``.
     chunk_events : int
         HDF5 chunk length, and the stride of the time index.
+
+    Raises
+    ------
+    EvtkError
+        For an unknown compression, ``chunk_events`` below 1, or metadata that is not JSON-serialisable.
     """
 
-    def __init__(self, path, sensor_size, compression="lz4", metadata=None, chunk_events=DEFAULT_CHUNK):
+    def __init__(self, path: str | os.PathLike[str], sensor_size: Sequence[int], compression: str = "lz4",
+                 metadata: Mapping[str, Any] | None = None, chunk_events: int = DEFAULT_CHUNK) -> None:
         h5py = _h5()
         self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
         self.chunk = int(chunk_events)
@@ -102,20 +113,34 @@ class Hdf5Writer(BaseWriter):
                 self._cols[name] = g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(self.chunk,),
                                                     fillvalue=_FILL[name], **kw)
             self._cols["t"].attrs["unit"] = np.bytes_("us")
-            self._index = []
+            self._index: list[np.ndarray] = []
             self._n = 0  # events accepted ...
             self._stored = 0  # ... of which in the datasets (whole chunks until close)
-            self._tail = []  # the rest, fewer than a chunk
-            self._last_t = None
-            self._trig = []
+            self._tail: list[Events] = []  # the rest, fewer than a chunk
+            self._last_t: int | None = None
+            self._trig: list[Triggers] = []
             self._closed = False
             f.flush()  # from here on the partial file opens (and salvages) as an interrupted evtk file
         except BaseException:
             self._discard()
             raise
 
-    def write_events(self, events: Events):
-        """Append time-ordered events."""
+    def write_events(self, events: Events) -> None:
+        """Append time-ordered events.
+
+        Whole chunks go to the datasets as they fill; the rest waits for the next call or :meth:`close`.
+
+        Parameters
+        ----------
+        events : Events
+            Of the writer's sensor size, continuing the time order of those before.
+
+        Raises
+        ------
+        EvtkError
+            When the writer is closed, the sensor sizes differ, time goes backwards, an event lies off the
+            sensor, or the disk refuses the write (no file is left then).
+        """
         self._check_open()
         if tuple(events.sensor_size) != self.sensor_size:
             raise EvtkError(f"events are for a {events.sensor_size} sensor, the file for {self.sensor_size}")
@@ -154,12 +179,39 @@ class Hdf5Writer(BaseWriter):
         self._tail = [_copy(pending[k:])] if k < len(pending) else []
         self._stored = upto
 
-    def write_triggers(self, triggers: Triggers):
+    def write_triggers(self, triggers: Triggers) -> None:
+        """Add trigger edges, stored (sorted by time, with their channels) when the file is closed.
+
+        Parameters
+        ----------
+        triggers : Triggers
+            The edges; may be called several times.
+
+        Raises
+        ------
+        EvtkError
+            When the writer is closed.
+        """
         self._check_open()
         self._trig.append(triggers)
 
-    def write_array(self, name: str, data, attrs=None):
-        """Store an extra dataset (responses, schedule, parameters) in the same file."""
+    def write_array(self, name: str, data: npt.ArrayLike, attrs: Mapping[str, Any] | None = None) -> None:
+        """Store an extra dataset (responses, schedule, parameters) in the same file.
+
+        Parameters
+        ----------
+        name : str
+            Its path in the file (groups made as needed), outside ``/events`` and ``/triggers``.
+        data : array_like
+            Its values, stored uncompressed as NumPy makes them an array.
+        attrs : Mapping of str to object, optional
+            HDF5 attributes of the dataset.
+
+        Raises
+        ------
+        EvtkError
+            When the writer is closed, ``name`` is in evtk's event layout, or the disk refuses the write.
+        """
         self._check_open()
         if name.strip("/").split("/")[0] in ("events", "triggers"):
             raise EvtkError(f"{name!r} is reserved for evtk's event layout")
@@ -220,8 +272,33 @@ class Hdf5Writer(BaseWriter):
         self._atomic.discard()
 
 
-def write_hdf5(path, events: Events, triggers: Triggers | None = None, compression="lz4", metadata=None, sort=False, **kwargs):
-    """Write a whole recording in evtk's HDF5 layout (atomically)."""
+def write_hdf5(path: str | os.PathLike[str], events: Events, triggers: Triggers | None = None,
+               compression: str = "lz4", metadata: Mapping[str, Any] | None = None, sort: bool = False,
+               **kwargs: Any) -> None:
+    """Write a whole recording in evtk's HDF5 layout (atomically).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The target (``.h5`` / ``.hdf5``); it appears only once complete.
+    events : Events
+        The events, in time order (or any order with ``sort``).
+    triggers : Triggers, optional
+        Trigger edges, with their channels.
+    compression : str
+        One of :data:`COMPRESSIONS` (:class:`Hdf5Writer`).
+    metadata : Mapping of str to object, optional
+        JSON-serialisable, stored in the root attribute ``metadata``.
+    sort : bool
+        Sort the events by time (stably) first, instead of refusing them out of order.
+    **kwargs : Any
+        :class:`Hdf5Writer`'s other options (``chunk_events``).
+
+    Raises
+    ------
+    EvtkError
+        As :class:`Hdf5Writer` and its ``write_events``; no file is left under ``path`` then.
+    """
     events = sorted_for_writing(events, sort, "HDF5")
     with Hdf5Writer(path, events.sensor_size, compression, metadata, **kwargs) as w:
         for a in range(0, len(events), 1 << 22):

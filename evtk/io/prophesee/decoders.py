@@ -3,7 +3,9 @@ decoders."""
 
 from __future__ import annotations
 
+import os
 import re
+from collections.abc import Iterable
 
 import numpy as np
 from numba import njit
@@ -36,12 +38,12 @@ def _header(path):
     return lines, end
 
 
-def sniff_lines(lines) -> str | None:
+def sniff_lines(lines: Iterable[str]) -> str | None:
     """'evt2', 'evt21', 'evt3', 'dat', 'evt-other' or None from a Prophesee header's lines (without the '%').
 
     Parameters
     ----------
-    lines : list of str
+    lines : iterable of str
         The header's lines, as :func:`_header` gives them.
 
     Returns
@@ -65,12 +67,12 @@ def sniff_lines(lines) -> str | None:
     return None
 
 
-def sniff(path) -> str | None:
+def sniff(path: str | os.PathLike[str]) -> str | None:
     """'evt2', 'evt21', 'evt3', 'dat', 'evt-other' or None from a file's '%' header (its header lines only).
 
     Parameters
     ----------
-    path : str
+    path : str or os.PathLike
         The file.
 
     Returns

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 
@@ -45,17 +47,20 @@ class PropheseeRecording(BaseRecording):
     Parameters
     ----------
     path : str or os.PathLike
+        The ``.raw`` or ``.dat`` file.
     salvage : bool
         Read what is intact before damage (an event off the sensor, a file
         cut inside an event) instead of raising.
-    sensor_size : (int, int), optional
-        For files whose header does not give it.
+    sensor_size : tuple of (int, int), optional
+        ``(width, height)`` in pixels, for files whose header does not give it (else from the header's
+        geometry, its system ID, or, for DAT, the events' extent with a warning).
     """
 
     format = "prophesee"
     legacy_layout = False
 
-    def __init__(self, path, salvage=False, sensor_size=None):
+    def __init__(self, path: str | os.PathLike[str], salvage: bool = False,
+                 sensor_size: tuple[int, int] | None = None) -> None:
         super().__init__(path, salvage)
         self._lines, self._start = _header(self.path)
         kind = sniff_lines(self._lines)
@@ -111,7 +116,7 @@ class PropheseeRecording(BaseRecording):
                 raise FormatError(self.path, where, problem + "; salvage reads the events before it")
             self.damage = Damage(where, problem)
         self._blocks = None  # per block: start state, events, triggers, min t, max t
-        self._triggers = None
+        self._triggers: Triggers | None = None
         if from_events:  # N-CARS and other DAT files without a size: the smallest sensor that holds the events
             ev = self._whole()
             self._size = (int(ev.x.max()) + 1, int(ev.y.max()) + 1) if len(ev) else (1, 1)
@@ -248,7 +253,7 @@ class PropheseeRecording(BaseRecording):
 
     @property
     def metadata(self) -> dict:
-        out = {"encoding": self.encoding, "header": list(self._lines), "sensor_size_from": self.size_source}
+        out: dict[str, Any] = {"encoding": self.encoding, "header": list(self._lines), "sensor_size_from": self.size_source}
         if self.encoding == EVT21:
             out["evt21_layout"] = "legacy" if self.legacy_layout else "64-bit"
         for line in self._lines:
@@ -257,7 +262,35 @@ class PropheseeRecording(BaseRecording):
                 out["header_t0_us"] = int(parts[1])
         return out
 
-    def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
+    def iter_events(self, chunk_events: int = 1_000_000, t_start_us: int | None = None,
+                    t_end_us: int | None = None) -> Iterator[Events]:
+        """The events with ``t_start_us <= t < t_end_us``, at most ``chunk_events`` at a time.
+
+        The file is cut into blocks of whole events (indexed on the first pass); a window decodes only the
+        blocks it overlaps. Also what :class:`EventStreamRecording` gives.
+
+        Parameters
+        ----------
+        chunk_events : int
+            Most events a chunk holds (at least 1).
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Yields
+        ------
+        Events
+            The next chunk, in file order; together, what ``events`` returns.
+
+        Raises
+        ------
+        FormatError
+            At damage (an event off the sensor, a file cut inside an event, time going backwards in Event
+            Stream), without salvage (with it, the chunks end there).
+        EvtkError
+            When ``chunk_events`` is below 1.
+        """
         self._check_open()
         chunk_events = int(chunk_events)
         if chunk_events < 1:
@@ -292,7 +325,29 @@ class PropheseeRecording(BaseRecording):
                 continue
             yield self._decode_block(b)
 
-    def events(self, t_start_us=None, t_end_us=None) -> Events:
+    def events(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Events:
+        """The events with ``t_start_us <= t < t_end_us``, read at once.
+
+        The whole file is decoded in one pass over its memory map once its event count is known;
+        a window decodes only the blocks it overlaps.
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Returns
+        -------
+        Events
+            The events, in file order.
+
+        Raises
+        ------
+        FormatError
+            At damage (an event off the sensor, a file cut inside an event), without salvage.
+        """
         self._check_open()
         if t_start_us is None and t_end_us is None and self._count:
             return self._whole()
@@ -314,7 +369,24 @@ class PropheseeRecording(BaseRecording):
                 self._triggers = tr
         return ev
 
-    def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
+    def triggers(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Triggers:
+        """The trigger edges with ``t_start_us <= t < t_end_us``.
+
+        EVT 2.0 and 3.0 interleave the external trigger edges with the events, with their channel; DAT
+        and Event Stream hold none (empty). Decoded once, then kept.
+
+        Parameters
+        ----------
+        t_start_us : int, optional
+            First time kept (µs, inclusive); None: from the start.
+        t_end_us : int, optional
+            End of the window (µs, exclusive); None: to the end.
+
+        Returns
+        -------
+        Triggers
+            Their times (µs), kinds and channels, in file order.
+        """
         self._check_open()
         if self._triggers is None:
             parts = []
@@ -350,11 +422,21 @@ class EventStreamRecording(PropheseeRecording):
     events follow as a byte stream (see :func:`_es_dvs_run`). y is stored
     from the bottom row up and read as evtk's rows from the top. Generic,
     ATIS and colour streams are named and refused.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``.es`` file.
+    salvage : bool
+        Read what is intact before damage instead of raising.
+    sensor_size : tuple of (int, int), optional
+        ``(width, height)`` in pixels, replacing the header's.
     """
 
     format = "event_stream"
 
-    def __init__(self, path, salvage=False, sensor_size=None):  # noqa: D107 - the class says it
+    def __init__(self, path: str | os.PathLike[str], salvage: bool = False,  # noqa: D107 - the class says it
+                 sensor_size: tuple[int, int] | None = None) -> None:
         BaseRecording.__init__(self, path, salvage)
         with open(self.path, "rb") as f:
             head = f.read(20)
