@@ -41,10 +41,10 @@ class RolesToRefs(griffe.Extension):
         by_name: dict[str, list[str]] = {}
         for path in objects:
             by_name.setdefault(path.rsplit(".", 1)[-1], []).append(path)
-        for path, obj in objects.items():
+        for obj in objects.values():
             if obj.docstring is not None and ":`" in obj.docstring.value:
-                obj.docstring.value = _ROLE.sub(lambda m: self._link(m, obj, objects, by_name, pkg.path),
-                                                obj.docstring.value)
+                obj.docstring.value = _ROLE.sub(
+                    lambda m, here=obj: self._link(m, here, objects, by_name, pkg.path), obj.docstring.value)
 
     @staticmethod
     def _link(match: re.Match, obj: Any, objects: dict[str, Any], by_name: dict[str, list[str]], top: str) -> str:
