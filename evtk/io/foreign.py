@@ -174,6 +174,33 @@ def _blocks(n: int):
     return ((a, min(a + _BLOCK, n)) for a in range(0, n, _BLOCK))
 
 
+class _Columns:
+    """A block's t, x, y and p as aligned, contiguous arrays: the events' own where they are (views, no copy),
+    else copied into buffers made once (a structured array's fields are strided and unaligned, which makes every
+    operation on them several times slower)."""
+
+    def __init__(self, events: Events, n: int):
+        self.events = events
+        m = min(n, _BLOCK)
+        self.bufs = [np.empty(m if _plain(col) is None else 0, col.dtype)
+                     for col in (events.t, events.x, events.y, events.p)]
+
+    def __call__(self, a: int, b: int):
+        cols = []
+        for col, buf in zip((self.events.t, self.events.x, self.events.y, self.events.p), self.bufs):
+            if len(buf):
+                np.copyto(buf[:b - a], col[a:b])
+                cols.append(buf[:b - a])
+            else:
+                cols.append(col[a:b])
+        return cols
+
+
+def _plain(col: np.ndarray):
+    """``col`` itself where it is contiguous and aligned, else None."""
+    return col if col.flags.c_contiguous and col.flags.aligned else None
+
+
 def _evt2_event_words(t, x, y, p, out: np.ndarray, tmp: np.ndarray) -> np.ndarray:
     """``p << 28 | (t & 63) << 22 | x << 11 | y`` into ``out`` (uint32), with ``tmp`` as scratch."""
     np.copyto(out, t, casting="unsafe")  # the low 32 bits
@@ -200,6 +227,7 @@ def _evt2_blocks(events: Events, triggers: Triggers | None, state: dict):
     m = min(n, _BLOCK)
     buf, tmp = np.empty(m, np.uint32), np.empty(m, np.uint32)
     own_all = None
+    cols = _Columns(events, n) if is_trig is None else None
     if is_trig is not None:  # records in time order: events and edges interleaved (the whole chunk at once)
         ev, x, y, p, trig, ti = _split(events, is_trig, idx)
         own_all = np.empty(n, np.uint32)
@@ -207,11 +235,11 @@ def _evt2_blocks(events: Events, triggers: Triggers | None, state: dict):
         own_all[ev] = _evt2_event_words(te, x, y, p, np.empty(len(te), np.uint32), np.empty(len(te), np.uint32))
         own_all[trig] = ((10 << 28) | (t[trig] & 0x3F) << 22 | tc[ti] << 8 | tv[ti]).astype(np.uint32)
     for a, b in _blocks(n):
-        tb = t[a:b]
-        if own_all is None:
-            own = _evt2_event_words(tb, events.x[a:b], events.y[a:b], events.p[a:b], buf[:b - a], tmp[:b - a])
+        if cols is not None:
+            tb, xb, yb, pb = cols(a, b)
+            own = _evt2_event_words(tb, xb, yb, pb, buf[:b - a], tmp[:b - a])
         else:
-            own = own_all[a:b]
+            tb, own = t[a:b], own_all[a:b]
         high = tb >> 6
         chg, before, fillers = _high_changes(high, state.get("high"), 1 << 26)
         state["high"] = int(high[-1])
@@ -258,7 +286,9 @@ def _evt3_blocks(events: Events, triggers: Triggers | None, state: dict):
     m = min(n, _BLOCK)
     # a row a record: [EVT_TIME_HIGH, EVT_TIME_LOW, EVT_ADDR_Y, the record's own word], kept where needed, then
     # read out row by row in one pass; the fillers of long gaps (rare) go in before their records' rows
-    rows, keep = np.empty((m, 4), np.uint16), np.empty((m, 4), bool)
+    rows, keep = np.empty((m, 4), np.uint16), np.zeros((m, 4), bool)
+    keep[:, 3] = True  # a record's own word, always
+    cols = _Columns(events, n) if is_trig is None else None
     own_all = y_all = y_new_all = None
     if is_trig is not None:  # records in time order: events and edges interleaved (the whole chunk at once)
         ev, x, y, p, trig, ti = _split(events, is_trig, idx)
@@ -272,12 +302,18 @@ def _evt3_blocks(events: Events, triggers: Triggers | None, state: dict):
             np.not_equal(y[1:], y[:-1], out=y_chg[1:])
             y_new_all[ev] = y_chg
             state["y"] = int(y[-1])
+    last_chg = np.zeros(0, np.intp)
     for a, b in _blocks(n):
-        tb, r, k = t[a:b], rows[:b - a], keep[:b - a]
+        r, k = rows[:b - a], keep[:b - a]
+        if cols is not None:
+            tb, xb, yb, pb = cols(a, b)
+        else:
+            tb = t[a:b]
         high = tb >> 12
         chg, before, fillers = _high_changes(high, state.get("high"), 2047)
-        k[:, 0] = False
+        keep[last_chg, 0] = False  # the last block's EVT_TIME_HIGH marks
         k[chg, 0] = True
+        last_chg = chg
         r[chg, 0] = (8 << 12) | (high[chg] & 0xFFF)
         np.copyto(r[:, 1], tb, casting="unsafe")  # the low 16 bits
         r[:, 1] &= 0xFFF
@@ -285,17 +321,14 @@ def _evt3_blocks(events: Events, triggers: Triggers | None, state: dict):
         k[0, 1] = int(tb[0]) != state.get("t", -1)
         np.not_equal(tb[1:], tb[:-1], out=k[1:, 1])
         k[chg, 1] = True
-        k[:, 3] = True
-        if own_all is None:
-            yb = events.y[a:b]
+        if cols is not None:
             r[:, 2] = yb  # EVT_ADDR_Y (type 0)
             k[0, 2] = int(yb[0]) != state.get("y", -1)
             np.not_equal(yb[1:], yb[:-1], out=k[1:, 2])
             own = r[:, 3]
-            np.copyto(own, events.p[a:b])
-            own &= 1
-            own <<= 11
-            own |= events.x[a:b]
+            np.left_shift(pb, 11, out=own, dtype=np.uint16)
+            own &= 1 << 11
+            own |= xb
             own |= 2 << 12
             state["y"] = int(yb[-1])
         else:
@@ -354,16 +387,17 @@ def _dat_blocks(events: Events, state: dict):
     state["t"] = int(t[-1])
     m = min(n, _BLOCK)
     out, tmp = np.empty((m, 2), "<u4"), np.empty(m, np.uint32)
+    cols = _Columns(events, n)
     for a, b in _blocks(n):
         o, tm = out[:b - a], tmp[:b - a]
-        np.copyto(o[:, 0], t[a:b], casting="unsafe")  # the low 32 bits
+        tb, xb, yb, pb = cols(a, b)
+        np.copyto(o[:, 0], tb, casting="unsafe")  # the low 32 bits
         w = o[:, 1]
-        np.copyto(w, events.y[a:b])
+        np.copyto(w, yb)
         w <<= 14
-        w |= events.x[a:b]
-        np.copyto(tm, events.p[a:b])
-        tm &= 1
-        tm <<= 28
+        w |= xb
+        np.left_shift(pb, 28, out=tm, dtype=np.uint32)
+        tm &= 1 << 28
         w |= tm
         yield o
 
@@ -399,8 +433,10 @@ def _es_blocks(events: Events, state: dict):
     m = min(n, _BLOCK)
     rec, gap, tmp = np.empty(m, _ES_EVENT), np.empty(m, np.int64), np.empty(m, np.uint16)
     top = events.sensor_size[1] - 1
+    cols = _Columns(events, n)
     for a, b in _blocks(n):
-        tb, r, g, tm = t[a:b], rec[:b - a], gap[:b - a], tmp[:b - a]
+        r, g, tm = rec[:b - a], gap[:b - a], tmp[:b - a]
+        tb, xb, yb, pb = cols(a, b)
         g[0] = int(tb[0]) - state.get("t", 0)
         np.subtract(tb[1:], tb[:-1], out=g[1:])
         state["t"] = int(tb[-1])
@@ -409,10 +445,10 @@ def _es_blocks(events: Events, state: dict):
             over, g = np.divmod(g, 127)
         low = g.astype(np.uint8)
         low <<= 1
-        low |= events.p[a:b] & 1
+        low |= pb & 1
         r["b"] = low
-        r["x"] = events.x[a:b]
-        np.subtract(top, events.y[a:b], out=tm, dtype=np.uint16, casting="unsafe")  # y from the bottom row
+        r["x"] = xb
+        np.subtract(top, yb, out=tm, dtype=np.uint16, casting="unsafe")  # y from the bottom row
         r["y"] = tm
         flat = r.view(np.uint8)
         if over is None or not over.any():
