@@ -373,9 +373,8 @@ def _magnitudes(values: np.ndarray):
     """(magnitudes, as uint32 where they fit; the mask of negative values, or None; the widest magnitude's digits;
     the text width, a sign included) of integers."""
     v = np.asarray(values, np.int64)
-    neg = v < 0
-    if not neg.any():
-        neg = None
+    below = v < 0
+    neg = below if below.any() else None
     mag = (np.abs(v) if neg is not None else v).astype(np.uint64)
     top = int(mag.max()) if len(v) else 0
     digits = len(str(top))  # the widest number's digits: the loops below run no further
@@ -442,7 +441,8 @@ def _csv_block(cols: list) -> bytes:
     a table as one 8-byte word, written where the field ends; fields are written from the last to the first, so the
     bytes such a word covers before its field are overwritten by the fields they belong to."""
     m = len(cols[0])
-    fields = []  # (width, magnitudes or None for a table-read column)
+    # (width, magnitudes or None for a table-read column)
+    fields: list[tuple[int, tuple[np.ndarray, np.ndarray | None, int] | None]] = []
     for col in cols:
         small = col.dtype.kind in "ub" and col.dtype.itemsize <= 2
         if not small and col.dtype.kind in "iu" and int(col.min()) >= 0 and int(col.max()) < 1 << 16:

@@ -180,20 +180,19 @@ class _Columns:
     operation on them several times slower)."""
 
     def __init__(self, events: Events, n: int):
-        self.events = events
+        self.cols = (events.t, events.x, events.y, events.p)
         m = min(n, _BLOCK)
-        self.bufs = [np.empty(m if _plain(col) is None else 0, col.dtype)
-                     for col in (events.t, events.x, events.y, events.p)]
+        self.bufs = [None if _plain(col) is not None else np.empty(m, col.dtype) for col in self.cols]
 
-    def __call__(self, a: int, b: int):
-        cols = []
-        for col, buf in zip((self.events.t, self.events.x, self.events.y, self.events.p), self.bufs):
-            if len(buf):
-                np.copyto(buf[:b - a], col[a:b])
-                cols.append(buf[:b - a])
+    def __call__(self, a: int, b: int) -> list[np.ndarray]:
+        out = []
+        for col, buf in zip(self.cols, self.bufs):
+            if buf is None:
+                out.append(col[a:b])
             else:
-                cols.append(col[a:b])
-        return cols
+                np.copyto(buf[:b - a], col[a:b])
+                out.append(buf[:b - a])
+        return out
 
 
 def _plain(col: np.ndarray):
@@ -226,8 +225,8 @@ def _evt2_blocks(events: Events, triggers: Triggers | None, state: dict):
     n = len(t)
     m = min(n, _BLOCK)
     buf, tmp = np.empty(m, np.uint32), np.empty(m, np.uint32)
-    own_all = None
-    cols = _Columns(events, n) if is_trig is None else None
+    own_all: np.ndarray | None = None
+    cols = _Columns(events, n if is_trig is None else 0)
     if is_trig is not None:  # records in time order: events and edges interleaved (the whole chunk at once)
         ev, x, y, p, trig, ti = _split(events, is_trig, idx)
         own_all = np.empty(n, np.uint32)
@@ -235,7 +234,7 @@ def _evt2_blocks(events: Events, triggers: Triggers | None, state: dict):
         own_all[ev] = _evt2_event_words(te, x, y, p, np.empty(len(te), np.uint32), np.empty(len(te), np.uint32))
         own_all[trig] = ((10 << 28) | (t[trig] & 0x3F) << 22 | tc[ti] << 8 | tv[ti]).astype(np.uint32)
     for a, b in _blocks(n):
-        if cols is not None:
+        if own_all is None:
             tb, xb, yb, pb = cols(a, b)
             own = _evt2_event_words(tb, xb, yb, pb, buf[:b - a], tmp[:b - a])
         else:
@@ -288,8 +287,8 @@ def _evt3_blocks(events: Events, triggers: Triggers | None, state: dict):
     # read out row by row in one pass; the fillers of long gaps (rare) go in before their records' rows
     rows, keep = np.empty((m, 4), np.uint16), np.zeros((m, 4), bool)
     keep[:, 3] = True  # a record's own word, always
-    cols = _Columns(events, n) if is_trig is None else None
-    own_all = y_all = y_new_all = None
+    cols = _Columns(events, n if is_trig is None else 0)
+    by_record = None  # with triggers: each record's own word, row and whether the row is new
     if is_trig is not None:  # records in time order: events and edges interleaved (the whole chunk at once)
         ev, x, y, p, trig, ti = _split(events, is_trig, idx)
         own_all, y_all, y_new_all = np.empty(n, np.uint16), np.zeros(n, np.uint16), np.zeros(n, bool)
@@ -302,10 +301,11 @@ def _evt3_blocks(events: Events, triggers: Triggers | None, state: dict):
             np.not_equal(y[1:], y[:-1], out=y_chg[1:])
             y_new_all[ev] = y_chg
             state["y"] = int(y[-1])
+        by_record = (own_all, y_all, y_new_all)
     last_chg = np.zeros(0, np.intp)
     for a, b in _blocks(n):
         r, k = rows[:b - a], keep[:b - a]
-        if cols is not None:
+        if by_record is None:
             tb, xb, yb, pb = cols(a, b)
         else:
             tb = t[a:b]
@@ -321,7 +321,7 @@ def _evt3_blocks(events: Events, triggers: Triggers | None, state: dict):
         k[0, 1] = int(tb[0]) != state.get("t", -1)
         np.not_equal(tb[1:], tb[:-1], out=k[1:, 1])
         k[chg, 1] = True
-        if cols is not None:
+        if by_record is None:
             r[:, 2] = yb  # EVT_ADDR_Y (type 0)
             k[0, 2] = int(yb[0]) != state.get("y", -1)
             np.not_equal(yb[1:], yb[:-1], out=k[1:, 2])
@@ -332,9 +332,8 @@ def _evt3_blocks(events: Events, triggers: Triggers | None, state: dict):
             own |= 2 << 12
             state["y"] = int(yb[-1])
         else:
-            r[:, 2] = y_all[a:b]
-            k[:, 2] = y_new_all[a:b]
-            r[:, 3] = own_all[a:b]
+            own_all, y_all, y_new_all = by_record
+            r[:, 2], k[:, 2], r[:, 3] = y_all[a:b], y_new_all[a:b], own_all[a:b]
         state["high"], state["t"] = int(high[-1]), int(tb[-1])
         out = np.compress(k.reshape(-1), r.reshape(-1))  # faster than r[k] where the kept words vary
         if fillers.any():  # long gaps (rare): intermediate highs before the record's row
@@ -629,7 +628,7 @@ class ForeignWriter(BaseWriter):
 
     def _write(self, events: Events, triggers: Triggers | None) -> None:
         for block in self._encode(events, triggers):
-            self._file.write(memoryview(block).cast("B") if isinstance(block, np.ndarray) else block)
+            self._file.write(block.data.cast("B") if isinstance(block, np.ndarray) else block)
 
     def _finish(self):
         if self._triggers is not None:  # edges after the last event
