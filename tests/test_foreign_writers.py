@@ -372,3 +372,20 @@ def test_csv_lines_any_mix_of_narrow_and_wide_columns():
         cols = [pool[i] for i in rng.permutation(len(pool))[:rng.integers(1, len(pool) + 1)]]
         want = "".join(",".join(str(int(c[i])) for c in cols) + "\n" for i in range(n)).encode()
         assert csv_lines(cols) == want, trial
+
+
+def test_writing_the_foreign_formats_imports_no_compiler_nor_other_format_s_library(tmp_path):
+    """A fresh process pays for every import: writing EVT 2.0/3.0, DAT, Event Stream and CSV needs numpy alone
+    (no numba, h5py, pyarrow, scipy)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np, evtk\n"
+            "ev = evtk.Events(np.arange(100), np.arange(100) % 7, np.arange(100) % 5, np.arange(100) % 2, (8, 8))\n"
+            "for fmt in ('evt2', 'evt3', 'dat', 'es', 'csv'):\n"
+            f"    evtk.write_events({str(tmp_path)!r} + '/rec.' + fmt, ev, fmt=fmt)\n"
+            "print(sorted(m for m in ('numba', 'h5py', 'pyarrow', 'scipy', 'llvmlite') if m in sys.modules))\n")
+    env = {**os.environ, "PYTHONPATH": str(Path(evtk.__file__).resolve().parent.parent)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.strip() == "[]"
+    assert len(list(tmp_path.iterdir())) == 5
