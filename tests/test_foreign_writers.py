@@ -389,3 +389,22 @@ def test_writing_the_foreign_formats_imports_no_compiler_nor_other_format_s_libr
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert out.stdout.strip() == "[]"
     assert len(list(tmp_path.iterdir())) == 5
+
+
+def test_event_stream_memory_for_long_gaps_is_a_few_times_the_bytes_written(tmp_path):
+    """Each whole 127 us of a gap is one 0xFF byte in an Event Stream file: a sparse recording's file is mostly
+    those bytes, and writing it takes a few bytes of memory for each (it took 40: an 8-byte index a byte, sorted)."""
+    import tracemalloc
+
+    n = 1_000
+    ev = evtk.Events(np.arange(n, dtype=np.int64) * 127 * 4_000, np.zeros(n), np.zeros(n), np.ones(n), (8, 8))
+    path = tmp_path / "sparse.es"
+    tracemalloc.start()
+    try:
+        evtk.write_events(path, ev)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    size = path.stat().st_size
+    assert size > 4_000_000 and peak < 5 * size
+    assert _same(evtk.read_events(path), ev)
