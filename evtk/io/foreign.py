@@ -217,11 +217,18 @@ def _evt2_event_words(t, x, y, p, out: np.ndarray, tmp: np.ndarray) -> np.ndarra
     return out
 
 
+def _raw_records(events: Events, triggers: Triggers | None, max_channel: int, fmt: str):
+    """A RAW chunk's records, checked: their times, events and trigger edges interleaved (see :func:`_merged`),
+    and the edges' values and channels."""
+    tt, tv, tc = _trigger_columns(triggers, max_channel, fmt)
+    _check(events, tt, fmt, 2048)
+    t, is_trig, idx = _merged(events, tt)
+    return t, is_trig, idx, tv, tc
+
+
 def _evt2_blocks(events: Events, triggers: Triggers | None, state: dict):
     """The EVT 2.0 words of a chunk, a block at a time (each array valid until the next is made)."""
-    tt, tv, tc = _trigger_columns(triggers, 31, "EVT 2.0")
-    _check(events, tt, "EVT 2.0", 2048)
-    t, is_trig, idx = _merged(events, tt)
+    t, is_trig, idx, tv, tc = _raw_records(events, triggers, 31, "EVT 2.0")
     n = len(t)
     m = min(n, _BLOCK)
     buf, tmp = np.empty(m, np.uint32), np.empty(m, np.uint32)
@@ -278,9 +285,7 @@ def encode_evt2(events: Events, triggers: Triggers | None = None, state: dict | 
 
 def _evt3_blocks(events: Events, triggers: Triggers | None, state: dict):
     """The EVT 3.0 words of a chunk, a block at a time (each array valid until the next is made)."""
-    tt, tv, tc = _trigger_columns(triggers, 15, "EVT 3.0")
-    _check(events, tt, "EVT 3.0", 2048)
-    t, is_trig, idx = _merged(events, tt)
+    t, is_trig, idx, tv, tc = _raw_records(events, triggers, 15, "EVT 3.0")
     n = len(t)
     m = min(n, _BLOCK)
     # a row a record: [EVT_TIME_HIGH, EVT_TIME_LOW, EVT_ADDR_Y, the record's own word], kept where needed, then
