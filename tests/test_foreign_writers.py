@@ -408,3 +408,27 @@ def test_event_stream_memory_for_long_gaps_is_a_few_times_the_bytes_written(tmp_
     size = path.stat().st_size
     assert size > 4_000_000 and peak < 5 * size
     assert _same(evtk.read_events(path), ev)
+
+
+def test_a_chunk_refused_part_way_is_taken_back_whole_and_the_writer_goes_on(tmp_path, monkeypatch):
+    """The writers encode a chunk a block at a time: a chunk whose later block is refused (here an Event Stream
+    gap whose 0xFF bytes exceed the memory budget) leaves nothing of its earlier blocks in the file, and the next
+    chunk continues from the one before it."""
+    from evtk.io.foreign import _BLOCK
+
+    monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "16")
+
+    def chunk(t):
+        t = np.asarray(t, np.int64)
+        return evtk.Events(t, np.arange(len(t)) % 8, np.arange(len(t)) % 8, np.arange(len(t)) % 2, (8, 8))
+
+    first, last = chunk(np.arange(100) * 3), chunk(np.arange(100) * 3 + 400)
+    t_bad = np.arange(2 * _BLOCK) + 300
+    t_bad[_BLOCK + 10:] += 127 * (8 << 20)  # the second block needs 8 MiB of 0xFF bytes, three times that to make
+    path = tmp_path / "rec.es"
+    with evtk.io.open_writer(path, (8, 8), fmt="es") as w:
+        w.write_events(first)
+        with pytest.raises(EvtkError, match="memory|MiB"):
+            w.write_events(chunk(t_bad))
+        w.write_events(last)
+    assert _same(evtk.read_events(path), evtk.Events.concatenate([first, last]))

@@ -608,12 +608,12 @@ class ForeignWriter(BaseWriter):
         if self._last_t is not None and int(events.t[0]) < self._last_t:
             raise EvtkError(f"{self.path}: events go back in time between chunks ({int(events.t[0])} us after "
                             f"{self._last_t} us)")
-        triggers = None
+        triggers, rest = None, self._triggers
         if self._triggers is not None:  # the edges up to this chunk's last event go in with it
             cut = int(np.searchsorted(self._triggers.t, int(events.t[-1]), side="right"))
-            triggers, self._triggers = self._triggers[:cut], (self._triggers[cut:] if cut < len(self._triggers)
-                                                               else None)
+            triggers, rest = self._triggers[:cut], (self._triggers[cut:] if cut < len(self._triggers) else None)
         self._write(events, triggers)
+        self._triggers = rest
         self._last_t = int(events.t[-1])
 
     def _encode(self, events: Events, triggers: Triggers | None):
@@ -632,8 +632,18 @@ class ForeignWriter(BaseWriter):
         return _es_blocks(events, self._state)
 
     def _write(self, events: Events, triggers: Triggers | None) -> None:
-        for block in self._encode(events, triggers):
-            self._file.write(block.data.cast("B") if isinstance(block, np.ndarray) else block)
+        """Encode and write a chunk, a block at a time; a chunk that fails part-way (a block over the memory
+        budget, an interrupt) is taken back whole, so the writer goes on from before it."""
+        f = self._file.file
+        start, state = f.tell(), dict(self._state)
+        try:
+            for block in self._encode(events, triggers):
+                f.write(block.data.cast("B") if isinstance(block, np.ndarray) else block)
+        except BaseException:
+            f.seek(start)
+            f.truncate()
+            self._state = state
+            raise
 
     def _finish(self):
         if self._triggers is not None:  # edges after the last event
