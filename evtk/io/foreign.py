@@ -108,45 +108,11 @@ def _check(events: Events, tt: np.ndarray, fmt: str, coord_limit: int):
         raise EvtkError(f"{fmt} holds coordinates below {coord_limit}; the sensor is {w}x{h}")
 
 
-def _time_words(high: np.ndarray, prev: int | None, step: int):
-    """For each record, how many time-high words precede it (0 when its high equals the last one's), how many
-    of those are fillers, and the previous high: across a long gap, consecutive high words advance by at most
-    ``step``, less than half the counter's period, so a reader sees each wrap of the counter as a drop."""
-    n = len(high)
-    n_pre = np.zeros(n, np.int64)
-    fillers = np.zeros(n, np.int64)
-    if not n:
-        return n_pre, fillers, high
-    first_prev = -1 if prev is None else prev
-    changed = np.empty(n, bool)
-    changed[0] = high[0] != first_prev
-    np.not_equal(high[1:], high[:-1], out=changed[1:])
-    n_pre += changed
-    gap = np.empty(n, np.int64)
-    gap[0] = high[0] - first_prev if first_prev >= 0 else 0
-    np.subtract(high[1:], high[:-1], out=gap[1:])
-    long = np.flatnonzero(gap > step)  # rare: a gap of more than half the counter's period
-    prev_high = high  # read only at the long gaps (the record before each), made below when there are any
-    if len(long):
-        prev_high = np.concatenate([[first_prev], high[:-1]])
-        fillers[long] = (gap[long] - 1) // step
-        n_pre[long] += fillers[long]
-    return n_pre, fillers, prev_high
-
-
-def _filler_words(prev_high: np.ndarray, fillers: np.ndarray, step: int, type_bits: int, mask: int, dtype):
-    """The records that follow a long gap, and the intermediate time-high words that go before each of them, in
-    order (each ``step`` past the one before, as :func:`_time_words` counts them)."""
-    long = np.flatnonzero(fillers)
-    values = [type_bits | ((int(prev_high[i]) + (k + 1) * step) & mask) for i in long for k in range(int(fillers[i]))]
-    return long, np.asarray(values, dtype)
-
-
 def _high_changes(high: np.ndarray, prev: int | None, step: int):
     """The records of a block whose time high differs from the record's before (the first compared with ``prev``,
     the last high written; None at a file's start), the high before each, and how many intermediate time-high
     words go before its own: across a long gap they advance by at most ``step``, less than half the counter's
-    period, so a reader sees each wrap of the counter as a drop (as :func:`_time_words` counts them)."""
+    period, so a reader sees each wrap of the counter as a drop."""
     chg = np.flatnonzero(high[1:] != high[:-1]) + 1
     if len(high) and (prev is None or high[0] != prev):
         chg = np.concatenate(([0], chg))
@@ -637,7 +603,8 @@ class ForeignWriter(BaseWriter):
         f = self._file.file
         start, state = f.tell(), dict(self._state)
         try:
-            for block in self._encode(events, triggers):
+            blocks = self._encode(events, triggers)
+            for block in ([blocks] if isinstance(blocks, bytes) else blocks):  # an encoder's bytes, or its blocks
                 f.write(block.data.cast("B") if isinstance(block, np.ndarray) else block)
         except BaseException:
             f.seek(start)
