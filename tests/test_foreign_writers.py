@@ -314,3 +314,121 @@ def test_csv_lines_equal_python_s_own_formatting():
             rng.integers(0, 65536, 507), np.zeros(507, np.int64), rng.integers(0, 2, 507)]
     want = "".join(",".join(str(int(c[i])) for c in cols) + "\n" for i in range(507)).encode()
     assert csv_lines(cols) == want
+
+
+@pytest.mark.parametrize("fmt", ["evt2", "evt3", "dat", "es", "csv"])
+def test_writes_across_encoding_blocks_from_a_structured_array_read_back_exactly(fmt, tmp_path):
+    """The writers encode 65,536 events at a time: a time-high change, a long gap, a repeated time and a repeated
+    row fall exactly on the block edges; columns that are a structured array's (unaligned) fields, contiguous
+    columns and uneven chunks give the same bytes, which evtk and faery read back exactly."""
+    from evtk.io.foreign import _BLOCK
+
+    n = 3 * _BLOCK + 123
+    rng = np.random.default_rng(21)
+    t = np.cumsum(rng.integers(0, 3, n)).astype(np.int64)
+    # long: the longest DAT holds; EVT 2.0 / 3.0 gaps that need intermediate time-high words; 0xFF bytes in ES
+    long_gap = {"dat": 1 << 30, "evt2": (1 << 35) + 7, "evt3": (1 << 23) + 7, "es": (1 << 20) + 7}.get(fmt, 1 << 40)
+    t[_BLOCK:] += long_gap  # the second block opens after a long gap
+    t[2 * _BLOCK:] += 4096 - t[2 * _BLOCK] % 4096  # the third opens on a new EVT 3.0 time high ...
+    t[2 * _BLOCK - 1] = t[2 * _BLOCK - 2]  # ... after a repeated time
+    arr = np.zeros(n, [("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "u1")])  # 13-byte records: unaligned fields
+    arr["t"], arr["x"], arr["y"], arr["p"] = t, rng.integers(0, 1280, n), rng.integers(0, 720, n), rng.integers(0, 2, n)
+    arr["y"][_BLOCK - 1:_BLOCK + 1] = 5  # a row repeated across the first edge
+    strided = evtk.Events(arr["t"], arr["x"], arr["y"], arr["p"], (1280, 720))
+    plain = evtk.Events(t, arr["x"].copy(), arr["y"].copy(), arr["p"].copy(), (1280, 720))
+    assert not strided.x.flags.aligned or not strided.x.flags.c_contiguous
+    ext = {"evt2": "raw", "evt3": "raw"}.get(fmt, fmt)
+    paths = [tmp_path / f"{k}.{ext}" for k in range(3)]
+    evtk.write_events(paths[0], strided, fmt=fmt)
+    evtk.write_events(paths[1], plain, fmt=fmt)
+    with evtk.io.open_writer(paths[2], plain.sensor_size, fmt=fmt) as w:
+        for a, b in [(0, 1000), (1000, _BLOCK + 5), (_BLOCK + 5, n)]:
+            w.write_events(plain[a:b])
+
+    def body(p):  # the bytes after the header (its date line differs from file to file)
+        data = p.read_bytes()
+        return data[data.index(b"% end\n") + 6:] if fmt in ("evt2", "evt3") else data.split(b"\n", 5)[-1] \
+            if fmt == "dat" else data
+
+    assert body(paths[0]) == body(paths[1]) == body(paths[2])
+    assert _same(evtk.read_events(paths[0]), plain)
+    ft, fx, fy, fp = _faery(paths[0])
+    assert np.array_equal(ft, t) and np.array_equal(fx, plain.x) and np.array_equal(fy, plain.y)
+    assert np.array_equal(fp, plain.p)
+
+
+def test_csv_lines_any_mix_of_narrow_and_wide_columns():
+    """Narrow columns (below 65,536) are read from a table as 8-byte words and may share the line's first bytes;
+    wide and negative ones are formatted digit by digit: every order and mix, against str()."""
+    from evtk.io.decoded import csv_lines
+
+    rng = np.random.default_rng(17)
+    n = 700
+    pool = [rng.integers(-(10**15), 10**17, n), rng.integers(0, 65536, n).astype(np.uint16),
+            rng.integers(0, 2, n).astype(np.uint8), rng.integers(0, 70_000, n), rng.integers(0, 2, n).astype(bool),
+            rng.integers(0, 10, n), rng.integers(0, 10**7, n), rng.integers(0, 2**63 - 1, n, dtype=np.int64),
+            np.full(n, -(2**63), np.int64)]
+    for trial in range(40):
+        cols = [pool[i] for i in rng.permutation(len(pool))[:rng.integers(1, len(pool) + 1)]]
+        want = "".join(",".join(str(int(c[i])) for c in cols) + "\n" for i in range(n)).encode()
+        assert csv_lines(cols) == want, trial
+
+
+def test_writing_the_foreign_formats_imports_no_compiler_nor_other_format_s_library(tmp_path):
+    """A fresh process pays for every import: writing EVT 2.0/3.0, DAT, Event Stream and CSV needs numpy alone
+    (no numba, h5py, pyarrow, scipy)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np, evtk\n"
+            "ev = evtk.Events(np.arange(100), np.arange(100) % 7, np.arange(100) % 5, np.arange(100) % 2, (8, 8))\n"
+            "for fmt in ('evt2', 'evt3', 'dat', 'es', 'csv'):\n"
+            f"    evtk.write_events({str(tmp_path)!r} + '/rec.' + fmt, ev, fmt=fmt)\n"
+            "print(sorted(m for m in ('numba', 'h5py', 'pyarrow', 'scipy', 'llvmlite') if m in sys.modules))\n")
+    env = {**os.environ, "PYTHONPATH": str(Path(evtk.__file__).resolve().parent.parent)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.strip() == "[]"
+    assert len(list(tmp_path.iterdir())) == 5
+
+
+def test_event_stream_memory_for_long_gaps_is_a_few_times_the_bytes_written(tmp_path):
+    """Each whole 127 us of a gap is one 0xFF byte in an Event Stream file: a sparse recording's file is mostly
+    those bytes, and writing it takes a few bytes of memory for each (it took 40: an 8-byte index a byte, sorted)."""
+    import tracemalloc
+
+    n = 1_000
+    ev = evtk.Events(np.arange(n, dtype=np.int64) * 127 * 4_000, np.zeros(n), np.zeros(n), np.ones(n), (8, 8))
+    path = tmp_path / "sparse.es"
+    tracemalloc.start()
+    try:
+        evtk.write_events(path, ev)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    size = path.stat().st_size
+    assert size > 4_000_000 and peak < 5 * size
+    assert _same(evtk.read_events(path), ev)
+
+
+def test_a_chunk_refused_part_way_is_taken_back_whole_and_the_writer_goes_on(tmp_path, monkeypatch):
+    """The writers encode a chunk a block at a time: a chunk whose later block is refused (here an Event Stream
+    gap whose 0xFF bytes exceed the memory budget) leaves nothing of its earlier blocks in the file, and the next
+    chunk continues from the one before it."""
+    from evtk.io.foreign import _BLOCK
+
+    monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "16")
+
+    def chunk(t):
+        t = np.asarray(t, np.int64)
+        return evtk.Events(t, np.arange(len(t)) % 8, np.arange(len(t)) % 8, np.arange(len(t)) % 2, (8, 8))
+
+    first, last = chunk(np.arange(100) * 3), chunk(np.arange(100) * 3 + 400)
+    t_bad = np.arange(2 * _BLOCK) + 300
+    t_bad[_BLOCK + 10:] += 127 * (8 << 20)  # the second block needs 8 MiB of 0xFF bytes, three times that to make
+    path = tmp_path / "rec.es"
+    with evtk.io.open_writer(path, (8, 8), fmt="es") as w:
+        w.write_events(first)
+        with pytest.raises(EvtkError, match="memory|MiB"):
+            w.write_events(chunk(t_bad))
+        w.write_events(last)
+    assert _same(evtk.read_events(path), evtk.Events.concatenate([first, last]))

@@ -372,31 +372,118 @@ def _dotted_lines(body: bytes) -> int:
     return len(np.unique(np.searchsorted(np.flatnonzero(arr == 10), dots)))
 
 
-def _ascii_digits(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Decimal digits of integers as a (n, width) byte matrix, right-aligned, and the mask of the bytes used
-    (a leading '-' for negative values)."""
+def _magnitudes(values: np.ndarray):
+    """(magnitudes, as uint32 where they fit; the mask of negative values, or None; the widest magnitude's digits;
+    the text width, a sign included) of integers."""
     v = np.asarray(values, np.int64)
-    neg = v < 0
-    mag = np.abs(v).astype(np.uint64)
+    below = v < 0
+    neg = below if below.any() else None
+    mag = (np.abs(v) if neg is not None else v).astype(np.uint64)
     top = int(mag.max()) if len(v) else 0
     digits = len(str(top))  # the widest number's digits: the loops below run no further
     if top < 1 << 32:
         mag = mag.astype(np.uint32)  # whole-number division is faster in 32 bits
-    nd = np.ones(len(v), np.int8)
+    return mag, neg, digits, digits + (neg is not None)
+
+
+def _put_digits(mag: np.ndarray, neg, digits: int, text: np.ndarray, keep, start: int, width: int) -> np.ndarray:
+    """Write the numbers of :func:`_magnitudes` right-aligned into columns ``start:start + width`` of the (n, W)
+    byte matrix ``text``, and the mask of the bytes used into ``keep`` (unless None); return each one's length."""
+    nd = np.ones(len(mag), np.int8)
     for k in range(1, digits):
         nd += mag >= 10**k
-    nd += neg
-    width = digits + int(neg.any())
-    mat = np.empty((len(v), width), np.uint8)
-    rest = mag.copy()
+    if neg is not None:
+        nd += neg
+    rest = mag
     ten = rest.dtype.type(10)
-    for col in range(width - 1, width - 1 - digits, -1):
-        mat[:, col] = (rest % ten).astype(np.uint8) + 48
-        rest //= ten
-    if neg.any():
-        mat[neg, width - nd[neg]] = ord("-")
-    used = np.arange(width)[None, :] >= (width - nd)[:, None]
+    for col in range(start + width - 1, start + width - 1 - digits, -1):
+        quot = rest // ten
+        digit = rest - quot * ten  # one division a digit, not two
+        digit += 48
+        text[:, col] = digit
+        rest = quot
+    if neg is not None:
+        text[neg, start + width - nd[neg]] = ord("-")
+    if keep is not None:
+        np.greater_equal(np.arange(width, dtype=np.int8)[None, :], (width - nd)[:, None], out=keep[:, start:start + width])
+    return nd
+
+
+def _ascii_digits(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Decimal digits of integers as a (n, width) byte matrix, right-aligned, and the mask of the bytes used
+    (a leading '-' for negative values)."""
+    mag, neg, digits, width = _magnitudes(values)
+    mat, used = np.zeros((len(mag), width), np.uint8), np.empty((len(mag), width), bool)
+    _put_digits(mag, neg, digits, mat, used, 0, width)
     return mat, used
+
+
+#: uint64 words whose last k + 1 bytes in memory are 1 (k = 0..8): a k-digit number's mask and its separator's
+_KEEP_LAST = np.array([sum(1 << (8 * (7 - b)) for b in range(k + 1)) for k in range(8)] + [(1 << 64) - 1], np.uint64)
+_SMALL_TEXT: list = []  # text of 0..65535 as uint64: digits and a separator in the top bytes; the kept bytes' mask
+
+
+def _small_tables() -> list:
+    """(text ending in ',', text ending in a line feed, mask of the bytes kept) for 0..65535: uint64 each, the
+    number's digits and its separator in the word's top bytes (its last bytes in memory), made once."""
+    if not _SMALL_TEXT:
+        mat, used = _ascii_digits(np.arange(1 << 16))
+        text, mask = np.zeros((1 << 16, 8), np.uint8), np.zeros((1 << 16, 8), np.uint8)
+        text[:, 7 - mat.shape[1]:7], mask[:, 7 - mat.shape[1]:7] = mat, used
+        mask[:, 7] = 1
+        text[:, 7] = ord(",")
+        comma = text.view(np.uint64).ravel().copy()
+        text[:, 7] = ord("\n")
+        _SMALL_TEXT[:] = [comma, text.view(np.uint64).ravel(), mask.view(np.uint64).ravel()]
+    return _SMALL_TEXT
+
+
+def _csv_block(cols: list) -> bytes:
+    """:func:`csv_lines` of one block: each line's numbers right-aligned in fixed-width fields of an (n, W) byte
+    matrix, the padding masked out when the lines are read out. A number below 65,536 and its separator come from
+    a table as one 8-byte word, written where the field ends; fields are written from the last to the first, so the
+    bytes such a word covers before its field are overwritten by the fields they belong to."""
+    m = len(cols[0])
+    # (width, magnitudes or None for a table-read column)
+    fields: list[tuple[int, tuple[np.ndarray, np.ndarray | None, int] | None]] = []
+    for col in cols:
+        small = col.dtype.kind in "ub" and col.dtype.itemsize <= 2
+        if not small and col.dtype.kind in "iu" and int(col.min()) >= 0 and int(col.max()) < 1 << 16:
+            small = True
+        if small:
+            fields.append((len(str(int(col.max()))), None))
+        else:
+            mag, neg, digits, width = _magnitudes(col)
+            fields.append((width, (mag, neg, digits)))
+    starts, at = [], 0
+    for width, _ in fields:
+        starts.append(at)
+        at += width + 1
+    margin = max([0] + [7 - width - start for (width, _), start in zip(fields, starts) if width < 8])
+    row = margin + at
+    text, keep = np.empty((m, row), np.uint8), np.empty((m, row), bool)
+    if margin:
+        keep[:, :margin] = False
+    comma, line_feed, mask = _small_tables()
+    for i in range(len(cols) - 1, -1, -1):
+        (width, wide), end = fields[i], margin + starts[i] + fields[i][0]  # end: the separator's byte
+        if wide is not None:
+            nd = _put_digits(*wide, text, None if width < 8 else keep, end - width, width)
+            text[:, end] = ord("," if i < len(cols) - 1 else "\n")
+            if width >= 8:
+                keep[:, end] = True
+                continue
+            word = np.ndarray((m,), np.uint64, buffer=keep, offset=end - 7, strides=(row,))  # unaligned: ends at end
+            word[...] = _KEEP_LAST.take(nd.astype(np.intp))  # the number's bytes and its separator
+            continue
+        idx = cols[i].astype(np.intp, copy=False)
+        for dst, table in ((text, comma if i < len(cols) - 1 else line_feed), (keep, mask)):
+            word = np.ndarray((m,), np.uint64, buffer=dst, offset=end - 7, strides=(row,))  # unaligned: ends at end
+            word[...] = table.take(idx)
+    return np.compress(keep.reshape(-1), text.reshape(-1)).tobytes()  # faster than text[keep]
+
+
+_CSV_BLOCK = 1 << 16  # lines formatted at a time: the temporaries stay in the CPU's cache
 
 
 def csv_lines(columns: Sequence[np.ndarray]) -> bytes:
@@ -412,16 +499,9 @@ def csv_lines(columns: Sequence[np.ndarray]) -> bytes:
     bytes
         The lines, ASCII.
     """
+    columns = [np.asarray(col) for col in columns]
     n = len(columns[0])
-    if not n:
-        return b""
-    mats, masks = [], []
-    for i, col in enumerate(columns):
-        mat, used = _ascii_digits(col)
-        sep = np.full((n, 1), ord("," if i < len(columns) - 1 else "\n"), np.uint8)
-        mats += [mat, sep]
-        masks += [used, np.ones((n, 1), bool)]
-    return np.hstack(mats)[np.hstack(masks)].tobytes()
+    return b"".join(_csv_block([col[a:a + _CSV_BLOCK] for col in columns]) for a in range(0, n, _CSV_BLOCK))
 
 
 # -- N-MNIST ------------------------------------------------------------------------------------------------------

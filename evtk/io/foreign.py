@@ -47,6 +47,7 @@ __all__ = ["FOREIGN_FORMATS", "ForeignWriter", "encode_evt2", "encode_evt21", "e
 FOREIGN_FORMATS = {"evt2": None, "evt21": None, "evt3": None, "dat": "trigger edges", "es": "trigger edges",
                    "csv": "trigger edges"}
 
+_BLOCK = 1 << 16  # records encoded at a time: each block's temporaries stay in the CPU's cache
 _RISING = {1, 4}  # TriggerKind: external signal / generator rising edge
 _EDGES = {1, 2, 4, 5}
 
@@ -90,50 +91,148 @@ def _split(events: Events, is_trig, idx):
     return ev, events.x[ei], events.y[ei], events.p[ei], is_trig, idx[is_trig]
 
 
+def _goes_back(t: np.ndarray) -> bool:
+    """Whether any time is below the one before it (compared a block at a time)."""
+    for a in range(0, len(t) - 1, _BLOCK):
+        seg = t[a:a + _BLOCK + 1]
+        if (seg[1:] < seg[:-1]).any():
+            return True
+    return False
+
+
 def _check(events: Events, tt: np.ndarray, fmt: str, coord_limit: int):
     for name, col in (("events", np.asarray(events.t)), ("triggers", tt)):
-        if len(col) and int(col.min()) < 0:
-            raise EvtkError(f"{fmt} stores time from 0; the {name} start at {int(col.min())} us "
+        if not len(col):
+            continue
+        unordered = _goes_back(col)
+        low = int(col.min()) if unordered else int(col[0])  # in time order, the first is the earliest
+        if low < 0:
+            raise EvtkError(f"{fmt} stores time from 0; the {name} start at {low} us "
                             "(shift them, e.g. events.t - events.t.min())")
-        if len(col) > 1 and np.any(np.diff(col) < 0):
+        if unordered:
             raise EvtkError(f"{fmt} needs the {name} in time order (sort them first, or convert with --sort)")
     w, h = events.sensor_size
     if w > coord_limit or h > coord_limit:
         raise EvtkError(f"{fmt} holds coordinates below {coord_limit}; the sensor is {w}x{h}")
 
 
-def _time_words(high: np.ndarray, prev: int | None, step: int):
-    """For each record, how many time-high words precede it (0 when its high equals the last one's), how many
-    of those are fillers, and the previous high: across a long gap, consecutive high words advance by at most
-    ``step``, less than half the counter's period, so a reader sees each wrap of the counter as a drop."""
-    n = len(high)
-    n_pre = np.zeros(n, np.int64)
-    fillers = np.zeros(n, np.int64)
-    if not n:
-        return n_pre, fillers, high
-    first_prev = -1 if prev is None else prev
-    changed = np.empty(n, bool)
-    changed[0] = high[0] != first_prev
-    np.not_equal(high[1:], high[:-1], out=changed[1:])
-    n_pre += changed
-    gap = np.empty(n, np.int64)
-    gap[0] = high[0] - first_prev if first_prev >= 0 else 0
-    np.subtract(high[1:], high[:-1], out=gap[1:])
-    long = np.flatnonzero(gap > step)  # rare: a gap of more than half the counter's period
-    prev_high = high  # read only at the long gaps (the record before each), made below when there are any
-    if len(long):
-        prev_high = np.concatenate([[first_prev], high[:-1]])
-        fillers[long] = (gap[long] - 1) // step
-        n_pre[long] += fillers[long]
-    return n_pre, fillers, prev_high
+def _high_changes(high: np.ndarray, prev: int | None, step: int):
+    """The records of a block whose time high differs from the record's before (the first compared with ``prev``,
+    the last high written; None at a file's start), the high before each, and how many intermediate time-high
+    words go before its own: across a long gap they advance by at most ``step``, less than half the counter's
+    period, so a reader sees each wrap of the counter as a drop."""
+    chg = np.flatnonzero(high[1:] != high[:-1]) + 1
+    if len(high) and (prev is None or high[0] != prev):
+        chg = np.concatenate(([0], chg))
+    before = high[chg - 1]
+    if len(chg) and chg[0] == 0:
+        before[0] = high[0] if prev is None else prev  # a file's first high: no intermediate words
+    gap = high[chg] - before
+    fillers = np.where(gap > step, (gap - 1) // step, 0)
+    return chg, before, fillers
 
 
-def _filler_words(prev_high: np.ndarray, fillers: np.ndarray, step: int, type_bits: int, mask: int, dtype):
-    """The records that follow a long gap, and the intermediate time-high words that go before each of them, in
-    order (each ``step`` past the one before, as :func:`_time_words` counts them)."""
-    long = np.flatnonzero(fillers)
-    values = [type_bits | ((int(prev_high[i]) + (k + 1) * step) & mask) for i in long for k in range(int(fillers[i]))]
-    return long, np.asarray(values, dtype)
+def _fillers_before(chg, before, fillers, step: int, type_bits: int, mask: int):
+    """For the changes with intermediate time-high words: their records (repeated once a word) and the words, in
+    order (each ``step`` past the one before)."""
+    at = np.flatnonzero(fillers)
+    cnt = fillers[at]
+    first = np.cumsum(cnt) - cnt
+    k = np.arange(int(cnt.sum())) - np.repeat(first, cnt)  # 0, 1, ... within each gap
+    words = type_bits | ((np.repeat(before[at], cnt) + (k + 1) * step) & mask)
+    return np.repeat(chg[at], cnt), words
+
+
+def _blocks(n: int):
+    """The (start, stop) of each block of ``n`` records."""
+    return ((a, min(a + _BLOCK, n)) for a in range(0, n, _BLOCK))
+
+
+class _Columns:
+    """A block's t, x, y and p as aligned, contiguous arrays: the events' own where they are (views, no copy),
+    else copied into buffers made once (a structured array's fields are strided and unaligned, which makes every
+    operation on them several times slower)."""
+
+    def __init__(self, events: Events, n: int):
+        self.cols = (events.t, events.x, events.y, events.p)
+        m = min(n, _BLOCK)
+        self.bufs = [None if _plain(col) is not None else np.empty(m, col.dtype) for col in self.cols]
+
+    def __call__(self, a: int, b: int) -> list[np.ndarray]:
+        out = []
+        for col, buf in zip(self.cols, self.bufs):
+            if buf is None:
+                out.append(col[a:b])
+            else:
+                np.copyto(buf[:b - a], col[a:b])
+                out.append(buf[:b - a])
+        return out
+
+
+def _plain(col: np.ndarray):
+    """``col`` itself where it is contiguous and aligned, else None."""
+    return col if col.flags.c_contiguous and col.flags.aligned else None
+
+
+def _evt2_event_words(t, x, y, p, out: np.ndarray, tmp: np.ndarray) -> np.ndarray:
+    """``p << 28 | (t & 63) << 22 | x << 11 | y`` into ``out`` (uint32), with ``tmp`` as scratch."""
+    np.copyto(out, t, casting="unsafe")  # the low 32 bits
+    out &= 0x3F
+    out <<= 22
+    np.copyto(tmp, x)
+    tmp <<= 11
+    out |= tmp
+    np.copyto(tmp, y)
+    out |= tmp
+    np.copyto(tmp, p)
+    tmp &= 1
+    tmp <<= 28
+    out |= tmp
+    return out
+
+
+def _raw_records(events: Events, triggers: Triggers | None, max_channel: int, fmt: str):
+    """A RAW chunk's records, checked: their times, events and trigger edges interleaved (see :func:`_merged`),
+    and the edges' values and channels."""
+    tt, tv, tc = _trigger_columns(triggers, max_channel, fmt)
+    _check(events, tt, fmt, 2048)
+    t, is_trig, idx = _merged(events, tt)
+    return t, is_trig, idx, tv, tc
+
+
+def _evt2_blocks(events: Events, triggers: Triggers | None, state: dict):
+    """The EVT 2.0 words of a chunk, a block at a time (each array valid until the next is made)."""
+    t, is_trig, idx, tv, tc = _raw_records(events, triggers, 31, "EVT 2.0")
+    n = len(t)
+    m = min(n, _BLOCK)
+    buf, tmp = np.empty(m, np.uint32), np.empty(m, np.uint32)
+    own_all: np.ndarray | None = None
+    cols = _Columns(events, n if is_trig is None else 0)
+    if is_trig is not None:  # records in time order: events and edges interleaved (the whole chunk at once)
+        ev, x, y, p, trig, ti = _split(events, is_trig, idx)
+        own_all = np.empty(n, np.uint32)
+        te = t[ev]
+        own_all[ev] = _evt2_event_words(te, x, y, p, np.empty(len(te), np.uint32), np.empty(len(te), np.uint32))
+        own_all[trig] = ((10 << 28) | (t[trig] & 0x3F) << 22 | tc[ti] << 8 | tv[ti]).astype(np.uint32)
+    for a, b in _blocks(n):
+        if own_all is None:
+            tb, xb, yb, pb = cols(a, b)
+            own = _evt2_event_words(tb, xb, yb, pb, buf[:b - a], tmp[:b - a])
+        else:
+            tb, own = t[a:b], own_all[a:b]
+        high = tb >> 6
+        chg, before, fillers = _high_changes(high, state.get("high"), 1 << 26)
+        state["high"] = int(high[-1])
+        if not len(chg):
+            yield own
+            continue
+        at, words = chg, (8 << 28) | (high[chg] & 0xFFFFFFF)  # an EVT_TIME_HIGH before each change
+        if fillers.any():  # long gaps (rare): intermediate highs before the record's own
+            f_at, f_words = _fillers_before(chg, before, fillers, 1 << 26, 8 << 28, 0xFFFFFFF)
+            order = np.argsort(np.concatenate([f_at, chg]), kind="stable")
+            at, words = np.concatenate([f_at, chg])[order], np.concatenate([f_words, words])[order]
+        require_memory(4 * (len(own) + len(at)) * 2, "the EVT 2.0 words")
+        yield np.insert(own, at, words.astype(np.uint32))
 
 
 def encode_evt2(events: Events, triggers: Triggers | None = None, state: dict | None = None) -> bytes:
@@ -154,31 +253,74 @@ def encode_evt2(events: Events, triggers: Triggers | None = None, state: dict | 
     bytes
         The words, ready to follow the file's text header.
     """
-    state = {} if state is None else state
-    tt, tv, tc = _trigger_columns(triggers, 31, "EVT 2.0")
-    _check(events, tt, "EVT 2.0", 2048)
-    t, is_trig, idx = _merged(events, tt)
-    high = t >> 6
-    n_pre, fillers, prev_high = _time_words(high, state.get("high"), 1 << 26)
+    return b"".join(w.astype("<u4", copy=False).tobytes()
+                    for w in _evt2_blocks(events, triggers, {} if state is None else state))
+
+
+def _evt3_blocks(events: Events, triggers: Triggers | None, state: dict):
+    """The EVT 3.0 words of a chunk, a block at a time (each array valid until the next is made)."""
+    t, is_trig, idx, tv, tc = _raw_records(events, triggers, 15, "EVT 3.0")
     n = len(t)
-    extra = int(n_pre.sum())
-    require_memory(4 * (n + extra) * 2, "the EVT 2.0 words")
-    low = (t & 0x3F).astype(np.uint32) << 22
-    ev, x, y, p, trig, ti = _split(events, is_trig, idx)
-    words = np.empty(n, np.uint32)  # one word a record, in time order; the time-high words go in before
-    words[ev] = (p.astype(np.uint32) & 1) << 28 | low[ev] | x.astype(np.uint32) << 11 | y.astype(np.uint32)
-    if trig is not None:
-        words[trig] = ((10 << 28) | low[trig] | tc[ti] << 8 | tv[ti]).astype(np.uint32)
-    own = n_pre > fillers  # records whose time high differs from the last: their EVT_TIME_HIGH goes before them
-    highs = ((8 << 28) | (high[own] & 0xFFFFFFF)).astype(np.uint32)
-    out = np.insert(words, np.flatnonzero(own), highs) if extra else words
-    long, vals = _filler_words(prev_high, fillers, 1 << 26, 8 << 28, 0xFFFFFFF, np.uint32)
-    if len(long):  # long gaps (rare): intermediate highs before the record's own, at most 2**26 apart
-        own_at = np.arange(n) + np.cumsum(own) - 1  # where each record's own time-high word now stands
-        out = np.insert(out, np.repeat(own_at[long], fillers[long]), vals)
-    if n:
-        state["high"] = int(high[-1])
-    return out.astype("<u4", copy=False).tobytes()
+    m = min(n, _BLOCK)
+    # a row a record: [EVT_TIME_HIGH, EVT_TIME_LOW, EVT_ADDR_Y, the record's own word], kept where needed, then
+    # read out row by row in one pass; the fillers of long gaps (rare) go in before their records' rows
+    rows, keep = np.empty((m, 4), np.uint16), np.zeros((m, 4), bool)
+    keep[:, 3] = True  # a record's own word, always
+    cols = _Columns(events, n if is_trig is None else 0)
+    by_record = None  # with triggers: each record's own word, row and whether the row is new
+    if is_trig is not None:  # records in time order: events and edges interleaved (the whole chunk at once)
+        ev, x, y, p, trig, ti = _split(events, is_trig, idx)
+        own_all, y_all, y_new_all = np.empty(n, np.uint16), np.zeros(n, np.uint16), np.zeros(n, bool)
+        own_all[ev] = (2 << 12) | (p.astype(np.uint16) & 1) << 11 | x.astype(np.uint16)
+        own_all[trig] = ((10 << 12) | tc[ti] << 8 | tv[ti]).astype(np.uint16)
+        y_all[ev] = y
+        if len(y):
+            y_chg = np.empty(len(y), bool)
+            y_chg[0] = int(y[0]) != state.get("y", -1)
+            np.not_equal(y[1:], y[:-1], out=y_chg[1:])
+            y_new_all[ev] = y_chg
+            state["y"] = int(y[-1])
+        by_record = (own_all, y_all, y_new_all)
+    last_chg = np.zeros(0, np.intp)
+    for a, b in _blocks(n):
+        r, k = rows[:b - a], keep[:b - a]
+        if by_record is None:
+            tb, xb, yb, pb = cols(a, b)
+        else:
+            tb = t[a:b]
+        high = tb >> 12
+        chg, before, fillers = _high_changes(high, state.get("high"), 2047)
+        keep[last_chg, 0] = False  # the last block's EVT_TIME_HIGH marks
+        k[chg, 0] = True
+        last_chg = chg
+        r[chg, 0] = (8 << 12) | (high[chg] & 0xFFF)
+        np.copyto(r[:, 1], tb, casting="unsafe")  # the low 16 bits
+        r[:, 1] &= 0xFFF
+        r[:, 1] |= 6 << 12
+        k[0, 1] = int(tb[0]) != state.get("t", -1)
+        np.not_equal(tb[1:], tb[:-1], out=k[1:, 1])
+        k[chg, 1] = True
+        if by_record is None:
+            r[:, 2] = yb  # EVT_ADDR_Y (type 0)
+            k[0, 2] = int(yb[0]) != state.get("y", -1)
+            np.not_equal(yb[1:], yb[:-1], out=k[1:, 2])
+            own = r[:, 3]
+            np.left_shift(pb, 11, out=own, dtype=np.uint16)
+            own &= 1 << 11
+            own |= xb
+            own |= 2 << 12
+            state["y"] = int(yb[-1])
+        else:
+            own_all, y_all, y_new_all = by_record
+            r[:, 2], k[:, 2], r[:, 3] = y_all[a:b], y_new_all[a:b], own_all[a:b]
+        state["high"], state["t"] = int(high[-1]), int(tb[-1])
+        out = np.compress(k.reshape(-1), r.reshape(-1))  # faster than r[k] where the kept words vary
+        if fillers.any():  # long gaps (rare): intermediate highs before the record's row
+            f_at, f_words = _fillers_before(chg, before, fillers, 2047, 8 << 12, 0xFFF)
+            per_row = k.sum(axis=1)
+            starts = np.cumsum(per_row) - per_row  # where each record's row begins in out
+            out = np.insert(out, starts[f_at], f_words.astype(np.uint16))
+        yield out
 
 
 def encode_evt3(events: Events, triggers: Triggers | None = None, state: dict | None = None) -> bytes:
@@ -202,55 +344,40 @@ def encode_evt3(events: Events, triggers: Triggers | None = None, state: dict | 
     bytes
         The words, ready to follow the file's text header.
     """
-    state = {} if state is None else state
-    tt, tv, tc = _trigger_columns(triggers, 15, "EVT 3.0")
-    _check(events, tt, "EVT 3.0", 2048)
-    t, is_trig, idx = _merged(events, tt)
+    return b"".join(w.astype("<u2", copy=False).tobytes()
+                    for w in _evt3_blocks(events, triggers, {} if state is None else state))
+
+
+def _dat_blocks(events: Events, state: dict):
+    """The DAT events of a chunk, a block at a time (each array valid until the next is made)."""
+    _check(events, np.empty(0, np.int64), "DAT", 16384)
+    t = events.t
     n = len(t)
-    high = t >> 12
-    n_high, fillers, prev_high = _time_words(high, state.get("high"), 2047)
-    low_new = np.empty(n, bool)
-    if n:
-        low_new[0] = t[0] != state.get("t", -1)
-        np.not_equal(t[1:], t[:-1], out=low_new[1:])
-        low_new |= n_high > 0
-    ev, x, y, p, trig, ti = _split(events, is_trig, idx)
-    y_ev = np.asarray(y)
-    y_new = np.zeros(n, bool)
-    if len(y_ev):
-        y_chg = np.empty(len(y_ev), bool)
-        y_chg[0] = int(y_ev[0]) != state.get("y", -1)
-        np.not_equal(y_ev[1:], y_ev[:-1], out=y_chg[1:])
-        y_new[ev] = y_chg
-    require_memory(16 * n, "the EVT 3.0 words")
-    # a row a record: [EVT_TIME_HIGH, EVT_TIME_LOW, EVT_ADDR_Y, the record's own word], kept where needed, then
-    # read out row by row in one pass; the fillers of long gaps (rare) go in before their records' rows
-    rows = np.empty((n, 4), np.uint16)
-    keep = np.empty((n, 4), bool)
-    rows[:, 0] = (8 << 12) | (high & 0xFFF).astype(np.uint16)
-    keep[:, 0] = n_high > 0
-    rows[:, 1] = (6 << 12) | (t & 0xFFF).astype(np.uint16)
-    keep[:, 1] = low_new
-    keep[:, 2] = y_new
-    keep[:, 3] = True
-    if trig is None:
-        rows[:, 2] = y_ev.astype(np.uint16)  # EVT_ADDR_Y (type 0)
-        rows[:, 3] = (2 << 12) | (p.astype(np.uint16) & 1) << 11 | x.astype(np.uint16)
-    else:
-        rows[ev, 2] = y_ev.astype(np.uint16)
-        rows[ev, 3] = (2 << 12) | (p.astype(np.uint16) & 1) << 11 | x.astype(np.uint16)
-        rows[trig, 3] = ((10 << 12) | tc[ti] << 8 | tv[ti]).astype(np.uint16)
-    out = rows[keep]
-    long, vals = _filler_words(prev_high, fillers, 2047, 8 << 12, 0xFFF, np.uint16)
-    if len(long):
-        per_row = keep.sum(axis=1)
-        starts = np.cumsum(per_row) - per_row  # where each record's row begins in out
-        out = np.insert(out, np.repeat(starts[long], fillers[long]), vals)
-    if n:
-        state["high"], state["t"] = int(high[-1]), int(t[-1])
-    if len(y_ev):
-        state["y"] = int(y_ev[-1])
-    return out.astype("<u2", copy=False).tobytes()
+    if not n:
+        return
+    prev = state.get("t", int(t[0]))
+    if int(t[-1]) - prev >= 1 << 31:  # some gap may be too long for the 32-bit stamps: find the longest
+        gaps = np.diff(t, prepend=prev)
+        if gaps.max() >= 1 << 31:
+            k = int(np.argmax(gaps))
+            raise EvtkError(f"DAT's 32-bit time stamps cannot hold a gap of {int(gaps[k])} us (before event {k}); "
+                            "write EVT 2.0, EVT 3.0 or AEDAT4")
+    state["t"] = int(t[-1])
+    m = min(n, _BLOCK)
+    out, tmp = np.empty((m, 2), "<u4"), np.empty(m, np.uint32)
+    cols = _Columns(events, n)
+    for a, b in _blocks(n):
+        o, tm = out[:b - a], tmp[:b - a]
+        tb, xb, yb, pb = cols(a, b)
+        np.copyto(o[:, 0], tb, casting="unsafe")  # the low 32 bits
+        w = o[:, 1]
+        np.copyto(w, yb)
+        w <<= 14
+        w |= xb
+        np.left_shift(pb, 28, out=tm, dtype=np.uint32)
+        tm &= 1 << 28
+        w |= tm
+        yield o
 
 
 def encode_dat(events: Events, state: dict | None = None) -> bytes:
@@ -270,22 +397,50 @@ def encode_dat(events: Events, state: dict | None = None) -> bytes:
     bytes
         The events, ready to follow the header and its two type/size bytes.
     """
-    state = {} if state is None else state
-    _check(events, np.empty(0, np.int64), "DAT", 16384)
-    t = np.asarray(events.t, np.int64)
-    if len(t):
-        gaps = np.diff(t, prepend=state.get("t", t[0]))
-        if gaps.max() >= 1 << 31:
-            k = int(np.argmax(gaps))
-            raise EvtkError(f"DAT's 32-bit time stamps cannot hold a gap of {int(gaps[k])} us (before event {k}); "
-                            "write EVT 2.0, EVT 3.0 or AEDAT4")
-        state["t"] = int(t[-1])
-    require_memory(8 * len(t), "the DAT events")
-    out = np.empty((len(t), 2), "<u4")
-    out[:, 0] = t & 0xFFFFFFFF
-    out[:, 1] = (events.x.astype(np.uint32) | events.y.astype(np.uint32) << 14
-                 | (events.p.astype(np.uint32) & 1) << 28)
-    return out.tobytes()
+    return b"".join(o.tobytes() for o in _dat_blocks(events, {} if state is None else state))
+
+
+_ES_EVENT = np.dtype([("b", "u1"), ("x", "<u2"), ("y", "<u2")])  # packed: 5 bytes an event
+
+
+def _es_blocks(events: Events, state: dict):
+    """The Event Stream DVS bytes of a chunk, a block at a time (each array valid until the next is made)."""
+    _check(events, np.empty(0, np.int64), "Event Stream", 65536)
+    t = events.t
+    n = len(t)
+    m = min(n, _BLOCK)
+    rec, gap, tmp = np.empty(m, _ES_EVENT), np.empty(m, np.int64), np.empty(m, np.uint16)
+    top = events.sensor_size[1] - 1
+    cols = _Columns(events, n)
+    for a, b in _blocks(n):
+        r, g, tm = rec[:b - a], gap[:b - a], tmp[:b - a]
+        tb, xb, yb, pb = cols(a, b)
+        g[0] = int(tb[0]) - state.get("t", 0)
+        np.subtract(tb[1:], tb[:-1], out=g[1:])
+        state["t"] = int(tb[-1])
+        over = None
+        if int(g.max()) >= 127:  # gaps of 127 us or more: a 0xFF byte for each whole 127 us
+            over, g = np.divmod(g, 127)
+        low = g.astype(np.uint8)
+        low <<= 1
+        low |= pb & 1
+        r["b"] = low
+        r["x"] = xb
+        np.subtract(top, yb, out=tm, dtype=np.uint16, casting="unsafe")  # y from the bottom row
+        r["y"] = tm
+        flat = r.view(np.uint8)
+        if over is None or not over.any():
+            yield flat
+            continue
+        size = 5 * len(tb) + int(over.sum())
+        require_memory(3 * size, "the Event Stream bytes")
+        ends = 5 * np.arange(1, len(tb) + 1) + np.cumsum(over)  # where each event's five bytes end
+        edge = np.zeros(size + 1, np.int8)
+        edge[ends - 5] += 1
+        edge[ends] -= 1
+        out = np.full(size, 0xFF, np.uint8)
+        out[np.cumsum(edge[:size], dtype=np.int8).view(bool)] = flat
+        yield out
 
 
 def encode_es_dvs(events: Events, state: dict | None = None) -> bytes:
@@ -304,28 +459,7 @@ def encode_es_dvs(events: Events, state: dict | None = None) -> bytes:
     bytes
         The event bytes, ready to follow the 20-byte header.
     """
-    state = {} if state is None else state
-    _check(events, np.empty(0, np.int64), "Event Stream", 65536)
-    t = np.asarray(events.t, np.int64)
-    if not len(t):
-        return b""
-    gaps = np.diff(t, prepend=state.get("t", 0))
-    over = gaps // 127
-    n_over = int(over.sum())
-    require_memory(5 * len(t) + n_over, "the Event Stream bytes")
-    rows = np.empty((len(t), 5), np.uint8)  # each event's five bytes; the 0xFF bytes go in before them
-    rows[:, 0] = (gaps % 127).astype(np.uint8) << 1 | (events.p.astype(np.uint8) & 1)
-    x = events.x
-    y = (events.sensor_size[1] - 1) - events.y.astype(np.int32)
-    rows[:, 1] = x.astype(np.uint8)  # the low byte (a cast keeps the low bits)
-    rows[:, 2] = (x >> 8).astype(np.uint8)
-    rows[:, 3] = y.astype(np.uint8)
-    rows[:, 4] = (y >> 8).astype(np.uint8)
-    out = rows.reshape(-1)
-    if n_over:
-        out = np.insert(out, np.repeat(np.arange(len(t)) * 5, over), np.uint8(0xFF))
-    state["t"] = int(t[-1])
-    return out.tobytes()
+    return b"".join(o.tobytes() for o in _es_blocks(events, {} if state is None else state))
 
 
 def prophesee_header(fmt: str, sensor_size: tuple[int, int], metadata: Mapping[str, Any] | None = None) -> bytes:
@@ -501,35 +635,51 @@ class ForeignWriter(BaseWriter):
         if self._last_t is not None and int(events.t[0]) < self._last_t:
             raise EvtkError(f"{self.path}: events go back in time between chunks ({int(events.t[0])} us after "
                             f"{self._last_t} us)")
-        triggers = None
+        triggers, rest = None, self._triggers
         if self._triggers is not None:  # the edges up to this chunk's last event go in with it
             cut = int(np.searchsorted(self._triggers.t, int(events.t[-1]), side="right"))
-            triggers, self._triggers = self._triggers[:cut], (self._triggers[cut:] if cut < len(self._triggers)
-                                                               else None)
-        self._file.write(self._encode(events, triggers))
+            triggers, rest = self._triggers[:cut], (self._triggers[cut:] if cut < len(self._triggers) else None)
+        self._write(events, triggers)
+        self._triggers = rest
         self._last_t = int(events.t[-1])
 
-    def _encode(self, events: Events, triggers: Triggers | None) -> bytes:
+    def _encode(self, events: Events, triggers: Triggers | None):
+        """The chunk's bytes, a block at a time (each array valid until the next is made)."""
         if self.fmt == "evt2":
-            return encode_evt2(events, triggers, self._state)
+            return _evt2_blocks(events, triggers, self._state)
         if self.fmt == "evt3":
-            return encode_evt3(events, triggers, self._state)
+            return _evt3_blocks(events, triggers, self._state)
         if self.fmt == "evt21":
             return encode_evt21(events, triggers, self._state)
         if self.fmt == "dat":
-            return encode_dat(events, self._state)
-        if self.fmt == "csv":  # a million lines at a time bounds the text held
+            return _dat_blocks(events, self._state)
+        if self.fmt == "csv":  # a block of lines at a time bounds the text held
             from .decoded import csv_lines
 
-            return b"".join(csv_lines([p.t, p.x, p.y, p.p]) for p in
-                            (events[k:k + (1 << 20)] for k in range(0, len(events), 1 << 20)))
-        return encode_es_dvs(events, self._state)
+            return (csv_lines([p.t, p.x, p.y, p.p]) for p in
+                    (events[k:k + _BLOCK] for k in range(0, len(events), _BLOCK)))
+        return _es_blocks(events, self._state)
+
+    def _write(self, events: Events, triggers: Triggers | None) -> None:
+        """Encode and write a chunk, a block at a time; a chunk that fails part-way (a block over the memory
+        budget, an interrupt) is taken back whole, so the writer goes on from before it."""
+        f = self._file.file
+        start, state = f.tell(), dict(self._state)
+        try:
+            blocks = self._encode(events, triggers)
+            for block in ([blocks] if isinstance(blocks, bytes) else blocks):  # an encoder's bytes, or its blocks
+                f.write(block.data.cast("B") if isinstance(block, np.ndarray) else block)
+        except BaseException:
+            f.seek(start)
+            f.truncate()
+            self._state = state
+            raise
 
     def _finish(self):
         if self._triggers is not None:  # edges after the last event
             empty = Events(np.empty(0, np.int64), np.empty(0, np.uint16), np.empty(0, np.uint16),
                            np.empty(0, np.uint8), self.sensor_size)
-            self._file.write(self._encode(empty, self._triggers))
+            self._write(empty, self._triggers)
             self._triggers = None
 
     def _commit(self):
