@@ -45,3 +45,20 @@ def test_every_dataclass_field_is_set_by_an_option_or_named_as_not():
     covered = {renamed.get(n, n) for n in set_by}
     assert fields - covered <= NOT_OPTIONS, f"fields no option sets: {sorted(fields - covered - NOT_OPTIONS)}"
     assert covered - {"region"} <= fields
+
+
+def test_enob_window_options_are_the_dataclass_defaults_and_the_library_defaults():
+    """`evtk enob`'s windows are cut as reconstruct's (the same fields of ReconstructOptions), and its interval and
+    per-pixel flag default as evtk.sweeps.recording_noise does: one source for each default."""
+    from evtk.sweeps import recording_noise
+
+    cmd = _command(("enob",))
+    ctx = click.Context(cmd)
+    got = {p.name: p.get_default(ctx, call=True) for p in cmd.params}
+    fields = {f.name: f.default for f in dataclasses.fields(ReconstructOptions)}
+    assert got["window_spec"] == fields["window"]
+    assert got["skip_us"] == fields["skip_us"]
+    assert (None if type(got["length_us"]).__name__ == "Sentinel" else got["length_us"]) == fields["length_us"]
+    lib = inspect.signature(recording_noise).parameters
+    assert got["interval"] == lib["interval"].default
+    assert bool(got["per_pixel"]) == lib["per_pixel"].default
