@@ -1,0 +1,400 @@
+"""Windows a batch at a time: counts of only the region's pixels, then every stage, in memory bounded by a batch.
+
+Windows without a capture schedule (periodic or from trigger edges) stand alone: each one's response depends on
+its own counts only. :func:`iter_window_counts` counts them a batch at a time, reading each batch's events through
+the recording's time-window API (chunks decoded on another thread while the last one is counted), and
+:func:`reconstruct_windows` runs the stages after accumulation on each batch, keeping the responses. Counting is
+numpy only (one ``searchsorted`` of the windows' bounds in each chunk's sorted time stamps, one ``bincount`` over
+flattened (window, polarity, pixel) indices), so nothing is compiled at run time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numba
+import numpy as np
+
+from ..errors import EvtkError
+from ..events import Events
+from ..limits import memory_limit_bytes, require_memory
+from .accumulate import _accumulate_chunk, _prefetched
+from .binarize import binarize
+from .grid import overlap_matrix
+from .windows import WindowCounts, Windows
+
+#: Most memory one batch of windows may take (its counts and the float stages after them), in bytes.
+BATCH_BYTES = 256 << 20
+
+#: Peak bytes a window-pixel costs in a batch: ON and OFF counts (int32), the counts of one chunk (int64 each) and
+#: the float64 stages after them (net counts, linearised values, their copies).
+BYTES_PER_WINDOW_PIXEL = 64
+
+def batch_size(region, n_windows: int) -> int:
+    """How many windows of ``region`` (x0, x1, y0, y1) one batch holds: :data:`BATCH_BYTES` or a quarter of the
+    memory budget, whichever is less, and at least one (checked against the budget).
+
+    Parameters
+    ----------
+    region : tuple of int
+        (x0, x1, y0, y1), half-open sensor pixels.
+    n_windows : int
+        Windows to count in all.
+
+    Returns
+    -------
+    int
+        Windows per batch, between 1 and ``n_windows`` (1 when there are none).
+
+    Raises
+    ------
+    EvtkError
+        When even one window does not fit the memory budget.
+    """
+    x0, x1, y0, y1 = (int(v) for v in region)
+    per_window = max(1, (x1 - x0) * (y1 - y0) * BYTES_PER_WINDOW_PIXEL)
+    require_memory(per_window, f"one window over {x1 - x0}x{y1 - y0} pixels")
+    n = max(1, min(BATCH_BYTES, memory_limit_bytes() // 4) // per_window)
+    return int(max(1, min(n, int(n_windows))))
+
+
+def _checked_region(source, region) -> tuple[int, int, int, int]:
+    """``region`` as four ints, or an error when it is not a non-empty part of the source's sensor."""
+    sensor = tuple(source.sensor_size)
+    x0, x1, y0, y1 = (int(v) for v in region)
+    if not (0 <= x0 < x1 <= sensor[0] and 0 <= y0 < y1 <= sensor[1]):
+        raise EvtkError(f"region {tuple(region)} is not a non-empty part of the {sensor[0]}x{sensor[1]} sensor")
+    return x0, x1, y0, y1
+
+
+def _batch_events(source, bounds, chunk_events: int) -> Iterator[tuple[int, Events]]:
+    """(batch, chunk) pairs: each batch's events, in time order, through the time-window API of a recording
+    (or slices of sorted in-memory events); ``bounds`` holds each batch's (first start, last end) in us."""
+    if isinstance(source, Events):
+        ev = source.sorted()
+        for b, (a, z) in enumerate(bounds):
+            i, j = np.searchsorted(ev.t, [a, z], side="left")
+            for k in range(int(i), int(j), chunk_events):
+                yield b, ev[k:min(int(j), k + chunk_events)]
+        return
+    for b, (a, z) in enumerate(bounds):
+        for chunk in source.iter_events(chunk_events=chunk_events, t_start_us=int(a), t_end_us=int(z)):
+            yield b, chunk
+
+
+def iter_window_counts(source, windows: Windows, region, batch_windows: int | None = None,
+                       chunk_events: int = 4_000_000,
+                       progress: Callable[[int], Any] | None = None) -> Iterator[tuple[int, WindowCounts]]:
+    """ON and OFF counts of ``windows`` over ``region``, a batch of windows at a time, in the windows' order.
+
+    Parameters
+    ----------
+    source : Events or Recording
+        Events (sorted here if they are not) or an open recording.
+    windows : Windows
+        The windows, in any order (a batch spans consecutive windows; windows in time order read each event
+        once).
+    region : tuple of int
+        (x0, x1, y0, y1), half-open sensor pixels to count.
+    batch_windows : int, optional
+        Windows per batch; default :func:`batch_size`.
+    chunk_events : int
+        Most events read at once.
+    progress : callable, optional
+        Called with the number of events of each chunk read.
+
+    Yields
+    ------
+    tuple of (int, WindowCounts)
+        The index of the batch's first window, and its counts (int32, as :func:`evtk.reconstruct.accumulate`
+        gives them, without event times).
+
+    Raises
+    ------
+    EvtkError
+        A region off the sensor, a batch larger than the memory budget, or a window holding more than
+        2**31 - 1 events.
+    """
+    region = _checked_region(source, region)
+    x0, x1, y0, y1 = region
+    n_w = len(windows)
+    if n_w == 0:
+        return
+    nb = batch_size(region, n_w) if batch_windows is None else max(1, int(batch_windows))
+    require_memory(min(nb, n_w) * (x1 - x0) * (y1 - y0) * BYTES_PER_WINDOW_PIXEL,
+                   f"counting {min(nb, n_w):,} windows at a time over {x1 - x0}x{y1 - y0} pixels")
+    for i, win, counts, used in _counted_batches(source, windows, region, nb, chunk_events, progress, reuse=False):
+        yield i, WindowCounts(counts[1], counts[0], win, region, used)
+
+
+def _counted_batches(source, windows: Windows, region, nb: int, chunk_events: int, progress, reuse: bool):
+    """(first window, its batch's Windows, int32 counts (2, windows, height, width), events used) per batch of
+    ``nb`` windows: one buffer for every batch when ``reuse`` (each batch's counts valid until the next one)."""
+    x0, x1, y0, y1 = region
+    n_w = len(windows)
+    frame = (x1 - x0) * (y1 - y0)
+    chunk_events = max(1, int(chunk_events))
+    firsts = list(range(0, n_w, nb))
+    bounds = [(int(windows.t_start_us[i:i + nb].min()), int(windows.t_end_us[i:i + nb].max())) for i in firsts]
+    chunks = _prefetched(_batch_events(source, bounds, chunk_events))
+    pending = next(chunks, None)
+    no_times = np.empty(0, np.int32)
+    buffer = np.empty(2 * min(nb, n_w) * frame, np.int32) if reuse else None
+    for b, i in enumerate(firsts):
+        win = windows[i:i + nb]
+        m = len(win)
+        flat = buffer[:2 * m * frame] if buffer is not None else np.empty(2 * m * frame, np.int32)
+        started = np.zeros(m, np.bool_)
+        totals = np.zeros(m, np.int64)
+        used = 0
+        while pending is not None and pending[0] == b:
+            ev = pending[1]
+            used += _accumulate_chunk(ev.t, ev.x, ev.y, ev.p, win.t_start_us, win.t_end_us, x0, x1, y0, y1, flat,
+                                      totals, started, no_times, no_times)
+            if totals.max(initial=0) > np.iinfo(np.int32).max:
+                raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
+                                "counts could overflow")
+            if progress is not None:
+                progress(len(ev))
+            pending = next(chunks, None)
+        counts = flat.reshape(2, m, y1 - y0, x1 - x0)
+        counts[:, ~started] = 0  # windows no event reached
+        yield i, win, counts, int(used)
+
+def reconstruct_windows(source, windows: Windows, region, keep_pixels: bool = True, batch_windows: int | None = None,
+                        chunk_events: int = 4_000_000, progress: Callable[[int], Any] | None = None,
+                        **options: Any):
+    """:func:`evtk.reconstruct.reconstruct` of windows without a schedule, a batch of windows at a time.
+
+    Each window stands alone (no passes to combine, no flat fields), so every stage after accumulation
+    (:func:`evtk.reconstruct.reconstruct_counts` without a simulation record) runs on one batch's counts and
+    gives each window the response the whole run would.
+
+    Parameters
+    ----------
+    source : Events or Recording
+        The events.
+    windows : Windows
+        Windows of a recording without a simulation record.
+    region : tuple of int
+        (x0, x1, y0, y1), half-open sensor pixels.
+    keep_pixels : bool
+        Keep every window's counts and per-pixel values (``counts.on``/``off`` and ``cells``: windows x region,
+        as the whole-run path holds them). False keeps the responses and binary responses only, in memory
+        bounded by them and one batch: ``cells`` are then the responses and the counts hold no pixels
+        (``on``/``off`` of shape (windows, 0, 0)).
+    batch_windows : int, optional
+        Windows per batch; default :func:`batch_size`.
+    chunk_events : int
+        Most events read at once.
+    progress : callable, optional
+        Called with the number of events of each chunk read.
+    **options
+        :func:`evtk.reconstruct.reconstruct_counts`'s settings (``size``, ``binarize_method``, ``linear``,
+        ``theta``, ``skip_us``, ``length_us``, ...).
+
+    Returns
+    -------
+    Reconstruction
+        Responses, binary responses and the summary, as the whole-run path gives them.
+
+    Raises
+    ------
+    EvtkError
+        A region off the sensor, or more memory than the budget allows.
+    """
+    from .pipeline import Reconstruction, reconstruct_counts
+
+    n_w = len(windows)
+    x0, x1, y0, y1 = _checked_region(source, region)
+    h_px, w_px = y1 - y0, x1 - x0
+    if keep_pixels:  # int32 ON and OFF counts and float64 values of every window
+        require_memory(n_w * h_px * w_px * 16, f"keeping the counts of {n_w:,} windows over {w_px}x{h_px} pixels")
+    responses = binary = cells = on = off = None
+    summary: dict = {}
+    used = 0
+    for i, counts in iter_window_counts(source, windows, region, batch_windows, chunk_events, progress):
+        part = reconstruct_counts(counts, None, **options)
+        j = i + len(counts.windows)
+        if responses is None:
+            size = part.responses.shape[1:]
+            require_memory(n_w * 9 * int(np.prod(size)), f"the responses of {n_w:,} windows")
+            responses = np.empty((n_w,) + size, part.responses.dtype)
+            binary = np.empty((n_w,) + size, part.binary.dtype)
+            if keep_pixels:
+                cells = np.empty((n_w,) + part.cells.shape[1:], part.cells.dtype)
+                on = np.empty((n_w, h_px, w_px), np.int32)
+                off = np.empty((n_w, h_px, w_px), np.int32)
+        assert responses is not None and binary is not None
+        responses[i:j] = part.responses
+        binary[i:j] = part.binary
+        if keep_pixels:
+            assert cells is not None and on is not None and off is not None
+            cells[i:j] = part.cells
+            on[i:j] = counts.on
+            off[i:j] = counts.off
+        used += counts.events_used
+        summary = part.summary
+    if responses is None or binary is None:
+        raise EvtkError("no windows to reconstruct")
+    if not keep_pixels:
+        cells = responses
+        on = off = np.zeros((n_w, 0, 0), np.int32)
+    assert cells is not None and on is not None and off is not None
+    summary = dict(summary, windows=n_w, windows_dropped=windows.dropped, events_used=int(used),
+                   responses=int(n_w))
+    return Reconstruction(responses, binary, None, cells, None, WindowCounts(on, off, windows, (x0, x1, y0, y1),
+                                                                              int(used)), summary)
+
+
+@numba.njit(cache=True, nogil=True)
+def _respond(counts, theta_on, theta_off, linear, row_cell, row_weight, col_cell, col_weight, out):
+    """Each window's response straight from its counts: the linearised value of every pixel that saw an
+    event (``expm1(on * theta_on - off * theta_off)``, or ``on - off`` when not ``linear``; a pixel without
+    events is 0 either way) spread over the output cells its area overlaps (``row_cell``/``row_weight``: the
+    cells and shares of each pixel row, ``col_*`` of each column). Returns the largest rise (for the
+    exp(700) check)."""
+    n_w = counts.shape[1]
+    h = counts.shape[2]
+    w = counts.shape[3]
+    worst = 0.0
+    for k in range(n_w):
+        for yy in range(h):
+            for xx in range(w):
+                a = counts[1, k, yy, xx]
+                b = counts[0, k, yy, xx]
+                if a == 0 and b == 0:
+                    continue
+                if linear:
+                    rise = a * theta_on - b * theta_off
+                    worst = max(worst, rise)
+                    v = np.expm1(rise)
+                else:
+                    v = np.float64(a) - np.float64(b)
+                for i in range(row_cell.shape[1]):
+                    wy = row_weight[yy, i]
+                    if wy == 0.0:
+                        continue
+                    r = row_cell[yy, i]
+                    for j in range(col_cell.shape[1]):
+                        wx = col_weight[xx, j]
+                        if wx != 0.0:
+                            out[k, r, col_cell[xx, j]] += v * wy * wx
+    return worst
+
+
+def _shares(n_cells: int, n_pixels: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each pixel along one axis, the output cells it overlaps and its share of each (padded with 0)."""
+    m = overlap_matrix(n_cells, 0.0, n_pixels / n_cells, n_pixels).T  # (pixels, cells), as downsample weighs
+    k = max(1, int((m > 0).sum(axis=1).max()))
+    cell = np.zeros((n_pixels, k), np.int64)
+    share = np.zeros((n_pixels, k), np.float64)
+    for px in range(n_pixels):
+        nz = np.flatnonzero(m[px] > 0)
+        cell[px, :nz.size] = nz
+        share[px, :nz.size] = m[px, nz]
+    return cell, share
+
+
+def reconstruct_responses(source, windows: Windows, region, batch_windows: int | None = None,
+                          chunk_events: int = 4_000_000, progress: Callable[[int], Any] | None = None,
+                          **options: Any):
+    """The responses of windows without a schedule, straight from their counts: no per-pixel float stage.
+
+    What :func:`reconstruct_windows` gives with ``keep_pixels=False`` (the same responses to rounding), for
+    the settings it supports (:func:`fused_supported`): each window's counts (one batch of windows at a time,
+    in one reused buffer) go through one compiled pass that linearises only the pixels that saw an event and
+    spreads each over the output cells its area overlaps (eq. of :func:`evtk.reconstruct.downsample`).
+
+    Parameters
+    ----------
+    source : Events or Recording
+        The events.
+    windows : Windows
+        Windows of a recording without a simulation record.
+    region : tuple of int
+        (x0, x1, y0, y1), half-open sensor pixels.
+    batch_windows : int, optional
+        Windows per batch; default :func:`batch_size`.
+    chunk_events : int
+        Most events read at once.
+    progress : callable, optional
+        Called with the number of events of each chunk read.
+    **options
+        :func:`evtk.reconstruct.reconstruct_counts`'s settings (checked by it on the first window).
+
+    Returns
+    -------
+    Reconstruction
+        As :func:`reconstruct_windows` with ``keep_pixels=False``.
+
+    Raises
+    ------
+    EvtkError
+        Settings the fused pass does not support, a region off the sensor, or counts whose rise exceeds
+        exp(700).
+    """
+    from .pipeline import Reconstruction, reconstruct_counts
+
+    if not fused_supported(options):
+        raise EvtkError(f"the fused response pass does not support {sorted(options)}")
+    n_w = len(windows)
+    region = _checked_region(source, region)
+    x0, x1, y0, y1 = region
+    linear = bool(options.get("linear", True))
+    theta = options.get("theta")
+    theta_on = theta_off = 0.2 if theta is None else float(theta)
+    oh, ow = (int(v) for v in options.get("size", (16, 16)))
+    require_memory(n_w * 17 * oh * ow, f"the responses of {n_w:,} windows")
+    responses = None
+    rows = cols = None
+    used = 0
+    first = None
+    nb = batch_size(region, n_w) if batch_windows is None else max(1, int(batch_windows))
+    for i, win, counts, n_used in _counted_batches(source, windows, region, nb, chunk_events, progress, reuse=True):
+        if first is None:  # the first window through the whole-run stages: settings checked, the summary made
+            one = WindowCounts(counts[1, :1].copy(), counts[0, :1].copy(), win[:1], region, 0)
+            first = reconstruct_counts(one, None, **options)
+            responses = np.zeros((n_w,) + first.responses.shape[1:], np.float64)
+            rows = _shares(oh, y1 - y0)
+            cols = _shares(ow, x1 - x0)
+        assert responses is not None and rows is not None and cols is not None
+        worst = _respond(counts, theta_on, theta_off, linear, rows[0], rows[1], cols[0], cols[1],
+                         responses[i:i + len(win)])
+        if worst > 700:
+            raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
+        used += n_used
+    if first is None or responses is None:
+        raise EvtkError("no windows to reconstruct")
+    binary = binarize(responses, first.summary["binarize"])
+    empty = np.zeros((n_w, 0, 0), np.int32)
+    summary = dict(first.summary, windows=n_w, windows_dropped=windows.dropped, events_used=int(used),
+                   responses=int(n_w))
+    return Reconstruction(responses, binary, None, responses, None,
+                          WindowCounts(empty, empty, windows, region, int(used)), summary)
+
+
+#: The settings :func:`reconstruct_responses` takes (the others change nothing without a simulation record, or
+#: need the per-pixel stages).
+_FUSED_OPTIONS = {"size", "binarize_method", "linear", "theta", "crop", "skip_us", "length_us", "deblur",
+                  "flat_field"}
+
+
+def fused_supported(options: dict) -> bool:
+    """Whether :func:`reconstruct_responses` takes these :func:`evtk.reconstruct.reconstruct_counts` settings.
+
+    Parameters
+    ----------
+    options : dict
+        The settings.
+
+    Returns
+    -------
+    bool
+        True when every setting is one it takes, ``theta`` is a number or None and ``timing`` is not asked
+        for.
+    """
+    extra = set(options) - _FUSED_OPTIONS - {"timing"}
+    theta = options.get("theta")
+    return not extra and options.get("timing") is not True and (theta is None or np.ndim(theta) == 0)
