@@ -11,7 +11,7 @@ import pytest
 
 import evtk
 from evtk.errors import EvtkError
-from evtk.reconstruct import Windows, accumulate, reconstruct_counts
+from evtk.reconstruct import Windows, accumulate, reconstruct, reconstruct_counts
 from evtk.reconstruct._batched import iter_window_counts, reconstruct_responses, reconstruct_windows
 
 
@@ -74,6 +74,21 @@ def test_fused_responses_equal_the_whole_run(recording, options):
     np.testing.assert_allclose(got.responses, ref.responses, rtol=0, atol=1e-9 * max(1.0, np.abs(ref.responses).max()))
     np.testing.assert_array_equal(got.binary, ref.binary)
     assert got.summary == ref.summary
+
+
+def test_reconstruct_without_pixels_fits_a_budget_the_whole_run_does_not(recording, monkeypatch):
+    with evtk.open(recording) as rec:
+        full = reconstruct(rec, ("period", 50))  # 1000 windows of the whole 40x30 sensor
+        # the whole run needs every window's counts and float stages (~77 MB): far over 8 MiB
+        monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "8")
+        lean = reconstruct(rec, ("period", 50), keep_pixels=False)
+        with pytest.raises(EvtkError, match="MiB"):
+            reconstruct(rec, ("period", 50), keep_pixels=True)
+    np.testing.assert_allclose(lean.responses, full.responses, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(lean.binary, full.binary)
+    assert lean.summary["events_used"] == full.summary["events_used"]
+    assert lean.cells.shape == lean.responses.shape  # no windows x sensor array kept
+    assert lean.counts.on.size == 0
 
 
 def test_a_rise_beyond_exp_700_is_refused_as_by_the_whole_run():
