@@ -12,7 +12,8 @@ import pytest
 import evtk
 from evtk.errors import EvtkError
 from evtk.reconstruct import Windows, accumulate, reconstruct, reconstruct_counts
-from evtk.reconstruct._batched import iter_window_counts, reconstruct_responses, reconstruct_windows
+from evtk.reconstruct._batched import reconstruct_responses, reconstruct_windows
+from evtk.reconstruct.accumulate import accumulate_batches
 
 
 def _events(n=60_000, size=(40, 30), span_us=50_000, seed=3):
@@ -58,7 +59,7 @@ def test_windows_in_any_order_and_overlapping_count_as_in_the_whole_run():
     starts = rng.integers(0, 45_000, 23)
     win = Windows(starts, starts + rng.integers(1, 9_000, 23), np.arange(23), "test")
     ref = accumulate(ev, win)
-    for i, c in iter_window_counts(ev, win, (0, 40, 0, 30), batch_windows=4):
+    for i, c in accumulate_batches(ev, win, (0, 40, 0, 30), batch_windows=4):
         np.testing.assert_array_equal(c.on, ref.on[i:i + len(c.windows)])
         np.testing.assert_array_equal(c.off, ref.off[i:i + len(c.windows)])
 
