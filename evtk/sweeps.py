@@ -30,7 +30,8 @@ from .io import open as open_recording
 from .limits import memory_limit_bytes, require_memory, require_window_work
 from .metrics import SinadAccumulator, flip_rates, flip_rates_bytes
 from .optics import Bench
-from .reconstruct import WindowCounts, accumulate, plan, reconstruct, reconstruct_counts, response_error, window_bytes
+from .reconstruct import WindowCounts, plan, reconstruct, reconstruct_counts, response_error, window_bytes
+from .reconstruct.accumulate import accumulate_batches
 from .simulate import Simulation
 
 __all__ = ["scene_noise", "recording_noise", "random_kernels", "simulated_reconstruction", "flip_sweep", "tradeoff",
@@ -147,8 +148,7 @@ def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval=
     batch = max(1, min(NOISE_BATCH_BYTES, (memory_limit_bytes() - fixed) // 2) // per_window)
     acc: SinadAccumulator | None = None
     binary: np.ndarray | None = None
-    for i in range(0, len(win), batch):
-        counts = accumulate(rec, win[i:i + batch], region, progress=progress)
+    for i, counts in accumulate_batches(rec, win, region, batch, progress=progress, reuse=True):
         part = reconstruct_counts(counts, None, skip_us=skip_us, length_us=length_us, **options)
         if acc is None:
             acc = SinadAccumulator(len(win), part.cells.shape[1:])

@@ -262,7 +262,8 @@ def _batch_events(source, bounds, chunk_events: int) -> Iterator[tuple[int, Even
 def accumulate_batches(source: Events | Any, windows: Windows, region: tuple[int, int, int, int],
                        batch_windows: int | None = None,
                        chunk_events: int = 4_000_000,
-                       progress: Callable[[int], Any] | None = None) -> Iterator[tuple[int, WindowCounts]]:
+                       progress: Callable[[int], Any] | None = None,
+                       reuse: bool = False) -> Iterator[tuple[int, WindowCounts]]:
     """ON and OFF counts of ``windows`` over ``region``, a batch of windows at a time, in the windows' order.
 
     Parameters
@@ -280,6 +281,9 @@ def accumulate_batches(source: Events | Any, windows: Windows, region: tuple[int
         Most events read at once.
     progress : callable, optional
         Called with the number of events of each chunk read.
+    reuse : bool
+        Count every batch into one buffer: each batch's counts are valid only until the next batch is asked
+        for (no fresh memory per batch).
 
     Yields
     ------
@@ -301,7 +305,7 @@ def accumulate_batches(source: Events | Any, windows: Windows, region: tuple[int
     nb = batch_size(region, n_w) if batch_windows is None else max(1, int(batch_windows))
     require_memory(min(nb, n_w) * (x1 - x0) * (y1 - y0) * BYTES_PER_WINDOW_PIXEL,
                    f"counting {min(nb, n_w):,} windows at a time over {x1 - x0}x{y1 - y0} pixels")
-    for i, win, counts, used in _counted_batches(source, windows, region, nb, chunk_events, progress, reuse=False):
+    for i, win, counts, used in _counted_batches(source, windows, region, nb, chunk_events, progress, reuse):
         yield i, WindowCounts(counts[1], counts[0], win, region, used)
 
 
