@@ -79,6 +79,8 @@ def reconstruct_windows(source, windows: Windows, region, keep_pixels: bool = Tr
     for i, counts in accumulate_batches(source, windows, region, batch_windows, chunk_events, progress):
         part = reconstruct_counts(counts, None, **options)
         j = i + len(counts.windows)
+        if keep_pixels and i == 0 and j == n_w:  # one batch: the whole-run result itself, no copies
+            return part
         if responses is None:
             size = part.responses.shape[1:]
             require_memory(n_w * 9 * int(np.prod(size)), f"the responses of {n_w:,} windows")
