@@ -197,12 +197,12 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         ON-event times (:func:`linearize_by_timing`). ``None`` (default):
         wherever the recording's pixel model allows it; ``True``: required.
     keep_pixels : bool
-        Without a simulation record (every window stands alone), windows
-        are reconstructed a batch at a time; ``False`` keeps only the
-        responses (``cells`` are the responses, the counts hold no pixels),
-        in memory bounded by them and one batch, and computes them straight
-        from the counts (``evtk.reconstruct._batched``). ``True`` (default)
-        also keeps every window's counts and per-pixel values.
+        Keep every window's counts and per-pixel values (default). ``False``,
+        for a recording without a simulation record (every window stands
+        alone), keeps only the responses (``cells`` are the responses, the
+        counts hold no pixels): windows are counted a batch at a time and the
+        responses computed straight from the counts, in memory bounded by
+        them and one batch (``evtk.reconstruct._batched``).
 
     Notes
     -----
@@ -211,17 +211,16 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
     ``theta`` given) it uses ``exp(n * theta) - 1``.
     """
     check_crop(crop)
-    sim, win, region = plan(rec, window, skip_us, length_us, region, check_memory=False)
-    if sim is None:  # no schedule: each window alone, a batch at a time
+    # every window's counts at once, unless responses alone of windows that stand alone (no simulation record)
+    whole = keep_pixels or SimulationRecord.from_metadata(rec.metadata) is not None
+    sim, win, region = plan(rec, window, skip_us, length_us, region, check_memory=whole)
+    if sim is None and not keep_pixels:  # no schedule: each window alone, a batch at a time
         stages = dict(size=size, binarize_method=binarize_method, linear=linear, theta=theta, crop=crop,
                       skip_us=skip_us, length_us=length_us, deblur=deblur, flat_field=flat_field, timing=timing)
-        if not keep_pixels and fused_supported(stages):
+        if fused_supported(stages):
             return reconstruct_responses(rec, win, region, chunk_events=chunk_events, progress=progress, **stages)
-        return reconstruct_windows(rec, win, region, keep_pixels=keep_pixels, chunk_events=chunk_events,
+        return reconstruct_windows(rec, win, region, keep_pixels=False, chunk_events=chunk_events,
                                    progress=progress, **stages)
-    x0, x1, y0, y1 = (int(v) for v in region)
-    require_memory(len(win) * window_bytes(region, True),
-                   f"counting {len(win):,} windows over {max(0, x1 - x0)}x{max(0, y1 - y0)} pixels")
     counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress,
                         times=wants_times(sim, linear, theta, timing))
     return reconstruct_counts(counts, sim, skip_us=skip_us, length_us=length_us, size=size,
