@@ -113,39 +113,57 @@ def reconstruct_windows(source, windows: Windows, region, keep_pixels: bool = Tr
 
 
 @numba.njit(cache=True, nogil=True)
-def _respond(counts, theta_on, theta_off, linear, row_cell, row_weight, col_cell, col_weight, out):
-    """Each window's response straight from its counts: the linearised value of every pixel that saw an
-    event (``expm1(on * theta_on - off * theta_off)``, or ``on - off`` when not ``linear``; a pixel without
-    events is 0 either way) spread over the output cells its area overlaps (``row_cell``/``row_weight``: the
-    cells and shares of each pixel row, ``col_*`` of each column). Returns the largest rise (for the
-    exp(700) check)."""
+def _respond(counts, table, stride, theta_on, theta_off, linear, row_cell, row_weight, col_cell, col_weight, out,
+             line):
+    """Add each window's response, straight from its counts (int32, (2, windows, height, width), OFF then ON),
+    to ``out`` (windows, rows, cols): every pixel's linearised value (``table[on * stride + off]``, or
+    ``expm1(on * theta_on - off * theta_off)`` / ``on - off`` beyond the table; 0 for a pixel without events)
+    spread over the output cells its area overlaps, a pixel row at a time into ``line`` (one output row), then
+    the row over the output rows (``row_cell``/``row_weight``: each pixel row's cells and shares, ``col_*``
+    each column's; padded with zero shares). Returns the largest rise computed beyond the table (the exp(700)
+    check)."""
     n_w = counts.shape[1]
     h = counts.shape[2]
     w = counts.shape[3]
+    cols = out.shape[2]
+    on_max = table.size // stride
     worst = 0.0
     for k in range(n_w):
         for yy in range(h):
+            line[:] = 0.0
             for xx in range(w):
                 a = counts[1, k, yy, xx]
                 b = counts[0, k, yy, xx]
-                if a == 0 and b == 0:
-                    continue
-                if linear:
+                if a < on_max and b < stride:
+                    v = table[a * stride + b]
+                elif linear:
                     rise = a * theta_on - b * theta_off
                     worst = max(worst, rise)
                     v = np.expm1(rise)
                 else:
                     v = np.float64(a) - np.float64(b)
-                for i in range(row_cell.shape[1]):
-                    wy = row_weight[yy, i]
-                    if wy == 0.0:
-                        continue
-                    r = row_cell[yy, i]
-                    for j in range(col_cell.shape[1]):
-                        wx = col_weight[xx, j]
-                        if wx != 0.0:
-                            out[k, r, col_cell[xx, j]] += v * wy * wx
+                for j in range(col_cell.shape[1]):
+                    line[col_cell[xx, j]] += v * col_weight[xx, j]
+            for i in range(row_cell.shape[1]):
+                wy = row_weight[yy, i]
+                r = row_cell[yy, i]
+                for c in range(cols):
+                    out[k, r, c] += wy * line[c]
     return worst
+
+
+#: Counts up to this (ON and OFF each) are linearised by table look-up in :func:`_respond`.
+_TABLE_COUNTS = 64
+
+
+def _value_table(theta_on: float, theta_off: float, linear: bool) -> tuple[np.ndarray, int]:
+    """Each (ON, OFF) count pair's value, as :func:`evtk.reconstruct.linearize` computes it (the same rise,
+    ``expm1``), flattened, and its stride; only ON counts whose rise stays within exp(700)."""
+    on_max = _TABLE_COUNTS if not linear else max(1, min(_TABLE_COUNTS, int(700 // theta_on) + 1))
+    on = np.arange(on_max + 0.0)[:, None]
+    off = np.arange(_TABLE_COUNTS + 0.0)[None, :]
+    values = np.expm1(on * theta_on - off * theta_off) if linear else on - off
+    return np.ascontiguousarray(values).reshape(-1), _TABLE_COUNTS
 
 
 def _shares(n_cells: int, n_pixels: int) -> tuple[np.ndarray, np.ndarray]:
@@ -217,15 +235,18 @@ def reconstruct_responses(source, windows: Windows, region, batch_windows: int |
     first = None
     nb = batch_size(region, n_w) if batch_windows is None else max(1, int(batch_windows))
     for i, win, counts, n_used in _counted_batches(source, windows, region, nb, chunk_events, progress, reuse=True):
-        if first is None:  # the first window through the whole-run stages: settings checked, the summary made
-            one = WindowCounts(counts[1, :1].copy(), counts[0, :1].copy(), win[:1], region, 0)
+        if first is None:  # one empty pixel through the whole-run stages: the settings checked, the summary made
+            nothing = np.zeros((1, 1, 1), np.int32)
+            one = WindowCounts(nothing, nothing, win[:1], region, 0)
             first = reconstruct_counts(one, None, **options)
             responses = np.zeros((n_w,) + first.responses.shape[1:], np.float64)
             rows = _shares(oh, y1 - y0)
             cols = _shares(ow, x1 - x0)
+            table, stride = _value_table(theta_on, theta_off, linear)
+            line = np.zeros(ow, np.float64)
         assert responses is not None and rows is not None and cols is not None
-        worst = _respond(counts, theta_on, theta_off, linear, rows[0], rows[1], cols[0], cols[1],
-                         responses[i:i + len(win)])
+        worst = _respond(counts, table, stride, theta_on, theta_off, linear, rows[0], rows[1], cols[0], cols[1],
+                         responses[i:i + len(win)], line)
         if worst > 700:
             raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
         used += n_used
