@@ -108,3 +108,27 @@ def test_a_region_off_the_sensor_is_refused():
     for f in (reconstruct_responses, reconstruct_windows):
         with pytest.raises(EvtkError, match="not a non-empty part"):
             f(ev, win, (0, 41, 0, 30))
+
+
+@pytest.mark.parametrize("theta", [0.2, 3.0, 9.0])
+def test_counts_beyond_the_look_up_table_equal_the_whole_run(theta):
+    # one pixel with 100 ON and 70 OFF events in a window, its neighbours a few: beyond the 64-count table
+    rng = np.random.default_rng(8)
+    xs = np.r_[np.full(170, 5), rng.integers(0, 16, 300)]
+    ys = np.r_[np.full(170, 6), rng.integers(0, 12, 300)]
+    ps = np.r_[np.ones(100), np.zeros(70), rng.integers(0, 2, 300)]
+    order = rng.permutation(xs.size)
+    t = np.sort(rng.integers(0, 2_000, xs.size))
+    ev = evtk.Events(t, xs[order].astype(np.uint16), ys[order].astype(np.uint16), ps[order].astype(np.uint8), (16, 12))
+    win = Windows([0], [2_000], [0], "test")
+    options = {"theta": theta, "size": (4, 4)}
+    try:
+        ref = _whole_run(ev, win, (0, 16, 0, 12), **options)
+    except EvtkError as exc:  # a rise beyond exp(700): refused by both
+        with pytest.raises(EvtkError, match="exp\\(700\\)"):
+            reconstruct_responses(ev, win, (0, 16, 0, 12), **options)
+        assert "exp(700)" in str(exc)
+        return
+    got = reconstruct_responses(ev, win, (0, 16, 0, 12), **options)
+    np.testing.assert_allclose(got.responses, ref.responses, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(got.binary, ref.binary)
