@@ -135,8 +135,8 @@ def fixed(n, repeats, ops, baseline=None):
         _whole_process(args, tree)
     runs: dict = {name: [] for name, _, _ in plan}
     rss: dict = {name: [] for name, _, _ in plan}
-    for _ in range(repeats):  # alternating, so that a slow minute hits every one
-        for name, args, tree in plan:
+    for r in range(repeats):  # alternating, so that a slow minute hits every one; every other round reversed,
+        for name, args, tree in (plan if r % 2 == 0 else plan[::-1]):  # so that no one always follows another
             wall, peak = _whole_process(args, tree)
             runs[name].append(wall)
             rss[name].append(peak)
