@@ -4,8 +4,8 @@ Windows without a capture schedule (periodic or from trigger edges) stand alone:
 its own counts only. :func:`~evtk.reconstruct.accumulate.accumulate_batches` counts them a batch at a time (each
 batch's events through the recording's time-window API, decoded on another thread while the last chunk is
 counted); :func:`reconstruct_windows` runs the stages after accumulation on each batch, and
-:func:`reconstruct_responses` goes from the counts straight to the responses in one compiled pass that touches
-only the pixels that saw an event (no per-pixel float stage).
+:func:`reconstruct_responses` goes from the counts straight to the responses in one compiled pass (no per-pixel
+array of values).
 """
 
 from __future__ import annotations
@@ -186,8 +186,9 @@ def reconstruct_responses(source, windows: Windows, region, batch_windows: int |
 
     What :func:`reconstruct_windows` gives with ``keep_pixels=False`` (the same responses to rounding), for
     the settings it supports (:func:`fused_supported`): each window's counts (one batch of windows at a time,
-    in one reused buffer) go through one compiled pass that linearises only the pixels that saw an event and
-    spreads each over the output cells its area overlaps (eq. of :func:`evtk.reconstruct.downsample`).
+    in one reused buffer) go through one compiled pass that looks each pixel's linearised value up and
+    spreads it over the output cells its area overlaps (the weights of :func:`evtk.reconstruct.downsample`),
+    with no per-pixel array of values.
 
     Parameters
     ----------
