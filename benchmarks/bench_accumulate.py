@@ -8,6 +8,10 @@ back-to-back windows:
 
 * evtk: ``evtk.reconstruct.accumulate`` on in-memory events, into a reused
   output buffer ("warm") or into fresh memory;
+* evtk batches: ``accumulate_batches(..., reuse=True)``, the windows a batch
+  at a time (batch size from the memory budget) into one reused buffer, each
+  batch consumed (summed) before the next: what a streaming consumer such as
+  ``evtk enob`` holds, never every window's frames at once;
 * np.add.at: one call over all events with (window, y, x) indices from
   ``np.searchsorted``, per polarity, into a reused buffer or fresh memory;
 * np.bincount: the same indices flattened, per polarity;
@@ -62,7 +66,18 @@ def child(tool, n_events, n_windows):
     if warm:
         buf = np.empty((2, n_windows, H, W), np.int32)
         buf.fill(0)
-    if tool.startswith("evtk"):
+    if tool == "evtk batches":
+        from evtk.reconstruct.accumulate import accumulate_batches
+
+        region = (0, W, 0, H)
+        for _ in accumulate_batches(small, _windows(small, 10), region, reuse=True):
+            pass
+        t0 = time.perf_counter()
+        check = 0
+        for _, c in accumulate_batches(ev, win, region, reuse=True):
+            check += int(c.on.sum(dtype=np.int64) + c.off.sum(dtype=np.int64))
+        seconds = time.perf_counter() - t0
+    elif tool.startswith("evtk"):
         from evtk.reconstruct import accumulate
 
         accumulate(small, _windows(small, 10))
@@ -148,7 +163,7 @@ def main():
     ap.add_argument("--events", type=float, default=20e6)
     ap.add_argument("--windows", type=int, default=1000)
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--tools", default="evtk warm,np.add.at warm,dv-processing,evtk,np.add.at,np.bincount")
+    ap.add_argument("--tools", default="evtk warm,evtk batches,np.add.at warm,dv-processing,evtk,np.add.at,np.bincount")
     ap.add_argument("--json")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     a = ap.parse_args()

@@ -2,6 +2,17 @@
 
     python benchmarks/bench_reconstruct.py                  # >= 20 M events, 5 repeats
     python benchmarks/bench_reconstruct.py --events 2e6 --repeats 3
+    python benchmarks/bench_reconstruct.py --fixed          # windows without a schedule, whole processes
+
+``--fixed``: ``reconstruct(rec, ("period", 10000))`` on bench_aedat4's uniform
+recording (320x240, 2 M events/s: 1000 windows for 20 M events, no
+simulation record), keeping every window's pixels (the default) and keeping
+the responses only (``keep_pixels=False``), against a plain read; each timed
+as a whole process (start Python, import, work, exit), alternating, medians
+and the median of the per-round ratios, with each process's peak RSS; also
+``evtk reconstruct -o`` and ``evtk enob`` on the same file. ``--baseline DIR``
+runs every operation also with another evtk tree first on the path
+(``git archive COMMIT | tar -x -C DIR``), alternating with this one.
 
 The recording is simulated once (paper configuration, signed 3x3 kernel and
 16x16 features, default bench and sensor) with enough repeats to hold the
@@ -68,13 +79,88 @@ def child(op, n_events):
     print(json.dumps({"seconds": time.perf_counter() - t0, "n": n}))
 
 
+def _fixed_file(n_events):
+    import sys
+
+    sys.path.insert(0, str(HERE))
+    path = DATA / f"uniform_{n_events}.aedat4"
+    if not path.exists():
+        from bench_aedat4 import make_events
+
+        import evtk
+
+        DATA.mkdir(exist_ok=True)
+        evtk.write_events(path, make_events(n_events))
+    return path
+
+
+_FIXED = {
+    "read": ["-c", "import evtk; evtk.read_events({p!r})"],
+    "reconstruct, pixels kept": ["-c", "import evtk; from evtk.reconstruct import reconstruct\n"
+                                 "with evtk.open({p!r}) as r: reconstruct(r, ('period', 10000))"],
+    "reconstruct, responses only": ["-c", "import evtk; from evtk.reconstruct import reconstruct\n"
+                                    "with evtk.open({p!r}) as r: reconstruct(r, ('period', 10000), keep_pixels=False)"],
+    "evtk reconstruct -o x.npz": ["-m", "evtk.cli", "reconstruct", "{p}", "--window", "period:10000", "-o", "{out}"],
+    "evtk enob": ["-m", "evtk.cli", "enob", "{p}", "--window", "period:10000"],
+}
+
+
+def _whole_process(args, tree):
+    """Wall seconds and peak RSS (MB, GNU time's %M) of one process running ``args`` with ``tree`` first on
+    the path."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    t0 = time.perf_counter()
+    done = subprocess.run(["/usr/bin/time", "-f", "%M", sys.executable, *args], check=True, capture_output=True,
+                          text=True, env=env)
+    wall = time.perf_counter() - t0
+    return wall, int(done.stderr.split()[-1]) / 1024
+
+
+def fixed(n, repeats, ops, baseline=None):
+    import tempfile
+
+    path = _fixed_file(n)
+    trees = {"": HERE.parent}
+    if baseline:
+        trees["base: "] = Path(baseline).resolve()
+    plan = [(label + op, [a.format(p=str(path), out=str(Path(tempfile.gettempdir()) / "bench_rec.npz"))
+                          for a in _FIXED[op]], tree) for op in ops for label, tree in trees.items()
+            if not (label and op == "reconstruct, responses only")]  # keep_pixels is new
+    plan.insert(0, ("read", [a.format(p=str(path)) for a in _FIXED["read"]], HERE.parent))
+    for _, args, tree in plan:  # untimed: page cache, numba's cache
+        _whole_process(args, tree)
+    runs: dict = {name: [] for name, _, _ in plan}
+    rss: dict = {name: [] for name, _, _ in plan}
+    for r in range(repeats):  # alternating, so that a slow minute hits every one; every other round reversed,
+        for name, args, tree in (plan if r % 2 == 0 else plan[::-1]):  # so that no one always follows another
+            wall, peak = _whole_process(args, tree)
+            runs[name].append(wall)
+            rss[name].append(peak)
+    print(f"\n{path.name}: {n:,} events, --window period:10000, whole processes, median of {repeats}, alternating\n")
+    print("| operation | seconds | x read (median of the rounds' ratios) | peak RSS (MB) |")
+    print("|---|---:|---:|---:|")
+    for name in runs:
+        ratio = statistics.median(a / b for a, b in zip(runs[name], runs["read"]))
+        print(f"| {name} | {statistics.median(runs[name]):.3f} | {ratio:.2f} | {max(rss[name]):.0f} |")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--events", type=float, default=20e6)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--fixed", action="store_true", help="windows without a schedule (see above)")
+    ap.add_argument("--ops", default=";".join(list(_FIXED)[1:]), help="--fixed: which operations, separated by ;")
+    ap.add_argument("--baseline", help="--fixed: another evtk tree (git archive of a commit) to run alternately")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     a = ap.parse_args()
     n = int(a.events)
+    if a.fixed:
+        fixed(n, a.repeats, [op for op in a.ops.split(";") if op != "read"], a.baseline)
+        return
     if a.child:
         child(a.child, n)
         return

@@ -36,13 +36,13 @@ from .optics import Bench
 from .reconstruct import (
     Reconstruction,
     WindowCounts,
-    accumulate,
     plan,
     reconstruct,
     reconstruct_counts,
     response_error,
     window_bytes,
 )
+from .reconstruct.accumulate import accumulate_batches
 from .sensor import SensorModel
 from .simulate import Simulation
 
@@ -202,8 +202,7 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     batch = max(1, min(NOISE_BATCH_BYTES, (memory_limit_bytes() - fixed) // 2) // per_window)
     acc: SinadAccumulator | None = None
     binary: np.ndarray | None = None
-    for i in range(0, len(win), batch):
-        counts = accumulate(rec, win[i:i + batch], region, progress=progress)
+    for i, counts in accumulate_batches(rec, win, region, batch, progress=progress, reuse=True):
         part = reconstruct_counts(counts, None, skip_us=skip_us, length_us=length_us, **options)
         if acc is None:
             acc = SinadAccumulator(len(win), part.cells.shape[1:])

@@ -2,17 +2,19 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import numba
 import numpy as np
 
 from ..errors import EvtkError
 from ..events import Events
-from ..limits import require_memory
+from ..limits import memory_limit_bytes, require_memory
 from .windows import WindowCounts, Windows
 
-__all__ = ["accumulate"]
+__all__ = ["accumulate", "accumulate_batches", "batch_size"]
 
 _END = object()
 
@@ -136,9 +138,7 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
     sensor = tuple(source.sensor_size)
     if region is None:
         region = (0, sensor[0], 0, sensor[1])
-    x0, x1, y0, y1 = (int(v) for v in region)
-    if not (0 <= x0 < x1 <= sensor[0] and 0 <= y0 < y1 <= sensor[1]):
-        raise EvtkError(f"region {tuple(region)} is not a non-empty part of the {sensor[0]}x{sensor[1]} sensor")
+    x0, x1, y0, y1 = _checked_region(source, region)
     n_w = len(windows)
     shape = (2, n_w, y1 - y0, x1 - x0)
     # int32 ON and OFF counts (and the first and last ON times) of every window, and 17 bytes a window
@@ -198,3 +198,147 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         if first is not None and last is not None:
             first, last = first[inv], last[inv]
     return WindowCounts(on, off, windows, (x0, x1, y0, y1), int(used), first, last, period)
+
+
+#: Most memory one batch of windows may take (its counts and the float stages after them), in bytes.
+BATCH_BYTES = 256 << 20
+
+#: Peak bytes a window-pixel costs in a batch: ON and OFF counts (int32), the counts of one chunk (int64 each) and
+#: the float64 stages after them (net counts, linearised values, their copies).
+BYTES_PER_WINDOW_PIXEL = 64
+
+def batch_size(region: tuple[int, int, int, int], n_windows: int) -> int:
+    """How many windows of ``region`` (x0, x1, y0, y1) one batch holds: :data:`BATCH_BYTES` or a quarter of the
+    memory budget, whichever is less, and at least one (checked against the budget).
+
+    Parameters
+    ----------
+    region : tuple of int
+        (x0, x1, y0, y1), half-open sensor pixels.
+    n_windows : int
+        Windows to count in all.
+
+    Returns
+    -------
+    int
+        Windows per batch, between 1 and ``n_windows`` (1 when there are none).
+
+    Raises
+    ------
+    EvtkError
+        When even one window does not fit the memory budget.
+    """
+    x0, x1, y0, y1 = (int(v) for v in region)
+    per_window = max(1, (x1 - x0) * (y1 - y0) * BYTES_PER_WINDOW_PIXEL)
+    require_memory(per_window, f"one window over {x1 - x0}x{y1 - y0} pixels")
+    n = max(1, min(BATCH_BYTES, memory_limit_bytes() // 4) // per_window)
+    return int(max(1, min(n, int(n_windows))))
+
+
+def _checked_region(source, region) -> tuple[int, int, int, int]:
+    """``region`` as four ints, or an error when it is not a non-empty part of the source's sensor."""
+    sensor = tuple(source.sensor_size)
+    x0, x1, y0, y1 = (int(v) for v in region)
+    if not (0 <= x0 < x1 <= sensor[0] and 0 <= y0 < y1 <= sensor[1]):
+        raise EvtkError(f"region {tuple(region)} is not a non-empty part of the {sensor[0]}x{sensor[1]} sensor")
+    return x0, x1, y0, y1
+
+
+def _batch_events(source, bounds, chunk_events: int) -> Iterator[tuple[int, Events]]:
+    """(batch, chunk) pairs: each batch's events, in time order, through the time-window API of a recording
+    (or slices of sorted in-memory events); ``bounds`` holds each batch's (first start, last end) in us."""
+    if isinstance(source, Events):
+        ev = source.sorted()
+        for b, (a, z) in enumerate(bounds):
+            i, j = np.searchsorted(ev.t, [a, z], side="left")
+            for k in range(int(i), int(j), chunk_events):
+                yield b, ev[k:min(int(j), k + chunk_events)]
+        return
+    for b, (a, z) in enumerate(bounds):
+        for chunk in source.iter_events(chunk_events=chunk_events, t_start_us=int(a), t_end_us=int(z)):
+            yield b, chunk
+
+
+def accumulate_batches(source: Events | Any, windows: Windows, region: tuple[int, int, int, int],
+                       batch_windows: int | None = None,
+                       chunk_events: int = 4_000_000,
+                       progress: Callable[[int], Any] | None = None,
+                       reuse: bool = False) -> Iterator[tuple[int, WindowCounts]]:
+    """ON and OFF counts of ``windows`` over ``region``, a batch of windows at a time, in the windows' order.
+
+    Parameters
+    ----------
+    source : Events or Recording
+        Events (sorted here if they are not) or an open recording.
+    windows : Windows
+        The windows, in any order (a batch spans consecutive windows; windows in time order read each event
+        once).
+    region : tuple of int
+        (x0, x1, y0, y1), half-open sensor pixels to count.
+    batch_windows : int, optional
+        Windows per batch; default :func:`batch_size`.
+    chunk_events : int
+        Most events read at once.
+    progress : callable, optional
+        Called with the number of events of each chunk read.
+    reuse : bool
+        Count every batch into one buffer: each batch's counts are valid only until the next batch is asked
+        for (no fresh memory per batch).
+
+    Yields
+    ------
+    tuple of (int, WindowCounts)
+        The index of the batch's first window, and its counts (int32, as :func:`evtk.reconstruct.accumulate`
+        gives them, without event times).
+
+    Raises
+    ------
+    EvtkError
+        A region off the sensor, a batch larger than the memory budget, or a window holding more than
+        2**31 - 1 events.
+    """
+    region = _checked_region(source, region)
+    x0, x1, y0, y1 = region
+    n_w = len(windows)
+    if n_w == 0:
+        return
+    nb = batch_size(region, n_w) if batch_windows is None else max(1, int(batch_windows))
+    require_memory(min(nb, n_w) * (x1 - x0) * (y1 - y0) * BYTES_PER_WINDOW_PIXEL,
+                   f"counting {min(nb, n_w):,} windows at a time over {x1 - x0}x{y1 - y0} pixels")
+    for i, win, counts, used in _counted_batches(source, windows, region, nb, chunk_events, progress, reuse):
+        yield i, WindowCounts(counts[1], counts[0], win, region, used)
+
+
+def _counted_batches(source, windows: Windows, region, nb: int, chunk_events: int, progress, reuse: bool):
+    """(first window, its batch's Windows, int32 counts (2, windows, height, width), events used) per batch of
+    ``nb`` windows: one buffer for every batch when ``reuse`` (each batch's counts valid until the next one)."""
+    x0, x1, y0, y1 = region
+    n_w = len(windows)
+    frame = (x1 - x0) * (y1 - y0)
+    chunk_events = max(1, int(chunk_events))
+    firsts = list(range(0, n_w, nb))
+    bounds = [(int(windows.t_start_us[i:i + nb].min()), int(windows.t_end_us[i:i + nb].max())) for i in firsts]
+    chunks = _prefetched(_batch_events(source, bounds, chunk_events))
+    pending = next(chunks, None)
+    no_times = np.empty(0, np.int32)
+    buffer = np.empty(2 * min(nb, n_w) * frame, np.int32) if reuse else None
+    for b, i in enumerate(firsts):
+        win = windows[i:i + nb]
+        m = len(win)
+        flat = buffer[:2 * m * frame] if buffer is not None else np.empty(2 * m * frame, np.int32)
+        started = np.zeros(m, np.bool_)
+        totals = np.zeros(m, np.int64)
+        used = 0
+        while pending is not None and pending[0] == b:
+            ev = pending[1]
+            used += _accumulate_chunk(ev.t, ev.x, ev.y, ev.p, win.t_start_us, win.t_end_us, x0, x1, y0, y1, flat,
+                                      totals, started, no_times, no_times)
+            if totals.max(initial=0) > np.iinfo(np.int32).max:
+                raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
+                                "counts could overflow")
+            if progress is not None:
+                progress(len(ev))
+            pending = next(chunks, None)
+        counts = flat.reshape(2, m, y1 - y0, x1 - x0)
+        counts[:, ~started] = 0  # windows no event reached
+        yield i, win, counts, int(used)

@@ -13,6 +13,7 @@ from ..optics import ideal_response
 from ..optics.camera import CellMap
 from ..simulate import FLAT_ID, LEVEL_ID
 from ..simulate.record import SimulationRecord
+from ._batched import fused_supported, reconstruct_responses, reconstruct_windows
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
 from .deblur import DEFAULT_LAMBDA, relative_noise, sampling_matrix, solve_cells
@@ -156,7 +157,7 @@ def window_bytes(region, simulated):
 
 def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
                 linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None,
-                deblur=None, flat_field=True, timing=None):
+                deblur=None, flat_field=True, timing=None, keep_pixels=True):
     """The whole pipeline on an open recording: windows, counts, linearisation, passes, grid, binarisation.
 
     Parameters
@@ -195,6 +196,13 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
         Read the light below one threshold from each window's first and last
         ON-event times (:func:`linearize_by_timing`). ``None`` (default):
         wherever the recording's pixel model allows it; ``True``: required.
+    keep_pixels : bool
+        Keep every window's counts and per-pixel values (default). ``False``,
+        for a recording without a simulation record (every window stands
+        alone), keeps only the responses (``cells`` are the responses, the
+        counts hold no pixels): windows are counted a batch at a time and the
+        responses computed straight from the counts, in memory bounded by
+        them and one batch (``evtk.reconstruct._batched``).
 
     Notes
     -----
@@ -203,7 +211,16 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
     ``theta`` given) it uses ``exp(n * theta) - 1``.
     """
     check_crop(crop)
-    sim, win, region = plan(rec, window, skip_us, length_us, region)
+    # every window's counts at once, unless responses alone of windows that stand alone (no simulation record)
+    whole = keep_pixels or SimulationRecord.from_metadata(rec.metadata) is not None
+    sim, win, region = plan(rec, window, skip_us, length_us, region, check_memory=whole)
+    if sim is None and not keep_pixels:  # no schedule: each window alone, a batch at a time
+        stages = dict(size=size, binarize_method=binarize_method, linear=linear, theta=theta, crop=crop,
+                      skip_us=skip_us, length_us=length_us, deblur=deblur, flat_field=flat_field, timing=timing)
+        if fused_supported(stages):
+            return reconstruct_responses(rec, win, region, chunk_events=chunk_events, progress=progress, **stages)
+        return reconstruct_windows(rec, win, region, keep_pixels=False, chunk_events=chunk_events,
+                                   progress=progress, **stages)
     counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress,
                         times=wants_times(sim, linear, theta, timing))
     return reconstruct_counts(counts, sim, skip_us=skip_us, length_us=length_us, size=size,
