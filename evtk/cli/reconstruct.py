@@ -52,7 +52,6 @@ def reconstruct_cmd(recording, output, png_path, schedule_path, calibration_path
     windows without a schedule.
     """
     from ..io.reconstruction import save_reconstruction
-    from ..plots import contact_sheet
 
     options = _reconstruct_settings(**settings, region=region)
     calibration = None
@@ -72,7 +71,11 @@ def reconstruct_cmd(recording, output, png_path, schedule_path, calibration_path
                                    origin_px=origin_px, **options.kwargs())
     n_events, sensor = about["events"], about["sensor_size"]
     save_reconstruction(output, result, sensor, {"source": str(recording)})
-    pages = contact_sheet(png_path, result) if png_path else []
+    pages = []
+    if png_path:  # matplotlib only when a figure is asked for (about 1.5 s of a fresh process)
+        from ..plots import contact_sheet
+
+        pages = contact_sheet(png_path, result)
     summary = dict(result.summary, output=str(output), events_in_recording=n_events,
                    events_dropped=n_events - result.summary["events_used"], contact_sheet=pages)
     if as_json:
