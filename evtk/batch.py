@@ -37,6 +37,7 @@ from .cluster import run_tasks
 from .errors import EvtkError
 from .io import open as open_recording
 from .io.reconstruction import save_reconstruction
+from .plan import SimulationRecord
 from .reconstruct import (
     WindowCounts,
     Windows,
@@ -46,7 +47,6 @@ from .reconstruct import (
     reconstruct_counts,
     wants_times,
 )
-from .simulate.record import SimulationRecord
 from .workflow import reconstruct_recording
 
 __all__ = ["find_recordings", "batch_reconstruct", "reconstruct_split", "MANIFEST"]

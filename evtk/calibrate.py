@@ -37,6 +37,7 @@ from skimage.transform import ProjectiveTransform
 from ._atomic import AtomicFile
 from .errors import EvtkError
 from .optics.camera import CellMap
+from .plan import DOTS_ID, FLAT_ID, LEVEL_ID, dot_grid
 from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
 from .reconstruct.bench import refuse_synchronous
@@ -58,7 +59,6 @@ from .settings import (
     read_table,
     toml_value,
 )
-from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, dot_grid
 
 __all__ = ["Calibration", "calibrate", "background_rate_hz", "dot_blur_px", "load_calibration", "save_calibration",
            "plot_calibration", "MIN_DOTS"]

@@ -20,10 +20,9 @@ from __future__ import annotations
 
 from .calibrate import calibrate
 from .errors import EvtkError
+from .plan import DOTS_ID, SimulationRecord
 from .reconstruct import ReconstructOptions, load_schedule, reconstruct, reconstruct_calibrated, schedule_of_record
 from .settings import check_origin, check_region
-from .simulate import DOTS_ID
-from .simulate.record import SimulationRecord
 
 __all__ = ["reconstruct_recording"]
 

@@ -234,7 +234,6 @@ PENDING: set[str] = set(
     evtk.io.read_events
     evtk.io.reconstruction.describe_reconstruction
     evtk.io.reconstruction.is_reconstruction
-    evtk.io.reconstruction.load_reconstruction
     evtk.io.reconstruction.save_reconstruction
     evtk.io.table.columns_to_table
     evtk.io.table.load_json
@@ -308,6 +307,26 @@ PENDING: set[str] = set(
     evtk.patterns.job_simulation
     evtk.patterns.load_job
     evtk.patterns.write_patterns
+    evtk.plan.record.SimulationRecord
+    evtk.plan.record.SimulationRecord.from_dict
+    evtk.plan.record.SimulationRecord.from_metadata
+    evtk.plan.record.SimulationRecord.placement
+    evtk.plan.record.SimulationRecord.replace
+    evtk.plan.record.SimulationRecord.to_dict
+    evtk.plan.schedule.CaptureCounts
+    evtk.plan.schedule.Schedule
+    evtk.plan.schedule.Schedule.from_dict
+    evtk.plan.schedule.Schedule.take
+    evtk.plan.schedule.Schedule.to_dict
+    evtk.plan.schedule.check_patterns
+    evtk.plan.schedule.check_schedule
+    evtk.plan.schedule.default_features
+    evtk.plan.schedule.dot_grid
+    evtk.plan.schedule.level_kernel
+    evtk.plan.schedule.level_steps
+    evtk.plan.schedule.load_patterns
+    evtk.plan.schedule.read_schedule
+    evtk.plan.schedule.split_passes
     evtk.plots.contact_sheet
     evtk.plots.plot_enob
     evtk.plots.plot_flips
@@ -415,12 +434,6 @@ PENDING: set[str] = set(
     evtk.settings.check_value
     evtk.settings.read_table
     evtk.settings.toml_value
-    evtk.simulate.record.SimulationRecord
-    evtk.simulate.record.SimulationRecord.from_dict
-    evtk.simulate.record.SimulationRecord.from_metadata
-    evtk.simulate.record.SimulationRecord.placement
-    evtk.simulate.record.SimulationRecord.replace
-    evtk.simulate.record.SimulationRecord.to_dict
     evtk.simulate.run.Simulation
     evtk.simulate.run.Simulation.cell_map
     evtk.simulate.run.Simulation.count_table
@@ -435,20 +448,6 @@ PENDING: set[str] = set(
     evtk.simulate.run.Simulation.responses
     evtk.simulate.run.Simulation.triggers
     evtk.simulate.run.Simulation.write
-    evtk.simulate.schedule.CaptureCounts
-    evtk.simulate.schedule.Schedule
-    evtk.simulate.schedule.Schedule.from_dict
-    evtk.simulate.schedule.Schedule.take
-    evtk.simulate.schedule.Schedule.to_dict
-    evtk.simulate.schedule.check_patterns
-    evtk.simulate.schedule.check_schedule
-    evtk.simulate.schedule.default_features
-    evtk.simulate.schedule.dot_grid
-    evtk.simulate.schedule.level_kernel
-    evtk.simulate.schedule.level_steps
-    evtk.simulate.schedule.load_patterns
-    evtk.simulate.schedule.read_schedule
-    evtk.simulate.schedule.split_passes
     evtk.simulate.table.count_table
     evtk.simulate.table.table_batches
     evtk.sweeps.flip_sweep

@@ -586,8 +586,8 @@ def test_reconstruction_files_read_back_and_describe_themselves(tmp_path):
     from click.testing import CliRunner
 
     from evtk.cli import main
-    from evtk.io.reconstruction import is_reconstruction, load_reconstruction
-    from evtk.reconstruct import reconstruct
+    from evtk.io.reconstruction import is_reconstruction
+    from evtk.reconstruct import load_reconstruction, reconstruct
     from evtk.simulate import Simulation
 
     rec_path = tmp_path / "run.aedat4"

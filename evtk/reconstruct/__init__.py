@@ -23,6 +23,9 @@ The stages, each a function usable alone:
    effective stride, by area overlap) and :func:`downsample` (to a target
    size: block means for whole factors, area-weighted resampling otherwise).
 6. :func:`binarize`: sign, mean, a fixed threshold or Otsu's.
+
+What a run is (its schedule, patterns, placement, pixel model) comes from :mod:`evtk.plan`; nothing here
+imports the simulator. :func:`save_reconstruction` and :func:`load_reconstruction` write and read the result.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from .accumulate import accumulate
 from .bench import load_schedule, match_windows, reconstruct_bench
 from .binarize import binarize, binarize_rule
 from .calibrated import nominal_placement, reconstruct_calibrated, schedule_of_record
+from .files import load_reconstruction, save_reconstruction
 from .fit import PixelFit, fit_pixel_model, level_statistics
 from .grid import (
     combine_passes,
@@ -67,6 +71,6 @@ __all__ = [
     "count_curve", "linearize_by_model", "linearize_by_timing", "timing_thresholds", "wants_times",
     "window_bytes", "flat_field_gain", "reconstruct_calibrated", "schedule_of_record", "nominal_placement",
     "fit_pixel_model", "level_statistics", "PixelFit", "footprint_matrix", "overlap_matrix", "sample_response_grid",
-    "check_crop",
+    "check_crop", "load_reconstruction", "save_reconstruction",
 ]
 

@@ -18,8 +18,8 @@ from scipy.ndimage import median_filter
 
 from ..errors import EvtkError
 from ..optics import response_origin_px
-from ..simulate import FLAT_ID, LEVEL_ID
-from ..simulate.schedule import read_schedule as load_schedule  # the checked reader, under its older name
+from ..plan import FLAT_ID, LEVEL_ID
+from ..plan import read_schedule as load_schedule  # the checked reader, under its older name
 from .accumulate import accumulate
 from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import EvtkError
-from ..simulate.record import SimulationRecord
+from ..plan import SimulationRecord
 
 __all__ = ["binarize_rule", "binarize"]
 

@@ -27,8 +27,7 @@ import numpy as np
 
 from ..errors import EvtkError
 from ..optics import response_origin_px, response_region
-from ..simulate import FLAT_ID, LEVEL_ID
-from ..simulate.record import SimulationRecord
+from ..plan import FLAT_ID, LEVEL_ID, SimulationRecord
 from .accumulate import accumulate
 from .bench import (
     _all_pairs,

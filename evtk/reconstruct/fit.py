@@ -35,9 +35,8 @@ from scipy.optimize import least_squares, minimize
 
 from ..errors import EvtkError
 from ..optics import Bench
+from ..plan import Schedule, SimulationRecord
 from ..sensor import PixelState, SensorModel, simulate_pixels, time_constant_us
-from ..simulate import Schedule
-from ..simulate.record import SimulationRecord
 
 __all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "level_off_times", "level_rise_times",
            "rise_orders", "refractory_bound",

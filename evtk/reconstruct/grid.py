@@ -7,7 +7,7 @@ from scipy.ndimage import map_coordinates
 
 from ..errors import EvtkError
 from ..optics import axis_weights, shadow_magnification
-from ..simulate import Schedule
+from ..plan import Schedule
 
 __all__ = ["combine_passes", "to_response_grid", "sample_response_grid", "downsample", "footprint_matrix",
            "overlap_matrix"]

@@ -13,8 +13,8 @@ from .._threads import workers
 from ..errors import EvtkError
 from ..optics import Bench, brightest_response, screen_response
 from ..optics.camera import Camera, footprint_light
+from ..plan import SimulationRecord
 from ..sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
-from ..simulate.record import SimulationRecord
 
 __all__ = ["linearize", "count_curve", "linearize_by_model", "flat_field_gain", "isotonic", "level_table_values", "level_curve"]
 

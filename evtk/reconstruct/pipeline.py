@@ -11,8 +11,7 @@ from ..errors import EvtkError
 from ..limits import require_memory
 from ..optics import ideal_response
 from ..optics.camera import CellMap
-from ..simulate import FLAT_ID, LEVEL_ID
-from ..simulate.record import SimulationRecord
+from ..plan import FLAT_ID, LEVEL_ID, SimulationRecord
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
 from .deblur import DEFAULT_LAMBDA, relative_noise, sampling_matrix, solve_cells

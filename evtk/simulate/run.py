@@ -21,28 +21,52 @@ from ..optics import (
     screen_response,
 )
 from ..optics.camera import Camera, CellMap
-from ..sensor import PixelState, SensorModel, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
-from .events import _sorted_events
-from .record import SimulationRecord
-from .schedule import (
-    _T_LIMIT,
+from ..plan.record import SimulationRecord
+from ..plan.schedule import (
     DOTS_ID,
     FLAT_ID,
     LEVEL_ID,
     METADATA_KEY,
     CaptureCounts,
     Schedule,
-    _as_patterns,
-    _int_param,
-    _pass,
     dot_grid,
     level_kernel,
     level_steps,
+    sign_pass,
     split_passes,
 )
+from ..sensor import PixelState, SensorModel, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
+from .events import _sorted_events
 from .table import count_table, table_batches
 
 __all__ = ["Simulation"]
+
+_T_LIMIT = np.iinfo(np.int64).max
+
+
+def _as_patterns(name, a):
+    """A stack (n, h, w) of patterns with values in {-1, 0, 1}."""
+    a = np.asarray(a)
+    if a.dtype == bool:
+        a = a.astype(np.int8)
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3 or 0 in a.shape:
+        raise EvtkError(f"{name} must be a 2-D pattern or a stack of them (n, h, w), got shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.number):
+        raise EvtkError(f"{name} must be numeric, got {a.dtype}")
+    if not np.all(np.isfinite(a)) or not np.all((a == -1) | (a == 0) | (a == 1)):
+        raise EvtkError(f"{name} must hold only -1, 0 and 1 (binary DMD patterns, optionally signed)")
+    return a.astype(np.int8)
+
+
+def _int_param(name, v, low):
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer, float)) or (isinstance(v, float) and not v.is_integer()):
+        raise EvtkError(f"{name} must be a whole number, not {v!r}")
+    v = int(v)
+    if v < low:
+        raise EvtkError(f"{name} must be at least {low}, not {v}")
+    return v
 
 
 def _decay(dt_us, tau_us):
@@ -243,7 +267,7 @@ class Simulation:
             return k, dot_grid(self.features.shape[1:], self.dot_spacing)
         if s.kernel_id[c] == LEVEL_ID:  # a step of the staircase: ``level`` kernel elements over flat features
             return level_kernel(self.kernels.shape[1:], s.level[c]), np.ones(self.features.shape[1:], np.int8)
-        return _pass(self.kernels[s.kernel_id[c]], ks), _pass(self.features[s.features_id[c]], fs)
+        return sign_pass(self.kernels[s.kernel_id[c]], ks), sign_pass(self.features[s.features_id[c]], fs)
 
     def _rate(self, response):
         return self.gain_e_per_s * response + self.sensor.dark_current_e_per_s
