@@ -160,7 +160,7 @@ def _reconstruct_one(args):
             sensor = rec.sensor_size
         with expect_target(out, seen):  # what another batch wrote there meanwhile is reported, not replaced
             save_reconstruction(out, result, sensor, {"source": path})
-        entry.update(status="ok", events=int(events), windows=int(result.summary["windows"]))
+        entry.update(status="ok", events=int(events), windows=int(result.summary.windows))
     except Exception as exc:  # noqa: BLE001 - one bad input is recorded; the batch goes on
         entry["error"] = _error_text(exc)
     entry["seconds"] = time.perf_counter() - t0
@@ -243,7 +243,7 @@ def _split_large(todo, split_events, client, entries):
             result = reconstruct_split(path, parts, client, **options)
             with expect_target(out, seen):
                 save_reconstruction(out, result, sensor, {"source": path})
-            entry.update(status="ok", windows=int(result.summary["windows"]))
+            entry.update(status="ok", windows=int(result.summary.windows))
         except Exception as exc:  # noqa: BLE001 - recorded; the batch goes on
             entry["error"] = _error_text(exc)
         entry["seconds"] = time.perf_counter() - t0

@@ -68,8 +68,8 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         if schedule is not None or calibration is not None:
             raise EvtkError("the oracle reads the simulation record: leave out the schedule and the calibration")
         result = reconstruct(rec, progress=progress, **opts.kwargs())
-        result.summary["route"] = "oracle: the simulation record's own pixel model and placement"
-        result.summary["oracle"] = True
+        result.summary.route = "oracle: the simulation record's own pixel model and placement"
+        result.summary.oracle = True
         return result
     if schedule is None and record is None and not fixed:
         raise EvtkError("the recording carries no simulation record and no schedule was given: give the bench run's "
@@ -79,7 +79,7 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         if calibration is not None or origin_px is not None:
             raise EvtkError("a calibration or response origin goes with a schedule (a bench run) or a simulated run")
         result = reconstruct(rec, progress=progress, **opts.kwargs())
-        result.summary["route"] = "fixed windows" if fixed else "windows only: no schedule"
+        result.summary.route = "fixed windows" if fixed else "windows only: no schedule"
         return result
     if fixed:
         raise EvtkError("the calibrated route takes its windows from the trigger edges matched to the schedule: "
@@ -119,15 +119,16 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
                                     length_us=opts.length_us, crop=opts.crop, flat_field=opts.flat_field,
                                     deblur=opts.deblur, timing=opts.timing, linear=opts.linear, progress=progress,
                                     pixel_model=model, cell_map=cell_map, blur_px=blur_px, own_levels=own)
-    if not own and result.summary.get("pixel_model_from"):
-        result.summary["pixel_model_from"] = "the run's own level captures"
+    summary = result.summary
+    if not own and summary.pixel_model_from:
+        summary.pixel_model_from = "the run's own level captures"
     fitted_to = {"the run's own level captures": "the run's level captures",
-                 "the calibration": "the calibration run's level captures"}.get(result.summary.get("pixel_model_from"))
-    result.summary["route"] = "calibrated: " + (
+                 "the calibration": "the calibration run's level captures"}.get(summary.pixel_model_from or "")
+    summary.route = "calibrated: " + (
         f"a pixel model fitted to {fitted_to}" if fitted_to else
-        "exp(n theta), the fitted pixel model misreads the level captures" if result.summary.get(
-            "pixel_model_rejected") else "exp(n theta), no level captures to fit a pixel model to")
-    result.summary["placement"] = placed
-    result.summary["warnings"] = told + result.summary.get("warnings", [])
-    result.summary["oracle"] = False
+        "exp(n theta), the fitted pixel model misreads the level captures" if summary.pixel_model_rejected
+        else "exp(n theta), no level captures to fit a pixel model to")
+    summary.placement = placed
+    summary.warnings = told + (summary.warnings or [])
+    summary.oracle = False
     return result

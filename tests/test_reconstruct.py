@@ -649,3 +649,32 @@ def test_binarisation_default_follows_the_sign_of_the_responses(tmp_path):
         assert 0.2 < ones < 0.8, ones
         if not signed:
             assert np.mean(binarize(r.responses, "sign") > 0) > 0.85  # why sign is not the rule here
+
+
+def test_the_summary_is_typed_and_still_reads_as_a_dict(tmp_path):
+    """Issue 30: every route returns a ReconstructionSummary, whose entries are typed attributes; it reads and
+    writes as the dict it was (an entry the route did not set is a KeyError, its attribute None), and a file
+    gives back the same entries, the file's own metadata kept beside them."""
+    from evtk.reconstruct import ReconstructionSummary, load_reconstruction, reconstruct, save_reconstruction
+    from evtk.simulate import Simulation
+
+    Simulation([[1, 0, 1], [0, 1, 0], [1, 0, 1]], np.eye(6, dtype=int), repeat=2, seed=2).write(tmp_path / "r.h5")
+    with evtk.open(tmp_path / "r.h5") as rec:
+        result = reconstruct(rec)
+    s = result.summary
+    assert isinstance(s, ReconstructionSummary)
+    assert s.windows == s["windows"] == len(result.counts.windows) and s.captures == s["captures"]
+    assert s.error == s["error"] and s.error["correlation"] > 0.9 and s.linearization == s["linearization"]
+    assert s.match is None and "match" not in s and s.get("match", "absent") == "absent"
+    with pytest.raises(KeyError):
+        s["match"]
+    s["route"] = "by hand"  # written by key, read as an attribute
+    s.update(note_of_mine=1)  # an entry that is not an attribute is kept aside
+    assert s.route == "by hand" and s.extra == {"note_of_mine": 1} and dict(s)["note_of_mine"] == 1
+    plain = s.to_dict()
+    assert type(plain) is dict and json.loads(json.dumps(plain)) == plain
+    assert list(ReconstructionSummary.from_dict(plain).to_dict().items()) == list(plain.items())
+    save_reconstruction(tmp_path / "out.npz", result, rec.sensor_size)
+    back = load_reconstruction(tmp_path / "out.npz").summary
+    assert isinstance(back, ReconstructionSummary) and back.windows == s.windows and back.route == "by hand"
+    assert back.extra["sensor_size"] == list(rec.sensor_size) and back.extra["note_of_mine"] == 1

@@ -48,7 +48,7 @@ def save_reconstruction(path, result, sensor_size, metadata=None):
         arrays["ideal"] = result.ideal
     if result.pairs is not None:
         arrays["pairs"] = result.pairs
-    meta = {**(metadata or {}), "reconstruction": result.summary, "layout_version": LAYOUT_VERSION,
+    meta = {**(metadata or {}), "reconstruction": dict(result.summary), "layout_version": LAYOUT_VERSION,
             "sensor_size": [int(v) for v in sensor_size]}
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if ext == ".npz":

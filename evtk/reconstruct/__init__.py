@@ -56,6 +56,7 @@ from .pipeline import (
     wants_times,
     window_bytes,
 )
+from .summary import ReconstructionSummary
 from .timing import linearize_by_timing, timing_thresholds
 from .windows import WindowCounts, Windows, windows_from_schedule, windows_from_triggers, windows_periodic
 
@@ -71,6 +72,6 @@ __all__ = [
     "count_curve", "linearize_by_model", "linearize_by_timing", "timing_thresholds", "wants_times",
     "window_bytes", "flat_field_gain", "reconstruct_calibrated", "schedule_of_record", "nominal_placement",
     "fit_pixel_model", "level_statistics", "PixelFit", "footprint_matrix", "overlap_matrix", "sample_response_grid",
-    "check_crop", "load_reconstruction", "save_reconstruction",
+    "check_crop", "load_reconstruction", "save_reconstruction", "ReconstructionSummary",
 ]
 

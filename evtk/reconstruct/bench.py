@@ -25,6 +25,7 @@ from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid
 from .linearize import flat_field_gain, linearize
 from .pipeline import MAX_TIMING_STAMP_US, Reconstruction, check_crop, pair_ideals, response_error, silent_failures
+from .summary import ReconstructionSummary
 from .windows import Windows, _trim, windows_from_triggers
 
 __all__ = ["load_schedule", "match_windows", "reconstruct_bench", "synchronous_readout", "refuse_synchronous"]
@@ -183,7 +184,7 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
         "match": report, "pairs_left_out": sorted(_all_pairs(s) - complete),
         "error": response_error(combined * abs(scale), ideal), "scale_to_ideal": scale, **checks,
     }
-    return Reconstruction(responses, binary, pairs, combined, ideal, counts, summary)
+    return Reconstruction(responses, binary, pairs, combined, ideal, counts, ReconstructionSummary.from_dict(summary))
 
 
 #: Pixel-frames a synchronous readout must show fired in the next frame too (busy pixels) before the absence of

@@ -14,6 +14,7 @@ import numpy as np
 from ..errors import EvtkError, FormatError
 from ..io.reconstruction import read_reconstruction, save_reconstruction
 from .pipeline import Reconstruction
+from .summary import ReconstructionSummary
 from .windows import WindowCounts, Windows
 
 __all__ = ["load_reconstruction", "save_reconstruction"]
@@ -72,4 +73,5 @@ def load_reconstruction(path: str | os.PathLike, trust_external: bool | None = N
                           windows, region, events_used)
     return Reconstruction(arrays["responses"].astype(np.float64, copy=False),
                           arrays["binary"].astype(np.int8, copy=False), arrays.get("pairs"),
-                          arrays["cells"].astype(np.float64, copy=False), arrays.get("ideal"), counts, summary)
+                          arrays["cells"].astype(np.float64, copy=False), arrays.get("ideal"), counts,
+                          ReconstructionSummary.from_dict(summary))

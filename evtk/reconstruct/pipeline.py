@@ -26,6 +26,7 @@ from .linearize import (
     linearize,
     linearize_by_model,
 )
+from .summary import ReconstructionSummary
 from .timing import _settle_residual, linearize_by_timing, timing_thresholds
 from .windows import WindowCounts, windows_from_schedule, windows_from_triggers, windows_periodic
 
@@ -50,8 +51,8 @@ class Reconstruction:
     ideal : ndarray or None
         Ground truth on the same cell grid (simulated recordings only).
     counts : WindowCounts
-    summary : dict
-        Captures, windows, events used and dropped, parameters, errors.
+    summary : ReconstructionSummary
+        Captures, windows, events used and dropped, parameters, errors (a dict given here is read into one).
     thresholds : ndarray (rows, cols) or None
         Each pixel's ON threshold (log units) as the linearisation used it:
         from the flat fields' event times where they fit the model, else
@@ -65,8 +66,12 @@ class Reconstruction:
     cells: np.ndarray
     ideal: np.ndarray | None
     counts: WindowCounts
-    summary: dict
+    summary: ReconstructionSummary
     thresholds: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.summary, ReconstructionSummary):
+            self.summary = ReconstructionSummary.from_dict(self.summary)
 
     def groups(self) -> dict:
         """Indices of the responses of each scene: ``{(kernel_id, features_id): [i, ...]}`` over repeats.
@@ -364,7 +369,8 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
         summary["error"] = response_error(cells, ideal)
     if schedule is not None:
         summary.update(silent_failures(counts, pairs, cells, len(sim.kernels)))
-    return Reconstruction(responses, binary, pairs, cells, ideal, counts, summary, thresholds)
+    return Reconstruction(responses, binary, pairs, cells, ideal, counts, ReconstructionSummary.from_dict(summary),
+                          thresholds)
 
 
 def silent_failures(counts, pairs, cells, n_kernels) -> dict:
