@@ -37,9 +37,9 @@ from skimage.transform import ProjectiveTransform
 from ._atomic import AtomicFile
 from .errors import EvtkError
 from .optics.camera import CellMap
-from .plan import DOTS_ID, FLAT_ID, LEVEL_ID, dot_grid
+from .plan import DOTS_ID, FLAT_ID, LEVEL_ID, as_plan, dot_grid
 from .plots import pyplot, save_png
-from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
+from .reconstruct import PixelFit, accumulate, match_windows
 from .reconstruct.bench import refuse_synchronous
 from .reconstruct.calibrated import fit_on_edges, refuse_pixel_fit
 from .reconstruct.deblur import sampling_matrix
@@ -200,7 +200,7 @@ def calibrate(rec, schedule, tolerance_us=None, pixel_model=True) -> Calibration
     (:attr:`Calibration.blur_px`; without a model, through a logarithmic
     response, which reads it low: 0.6 and 1.0 px as 0.44 and 0.92).
     """
-    sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
+    sched = as_plan(schedule)
     s, kernels, features = sched["schedule"], sched["kernels"], sched["features"]
     if not np.any(s.kernel_id == DOTS_ID):
         raise EvtkError("the schedule has no calibration captures: add calibration = N to the job")

@@ -5,13 +5,15 @@
 
 * with a bench schedule (``schedule.json``), or on a simulated recording
   (whose record stands in for the schedule file: patterns, timing, bench
-  geometry, nothing of the pixels), the calibrated route,
-  :func:`evtk.reconstruct.reconstruct_calibrated`: trigger windows, a pixel
-  model fitted to the run's own level captures, and placement from a
-  calibration, from the run's own dot captures, or from the bench geometry;
-* with ``oracle=True``, :func:`evtk.reconstruct.reconstruct` on the
-  simulation record's own pixel model and placement (what a perfect
-  calibration would give; not available on a bench);
+  geometry, nothing of the pixels), the calibrated route:
+  :func:`evtk.reconstruct.reconstruct` on the bench's :class:`~evtk.plan.Plan`
+  placed by a calibration, by the run's own dot captures, or by the bench
+  geometry: trigger windows, a pixel model (the calibration's, or fitted to
+  the run's own level captures);
+* with ``oracle=True``, :func:`evtk.reconstruct.reconstruct` on the plan read
+  from the simulation record (:meth:`evtk.plan.Plan.from_record`: its own
+  pixel model and placement, what a perfect calibration would give; not
+  available on a bench);
 * with fixed windows (triggers or a period) or a fixed ``theta``, the plain
   pipeline, :func:`evtk.reconstruct.reconstruct`.
 """
@@ -20,8 +22,8 @@ from __future__ import annotations
 
 from .calibrate import calibrate
 from .errors import EvtkError
-from .plan import DOTS_ID, SimulationRecord
-from .reconstruct import ReconstructOptions, load_schedule, reconstruct, reconstruct_calibrated, schedule_of_record
+from .plan import DOTS_ID, Plan, SimulationRecord, as_plan
+from .reconstruct import ReconstructOptions, reconstruct, schedule_of_record
 from .settings import check_origin, check_region
 
 __all__ = ["reconstruct_recording"]
@@ -67,7 +69,7 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
             raise EvtkError("the recording carries no simulation record: the oracle is for recordings evtk simulated")
         if schedule is not None or calibration is not None:
             raise EvtkError("the oracle reads the simulation record: leave out the schedule and the calibration")
-        result = reconstruct(rec, progress=progress, **opts.kwargs())
+        result = reconstruct(rec, Plan.from_record(record), opts, progress=progress)
         result.summary.route = "oracle: the simulation record's own pixel model and placement"
         result.summary.oracle = True
         return result
@@ -78,7 +80,7 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
     if schedule is None and (record is None or fixed):
         if calibration is not None or origin_px is not None:
             raise EvtkError("a calibration or response origin goes with a schedule (a bench run) or a simulated run")
-        result = reconstruct(rec, progress=progress, **opts.kwargs())
+        result = reconstruct(rec, None, opts, progress=progress)
         result.summary.route = "fixed windows" if fixed else "windows only: no schedule"
         return result
     if fixed:
@@ -91,7 +93,7 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
     if schedule is None:
         sched = schedule_of_record(record)
     else:
-        sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
+        sched = as_plan(schedule)
     region, placed, cell_map, blur_px, model, own = opts.region, "given", None, 0.0, None, True
     told = []  # what the calibration assumed or left out, said again with the result
     if calibration is not None:
@@ -114,11 +116,10 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
             told = [w for w in cal.warnings if not (own and "pixel model" in w)]
         else:
             placed = "the bench geometry"
-    result = reconstruct_calibrated(rec, sched, region, origin_px, size=opts.size,
-                                    binarize_method=opts.binarize_method, skip_us=opts.skip_us,
-                                    length_us=opts.length_us, crop=opts.crop, flat_field=opts.flat_field,
-                                    deblur=opts.deblur, timing=opts.timing, linear=opts.linear, progress=progress,
-                                    pixel_model=model, cell_map=cell_map, blur_px=blur_px, own_levels=own)
+    placed_plan = sched.replace(region=None if region is None else tuple(region),
+                                origin_px=None if origin_px is None else tuple(origin_px), cell_map=cell_map,
+                                blur_px=blur_px, pixel_model=model, own_levels=own)
+    result = reconstruct(rec, placed_plan, opts, progress=progress)
     summary = result.summary
     if not own and summary.pixel_model_from:
         summary.pixel_model_from = "the run's own level captures"

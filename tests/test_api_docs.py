@@ -337,7 +337,6 @@ PENDING: set[str] = set(
     evtk.plots.wilson_interval
     evtk.reconstruct.accumulate.accumulate
     evtk.reconstruct.bench.match_windows
-    evtk.reconstruct.bench.reconstruct_bench
     evtk.reconstruct.bench.refuse_synchronous
     evtk.reconstruct.bench.synchronous_readout
     evtk.reconstruct.binarize.binarize
@@ -346,8 +345,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.calibrated.held_out_table_error
     evtk.reconstruct.calibrated.level_readback
     evtk.reconstruct.calibrated.nominal_placement
-    evtk.reconstruct.calibrated.reconstruct_calibrated
-    evtk.reconstruct.calibrated.schedule_of_record
     evtk.reconstruct.deblur.relative_noise
     evtk.reconstruct.deblur.sampling_matrix
     evtk.reconstruct.deblur.solve_cells
@@ -360,7 +357,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.fit.describe_pixels
     evtk.reconstruct.fit.fit_pixel_model
     evtk.reconstruct.fit.fit_refractory
-    evtk.reconstruct.fit.fitted_record
     evtk.reconstruct.fit.hot_pixels
     evtk.reconstruct.fit.interior_pixels
     evtk.reconstruct.fit.level_off_times
@@ -389,7 +385,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.pipeline.Reconstruction.groups
     evtk.reconstruct.pipeline.check_crop
     evtk.reconstruct.pipeline.plan
-    evtk.reconstruct.pipeline.reconstruct
     evtk.reconstruct.pipeline.reconstruct_counts
     evtk.reconstruct.pipeline.response_error
     evtk.reconstruct.pipeline.silent_failures

@@ -71,7 +71,8 @@ def test_bench_round_trip_patterns_simulate_calibrate_reconstruct(tmp_path):
     """patterns -> simulated run -> the camera's copy -> calibrate -> reconstruct --calibration: the error is
     within 15 % of the same pipeline given the true placement, and close to the oracle that inverts the
     simulator's own pixel model."""
-    from evtk.reconstruct import reconstruct, reconstruct_bench
+    from evtk.plan import as_plan
+    from evtk.reconstruct import reconstruct
 
     job, schedule, cam, record = _bench_copy(tmp_path, 7, 152.3, 108.6)
     res = CliRunner().invoke(main, ["calibrate", str(cam), "--schedule", str(schedule), "-o",
@@ -83,7 +84,9 @@ def test_bench_round_trip_patterns_simulate_calibrate_reconstruct(tmp_path):
     assert res.exit_code == 0, res.output
     calibrated = json.loads(res.stdout)["error"]
     with evtk.open(cam) as rec:
-        known = reconstruct_bench(rec, schedule, record["response_region"], record["response_origin_px"])
+        known = reconstruct(rec, as_plan(schedule).replace(region=record["response_region"],
+                                                           origin_px=record["response_origin_px"]),
+                            linearization="exp(n theta)")
     with evtk.open(tmp_path / "sim7.h5") as rec:
         oracle = reconstruct(rec)
     assert calibrated["nrmse"] <= 1.15 * known.summary["error"]["nrmse"]

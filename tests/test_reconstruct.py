@@ -678,3 +678,39 @@ def test_the_summary_is_typed_and_still_reads_as_a_dict(tmp_path):
     back = load_reconstruction(tmp_path / "out.npz").summary
     assert isinstance(back, ReconstructionSummary) and back.windows == s.windows and back.route == "by hand"
     assert back.extra["sensor_size"] == list(rec.sensor_size) and back.extra["note_of_mine"] == 1
+
+
+def test_one_entry_takes_its_route_from_the_plan(tmp_path):
+    """Issue 30: ``reconstruct(rec, plan, options)`` is the one entry. The oracle is the plan read from the
+    simulation record (the same numbers as the recording's own record); a bench plan (the schedule alone, as
+    a bench has it) runs the calibrated route (its pixel model fitted to the run's level captures) or, asked
+    for, exp(n theta) with no model; settings a bench plan cannot honour are one clear error each."""
+    from evtk.plan import Plan
+    from evtk.reconstruct import ReconstructOptions, reconstruct, schedule_of_record
+    from evtk.simulate import Simulation
+
+    rng = np.random.default_rng(4)
+    Simulation(rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16)), seed=4, levels=6,
+               flat_field=2).write(tmp_path / "r.h5")
+    with evtk.open(tmp_path / "r.h5") as rec:
+        record = rec.metadata["simulation"]
+        own = reconstruct(rec, options=ReconstructOptions(size=(8, 8)))
+        oracle = reconstruct(rec, Plan.from_record(record), ReconstructOptions(size=(8, 8)))
+        bench_plan = schedule_of_record(record)
+        fitted = reconstruct(rec, bench_plan)
+        plain = reconstruct(rec, bench_plan, linearization="exp(n theta)")
+        for bad, match in (({"window": "triggers"}, "bench plan's windows"), ({"theta": 0.3}, "leave out"),
+                           ({"linearization": "cubic"}, "linearization must be"), ({"colour": 1}, "no setting")):
+            with pytest.raises(EvtkError, match=match):
+                reconstruct(rec, bench_plan, **bad)
+        with pytest.raises(EvtkError, match="leave linearization out"):
+            reconstruct(rec, Plan.from_record(record), linearization="table")
+    assert np.array_equal(oracle.responses, own.responses) and oracle.responses.shape[1:] == (8, 8)
+    assert bench_plan.record is None and bench_plan.region is None and Plan.from_record(record).record is not None
+    assert fitted.summary.pixel_model_from == "the run's own level captures" and fitted.summary.match["matched"] > 0
+    assert fitted.summary.linearization.startswith("pixel model")
+    assert plain.summary.linearization == "exp(n theta)" and plain.summary.pixel_model is None
+    assert fitted.summary.error["correlation"] > plain.summary.error["correlation"] - 0.05
+    import evtk.reconstruct as R
+
+    assert not any(hasattr(R, n) for n in ("reconstruct_bench", "reconstruct_calibrated", "fitted_record"))

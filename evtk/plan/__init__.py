@@ -12,14 +12,17 @@ A run of the accelerator is described by
 * **the pixel model** (:class:`~evtk.sensor.SensorModel`, with the photon rates that put light in its units);
 * **the light's delay** after each trigger edge (``light_delay_us``).
 
-:class:`SimulationRecord` holds all of it, checked, as the simulator records it in a recording's metadata under
-:data:`METADATA_KEY` (``docs/formats/schedule.md``). The simulator (:mod:`evtk.simulate`) and the calibration
-(:mod:`evtk.calibrate`) produce plans; the reconstruction (:mod:`evtk.reconstruct`) consumes them and imports
-nothing from the simulator.
+:class:`Plan` holds what is known of it, as :func:`evtk.reconstruct.reconstruct` takes it: a bench run's
+(:meth:`Plan.read` of its ``schedule.json``, with a calibration's placement and pixel model), or a simulated
+one's (:meth:`Plan.from_record`, the oracle). :class:`SimulationRecord` holds all of it, checked, as the
+simulator records it in a recording's metadata under :data:`METADATA_KEY` (``docs/formats/schedule.md``). The
+simulator (:mod:`evtk.simulate`) and the calibration (:mod:`evtk.calibrate`) produce plans; the reconstruction
+(:mod:`evtk.reconstruct`) consumes them and imports nothing from the simulator.
 """
 
 from __future__ import annotations
 
+from .core import Plan, as_plan
 from .record import RECORD_SPECS, SimulationRecord
 from .schedule import (
     DOT_MARKER_MIN,
@@ -43,7 +46,7 @@ from .schedule import (
 )
 
 __all__ = [
-    "SimulationRecord", "RECORD_SPECS", "Schedule", "CaptureCounts", "read_schedule", "check_schedule",
+    "Plan", "as_plan", "SimulationRecord", "RECORD_SPECS", "Schedule", "CaptureCounts", "read_schedule", "check_schedule",
     "check_patterns", "SCHEDULE_SPECS", "METADATA_KEY", "FLAT_ID", "DOTS_ID", "LEVEL_ID", "DOT_MARKER_MIN",
     "split_passes", "sign_pass", "level_kernel", "level_steps", "dot_grid", "default_features", "load_patterns",
 ]

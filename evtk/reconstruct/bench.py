@@ -5,7 +5,7 @@ and where the response lies on the sensor (a region and the pixel of cell
 (0, 0), from a calibration or measured by hand); it does not know the
 pixels' model. :func:`match_windows` pairs the recording's trigger windows
 with the schedule's captures (the camera's clock has its own origin; edges
-can be lost or doubled), and :func:`reconstruct_bench` runs windows,
+can be lost or doubled), and :func:`_reconstruct_bench` runs windows,
 counts, ``exp(n theta)`` linearisation, the passes, the grid, resampling and
 binarisation on what matched, and compares the result with the digital
 correlation of the job's patterns, which the bench knows too.
@@ -13,13 +13,14 @@ correlation of the job's patterns, which the bench knows too.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from scipy.ndimage import median_filter
 
 from ..errors import EvtkError
 from ..optics import response_origin_px
-from ..plan import FLAT_ID, LEVEL_ID
-from ..plan import read_schedule as load_schedule  # the checked reader, under its older name
+from ..plan import FLAT_ID, LEVEL_ID, Plan, as_plan
 from .accumulate import accumulate
 from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid
@@ -28,7 +29,23 @@ from .pipeline import MAX_TIMING_STAMP_US, Reconstruction, check_crop, pair_idea
 from .summary import ReconstructionSummary
 from .windows import Windows, _trim, windows_from_triggers
 
-__all__ = ["load_schedule", "match_windows", "reconstruct_bench", "synchronous_readout", "refuse_synchronous"]
+__all__ = ["load_schedule", "match_windows", "synchronous_readout", "refuse_synchronous"]
+
+
+def load_schedule(path: str | os.PathLike) -> Plan:
+    """Read and check a bench run's ``schedule.json``: :meth:`evtk.plan.Plan.read`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file (:func:`evtk.patterns.write_patterns`; ``docs/formats/schedule.md``).
+
+    Returns
+    -------
+    Plan
+        Its schedule, patterns, bench and timing (also read by key: ``plan["kernels"]``).
+    """
+    return Plan.read(path)
 
 
 def match_windows(triggers, schedule, tolerance_us=None):
@@ -93,7 +110,7 @@ def match_windows(triggers, schedule, tolerance_us=None):
     return matched, report
 
 
-def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), binarize_method="auto", theta=0.2,
+def _reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), binarize_method="auto", theta=0.2,
                       skip_us=0, length_us=None, crop="valid", tolerance_us=None, flat_field=True,
                       progress=None) -> Reconstruction:
     """The whole pipeline on a bench recording, driven by its schedule; no simulation record is read.
@@ -103,7 +120,7 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     rec : Recording
         Events and the DMD's trigger edges.
     schedule : str, os.PathLike or dict
-        ``schedule.json`` (:func:`evtk.patterns.write_patterns`) or :func:`load_schedule`'s dict.
+        ``schedule.json`` (:func:`evtk.patterns.write_patterns`), a :class:`~evtk.plan.Plan` or a schedule's dict.
     region : (x0, x1, y0, y1)
         Sensor pixels to count (half-open).
     origin_px : (x, y), optional
@@ -133,7 +150,7 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     """
 
     check_crop(crop)
-    sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
+    sched = as_plan(schedule)
     s, kernels, features, bench = sched["schedule"], sched["kernels"], sched["features"], sched["bench"]
     win, report = match_windows(rec.triggers(), s, tolerance_us)
     start, end = _trim(win.t_start_us, win.t_end_us, skip_us, length_us, "matched")

@@ -18,7 +18,7 @@ the same windows, gives those numbers:
 
 Absolute photon rates are not observable from events; the fitted model
 states them relative to a nominal dark rate, which is all the
-reconstruction needs. :func:`fitted_record` wraps the model, the schedule,
+reconstruction needs. :func:`_fitted_record` wraps the model, the schedule,
 the placement and the windows into a :class:`~evtk.simulate.SimulationRecord`
 for :func:`~evtk.reconstruct.reconstruct_counts`: the oracle's pipeline,
 with a model the recording itself gave.
@@ -41,7 +41,7 @@ from ..sensor import PixelState, SensorModel, simulate_pixels, time_constant_us
 __all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "level_off_times", "level_rise_times",
            "rise_orders", "refractory_bound",
            "on_gaps", "fit_refractory", "GAP_QUANTILES",
-           "predict_levels", "fit_pixel_model", "fitted_record", "hot_pixels", "describe_pixels"]
+           "predict_levels", "fit_pixel_model", "hot_pixels", "describe_pixels"]
 
 #: Thresholds sampled across the mismatch when predicting a step's mean count (smooths the counts' steps).
 SPREAD_POINTS = 25
@@ -739,7 +739,7 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
                     int(window_us), int(settle_us), delay_us=delay - float(lead_us))
 
 
-def fitted_record(fit: PixelFit, schedule: Schedule, t_on_us, t_off_us, kernels, features, bench: Bench,
+def _fitted_record(fit: PixelFit, schedule: Schedule, t_on_us, t_off_us, kernels, features, bench: Bench,
                   region, origin_px, window_us, settle_us, cell_map=None, blur_px=0.0) -> SimulationRecord:
     """A record for :func:`~evtk.reconstruct.reconstruct_counts` holding what the bench knows and the fit.
 

@@ -30,7 +30,7 @@ from .summary import ReconstructionSummary
 from .timing import _settle_residual, linearize_by_timing, timing_thresholds
 from .windows import WindowCounts, windows_from_schedule, windows_from_triggers, windows_periodic
 
-__all__ = ["Reconstruction", "response_error", "plan", "window_bytes", "reconstruct", "wants_times",
+__all__ = ["Reconstruction", "response_error", "plan", "window_bytes", "wants_times",
     "reconstruct_counts", "silent_failures"]
 
 
@@ -118,13 +118,14 @@ def response_error(got, ideal):
             "nrmse_range": rmse / span if span > 0 else None}
 
 
-def plan(rec, window="schedule", skip_us=0, length_us=None, region=None, check_memory=True):
+def plan(rec, window="schedule", skip_us=0, length_us=None, region=None, check_memory=True, record=None):
     """What :func:`reconstruct` will count: ``(simulation record or None, Windows, region)``.
 
     With ``check_memory`` the counts of every window at once must fit the
-    memory budget (:func:`evtk.limits.require_memory`).
+    memory budget (:func:`evtk.limits.require_memory`). ``record`` (a
+    :class:`~evtk.plan.SimulationRecord`) takes the place of the one in the recording's metadata.
     """
-    sim = SimulationRecord.from_metadata(rec.metadata)
+    sim = record if record is not None else SimulationRecord.from_metadata(rec.metadata)
     if window == "schedule":
         if sim is None:
             raise EvtkError("the recording carries no capture schedule: use window='triggers' or a period")
@@ -158,10 +159,11 @@ def window_bytes(region, simulated):
     return max(0, x1 - x0) * max(0, y1 - y0) * (80 if simulated else 64)
 
 
-def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
-                linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None,
-                deblur=None, flat_field=True, timing=None):
-    """The whole pipeline on an open recording: windows, counts, linearisation, passes, grid, binarisation.
+def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
+                        linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None,
+                        deblur=None, flat_field=True, timing=None, record=None):
+    """The whole pipeline on an open recording and its simulation record (or none): windows, counts,
+    linearisation, passes, grid, binarisation (:func:`~evtk.reconstruct.reconstruct` without a bench plan).
 
     Parameters
     ----------
@@ -207,7 +209,7 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
     ``theta`` given) it uses ``exp(n * theta) - 1``.
     """
     check_crop(crop)
-    sim, win, region = plan(rec, window, skip_us, length_us, region)
+    sim, win, region = plan(rec, window, skip_us, length_us, region, record=record)
     counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress,
                         times=wants_times(sim, linear, theta, timing))
     return reconstruct_counts(counts, sim, skip_us=skip_us, length_us=length_us, size=size,
