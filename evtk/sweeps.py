@@ -130,7 +130,8 @@ def recording_noise(rec, window="schedule", skip_us=0, length_us=None, interval=
 
     sim, win, region = plan(rec, window, skip_us, length_us, options.pop("region", None), check_memory=False)
     if sim is not None:
-        result = reconstruct(rec, window, skip_us, length_us, region=region, progress=progress, **options)
+        result = reconstruct(rec, window=window, skip_us=skip_us, length_us=length_us, region=region, progress=progress,
+                             **options)
         return scene_noise(result, interval=interval, per_pixel=per_pixel, seed=seed)
     if len(win) < 2:
         raise EvtkError("no scene was captured at least twice: SINAD and flip rates need repeats")
