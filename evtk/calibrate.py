@@ -27,6 +27,7 @@ import os
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 from scipy.ndimage import gaussian_filter, median_filter
 from scipy.optimize import least_squares
 from skimage.feature import peak_local_max
@@ -37,7 +38,7 @@ from skimage.transform import ProjectiveTransform
 from ._atomic import AtomicFile
 from .errors import EvtkError
 from .optics.camera import CellMap
-from .plan import DOTS_ID, FLAT_ID, LEVEL_ID, as_plan, dot_grid
+from .plan import DOTS_ID, FLAT_ID, LEVEL_ID, Plan, as_plan, dot_grid
 from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, match_windows
 from .reconstruct.bench import refuse_synchronous
@@ -133,15 +134,60 @@ class Calibration:
     warnings: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
+        """The calibration as plain values (what :func:`save_calibration` writes).
+
+        Returns
+        -------
+        dict
+            Field name to value.
+        """
         return asdict(self)
 
     def cell_map(self) -> CellMap:
-        """The fitted map as a :class:`evtk.optics.camera.CellMap` (projective, then radial ``k1``)."""
+        """The fitted map as a :class:`evtk.optics.camera.CellMap` (projective, then radial ``k1``).
+
+        Returns
+        -------
+        CellMap
+            From response cells to sensor pixels.
+        """
         return CellMap(np.asarray(self.matrix, dtype=np.float64), float(self.k1), tuple(self.sensor_size))
 
-    def to_pixels(self, cells_xy):
-        """Sensor pixels (x, y) of response cells (column, row)."""
+    def to_pixels(self, cells_xy: npt.ArrayLike) -> np.ndarray:
+        """Sensor pixels (x, y) of response cells (column, row).
+
+        Parameters
+        ----------
+        cells_xy : array_like, shape (n, 2)
+            Cells as (column, row).
+
+        Returns
+        -------
+        ndarray, shape (n, 2)
+            Sensor pixels (x, y).
+        """
         return self.cell_map().to_pixels(cells_xy)
+
+    def place(self, plan: Plan | dict | str | os.PathLike, own_levels: bool = True) -> Plan:
+        """The run's plan with the camera part this calibration measured: region, origin, map, defocus and
+        (when it kept one) the pixel model.
+
+        Parameters
+        ----------
+        plan : Plan, dict, str or os.PathLike
+            The run's plan, a schedule's dict form or its ``schedule.json`` (:func:`evtk.plan.as_plan`).
+        own_levels : bool
+            Let the reconstruction fit the pixel model to the run's own level captures when it has any (else
+            it uses this calibration's).
+
+        Returns
+        -------
+        Plan
+            The plan :func:`evtk.reconstruct.reconstruct` takes.
+        """
+        return as_plan(plan).replace(region=tuple(self.region), origin_px=tuple(self.origin_px),
+                                     cell_map=self.cell_map(), blur_px=self.blur_px, pixel_model=self.pixel_model,
+                                     own_levels=own_levels)
 
 
 def _blobs(image, spacing_px=None, radius=2):

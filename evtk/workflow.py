@@ -94,7 +94,10 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         sched = schedule_of_record(record)
     else:
         sched = as_plan(schedule)
-    region, placed, cell_map, blur_px, model, own = opts.region, "given", None, 0.0, None, True
+    # the plan placed by a calibration, by the run's own dot captures, by hand (region, origin) or by the bench
+    run_plan = sched.replace(region=None if opts.region is None else tuple(opts.region),
+                             origin_px=None if origin_px is None else tuple(origin_px))
+    placed, own = "given", True
     told = []  # what the calibration assumed or left out, said again with the result
     if calibration is not None:
         (kh, kw), (fh, fw) = sched["kernels"].shape[1:], sched["features"].shape[1:]
@@ -102,24 +105,19 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
             raise EvtkError(f"the calibration is of a {calibration.response_shape[0]}x{calibration.response_shape[1]} "
                             f"response, this run's is {fh + kh - 1}x{fw + kw - 1}: calibrate with a run of the same "
                             "kernel and features sizes")
-        region, origin_px, placed = tuple(calibration.region), tuple(calibration.origin_px), "calibration"
-        cell_map, blur_px, model = calibration.cell_map(), calibration.blur_px, calibration.pixel_model
+        run_plan, placed = calibration.place(sched), "calibration"
         told = list(calibration.warnings)
-    elif region is None and origin_px is None:
+    elif opts.region is None and origin_px is None:
         if (sched["schedule"].kernel_id == DOTS_ID).any():
             # the run calibrates itself; its pixel model, fitted to its own level captures there, is not fitted again
             cal = calibrate(rec, sched)
-            region, origin_px, placed = tuple(cal.region), tuple(cal.origin_px), "the run's own dot captures"
-            cell_map, blur_px, model = cal.cell_map(), cal.blur_px, cal.pixel_model
-            own = model is None
+            own = cal.pixel_model is None
+            run_plan, placed = cal.place(sched, own_levels=own), "the run's own dot captures"
             # fitted again below when the calibration kept no model: what it says of the fit is said again there
             told = [w for w in cal.warnings if not (own and "pixel model" in w)]
         else:
             placed = "the bench geometry"
-    placed_plan = sched.replace(region=None if region is None else tuple(region),
-                                origin_px=None if origin_px is None else tuple(origin_px), cell_map=cell_map,
-                                blur_px=blur_px, pixel_model=model, own_levels=own)
-    result = reconstruct(rec, placed_plan, opts, progress=progress)
+    result = reconstruct(rec, run_plan, opts, progress=progress)
     summary = result.summary
     if not own and summary.pixel_model_from:
         summary.pixel_model_from = "the run's own level captures"

@@ -118,9 +118,6 @@ PENDING: set[str] = set(
     evtk.bcnn.poisson_robustness
     evtk.bcnn.resample_matrix
     evtk.calibrate.Calibration
-    evtk.calibrate.Calibration.cell_map
-    evtk.calibrate.Calibration.to_dict
-    evtk.calibrate.Calibration.to_pixels
     evtk.calibrate.background_rate_hz
     evtk.calibrate.calibrate
     evtk.calibrate.dot_blur_px

@@ -21,6 +21,7 @@ from ..optics import (
     screen_response,
 )
 from ..optics.camera import Camera, CellMap
+from ..plan.core import Plan
 from ..plan.record import SimulationRecord
 from ..plan.schedule import (
     DOTS_ID,
@@ -336,6 +337,16 @@ class Simulation:
             calibration=self.calibration, dot_spacing=self.dot_spacing, levels=self.levels,
             camera=None if self.camera is None else self.camera.to_dict(), light_delay_us=self.light_delay_us,
             correlation="convolution" if self.bench.kernel_flipped else "correlation", evtk_version=__version__)
+
+    def plan(self) -> Plan:
+        """The plan of this run, the oracle's (:meth:`evtk.plan.Plan.from_record` of :meth:`record`).
+
+        Returns
+        -------
+        Plan
+            Schedule, patterns, bench, placement, pixel model and light delay, with the record.
+        """
+        return Plan.from_record(self.record())
 
     def metadata(self) -> dict:
         """The recording's metadata: :meth:`record` in its dict form, under ``simulation``."""
