@@ -304,26 +304,6 @@ PENDING: set[str] = set(
     evtk.patterns.job_simulation
     evtk.patterns.load_job
     evtk.patterns.write_patterns
-    evtk.plan.record.SimulationRecord
-    evtk.plan.record.SimulationRecord.from_dict
-    evtk.plan.record.SimulationRecord.from_metadata
-    evtk.plan.record.SimulationRecord.placement
-    evtk.plan.record.SimulationRecord.replace
-    evtk.plan.record.SimulationRecord.to_dict
-    evtk.plan.schedule.CaptureCounts
-    evtk.plan.schedule.Schedule
-    evtk.plan.schedule.Schedule.from_dict
-    evtk.plan.schedule.Schedule.take
-    evtk.plan.schedule.Schedule.to_dict
-    evtk.plan.schedule.check_patterns
-    evtk.plan.schedule.check_schedule
-    evtk.plan.schedule.default_features
-    evtk.plan.schedule.dot_grid
-    evtk.plan.schedule.level_kernel
-    evtk.plan.schedule.level_steps
-    evtk.plan.schedule.load_patterns
-    evtk.plan.schedule.read_schedule
-    evtk.plan.schedule.split_passes
     evtk.plots.contact_sheet
     evtk.plots.plot_enob
     evtk.plots.plot_flips

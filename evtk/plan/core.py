@@ -142,7 +142,7 @@ class Plan:
         return cls(**{k: d[k] for k in SCHEDULE_KEYS if k in d})
 
     @classmethod
-    def from_record(cls, record: SimulationRecord | Mapping, oracle: bool = True) -> Plan:
+    def from_record(cls, record: SimulationRecord | dict, oracle: bool = True) -> Plan:
         """The plan a simulation record holds.
 
         Parameters

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -61,24 +62,46 @@ __all__ = ["SimulationRecord", "RECORD_SPECS"]
 class SimulationRecord:
     """How a simulated recording was made (:meth:`evtk.simulate.Simulation.record`).
 
-    Attributes
+    Parameters
     ----------
     bench : Bench
+        The bench's geometry and light.
     sensor : SensorModel
+        The pixel model the run was simulated with.
     kernels, features : ndarray of int (n, h, w)
+        The patterns, -1, 0 or 1.
     schedule : Schedule
+        The captures.
     window_us, settle_us, start_us, end_us : int
         Capture timing and the recording's span (µs).
-    response_region : (x0, x1, y0, y1)
-        Sensor pixels the response falls on.
-    response_origin_px : (x, y)
-        Sensor pixel of the full response's cell (0, 0).
+    response_region : tuple
+        ``(x0, x1, y0, y1)``: sensor pixels the response falls on.
+    response_origin_px : tuple
+        ``(x, y)``: sensor pixel of the full response's cell (0, 0).
     gain_e_per_s_per_unit : float
         Photoelectrons per second one unit of response adds to a pixel.
     blank_rate_e_per_s : float
         A pixel's photocurrent with both DMDs dark (dark current and glow).
-    seed, noise_seed, repeat, flat_field, calibration, dot_spacing, levels, correlation, evtk_version
-        The rest of the run's settings.
+    seed, noise_seed : int or None
+        The seeds of the patterns' draw and of the pixels' noise.
+    repeat, flat_field, levels : int
+        Repeats of each pair, flat-field captures, level steps.
+    calibration : bool
+        Calibration (dot grid) captures in the run (their number, as an int, in the dict form).
+    dot_spacing : int
+        Features elements between calibration dots.
+    camera : dict or None
+        The simulated camera's pose and lens (:class:`evtk.optics.camera.Camera` fields), None for the nominal
+        view.
+    cell_map : dict or None
+        A fitted map from cells to pixels (``{"matrix": 3x3, "k1": float}``, optionally ``"blur_px"``), which
+        takes the place of ``response_origin_px``.
+    light_delay_us : int
+        How long after each trigger edge the light changed (µs).
+    correlation : str
+        "correlation" or "convolution" (a flipped kernel).
+    evtk_version : str
+        The evtk that made the run.
     """
 
     bench: Bench
@@ -116,8 +139,14 @@ class SimulationRecord:
                  "response_region", "response_origin_px", "gain_e_per_s_per_unit", "blank_rate_e_per_s")
 
     def placement(self) -> CellMap | None:
-        """The map from response cells to sensor pixels when it is more than ``response_origin_px`` and the
-        bench's step (a fitted ``cell_map``, or the simulated camera's pose and lens), else None."""
+        """The map from response cells to sensor pixels, when it is more than the origin and the bench's step.
+
+        Returns
+        -------
+        CellMap or None
+            A fitted ``cell_map``, or the simulated camera's pose and lens; None for the nominal view
+            (``response_origin_px`` and the bench's step).
+        """
         size = (self.bench.sensor_width, self.bench.sensor_height)
         if self.cell_map is not None:
             return CellMap(np.asarray(self.cell_map["matrix"], np.float64), float(self.cell_map["k1"]), size)
@@ -141,12 +170,29 @@ class SimulationRecord:
         """Whether a kernel or features pattern holds -1 (responses combine ± passes)."""
         return bool(np.min(self.kernels) < 0 or np.min(self.features) < 0)
 
-    def replace(self, **changes) -> SimulationRecord:
-        """A copy with some attributes changed (e.g. another pixel model, to test a mismatched reconstruction)."""
+    def replace(self, **changes: Any) -> SimulationRecord:
+        """A copy with some attributes changed (e.g. another pixel model, to test a mismatched reconstruction).
+
+        Parameters
+        ----------
+        **changes
+            Attributes and their new values.
+
+        Returns
+        -------
+        SimulationRecord
+            The copy.
+        """
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:
-        """The JSON-ready form stored in a recording's metadata under ``simulation``."""
+        """The JSON-ready form stored in a recording's metadata under ``simulation``.
+
+        Returns
+        -------
+        dict
+            Every attribute, the arrays and tables as lists and dicts.
+        """
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         d.update(bench=self.bench.to_dict(), sensor=self.sensor.to_dict(), kernels=self.kernels.tolist(),
                  features=self.features.tolist(), schedule=self.schedule.to_dict(),
@@ -155,7 +201,7 @@ class SimulationRecord:
         return d
 
     @classmethod
-    def from_dict(cls, d, where="the simulation record") -> SimulationRecord:
+    def from_dict(cls, d: dict | SimulationRecord, where: str = "the simulation record") -> SimulationRecord:
         """Read the record from its dict form (or pass a record through), every value checked.
 
         Parameters
@@ -211,7 +257,18 @@ class SimulationRecord:
         return cls(**kw)
 
     @classmethod
-    def from_metadata(cls, metadata) -> SimulationRecord | None:
-        """The record in a recording's metadata, or None when it has none (a bench recording)."""
+    def from_metadata(cls, metadata: dict | None) -> SimulationRecord | None:
+        """The record in a recording's metadata, or None when it has none (a bench recording).
+
+        Parameters
+        ----------
+        metadata : dict or None
+            The recording's metadata (its ``simulation`` entry is read and checked).
+
+        Returns
+        -------
+        SimulationRecord or None
+            The record.
+        """
         d = (metadata or {}).get(METADATA_KEY)
         return None if d is None else cls.from_dict(d)

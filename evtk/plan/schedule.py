@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -38,12 +39,19 @@ _T_LIMIT = np.iinfo(np.int64).max
 
 
 
-def split_passes(kernel, features):
+def split_passes(kernel: npt.ArrayLike, features: npt.ArrayLike) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
     """Non-negative passes of a signed (kernel, features) pair.
 
-    Returns a list of ``(kernel_sign, features_sign, kernel_pass, features_pass)``
-    with passes in {0, 1}; pairs where either pass is all zero are left out.
-    The signed response is ``sum(ks * fs * response(kp, fp))``.
+    Parameters
+    ----------
+    kernel, features : array_like of -1, 0, 1
+        The signed patterns.
+
+    Returns
+    -------
+    list of tuple
+        ``(kernel_sign, features_sign, kernel_pass, features_pass)`` with passes in {0, 1}; pairs where either
+        pass is all zero are left out. The signed response is ``sum(ks * fs * response(kp, fp))``.
 
     Examples
     --------
@@ -83,7 +91,23 @@ def sign_pass(pattern: npt.ArrayLike, sign: int) -> np.ndarray:
 
 @dataclass
 class Schedule:
-    """One row per capture: which patterns, which pass, when (us)."""
+    """One row per capture: which patterns, which pass, when (µs).
+
+    Parameters
+    ----------
+    capture : ndarray of int
+        Capture numbers 0, 1, 2, ...
+    kernel_id, features_id : ndarray of int
+        The patterns each capture shows (or a setup capture's :data:`FLAT_ID`, :data:`DOTS_ID`, :data:`LEVEL_ID`).
+    kernel_sign, features_sign : ndarray of int
+        The pass of each pattern, +1 or -1.
+    t_on_us, t_off_us : ndarray of int
+        When the patterns appear and go (µs).
+    repeat : ndarray of int
+        Which repeat of its pair each capture is.
+    level : ndarray of int, optional
+        Mirrors on in the kernel of a level capture, 0 for the others (zeros when None).
+    """
 
     capture: np.ndarray
     kernel_id: np.ndarray
@@ -108,15 +132,33 @@ class Schedule:
         return int(self.capture.size)
 
     def to_dict(self) -> dict:
+        """The schedule's dict form, column name to a list of whole numbers (what a record stores).
+
+        Returns
+        -------
+        dict
+            One list per column.
+        """
         return {c: getattr(self, c).tolist() for c in self._COLUMNS}
 
-    def take(self, rows) -> Schedule:
-        """The schedule of the captures ``rows`` (indices or a boolean mask), in that order."""
+    def take(self, rows: npt.ArrayLike) -> Schedule:
+        """The schedule of some captures, in the order given.
+
+        Parameters
+        ----------
+        rows : array_like
+            Capture indices, or a boolean mask over the captures.
+
+        Returns
+        -------
+        Schedule
+            Their rows (their capture numbers kept).
+        """
         return Schedule(**{c: getattr(self, c)[rows] for c in self._COLUMNS})
 
     @classmethod
-    def from_dict(cls, d: dict, where="the capture schedule", n_kernels=None, n_features=None,
-                  kernel_elements=None) -> Schedule:
+    def from_dict(cls, d: dict, where: str = "the capture schedule", n_kernels: int | None = None,
+                  n_features: int | None = None, kernel_elements: int | None = None) -> Schedule:
         """The schedule of its dict form (:meth:`to_dict`), every column checked (:func:`check_schedule`).
 
         Parameters
@@ -147,7 +189,8 @@ class Schedule:
         return sched
 
 
-def check_schedule(where, s: Schedule, n_kernels=None, n_features=None, kernel_elements=None):
+def check_schedule(where: str, s: Schedule, n_kernels: int | None = None, n_features: int | None = None,
+                   kernel_elements: int | None = None) -> None:
     """Raise :class:`~evtk.EvtkError` naming the first capture of ``s`` that no run of evtk could have.
 
     Capture numbers 0, 1, 2, ... in order; times within the int64 range,
@@ -223,7 +266,7 @@ SCHEDULE_CALIBRATION_SPECS = {
 }
 
 
-def check_patterns(where, key, value) -> np.ndarray:
+def check_patterns(where: str, key: str, value: Any) -> np.ndarray:
     """A stack (n, h, w) of patterns, -1, 0 or 1, read from a settings file or record.
 
     Parameters
@@ -244,7 +287,7 @@ def check_patterns(where, key, value) -> np.ndarray:
     return a
 
 
-def read_schedule(path) -> dict:
+def read_schedule(path: str | os.PathLike) -> dict:
     """Read and check a ``schedule.json`` (:func:`evtk.patterns.write_patterns`; ``docs/formats/schedule.md``).
 
     Parameters
@@ -313,8 +356,14 @@ def read_schedule(path) -> dict:
 class CaptureCounts:
     """Per-capture event counts inside each capture window, over a sensor region.
 
-    ``on`` and ``off`` have shape (n_captures, y1 - y0, x1 - x0); ``region`` is
-    (x0, x1, y0, y1) on the sensor.
+    Parameters
+    ----------
+    on, off : ndarray of int
+        ON and OFF counts, ``(n_captures, y1 - y0, x1 - x0)``.
+    region : tuple
+        ``(x0, x1, y0, y1)`` on the sensor.
+    schedule : Schedule
+        The captures counted.
     """
 
     on: np.ndarray
@@ -323,8 +372,19 @@ class CaptureCounts:
     schedule: Schedule
 
 
-def default_features(side=16):
-    """The embedded default input: scikit-image's camera picture, ``side`` x ``side``, binarised at its mean (0/1)."""
+def default_features(side: int = 16) -> np.ndarray:
+    """The embedded default input: scikit-image's camera picture, ``side`` x ``side``, binarised at its mean.
+
+    Parameters
+    ----------
+    side : int
+        Elements a side.
+
+    Returns
+    -------
+    ndarray of int8
+        0/1, ``(side, side)``.
+    """
     from skimage import data, transform
 
     img = transform.resize(data.camera().astype(np.float64), (side, side), anti_aliasing=True)
@@ -347,13 +407,25 @@ LEVEL_ID = -3
 _SETUP_IDS = (FLAT_ID, DOTS_ID, LEVEL_ID)
 
 
-def level_kernel(shape, on):
+def level_kernel(shape: tuple[int, int], on: int) -> np.ndarray:
     """The kernel of a level capture: its first ``on`` elements in row-major order on, the rest off (int8).
 
     Under features that are all on, every cell of the response's interior
     sees exactly ``on`` units of light, whichever elements are on: a
     staircase of these captures measures the pixels' transfer from light to
     counts, to which :func:`evtk.reconstruct.fit_pixel_model` fits the pixel model.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        The kernel's ``(rows, cols)``.
+    on : int
+        Elements on, 1 to rows x cols.
+
+    Returns
+    -------
+    ndarray of int8
+        The kernel.
 
     Examples
     --------
@@ -369,15 +441,28 @@ def level_kernel(shape, on):
     return out.reshape(h, w)
 
 
-def level_steps(n_elements, levels):
-    """The ``levels`` kernel element counts a staircase shows: evenly spread from 1 to ``n_elements``, distinct."""
+def level_steps(n_elements: int, levels: int) -> np.ndarray:
+    """The kernel element counts a staircase of level captures shows: evenly spread from 1 up, distinct.
+
+    Parameters
+    ----------
+    n_elements : int
+        Elements of the kernel (the brightest step).
+    levels : int
+        Steps asked for (fewer when the kernel has fewer elements).
+
+    Returns
+    -------
+    ndarray of int64
+        The steps, ascending; empty for ``levels <= 0``.
+    """
     n, k = int(n_elements), int(levels)
     if k <= 0:
         return np.zeros(0, np.int64)
     return np.unique(np.round(np.linspace(1, n, min(k, n))).astype(np.int64))
 
 
-def dot_grid(shape, spacing, marker=True):
+def dot_grid(shape: tuple[int, int], spacing: int, marker: bool = True) -> np.ndarray:
     """The calibration pattern: 1 at every ``spacing``-th features element along each axis, starting
     ``spacing // 2`` in, 0 elsewhere (int8).
 
@@ -387,6 +472,20 @@ def dot_grid(shape, spacing, marker=True):
     reflection maps the gap onto itself and :func:`evtk.calibrate.calibrate` tells a mirrored or rotated camera
     apart from an upright one; the corners stay, for the map's extrapolation. ``marker=False`` gives the whole
     grid.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        The features' ``(rows, cols)``.
+    spacing : int
+        Elements between dots.
+    marker : bool
+        Leave the orientation marker's dot out.
+
+    Returns
+    -------
+    ndarray of int8
+        The pattern.
 
     Examples
     --------
@@ -413,7 +512,7 @@ def dot_grid(shape, spacing, marker=True):
 DOT_MARKER_MIN = 10
 
 
-def load_patterns(path_or_bits, name, side=None):
+def load_patterns(path_or_bits: str | os.PathLike, name: str, side: int | None = None) -> np.ndarray:
     """Patterns from a ``.npy`` file, an image (PNG etc.) or a bit string like ``101010101``.
 
     Images are binarised at half their range; a bit string fills a square
