@@ -20,27 +20,32 @@
 
 from __future__ import annotations
 
-from .calibrate import calibrate
+import os
+from typing import Any
+
+from .calibrate import Calibration, calibrate
 from .errors import EvtkError
 from .plan import DOTS_ID, Plan, SimulationRecord, as_plan
-from .reconstruct import ReconstructOptions, reconstruct, schedule_of_record
+from .reconstruct import Reconstruction, ReconstructOptions, reconstruct, schedule_of_record
 from .settings import check_origin, check_region
 
 __all__ = ["reconstruct_recording"]
 
 
-def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, origin_px=None, progress=None,
-                          **options):
+def reconstruct_recording(rec: Any, oracle: bool = False, schedule: Plan | dict | str | os.PathLike | None = None,
+                          calibration: Calibration | None = None, origin_px: tuple | None = None,
+                          progress: Any = None, **options: Any) -> Reconstruction:
     """Reconstruct ``rec`` by the route its inputs allow (see the module docstring).
 
     Parameters
     ----------
     rec : Recording
+        The open recording.
     oracle : bool
         Use the simulation record's pixel model and placement (simulated
         recordings only); the summary says ``"oracle": true``.
-    schedule : path or dict, optional
-        A bench run's ``schedule.json`` (:func:`evtk.patterns.write_patterns`).
+    schedule : Plan, dict, str or os.PathLike, optional
+        A bench run's ``schedule.json`` (:func:`evtk.patterns.write_patterns`), or its plan.
     calibration : Calibration, optional
         Where the response lies (:func:`evtk.calibrate.calibrate`); else
         ``options["region"]`` and ``origin_px``, else the run's own dot
@@ -50,7 +55,7 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         checked to be two finite numbers near the sensor.
     progress : callable, optional
         Called with the captures done.
-    options
+    **options
         :class:`~evtk.reconstruct.ReconstructOptions` fields.
 
     Returns
@@ -90,10 +95,12 @@ def reconstruct_recording(rec, oracle=False, schedule=None, calibration=None, or
         origin_px = check_origin("the response origin", "origin_px", origin_px, rec.sensor_size)
     if opts.region is not None and schedule is not None:
         check_region("the region", "region", opts.region, rec.sensor_size)
-    if schedule is None:
-        sched = schedule_of_record(record)
-    else:
+    if schedule is not None:
         sched = as_plan(schedule)
+    elif record is not None:
+        sched = schedule_of_record(record)
+    else:  # refused or reconstructed by fixed windows above
+        raise EvtkError("the recording carries no simulation record and no schedule was given")
     # the plan placed by a calibration, by the run's own dot captures, by hand (region, origin) or by the bench
     run_plan = sched.replace(region=None if opts.region is None else tuple(opts.region),
                              origin_px=None if origin_px is None else tuple(origin_px))

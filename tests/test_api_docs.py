@@ -313,15 +313,11 @@ PENDING: set[str] = set(
     evtk.plots.plot_tradeoff
     evtk.plots.wilson_interval
     evtk.reconstruct.accumulate.accumulate
-    evtk.reconstruct.bench.match_windows
     evtk.reconstruct.bench.refuse_synchronous
     evtk.reconstruct.bench.synchronous_readout
     evtk.reconstruct.binarize.binarize
     evtk.reconstruct.binarize.binarize_rule
     evtk.reconstruct.calibrated.fit_on_edges
-    evtk.reconstruct.calibrated.held_out_table_error
-    evtk.reconstruct.calibrated.level_readback
-    evtk.reconstruct.calibrated.nominal_placement
     evtk.reconstruct.deblur.relative_noise
     evtk.reconstruct.deblur.sampling_matrix
     evtk.reconstruct.deblur.solve_cells
@@ -358,15 +354,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.linearize.linearize_by_model
     evtk.reconstruct.options.ReconstructOptions
     evtk.reconstruct.options.ReconstructOptions.kwargs
-    evtk.reconstruct.pipeline.Reconstruction
-    evtk.reconstruct.pipeline.Reconstruction.groups
-    evtk.reconstruct.pipeline.check_crop
-    evtk.reconstruct.pipeline.plan
-    evtk.reconstruct.pipeline.reconstruct_counts
-    evtk.reconstruct.pipeline.response_error
-    evtk.reconstruct.pipeline.silent_failures
-    evtk.reconstruct.pipeline.wants_times
-    evtk.reconstruct.pipeline.window_bytes
     evtk.reconstruct.timing.linearize_by_timing
     evtk.reconstruct.timing.timing_thresholds
     evtk.reconstruct.windows.WindowCounts
@@ -429,7 +416,6 @@ PENDING: set[str] = set(
     evtk.sweeps.scene_noise
     evtk.sweeps.simulated_reconstruction
     evtk.sweeps.tradeoff
-    evtk.workflow.reconstruct_recording
 """.split()
 )
 

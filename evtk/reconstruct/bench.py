@@ -19,8 +19,9 @@ import numpy as np
 from scipy.ndimage import median_filter
 
 from ..errors import EvtkError
+from ..events import Triggers
 from ..optics import response_origin_px
-from ..plan import FLAT_ID, LEVEL_ID, Plan, as_plan
+from ..plan import FLAT_ID, LEVEL_ID, Plan, Schedule, as_plan
 from .accumulate import accumulate
 from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid
@@ -48,8 +49,8 @@ def load_schedule(path: str | os.PathLike) -> Plan:
     return Plan.read(path)
 
 
-def match_windows(triggers, schedule, tolerance_us=None):
-    """Pair trigger windows with the schedule's captures; returns ``(Windows, report)``.
+def match_windows(triggers: Triggers, schedule: Schedule, tolerance_us: float | None = None) -> tuple[Windows, dict]:
+    """Pair trigger windows with the schedule's captures.
 
     The recording's clock and the schedule's differ by an offset, found as
     the one that lines up the most window starts with capture starts (tried
@@ -61,6 +62,20 @@ def match_windows(triggers, schedule, tolerance_us=None):
     windows match none (``extra``), the offset, and what the trigger edges
     themselves left out (``dropped``). Missing and extra edges are reported,
     not fatal; no match at all is an error.
+
+    Parameters
+    ----------
+    triggers : Triggers
+        The recording's trigger edges.
+    schedule : Schedule
+        The captures.
+    tolerance_us : float, optional
+        How far a window's start may be from its capture's.
+
+    Returns
+    -------
+    tuple
+        ``(Windows, report)``.
     """
     win = windows_from_triggers(triggers)
     t_on = schedule.t_on_us
@@ -83,7 +98,8 @@ def match_windows(triggers, schedule, tolerance_us=None):
 
     # a schedule of equal periods lines up almost as well one capture off: the most matches win, then the
     # smallest total distance (a constant clock offset lines every start up to the microsecond)
-    best_offset, best_score = None, None
+    best_offset: int = 0  # set by the first candidate (there is at least one window and one capture)
+    best_score: tuple[int, float] | None = None
     k = min(8, len(win), len(t_on))
     candidates = np.unique((win.t_start_us[:k, None] - sorted_on[None, :k]).ravel())
     for off in candidates.tolist():
@@ -94,7 +110,7 @@ def match_windows(triggers, schedule, tolerance_us=None):
     idx, ok, dist = assign(best_offset)
     if not ok.any():
         raise EvtkError("no trigger window lines up with the schedule: is it the schedule of this recording?")
-    taken = {}
+    taken: dict[int, int] = {}
     for w in np.flatnonzero(ok):  # a capture keeps its closest window; the others are extra
         c = int(idx[w])
         if c not in taken or dist[w] < dist[taken[c]]:

@@ -22,8 +22,10 @@ only for what a bench also has (the schedule, patterns and bench geometry:
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import EvtkError
 from ..optics import response_origin_px, response_region
@@ -87,8 +89,19 @@ def schedule_of_record(record: SimulationRecord | dict) -> Plan:
     return Plan.from_record(record, oracle=False)
 
 
-def nominal_placement(schedule) -> tuple:
-    """``(region, origin_px)`` the bench geometry alone predicts (the response centred on the sensor)."""
+def nominal_placement(schedule: Plan | dict | str | os.PathLike) -> tuple:
+    """Where the bench geometry alone puts the response (centred on the sensor).
+
+    Parameters
+    ----------
+    schedule : Plan, dict, str or os.PathLike
+        The run's plan, a schedule's dict form or its ``schedule.json``.
+
+    Returns
+    -------
+    tuple
+        ``(region, origin_px)``: ``(x0, x1, y0, y1)`` and the sensor pixel ``(x, y)`` of cell (0, 0).
+    """
     sched = as_plan(schedule)
     b, ks, fs = sched["bench"], sched["kernels"].shape[1:], sched["features"].shape[1:]
     return tuple(int(v) for v in response_region(b, ks, fs)), tuple(float(v) for v in response_origin_px(b, ks, fs))
@@ -268,7 +281,7 @@ def _level_error(ratios) -> float:
     return float(np.median(np.abs(np.log(r)))) if r.size and r.size == len(ratios) else float("inf")
 
 
-def held_out_table_error(level_light, level_counts) -> float | None:
+def held_out_table_error(level_light: npt.ArrayLike, level_counts: npt.ArrayLike) -> float | None:
     """How well the level captures' table reads a level it did not see: each interior level (not the dimmest
     nor the brightest, which a table can only extrapolate to) left out, read through the table of the others
     (:func:`~evtk.reconstruct.linearize.level_table_values`).
@@ -326,6 +339,7 @@ def level_readback(fit: PixelFit) -> np.ndarray:
     Parameters
     ----------
     fit : PixelFit
+        The fitted model, with the level statistics it was fitted to.
 
     Returns
     -------
