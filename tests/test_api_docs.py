@@ -315,8 +315,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.accumulate.accumulate
     evtk.reconstruct.bench.refuse_synchronous
     evtk.reconstruct.bench.synchronous_readout
-    evtk.reconstruct.binarize.binarize
-    evtk.reconstruct.binarize.binarize_rule
     evtk.reconstruct.calibrated.fit_on_edges
     evtk.reconstruct.deblur.relative_noise
     evtk.reconstruct.deblur.sampling_matrix
@@ -394,19 +392,7 @@ PENDING: set[str] = set(
     evtk.settings.read_table
     evtk.settings.toml_value
     evtk.simulate.run.Simulation
-    evtk.simulate.run.Simulation.cell_map
     evtk.simulate.run.Simulation.count_table
-    evtk.simulate.run.Simulation.events
-    evtk.simulate.run.Simulation.ideal
-    evtk.simulate.run.Simulation.ideal_pair
-    evtk.simulate.run.Simulation.iter_events
-    evtk.simulate.run.Simulation.metadata
-    evtk.simulate.run.Simulation.pass_response
-    evtk.simulate.run.Simulation.recommended_settle_us
-    evtk.simulate.run.Simulation.record
-    evtk.simulate.run.Simulation.responses
-    evtk.simulate.run.Simulation.triggers
-    evtk.simulate.run.Simulation.write
     evtk.simulate.table.count_table
     evtk.simulate.table.table_batches
     evtk.sweeps.flip_sweep
