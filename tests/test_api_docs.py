@@ -344,12 +344,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.grid.sample_response_grid
     evtk.reconstruct.grid.to_response_grid
     evtk.reconstruct.linearize.count_curve
-    evtk.reconstruct.linearize.flat_field_gain
-    evtk.reconstruct.linearize.isotonic
-    evtk.reconstruct.linearize.level_curve
-    evtk.reconstruct.linearize.level_table_values
-    evtk.reconstruct.linearize.linearize
-    evtk.reconstruct.linearize.linearize_by_model
     evtk.reconstruct.options.ReconstructOptions
     evtk.reconstruct.options.ReconstructOptions.kwargs
     evtk.reconstruct.timing.linearize_by_timing
