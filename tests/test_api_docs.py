@@ -337,12 +337,7 @@ PENDING: set[str] = set(
     evtk.reconstruct.fit.predict_levels
     evtk.reconstruct.fit.refractory_bound
     evtk.reconstruct.fit.rise_orders
-    evtk.reconstruct.grid.combine_passes
-    evtk.reconstruct.grid.downsample
     evtk.reconstruct.grid.footprint_matrix
-    evtk.reconstruct.grid.overlap_matrix
-    evtk.reconstruct.grid.sample_response_grid
-    evtk.reconstruct.grid.to_response_grid
     evtk.reconstruct.linearize.count_curve
     evtk.reconstruct.options.ReconstructOptions
     evtk.reconstruct.options.ReconstructOptions.kwargs
