@@ -313,8 +313,6 @@ PENDING: set[str] = set(
     evtk.plots.plot_tradeoff
     evtk.plots.wilson_interval
     evtk.reconstruct.accumulate.accumulate
-    evtk.reconstruct.bench.refuse_synchronous
-    evtk.reconstruct.bench.synchronous_readout
     evtk.reconstruct.calibrated.fit_on_edges
     evtk.reconstruct.deblur.relative_noise
     evtk.reconstruct.deblur.sampling_matrix
@@ -381,8 +379,6 @@ PENDING: set[str] = set(
     evtk.settings.read_table
     evtk.settings.toml_value
     evtk.simulate.run.Simulation
-    evtk.simulate.run.Simulation.count_table
-    evtk.simulate.table.count_table
     evtk.simulate.table.table_batches
     evtk.sweeps.flip_sweep
     evtk.sweeps.pareto_front

@@ -14,8 +14,10 @@ correlation of the job's patterns, which the bench knows too.
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from scipy.ndimage import median_filter
 
 from ..errors import EvtkError
@@ -225,7 +227,8 @@ def _reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bin
 SYNC_MIN_RUNS = 50
 
 
-def synchronous_readout(rec, t_on_us, t_off_us, max_windows=16):
+def synchronous_readout(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLike,
+                        max_windows: int = 16) -> float | None:
     """The frame period (µs) when the recording's pixels are read out synchronously, else None.
 
     A synchronous readout (a frame every period, at most one event a pixel and frame) stamps every event on
@@ -240,12 +243,16 @@ def synchronous_readout(rec, t_on_us, t_off_us, max_windows=16):
     Parameters
     ----------
     rec : Recording
+        The open recording.
     t_on_us, t_off_us : array of int
         Windows with light in them (flat fields, level captures).
+    max_windows : int
+        Windows read at most.
 
     Returns
     -------
     float or None
+        The frame period (µs), or None for an asynchronous readout.
     """
     w = int(rec.sensor_size[0])
     parts = [rec.events(int(a), int(b)) for a, b in zip(np.asarray(t_on_us)[:max_windows].tolist(),
@@ -270,14 +277,16 @@ def synchronous_readout(rec, t_on_us, t_off_us, max_windows=16):
     return float(period) if doubled <= 1e-4 * t.size and runs >= SYNC_MIN_RUNS else None
 
 
-def refuse_synchronous(rec, t_on_us, t_off_us):
+def refuse_synchronous(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLike) -> None:
     """Raise :class:`~evtk.EvtkError`, naming the readout and what to do, when :func:`synchronous_readout`
     finds one in the windows ``[t_on_us, t_off_us)``.
 
     Parameters
     ----------
     rec : Recording
+        The open recording.
     t_on_us, t_off_us : array of int
+        Windows with light in them.
     """
     period = synchronous_readout(rec, t_on_us, t_off_us)
     if period is not None:

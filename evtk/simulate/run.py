@@ -729,6 +729,12 @@ class Simulation:
     TABLE_THRESHOLD_POINTS = 7
     TABLE_REPLICATES = 32
 
-    def count_table(self):
-        """:func:`evtk.simulate.table.count_table` of this run (shared by runs of the same bench, sensor and timing)."""
+    def count_table(self) -> tuple:
+        """:func:`evtk.simulate.table.count_table` of this run (shared by runs of the same bench, sensor and timing).
+
+        Returns
+        -------
+        tuple
+            ``(v_grid, theta_grid, on, off)``.
+        """
         return count_table(self)
