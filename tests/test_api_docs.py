@@ -339,8 +339,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.linearize.count_curve
     evtk.reconstruct.options.ReconstructOptions
     evtk.reconstruct.options.ReconstructOptions.kwargs
-    evtk.reconstruct.timing.linearize_by_timing
-    evtk.reconstruct.timing.timing_thresholds
     evtk.reconstruct.windows.WindowCounts
     evtk.reconstruct.windows.WindowCounts.from_capture_counts
     evtk.reconstruct.windows.Windows
