@@ -320,10 +320,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.deblur.wiener_lambda
     evtk.reconstruct.fit.LevelStatistics
     evtk.reconstruct.fit.PixelFit
-    evtk.reconstruct.fit.PixelFit.from_dict
-    evtk.reconstruct.fit.PixelFit.mean_counts
-    evtk.reconstruct.fit.PixelFit.to_dict
-    evtk.reconstruct.fit.describe_pixels
     evtk.reconstruct.fit.fit_pixel_model
     evtk.reconstruct.fit.fit_refractory
     evtk.reconstruct.fit.hot_pixels
@@ -333,8 +329,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.fit.level_statistics
     evtk.reconstruct.fit.on_gaps
     evtk.reconstruct.fit.predict_levels
-    evtk.reconstruct.fit.refractory_bound
-    evtk.reconstruct.fit.rise_orders
     evtk.reconstruct.grid.footprint_matrix
     evtk.reconstruct.linearize.count_curve
     evtk.reconstruct.options.ReconstructOptions
