@@ -14,11 +14,11 @@ caches loaded):
 - reading every event (`evtk.read_events`) of each run;
 - `evtk.calibrate.calibrate` on the calibration run (placement and the
   pixel model's fit);
-- `evtk.reconstruct.reconstruct_calibrated` on the job with that
+- `evtk.reconstruct.reconstruct` (the calibrated route) on the job with that
   calibration (what `evtk reconstruct --schedule S --calibration C` runs:
   the fitted model, event times, flat field, passes, grid);
 - the same on the calibration run itself, which fits its own model;
-- `evtk.reconstruct.reconstruct_bench` (`exp(n theta)`, no model) on the job.
+- `evtk.reconstruct.reconstruct` with `linearization="exp(n theta)"` (no model) on the job.
 
 The ratio of a reconstruction to the read of the same file is what the
 issue bounds (1.5x).
@@ -99,7 +99,8 @@ def main():
     import evtk
     from evtk.calibrate import calibrate
     from evtk.patterns import write_patterns
-    from evtk.reconstruct import reconstruct_bench, reconstruct_calibrated
+    from evtk.plan import as_plan
+    from evtk.reconstruct import reconstruct
     from evtk.simulate import Simulation, default_features
 
     kernel = [[0, 1, 0], [1, 1, 1], [0, 1, 0]]
@@ -119,12 +120,14 @@ def main():
             read_cal = best(lambda: evtk.read_events(cal_path), args.runs)
             read_job = best(lambda: evtk.read_events(job_path), args.runs)
             cal_s = best(lambda: calibrate(rec_cal, cal_sched), args.runs)
-            placed = {"cell_map": cal.cell_map(), "blur_px": cal.blur_px}
-            job_s = best(lambda: reconstruct_calibrated(rec_job, job_sched, cal.region, cal.origin_px,
-                                                        pixel_model=cal.pixel_model, **placed), args.runs)
-            fit_s = best(lambda: reconstruct_calibrated(rec_cal, cal_sched, cal.region, cal.origin_px, **placed),
-                         args.runs)
-            plain_s = best(lambda: reconstruct_bench(rec_job, job_sched, cal.region, cal.origin_px), args.runs)
+            placed = {"region": cal.region, "origin_px": cal.origin_px, "cell_map": cal.cell_map(),
+                      "blur_px": cal.blur_px}
+            job_plan = as_plan(job_sched).replace(pixel_model=cal.pixel_model, **placed)
+            cal_plan = as_plan(cal_sched).replace(**placed)
+            job_s = best(lambda: reconstruct(rec_job, job_plan), args.runs)
+            fit_s = best(lambda: reconstruct(rec_cal, cal_plan), args.runs)
+            plain_s = best(lambda: reconstruct(rec_job, job_plan.replace(pixel_model=None, cell_map=None, blur_px=0.0),
+                                               linearization="exp(n theta)"), args.runs)
             dv_s = best(lambda: dv_read(job_path), args.runs)
     out = {"writer": args.writer, "dv_read_job_s": dv_s, "events_job": n_job, "events_calibration_run": n_cal,
            "captures_job": job_caps,

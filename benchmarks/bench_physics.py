@@ -15,14 +15,14 @@ then reconstructs the same events by each route:
   runs): placement from the run's dot grids, a pixel model fitted to its level
   captures, deblurred;
 - **model** and **table**: the same route with its linearisation forced
-  (``reconstruct_calibrated(..., linearization=...)``): the fitted pixel
+  (``reconstruct(..., linearization=...)``): the fitted pixel
   model (falling back to exp(n theta) when it misreads the level captures;
   the route before the held-out choice), or the level captures' monotone
   table (:func:`evtk.reconstruct.linearize.level_curve`), both deblurred;
   **calibrated** chooses between them by how well each reads the level
   captures (the table's on levels left out of it);
 - **calibrated, not deblurred**: the calibrated route with ``deblur=False``;
-- **exp(n theta)**: ``reconstruct_bench`` at the calibration's placement (no pixel model);
+- **exp(n theta)**: ``reconstruct(..., linearization="exp(n theta)")`` at the calibration's placement (no pixel model);
 - **level table**: each pixel's ON count minus its OFF count through a
   monotone table from the level captures' mean net counts over the
   interior to their known light (no model), sampled onto the cells
@@ -152,8 +152,8 @@ def run(draws, physics=None):
     import evtk
     from evtk.calibrate import calibrate
     from evtk.patterns import write_patterns
-    from evtk.reconstruct import reconstruct_bench
-    from evtk.reconstruct.calibrated import reconstruct_calibrated, schedule_of_record
+    from evtk.plan import as_plan
+    from evtk.reconstruct import reconstruct, schedule_of_record
     from evtk.sensor import SensorModel
     from evtk.simulate import Simulation
     from evtk.simulate.record import SimulationRecord
@@ -182,8 +182,9 @@ def run(draws, physics=None):
                         got["ceiling"] = ceiling(sim, res, cal)
                         got["level table"] = level_table(sim, res, cal)
                         for key in ("model", "table"):  # the route with one linearisation forced
-                            r = reconstruct_calibrated(rec, sched, cal.region, cal.origin_px, cell_map=cal.cell_map(),
-                                                       blur_px=cal.blur_px, linearization=key)
+                            r = reconstruct(rec, sched.replace(region=cal.region, origin_px=cal.origin_px,
+                                                               cell_map=cal.cell_map(), blur_px=cal.blur_px),
+                                            linearization=key)
                             got[key] = (r.cells, r.ideal)
                     except Exception as exc:  # noqa: BLE001 - a benchmark reports what failed and goes on
                         errors.setdefault("calibrated", str(exc)[:60])
@@ -195,8 +196,8 @@ def run(draws, physics=None):
                                 r = evtk.reconstruct_recording(rec, oracle=True)
                             else:
                                 placed = calibrate(rec, sched)
-                                r = reconstruct_bench(rec, os.path.join(tmp, "p", "schedule.json"), placed.region,
-                                                      placed.origin_px)
+                                r = reconstruct(rec, as_plan(os.path.join(tmp, "p", "schedule.json")).replace(
+                                    region=placed.region, origin_px=placed.origin_px), linearization="exp(n theta)")
                             got[key] = (r.cells, r.ideal)
                         except Exception as exc:  # noqa: BLE001
                             errors.setdefault(key, str(exc)[:60])

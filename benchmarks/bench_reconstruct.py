@@ -4,7 +4,7 @@
     python benchmarks/bench_reconstruct.py --events 2e6 --repeats 3
     python benchmarks/bench_reconstruct.py --fixed          # windows without a schedule, whole processes
 
-``--fixed``: ``reconstruct(rec, ("period", 10000))`` on bench_aedat4's uniform
+``--fixed``: ``reconstruct(rec, window=("period", 10000))`` on bench_aedat4's uniform
 recording (320x240, 2 M events/s: 1000 windows for 20 M events, no
 simulation record), keeping every window's pixels (the default) and keeping
 the responses only (``keep_pixels=False``), against a plain read; each timed
@@ -97,9 +97,9 @@ def _fixed_file(n_events):
 _FIXED = {
     "read": ["-c", "import evtk; evtk.read_events({p!r})"],
     "reconstruct, pixels kept": ["-c", "import evtk; from evtk.reconstruct import reconstruct\n"
-                                 "with evtk.open({p!r}) as r: reconstruct(r, ('period', 10000))"],
+                                 "with evtk.open({p!r}) as r: reconstruct(r, window=('period', 10000))"],
     "reconstruct, responses only": ["-c", "import evtk; from evtk.reconstruct import reconstruct\n"
-                                    "with evtk.open({p!r}) as r: reconstruct(r, ('period', 10000), keep_pixels=False)"],
+                                    "with evtk.open({p!r}) as r: reconstruct(r, window=('period', 10000), keep_pixels=False)"],
     "evtk reconstruct -o x.npz": ["-m", "evtk.cli", "reconstruct", "{p}", "--window", "period:10000", "-o", "{out}"],
     "evtk enob": ["-m", "evtk.cli", "enob", "{p}", "--window", "period:10000"],
 }

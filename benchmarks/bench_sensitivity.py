@@ -13,7 +13,7 @@ the row (the *true* camera). Three reconstructions of the same events:
   gives);
 - **assumed default**: the same pipeline, but the record's pixel model is the
   default one, not the true one (a model calibrated on another camera);
-- **bench, exp(n theta)**: `reconstruct_bench` from the schedule alone
+- **bench, exp(n theta)**: `reconstruct(..., linearization="exp(n theta)")` from the schedule alone
   (trigger windows, `exp(n theta)`, model-free flat field), knowing nothing
   of the pixels;
 - **calibrated**: `evtk.reconstruct_recording` with the schedule, what
@@ -61,10 +61,11 @@ def run(draws, levels=6):
     import evtk
     from evtk.calibrate import calibrate
     from evtk.patterns import write_patterns
+    from evtk.plan import as_plan
     from evtk.reconstruct import (
         accumulate,
         plan,
-        reconstruct_bench,
+        reconstruct,
         reconstruct_counts,
         wants_times,
     )
@@ -96,7 +97,8 @@ def run(draws, levels=6):
                     assumed = reconstruct_counts(counts, assumed_record)
                     schedule = os.path.join(tmp, "p", "schedule.json")
                     cal = calibrate(rec, schedule)
-                    bench = reconstruct_bench(rec, schedule, cal.region, cal.origin_px)
+                    bench = reconstruct(rec, as_plan(schedule).replace(region=cal.region, origin_px=cal.origin_px),
+                                        linearization="exp(n theta)")
                     fitted = evtk.reconstruct_recording(rec, schedule=schedule)  # what evtk reconstruct runs
                 for key, r in (("oracle", oracle), ("assumed default", assumed), ("bench", bench),
                                ("calibrated", fitted)):

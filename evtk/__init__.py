@@ -6,7 +6,7 @@ from .io import detect_format, open, read_events, write_events
 
 # loaded on first use (numba compiles and loads its caches when they are), so that the command line starts fast
 _LAZY = {"Events": "events", "Triggers": "events", "TriggerKind": "events", "to_dask": "cluster", "Recording": "io",
-         "load_reconstruction": "io.reconstruction", "save_reconstruction": "io.reconstruction",
+         "load_reconstruction": "reconstruct.files", "save_reconstruction": "io.reconstruction",
          "reconstruct_recording": "workflow"}
 
 

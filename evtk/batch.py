@@ -39,6 +39,7 @@ from .cluster import run_tasks
 from .errors import EvtkError
 from .io import open as open_recording
 from .io.reconstruction import save_reconstruction
+from .plan import SimulationRecord
 from .reconstruct import (
     Reconstruction,
     WindowCounts,
@@ -49,7 +50,6 @@ from .reconstruct import (
     reconstruct_counts,
     wants_times,
 )
-from .simulate.record import SimulationRecord
 from .workflow import reconstruct_recording
 
 if TYPE_CHECKING:
@@ -167,7 +167,7 @@ def _reconstruct_one(args):
             sensor = rec.sensor_size
         with expect_target(out, seen):  # what another batch wrote there meanwhile is reported, not replaced
             save_reconstruction(out, result, sensor, {"source": path})
-        entry.update(status="ok", events=int(events), windows=int(result.summary["windows"]))
+        entry.update(status="ok", events=int(events), windows=int(result.summary.windows))
     except Exception as exc:  # noqa: BLE001 - one bad input is recorded; the batch goes on
         entry["error"] = _error_text(exc)
     entry["seconds"] = time.perf_counter() - t0
@@ -276,7 +276,7 @@ def _split_large(todo, split_events, client, entries):
             result = reconstruct_split(path, parts, client, **options)
             with expect_target(out, seen):
                 save_reconstruction(out, result, sensor, {"source": path})
-            entry.update(status="ok", windows=int(result.summary["windows"]))
+            entry.update(status="ok", windows=int(result.summary.windows))
         except Exception as exc:  # noqa: BLE001 - recorded; the batch goes on
             entry["error"] = _error_text(exc)
         entry["seconds"] = time.perf_counter() - t0

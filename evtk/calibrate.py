@@ -39,8 +39,9 @@ from skimage.transform import ProjectiveTransform
 from ._atomic import AtomicFile
 from .errors import EvtkError
 from .optics.camera import CellMap
+from .plan import DOTS_ID, FLAT_ID, LEVEL_ID, Plan, as_plan, dot_grid
 from .plots import pyplot, save_png
-from .reconstruct import PixelFit, accumulate, load_schedule, match_windows
+from .reconstruct import PixelFit, accumulate, match_windows
 from .reconstruct.bench import refuse_synchronous
 from .reconstruct.calibrated import fit_on_edges, refuse_pixel_fit
 from .reconstruct.deblur import sampling_matrix
@@ -60,7 +61,6 @@ from .settings import (
     read_table,
     toml_text,
 )
-from .simulate import DOTS_ID, FLAT_ID, LEVEL_ID, dot_grid
 
 if TYPE_CHECKING:
     from .io.base import BaseRecording
@@ -181,6 +181,27 @@ class Calibration:
         """
         return self.cell_map().to_pixels(cells_xy)
 
+    def place(self, plan: Plan | dict | str | os.PathLike, own_levels: bool = True) -> Plan:
+        """The run's plan with the camera part this calibration measured: region, origin, map, defocus and
+        (when it kept one) the pixel model.
+
+        Parameters
+        ----------
+        plan : Plan, dict, str or os.PathLike
+            The run's plan, a schedule's dict form or its ``schedule.json`` (:func:`evtk.plan.as_plan`).
+        own_levels : bool
+            Let the reconstruction fit the pixel model to the run's own level captures when it has any (else
+            it uses this calibration's).
+
+        Returns
+        -------
+        Plan
+            The plan :func:`evtk.reconstruct.reconstruct` takes.
+        """
+        return as_plan(plan).replace(region=tuple(self.region), origin_px=tuple(self.origin_px),
+                                     cell_map=self.cell_map(), blur_px=self.blur_px, pixel_model=self.pixel_model,
+                                     own_levels=own_levels)
+
 
 def _blobs(image, spacing_px=None, radius=2):
     """Centroids (x, y) of the bright spots of ``image``.
@@ -219,7 +240,7 @@ def _blobs(image, spacing_px=None, radius=2):
     return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
 
-def calibrate(rec: BaseRecording, schedule: str | os.PathLike[str] | dict, tolerance_us: int | None = None,
+def calibrate(rec: BaseRecording, schedule: Plan | str | os.PathLike[str] | dict, tolerance_us: int | None = None,
               pixel_model: bool = True) -> Calibration:
     """Fit the map from response cells to sensor pixels from a recording's calibration captures.
 
@@ -243,8 +264,8 @@ def calibrate(rec: BaseRecording, schedule: str | os.PathLike[str] | dict, toler
     ----------
     rec : Recording
         The open recording of the run, with its trigger edges.
-    schedule : str, os.PathLike or dict
-        The run's ``schedule.json``, or :func:`evtk.reconstruct.load_schedule`'s dict of it.
+    schedule : Plan, str, os.PathLike or dict
+        The run's plan, its ``schedule.json``, or the dict form of it (:func:`evtk.plan.as_plan`).
     tolerance_us : int or None
         How far a trigger edge may sit from the schedule's time, us
         (:func:`evtk.reconstruct.match_windows`; None: its default).
@@ -262,7 +283,7 @@ def calibrate(rec: BaseRecording, schedule: str | os.PathLike[str] | dict, toler
     EvtkError
         As above: no calibration captures scheduled or recorded, too few dots seen or paired, or no single map.
     """
-    sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
+    sched = as_plan(schedule)
     s, kernels, features = sched["schedule"], sched["kernels"], sched["features"]
     if not np.any(s.kernel_id == DOTS_ID):
         raise EvtkError("the schedule has no calibration captures: add calibration = N to the job")

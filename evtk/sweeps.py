@@ -184,7 +184,8 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
 
     sim, win, region = plan(rec, window, skip_us, length_us, options.pop("region", None), check_memory=False)
     if sim is not None:
-        result = reconstruct(rec, window, skip_us, length_us, region=region, progress=progress, **options)
+        result = reconstruct(rec, window=window, skip_us=skip_us, length_us=length_us, region=region, progress=progress,
+                             **options)
         result.summary["route"] = ORACLE_ROUTE
         return scene_noise(result, interval=interval, per_pixel=per_pixel, seed=seed)
     if len(win) < 2:

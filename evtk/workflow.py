@@ -5,13 +5,15 @@
 
 * with a bench schedule (``schedule.json``), or on a simulated recording
   (whose record stands in for the schedule file: patterns, timing, bench
-  geometry, nothing of the pixels), the calibrated route,
-  :func:`evtk.reconstruct.reconstruct_calibrated`: trigger windows, a pixel
-  model fitted to the run's own level captures, and placement from a
-  calibration, from the run's own dot captures, or from the bench geometry;
-* with ``oracle=True``, :func:`evtk.reconstruct.reconstruct` on the
-  simulation record's own pixel model and placement (what a perfect
-  calibration would give; not available on a bench);
+  geometry, nothing of the pixels), the calibrated route:
+  :func:`evtk.reconstruct.reconstruct` on the bench's :class:`~evtk.plan.Plan`
+  placed by a calibration, by the run's own dot captures, or by the bench
+  geometry: trigger windows, a pixel model (the calibration's, or fitted to
+  the run's own level captures);
+* with ``oracle=True``, :func:`evtk.reconstruct.reconstruct` on the plan read
+  from the simulation record (:meth:`evtk.plan.Plan.from_record`: its own
+  pixel model and placement, what a perfect calibration would give; not
+  available on a bench);
 * with fixed windows (triggers or a period) or a fixed ``theta``, the plain
   pipeline, :func:`evtk.reconstruct.reconstruct`.
 """
@@ -25,23 +27,15 @@ from typing import Any, cast
 from .calibrate import Calibration, calibrate
 from .errors import EvtkError
 from .io.base import BaseRecording
-from .reconstruct import (
-    Reconstruction,
-    ReconstructOptions,
-    load_schedule,
-    reconstruct,
-    reconstruct_calibrated,
-    schedule_of_record,
-)
+from .plan import DOTS_ID, Plan, SimulationRecord, as_plan
+from .reconstruct import Reconstruction, ReconstructOptions, reconstruct, schedule_of_record
 from .settings import check_origin, check_region
-from .simulate import DOTS_ID
-from .simulate.record import SimulationRecord
 
 __all__ = ["reconstruct_recording"]
 
 
 def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
-                          schedule: str | os.PathLike[str] | dict[str, Any] | None = None,
+                          schedule: Plan | dict[str, Any] | str | os.PathLike[str] | None = None,
                           calibration: Calibration | None = None, origin_px: Sequence[float] | None = None,
                           progress: Callable[[int], object] | None = None, **options: Any) -> Reconstruction:
     """Reconstruct ``rec`` by the route its inputs allow (see the module docstring).
@@ -53,9 +47,8 @@ def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
     oracle : bool
         Use the simulation record's pixel model and placement (simulated
         recordings only); the summary says ``"oracle": true``.
-    schedule : str or os.PathLike or dict, optional
-        A bench run's ``schedule.json`` (:func:`evtk.patterns.write_patterns`), or the dict
-        :func:`evtk.reconstruct.load_schedule` reads from it.
+    schedule : Plan, dict, str or os.PathLike, optional
+        A bench run's ``schedule.json`` (:func:`evtk.patterns.write_patterns`), or its plan.
     calibration : Calibration, optional
         Where the response lies (:func:`evtk.calibrate.calibrate`); else
         ``options["region"]`` and ``origin_px``, else the run's own dot
@@ -93,9 +86,9 @@ def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
             raise EvtkError("the recording carries no simulation record: the oracle is for recordings evtk simulated")
         if schedule is not None or calibration is not None:
             raise EvtkError("the oracle reads the simulation record: leave out the schedule and the calibration")
-        result = reconstruct(rec, progress=progress, **opts.kwargs())
-        result.summary["route"] = "oracle: the simulation record's own pixel model and placement"
-        result.summary["oracle"] = True
+        result = reconstruct(rec, Plan.from_record(record), opts, progress=progress)
+        result.summary.route = "oracle: the simulation record's own pixel model and placement"
+        result.summary.oracle = True
         return result
     if schedule is None and record is None and not fixed:
         raise EvtkError("the recording carries no simulation record and no schedule was given: give the bench run's "
@@ -104,8 +97,8 @@ def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
     if schedule is None and (record is None or fixed):
         if calibration is not None or origin_px is not None:
             raise EvtkError("a calibration or response origin goes with a schedule (a bench run) or a simulated run")
-        result = reconstruct(rec, progress=progress, **opts.kwargs())
-        result.summary["route"] = "fixed windows" if fixed else "windows only: no schedule"
+        result = reconstruct(rec, None, opts, progress=progress)
+        result.summary.route = "fixed windows" if fixed else "windows only: no schedule"
         return result
     if fixed:
         raise EvtkError("the calibrated route takes its windows from the trigger edges matched to the schedule: "
@@ -114,11 +107,16 @@ def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
         origin_px = check_origin("the response origin", "origin_px", origin_px, sensor)
     if opts.region is not None and schedule is not None:
         check_region("the region", "region", opts.region, sensor)
-    if schedule is None:
+    if schedule is not None:
+        sched = as_plan(schedule)
+    elif record is not None:
         sched = schedule_of_record(record)
-    else:
-        sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
-    region, placed, cell_map, blur_px, model, own = opts.region, "given", None, 0.0, None, True
+    else:  # refused or reconstructed by fixed windows above
+        raise EvtkError("the recording carries no simulation record and no schedule was given")
+    # the plan placed by a calibration, by the run's own dot captures, by hand (region, origin) or by the bench
+    run_plan = sched.replace(region=None if opts.region is None else tuple(opts.region),
+                             origin_px=None if origin_px is None else tuple(origin_px))
+    placed, own = "given", True
     told = []  # what the calibration assumed or left out, said again with the result
     if calibration is not None:
         (kh, kw), (fh, fw) = sched["kernels"].shape[1:], sched["features"].shape[1:]
@@ -126,34 +124,29 @@ def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
             raise EvtkError(f"the calibration is of a {calibration.response_shape[0]}x{calibration.response_shape[1]} "
                             f"response, this run's is {fh + kh - 1}x{fw + kw - 1}: calibrate with a run of the same "
                             "kernel and features sizes")
-        region, origin_px, placed = tuple(calibration.region), tuple(calibration.origin_px), "calibration"
-        cell_map, blur_px, model = calibration.cell_map(), calibration.blur_px, calibration.pixel_model
+        run_plan, placed = calibration.place(sched), "calibration"
         told = list(calibration.warnings)
-    elif region is None and origin_px is None:
+    elif opts.region is None and origin_px is None:
         if (sched["schedule"].kernel_id == DOTS_ID).any():
             # the run calibrates itself; its pixel model, fitted to its own level captures there, is not fitted again
             cal = calibrate(rec, sched)
-            region, origin_px, placed = tuple(cal.region), tuple(cal.origin_px), "the run's own dot captures"
-            cell_map, blur_px, model = cal.cell_map(), cal.blur_px, cal.pixel_model
-            own = model is None
+            own = cal.pixel_model is None
+            run_plan, placed = cal.place(sched, own_levels=own), "the run's own dot captures"
             # fitted again below when the calibration kept no model: what it says of the fit is said again there
             told = [w for w in cal.warnings if not (own and "pixel model" in w)]
         else:
             placed = "the bench geometry"
-    result = reconstruct_calibrated(rec, sched, region, origin_px, size=opts.size,
-                                    binarize_method=opts.binarize_method, skip_us=opts.skip_us,
-                                    length_us=opts.length_us, crop=opts.crop, flat_field=opts.flat_field,
-                                    deblur=opts.deblur, timing=opts.timing, linear=opts.linear, progress=progress,
-                                    pixel_model=model, cell_map=cell_map, blur_px=blur_px, own_levels=own)
-    if not own and result.summary.get("pixel_model_from"):
-        result.summary["pixel_model_from"] = "the run's own level captures"
+    result = reconstruct(rec, run_plan, opts, progress=progress)
+    summary = result.summary
+    if not own and summary.pixel_model_from:
+        summary.pixel_model_from = "the run's own level captures"
     fitted_to = {"the run's own level captures": "the run's level captures",
-                 "the calibration": "the calibration run's level captures"}.get(result.summary.get("pixel_model_from"))
-    result.summary["route"] = "calibrated: " + (
+                 "the calibration": "the calibration run's level captures"}.get(summary.pixel_model_from or "")
+    summary.route = "calibrated: " + (
         f"a pixel model fitted to {fitted_to}" if fitted_to else
-        "exp(n theta), the fitted pixel model misreads the level captures" if result.summary.get(
-            "pixel_model_rejected") else "exp(n theta), no level captures to fit a pixel model to")
-    result.summary["placement"] = placed
-    result.summary["warnings"] = told + result.summary.get("warnings", [])
-    result.summary["oracle"] = False
+        "exp(n theta), the fitted pixel model misreads the level captures" if summary.pixel_model_rejected
+        else "exp(n theta), no level captures to fit a pixel model to")
+    summary.placement = placed
+    summary.warnings = told + (summary.warnings or [])
+    summary.oracle = False
     return result

@@ -79,12 +79,12 @@ def test_fused_responses_equal_the_whole_run(recording, options):
 
 def test_reconstruct_without_pixels_fits_a_budget_the_whole_run_does_not(recording, monkeypatch):
     with evtk.open(recording) as rec:
-        full = reconstruct(rec, ("period", 50))  # 1000 windows of the whole 40x30 sensor
+        full = reconstruct(rec, window=("period", 50))  # 1000 windows of the whole 40x30 sensor
         # the whole run needs every window's counts and float stages (~77 MB): far over 8 MiB
         monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "8")
-        lean = reconstruct(rec, ("period", 50), keep_pixels=False)
+        lean = reconstruct(rec, window=("period", 50), keep_pixels=False)
         with pytest.raises(EvtkError, match="MiB"):
-            reconstruct(rec, ("period", 50), keep_pixels=True)
+            reconstruct(rec, window=("period", 50), keep_pixels=True)
     np.testing.assert_allclose(lean.responses, full.responses, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(lean.binary, full.binary)
     assert lean.summary["events_used"] == full.summary["events_used"]

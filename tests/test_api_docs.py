@@ -99,31 +99,15 @@ def problems(dotted: str) -> list[str]:
 PENDING: set[str] = set(
     """
     evtk.reconstruct.accumulate.accumulate
-    evtk.reconstruct.bench.match_windows
-    evtk.reconstruct.bench.reconstruct_bench
-    evtk.reconstruct.bench.refuse_synchronous
-    evtk.reconstruct.bench.synchronous_readout
-    evtk.reconstruct.binarize.binarize
-    evtk.reconstruct.binarize.binarize_rule
     evtk.reconstruct.calibrated.fit_on_edges
-    evtk.reconstruct.calibrated.held_out_table_error
-    evtk.reconstruct.calibrated.level_readback
-    evtk.reconstruct.calibrated.nominal_placement
-    evtk.reconstruct.calibrated.reconstruct_calibrated
-    evtk.reconstruct.calibrated.schedule_of_record
     evtk.reconstruct.deblur.relative_noise
     evtk.reconstruct.deblur.sampling_matrix
     evtk.reconstruct.deblur.solve_cells
     evtk.reconstruct.deblur.wiener_lambda
     evtk.reconstruct.fit.LevelStatistics
     evtk.reconstruct.fit.PixelFit
-    evtk.reconstruct.fit.PixelFit.from_dict
-    evtk.reconstruct.fit.PixelFit.mean_counts
-    evtk.reconstruct.fit.PixelFit.to_dict
-    evtk.reconstruct.fit.describe_pixels
     evtk.reconstruct.fit.fit_pixel_model
     evtk.reconstruct.fit.fit_refractory
-    evtk.reconstruct.fit.fitted_record
     evtk.reconstruct.fit.hot_pixels
     evtk.reconstruct.fit.interior_pixels
     evtk.reconstruct.fit.level_off_times
@@ -131,76 +115,17 @@ PENDING: set[str] = set(
     evtk.reconstruct.fit.level_statistics
     evtk.reconstruct.fit.on_gaps
     evtk.reconstruct.fit.predict_levels
-    evtk.reconstruct.fit.refractory_bound
-    evtk.reconstruct.fit.rise_orders
-    evtk.reconstruct.grid.combine_passes
-    evtk.reconstruct.grid.downsample
     evtk.reconstruct.grid.footprint_matrix
-    evtk.reconstruct.grid.overlap_matrix
-    evtk.reconstruct.grid.sample_response_grid
-    evtk.reconstruct.grid.to_response_grid
     evtk.reconstruct.linearize.count_curve
-    evtk.reconstruct.linearize.flat_field_gain
-    evtk.reconstruct.linearize.isotonic
-    evtk.reconstruct.linearize.level_curve
-    evtk.reconstruct.linearize.level_table_values
-    evtk.reconstruct.linearize.linearize
-    evtk.reconstruct.linearize.linearize_by_model
     evtk.reconstruct.options.ReconstructOptions
     evtk.reconstruct.options.ReconstructOptions.kwargs
-    evtk.reconstruct.pipeline.Reconstruction
-    evtk.reconstruct.pipeline.Reconstruction.groups
-    evtk.reconstruct.pipeline.check_crop
-    evtk.reconstruct.pipeline.plan
-    evtk.reconstruct.pipeline.reconstruct
-    evtk.reconstruct.pipeline.reconstruct_counts
-    evtk.reconstruct.pipeline.response_error
-    evtk.reconstruct.pipeline.silent_failures
-    evtk.reconstruct.pipeline.wants_times
-    evtk.reconstruct.pipeline.window_bytes
-    evtk.reconstruct.timing.linearize_by_timing
-    evtk.reconstruct.timing.timing_thresholds
     evtk.reconstruct.windows.WindowCounts
     evtk.reconstruct.windows.WindowCounts.from_capture_counts
     evtk.reconstruct.windows.Windows
     evtk.reconstruct.windows.windows_from_schedule
     evtk.reconstruct.windows.windows_from_triggers
     evtk.reconstruct.windows.windows_periodic
-    evtk.simulate.record.SimulationRecord
-    evtk.simulate.record.SimulationRecord.from_dict
-    evtk.simulate.record.SimulationRecord.from_metadata
-    evtk.simulate.record.SimulationRecord.placement
-    evtk.simulate.record.SimulationRecord.replace
-    evtk.simulate.record.SimulationRecord.to_dict
     evtk.simulate.run.Simulation
-    evtk.simulate.run.Simulation.cell_map
-    evtk.simulate.run.Simulation.count_table
-    evtk.simulate.run.Simulation.events
-    evtk.simulate.run.Simulation.ideal
-    evtk.simulate.run.Simulation.ideal_pair
-    evtk.simulate.run.Simulation.iter_events
-    evtk.simulate.run.Simulation.metadata
-    evtk.simulate.run.Simulation.pass_response
-    evtk.simulate.run.Simulation.recommended_settle_us
-    evtk.simulate.run.Simulation.record
-    evtk.simulate.run.Simulation.responses
-    evtk.simulate.run.Simulation.triggers
-    evtk.simulate.run.Simulation.write
-    evtk.simulate.schedule.CaptureCounts
-    evtk.simulate.schedule.Schedule
-    evtk.simulate.schedule.Schedule.from_dict
-    evtk.simulate.schedule.Schedule.take
-    evtk.simulate.schedule.Schedule.to_dict
-    evtk.simulate.schedule.check_patterns
-    evtk.simulate.schedule.check_schedule
-    evtk.simulate.schedule.default_features
-    evtk.simulate.schedule.dot_grid
-    evtk.simulate.schedule.level_kernel
-    evtk.simulate.schedule.level_steps
-    evtk.simulate.schedule.load_patterns
-    evtk.simulate.schedule.read_schedule
-    evtk.simulate.schedule.split_passes
-    evtk.simulate.table.count_table
     evtk.simulate.table.table_batches
 """.split()
 )

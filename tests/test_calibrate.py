@@ -71,7 +71,8 @@ def test_bench_round_trip_patterns_simulate_calibrate_reconstruct(tmp_path):
     """patterns -> simulated run -> the camera's copy -> calibrate -> reconstruct --calibration: the error is
     within 15 % of the same pipeline given the true placement, and close to the oracle that inverts the
     simulator's own pixel model."""
-    from evtk.reconstruct import reconstruct, reconstruct_bench
+    from evtk.plan import as_plan
+    from evtk.reconstruct import reconstruct
 
     job, schedule, cam, record = _bench_copy(tmp_path, 7, 152.3, 108.6)
     res = CliRunner().invoke(main, ["calibrate", str(cam), "--schedule", str(schedule), "-o",
@@ -83,7 +84,9 @@ def test_bench_round_trip_patterns_simulate_calibrate_reconstruct(tmp_path):
     assert res.exit_code == 0, res.output
     calibrated = json.loads(res.stdout)["error"]
     with evtk.open(cam) as rec:
-        known = reconstruct_bench(rec, schedule, record["response_region"], record["response_origin_px"])
+        known = reconstruct(rec, as_plan(schedule).replace(region=record["response_region"],
+                                                           origin_px=record["response_origin_px"]),
+                            linearization="exp(n theta)")
     with evtk.open(tmp_path / "sim7.h5") as rec:
         oracle = reconstruct(rec)
     assert calibrated["nrmse"] <= 1.15 * known.summary["error"]["nrmse"]
@@ -131,3 +134,26 @@ def test_background_activity_is_measured_outside_the_response(tmp_path):
     assert cal.background_rate_hz == pytest.approx(5.0, rel=0.1)
     save_calibration(tmp_path / "c.toml", cal)
     assert load_calibration(tmp_path / "c.toml").background_rate_hz == pytest.approx(cal.background_rate_hz)
+
+
+def test_calibrate_and_simulate_produce_plans(tmp_path):
+    """Issue 30: a calibration places a run's plan (region, origin, map, defocus, pixel model) and the reconstruction
+    of that plan is the calibrated route's; a simulation's plan is the oracle, read from its record."""
+    from evtk.plan import Plan
+    from evtk.reconstruct import reconstruct
+    from evtk.workflow import reconstruct_recording
+
+    job, schedule, cam, record = _bench_copy(tmp_path, 6, 151.2, 109.4)
+    with evtk.open(cam) as rec:
+        cal = calibrate(rec, schedule)
+        plan = cal.place(schedule)
+        assert isinstance(plan, Plan) and plan.region == tuple(cal.region) and plan.cell_map is not None
+        assert plan.origin_px == tuple(cal.origin_px) and plan.blur_px == cal.blur_px and plan.record is None
+        by_plan = reconstruct(rec, plan)
+        by_route = reconstruct_recording(rec, schedule=schedule, calibration=cal)
+    assert np.array_equal(by_plan.responses, by_route.responses)
+    sim = job_simulation(job)
+    oracle = sim.plan()
+    assert oracle.record is not None and oracle.region == tuple(record["response_region"])
+    with evtk.open(tmp_path / "sim6.h5") as rec:
+        assert np.array_equal(reconstruct(rec, oracle).responses, reconstruct(rec).responses)

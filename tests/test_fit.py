@@ -17,7 +17,8 @@ from click.testing import CliRunner
 import evtk
 from evtk import EvtkError
 from evtk.cli import main
-from evtk.reconstruct import PixelFit, fit_pixel_model, reconstruct, reconstruct_calibrated, schedule_of_record
+from evtk.plan import as_plan
+from evtk.reconstruct import PixelFit, fit_pixel_model, reconstruct, schedule_of_record
 from evtk.reconstruct.fit import (
     LevelStatistics,
     _stamped_gap_quantiles,
@@ -129,7 +130,7 @@ def test_the_calibrated_route_is_within_15_percent_of_the_oracle(tmp_path, camer
     _signed_run(tmp_path, SensorModel(**camera), 0)
     with evtk.open(tmp_path / "r.aedat4") as rec:
         oracle = reconstruct(rec)
-        calibrated = reconstruct_calibrated(rec, schedule_of_record(SimulationRecord.from_metadata(rec.metadata)))
+        calibrated = reconstruct(rec, schedule_of_record(SimulationRecord.from_metadata(rec.metadata)))
     assert calibrated.summary["pixel_model"] is not None and calibrated.summary["level_captures"] == 6
     m, true = calibrated.summary["pixel_model"], SensorModel(**camera)  # the ON/OFF ratio within 5 %
     assert m["theta_off"] / m["theta_on"] == pytest.approx(true.theta_off / true.theta_on, rel=0.05)
@@ -148,11 +149,11 @@ def test_the_calibrated_route_needs_nothing_of_the_record(tmp_path):
     write_patterns(sim, tmp_path / "p")
     with evtk.open(tmp_path / "sim.h5") as rec:
         ev, tr = rec.events(), rec.triggers()
-        from_record = reconstruct_calibrated(rec, schedule_of_record(rec.metadata["simulation"]))
+        from_record = reconstruct(rec, schedule_of_record(rec.metadata["simulation"]))
     evtk.write_events(tmp_path / "cam.aedat4", ev, tr)
     with evtk.open(tmp_path / "cam.aedat4") as rec:
         assert rec.metadata.get("simulation") is None
-        bench = reconstruct_calibrated(rec, tmp_path / "p" / "schedule.json")
+        bench = reconstruct(rec, as_plan(tmp_path / "p" / "schedule.json"))
     assert np.allclose(bench.responses, from_record.responses)
     assert bench.summary["pixel_model"] == from_record.summary["pixel_model"]
 
@@ -183,7 +184,7 @@ def test_too_little_light_to_fit_is_one_clear_error(tmp_path):
                      levels=4, seed=5, sensor=SensorModel(shot_noise=False, background_rate_hz=0.0))
     sim.write(tmp_path / "dark.h5")
     with evtk.open(tmp_path / "dark.h5") as rec, pytest.raises(EvtkError, match="too little light"):
-        reconstruct_calibrated(rec, schedule_of_record(rec.metadata["simulation"]))
+        reconstruct(rec, schedule_of_record(rec.metadata["simulation"]))
     with pytest.raises(EvtkError, match="at least two level steps"):
         fit_pixel_model(LevelStatistics(np.array([9.0]), np.array([20.0]), np.array([4.0]), np.array([400.0]), 10),
                         1000, 13340)
@@ -307,10 +308,10 @@ def test_a_light_that_follows_its_trigger_edges_late_is_timed_and_the_windows_fo
         oracle = reconstruct(rec).summary["error"]["nrmse"]
         own = evtk.reconstruct_recording(rec).summary
         cal = calibrate(rec, sched)
-        placed = dict(cell_map=cal.cell_map(), blur_px=cal.blur_px, own_levels=False)
-        carried = reconstruct_calibrated(rec, sched, cal.region, cal.origin_px, pixel_model=cal.pixel_model, **placed)
-        on_edges = reconstruct_calibrated(rec, sched, cal.region, cal.origin_px,
-                                          pixel_model=dict(cal.pixel_model, light_delay_us=0.0), **placed)
+        placed = sched.replace(region=cal.region, origin_px=cal.origin_px, cell_map=cal.cell_map(),
+                               blur_px=cal.blur_px, own_levels=False)
+        carried = reconstruct(rec, placed.replace(pixel_model=cal.pixel_model))
+        on_edges = reconstruct(rec, placed.replace(pixel_model=dict(cal.pixel_model, light_delay_us=0.0)))
     assert own["pixel_model"]["light_delay_us"] == pytest.approx(20.0, abs=1.5)
     assert own["windows_after_edges_us"] == round(own["pixel_model"]["light_delay_us"])
     assert own["error"]["nrmse"] <= 1.05 * oracle

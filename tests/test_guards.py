@@ -15,6 +15,8 @@ from evtk.calibrate import calibrate
 from evtk.cli import main
 from evtk.events import Events
 from evtk.patterns import job_simulation, write_patterns
+from evtk.plan import as_plan
+from evtk.reconstruct import reconstruct
 from evtk.simulate import Simulation
 
 JOB = """kernels = ["010111010"]
@@ -40,6 +42,12 @@ def _run(tmp_path, seed=3, x=150.4, y=110.7, levels=0):
     with evtk.open(tmp_path / f"sim{seed}.h5") as rec:
         ev, tr, record = rec.events(), rec.triggers(), rec.metadata["simulation"]
     return tmp_path / f"p{seed}" / "schedule.json", ev, tr, record
+
+
+def _placed(rec, schedule, record, linearization="auto"):
+    """``reconstruct`` on the schedule's plan placed where the simulation record put the response."""
+    plan = as_plan(schedule).replace(region=record["response_region"], origin_px=record["response_origin_px"])
+    return reconstruct(rec, plan, linearization=linearization)
 
 
 def _write(path, ev, tr, x=None, y=None, p=None, t=None):
@@ -94,17 +102,15 @@ def test_an_inverted_result_is_reported_with_its_sign(tmp_path):
     """Failure 2: a camera whose polarity is the other way round (ON for darker). exp(n theta) then gives the
     negative of the responses; the least-squares scale to the ideal is negative, and before, the error was taken
     after it, so a correlation of -0.9 printed as +0.9. Now the correlation keeps its sign and a warning says why."""
-    from evtk.reconstruct import reconstruct_bench
-
     schedule, ev, tr, record = _run(tmp_path, seed=4)
     cam = _write(tmp_path / "cam.aedat4", ev, tr, p=(1 - ev.p.astype(np.int64)).astype(ev.p.dtype))
     with evtk.open(cam) as rec:
-        res = reconstruct_bench(rec, schedule, record["response_region"], record["response_origin_px"])
+        res = _placed(rec, schedule, record, linearization="exp(n theta)")
     s = res.summary
     assert s["scale_to_ideal"] < 0 and s["error"]["correlation"] < -0.5, s["error"]
     assert any("inverted" in w for w in s["warnings"])
     with evtk.open(tmp_path / "sim4.h5") as rec:  # the upright camera: a positive score and no warning
-        good = reconstruct_bench(rec, schedule, record["response_region"], record["response_origin_px"]).summary
+        good = _placed(rec, schedule, record, linearization="exp(n theta)").summary
     assert good["error"]["correlation"] > 0.5 and good["warnings"] == []
 
 
@@ -175,13 +181,12 @@ def test_a_pixel_model_no_camera_has_is_refused_and_never_saved(tmp_path):
     them into cal.toml without a word; now a model outside a camera's range, or one that reads its own level
     captures back more than 2x off, is refused with what to change, neither used nor saved."""
     from evtk.calibrate import save_calibration
-    from evtk.reconstruct import reconstruct_calibrated
-
     schedule, ev, tr, record = _run(tmp_path, seed=7, levels=6)
     cam = _write(tmp_path / "cam.aedat4", ev, tr, t=ev.t - 150)
     with evtk.open(cam) as rec:
         cal = calibrate(rec, schedule)
-        res = reconstruct_calibrated(rec, schedule, cal.region, cal.origin_px, cell_map=cal.cell_map())
+        res = reconstruct(rec, as_plan(schedule).replace(region=cal.region, origin_px=cal.origin_px,
+                                                         cell_map=cal.cell_map()))
     assert cal.pixel_model is None
     assert any("refused" in w and "What to change" in w for w in cal.warnings), cal.warnings
     save_calibration(tmp_path / "cal.toml", cal)
@@ -208,15 +213,13 @@ def test_a_synchronous_frame_readout_is_named_not_reconstructed(tmp_path):
     """Failure 3: a camera that reads its pixels out every 150 us and fires at most one event a pixel and frame:
     counts stop growing with the light. Before, evtk fitted theta to them and reported a wrong answer (or an
     inverted one); now both routes and calibrate's pixel model name the readout and say what to do."""
-    from evtk.reconstruct import reconstruct_bench, reconstruct_calibrated
-
     schedule, ev, tr, record = _run(tmp_path, seed=8, levels=4)
     t, x, y, p = _frames(ev)
     cam = _write(tmp_path / "cam.aedat4", ev, tr, t=t, x=x, y=y, p=p)
     with evtk.open(cam) as rec:
-        for route in (reconstruct_calibrated, reconstruct_bench):
+        for linearization in ("auto", "exp(n theta)"):  # the calibrated route and the bench's
             with pytest.raises(EvtkError, match="synchronous frame readout .*150 us grid.*asynchronous readout"):
-                route(rec, schedule, record["response_region"], record["response_origin_px"])
+                _placed(rec, schedule, record, linearization=linearization)
         cal = calibrate(rec, schedule)  # the dots still place the response; no pixel model is fitted
     assert cal.pixel_model is None and any("synchronous frame readout" in w for w in cal.warnings)
     res = CliRunner().invoke(main, ["reconstruct", str(cam), "--schedule", str(schedule), "-o", str(tmp_path / "o.h5")])
@@ -224,8 +227,7 @@ def test_a_synchronous_frame_readout_is_named_not_reconstructed(tmp_path):
     # the same pixels stamped on the frame grid but read out asynchronously (several events a frame) pass
     tq = (ev.t.astype(np.int64) + 149) // 150 * 150
     with evtk.open(_write(tmp_path / "async.aedat4", ev, tr, t=tq)) as rec:
-        assert reconstruct_calibrated(rec, schedule, record["response_region"],
-                                      record["response_origin_px"]).summary["pixel_model"] is not None
+        assert _placed(rec, schedule, record).summary["pixel_model"] is not None
 
 
 def _v2e_like_events(sim, tau_floor_us, rise_us, tau_dark_us=2000.0, refractory_us=1, mismatch=0.04, seed=0,
@@ -278,14 +280,14 @@ def test_a_refractory_period_is_resolved_only_on_significant_evidence(tmp_path):
     period) crosses its first thresholds more slowly than evtk's model, which lengthens every gap a little. Before,
     fit_refractory read that as a 3.5 us period; now the gaps' floor must stand clear of their own spread, and the
     model keeps its least period with the bound. evtk's own pixel with a 10 us period is still resolved (test_fit)."""
-    from evtk.reconstruct import reconstruct_calibrated, schedule_of_record
+    from evtk.reconstruct import schedule_of_record
     from evtk.simulate import Simulation
 
     rng = np.random.default_rng(2)
     sim = Simulation(rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16)), seed=2, levels=6)
     evtk.write_events(tmp_path / "v2e.aedat4", _v2e_like_events(sim, tau_floor_us=250.0, rise_us=8), sim.triggers())
     with evtk.open(tmp_path / "v2e.aedat4") as rec:
-        m = reconstruct_calibrated(rec, schedule_of_record(sim.record())).summary["pixel_model"]
+        m = reconstruct(rec, schedule_of_record(sim.record())).summary["pixel_model"]
     assert m is not None and m["refractory_resolved"] is False and m["refractory_us"] == 1.0
     assert m["refractory_bound_us"] >= 1.0
 

@@ -511,7 +511,7 @@ def test_batch_inputs_of_one_name_get_outputs_of_their_own(tmp_path):
                           {"window": ("period", 50_000), "size": (4, 4)})
     outs = [e["output"] for e in m["inputs"]]
     assert [e["status"] for e in m["inputs"]] == ["ok"] * 3 and len(set(outs)) == 3
-    from evtk.io.reconstruction import load_reconstruction
+    from evtk.reconstruct import load_reconstruction
 
     for e in m["inputs"]:
         assert len(load_reconstruction(e["output"]).cells) >= 5  # 0.3 s in 50 ms windows
@@ -569,6 +569,6 @@ def test_contact_sheet_page_replaces_no_other_output(tmp_path):
     r = CliRunner().invoke(main, ["reconstruct", str(rec), "-o", str(out), "--png", str(tmp_path / "sheet.npz"),
                                   "--oracle"])
     assert r.exit_code == 1 and "just written" in r.output, r.output
-    from evtk.io.reconstruction import load_reconstruction
+    from evtk.reconstruct import load_reconstruction
 
     assert len(load_reconstruction(out).cells) >= 10  # still the reconstruction, not a picture of it

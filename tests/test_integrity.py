@@ -285,7 +285,7 @@ def test_reconstruction_external_link_refused(recon_h5, tmp_path):
     load_reconstruction refuse it without --trust-external (before: the other file's bytes came back)."""
     import h5py
 
-    from evtk.io.reconstruction import load_reconstruction
+    from evtk.reconstruct import load_reconstruction
 
     other = tmp_path / "secret.h5"
     with h5py.File(other, "w") as f:
@@ -304,7 +304,7 @@ def test_reconstruction_group_as_external_link_refused(recon_h5, tmp_path):
     """The whole /reconstruction group an external link: refused, not followed."""
     import h5py
 
-    from evtk.io.reconstruction import load_reconstruction
+    from evtk.reconstruct import load_reconstruction
 
     other = tmp_path / "other.h5"
     with h5py.File(recon_h5, "r") as src, h5py.File(other, "w") as dst:
@@ -320,7 +320,7 @@ def test_reconstruction_group_as_external_link_refused(recon_h5, tmp_path):
 
 def test_reconstruction_external_storage_refused(recon_h5, tmp_path):
     """A dataset whose bytes live in a raw file beside it: refused unless trusted."""
-    from evtk.io.reconstruction import load_reconstruction
+    from evtk.reconstruct import load_reconstruction
 
     raw = tmp_path / "raw.bin"
     raw.write_bytes(np.full((3, 8, 8), 7.0).tobytes())
@@ -339,7 +339,7 @@ def test_reconstruction_external_storage_refused(recon_h5, tmp_path):
 def test_reconstruction_virtual_dataset_refused(recon_h5, tmp_path):
     import h5py
 
-    from evtk.io.reconstruction import load_reconstruction
+    from evtk.reconstruct import load_reconstruction
 
     other = tmp_path / "src.h5"
     with h5py.File(other, "w") as f:
@@ -360,7 +360,7 @@ def test_reconstruction_hdf5_bomb_refused(recon_h5, monkeypatch):
     anything is allocated (before: 3.7-4.8 GB)."""
     import tracemalloc
 
-    from evtk.io.reconstruction import load_reconstruction
+    from evtk.reconstruct import load_reconstruction
 
     def bomb(g, name, data):  # 2 GiB of float64 zeros, in 16 MiB chunks of which only one is written
         ds = g.create_dataset(name, shape=(4096, 256, 256), dtype=np.float64, chunks=(32, 256, 256),
@@ -382,7 +382,7 @@ def test_reconstruction_hdf5_bomb_refused(recon_h5, monkeypatch):
 
 def test_reconstruction_hdf5_over_the_memory_budget(recon_h5):
     """Arrays that the file does hold but that need more than --memory-limit-mb: refused before reading."""
-    from evtk.io.reconstruction import load_reconstruction
+    from evtk.reconstruct import load_reconstruction
 
     def big(g, name, data):  # 24 MiB of random float64 (incompressible), stored
         g.create_dataset(name, data=np.random.default_rng(0).normal(size=(3, 1024, 1024)))
@@ -397,7 +397,7 @@ def test_reconstruction_hdf5_over_the_memory_budget(recon_h5):
 def test_reconstruction_non_numeric_dataset_refused(recon_h5):
     import h5py
 
-    from evtk.io.reconstruction import load_reconstruction
+    from evtk.reconstruct import load_reconstruction
 
     def strings(g, name, data):
         g.create_dataset(name, data=np.array([b"a", b"b", b"c"], dtype=h5py.string_dtype()))
@@ -420,7 +420,7 @@ def test_npz_bomb_refused(tmp_path):
     import tracemalloc
     import zipfile
 
-    from evtk.io.reconstruction import load_reconstruction, save_reconstruction
+    from evtk.reconstruct import load_reconstruction, save_reconstruction
 
     good = tmp_path / "good.npz"
     save_reconstruction(good, _reconstruction(), (32, 32))
@@ -465,7 +465,7 @@ def test_npz_object_array_refused(tmp_path):
     """An NPZ member holding Python objects (a pickle) is refused from its header, never unpickled."""
     import zipfile
 
-    from evtk.io.reconstruction import load_reconstruction, save_reconstruction
+    from evtk.reconstruct import load_reconstruction, save_reconstruction
 
     good = tmp_path / "good.npz"
     save_reconstruction(good, _reconstruction(), (32, 32))
@@ -487,7 +487,8 @@ def test_recording_with_reconstruction_group_is_a_recording(tmp_path):
     when asked by name."""
     import h5py
 
-    from evtk.io.reconstruction import is_reconstruction, load_reconstruction, save_reconstruction
+    from evtk.io.reconstruction import is_reconstruction
+    from evtk.reconstruct import load_reconstruction, save_reconstruction
 
     ev = random_events(5000, seed=8, sensor_size=(32, 32))
     rec = tmp_path / "both.h5"
@@ -569,7 +570,7 @@ def test_trusted_external_storage_shorter_than_declared_refused(tmp_path):
 ])
 def test_reconstruction_values_that_would_wrap_refused(tmp_path, key, value, match):
     """Counts beyond int32 and binary values beyond int8 would wrap silently when converted: refused."""
-    from evtk.io.reconstruction import load_reconstruction, save_reconstruction
+    from evtk.reconstruct import load_reconstruction, save_reconstruction
 
     good = tmp_path / "good.npz"
     save_reconstruction(good, _reconstruction(), (32, 32))

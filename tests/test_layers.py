@@ -66,3 +66,41 @@ def test_the_scan_sees_relative_and_absolute_imports():
 
 def test_no_private_name_crosses_parts():
     assert private_crossings() == []
+
+
+def _targets(part: str) -> dict[str, set[str]]:
+    """Each evtk module that the modules of ``part`` (``io``, ``reconstruct``) import, with the importers;
+    ``import evtk.x`` statements and imports inside functions included."""
+    found: dict[str, set[str]] = {}
+    base = ROOT / part
+    for path in sorted(base.rglob("*.py")) if base.is_dir() else [ROOT / f"{part}.py"]:
+        here = _module_name(path)
+        targets = [t for t, _ in _imports(path)]
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                targets += [a.name for a in node.names]
+        for t in targets:
+            if t.startswith("evtk") and _part(t) != part:
+                found.setdefault(t, set()).add(here)
+    return found
+
+
+def test_the_target_scan_sees_imports_inside_functions():
+    """The scan sees what io imports inside a function (the HDF5 reader's lazy ``evtk.limits``)."""
+    assert "evtk.limits" in _targets("io")
+
+
+def test_reconstruct_imports_nothing_from_the_simulator():
+    """What a run is comes from evtk.plan; the reconstruction never reads the simulator's code (issue 30, item 1)."""
+    wrong = {t: sorted(m) for t, m in _targets("reconstruct").items() if _part(t) == "simulate"}
+    assert wrong == {}
+
+
+def test_io_is_the_ground_floor():
+    """io imports nothing from evtk's other parts but the errors, the memory budget, the event containers
+    (``evtk.events``, which io reads into) and evtk's shared internals (``evtk/_*.py``): never the reconstruction
+    or anything above it (issue 30, item 2)."""
+    allowed = ("errors", "limits", "events")
+    wrong = {t: sorted(m) for t, m in _targets("io").items()
+             if not (_part(t) in allowed or (_part(t).startswith("_") and t.count(".") == 1))}
+    assert wrong == {}

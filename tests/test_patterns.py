@@ -128,7 +128,8 @@ def test_bench_reconstruction_from_the_schedule_alone(tmp_path):
     reconstruct --schedule: every window is matched to its capture, the pair with a lost pass is left out and
     reported, and with flat-field calibration the responses correlate with the job's digital correlation nearly
     as well as the oracle reconstruction that inverts the simulator's own pixel model."""
-    from evtk.reconstruct import reconstruct, reconstruct_bench
+    from evtk.plan import as_plan
+    from evtk.reconstruct import reconstruct
 
     job = tmp_path / "job.toml"
     job.write_text('kernels = ["010111010"]\nrepeat = 3\nflat_field = 2\nwindow_us = 1000\nseed = 2\n')
@@ -140,10 +141,10 @@ def test_bench_reconstruction_from_the_schedule_alone(tmp_path):
         oracle = reconstruct(rec)
     with evtk.open(tmp_path / "cam.aedat4") as rec:
         assert rec.metadata.get("simulation") is None
-        bench = reconstruct_bench(rec, tmp_path / "p" / "schedule.json", record["response_region"],
-                                  record["response_origin_px"])
-        plain = reconstruct_bench(rec, tmp_path / "p" / "schedule.json", record["response_region"],
-                                  record["response_origin_px"], flat_field=False)
+        placed = as_plan(tmp_path / "p" / "schedule.json").replace(region=record["response_region"],
+                                                                   origin_px=record["response_origin_px"])
+        bench = reconstruct(rec, placed, linearization="exp(n theta)")
+        plain = reconstruct(rec, placed, linearization="exp(n theta)", flat_field=False)
     m = bench.summary["match"]
     assert m["offset_us"] == 7_000_003 and m["missing"] == [3] and m["extra"] == 1 and m["matched"] == 4
     assert bench.summary["pairs_left_out"] == [(0, 0, 1)] and len(bench.pairs) == 2
@@ -166,7 +167,8 @@ def test_bench_reconstruction_from_the_schedule_alone(tmp_path):
 
 
 def test_a_schedule_that_does_not_belong_to_the_recording_is_one_error(tmp_path):
-    from evtk.reconstruct import load_schedule, reconstruct_bench
+    from evtk.plan import as_plan
+    from evtk.reconstruct import load_schedule, reconstruct
 
     (tmp_path / "s.json").write_text('{"evtk_schedule_version": 1, "captures": [{"capture": 0}]}')
     with pytest.raises(EvtkError, match="malformed"):
@@ -180,4 +182,5 @@ def test_a_schedule_that_does_not_belong_to_the_recording_is_one_error(tmp_path)
     ev = evtk.Events([5, 6], [0, 1], [0, 0], [1, 0], (320, 240))
     evtk.write_events(tmp_path / "none.h5", ev)
     with evtk.open(tmp_path / "none.h5") as rec, pytest.raises(EvtkError, match="no complete window"):
-        reconstruct_bench(rec, tmp_path / "p" / "schedule.json", (0, 10, 0, 10))
+        reconstruct(rec, as_plan(tmp_path / "p" / "schedule.json").replace(region=(0, 10, 0, 10)),
+                    linearization="exp(n theta)")

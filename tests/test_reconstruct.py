@@ -586,8 +586,8 @@ def test_reconstruction_files_read_back_and_describe_themselves(tmp_path):
     from click.testing import CliRunner
 
     from evtk.cli import main
-    from evtk.io.reconstruction import is_reconstruction, load_reconstruction
-    from evtk.reconstruct import reconstruct
+    from evtk.io.reconstruction import is_reconstruction
+    from evtk.reconstruct import load_reconstruction, reconstruct
     from evtk.simulate import Simulation
 
     rec_path = tmp_path / "run.aedat4"
@@ -649,3 +649,68 @@ def test_binarisation_default_follows_the_sign_of_the_responses(tmp_path):
         assert 0.2 < ones < 0.8, ones
         if not signed:
             assert np.mean(binarize(r.responses, "sign") > 0) > 0.85  # why sign is not the rule here
+
+
+def test_the_summary_is_typed_and_still_reads_as_a_dict(tmp_path):
+    """Issue 30: every route returns a ReconstructionSummary, whose entries are typed attributes; it reads and
+    writes as the dict it was (an entry the route did not set is a KeyError, its attribute None), and a file
+    gives back the same entries, the file's own metadata kept beside them."""
+    from evtk.reconstruct import ReconstructionSummary, load_reconstruction, reconstruct, save_reconstruction
+    from evtk.simulate import Simulation
+
+    Simulation([[1, 0, 1], [0, 1, 0], [1, 0, 1]], np.eye(6, dtype=int), repeat=2, seed=2).write(tmp_path / "r.h5")
+    with evtk.open(tmp_path / "r.h5") as rec:
+        result = reconstruct(rec)
+    s = result.summary
+    assert isinstance(s, ReconstructionSummary)
+    assert s.windows == s["windows"] == len(result.counts.windows) and s.captures == s["captures"]
+    assert s.error == s["error"] and s.error["correlation"] > 0.9 and s.linearization == s["linearization"]
+    assert s.match is None and "match" not in s and s.get("match", "absent") == "absent"
+    with pytest.raises(KeyError):
+        s["match"]
+    s["route"] = "by hand"  # written by key, read as an attribute
+    s.update(note_of_mine=1)  # an entry that is not an attribute is kept aside
+    assert s.route == "by hand" and s.extra == {"note_of_mine": 1} and dict(s)["note_of_mine"] == 1
+    plain = s.to_dict()
+    assert type(plain) is dict and json.loads(json.dumps(plain)) == plain
+    assert list(ReconstructionSummary.from_dict(plain).to_dict().items()) == list(plain.items())
+    save_reconstruction(tmp_path / "out.npz", result, rec.sensor_size)
+    back = load_reconstruction(tmp_path / "out.npz").summary
+    assert isinstance(back, ReconstructionSummary) and back.windows == s.windows and back.route == "by hand"
+    assert back.extra["sensor_size"] == list(rec.sensor_size) and back.extra["note_of_mine"] == 1
+
+
+def test_one_entry_takes_its_route_from_the_plan(tmp_path):
+    """Issue 30: ``reconstruct(rec, plan, options)`` is the one entry. The oracle is the plan read from the
+    simulation record (the same numbers as the recording's own record); a bench plan (the schedule alone, as
+    a bench has it) runs the calibrated route (its pixel model fitted to the run's level captures) or, asked
+    for, exp(n theta) with no model; settings a bench plan cannot honour are one clear error each."""
+    from evtk.plan import Plan
+    from evtk.reconstruct import ReconstructOptions, reconstruct, schedule_of_record
+    from evtk.simulate import Simulation
+
+    rng = np.random.default_rng(4)
+    Simulation(rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (16, 16)), seed=4, levels=6,
+               flat_field=2).write(tmp_path / "r.h5")
+    with evtk.open(tmp_path / "r.h5") as rec:
+        record = rec.metadata["simulation"]
+        own = reconstruct(rec, options=ReconstructOptions(size=(8, 8)))
+        oracle = reconstruct(rec, Plan.from_record(record), ReconstructOptions(size=(8, 8)))
+        bench_plan = schedule_of_record(record)
+        fitted = reconstruct(rec, bench_plan)
+        plain = reconstruct(rec, bench_plan, linearization="exp(n theta)")
+        for bad, match in (({"window": "triggers"}, "bench plan's windows"), ({"theta": 0.3}, "leave out"),
+                           ({"linearization": "cubic"}, "linearization must be"), ({"colour": 1}, "no setting")):
+            with pytest.raises(EvtkError, match=match):
+                reconstruct(rec, bench_plan, **bad)
+        with pytest.raises(EvtkError, match="leave linearization out"):
+            reconstruct(rec, Plan.from_record(record), linearization="table")
+    assert np.array_equal(oracle.responses, own.responses) and oracle.responses.shape[1:] == (8, 8)
+    assert bench_plan.record is None and bench_plan.region is None and Plan.from_record(record).record is not None
+    assert fitted.summary.pixel_model_from == "the run's own level captures" and fitted.summary.match["matched"] > 0
+    assert fitted.summary.linearization.startswith("pixel model")
+    assert plain.summary.linearization == "exp(n theta)" and plain.summary.pixel_model is None
+    assert fitted.summary.error["correlation"] > plain.summary.error["correlation"] - 0.05
+    import evtk.reconstruct as R
+
+    assert not any(hasattr(R, n) for n in ("reconstruct_bench", "reconstruct_calibrated", "fitted_record"))

@@ -172,7 +172,7 @@ def test_recording_noise_in_batches_equals_the_whole_reconstruction(tmp_path, mo
     path = tmp_path / "bench.aedat4"
     evtk.write_events(path, evtk.Events(t, x, y, p, (64, 48)))
     with evtk.open(path) as rec:
-        whole = scene_noise(reconstruct(rec, ("period", 10_000)), per_pixel=True)[0]
+        whole = scene_noise(reconstruct(rec, window=("period", 10_000)), per_pixel=True)[0]
         monkeypatch.setattr(sweeps, "NOISE_BATCH_BYTES", 7 * 64 * 48 * 64)  # 7 windows a batch: 29 batches
         (part,) = sweeps.recording_noise(rec, ("period", 10_000), per_pixel=True)
     assert part["repeats"] == whole["repeats"] > 190

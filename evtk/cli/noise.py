@@ -35,7 +35,8 @@ def enob(recording, window_spec, skip_us, length_us, interval, per_pixel, plot_p
     Without a schedule every window is a repeat of one scene; they are
     measured a batch at a time, so memory stays bounded however many.
     """
-    from ..io.reconstruction import is_reconstruction, load_reconstruction
+    from ..io.reconstruction import is_reconstruction
+    from ..reconstruct.files import load_reconstruction
     from ..sweeps import scene_noise
 
     if is_reconstruction(recording):  # the responses of an earlier `evtk reconstruct`

@@ -15,7 +15,7 @@ import os
 import zipfile
 import zlib
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -23,10 +23,7 @@ from .._atomic import AtomicFile
 from ..errors import EvtkError, FormatError
 from .base import load_json, sensor_dims
 
-if TYPE_CHECKING:
-    from ..reconstruct import Reconstruction
-
-__all__ = ["save_reconstruction", "load_reconstruction", "is_reconstruction", "describe_reconstruction",
+__all__ = ["save_reconstruction", "read_reconstruction", "is_reconstruction", "describe_reconstruction",
            "LAYOUT_VERSION"]
 
 #: Version of the layout, stored as ``layout_version`` in the summary JSON.
@@ -37,7 +34,7 @@ _I32_MAX = np.iinfo(np.int32).max
 _I64_MAX = np.iinfo(np.int64).max
 
 
-def save_reconstruction(path: str | os.PathLike[str], result: Reconstruction, sensor_size: Sequence[int],
+def save_reconstruction(path: str | os.PathLike[str], result: Any, sensor_size: Sequence[int],
                         metadata: Mapping[str, Any] | None = None) -> None:
     """Write a :class:`~evtk.reconstruct.Reconstruction` as ``.npz`` or evtk HDF5 (``.h5``/``.hdf5``), atomically.
 
@@ -45,7 +42,7 @@ def save_reconstruction(path: str | os.PathLike[str], result: Reconstruction, se
     ``pairs``, ``window_start_us``/``window_end_us``, ``on``/``off`` counts;
     the summary (parameters, errors), the sensor size and ``metadata`` as
     JSON (``summary`` in NPZ, the ``/metadata`` dataset in HDF5). Read back
-    with :func:`load_reconstruction`.
+    with :func:`evtk.reconstruct.load_reconstruction`.
 
     Parameters
     ----------
@@ -72,13 +69,12 @@ def save_reconstruction(path: str | os.PathLike[str], result: Reconstruction, se
         arrays["ideal"] = result.ideal
     if result.pairs is not None:
         arrays["pairs"] = result.pairs
-    meta = {**(metadata or {}), "reconstruction": result.summary, "layout_version": LAYOUT_VERSION,
+    meta = {**(metadata or {}), "reconstruction": dict(result.summary), "layout_version": LAYOUT_VERSION,
             "sensor_size": [int(v) for v in sensor_size]}
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if ext == ".npz":
         with AtomicFile(path) as f:
-            # (the stubs read **arrays as possibly allow_pickle; its keys are the array names above)
-            np.savez_compressed(f.file, summary=np.array(json.dumps(meta)), **arrays)  # type: ignore[arg-type]
+            np.savez_compressed(f.file, summary=np.array(json.dumps(meta)), **arrays)
     elif ext in (".h5", ".hdf5"):
         from .hdf5 import Hdf5Writer  # HDF5 (and its compiled checks) load only for .h5 outputs
 
@@ -94,7 +90,7 @@ def is_reconstruction(path: str | os.PathLike[str], trust_external: bool | None 
     ``/reconstruction`` group and no events.
 
     A recording that also holds a ``/reconstruction`` group is a recording (its events win, for every
-    command; reading it notes the group it leaves aside): :func:`load_reconstruction` still reads the group
+    command; reading it notes the group it leaves aside): :func:`evtk.reconstruct.load_reconstruction` still reads the group
     when asked by name.
 
     Parameters
@@ -150,8 +146,9 @@ def _trusted(trust_external) -> bool:
     return trust_external_by_default() if trust_external is None else bool(trust_external)
 
 
-def load_reconstruction(path: str | os.PathLike[str], trust_external: bool | None = None) -> Reconstruction:
-    """Read a file written by :func:`save_reconstruction` (or ``evtk reconstruct``) back.
+def read_reconstruction(path: str | os.PathLike[str], trust_external: bool | None = None) -> tuple[dict, dict, tuple, int]:
+    """Read and check the arrays and summary of a file written by :func:`save_reconstruction` (or ``evtk
+    reconstruct``); :func:`evtk.reconstruct.load_reconstruction` makes a ``Reconstruction`` of them.
 
     The file is held to the policy event files are (``docs/formats/reconstruction.md``): an HDF5 file may
     not read other files unless trusted (external links, external storage, virtual datasets), nor claim
@@ -168,9 +165,16 @@ def load_reconstruction(path: str | os.PathLike[str], trust_external: bool | Non
 
     Returns
     -------
-    Reconstruction
-        Its ``counts`` hold the windows and ON/OFF counts; its ``summary`` also carries the file's
-        ``metadata`` (``source``, ``sensor_size``).
+    arrays : dict
+        ``responses``, ``binary``, ``cells``, ``window_start_us``, ``window_end_us``, ``on``, ``off`` and, when
+        the file holds them, ``ideal`` and ``pairs``, each checked (shapes that agree, finite values, integer
+        ranges).
+    summary : dict
+        The run's summary, with the file's ``metadata`` (``source``, ``sensor_size``) beside it.
+    region : tuple of int
+        ``(x0, x1, y0, y1)``: the sensor pixels the counts cover, within the sensor.
+    events_used : int
+        Events the counts hold.
 
     Raises
     ------
@@ -178,24 +182,7 @@ def load_reconstruction(path: str | os.PathLike[str], trust_external: bool | Non
         When arrays are missing, inconsistent, of a type that is not numeric, or refused by the policy.
     EvtkError
         When the arrays would need more memory than the budget allows.
-
-    Examples
-    --------
-    >>> import evtk, tempfile, os
-    >>> from evtk.reconstruct import reconstruct
-    >>> from evtk.simulate import Simulation
-    >>> d = tempfile.mkdtemp()
-    >>> _ = Simulation([[1, 0], [0, 1]], [[0, 1, 1], [1, 0, 1], [1, 1, 0]], repeat=2).write(os.path.join(d, "r.h5"))
-    >>> with evtk.open(os.path.join(d, "r.h5")) as rec:
-    ...     result = reconstruct(rec)
-    >>> save_reconstruction(os.path.join(d, "out.npz"), result, (346, 260))
-    >>> back = load_reconstruction(os.path.join(d, "out.npz"))
-    >>> bool((back.responses == result.responses).all()), back.summary["sensor_size"]
-    (True, [346, 260])
     """
-    # here, not at the top: describing a file (evtk info) must not load the reconstruction's compiled stages
-    from ..reconstruct import Reconstruction, WindowCounts, Windows
-
     path = os.fspath(path)
     arrays, meta = _read(path, _trusted(trust_external))
     missing = [k for k in _REQUIRED if k not in arrays]
@@ -225,9 +212,13 @@ def load_reconstruction(path: str | os.PathLike[str], trust_external: bool | Non
             raise FormatError(path, None, f"{k} holds values outside {lo}..{hi}")
     start, end = arrays["window_start_us"], arrays["window_end_us"]
     on, off = arrays["on"], arrays["off"]
-    if on.shape != off.shape or on.ndim != 3 or on.shape[0] != start.shape[0] or start.shape != end.shape:
+    if (on.shape != off.shape or on.ndim != 3 or start.ndim != 1 or on.shape[0] != start.shape[0]
+            or start.shape != end.shape):
         raise FormatError(path, None, f"window times {start.shape}/{end.shape} and counts {on.shape}/{off.shape} "
                                       "do not match")
+    if start.size and np.any(end <= start):
+        i = int(np.flatnonzero(end <= start)[0])
+        raise FormatError(path, None, f"window times: window {i} is empty or reversed: [{start[i]}, {end[i]}) us")
     inner = meta.get("reconstruction") or {}
     if not isinstance(inner, dict):
         raise FormatError(path, None, "the summary's reconstruction entry must be a JSON object")
@@ -235,10 +226,6 @@ def load_reconstruction(path: str | os.PathLike[str], trust_external: bool | Non
     for k, v in meta.items():
         if k != "reconstruction":
             summary.setdefault(k, v)
-    try:
-        windows = Windows(start, end, np.arange(start.shape[0]), str(summary.get("window_source", "file")))
-    except EvtkError as exc:
-        raise FormatError(path, None, f"window times: {exc}") from None
     try:
         region = tuple(int(v) for v in summary.get("region", (0, on.shape[2], 0, on.shape[1])))
         events_used = int(summary.get("events_used", int(on.sum()) + int(off.sum())))
@@ -255,11 +242,7 @@ def load_reconstruction(path: str | os.PathLike[str], trust_external: bool | Non
     if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h and (y1 - y0, x1 - x0) == tuple(on.shape[1:])):
         raise FormatError(path, None, f"the summary's region {list(region)} is not the counts' "
                                       f"{on.shape[2]}x{on.shape[1]} pixels on the {w}x{h} sensor")
-    counts = WindowCounts(on.astype(np.int32, copy=False), off.astype(np.int32, copy=False), windows, region,
-                          events_used)
-    return Reconstruction(arrays["responses"].astype(np.float64, copy=False), arrays["binary"].astype(np.int8, copy=False),
-                          arrays.get("pairs"), arrays["cells"].astype(np.float64, copy=False), arrays.get("ideal"),
-                          counts, summary)
+    return arrays, summary, region, events_used
 
 
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
@@ -420,7 +403,7 @@ def describe_reconstruction(path: str | os.PathLike[str]) -> dict[str, Any]:
     Parameters
     ----------
     path : str or os.PathLike
-        A reconstruction file (read whole, as :func:`load_reconstruction` reads it).
+        A reconstruction file (read whole, as :func:`read_reconstruction` reads it).
 
     Returns
     -------
@@ -437,9 +420,14 @@ def describe_reconstruction(path: str | os.PathLike[str]) -> dict[str, Any]:
     EvtkError
         When its arrays would not fit the memory budget.
     """
-    result = load_reconstruction(path)
-    s = result.summary
-    scenes = result.groups()
+    arrays, s, _, _ = read_reconstruction(path)
+    pairs = arrays.get("pairs")
+    n = int(arrays["responses"].shape[0])
+    if pairs is None:  # every window a repeat of one scene
+        repeats = [n]
+    else:
+        _, repeats_arr = np.unique(np.asarray(pairs)[:, :2], axis=0, return_counts=True)
+        repeats = repeats_arr.tolist()
     return {
         "path": os.fspath(path),
         "format": "evtk reconstruction",
@@ -448,16 +436,16 @@ def describe_reconstruction(path: str | os.PathLike[str]) -> dict[str, Any]:
         "source": s.get("source"),
         "sensor_size": s.get("sensor_size"),
         "region": s.get("region"),
-        "responses": int(result.responses.shape[0]),
-        "size": [int(v) for v in result.responses.shape[1:]],
-        "cells": [int(v) for v in result.cells.shape[1:]],
-        "windows": int(len(result.counts.windows)),
+        "responses": n,
+        "size": [int(v) for v in arrays["responses"].shape[1:]],
+        "cells": [int(v) for v in arrays["cells"].shape[1:]],
+        "windows": int(arrays["window_start_us"].shape[0]),
         "window_source": s.get("window_source"),
-        "scenes": len(scenes),
-        "most_repeats": max((len(v) for v in scenes.values()), default=0),
+        "scenes": len(repeats),
+        "most_repeats": max(repeats, default=0),
         "linearization": s.get("linearization"),
         "binarize": s.get("binarize"),
-        "ideal": result.ideal is not None,
+        "ideal": "ideal" in arrays,
         "error": s.get("error"),
     }
 

@@ -23,14 +23,19 @@ The stages, each a function usable alone:
    effective stride, by area overlap) and :func:`downsample` (to a target
    size: block means for whole factors, area-weighted resampling otherwise).
 6. :func:`binarize`: sign, mean, a fixed threshold or Otsu's.
+
+What a run is (its schedule, patterns, placement, pixel model) comes from :mod:`evtk.plan`; nothing here
+imports the simulator. :func:`save_reconstruction` and :func:`load_reconstruction` write and read the result.
 """
 
 from __future__ import annotations
 
 from .accumulate import accumulate
-from .bench import load_schedule, match_windows, reconstruct_bench
+from .bench import load_schedule, match_windows
 from .binarize import binarize, binarize_rule
-from .calibrated import nominal_placement, reconstruct_calibrated, schedule_of_record
+from .calibrated import nominal_placement, schedule_of_record
+from .entry import reconstruct
+from .files import load_reconstruction, save_reconstruction
 from .fit import PixelFit, fit_pixel_model, level_statistics
 from .grid import (
     combine_passes,
@@ -46,12 +51,12 @@ from .pipeline import (
     Reconstruction,
     check_crop,
     plan,
-    reconstruct,
     reconstruct_counts,
     response_error,
     wants_times,
     window_bytes,
 )
+from .summary import ReconstructionSummary
 from .timing import linearize_by_timing, timing_thresholds
 from .windows import WindowCounts, Windows, windows_from_schedule, windows_from_triggers, windows_periodic
 
@@ -61,12 +66,12 @@ from .timing import _timing_factor  # noqa: F401
 
 __all__ = [
     "Windows", "WindowCounts", "windows_from_schedule", "windows_from_triggers", "windows_periodic",
-    "ReconstructOptions", "reconstruct_bench", "match_windows", "load_schedule", "accumulate", "linearize",
+    "ReconstructOptions", "match_windows", "load_schedule", "accumulate", "linearize",
     "combine_passes", "to_response_grid", "downsample", "binarize", "binarize_rule", "plan", "reconstruct",
     "reconstruct_counts", "Reconstruction", "response_error",
     "count_curve", "linearize_by_model", "linearize_by_timing", "timing_thresholds", "wants_times",
-    "window_bytes", "flat_field_gain", "reconstruct_calibrated", "schedule_of_record", "nominal_placement",
+    "window_bytes", "flat_field_gain", "schedule_of_record", "nominal_placement",
     "fit_pixel_model", "level_statistics", "PixelFit", "footprint_matrix", "overlap_matrix", "sample_response_grid",
-    "check_crop",
+    "check_crop", "load_reconstruction", "save_reconstruction", "ReconstructionSummary",
 ]
 

@@ -10,7 +10,7 @@ array of values).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numba
@@ -21,6 +21,7 @@ from ..limits import require_memory
 from .accumulate import _checked_region, _counted_batches, accumulate_batches, batch_size
 from .binarize import binarize
 from .grid import overlap_matrix
+from .summary import ReconstructionSummary
 from .windows import WindowCounts, Windows
 
 
@@ -74,7 +75,7 @@ def reconstruct_windows(source, windows: Windows, region, keep_pixels: bool = Tr
     if keep_pixels:  # int32 ON and OFF counts and float64 values of every window
         require_memory(n_w * h_px * w_px * 16, f"keeping the counts of {n_w:,} windows over {w_px}x{h_px} pixels")
     responses = binary = cells = on = off = None
-    summary: dict = {}
+    summary: Mapping[str, Any] = {}
     used = 0
     for i, counts in accumulate_batches(source, windows, region, batch_windows, chunk_events, progress):
         part = reconstruct_counts(counts, None, **options)
@@ -106,10 +107,10 @@ def reconstruct_windows(source, windows: Windows, region, keep_pixels: bool = Tr
         cells = responses
         on = off = np.zeros((n_w, 0, 0), np.int32)
     assert cells is not None and on is not None and off is not None
-    summary = dict(summary, windows=n_w, windows_dropped=windows.dropped, events_used=int(used),
-                   responses=int(n_w))
+    whole = ReconstructionSummary.from_dict(dict(summary, windows=n_w, windows_dropped=windows.dropped,
+                                                 events_used=int(used), responses=int(n_w)))
     return Reconstruction(responses, binary, None, cells, None, WindowCounts(on, off, windows, (x0, x1, y0, y1),
-                                                                              int(used)), summary)
+                                                                              int(used)), whole)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -255,8 +256,8 @@ def reconstruct_responses(source, windows: Windows, region, batch_windows: int |
         raise EvtkError("no windows to reconstruct")
     binary = binarize(responses, first.summary["binarize"])
     empty = np.zeros((n_w, 0, 0), np.int32)
-    summary = dict(first.summary, windows=n_w, windows_dropped=windows.dropped, events_used=int(used),
-                   responses=int(n_w))
+    summary = ReconstructionSummary.from_dict(dict(first.summary, windows=n_w, windows_dropped=windows.dropped,
+                                                   events_used=int(used), responses=int(n_w)))
     return Reconstruction(responses, binary, None, responses, None,
                           WindowCounts(empty, empty, windows, region, int(used)), summary)
 

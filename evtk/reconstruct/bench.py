@@ -5,7 +5,7 @@ and where the response lies on the sensor (a region and the pixel of cell
 (0, 0), from a calibration or measured by hand); it does not know the
 pixels' model. :func:`match_windows` pairs the recording's trigger windows
 with the schedule's captures (the camera's clock has its own origin; edges
-can be lost or doubled), and :func:`reconstruct_bench` runs windows,
+can be lost or doubled), and :func:`_reconstruct_bench` runs windows,
 counts, ``exp(n theta)`` linearisation, the passes, the grid, resampling and
 binarisation on what matched, and compares the result with the digital
 correlation of the job's patterns, which the bench knows too.
@@ -13,25 +13,46 @@ correlation of the job's patterns, which the bench knows too.
 
 from __future__ import annotations
 
+import os
+from typing import Any
+
 import numpy as np
+import numpy.typing as npt
 from scipy.ndimage import median_filter
 
 from ..errors import EvtkError
+from ..events import Triggers
 from ..optics import response_origin_px
-from ..simulate import FLAT_ID, LEVEL_ID
-from ..simulate.schedule import read_schedule as load_schedule  # the checked reader, under its older name
+from ..plan import FLAT_ID, LEVEL_ID, Plan, Schedule, as_plan
 from .accumulate import accumulate
 from .binarize import binarize
 from .grid import combine_passes, downsample, to_response_grid
 from .linearize import flat_field_gain, linearize
 from .pipeline import MAX_TIMING_STAMP_US, Reconstruction, check_crop, pair_ideals, response_error, silent_failures
+from .summary import ReconstructionSummary
 from .windows import Windows, _trim, windows_from_triggers
 
-__all__ = ["load_schedule", "match_windows", "reconstruct_bench", "synchronous_readout", "refuse_synchronous"]
+__all__ = ["load_schedule", "match_windows", "synchronous_readout", "refuse_synchronous"]
 
 
-def match_windows(triggers, schedule, tolerance_us=None):
-    """Pair trigger windows with the schedule's captures; returns ``(Windows, report)``.
+def load_schedule(path: str | os.PathLike) -> Plan:
+    """Read and check a bench run's ``schedule.json``: :meth:`evtk.plan.Plan.read`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file (:func:`evtk.patterns.write_patterns`; ``docs/formats/schedule.md``).
+
+    Returns
+    -------
+    Plan
+        Its schedule, patterns, bench and timing (also read by key: ``plan["kernels"]``).
+    """
+    return Plan.read(path)
+
+
+def match_windows(triggers: Triggers, schedule: Schedule, tolerance_us: float | None = None) -> tuple[Windows, dict]:
+    """Pair trigger windows with the schedule's captures.
 
     The recording's clock and the schedule's differ by an offset, found as
     the one that lines up the most window starts with capture starts (tried
@@ -43,6 +64,20 @@ def match_windows(triggers, schedule, tolerance_us=None):
     windows match none (``extra``), the offset, and what the trigger edges
     themselves left out (``dropped``). Missing and extra edges are reported,
     not fatal; no match at all is an error.
+
+    Parameters
+    ----------
+    triggers : Triggers
+        The recording's trigger edges.
+    schedule : Schedule
+        The captures.
+    tolerance_us : float, optional
+        How far a window's start may be from its capture's.
+
+    Returns
+    -------
+    tuple
+        ``(Windows, report)``.
     """
     win = windows_from_triggers(triggers)
     t_on = schedule.t_on_us
@@ -65,7 +100,8 @@ def match_windows(triggers, schedule, tolerance_us=None):
 
     # a schedule of equal periods lines up almost as well one capture off: the most matches win, then the
     # smallest total distance (a constant clock offset lines every start up to the microsecond)
-    best_offset, best_score = None, None
+    best_offset: int = 0  # set by the first candidate (there is at least one window and one capture)
+    best_score: tuple[int, float] | None = None
     k = min(8, len(win), len(t_on))
     candidates = np.unique((win.t_start_us[:k, None] - sorted_on[None, :k]).ravel())
     for off in candidates.tolist():
@@ -76,7 +112,7 @@ def match_windows(triggers, schedule, tolerance_us=None):
     idx, ok, dist = assign(best_offset)
     if not ok.any():
         raise EvtkError("no trigger window lines up with the schedule: is it the schedule of this recording?")
-    taken = {}
+    taken: dict[int, int] = {}
     for w in np.flatnonzero(ok):  # a capture keeps its closest window; the others are extra
         c = int(idx[w])
         if c not in taken or dist[w] < dist[taken[c]]:
@@ -92,7 +128,7 @@ def match_windows(triggers, schedule, tolerance_us=None):
     return matched, report
 
 
-def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), binarize_method="auto", theta=0.2,
+def _reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), binarize_method="auto", theta=0.2,
                       skip_us=0, length_us=None, crop="valid", tolerance_us=None, flat_field=True,
                       progress=None) -> Reconstruction:
     """The whole pipeline on a bench recording, driven by its schedule; no simulation record is read.
@@ -102,7 +138,7 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     rec : Recording
         Events and the DMD's trigger edges.
     schedule : str, os.PathLike or dict
-        ``schedule.json`` (:func:`evtk.patterns.write_patterns`) or :func:`load_schedule`'s dict.
+        ``schedule.json`` (:func:`evtk.patterns.write_patterns`), a :class:`~evtk.plan.Plan` or a schedule's dict.
     region : (x0, x1, y0, y1)
         Sensor pixels to count (half-open).
     origin_px : (x, y), optional
@@ -132,7 +168,7 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
     """
 
     check_crop(crop)
-    sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
+    sched = as_plan(schedule)
     s, kernels, features, bench = sched["schedule"], sched["kernels"], sched["features"], sched["bench"]
     win, report = match_windows(rec.triggers(), s, tolerance_us)
     start, end = _trim(win.t_start_us, win.t_end_us, skip_us, length_us, "matched")
@@ -183,7 +219,7 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
         "match": report, "pairs_left_out": sorted(_all_pairs(s) - complete),
         "error": response_error(combined * abs(scale), ideal), "scale_to_ideal": scale, **checks,
     }
-    return Reconstruction(responses, binary, pairs, combined, ideal, counts, summary)
+    return Reconstruction(responses, binary, pairs, combined, ideal, counts, ReconstructionSummary.from_dict(summary))
 
 
 #: Pixel-frames a synchronous readout must show fired in the next frame too (busy pixels) before the absence of
@@ -191,7 +227,8 @@ def reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bina
 SYNC_MIN_RUNS = 50
 
 
-def synchronous_readout(rec, t_on_us, t_off_us, max_windows=16):
+def synchronous_readout(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLike,
+                        max_windows: int = 16) -> float | None:
     """The frame period (µs) when the recording's pixels are read out synchronously, else None.
 
     A synchronous readout (a frame every period, at most one event a pixel and frame) stamps every event on
@@ -206,12 +243,16 @@ def synchronous_readout(rec, t_on_us, t_off_us, max_windows=16):
     Parameters
     ----------
     rec : Recording
+        The open recording.
     t_on_us, t_off_us : array of int
         Windows with light in them (flat fields, level captures).
+    max_windows : int
+        Windows read at most.
 
     Returns
     -------
     float or None
+        The frame period (µs), or None for an asynchronous readout.
     """
     w = int(rec.sensor_size[0])
     parts = [rec.events(int(a), int(b)) for a, b in zip(np.asarray(t_on_us)[:max_windows].tolist(),
@@ -236,14 +277,16 @@ def synchronous_readout(rec, t_on_us, t_off_us, max_windows=16):
     return float(period) if doubled <= 1e-4 * t.size and runs >= SYNC_MIN_RUNS else None
 
 
-def refuse_synchronous(rec, t_on_us, t_off_us):
+def refuse_synchronous(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLike) -> None:
     """Raise :class:`~evtk.EvtkError`, naming the readout and what to do, when :func:`synchronous_readout`
     finds one in the windows ``[t_on_us, t_off_us)``.
 
     Parameters
     ----------
     rec : Recording
+        The open recording.
     t_on_us, t_off_us : array of int
+        Windows with light in them.
     """
     period = synchronous_readout(rec, t_on_us, t_off_us)
     if period is not None:

@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import EvtkError
-from ..simulate.record import SimulationRecord
+from ..plan import SimulationRecord
 
 __all__ = ["binarize_rule", "binarize"]
 
 
-def binarize_rule(sim) -> str:
+def binarize_rule(sim: SimulationRecord | dict | None) -> str:
     """The binarisation ``"auto"`` stands for: ``"sign"`` for signed responses, ``"mean"`` for the rest.
 
     A response is signed when the recording's schedule shows a kernel or
@@ -19,18 +20,37 @@ def binarize_rule(sim) -> str:
     a response that is positive wherever light falls (the sign would be +1
     almost everywhere), and a recording without a schedule has no sign to
     go by: both are split at each response's mean.
+
+    Parameters
+    ----------
+    sim : SimulationRecord, dict or None
+        The recording's simulation record (or its dict form), if any.
+
+    Returns
+    -------
+    str
+        "sign" or "mean".
     """
     if sim is not None and SimulationRecord.from_dict(sim).signed:
         return "sign"
     return "mean"
 
 
-def binarize(values, method="sign"):
+def binarize(values: npt.ArrayLike, method: str | float = "sign") -> np.ndarray:
     """+1 where a response reaches the threshold, -1 elsewhere (int8), per response.
 
-    ``method``: "sign" (threshold 0), "mean" (each response's mean), "otsu"
-    (Otsu's threshold of each response, scikit-image), or a number. A
-    constant response is all +1 under "mean" and "otsu".
+    Parameters
+    ----------
+    values : array_like (n, ...)
+        The responses.
+    method : str or float
+        "sign" (threshold 0), "mean" (each response's mean), "otsu" (Otsu's threshold of each response,
+        scikit-image), or a number. A constant response is all +1 under "mean" and "otsu".
+
+    Returns
+    -------
+    ndarray of int8
+        +1/-1, the shape of ``values``.
 
     Examples
     --------

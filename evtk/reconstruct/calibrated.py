@@ -1,6 +1,6 @@
 """The calibrated route: a recording, what the bench showed, where the response lies; the pixel model fitted.
 
-:func:`reconstruct_calibrated` is what ``evtk reconstruct`` runs by default,
+:func:`_reconstruct_calibrated` is what ``evtk reconstruct`` runs by default,
 on a bench recording (``--schedule``) and on a simulated one alike. It reads
 no answer only the simulator knows:
 
@@ -12,7 +12,7 @@ no answer only the simulator knows:
    flat field, linearisation by the model and the event times, passes,
    grid, deblurring, resampling, binarisation.
 
-Without level captures it falls back to :func:`reconstruct_bench`
+Without level captures it falls back to :func:`_reconstruct_bench`
 (``exp(n theta)``) and says so. A simulated recording's own record serves
 only for what a bench also has (the schedule, patterns and bench geometry:
 :func:`schedule_of_record`) and for the error against the ideal;
@@ -22,30 +22,30 @@ only for what a bench also has (the schedule, patterns and bench geometry:
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import EvtkError
 from ..optics import response_origin_px, response_region
-from ..simulate import FLAT_ID, LEVEL_ID
-from ..simulate.record import SimulationRecord
+from ..plan import FLAT_ID, LEVEL_ID, Plan, SimulationRecord, as_plan
 from .accumulate import accumulate
 from .bench import (
     _all_pairs,
     _complete_mask,
-    load_schedule,
+    _reconstruct_bench,
     match_windows,
     neighbourhood_flat_gain,
-    reconstruct_bench,
     refuse_synchronous,
 )
 from .fit import (
     MAX_DELAY_US,
     PixelFit,
+    _fitted_record,
     describe_pixels,
     fit_pixel_model,
     fit_refractory,
-    fitted_record,
     hot_pixels,
     interior_pixels,
     level_off_times,
@@ -59,7 +59,7 @@ from .linearize import level_curve, level_table_values
 from .pipeline import MAX_TIMING_STAMP_US, check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
 
-__all__ = ["reconstruct_calibrated", "schedule_of_record", "nominal_placement", "fit_on_edges", "MAX_LEVEL_ERROR",
+__all__ = ["schedule_of_record", "nominal_placement", "fit_on_edges", "MAX_LEVEL_ERROR",
            "MAX_TABLE_ERROR", "LEAD_US", "held_out_table_error", "PHYSICAL_RANGE", "level_readback",
            "refuse_pixel_fit"]
 
@@ -73,25 +73,41 @@ MAX_LEVEL_ERROR = 2.0
 MAX_TABLE_ERROR = 1.25
 
 
-def schedule_of_record(record) -> dict:
+def schedule_of_record(record: SimulationRecord | dict) -> Plan:
     """What a simulated run's ``schedule.json`` would hold, from its record: no pixel model, no photon rates.
 
-    Returns the dict :func:`load_schedule` returns (schedule, kernels,
-    features, bench, window_us, settle_us, dot_spacing).
+    Parameters
+    ----------
+    record : SimulationRecord or dict
+        The record (or its dict form).
+
+    Returns
+    -------
+    Plan
+        :meth:`Plan.from_record` without the oracle's part: the schedule, patterns, bench and timing.
     """
-    r = SimulationRecord.from_dict(record)
-    return {"schedule": r.schedule, "kernels": r.kernels, "features": r.features, "bench": r.bench,
-            "window_us": r.window_us, "settle_us": r.settle_us, "dot_spacing": r.dot_spacing}
+    return Plan.from_record(record, oracle=False)
 
 
-def nominal_placement(schedule) -> tuple:
-    """``(region, origin_px)`` the bench geometry alone predicts (the response centred on the sensor)."""
-    sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
+def nominal_placement(schedule: Plan | dict | str | os.PathLike) -> tuple:
+    """Where the bench geometry alone puts the response (centred on the sensor).
+
+    Parameters
+    ----------
+    schedule : Plan, dict, str or os.PathLike
+        The run's plan, a schedule's dict form or its ``schedule.json``.
+
+    Returns
+    -------
+    tuple
+        ``(region, origin_px)``: ``(x0, x1, y0, y1)`` and the sensor pixel ``(x, y)`` of cell (0, 0).
+    """
+    sched = as_plan(schedule)
     b, ks, fs = sched["bench"], sched["kernels"].shape[1:], sched["features"].shape[1:]
     return tuple(int(v) for v in response_region(b, ks, fs)), tuple(float(v) for v in response_origin_px(b, ks, fs))
 
 
-def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16, 16), binarize_method="auto",
+def _reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16, 16), binarize_method="auto",
                            skip_us=0, length_us=None, crop="valid", flat_field=True, deblur=None, timing=None,
                            linear=True, tolerance_us=None, progress=None, pixel_model=None, cell_map=None,
                            blur_px=0.0, own_levels=True, linearization="auto"):
@@ -147,7 +163,7 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         schedule's patterns.
     """
     check_crop(crop)
-    sched = load_schedule(schedule) if not isinstance(schedule, dict) else schedule
+    sched = as_plan(schedule)
     s = sched["schedule"]
     if region is None or origin_px is None:
         nominal = nominal_placement(sched)
@@ -155,7 +171,7 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         origin_px = nominal[1] if origin_px is None else origin_px
     levels_here = bool(np.any(s.kernel_id == LEVEL_ID)) and (own_levels or pixel_model is None)
     if not levels_here and pixel_model is None:
-        result = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
+        result = _reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
                                    skip_us=skip_us, length_us=length_us, crop=crop, flat_field=flat_field,
                                    tolerance_us=tolerance_us, progress=progress)
         result.summary["pixel_model"] = None
@@ -186,7 +202,7 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
         source = "the calibration"
 
     def fall_back(note, **about):  # exp(n theta) on the bench route, saying why
-        out = reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
+        out = _reconstruct_bench(rec, sched, region, origin_px, size=size, binarize_method=binarize_method,
                                 skip_us=skip_us, length_us=length_us, crop=crop, flat_field=flat_field,
                                 tolerance_us=tolerance_us, progress=progress)
         out.summary.update(pixel_model_from=None, pixel_model_rejected=True, pixel_model_note=note, **about)
@@ -213,7 +229,7 @@ def reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16,
     counts = accumulate(rec, Windows(start, end, np.arange(caps.size), "triggers matched to the schedule",
                                      win.dropped), region, progress=progress, times=True)
     t_on, t_off = edge_on + shift, edge_off + shift
-    record = fitted_record(fit, sub, t_on, t_off, sched["kernels"], sched["features"], bench, counts.region,
+    record = _fitted_record(fit, sub, t_on, t_off, sched["kernels"], sched["features"], bench, counts.region,
                            origin_px, sched["window_us"], sched["settle_us"],
                            cell_map=cell_map, blur_px=blur_px)
     counts = WindowCounts(counts.on, counts.off, Windows(start, end, sub.capture, counts.windows.source,
@@ -265,7 +281,7 @@ def _level_error(ratios) -> float:
     return float(np.median(np.abs(np.log(r)))) if r.size and r.size == len(ratios) else float("inf")
 
 
-def held_out_table_error(level_light, level_counts) -> float | None:
+def held_out_table_error(level_light: npt.ArrayLike, level_counts: npt.ArrayLike) -> float | None:
     """How well the level captures' table reads a level it did not see: each interior level (not the dimmest
     nor the brightest, which a table can only extrapolate to) left out, read through the table of the others
     (:func:`~evtk.reconstruct.linearize.level_table_values`).
@@ -323,6 +339,7 @@ def level_readback(fit: PixelFit) -> np.ndarray:
     Parameters
     ----------
     fit : PixelFit
+        The fitted model, with the level statistics it was fitted to.
 
     Returns
     -------

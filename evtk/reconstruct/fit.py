@@ -18,7 +18,7 @@ the same windows, gives those numbers:
 
 Absolute photon rates are not observable from events; the fitted model
 states them relative to a nominal dark rate, which is all the
-reconstruction needs. :func:`fitted_record` wraps the model, the schedule,
+reconstruction needs. :func:`_fitted_record` wraps the model, the schedule,
 the placement and the windows into a :class:`~evtk.simulate.SimulationRecord`
 for :func:`~evtk.reconstruct.reconstruct_counts`: the oracle's pipeline,
 with a model the recording itself gave.
@@ -30,19 +30,19 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 from scipy.ndimage import percentile_filter
 from scipy.optimize import least_squares, minimize
 
 from ..errors import EvtkError
 from ..optics import Bench
+from ..plan import Schedule, SimulationRecord
 from ..sensor import PixelState, SensorModel, simulate_pixels, time_constant_us
-from ..simulate import Schedule
-from ..simulate.record import SimulationRecord
 
 __all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "level_off_times", "level_rise_times",
            "rise_orders", "refractory_bound",
            "on_gaps", "fit_refractory", "GAP_QUANTILES",
-           "predict_levels", "fit_pixel_model", "fitted_record", "hot_pixels", "describe_pixels"]
+           "predict_levels", "fit_pixel_model", "hot_pixels", "describe_pixels"]
 
 #: Thresholds sampled across the mismatch when predicting a step's mean count (smooths the counts' steps).
 SPREAD_POINTS = 25
@@ -110,13 +110,31 @@ class PixelFit:
         """The thresholds' relative spread the model was fitted with."""
         return self.sensor.theta_mismatch / self.sensor.theta_on
 
-    def mean_counts(self, light) -> np.ndarray:
-        """The model's mean net count for a step of each ``light`` (response units) in its windows."""
+    def mean_counts(self, light: npt.ArrayLike) -> np.ndarray:
+        """The model's mean net count for a step of each light in its windows.
+
+        Parameters
+        ----------
+        light : array_like
+            Steps of light (response units above the dark level).
+
+        Returns
+        -------
+        ndarray
+            The mean net count of each.
+        """
         light = np.asarray(light, np.float64)
         return predict_levels(self.params, light, self.window_us, self.settle_us, 0, self.sensor.refractory_us,
                               self.spread)[0]
 
     def to_dict(self) -> dict:
+        """The model as plain numbers (a calibration file's ``pixel_model``; :meth:`from_dict` reads it).
+
+        Returns
+        -------
+        dict
+            Thresholds, time constants, dark level, spread, refractory period, the light's delay, errors.
+        """
         s = self.sensor
         return {"theta_on": s.theta_on, "theta_off": s.theta_off, "tau_min_us": s.tau_min_us,
                 "tau_dark_us": self.tau_dark_us, "blank_units": self.blank,
@@ -134,8 +152,19 @@ class PixelFit:
                 "settle_us": int(self.settle_us), "light_delay_us": float(self.delay_us)}
 
     @classmethod
-    def from_dict(cls, d) -> PixelFit:
-        """The model :meth:`to_dict` wrote (a calibration file's ``pixel_model``); a bad one is an EvtkError."""
+    def from_dict(cls, d: dict) -> PixelFit:
+        """The model :meth:`to_dict` wrote (a calibration file's ``pixel_model``); a bad one is an EvtkError.
+
+        Parameters
+        ----------
+        d : dict
+            :meth:`to_dict`'s form.
+
+        Returns
+        -------
+        PixelFit
+            The model (no level statistics).
+        """
         try:
             theta, blank = float(d["theta_on"]), float(d["blank_units"])
             tau_min, tau_dark = float(d["tau_min_us"]), float(d["tau_dark_us"])
@@ -296,12 +325,13 @@ def hot_pixels(rec, t_on_us, t_off_us, max_gaps=64):
     return (counts >= limit) & (3 * seen.reshape(h, w) >= max(1, len(stretches)))
 
 
-def describe_pixels(mask, most=8) -> str:
+def describe_pixels(mask: np.ndarray, most: int = 8) -> str:
     """Where a sensor mask's pixels are, for a message.
 
     Parameters
     ----------
     mask : ndarray of bool, shape (height, width)
+        The pixels to name.
     most : int
         How many to name.
 
@@ -367,9 +397,20 @@ def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_per
     return np.array(out), np.array(counts)
 
 
-def rise_orders(counts):
+def rise_orders(counts: npt.ArrayLike) -> np.ndarray:
     """Which ON event of each level step :func:`level_rise_times` times: half the step's mean count, at least the
-    first. Half-way up the rise the time is tens of time constants' percent, far above a time stamp's tick."""
+    first. Half-way up the rise the time is tens of time constants' percent, far above a time stamp's tick.
+
+    Parameters
+    ----------
+    counts : array_like
+        Each level step's mean net count.
+
+    Returns
+    -------
+    ndarray of int64
+        The ON event's number (1 = the first) for each step.
+    """
     c = np.nan_to_num(np.asarray(counts, np.float64), nan=0.0)
     return np.maximum(1, np.rint(0.5 * c)).astype(np.int64)
 
@@ -405,9 +446,23 @@ def on_gaps(rec, t_on_us, t_off_us, region, interior):
     return np.concatenate(gaps).astype(np.float64) if gaps else np.zeros(0)
 
 
-def refractory_bound(gaps, quantile=0.01):
-    """An upper bound of the refractory period: the ``quantile`` of the ON-event gaps of a bright step
-    (:func:`on_gaps`; None with fewer than 20). A pixel cannot fire again sooner."""
+def refractory_bound(gaps: npt.ArrayLike, quantile: float = 0.01) -> float | None:
+    """An upper bound of the refractory period: a low quantile of the ON-event gaps of a bright step.
+
+    A pixel cannot fire again sooner.
+
+    Parameters
+    ----------
+    gaps : array_like
+        The gaps (µs, :func:`on_gaps`).
+    quantile : float
+        Which quantile.
+
+    Returns
+    -------
+    float or None
+        The bound (µs); None with fewer than 20 gaps.
+    """
     g = np.asarray(gaps, np.float64)
     return float(np.quantile(g, quantile)) if g.size >= 20 else None
 
@@ -740,7 +795,7 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
                     int(window_us), int(settle_us), delay_us=delay - float(lead_us))
 
 
-def fitted_record(fit: PixelFit, schedule: Schedule, t_on_us, t_off_us, kernels, features, bench: Bench,
+def _fitted_record(fit: PixelFit, schedule: Schedule, t_on_us, t_off_us, kernels, features, bench: Bench,
                   region, origin_px, window_us, settle_us, cell_map=None, blur_px=0.0) -> SimulationRecord:
     """A record for :func:`~evtk.reconstruct.reconstruct_counts` holding what the bench knows and the fit.
 

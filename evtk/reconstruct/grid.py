@@ -3,17 +3,20 @@
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 from scipy.ndimage import map_coordinates
 
 from ..errors import EvtkError
 from ..optics import axis_weights, shadow_magnification
-from ..simulate import Schedule
+from ..optics.camera import CellMap
+from ..plan import Schedule
 
 __all__ = ["combine_passes", "to_response_grid", "sample_response_grid", "downsample", "footprint_matrix",
            "overlap_matrix"]
 
 
-def combine_passes(values, schedule, signed=True):
+def combine_passes(values: npt.ArrayLike, schedule: Schedule | dict,
+                   signed: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Signed responses: ``sum(kernel_sign * features_sign * values[c])`` over each pair's captures
     (``signed=False``: the plain sum).
 
@@ -21,12 +24,14 @@ def combine_passes(values, schedule, signed=True):
     ----------
     values : ndarray, shape (captures, ...)
         One response per capture, in schedule order.
-    schedule : evtk.simulate.Schedule or dict
+    schedule : evtk.plan.Schedule or dict
         The capture schedule (``kernel_id``, ``features_id``, signs, ``repeat``).
+    signed : bool
+        Weigh each capture by its passes' signs (else the plain sum).
 
     Returns
     -------
-    (combined, pairs)
+    tuple
         ``combined`` has shape (pairs, ...); ``pairs`` is an int array of
         (kernel_id, features_id, repeat) rows, sorted. Flat-field captures
         (ids -1) are not responses and are left out.
@@ -51,15 +56,33 @@ def combine_passes(values, schedule, signed=True):
     return np.add.reduceat(terms.astype(np.float64, copy=False), starts, axis=0), pairs
 
 
-def overlap_matrix(n_cells, first_edge, step, n_pixels):
-    """W[c, x]: share of cell c (an interval of ``step`` pixels from ``first_edge + c*step``) covered by pixel x."""
+def overlap_matrix(n_cells: int, first_edge: float, step: float, n_pixels: int) -> np.ndarray:
+    """How much of each cell each pixel covers, along one axis.
+
+    Parameters
+    ----------
+    n_cells : int
+        Cells; cell c is an interval of ``step`` pixels from ``first_edge + c * step``.
+    first_edge : float
+        Where cell 0 starts (pixels; pixel x spans ``[x, x + 1)``).
+    step : float
+        Pixels per cell.
+    n_pixels : int
+        Pixels.
+
+    Returns
+    -------
+    ndarray (n_cells, n_pixels)
+        ``W[c, x]``: the share of cell c covered by pixel x.
+    """
     lo = first_edge + step * np.arange(n_cells)[:, None]
     hi = lo + step
     px = np.arange(n_pixels)[None, :]
     return np.clip(np.minimum(hi, px + 1) - np.maximum(lo, px), 0, None) / step
 
 
-def sample_response_grid(values, region, cell_map, shape):
+def sample_response_grid(values: npt.ArrayLike, region: tuple, cell_map: CellMap,
+                         shape: tuple[int, int]) -> np.ndarray:
     """Responses over a sensor region on the response's cell grid through a general map (rotation, tilt,
     distortion): each cell takes the bilinear interpolation of the pixels around where its centre lands
     (:class:`evtk.optics.camera.CellMap`); cells landing outside the region count as zero light.
@@ -67,9 +90,18 @@ def sample_response_grid(values, region, cell_map, shape):
     Parameters
     ----------
     values : ndarray, shape (..., y1 - y0, x1 - x0)
+        Responses over the region's pixels.
     region : (x0, x1, y0, y1)
+        The sensor pixels ``values`` cover.
     cell_map : CellMap
+        From cells to sensor pixels.
     shape : (rows, cols)
+        Cells wanted.
+
+    Returns
+    -------
+    ndarray (..., rows, cols)
+        The responses on the cell grid.
     """
     values = np.asarray(values, dtype=np.float64)
     x0, x1, y0, y1 = (int(v) for v in region)
@@ -83,7 +115,8 @@ def sample_response_grid(values, region, cell_map, shape):
     return out.reshape(lead + (rows, cols))
 
 
-def to_response_grid(values, region, origin_px, step_px, shape):
+def to_response_grid(values: npt.ArrayLike, region: tuple, origin_px: tuple, step_px: float,
+                     shape: tuple[int, int]) -> np.ndarray:
     """Resample responses over a sensor region onto the response's cell grid.
 
     Pixel ``x`` is centred on ``x`` and cell ``(i, j)`` on
@@ -98,13 +131,20 @@ def to_response_grid(values, region, origin_px, step_px, shape):
     Parameters
     ----------
     values : ndarray, shape (..., y1 - y0, x1 - x0)
+        Responses over the region's pixels.
     region : (x0, x1, y0, y1)
+        The sensor pixels ``values`` cover.
     origin_px : (x, y)
         Sensor pixel that sees cell (0, 0) (``response_origin_px`` in the metadata).
     step_px : float
         Sensor pixels per cell: ``decimation / effective stride``.
     shape : (rows, cols)
         Cells wanted (the full response is ``features + kernel - 1``).
+
+    Returns
+    -------
+    ndarray (..., rows, cols)
+        The responses on the cell grid.
     """
     values = np.asarray(values, dtype=np.float64)
     x0, x1, y0, y1 = (int(v) for v in region)
@@ -120,12 +160,24 @@ def to_response_grid(values, region, origin_px, step_px, shape):
     return wy @ values @ wx.T
 
 
-def downsample(values, size=(16, 16)):
+def downsample(values: npt.ArrayLike, size: tuple[int, int] = (16, 16)) -> np.ndarray:
     """Resize the last two axes to ``size``: block means for whole factors, else area-weighted.
 
     Area weighting treats each input element as a unit square and each output
     element as the mean over the squares it covers, which conserves the mean
     for any ratio (up or down).
+
+    Parameters
+    ----------
+    values : array_like (..., rows, cols)
+        The responses.
+    size : tuple of int
+        ``(rows, cols)`` wanted.
+
+    Returns
+    -------
+    ndarray (..., size[0], size[1])
+        The resized responses.
 
     Examples
     --------

@@ -8,18 +8,20 @@ import json
 
 import numba
 import numpy as np
+import numpy.typing as npt
 
 from .._threads import workers
 from ..errors import EvtkError
 from ..optics import Bench, brightest_response, screen_response
 from ..optics.camera import Camera, footprint_light
+from ..plan import SimulationRecord
 from ..sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
-from ..simulate.record import SimulationRecord
 
 __all__ = ["linearize", "count_curve", "linearize_by_model", "flat_field_gain", "isotonic", "level_table_values", "level_curve"]
 
 
-def linearize(on, off=None, theta_on=0.2, theta_off=None):
+def linearize(on: npt.ArrayLike, off: npt.ArrayLike | None = None, theta_on: float | np.ndarray = 0.2,
+              theta_off: float | np.ndarray | None = None) -> np.ndarray:
     """Relative intensity change over each window from its event counts.
 
     A pixel that fires ``on`` ON and ``off`` OFF events has seen its log
@@ -28,6 +30,22 @@ def linearize(on, off=None, theta_on=0.2, theta_off=None):
     dark-to-pattern window it is proportional to the pattern's light above
     the dark level. Counts are quantised to whole thresholds, so the result
     is too (a factor ``exp(theta)`` per count).
+
+    Parameters
+    ----------
+    on : array_like
+        ON counts (any shape; calibrated counts may be fractional).
+    off : array_like, optional
+        OFF counts, the shape of ``on`` (none when None).
+    theta_on : float or ndarray
+        The ON contrast threshold (log units), per pixel or one for all.
+    theta_off : float or ndarray, optional
+        The OFF threshold; default ``theta_on``.
+
+    Returns
+    -------
+    ndarray
+        ``exp(on * theta_on - off * theta_off) - 1``.
 
     Examples
     --------
@@ -163,13 +181,25 @@ def _count_curve(key):
     return u, counts
 
 
-def linearize_by_model(net_counts, curve):
-    """Log-light step behind each net count, by inverting :func:`count_curve`; returns ``exp(u) - 1``.
+def linearize_by_model(net_counts: npt.ArrayLike, curve: tuple) -> np.ndarray:
+    """Log-light step behind each net count, by inverting :func:`count_curve`.
 
     A count ``n`` stands for the middle of the steps that give ``n``; 0 stays
     0 (no light cannot be told from light below one threshold), and counts
     beyond the curve take its end. Fractional counts (calibrated by
     :func:`flat_field_gain`) interpolate between neighbouring whole counts.
+
+    Parameters
+    ----------
+    net_counts : array_like
+        ON minus OFF counts, any shape.
+    curve : tuple
+        ``(u, counts)``, as :func:`count_curve` or :func:`level_curve` returns.
+
+    Returns
+    -------
+    ndarray
+        ``exp(u) - 1``, the shape of ``net_counts``.
     """
     return np.expm1(_model_log_step(net_counts, curve))
 
@@ -264,7 +294,8 @@ def _count_bands(curve):
     return levels[:-1], lo, hi
 
 
-def flat_field_gain(flat_counts, expected_counts, min_counts=3, limits=(0.5, 2.0)):
+def flat_field_gain(flat_counts: npt.ArrayLike, expected_counts: npt.ArrayLike, min_counts: float = 3,
+                    limits: tuple[float, float] = (0.5, 2.0)) -> np.ndarray:
     """Per-pixel count gain from flat-field captures: ``expected / observed``.
 
     A pixel with threshold ``theta`` counts a log-light step ``u`` as about
@@ -278,6 +309,22 @@ def flat_field_gain(flat_counts, expected_counts, min_counts=3, limits=(0.5, 2.0
 
     Pixels expecting fewer than ``min_counts`` events, or observing none,
     keep a gain of 1; gains are clipped to ``limits``.
+
+    Parameters
+    ----------
+    flat_counts : array_like (captures, ...)
+        Net counts of the flat-field windows.
+    expected_counts : array_like (...)
+        What a pixel with nominal thresholds counts there.
+    min_counts : float
+        Fewest expected events for a gain other than 1.
+    limits : tuple of float
+        ``(low, high)`` the gains are clipped to.
+
+    Returns
+    -------
+    ndarray (...)
+        Each pixel's gain.
 
     Examples
     --------
@@ -297,12 +344,13 @@ def flat_field_gain(flat_counts, expected_counts, min_counts=3, limits=(0.5, 2.0
     return np.clip(gain, *limits)
 
 
-def isotonic(y, weights=None):
+def isotonic(y: npt.ArrayLike, weights: npt.ArrayLike | None = None) -> np.ndarray:
     """The non-decreasing sequence nearest ``y`` in weighted least squares (pool adjacent violators).
 
     Parameters
     ----------
     y : array_like, shape (n,)
+        The sequence.
     weights : array_like, shape (n,), optional
         Positive weights (default all 1).
 
@@ -332,7 +380,8 @@ def isotonic(y, weights=None):
     return np.repeat(np.asarray(means), counts)
 
 
-def level_table_values(net_counts, level_counts, level_light):
+def level_table_values(net_counts: npt.ArrayLike, level_counts: npt.ArrayLike,
+                       level_light: npt.ArrayLike) -> np.ndarray:
     """Light behind each net count, read from the level captures without a pixel model.
 
     The level captures (known light ``level_light``, response units above
@@ -346,6 +395,7 @@ def level_table_values(net_counts, level_counts, level_light):
     net_counts : array_like
         ON minus OFF counts (any shape; flat-field calibrated or not).
     level_counts, level_light : array_like, shape (levels,)
+        The level captures' mean net counts and their light.
 
     Returns
     -------
@@ -379,7 +429,8 @@ def level_table_values(net_counts, level_counts, level_light):
     return np.where(n > xs[-1], ys[-1] + (n - xs[-1]) * hi_slope, out)
 
 
-def level_curve(level_light, level_counts, blank_units, points=4000):
+def level_curve(level_light: npt.ArrayLike, level_counts: npt.ArrayLike, blank_units: float,
+                points: int = 4000) -> tuple[np.ndarray, np.ndarray]:
     """A count curve (:func:`count_curve`'s form) read from level captures instead of simulated by a model.
 
     The level captures' mean net counts against their known light

@@ -3,16 +3,17 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from .._blas import one_blas_thread
 from ..errors import EvtkError
 from ..limits import require_memory
 from ..optics import ideal_response
 from ..optics.camera import CellMap
-from ..simulate import FLAT_ID, LEVEL_ID
-from ..simulate.record import SimulationRecord
+from ..plan import FLAT_ID, LEVEL_ID, SimulationRecord
 from ._batched import fused_supported, reconstruct_responses, reconstruct_windows
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
@@ -28,10 +29,11 @@ from .linearize import (
     linearize,
     linearize_by_model,
 )
+from .summary import ReconstructionSummary
 from .timing import _settle_residual, linearize_by_timing, timing_thresholds
-from .windows import WindowCounts, windows_from_schedule, windows_from_triggers, windows_periodic
+from .windows import WindowCounts, Windows, windows_from_schedule, windows_from_triggers, windows_periodic
 
-__all__ = ["Reconstruction", "response_error", "plan", "window_bytes", "reconstruct", "wants_times",
+__all__ = ["Reconstruction", "response_error", "plan", "window_bytes", "wants_times",
     "reconstruct_counts", "silent_failures"]
 
 
@@ -39,12 +41,13 @@ __all__ = ["Reconstruction", "response_error", "plan", "window_bytes", "reconstr
 class Reconstruction:
     """What :func:`reconstruct` found.
 
-    Attributes
+    Parameters
     ----------
     responses : ndarray (n, rows, cols)
         One signed response per (kernel, features, repeat) of the schedule, or
         per window when the recording has none, resampled to ``size``.
     binary : ndarray (n, rows, cols) of int8 (+1/-1)
+        The responses binarised.
     pairs : ndarray (n, 3) or None
         (kernel_id, features_id, repeat) of each response.
     cells : ndarray (n, h, w)
@@ -52,8 +55,9 @@ class Reconstruction:
     ideal : ndarray or None
         Ground truth on the same cell grid (simulated recordings only).
     counts : WindowCounts
-    summary : dict
-        Captures, windows, events used and dropped, parameters, errors.
+        The windows and their ON/OFF counts.
+    summary : ReconstructionSummary
+        Captures, windows, events used and dropped, parameters, errors (a dict given here is read into one).
     thresholds : ndarray (rows, cols) or None
         Each pixel's ON threshold (log units) as the linearisation used it:
         from the flat fields' event times where they fit the model, else
@@ -67,13 +71,21 @@ class Reconstruction:
     cells: np.ndarray
     ideal: np.ndarray | None
     counts: WindowCounts
-    summary: dict
+    summary: ReconstructionSummary
     thresholds: np.ndarray | None = None
 
-    def groups(self) -> dict:
-        """Indices of the responses of each scene: ``{(kernel_id, features_id): [i, ...]}`` over repeats.
+    def __post_init__(self) -> None:
+        if not isinstance(self.summary, ReconstructionSummary):
+            self.summary = ReconstructionSummary.from_dict(self.summary)
 
-        Without a schedule every window counts as a repeat of one scene, keyed ``(-1, -1)``.
+    def groups(self) -> dict:
+        """Indices of the responses of each scene, over its repeats.
+
+        Returns
+        -------
+        dict
+            ``{(kernel_id, features_id): ndarray of indices}``; without a schedule every window counts as a
+            repeat of one scene, keyed ``(-1, -1)``.
         """
         if self.pairs is None:
             return {(-1, -1): np.arange(self.cells.shape[0])}
@@ -83,12 +95,20 @@ class Reconstruction:
         return {key: np.asarray(v) for key, v in out.items()}
 
 
-def response_error(got, ideal):
+def response_error(got: npt.ArrayLike, ideal: npt.ArrayLike) -> dict:
     """How far responses are from the ideal: Pearson correlation and two normalised RMS errors.
 
-    ``nrmse`` is the RMS error over the ideal's RMS (the strict one: 1.0 for
-    an all-zero guess); ``nrmse_range`` is the RMS error over the ideal's
-    peak-to-peak range (the usual NRMSD). Undefined values are ``None``.
+    Parameters
+    ----------
+    got, ideal : array_like
+        The responses and the ideal, of equal size.
+
+    Returns
+    -------
+    dict
+        ``correlation``; ``nrmse``, the RMS error over the ideal's RMS (the strict one: 1.0 for an all-zero
+        guess); ``nrmse_range``, the RMS error over the ideal's peak-to-peak range (the usual NRMSD).
+        Undefined values are ``None``.
 
     Examples
     --------
@@ -115,13 +135,33 @@ def response_error(got, ideal):
             "nrmse_range": rmse / span if span > 0 else None}
 
 
-def plan(rec, window="schedule", skip_us=0, length_us=None, region=None, check_memory=True):
-    """What :func:`reconstruct` will count: ``(simulation record or None, Windows, region)``.
+def plan(rec: Any, window: str | tuple = "schedule", skip_us: int = 0, length_us: int | None = None,
+         region: tuple | None = None, check_memory: bool = True,
+         record: SimulationRecord | None = None) -> tuple[SimulationRecord | None, Windows, tuple]:
+    """What :func:`reconstruct` will count: the record, the windows and the region.
 
-    With ``check_memory`` the counts of every window at once must fit the
-    memory budget (:func:`evtk.limits.require_memory`).
+    Parameters
+    ----------
+    rec : Recording
+        The open recording.
+    window : "schedule", "triggers" or ("period", period_us)
+        Where the windows come from.
+    skip_us, length_us : int
+        Shorten or delay every window.
+    region : tuple, optional
+        ``(x0, x1, y0, y1)``; default the record's response region, else the whole sensor.
+    check_memory : bool
+        Require the counts of every window at once to fit the memory budget
+        (:func:`evtk.limits.require_memory`).
+    record : SimulationRecord, optional
+        Takes the place of the one in the recording's metadata.
+
+    Returns
+    -------
+    tuple
+        ``(simulation record or None, Windows, region)``.
     """
-    sim = SimulationRecord.from_metadata(rec.metadata)
+    sim = record if record is not None else SimulationRecord.from_metadata(rec.metadata)
     if window == "schedule":
         if sim is None:
             raise EvtkError("the recording carries no capture schedule: use window='triggers' or a period")
@@ -143,22 +183,35 @@ def plan(rec, window="schedule", skip_us=0, length_us=None, region=None, check_m
     return sim, win, tuple(region)
 
 
-def window_bytes(region, simulated):
-    """Estimated peak bytes a window costs a reconstruction over ``region`` (x0, x1, y0, y1).
+def window_bytes(region: tuple, simulated: bool) -> int:
+    """Estimated peak bytes a window costs a reconstruction over a region.
 
     Per pixel: ON and OFF counts (int32), with a simulation record the first
     and last ON times, and the float64 stages after them (a minute of 10 ms
     windows over 320x240 peaked at 53 bytes a window-pixel without a record:
     measured, killed at 24 GB).
+
+    Parameters
+    ----------
+    region : tuple
+        ``(x0, x1, y0, y1)``.
+    simulated : bool
+        With a simulation record (event times are kept too).
+
+    Returns
+    -------
+    int
+        Bytes.
     """
     x0, x1, y0, y1 = (int(v) for v in region)
     return max(0, x1 - x0) * max(0, y1 - y0) * (80 if simulated else 64)
 
 
-def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
-                linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None,
-                deblur=None, flat_field=True, timing=None, keep_pixels=True):
-    """The whole pipeline on an open recording: windows, counts, linearisation, passes, grid, binarisation.
+def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
+                        linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None,
+                        deblur=None, flat_field=True, timing=None, record=None, keep_pixels=True):
+    """The whole pipeline on an open recording and its simulation record (or none): windows, counts,
+    linearisation, passes, grid, binarisation (:func:`~evtk.reconstruct.reconstruct` without a bench plan).
 
     Parameters
     ----------
@@ -212,8 +265,8 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
     """
     check_crop(crop)
     # every window's counts at once, unless responses alone of windows that stand alone (no simulation record)
-    whole = keep_pixels or SimulationRecord.from_metadata(rec.metadata) is not None
-    sim, win, region = plan(rec, window, skip_us, length_us, region, check_memory=whole)
+    whole = keep_pixels or record is not None or SimulationRecord.from_metadata(rec.metadata) is not None
+    sim, win, region = plan(rec, window, skip_us, length_us, region, check_memory=whole, record=record)
     if sim is None and not keep_pixels:  # no schedule: each window alone, a batch at a time
         stages = dict(size=size, binarize_method=binarize_method, linear=linear, theta=theta, crop=crop,
                       skip_us=skip_us, length_us=length_us, deblur=deblur, flat_field=flat_field, timing=timing)
@@ -228,27 +281,78 @@ def reconstruct(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16)
                               deblur=deblur, flat_field=flat_field, timing=timing)
 
 
-def wants_times(sim, linear=True, theta=None, timing=None):
-    """Whether a reconstruction with these settings reads event times (accumulate with ``times=True``)."""
+def wants_times(sim: SimulationRecord | None, linear: bool = True, theta: float | None = None,
+                timing: bool | None = None) -> bool:
+    """Whether a reconstruction with these settings reads event times (accumulate with ``times=True``).
+
+    Parameters
+    ----------
+    sim : SimulationRecord or None
+        The record the reconstruction reads.
+    linear, theta, timing
+        :class:`~evtk.reconstruct.ReconstructOptions`' settings of those names.
+
+    Returns
+    -------
+    bool
+        True when the timing linearisation may read event times.
+    """
     return timing is not False and sim is not None and bool(linear) and theta is None
 
 
-def check_crop(crop):
+def check_crop(crop: str) -> None:
+    """Raise :class:`~evtk.EvtkError` unless ``crop`` is "valid" or "full".
+
+    Parameters
+    ----------
+    crop : str
+        The setting.
+    """
     if crop not in ("valid", "full"):
         raise EvtkError(f"crop must be 'valid' or 'full', not {crop!r}")
 
 
-def reconstruct_counts(counts, sim=None, skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
-                       linear=True, theta=None, crop="valid", deblur=None, flat_field=True, timing=None, curve=None):
+def reconstruct_counts(counts: WindowCounts, sim: SimulationRecord | dict | None = None, skip_us: int = 0,
+                       length_us: int | None = None, size: tuple = (16, 16), binarize_method: str | float = "auto",
+                       linear: bool = True, theta: float | None = None, crop: str = "valid",
+                       deblur: bool | None = None, flat_field: bool = True, timing: bool | None = None,
+                       curve: tuple | None = None) -> Reconstruction:
     """Every stage after accumulation, on window counts (:func:`reconstruct` without the recording).
 
-    ``counts`` is a :class:`WindowCounts` (from :func:`accumulate`, or from
-    :meth:`evtk.simulate.Simulation.responses` through
-    :meth:`WindowCounts.from_capture_counts`); ``sim`` the simulation record
-    (:class:`~evtk.simulate.SimulationRecord`, or its dict form) or None. The other parameters
-    are :func:`reconstruct`'s; ``skip_us``/``length_us`` must be the ones
-    the counts were taken with. ``curve`` (``(u, counts)``, as :func:`count_curve` returns) linearises
-    instead of the record's pixel model (:func:`evtk.reconstruct.linearize.level_curve`).
+    Parameters
+    ----------
+    counts : WindowCounts
+        From :func:`accumulate`, or from :meth:`evtk.simulate.Simulation.responses` through
+        :meth:`WindowCounts.from_capture_counts`.
+    sim : SimulationRecord or dict, optional
+        The simulation record (:class:`~evtk.plan.SimulationRecord`, or its dict form): its pixel model is
+        inverted, its placement and schedule used; None linearises by ``exp(n theta)``.
+    skip_us, length_us : int
+        The ones the counts were taken with.
+    size : tuple of int
+        ``(rows, cols)`` of each resampled response.
+    binarize_method : str or float
+        "auto" (:func:`binarize_rule`), "sign", "mean", "otsu" or a threshold.
+    linear : bool
+        Linearise counts to light (else net counts ON - OFF).
+    theta : float, optional
+        A fixed contrast threshold for ``exp(n theta)`` (no pixel model).
+    crop : {"valid", "full"}
+        Which part of the correlation to keep.
+    deblur : bool, optional
+        Solve out the footprint blur; None: when the pixels are flat-field calibrated.
+    flat_field : bool
+        Calibrate each pixel's threshold on the flat-field captures.
+    timing : bool, optional
+        Read the light below one threshold from the event times; None: where the model allows it.
+    curve : tuple, optional
+        ``(u, counts)``, as :func:`count_curve` returns, linearising instead of the record's pixel model
+        (:func:`evtk.reconstruct.linearize.level_curve`).
+
+    Returns
+    -------
+    Reconstruction
+        The responses, their binarisation and the summary.
     """
     check_crop(crop)
     with one_blas_thread():  # small matrices
@@ -382,10 +486,11 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
         summary["error"] = response_error(cells, ideal)
     if schedule is not None:
         summary.update(silent_failures(counts, pairs, cells, len(sim.kernels)))
-    return Reconstruction(responses, binary, pairs, cells, ideal, counts, summary, thresholds)
+    return Reconstruction(responses, binary, pairs, cells, ideal, counts, ReconstructionSummary.from_dict(summary),
+                          thresholds)
 
 
-def silent_failures(counts, pairs, cells, n_kernels) -> dict:
+def silent_failures(counts: WindowCounts, pairs: np.ndarray, cells: np.ndarray, n_kernels: int) -> dict:
     """What would otherwise pass unseen in a reconstruction's counts and responses, as summary entries.
 
     A window with no event over the region reads as darkness, though every capture of a schedule shows light

@@ -146,7 +146,9 @@ def _timing_solve(n_on, first, last, theta, theta_nominal, band_lo, band_hi, off
             out[w, i] = u
 
 
-def linearize_by_timing(on, on_first_us, on_last_us, theta, sensor, dark_rate_e_per_s, curve, offset_us=0):
+def linearize_by_timing(on: np.ndarray, on_first_us: np.ndarray, on_last_us: np.ndarray, theta: float | np.ndarray,
+                        sensor: SensorModel | dict, dark_rate_e_per_s: float, curve: tuple,
+                        offset_us: float = 0) -> np.ndarray:
     """Log-light step of each window from the times of its first and last ON event, below one threshold.
 
     A count alone places the step somewhere in a band one threshold wide (a
@@ -220,14 +222,32 @@ def _as_sensor(sensor):
     return sensor if isinstance(sensor, SensorModel) else SensorModel.from_dict(dict(sensor))
 
 
-def timing_thresholds(flat_on, flat_first_us, flat_last_us, flat_u, sensor, dark_rate_e_per_s, offset_us=0):
-    """Each pixel's ON threshold from flat-field windows of known step ``flat_u`` and their ON-event times.
-
-    ``flat_u``: the step of each window and pixel, or of each pixel.
+def timing_thresholds(flat_on: np.ndarray, flat_first_us: np.ndarray, flat_last_us: np.ndarray,
+                      flat_u: float | np.ndarray, sensor: SensorModel | dict, dark_rate_e_per_s: float,
+                      offset_us: float = 0) -> np.ndarray:
+    """Each pixel's ON threshold from flat-field windows of known step and their ON-event times.
 
     The inverse of :func:`linearize_by_timing`: with the step known,
     ``theta = u / factor``, averaged over the flat-field windows whose times
     determine it; NaN for a pixel none does.
+
+    Parameters
+    ----------
+    flat_on, flat_first_us, flat_last_us : ndarray (windows, ...)
+        The flat-field windows' ON counts and first/last ON-event times.
+    flat_u : float or ndarray
+        The step of each window and pixel, or of each pixel.
+    sensor : SensorModel or dict
+        The pixel model.
+    dark_rate_e_per_s : float
+        Photoelectron rate of the dark level.
+    offset_us : float
+        Time from the step to the window's start.
+
+    Returns
+    -------
+    ndarray (...)
+        Each pixel's ON threshold (log units), NaN where no window's times determine it.
     """
     sm = _as_sensor(sensor)
     n = np.asarray(flat_on, dtype=np.int64)

@@ -10,8 +10,7 @@ import numpy as np
 from ..errors import EvtkError
 from ..events import TRIGGER_CHANNEL_ENV, TriggerKind, Triggers
 from ..limits import require_memory, require_window_work
-from ..simulate import METADATA_KEY, Schedule
-from ..simulate.record import SimulationRecord
+from ..plan import METADATA_KEY, Schedule, SimulationRecord
 
 __all__ = ["Windows", "WindowCounts", "windows_from_schedule", "windows_from_triggers", "windows_periodic"]
 

@@ -25,14 +25,14 @@ their noise is background activity at the sensor's rate.
 
 Everything needed to reproduce or reconstruct a run (bench, sensor, patterns,
 schedule, seed) is in :meth:`Simulation.metadata`, stored with the recording;
-see ``docs/formats/schedule.md``.
+see ``docs/formats/schedule.md``. The schedule, the patterns' helpers and the record are
+:mod:`evtk.plan`'s (what a run is); they are re-exported here under their older paths.
 """
 
 from __future__ import annotations
 
-from .record import SimulationRecord
-from .run import Simulation
-from .schedule import (
+from ..plan.record import SimulationRecord
+from ..plan.schedule import (
     DOTS_ID,
     FLAT_ID,
     LEVEL_ID,
@@ -46,6 +46,7 @@ from .schedule import (
     load_patterns,
     split_passes,
 )
+from .run import Simulation
 
 __all__ = [
     "split_passes", "Schedule", "Simulation", "SimulationRecord", "CaptureCounts", "load_patterns", "dot_grid", "FLAT_ID",

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 
@@ -21,28 +24,53 @@ from ..optics import (
     screen_response,
 )
 from ..optics.camera import Camera, CellMap
-from ..sensor import PixelState, SensorModel, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
-from .events import _sorted_events
-from .record import SimulationRecord
-from .schedule import (
-    _T_LIMIT,
+from ..plan.core import Plan
+from ..plan.record import SimulationRecord
+from ..plan.schedule import (
     DOTS_ID,
     FLAT_ID,
     LEVEL_ID,
     METADATA_KEY,
     CaptureCounts,
     Schedule,
-    _as_patterns,
-    _int_param,
-    _pass,
     dot_grid,
     level_kernel,
     level_steps,
+    sign_pass,
     split_passes,
 )
+from ..sensor import PixelState, SensorModel, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
+from .events import _sorted_events
 from .table import count_table, table_batches
 
 __all__ = ["Simulation"]
+
+_T_LIMIT = np.iinfo(np.int64).max
+
+
+def _as_patterns(name, a):
+    """A stack (n, h, w) of patterns with values in {-1, 0, 1}."""
+    a = np.asarray(a)
+    if a.dtype == bool:
+        a = a.astype(np.int8)
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3 or 0 in a.shape:
+        raise EvtkError(f"{name} must be a 2-D pattern or a stack of them (n, h, w), got shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.number):
+        raise EvtkError(f"{name} must be numeric, got {a.dtype}")
+    if not np.all(np.isfinite(a)) or not np.all((a == -1) | (a == 0) | (a == 1)):
+        raise EvtkError(f"{name} must hold only -1, 0 and 1 (binary DMD patterns, optionally signed)")
+    return a.astype(np.int8)
+
+
+def _int_param(name, v, low):
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer, float)) or (isinstance(v, float) and not v.is_integer()):
+        raise EvtkError(f"{name} must be a whole number, not {v!r}")
+    v = int(v)
+    if v < low:
+        raise EvtkError(f"{name} must be at least {low}, not {v}")
+    return v
 
 
 def _decay(dt_us, tau_us):
@@ -243,7 +271,7 @@ class Simulation:
             return k, dot_grid(self.features.shape[1:], self.dot_spacing)
         if s.kernel_id[c] == LEVEL_ID:  # a step of the staircase: ``level`` kernel elements over flat features
             return level_kernel(self.kernels.shape[1:], s.level[c]), np.ones(self.features.shape[1:], np.int8)
-        return _pass(self.kernels[s.kernel_id[c]], ks), _pass(self.features[s.features_id[c]], fs)
+        return sign_pass(self.kernels[s.kernel_id[c]], ks), sign_pass(self.features[s.features_id[c]], fs)
 
     def _rate(self, response):
         return self.gain_e_per_s * response + self.sensor.dark_current_e_per_s
@@ -260,6 +288,11 @@ class Simulation:
         possible level (every kernel element through every feature element)
         to within 5 % of a threshold of the dark level, at the dark level's
         time constant; at least the eq. 7 window.
+
+        Returns
+        -------
+        int
+            The settling time (µs).
         """
         b = self.bench
         blank = self.blank_rate_e_per_s
@@ -270,8 +303,21 @@ class Simulation:
         need = tau_us * math.log(max(span / (0.05 * theta), 1.0))
         return int(max(math.ceil(need), math.ceil(b.min_window_us)))
 
-    def pass_response(self, c, region=None):
-        """Light (response units) each pixel of ``region`` receives during capture ``c``."""
+    def pass_response(self, c: int, region: tuple | None = None) -> np.ndarray:
+        """Light (response units) each pixel of a region receives during a capture.
+
+        Parameters
+        ----------
+        c : int
+            The capture.
+        region : tuple, optional
+            ``(x0, x1, y0, y1)``; default the whole sensor.
+
+        Returns
+        -------
+        ndarray
+            The light, ``(y1 - y0, x1 - x0)``.
+        """
         k, f = self._pass_patterns(c)
         if self.camera is None:
             return screen_response(k, f, self.bench, region)
@@ -283,24 +329,58 @@ class Simulation:
         return (self.bench.sensor_width, self.bench.sensor_height)
 
     def cell_map(self) -> CellMap:
-        """Where each cell (column, row) of the full response lands on the sensor (pose and lens included)."""
+        """Where each cell (column, row) of the full response lands on the sensor (pose and lens included).
+
+        Returns
+        -------
+        CellMap
+            From response cells to sensor pixels.
+        """
         record = self.record()
         found = record.placement() or record.replace(camera=Camera().to_dict()).placement()
         assert found is not None  # a record with a camera always has a placement
         return found
 
-    def ideal(self, c):
-        """Ground truth of capture ``c``: the noise-free digital response of its pass (full correlation)."""
+    def ideal(self, c: int) -> np.ndarray:
+        """Ground truth of a capture: the noise-free digital response of its pass (full correlation).
+
+        Parameters
+        ----------
+        c : int
+            The capture.
+
+        Returns
+        -------
+        ndarray
+            The full response of the capture's kernel and features passes.
+        """
         k, f = self._pass_patterns(c)
         return ideal_response(k, f, self.bench)
 
-    def ideal_pair(self, kernel_id, features_id):
-        """Ground truth of a signed pair: what the ± passes combine to."""
+    def ideal_pair(self, kernel_id: int, features_id: int) -> np.ndarray:
+        """Ground truth of a signed pair: what the ± passes combine to.
+
+        Parameters
+        ----------
+        kernel_id, features_id : int
+            The pair.
+
+        Returns
+        -------
+        ndarray
+            The full signed response.
+        """
         return ideal_response(self.kernels[kernel_id], self.features[features_id], self.bench)
 
     # -- metadata ---------------------------------------------------------------------
     def record(self) -> SimulationRecord:
-        """How this run is made, typed (stored with the recording; see ``docs/formats/schedule.md``)."""
+        """How this run is made, typed (stored with the recording; see ``docs/formats/schedule.md``).
+
+        Returns
+        -------
+        SimulationRecord
+            Bench, pixel model, patterns, schedule, timing, placement and seeds.
+        """
         return SimulationRecord(
             bench=self.bench, sensor=self.sensor, kernels=self.kernels, features=self.features,
             schedule=self.schedule, window_us=self.window_us, settle_us=self.settle_us, start_us=self.start_us,
@@ -313,12 +393,34 @@ class Simulation:
             camera=None if self.camera is None else self.camera.to_dict(), light_delay_us=self.light_delay_us,
             correlation="convolution" if self.bench.kernel_flipped else "correlation", evtk_version=__version__)
 
+    def plan(self) -> Plan:
+        """The plan of this run, the oracle's (:meth:`evtk.plan.Plan.from_record` of :meth:`record`).
+
+        Returns
+        -------
+        Plan
+            Schedule, patterns, bench, placement, pixel model and light delay, with the record.
+        """
+        return Plan.from_record(self.record())
+
     def metadata(self) -> dict:
-        """The recording's metadata: :meth:`record` in its dict form, under ``simulation``."""
+        """The recording's metadata: :meth:`record` in its dict form, under ``simulation``.
+
+        Returns
+        -------
+        dict
+            ``{"simulation": record}``.
+        """
         return {METADATA_KEY: self.record().to_dict()}
 
     def triggers(self) -> Triggers:
-        """Rising edge at each pattern's appearance, falling edge when it goes (``light_delay_us`` earlier)."""
+        """Rising edge at each pattern's appearance, falling edge when it goes (``light_delay_us`` earlier).
+
+        Returns
+        -------
+        Triggers
+            Two edges per capture, in time order.
+        """
         s = self.schedule
         t = np.empty(2 * len(s), np.int64)
         t[0::2] = s.t_on_us - self.light_delay_us
@@ -477,8 +579,21 @@ class Simulation:
         pol = rng.integers(0, 2, pix.size).astype(np.uint8)
         return t, pix.astype(np.int64), pol
 
-    def iter_events(self, batch_captures=8, progress=None):
-        """Yield the recording's events in time order, one batch of captures at a time."""
+    def iter_events(self, batch_captures: int = 8, progress: Any = None) -> Iterator[Events]:
+        """Yield the recording's events in time order, one batch of captures at a time.
+
+        Parameters
+        ----------
+        batch_captures : int
+            Captures simulated at a time (memory is bounded by a batch).
+        progress : callable, optional
+            Called with the captures done.
+
+        Yields
+        ------
+        Events
+            One batch's events, in time order.
+        """
         w, h = self.bench.sensor_width, self.bench.sensor_height
         maps = None
         for base, _c0, _c1, _st, en, _which, roi, out, seed_ba, roi_idx, out_idx in self._run(True, batch_captures,
@@ -499,12 +614,36 @@ class Simulation:
             yield Events._trusted(self.sensor.stamp(t, self.start_us), x, y, p, (w, h), is_sorted=True)
 
     def events(self) -> Events:
-        """All events in memory (use :meth:`write` or :meth:`iter_events` for long runs)."""
+        """All events in memory (use :meth:`write` or :meth:`iter_events` for long runs).
+
+        Returns
+        -------
+        Events
+            The whole sensor's events, in time order.
+        """
         size = (self.bench.sensor_width, self.bench.sensor_height)
         return Events.concatenate(list(self.iter_events()), sensor_size=size)
 
-    def write(self, path, compression="lz4", batch_captures=8, progress=None) -> dict:
-        """Stream the run to ``path`` (.aedat4, .h5, .parquet) with triggers and metadata; atomic."""
+    def write(self, path: str | os.PathLike, compression: str = "lz4", batch_captures: int = 8,
+              progress: Any = None) -> dict:
+        """Stream the run to a file (.aedat4, .h5, .parquet) with triggers and metadata; atomic.
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            The output; its extension picks the format.
+        compression : str
+            The container's compression.
+        batch_captures : int
+            Captures simulated at a time.
+        progress : callable, optional
+            Called with the captures done.
+
+        Returns
+        -------
+        dict
+            ``path``, ``events``, ``triggers``, ``captures``, the span and the run's timing and seeds.
+        """
 
         size = (self.bench.sensor_width, self.bench.sensor_height)
         n = 0
@@ -516,7 +655,8 @@ class Simulation:
                 "t_start_us": self.start_us, "t_end_us": self.end_us, "window_us": self.window_us,
                 "settle_us": self.settle_us, "seed": self.seed, "noise_seed": self.noise_seed}
 
-    def responses(self, region=None, method="auto", batch_captures=64, progress=None) -> CaptureCounts:
+    def responses(self, region: tuple | None = None, method: str = "auto", batch_captures: int = 64,
+                  progress: Any = None) -> CaptureCounts:
         """The fast path: ON/OFF counts per pixel inside each capture window, without events.
 
         Parameters
@@ -531,6 +671,15 @@ class Simulation:
             (:meth:`count_table`); it assumes every capture starts from the
             settled dark state. "auto" takes "table" when ``settle_us`` is at
             least :meth:`recommended_settle_us`, else "exact".
+        batch_captures : int
+            Captures simulated at a time.
+        progress : callable, optional
+            Called with the captures done.
+
+        Returns
+        -------
+        CaptureCounts
+            ON and OFF counts per capture over the region, with the schedule.
 
         Notes
         -----
@@ -580,6 +729,12 @@ class Simulation:
     TABLE_THRESHOLD_POINTS = 7
     TABLE_REPLICATES = 32
 
-    def count_table(self):
-        """:func:`evtk.simulate.table.count_table` of this run (shared by runs of the same bench, sensor and timing)."""
+    def count_table(self) -> tuple:
+        """:func:`evtk.simulate.table.count_table` of this run (shared by runs of the same bench, sensor and timing).
+
+        Returns
+        -------
+        tuple
+            ``(v_grid, theta_grid, on, off)``.
+        """
         return count_table(self)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from typing import Any
 
 import numpy as np
 
@@ -22,10 +23,10 @@ _TABLES: dict = {}
 _TABLES_KEPT = 8
 
 
-def count_table(sim):
+def count_table(sim: Any) -> tuple:
     """Window counts of the pixel model, tabulated over light and ON threshold.
 
-    Returns ``(v_grid, theta_grid, on, off)``: ``v`` is the log-light step
+    ``v`` is the log-light step
     in units of the pixel's own ON threshold, ``log(rate / blank rate) /
     theta`` (about the count a noise-free slow pixel would give, so
     neighbouring cells differ little along ``theta``), from 0 to the
@@ -36,6 +37,16 @@ def count_table(sim):
     pair has). OFF thresholds vary between replicates as on the sensor.
     Built once per bench, sensor, timing and kernel shape (not per trial)
     with the event path's pixel model.
+
+    Parameters
+    ----------
+    sim : Simulation
+        The run (its bench, sensor, timing and kernel shape).
+
+    Returns
+    -------
+    tuple
+        ``(v_grid, theta_grid, on, off)``.
     """
     key = _table_key(sim)
     if key in _TABLES:

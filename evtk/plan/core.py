@@ -1,0 +1,186 @@
+"""The plan of a run as one typed value: :class:`Plan`, what :func:`evtk.reconstruct.reconstruct` consumes."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import EvtkError
+from ..optics import Bench
+from ..optics.camera import CellMap
+from .record import SimulationRecord
+from .schedule import Schedule, read_schedule
+
+__all__ = ["Plan", "as_plan"]
+
+#: The entries of the schedule's dict form (:func:`~evtk.plan.read_schedule`), readable from a plan by key.
+SCHEDULE_KEYS = ("schedule", "kernels", "features", "bench", "window_us", "settle_us", "dot_spacing")
+
+
+@dataclass(frozen=True, eq=False)
+class Plan:
+    """What a run is, as far as it is known: the schedule and patterns always; the camera's placement, the pixel
+    model and the light's delay when a calibration or the simulator says them.
+
+    The reconstruction (:func:`evtk.reconstruct.reconstruct`) chooses its route from what the plan holds: the
+    simulation ``record`` (the oracle: the simulator's own pixel model and placement); a ``pixel_model`` fitted
+    by a calibration, or level captures to fit one to (inverted); neither (``exp(n theta)``, each pixel's
+    threshold from the flat fields). The schedule's entries also read by key (``plan["kernels"]``), as the dict
+    :func:`~evtk.plan.read_schedule` returns.
+
+    Parameters
+    ----------
+    schedule : Schedule
+        The captures: which patterns, which pass, when.
+    kernels, features : ndarray
+        The patterns (n, h, w), -1, 0 or 1.
+    bench : Bench
+        The bench's geometry and light.
+    window_us, settle_us : int
+        How long each capture shows its patterns, and the darkness after it (µs).
+    dot_spacing : int
+        Features elements between the calibration dots.
+    region : tuple of int, optional
+        ``(x0, x1, y0, y1)``: the sensor pixels the response falls on (a calibration's), else the bench
+        geometry's.
+    origin_px : tuple of float, optional
+        ``(x, y)``: the sensor pixel of the full response's cell (0, 0), else the bench geometry's.
+    cell_map : CellMap, optional
+        A calibration's whole map from cells to pixels (a rotated, tilted or distorted camera).
+    blur_px : float
+        The camera's defocus (pixels), deblurred with the footprint.
+    pixel_model : dict, optional
+        A pixel model fitted by a calibration (:meth:`evtk.reconstruct.PixelFit.to_dict`).
+    own_levels : bool
+        Fit the pixel model to the run's own level captures when it has any (else use ``pixel_model``).
+    light_delay_us : int
+        How long after each trigger edge the light changes (µs), when known.
+    record : SimulationRecord, optional
+        The simulation record the plan was read from (:meth:`from_record`): the oracle's pixel model.
+    """
+
+    schedule: Schedule
+    kernels: np.ndarray
+    features: np.ndarray
+    bench: Bench
+    window_us: int
+    settle_us: int
+    dot_spacing: int = 4
+    region: tuple | None = None
+    origin_px: tuple | None = None
+    cell_map: CellMap | None = None
+    blur_px: float = 0.0
+    pixel_model: dict | None = None
+    own_levels: bool = True
+    light_delay_us: int = 0
+    record: SimulationRecord | None = None
+
+    def __getitem__(self, key: str) -> Any:
+        if key not in SCHEDULE_KEYS:
+            raise KeyError(key)
+        return getattr(self, key)
+
+    @property
+    def signed(self) -> bool:
+        """Whether a kernel or features pattern holds -1 (responses combine ± passes)."""
+        return bool(np.min(self.kernels) < 0 or np.min(self.features) < 0)
+
+    def replace(self, **changes: Any) -> Plan:
+        """A copy with some entries changed (a placement, a pixel model).
+
+        Parameters
+        ----------
+        **changes
+            Entries and their new values.
+
+        Returns
+        -------
+        Plan
+            The copy.
+        """
+        return dataclasses.replace(self, **changes)
+
+    @classmethod
+    def read(cls, path: str | os.PathLike) -> Plan:
+        """The plan of a bench run's ``schedule.json`` (:func:`~evtk.plan.read_schedule`, every value checked).
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            The file.
+
+        Returns
+        -------
+        Plan
+            The schedule, patterns, bench and timing; no placement, no pixel model.
+        """
+        return cls(**read_schedule(path))
+
+    @classmethod
+    def from_schedule(cls, d: Mapping) -> Plan:
+        """The plan of a schedule's dict form (:func:`~evtk.plan.read_schedule`'s seven entries).
+
+        Parameters
+        ----------
+        d : Mapping
+            ``schedule``, ``kernels``, ``features``, ``bench``, ``window_us``, ``settle_us`` and optionally
+            ``dot_spacing``.
+
+        Returns
+        -------
+        Plan
+            The schedule part of a plan.
+        """
+        missing = [k for k in SCHEDULE_KEYS[:6] if k not in d]
+        if missing:
+            raise EvtkError(f"the schedule lacks {', '.join(missing)}")
+        return cls(**{k: d[k] for k in SCHEDULE_KEYS if k in d})
+
+    @classmethod
+    def from_record(cls, record: SimulationRecord | dict, oracle: bool = True) -> Plan:
+        """The plan a simulation record holds.
+
+        Parameters
+        ----------
+        record : SimulationRecord or dict
+            The record (or its dict form, checked).
+        oracle : bool
+            Keep the whole record (the simulator's placement, pixel model and light delay: the oracle); False
+            keeps only what a bench's ``schedule.json`` would hold (schedule, patterns, bench, timing).
+
+        Returns
+        -------
+        Plan
+            The plan.
+        """
+        r = SimulationRecord.from_dict(record)
+        plan = cls(r.schedule, r.kernels, r.features, r.bench, r.window_us, r.settle_us, r.dot_spacing)
+        if not oracle:
+            return plan
+        return plan.replace(region=tuple(r.response_region), origin_px=tuple(r.response_origin_px),
+                            cell_map=r.placement(), blur_px=r.blur_px, light_delay_us=r.light_delay_us, record=r)
+
+
+def as_plan(schedule: Plan | Mapping | str | os.PathLike) -> Plan:
+    """A plan from what callers pass for a run's schedule.
+
+    Parameters
+    ----------
+    schedule : Plan, dict, str or os.PathLike
+        A plan (returned as it is), a schedule's dict form, or a ``schedule.json`` path.
+
+    Returns
+    -------
+    Plan
+        The plan.
+    """
+    if isinstance(schedule, Plan):
+        return schedule
+    if isinstance(schedule, Mapping):
+        return Plan.from_schedule(schedule)
+    return Plan.read(schedule)
