@@ -53,7 +53,7 @@ __all__ = ["load_job", "job_simulation", "dmd_frame", "write_patterns", "SCHEDUL
 SCHEDULE_VERSION = 1
 #: Keys a job file may hold.
 JOB_KEYS = ("kernels", "features", "signed", "repeat", "flat_field", "calibration", "dot_spacing", "levels", "window_us",
-            "settle_us", "seed", "bench", "sensor", "camera", "light_delay_us")
+            "settle_us", "seed", "bench", "sensor", "camera", "light_delay_us", "light_rise_us")
 
 
 #: The range of each number a job may set (the ``bench``, ``sensor`` and ``camera`` tables are checked by
@@ -69,6 +69,7 @@ JOB_SPECS = {
     "settle_us": Spec("int", 1, MAX_US, unit="µs", optional=True),
     "seed": Spec("int", 0, 2 ** 63 - 1),
     "light_delay_us": Spec("int", 0, MAX_US, unit="µs"),
+    "light_rise_us": Spec("float", 0, MAX_US, unit="µs"),
 }
 
 
@@ -106,7 +107,7 @@ def load_job(path: str | os.PathLike[str]) -> dict:
         ``sensor`` (a :class:`~evtk.sensor.SensorModel`), ``camera``, and
         ``repeat``, ``flat_field``, ``calibration``, ``dot_spacing``,
         ``levels``, ``window_us``, ``settle_us``, ``seed``,
-        ``light_delay_us``, each checked against :data:`JOB_SPECS` (a bad
+        ``light_delay_us``, ``light_rise_us``, each checked against :data:`JOB_SPECS` (a bad
         value is an :class:`~evtk.EvtkError` naming the file, the key and
         the range).
 
@@ -140,7 +141,8 @@ def load_job(path: str | os.PathLike[str]) -> dict:
         raise EvtkError(f"{path}: {exc}") from None
     job = {"kernels": kernels, "features": features, "bench": bench, "sensor": sensor, "camera": camera}
     for key, default in (("repeat", 1), ("flat_field", 2), ("calibration", 0), ("dot_spacing", 4), ("levels", 0),
-                         ("window_us", 1000), ("settle_us", None), ("seed", 0), ("light_delay_us", 0)):
+                         ("window_us", 1000), ("settle_us", None), ("seed", 0), ("light_delay_us", 0),
+                         ("light_rise_us", 0.0)):
         job[key] = values.get(key, default)
     return job
 

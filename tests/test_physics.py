@@ -193,3 +193,27 @@ def test_calibrated_route_holds_on_a_log_node_pixel(tmp_path):
     assert "table" in s["pixel_model_note"] and s["deblurred"]
     r_auto = s["error"]["correlation"]
     assert r_auto > 0.93 and r_auto > plain.summary["error"]["correlation"] + 0.02
+
+
+def test_a_rising_light_is_a_job_setting_and_the_record_keeps_it(tmp_path):
+    """The light's rise time travels like its delay: a job sets it, the simulation record of the recording keeps
+    it (a recording says what light it saw), and a record whose value is out of range is refused by name."""
+    import evtk
+    from evtk.patterns import job_simulation
+    from evtk.plan import METADATA_KEY, SimulationRecord
+
+    job = tmp_path / "job.toml"
+    job.write_text('kernels = ["010111010"]\nrepeat = 1\nflat_field = 0\nlight_rise_us = 4.5\n')
+    sim = job_simulation(job)
+    assert sim.light_rise_us == 4.5
+    sim.write(tmp_path / "r.h5")
+    with evtk.open(tmp_path / "r.h5") as rec:
+        record = SimulationRecord.from_metadata(rec.metadata)
+        raw = rec.metadata[METADATA_KEY]
+    assert record.light_rise_us == 4.5
+    bad = dict(raw, light_rise_us=-2.0)
+    with pytest.raises(EvtkError, match="light_rise_us"):
+        SimulationRecord.from_dict(bad)
+    job.write_text('kernels = ["010111010"]\nlight_rise_us = "slow"\n')
+    with pytest.raises(EvtkError, match="light_rise_us"):
+        job_simulation(job)

@@ -37,6 +37,7 @@ RECORD_SPECS = {
     "dot_spacing": Spec("int", 2, 32767, unit="features elements between dots"),
     "levels": Spec("int", 0, MAX_COUNT),
     "light_delay_us": Spec("int", 0, MAX_US, unit="µs"),
+    "light_rise_us": Spec("float", 0, MAX_US, unit="µs, the light's exponential rise and fall time"),
     "correlation": Spec("str", choices=("correlation", "convolution")),
     "evtk_version": Spec("str"),
 }
@@ -98,6 +99,9 @@ class SimulationRecord:
         takes the place of ``response_origin_px``.
     light_delay_us : int
         How long after each trigger edge the light changed (µs).
+    light_rise_us : float
+        Time constant of the light's exponential rise after its rising edge and fall after its falling one (µs;
+        0 for a step).
     correlation : str
         "correlation" or "convolution" (a flipped kernel).
     evtk_version : str
@@ -132,6 +136,8 @@ class SimulationRecord:
     cell_map: dict | None = None
     #: how long after each trigger edge the light changed (µs; the schedule holds the light's times)
     light_delay_us: int = 0
+    #: time constant of the light's exponential rise and fall at its edges (µs; 0: a step)
+    light_rise_us: float = 0.0
     correlation: str = "correlation"
     evtk_version: str = ""
 

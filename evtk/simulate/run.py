@@ -391,6 +391,7 @@ class Simulation:
             seed=self.seed, noise_seed=self.noise_seed, repeat=self.repeat, flat_field=self.flat_field,
             calibration=self.calibration, dot_spacing=self.dot_spacing, levels=self.levels,
             camera=None if self.camera is None else self.camera.to_dict(), light_delay_us=self.light_delay_us,
+            light_rise_us=self.light_rise_us,
             correlation="convolution" if self.bench.kernel_flipped else "correlation", evtk_version=__version__)
 
     def plan(self) -> Plan:
