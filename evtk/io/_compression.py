@@ -31,6 +31,7 @@ MAX_PACKET_BYTES = 2**31 - 1
 
 _local = threading.local()
 _pool = None
+_pool_size = 0
 _pool_lock = threading.Lock()
 
 
@@ -51,10 +52,20 @@ def verify_by_default() -> bool:
 
 
 def pool() -> ThreadPoolExecutor:
-    global _pool
+    """The decode and compression threads, :func:`evtk._threads.workers` of them (made again when that changes).
+
+    Returns
+    -------
+    concurrent.futures.ThreadPoolExecutor
+        The shared pool.
+    """
+    global _pool, _pool_size
+    n = workers()
     with _pool_lock:
-        if _pool is None:
-            _pool = ThreadPoolExecutor(max_workers=workers(), thread_name_prefix="evtk-io")
+        if _pool is None or _pool_size != n:
+            if _pool is not None:
+                _pool.shutdown(wait=False)  # what it runs finishes; new work goes to the new pool
+            _pool, _pool_size = ThreadPoolExecutor(max_workers=n, thread_name_prefix="evtk-io"), n
         return _pool
 
 
