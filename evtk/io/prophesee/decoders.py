@@ -5,8 +5,8 @@ from __future__ import annotations
 import re
 
 import numpy as np
-from numba import njit
 
+from ..._lazyjit import njit  # EVT 3.0 and Event Stream: numba loads when they are first decoded
 from ..base import sensor_dims, text_header
 
 __all__ = ["sniff", "sniff_lines"]
@@ -95,7 +95,7 @@ def _sensor_from_header(lines, path):
     return None
 
 
-# -- decoding (numba) -------------------------------------------------------------------------------------------
+# -- decoding (numpy; numba for EVT 3.0 and Event Stream) ----------------------------------------------------------
 
 
 # decoder states (int64 arrays, updated in place so that a block goes on where the one before ended)
@@ -104,97 +104,99 @@ _E2_HIGH, _E2_EPOCH = range(2)
 _DAT_PREV, _DAT_EPOCH = range(2)
 
 
-@njit(cache=True, nogil=True)
+def _first_stop(*masks) -> tuple[int, int]:
+    """``(index, which)`` of the first True over ``masks`` (``which``: the mask's position), or ``(-1, -1)``."""
+    best, which = -1, -1
+    for k, mask in enumerate(masks):
+        if len(mask):
+            i = int(np.argmax(mask))
+            if mask[i] and (best < 0 or i < best):
+                best, which = i, k
+    return best, which
+
+
 def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """One pass over EVT 2.0 words: counts, or with ``decode`` the events and triggers. Returns (events,
-    triggers, status, word index of the problem, min t, max t); the min and max only when counting."""
-    high = state[_E2_HIGH]
-    epoch = state[_E2_EPOCH]
-    base = (epoch << 34) | (high << 6)
-    n = 0
-    m = 0
-    t_min = np.int64(2**62)
-    t_max = np.int64(-(2**62))
-    status = ST_OK
-    bad = -1
-    for i in range(len(words)):
-        w = np.int64(words[i])
-        kind = w >> 28
-        if kind <= 1:  # CD_OFF, CD_ON: most words
-            xi = (w >> 11) & 0x7FF
-            yi = w & 0x7FF
-            if xi >= width or yi >= height:
-                status = ST_COORD
-                bad = i
-                break
-            tc = base | ((w >> 22) & 0x3F)
-            if decode:
-                t[n] = tc
-                x[n] = xi
-                y[n] = yi
-                p[n] = kind
-            else:
-                t_min = min(t_min, tc)
-                t_max = max(t_max, tc)
-            n += 1
-        elif kind == 8:
-            new = w & 0xFFFFFFF
-            if new < high and high - new > (1 << 27):  # the 28-bit counter wrapped
-                epoch += 1
-            high = new
-            base = (epoch << 34) | (high << 6)
-        elif kind == 10:
-            if decode:
-                tt[m] = base | ((w >> 22) & 0x3F)
-                # the edge in bit 0, the channel in bits 8..12: kind 1 rising, 2 falling (evtk's Triggers)
-                tk[m] = 1 if (w & 1) else 2
-                tch[m] = (w >> 8) & 0x1F
-            m += 1
-        elif kind != 14 and kind != 15:  # OTHERS and CONTINUED carry no events; no other type exists
-            status = ST_TYPE
-            bad = i
-            break
-    state[_E2_HIGH] = high
-    state[_E2_EPOCH] = epoch
-    return n, m, status, bad, t_min, t_max
+    """One pass over EVT 2.0 words, vectorised with numpy: counts, or with ``decode`` the events and triggers.
+    Returns (events, triggers, status, word index of the problem, min t, max t); the min and max only when
+    counting. ``state`` (time high, epoch) carries over from the block before and is updated.
+
+    Every word is 32 bits with its type in the top four: CD_OFF/CD_ON (0, 1) hold x in bits 11..21, y in
+    0..10 and the six low time bits in 22..27; EV_TIME_HIGH (8) bits 6..33 of the time in its 28 low bits (a
+    drop of more than half their range is a wrap: the epoch counts them); EXT_TRIGGER (10) the edge in bit 0
+    and the channel in bits 8..12; OTHERS and CONTINUED (14, 15) carry no events. Decoding stops at the
+    first word of another type (ST_TYPE) or the first event off the sensor (ST_COORD)."""
+    words = np.asarray(words)
+    kind = words >> 28
+    cd = kind <= 1
+    xs = (words >> 11) & 0x7FF
+    ys = words & 0x7FF
+    known = cd | (kind == 8) | (kind == 10) | (kind >= 14)
+    bad, which = _first_stop(cd & ((xs >= width) | (ys >= height)), ~known)
+    status = ST_OK if bad < 0 else (ST_COORD, ST_TYPE)[which]
+    if bad >= 0:
+        words, kind, cd, xs, ys = words[:bad], kind[:bad], cd[:bad], xs[:bad], ys[:bad]
+    high, epoch = int(state[_E2_HIGH]), int(state[_E2_EPOCH])
+    is_high = kind == 8
+    new = (words[is_high] & 0xFFFFFFF).astype(np.int64)
+    if len(new):
+        before = np.concatenate(([high], new[:-1]))
+        epochs = epoch + np.cumsum((new < before) & (before - new > (1 << 27)))
+        state[_E2_HIGH], state[_E2_EPOCH] = new[-1], epochs[-1]
+        # the time base of each word: the last time-high word at or before it (the block's start state first)
+        bases = np.concatenate(([(epoch << 34) | (high << 6)], (epochs << 34) | (new << 6)))
+        ordinal = np.cumsum(is_high)
+    else:
+        bases, ordinal = np.array([(epoch << 34) | (high << 6)], np.int64), None
+    at = np.flatnonzero(cd)
+    n = len(at)
+    tc = bases[ordinal[at]] if ordinal is not None else np.full(n, bases[0])
+    tc |= (words[at] >> 22) & 0x3F
+    trig = np.flatnonzero(kind == 10)
+    m = len(trig)
+    if decode:
+        t[:n] = tc
+        x[:n] = xs[at]
+        y[:n] = ys[at]
+        p[:n] = kind[at]
+        if m:
+            wt = words[trig]
+            tt[:m] = (bases[ordinal[trig]] if ordinal is not None else bases[0]) | ((wt >> 22) & 0x3F)
+            tk[:m] = np.where(wt & 1, 1, 2)  # kind 1 rising, 2 falling (evtk's Triggers)
+            tch[:m] = (wt >> 8) & 0x1F
+        return n, m, status, bad, 2**62, -(2**62)
+    return n, m, status, bad, (int(tc.min()) if n else 2**62), (int(tc.max()) if n else -(2**62))
 
 
-@njit(cache=True, nogil=True)
 def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """One pass over DAT CD events (pairs of uint32: time stamp, data), with :func:`_evt2_run`'s arguments
-    and results (DAT files hold no triggers)."""
-    prev = state[_DAT_PREV]
-    epoch = state[_DAT_EPOCH]
-    n = 0
-    t_min = np.int64(2**62)
-    t_max = np.int64(-(2**62))
-    status = ST_OK
-    bad = -1
-    for i in range(len(raw) // 2):
-        ts = np.int64(raw[2 * i])
-        d = np.int64(raw[2 * i + 1])
-        if ts < prev and prev - ts > (1 << 31):  # the 32-bit counter wrapped
-            epoch += 1
-        prev = ts
-        xi = d & 0x3FFF
-        yi = (d >> 14) & 0x3FFF
-        if xi >= width or yi >= height:
-            status = ST_COORD
-            bad = i
-            break
-        tc = (epoch << 32) | ts
-        if decode:
-            t[n] = tc
-            x[n] = xi
-            y[n] = yi
-            p[n] = 1 if (d >> 28) & 0xF else 0
-        else:
-            t_min = min(t_min, tc)
-            t_max = max(t_max, tc)
-        n += 1
-    state[_DAT_PREV] = prev
-    state[_DAT_EPOCH] = epoch
-    return n, 0, status, bad, t_min, t_max
+    """One pass over DAT CD events (pairs of uint32: time stamp, data), vectorised, with :func:`_evt2_run`'s
+    arguments and results (DAT files hold no triggers). The data word holds x in bits 0..13, y in 14..27 and
+    the polarity in 28..31 (any bit set: ON); a time stamp more than half the 32-bit range below the one
+    before is a wrap of the counter."""
+    raw = np.asarray(raw)
+    k = len(raw) // 2
+    ts = raw[0:2 * k:2].astype(np.int64)
+    d = raw[1:2 * k:2]
+    xs = d & 0x3FFF
+    ys = (d >> 14) & 0x3FFF
+    bad, _ = _first_stop((xs >= width) | (ys >= height))
+    status = ST_OK if bad < 0 else ST_COORD
+    prev, epoch = int(state[_DAT_PREV]), int(state[_DAT_EPOCH])
+    seen = ts if bad < 0 else ts[:bad + 1]  # the event off the sensor still moves the clock, as it is read
+    if len(seen):
+        before = np.concatenate(([prev], seen[:-1]))
+        epochs = epoch + np.cumsum((seen < before) & (before - seen > (1 << 31)))
+        state[_DAT_PREV], state[_DAT_EPOCH] = seen[-1], epochs[-1]
+    else:
+        epochs = np.zeros(0, np.int64)
+    n = k if bad < 0 else bad
+    tc = (epochs[:n] << 32) | ts[:n]
+    if decode:
+        t[:n] = tc
+        x[:n] = xs[:n]
+        y[:n] = ys[:n]
+        np.not_equal(d[:n] >> 28, 0, out=p[:n].view(np.bool_))
+        return n, 0, status, bad, 2**62, -(2**62)
+    return n, 0, status, bad, (int(tc.min()) if n else 2**62), (int(tc.max()) if n else -(2**62))
 
 
 # EVT 3.0 decoder state: time high, time low, epoch (wraps of the 24-bit time), y, vector base x, polarity
