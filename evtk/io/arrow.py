@@ -22,7 +22,7 @@ from . import _parquet_footer as _footer
 from ._checks import require_readable, scan_events, sorted_for_writing
 from ._overlay import SplicedFile, close_at_exit
 from .base import BaseRecording, BaseWriter, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
-from .table import KEY_META, KEY_TRIGGERS, _columns, _pa, _schema, _sensor_from, columns_to_table
+from .table import KEY_META, KEY_TRIGGERS, _columns, _numpy_of, _pa, _schema, _sensor_from, columns_to_table
 
 __all__ = ["to_arrow", "from_arrow", "ParquetRecording", "write_parquet", "COMPRESSIONS"]
 
@@ -272,8 +272,8 @@ class ParquetRecording(BaseRecording):
             try:
                 tab = self._pf.read_row_group(g, columns=["x", "y"])
                 if tab.num_rows:
-                    w = max(w, int(np.max(tab.column("x").to_numpy())) + 1)
-                    h = max(h, int(np.max(tab.column("y").to_numpy())) + 1)
+                    w = max(w, int(np.max(_numpy_of(tab.column("x")))) + 1)
+                    h = max(h, int(np.max(_numpy_of(tab.column("y")))) + 1)
             except Exception as exc:  # pyarrow raises OSError, ArrowInvalid, ... on damaged pages
                 problem = _unreadable(g, exc)
                 if not self.salvage:
@@ -317,7 +317,7 @@ class ParquetRecording(BaseRecording):
     def _group_span(self, g):
         """(first, last) time stamp of row group ``g``, or None when it is empty or unreadable."""
         try:
-            t = self._pf.read_row_group(g, columns=["t"]).column(0).to_numpy()
+            t = _numpy_of(self._pf.read_row_group(g, columns=["t"]).column(0))
         except Exception:  # noqa: BLE001 - pyarrow's errors on a damaged group; the full read reports it
             return None
         return (int(t[0]), int(t[-1])) if len(t) else None
