@@ -6,7 +6,7 @@ import re
 
 import numpy as np
 
-from ..._lazyjit import njit  # EVT 3.0 and Event Stream: numba loads when they are first decoded
+from ..._lazyjit import njit  # Event Stream: numba loads when it is first decoded
 from ..base import sensor_dims, text_header
 
 __all__ = ["sniff", "sniff_lines"]
@@ -95,7 +95,7 @@ def _sensor_from_header(lines, path):
     return None
 
 
-# -- decoding (numpy; numba for EVT 3.0 and Event Stream) ----------------------------------------------------------
+# -- decoding (numpy; numba for Event Stream) ----------------------------------------------------------
 
 
 # decoder states (int64 arrays, updated in place so that a block goes on where the one before ended)
@@ -203,91 +203,103 @@ def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
 _E3_HIGH, _E3_LOW, _E3_EPOCH, _E3_Y, _E3_BASE, _E3_POL = range(6)
 
 
-@njit(cache=True, nogil=True)
+def _last(mask, values, initial):
+    """For each position, ``values`` at the last True of ``mask`` at or before it (``initial`` before any)."""
+    idx = np.where(mask, np.arange(len(mask)), -1)
+    np.maximum.accumulate(idx, out=idx)
+    return np.where(idx >= 0, values[np.maximum(idx, 0)], initial)
+
+
 def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """One pass over EVT 3.0 words (16 bits, type in the top four): counts, or with ``decode`` the events
-    and triggers. ``state`` (:data:`_E3_HIGH` ...) carries over from the previous block and is updated.
-    Returns (events, triggers, status, word index of the problem, min t, max t)."""
-    high = state[_E3_HIGH]
-    low = state[_E3_LOW]
-    epoch = state[_E3_EPOCH]
-    yy = state[_E3_Y]
-    base = state[_E3_BASE]
-    pol = state[_E3_POL]
-    n = 0
-    m = 0
-    t_min = np.int64(2**62)
-    t_max = np.int64(-(2**62))
-    status = ST_OK
-    bad = -1
-    for i in range(len(words)):
-        w = np.int64(words[i])
-        kind = w >> 12
-        v = w & 0xFFF
-        if kind == 0:  # EVT_ADDR_Y
-            yy = v & 0x7FF
-        elif kind == 2 or kind == 4 or kind == 5:  # EVT_ADDR_X, VECT_12, VECT_8
-            if decode and n + 12 > len(t):  # no room for a whole vector: the caller resumes at this word
-                status = ST_FULL
-                bad = i
-                break
-            if kind == 2:
-                first, mask, step = v & 0x7FF, np.int64(1), 0
-                ep = (v >> 11) & 1
-            else:
-                first, mask, step = base, v if kind == 4 else v & 0xFF, 12 if kind == 4 else 8
-                ep = pol
-            tcur = (epoch << 24) | (high << 12) | low
-            for k in range(12):
-                if (mask >> k) & 1:
-                    xi = first + k
-                    if xi >= width or yy >= height:
-                        status = ST_COORD
-                        bad = i
-                        break
-                    if decode:
-                        t[n] = tcur
-                        x[n] = xi
-                        y[n] = yy
-                        p[n] = ep
-                    n += 1
-                    if tcur < t_min:
-                        t_min = tcur
-                    if tcur > t_max:
-                        t_max = tcur
-            if status != ST_OK:
-                break
-            base += step
-        elif kind == 3:  # VECT_BASE_X
-            base = v & 0x7FF
-            pol = (v >> 11) & 1
-        elif kind == 6:  # EVT_TIME_LOW
-            low = v
-        elif kind == 8:  # EVT_TIME_HIGH
-            if v < high and high - v > 2048:  # the 24-bit time wrapped
-                epoch += 1
-            high = v
-        elif kind == 10:  # EXT_TRIGGER: the edge in bit 0, the channel in bits 8..11
-            if decode and m >= len(tt):
-                status = ST_FULL
-                bad = i
-                break
-            if decode:
-                tt[m] = (epoch << 24) | (high << 12) | low
-                tk[m] = 1 if (v & 1) else 2
-                tch[m] = (v >> 8) & 0xF
-            m += 1
-        elif kind != 7 and kind != 14 and kind != 15:  # CONTINUED_4, OTHERS, CONTINUED_12
-            status = ST_TYPE
-            bad = i
-            break
-    state[_E3_HIGH] = high
-    state[_E3_LOW] = low
-    state[_E3_EPOCH] = epoch
-    state[_E3_Y] = yy
-    state[_E3_BASE] = base
-    state[_E3_POL] = pol
-    return n, m, status, bad, t_min, t_max
+    """One pass over EVT 3.0 words (16 bits, type in the top four), vectorised with numpy: counts, or with
+    ``decode`` the events and triggers. ``state`` (:data:`_E3_HIGH` ...) carries over from the previous block
+    and is updated. Returns (events, triggers, status, word index of the problem, min t, max t).
+
+    EVT_ADDR_Y (0) sets y; EVT_ADDR_X (2) is one event at its x with its polarity (bit 11); VECT_BASE_X (3)
+    sets the x and polarity of the vectors after it; VECT_12 (4) and VECT_8 (5) are events at base x + k for
+    each set bit k of their 12 or 8 bits, and move the base on by 12 or 8; EVT_TIME_LOW (6) and
+    EVT_TIME_HIGH (8) set bits 0..11 and 12..23 of the time (a drop of more than half the high bits' range is a
+    wrap: the epoch counts them); EXT_TRIGGER (10) holds the edge in bit 0 and the channel in bits 8..11;
+    7, 14 and 15 carry no events. Decoding stops at a word of another type (ST_TYPE), at the first event off
+    the sensor (ST_COORD: the events of that word before it are kept) or, decoding, at an event word whose
+    12 possible events no longer fit ``t`` (ST_FULL, for the caller to resume at it)."""
+    w = np.asarray(words).astype(np.int64)
+    kind = w >> 12
+    v = w & 0xFFF
+    n_words = len(w)
+    known = (kind == 0) | ((kind >= 2) & (kind <= 8)) | (kind == 10) | (kind >= 14)
+    stop, _ = _first_stop(~known)
+    status = ST_TYPE if stop >= 0 else ST_OK
+    end = stop if stop >= 0 else n_words
+    kind, v = kind[:end], v[:end]
+    is_x, is_v12, is_v8 = kind == 2, kind == 4, kind == 5
+    is_ev = is_x | is_v12 | is_v8
+    mask = np.where(is_x, 1, np.where(is_v12, v, v & 0xFF))
+    mask[~is_ev] = 0
+    if decode:
+        counts = np.zeros(end, np.int64)
+        for k in range(12):
+            counts += (mask >> k) & 1
+        before = np.cumsum(counts) - counts  # events of the words before each
+        is_trig = kind == 10
+        full, _ = _first_stop(is_ev & (before + 12 > len(t)), is_trig & (np.cumsum(is_trig) > len(tt)))
+        if full >= 0:
+            status, stop, end = ST_FULL, full, full
+    # the state in effect at each word, from the words before it (and the block's start state)
+    yy = _last(kind[:end] == 0, v[:end] & 0x7FF, state[_E3_Y])
+    low = _last(kind[:end] == 6, v[:end], state[_E3_LOW])
+    is_high = kind[:end] == 8
+    highs = v[:end][is_high]
+    prev = np.concatenate(([state[_E3_HIGH]], highs[:-1]))
+    epochs = state[_E3_EPOCH] + np.cumsum((highs < prev) & (prev - highs > 2048))
+    high = _last(is_high, np.where(is_high, v[:end], 0), state[_E3_HIGH])
+    ep_at = np.zeros(end, np.int64)
+    ep_at[is_high] = epochs
+    epoch = _last(is_high, ep_at, state[_E3_EPOCH])
+    tword = (epoch << 24) | (high << 12) | low
+    is_base = kind[:end] == 3
+    steps = np.where(is_v12[:end], 12, np.where(is_v8[:end], 8, 0))
+    moved = np.cumsum(steps) - steps  # steps of the vectors before each word
+    base_idx = np.where(is_base, np.arange(end), -1)
+    np.maximum.accumulate(base_idx, out=base_idx)
+    has_base = base_idx >= 0
+    bi = np.maximum(base_idx, 0)
+    base = np.where(has_base, (v[:end][bi] & 0x7FF) + moved - moved[bi], state[_E3_BASE] + moved)
+    pol = _last(is_base, (v[:end] >> 11) & 1, state[_E3_POL])
+    # every event, in word order and by bit within a word
+    ev_words = np.flatnonzero(is_ev[:end])
+    rows, bits = np.nonzero((mask[ev_words].astype(np.uint16)[:, None] >> np.arange(12, dtype=np.uint16)) & 1)
+    rows = ev_words[rows]
+    ex = np.where(is_x[:end][rows], v[:end][rows] & 0x7FF, base[rows] + bits)
+    ey = yy[rows]
+    bad_ev, _ = _first_stop((ex >= width) | (ey >= height))
+    done = end  # the words whose effects stand: those before the stop
+    if bad_ev >= 0:
+        status, stop = ST_COORD, int(rows[bad_ev])
+        done = stop
+        n = bad_ev
+    else:
+        n = len(rows)
+    rows, ex, ey = rows[:n], ex[:n], ey[:n]
+    et = tword[rows]
+    trig = np.flatnonzero(kind[:done] == 10)
+    m = len(trig)
+    if decode:
+        t[:n] = et
+        x[:n] = ex
+        y[:n] = ey
+        p[:n] = np.where(is_x[:end][rows], (v[:end][rows] >> 11) & 1, pol[rows])
+        tt[:m] = tword[trig]
+        tk[:m] = np.where(v[trig] & 1, 1, 2)
+        tch[:m] = (v[trig] >> 8) & 0xF
+    # the state after the words decoded (those before the stop)
+    if done:
+        last = done - 1
+        state[_E3_Y], state[_E3_LOW], state[_E3_HIGH], state[_E3_EPOCH] = yy[last], low[last], high[last], epoch[last]
+        state[_E3_POL] = pol[last]
+        state[_E3_BASE] = base[last] + steps[last]
+    return n, m, status, (stop if status != ST_OK else -1), (int(et.min()) if n else 2**62), \
+        (int(et.max()) if n else -(2**62))
 
 
 # Event Stream (DVS) decoder state: time, position inside an event (0: at its first byte), x, y, polarity
