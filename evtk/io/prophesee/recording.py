@@ -34,6 +34,11 @@ from .decoders import (
 __all__ = ["PropheseeRecording", "EventStreamRecording"]
 
 
+def _columns(n: int):
+    """Empty event columns (t, x, y, p) for ``n`` events."""
+    return np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8)
+
+
 class PropheseeRecording(BaseRecording):
     """A Prophesee RAW (EVT 2.0 or 3.0) or DAT recording.
 
@@ -274,19 +279,31 @@ class PropheseeRecording(BaseRecording):
         return Events.concatenate(parts, sensor_size=self._size) if parts else Events.empty(self._size)
 
     def _whole(self) -> Events:
-        """Every event in one decoder call over the memory-mapped file: no blocks to join."""
-        n_words = self._count * (2 if self.encoding == DAT else 1)
-        words = np.memmap(self.path, dtype=_DTYPE[self.encoding], mode="r", offset=self._start, shape=(n_words,))
-        state = self._initial_state()
-        ev, tr, problem = self._decode(words, state, 0)
-        del words
-        if problem:
-            self._stop(problem)
-        else:
-            self._check_es_end(state)
-            if self._triggers is None:
-                self._triggers = tr
-        return ev
+        """Every event, block by block (:meth:`_through`, which leaves the index behind) into one set of columns
+        sized by what the file's words can hold (pages never written cost no memory), so that the peak is the
+        events plus one block's decoding, not the events twice."""
+        cap = {EVT2: self._count, EVT3: self._count + 12, DAT: self._count, ES: self._count // 5 + 1}[self.encoding]
+        cols = _columns(cap)
+        n = 0
+        trs = []
+        problem = None
+        for ev, tr, problem in self._through():
+            k = len(ev)
+            if n + k > len(cols[0]):  # EVT 3.0 vectors hold up to 12 events a word: grow (rare)
+                grown = _columns(max(2 * len(cols[0]), n + k))
+                for dst, src in zip(grown, cols):
+                    dst[:n] = src[:n]
+                cols = grown
+            for dst, src in zip(cols, (ev.t, ev.x, ev.y, ev.p)):
+                dst[n:n + k] = src
+            n += k
+            trs.append(tr)
+            if problem:
+                self._stop(problem)
+                break
+        if self._triggers is None and not problem:
+            self._triggers = Triggers.concatenate(trs)
+        return Events._trusted(*(c[:n] for c in cols), self._size)
 
     def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
         self._check_open()
