@@ -115,6 +115,32 @@ def _first_stop(*masks) -> tuple[int, int]:
     return best, which
 
 
+#: Words each numpy pass takes at a time: its temporaries stay in the cache (and a few MiB whatever the file).
+SLICE_WORDS = 1 << 16
+
+
+def _sliced(core, words_per_item=1):
+    """A runner that applies ``core`` (a numpy runner) to :data:`SLICE_WORDS` words at a time, the state
+    carried from slice to slice and each slice's events written after the last's: the same results as one
+    call over all the words, with temporaries bounded by the slice. The problem's index counts items of
+    ``words_per_item`` words (DAT: events of two)."""
+
+    def run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
+        n = m = 0
+        t_min, t_max = 2**62, -(2**62)
+        for a in range(0, max(len(words), 1), SLICE_WORDS):
+            k, j, status, bad, lo, hi = core(words[a:a + SLICE_WORDS], state, width, height, decode, t[n:], x[n:],
+                                             y[n:], p[n:], tt[m:], tk[m:], tch[m:])
+            n, m, t_min, t_max = n + k, m + j, min(t_min, lo), max(t_max, hi)
+            if status != ST_OK:
+                return n, m, status, a // words_per_item + bad, t_min, t_max
+        return n, m, ST_OK, -1, t_min, t_max
+
+    run.__doc__, run.__name__, run.__qualname__ = core.__doc__, core.__name__, core.__qualname__
+    return run
+
+
+@_sliced
 def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over EVT 2.0 words, vectorised with numpy: counts, or with ``decode`` the events and triggers.
     Returns (events, triggers, status, word index of the problem, min t, max t); the min and max only when
@@ -199,6 +225,9 @@ def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
     return n, 0, status, bad, (int(tc.min()) if n else 2**62), (int(tc.max()) if n else -(2**62))
 
 
+_dat_run = _sliced(_dat_run, words_per_item=2)
+
+
 # EVT 3.0 decoder state: time high, time low, epoch (wraps of the 24-bit time), y, vector base x, polarity
 _E3_HIGH, _E3_LOW, _E3_EPOCH, _E3_Y, _E3_BASE, _E3_POL = range(6)
 
@@ -210,6 +239,7 @@ def _last(mask, values, initial):
     return np.where(idx >= 0, values[np.maximum(idx, 0)], initial)
 
 
+@_sliced
 def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over EVT 3.0 words (16 bits, type in the top four), vectorised with numpy: counts, or with
     ``decode`` the events and triggers. ``state`` (:data:`_E3_HIGH` ...) carries over from the previous block
