@@ -23,9 +23,11 @@ from .decoders import (
     ES_MAGIC,
     EVT2,
     EVT3,
+    EVT3_JIT_WORDS,
     ST_COORD,
     ST_FULL,
     ST_OK,
+    _evt3_run_jit,
     _header,
     _sensor_from_header,
     sniff_lines,
@@ -138,11 +140,15 @@ class PropheseeRecording(BaseRecording):
             state[_DAT_PREV] = -1
         return state
 
+    def _runner(self):
+        """The decoder of this file's encoding (numba's for a large EVT 3.0 file, where its loading pays)."""
+        return _evt3_run_jit if self.encoding == EVT3 and self._count >= EVT3_JIT_WORDS else _RUNNERS[self.encoding]
+
     def _index(self):
         """One counting pass over the file: every block's decoder state at its start, its event and trigger
         counts and its time range."""
         if self._blocks is None:
-            run = _RUNNERS[self.encoding]
+            run = self._runner()
             rows = []
             state = self._initial_state()
             for b in range(self._n_blocks()):
@@ -166,7 +172,7 @@ class PropheseeRecording(BaseRecording):
         """Decode ``words`` (item ``first`` of the file onwards) from ``state``, which is updated: ``(events,
         triggers, problem)``. Outputs are sized by what the words could hold (pages never written cost no
         memory); EVT 3.0, with up to 12 events a word, goes on where a whole vector no longer fits."""
-        run = _RUNNERS[self.encoding]
+        run = self._runner()
         w, h = self._size
         size = len(words)
         cap = {EVT2: size, EVT3: size + 12, DAT: size // 2, ES: size // 5 + 1}[self.encoding]
