@@ -18,10 +18,21 @@ import numpy as np
 from .._atomic import AtomicFile
 from ..errors import EvtkError, FormatError, one_line
 from ..events import Events, Triggers
+from ..limits import require_memory
 from . import _parquet_footer as _footer
 from ._checks import require_readable, scan_events, sorted_for_writing
 from ._overlay import SplicedFile, close_at_exit
-from .base import BaseRecording, BaseWriter, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
+from .base import (
+    BaseRecording,
+    BaseWriter,
+    Damage,
+    StreamInfo,
+    _event_columns,
+    load_json,
+    sensor_dims,
+    time_chunks,
+    window_blocks,
+)
 from .table import KEY_META, KEY_TRIGGERS, _columns, _numpy_of, _pa, _schema, _sensor_from, columns_to_table
 
 __all__ = ["to_arrow", "from_arrow", "ParquetRecording", "write_parquet", "COMPRESSIONS"]
@@ -360,16 +371,23 @@ class ParquetRecording(BaseRecording):
         self._check_open()
         if self.salvage and (t_start_us is not None or t_end_us is not None):
             return self._salvaged_window(t_start_us, t_end_us)
-        groups = self._rows(t_start_us, t_end_us)
-        try:  # all row groups at once, on pyarrow's threads
-            table = self._pf.read_row_groups(groups, columns=["t", "x", "y", "p"], use_threads=True)
-            ev = Events(*_columns(table, self.path), self._sensor)
-        except Exception:  # damaged or invalid somewhere: go group by group to say where
-            return Events.concatenate(list(self._groups_events(t_start_us, t_end_us)), sensor_size=self._sensor)
-        back, outside = scan_events(ev.t, ev.x, ev.y, self._sensor)
-        if back >= 0 or outside >= 0:
-            return Events.concatenate(list(self._groups_events(t_start_us, t_end_us)), sensor_size=self._sensor)
-        return ev.between(t_start_us, t_end_us)
+        # a row group at a time into one set of columns sized by the groups' row counts: the peak is the events
+        # plus one group (reading every group into one table and copying it out held the events twice)
+        declared = sum(max(0, self._groups[g][0]) for g in self._rows(t_start_us, t_end_us))
+        require_memory(13 * declared, "the events of the Parquet file")
+        cols = _event_columns(declared)
+        n = 0
+        for ev in self._groups_events(t_start_us, t_end_us):
+            k = len(ev)
+            if n + k > len(cols[0]):  # a group holding more rows than the footer says (damage it reports itself)
+                grown = _event_columns(max(2 * len(cols[0]), n + k))
+                for dst, src in zip(grown, cols):
+                    dst[:n] = src[:n]
+                cols = grown
+            for dst, src in zip(cols, (ev.t, ev.x, ev.y, ev.p)):
+                dst[n:n + k] = src
+            n += k
+        return Events._trusted(*(c[:n] for c in cols), self._sensor)
 
     def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
         self._check_open()

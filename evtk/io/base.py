@@ -17,6 +17,12 @@ __all__ = ["BaseRecording", "BaseWriter", "StreamInfo", "Damage", "time_chunks",
            "text_header"]
 
 
+def _event_columns(n: int):
+    """Empty event columns (t, x, y, p: int64, uint16, uint16, uint8) for ``n`` events, for readers that decode
+    a file piece by piece into one set of arrays."""
+    return np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8)
+
+
 def _header_end(buf: bytes, cut: bool, prefix: int, last_line) -> tuple[int, bool]:
     """Where the text header at the start of ``buf`` ends, and whether it may go on past ``buf`` (``cut``: the
     file does); see :func:`text_header`."""

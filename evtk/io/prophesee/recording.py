@@ -8,7 +8,7 @@ import numpy as np
 
 from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
-from ..base import BaseRecording, Damage, StreamInfo, sensor_dims
+from ..base import BaseRecording, Damage, StreamInfo, _event_columns, sensor_dims
 from .decoders import (
     _DAT_PREV,
     _DTYPE,
@@ -34,11 +34,6 @@ from .decoders import (
 )
 
 __all__ = ["PropheseeRecording", "EventStreamRecording"]
-
-
-def _columns(n: int):
-    """Empty event columns (t, x, y, p) for ``n`` events."""
-    return np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8)
 
 
 class PropheseeRecording(BaseRecording):
@@ -289,14 +284,14 @@ class PropheseeRecording(BaseRecording):
         sized by what the file's words can hold (pages never written cost no memory), so that the peak is the
         events plus one block's decoding, not the events twice."""
         cap = {EVT2: self._count, EVT3: self._count + 12, DAT: self._count, ES: self._count // 5 + 1}[self.encoding]
-        cols = _columns(cap)
+        cols = _event_columns(cap)
         n = 0
         trs = []
         problem = None
         for ev, tr, problem in self._through():
             k = len(ev)
             if n + k > len(cols[0]):  # EVT 3.0 vectors hold up to 12 events a word: grow (rare)
-                grown = _columns(max(2 * len(cols[0]), n + k))
+                grown = _event_columns(max(2 * len(cols[0]), n + k))
                 for dst, src in zip(grown, cols):
                     dst[:n] = src[:n]
                 cols = grown
