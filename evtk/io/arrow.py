@@ -387,7 +387,8 @@ class ParquetRecording(BaseRecording):
             for dst, src in zip(cols, (ev.t, ev.x, ev.y, ev.p)):
                 dst[n:n + k] = src
             n += k
-        return Events._trusted(*(c[:n] for c in cols), self._sensor)
+        t, x, y, p = (c[:n] for c in cols)
+        return Events._trusted(t, x, y, p, self._sensor)
 
     def iter_events(self, chunk_events: int = 1_000_000, t_start_us=None, t_end_us=None):
         self._check_open()

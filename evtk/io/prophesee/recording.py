@@ -304,7 +304,8 @@ class PropheseeRecording(BaseRecording):
                 break
         if self._triggers is None and not problem:
             self._triggers = Triggers.concatenate(trs)
-        return Events._trusted(*(c[:n] for c in cols), self._size)
+        t, x, y, p = (c[:n] for c in cols)
+        return Events._trusted(t, x, y, p, self._size)
 
     def triggers(self, t_start_us=None, t_end_us=None) -> Triggers:
         self._check_open()
