@@ -298,7 +298,8 @@ class PropheseeRecording(BaseRecording):
             for dst, src in zip(cols, (ev.t, ev.x, ev.y, ev.p)):
                 dst[n:n + k] = src
             n += k
-            trs.append(tr)
+            if len(tr):  # copied out: a view would keep the block's whole trigger buffers alive
+                trs.append(Triggers(tr.t.copy(), tr.kind.copy(), tr.channel.copy()))
             if problem:
                 self._stop(problem)
                 break
