@@ -56,12 +56,12 @@ def _loaded_by(code: str) -> list[str]:
 
 # what each format's own reader needs (its library); nothing else may load
 ALLOWED = {"hdf5": {"h5py"}, "parquet": {"pyarrow"}}
-FORMATS = ["aedat4", "evt2", "evt3", "dat", "aedat2", "nmnist", "csv", "hdf5", "parquet"]
+FORMATS = ["aedat4", "evt2", "evt3", "dat", "es", "aedat2", "nmnist", "csv", "hdf5", "parquet"]
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_a_fresh_read_loads_only_what_the_format_needs(tmp_path, fmt):
-    """Read every event, the streams and a window: EVT 2.0, EVT 3.0 and DAT loaded numba (and with it scipy) for
+    """Read every event, the streams and a window: EVT 2.0, EVT 3.0, DAT and Event Stream loaded numba (and with it scipy) for
     their decoders, HDF5 and Parquet for their order check."""
     path = _fixture(tmp_path, fmt)
     loaded = _loaded_by("import sys, evtk\n"
@@ -72,7 +72,7 @@ def test_a_fresh_read_loads_only_what_the_format_needs(tmp_path, fmt):
     assert set(loaded) <= ALLOWED.get(fmt, set()), loaded
 
 
-@pytest.mark.parametrize("fmt", ["evt2", "evt3", "dat", "hdf5"])
+@pytest.mark.parametrize("fmt", ["evt2", "evt3", "dat", "es", "hdf5"])
 def test_info_and_convert_to_hdf5_load_no_compiler(tmp_path, fmt):
     """`evtk info --check` and `evtk convert F out.h5` went through numba's order check (io/_checks.py)."""
     path = _fixture(tmp_path, fmt)

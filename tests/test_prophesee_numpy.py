@@ -55,3 +55,38 @@ def test_a_large_evt3_file_reads_the_same_through_numba(tmp_path, monkeypatch):
     for a, b, c in zip((small.t, small.x, small.y, small.p), (large.t, large.x, large.y, large.p),
                        (ev.t, ev.x, ev.y, ev.p)):
         assert np.array_equal(a, b) and np.array_equal(a, c)
+
+
+@pytest.mark.parametrize("slice_words", [7, 1 << 16])
+def test_event_stream_numpy_decoder_equals_the_numba_loop(monkeypatch, slice_words):
+    """Event Stream's numpy decoder (0xFE/0xFF bytes between 5-byte events, events cut by a slice's end, events
+    off the sensor) against the numba loop it stands in for; after an event off the sensor decoding stops, and
+    only the time and position in the stream are compared."""
+    monkeypatch.setattr(decoders, "SLICE_WORDS", slice_words)
+    monkeypatch.setattr(decoders, "ES_MARKER_SHARE", 1.0)  # never hand a slice to numba
+    rng = np.random.default_rng(5)
+    for trial in range(400):
+        n = int(rng.integers(0, 80))
+        parts = []
+        while sum(len(q) for q in parts) < n:
+            r = rng.random()
+            if r < 0.05:
+                parts.append(np.full(int(rng.integers(1, 4)), 0xFF, np.uint8))
+            elif r < 0.07:
+                parts.append(np.array([0xFE], np.uint8))
+            else:
+                b0, xx, yy = int(rng.integers(0, 0xFE)), int(rng.integers(0, 48)), int(rng.integers(0, 30))
+                parts.append(np.array([b0, xx & 0xFF, xx >> 8, yy & 0xFF, yy >> 8], np.uint8))
+        data = np.concatenate(parts)[:n] if parts else np.zeros(0, np.uint8)
+        state = np.array([rng.integers(0, 1000), rng.integers(0, 5), rng.integers(0, 300), rng.integers(0, 300),
+                          rng.integers(0, 2)], np.int64)
+        for decode in (False, True):
+            cap = len(data) // 5 + 1
+            got, want = _outs(cap), _outs(cap)
+            s1, s2 = state.copy(), state.copy()
+            r1 = tuple(int(a) for a in decoders._es_np_run(data, s1, 40, 25, decode, *got))
+            r2 = tuple(int(a) for a in decoders._es_dvs_run(data, s2, 40, 25, decode, *want))
+            compared = 2 if r2[2] == decoders.ST_COORD else 5
+            assert r1 == r2 and np.array_equal(s1[:compared], s2[:compared]), (trial, decode, r1, r2)
+            for a, b in zip(got[:4], want[:4]):
+                assert np.array_equal(a[:r1[0]], b[:r1[0]]), trial

@@ -493,7 +493,128 @@ def _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
     return n, 0, ST_OK, -1, t_min, t_max
 
 
-_RUNNERS = {EVT2: _evt2_run, EVT3: _evt3_run, DAT: _dat_run, ES: _es_dvs_run}
+#: Event Stream slices with more bytes of 0xFE or 0xFF than this fraction (long silences: one 0xFF per 127 us
+#: without events) go to :func:`_es_dvs_run`: the numpy decoder takes a Python step per run of such bytes.
+ES_MARKER_SHARE = 1 / 64
+
+
+def _es_dvs_np(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """:func:`_es_dvs_run` with numpy: the same arguments, results and state. An event's five bytes start at a
+    byte below 0xFE read where an event may start; a 0xFF there adds 127 us, a 0xFE nothing. The starts are found
+    a stride of five at a time between such bytes, then the times are one cumulative sum over the events and the
+    0xFF bytes between them, the coordinates one gather. Bytes that complete an event begun in the slice before,
+    and the last few of the slice, go byte by byte. Slices dense in 0xFE/0xFF bytes go to :func:`_es_dvs_run`."""
+    data = np.asarray(data)
+    nb = len(data)
+    if nb and np.count_nonzero(data >= 0xFE) > ES_MARKER_SHARE * nb:
+        return _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch)
+    st = [int(v) for v in state]  # _ES_T, _ES_PHASE, _ES_X, _ES_Y, _ES_POL
+    t_min, t_max = 2**62, -(2**62)
+    n = 0
+
+    def step(i0, i1):
+        """Bytes i0..i1 one at a time (at most a few); returns (status, index) of an event off the sensor."""
+        nonlocal n, t_min, t_max
+        for i in range(i0, i1):
+            b = int(data[i])
+            ph = st[_ES_PHASE]
+            if ph == 0:
+                if b == 0xFF:
+                    st[_ES_T] += 127
+                elif b != 0xFE:
+                    st[_ES_T] += b >> 1
+                    st[_ES_POL] = b & 1
+                    st[_ES_PHASE] = 1
+            elif ph == 1:
+                st[_ES_X], st[_ES_PHASE] = b, 2
+            elif ph == 2:
+                st[_ES_X] |= b << 8
+                st[_ES_PHASE] = 3
+            elif ph == 3:
+                st[_ES_Y], st[_ES_PHASE] = b, 4
+            else:
+                st[_ES_Y] |= b << 8
+                st[_ES_PHASE] = 0
+                if st[_ES_X] >= width or st[_ES_Y] >= height:
+                    return ST_COORD, i
+                if decode:
+                    t[n], x[n], y[n], p[n] = st[_ES_T], st[_ES_X], height - 1 - st[_ES_Y], st[_ES_POL]
+                n += 1
+                t_min, t_max = min(t_min, st[_ES_T]), max(t_max, st[_ES_T])
+        return ST_OK, -1
+
+    def finish(status, bad, keep_xyp):
+        state[_ES_T], state[_ES_PHASE] = st[_ES_T], st[_ES_PHASE]
+        if keep_xyp:
+            state[_ES_X], state[_ES_Y], state[_ES_POL] = st[_ES_X], st[_ES_Y], st[_ES_POL]
+        return n, 0, status, bad, t_min, t_max
+
+    cur = 0
+    if st[_ES_PHASE]:  # the end of an event the slice before began
+        cur = min(nb, 5 - st[_ES_PHASE])
+        status, bad = step(0, cur)
+        if status != ST_OK:
+            return finish(status, bad, False)
+    # the items from ``cur``: event starts and runs of 0xFE/0xFF bytes, in order
+    starts, ff_at = [], []
+    while cur + 5 <= nb:
+        # where events may start, each with its four bytes inside the slice (512 at a time)
+        cand = data[cur:min(nb - 4, cur + 5 * 512):5]
+        mark = cand >= 0xFE
+        j = int(np.argmax(mark))
+        if not mark[j]:
+            starts.append(np.arange(cur, cur + 5 * len(cand), 5))
+            cur += 5 * len(cand)
+            continue
+        starts.append(np.arange(cur, cur + 5 * j, 5))
+        q = r = cur + 5 * j
+        while r < nb:  # the run of such bytes from q, each read where an event may start
+            seg = data[r:r + 256] >= 0xFE
+            k = int(np.argmin(seg))
+            if not seg[k]:
+                r += k
+                break
+            r += len(seg)
+        ff_at.append(q + np.flatnonzero(data[q:r] == 0xFF))
+        cur = r
+    ev = np.concatenate(starts) if starts else np.zeros(0, np.int64)
+    ff = np.concatenate(ff_at) if ff_at else np.zeros(0, np.int64)
+    if len(ev):
+        # times: the start state's, plus every event's increment and 127 for every 0xFF up to it
+        inc = (data[ev] >> 1).astype(np.int64)
+        ff_before = np.searchsorted(ff, ev, side="right")
+        tcs = st[_ES_T] + np.cumsum(inc) + 127 * ff_before
+        xs = data[ev + 1].astype(np.int64) | (data[ev + 2].astype(np.int64) << 8)
+        ys = data[ev + 3].astype(np.int64) | (data[ev + 4].astype(np.int64) << 8)
+        off = (xs >= width) | (ys >= height)
+        k = int(np.argmax(off))
+        if off[k]:  # the clock moves to the event off the sensor (and the 0xFF bytes before it), then stops
+            st[_ES_T] = int(tcs[k])
+            st[_ES_PHASE] = 0
+            if decode:
+                t[n:n + k], x[n:n + k], y[n:n + k] = tcs[:k], xs[:k], height - 1 - ys[:k]
+                p[n:n + k] = data[ev[:k]] & 1
+            if k:
+                t_min, t_max = min(t_min, int(tcs[:k].min())), max(t_max, int(tcs[:k].max()))
+            n += k
+            return finish(ST_COORD, int(ev[k]) + 4, False)
+        if decode:
+            m = len(ev)
+            t[n:n + m], x[n:n + m], y[n:n + m] = tcs, xs, height - 1 - ys
+            p[n:n + m] = data[ev] & 1
+        t_min, t_max = min(t_min, int(tcs.min())), max(t_max, int(tcs.max()))
+        n += len(ev)
+        st[_ES_X], st[_ES_Y], st[_ES_POL] = int(xs[-1]), int(ys[-1]), int(data[ev[-1]] & 1)
+    st[_ES_T] += int(np.sum(data[ev] >> 1, dtype=np.int64)) if len(ev) else 0
+    st[_ES_T] += 127 * len(ff)
+    status, bad = step(cur, nb)  # the last bytes: a few 0xFE/0xFF, an event cut by the slice's end
+    return finish(status, bad, status == ST_OK)
+
+
+_es_np_run = _sliced(_es_dvs_np)
+
+
+_RUNNERS = {EVT2: _evt2_run, EVT3: _evt3_run, DAT: _dat_run, ES: _es_np_run}
 _STATE_SIZE = {EVT2: 2, EVT3: 6, DAT: 2, ES: 5}
 _DTYPE = {EVT2: "<u4", EVT3: "<u2", DAT: "<u4", ES: "u1"}
 # where a word's type sits, and the types a format has (for the message about a word of another type)
