@@ -28,6 +28,7 @@ from .base import (
     Damage,
     StreamInfo,
     _event_columns,
+    _put_events,
     load_json,
     sensor_dims,
     time_chunks,
@@ -378,15 +379,7 @@ class ParquetRecording(BaseRecording):
         cols = _event_columns(declared)
         n = 0
         for ev in self._groups_events(t_start_us, t_end_us):
-            k = len(ev)
-            if n + k > len(cols[0]):  # a group holding more rows than the footer says (damage it reports itself)
-                grown = _event_columns(max(2 * len(cols[0]), n + k))
-                for dst, src in zip(grown, cols):
-                    dst[:n] = src[:n]
-                cols = grown
-            for dst, src in zip(cols, (ev.t, ev.x, ev.y, ev.p)):
-                dst[n:n + k] = src
-            n += k
+            cols, n = _put_events(cols, n, ev)  # (a group holding more rows than the footer says: grown)
         t, x, y, p = (c[:n] for c in cols)
         return Events._trusted(t, x, y, p, self._sensor)
 

@@ -8,7 +8,7 @@ import numpy as np
 
 from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
-from ..base import BaseRecording, Damage, StreamInfo, _event_columns, sensor_dims
+from ..base import BaseRecording, Damage, StreamInfo, _event_columns, _put_events, sensor_dims
 from .decoders import (
     _DAT_PREV,
     _DTYPE,
@@ -289,15 +289,7 @@ class PropheseeRecording(BaseRecording):
         trs = []
         problem = None
         for ev, tr, problem in self._through():
-            k = len(ev)
-            if n + k > len(cols[0]):  # EVT 3.0 vectors hold up to 12 events a word: grow (rare)
-                grown = _event_columns(max(2 * len(cols[0]), n + k))
-                for dst, src in zip(grown, cols):
-                    dst[:n] = src[:n]
-                cols = grown
-            for dst, src in zip(cols, (ev.t, ev.x, ev.y, ev.p)):
-                dst[n:n + k] = src
-            n += k
+            cols, n = _put_events(cols, n, ev)  # (EVT 3.0 vectors hold up to 12 events a word: grown)
             if len(tr):  # copied out: a view would keep the block's whole trigger buffers alive
                 trs.append(Triggers(tr.t.copy(), tr.kind.copy(), tr.channel.copy()))
             if problem:
