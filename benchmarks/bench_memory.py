@@ -2,6 +2,7 @@
 
     python benchmarks/bench_memory.py                          # 1e7, 1e8 and 1e9 events
     python benchmarks/bench_memory.py --events 1e7,1e8 --json benchmarks/results/memory.json
+    python benchmarks/bench_memory.py --full-reads 1e7           # a whole read of each format against its arrays
 
 For each size a recording is generated lazily (1 M-event chunks of uniform
 events at 20 M events/s on a 320x240 sensor, AEDAT4 with LZ4) and written
@@ -12,6 +13,12 @@ reconstructing it (``reconstruct`` with 50 ms periodic windows over a 64x64
 region, so the output itself stays small). Flat peaks across sizes mean
 memory is bounded by the chunk, not the file. Files go to
 ``benchmarks/data`` and are deleted afterwards unless ``--keep``.
+
+``--full-reads N`` instead writes the same N uniform events in every format
+evtk writes (AEDAT4 LZ4, EVT 2.0, EVT 3.0, DAT, Event Stream, HDF5, Parquet)
+and reads each whole (``rec.events()``) in a fresh process: the peak
+resident memory (``VmHWM``) once the file is open (the format's imports
+loaded) and after the read, against the bytes of the arrays returned.
 """
 
 from __future__ import annotations
@@ -82,15 +89,78 @@ def _child(mode, path, n):
                       "peak_mib": _peak_mib(), "start_mib": base_mib}))
 
 
+FULL_FORMATS = {"aedat4": "aedat4", "evt2": "raw", "evt3": "raw", "dat": "dat", "es": "es", "hdf5": "h5",
+                "parquet": "parquet"}
+
+
+def _hwm_mib():
+    """This process's own peak resident memory (``ru_maxrss`` can carry the parent's over fork and exec)."""
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 1024
+    except (OSError, StopIteration):
+        return _peak_mib()
+
+
+def _full_read_child(path):
+    import evtk
+
+    with evtk.open(path) as rec:
+        base = _hwm_mib()
+        t0 = time.perf_counter()
+        ev = rec.events()
+        seconds = time.perf_counter() - t0
+        peak = _hwm_mib()
+    arrays = sum(a.nbytes for a in (ev.t, ev.x, ev.y, ev.p)) / 2**20
+    print(json.dumps({"events": len(ev), "seconds": seconds, "base_mib": base, "peak_mib": peak,
+                      "arrays_mib": arrays, "peak_over_arrays": (peak - base) / arrays}))
+
+
+def full_reads(n, keep):
+    """Write ``n`` events in every format, read each whole in a fresh process: peak over arrays."""
+    import numpy as np
+
+    import evtk
+
+    DATA.mkdir(exist_ok=True)
+    rng = np.random.default_rng(0)
+    ev = evtk.Events(np.sort(rng.integers(0, n // 20, n)), rng.integers(0, 320, n).astype(np.uint16),
+                     rng.integers(0, 240, n).astype(np.uint16), rng.integers(0, 2, n).astype(np.uint8), (320, 240))
+    rows = []
+    print(f"{'format':<10}{'events':>12}{'arrays MiB':>12}{'read peak MiB':>15}{'peak/arrays':>13}{'seconds':>9}")
+    for fmt, ext in FULL_FORMATS.items():
+        path = DATA / f"full_{n}_{fmt}.{ext}"
+        if not path.exists():
+            evtk.write_events(path, ev, fmt=fmt)
+        (r,) = child_runs(Path(__file__), ["fullread", path, n], repeats=1)
+        r["format"] = fmt
+        rows.append(r)
+        print(f"{fmt:<10}{r['events']:>12,d}{r['arrays_mib']:>12.0f}{r['peak_mib'] - r['base_mib']:>15.0f}"
+              f"{r['peak_over_arrays']:>13.3f}{r['seconds']:>9.2f}", flush=True)
+        if not keep:
+            path.unlink()
+    return rows
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--events", default="1e7,1e8,1e9")
     ap.add_argument("--keep", action="store_true")
     ap.add_argument("--json")
+    ap.add_argument("--full-reads", type=float, metavar="N", help="peak of a whole read of each format, N events")
     ap.add_argument("--child", nargs=3, metavar=("MODE", "PATH", "N"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        _child(args.child[0], args.child[1], int(args.child[2]))
+        if args.child[0] == "fullread":
+            _full_read_child(args.child[1])
+        else:
+            _child(args.child[0], args.child[1], int(args.child[2]))
+        return
+    if args.full_reads:
+        rows = full_reads(int(args.full_reads), args.keep)
+        if args.json:
+            with open(args.json, "w") as fh:
+                json.dump(rows, fh, indent=1)
         return
     DATA.mkdir(exist_ok=True)
     rows = []

@@ -8,7 +8,7 @@ from distributed import WorkerPlugin
 
 
 class WorkerThreads(WorkerPlugin):
-    """Give each worker process its share of the machine's threads (``EVTK_IO_THREADS``, which bounds
+    """Give each worker process its share of the machine's threads (``EVTK_THREADS``, which bounds
     evtk's decode threads and its numba parallel loops), set inside the worker when it starts or
     restarts, so the parent process's environment is left alone."""
 
@@ -18,4 +18,6 @@ class WorkerThreads(WorkerPlugin):
         self.threads = int(threads)
 
     def setup(self, worker):
-        os.environ["EVTK_IO_THREADS"] = str(self.threads)
+        from ._threads import ALIAS, ENV
+
+        os.environ[ENV] = os.environ[ALIAS] = str(self.threads)

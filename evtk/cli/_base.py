@@ -105,9 +105,12 @@ class _Group(click.Group):
 @click.option("--layout", type=click.Choice(["dvs128", "davis"]),
               help="AEDAT 2.0: the address layout, where the header names no camera (found from the addresses "
                    "otherwise).")
+@click.option("--threads", type=click.IntRange(min=1, max=4096),
+              help="Threads for decoding, compression and parallel loops (default: every core the process may "
+                   "run on; EVTK_THREADS does the same).")
 @click.pass_context
 def main(ctx, debug, trust_external, verify_checksums, memory_limit_mb, trigger_channel, sensor_size,
-         layout):
+         layout, threads):
     """evtk: event recordings of the opto-electronic convolution accelerator."""
     import os
 
@@ -130,6 +133,10 @@ def main(ctx, debug, trust_external, verify_checksums, memory_limit_mb, trigger_
         changes["EVTK_SENSOR_SIZE"] = sensor_size.strip()
     if layout is not None:
         changes["EVTK_LAYOUT"] = layout
+    if threads is not None:
+        from .._threads import ENV as THREADS_ENV
+
+        changes[THREADS_ENV] = str(threads)
     saved = {k: os.environ.get(k) for k in changes}
     os.environ.update(changes)
 

@@ -9,13 +9,17 @@ from __future__ import annotations
 import functools
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 import lz4.frame
-import xxhash
-import zstandard
 
 from .._threads import workers
+
+if TYPE_CHECKING:
+    from concurrent.futures import ThreadPoolExecutor
+
+# zstandard, xxhash and concurrent.futures load where first needed: an LZ4 file small enough to decode on one
+# thread needs none of them
 
 NONE, LZ4, LZ4_HIGH, ZSTD, ZSTD_HIGH = range(5)
 
@@ -31,6 +35,7 @@ MAX_PACKET_BYTES = 2**31 - 1
 
 _local = threading.local()
 _pool = None
+_pool_size = 0
 _pool_lock = threading.Lock()
 
 
@@ -51,10 +56,22 @@ def verify_by_default() -> bool:
 
 
 def pool() -> ThreadPoolExecutor:
-    global _pool
+    """The decode and compression threads, :func:`evtk._threads.workers` of them (made again when that changes).
+
+    Returns
+    -------
+    concurrent.futures.ThreadPoolExecutor
+        The shared pool.
+    """
+    global _pool, _pool_size
+    n = workers()
     with _pool_lock:
-        if _pool is None:
-            _pool = ThreadPoolExecutor(max_workers=workers(), thread_name_prefix="evtk-io")
+        if _pool is None or _pool_size != n:
+            if _pool is not None:
+                _pool.shutdown(wait=False)  # what it runs finishes; new work goes to the new pool
+            from concurrent.futures import ThreadPoolExecutor
+
+            _pool, _pool_size = ThreadPoolExecutor(max_workers=n, thread_name_prefix="evtk-io"), n
         return _pool
 
 
@@ -161,6 +178,8 @@ def decompress(code: int, body, limit: int, verify: bool = True):
     if code in (ZSTD, ZSTD_HIGH):
         if bytes(body[:4]) != _ZSTD_MAGIC:
             raise CodecError(_mismatch("ZSTD", body))
+        import zstandard
+
         dctx = getattr(_local, "dctx", None)
         if dctx is None:
             dctx = _local.dctx = zstandard.ZstdDecompressor()
@@ -226,6 +245,8 @@ def lz4_without_checksums(body):
 @functools.lru_cache(maxsize=64)
 def _lz4_header_checksum(desc: bytes) -> bytes:
     """The frame descriptor's check byte: the second byte of its xxHash32 (seed 0)."""
+    import xxhash
+
     return bytes([(xxhash.xxh32_intdigest(desc) >> 8) & 0xFF])
 
 
@@ -271,6 +292,8 @@ def compress(code: int, data) -> bytes:
         key = f"cctx{code}"
         cctx = getattr(_local, key, None)
         if cctx is None:
+            import zstandard
+
             cctx = zstandard.ZstdCompressor(level=1 if code == ZSTD else 9, write_content_size=True)
             setattr(_local, key, cctx)
         return cctx.compress(data)

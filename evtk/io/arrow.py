@@ -20,11 +20,23 @@ import numpy as np
 from .._atomic import AtomicFile
 from ..errors import EvtkError, FormatError, one_line
 from ..events import Events, Triggers
+from ..limits import require_memory
 from . import _parquet_footer as _footer
 from ._checks import require_readable, scan_events, sorted_for_writing
 from ._overlay import SplicedFile, close_at_exit
-from .base import BaseRecording, BaseWriter, Damage, StreamInfo, load_json, sensor_dims, time_chunks, window_blocks
-from .table import KEY_META, KEY_TRIGGERS, _columns, _pa, _schema, _sensor_from, columns_to_table
+from .base import (
+    BaseRecording,
+    BaseWriter,
+    Damage,
+    StreamInfo,
+    _event_columns,
+    _put_events,
+    load_json,
+    sensor_dims,
+    time_chunks,
+    window_blocks,
+)
+from .table import KEY_META, KEY_TRIGGERS, _columns, _numpy_of, _pa, _schema, _sensor_from, columns_to_table
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -317,8 +329,8 @@ class ParquetRecording(BaseRecording):
             try:
                 tab = self._pf.read_row_group(g, columns=["x", "y"])
                 if tab.num_rows:
-                    w = max(w, int(np.max(tab.column("x").to_numpy())) + 1)
-                    h = max(h, int(np.max(tab.column("y").to_numpy())) + 1)
+                    w = max(w, int(np.max(_numpy_of(tab.column("x")))) + 1)
+                    h = max(h, int(np.max(_numpy_of(tab.column("y")))) + 1)
             except Exception as exc:  # pyarrow raises OSError, ArrowInvalid, ... on damaged pages
                 problem = _unreadable(g, exc)
                 if not self.salvage:
@@ -362,7 +374,7 @@ class ParquetRecording(BaseRecording):
     def _group_span(self, g):
         """(first, last) time stamp of row group ``g``, or None when it is empty or unreadable."""
         try:
-            t = self._pf.read_row_group(g, columns=["t"]).column(0).to_numpy()
+            t = _numpy_of(self._pf.read_row_group(g, columns=["t"]).column(0))
         except Exception:  # noqa: BLE001 - pyarrow's errors on a damaged group; the full read reports it
             return None
         return (int(t[0]), int(t[-1])) if len(t) else None
@@ -428,16 +440,16 @@ class ParquetRecording(BaseRecording):
         self._check_open()
         if self.salvage and (t_start_us is not None or t_end_us is not None):
             return self._salvaged_window(t_start_us, t_end_us)
-        groups = self._rows(t_start_us, t_end_us)
-        try:  # all row groups at once, on pyarrow's threads
-            table = self._pf.read_row_groups(groups, columns=["t", "x", "y", "p"], use_threads=True)
-            ev = Events(*_columns(table, self.path), self._sensor)
-        except Exception:  # damaged or invalid somewhere: go group by group to say where
-            return Events.concatenate(list(self._groups_events(t_start_us, t_end_us)), sensor_size=self._sensor)
-        back, outside = scan_events(ev.t, ev.x, ev.y, self._sensor)
-        if back >= 0 or outside >= 0:
-            return Events.concatenate(list(self._groups_events(t_start_us, t_end_us)), sensor_size=self._sensor)
-        return ev.between(t_start_us, t_end_us)
+        # a row group at a time into one set of columns sized by the groups' row counts: the peak is the events
+        # plus one group (reading every group into one table and copying it out held the events twice)
+        declared = sum(max(0, self._groups[g][0]) for g in self._rows(t_start_us, t_end_us))
+        require_memory(13 * declared, "the events of the Parquet file")
+        cols = _event_columns(declared)
+        n = 0
+        for ev in self._groups_events(t_start_us, t_end_us):
+            cols, n = _put_events(cols, n, ev)  # (a group holding more rows than the footer says: grown)
+        t, x, y, p = (c[:n] for c in cols)
+        return Events._trusted(t, x, y, p, self._sensor)
 
     def iter_events(self, chunk_events: int = 1_000_000, t_start_us: int | None = None,
                     t_end_us: int | None = None) -> Iterator[Events]:

@@ -18,6 +18,26 @@ __all__ = ["BaseRecording", "BaseWriter", "StreamInfo", "Damage", "time_chunks",
            "text_header"]
 
 
+def _event_columns(n: int):
+    """Empty event columns (t, x, y, p: int64, uint16, uint16, uint8) for ``n`` events, for readers that decode
+    a file piece by piece into one set of arrays."""
+    return np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.uint8)
+
+
+def _put_events(cols, n: int, ev):
+    """Copy the events ``ev`` into the columns ``cols`` (:func:`_event_columns`) after their first ``n``; columns
+    too short are replaced by ones twice as long (or as long as needed). Returns ``(cols, n + len(ev))``."""
+    k = len(ev)
+    if n + k > len(cols[0]):
+        grown = _event_columns(max(2 * len(cols[0]), n + k))
+        for dst, src in zip(grown, cols):
+            dst[:n] = src[:n]
+        cols = grown
+    for dst, src in zip(cols, (ev.t, ev.x, ev.y, ev.p)):
+        dst[n:n + k] = src
+    return cols, n + k
+
+
 def _header_end(buf: bytes, cut: bool, prefix: int, last_line) -> tuple[int, bool]:
     """Where the text header at the start of ``buf`` ends, and whether it may go on past ``buf`` (``cut``: the
     file does); see :func:`text_header`."""

@@ -12,7 +12,16 @@ from __future__ import annotations
 from .common import _IDENT, DEFAULT_PACKET_EVENTS, DEFAULT_PACKET_US, MAGIC  # noqa: F401  (_IDENT: the fuzzers)
 from .reader import Recording
 
-# the header's parts: the hostile-file tests and fuzzers build files from them
-from .writer import _DTP_FIELD, Aedat4Writer, _header_xml, _io_header, write_aedat4  # noqa: F401
+# the writer (and with it evtk._atomic's tempfile, socket and hashlib) loads on first use: reading needs none of
+# it. The header's parts (_DTP_FIELD, _header_xml, _io_header) are there for the hostile-file tests and fuzzers.
+_WRITER_NAMES = ("Aedat4Writer", "write_aedat4", "_DTP_FIELD", "_header_xml", "_io_header")
+
+
+def __getattr__(name: str):
+    if name in _WRITER_NAMES:
+        from . import writer
+
+        return getattr(writer, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = ["Recording", "Aedat4Writer", "write_aedat4", "MAGIC", "DEFAULT_PACKET_EVENTS", "DEFAULT_PACKET_US"]

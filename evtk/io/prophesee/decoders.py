@@ -8,14 +8,14 @@ import re
 from collections.abc import Iterable
 
 import numpy as np
-from numba import njit
 
+from ..._lazyjit import njit  # Event Stream and large EVT 3.0 files: numba loads when first needed
 from ..base import sensor_dims, text_header
 
 __all__ = ["sniff", "sniff_lines", "word_type", "evt21_legacy"]
 
 
-BLOCK_WORDS = 1 << 20  # decoding unit: 4 MiB of EVT 2.0 words, 8 MiB of DAT events
+BLOCK_WORDS = 1 << 18  # decoding unit: 1 MiB of EVT 2.0 words, 2 MiB of DAT events
 _MAX_HEADER = 1 << 20
 
 EVT2, EVT21, EVT3, DAT = "evt2", "evt21", "evt3", "dat"
@@ -100,13 +100,102 @@ def _sensor_from_header(lines, path):
     return None
 
 
-# -- decoding (numba) -------------------------------------------------------------------------------------------
+# -- decoding (numpy; numba for Event Stream and large EVT 3.0) -------------------------------------------------------
 
 
 # decoder states (int64 arrays, updated in place so that a block goes on where the one before ended)
 # EVT 2.0: time high, epoch (wraps of the 34-bit time); DAT: last raw time stamp, epoch (wraps of 32 bits)
 _E2_HIGH, _E2_EPOCH = range(2)
 _DAT_PREV, _DAT_EPOCH = range(2)
+
+
+def _first_stop(*masks) -> tuple[int, int]:
+    """``(index, which)`` of the first True over ``masks`` (``which``: the mask's position), or ``(-1, -1)``."""
+    best, which = -1, -1
+    for k, mask in enumerate(masks):
+        if len(mask):
+            i = int(np.argmax(mask))
+            if mask[i] and (best < 0 or i < best):
+                best, which = i, k
+    return best, which
+
+
+#: Words each numpy pass takes at a time: its temporaries stay in the cache (and a few MiB whatever the file).
+SLICE_WORDS = 1 << 16
+
+
+def _sliced(core, words_per_item=1):
+    """A runner that applies ``core`` (a numpy runner) to :data:`SLICE_WORDS` words at a time, the state
+    carried from slice to slice and each slice's events written after the last's: the same results as one
+    call over all the words, with temporaries bounded by the slice. The problem's index counts items of
+    ``words_per_item`` words (DAT: events of two)."""
+
+    def run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
+        n = m = 0
+        t_min, t_max = 2**62, -(2**62)
+        for a in range(0, max(len(words), 1), SLICE_WORDS):
+            k, j, status, bad, lo, hi = core(words[a:a + SLICE_WORDS], state, width, height, decode, t[n:], x[n:],
+                                             y[n:], p[n:], tt[m:], tk[m:], tch[m:])
+            n, m, t_min, t_max = n + k, m + j, min(t_min, lo), max(t_max, hi)
+            if status != ST_OK:
+                return n, m, status, a // words_per_item + bad, t_min, t_max
+        return n, m, ST_OK, -1, t_min, t_max
+
+    run.__doc__, run.__name__, run.__qualname__ = core.__doc__, core.__name__, core.__qualname__
+    return run
+
+
+@_sliced
+def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """One pass over EVT 2.0 words, vectorised with numpy: counts, or with ``decode`` the events and triggers.
+    Returns (events, triggers, status, word index of the problem, min t, max t); the min and max only when
+    counting. ``state`` (time high, epoch) carries over from the block before and is updated.
+
+    Every word is 32 bits with its type in the top four: CD_OFF/CD_ON (0, 1) hold x in bits 11..21, y in
+    0..10 and the six low time bits in 22..27; EV_TIME_HIGH (8) bits 6..33 of the time in its 28 low bits (a
+    drop of more than half their range is a wrap: the epoch counts them); EXT_TRIGGER (10) the edge in bit 0
+    and the channel in bits 8..12; OTHERS and CONTINUED (14, 15) carry no events. Decoding stops at the
+    first word of another type (ST_TYPE) or the first event off the sensor (ST_COORD)."""
+    words = np.asarray(words)
+    kind = words >> 28
+    cd = kind <= 1
+    xs = (words >> 11) & 0x7FF
+    ys = words & 0x7FF
+    known = cd | (kind == 8) | (kind == 10) | (kind >= 14)
+    bad, which = _first_stop(cd & ((xs >= width) | (ys >= height)), ~known)
+    status = ST_OK if bad < 0 else (ST_COORD, ST_TYPE)[which]
+    if bad >= 0:
+        words, kind, cd, xs, ys = words[:bad], kind[:bad], cd[:bad], xs[:bad], ys[:bad]
+    high, epoch = int(state[_E2_HIGH]), int(state[_E2_EPOCH])
+    is_high = kind == 8
+    new = (words[is_high] & 0xFFFFFFF).astype(np.int64)
+    if len(new):
+        before = np.concatenate(([high], new[:-1]))
+        epochs = epoch + np.cumsum((new < before) & (before - new > (1 << 27)))
+        state[_E2_HIGH], state[_E2_EPOCH] = new[-1], epochs[-1]
+        # the time base of each word: the last time-high word at or before it (the block's start state first)
+        bases = np.concatenate(([(epoch << 34) | (high << 6)], (epochs << 34) | (new << 6)))
+        ordinal = np.cumsum(is_high)
+    else:
+        bases, ordinal = np.array([(epoch << 34) | (high << 6)], np.int64), None
+    at = np.flatnonzero(cd)
+    n = len(at)
+    tc = bases[ordinal[at]] if ordinal is not None else np.full(n, bases[0])
+    tc |= (words[at] >> 22) & 0x3F
+    trig = np.flatnonzero(kind == 10)
+    m = len(trig)
+    if decode:
+        t[:n] = tc
+        x[:n] = xs[at]
+        y[:n] = ys[at]
+        p[:n] = kind[at]
+        if m:
+            wt = words[trig]
+            tt[:m] = (bases[ordinal[trig]] if ordinal is not None else bases[0]) | ((wt >> 22) & 0x3F)
+            tk[:m] = np.where(wt & 1, 1, 2)  # kind 1 rising, 2 falling (evtk's Triggers)
+            tch[:m] = (wt >> 8) & 0x1F
+        return n, m, status, bad, 2**62, -(2**62)
+    return n, m, status, bad, (int(tc.min()) if n else 2**62), (int(tc.max()) if n else -(2**62))
 
 
 # EVT 2.1 decoder state: EVT 2.0's (time high, epoch), and the word layout (1: OpenEB's "endianness=legacy", the
@@ -203,53 +292,44 @@ def _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, wid
 
 
 @njit(cache=True, nogil=True)
-def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """:func:`_evt2x_run` over EVT 2.0 words."""
-    return _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, False)
-
-
-@njit(cache=True, nogil=True)
 def _evt21_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """:func:`_evt2x_run` over EVT 2.1 words."""
     return _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, True)
 
 
-@njit(cache=True, nogil=True)
 def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """One pass over DAT CD events (pairs of uint32: time stamp, data), with :func:`_evt2_run`'s arguments
-    and results (DAT files hold no triggers)."""
-    prev = state[_DAT_PREV]
-    epoch = state[_DAT_EPOCH]
-    n = 0
-    t_min = np.int64(2**62)
-    t_max = np.int64(-(2**62))
-    status = ST_OK
-    bad = -1
-    for i in range(len(raw) // 2):
-        ts = np.int64(raw[2 * i])
-        d = np.int64(raw[2 * i + 1])
-        if ts < prev and prev - ts > (1 << 31):  # the 32-bit counter wrapped
-            epoch += 1
-        prev = ts
-        xi = d & 0x3FFF
-        yi = (d >> 14) & 0x3FFF
-        if xi >= width or yi >= height:
-            status = ST_COORD
-            bad = i
-            break
-        tc = (epoch << 32) | ts
-        if decode:
-            t[n] = tc
-            x[n] = xi
-            y[n] = yi
-            p[n] = 1 if (d >> 28) & 0xF else 0
-        else:
-            t_min = min(t_min, tc)
-            t_max = max(t_max, tc)
-        n += 1
-    state[_DAT_PREV] = prev
-    state[_DAT_EPOCH] = epoch
-    return n, 0, status, bad, t_min, t_max
+    """One pass over DAT CD events (pairs of uint32: time stamp, data), vectorised, with :func:`_evt2_run`'s
+    arguments and results (DAT files hold no triggers). The data word holds x in bits 0..13, y in 14..27 and
+    the polarity in 28..31 (any bit set: ON); a time stamp more than half the 32-bit range below the one
+    before is a wrap of the counter."""
+    raw = np.asarray(raw)
+    k = len(raw) // 2
+    ts = raw[0:2 * k:2].astype(np.int64)
+    d = raw[1:2 * k:2]
+    xs = d & 0x3FFF
+    ys = (d >> 14) & 0x3FFF
+    bad, _ = _first_stop((xs >= width) | (ys >= height))
+    status = ST_OK if bad < 0 else ST_COORD
+    prev, epoch = int(state[_DAT_PREV]), int(state[_DAT_EPOCH])
+    seen = ts if bad < 0 else ts[:bad + 1]  # the event off the sensor still moves the clock, as it is read
+    if len(seen):
+        before = np.concatenate(([prev], seen[:-1]))
+        epochs = epoch + np.cumsum((seen < before) & (before - seen > (1 << 31)))
+        state[_DAT_PREV], state[_DAT_EPOCH] = seen[-1], epochs[-1]
+    else:
+        epochs = np.zeros(0, np.int64)
+    n = k if bad < 0 else bad
+    tc = (epochs[:n] << 32) | ts[:n]
+    if decode:
+        t[:n] = tc
+        x[:n] = xs[:n]
+        y[:n] = ys[:n]
+        np.not_equal(d[:n] >> 28, 0, out=p[:n].view(np.bool_))
+        return n, 0, status, bad, 2**62, -(2**62)
+    return n, 0, status, bad, (int(tc.min()) if n else 2**62), (int(tc.max()) if n else -(2**62))
+
+
+_dat_run = _sliced(_dat_run, words_per_item=2)
 
 
 def word_type(encoding: str, word: int, legacy: bool = False) -> int:
@@ -299,11 +379,122 @@ def evt21_legacy(lines: list[str]) -> bool:
 _E3_HIGH, _E3_LOW, _E3_EPOCH, _E3_Y, _E3_BASE, _E3_POL = range(6)
 
 
-@njit(cache=True, nogil=True)
+@_sliced
 def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """One pass over EVT 3.0 words (16 bits, type in the top four): counts, or with ``decode`` the events
-    and triggers. ``state`` (:data:`_E3_HIGH` ...) carries over from the previous block and is updated.
-    Returns (events, triggers, status, word index of the problem, min t, max t)."""
+    """One pass over EVT 3.0 words (16 bits, type in the top four), vectorised with numpy: counts, or with
+    ``decode`` the events and triggers. ``state`` (:data:`_E3_HIGH` ...) carries over from the previous block
+    and is updated. Returns (events, triggers, status, word index of the problem, min t, max t).
+
+    EVT_ADDR_Y (0) sets y; EVT_ADDR_X (2) is one event at its x with its polarity (bit 11); VECT_BASE_X (3)
+    sets the x and polarity of the vectors after it; VECT_12 (4) and VECT_8 (5) are events at base x + k for
+    each set bit k of their 12 or 8 bits, and move the base on by 12 or 8; EVT_TIME_LOW (6) and
+    EVT_TIME_HIGH (8) set bits 0..11 and 12..23 of the time (a drop of more than half the high bits' range is a
+    wrap: the epoch counts them); EXT_TRIGGER (10) holds the edge in bit 0 and the channel in bits 8..11;
+    7, 14 and 15 carry no events. Decoding stops at a word of another type (ST_TYPE), at the first event off
+    the sensor (ST_COORD: the events of that word before it are kept) or, decoding, at an event word whose
+    12 possible events no longer fit ``t`` (ST_FULL, for the caller to resume at it)."""
+    w = np.asarray(words).astype(np.int64)
+    kind = w >> 12
+    v = w & 0xFFF
+    n_words = len(w)
+    known = (kind == 0) | ((kind >= 2) & (kind <= 8)) | (kind == 10) | (kind >= 14)
+    stop, _ = _first_stop(~known)
+    status = ST_TYPE if stop >= 0 else ST_OK
+    end = stop if stop >= 0 else n_words
+    kind, v = kind[:end], v[:end]
+    is_x, is_v12, is_v8 = kind == 2, kind == 4, kind == 5
+    is_ev = is_x | is_v12 | is_v8
+    mask = np.where(is_x, 1, np.where(is_v12, v, v & 0xFF))
+    mask[~is_ev] = 0
+    if decode:
+        counts = np.zeros(end, np.int64)
+        for k in range(12):
+            counts += (mask >> k) & 1
+        before = np.cumsum(counts) - counts  # events of the words before each
+        is_trig = kind == 10
+        full, _ = _first_stop(is_ev & (before + 12 > len(t)), is_trig & (np.cumsum(is_trig) > len(tt)))
+        if full >= 0:
+            status, stop, end = ST_FULL, full, full
+    # the state in effect at a word: the last word at or before it that sets each part (else the start state)
+    kv = kind[:end]
+    vv = v[:end]
+    at_y, at_low, at_high, at_base = (np.flatnonzero(kv == k) for k in (0, 6, 8, 3))
+    highs = vv[at_high]
+    prev = np.concatenate(([state[_E3_HIGH]], highs[:-1]))
+    epochs = state[_E3_EPOCH] + np.cumsum((highs < prev) & (prev - highs > 2048))
+    steps = np.where(is_v12[:end], 12, np.where(is_v8[:end], 8, 0))
+    moved = np.cumsum(steps) - steps  # steps of the vectors before each word
+
+    def state_at(pos):
+        """(y, time, base x, polarity) in effect at the word positions ``pos`` (sorted)."""
+        def last(setters, values, initial):
+            k = np.searchsorted(setters, pos, side="right") - 1
+            return np.where(k >= 0, values[np.maximum(k, 0)], initial) if len(setters) else np.full(len(pos), initial)
+
+        yy = last(at_y, vv[at_y] & 0x7FF, state[_E3_Y])
+        tw = ((last(at_high, epochs, state[_E3_EPOCH]) << 24) | (last(at_high, highs, state[_E3_HIGH]) << 12)
+              | last(at_low, vv[at_low], state[_E3_LOW]))
+        kb = np.searchsorted(at_base, pos, side="right") - 1
+        if len(at_base):
+            b = at_base[np.maximum(kb, 0)]
+            base = np.where(kb >= 0, (vv[b] & 0x7FF) + moved[pos] - moved[b], state[_E3_BASE] + moved[pos])
+            pol = np.where(kb >= 0, (vv[b] >> 11) & 1, state[_E3_POL])
+        else:
+            base, pol = state[_E3_BASE] + moved[pos], np.full(len(pos), state[_E3_POL])
+        return yy, tw, base, pol
+
+    # every event, in word order and by bit within a word
+    ev_words = np.flatnonzero(is_ev[:end])
+    rows, bits = np.nonzero((mask[ev_words].astype(np.uint16)[:, None] >> np.arange(12, dtype=np.uint16)) & 1)
+    w_y, w_t, w_base, w_pol = state_at(ev_words)
+    ex = np.where(is_x[:end][ev_words], vv[ev_words] & 0x7FF, w_base)[rows] + bits  # EVT_ADDR_X: bit 0 only
+    ey = w_y[rows]
+    bad_ev, _ = _first_stop((ex >= width) | (ey >= height))
+    done = end  # the words whose effects stand: those before the stop
+    if bad_ev >= 0:
+        status, stop = ST_COORD, int(ev_words[rows[bad_ev]])
+        done = stop
+        n = bad_ev
+    else:
+        n = len(rows)
+    rows, ex, ey = rows[:n], ex[:n], ey[:n]
+    et = w_t[rows]
+    trig = np.flatnonzero(kv[:done] == 10)
+    m = len(trig)
+    if decode:
+        t[:n] = et
+        x[:n] = ex
+        y[:n] = ey
+        p[:n] = np.where(is_x[:end][ev_words], (vv[ev_words] >> 11) & 1, w_pol)[rows]
+        if m:
+            tt[:m] = state_at(trig)[1]
+            tk[:m] = np.where(v[trig] & 1, 1, 2)
+            tch[:m] = (v[trig] >> 8) & 0xF
+    # the state after the words decoded (those before the stop)
+    if done:
+        last_y, last_t, last_base, last_pol = state_at(np.array([done - 1]))
+        state[_E3_Y], state[_E3_POL] = last_y[0], last_pol[0]
+        state[_E3_BASE] = last_base[0] + steps[done - 1]
+        k = np.searchsorted(at_high, done - 1, side="right") - 1
+        if k >= 0:
+            state[_E3_HIGH], state[_E3_EPOCH] = highs[k], epochs[k]
+        k = np.searchsorted(at_low, done - 1, side="right") - 1
+        if k >= 0:
+            state[_E3_LOW] = vv[at_low[k]]
+    return n, m, status, (stop if status != ST_OK else -1), (int(et.min()) if n else 2**62), \
+        (int(et.max()) if n else -(2**62))
+
+
+#: EVT 3.0 files of at least this many words decode with :func:`_evt3_run_jit`: the numpy decoder takes about
+#: 0.09 s a million words, numba's about 0.01 once loaded, and loading it (import and cached machine code) about
+#: 0.7 s of a fresh process.
+EVT3_JIT_WORDS = 8 << 20
+
+
+@njit(cache=True, nogil=True)
+def _evt3_run_jit(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """:func:`_evt3_run` compiled by numba, for large files (:data:`EVT3_JIT_WORDS`): the same arguments,
+    results and stops."""
     high = state[_E3_HIGH]
     low = state[_E3_LOW]
     epoch = state[_E3_EPOCH]
@@ -449,7 +640,128 @@ def _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
     return n, 0, ST_OK, -1, t_min, t_max
 
 
-_RUNNERS = {EVT2: _evt2_run, EVT21: _evt21_run, EVT3: _evt3_run, DAT: _dat_run, ES: _es_dvs_run}
+#: Event Stream slices with more bytes of 0xFE or 0xFF than this fraction (long silences: one 0xFF per 127 us
+#: without events) go to :func:`_es_dvs_run`: the numpy decoder takes a Python step per run of such bytes.
+ES_MARKER_SHARE = 1 / 64
+
+
+def _es_dvs_np(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """:func:`_es_dvs_run` with numpy: the same arguments, results and state. An event's five bytes start at a
+    byte below 0xFE read where an event may start; a 0xFF there adds 127 us, a 0xFE nothing. The starts are found
+    a stride of five at a time between such bytes, then the times are one cumulative sum over the events and the
+    0xFF bytes between them, the coordinates one gather. Bytes that complete an event begun in the slice before,
+    and the last few of the slice, go byte by byte. Slices dense in 0xFE/0xFF bytes go to :func:`_es_dvs_run`."""
+    data = np.asarray(data)
+    nb = len(data)
+    if nb and np.count_nonzero(data >= 0xFE) > ES_MARKER_SHARE * nb:
+        return _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch)
+    st = [int(v) for v in state]  # _ES_T, _ES_PHASE, _ES_X, _ES_Y, _ES_POL
+    t_min, t_max = 2**62, -(2**62)
+    n = 0
+
+    def step(i0, i1):
+        """Bytes i0..i1 one at a time (at most a few); returns (status, index) of an event off the sensor."""
+        nonlocal n, t_min, t_max
+        for i in range(i0, i1):
+            b = int(data[i])
+            ph = st[_ES_PHASE]
+            if ph == 0:
+                if b == 0xFF:
+                    st[_ES_T] += 127
+                elif b != 0xFE:
+                    st[_ES_T] += b >> 1
+                    st[_ES_POL] = b & 1
+                    st[_ES_PHASE] = 1
+            elif ph == 1:
+                st[_ES_X], st[_ES_PHASE] = b, 2
+            elif ph == 2:
+                st[_ES_X] |= b << 8
+                st[_ES_PHASE] = 3
+            elif ph == 3:
+                st[_ES_Y], st[_ES_PHASE] = b, 4
+            else:
+                st[_ES_Y] |= b << 8
+                st[_ES_PHASE] = 0
+                if st[_ES_X] >= width or st[_ES_Y] >= height:
+                    return ST_COORD, i
+                if decode:
+                    t[n], x[n], y[n], p[n] = st[_ES_T], st[_ES_X], height - 1 - st[_ES_Y], st[_ES_POL]
+                n += 1
+                t_min, t_max = min(t_min, st[_ES_T]), max(t_max, st[_ES_T])
+        return ST_OK, -1
+
+    def finish(status, bad, keep_xyp):
+        state[_ES_T], state[_ES_PHASE] = st[_ES_T], st[_ES_PHASE]
+        if keep_xyp:
+            state[_ES_X], state[_ES_Y], state[_ES_POL] = st[_ES_X], st[_ES_Y], st[_ES_POL]
+        return n, 0, status, bad, t_min, t_max
+
+    cur = 0
+    if st[_ES_PHASE]:  # the end of an event the slice before began
+        cur = min(nb, 5 - st[_ES_PHASE])
+        status, bad = step(0, cur)
+        if status != ST_OK:
+            return finish(status, bad, False)
+    # the items from ``cur``: event starts and runs of 0xFE/0xFF bytes, in order
+    starts, ff_at = [], []
+    while cur + 5 <= nb:
+        # where events may start, each with its four bytes inside the slice (512 at a time)
+        cand = data[cur:min(nb - 4, cur + 5 * 512):5]
+        mark = cand >= 0xFE
+        j = int(np.argmax(mark))
+        if not mark[j]:
+            starts.append(np.arange(cur, cur + 5 * len(cand), 5))
+            cur += 5 * len(cand)
+            continue
+        starts.append(np.arange(cur, cur + 5 * j, 5))
+        q = r = cur + 5 * j
+        while r < nb:  # the run of such bytes from q, each read where an event may start
+            seg = data[r:r + 256] >= 0xFE
+            k = int(np.argmin(seg))
+            if not seg[k]:
+                r += k
+                break
+            r += len(seg)
+        ff_at.append(q + np.flatnonzero(data[q:r] == 0xFF))
+        cur = r
+    ev = np.concatenate(starts) if starts else np.zeros(0, np.int64)
+    ff = np.concatenate(ff_at) if ff_at else np.zeros(0, np.int64)
+    if len(ev):
+        # times: the start state's, plus every event's increment and 127 for every 0xFF up to it
+        inc = (data[ev] >> 1).astype(np.int64)
+        ff_before = np.searchsorted(ff, ev, side="right")
+        tcs = st[_ES_T] + np.cumsum(inc) + 127 * ff_before
+        xs = data[ev + 1].astype(np.int64) | (data[ev + 2].astype(np.int64) << 8)
+        ys = data[ev + 3].astype(np.int64) | (data[ev + 4].astype(np.int64) << 8)
+        off = (xs >= width) | (ys >= height)
+        k = int(np.argmax(off))
+        if off[k]:  # the clock moves to the event off the sensor (and the 0xFF bytes before it), then stops
+            st[_ES_T] = int(tcs[k])
+            st[_ES_PHASE] = 0
+            if decode:
+                t[n:n + k], x[n:n + k], y[n:n + k] = tcs[:k], xs[:k], height - 1 - ys[:k]
+                p[n:n + k] = data[ev[:k]] & 1
+            if k:
+                t_min, t_max = min(t_min, int(tcs[:k].min())), max(t_max, int(tcs[:k].max()))
+            n += k
+            return finish(ST_COORD, int(ev[k]) + 4, False)
+        if decode:
+            m = len(ev)
+            t[n:n + m], x[n:n + m], y[n:n + m] = tcs, xs, height - 1 - ys
+            p[n:n + m] = data[ev] & 1
+        t_min, t_max = min(t_min, int(tcs.min())), max(t_max, int(tcs.max()))
+        n += len(ev)
+        st[_ES_X], st[_ES_Y], st[_ES_POL] = int(xs[-1]), int(ys[-1]), int(data[ev[-1]] & 1)
+    st[_ES_T] += int(np.sum(data[ev] >> 1, dtype=np.int64)) if len(ev) else 0
+    st[_ES_T] += 127 * len(ff)
+    status, bad = step(cur, nb)  # the last bytes: a few 0xFE/0xFF, an event cut by the slice's end
+    return finish(status, bad, status == ST_OK)
+
+
+_es_np_run = _sliced(_es_dvs_np)
+
+
+_RUNNERS = {EVT2: _evt2_run, EVT21: _evt21_run, EVT3: _evt3_run, DAT: _dat_run, ES: _es_np_run}
 _STATE_SIZE = {EVT2: 2, EVT21: 3, EVT3: 6, DAT: 2, ES: 5}
 _DTYPE = {EVT2: "<u4", EVT21: "<u8", EVT3: "<u2", DAT: "<u4", ES: "u1"}
 # where a word's type sits, and the types a format has (for the message about a word of another type)

@@ -11,7 +11,7 @@ import numpy as np
 from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
 from ...limits import require_memory
-from ..base import BaseRecording, Damage, StreamInfo, sensor_dims
+from ..base import BaseRecording, Damage, StreamInfo, _event_columns, _put_events, sensor_dims
 from .decoders import (
     _DAT_PREV,
     _DTYPE,
@@ -27,10 +27,12 @@ from .decoders import (
     ES_MAGIC,
     EVT2,
     EVT3,
+    EVT3_JIT_WORDS,
     EVT21,
     ST_COORD,
     ST_FULL,
     ST_OK,
+    _evt3_run_jit,
     _header,
     _sensor_from_header,
     evt21_legacy,
@@ -151,11 +153,15 @@ class PropheseeRecording(BaseRecording):
             state[_E21_LEGACY] = int(self.legacy_layout)
         return state
 
+    def _runner(self):
+        """The decoder of this file's encoding (numba's for a large EVT 3.0 file, where its loading pays)."""
+        return _evt3_run_jit if self.encoding == EVT3 and self._count >= EVT3_JIT_WORDS else _RUNNERS[self.encoding]
+
     def _index(self):
         """One counting pass over the file: every block's decoder state at its start, its event and trigger
         counts and its time range."""
         if self._blocks is None:
-            run = _RUNNERS[self.encoding]
+            run = self._runner()
             rows = []
             state = self._initial_state()
             for b in range(self._n_blocks()):
@@ -184,7 +190,7 @@ class PropheseeRecording(BaseRecording):
         triggers, problem)``. Outputs are sized by what the words could hold (pages never written cost no
         memory); EVT 3.0 and 2.1, with up to 12 and 32 events a word, go on where a whole vector no longer fits,
         each further output checked against the memory budget first."""
-        run = _RUNNERS[self.encoding]
+        run = self._runner()
         w, h = self._size
         size = len(words)
         cap = {EVT2: size, EVT21: size + 32, EVT3: size + 12, DAT: size // 2, ES: size // 5 + 1}[self.encoding]
@@ -355,19 +361,29 @@ class PropheseeRecording(BaseRecording):
         return Events.concatenate(parts, sensor_size=self._size) if parts else Events.empty(self._size)
 
     def _whole(self) -> Events:
-        """Every event in one decoder call over the memory-mapped file: no blocks to join."""
-        n_words = self._count * (2 if self.encoding == DAT else 1)
-        words = np.memmap(self.path, dtype=_DTYPE[self.encoding], mode="r", offset=self._start, shape=(n_words,))
-        state = self._initial_state()
-        ev, tr, problem = self._decode(words, state, 0)
-        del words
-        if problem:
-            self._stop(problem)
-        else:
-            self._check_es_end(state)
-            if self._triggers is None:
-                self._triggers = tr
-        return ev
+        """Every event, block by block (:meth:`_through`, which leaves the index behind) into one set of columns
+        sized by what the file's words can hold (pages never written cost no memory), so that the peak is the
+        events plus one block's decoding, not the events twice."""
+        cap = {EVT2: self._count, EVT21: self._count, EVT3: self._count + 12, DAT: self._count,
+               ES: self._count // 5 + 1}[self.encoding]
+        cols = _event_columns(cap)
+        n = 0
+        trs = []
+        problem = None
+        for ev, tr, problem in self._through():
+            if n + len(ev) > len(cols[0]):  # EVT 3.0 and 2.1 vectors hold up to 12 and 32 events a word: grown
+                grown = max(2 * len(cols[0]), n + len(ev))
+                require_memory(13 * (grown + len(cols[0])), f"decoding the events of {self.path}")
+            cols, n = _put_events(cols, n, ev)
+            if len(tr):  # copied out: a view would keep the block's whole trigger buffers alive
+                trs.append(Triggers(tr.t.copy(), tr.kind.copy(), tr.channel.copy()))
+            if problem:
+                self._stop(problem)
+                break
+        if self._triggers is None and not problem:
+            self._triggers = Triggers.concatenate(trs)
+        t, x, y, p = (c[:n] for c in cols)
+        return Events._trusted(t, x, y, p, self._size)
 
     def triggers(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Triggers:
         """The trigger edges with ``t_start_us <= t < t_end_us``.

@@ -1,0 +1,192 @@
+"""A warm full read on 1, 2, ... cores: how evtk's readers scale with the cores they are given.
+
+    python benchmarks/bench_threads.py                         # AEDAT4 (dv-processing LZ4, evtk LZ4), 1 and 2 cores
+    python benchmarks/bench_threads.py --cores 1,2,4,8,16 --rounds 5
+    python benchmarks/bench_threads.py --formats aedat4-dv,evt3,hdf5,parquet
+
+Each measurement is its own process pinned with ``taskset -c 0..k-1`` (evtk
+then uses k threads: :func:`evtk._threads.workers` follows the affinity). In
+the process one untimed read warms the page cache and the imports, then
+``--reads`` full reads of the file (``evtk.read_events``) are timed and their
+median kept. The core counts alternate round by round (1, 2, 1, 2, ...) and
+the medians over ``--rounds`` rounds are compared: on a machine shared with
+other work a single process moves by a third, alternating keeps it fair.
+
+A second, in-process breakdown (``--phases``) times the stages of an AEDAT4
+read on one thread: reading the compressed bodies, decompressing them, and
+decoding the FlatBuffers events into the columns (into fresh memory and into
+memory already touched), so the stages that do not scale can be named.
+
+Files: the 20 M-event AEDAT4 files of ``bench_fresh_read.py`` (dv-processing's
+``MonoCameraWriter``, LZ4, 10,000-event packets) and the same events written by
+evtk with LZ4 and 10,000-event packets; the other formats are written by evtk
+from the same events (``benchmarks/data/``, git-ignored, made once).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+DATA = HERE / "data"
+sys.path.insert(0, str(HERE))
+
+FORMATS = ("aedat4-dv", "aedat4-evtk", "evt2", "evt3", "hdf5", "parquet")
+
+
+def data_file(n: int, fmt: str) -> Path:
+    """The 20 M-event (``n``) file of ``fmt``, made once."""
+    from bench_fresh_read import make_file
+
+    if fmt == "aedat4-dv":
+        return make_file(n, "dv-lz4")
+    ext = {"aedat4-evtk": "aedat4", "evt2": "raw", "evt3": "raw", "hdf5": "h5", "parquet": "parquet"}[fmt]
+    path = DATA / f"threads_{n}_{fmt}.{ext}"
+    if path.exists():
+        return path
+    from bench_aedat4 import make_events
+
+    import evtk
+
+    DATA.mkdir(exist_ok=True)
+    events = make_events(n)
+    print(f"writing {path.name} ...", file=sys.stderr, flush=True)
+    if fmt == "aedat4-evtk":
+        from evtk.io.aedat4 import write_aedat4
+
+        write_aedat4(path, events, compression="lz4", packet_events=10_000)
+    elif fmt in ("evt2", "evt3"):
+        evtk.write_events(path, events, fmt=fmt)
+    else:
+        evtk.write_events(path, events)
+    return path
+
+
+def _child(path: str, reads: int) -> None:
+    import evtk
+    from evtk._threads import workers
+
+    e = evtk.read_events(path)  # the page cache, the imports, the pool
+    n = len(e)
+    del e
+    times = []
+    for _ in range(reads):
+        t0 = time.perf_counter()
+        e = evtk.read_events(path)
+        times.append(time.perf_counter() - t0)
+        del e
+    print(json.dumps({"events": n, "threads": workers(), "median_s": statistics.median(times), "times": times}))
+
+
+def _phases(path: str, repeats: int = 3) -> None:
+    """One thread, one process: where an AEDAT4 read spends its time."""
+    import numpy as np
+
+    import evtk
+    from evtk.io import _fbpy
+
+    with evtk.open(path) as rec:
+        s = rec._stream(None, "EVTS")
+        idx = rec._index
+        rows = np.flatnonzero(idx.stream == s.id)
+        counts = idx.count[rows]
+        total = int(counts.sum())
+        best: dict = {}
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            for i in rows:
+                rec._pread(int(idx.size[i]) + 8, int(idx.offset[i]) - 8)
+            t1 = time.perf_counter()
+            bodies = [rec._body(i) for i in rows]
+            t2 = time.perf_counter()
+            cols = (np.empty(total, np.int64), np.empty(total, np.uint16), np.empty(total, np.uint16),
+                    np.empty(total, np.uint8))
+            for again in (False, True):
+                t3 = time.perf_counter()
+                off = 0
+                for b, c in zip(bodies, counts):
+                    _fbpy.decode_events(b, b"EVTS", *cols, off, int(c), 320, 240)
+                    off += int(c)
+                key = "decode into touched memory" if again else "decode into fresh memory"
+                best[key] = min(best.get(key, 1e9), time.perf_counter() - t3)
+            best["read compressed bodies"] = min(best.get("read compressed bodies", 1e9), t1 - t0)
+            best["read and decompress"] = min(best.get("read and decompress", 1e9), t2 - t1)
+            del bodies, cols
+        evtk.read_events(path)
+        t0 = time.perf_counter()
+        evtk.read_events(path)
+        best["whole read_events"] = time.perf_counter() - t0
+    print(json.dumps({"events": total, "packets": len(rows), "seconds": best}))
+
+
+def run(path: Path, cpus: str, reads: int) -> dict:
+    cmd = [sys.executable, __file__, "--child", str(path), str(reads)]
+    if shutil.which("taskset"):
+        cmd = ["taskset", "-c", cpus, *cmd]
+    env = {k: v for k, v in os.environ.items() if k not in ("EVTK_THREADS", "EVTK_IO_THREADS")}
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if res.returncode != 0:
+        raise SystemExit(f"a child failed: {res.stderr.strip().splitlines()[-1:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--events", type=float, default=20e6)
+    ap.add_argument("--formats", default="aedat4-dv,aedat4-evtk", help=f"comma-separated, of {', '.join(FORMATS)}")
+    ap.add_argument("--cores", default="1,2", help="core counts to compare (CPUs 0..k-1)")
+    ap.add_argument("--rounds", type=int, default=7, help="processes per core count, alternating")
+    ap.add_argument("--reads", type=int, default=5, help="timed reads per process (their median)")
+    ap.add_argument("--phases", action="store_true", help="also time the stages of an AEDAT4 read on one thread")
+    ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument("--phases-child", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        _child(args.child[0], int(args.child[1]))
+        return
+    if args.phases_child:
+        _phases(args.phases_child)
+        return
+    n = int(args.events)
+    cores = [int(c) for c in args.cores.split(",")]
+    have = len(os.sched_getaffinity(0))
+    cpus = {k: ",".join(map(str, sorted(os.sched_getaffinity(0))[:k])) for k in cores if k <= have}
+    print(f"{n:,} events, {args.rounds} rounds x {args.reads} warm reads, {have} cores here, "
+          f"load {os.getloadavg()[0]:.1f}")
+    results = []
+    for fmt in args.formats.split(","):
+        path = data_file(n, fmt)
+        times: dict = {k: [] for k in cpus}
+        for _ in range(args.rounds):
+            for k, c in cpus.items():
+                times[k].append(run(path, c, args.reads)["median_s"])
+        med = {k: statistics.median(v) for k, v in times.items()}
+        base = med[min(med)]
+        row = dict(format=fmt, events=n, median_s=med, runs=times, speedup={k: base / v for k, v in med.items()})
+        results.append(row)
+        print(f"{fmt:<12}" + "  ".join(f"{k} core{'s' if k > 1 else ''} {med[k]:.3f} s ({base / med[k]:.2f}x)"
+                                        for k in med), f" load {os.getloadavg()[0]:.1f}", flush=True)
+        if args.phases and fmt.startswith("aedat4"):
+            cmd = [sys.executable, __file__, "--phases-child", str(path)]
+            if shutil.which("taskset"):
+                cmd = ["taskset", "-c", cpus[min(cpus)], *cmd]
+            res = subprocess.run(cmd, capture_output=True, text=True)
+            ph = json.loads(res.stdout.strip().splitlines()[-1])
+            row["phases"] = ph
+            print("   one thread: " + ", ".join(f"{k} {v:.3f} s" for k, v in ph["seconds"].items()), flush=True)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,88 @@
+"""A fresh process that reads one format imports only what that format needs: no compiler (numba, llvmlite),
+no scipy, no plotting, and no other format's library (h5py, pyarrow). Importing numba alone took 0.5-1 s of a
+read of a 2 MB file whose decode takes milliseconds (issue 32); the AEDAT4 case is also in
+``test_aedat4_bad_input.py``."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import random_events
+from test_aedat_legacy import write_aedat2_davis
+
+import evtk
+
+HEAVY = ("numba", "llvmlite", "scipy", "matplotlib", "h5py", "pyarrow", "dask", "distributed", "pandas")
+
+
+def _nmnist(path, n=200):
+    """An N-MNIST binary: x, y, then the polarity in bit 7 and a 23-bit time stamp over three bytes."""
+    rng = np.random.default_rng(4)
+    t = np.sort(rng.integers(0, 300_000, n))
+    rec = np.empty((n, 5), np.uint8)
+    rec[:, 0], rec[:, 1] = rng.integers(0, 34, n), rng.integers(0, 34, n)
+    rec[:, 2] = (rng.integers(0, 2, n) << 7) | (t >> 16)
+    rec[:, 3], rec[:, 4] = (t >> 8) & 0xFF, t & 0xFF
+    path.write_bytes(rec.tobytes())
+
+
+def _fixture(tmp_path: Path, fmt: str) -> Path:
+    ev = random_events(50_000, seed=9, sensor_size=(320, 240))
+    if fmt == "aedat2":
+        path = tmp_path / "f.aedat"
+        write_aedat2_davis(path, ev, 240)
+    elif fmt == "nmnist":
+        path = tmp_path / "f.bin"
+        _nmnist(path)
+    else:
+        ext = {"aedat4": "aedat4", "evt2": "raw", "evt3": "raw", "dat": "dat", "es": "es", "hdf5": "h5",
+               "parquet": "parquet", "csv": "csv"}[fmt]
+        path = tmp_path / f"f.{ext}"
+        evtk.write_events(path, ev, fmt=fmt)
+    return path
+
+
+def _loaded_by(code: str) -> list[str]:
+    env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))  # this checkout's evtk
+    code += f"\nprint('LOADED', sorted(m for m in {HEAVY!r} if m in sys.modules))\n"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
+    return eval(out.split("LOADED", 1)[1].strip())  # a list of names printed by the child
+
+
+# what each format's own reader needs (its library); nothing else may load
+ALLOWED = {"hdf5": {"h5py"}, "parquet": {"pyarrow"}}
+FORMATS = ["aedat4", "evt2", "evt3", "dat", "es", "aedat2", "nmnist", "csv", "hdf5", "parquet"]
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_a_fresh_read_loads_only_what_the_format_needs(tmp_path, fmt):
+    """Read every event, the streams and a window: EVT 2.0, EVT 3.0, DAT and Event Stream loaded numba (and with it scipy) for
+    their decoders, HDF5 and Parquet for their order check."""
+    path = _fixture(tmp_path, fmt)
+    loaded = _loaded_by("import sys, evtk\n"
+                        f"with evtk.open({str(path)!r}) as rec:\n"
+                        "    n = len(rec.events())\n"
+                        "    n += len(rec.events(0, 50_000)) + sum(s.count or 0 for s in rec.streams)\n"
+                        "assert n > 0\n")
+    assert set(loaded) <= ALLOWED.get(fmt, set()), loaded
+
+
+@pytest.mark.parametrize("fmt", ["evt2", "evt3", "dat", "es", "hdf5"])
+def test_info_and_convert_to_hdf5_load_no_compiler(tmp_path, fmt):
+    """`evtk info --check` and `evtk convert F out.h5` went through numba's order check (io/_checks.py)."""
+    path = _fixture(tmp_path, fmt)
+    out = tmp_path / "out_converted.h5"
+    loaded = _loaded_by("import sys\n"
+                        "from evtk.cli import main\n"
+                        f"for args in (['info', '--check', {str(path)!r}], ['convert', {str(path)!r}, {str(out)!r}]):\n"
+                        "    try:\n"
+                        "        main(args)\n"
+                        "    except SystemExit as exc:\n"
+                        "        assert not exc.code, exc.code\n")
+    assert set(loaded) <= {"h5py"}, loaded
+    assert len(evtk.read_events(out)) == 50_000

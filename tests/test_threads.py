@@ -1,0 +1,70 @@
+"""evtk's thread count: every core the process may run on, ``EVTK_THREADS`` / ``--threads`` to override."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+from click.testing import CliRunner
+from conftest import random_events
+
+import evtk
+from evtk import _threads
+from evtk.cli import main
+from evtk.io import _compression as cz
+
+
+def _clear(monkeypatch):
+    monkeypatch.delenv(_threads.ENV, raising=False)
+    monkeypatch.delenv(_threads.ALIAS, raising=False)
+
+
+def test_workers_use_every_core_the_affinity_gives(monkeypatch):
+    """Reads were capped at 4 threads whatever the machine: on 16 cores a read used a quarter of them."""
+    _clear(monkeypatch)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(16)), raising=False)
+    assert _threads.workers() == 16
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {5}, raising=False)
+    assert _threads.workers() == 1
+
+
+def test_evtk_threads_overrides_and_the_old_name_still_works(monkeypatch):
+    _clear(monkeypatch)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    monkeypatch.setenv(_threads.ALIAS, "5")
+    assert _threads.workers() == 5
+    monkeypatch.setenv(_threads.ENV, "3")  # the new name wins over the alias
+    assert _threads.workers() == 3
+    monkeypatch.setenv(_threads.ENV, "many")  # not a number: the cores, as when unset
+    assert _threads.workers() == 8
+
+
+def test_a_pinned_process_reads_on_one_thread(tmp_path):
+    """``taskset -c 0 python ...``: the affinity, not the machine's CPU count, sets the threads."""
+    code = ("import os\n"
+            "os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})\n"
+            "from evtk._threads import workers\n"
+            "print('THREADS', workers())\n")
+    env = {k: v for k, v in os.environ.items() if k not in (_threads.ENV, _threads.ALIAS)}
+    env["PYTHONPATH"] = str(Path(evtk.__file__).parents[1])
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
+    assert "THREADS 1" in out, out
+
+
+def test_the_threads_option_sets_the_decode_threads_for_the_command_only(tmp_path, monkeypatch):
+    """``evtk --threads 3 convert ...`` decodes on a pool of 3 threads; the environment is restored after."""
+    _clear(monkeypatch)
+    ev = random_events(300_000, seed=3)
+    src, out = tmp_path / "a.aedat4", tmp_path / "b.h5"
+    evtk.write_events(src, ev)
+    r = CliRunner().invoke(main, ["--threads", "3", "convert", str(src), str(out)])
+    assert r.exit_code == 0, r.output
+    assert cz._pool_size == 3  # the pool the read ran on
+    assert _threads.ENV not in os.environ
+    got = evtk.read_events(out)
+    assert np.array_equal(got.t, ev.t) and np.array_equal(got.x, ev.x)
+    r = CliRunner().invoke(main, ["--threads", "0", "info", str(src)])
+    assert r.exit_code == 2 and "--threads" in r.output
