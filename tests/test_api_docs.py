@@ -117,14 +117,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.fit.predict_levels
     evtk.reconstruct.grid.footprint_matrix
     evtk.reconstruct.linearize.count_curve
-    evtk.reconstruct.options.ReconstructOptions
-    evtk.reconstruct.options.ReconstructOptions.kwargs
-    evtk.reconstruct.windows.WindowCounts
-    evtk.reconstruct.windows.WindowCounts.from_capture_counts
-    evtk.reconstruct.windows.Windows
-    evtk.reconstruct.windows.windows_from_schedule
-    evtk.reconstruct.windows.windows_from_triggers
-    evtk.reconstruct.windows.windows_periodic
     evtk.simulate.run.Simulation
     evtk.simulate.table.table_batches
 """.split()
