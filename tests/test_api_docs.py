@@ -98,7 +98,6 @@ def problems(dotted: str) -> list[str]:
 #: Not yet typed and documented; remove a name when its callable passes (the list only shrinks).
 PENDING: set[str] = set(
     """
-    evtk.reconstruct.accumulate.accumulate
     evtk.reconstruct.calibrated.fit_on_edges
     evtk.reconstruct.deblur.relative_noise
     evtk.reconstruct.deblur.sampling_matrix
@@ -115,8 +114,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.fit.level_statistics
     evtk.reconstruct.fit.on_gaps
     evtk.reconstruct.fit.predict_levels
-    evtk.reconstruct.grid.footprint_matrix
-    evtk.reconstruct.linearize.count_curve
     evtk.simulate.run.Simulation
     evtk.simulate.table.table_batches
 """.split()
