@@ -99,10 +99,6 @@ def problems(dotted: str) -> list[str]:
 PENDING: set[str] = set(
     """
     evtk.reconstruct.calibrated.fit_on_edges
-    evtk.reconstruct.deblur.relative_noise
-    evtk.reconstruct.deblur.sampling_matrix
-    evtk.reconstruct.deblur.solve_cells
-    evtk.reconstruct.deblur.wiener_lambda
     evtk.reconstruct.fit.LevelStatistics
     evtk.reconstruct.fit.PixelFit
     evtk.reconstruct.fit.fit_pixel_model
