@@ -110,8 +110,6 @@ PENDING: set[str] = set(
     evtk.reconstruct.fit.level_statistics
     evtk.reconstruct.fit.on_gaps
     evtk.reconstruct.fit.predict_levels
-    evtk.simulate.run.Simulation
-    evtk.simulate.table.table_batches
 """.split()
 )
 
