@@ -99,17 +99,6 @@ def problems(dotted: str) -> list[str]:
 PENDING: set[str] = set(
     """
     evtk.reconstruct.calibrated.fit_on_edges
-    evtk.reconstruct.fit.LevelStatistics
-    evtk.reconstruct.fit.PixelFit
-    evtk.reconstruct.fit.fit_pixel_model
-    evtk.reconstruct.fit.fit_refractory
-    evtk.reconstruct.fit.hot_pixels
-    evtk.reconstruct.fit.interior_pixels
-    evtk.reconstruct.fit.level_off_times
-    evtk.reconstruct.fit.level_rise_times
-    evtk.reconstruct.fit.level_statistics
-    evtk.reconstruct.fit.on_gaps
-    evtk.reconstruct.fit.predict_levels
 """.split()
 )
 
