@@ -21,11 +21,12 @@ class ReconstructOptions:
     ----------
     window : str or tuple
         How the recording is cut into capture windows: ``"schedule"`` (default; the simulation record's or the
-        bench plan's schedule of captures), ``"triggers"`` (one window per ON trigger edge, each a repeat of one
-        scene) or ``("period", period_us)`` (back-to-back windows of ``period_us`` microseconds).
+        bench plan's schedule of captures), ``"triggers"`` (from each rising trigger edge to the next falling
+        one) or ``("period", period_us)`` (back-to-back windows of ``period_us`` microseconds); without a
+        schedule every window is a repeat of one scene.
     skip_us : int
-        Microseconds left out at the start of every window (the pixels' settling after a pattern change),
-        >= 0; default 0.
+        Microseconds left out at the start of every window (the pixels' settling after a pattern change), at
+        least 0; default 0.
     length_us : int, optional
         Keep at most this many microseconds of every window (after ``skip_us``), >= 1; None (default) keeps
         the whole window.
