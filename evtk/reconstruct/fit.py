@@ -620,9 +620,9 @@ def on_gaps(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLike, region: S
     t_on_us, t_off_us : array_like of int
         The windows (a bright level step's), µs.
     region : sequence of int
-        ``(x0, x1, y0, y1)``: the sensor pixels ``interior`` covers.
+        ``(x0, x1, y0, y1)``, half-open: where ``interior`` lies on the sensor.
     interior : array_like of bool
-        The pixels read, shape (y1 - y0, x1 - x0) (:func:`interior_pixels`).
+        Mask of the pixels whose gaps are pooled, shape (y1 - y0, x1 - x0) (:func:`interior_pixels`).
 
     Returns
     -------
