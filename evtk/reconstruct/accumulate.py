@@ -93,8 +93,9 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
     return used
 
 
-def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, progress=None,
-               out=None, times=False) -> WindowCounts:
+def accumulate(source: Events | Any, windows: Windows, region: tuple[int, int, int, int] | None = None,
+               chunk_events: int = 4_000_000, progress: Callable[[int], Any] | None = None,
+               out: np.ndarray | None = None, times: bool = False) -> WindowCounts:
     """ON and OFF counts per window and pixel of ``region``.
 
     Parameters
@@ -103,10 +104,16 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
         Events (sorted by time, or sorted here) or an open recording, which is
         read in chunks of ``chunk_events`` over the span of the windows only.
     windows : Windows
-    region : (x0, x1, y0, y1), optional
+        The windows to count, in any order (the counts keep their order); time stamps in µs.
+    region : tuple of int, optional
+        ``(x0, x1, y0, y1)``:
         Sensor pixels to count (half-open); default the whole sensor. Counting
         only the pixels a response needs keeps the output small, which is
         most of the cost (fresh memory is slow to touch).
+    chunk_events : int
+        Most events read from a recording at once (the memory of one chunk; ignored for :class:`Events`).
+    progress : callable, optional
+        Called with the number of events of each chunk counted.
     out : ndarray, optional
         A C-contiguous int32 array of shape (2, windows, height, width) to
         reuse (OFF counts, then ON counts); zeroed here.
@@ -118,14 +125,17 @@ def accumulate(source, windows: Windows, region=None, chunk_events=4_000_000, pr
     Returns
     -------
     WindowCounts
-        Counts are int32; a window holding more than 2**31 - 1 events raises
-        rather than wrap.
+        ``on`` and ``off`` of shape (windows, y1 - y0, x1 - x0), int32 (views of ``out`` when given); a window
+        holding more than 2**31 - 1 events raises rather than wrap. With ``times``, ``on_first_us`` and
+        ``on_last_us`` (int32, -1 where a window holds no ON event) and ``stamp_period_us``.
 
     Raises
     ------
     EvtkError
-        A region off the sensor, or counts larger than the memory budget
-        (:func:`evtk.limits.require_memory`, checked before they are allocated).
+        A region off the sensor, counts larger than the memory budget
+        (:func:`evtk.limits.require_memory`, checked before they are allocated), an ``out`` of the wrong
+        shape, dtype or layout, a window holding more than 2**31 - 1 events, or (with ``times``) a window of
+        2**31 µs or longer.
 
     Examples
     --------

@@ -23,13 +23,16 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from ..errors import EvtkError
 from ..optics import response_origin_px, response_region
-from ..plan import FLAT_ID, LEVEL_ID, Plan, SimulationRecord, as_plan
+from ..optics.camera import CellMap
+from ..plan import FLAT_ID, LEVEL_ID, Plan, Schedule, SimulationRecord, as_plan
 from .accumulate import accumulate
 from .bench import (
     _all_pairs,
@@ -396,8 +399,9 @@ RECOUNT_DELAY_US = 1.0
 RECOUNT_ROUNDS = 3
 
 
-def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, skip_us=0, cell_map=None,
-                 hot=None) -> PixelFit:
+def fit_on_edges(rec: Any, edge_on_us: npt.ArrayLike, edge_off_us: npt.ArrayLike, sub: Schedule, sched: Plan,
+                 region: Sequence[int], origin_px: Sequence[float], skip_us: int = 0,
+                 cell_map: CellMap | None = None, hot: np.ndarray | None = None) -> PixelFit:
     """:func:`fit_pixel_model` on the level captures of ``sub`` (a schedule of captures whose trigger edges are
     ``edge_on_us``/``edge_off_us``), the flat fields giving the pixels' threshold spread.
 
@@ -409,6 +413,41 @@ def fit_on_edges(rec, edge_on_us, edge_off_us, sub, sched, region, origin_px, sk
     the delay comes out :data:`RECOUNT_DELAY_US` or more from that, the
     statistics are counted and fitted again in windows that start with the
     light. ``hot`` (a sensor mask, :func:`~evtk.reconstruct.fit.hot_pixels`) leaves pixels out of the fit.
+
+    Parameters
+    ----------
+    rec : Recording
+        The open recording.
+    edge_on_us, edge_off_us : array_like of int
+        The rising and falling trigger edge of each capture of ``sub``, µs on the recording's clock.
+    sub : Schedule
+        The captures the edges belong to (its level and flat-field captures are used, the rest left out).
+    sched : Plan
+        The run: its kernels and features (the response's interior), bench (cells per pixel) and timing
+        (``window_us``, ``settle_us``).
+    region : sequence of int
+        ``(x0, x1, y0, y1)``: the sensor pixels counted (half-open).
+    origin_px : sequence of float
+        ``(x, y)``: the sensor pixel that sees cell (0, 0) of the full response.
+    skip_us : int
+        Microseconds left out at the start of every window, >= 0.
+    cell_map : CellMap, optional
+        The calibrated map from cells to pixels (rotation, tilt, distortion); None: ``origin_px`` and the bench's
+        nominal scale.
+    hot : numpy.ndarray, optional
+        bool, shape (height, width) of the sensor: pixels left out of the fit.
+
+    Returns
+    -------
+    PixelFit
+        The fitted model, its refractory period timed from the brightest level's ON-event gaps and
+        ``delay_us`` the light's delay after the edges.
+
+    Raises
+    ------
+    EvtkError
+        When the captures hold no level captures, too few steps or too little light to fit, no interior pixel,
+        or counts larger than the memory budget.
     """
     use = (sub.kernel_id == LEVEL_ID) | (sub.kernel_id == FLAT_ID)
     sub = sub.take(np.flatnonzero(use))

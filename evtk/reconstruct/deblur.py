@@ -25,22 +25,26 @@ would amplify is damped rather than inverted.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 
 import numpy as np
+import numpy.typing as npt
 from numpy.linalg import LinAlgError
 from scipy.linalg import cho_factor, cho_solve, eigvalsh
 from scipy.ndimage import gaussian_filter
 
 from .._blas import one_blas_thread
 from ..errors import EvtkError
-from ..optics import shadow_magnification
+from ..optics import Bench, shadow_magnification
 from ..optics.camera import footprint_points
 from ..optics.screen import footprint_cdf
 
 __all__ = ["sampling_matrix", "solve_cells", "relative_noise", "wiener_lambda", "DEFAULT_LAMBDA"]
 
 
-def sampling_matrix(bench, to_cells, region, shape, blur_px=0.0, supersample=4):
+def sampling_matrix(bench: Bench, to_cells: Callable[[np.ndarray], npt.ArrayLike],
+                    region: Sequence[int], shape: tuple[int, int], blur_px: float = 0.0,
+                    supersample: int = 4) -> np.ndarray:
     """``A[p, n]`` (pixels of ``region`` row-major, cells of ``shape`` row-major): pixel ``p``'s light from a
     unit response in cell ``n``.
 
@@ -50,15 +54,27 @@ def sampling_matrix(bench, to_cells, region, shape, blur_px=0.0, supersample=4):
         For the sources' extent and the shadow blur.
     to_cells : callable
         Sensor pixels (x, y), an (N, 2) array, to cell coordinates (column, row), cell centres on integers.
-    region : (x0, x1, y0, y1)
-    shape : (rows, cols)
-        Cells of the full response.
+    region : sequence of int
+        ``(x0, x1, y0, y1)``: the sensor pixels (half-open) whose light is modelled.
+    shape : tuple of int
+        ``(rows, cols)``: cells of the full response.
     blur_px : float
-        Standard deviation of the camera's defocus, in pixels.
+        Standard deviation of the camera's defocus, in pixels (>= 0; 0: in focus).
     supersample : int
         Points per pixel side over which each footprint is integrated; each
         point's width in cells is taken from ``to_cells`` at the region's
         centre.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``((y1 - y0) * (x1 - x0), rows * cols)``, entries >= 0: column ``n`` is the light each pixel
+        collects from a unit response in cell ``n``.
+
+    Raises
+    ------
+    EvtkError
+        An empty region or response, or a ``blur_px`` that is negative or not finite.
     """
     x0, x1, y0, y1 = (int(v) for v in region)
     rows, cols = (int(v) for v in shape)
@@ -67,7 +83,7 @@ def sampling_matrix(bench, to_cells, region, shape, blur_px=0.0, supersample=4):
     if not (math.isfinite(blur_px) and blur_px >= 0):
         raise EvtkError(f"blur_px must be a finite number >= 0, not {blur_px}")
     s = int(supersample)
-    uv = np.asarray(to_cells(footprint_points(region, s)), dtype=np.float64)
+    uv = np.asarray(to_cells(footprint_points((x0, x1, y0, y1), s)), dtype=np.float64)
     c = np.array([[(x0 + x1 - 1) / 2, (y0 + y1 - 1) / 2]])
     d = np.asarray(to_cells(np.concatenate([c - [0.5, 0], c + [0.5, 0], c - [0, 0.5], c + [0, 0.5]])))
     step_px = 2.0 / (np.linalg.norm(d[1] - d[0]) + np.linalg.norm(d[3] - d[2]))
@@ -103,7 +119,8 @@ def sampling_matrix(bench, to_cells, region, shape, blur_px=0.0, supersample=4):
 DEFAULT_LAMBDA = 0.15
 
 
-def relative_noise(values, level_light, is_level, is_flat, interior):
+def relative_noise(values: np.ndarray, level_light: np.ndarray, is_level: npt.ArrayLike, is_flat: npt.ArrayLike,
+                   interior: npt.ArrayLike) -> float | None:
     """The relative error of one capture's linearised light, from captures of uniform light over ``interior``.
 
     Level captures (``is_level``, light ``level_light``) light every
@@ -112,6 +129,25 @@ def relative_noise(values, level_light, is_level, is_flat, interior):
     after the flat field, shot noise). Two or more flat fields (``is_flat``)
     give it from their differences (the flat-field gain is common to them).
     Returns the median over the captures, or None when there are none.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        Linearised light per capture and pixel, shape (captures, y1 - y0, x1 - x0).
+    level_light : numpy.ndarray
+        Light of each capture's level pattern (mirrors on in the kernel of a level capture; 0 for the others),
+        shape (captures,); only its sign is read.
+    is_level, is_flat : array_like of bool
+        Which captures are level captures and which flat fields, shape (captures,).
+    interior : array_like of bool
+        Pixels whose light is uniform in those captures (away from the response's edges), shape
+        (y1 - y0, x1 - x0).
+
+    Returns
+    -------
+    float or None
+        The median relative error (standard deviation over mean, dimensionless) over the level captures and
+        the neighbouring pairs of flat fields; None with fewer than 4 interior pixels or no such capture.
     """
     shares = []
     inner = np.asarray(interior, bool)
@@ -139,7 +175,7 @@ def _top_eigenvalue(gram):
     return top
 
 
-def wiener_lambda(a_mat, v, noise_var, top=None):
+def wiener_lambda(a_mat: np.ndarray, v: np.ndarray, noise_var: np.ndarray, top: float | None = None) -> float:
     """The relative ``lam`` of a Gaussian prior on the cells against the measured noise: ``lam^2 s_max^2 =
     sigma_n^2 / sigma_c^2``.
 
@@ -148,6 +184,27 @@ def wiener_lambda(a_mat, v, noise_var, top=None):
     pixels weighted by the light each collects, ``sigma_c^2`` the cells'
     variance the responses' power leaves once the noise is taken off.
     ``top`` is ``s_max^2`` when known.
+
+    Parameters
+    ----------
+    a_mat : numpy.ndarray
+        The sampling matrix, shape (pixels, cells) (:func:`sampling_matrix`).
+    v : numpy.ndarray
+        The responses, one per column, shape (pixels, m).
+    noise_var : numpy.ndarray
+        Their expected error variance, shape (pixels, m), in the responses' units squared.
+    top : float, optional
+        ``s_max^2``, the largest eigenvalue of ``A^T A``; None computes it.
+
+    Returns
+    -------
+    float
+        ``lam`` in [0, 1]: 1 when the responses hold no power beyond the noise.
+
+    Raises
+    ------
+    EvtkError
+        When ``top`` is computed and the sampling matrix is zero.
     """
     rows = np.sum(a_mat * a_mat, axis=1)
     noise = float(rows @ noise_var.mean(axis=1) / max(rows.sum(), 1e-300))
@@ -160,25 +217,39 @@ def wiener_lambda(a_mat, v, noise_var, top=None):
     return float(min(1.0, math.sqrt(noise / signal / top)))
 
 
-def solve_cells(values, a_mat, lam=0.0, noise_var=None):
+def solve_cells(values: npt.ArrayLike, a_mat: np.ndarray, lam: float = 0.0,
+                noise_var: npt.ArrayLike | None = None) -> tuple[np.ndarray, float]:
     """Cell values from pixel values through ``a_mat`` (:func:`sampling_matrix`), Tikhonov-regularised:
     ``argmin |A c - v|^2 + (lam s_max)^2 |c|^2`` for each response ``v``, ``s_max`` the largest singular value.
 
     Parameters
     ----------
-    values : ndarray (..., pixels)
-    a_mat : ndarray (pixels, cells)
+    values : array_like
+        Pixel values, shape (..., pixels), pixels in ``a_mat``'s row order.
+    a_mat : numpy.ndarray
+        The sampling matrix, shape (pixels, cells).
     lam : float
-        Relative regularisation (:data:`DEFAULT_LAMBDA`); 0 is plain least squares.
-    noise_var : ndarray (..., pixels), optional
-        The values' expected error variance: ``lam`` is then
+        Relative regularisation (:data:`DEFAULT_LAMBDA`), finite and >= 0; 0 is plain least squares.
+    noise_var : array_like, optional
+        The values' expected error variance, shape of ``values``: ``lam`` is then
         :func:`wiener_lambda`'s instead.
 
-    Returns ``(cells (..., cells), lam)``.
+    Returns
+    -------
+    cells : numpy.ndarray
+        float64, shape (..., cells): the solved cell values.
+    lam : float
+        The regularisation used.
+
+    Raises
+    ------
+    EvtkError
+        When the pixel counts of ``values`` and ``a_mat`` differ, the sampling matrix is zero, or ``lam`` is
+        negative or not finite.
     """
-    values = np.asarray(values, dtype=np.float64)
-    lead = values.shape[:-1]
-    v = values.reshape(-1, values.shape[-1]).T  # (pixels, m)
+    vals = np.asarray(values, dtype=np.float64)
+    lead = vals.shape[:-1]
+    v = vals.reshape(-1, vals.shape[-1]).T  # (pixels, m)
     if v.shape[0] != a_mat.shape[0]:
         raise EvtkError(f"{v.shape[0]} pixel values for a sampling matrix of {a_mat.shape[0]} pixels")
     with one_blas_thread():

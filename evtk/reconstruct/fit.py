@@ -27,7 +27,9 @@ with a model the recording itself gave.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -36,8 +38,10 @@ from scipy.optimize import least_squares, minimize
 
 from ..errors import EvtkError
 from ..optics import Bench
+from ..optics.camera import CellMap
 from ..plan import Schedule, SimulationRecord
 from ..sensor import PixelState, SensorModel, simulate_pixels, time_constant_us
+from .windows import WindowCounts
 
 __all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "level_off_times", "level_rise_times",
            "rise_orders", "refractory_bound",
@@ -62,7 +66,35 @@ NOMINAL_BLANK_E_PER_S = 1e5
 class LevelStatistics:
     """Per light step: ``light`` (units), mean net ``counts``, median ``first_us``/``last_us`` ON-event times
     from the window start (NaN where no interior pixel fired), ``pixels`` averaged, and the mean time of the
-    OFF events after the step ends (``off_mean_us``, :func:`level_off_times`)."""
+    OFF events after the step ends (``off_mean_us``, :func:`level_off_times`).
+
+    Every array has one entry per step, the steps in increasing light.
+
+    Parameters
+    ----------
+    light : numpy.ndarray
+        float64: each step's light, in response units above the dark level (kernel elements on, with every
+        feature element on).
+    counts : numpy.ndarray
+        float64: the mean net count ON - OFF of an interior pixel in a window of the step (flat-field gain
+        applied where there is one).
+    first_us, last_us : numpy.ndarray
+        float64: median time (µs from the window's start) of an interior pixel's first and last ON event in
+        the step's windows; NaN where no interior pixel fired.
+    pixels : int
+        Interior pixels averaged.
+    off_mean_us : numpy.ndarray, optional
+        float64: mean time (µs after the pattern's falling edge) of the interior pixels' OFF events while the
+        step decays to the dark level (:func:`level_off_times`); NaN where there were none.
+    off_counts : numpy.ndarray, optional
+        float64: mean number of those OFF events a pixel fires in a decay (they measure the OFF threshold).
+    rise_order : numpy.ndarray, optional
+        int64: which ON event of each step (1 = the first) ``rise_us`` times, about half the step's count
+        (:func:`rise_orders`).
+    rise_us : numpy.ndarray, optional
+        float64: median time (µs from the window's start) of each interior pixel's ``rise_order``-th ON event
+        (:func:`level_rise_times`); NaN where no pixel fired that often.
+    """
 
     light: np.ndarray
     counts: np.ndarray
@@ -82,7 +114,40 @@ class LevelStatistics:
 @dataclass(frozen=True)
 class PixelFit:
     """The fitted pixel model: :class:`~evtk.sensor.SensorModel` plus the dark level's light ``blank``
-    (response units), the residuals and the statistics it was fitted to."""
+    (response units), the residuals and the statistics it was fitted to.
+
+    Absolute photon rates are not observable from events: the model states them relative to a dark-level rate
+    of :data:`NOMINAL_BLANK_E_PER_S` photoelectrons per second, whose light is ``blank``.
+
+    Parameters
+    ----------
+    sensor : SensorModel
+        The fitted pixel: ON and OFF thresholds (log-intensity units) and their mismatch, ``tau_min_us``, the
+        time constant's photoelectron term (from ``tau_dark_us``), the refractory period; noise-free.
+    blank : float
+        Light of the dark level, in response units: the pixel sees ``log(1 + light / blank)``.
+    tau_dark_us : float
+        The pixel's time constant at the dark level, µs (>= ``sensor.tau_min_us``).
+    rms_counts : float
+        Root-mean-square residual of the steps' mean net counts, in counts (NaN when unknown).
+    rms_time_us : float
+        Root-mean-square residual of the rise's ON times the fit used, µs (NaN when none was fitted).
+    statistics : LevelStatistics
+        The level captures' numbers the model was fitted to.
+    window_us : int
+        Length of the windows the steps were counted in, µs (default 1000).
+    settle_us : int
+        Darkness before each step, µs (default 0).
+    refractory_bound_us : float, optional
+        Shortest ON-event spacing at the brightest step (:func:`refractory_bound`), µs: the refractory period is
+        no longer. None when not measured.
+    refractory_resolved : bool
+        Whether the ON-event gaps measured the refractory period (:func:`fit_refractory`); else the model keeps
+        1 µs (default False).
+    delay_us : float
+        Time from a trigger edge to the light's change at the pixels, µs (the DMD's latency, default 0): windows
+        follow the light by this much.
+    """
 
     sensor: SensorModel
     blank: float
@@ -207,7 +272,8 @@ def _finite(v):
     return float(v) if np.isfinite(v) else None
 
 
-def interior_pixels(region, origin_px, step_px, kernel_shape, features_shape, margin=1, cell_map=None):
+def interior_pixels(region: Sequence[int], origin_px: Sequence[float], step_px: float, kernel_shape: Sequence[int],
+                    features_shape: Sequence[int], margin: int = 1, cell_map: CellMap | None = None) -> np.ndarray:
     """Pixels of ``region`` (y, x) whose cell lies ``margin`` cells inside the flat response's interior.
 
     Cell ``(i, j)`` is centred on ``origin + (j, i) * step_px`` (the
@@ -215,6 +281,31 @@ def interior_pixels(region, origin_px, step_px, kernel_shape, features_shape, ma
     ``cell_map`` (:class:`evtk.optics.camera.CellMap`) puts it; the interior
     is where a flat features field overlaps every kernel element, cells
     ``kernel - 1`` to ``features - 1`` along each axis.
+
+    Parameters
+    ----------
+    region : sequence of int
+        ``(x0, x1, y0, y1)``: the sensor pixels (half-open).
+    origin_px : sequence of float
+        ``(x, y)``: the sensor pixel that sees cell (0, 0) (unused with ``cell_map``).
+    step_px : float
+        Sensor pixels per cell, > 0 (unused with ``cell_map``).
+    kernel_shape, features_shape : sequence of int
+        ``(rows, cols)`` of the kernel and of the features, in elements.
+    margin : int
+        Cells kept clear of the interior's edge on every side.
+    cell_map : CellMap, optional
+        A general map from cells to pixels; each pixel's cell is the nearest to where the inverse map puts it.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool, shape (y1 - y0, x1 - x0): True on the interior pixels.
+
+    Raises
+    ------
+    EvtkError
+        When ``step_px`` is not positive (without ``cell_map``).
     """
     x0, x1, y0, y1 = (int(v) for v in region)
     kh, kw = (int(v) for v in kernel_shape)
@@ -235,15 +326,42 @@ def interior_pixels(region, origin_px, step_px, kernel_shape, features_shape, ma
     return in_y[:, None] & in_x[None, :]
 
 
-def level_statistics(counts, is_level, level, interior, gain=None) -> LevelStatistics:
+def level_statistics(counts: WindowCounts, is_level: npt.ArrayLike, level: npt.ArrayLike, interior: npt.ArrayLike,
+                     gain: np.ndarray | None = None) -> LevelStatistics:
     """The numbers :func:`fit_pixel_model` fits, from accumulated counts (with ``times=True``).
 
     ``is_level`` selects the level windows of ``counts``, ``level`` holds
     their kernel element counts, ``interior`` the pixels whose light the step
     sets (:func:`interior_pixels`), ``gain`` each
     pixel's flat-field count gain (applied to the counts only).
+
+    Parameters
+    ----------
+    counts : WindowCounts
+        Every window's counts over the region, with event times (:func:`~evtk.reconstruct.accumulate` with
+        ``times=True``).
+    is_level : array_like of bool
+        Which windows are level captures, shape (windows,).
+    level : array_like of int
+        Kernel elements on in each window's level pattern, shape (windows,) (read where ``is_level``).
+    interior : array_like of bool
+        The pixels the steps light alike, shape (y1 - y0, x1 - x0) (:func:`interior_pixels`).
+    gain : numpy.ndarray, optional
+        Each pixel's flat-field count gain, shape (y1 - y0, x1 - x0) (multiplies the net counts, not the times).
+
+    Returns
+    -------
+    LevelStatistics
+        ``light``, ``counts``, ``first_us``, ``last_us`` and ``pixels`` of each distinct level, in increasing
+        light (the OFF and rise numbers left None: :func:`level_off_times`, :func:`level_rise_times`).
+
+    Raises
+    ------
+    EvtkError
+        Counts without event times, no level capture, or no interior pixel.
     """
-    if counts.on_first_us is None:
+    first_us, last_us = counts.on_first_us, counts.on_last_us
+    if first_us is None or last_us is None:
         raise EvtkError("fitting the pixel model needs event times (accumulate with times=True)")
     sel = np.flatnonzero(np.asarray(is_level, bool))
     lv = np.asarray(level)[sel]
@@ -260,8 +378,8 @@ def level_statistics(counts, is_level, level, interior, gain=None) -> LevelStati
     for m in steps:
         w = lv == m
         n.append(net[w][:, mask].mean())
-        f = counts.on_first_us[sel][w][:, mask]
-        la = counts.on_last_us[sel][w][:, mask]
+        f = first_us[sel][w][:, mask]
+        la = last_us[sel][w][:, mask]
         fired = f >= 0
         first.append(float(np.median(f[fired])) if fired.any() else np.nan)
         last.append(float(np.median(la[fired])) if fired.any() else np.nan)
@@ -275,7 +393,7 @@ HOT_LEAD_US = 200_000
 HOT_MIN_EVENTS = 5
 
 
-def hot_pixels(rec, t_on_us, t_off_us, max_gaps=64):
+def hot_pixels(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLike, max_gaps: int = 64) -> np.ndarray:
     """Pixels that fire in the dark far more than the rest: a bool mask (height, width) over the sensor.
 
     The dark is the time before the first trigger edge (at most :data:`HOT_LEAD_US`) and the last quarter of
@@ -290,12 +408,16 @@ def hot_pixels(rec, t_on_us, t_off_us, max_gaps=64):
     Parameters
     ----------
     rec : Recording
-    t_on_us, t_off_us : array of int
-        The trigger windows (any order).
+        The open recording (its events in the dark stretches are read).
+    t_on_us, t_off_us : array_like of int
+        The trigger windows (any order), µs.
+    max_gaps : int
+        Most gaps between windows read (the first ones in time).
 
     Returns
     -------
-    ndarray of bool, shape (height, width)
+    numpy.ndarray
+        bool, shape (height, width) of the sensor: True on the hot pixels.
     """
     w, h = (int(v) for v in rec.sensor_size)
     order = np.argsort(np.asarray(t_on_us, np.int64))
@@ -317,12 +439,12 @@ def hot_pixels(rec, t_on_us, t_off_us, max_gaps=64):
         n = np.bincount(ev.y.astype(np.int64) * w + ev.x.astype(np.int64), minlength=w * h)
         counts += n
         seen += n > 0
-    counts = counts.reshape(h, w)
+    dark = counts.reshape(h, w)
     # against its own neighbourhood: a response's pixels fire in the dark more than the bare sensor around it,
     # and at the response's edge half the neighbours are outside: the busiest tenth of 11x11 is the reference
-    local = percentile_filter(counts.astype(np.float64), 90, size=11, mode="nearest")
+    local = percentile_filter(dark.astype(np.float64), 90, size=11, mode="nearest")
     limit = np.maximum(HOT_MIN_EVENTS, 4.0 * local + 6.0 * np.sqrt(local + 1.0))
-    return (counts >= limit) & (3 * seen.reshape(h, w) >= max(1, len(stretches)))
+    return (dark >= limit) & (3 * seen.reshape(h, w) >= max(1, len(stretches)))
 
 
 def describe_pixels(mask: np.ndarray, most: int = 8) -> str:
@@ -373,13 +495,39 @@ def _on_events_by_pixel(rec, t0_us, t1_us, region, interior):
     return _by_pixel(*_interior_events(rec, t0_us, t1_us, 1, region, interior))
 
 
-def level_off_times(rec, t_off_us, level, settle_us, region, interior, stamp_period_us=None):
+def level_off_times(rec: Any, t_off_us: npt.ArrayLike, level: npt.ArrayLike, settle_us: int, region: Sequence[int],
+                    interior: npt.ArrayLike, stamp_period_us: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Mean time (µs after the falling edge) of the interior pixels' OFF events while each level step decays, and
     their mean number a pixel and step: ``(off_mean_us, off_counts)``.
 
     The decay runs at the dark level's time constant, which the level
     windows themselves (all bright) hardly show. Events stamped at the end of
     a readout frame are moved back half a frame (their mean delay).
+
+    Parameters
+    ----------
+    rec : Recording
+        The open recording.
+    t_off_us : array_like of int
+        The falling edge of each level window, µs.
+    level : array_like of int
+        Each of those windows' level (kernel elements on), same length.
+    settle_us : int
+        How long after each falling edge the decay's events are read, µs (the darkness between patterns).
+    region : sequence of int
+        ``(x0, x1, y0, y1)``: the sensor pixels ``interior`` covers.
+    interior : array_like of bool
+        The pixels read, shape (y1 - y0, x1 - x0) (:func:`interior_pixels`).
+    stamp_period_us : float, optional
+        Spacing of the recording's time stamps, µs (above 1: a frame readout; events move back half of it).
+
+    Returns
+    -------
+    off_mean_us : numpy.ndarray
+        float64, one per distinct level in increasing order: the OFF events' mean time after the falling edge,
+        µs; NaN where there were none.
+    off_counts : numpy.ndarray
+        float64, same shape: their mean number per interior pixel and window.
     """
     n_pixels = int(np.asarray(interior, bool).sum())
     lv = np.asarray(level)
@@ -415,10 +563,33 @@ def rise_orders(counts: npt.ArrayLike) -> np.ndarray:
     return np.maximum(1, np.rint(0.5 * c)).astype(np.int64)
 
 
-def level_rise_times(rec, t_on_us, t_off_us, level, orders, region, interior):
+def level_rise_times(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLike, level: npt.ArrayLike,
+                     orders: Sequence[int] | np.ndarray, region: Sequence[int], interior: npt.ArrayLike) -> np.ndarray:
     """Median time (µs from the window start ``t_on_us``) of each interior pixel's ``orders[s]``-th ON event in the
     windows of level step ``s`` (the steps sorted as :func:`level_statistics` sorts them); NaN where no pixel fired
-    that often."""
+    that often.
+
+    Parameters
+    ----------
+    rec : Recording
+        The open recording.
+    t_on_us, t_off_us : array_like of int
+        The level windows ``[t_on_us, t_off_us)``, µs.
+    level : array_like of int
+        Each window's level (kernel elements on), same length.
+    orders : sequence of int
+        Which ON event (1 = the first) to time for each distinct level, in increasing level (:func:`rise_orders`).
+    region : sequence of int
+        ``(x0, x1, y0, y1)``: the sensor pixels ``interior`` covers.
+    interior : array_like of bool
+        The pixels read, shape (y1 - y0, x1 - x0) (:func:`interior_pixels`).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, one per distinct level: the median time, µs from the window's start; NaN where no pixel fired
+        that often.
+    """
     lv = np.asarray(level)
     steps = np.unique(lv)
     out = np.full(steps.size, np.nan)
@@ -437,9 +608,27 @@ def level_rise_times(rec, t_on_us, t_off_us, level, orders, region, interior):
     return out
 
 
-def on_gaps(rec, t_on_us, t_off_us, region, interior):
+def on_gaps(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLike, region: Sequence[int],
+            interior: npt.ArrayLike) -> np.ndarray:
     """The gaps (µs) between each interior pixel's successive ON events inside the windows ``[t_on_us,
-    t_off_us)``, pooled over pixels and windows."""
+    t_off_us)``, pooled over pixels and windows.
+
+    Parameters
+    ----------
+    rec : Recording
+        The open recording.
+    t_on_us, t_off_us : array_like of int
+        The windows (a bright level step's), µs.
+    region : sequence of int
+        ``(x0, x1, y0, y1)``, half-open: where ``interior`` lies on the sensor.
+    interior : array_like of bool
+        Mask of the pixels whose gaps are pooled, shape (y1 - y0, x1 - x0) (:func:`interior_pixels`).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, 1-D: every gap, µs (empty without windows).
+    """
     gaps = []
     for a, b in zip(np.asarray(t_on_us).tolist(), np.asarray(t_off_us).tolist()):
         gaps.append(_successive_gaps(*_on_events_by_pixel(rec, a, b, region, interior))[0])
@@ -509,7 +698,8 @@ def _stamped_gap_quantiles(gap_us, weight, qs):
     return _grouped_quantiles(n0, pmf, qs)
 
 
-def fit_refractory(fit: PixelFit, light, gaps, skip_us=0, max_us=None):
+def fit_refractory(fit: PixelFit, light: float, gaps: npt.ArrayLike, skip_us: float = 0,
+                   max_us: float | None = None) -> tuple[float, bool]:
     """The refractory period that makes the fitted pixel model's ON-event gaps on a step of ``light`` match the
     observed ``gaps`` (:func:`on_gaps`) at :data:`GAP_QUANTILES`: ``(refractory_us, resolved)``.
 
@@ -526,6 +716,26 @@ def fit_refractory(fit: PixelFit, light, gaps, skip_us=0, max_us=None):
     model gives no gaps at all (a fit that failed, e.g. on counts a long period flattened, which
     the calibrated route then catches on the level captures); the model then
     keeps its period.
+
+    Parameters
+    ----------
+    fit : PixelFit
+        The fitted pixel model (its refractory period is the one kept when the gaps do not resolve one).
+    light : float
+        The step's light, response units (the brightest level's).
+    gaps : array_like
+        The observed ON-event gaps on that step, µs (:func:`on_gaps`); fewer than 20 resolve nothing.
+    skip_us : float
+        Microseconds left out at the start of each window, as the gaps were read.
+    max_us : float, optional
+        Longest period searched, µs; default twice the gaps' 1 % quantile.
+
+    Returns
+    -------
+    refractory_us : float
+        The refractory period, µs (the model's own when not resolved).
+    resolved : bool
+        Whether the gaps measured it.
     """
     g = np.asarray(gaps, np.float64)
     if g.size < 20:
@@ -570,11 +780,54 @@ def _model(params, refractory_us, mismatch):
                        shot_noise=False, background_rate_hz=0.0)
 
 
-def predict_levels(params, light, window_us, settle_us, skip_us, refractory_us, spread, orders=None):
+def predict_levels(params: npt.ArrayLike, light: np.ndarray, window_us: float, settle_us: float, skip_us: float,
+                   refractory_us: float, spread: float, orders: npt.ArrayLike | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """What the noise-free pixel model ``params`` (theta, blank, tau_min_us, tau_dark_us) gives on the level
     steps ``light``, over thresholds spread by ``spread``: mean net count, median first and last ON times, mean
     time and number of the OFF events of the decay, and the median time of the ``orders``-th ON event (NaN without
-    ``orders``): what :func:`level_statistics`, :func:`level_off_times` and :func:`level_rise_times` measure."""
+    ``orders``): what :func:`level_statistics`, :func:`level_off_times` and :func:`level_rise_times` measure.
+
+    Each step is simulated as darkness for ``settle_us``, the light for ``window_us`` and darkness again, from a
+    pixel settled at the dark level, over :data:`SPREAD_POINTS` thresholds (a Gaussian weighting out to two
+    standard deviations).
+
+    Parameters
+    ----------
+    params : array_like
+        ``(theta, blank, tau_min_us, tau_dark_us)``: the contrast threshold (log-intensity units), the dark
+        level's light (response units), the time constants in bright light and at the dark level (µs), as
+        :attr:`PixelFit.params` holds them.
+    light : numpy.ndarray
+        float64, 1-D: each step's light, response units above the dark level.
+    window_us : float
+        How long each step is lit, µs.
+    settle_us : float
+        Darkness before and after each step, µs.
+    skip_us : float
+        Microseconds left out at the start of the window for the ON times (the counts take the whole window).
+    refractory_us : float
+        The pixel's refractory period, µs.
+    spread : float
+        The thresholds' relative standard deviation (0: one threshold).
+    orders : array_like of int, optional
+        Which ON event (1 = the first) each step's rise time is of; None leaves the rise times NaN.
+
+    Returns
+    -------
+    counts : numpy.ndarray
+        Mean net count ON - OFF of each step.
+    first_us, last_us : numpy.ndarray
+        Median time of the first and last ON event, µs after the window's start plus ``skip_us``; NaN where
+        none fired.
+    off_mean_us : numpy.ndarray
+        Mean time of the decay's OFF events, µs after the step ends; NaN where none.
+    off_counts : numpy.ndarray
+        Mean number of those OFF events.
+    rise_us : numpy.ndarray
+        Median time of the ``orders``-th ON event, µs after the window's start plus ``skip_us``; NaN without
+        ``orders`` or where none fired that often.
+    """
     t, idx, p, on, off, weight = _simulate_steps(params, light, window_us, settle_us, refractory_us, spread)
     rel_size = weight.size
     z, w = float(settle_us), float(window_us)
@@ -674,8 +927,9 @@ def _time_constants_guess(stats, theta, blank, start, times=True, offset_us=0.0)
     return tau_min, max(tau_dark, 1.5 * tau_min)
 
 
-def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, refractory_us=1.0, spread=0.05,
-                    start: SensorModel | None = None, times=True, lead_us=0.0, delay_us=0.0) -> PixelFit:
+def fit_pixel_model(stats: LevelStatistics, window_us: int, settle_us: int, skip_us: float = 0,
+                    refractory_us: float = 1.0, spread: float = 0.05, start: SensorModel | None = None,
+                    times: bool = True, lead_us: float = 0.0, delay_us: float = 0.0) -> PixelFit:
     """Fit ``theta``, ``blank``, ``tau_min_us`` and ``tau_dark_us`` to the level statistics.
 
     Least squares over the steps of the counts (in counts), the rise's ON
@@ -705,6 +959,42 @@ def fit_pixel_model(stats: LevelStatistics, window_us, settle_us, skip_us=0, ref
     edges by ``delay_us`` where the delay is not fitted, and the fit starts
     from it where it is. The returned ``delay_us`` is the light's after the
     edges.
+
+    Parameters
+    ----------
+    stats : LevelStatistics
+        The level captures' numbers (:func:`level_statistics`, with :func:`level_off_times` and
+        :func:`level_rise_times` where measured); at least two steps.
+    window_us : int
+        Length of the level windows, µs.
+    settle_us : int
+        Darkness before each level window, µs.
+    skip_us : float
+        Microseconds left out at the start of each window, as the statistics were taken.
+    refractory_us : float
+        The refractory period the model keeps, µs.
+    spread : float
+        The thresholds' relative standard deviation (e.g. of the flat-field gains).
+    start : SensorModel, optional
+        The model the fit starts from (and keeps ``tau_min_us`` and shot noise of); default
+        :class:`~evtk.sensor.SensorModel`'s.
+    times : bool
+        Fit the ON times too (False for coarse time stamps or a frame readout).
+    lead_us : float
+        How long before the trigger edges the statistics' windows start, µs.
+    delay_us : float
+        The light's delay after the trigger edges where it is not fitted (the fit's start where it is), µs.
+
+    Returns
+    -------
+    PixelFit
+        The model, its residuals, the statistics, ``window_us``, ``settle_us`` and the light's delay after the
+        edges.
+
+    Raises
+    ------
+    EvtkError
+        With fewer than two level steps, or less than one event a pixel on every step.
     """
     light, counts = stats.light, stats.counts
     if light.size < 2:

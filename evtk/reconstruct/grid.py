@@ -7,7 +7,7 @@ import numpy.typing as npt
 from scipy.ndimage import map_coordinates
 
 from ..errors import EvtkError
-from ..optics import axis_weights, shadow_magnification
+from ..optics import Bench, axis_weights, shadow_magnification
 from ..optics.camera import CellMap
 from ..plan import Schedule
 
@@ -197,11 +197,30 @@ def downsample(values: npt.ArrayLike, size: tuple[int, int] = (16, 16)) -> np.nd
     return wy @ values @ wx.T
 
 
-def footprint_matrix(bench, origin, p0, p1, n_cells, step):
+def footprint_matrix(bench: Bench, origin: float, p0: int, p1: int, n_cells: int, step: float) -> np.ndarray:
     """M[c, i]: what a unit response at full-response cell i puts into cell c after sampling (one axis).
 
     The optics' footprint (pixel width, source extent, diffuser blur) followed
     by :func:`to_response_grid`'s area overlap; valid for matched scaling.
+
+    Parameters
+    ----------
+    bench : Bench
+        The bench: its pixel footprint, kernel step, source extent and the shadow blur
+        (``shadow_sigma_um``, scaled to feature elements by the shadow's magnification).
+    origin : float
+        Sensor pixel (one coordinate) that sees cell 0 of the full response (``response_origin_px``).
+    p0, p1 : int
+        The sensor pixels sampled along the axis, ``[p0, p1)`` (one axis of the region).
+    n_cells : int
+        Cells of the full response along the axis (``features + kernel - 1``).
+    step : float
+        Sensor pixels per cell (:func:`to_response_grid`'s ``step_px``).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``(n_cells, n_cells)``: column i is the sampled image of a unit response in cell i.
     """
 
     psf_cells = bench.shadow_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)

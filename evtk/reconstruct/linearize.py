@@ -122,7 +122,8 @@ def _look_up(on, off, table, stride, out):
         out[i] = table[on[i] * stride + off[i]]
 
 
-def count_curve(sim_record, skip_us=0, length_us=None, points=4000):
+def count_curve(sim_record: SimulationRecord | dict, skip_us: float = 0, length_us: float | None = None,
+                points: int = 4000) -> tuple[np.ndarray, np.ndarray]:
     """Net counts a noise-free pixel with nominal thresholds gives, against its log-light step.
 
     Runs the simulation's own pixel model (``sim_record``: a
@@ -135,6 +136,25 @@ def count_curve(sim_record, skip_us=0, length_us=None, points=4000):
     previous capture at the same light.) Returns ``(u, counts)``, counts
     non-decreasing in ``u`` (read-only arrays, shared by calls with the same
     bench, sensor and window: a batch of recordings computes it once).
+
+    Parameters
+    ----------
+    sim_record : SimulationRecord or dict
+        The record whose sensor model (without shot noise or threshold mismatch), dark level, gain, bench,
+        window and settling time are run.
+    skip_us : float
+        Microseconds left out at the start of the capture window, as the reconstruction's windows.
+    length_us : float, optional
+        Most microseconds counted after ``skip_us``; None counts to the window's end.
+    points : int
+        Log-light steps sampled, evenly from 0 to just past the brightest response.
+
+    Returns
+    -------
+    u : numpy.ndarray
+        float64, shape ``(points,)``: the log-light steps (natural log of light over the dark level), read-only.
+    counts : numpy.ndarray
+        Net counts ON - OFF at each step, same shape, non-decreasing, read-only.
     """
     r = SimulationRecord.from_dict(sim_record)
     key = json.dumps({"sensor": r.sensor.to_dict(), "blank_rate_e_per_s": r.blank_rate_e_per_s,

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from ..errors import EvtkError
 from ..events import TRIGGER_CHANNEL_ENV, TriggerKind, Triggers
 from ..limits import require_memory, require_window_work
-from ..plan import METADATA_KEY, Schedule, SimulationRecord
+from ..plan import METADATA_KEY, CaptureCounts, Schedule, SimulationRecord
 
 __all__ = ["Windows", "WindowCounts", "windows_from_schedule", "windows_from_triggers", "windows_periodic"]
 
@@ -36,6 +37,24 @@ class Windows:
     ``capture`` is the schedule's capture index (or the window's own index
     when there is no schedule); ``dropped`` says, per reason, how many windows
     could not be formed.
+
+    Parameters
+    ----------
+    t_start_us, t_end_us : ndarray of int
+        Each window's start (inclusive) and end (exclusive), µs on the recording's clock; 1-D, of equal length,
+        stored as contiguous int64. Every window must be non-empty and at most 2**63 - 1 µs long.
+    capture : ndarray of int
+        Each window's capture index (schedule row, or the window's own number), same length, stored as int64.
+    source : str
+        Where the windows came from: ``"schedule"``, ``"triggers"`` or ``"period"``.
+    dropped : dict of str to int, optional
+        How many windows could not be formed, per reason (empty by default).
+
+    Raises
+    ------
+    EvtkError
+        When the arrays are not 1-D of equal length, a window is empty or reversed, or one is longer than
+        int64 time stamps can measure.
     """
 
     t_start_us: np.ndarray
@@ -44,7 +63,7 @@ class Windows:
     source: str
     dropped: dict = field(default_factory=dict)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.t_start_us = np.ascontiguousarray(self.t_start_us, dtype=np.int64)
         self.t_end_us = np.ascontiguousarray(self.t_end_us, dtype=np.int64)
         self.capture = np.ascontiguousarray(self.capture, dtype=np.int64)
@@ -82,6 +101,22 @@ class WindowCounts:
     ``stamp_period_us`` is the spacing of the recording's time stamps
     (:meth:`evtk.Events.stamp_period_us`: 1 for an asynchronous sensor, the
     readout period of a frame-readout one), when accumulated with times.
+
+    Parameters
+    ----------
+    on, off : ndarray
+        ON and OFF event counts, shape (windows, y1 - y0, x1 - x0) (row-major: y then x), an integer dtype.
+    windows : Windows
+        The windows counted, one per leading index.
+    region : tuple of int
+        ``(x0, x1, y0, y1)``: the sensor pixels counted (half-open).
+    events_used : int
+        Events that fell in a window and the region.
+    on_first_us, on_last_us : ndarray of int32, optional
+        Each pixel's first and last ON event in each window, µs from the window's start, -1 where it has none;
+        same shape as ``on``. None unless accumulated with ``times=True``.
+    stamp_period_us : float, optional
+        Spacing of the recording's time stamps, µs; None unless accumulated with ``times=True``.
     """
 
     on: np.ndarray
@@ -94,8 +129,20 @@ class WindowCounts:
     stamp_period_us: float | None = None
 
     @classmethod
-    def from_capture_counts(cls, cc):
-        """Window counts from the simulator's fast path (:meth:`evtk.simulate.Simulation.responses`)."""
+    def from_capture_counts(cls, cc: CaptureCounts) -> WindowCounts:
+        """Window counts from the simulator's fast path (:meth:`evtk.simulate.Simulation.responses`).
+
+        Parameters
+        ----------
+        cc : CaptureCounts
+            The simulator's counts per capture and pixel, with their schedule and region.
+
+        Returns
+        -------
+        WindowCounts
+            The same counts, each capture's window its scheduled ``[t_on_us, t_off_us)`` (source
+            ``"schedule"``), without event times.
+        """
         s = cc.schedule
         win = Windows(s.t_on_us, s.t_off_us, s.capture, "schedule")
         return cls(cc.on, cc.off, win, tuple(cc.region), int(cc.on.sum() + cc.off.sum()))
@@ -125,12 +172,32 @@ def _trim(t_on, t_off, skip_us, length_us, what):
     return start, end
 
 
-def windows_from_schedule(schedule, skip_us=0, length_us=None) -> Windows:
+def windows_from_schedule(schedule: Schedule | SimulationRecord | dict, skip_us: int = 0,
+                          length_us: int | None = None) -> Windows:
     """Windows of a simulated recording's captures.
 
     ``schedule`` is an :class:`evtk.simulate.Schedule`, a
     :class:`~evtk.simulate.SimulationRecord`, a recording's metadata dict
     (with a ``simulation`` record) or that record's dict.
+
+    Parameters
+    ----------
+    schedule : Schedule, SimulationRecord or dict
+        The captures: each one's window is its ``[t_on_us, t_off_us)``.
+    skip_us : int
+        Microseconds left out at the start of every window (the pixels' settling), >= 0.
+    length_us : int, optional
+        Keep at most this many microseconds of every window (after ``skip_us``), >= 1; None keeps all of it.
+
+    Returns
+    -------
+    Windows
+        Source ``"schedule"``, one window per capture, ``capture`` the schedule's capture numbers.
+
+    Raises
+    ------
+    EvtkError
+        When a dict holds no schedule, ``skip_us`` < 0 or leaves nothing of a window, or ``length_us`` < 1.
     """
     if isinstance(schedule, SimulationRecord):
         schedule = schedule.schedule
@@ -143,7 +210,8 @@ def windows_from_schedule(schedule, skip_us=0, length_us=None) -> Windows:
     return Windows(start, end, schedule.capture, "schedule")
 
 
-def windows_from_triggers(triggers: Triggers, skip_us=0, length_us=None, channel=None) -> Windows:
+def windows_from_triggers(triggers: Triggers, skip_us: int = 0, length_us: int | None = None,
+                          channel: int | None = None) -> Windows:
     """Windows from the DMD's trigger edges: each rising edge to the next falling edge.
 
     The edges come from one trigger input (:meth:`evtk.Triggers.of_channel`): ``channel``, else
@@ -155,10 +223,33 @@ def windows_from_triggers(triggers: Triggers, skip_us=0, length_us=None, channel
     dropped), a falling edge with no open window (ignored), and a window still
     open when the triggers end (the recording ends mid-window: dropped).
     Triggers of other kinds are ignored.
+
+    Parameters
+    ----------
+    triggers : Triggers
+        The recording's trigger edges (time stamps in µs).
+    skip_us : int
+        Microseconds left out at the start of every window (the pixels' settling), >= 0.
+    length_us : int, optional
+        Keep at most this many microseconds of every window (after ``skip_us``), >= 1; None keeps all of it.
+    channel : int, optional
+        The trigger input to read; None: ``$EVTK_TRIGGER_CHANNEL``, else the only one there is.
+
+    Returns
+    -------
+    Windows
+        Source ``"triggers"``, captures numbered from 0 in time order, ``dropped`` counting the edge cases
+        above (only the reasons that occurred).
+
+    Raises
+    ------
+    EvtkError
+        When no rising edge is followed by a falling edge, triggers of several channels come without a
+        choice, or ``skip_us``/``length_us`` leave nothing of a window.
     """
-    if channel is None:
-        channel = os.environ.get(TRIGGER_CHANNEL_ENV) or None
-    triggers = triggers.of_channel(channel)
+    # the environment's choice is text: of_channel checks that it is a whole number
+    chosen: Any = channel if channel is not None else (os.environ.get(TRIGGER_CHANNEL_ENV) or None)
+    triggers = triggers.of_channel(chosen)
     order = np.argsort(triggers.t, kind="stable")
     t = triggers.t[order]
     kind = triggers.kind[order]
@@ -194,7 +285,8 @@ def windows_from_triggers(triggers: Triggers, skip_us=0, length_us=None, channel
     return Windows(start, end, np.arange(t_on.size), "triggers", {k: v for k, v in dropped.items() if v})
 
 
-def windows_periodic(t_start_us, t_end_us, period_us, skip_us=0, length_us=None, events=None) -> Windows:
+def windows_periodic(t_start_us: int | None, t_end_us: int | None, period_us: int, skip_us: int = 0,
+                     length_us: int | None = None, events: int | None = None) -> Windows:
     """Back-to-back windows of ``period_us`` from ``t_start_us``; a last partial period is dropped.
 
     The number of windows follows from the time span, not from the file's
@@ -210,9 +302,11 @@ def windows_periodic(t_start_us, t_end_us, period_us, skip_us=0, length_us=None,
     t_start_us, t_end_us : int or None
         The span to cut (half-open); None when the recording has no events.
     period_us : int
-        Length of each window.
-    skip_us, length_us : int
-        Delay every window's start, and cut its length.
+        Length of each window, µs, >= 1.
+    skip_us : int
+        Microseconds left out at the start of every window, >= 0.
+    length_us : int, optional
+        Keep at most this many microseconds of every window (after ``skip_us``); None keeps all of it.
     events : int, optional
         Events of the recording, to bound the work (unchecked when None).
 

@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from .._version import __version__
 from ..errors import EvtkError
@@ -87,11 +88,15 @@ class Simulation:
         One pattern (h, w) or a stack (n, h, w) each, values in {-1, 0, 1}.
         Every kernel is paired with every features pattern.
     bench : Bench, optional
+        The optical bench (DMDs, distances, light power, camera sensor size); default :class:`Bench`'s nominal
+        one.
     sensor : SensorModel, optional
+        The event camera's pixel model (thresholds and their mismatch, noise, refractory period, dark current);
+        default :class:`~evtk.sensor.SensorModel`'s.
     window_us : int
-        How long a pattern is shown; must not be shorter than eq. 7 allows.
+        How long a pattern is shown, µs; must not be shorter than eq. 7 allows.
     settle_us : int, optional
-        Darkness after each pattern (and before the first). Default: long
+        Darkness after each pattern (and before the first), µs. Default: long
         enough for a pixel to fall back from the brightest pattern to within
         5 % of a threshold of the dark level (:meth:`recommended_settle_us`).
     repeat : int
@@ -102,7 +107,7 @@ class Simulation:
         The trial: shot noise and background activity (default: ``seed``).
         Same ``seed`` with another ``noise_seed`` is the same camera recording again.
     start_us : int
-        Timestamp of the start of the recording.
+        Timestamp of the start of the recording, µs.
     flat_field : int
         Flat-field captures shown before everything else: every kernel
         element and every features element on. They let the reconstruction
@@ -130,17 +135,24 @@ class Simulation:
         (:func:`evtk.reconstruct.fit_pixel_model`); ids -3
         (:data:`LEVEL_ID`), the element count in the schedule's ``level``.
     light_delay_us : int
-        How long the light takes to change after each trigger edge (a DMD's
+        How long (µs) the light takes to change after each trigger edge (a DMD's
         trigger-to-mirror latency, 0 or more). The schedule keeps the
         light's times, the trigger edges come this much earlier, as a bench
         records them; the calibrated reconstruction fits the delay
         (:attr:`evtk.reconstruct.PixelFit.delay_us`).
     light_rise_us : float
-        How gradually the light follows each edge: it rises as ``1 -
+        How gradually the light follows each edge (a time constant, µs): it rises as ``1 -
         exp(-t / light_rise_us)`` after the light's rising edge and falls as
         ``exp(-t / light_rise_us)`` after its falling one (a lamp's or
         diffuser's response; 0, the default: at once). Simulated as pieces
         of constant light, finest at the edge.
+
+    Raises
+    ------
+    EvtkError
+        On patterns of the wrong shape or values, a window shorter than eq. 7 allows, a negative or
+        non-integer count, seed or time, a light delay not shorter than the darkness, a light rise not under a
+        fifth of the window and of the darkness, or a bench so bright that the photon rates overflow.
 
     Examples
     --------
@@ -149,9 +161,11 @@ class Simulation:
     3
     """
 
-    def __init__(self, kernels, features, bench: Bench | None = None, sensor: SensorModel | None = None,
-                 window_us=1000, settle_us=None, repeat=1, seed=0, start_us=0, noise_seed=None, flat_field=2,
-                 calibration=0, dot_spacing=4, levels=0, camera=None, light_delay_us=0, light_rise_us=0.0):
+    def __init__(self, kernels: npt.ArrayLike, features: npt.ArrayLike, bench: Bench | None = None,
+                 sensor: SensorModel | None = None, window_us: int = 1000, settle_us: int | None = None,
+                 repeat: int = 1, seed: int = 0, start_us: int = 0, noise_seed: int | None = None,
+                 flat_field: int = 2, calibration: int = 0, dot_spacing: int = 4, levels: int = 0,
+                 camera: Camera | dict | None = None, light_delay_us: int = 0, light_rise_us: float = 0.0) -> None:
         self.bench = bench if bench is not None else Bench()
         self.sensor = sensor if sensor is not None else SensorModel()
         self.kernels = _as_patterns("kernels", kernels)
@@ -705,6 +719,7 @@ class Simulation:
         off = np.zeros((n, ny, nx), np.int32)
         roi_idx = self._region_pixels(region)
         hot = np.isin(roi_idx, self._hot)
+        batches: Iterator[tuple[int, int, np.ndarray, np.ndarray, int]]
         if method == "exact":
             batches = ((c0, c1, roi[3], roi[4], seed_ba) for _, c0, c1, _, _, _, roi, _, seed_ba, _, _
                        in self._run(False, batch_captures, progress, region))

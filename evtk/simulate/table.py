@@ -9,12 +9,16 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..optics import brightest_response
 from ..sensor import PixelState, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
+
+if TYPE_CHECKING:
+    from .run import Simulation
 
 __all__ = ["count_table", "table_batches"]
 
@@ -88,7 +92,38 @@ def _table_key(sim):
     return json.dumps([sim.bench.to_dict(), sim.sensor.to_dict(), sim.window_us, sim.settle_us,
                        list(sim.kernels.shape[1:])], sort_keys=True)
 
-def table_batches(sim, region, roi_idx, batch, progress):
+def table_batches(sim: Simulation, region: tuple[int, int, int, int], roi_idx: np.ndarray, batch: int,
+                  progress: Callable[[int], Any] | None
+                  ) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, int]]:
+    """The fast path's counts, a batch of captures at a time, each pixel's drawn from :func:`count_table`.
+
+    Each pixel reads the table at its own ON threshold and at its light in each capture (log rate over the
+    blank rate, in units of that threshold), taking one of the two neighbouring table cells on each axis with
+    the probability that interpolates linearly between them. Which threshold neighbour, which light
+    neighbour's share and (without shot noise) which replicate a pixel reads follow from the device
+    (``sim.seed``); with shot noise the replicate is drawn per capture from the trial (``sim.noise_seed``).
+
+    Parameters
+    ----------
+    sim : Simulation
+        The run: its schedule, lights, pixels' ON thresholds, sensor and seeds.
+    region : tuple of int
+        ``(x0, x1, y0, y1)``: the sensor pixels counted (half-open).
+    roi_idx : numpy.ndarray
+        Flat sensor indices (``y * width + x``) of the region's pixels, row-major, shape
+        ((y1 - y0) * (x1 - x0),).
+    batch : int
+        Captures per batch, >= 1.
+    progress : callable or None
+        Called with the number of captures of each batch once the caller has taken it.
+
+    Yields
+    ------
+    tuple
+        ``(c0, c1, on, off, seed)``: the batch's captures ``[c0, c1)`` of the schedule, their ON and OFF
+        counts (integers, shape (c1 - c0, pixels), pixels in ``roi_idx``'s order), and a seed drawn from the
+        trial for what the caller adds (background activity and hot pixels).
+    """
     u_grid, th_grid, t_on, t_off = count_table(sim)
     blank = sim.blank_rate_e_per_s
     theta = sim._theta_on[roi_idx]
