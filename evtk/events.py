@@ -17,8 +17,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from ._table import columns_to_table, table_to_columns
 from .errors import EvtkError
-from .io.table import columns_to_table, table_to_columns
 
 if TYPE_CHECKING:
     import pyarrow as pa

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .._atomic import AtomicFile
+from .._table import KEY_META, KEY_TRIGGERS, arrow_columns, columns_to_table, events_schema, numpy_of, pyarrow_module, sensor_from
 from ..errors import EvtkError, FormatError, one_line
 from ..events import Events, Triggers
 from ..limits import require_memory
@@ -36,7 +37,6 @@ from .base import (
     time_chunks,
     window_blocks,
 )
-from .table import KEY_META, KEY_TRIGGERS, _columns, _numpy_of, _pa, _schema, _sensor_from, columns_to_table
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -218,7 +218,7 @@ class ParquetRecording(BaseRecording):
                 raise FormatError(self.path, None, f"column {name!r} has type {typ}, expected an integer type")
         meta = schema.metadata or {}
         self._sensor = (sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size") if sensor_size
-                        else _sensor_from(meta, self.path))
+                        else sensor_from(meta, self.path))
         self._meta = {}
         if KEY_META in meta:
             self._meta = load_json(meta[KEY_META], self.path, "schema metadata evtk.metadata")
@@ -329,8 +329,8 @@ class ParquetRecording(BaseRecording):
             try:
                 tab = self._pf.read_row_group(g, columns=["x", "y"])
                 if tab.num_rows:
-                    w = max(w, int(np.max(_numpy_of(tab.column("x")))) + 1)
-                    h = max(h, int(np.max(_numpy_of(tab.column("y")))) + 1)
+                    w = max(w, int(np.max(numpy_of(tab.column("x")))) + 1)
+                    h = max(h, int(np.max(numpy_of(tab.column("y")))) + 1)
             except Exception as exc:  # pyarrow raises OSError, ArrowInvalid, ... on damaged pages
                 problem = _unreadable(g, exc)
                 if not self.salvage:
@@ -374,7 +374,7 @@ class ParquetRecording(BaseRecording):
     def _group_span(self, g):
         """(first, last) time stamp of row group ``g``, or None when it is empty or unreadable."""
         try:
-            t = _numpy_of(self._pf.read_row_group(g, columns=["t"]).column(0))
+            t = numpy_of(self._pf.read_row_group(g, columns=["t"]).column(0))
         except Exception:  # noqa: BLE001 - pyarrow's errors on a damaged group; the full read reports it
             return None
         return (int(t[0]), int(t[-1])) if len(t) else None
@@ -384,7 +384,7 @@ class ParquetRecording(BaseRecording):
             table = self._pf.read_row_group(g, columns=["t", "x", "y", "p"])
         except Exception as exc:
             return None, _unreadable(g, exc)
-        cols = _columns(table, self.path)
+        cols = arrow_columns(table, self.path)
         try:
             ev = Events(*cols, self._sensor)
         except EvtkError as exc:
@@ -537,7 +537,7 @@ class ParquetWriter(BaseWriter):
         if codec is None:
             raise EvtkError(f"unknown Parquet compression {compression!r}; choose one of {sorted(COMPRESSIONS)}")
         self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
-        self._schema = _schema(self.sensor_size, metadata, triggers)
+        self.events_schema = events_schema(self.sensor_size, metadata, triggers)
         self._rg_events, self._rg_us = int(row_group_events), row_group_us
         self._atomic = AtomicFile(path, keep_open=False)
         self.path = self._atomic.path
@@ -546,7 +546,7 @@ class ParquetWriter(BaseWriter):
         try:
             # dictionary pages (pyarrow's default, made explicit) start every column chunk: salvage finds
             # the chunks of a file whose footer was never written by them
-            self._w = pq.ParquetWriter(self._atomic.tmp_path, self._schema, compression=codec, use_dictionary=True)
+            self._w = pq.ParquetWriter(self._atomic.tmp_path, self.events_schema, compression=codec, use_dictionary=True)
         except BaseException:
             self._atomic.discard()
             raise
@@ -559,9 +559,9 @@ class ParquetWriter(BaseWriter):
         require_readable(events, self.sensor_size, self._last_t, self._rows, "Parquet")
         if len(events):
             self._last_t = int(events.t[-1])
-        pa = _pa()
+        pa = pyarrow_module()
         table = pa.Table.from_arrays(
-            [pa.array(events.t), pa.array(events.x), pa.array(events.y), pa.array(events.p)], schema=self._schema
+            [pa.array(events.t), pa.array(events.x), pa.array(events.y), pa.array(events.p)], schema=self.events_schema
         )
         bounds = time_chunks(events.t, self._rg_events, self._rg_us, events.is_sorted)
         for a, b in zip(bounds[:-1], bounds[1:]):
@@ -571,7 +571,7 @@ class ParquetWriter(BaseWriter):
     # -- finishing (BaseWriter's close and abort) --------------------------------------
     def _finish(self):
         if self._rows == 0:
-            self._w.write_table(self._schema.empty_table())
+            self._w.write_table(self.events_schema.empty_table())
         self._w.close()
 
     def _commit(self):

@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
+from .._table import MAX_SENSOR_SIDE, load_json, sensor_dims  # noqa: F401  (part of this module's API)
 from ..errors import EvtkError, FormatError
 from ..events import Events, Triggers
-from .table import MAX_SENSOR_SIDE, load_json, sensor_dims  # noqa: F401  (part of this module's API)
 
 __all__ = ["BaseRecording", "BaseWriter", "StreamInfo", "Damage", "time_chunks", "window_blocks", "sensor_dims", "load_json",
            "text_header"]
