@@ -906,7 +906,7 @@ def reconstruction_state(path) -> dict:
     out = {"responses": r.responses, "binary": r.binary, "cells": r.cells, "ideal": r.ideal, "pairs": r.pairs,
            "window_start_us": r.counts.windows.t_start_us, "window_end_us": r.counts.windows.t_end_us,
            "on": r.counts.on, "off": r.counts.off,
-           "summary": json.dumps(r.summary, sort_keys=True, default=str)}
+           "summary": json.dumps(r.summary.to_dict(), sort_keys=True, default=str)}
     return out
 
 
@@ -1152,8 +1152,9 @@ def _load_job(path):
 def _load_schedule(path):
     from evtk.reconstruct.bench import load_schedule
 
-    s = load_schedule(path)
-    plain = {k: _plain(v) for k, v in s.items()}
+    s = load_schedule(path)  # a Plan: the schedule's entries as attributes
+    plain = {k: _plain(getattr(s, k)) for k in ("schedule", "kernels", "features", "bench", "window_us", "settle_us",
+                                               "dot_spacing")}
     bad = []
     _check_patterns(plain, bad)
     sched = plain["schedule"]
