@@ -29,7 +29,8 @@ import numpy.typing as npt
 
 from ..errors import EvtkError
 from ..optics import response_origin_px, response_region
-from ..plan import FLAT_ID, LEVEL_ID, Plan, SimulationRecord, as_plan
+from ..optics.camera import CellMap
+from ..plan import FLAT_ID, LEVEL_ID, PixelModel, Plan, SimulationRecord, as_plan
 from .accumulate import accumulate
 from .bench import (
     _all_pairs,
@@ -41,8 +42,8 @@ from .bench import (
 )
 from .fit import (
     MAX_DELAY_US,
+    NOMINAL_BLANK_E_PER_S,
     PixelFit,
-    _fitted_record,
     describe_pixels,
     fit_pixel_model,
     fit_refractory,
@@ -105,6 +106,23 @@ def nominal_placement(schedule: Plan | dict | str | os.PathLike) -> tuple:
     sched = as_plan(schedule)
     b, ks, fs = sched["bench"], sched["kernels"].shape[1:], sched["features"].shape[1:]
     return tuple(int(v) for v in response_region(b, ks, fs)), tuple(float(v) for v in response_origin_px(b, ks, fs))
+
+
+def _fitted_plan(sched: Plan, fit: PixelFit, sub, t_on_us, t_off_us, region, origin_px, cell_map, blur_px) -> Plan:
+    """The bench plan the stages after counting read (:func:`reconstruct_counts`), with the fitted pixel model.
+
+    ``sub`` holds the matched captures, ``t_on_us``/``t_off_us`` their windows on the recording's clock; the
+    photon rates are the fit's, relative to :data:`~evtk.reconstruct.fit.NOMINAL_BLANK_E_PER_S` (glow folded
+    into the dark level); ``blur_px`` is the calibration's defocus, which goes with ``cell_map``.
+    """
+    bench = sched.bench
+    matched = dataclasses.replace(sub, t_on_us=np.asarray(t_on_us, np.int64), t_off_us=np.asarray(t_off_us, np.int64))
+    view = None if cell_map is None else CellMap(np.asarray(cell_map.matrix, np.float64), float(cell_map.k1),
+                                                 (bench.sensor_width, bench.sensor_height))
+    return sched.replace(schedule=matched, region=tuple(int(v) for v in region),
+                         origin_px=tuple(float(v) for v in origin_px), cell_map=view,
+                         blur_px=0.0 if cell_map is None else float(blur_px), camera=None, record=None,
+                         pixels=PixelModel(fit.sensor, NOMINAL_BLANK_E_PER_S / fit.blank, NOMINAL_BLANK_E_PER_S))
 
 
 def _reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16, 16), binarize_method="auto",
@@ -185,7 +203,6 @@ def _reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16
     edge_on, edge_off = win.t_start_us[keep], win.t_end_us[keep]
 
     sub = s.take(caps)
-    bench = sched["bench"]
     lit = (sub.kernel_id == FLAT_ID) | (sub.kernel_id == LEVEL_ID)
     lit = lit if lit.any() else np.ones(caps.size, bool)
     refuse_synchronous(rec, edge_on[lit], edge_off[lit])  # counts that fall in bright light: named, not fitted
@@ -228,10 +245,8 @@ def _reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16
     start, end = _trim(edge_on + shift, edge_off + shift, skip_us, length_us, "matched")
     counts = accumulate(rec, Windows(start, end, np.arange(caps.size), "triggers matched to the schedule",
                                      win.dropped), region, progress=progress, times=True)
-    t_on, t_off = edge_on + shift, edge_off + shift
-    record = _fitted_record(fit, sub, t_on, t_off, sched["kernels"], sched["features"], bench, counts.region,
-                           origin_px, sched["window_us"], sched["settle_us"],
-                           cell_map=cell_map, blur_px=blur_px)
+    record = _fitted_plan(sched, fit, sub, edge_on + shift, edge_off + shift, counts.region, origin_px, cell_map,
+                          blur_px)
     counts = WindowCounts(counts.on, counts.off, Windows(start, end, sub.capture, counts.windows.source,
                                                          counts.windows.dropped),
                           counts.region, counts.events_used, counts.on_first_us, counts.on_last_us,

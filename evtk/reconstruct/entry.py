@@ -95,8 +95,12 @@ def reconstruct(rec: Any, plan: Plan | SimulationRecord | None = None, options: 
     if plan is None or record is not None:
         if linearization != "auto":
             raise EvtkError("a simulation record's plan linearises by its own pixel model: leave linearization out")
+        kwargs = opts.kwargs()
+        if isinstance(plan, Plan) and kwargs.get("region") is None:
+            kwargs["region"] = plan.region  # the plan's placement (the record's, unless changed)
         return _reconstruct_record(rec, progress=progress, chunk_events=chunk_events, record=record,
-                                   keep_pixels=keep_pixels, **opts.kwargs())
+                                   keep_pixels=keep_pixels, run_plan=plan if isinstance(plan, Plan) else None,
+                                   **kwargs)
     if not isinstance(plan, Plan):
         raise EvtkError(f"plan must be an evtk.plan.Plan or a SimulationRecord, not {type(plan).__name__}")
     if not keep_pixels:
