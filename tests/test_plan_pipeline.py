@@ -109,3 +109,35 @@ def test_the_calibrated_route_makes_no_record(tmp_path, monkeypatch):
     assert run.pixels.sensor.theta_on == pytest.approx(result.summary.pixel_model["theta_on"])
     assert run.region == tuple(result.summary.region) and len(run.schedule) == result.summary.windows
     assert np.array_equal(run.schedule.t_on_us, result.counts.windows.t_start_us - result.summary.skip_us)
+
+
+def test_the_schedule_is_a_plan_not_a_dict(tmp_path):
+    """Issue 30: ``read_schedule`` gives the plan itself (attributes, no seven-key dict); reading a plan by key
+    still works for old callers but warns, and evtk's own reconstruction and calibration never do it."""
+    import warnings
+
+    from evtk.calibrate import calibrate
+    from evtk.patterns import job_simulation, write_patterns
+    from evtk.plan import Plan, read_schedule
+    from evtk.reconstruct import reconstruct
+
+    job = tmp_path / "job.toml"
+    job.write_text('kernels = ["010111010"]\nrepeat = 1\nflat_field = 2\ncalibration = 2\nlevels = 4\n'
+                   "dot_spacing = 4\nwindow_us = 1000\nseed = 3\n")
+    sim = job_simulation(job)
+    write_patterns(sim, tmp_path / "p")
+    sim.write(tmp_path / "r.h5")
+    path = tmp_path / "p" / "schedule.json"
+    plan = read_schedule(path)
+    assert isinstance(plan, Plan) and not isinstance(plan, dict)
+    assert plan.kernels.shape[1:] == (3, 3) and plan.window_us == 1000 and plan.dot_spacing == 4
+    with pytest.warns(DeprecationWarning, match=r"plan\.kernels"):
+        assert plan["kernels"] is plan.kernels
+    with pytest.raises(KeyError):
+        plan["region"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)
+        with evtk.open(tmp_path / "r.h5") as rec:
+            cal = calibrate(rec, path)
+            result = reconstruct(rec, cal.place(Plan.read(path)))
+    assert result.summary.match["matched"] > 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -19,7 +20,7 @@ from .schedule import Schedule, read_schedule
 
 __all__ = ["Plan", "PixelModel", "as_plan"]
 
-#: The entries of the schedule's dict form (:func:`~evtk.plan.read_schedule`), readable from a plan by key.
+#: The entries of the schedule's old dict form, still readable from a plan by key (deprecated: attributes).
 SCHEDULE_KEYS = ("schedule", "kernels", "features", "bench", "window_us", "settle_us", "dot_spacing")
 
 
@@ -50,8 +51,8 @@ class Plan:
     The reconstruction (:func:`evtk.reconstruct.reconstruct`) chooses its route from what the plan holds: the
     simulation ``record`` (the oracle: the simulator's own pixel model and placement); a ``pixel_model`` fitted
     by a calibration, or level captures to fit one to (inverted); neither (``exp(n theta)``, each pixel's
-    threshold from the flat fields). The schedule's entries also read by key (``plan["kernels"]``), as the dict
-    :func:`~evtk.plan.read_schedule` returns.
+    threshold from the flat fields). Its entries are attributes (``plan.kernels``); reading the schedule's seven
+    entries by key (``plan["kernels"]``, the dict ``read_schedule`` once returned) still works but is deprecated.
 
     Parameters
     ----------
@@ -113,6 +114,7 @@ class Plan:
     def __getitem__(self, key: str) -> Any:
         if key not in SCHEDULE_KEYS:
             raise KeyError(key)
+        warnings.warn(f"plan[{key!r}] is deprecated: read plan.{key}", DeprecationWarning, stacklevel=2)
         return getattr(self, key)
 
     @property
@@ -149,11 +151,11 @@ class Plan:
         Plan
             The schedule, patterns, bench and timing; no placement, no pixel model.
         """
-        return cls(**read_schedule(path))
+        return read_schedule(path)
 
     @classmethod
     def from_schedule(cls, d: Mapping) -> Plan:
-        """The plan of a schedule's dict form (:func:`~evtk.plan.read_schedule`'s seven entries).
+        """The plan of a schedule's dict form (its seven entries, as ``read_schedule`` once returned them).
 
         Parameters
         ----------

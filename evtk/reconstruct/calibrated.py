@@ -104,7 +104,7 @@ def nominal_placement(schedule: Plan | dict | str | os.PathLike) -> tuple:
         ``(region, origin_px)``: ``(x0, x1, y0, y1)`` and the sensor pixel ``(x, y)`` of cell (0, 0).
     """
     sched = as_plan(schedule)
-    b, ks, fs = sched["bench"], sched["kernels"].shape[1:], sched["features"].shape[1:]
+    b, ks, fs = sched.bench, sched.kernels.shape[1:], sched.features.shape[1:]
     return tuple(int(v) for v in response_region(b, ks, fs)), tuple(float(v) for v in response_origin_px(b, ks, fs))
 
 
@@ -182,7 +182,7 @@ def _reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16
     """
     check_crop(crop)
     sched = as_plan(schedule)
-    s = sched["schedule"]
+    s = sched.schedule
     if region is None or origin_px is None:
         nominal = nominal_placement(sched)
         region = nominal[0] if region is None else region
@@ -450,9 +450,9 @@ def _fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us, cell_m
     """:func:`fit_pixel_model` on accumulated counts (with times) of the captures ``sub`` (a schedule of the
     windows counted, ``t_off_us`` their ends, ``lead_us`` before the falling edges), the light taken to follow
     the edges by ``delay_us`` until its delay is fitted."""
-    kh, kw = sched["kernels"].shape[1:]
-    fh, fw = sched["features"].shape[1:]
-    bench = sched["bench"]
+    kh, kw = sched.kernels.shape[1:]
+    fh, fw = sched.features.shape[1:]
+    bench = sched.bench
     inside = interior_pixels(counts.region, origin_px, bench.kernel_step_cells / bench.pixel_cells, (kh, kw),
                              (fh, fw), cell_map=cell_map)
     if hot is not None:
@@ -466,27 +466,27 @@ def _fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us, cell_m
     is_level = sub.kernel_id == LEVEL_ID
     stats = level_statistics(counts, is_level, sub.level, inside, gain)
     off_mean, off_counts = level_off_times(rec, np.asarray(t_off_us)[is_level], sub.level[is_level],
-                                           sched["settle_us"], counts.region, inside, counts.stamp_period_us)
+                                           sched.settle_us, counts.region, inside, counts.stamp_period_us)
     stats = dataclasses.replace(stats, off_mean_us=off_mean, off_counts=off_counts)
     spread = float(np.clip(np.std(gain[inside]) if gain is not None else 0.05, 0.005, 0.3))
     # event times on a frame readout's grid are too coarse to time a pixel by: fit the counts and the decay
     fine = counts.stamp_period_us is None or counts.stamp_period_us <= MAX_TIMING_STAMP_US
     bright = is_level & (sub.level == sub.level[is_level].max()) if is_level.any() else is_level
-    t_on = np.asarray(t_off_us)[bright] - int(sched["window_us"])
+    t_on = np.asarray(t_off_us)[bright] - int(sched.window_us)
     gaps = on_gaps(rec, t_on, np.asarray(t_off_us)[bright], counts.region, inside) if fine else np.zeros(0)
     # first timed by the first ON events, which no refractory period delays, the light taken to come delay_us
     # after the edges, so that the gaps can measure the period
-    fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine,
+    fit = fit_pixel_model(stats, sched.window_us, sched.settle_us, skip_us, spread=spread, times=fine,
                           lead_us=lead_us, delay_us=delay_us)
     refractory, resolved = fit_refractory(fit, stats.light.max(), gaps, skip_us)
     if fine:  # then timed half-way up the rise as well, with the period, and the light's delay fitted
         orders = rise_orders(stats.counts)
         t_lv = np.asarray(t_off_us)[is_level]
-        rise = level_rise_times(rec, t_lv - int(sched["window_us"]) + int(skip_us), t_lv, sub.level[is_level], orders,
+        rise = level_rise_times(rec, t_lv - int(sched.window_us) + int(skip_us), t_lv, sub.level[is_level], orders,
                                 counts.region, inside)
         stats = dataclasses.replace(stats, rise_order=orders, rise_us=rise)
     if fine or resolved:  # a period that shows in the gaps limits the bright steps' counts too
-        fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, refractory_us=refractory,
+        fit = fit_pixel_model(stats, sched.window_us, sched.settle_us, skip_us, refractory_us=refractory,
                               spread=spread, times=fine, lead_us=lead_us, delay_us=delay_us)
     return dataclasses.replace(fit, refractory_bound_us=refractory_bound(gaps), refractory_resolved=resolved)
 

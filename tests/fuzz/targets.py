@@ -1153,7 +1153,7 @@ def _load_schedule(path):
     from evtk.reconstruct.bench import load_schedule
 
     s = load_schedule(path)
-    plain = {k: _plain(v) for k, v in s.items()}
+    plain = _plain(s)
     bad = []
     _check_patterns(plain, bad)
     sched = plain["schedule"]
