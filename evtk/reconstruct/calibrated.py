@@ -8,7 +8,8 @@ no answer only the simulator knows:
 2. counts and event times over the response's region;
 3. a pixel model fitted to the run's own level captures
    (:mod:`evtk.reconstruct.fit`), when it has any;
-4. then the oracle's stages on that model (:func:`reconstruct_counts`):
+4. then the oracle's stages on that model (:func:`reconstruct_counts`, on
+   the bench's plan with the fitted model in it, :class:`~evtk.plan.PixelModel`):
    flat field, linearisation by the model and the event times, passes,
    grid, deblurring, resampling, binarisation.
 
@@ -135,9 +136,9 @@ def _reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16
     ----------
     rec : Recording
         Events and the DMD's trigger edges.
-    schedule : str, os.PathLike or dict
-        ``schedule.json`` (:func:`evtk.patterns.write_patterns`), :func:`load_schedule`'s
-        dict, or :func:`schedule_of_record`'s.
+    schedule : Plan, str, os.PathLike or dict
+        The run's plan (:func:`load_schedule`'s, :func:`schedule_of_record`'s), its
+        ``schedule.json`` (:func:`evtk.patterns.write_patterns`) or a schedule's dict form.
     region, origin_px
         Where the response lies (from :func:`evtk.calibrate.calibrate`);
         default :func:`nominal_placement`.

@@ -287,14 +287,14 @@ def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=
                               deblur=deblur, flat_field=flat_field, timing=timing)
 
 
-def wants_times(sim: SimulationRecord | None, linear: bool = True, theta: float | None = None,
+def wants_times(sim: Plan | SimulationRecord | None, linear: bool = True, theta: float | None = None,
                 timing: bool | None = None) -> bool:
     """Whether a reconstruction with these settings reads event times (accumulate with ``times=True``).
 
     Parameters
     ----------
-    sim : SimulationRecord or None
-        The record the reconstruction reads.
+    sim : Plan, SimulationRecord or None
+        The plan (or simulation record) the reconstruction reads.
     linear, theta, timing
         :class:`~evtk.reconstruct.ReconstructOptions`' settings of those names.
 
