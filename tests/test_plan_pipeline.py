@@ -65,10 +65,14 @@ def test_the_oracle_reads_the_plan_it_is_given(tmp_path):
         plan = Plan.from_record(rec.metadata["simulation"])
         own = reconstruct(rec)
         same = reconstruct(rec, plan)
+        # the plan alone, without the record it was read from: the same oracle (its windows from the plan's
+        # schedule, its pixels from the plan's region)
+        alone = reconstruct(rec, plan.replace(record=None))
         px = plan.pixels
         other = reconstruct(rec, plan.replace(pixels=PixelModel(SensorModel(theta_on=0.3, theta_off=0.3),
                                                                 px.gain_e_per_s_per_unit, px.blank_rate_e_per_s)))
     assert np.array_equal(same.responses, own.responses)
+    assert np.array_equal(alone.responses, own.responses) and alone.summary.to_dict() == own.summary.to_dict()
     assert not np.allclose(other.responses, own.responses)
 
 

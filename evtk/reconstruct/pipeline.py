@@ -138,8 +138,8 @@ def response_error(got: npt.ArrayLike, ideal: npt.ArrayLike) -> dict:
 
 def plan(rec: Any, window: str | tuple = "schedule", skip_us: int = 0, length_us: int | None = None,
          region: tuple | None = None, check_memory: bool = True,
-         record: SimulationRecord | None = None) -> tuple[SimulationRecord | None, Windows, tuple]:
-    """What :func:`reconstruct` will count: the record, the windows and the region.
+         record: SimulationRecord | Plan | None = None) -> tuple[SimulationRecord | Plan | None, Windows, tuple]:
+    """What :func:`reconstruct` will count: the record (or plan), the windows and the region.
 
     Parameters
     ----------
@@ -150,23 +150,25 @@ def plan(rec: Any, window: str | tuple = "schedule", skip_us: int = 0, length_us
     skip_us, length_us : int
         Shorten or delay every window.
     region : tuple, optional
-        ``(x0, x1, y0, y1)``; default the record's response region, else the whole sensor.
+        ``(x0, x1, y0, y1)``; default the record's response region (a plan's ``region``), else the whole
+        sensor.
     check_memory : bool
         Require the counts of every window at once to fit the memory budget
         (:func:`evtk.limits.require_memory`).
-    record : SimulationRecord, optional
-        Takes the place of the one in the recording's metadata.
+    record : SimulationRecord or Plan, optional
+        Takes the place of the one in the recording's metadata: a simulated run's record, or its plan (the
+        schedule's times on the recording's clock).
 
     Returns
     -------
     tuple
-        ``(simulation record or None, Windows, region)``.
+        ``(simulation record or the plan given, or None; Windows; region)``.
     """
     sim = record if record is not None else SimulationRecord.from_metadata(rec.metadata)
     if window == "schedule":
         if sim is None:
             raise EvtkError("the recording carries no capture schedule: use window='triggers' or a period")
-        win = windows_from_schedule(sim, skip_us, length_us)
+        win = windows_from_schedule(sim.schedule if isinstance(sim, Plan) else sim, skip_us, length_us)
     elif window == "triggers":
         win = windows_from_triggers(rec.triggers(), skip_us, length_us)
     elif isinstance(window, tuple) and len(window) == 2 and window[0] == "period":
@@ -176,7 +178,9 @@ def plan(rec: Any, window: str | tuple = "schedule", skip_us: int = 0, length_us
     else:
         raise EvtkError(f"window must be 'schedule', 'triggers' or ('period', US), not {window!r}")
     if region is None:
-        region = sim.response_region if sim is not None else (0, rec.sensor_size[0], 0, rec.sensor_size[1])
+        region = (sim.region if isinstance(sim, Plan) else sim.response_region) if sim is not None else None
+    if region is None:
+        region = (0, rec.sensor_size[0], 0, rec.sensor_size[1])
     x0, x1, y0, y1 = (int(v) for v in region)
     if check_memory:
         require_memory(len(win) * window_bytes(region, sim is not None),
@@ -210,7 +214,7 @@ def window_bytes(region: tuple, simulated: bool) -> int:
 
 def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
                         linear=True, theta=None, crop="valid", region=None, chunk_events=4_000_000, progress=None,
-                        deblur=None, flat_field=True, timing=None, record=None, keep_pixels=True, run_plan=None):
+                        deblur=None, flat_field=True, timing=None, record=None, keep_pixels=True):
     """The whole pipeline on an open recording and its simulation record (or none): windows, counts,
     linearisation, passes, grid, binarisation (:func:`~evtk.reconstruct.reconstruct` without a bench plan).
 
@@ -250,6 +254,10 @@ def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=
         Read the light below one threshold from each window's first and last
         ON-event times (:func:`linearize_by_timing`). ``None`` (default):
         wherever the recording's pixel model allows it; ``True``: required.
+    record : SimulationRecord or Plan, optional
+        The run's plan with its pixel model (or a simulation record, read as
+        :meth:`~evtk.plan.Plan.from_record`) in place of the recording's own
+        record: its schedule gives the windows, its region the pixels.
     keep_pixels : bool
         Keep every window's counts and per-pixel values (default). ``False``,
         for a recording without a simulation record (every window stands
@@ -257,9 +265,6 @@ def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=
         counts hold no pixels): windows are counted a batch at a time and the
         responses computed straight from the counts, in memory bounded by
         them and one batch (``evtk.reconstruct._batched``).
-    run_plan : Plan, optional
-        The plan read from ``record`` (:meth:`~evtk.plan.Plan.from_record`, perhaps changed), which the stages
-        after counting read; default the record's own.
 
     Notes
     -----
@@ -280,8 +285,8 @@ def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=
                                    progress=progress, **stages)
     counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress,
                         times=wants_times(sim, linear, theta, timing))
-    if sim is not None:  # the oracle: the plan the simulation record holds
-        sim = run_plan if run_plan is not None else Plan.from_record(sim)
+    if sim is not None and not isinstance(sim, Plan):  # the oracle: the plan the simulation record holds
+        sim = Plan.from_record(sim)
     return reconstruct_counts(counts, sim, skip_us=skip_us, length_us=length_us, size=size,
                               binarize_method=binarize_method, linear=linear, theta=theta, crop=crop,
                               deblur=deblur, flat_field=flat_field, timing=timing)
