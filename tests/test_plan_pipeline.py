@@ -9,12 +9,12 @@ import evtk
 from evtk.errors import EvtkError
 
 
-def _simulated(tmp_path, levels=0):
+def _simulated(tmp_path, levels=0, **extra):
     from evtk.simulate import Simulation
 
     rng = np.random.default_rng(11)
     sim = Simulation(rng.choice([-1, 1], (3, 3)), rng.choice([-1, 1], (12, 12)), seed=11, flat_field=2,
-                     levels=levels, repeat=2)
+                     levels=levels, repeat=2, **extra)
     sim.write(tmp_path / "r.h5")
     return sim
 
@@ -121,20 +121,16 @@ def test_the_schedule_is_a_plan_not_a_dict(tmp_path):
     import warnings
 
     from evtk.calibrate import calibrate
-    from evtk.patterns import job_simulation, write_patterns
+    from evtk.patterns import write_patterns
     from evtk.plan import Plan, read_schedule
     from evtk.reconstruct import reconstruct
 
-    job = tmp_path / "job.toml"
-    job.write_text('kernels = ["010111010"]\nrepeat = 1\nflat_field = 2\ncalibration = 2\nlevels = 4\n'
-                   "dot_spacing = 4\nwindow_us = 1000\nseed = 3\n")
-    sim = job_simulation(job)
+    sim = _simulated(tmp_path, levels=4, calibration=2)
     write_patterns(sim, tmp_path / "p")
-    sim.write(tmp_path / "r.h5")
     path = tmp_path / "p" / "schedule.json"
     plan = read_schedule(path)
     assert isinstance(plan, Plan) and not isinstance(plan, dict)
-    assert plan.kernels.shape[1:] == (3, 3) and plan.window_us == 1000 and plan.dot_spacing == 4
+    assert plan.kernels.shape[1:] == (3, 3) and plan.window_us == sim.window_us and plan.dot_spacing == 4
     with pytest.warns(DeprecationWarning, match=r"plan\.kernels"):
         assert plan["kernels"] is plan.kernels
     with pytest.raises(KeyError):
