@@ -284,7 +284,7 @@ def calibrate(rec: BaseRecording, schedule: Plan | str | os.PathLike[str] | dict
         As above: no calibration captures scheduled or recorded, too few dots seen or paired, or no single map.
     """
     sched = as_plan(schedule)
-    s, kernels, features = sched["schedule"], sched["kernels"], sched["features"]
+    s, kernels, features = sched.schedule, sched.kernels, sched.features
     if not np.any(s.kernel_id == DOTS_ID):
         raise EvtkError("the schedule has no calibration captures: add calibration = N to the job")
     win, report = match_windows(rec.triggers(), s, tolerance_us)
@@ -298,12 +298,12 @@ def calibrate(rec: BaseRecording, schedule: Plan | str | os.PathLike[str] | dict
     # pixels that fire in the dark would be dots of their own: each takes its neighbours' median
     hot = hot_pixels(rec, win.t_start_us, win.t_end_us)
     image = _without(dot_counts.on.sum(axis=0).astype(np.float64), hot)
-    bench = sched["bench"]
-    found = _blobs(image, sched["dot_spacing"] * bench.kernel_step_cells / bench.pixel_cells)
+    bench = sched.bench
+    found = _blobs(image, sched.dot_spacing * bench.kernel_step_cells / bench.pixel_cells)
     kh, kw = kernels.shape[1:]
     fh, fw = features.shape[1:]
-    grid = np.argwhere(dot_grid((fh, fw), sched["dot_spacing"], marker=False) > 0)  # (row, col) of every grid place
-    lit = dot_grid((fh, fw), sched["dot_spacing"])[grid[:, 0], grid[:, 1]] > 0  # the marker's places are dark
+    grid = np.argwhere(dot_grid((fh, fw), sched.dot_spacing, marker=False) > 0)  # (row, col) of every grid place
+    lit = dot_grid((fh, fw), sched.dot_spacing)[grid[:, 0], grid[:, 1]] > 0  # the marker's places are dark
     # the kernel's centre element (ck) and a dot at features (r, c) light full-response cell (r + kh-1 - ck, ...)
     ck_r, ck_c = (kh - 1) // 2, (kw - 1) // 2
     places = np.stack([grid[:, 1] + (kw - 1) - ck_c, grid[:, 0] + (kh - 1) - ck_r], axis=1).astype(np.float64)
@@ -369,7 +369,7 @@ def calibrate(rec: BaseRecording, schedule: Plan | str | os.PathLike[str] | dict
     net = _without((dot_counts.on.astype(np.float64) - dot_counts.off).mean(axis=0), hot)[y0:y1, x0:x1]
     cal.blur_px = dot_blur_px(net, cal.region, cal.cell_map(), bench, np.rint(expected).astype(np.int64), (rows, cols),
                               model=PixelFit.from_dict(cal.pixel_model) if cal.pixel_model else None)
-    cal.background_rate_hz = background_rate_hz(rec, win.t_end_us, sched["settle_us"], cal.region)
+    cal.background_rate_hz = background_rate_hz(rec, win.t_end_us, sched.settle_us, cal.region)
     return cal
 
 

@@ -119,7 +119,7 @@ def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
     placed, own = "given", True
     told = []  # what the calibration assumed or left out, said again with the result
     if calibration is not None:
-        (kh, kw), (fh, fw) = sched["kernels"].shape[1:], sched["features"].shape[1:]
+        (kh, kw), (fh, fw) = sched.kernels.shape[1:], sched.features.shape[1:]
         if list(calibration.response_shape) != [fh + kh - 1, fw + kw - 1]:
             raise EvtkError(f"the calibration is of a {calibration.response_shape[0]}x{calibration.response_shape[1]} "
                             f"response, this run's is {fh + kh - 1}x{fw + kw - 1}: calibrate with a run of the same "
@@ -127,7 +127,7 @@ def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
         run_plan, placed = calibration.place(sched), "calibration"
         told = list(calibration.warnings)
     elif opts.region is None and origin_px is None:
-        if (sched["schedule"].kernel_id == DOTS_ID).any():
+        if (sched.schedule.kernel_id == DOTS_ID).any():
             # the run calibrates itself; its pixel model, fitted to its own level captures there, is not fitted again
             cal = calibrate(rec, sched)
             own = cal.pixel_model is None

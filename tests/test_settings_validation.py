@@ -101,7 +101,7 @@ def _use_bench(path):
 def _use_schedule(path):
     s = load_schedule(path)
     region, origin = nominal_placement(s)
-    _finite(region, origin, s["schedule"].t_on_us)
+    _finite(region, origin, s.schedule.t_on_us)
     return s
 
 

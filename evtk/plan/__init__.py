@@ -9,7 +9,8 @@ A run of the accelerator is described by
 * **the patterns** themselves and the bench geometry they are shown on;
 * **the camera's placement**: where the response's cells fall on the sensor (``response_origin_px`` and the
   bench's step, or a whole :class:`~evtk.optics.camera.CellMap`, :meth:`SimulationRecord.placement`);
-* **the pixel model** (:class:`~evtk.sensor.SensorModel`, with the photon rates that put light in its units);
+* **the pixel model** (:class:`PixelModel`: a :class:`~evtk.sensor.SensorModel`, with the photon rates that put
+  light in its units);
 * **the light's delay** after each trigger edge (``light_delay_us``).
 
 :class:`Plan` holds what is known of it, as :func:`evtk.reconstruct.reconstruct` takes it: a bench run's
@@ -22,7 +23,7 @@ simulator (:mod:`evtk.simulate`) and the calibration (:mod:`evtk.calibrate`) pro
 
 from __future__ import annotations
 
-from .core import Plan, as_plan
+from .core import PixelModel, Plan, as_plan
 from .record import RECORD_SPECS, SimulationRecord
 from .schedule import (
     DOT_MARKER_MIN,
@@ -46,7 +47,8 @@ from .schedule import (
 )
 
 __all__ = [
-    "Plan", "as_plan", "SimulationRecord", "RECORD_SPECS", "Schedule", "CaptureCounts", "read_schedule", "check_schedule",
+    "Plan", "PixelModel", "as_plan", "SimulationRecord", "RECORD_SPECS",
+    "Schedule", "CaptureCounts", "read_schedule", "check_schedule",
     "check_patterns", "SCHEDULE_SPECS", "METADATA_KEY", "FLAT_ID", "DOTS_ID", "LEVEL_ID", "DOT_MARKER_MIN",
     "split_passes", "sign_pass", "level_kernel", "level_steps", "dot_grid", "default_features", "load_patterns",
 ]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -12,14 +13,34 @@ import numpy as np
 
 from ..errors import EvtkError
 from ..optics import Bench
-from ..optics.camera import CellMap
+from ..optics.camera import Camera, CellMap
+from ..sensor import SensorModel
 from .record import SimulationRecord
 from .schedule import Schedule, read_schedule
 
-__all__ = ["Plan", "as_plan"]
+__all__ = ["Plan", "PixelModel", "as_plan"]
 
-#: The entries of the schedule's dict form (:func:`~evtk.plan.read_schedule`), readable from a plan by key.
+#: The entries of the schedule's old dict form, still readable from a plan by key (deprecated: attributes).
 SCHEDULE_KEYS = ("schedule", "kernels", "features", "bench", "window_us", "settle_us", "dot_spacing")
+
+
+@dataclass(frozen=True)
+class PixelModel:
+    """The pixels' model in the units of light a run's responses are in: what the reconstruction inverts.
+
+    Parameters
+    ----------
+    sensor : SensorModel
+        The pixels' thresholds, time constants, refractory period and noise.
+    gain_e_per_s_per_unit : float
+        Photoelectrons per second one unit of response adds to a pixel.
+    blank_rate_e_per_s : float
+        A pixel's photocurrent with both DMDs dark (the dark level every step of light is taken over).
+    """
+
+    sensor: SensorModel
+    gain_e_per_s_per_unit: float
+    blank_rate_e_per_s: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -30,8 +51,8 @@ class Plan:
     The reconstruction (:func:`evtk.reconstruct.reconstruct`) chooses its route from what the plan holds: the
     simulation ``record`` (the oracle: the simulator's own pixel model and placement); a ``pixel_model`` fitted
     by a calibration, or level captures to fit one to (inverted); neither (``exp(n theta)``, each pixel's
-    threshold from the flat fields). The schedule's entries also read by key (``plan["kernels"]``), as the dict
-    :func:`~evtk.plan.read_schedule` returns.
+    threshold from the flat fields). Its entries are attributes (``plan.kernels``); reading the schedule's seven
+    entries by key (``plan["kernels"]``, the dict ``read_schedule`` once returned) still works but is deprecated.
 
     Parameters
     ----------
@@ -55,13 +76,21 @@ class Plan:
     blur_px : float
         The camera's defocus (pixels), deblurred with the footprint.
     pixel_model : dict, optional
-        A pixel model fitted by a calibration (:meth:`evtk.reconstruct.PixelFit.to_dict`).
+        A pixel model fitted by a calibration (:meth:`evtk.reconstruct.PixelFit.to_dict`), for the calibrated
+        route to use when the run has no level captures of its own.
     own_levels : bool
         Fit the pixel model to the run's own level captures when it has any (else use ``pixel_model``).
     light_delay_us : int
         How long after each trigger edge the light changes (µs), when known.
     record : SimulationRecord, optional
-        The simulation record the plan was read from (:meth:`from_record`): the oracle's pixel model.
+        The simulation record the plan was read from (:meth:`from_record`): it says the run was simulated, so
+        the reconstruction takes its windows from the schedule (the recording's clock).
+    pixels : PixelModel, optional
+        The pixel model the stages after counting invert (:func:`evtk.reconstruct.reconstruct_counts`): the
+        simulator's (:meth:`from_record`), or the one the calibrated route fitted, in its units of light.
+    camera : Camera, optional
+        The simulated camera's pose and lens, when the run was simulated through one: the light it shows each
+        pixel of a flat field (``cell_map`` holds its map from cells to pixels).
     """
 
     schedule: Schedule
@@ -79,10 +108,13 @@ class Plan:
     own_levels: bool = True
     light_delay_us: int = 0
     record: SimulationRecord | None = None
+    pixels: PixelModel | None = None
+    camera: Camera | None = None
 
     def __getitem__(self, key: str) -> Any:
         if key not in SCHEDULE_KEYS:
             raise KeyError(key)
+        warnings.warn(f"plan[{key!r}] is deprecated: read plan.{key}", DeprecationWarning, stacklevel=2)
         return getattr(self, key)
 
     @property
@@ -119,11 +151,11 @@ class Plan:
         Plan
             The schedule, patterns, bench and timing; no placement, no pixel model.
         """
-        return cls(**read_schedule(path))
+        return read_schedule(path)
 
     @classmethod
     def from_schedule(cls, d: Mapping) -> Plan:
-        """The plan of a schedule's dict form (:func:`~evtk.plan.read_schedule`'s seven entries).
+        """The plan of a schedule's dict form (its seven entries, as ``read_schedule`` once returned them).
 
         Parameters
         ----------
@@ -162,8 +194,12 @@ class Plan:
         plan = cls(r.schedule, r.kernels, r.features, r.bench, r.window_us, r.settle_us, r.dot_spacing)
         if not oracle:
             return plan
+        # a fitted cell map takes the place of the simulated camera (as the record's placement says)
+        camera = Camera.from_dict(r.camera) if r.camera is not None and r.cell_map is None else None
         return plan.replace(region=tuple(r.response_region), origin_px=tuple(r.response_origin_px),
-                            cell_map=r.placement(), blur_px=r.blur_px, light_delay_us=r.light_delay_us, record=r)
+                            cell_map=r.placement(), blur_px=r.blur_px, light_delay_us=r.light_delay_us, record=r,
+                            pixels=PixelModel(r.sensor, r.gain_e_per_s_per_unit, r.blank_rate_e_per_s),
+                            camera=camera)
 
 
 def as_plan(schedule: Plan | Mapping | str | os.PathLike) -> Plan:

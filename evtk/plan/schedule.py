@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -23,6 +23,9 @@ from ..settings import (
     check_value,
     read_table,
 )
+
+if TYPE_CHECKING:
+    from .core import Plan
 
 __all__ = [
     "split_passes", "Schedule", "CaptureCounts", "load_patterns", "dot_grid", "FLAT_ID",
@@ -287,7 +290,7 @@ def check_patterns(where: str, key: str, value: Any) -> np.ndarray:
     return a
 
 
-def read_schedule(path: str | os.PathLike) -> dict:
+def read_schedule(path: str | os.PathLike) -> Plan:
     """Read and check a ``schedule.json`` (:func:`evtk.patterns.write_patterns`; ``docs/formats/schedule.md``).
 
     Parameters
@@ -297,14 +300,15 @@ def read_schedule(path: str | os.PathLike) -> dict:
 
     Returns
     -------
-    dict
-        ``schedule`` (:class:`Schedule`), ``kernels``, ``features`` (int
+    Plan
+        Its ``schedule`` (:class:`Schedule`), ``kernels``, ``features`` (int
         arrays (n, h, w)), ``bench`` (:class:`evtk.optics.Bench`),
-        ``window_us``, ``settle_us`` and ``dot_spacing``. Every value is
-        checked; a bad one is an :class:`~evtk.EvtkError` naming the file,
-        the key and what is allowed.
+        ``window_us``, ``settle_us`` and ``dot_spacing``; no placement, no
+        pixel model. Every value is checked; a bad one is an
+        :class:`~evtk.EvtkError` naming the file, the key and what is allowed.
     """
     from ..optics import Bench
+    from .core import Plan
 
     path = os.fspath(path)
     doc = read_table(path, "schedule", MAX_SCHEDULE_BYTES, parse_factor=40)  # JSON's lists of ints: ~40x
@@ -347,9 +351,8 @@ def read_schedule(path: str | os.PathLike) -> dict:
                                                                cal.get("dot_spacing", 4)).any():
         raise EvtkError(f"{path}: calibration dot_spacing = {cal.get('dot_spacing', 4)} leaves no dot on "
                         f"{features.shape[1]}x{features.shape[2]} features")
-    return {"schedule": schedule, "kernels": kernels, "features": features, "bench": bench,
-            "window_us": top["window_us"], "settle_us": top["settle_us"],
-            "dot_spacing": int(cal.get("dot_spacing", 4))}
+    return Plan(schedule, kernels, features, bench, cast(int, top["window_us"]), cast(int, top["settle_us"]),
+                dot_spacing=int(cal.get("dot_spacing", 4)))
 
 
 @dataclass

@@ -46,7 +46,7 @@ def load_schedule(path: str | os.PathLike) -> Plan:
     Returns
     -------
     Plan
-        Its schedule, patterns, bench and timing (also read by key: ``plan["kernels"]``).
+        Its schedule, patterns, bench and timing (``plan.kernels``, ...).
     """
     return Plan.read(path)
 
@@ -169,7 +169,7 @@ def _reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bin
 
     check_crop(crop)
     sched = as_plan(schedule)
-    s, kernels, features, bench = sched["schedule"], sched["kernels"], sched["features"], sched["bench"]
+    s, kernels, features, bench = sched.schedule, sched.kernels, sched.features, sched.bench
     win, report = match_windows(rec.triggers(), s, tolerance_us)
     start, end = _trim(win.t_start_us, win.t_end_us, skip_us, length_us, "matched")
     win = Windows(start, end, win.capture, win.source, win.dropped)

@@ -6,12 +6,12 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import EvtkError
-from ..plan import SimulationRecord
+from ..plan import Plan, SimulationRecord
 
 __all__ = ["binarize_rule", "binarize"]
 
 
-def binarize_rule(sim: SimulationRecord | dict | None) -> str:
+def binarize_rule(sim: Plan | SimulationRecord | dict | None) -> str:
     """The binarisation ``"auto"`` stands for: ``"sign"`` for signed responses, ``"mean"`` for the rest.
 
     A response is signed when the recording's schedule shows a kernel or
@@ -23,15 +23,15 @@ def binarize_rule(sim: SimulationRecord | dict | None) -> str:
 
     Parameters
     ----------
-    sim : SimulationRecord, dict or None
-        The recording's simulation record (or its dict form), if any.
+    sim : Plan, SimulationRecord, dict or None
+        The run's plan, or the recording's simulation record (or its dict form), if any.
 
     Returns
     -------
     str
         "sign" or "mean".
     """
-    if sim is not None and SimulationRecord.from_dict(sim).signed:
+    if sim is not None and (sim if isinstance(sim, Plan) else SimulationRecord.from_dict(sim)).signed:
         return "sign"
     return "mean"
 

@@ -8,7 +8,8 @@ no answer only the simulator knows:
 2. counts and event times over the response's region;
 3. a pixel model fitted to the run's own level captures
    (:mod:`evtk.reconstruct.fit`), when it has any;
-4. then the oracle's stages on that model (:func:`reconstruct_counts`):
+4. then the oracle's stages on that model (:func:`reconstruct_counts`, on
+   the bench's plan with the fitted model in it, :class:`~evtk.plan.PixelModel`):
    flat field, linearisation by the model and the event times, passes,
    grid, deblurring, resampling, binarisation.
 
@@ -32,7 +33,7 @@ import numpy.typing as npt
 from ..errors import EvtkError
 from ..optics import response_origin_px, response_region
 from ..optics.camera import CellMap
-from ..plan import FLAT_ID, LEVEL_ID, Plan, Schedule, SimulationRecord, as_plan
+from ..plan import FLAT_ID, LEVEL_ID, PixelModel, Plan, Schedule, SimulationRecord, as_plan
 from .accumulate import accumulate
 from .bench import (
     _all_pairs,
@@ -44,8 +45,8 @@ from .bench import (
 )
 from .fit import (
     MAX_DELAY_US,
+    NOMINAL_BLANK_E_PER_S,
     PixelFit,
-    _fitted_record,
     describe_pixels,
     fit_pixel_model,
     fit_refractory,
@@ -106,8 +107,25 @@ def nominal_placement(schedule: Plan | dict | str | os.PathLike) -> tuple:
         ``(region, origin_px)``: ``(x0, x1, y0, y1)`` and the sensor pixel ``(x, y)`` of cell (0, 0).
     """
     sched = as_plan(schedule)
-    b, ks, fs = sched["bench"], sched["kernels"].shape[1:], sched["features"].shape[1:]
+    b, ks, fs = sched.bench, sched.kernels.shape[1:], sched.features.shape[1:]
     return tuple(int(v) for v in response_region(b, ks, fs)), tuple(float(v) for v in response_origin_px(b, ks, fs))
+
+
+def _fitted_plan(sched: Plan, fit: PixelFit, sub, t_on_us, t_off_us, region, origin_px, cell_map, blur_px) -> Plan:
+    """The bench plan the stages after counting read (:func:`reconstruct_counts`), with the fitted pixel model.
+
+    ``sub`` holds the matched captures, ``t_on_us``/``t_off_us`` their windows on the recording's clock; the
+    photon rates are the fit's, relative to :data:`~evtk.reconstruct.fit.NOMINAL_BLANK_E_PER_S` (glow folded
+    into the dark level); ``blur_px`` is the calibration's defocus, which goes with ``cell_map``.
+    """
+    bench = sched.bench
+    matched = dataclasses.replace(sub, t_on_us=np.asarray(t_on_us, np.int64), t_off_us=np.asarray(t_off_us, np.int64))
+    view = None if cell_map is None else CellMap(np.asarray(cell_map.matrix, np.float64), float(cell_map.k1),
+                                                 (bench.sensor_width, bench.sensor_height))
+    return sched.replace(schedule=matched, region=tuple(int(v) for v in region),
+                         origin_px=tuple(float(v) for v in origin_px), cell_map=view,
+                         blur_px=0.0 if cell_map is None else float(blur_px), camera=None, record=None,
+                         pixels=PixelModel(fit.sensor, NOMINAL_BLANK_E_PER_S / fit.blank, NOMINAL_BLANK_E_PER_S))
 
 
 def _reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16, 16), binarize_method="auto",
@@ -120,9 +138,9 @@ def _reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16
     ----------
     rec : Recording
         Events and the DMD's trigger edges.
-    schedule : str, os.PathLike or dict
-        ``schedule.json`` (:func:`evtk.patterns.write_patterns`), :func:`load_schedule`'s
-        dict, or :func:`schedule_of_record`'s.
+    schedule : Plan, str, os.PathLike or dict
+        The run's plan (:func:`load_schedule`'s, :func:`schedule_of_record`'s), its
+        ``schedule.json`` (:func:`evtk.patterns.write_patterns`) or a schedule's dict form.
     region, origin_px
         Where the response lies (from :func:`evtk.calibrate.calibrate`);
         default :func:`nominal_placement`.
@@ -167,7 +185,7 @@ def _reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16
     """
     check_crop(crop)
     sched = as_plan(schedule)
-    s = sched["schedule"]
+    s = sched.schedule
     if region is None or origin_px is None:
         nominal = nominal_placement(sched)
         region = nominal[0] if region is None else region
@@ -188,7 +206,6 @@ def _reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16
     edge_on, edge_off = win.t_start_us[keep], win.t_end_us[keep]
 
     sub = s.take(caps)
-    bench = sched["bench"]
     lit = (sub.kernel_id == FLAT_ID) | (sub.kernel_id == LEVEL_ID)
     lit = lit if lit.any() else np.ones(caps.size, bool)
     refuse_synchronous(rec, edge_on[lit], edge_off[lit])  # counts that fall in bright light: named, not fitted
@@ -231,10 +248,8 @@ def _reconstruct_calibrated(rec, schedule, region=None, origin_px=None, size=(16
     start, end = _trim(edge_on + shift, edge_off + shift, skip_us, length_us, "matched")
     counts = accumulate(rec, Windows(start, end, np.arange(caps.size), "triggers matched to the schedule",
                                      win.dropped), region, progress=progress, times=True)
-    t_on, t_off = edge_on + shift, edge_off + shift
-    record = _fitted_record(fit, sub, t_on, t_off, sched["kernels"], sched["features"], bench, counts.region,
-                           origin_px, sched["window_us"], sched["settle_us"],
-                           cell_map=cell_map, blur_px=blur_px)
+    record = _fitted_plan(sched, fit, sub, edge_on + shift, edge_off + shift, counts.region, origin_px, cell_map,
+                          blur_px)
     counts = WindowCounts(counts.on, counts.off, Windows(start, end, sub.capture, counts.windows.source,
                                                          counts.windows.dropped),
                           counts.region, counts.events_used, counts.on_first_us, counts.on_last_us,
@@ -474,9 +489,9 @@ def _fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us, cell_m
     """:func:`fit_pixel_model` on accumulated counts (with times) of the captures ``sub`` (a schedule of the
     windows counted, ``t_off_us`` their ends, ``lead_us`` before the falling edges), the light taken to follow
     the edges by ``delay_us`` until its delay is fitted."""
-    kh, kw = sched["kernels"].shape[1:]
-    fh, fw = sched["features"].shape[1:]
-    bench = sched["bench"]
+    kh, kw = sched.kernels.shape[1:]
+    fh, fw = sched.features.shape[1:]
+    bench = sched.bench
     inside = interior_pixels(counts.region, origin_px, bench.kernel_step_cells / bench.pixel_cells, (kh, kw),
                              (fh, fw), cell_map=cell_map)
     if hot is not None:
@@ -490,27 +505,27 @@ def _fit_on_counts(rec, counts, sub, t_off_us, sched, origin_px, skip_us, cell_m
     is_level = sub.kernel_id == LEVEL_ID
     stats = level_statistics(counts, is_level, sub.level, inside, gain)
     off_mean, off_counts = level_off_times(rec, np.asarray(t_off_us)[is_level], sub.level[is_level],
-                                           sched["settle_us"], counts.region, inside, counts.stamp_period_us)
+                                           sched.settle_us, counts.region, inside, counts.stamp_period_us)
     stats = dataclasses.replace(stats, off_mean_us=off_mean, off_counts=off_counts)
     spread = float(np.clip(np.std(gain[inside]) if gain is not None else 0.05, 0.005, 0.3))
     # event times on a frame readout's grid are too coarse to time a pixel by: fit the counts and the decay
     fine = counts.stamp_period_us is None or counts.stamp_period_us <= MAX_TIMING_STAMP_US
     bright = is_level & (sub.level == sub.level[is_level].max()) if is_level.any() else is_level
-    t_on = np.asarray(t_off_us)[bright] - int(sched["window_us"])
+    t_on = np.asarray(t_off_us)[bright] - int(sched.window_us)
     gaps = on_gaps(rec, t_on, np.asarray(t_off_us)[bright], counts.region, inside) if fine else np.zeros(0)
     # first timed by the first ON events, which no refractory period delays, the light taken to come delay_us
     # after the edges, so that the gaps can measure the period
-    fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, spread=spread, times=fine,
+    fit = fit_pixel_model(stats, sched.window_us, sched.settle_us, skip_us, spread=spread, times=fine,
                           lead_us=lead_us, delay_us=delay_us)
     refractory, resolved = fit_refractory(fit, stats.light.max(), gaps, skip_us)
     if fine:  # then timed half-way up the rise as well, with the period, and the light's delay fitted
         orders = rise_orders(stats.counts)
         t_lv = np.asarray(t_off_us)[is_level]
-        rise = level_rise_times(rec, t_lv - int(sched["window_us"]) + int(skip_us), t_lv, sub.level[is_level], orders,
+        rise = level_rise_times(rec, t_lv - int(sched.window_us) + int(skip_us), t_lv, sub.level[is_level], orders,
                                 counts.region, inside)
         stats = dataclasses.replace(stats, rise_order=orders, rise_us=rise)
     if fine or resolved:  # a period that shows in the gaps limits the bright steps' counts too
-        fit = fit_pixel_model(stats, sched["window_us"], sched["settle_us"], skip_us, refractory_us=refractory,
+        fit = fit_pixel_model(stats, sched.window_us, sched.settle_us, skip_us, refractory_us=refractory,
                               spread=spread, times=fine, lead_us=lead_us, delay_us=delay_us)
     return dataclasses.replace(fit, refractory_bound_us=refractory_bound(gaps), refractory_resolved=resolved)
 

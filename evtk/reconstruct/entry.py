@@ -28,8 +28,9 @@ def reconstruct(rec: Any, plan: Plan | SimulationRecord | None = None, options: 
     * **no plan**: the recording's own simulation record when it carries one (the oracle: the simulator's
       pixel model inverted, refined by the event times, each pixel's threshold from the flat fields), else
       windows only (``window="triggers"`` or a period) linearised by ``exp(n theta)``;
-    * **a plan with a simulation record** (:meth:`evtk.plan.Plan.from_record`, or a
-      :class:`~evtk.plan.SimulationRecord`): the oracle on that record;
+    * **a plan with a pixel model** (:meth:`evtk.plan.Plan.from_record`, or a
+      :class:`~evtk.plan.SimulationRecord`): the oracle, the plan's pixel model inverted on the windows of its
+      schedule;
     * **a bench plan** (:meth:`evtk.plan.Plan.read` of a ``schedule.json``, with a calibration's placement and
       pixel model): trigger windows matched to the schedule; a pixel model (the plan's, or one fitted to the
       run's own level captures) inverted; without one, or when it misreads the level captures, the level
@@ -52,7 +53,7 @@ def reconstruct(rec: Any, plan: Plan | SimulationRecord | None = None, options: 
     linearization : {"auto", "model", "table", "exp(n theta)"}
         A bench plan's linearisation: "auto" (default) the pixel model while it reads the level captures back,
         else their table, else ``exp(n theta)``; "model" and "table" ask for one; "exp(n theta)" uses no pixel
-        model at all (``theta`` from the options, default 0.2). Only "auto" goes with a plan that has a record.
+        model at all (``theta`` from the options, default 0.2). Only "auto" goes with a plan that holds a pixel model.
     tolerance_us : float, optional
         How far a trigger window's start may be from its capture's (:func:`~evtk.reconstruct.match_windows`).
     keep_pixels : bool
@@ -91,11 +92,11 @@ def reconstruct(rec: Any, plan: Plan | SimulationRecord | None = None, options: 
     if plan is not None and not isinstance(plan, (Plan, SimulationRecord)):
         hint = (f"; give windows as window={plan!r}" if isinstance(plan, (str, tuple)) else "")
         raise EvtkError(f"plan must be an evtk.plan.Plan or a SimulationRecord, not {type(plan).__name__}{hint}")
-    record = plan if isinstance(plan, SimulationRecord) else plan.record if plan is not None else None
-    if plan is None or record is not None:
+    # a simulated run's plan holds its pixel model (Plan.from_record): the oracle, on the schedule's own windows
+    if plan is None or isinstance(plan, SimulationRecord) or plan.pixels is not None:
         if linearization != "auto":
             raise EvtkError("a simulation record's plan linearises by its own pixel model: leave linearization out")
-        return _reconstruct_record(rec, progress=progress, chunk_events=chunk_events, record=record,
+        return _reconstruct_record(rec, progress=progress, chunk_events=chunk_events, record=plan,
                                    keep_pixels=keep_pixels, **opts.kwargs())
     if not isinstance(plan, Plan):
         raise EvtkError(f"plan must be an evtk.plan.Plan or a SimulationRecord, not {type(plan).__name__}")

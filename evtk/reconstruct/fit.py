@@ -18,10 +18,10 @@ the same windows, gives those numbers:
 
 Absolute photon rates are not observable from events; the fitted model
 states them relative to a nominal dark rate, which is all the
-reconstruction needs. :func:`_fitted_record` wraps the model, the schedule,
-the placement and the windows into a :class:`~evtk.simulate.SimulationRecord`
-for :func:`~evtk.reconstruct.reconstruct_counts`: the oracle's pipeline,
-with a model the recording itself gave.
+reconstruction needs. The calibrated route puts the model in the run's
+:class:`~evtk.plan.Plan` (:class:`~evtk.plan.PixelModel`) for
+:func:`~evtk.reconstruct.reconstruct_counts`: the oracle's pipeline, with a
+model the recording itself gave.
 """
 
 from __future__ import annotations
@@ -37,9 +37,7 @@ from scipy.ndimage import percentile_filter
 from scipy.optimize import least_squares, minimize
 
 from ..errors import EvtkError
-from ..optics import Bench
 from ..optics.camera import CellMap
-from ..plan import Schedule, SimulationRecord
 from ..sensor import PixelState, SensorModel, simulate_pixels, time_constant_us
 from .windows import WindowCounts
 
@@ -1083,27 +1081,6 @@ def fit_pixel_model(stats: LevelStatistics, window_us: int, settle_us: int, skip
             sensor = sensor.replace(theta_off=theta * float(np.sum(off_n[ok]) / np.sum(stats.off_counts[ok])))
     return PixelFit(sensor, blank, tau_dark, float(np.sqrt(np.mean((n - counts) ** 2))), rms_t, stats,
                     int(window_us), int(settle_us), delay_us=delay - float(lead_us))
-
-
-def _fitted_record(fit: PixelFit, schedule: Schedule, t_on_us, t_off_us, kernels, features, bench: Bench,
-                  region, origin_px, window_us, settle_us, cell_map=None, blur_px=0.0) -> SimulationRecord:
-    """A record for :func:`~evtk.reconstruct.reconstruct_counts` holding what the bench knows and the fit.
-
-    ``schedule`` holds the matched captures, ``t_on_us``/``t_off_us`` their
-    windows on the recording's clock; the photon rates are the fit's,
-    relative to :data:`NOMINAL_BLANK_E_PER_S` (glow folded into the dark level);
-    ``blur_px`` is the calibration's defocus, kept with ``cell_map``.
-    """
-    sched = Schedule(**{c: getattr(schedule, c) for c in Schedule._COLUMNS if c not in ("t_on_us", "t_off_us")},
-                     t_on_us=np.asarray(t_on_us, np.int64), t_off_us=np.asarray(t_off_us, np.int64))
-    return SimulationRecord(
-        bench=bench, sensor=fit.sensor, kernels=np.asarray(kernels, np.int64), features=np.asarray(features, np.int64),
-        schedule=sched, window_us=int(window_us), settle_us=int(settle_us), start_us=int(sched.t_on_us.min()),
-        end_us=int(sched.t_off_us.max()), response_region=tuple(int(v) for v in region),
-        response_origin_px=tuple(float(v) for v in origin_px),
-        gain_e_per_s_per_unit=NOMINAL_BLANK_E_PER_S / fit.blank, blank_rate_e_per_s=NOMINAL_BLANK_E_PER_S,
-        cell_map=None if cell_map is None else {"matrix": np.asarray(cell_map.matrix).tolist(), "k1": cell_map.k1,
-                                                "blur_px": float(blur_px)})
 
 
 def _fit_log_response(counts, light):

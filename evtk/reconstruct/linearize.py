@@ -12,9 +12,9 @@ import numpy.typing as npt
 
 from .._threads import workers
 from ..errors import EvtkError
-from ..optics import Bench, brightest_response, screen_response
-from ..optics.camera import Camera, footprint_light
-from ..plan import SimulationRecord
+from ..optics import Bench, brightest_response, response_origin_px, screen_response
+from ..optics.camera import footprint_light
+from ..plan import Plan, SimulationRecord
 from ..sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
 
 __all__ = ["linearize", "count_curve", "linearize_by_model", "flat_field_gain", "isotonic", "level_table_values", "level_curve"]
@@ -156,13 +156,26 @@ def count_curve(sim_record: SimulationRecord | dict, skip_us: float = 0, length_
     counts : numpy.ndarray
         Net counts ON - OFF at each step, same shape, non-decreasing, read-only.
     """
-    r = SimulationRecord.from_dict(sim_record)
-    key = json.dumps({"sensor": r.sensor.to_dict(), "blank_rate_e_per_s": r.blank_rate_e_per_s,
-                      "gain_e_per_s_per_unit": r.gain_e_per_s_per_unit, "bench": r.bench.to_dict(),
+    r = _model_plan(sim_record)
+    pixels = r.pixels
+    assert pixels is not None  # _model_plan refuses a plan without one
+    key = json.dumps({"sensor": pixels.sensor.to_dict(), "blank_rate_e_per_s": pixels.blank_rate_e_per_s,
+                      "gain_e_per_s_per_unit": pixels.gain_e_per_s_per_unit, "bench": r.bench.to_dict(),
                       "window_us": r.window_us, "settle_us": r.settle_us, "kernel_shape": r.kernels.shape[1:],
                       "skip_us": float(skip_us), "length_us": None if length_us is None else float(length_us),
                       "points": int(points)}, sort_keys=True, default=_plain)
     return _count_curve(key)
+
+
+def _model_plan(sim: Plan | SimulationRecord | dict) -> Plan:
+    """The plan the stages after counting read: a plan with a pixel model as it is, a simulation record (or its
+    dict form) through :meth:`Plan.from_record` (the oracle's)."""
+    plan = sim if isinstance(sim, Plan) else Plan.from_record(sim)
+    if plan.pixels is None:
+        raise EvtkError("the plan holds no pixel model to invert (a simulation record's, or one fitted to level "
+                        "captures): reconstruct it with evtk.reconstruct.reconstruct, which fits one or uses "
+                        "exp(n theta)")
+    return plan
 
 
 def _plain(value):
@@ -246,27 +259,30 @@ def _thread_budget():
 
 
 def _flat_log_step(sim, bench, region):
-    """Log-light step ``u`` each pixel of ``region`` (y, x) sees in a flat-field window (every mirror on)."""
-    sim = SimulationRecord.from_dict(sim)
-    k, f = np.ones(sim.kernels.shape[1:], np.int8), np.ones(sim.features.shape[1:], np.int8)
-    origin = tuple(sim.response_origin_px)
-    if sim.cell_map is not None:  # a fitted map: a scale and shift is an origin, anything else is seen through
+    """Log-light step ``u`` each pixel of ``region`` (y, x) sees in a flat-field window (every mirror on), as the
+    plan ``sim`` (or a simulation record) places the response and models the pixels."""
+    plan = _model_plan(sim)
+    k, f = np.ones(plan.kernels.shape[1:], np.int8), np.ones(plan.features.shape[1:], np.int8)
+    if plan.camera is not None:  # the simulated camera's view of the flat field
+        return _log_step(plan, plan.camera.view(k, f, bench, tuple(region)))
+    origin = plan.origin_px
+    if origin is None:  # the bench geometry's
+        origin = response_origin_px(bench, k.shape, f.shape)
+    if plan.cell_map is not None:  # a fitted map: a scale and shift is an origin, anything else is seen through
         full = (k.shape[0] + f.shape[0] - 1, k.shape[1] + f.shape[1] - 1)
-        aligned = sim.placement().axis_aligned(full)
+        aligned = plan.cell_map.axis_aligned(full)
         if aligned is None or aligned[1] <= 0:  # turned (a negative step is a 180-degree view) or distorted
-            return _log_step(sim, _flat_through_map(k, f, bench, sim.placement(), tuple(region)))
+            return _log_step(plan, _flat_through_map(k, f, bench, plan.cell_map, tuple(region)))
         origin = aligned[0]
-    if sim.camera is not None:  # the simulated camera's view of the flat field
-        light = Camera.from_dict(sim.camera).view(k, f, bench, tuple(region))
-    else:  # where the record places the response (a calibration's origin, or the bench's own)
-        light = screen_response(k, f, bench.replace(origin_px=origin), tuple(region))
-    return _log_step(sim, light)
+    # where the plan places the response (a calibration's origin, or the bench's own)
+    return _log_step(plan, screen_response(k, f, bench.replace(origin_px=tuple(origin)), tuple(region)))
 
 
-def _log_step(sim, light):
-    """Log-light step over the dark level of a pixel receiving ``light`` (response units)."""
-    rate = sim.gain_e_per_s_per_unit * light + sim.sensor.dark_current_e_per_s
-    return np.log(np.maximum(rate, 1e-300) / sim.blank_rate_e_per_s)
+def _log_step(plan, light):
+    """Log-light step over the dark level of a pixel receiving ``light`` (response units), by ``plan``'s pixels."""
+    px = plan.pixels
+    rate = px.gain_e_per_s_per_unit * light + px.sensor.dark_current_e_per_s
+    return np.log(np.maximum(rate, 1e-300) / px.blank_rate_e_per_s)
 
 
 def _flat_through_map(kernel, features, bench, cell_map, region):

@@ -11,9 +11,9 @@ import numpy.typing as npt
 from .._blas import one_blas_thread
 from ..errors import EvtkError
 from ..limits import require_memory
-from ..optics import ideal_response
+from ..optics import ideal_response, response_origin_px
 from ..optics.camera import CellMap
-from ..plan import FLAT_ID, LEVEL_ID, SimulationRecord
+from ..plan import FLAT_ID, LEVEL_ID, Plan, SimulationRecord
 from ._batched import fused_supported, reconstruct_responses, reconstruct_windows
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
@@ -24,6 +24,7 @@ from .linearize import (
     _expected_flat_counts,
     _flat_log_step,
     _model_log_step,
+    _model_plan,
     count_curve,
     flat_field_gain,
     linearize,
@@ -137,8 +138,8 @@ def response_error(got: npt.ArrayLike, ideal: npt.ArrayLike) -> dict:
 
 def plan(rec: Any, window: str | tuple = "schedule", skip_us: int = 0, length_us: int | None = None,
          region: tuple | None = None, check_memory: bool = True,
-         record: SimulationRecord | None = None) -> tuple[SimulationRecord | None, Windows, tuple]:
-    """What :func:`reconstruct` will count: the record, the windows and the region.
+         record: SimulationRecord | Plan | None = None) -> tuple[SimulationRecord | Plan | None, Windows, tuple]:
+    """What :func:`reconstruct` will count: the record (or plan), the windows and the region.
 
     Parameters
     ----------
@@ -149,23 +150,25 @@ def plan(rec: Any, window: str | tuple = "schedule", skip_us: int = 0, length_us
     skip_us, length_us : int
         Shorten or delay every window.
     region : tuple, optional
-        ``(x0, x1, y0, y1)``; default the record's response region, else the whole sensor.
+        ``(x0, x1, y0, y1)``; default the record's response region (a plan's ``region``), else the whole
+        sensor.
     check_memory : bool
         Require the counts of every window at once to fit the memory budget
         (:func:`evtk.limits.require_memory`).
-    record : SimulationRecord, optional
-        Takes the place of the one in the recording's metadata.
+    record : SimulationRecord or Plan, optional
+        Takes the place of the one in the recording's metadata: a simulated run's record, or its plan (the
+        schedule's times on the recording's clock).
 
     Returns
     -------
     tuple
-        ``(simulation record or None, Windows, region)``.
+        ``(simulation record or the plan given, or None; Windows; region)``.
     """
     sim = record if record is not None else SimulationRecord.from_metadata(rec.metadata)
     if window == "schedule":
         if sim is None:
             raise EvtkError("the recording carries no capture schedule: use window='triggers' or a period")
-        win = windows_from_schedule(sim, skip_us, length_us)
+        win = windows_from_schedule(sim.schedule if isinstance(sim, Plan) else sim, skip_us, length_us)
     elif window == "triggers":
         win = windows_from_triggers(rec.triggers(), skip_us, length_us)
     elif isinstance(window, tuple) and len(window) == 2 and window[0] == "period":
@@ -175,7 +178,9 @@ def plan(rec: Any, window: str | tuple = "schedule", skip_us: int = 0, length_us
     else:
         raise EvtkError(f"window must be 'schedule', 'triggers' or ('period', US), not {window!r}")
     if region is None:
-        region = sim.response_region if sim is not None else (0, rec.sensor_size[0], 0, rec.sensor_size[1])
+        region = (sim.region if isinstance(sim, Plan) else sim.response_region) if sim is not None else None
+    if region is None:
+        region = (0, rec.sensor_size[0], 0, rec.sensor_size[1])
     x0, x1, y0, y1 = (int(v) for v in region)
     if check_memory:
         require_memory(len(win) * window_bytes(region, sim is not None),
@@ -249,6 +254,10 @@ def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=
         Read the light below one threshold from each window's first and last
         ON-event times (:func:`linearize_by_timing`). ``None`` (default):
         wherever the recording's pixel model allows it; ``True``: required.
+    record : SimulationRecord or Plan, optional
+        The run's plan with its pixel model (or a simulation record, read as
+        :meth:`~evtk.plan.Plan.from_record`) in place of the recording's own
+        record: its schedule gives the windows, its region the pixels.
     keep_pixels : bool
         Keep every window's counts and per-pixel values (default). ``False``,
         for a recording without a simulation record (every window stands
@@ -276,19 +285,21 @@ def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=
                                    progress=progress, **stages)
     counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress,
                         times=wants_times(sim, linear, theta, timing))
+    if sim is not None and not isinstance(sim, Plan):  # the oracle: the plan the simulation record holds
+        sim = Plan.from_record(sim)
     return reconstruct_counts(counts, sim, skip_us=skip_us, length_us=length_us, size=size,
                               binarize_method=binarize_method, linear=linear, theta=theta, crop=crop,
                               deblur=deblur, flat_field=flat_field, timing=timing)
 
 
-def wants_times(sim: SimulationRecord | None, linear: bool = True, theta: float | None = None,
+def wants_times(sim: Plan | SimulationRecord | None, linear: bool = True, theta: float | None = None,
                 timing: bool | None = None) -> bool:
     """Whether a reconstruction with these settings reads event times (accumulate with ``times=True``).
 
     Parameters
     ----------
-    sim : SimulationRecord or None
-        The record the reconstruction reads.
+    sim : Plan, SimulationRecord or None
+        The plan (or simulation record) the reconstruction reads.
     linear, theta, timing
         :class:`~evtk.reconstruct.ReconstructOptions`' settings of those names.
 
@@ -312,7 +323,7 @@ def check_crop(crop: str) -> None:
         raise EvtkError(f"crop must be 'valid' or 'full', not {crop!r}")
 
 
-def reconstruct_counts(counts: WindowCounts, sim: SimulationRecord | dict | None = None, skip_us: int = 0,
+def reconstruct_counts(counts: WindowCounts, sim: Plan | SimulationRecord | dict | None = None, skip_us: int = 0,
                        length_us: int | None = None, size: tuple = (16, 16), binarize_method: str | float = "auto",
                        linear: bool = True, theta: float | None = None, crop: str = "valid",
                        deblur: bool | None = None, flat_field: bool = True, timing: bool | None = None,
@@ -324,9 +335,11 @@ def reconstruct_counts(counts: WindowCounts, sim: SimulationRecord | dict | None
     counts : WindowCounts
         From :func:`accumulate`, or from :meth:`evtk.simulate.Simulation.responses` through
         :meth:`WindowCounts.from_capture_counts`.
-    sim : SimulationRecord or dict, optional
-        The simulation record (:class:`~evtk.plan.SimulationRecord`, or its dict form): its pixel model is
-        inverted, its placement and schedule used; None linearises by ``exp(n theta)``.
+    sim : Plan, SimulationRecord or dict, optional
+        The run's plan with its pixel model (:attr:`evtk.plan.Plan.pixels`), or a simulation record (or its dict
+        form) read as one (:meth:`evtk.plan.Plan.from_record`): its pixel model is inverted, its schedule,
+        patterns and placement used; None linearises by ``exp(n theta)``. A plan without a pixel model is an
+        :class:`~evtk.EvtkError`.
     skip_us, length_us : int
         The ones the counts were taken with.
     size : tuple of int
@@ -355,39 +368,41 @@ def reconstruct_counts(counts: WindowCounts, sim: SimulationRecord | dict | None
         The responses, their binarisation and the summary.
     """
     check_crop(crop)
+    run = None if sim is None else _model_plan(sim)
     with one_blas_thread():  # small matrices
-        return _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, linear, theta, crop,
+        return _reconstruct_counts(counts, run, skip_us, length_us, size, binarize_method, linear, theta, crop,
                                    deblur, flat_field, timing, curve)
 
 
-def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, linear, theta, crop, deblur,
+def _reconstruct_counts(counts, run, skip_us, length_us, size, binarize_method, linear, theta, crop, deblur,
                         flat_field, timing, curve=None):
-    sim = None if sim is None else SimulationRecord.from_dict(sim)
+    """:func:`reconstruct_counts`' stages on a plan ``run`` with a pixel model (:func:`_model_plan`'s), or None."""
+    pixels = None if run is None else run.pixels
     win = counts.windows
     region = counts.region
     if theta is None:
-        theta_on = sim.sensor.theta_on if sim else 0.2
-        theta_off = sim.sensor.theta_off if sim else 0.2
+        theta_on = pixels.sensor.theta_on if pixels else 0.2
+        theta_off = pixels.sensor.theta_off if pixels else 0.2
     else:
         theta_on = theta_off = float(theta)
     schedule = bench = None
-    if sim is not None and len(win) == len(sim.schedule):
-        schedule, bench = sim.schedule, sim.bench
+    if run is not None and len(win) == len(run.schedule):
+        schedule, bench = run.schedule, run.bench
     if curve is None:
-        curve = count_curve(sim, skip_us, length_us) if sim is not None and linear and theta is None else None
+        curve = count_curve(run, skip_us, length_us) if run is not None and linear and theta is None else None
     needs_net = not linear or curve is not None or (flat_field and schedule is not None)
     net = counts.on.astype(np.float64) - counts.off if needs_net else None
     gain = None
     if linear and flat_field and schedule is not None and np.any(schedule.kernel_id == FLAT_ID):
-        gain = flat_field_gain(net[schedule.kernel_id == FLAT_ID], _expected_flat_counts(sim, bench, region, curve, theta_on))
+        gain = flat_field_gain(net[schedule.kernel_id == FLAT_ID], _expected_flat_counts(run, bench, region, curve, theta_on))
     timed_share = thresholds = None
-    why = _no_timing(counts, sim, schedule, curve, skip_us) if timing is not False else "not asked for"
+    why = _no_timing(counts, run, schedule, curve, skip_us) if timing is not False else "not asked for"
     if why is not None and timing:
         raise EvtkError(f"timing linearisation is not possible: {why}")
     if not linear:
         values = net
     elif why is None:  # the pixel model, read below one threshold from the event times
-        values, timed_share, thresholds = _refine_by_timing(net if gain is None else net * gain, counts, sim, bench,
+        values, timed_share, thresholds = _refine_by_timing(net if gain is None else net * gain, counts, run, bench,
                                                             schedule, curve, gain, theta_on, skip_us)
     elif curve is not None:  # invert the recording's own pixel model
         values = linearize_by_model(net if gain is None else net * gain, curve)
@@ -399,15 +414,15 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
     pairs = ideal = regularisation = level_check = None
     deblurred = False
     if schedule is not None:
-        kernels, features = sim.kernels, sim.features
+        kernels, features = run.kernels, run.features
         kh, kw = kernels.shape[1:]
         fh, fw = features.shape[1:]
         if linear:  # relative change -> light above the dark level, in response units
-            values = values * sim.blank_rate_e_per_s / sim.gain_e_per_s_per_unit
+            values = values * pixels.blank_rate_e_per_s / pixels.gain_e_per_s_per_unit
         shape = (fh + kh - 1, fw + kw - 1)
         step = bench.kernel_step_cells / bench.pixel_cells
-        placement = sim.placement()
-        origin = sim.response_origin_px
+        placement = run.cell_map
+        origin = run.origin_px if run.origin_px is not None else response_origin_px(bench, (kh, kw), (fh, fw))
         aligned = None if placement is None else placement.axis_aligned(shape)
         if aligned is not None and aligned[1] > 0:  # shifted or scaled only: along the sensor's axes, not turned
             (origin, step), placement = aligned, None
@@ -423,13 +438,13 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
         deblurred = bool(deblur) and abs(bench.kernel_step_cells - 1.0) < 1e-9 and bench.decimation == 1
         if deblurred:  # undo the footprint (sources, pixels, diffuser) and the defocus through the whole view
             on_pixels, pairs = combine_passes(values, schedule)
-            a_mat = sampling_matrix(bench, view.to_cells, region, shape, sim.blur_px)
+            a_mat = sampling_matrix(bench, view.to_cells, region, shape, run.blur_px)
             share = relative_noise(values, schedule.level, is_level, schedule.kernel_id == FLAT_ID, inner)
             noise_var = None
             if share is not None:  # the run's own error against the responses' power
                 noise_var = share ** 2 * combine_passes(values ** 2, schedule, signed=False)[0].reshape(len(pairs), -1)
             # else nothing says how much: the plain inverse for a square view, a measured default otherwise
-            lam = 0.0 if placement is None and sim.blur_px == 0 else DEFAULT_LAMBDA
+            lam = 0.0 if placement is None and run.blur_px == 0 else DEFAULT_LAMBDA
             solved, regularisation = solve_cells(on_pixels.reshape(len(pairs), -1), a_mat, lam, noise_var)
             combined = solved.reshape((len(pairs),) + shape)
         else:
@@ -452,7 +467,7 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
         cells = values
     responses = downsample(cells, size)
     if isinstance(binarize_method, str) and binarize_method == "auto":
-        binarize_method = binarize_rule(sim)
+        binarize_method = binarize_rule(run)
     binary = binarize(responses, binarize_method)
     summary = {
         "captures": int(len(schedule)) if schedule is not None else None,
@@ -485,7 +500,7 @@ def _reconstruct_counts(counts, sim, skip_us, length_us, size, binarize_method, 
     if ideal is not None:
         summary["error"] = response_error(cells, ideal)
     if schedule is not None:
-        summary.update(silent_failures(counts, pairs, cells, len(sim.kernels)))
+        summary.update(silent_failures(counts, pairs, cells, len(run.kernels)))
     return Reconstruction(responses, binary, pairs, cells, ideal, counts, ReconstructionSummary.from_dict(summary),
                           thresholds)
 
@@ -547,7 +562,7 @@ def pair_ideals(pairs, kernels, features, bench):
     return np.stack([per_pair[(k, f)] for k, f, _ in pairs.tolist()])
 
 
-def _no_timing(counts, sim, schedule, curve, skip_us):
+def _no_timing(counts, run, schedule, curve, skip_us):
     """Why event times cannot refine this reconstruction's linearisation (None: they can)."""
     if curve is None:
         return "it needs the recording's pixel model (a simulated recording, linear, no fixed theta)"
@@ -566,7 +581,7 @@ def _no_timing(counts, sim, schedule, curve, skip_us):
 MAX_TIMING_STAMP_US = 10.0
 
 
-def _refine_by_timing(net, counts, sim, bench, schedule, curve, gain, theta_on, skip_us):
+def _refine_by_timing(net, counts, run, bench, schedule, curve, gain, theta_on, skip_us):
     """Light from :func:`linearize_by_timing` wherever the times determine it, else from the (calibrated)
     net counts ``net`` through :func:`linearize_by_model`.
 
@@ -574,12 +589,12 @@ def _refine_by_timing(net, counts, sim, bench, schedule, curve, gain, theta_on, 
     (:func:`timing_thresholds`), else from the flat-field count gain.
     Returns the values (``exp(u) - 1``), the share of pixel-windows the times set, and each pixel's threshold.
     """
-    sm = sim.sensor
-    blank = sim.blank_rate_e_per_s
+    sm = run.pixels.sensor
+    blank = run.pixels.blank_rate_e_per_s
     theta = np.full(counts.on.shape[1:], float(theta_on))
     if gain is not None:
         ff = schedule.kernel_id == FLAT_ID
-        flat_u = np.broadcast_to(_flat_log_step(sim, bench, counts.region), (int(ff.sum()),) + theta.shape)
+        flat_u = np.broadcast_to(_flat_log_step(run, bench, counts.region), (int(ff.sum()),) + theta.shape)
         flat_u = flat_u - _settle_residual(flat_u, schedule.t_on_us[ff], schedule.t_off_us[ff], sm, blank)
         t = timing_thresholds(counts.on[ff], counts.on_first_us[ff], counts.on_last_us[ff], flat_u, sm, blank,
                               skip_us)
