@@ -567,6 +567,9 @@ def test_trusted_external_storage_shorter_than_declared_refused(tmp_path):
     ("on", lambda a: a.astype(np.int64) + 2**40, "on holds values outside"),
     ("off", lambda a: a.astype(np.float64) + 0.5, "off must hold integers"),
     ("binary", lambda a: a.astype(np.int16) * 300, "binary holds values outside"),
+    # window times cast to int64 silently (fuzz campaign, 2026-11-26: NaN and fractions from a float column)
+    ("window_end_us", lambda a: a.astype(np.float64) + 0.5, "window_end_us must hold whole microseconds"),
+    ("window_start_us", lambda a: a.astype(np.uint64) + np.uint64(2**63), "beyond int64 microseconds"),
 ])
 def test_reconstruction_values_that_would_wrap_refused(tmp_path, key, value, match):
     """Counts beyond int32 and binary values beyond int8 would wrap silently when converted: refused."""

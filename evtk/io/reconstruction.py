@@ -211,6 +211,11 @@ def read_reconstruction(path: str | os.PathLike[str], trust_external: bool | Non
         if int(a.min()) < lo or int(a.max()) > hi:
             raise FormatError(path, None, f"{k} holds values outside {lo}..{hi}")
     start, end = arrays["window_start_us"], arrays["window_end_us"]
+    for k, a in (("window_start_us", start), ("window_end_us", end)):  # whole µs: never cast from NaN or 1.5
+        if a.dtype.kind not in "iu":
+            raise FormatError(path, None, f"{k} must hold whole microseconds (integers), not {a.dtype}")
+        if a.size and a.dtype.kind == "u" and int(a.max()) > _I64_MAX:
+            raise FormatError(path, None, f"{k} holds times beyond int64 microseconds")
     on, off = arrays["on"], arrays["off"]
     if (on.shape != off.shape or on.ndim != 3 or start.ndim != 1 or on.shape[0] != start.shape[0]
             or start.shape != end.shape):
