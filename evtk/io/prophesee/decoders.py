@@ -211,19 +211,17 @@ _BIT_INDEX[[((1 << k) * _DEBRUIJN & 0xFFFFFFFF) >> 27 for k in range(32)]] = np.
 
 
 @njit(cache=True, nogil=True)
-def _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, wide):
-    """One pass over EVT 2.0 words (uint32) or, with ``wide``, EVT 2.1 words (uint64): counts, or with
-    ``decode`` the events and triggers. Returns (events, triggers, status, word index of the problem, min t,
-    max t); the min and max only when counting.
+def _evt21_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """One pass over EVT 2.1 words (uint64): counts, or with ``decode`` the events and triggers. Returns (events,
+    triggers, status, word index of the problem, min t, max t); the min and max only when counting.
 
-    An EVT 2.1 word's upper half (by the layout in ``state``) is an EVT 2.0 word whose CD types carry the base
-    x of 32 pixels, its lower half their validity mask (bit k: the pixel at base x + k); an EVT 2.0 CD word is
-    the one pixel at its x. A CD word whose events no longer fit the outputs stops with ST_FULL, for the
-    caller to resume at it."""
+    A word's upper half (by the layout in ``state``) is an EVT 2.0 word (:func:`_evt2_run`'s types and time
+    rules) whose CD types carry the base x of 32 pixels, its lower half their validity mask (bit k: the pixel at
+    base x + k). A CD word whose events no longer fit the outputs stops with ST_FULL, for the caller to resume
+    at it."""
     high = state[_E2_HIGH]
     epoch = state[_E2_EPOCH]
-    legacy = wide and state[_E21_LEGACY] != 0
-    room = 32 if wide else 1
+    legacy = state[_E21_LEGACY] != 0
     base = (epoch << 34) | (high << 6)
     n = 0
     m = 0
@@ -232,10 +230,7 @@ def _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, wid
     status = ST_OK
     bad = -1
     for i in range(len(words)):
-        if not wide:
-            w = np.int64(words[i])
-            mask = np.int64(1)
-        elif legacy:
+        if legacy:
             w = np.int64(words[i] & _LOW32)
             mask = np.int64(words[i] >> _SHIFT32)
         else:
@@ -243,7 +238,7 @@ def _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, wid
             mask = np.int64(words[i] & _LOW32)
         kind = w >> 28
         if kind <= 1:  # CD_OFF / EV_NEG, CD_ON / EV_POS: most words
-            if decode and n + room > len(t):
+            if decode and n + 32 > len(t):
                 status = ST_FULL
                 bad = i
                 break
@@ -289,12 +284,6 @@ def _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, wid
     state[_E2_HIGH] = high
     state[_E2_EPOCH] = epoch
     return n, m, status, bad, t_min, t_max
-
-
-@njit(cache=True, nogil=True)
-def _evt21_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """:func:`_evt2x_run` over EVT 2.1 words."""
-    return _evt2x_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, True)
 
 
 def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
