@@ -34,6 +34,7 @@ from .limits import memory_limit_bytes, require_memory, require_window_work
 from .metrics import SinadAccumulator, flip_rates, flip_rates_bytes
 from .optics import Bench
 from .reconstruct import (
+    ORACLE_ROUTE,
     Reconstruction,
     WindowCounts,
     plan,
@@ -117,11 +118,6 @@ def _scene_row(kernel_id, features_id, acc, binary, interval, per_pixel, seed):
     return {"kernel_id": int(kernel_id), "features_id": int(features_id), "repeats": int(acc.repeats), "sinad": s,
             "flips": flip_rates(binary)}
 
-
-#: The route :func:`recording_noise` takes on a simulated recording with its schedule (as ``evtk reconstruct
-#: --oracle``): its answers differ from those on the same recording's ``evtk reconstruct`` output (the calibrated
-#: route), and each row says which it measured.
-ORACLE_ROUTE = "oracle: the simulation record's own pixel model and placement"
 
 #: Most memory one batch of windows of :func:`recording_noise` may take, in bytes.
 NOISE_BATCH_BYTES = 256 << 20

@@ -28,7 +28,7 @@ from .calibrate import Calibration, calibrate
 from .errors import EvtkError
 from .io.base import BaseRecording
 from .plan import DOTS_ID, Plan, SimulationRecord, as_plan
-from .reconstruct import Reconstruction, ReconstructOptions, reconstruct, schedule_of_record
+from .reconstruct import ORACLE_ROUTE, Reconstruction, ReconstructOptions, reconstruct, schedule_of_record
 from .settings import check_origin, check_region
 
 __all__ = ["reconstruct_recording"]
@@ -87,7 +87,7 @@ def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
         if schedule is not None or calibration is not None:
             raise EvtkError("the oracle reads the simulation record: leave out the schedule and the calibration")
         result = reconstruct(rec, Plan.from_record(record), opts, progress=progress)
-        result.summary.route = "oracle: the simulation record's own pixel model and placement"
+        result.summary.route = ORACLE_ROUTE
         result.summary.oracle = True
         return result
     if schedule is None and record is None and not fixed:

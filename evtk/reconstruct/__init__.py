@@ -34,7 +34,7 @@ from .accumulate import accumulate
 from .bench import load_schedule, match_windows
 from .binarize import binarize, binarize_rule
 from .calibrated import nominal_placement, schedule_of_record
-from .entry import reconstruct
+from .entry import ORACLE_ROUTE, reconstruct
 from .files import load_reconstruction, save_reconstruction
 from .fit import PixelFit, fit_pixel_model, level_statistics
 from .grid import (
@@ -72,6 +72,6 @@ __all__ = [
     "count_curve", "linearize_by_model", "linearize_by_timing", "timing_thresholds", "wants_times",
     "window_bytes", "flat_field_gain", "schedule_of_record", "nominal_placement",
     "fit_pixel_model", "level_statistics", "PixelFit", "footprint_matrix", "overlap_matrix", "sample_response_grid",
-    "check_crop", "load_reconstruction", "save_reconstruction", "ReconstructionSummary",
+    "check_crop", "load_reconstruction", "save_reconstruction", "ReconstructionSummary", "ORACLE_ROUTE",
 ]
 

@@ -12,10 +12,14 @@ from .calibrated import _reconstruct_calibrated, nominal_placement
 from .options import ReconstructOptions
 from .pipeline import Reconstruction, _reconstruct_record
 
-__all__ = ["reconstruct", "LINEARIZATIONS"]
+__all__ = ["reconstruct", "LINEARIZATIONS", "ORACLE_ROUTE"]
 
 #: How a bench plan's counts may become light (:func:`reconstruct`'s ``linearization``).
 LINEARIZATIONS = ("auto", "model", "table", "exp(n theta)")
+
+#: What a summary's ``route`` says of the oracle (a simulated run's own pixel model and placement), wherever it is
+#: taken (``evtk reconstruct --oracle``, ``evtk enob`` on a simulated recording).
+ORACLE_ROUTE = "oracle: the simulation record's own pixel model and placement"
 
 
 def reconstruct(rec: Any, plan: Plan | SimulationRecord | None = None, options: ReconstructOptions | None = None, *,
@@ -98,8 +102,6 @@ def reconstruct(rec: Any, plan: Plan | SimulationRecord | None = None, options: 
             raise EvtkError("a simulation record's plan linearises by its own pixel model: leave linearization out")
         return _reconstruct_record(rec, progress=progress, chunk_events=chunk_events, record=plan,
                                    keep_pixels=keep_pixels, **opts.kwargs())
-    if not isinstance(plan, Plan):
-        raise EvtkError(f"plan must be an evtk.plan.Plan or a SimulationRecord, not {type(plan).__name__}")
     if not keep_pixels:
         raise EvtkError("keep_pixels=False is for windows without a schedule; a bench plan's route keeps its pixels")
     if opts.window != "schedule" or (opts.theta is not None and linearization != "exp(n theta)"):
