@@ -22,7 +22,8 @@ then reconstructs the same events by each route:
   **calibrated** chooses between them by how well each reads the level
   captures (the table's on levels left out of it);
 - **calibrated, not deblurred**: the calibrated route with ``deblur=False``;
-- **exp(n theta)**: ``reconstruct(..., linearization="exp(n theta)")`` at the calibration's placement (no pixel model);
+- **exp(n theta)**: ``reconstruct(..., linearization="exp(n theta)")`` at the calibration's placement and map (no
+  pixel model);
 - **level table**: each pixel's ON count minus its OFF count through a
   monotone table from the level captures' mean net counts over the
   interior to their known light (no model), sampled onto the cells
@@ -94,7 +95,7 @@ def _view(cal, shape, bench):
 
     placement = cal.cell_map()
     aligned = placement.axis_aligned(shape)
-    if aligned is None or aligned[1] <= 0:  # as the pipeline: a negative step (a turned view) goes through the map
+    if aligned is None:
         return placement
     return CellMap.scale_shift(aligned[0], aligned[1], (bench.sensor_width, bench.sensor_height))
 
@@ -196,8 +197,8 @@ def run(draws, physics=None):
                                 r = evtk.reconstruct_recording(rec, oracle=True)
                             else:
                                 placed = calibrate(rec, sched)
-                                r = reconstruct(rec, as_plan(os.path.join(tmp, "p", "schedule.json")).replace(
-                                    region=placed.region, origin_px=placed.origin_px), linearization="exp(n theta)")
+                                r = reconstruct(rec, placed.place(as_plan(os.path.join(tmp, "p", "schedule.json"))),
+                                                linearization="exp(n theta)")
                             got[key] = (r.cells, r.ideal)
                         except Exception as exc:  # noqa: BLE001
                             errors.setdefault(key, str(exc)[:60])

@@ -341,3 +341,23 @@ def test_a_camera_turned_half_a_turn_reconstructs_as_well_as_the_upright_one(tmp
             got[turn] = evtk.reconstruct_recording(rec).summary["error"]
     assert got[180.0]["correlation"] > 0.93, got
     assert got[180.0]["nrmse"] < 1.15 * got[0.0]["nrmse"], got
+
+
+def test_the_exp_n_theta_route_reads_a_mirrored_camera_through_the_calibrations_map(tmp_path):
+    """The model-free route (linearization="exp(n theta)") took only the calibration's region and origin and
+    gridded the pixels as if the camera were upright: on a mirrored or half-turned camera it read the wrong pixels
+    (correlation near 0, no warning). It now samples through the placed plan's map, as the calibrated route does."""
+    from evtk.plan import as_plan
+
+    schedule, ev, tr, record = _run(tmp_path)
+    w, h = ev.sensor_size
+    got = {}
+    for flip in ("upright", "mirrored left-right", "rotated 180 degrees"):
+        x, y = (ev.x, ev.y) if flip == "upright" else _turned(ev.x, ev.y, flip, w, h)
+        cam = _write(tmp_path / f"{flip}.aedat4", ev, tr, x=np.asarray(x, np.uint16), y=np.asarray(y, np.uint16))
+        with evtk.open(cam) as rec:
+            placed = calibrate(rec, schedule).place(as_plan(schedule))
+            got[flip] = reconstruct(rec, placed, linearization="exp(n theta)").summary["error"]
+    assert got["upright"]["correlation"] > 0.7, got
+    for flip in ("mirrored left-right", "rotated 180 degrees"):
+        assert got[flip]["correlation"] == pytest.approx(got["upright"]["correlation"], abs=0.03), (flip, got)

@@ -547,10 +547,11 @@ class CellMap:
     def axis_aligned(
         self, shape: tuple[int, int], tolerance_px: float = AXIS_TOLERANCE_PX
     ) -> tuple[tuple[float, float], float] | None:
-        """The scale-and-shift map that matches this one over a response, if any.
+        """The upright scale-and-shift map that matches this one over a response, if any.
 
         One step for both axes and an origin per axis are fitted by least squares to the map's pixels of
-        every cell of the response.
+        every cell of the response. A negative step (a view turned half a turn) is not upright: callers take
+        the result for an origin and a pixel pitch along the sensor's axes, so such a map is seen through.
 
         Parameters
         ----------
@@ -562,8 +563,8 @@ class CellMap:
         Returns
         -------
         tuple or None
-            ``((origin_x_px, origin_y_px), step_px)``, as :meth:`scale_shift` takes them, or None when no
-            scale and shift matches (rotation, tilt, distortion).
+            ``((origin_x_px, origin_y_px), step_px)`` with ``step_px > 0``, as :meth:`scale_shift` takes them,
+            or None when no upright scale and shift matches (rotation, a half turn, tilt, distortion).
         """
         rows, cols = (int(v) for v in shape)
         jj, ii = np.meshgrid(np.arange(cols, dtype=np.float64), np.arange(rows, dtype=np.float64))
@@ -575,6 +576,6 @@ class CellMap:
         lhs[0::2, 0], lhs[1::2, 1] = 1.0, 1.0
         lhs[0::2, 2], lhs[1::2, 2] = a[:, 1], a[:, 2]
         sol, *_ = np.linalg.lstsq(lhs, px.ravel(), rcond=None)
-        if np.max(np.abs(lhs @ sol - px.ravel())) > tolerance_px:
+        if sol[2] <= 0 or np.max(np.abs(lhs @ sol - px.ravel())) > tolerance_px:
             return None
         return (float(sol[0]), float(sol[1])), float(sol[2])

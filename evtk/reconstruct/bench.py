@@ -26,7 +26,7 @@ from ..optics import response_origin_px
 from ..plan import FLAT_ID, LEVEL_ID, Plan, Schedule, as_plan
 from .accumulate import accumulate
 from .binarize import binarize
-from .grid import combine_passes, downsample, to_response_grid
+from .grid import combine_passes, downsample, sample_response_grid, to_response_grid
 from .linearize import flat_field_gain, linearize
 from .pipeline import MAX_TIMING_STAMP_US, Reconstruction, check_crop, pair_ideals, response_error, silent_failures
 from .summary import ReconstructionSummary
@@ -130,7 +130,7 @@ def match_windows(triggers: Triggers, schedule: Schedule, tolerance_us: float | 
 
 def _reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), binarize_method="auto", theta=0.2,
                       skip_us=0, length_us=None, crop="valid", tolerance_us=None, flat_field=True,
-                      progress=None) -> Reconstruction:
+                      progress=None, cell_map=None) -> Reconstruction:
     """The whole pipeline on a bench recording, driven by its schedule; no simulation record is read.
 
     Parameters
@@ -156,6 +156,9 @@ def _reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bin
         without a pixel model, what a nominal pixel would count there is
         taken as the 5x5 median of its neighbours' counts (the flat response
         is smooth; threshold mismatch is not), see :func:`flat_field_gain`.
+    cell_map : CellMap, optional
+        A calibration's map from cells to pixels; one that is not an upright scale and shift (a mirrored,
+        turned, tilted or distorted view) is sampled through, else it gives the origin and the step.
 
     Returns
     -------
@@ -188,7 +191,14 @@ def _reconstruct_bench(rec, schedule, region, origin_px=None, size=(16, 16), bin
     values = linearize(counts.on, counts.off, theta) if gain is None else \
         linearize(counts.on * gain, counts.off * gain, theta)
     step = bench.kernel_step_cells / bench.pixel_cells
-    cells = to_response_grid(values, counts.region, origin, step, (fh + kh - 1, fw + kw - 1))
+    full = (fh + kh - 1, fw + kw - 1)
+    aligned = None if cell_map is None else cell_map.axis_aligned(full)
+    if aligned is not None:
+        origin, step = aligned
+    if cell_map is not None and aligned is None:  # mirrored, turned, tilted or distorted: through the map
+        cells = sample_response_grid(values, counts.region, cell_map, full)
+    else:
+        cells = to_response_grid(values, counts.region, origin, step, full)
     # the passes of each (kernel, features, repeat) pair: only pairs whose every pass has a window
     keep, complete = _complete_mask(s, win.capture)
     kept = s.take(win.capture[keep])

@@ -117,7 +117,7 @@ def reconstruct(rec: Any, plan: Plan | SimulationRecord | None = None, options: 
             raise EvtkError("linearization='exp(n theta)' linearises: leave linear=False out")
         if region is None:
             region = nominal_placement(plan)[0]
-        return _reconstruct_bench(rec, plan, region, plan.origin_px,
+        return _reconstruct_bench(rec, plan, region, plan.origin_px, cell_map=plan.cell_map,
                                   theta=0.2 if opts.theta is None else float(opts.theta), **common)
     return _reconstruct_calibrated(rec, plan, region, plan.origin_px, deblur=opts.deblur, timing=opts.timing,
                                    linear=opts.linear, pixel_model=plan.pixel_model, cell_map=plan.cell_map,

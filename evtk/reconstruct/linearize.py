@@ -271,7 +271,7 @@ def _flat_log_step(sim, bench, region):
     if plan.cell_map is not None:  # a fitted map: a scale and shift is an origin, anything else is seen through
         full = (k.shape[0] + f.shape[0] - 1, k.shape[1] + f.shape[1] - 1)
         aligned = plan.cell_map.axis_aligned(full)
-        if aligned is None or aligned[1] <= 0:  # turned (a negative step is a 180-degree view) or distorted
+        if aligned is None:  # turned, tilted or distorted
             return _log_step(plan, _flat_through_map(k, f, bench, plan.cell_map, tuple(region)))
         origin = aligned[0]
     # where the plan places the response (a calibration's origin, or the bench's own)

@@ -424,7 +424,7 @@ def _reconstruct_counts(counts, run, skip_us, length_us, size, binarize_method, 
         placement = run.cell_map
         origin = run.origin_px if run.origin_px is not None else response_origin_px(bench, (kh, kw), (fh, fw))
         aligned = None if placement is None else placement.axis_aligned(shape)
-        if aligned is not None and aligned[1] > 0:  # shifted or scaled only: along the sensor's axes, not turned
+        if aligned is not None:  # shifted or scaled only: along the sensor's axes, not turned
             (origin, step), placement = aligned, None
         view = placement if placement is not None else CellMap.scale_shift(
             origin, step, (bench.sensor_width, bench.sensor_height))
