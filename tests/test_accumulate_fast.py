@@ -97,9 +97,9 @@ def test_a_rise_beyond_exp_700_is_refused_as_by_the_whole_run():
     ev = evtk.Events(np.arange(n), np.zeros(n, np.uint16), np.zeros(n, np.uint16), np.ones(n, np.uint8), (64, 64))
     win = Windows([0], [n], [0], "test")
     with pytest.raises(EvtkError, match="exp\\(700\\)"):
-        _whole_run(ev, win, (0, 64, 0, 64))
+        _whole_run(ev, win, (0, 64, 0, 64), theta=0.2)
     with pytest.raises(EvtkError, match="exp\\(700\\)"):
-        reconstruct_responses(ev, win, (0, 64, 0, 64))
+        reconstruct_responses(ev, win, (0, 64, 0, 64), theta=0.2)
 
 
 def test_a_region_off_the_sensor_is_refused():
@@ -132,3 +132,30 @@ def test_counts_beyond_the_look_up_table_equal_the_whole_run(theta):
     got = reconstruct_responses(ev, win, (0, 16, 0, 12), **options)
     np.testing.assert_allclose(got.responses, ref.responses, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(got.binary, ref.binary)
+
+
+@pytest.mark.parametrize("method", ["sign", "mean"])
+@pytest.mark.parametrize("size", [(7, 9), (30, 40)])
+def test_net_counts_tied_at_the_threshold_binarise_alike_in_both_paths(method, size):
+    # net counts of -1, 0 or +1 in every pixel: whole numbers, whose resampled responses (shares of a third,
+    # a seventh, ...) land exactly on 0 or on their mean in many cells, summed in another order by each path
+    rng = np.random.default_rng(11)
+    n_w, w_px, h_px = 40, 21, 15
+    net = rng.integers(-1, 2, (n_w, h_px, w_px))
+    k, y, x = np.nonzero(net)
+    t = k * 1_000 + rng.integers(0, 1_000, k.size)
+    order = np.argsort(t, kind="stable")
+    ev = evtk.Events(t[order], x[order].astype(np.uint16), y[order].astype(np.uint16),
+                     (net[k, y, x] > 0)[order].astype(np.uint8), (w_px, h_px))
+    win = evtk.reconstruct.windows_periodic(0, n_w * 1_000, 1_000)
+    region = (0, w_px, 0, h_px)
+    options = {"linear": False, "binarize_method": method, "size": size}
+    ref = _whole_run(ev, win, region, **options)
+    np.testing.assert_array_equal(ref.counts.on - ref.counts.off, net)
+    thr = 0.0 if method == "sign" else ref.responses.mean(axis=(1, 2), keepdims=True)
+    scale = np.abs(ref.responses).max(axis=(1, 2), keepdims=True)
+    assert np.sum(np.abs(ref.responses - thr) <= 1e-9 * scale) > 0  # the input does hold ties
+    for got in (reconstruct_responses(ev, win, region, batch_windows=3, **options),
+                reconstruct_windows(ev, win, region, keep_pixels=False, batch_windows=7, **options)):
+        np.testing.assert_allclose(got.responses, ref.responses, rtol=0, atol=1e-9 * scale.max())
+        np.testing.assert_array_equal(got.binary, ref.binary)

@@ -322,6 +322,22 @@ def test_binarize_methods():
         binarize(np.full((2, 2), np.nan))
 
 
+def test_binarize_splits_a_tie_the_same_way_whatever_the_rounding():
+    """A value at its threshold goes to +1 (sign, mean, a number), and so does one a rounding off it either side."""
+    from evtk.reconstruct import binarize
+
+    below, above = np.nextafter(1.0, 0.0), np.nextafter(1.0, 2.0)
+    for tie in (1.0, below, above):  # a response [[0, 2], [1, 1]]: its mean is 1, two values at it
+        r = np.array([[[0.0, 2.0], [tie, 2.0 - tie]]])
+        assert binarize(r, "mean").tolist() == [[[-1, 1], [1, 1]]], tie
+        assert binarize(r, 1.0).tolist() == [[[-1, 1], [1, 1]]], tie
+        # the same response shifted to a mean of 0: a zero summed in another order is +-1e-16
+        assert binarize(r - 1.0, "sign").tolist() == [[[-1, 1], [1, 1]]], tie
+    # a real difference, however small against the threshold's 1e-9 band, is not a tie
+    assert binarize(np.array([[-1e-6, 1.0]]), "sign").tolist() == [[-1, 1]]
+    assert binarize(np.array([[0.0, 0.0], [0.0, 0.0]]), "sign").tolist() == [[1, 1], [1, 1]]
+
+
 def test_reconstruct_end_to_end_on_an_ideal_simulation(tmp_path):
     """Point sources, no shot noise, no threshold mismatch: the pipeline finds the correlation.
 

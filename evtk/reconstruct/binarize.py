@@ -36,8 +36,20 @@ def binarize_rule(sim: Plan | SimulationRecord | dict | None) -> str:
     return "mean"
 
 
+#: How close to its threshold (relative to the response's largest magnitude, or the threshold's if larger) a value
+#: counts as exactly at it (:func:`binarize`'s tie rule).
+TIE_RTOL = 1e-9
+
+
 def binarize(values: npt.ArrayLike, method: str | float = "sign") -> np.ndarray:
     """+1 where a response reaches the threshold, -1 elsewhere (int8), per response.
+
+    A value exactly at the threshold is a tie and goes to +1 under "sign", "mean" and a number (it reaches the
+    threshold), to -1 under "otsu" (Otsu's threshold is the last value of the lower class). A value within
+    :data:`TIE_RTOL` of the threshold, relative to the larger of the response's largest magnitude and the
+    threshold's, counts as exactly at it: the same response summed in another order (the whole-run path and the
+    batched one, :mod:`evtk.reconstruct._batched`) differs by rounding, which must not flip a tie. Ties are common
+    where the responses are net counts (whole numbers, their means often among them).
 
     Parameters
     ----------
@@ -72,10 +84,10 @@ def binarize(values: npt.ArrayLike, method: str | float = "sign") -> np.ndarray:
 
         const = np.array([np.ptp(r) == 0 for r in flat], bool)
         thr = np.array([r.flat[0] if c else threshold_otsu(r) for r, c in zip(flat, const)])
-        # Otsu's threshold is the last value of the lower class: strictly above it is "high"
-        high = flat > thr[:, None, None]
+        # Otsu's threshold is the last value of the lower class: strictly above it (beyond a tie) is "high"
+        high = flat > (thr + _tie_band(flat, thr))[:, None, None]
         high[const] = True
-        return np.where(high, 1, -1).astype(np.int8).reshape(values.shape)
+        return _signs(high, values.shape)
     else:
         try:
             thr = np.full(len(flat), float(method))
@@ -83,4 +95,19 @@ def binarize(values: npt.ArrayLike, method: str | float = "sign") -> np.ndarray:
             raise EvtkError(f"binarize method must be sign, mean, otsu or a number, not {method!r}") from None
         if not np.isfinite(thr).all():
             raise EvtkError(f"binarize threshold must be finite, not {method!r}")
-    return np.where(flat >= thr[:, None, None], 1, -1).astype(np.int8).reshape(values.shape)
+    return _signs(flat >= (thr - _tie_band(flat, thr))[:, None, None], values.shape)
+
+
+def _tie_band(flat: np.ndarray, thr: np.ndarray) -> np.ndarray:
+    """How far from each response's threshold a value still counts as at it (:data:`TIE_RTOL`), no copy of
+    ``flat`` made."""
+    scale = np.maximum(np.maximum(flat.max(axis=(1, 2)), -flat.min(axis=(1, 2))), np.abs(thr))
+    return TIE_RTOL * scale
+
+
+def _signs(high: np.ndarray, shape: tuple) -> np.ndarray:
+    """+1 where ``high``, else -1, as int8 of ``shape``."""
+    out = high.astype(np.int8)
+    out *= 2
+    out -= 1
+    return out.reshape(shape)
