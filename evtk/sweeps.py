@@ -135,7 +135,8 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     :class:`evtk.metrics.SinadAccumulator`, so a minute of 10 ms windows over
     a whole sensor is measured in one pass. A scheduled (simulated) recording
     ties its windows together (passes, flat fields) and is reconstructed
-    whole.
+    whole. Fixed windows give net counts ON - OFF, or ``exp(n theta)`` where
+    ``theta`` is given; the row's ``"route"`` says which.
 
     Before any window is counted, the memory of one batch, the accumulator
     and the flip rates is checked against the budget
@@ -208,9 +209,9 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
         acc.add(part.cells)
         binary[i:i + batch] = part.binary
     row = _scene_row(-1, -1, acc, binary, interval, per_pixel, seed)
-    theta = options.get("theta")
+    # the linearisation the reconstruction chose: net counts unless a theta was given
     row["route"] = f"fixed windows (--window {spec}): " + (
-        f"exp(n theta), theta = {0.2 if theta is None else float(theta):g}" if options.get("linear", True)
+        f"exp(n theta), theta = {part.summary['theta_on']:g}" if part.summary["linear"]
         else "net counts (ON - OFF), not linearised")
     return [row]
 

@@ -430,6 +430,75 @@ def test_cli_reconstruct_outputs(tmp_path):
     assert res.exit_code == 1 and ".npz" in res.output
 
 
+def _fixed_window_events(period_us=1_000, n_w=6, seed=4):
+    """Events over a 24x16 sensor spanning exactly ``n_w`` periods from t = 0, and their ON and OFF counts per
+    period and pixel, counted here with numpy alone."""
+    rng = np.random.default_rng(seed)
+    n = 9_000
+    t = np.sort(np.r_[0, rng.integers(0, n_w * period_us, n - 2), n_w * period_us - 1])
+    x = rng.integers(0, 24, n)
+    y = rng.integers(0, 16, n)
+    p = (rng.random(n) < 0.55).astype(np.uint8)
+    k = t // period_us
+    on = np.zeros((n_w, 16, 24))
+    off = np.zeros((n_w, 16, 24))
+    np.add.at(on, (k[p == 1], y[p == 1], x[p == 1]), 1)
+    np.add.at(off, (k[p == 0], y[p == 0], x[p == 0]), 1)
+    ev = evtk.Events(t, x.astype(np.uint16), y.astype(np.uint16), p, (24, 16))
+    return ev, on, off
+
+
+def _block_means(v):
+    """(windows, 16, 24) -> (windows, 4, 6): means of 4x4 blocks."""
+    return v.reshape(len(v), 4, 4, 6, 4).mean(axis=(2, 4))
+
+
+def test_fixed_windows_without_a_plan_are_net_counts(tmp_path):
+    """Issue 30: nothing in the plan (fixed windows of a recording without a record) says how counts map to light:
+    the responses are net counts ON - OFF, not exp(n theta) at a made-up theta = 0.2."""
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+    from evtk.reconstruct import reconstruct
+
+    ev, on, off = _fixed_window_events()
+    path = tmp_path / "fixed.h5"
+    evtk.write_events(path, ev)
+    want = _block_means(on - off)
+    with evtk.open(path) as rec:
+        for keep_pixels in (True, False):
+            got = reconstruct(rec, window=("period", 1_000), size=(4, 6), keep_pixels=keep_pixels)
+            np.testing.assert_allclose(got.responses, want, rtol=0, atol=1e-12)
+            assert got.summary.linearization == "counts" and got.summary.linear is False
+            np.testing.assert_array_equal(got.binary, np.where(want >= want.mean(axis=(1, 2), keepdims=True), 1, -1))
+        # the same on windows cut by hand, through the stages alone
+        win = windows_periodic(0, 6_000, 1_000)
+        np.testing.assert_allclose(evtk.reconstruct.reconstruct_counts(accumulate(rec, win), None, size=(4, 6))
+                                   .responses, want, rtol=0, atol=1e-12)
+    res = CliRunner().invoke(main, ["reconstruct", str(path), "-o", str(tmp_path / "r.npz"), "--window",
+                                    "period:1000", "--size", "4x6", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.output)["linearization"] == "counts"
+    np.testing.assert_allclose(np.load(tmp_path / "r.npz")["responses"], want, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("theta", [0.2, 0.05])
+def test_fixed_windows_with_a_theta_given_are_exp_n_theta(tmp_path, theta):
+    """A theta the user gives still linearises fixed windows by exp(n theta), as every fixed window did before."""
+    from evtk.reconstruct import ReconstructOptions, reconstruct
+
+    ev, on, off = _fixed_window_events()
+    path = tmp_path / "fixed.h5"
+    evtk.write_events(path, ev)
+    want = _block_means(np.expm1(theta * on - theta * off))
+    with evtk.open(path) as rec:
+        for keep_pixels in (True, False):
+            got = reconstruct(rec, options=ReconstructOptions(window=("period", 1_000), size=(4, 6), theta=theta),
+                              keep_pixels=keep_pixels)
+            np.testing.assert_allclose(got.responses, want, rtol=1e-12, atol=1e-12)
+            assert got.summary.linearization == "exp(n theta)" and got.summary.theta_on == theta
+
+
 def test_deblur_undoes_the_footprint_on_exact_light():
     """The footprint model inverts the optics exactly: light itself, deblurred, is the correlation."""
     from scipy import signal

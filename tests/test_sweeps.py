@@ -12,7 +12,15 @@ from evtk.cli import main
 from evtk.metrics import flip_rates, sinad
 from evtk.sensor import SensorModel
 from evtk.simulate import Simulation, default_features
-from evtk.sweeps import flip_sweep, pareto_front, random_kernels, scene_noise, simulated_reconstruction, tradeoff
+from evtk.sweeps import (
+    flip_sweep,
+    pareto_front,
+    random_kernels,
+    recording_noise,
+    scene_noise,
+    simulated_reconstruction,
+    tradeoff,
+)
 
 F16 = np.where(default_features() > 0, 1, -1)
 
@@ -264,4 +272,8 @@ def test_enob_says_which_route_it_measured(tmp_path):
     evtk.write_events(bench, evtk.Events(t, rng.integers(0, 8, t.size).astype(np.uint16), np.zeros(t.size, np.uint16),
                                          (rng.random(t.size) < 0.8).astype(np.uint8), (8, 1)))
     fixed = CliRunner().invoke(main, ["enob", str(bench), "--window", "period:5000", "--json", "--interval", "none"])
-    assert json.loads(fixed.output)["route"] == "fixed windows (--window period:5000): exp(n theta), theta = 0.2"
+    # nothing says how this recording's counts map to light: net counts, unless a theta is given
+    assert json.loads(fixed.output)["route"] == "fixed windows (--window period:5000): net counts (ON - OFF), not linearised"
+    with evtk.open(bench) as rec:
+        (row,) = recording_noise(rec, ("period", 5000), interval=None, theta=0.3)
+    assert row["route"] == "fixed windows (--window period:5000): exp(n theta), theta = 0.3"

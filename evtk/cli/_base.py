@@ -283,7 +283,8 @@ _reconstruct_options = _options([
     click.option("--binarize", "binarize_method", type=BINARIZE, default="auto", show_default=True,
                  help="auto (sign for signed responses, else each response's mean), sign, mean, otsu or a threshold."),
     click.option("--linearize/--counts", default=True, show_default=True,
-                 help="Linearise counts to light, or keep net counts (ON - OFF)."),
+                 help="Linearise counts to light, or keep net counts (ON - OFF). Fixed windows (--window triggers "
+                      "or period:US) have no pixel model to linearise by and stay net counts."),
     click.option("--crop", type=click.Choice(["valid", "full"]), default="valid", show_default=True),
     click.option("--flat-field/--no-flat-field", default=True, show_default=True,
                  help="Calibrate each pixel's threshold on the recording's flat-field captures, if any."),

@@ -16,13 +16,16 @@ The stages, each a function usable alone:
    model, and :func:`linearize_by_timing` reads the light within the
    count's band from the first and last ON-event times). A recording's
    flat-field captures (every mirror on) calibrate each pixel's threshold
-   first (:func:`flat_field_gain`, :func:`timing_thresholds`).
+   first (:func:`flat_field_gain`, :func:`timing_thresholds`). Fixed windows
+   of a recording without a plan stay net counts ON - OFF (nothing says how
+   counts map to light) unless a ``theta`` is given.
 4. :func:`combine_passes`: ``K+F+ - K+F- - K-F+ + K-F-`` per (kernel,
    features, repeat), from whichever passes the schedule holds.
 5. :func:`to_response_grid` (the sensor region onto the response's cells, any
    effective stride, by area overlap) and :func:`downsample` (to a target
    size: block means for whole factors, area-weighted resampling otherwise).
-6. :func:`binarize`: sign, mean, a fixed threshold or Otsu's.
+6. :func:`binarize`: sign, mean, a fixed threshold or Otsu's (a value at the
+   threshold, to rounding, split by one rule whatever the path).
 
 What a run is (its schedule, patterns, placement, pixel model) comes from :mod:`evtk.plan`; nothing here
 imports the simulator. :func:`save_reconstruction` and :func:`load_reconstruction` write and read the result.

@@ -226,9 +226,6 @@ def reconstruct_responses(source, windows: Windows, region, batch_windows: int |
     n_w = len(windows)
     region = _checked_region(source, region)
     x0, x1, y0, y1 = region
-    linear = bool(options.get("linear", True))
-    theta = options.get("theta")
-    theta_on = theta_off = 0.2 if theta is None else float(theta)
     oh, ow = (int(v) for v in options.get("size", (16, 16)))
     require_memory(n_w * 17 * oh * ow, f"the responses of {n_w:,} windows")
     responses = None
@@ -241,6 +238,8 @@ def reconstruct_responses(source, windows: Windows, region, batch_windows: int |
             nothing = np.zeros((1, 1, 1), np.int32)
             one = WindowCounts(nothing, nothing, win[:1], region, 0)
             first = reconstruct_counts(one, None, **options)
+            linear = bool(first.summary["linear"])  # the whole-run path's choice of linearisation
+            theta_on = theta_off = float(first.summary["theta_on"])
             responses = np.zeros((n_w,) + first.responses.shape[1:], np.float64)
             rows = _shares(oh, y1 - y0)
             cols = _shares(ow, x1 - x0)

@@ -31,7 +31,8 @@ def reconstruct(rec: Any, plan: Plan | SimulationRecord | None = None, options: 
 
     * **no plan**: the recording's own simulation record when it carries one (the oracle: the simulator's
       pixel model inverted, refined by the event times, each pixel's threshold from the flat fields), else
-      windows only (``window="triggers"`` or a period) linearised by ``exp(n theta)``;
+      windows only (``window="triggers"`` or a period): net counts ON - OFF, nothing saying how counts map to
+      light (``exp(n theta)`` where the options give a ``theta``);
     * **a plan with a pixel model** (:meth:`evtk.plan.Plan.from_record`, or a
       :class:`~evtk.plan.SimulationRecord`): the oracle, the plan's pixel model inverted on the windows of its
       schedule;

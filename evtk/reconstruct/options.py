@@ -39,7 +39,8 @@ class ReconstructOptions:
         Linearise counts to light (default), or keep net counts ON - OFF (``False``).
     theta : float, optional
         A fixed contrast threshold (log-intensity units) linearising by ``exp(n theta)``; None (default) inverts
-        the plan's pixel model where there is one, else takes 0.2.
+        the plan's pixel model where there is one; without one, fixed windows keep net counts ON - OFF and a
+        bench plan's ``linearization="exp(n theta)"`` takes 0.2.
     crop : {"valid", "full"}
         Which part of the correlation each response keeps: ``"valid"`` (default; where the kernel lies wholly
         on the features) or ``"full"``.

@@ -232,8 +232,8 @@ def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=
     linear : bool
         Linearise counts to light (else net counts ON - OFF).
     theta : float, optional
-        Contrast threshold for linearisation; default the recording's
-        simulation metadata, else 0.2.
+        A fixed contrast threshold linearising by ``exp(n theta)``; default
+        the recording's simulation metadata, else none: net counts.
     crop : "valid" or "full"
         Which part of the correlation to keep (needs a simulation record).
     region : (x0, x1, y0, y1), optional
@@ -269,8 +269,10 @@ def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=
     Notes
     -----
     With a simulation record, linearisation inverts the recording's own pixel
-    model (:func:`count_curve`, refined by event times); otherwise (or with
-    ``theta`` given) it uses ``exp(n * theta) - 1``.
+    model (:func:`count_curve`, refined by event times); with ``theta`` given
+    it uses ``exp(n * theta) - 1``; with neither (fixed windows of a
+    recording without a record) nothing says how counts map to light, so the
+    responses are net counts ON - OFF.
     """
     check_crop(crop)
     # every window's counts at once, unless responses alone of windows that stand alone (no simulation record)
@@ -338,8 +340,8 @@ def reconstruct_counts(counts: WindowCounts, sim: Plan | SimulationRecord | dict
     sim : Plan, SimulationRecord or dict, optional
         The run's plan with its pixel model (:attr:`evtk.plan.Plan.pixels`), or a simulation record (or its dict
         form) read as one (:meth:`evtk.plan.Plan.from_record`): its pixel model is inverted, its schedule,
-        patterns and placement used; None linearises by ``exp(n theta)``. A plan without a pixel model is an
-        :class:`~evtk.EvtkError`.
+        patterns and placement used. None (nothing to linearise by): net counts ON - OFF, unless ``theta`` or
+        ``curve`` is given. A plan without a pixel model is an :class:`~evtk.EvtkError`.
     skip_us, length_us : int
         The ones the counts were taken with.
     size : tuple of int
@@ -349,7 +351,8 @@ def reconstruct_counts(counts: WindowCounts, sim: Plan | SimulationRecord | dict
     linear : bool
         Linearise counts to light (else net counts ON - OFF).
     theta : float, optional
-        A fixed contrast threshold for ``exp(n theta)`` (no pixel model).
+        A fixed contrast threshold linearising by ``exp(n theta)`` in place of a pixel model; None (default)
+        inverts the pixel model, and without one keeps net counts.
     crop : {"valid", "full"}
         Which part of the correlation to keep.
     deblur : bool, optional
@@ -378,6 +381,8 @@ def _reconstruct_counts(counts, run, skip_us, length_us, size, binarize_method, 
                         flat_field, timing, curve=None):
     """:func:`reconstruct_counts`' stages on a plan ``run`` with a pixel model (:func:`_model_plan`'s), or None."""
     pixels = None if run is None else run.pixels
+    if run is None and curve is None and theta is None:  # nothing in the plan to linearise by: net counts
+        linear = False
     win = counts.windows
     region = counts.region
     if theta is None:
