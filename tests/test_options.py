@@ -12,8 +12,8 @@ from evtk.cli._base import _reconstruct_settings
 from evtk.reconstruct import ReconstructOptions
 
 COMMANDS = [("reconstruct",), ("batch", "reconstruct")]
-#: fields no reconstruct option sets: theta comes from the recording or --calibration, region from --region
-NOT_OPTIONS = {"theta", "region"}
+#: fields no reconstruct option sets: region comes from --region (or --calibration)
+NOT_OPTIONS = {"region"}
 
 
 def _command(path):

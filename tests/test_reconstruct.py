@@ -497,6 +497,23 @@ def test_fixed_windows_with_a_theta_given_are_exp_n_theta(tmp_path, theta):
                               keep_pixels=keep_pixels)
             np.testing.assert_allclose(got.responses, want, rtol=1e-12, atol=1e-12)
             assert got.summary.linearization == "exp(n theta)" and got.summary.theta_on == theta
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+
+    out = tmp_path / "r.npz"
+    res = CliRunner().invoke(main, ["reconstruct", str(path), "-o", str(out), "--window", "period:1000", "--size",
+                                    "4x6", "--theta", str(theta), "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.output)["linearization"] == "exp(n theta)"
+    np.testing.assert_allclose(np.load(out)["responses"], want, rtol=1e-12, atol=1e-12)
+    for bad, code in (("0", 2), ("-0.2", 2), ("nan", 1), ("inf", 1)):
+        res = CliRunner().invoke(main, ["reconstruct", str(path), "-o", str(out), "--window", "period:1000",
+                                        "--theta", bad])
+        assert res.exit_code == code and "theta" in res.output and "Traceback" not in res.output, res.output
+    for bad in (float("nan"), -1.0, "0.2x"):
+        with pytest.raises(EvtkError, match="theta must be a positive finite number"):
+            ReconstructOptions(theta=bad)
 
 
 def test_deblur_undoes_the_footprint_on_exact_light():

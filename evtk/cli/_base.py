@@ -284,7 +284,11 @@ _reconstruct_options = _options([
                  help="auto (sign for signed responses, else each response's mean), sign, mean, otsu or a threshold."),
     click.option("--linearize/--counts", default=True, show_default=True,
                  help="Linearise counts to light, or keep net counts (ON - OFF). Fixed windows (--window triggers "
-                      "or period:US) have no pixel model to linearise by and stay net counts."),
+                      "or period:US) have no pixel model to linearise by and stay net counts, unless --theta."),
+    click.option("--theta", type=click.FloatRange(min=0, min_open=True),
+                 help="A fixed contrast threshold (log units) linearising by exp(n theta): fixed windows, or a "
+                      "simulated run in place of its pixel model. Default: the plan's pixel model where there is "
+                      "one, else net counts."),
     click.option("--crop", type=click.Choice(["valid", "full"]), default="valid", show_default=True),
     click.option("--flat-field/--no-flat-field", default=True, show_default=True,
                  help="Calibrate each pixel's threshold on the recording's flat-field captures, if any."),
@@ -297,14 +301,14 @@ _reconstruct_options = _options([
 
 
 def _reconstruct_settings(window_spec, skip_us, length_us, size, binarize_method, linearize, crop, flat_field,
-                          deblur, timing, region=None):
+                          deblur, timing, theta=None, region=None):
     """The options of :data:`_reconstruct_options` as one :class:`evtk.reconstruct.ReconstructOptions`."""
     from ..reconstruct import ReconstructOptions
 
     return ReconstructOptions(window=window_spec, skip_us=skip_us, length_us=length_us,
                               size=size, binarize_method=binarize_method,
                               linear=linearize, crop=crop, flat_field=flat_field, deblur=deblur, timing=timing,
-                              region=region)
+                              theta=theta, region=region)
 
 
 def _number_list(text, name="the list", integer=False, allow_zero=False):

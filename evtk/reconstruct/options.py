@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 from ..errors import EvtkError
@@ -60,8 +61,8 @@ class ReconstructOptions:
     Raises
     ------
     EvtkError
-        When ``crop`` is neither "valid" nor "full", ``skip_us`` < 0, ``length_us`` < 1, or ``size`` is not two
-        positive numbers.
+        When ``crop`` is neither "valid" nor "full", ``skip_us`` < 0, ``length_us`` < 1, ``size`` is not two
+        positive numbers, or ``theta`` is not a positive finite number.
 
     Examples
     --------
@@ -89,6 +90,13 @@ class ReconstructOptions:
             raise EvtkError("skip_us must be >= 0 and length_us >= 1")
         if len(tuple(self.size)) != 2 or min(int(v) for v in self.size) < 1:
             raise EvtkError(f"size must be two positive numbers, not {self.size!r}")
+        if self.theta is not None:
+            try:
+                ok = 0 < float(self.theta) < math.inf
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise EvtkError(f"theta must be a positive finite number, not {self.theta!r}")
 
     def kwargs(self) -> dict:
         """The settings as keyword arguments (the field names), ``size`` as a tuple of ints.
