@@ -49,9 +49,6 @@ ROW_GROUP_US = 50_000
 #: A whole read gives Arrow's freed memory back to the system after each this many events (``release_unused``
 #: takes about a millisecond, so not after every row group).
 RELEASE_EVENTS = 1 << 19
-#: What a whole read holds besides the events: the row groups read since the last release and what the allocator
-#: keeps (counted in the memory budget's estimate).
-READ_SLACK_BYTES = 16 << 20
 
 
 PROBE_SECONDS = 10.0
@@ -458,7 +455,8 @@ class ParquetRecording(BaseRecording):
         # RELEASE_EVENTS events: mimalloc keeps freed pages for a second, in 2 MiB huge pages where the system
         # allows them, which held 15-20 MiB more than the events at the end of a 10 M-event read (1.17x them)
         declared = sum(max(0, self._groups[g][0]) for g in self._rows(t_start_us, t_end_us))
-        require_memory(13 * declared + READ_SLACK_BYTES, "the events of the Parquet file")
+        # the columns, and the Arrow buffers of the row groups decoded since the last release (13 bytes an event each)
+        require_memory(13 * (declared + min(declared, RELEASE_EVENTS)), "the events of the Parquet file")
         cols = _event_columns(declared)
         n = 0
         pool, held = pyarrow_module().default_memory_pool(), 0
