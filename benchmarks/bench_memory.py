@@ -15,8 +15,8 @@ memory is bounded by the chunk, not the file. Files go to
 ``benchmarks/data`` and are deleted afterwards unless ``--keep``.
 
 ``--full-reads N`` instead writes the same N uniform events in every format
-evtk writes (AEDAT4 LZ4, EVT 2.0, EVT 3.0, DAT, Event Stream, HDF5, Parquet)
-and reads each whole (``rec.events()``) in a fresh process: the peak
+evtk writes (AEDAT4 LZ4, EVT 2.0, EVT 3.0, DAT, Event Stream, HDF5, Parquet),
+and in Prophesee's HDF5 layout, and reads each whole (``rec.events()``) in a fresh process: the peak
 resident memory (``VmHWM``) once the file is open (the format's imports
 loaded) and after the read, against the bytes of the arrays returned
 (``peak/arrays``; issue 32 asks for at most ``TARGET``). A second fresh
@@ -95,7 +95,20 @@ def _child(mode, path, n):
 
 
 FULL_FORMATS = {"aedat4": "aedat4", "evt2": "raw", "evt3": "raw", "dat": "dat", "es": "es", "hdf5": "h5",
-                "parquet": "parquet"}
+                "parquet": "parquet", "h5-prophesee": "hdf5"}
+
+
+def _write_prophesee_h5(path, ev):
+    """Prophesee's HDF5 layout, which evtk reads but does not write: /CD/events records (x, y, p, t) in gzip'd
+    chunks of 16384, as h5py writes them."""
+    import h5py
+    import numpy as np
+
+    cd = np.zeros(len(ev), np.dtype([("x", "<u2"), ("y", "<u2"), ("p", "<i2"), ("t", "<i8")]))
+    cd["x"], cd["y"], cd["p"], cd["t"] = ev.x, ev.y, ev.p, ev.t
+    with h5py.File(path, "w") as f:
+        f.attrs["width"], f.attrs["height"] = ev.sensor_size
+        f.create_dataset("CD/events", data=cd, chunks=(16384,), compression="gzip", compression_opts=1)
 
 
 def _hwm_mib():
@@ -139,12 +152,15 @@ def full_reads(n, keep):
     ev = evtk.Events(np.sort(rng.integers(0, n // 20, n)), rng.integers(0, 320, n).astype(np.uint16),
                      rng.integers(0, 240, n).astype(np.uint16), rng.integers(0, 2, n).astype(np.uint8), (320, 240))
     rows = []
-    print(f"{'format':<10}{'events':>12}{'arrays MiB':>12}{'read peak MiB':>15}{'peak/arrays':>13}"
+    print(f"{'format':<14}{'events':>12}{'arrays MiB':>12}{'read peak MiB':>15}{'peak/arrays':>13}"
           f"{f'<= {TARGET}':>8}{'warm':>8}{'seconds':>9}")
     for fmt, ext in FULL_FORMATS.items():
         path = DATA / f"full_{n}_{fmt}.{ext}"
         if not path.exists():
-            evtk.write_events(path, ev, fmt=fmt)
+            if fmt == "h5-prophesee":
+                _write_prophesee_h5(path, ev)
+            else:
+                evtk.write_events(path, ev, fmt=fmt)
         (r,) = child_runs(Path(__file__), ["fullread", path, n], repeats=1)
         (w,) = child_runs(Path(__file__), ["fullwarm", path, n], repeats=1)
         r["format"] = fmt
@@ -152,7 +168,7 @@ def full_reads(n, keep):
         r["target"] = TARGET
         rows.append(r)
         met = "yes" if r["peak_over_arrays"] <= TARGET else "NO"
-        print(f"{fmt:<10}{r['events']:>12,d}{r['arrays_mib']:>12.0f}{r['peak_mib'] - r['base_mib']:>15.0f}"
+        print(f"{fmt:<14}{r['events']:>12,d}{r['arrays_mib']:>12.0f}{r['peak_mib'] - r['base_mib']:>15.0f}"
               f"{r['peak_over_arrays']:>13.3f}{met:>8}{w['peak_over_arrays']:>8.3f}{r['seconds']:>9.2f}", flush=True)
         if not keep:
             path.unlink()
