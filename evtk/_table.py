@@ -212,7 +212,7 @@ def arrow_columns(table, path=None) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     return t, x, y, p
 
 
-def arrow_column(table, name: str, path=None) -> np.ndarray:
+def arrow_column(table: pa.Table, name: str, path: str | os.PathLike[str] | None = None) -> np.ndarray:
     """The integer column ``name`` of a ``pyarrow.Table`` as a numpy array (a view of its buffer where it
     has one chunk); a FormatError naming ``path`` when it holds nulls or is not of an integer type."""
     col = table.column(name)

@@ -383,15 +383,19 @@ class ParquetRecording(BaseRecording):
         return (int(t[0]), int(t[-1])) if len(t) else None
 
     def _read_group(self, g, t_before, use_threads=True):
-        """``(events, problem)`` of row group ``g``: its four columns together on pyarrow's threads, or one at a
-        time on this thread (less memory in flight: each column's buffers are freed before the next decodes)."""
+        """``(events, problem)`` of row group ``g``: its four columns decoded together on pyarrow's threads, or
+        one after the other on this thread (less in flight: a column's decoding buffers are freed before the next
+        column decodes)."""
         names = ("t", "x", "y", "p")
         try:
-            tables = ([self._pf.read_row_group(g, columns=list(names))] if use_threads else
-                      [self._pf.read_row_group(g, columns=[name], use_threads=False) for name in names])
+            if use_threads:
+                table = self._pf.read_row_group(g, columns=list(names))
+                tables = [table] * len(names)
+            else:
+                tables = [self._pf.read_row_group(g, columns=[name], use_threads=False) for name in names]
         except Exception as exc:
             return None, _unreadable(g, exc)
-        cols = [arrow_column(tables[-1 if use_threads else k], name, self.path) for k, name in enumerate(names)]
+        cols = [arrow_column(tab, name, self.path) for tab, name in zip(tables, names)]
         del tables
         try:
             ev = Events(*cols, self._sensor)

@@ -14,7 +14,7 @@ INTERRUPTED = "evtk_writing"  # root attribute present while a writer has the fi
 _FILL = {"t": np.iinfo(np.int64).min, "x": 65535, "y": 65535, "p": 255}
 DEFAULT_CHUNK = 65536
 #: Bytes of decoded chunks HDF5 keeps per open dataset (its chunk cache) while evtk reads a file. HDF5 2.0 made it
-#: 8 MiB, which a whole read of four event columns kept resident on top of the events (1.26x their size at 10 M
+#: 8 MiB, which a whole read of four event columns kept resident on top of the events (1.30x their size at 10 M
 #: events); 1 MiB, the HDF5 1.x size, still holds an evtk chunk (65536 events, 512 KiB of time stamps) so that
 #: reads cut inside a chunk decode it once.
 READ_CHUNK_CACHE_BYTES = 1 << 20
