@@ -15,10 +15,15 @@ memory is bounded by the chunk, not the file. Files go to
 ``benchmarks/data`` and are deleted afterwards unless ``--keep``.
 
 ``--full-reads N`` instead writes the same N uniform events in every format
-evtk writes (AEDAT4 LZ4, EVT 2.0, EVT 3.0, DAT, Event Stream, HDF5, Parquet)
-and reads each whole (``rec.events()``) in a fresh process: the peak
+evtk writes (AEDAT4 LZ4, EVT 2.0, EVT 3.0, DAT, Event Stream, HDF5, Parquet),
+and in Prophesee's HDF5 layout, and reads each whole (``rec.events()``) in a fresh process: the peak
 resident memory (``VmHWM``) once the file is open (the format's imports
-loaded) and after the read, against the bytes of the arrays returned.
+loaded) and after the read, against the bytes of the arrays returned
+(``peak/arrays``; issue 32 asks for at most ``TARGET``). A second fresh
+process first reads the file's first 1000 events, so that what the first
+read of a process loads (numba and its cached machine code for a large EVT
+3.0 file, the libraries' code pages, the allocators' first arenas) is in
+its baseline: ``warm`` is what the read itself holds beyond its arrays.
 """
 
 from __future__ import annotations
@@ -90,7 +95,20 @@ def _child(mode, path, n):
 
 
 FULL_FORMATS = {"aedat4": "aedat4", "evt2": "raw", "evt3": "raw", "dat": "dat", "es": "es", "hdf5": "h5",
-                "parquet": "parquet"}
+                "parquet": "parquet", "h5-prophesee": "hdf5"}
+
+
+def _write_prophesee_h5(path, ev):
+    """Prophesee's HDF5 layout, which evtk reads but does not write: /CD/events records (x, y, p, t) in gzip'd
+    chunks of 16384, as h5py writes them."""
+    import h5py
+    import numpy as np
+
+    cd = np.zeros(len(ev), np.dtype([("x", "<u2"), ("y", "<u2"), ("p", "<i2"), ("t", "<i8")]))
+    cd["x"], cd["y"], cd["p"], cd["t"] = ev.x, ev.y, ev.p, ev.t
+    with h5py.File(path, "w") as f:
+        f.attrs["width"], f.attrs["height"] = ev.sensor_size
+        f.create_dataset("CD/events", data=cd, chunks=(16384,), compression="gzip", compression_opts=1)
 
 
 def _hwm_mib():
@@ -102,10 +120,17 @@ def _hwm_mib():
         return _peak_mib()
 
 
-def _full_read_child(path):
+TARGET = 1.1  # issue 32 item 5: a whole read's peak at most this times the arrays it returns
+
+
+def _full_read_child(path, warm=False):
     import evtk
 
     with evtk.open(path) as rec:
+        if warm:  # load what a first read loads, then measure from there
+            chunks = rec.iter_events(chunk_events=1000)
+            next(chunks, None)
+            chunks.close()
         base = _hwm_mib()
         t0 = time.perf_counter()
         ev = rec.events()
@@ -127,16 +152,24 @@ def full_reads(n, keep):
     ev = evtk.Events(np.sort(rng.integers(0, n // 20, n)), rng.integers(0, 320, n).astype(np.uint16),
                      rng.integers(0, 240, n).astype(np.uint16), rng.integers(0, 2, n).astype(np.uint8), (320, 240))
     rows = []
-    print(f"{'format':<10}{'events':>12}{'arrays MiB':>12}{'read peak MiB':>15}{'peak/arrays':>13}{'seconds':>9}")
+    print(f"{'format':<14}{'events':>12}{'arrays MiB':>12}{'read peak MiB':>15}{'peak/arrays':>13}"
+          f"{f'<= {TARGET}':>8}{'warm':>8}{'seconds':>9}")
     for fmt, ext in FULL_FORMATS.items():
         path = DATA / f"full_{n}_{fmt}.{ext}"
         if not path.exists():
-            evtk.write_events(path, ev, fmt=fmt)
+            if fmt == "h5-prophesee":
+                _write_prophesee_h5(path, ev)
+            else:
+                evtk.write_events(path, ev, fmt=fmt)
         (r,) = child_runs(Path(__file__), ["fullread", path, n], repeats=1)
+        (w,) = child_runs(Path(__file__), ["fullwarm", path, n], repeats=1)
         r["format"] = fmt
+        r["warm_peak_over_arrays"] = w["peak_over_arrays"]
+        r["target"] = TARGET
         rows.append(r)
-        print(f"{fmt:<10}{r['events']:>12,d}{r['arrays_mib']:>12.0f}{r['peak_mib'] - r['base_mib']:>15.0f}"
-              f"{r['peak_over_arrays']:>13.3f}{r['seconds']:>9.2f}", flush=True)
+        met = "yes" if r["peak_over_arrays"] <= TARGET else "NO"
+        print(f"{fmt:<14}{r['events']:>12,d}{r['arrays_mib']:>12.0f}{r['peak_mib'] - r['base_mib']:>15.0f}"
+              f"{r['peak_over_arrays']:>13.3f}{met:>8}{w['peak_over_arrays']:>8.3f}{r['seconds']:>9.2f}", flush=True)
         if not keep:
             path.unlink()
     return rows
@@ -151,8 +184,8 @@ def main():
     ap.add_argument("--child", nargs=3, metavar=("MODE", "PATH", "N"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        if args.child[0] == "fullread":
-            _full_read_child(args.child[1])
+        if args.child[0] in ("fullread", "fullwarm"):
+            _full_read_child(args.child[1], warm=args.child[0] == "fullwarm")
         else:
             _child(args.child[0], args.child[1], int(args.child[2]))
         return

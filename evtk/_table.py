@@ -208,17 +208,20 @@ def arrow_columns(table, path=None) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     missing = [c for c in ("t", "x", "y", "p") if c not in names]
     if missing:
         raise FormatError(path, None, f"columns {missing} missing; found {list(names)}; expected t, x, y, p")
-    cols = []
-    for name in ("t", "x", "y", "p"):
-        col = table.column(name)
-        if col.null_count:
-            raise FormatError(path, None, f"column {name!r} holds {col.null_count} null values")
-        arr = numpy_of(col)
-        if arr.dtype.kind not in "iub":
-            raise FormatError(path, None, f"column {name!r} has type {col.type}, expected an integer type")
-        cols.append(arr)
-    t, x, y, p = cols
+    t, x, y, p = (arrow_column(table, name, path) for name in ("t", "x", "y", "p"))
     return t, x, y, p
+
+
+def arrow_column(table: pa.Table, name: str, path: str | os.PathLike[str] | None = None) -> np.ndarray:
+    """The integer column ``name`` of a ``pyarrow.Table`` as a numpy array (a view of its buffer where it
+    has one chunk); a FormatError naming ``path`` when it holds nulls or is not of an integer type."""
+    col = table.column(name)
+    if col.null_count:
+        raise FormatError(path, None, f"column {name!r} holds {col.null_count} null values")
+    arr = numpy_of(col)
+    if arr.dtype.kind not in "iub":
+        raise FormatError(path, None, f"column {name!r} has type {col.type}, expected an integer type")
+    return arr
 
 
 def table_to_columns(table: pa.Table, sensor_size: Sequence[int] | None = None,

@@ -13,7 +13,7 @@ from .._checks import scan_events
 from .._overlay import SplicedFile, close_at_exit
 from ..base import BaseRecording, Damage, StreamInfo, sensor_dims
 from .checks import _CheckedGroup, _Policy
-from .common import _H5_ERRORS, _h5
+from .common import _H5_ERRORS, READ_CHUNK_CACHE_BYTES, _h5
 from .layouts import _EXPECTED, _LAYOUTS, _inventory, _Layout
 from .writer import _superblock_eoa
 
@@ -80,7 +80,7 @@ class Hdf5Recording(BaseRecording):
         h5py = _h5()
         self._spliced = None
         try:
-            self._f = h5py.File(self.path, "r")
+            self._f = h5py.File(self.path, "r", rdcc_nbytes=READ_CHUNK_CACHE_BYTES)
         except OSError as exc:
             self._f = self._open_truncated(h5py, exc)
         try:
@@ -204,7 +204,7 @@ class Hdf5Recording(BaseRecording):
             raise FormatError(self.path, None, problem + "; salvage recovers the events before the cut") from None
         spliced = SplicedFile(self.path, size, size=eoa)
         try:
-            f = h5py.File(spliced, "r")
+            f = h5py.File(spliced, "r", rdcc_nbytes=READ_CHUNK_CACHE_BYTES)
         except Exception as err:  # noqa: BLE001 - libhdf5 reports any failure as OSError or ValueError
             spliced.close()
             raise FormatError(self.path, None, f"{problem}, and what is left does not open "
