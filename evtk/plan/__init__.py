@@ -23,28 +23,58 @@ simulator (:mod:`evtk.simulate`) and the calibration (:mod:`evtk.calibrate`) pro
 
 from __future__ import annotations
 
-from .core import PixelModel, Plan, as_plan
-from .record import RECORD_SPECS, SimulationRecord
-from .schedule import (
-    DOT_MARKER_MIN,
-    DOTS_ID,
-    FLAT_ID,
-    LEVEL_ID,
-    METADATA_KEY,
-    SCHEDULE_SPECS,
-    CaptureCounts,
-    Schedule,
-    check_patterns,
-    check_schedule,
-    default_features,
-    dot_grid,
-    level_kernel,
-    level_steps,
-    load_patterns,
-    read_schedule,
-    sign_pass,
-    split_passes,
-)
+from typing import TYPE_CHECKING, Any
+
+# names load with their module on first use (PEP 562): the schedule's alone does not pull the optics and the
+# pixel model (numba, scipy), so that reading a schedule or cutting windows stays light
+_WHERE = {
+    **dict.fromkeys(["PixelModel", "Plan", "as_plan"], "core"),
+    **dict.fromkeys(["RECORD_SPECS", "SimulationRecord"], "record"),
+    **dict.fromkeys(["DOT_MARKER_MIN", "DOTS_ID", "FLAT_ID", "LEVEL_ID", "METADATA_KEY", "SCHEDULE_SPECS",
+                     "CaptureCounts", "Schedule", "check_patterns", "check_schedule", "default_features", "dot_grid",
+                     "level_kernel", "level_steps", "load_patterns", "read_schedule", "sign_pass", "split_passes"],
+                    "schedule"),
+}
+
+if TYPE_CHECKING:
+    from .core import PixelModel, Plan, as_plan
+    from .record import RECORD_SPECS, SimulationRecord
+    from .schedule import (
+        DOT_MARKER_MIN,
+        DOTS_ID,
+        FLAT_ID,
+        LEVEL_ID,
+        METADATA_KEY,
+        SCHEDULE_SPECS,
+        CaptureCounts,
+        Schedule,
+        check_patterns,
+        check_schedule,
+        default_features,
+        dot_grid,
+        level_kernel,
+        level_steps,
+        load_patterns,
+        read_schedule,
+        sign_pass,
+        split_passes,
+    )
+
+
+def __getattr__(name: str) -> Any:
+    """A public name of the package, imported from its module on first use."""
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_WHERE))
+
 
 __all__ = [
     "Plan", "PixelModel", "as_plan", "SimulationRecord", "RECORD_SPECS",

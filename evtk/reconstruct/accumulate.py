@@ -6,9 +6,9 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-import numba
 import numpy as np
 
+from .._lazyjit import njit  # numba loads on the first count
 from ..errors import EvtkError
 from ..events import Events
 from ..limits import memory_limit_bytes, require_memory
@@ -32,7 +32,7 @@ def _prefetched(chunks):
             yield item
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, started, first, last):
     """Add the chunk's events to every window; returns the number counted.
 
