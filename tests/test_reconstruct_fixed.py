@@ -186,3 +186,15 @@ def test_the_cli_on_fixed_windows_loads_no_compiler_and_stores_responses_only(re
 def test_enob_on_fixed_windows_loads_no_compiler(recording):
     printed = _cli(["enob", recording, "--window", f"period:{PERIOD_US}"])
     assert "HEAVY []" in printed
+
+
+@pytest.mark.parametrize("df", [1, 2, 3, 4, 7, 10, 31, 63, 200])
+def test_the_jackknife_t_quantile_equals_scipys(df):
+    # enob's interval takes Student's t quantile without importing scipy (half a second of a fresh process)
+    from scipy import stats
+
+    from evtk.metrics.sinad import _t_quantile_two_sided
+
+    for confidence in (0.5, 0.9, 0.95, 0.99):
+        assert _t_quantile_two_sided(confidence, df) == pytest.approx(stats.t.ppf(0.5 + confidence / 2, df),
+                                                                      rel=1e-11)

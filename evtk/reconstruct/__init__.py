@@ -49,7 +49,8 @@ _WHERE = {
     **dict.fromkeys(["count_curve", "flat_field_gain", "linearize", "linearize_by_model", "_count_curve",
                      "_expected_flat_counts", "_flat_log_step"], "linearize"),
     **dict.fromkeys(["ReconstructOptions"], "options"),
-    **dict.fromkeys(["check_crop", "plan", "reconstruct_counts", "response_error", "wants_times", "window_bytes"], "pipeline"),
+    **dict.fromkeys(["check_crop", "reconstruct_counts", "response_error", "wants_times"], "pipeline"),
+    **dict.fromkeys(["plan", "window_bytes"], "route"),
     **dict.fromkeys(["Reconstruction"], "result"),
     **dict.fromkeys(["ReconstructionSummary"], "summary"),
     **dict.fromkeys(["linearize_by_timing", "timing_thresholds", "_timing_factor"], "timing"),
@@ -67,8 +68,9 @@ if TYPE_CHECKING:
     from .grid import combine_passes, downsample, footprint_matrix, overlap_matrix, sample_response_grid, to_response_grid
     from .linearize import count_curve, flat_field_gain, linearize, linearize_by_model
     from .options import ReconstructOptions
-    from .pipeline import check_crop, plan, reconstruct_counts, response_error, wants_times, window_bytes
+    from .pipeline import check_crop, reconstruct_counts, response_error, wants_times
     from .result import Reconstruction
+    from .route import plan, window_bytes
     from .summary import ReconstructionSummary
     from .timing import linearize_by_timing, timing_thresholds
     from .windows import WindowCounts, Windows, windows_from_schedule, windows_from_triggers, windows_periodic
