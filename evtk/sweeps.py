@@ -207,7 +207,8 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     if fixed_supported(dict(options, skip_us=skip_us, length_us=length_us)):
         # numpy alone (no compiler, no scipy): each batch's counts, each pixel's value as reconstruct_counts
         # gives it without a plan, and the responses binarised as it binarises them
-        size = tuple(int(v) for v in options.get("size", (16, 16)))
+        rows, cols = (int(v) for v in options.get("size", (16, 16)))
+        size = (rows, cols)
         theta = options.get("theta")
         method = options.get("binarize_method", "auto")
         method = binarize_rule(None) if isinstance(method, str) and method == "auto" else method

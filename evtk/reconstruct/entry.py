@@ -102,9 +102,9 @@ def reconstruct(rec: Any, plan: Plan | SimulationRecord | None = None, options: 
 
         stages = {k: v for k, v in opts.kwargs().items() if k not in ("window", "region")}
         if fixed_supported(stages):
-            _, win, region = windows_of(rec, opts.window, opts.skip_us, opts.length_us, opts.region,
-                                        check_memory=False)
-            return fixed_responses(rec, win, region, chunk_events=chunk_events, progress=progress, **stages)
+            window: Any = opts.window  # (checked by plan)
+            _, win, pixels = windows_of(rec, window, opts.skip_us, opts.length_us, opts.region, check_memory=False)
+            return fixed_responses(rec, win, pixels, chunk_events=chunk_events, progress=progress, **stages)
     from ..plan import Plan, SimulationRecord
     from .bench import _reconstruct_bench
     from .calibrated import _reconstruct_calibrated, nominal_placement
