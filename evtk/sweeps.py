@@ -214,7 +214,7 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
         method = binarize_rule(None) if isinstance(method, str) and method == "auto" else method
         acc = SinadAccumulator(len(win), (y1 - y0, x1 - x0))
         binary = np.empty((len(win),) + size, np.int8)
-        for i, on, off in count_batches(rec, win, region, None, 0, batch, progress=progress):  # (fixed: checked)
+        for i, on, off, _ in count_batches(rec, win, region, None, 0, batch, progress=progress):  # (fixed: checked)
             values = pixel_values(on, off, bool(options.get("linear", True)), 0.2 if theta is None else float(theta))
             acc.add(values)
             binary[i:i + len(values)] = binarize(downsample(values, size), method)

@@ -90,6 +90,18 @@ def test_a_recording_read_in_small_chunks_equals_the_whole_run(recording, linear
     assert ref.summary["events_used"] < 40_000  # the gaps left events out
 
 
+@pytest.mark.parametrize("span", [(0, 40_000), (5_000, 60_000), (-3_000, 20_000)])
+def test_windows_over_part_of_a_recording_or_beyond_it_equal_the_whole_run(recording, span):
+    # windows starting after the first event (a time-window read), running past the last (empty windows at the
+    # end), or starting before the recording
+    with evtk.open(recording) as rec:
+        win = windows_periodic(span[0], span[1], 1_500)
+        for linear in (False, True):
+            options = dict(linear=linear, theta=0.05 if linear else None, size=(5, 4))
+            _same(fixed_responses(rec, win, (0, 40, 0, 30), chunk_events=5_000, batch_windows=3, **options),
+                  _whole_run(rec, win, (0, 40, 0, 30), **options))
+
+
 def test_windows_in_any_order_and_overlapping_equal_the_whole_run():
     ev = _events()
     rng = np.random.default_rng(2)

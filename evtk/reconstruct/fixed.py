@@ -97,17 +97,35 @@ def _window_events(source: Any, windows: Windows, first: int, last: int, chunk_e
 _PIECE = 1 << 16
 
 
-def _count(ev: Events, starts: np.ndarray, ends: np.ndarray, by_y: np.ndarray, by_x: np.ndarray,
-           out: np.ndarray) -> None:
-    """Add the chunk's events to ``out`` (flat int64 bins, ``per_window`` each): each window's events (``[start,
+def _span_events(source: Any, a: int, z: int, chunk_events: int) -> Iterator[Events]:
+    """The events from ``a`` to ``z`` (us, half-open) in time order, in chunks, and perhaps others beside them
+    (the counting leaves out what no window holds): a recording whose events all lie in the span is read whole,
+    without its time-window filter."""
+    if isinstance(source, Events):
+        i, j = (int(v) for v in np.searchsorted(source.t, [a, z], side="left"))
+        for k in range(i, j, chunk_events):
+            yield source[k:min(j, k + chunk_events)]
+        return
+    info = source.info()
+    first, last = info.get("t_start_us"), info.get("t_end_us")
+    if first is not None and last is not None and a <= int(first) and int(last) < z:
+        yield from source.iter_events(chunk_events=chunk_events)
+    else:
+        yield from source.iter_events(chunk_events=chunk_events, t_start_us=a, t_end_us=z)
+
+
+def _count(ev: Events, starts: np.ndarray, ends: np.ndarray, by_y: np.ndarray, by_x: np.ndarray, plane: int,
+           out: np.ndarray) -> np.ndarray:
+    """Add the chunk's events to ``out`` (flat int32 bins, ``per_window`` each): each window's events (``[start,
     end)``, by binary search in the sorted time stamps; windows may overlap or come in any order) to the bin
-    ``by_y[y] + by_x[x] + p`` of their window, a cache-sized piece at a time."""
+    ``by_y[y] + by_x[x] + p * plane`` of their window, a cache-sized piece at a time. Returns the number of
+    events of each window."""
     lo = np.searchsorted(ev.t, starts, side="left")
     hi = np.searchsorted(ev.t, ends, side="left")
     n = hi - lo
     total = int(n.sum())
     if total == 0:
-        return
+        return n
     a, z = int(lo[0]), int(hi[-1])
     if z - a == total and np.array_equal(lo[1:], hi[:-1]):  # back to back: one slice, no gather
         x, y, p = ev.x[a:z], ev.y[a:z], ev.p[a:z]
@@ -122,7 +140,7 @@ def _count(ev: Events, starts: np.ndarray, ends: np.ndarray, by_y: np.ndarray, b
         wb = int(np.searchsorted(bounds, e, side="left"))
         key = by_y.take(y[s:e])
         key += by_x.take(x[s:e])
-        key += p[s:e]
+        key += p[s:e] * key.dtype.type(plane)
         if wb - wa > 1:
             key += np.repeat(np.arange(0, (wb - wa) * per_window, per_window, dtype=key.dtype),
                              np.diff(np.clip(bounds[wa:wb + 1], s, e)))
@@ -130,7 +148,8 @@ def _count(ev: Events, starts: np.ndarray, ends: np.ndarray, by_y: np.ndarray, b
         if span.size <= 4 * (e - s):  # few bins: count them all (faster than scattered adds)
             span += np.bincount(key, minlength=span.size)
         else:
-            np.add.at(span, key, 1)
+            np.add.at(span, key, span.dtype.type(1))  # (a typed one: numpy's fast path)
+    return n
 
 
 def _linearised(on: np.ndarray, off: np.ndarray, theta: float) -> np.ndarray:
@@ -139,7 +158,10 @@ def _linearised(on: np.ndarray, off: np.ndarray, theta: float) -> np.ndarray:
     hi_on, hi_off = int(on.max(initial=0)), int(off.max(initial=0))
     if (hi_on + 1) * (hi_off + 1) <= _TABLE_MAX and hi_on * theta <= 700:  # else only the rises that occur
         rise = np.arange(hi_on + 1.0)[:, None] * theta - np.arange(hi_off + 1.0)[None, :] * theta
-        return np.expm1(rise).ravel()[on * (hi_off + 1) + off]
+        index = on.astype(np.intp)
+        index *= hi_off + 1
+        index += off
+        return np.expm1(rise).ravel().take(index)
     rise = on.astype(np.float64) * theta - off.astype(np.float64) * theta
     if np.any(rise > 700):
         raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
@@ -207,24 +229,28 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
 
     Yields
     ------
-    tuple of (int, ndarray, ndarray)
-        The batch's first window, and its ON and OFF counts (int64, (windows, rows, cols): views valid until
-        the next batch).
+    tuple of (int, ndarray, ndarray, int)
+        The batch's first window, its ON and OFF counts (int32, (windows, rows, cols): views valid until the
+        next batch) and the number of events they hold.
 
     Raises
     ------
     EvtkError
-        A region off the sensor, or more memory than the budget allows.
+        A region off the sensor, more memory than the budget allows, or a window holding more than 2**31 - 1
+        events.
     """
     x0, x1, y0, y1 = _region(source, region)
+    if isinstance(source, Events):
+        source = source.sorted()
     h_px, w_px = y1 - y0, x1 - x0
     n_w = len(windows)
     sensor = (int(source.sensor_size[0]), int(source.sensor_size[1]))
     fy, fx = (h_px // cells[0], w_px // cells[1]) if cells is not None else (1, 1)
     rows, cols = h_px // fy, w_px // fx  # of bins, each with one more (the pixels outside the region)
-    per_window = 2 * (rows + 1) * (cols + 1)
-    # a window's int64 bins, and for pixels their float64 values and what the caller makes of them
-    window_bytes = 8 * per_window + (0 if cells is not None else 24 * h_px * w_px)
+    plane = (rows + 1) * (cols + 1)  # OFF counts, then ON counts
+    per_window = 2 * plane
+    # a window's int32 bins, and for pixels their float64 values and what the caller makes of them
+    window_bytes = 4 * per_window + (0 if cells is not None else 24 * h_px * w_px)
     if batch_windows is None:
         fits = (memory_limit_bytes() // 4 - kept_bytes) // window_bytes
         nb = max(1, min(n_w, BATCH_BINS // per_window, fits))
@@ -233,24 +259,62 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
     require_memory(kept_bytes + nb * window_bytes + _PIECE * 16,
                    f"counting {n_w:,} windows over {w_px}x{h_px} pixels, {nb:,} at a time")
     dtype = np.int32 if per_window * nb < 2**31 else np.int64
-    by_y = _axis_table(sensor[1], y0, y1, fy, 2 * (cols + 1)).astype(dtype)
-    by_x = _axis_table(sensor[0], x0, x1, fx, 2).astype(dtype)
+    by_y = _axis_table(sensor[1], y0, y1, fy, cols + 1).astype(dtype)
+    by_x = _axis_table(sensor[0], x0, x1, fx, 1).astype(dtype)
     firsts = list(range(0, n_w, nb))
+    starts, ends = windows.t_start_us, windows.t_end_us
     from .accumulate import _prefetched
 
+    def finished(i: int, j: int, out: np.ndarray, totals: np.ndarray):
+        bins = out.reshape(j - i, 2, rows + 1, cols + 1)
+        outside = int(bins[:, :, rows, :].sum()) + int(bins[:, :, :rows, cols].sum())
+        return i, bins[:, 1, :rows, :cols], bins[:, 0, :rows, :cols], int(totals.sum()) - outside
+
+    def add(ev: Events, i: int, j: int, out: np.ndarray, totals: np.ndarray) -> None:
+        totals += _count(ev, starts[i:j], ends[i:j], by_y, by_x, plane, out)
+        if totals.max(initial=0) > np.iinfo(np.int32).max:
+            raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
+                            "counts could overflow")
+
+    if n_w > 1 and np.all(np.diff(starts) >= 0) and np.all(np.diff(ends) >= 0):
+        # windows in time order: one pass over the events, each chunk counted into the batches it reaches, a
+        # batch handed on as soon as a chunk passes its last window's end (later chunks are later in time)
+        last_end = np.maximum.accumulate(ends)[[min(i + nb, n_w) - 1 for i in firsts]]
+        b, out, totals = 0, None, None
+        for ev in _prefetched(_span_events(source, int(starts[0]), int(last_end[-1]), max(1, int(chunk_events)))):
+            t_last = int(ev.t[-1]) if len(ev) else None
+            while b < len(firsts) and t_last is not None:
+                i, j = firsts[b], min(firsts[b] + nb, n_w)
+                if int(starts[i]) > t_last:  # this batch starts after the chunk
+                    break
+                if out is None:
+                    out, totals = np.zeros((j - i) * per_window, np.int32), np.zeros(j - i, np.int64)
+                add(ev, i, j, out, totals)
+                if int(last_end[b]) > t_last:  # the next chunk may hold more of it
+                    break
+                yield finished(i, j, out, totals)
+                b, out, totals = b + 1, None, None
+            if progress is not None:
+                progress(len(ev))
+        for rest in range(b, len(firsts)):  # batches the last events did not close (or reach)
+            i, j = firsts[rest], min(firsts[rest] + nb, n_w)
+            if out is None:
+                out, totals = np.zeros((j - i) * per_window, np.int32), np.zeros(j - i, np.int64)
+            yield finished(i, j, out, totals)
+            out, totals = None, None
+        return
     chunks = _prefetched(_chunks(source, windows, firsts, nb, max(1, int(chunk_events))))
     pending = next(chunks, None)
     for b, i in enumerate(firsts):
         j = min(i + nb, n_w)
-        out = np.zeros((j - i) * per_window, np.int64)
+        out = np.zeros((j - i) * per_window, np.int32)
+        totals = np.zeros(j - i, np.int64)
         while pending is not None and pending[0] == b:
-            ev = pending[1]
-            _count(ev, windows.t_start_us[i:j], windows.t_end_us[i:j], by_y, by_x, out)
+            add(pending[1], i, j, out, totals)
             if progress is not None:
-                progress(len(ev))
+                progress(len(pending[1]))
             pending = next(chunks, None)
-        inside = out.reshape(j - i, rows + 1, cols + 1, 2)[:, :rows, :cols]
-        yield i, inside[..., 1], inside[..., 0]
+        yield finished(i, j, out, totals)
 
 
 def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size: tuple = (16, 16),
@@ -316,9 +380,9 @@ def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size:
     cells = not linear and h_px % oh == 0 and w_px % ow == 0  # each event straight to its output cell
     responses = np.empty((n_w, oh, ow), np.float64)
     used = 0
-    for i, on, off in count_batches(source, windows, (x0, x1, y0, y1), (oh, ow) if cells else None,
-                                    n_w * oh * ow * 9, batch_windows, chunk_events, progress):
-        used += int(on.sum()) + int(off.sum())
+    for i, on, off, n_used in count_batches(source, windows, (x0, x1, y0, y1), (oh, ow) if cells else None,
+                                            n_w * oh * ow * 9, batch_windows, chunk_events, progress):
+        used += n_used
         if cells:  # the block mean of net counts: their exact sum over the block's pixel count
             responses[i:i + len(on)] = (on - off).astype(np.float64) / ((h_px // oh) * (w_px // ow))
         else:
