@@ -204,7 +204,7 @@ def pixel_values(on: np.ndarray, off: np.ndarray, linear: bool, theta: float) ->
 def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int, int, int],
                   cells: tuple[int, int] | None = None, kept_bytes: int = 0, batch_windows: int | None = None,
                   chunk_events: int = 4_000_000, progress: Callable[[int], Any] | None = None
-                  ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+                  ) -> Iterator[tuple[int, np.ndarray, np.ndarray, int]]:
     """ON and OFF counts of the windows over a region's pixels (or whole-factor blocks of them), a batch of
     windows at a time, with numpy.
 
@@ -265,7 +265,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
     starts, ends = windows.t_start_us, windows.t_end_us
     from .accumulate import _prefetched
 
-    def finished(i: int, j: int, out: np.ndarray, totals: np.ndarray):
+    def finished(i: int, j: int, out: np.ndarray, totals: np.ndarray) -> tuple[int, np.ndarray, np.ndarray, int]:
         bins = out.reshape(j - i, 2, rows + 1, cols + 1)
         outside = int(bins[:, :, rows, :].sum()) + int(bins[:, :, :rows, cols].sum())
         return i, bins[:, 1, :rows, :cols], bins[:, 0, :rows, :cols], int(totals.sum()) - outside
@@ -280,7 +280,9 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
         # windows in time order: one pass over the events, each chunk counted into the batches it reaches, a
         # batch handed on as soon as a chunk passes its last window's end (later chunks are later in time)
         last_end = np.maximum.accumulate(ends)[[min(i + nb, n_w) - 1 for i in firsts]]
-        b, out, totals = 0, None, None
+        b = 0
+        out: np.ndarray | None = None
+        totals = np.zeros(0, np.int64)
         for ev in _prefetched(_span_events(source, int(starts[0]), int(last_end[-1]), max(1, int(chunk_events)))):
             t_last = int(ev.t[-1]) if len(ev) else None
             while b < len(firsts) and t_last is not None:
@@ -293,7 +295,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
                 if int(last_end[b]) > t_last:  # the next chunk may hold more of it
                     break
                 yield finished(i, j, out, totals)
-                b, out, totals = b + 1, None, None
+                b, out = b + 1, None
             if progress is not None:
                 progress(len(ev))
         for rest in range(b, len(firsts)):  # batches the last events did not close (or reach)
@@ -301,7 +303,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
             if out is None:
                 out, totals = np.zeros((j - i) * per_window, np.int32), np.zeros(j - i, np.int64)
             yield finished(i, j, out, totals)
-            out, totals = None, None
+            out = None
         return
     chunks = _prefetched(_chunks(source, windows, firsts, nb, max(1, int(chunk_events))))
     pending = next(chunks, None)
