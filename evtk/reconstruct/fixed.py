@@ -97,23 +97,6 @@ def _window_events(source: Any, windows: Windows, first: int, last: int, chunk_e
 _PIECE = 1 << 16
 
 
-def _span_events(source: Any, a: int, z: int, chunk_events: int) -> Iterator[Events]:
-    """The events from ``a`` to ``z`` (us, half-open) in time order, in chunks, and perhaps others beside them
-    (the counting leaves out what no window holds): a recording whose events all lie in the span is read whole,
-    without its time-window filter."""
-    if isinstance(source, Events):
-        i, j = (int(v) for v in np.searchsorted(source.t, [a, z], side="left"))
-        for k in range(i, j, chunk_events):
-            yield source[k:min(j, k + chunk_events)]
-        return
-    info = source.info()
-    first, last = info.get("t_start_us"), info.get("t_end_us")
-    if first is not None and last is not None and a <= int(first) and int(last) < z:
-        yield from source.iter_events(chunk_events=chunk_events)
-    else:
-        yield from source.iter_events(chunk_events=chunk_events, t_start_us=a, t_end_us=z)
-
-
 def _count(ev: Events, starts: np.ndarray, ends: np.ndarray, by_y: np.ndarray, by_x: np.ndarray, plane: int,
            out: np.ndarray) -> np.ndarray:
     """Add the chunk's events to ``out`` (flat int32 bins, ``per_window`` each): each window's events (``[start,
@@ -263,7 +246,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
     by_x = _axis_table(sensor[0], x0, x1, fx, 1).astype(dtype)
     firsts = list(range(0, n_w, nb))
     starts, ends = windows.t_start_us, windows.t_end_us
-    from .accumulate import _prefetched
+    from .accumulate import _prefetched, span_chunks
 
     def finished(i: int, j: int, out: np.ndarray, totals: np.ndarray) -> tuple[int, np.ndarray, np.ndarray, int]:
         bins = out.reshape(j - i, 2, rows + 1, cols + 1)
@@ -283,7 +266,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
         b = 0
         out: np.ndarray | None = None
         totals = np.zeros(0, np.int64)
-        for ev in _prefetched(_span_events(source, int(starts[0]), int(last_end[-1]), max(1, int(chunk_events)))):
+        for ev in _prefetched(span_chunks(source, int(starts[0]), int(last_end[-1]), max(1, int(chunk_events)))):
             t_last = int(ev.t[-1]) if len(ev) else None
             while b < len(firsts) and t_last is not None:
                 i, j = firsts[b], min(firsts[b] + nb, n_w)
