@@ -141,8 +141,7 @@ def _linearised(on: np.ndarray, off: np.ndarray, theta: float) -> np.ndarray:
     hi_on, hi_off = int(on.max(initial=0)), int(off.max(initial=0))
     if (hi_on + 1) * (hi_off + 1) <= _TABLE_MAX and hi_on * theta <= 700:  # else only the rises that occur
         rise = np.arange(hi_on + 1.0)[:, None] * theta - np.arange(hi_off + 1.0)[None, :] * theta
-        index = on.astype(np.intp)
-        index *= hi_off + 1
+        index = np.multiply(on, hi_off + 1, dtype=np.int32)  # below 2**20: the table's size
         index += off
         return np.expm1(rise).ravel().take(index)
     rise = on.astype(np.float64) * theta - off.astype(np.float64) * theta
