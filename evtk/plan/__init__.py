@@ -23,7 +23,9 @@ simulator (:mod:`evtk.simulate`) and the calibration (:mod:`evtk.calibrate`) pro
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from .._lazymod import lazy_names
 
 # names load with their module on first use (PEP 562): the schedule's alone does not pull the optics and the
 # pixel model (numba, scipy), so that reading a schedule or cutting windows stays light
@@ -61,19 +63,7 @@ if TYPE_CHECKING:
     )
 
 
-def __getattr__(name: str) -> Any:
-    """A public name of the package, imported from its module on first use."""
-    if name not in _WHERE:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_WHERE))
+__getattr__, __dir__ = lazy_names(__name__, _WHERE)
 
 
 __all__ = [

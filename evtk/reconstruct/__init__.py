@@ -34,6 +34,8 @@ import sys
 import types
 from typing import TYPE_CHECKING, Any
 
+from .._lazymod import lazy_names
+
 # names load with their module on first use (PEP 562): fixed windows reconstructed with numpy alone import no
 # compiler, no scipy and none of the stages a schedule needs
 _WHERE = {
@@ -77,19 +79,7 @@ if TYPE_CHECKING:
 
 
 
-def __getattr__(name: str) -> Any:
-    """A public name of the package (or an internal the tests check), imported from its module on first use."""
-    if name not in _WHERE:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_WHERE))
+__getattr__, __dir__ = lazy_names(__name__, _WHERE)
 
 
 class _Package(types.ModuleType):
