@@ -42,7 +42,8 @@ from ._base import (
 @click.option("--keep-pixels", is_flag=True,
               help="Fixed windows (--window triggers or period:US): also store every window's ON/OFF counts and "
                    "per-pixel values (windows x region pixels). By default the output holds the responses and "
-                   "binary responses only, counted a batch of windows at a time. Scheduled routes always keep them.")
+                   "binary responses only, counted a batch of windows at a time (evtk enob on that file measures the "
+                   "responses, not each pixel). Scheduled routes always keep them.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
 def reconstruct_cmd(recording, output, png_path, schedule_path, calibration_path, region, origin_px, oracle,
                     keep_pixels, as_json, **settings):
