@@ -192,6 +192,9 @@ def test_the_cli_on_fixed_windows_loads_no_compiler_and_stores_responses_only(re
     kept = evtk.reconstruct.load_reconstruction(full)
     np.testing.assert_array_equal(kept.counts.on, ref.counts.on)
     assert kept.cells.shape == (n, 30, 40)
+    # the responses alone: no array grows with windows x pixels (the pixels' file holds several times more)
+    with np.load(out) as a, np.load(full) as b:
+        assert sum(a[k].size for k in a.files) * 3 < sum(b[k].size for k in b.files)
     assert json.loads(json.dumps(dict(got.summary)))["events_used"] == ref.summary["events_used"]
 
 
