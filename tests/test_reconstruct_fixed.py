@@ -102,6 +102,17 @@ def test_windows_over_part_of_a_recording_or_beyond_it_equal_the_whole_run(recor
                   _whole_run(rec, win, (0, 40, 0, 30), **options))
 
 
+def test_sliding_windows_equal_the_whole_run(recording):
+    # windows in time order overlapping their neighbours (and so the next batch's)
+    starts = np.arange(0, 38_000, 500)
+    win = Windows(starts, starts + 1_700, np.arange(starts.size), "test")
+    with evtk.open(recording) as rec:
+        for linear in (False, True):
+            options = dict(linear=linear, theta=0.05 if linear else None, size=(3, 4))
+            _same(fixed_responses(rec, win, (0, 40, 0, 30), chunk_events=3_000, batch_windows=4, **options),
+                  _whole_run(rec, win, (0, 40, 0, 30), **options))
+
+
 def test_windows_in_any_order_and_overlapping_equal_the_whole_run():
     ev = _events()
     rng = np.random.default_rng(2)

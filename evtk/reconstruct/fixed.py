@@ -258,9 +258,10 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
             raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
                             "counts could overflow")
 
-    if n_w > 1 and np.all(np.diff(starts) >= 0) and np.all(np.diff(ends) >= 0):
-        # windows in time order: one pass over the events, each chunk counted into the batches it reaches, a
-        # batch handed on as soon as a chunk passes its last window's end (later chunks are later in time)
+    if n_w > 1 and np.all(starts[1:] >= np.maximum.accumulate(ends)[:-1]):
+        # windows in time order, none overlapping an earlier one: one pass over the events, each chunk counted
+        # into the batches it reaches, a batch handed on as soon as a chunk passes its last window's end (later
+        # chunks are later in time); overlapping windows go a batch at a time through the time-window reads
         last_end = np.maximum.accumulate(ends)[[min(i + nb, n_w) - 1 for i in firsts]]
         b = 0
         out: np.ndarray | None = None
