@@ -10,7 +10,10 @@ simulation record), keeping every window's pixels (the default) and keeping
 the responses only (``keep_pixels=False``), against a plain read; each timed
 as a whole process (start Python, import, work, exit), alternating, medians
 and the median of the per-round ratios, with each process's peak RSS; also
-``evtk reconstruct -o`` and ``evtk enob`` on the same file. ``--baseline DIR``
+``evtk reconstruct -o`` (the responses alone; with ``--counts``: net counts; with ``--keep-pixels``: every
+window's pixels too) and ``evtk enob`` on the same file, and the machine's load average (other work on it
+skews every figure). ``--file F`` measures a given recording instead (bench_fresh_read's dv-processing file,
+say); ``--ops "a;b"`` picks the operations. ``--baseline DIR``
 runs every operation also with another evtk tree first on the path
 (``git archive COMMIT | tar -x -C DIR``), alternating with this one.
 
@@ -101,6 +104,10 @@ _FIXED = {
     "reconstruct, responses only": ["-c", "import evtk; from evtk.reconstruct import reconstruct\n"
                                     "with evtk.open({p!r}) as r: reconstruct(r, window=('period', 10000), keep_pixels=False)"],
     "evtk reconstruct -o x.npz": ["-m", "evtk.cli", "reconstruct", "{p}", "--window", "period:10000", "-o", "{out}"],
+    "evtk reconstruct --counts -o x.npz": ["-m", "evtk.cli", "reconstruct", "{p}", "--window", "period:10000",
+                                           "--counts", "-o", "{out}"],
+    "evtk reconstruct --keep-pixels -o x.npz": ["-m", "evtk.cli", "reconstruct", "{p}", "--window", "period:10000",
+                                                "--keep-pixels", "-o", "{out}"],
     "evtk enob": ["-m", "evtk.cli", "enob", "{p}", "--window", "period:10000"],
 }
 
@@ -120,16 +127,16 @@ def _whole_process(args, tree):
     return wall, int(done.stderr.split()[-1]) / 1024
 
 
-def fixed(n, repeats, ops, baseline=None):
+def fixed(n, repeats, ops, baseline=None, file=None):
+    import os
     import tempfile
 
-    path = _fixed_file(n)
+    path = Path(file) if file else _fixed_file(n)
     trees = {"": HERE.parent}
     if baseline:
         trees["base: "] = Path(baseline).resolve()
     plan = [(label + op, [a.format(p=str(path), out=str(Path(tempfile.gettempdir()) / "bench_rec.npz"))
-                          for a in _FIXED[op]], tree) for op in ops for label, tree in trees.items()
-            if not (label and op == "reconstruct, responses only")]  # keep_pixels is new
+                          for a in _FIXED[op]], tree) for op in ops for label, tree in trees.items()]
     plan.insert(0, ("read", [a.format(p=str(path)) for a in _FIXED["read"]], HERE.parent))
     for _, args, tree in plan:  # untimed: page cache, numba's cache
         _whole_process(args, tree)
@@ -140,7 +147,9 @@ def fixed(n, repeats, ops, baseline=None):
             wall, peak = _whole_process(args, tree)
             runs[name].append(wall)
             rss[name].append(peak)
-    print(f"\n{path.name}: {n:,} events, --window period:10000, whole processes, median of {repeats}, alternating\n")
+    load = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    print(f"\n{path.name}: --window period:10000, whole processes, median of {repeats}, alternating; "
+          f"{os.cpu_count()} CPUs, load average {load} (1, 5, 15 min) at the end\n")
     print("| operation | seconds | x read (median of the rounds' ratios) | peak RSS (MB) |")
     print("|---|---:|---:|---:|")
     for name in runs:
@@ -155,11 +164,13 @@ def main():
     ap.add_argument("--fixed", action="store_true", help="windows without a schedule (see above)")
     ap.add_argument("--ops", default=";".join(list(_FIXED)[1:]), help="--fixed: which operations, separated by ;")
     ap.add_argument("--baseline", help="--fixed: another evtk tree (git archive of a commit) to run alternately")
+    ap.add_argument("--file", help="--fixed: this recording instead of the generated one (e.g. bench_fresh_read's "
+                                   "dv-processing file)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     a = ap.parse_args()
     n = int(a.events)
     if a.fixed:
-        fixed(n, a.repeats, [op for op in a.ops.split(";") if op != "read"], a.baseline)
+        fixed(n, a.repeats, [op for op in a.ops.split(";") if op != "read"], a.baseline, a.file)
         return
     if a.child:
         child(a.child, n)

@@ -32,23 +32,26 @@ from .errors import EvtkError
 from .io import open as open_recording
 from .limits import memory_limit_bytes, require_memory, require_window_work
 from .metrics import SinadAccumulator, flip_rates, flip_rates_bytes
-from .optics import Bench
 from .reconstruct import (
     ORACLE_ROUTE,
     Reconstruction,
     WindowCounts,
+    binarize,
+    binarize_rule,
+    downsample,
     plan,
     reconstruct,
-    reconstruct_counts,
-    response_error,
     window_bytes,
 )
 from .reconstruct.accumulate import accumulate_batches
-from .sensor import SensorModel
-from .simulate import Simulation
+from .reconstruct.fixed import count_batches, fixed_supported, pixel_values
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # (the simulator, the optics and the per-pixel stages load where a function needs them:
+    # measuring fixed windows needs none of them)
     from .io.base import BaseRecording
+    from .optics import Bench
+    from .sensor import SensorModel
+    from .simulate import Simulation
 
 __all__ = ["scene_noise", "recording_noise", "random_kernels", "simulated_reconstruction", "flip_sweep", "tradeoff",
            "pareto_front"]
@@ -99,6 +102,8 @@ def scene_noise(result: Reconstruction, interval: str | None = "jackknife", per_
         if route:
             row["route"] = route
         if result.ideal is not None:
+            from .reconstruct import response_error
+
             errs = [response_error(result.cells[i], result.ideal[i]) for i in idx]
             row["error"] = {key: _mean_defined([e[key] for e in errs]) for key in ("correlation", "nrmse",
                                                                                     "nrmse_range")}
@@ -198,21 +203,38 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     per_window = max(1, window_bytes(region, False))
     require_memory(fixed + per_window, f"{span}: measuring {len(win):,} windows over {x1 - x0}x{y1 - y0} pixels")
     batch = max(1, min(NOISE_BATCH_BYTES, (memory_limit_bytes() - fixed) // 2) // per_window)
+    # the linearisation reconstruct_counts chooses without a plan: net counts unless a theta was given
+    theta = options.get("theta")
+    linear = bool(options.get("linear", True)) and theta is not None
     acc: SinadAccumulator | None = None
     binary: np.ndarray | None = None
-    for i, counts in accumulate_batches(rec, win, region, batch, progress=progress, reuse=True):
-        part = reconstruct_counts(counts, None, skip_us=skip_us, length_us=length_us, **options)
-        if acc is None:
-            acc = SinadAccumulator(len(win), part.cells.shape[1:])
-            binary = np.empty((len(win),) + part.binary.shape[1:], part.binary.dtype)
-        assert acc is not None and binary is not None  # made by the first batch
-        acc.add(part.cells)
-        binary[i:i + batch] = part.binary
+    if fixed_supported(dict(options, skip_us=skip_us, length_us=length_us)):
+        # numpy alone (no compiler, no scipy): each batch's counts, each pixel's value as reconstruct_counts
+        # gives it without a plan, and the responses binarised as it binarises them
+        rows, cols = (int(v) for v in options.get("size", (16, 16)))
+        size = (rows, cols)
+        method = options.get("binarize_method", "auto")
+        method = binarize_rule(None) if isinstance(method, str) and method == "auto" else method
+        acc = SinadAccumulator(len(win), (y1 - y0, x1 - x0))
+        binary = np.empty((len(win),) + size, np.int8)
+        for i, on, off, _ in count_batches(rec, win, region, None, 0, batch, progress=progress):  # (fixed: checked)
+            values = pixel_values(on, off, linear, 0.2 if theta is None else float(theta))
+            acc.add(values)
+            binary[i:i + len(values)] = binarize(downsample(values, size), method)
+    else:
+        from .reconstruct import reconstruct_counts
+
+        for i, counts in accumulate_batches(rec, win, region, batch, progress=progress, reuse=True):
+            part = reconstruct_counts(counts, None, skip_us=skip_us, length_us=length_us, **options)
+            if acc is None:
+                acc = SinadAccumulator(len(win), part.cells.shape[1:])
+                binary = np.empty((len(win),) + part.binary.shape[1:], part.binary.dtype)
+            assert acc is not None and binary is not None  # made by the first batch
+            acc.add(part.cells)
+            binary[i:i + batch] = part.binary
     row = _scene_row(-1, -1, acc, binary, interval, per_pixel, seed)
-    # the linearisation the reconstruction chose: net counts unless a theta was given
     row["route"] = f"fixed windows (--window {spec}): " + (
-        f"exp(n theta), theta = {part.summary['theta_on']:g}" if part.summary["linear"]
-        else "net counts (ON - OFF), not linearised")
+        f"exp(n theta), theta = {float(theta):g}" if linear else "net counts (ON - OFF), not linearised")
     return [row]
 
 
@@ -331,6 +353,9 @@ def simulated_reconstruction(
         An unknown method, or what the simulator or the reconstruction refuses.
     """
 
+    from .reconstruct import reconstruct_counts
+    from .simulate import Simulation
+
     sim = Simulation(kernels, features, bench=bench, sensor=sensor, window_us=window_us, settle_us=settle_us,
                      repeat=repeat, seed=seed, noise_seed=noise_seed, flat_field=flat_field)
 
@@ -413,6 +438,8 @@ def flip_sweep(powers_mw: Iterable[float], kernels: npt.ArrayLike, features: npt
     powers = _positive_list(powers_mw, "powers_mw")
     if int(repeats) < 2:
         raise EvtkError("a flip rate needs at least two repeats")
+    from .optics import Bench
+
     bench = bench if bench is not None else Bench()
     tasks = [(p, j, np.asarray(kernels), np.asarray(features), int(repeats), bench, sensor, window_us, seed)
              for j, p in enumerate(powers)]
@@ -536,6 +563,8 @@ def tradeoff(windows_us: Iterable[float], kernels: npt.ArrayLike, features: npt.
     """
 
     windows = _positive_list(windows_us, "windows_us")
+    from .optics import Bench
+
     bench = bench if bench is not None else Bench()
     powers = _positive_list(powers_mw, "powers_mw") if powers_mw is not None else [bench.power_mw]
     if int(repeats) < 2:
@@ -572,6 +601,8 @@ def _tradeoff_task(args):
     n_cap = len(sim.schedule)
     scenes = scene_noise(result, interval=None)
     enobs = [s["sinad"].enob_bits for s in scenes if s["sinad"] is not None and not s["sinad"].noise_free]
+    from .reconstruct import response_error
+
     per_response = [response_error(result.cells[k], result.ideal[k])["nrmse"] for k in range(len(result.cells))]
     per_response = [v for v in per_response if v is not None]
     return {

@@ -22,14 +22,18 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Sequence
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
-from .calibrate import Calibration, calibrate
 from .errors import EvtkError
-from .io.base import BaseRecording
-from .plan import DOTS_ID, Plan, SimulationRecord, as_plan
-from .reconstruct import ORACLE_ROUTE, Reconstruction, ReconstructOptions, reconstruct, schedule_of_record
+from .reconstruct import ReconstructOptions, reconstruct
+from .reconstruct.route import has_record
 from .settings import check_origin, check_region
+
+if TYPE_CHECKING:  # the calibrated route's modules (the optics, numba, scipy) load only when it is taken
+    from .calibrate import Calibration
+    from .io.base import BaseRecording
+    from .plan import Plan
+    from .reconstruct import Reconstruction
 
 __all__ = ["reconstruct_recording"]
 
@@ -37,7 +41,8 @@ __all__ = ["reconstruct_recording"]
 def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
                           schedule: Plan | dict[str, Any] | str | os.PathLike[str] | None = None,
                           calibration: Calibration | None = None, origin_px: Sequence[float] | None = None,
-                          progress: Callable[[int], object] | None = None, **options: Any) -> Reconstruction:
+                          progress: Callable[[int], object] | None = None, keep_pixels: bool = True,
+                          **options: Any) -> Reconstruction:
     """Reconstruct ``rec`` by the route its inputs allow (see the module docstring).
 
     Parameters
@@ -58,6 +63,10 @@ def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
         checked to be two finite numbers near the sensor.
     progress : callable, optional
         Called with the captures done.
+    keep_pixels : bool
+        Keep every window's counts and per-pixel values (default); ``False`` keeps the responses alone of fixed
+        windows on a recording without a simulation record (:func:`evtk.reconstruct.reconstruct`'s
+        ``keep_pixels``), in memory bounded by them and one batch of windows. Other routes keep their pixels.
     **options : Any
         :class:`~evtk.reconstruct.ReconstructOptions` fields (``size``, ``window``, ``skip_us``, ``region``, ...).
 
@@ -75,12 +84,21 @@ def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
         ``origin_px`` or region off the sensor; and whatever the route itself raises.
     """
     opts = ReconstructOptions(**options)
-    record = SimulationRecord.from_metadata(rec.metadata)
     sensor = cast("tuple[int, int]", rec.sensor_size)  # evtk.io.open sizes every recording's sensor
+    fixed = opts.window != "schedule" or opts.theta is not None
+    if fixed and not oracle and schedule is None and calibration is None and origin_px is None and not has_record(
+            rec.metadata):  # fixed windows alone: nothing of the plan, the calibration or the optics is needed
+        result = reconstruct(rec, None, opts, progress=progress, keep_pixels=keep_pixels)
+        result.summary.route = "fixed windows"
+        return result
+    from .calibrate import calibrate
+    from .plan import DOTS_ID, Plan, SimulationRecord, as_plan
+    from .reconstruct import ORACLE_ROUTE, schedule_of_record
+
+    record = SimulationRecord.from_metadata(rec.metadata)
     if calibration is not None and tuple(calibration.sensor_size) != tuple(sensor):
         raise EvtkError(f"the calibration is of a {calibration.sensor_size[0]}x{calibration.sensor_size[1]} sensor, "
                         f"the recording of a {sensor[0]}x{sensor[1]} one")
-    fixed = opts.window != "schedule" or opts.theta is not None
     if oracle:
         if record is None:
             raise EvtkError("the recording carries no simulation record: the oracle is for recordings evtk simulated")
@@ -97,7 +115,7 @@ def reconstruct_recording(rec: BaseRecording, oracle: bool = False,
     if schedule is None and (record is None or fixed):
         if calibration is not None or origin_px is not None:
             raise EvtkError("a calibration or response origin goes with a schedule (a bench run) or a simulated run")
-        result = reconstruct(rec, None, opts, progress=progress)
+        result = reconstruct(rec, None, opts, progress=progress, keep_pixels=keep_pixels or record is not None)
         result.summary.route = "fixed windows" if fixed else "windows only: no schedule"
         return result
     if fixed:

@@ -1,4 +1,4 @@
-"""Windows without a schedule a batch at a time (evtk.reconstruct._batched) against the whole-run path.
+"""Windows without a schedule a batch at a time (evtk.reconstruct._batched, .fixed) against the whole-run path.
 
 The whole-run path (accumulate every window, then reconstruct_counts) stays reachable and is the reference: the
 batched path must give the same counts, values and responses (to 1e-9), and keep memory bounded by a batch.
@@ -12,8 +12,9 @@ import pytest
 import evtk
 from evtk.errors import EvtkError
 from evtk.reconstruct import Windows, accumulate, reconstruct, reconstruct_counts
-from evtk.reconstruct._batched import reconstruct_responses, reconstruct_windows
+from evtk.reconstruct._batched import reconstruct_windows
 from evtk.reconstruct.accumulate import accumulate_batches
+from evtk.reconstruct.fixed import fixed_responses
 
 
 def _events(n=60_000, size=(40, 30), span_us=50_000, seed=3):
@@ -66,11 +67,11 @@ def test_windows_in_any_order_and_overlapping_count_as_in_the_whole_run():
 
 @pytest.mark.parametrize("options", [{}, {"linear": False}, {"size": (7, 9)}, {"theta": 0.05},
                                      {"binarize_method": "sign", "size": (30, 40)}])
-def test_fused_responses_equal_the_whole_run(recording, options):
+def test_responses_alone_equal_the_whole_run(recording, options):
     with evtk.open(recording) as rec:
         win = evtk.reconstruct.windows_periodic(0, 50_000, 2_500)
         ref = _whole_run(rec, win, (2, 38, 1, 29), **options)
-        got = reconstruct_responses(rec, win, (2, 38, 1, 29), batch_windows=6, **options)
+        got = fixed_responses(rec, win, (2, 38, 1, 29), batch_windows=6, **options)
     assert got.responses.shape == ref.responses.shape
     np.testing.assert_allclose(got.responses, ref.responses, rtol=0, atol=1e-9 * max(1.0, np.abs(ref.responses).max()))
     np.testing.assert_array_equal(got.binary, ref.binary)
@@ -99,13 +100,13 @@ def test_a_rise_beyond_exp_700_is_refused_as_by_the_whole_run():
     with pytest.raises(EvtkError, match="exp\\(700\\)"):
         _whole_run(ev, win, (0, 64, 0, 64), theta=0.2)
     with pytest.raises(EvtkError, match="exp\\(700\\)"):
-        reconstruct_responses(ev, win, (0, 64, 0, 64), theta=0.2)
+        fixed_responses(ev, win, (0, 64, 0, 64), theta=0.2)
 
 
 def test_a_region_off_the_sensor_is_refused():
     ev = _events()
     win = Windows([0], [1000], [0], "test")
-    for f in (reconstruct_responses, reconstruct_windows):
+    for f in (fixed_responses, reconstruct_windows):
         with pytest.raises(EvtkError, match="not a non-empty part"):
             f(ev, win, (0, 41, 0, 30))
 
@@ -126,10 +127,10 @@ def test_counts_beyond_the_look_up_table_equal_the_whole_run(theta):
         ref = _whole_run(ev, win, (0, 16, 0, 12), **options)
     except EvtkError as exc:  # a rise beyond exp(700): refused by both
         with pytest.raises(EvtkError, match="exp\\(700\\)"):
-            reconstruct_responses(ev, win, (0, 16, 0, 12), **options)
+            fixed_responses(ev, win, (0, 16, 0, 12), **options)
         assert "exp(700)" in str(exc)
         return
-    got = reconstruct_responses(ev, win, (0, 16, 0, 12), **options)
+    got = fixed_responses(ev, win, (0, 16, 0, 12), **options)
     np.testing.assert_allclose(got.responses, ref.responses, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(got.binary, ref.binary)
 
@@ -155,7 +156,7 @@ def test_net_counts_tied_at_the_threshold_binarise_alike_in_both_paths(method, s
     thr = 0.0 if method == "sign" else ref.responses.mean(axis=(1, 2), keepdims=True)
     scale = np.abs(ref.responses).max(axis=(1, 2), keepdims=True)
     assert np.sum(np.abs(ref.responses - thr) <= 1e-9 * scale) > 0  # the input does hold ties
-    for got in (reconstruct_responses(ev, win, region, batch_windows=3, **options),
+    for got in (fixed_responses(ev, win, region, batch_windows=3, **options),
                 reconstruct_windows(ev, win, region, keep_pixels=False, batch_windows=7, **options)):
         np.testing.assert_allclose(got.responses, ref.responses, rtol=0, atol=1e-9 * scale.max())
         np.testing.assert_array_equal(got.binary, ref.binary)

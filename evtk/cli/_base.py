@@ -366,7 +366,7 @@ def _scene_rows(scenes, source=None, power=None):
 def _reconstructed(path, oracle=False, schedule=None, calibration=None, origin_px=None, **options):
     """:func:`evtk.workflow.reconstruct_recording` on one recording with a progress bar; returns
     (result, {events, sensor_size, power_mw})."""
-    from ..simulate import SimulationRecord
+    from ..reconstruct.route import has_record
     from ..workflow import reconstruct_recording
 
     with evio.open(path) as rec:
@@ -377,9 +377,13 @@ def _reconstructed(path, oracle=False, schedule=None, calibration=None, origin_p
                                            origin_px=origin_px, progress=update, **options)
         finally:
             finish()
-        sim = SimulationRecord.from_metadata(rec.metadata)
-        about = {"events": n_events, "sensor_size": rec.sensor_size,
-                 "power_mw": None if sim is None else sim.bench.power_mw}
+        power_mw = None
+        if has_record(rec.metadata):  # (the record's module, with the optics, loads for a simulated run only)
+            from ..plan import SimulationRecord
+
+            sim = SimulationRecord.from_metadata(rec.metadata)
+            power_mw = None if sim is None else sim.bench.power_mw
+        about = {"events": n_events, "sensor_size": rec.sensor_size, "power_mw": power_mw}
     return result, about
 
 

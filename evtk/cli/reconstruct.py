@@ -39,9 +39,14 @@ from ._base import (
 @click.option("--oracle", is_flag=True,
               help="Simulated recordings: invert the simulation record's own pixel model and placement (what a "
                    "perfect calibration gives; a bench has no such answer). Said in the output.")
+@click.option("--keep-pixels", is_flag=True,
+              help="Fixed windows (--window triggers or period:US): also store every window's ON/OFF counts and "
+                   "per-pixel values (windows x region pixels). By default the output holds the responses and "
+                   "binary responses only, counted a batch of windows at a time (evtk enob on that file measures the "
+                   "responses, not each pixel). Scheduled routes always keep them.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
-def reconstruct_cmd(recording, output, png_path, schedule_path, calibration_path, region, origin_px, oracle, as_json,
-                    **settings):
+def reconstruct_cmd(recording, output, png_path, schedule_path, calibration_path, region, origin_px, oracle,
+                    keep_pixels, as_json, **settings):
     """Turn a recording into the convolution responses the device computed.
 
     By default every recording, simulated or from the bench, goes the
@@ -51,7 +56,7 @@ def reconstruct_cmd(recording, output, png_path, schedule_path, calibration_path
     own model instead; --window triggers or period:US reconstructs fixed
     windows without a schedule.
     """
-    from ..io.reconstruction import save_reconstruction
+    from ..io.reconstruction import save_reconstruction  # (light: numpy; HDF5 loads for .h5 outputs only)
 
     options = _reconstruct_settings(**settings, region=region)
     calibration = None
@@ -68,7 +73,7 @@ def reconstruct_cmd(recording, output, png_path, schedule_path, calibration_path
     if schedule_path and settings["window_spec"] != "schedule":
         raise click.UsageError("--schedule takes the windows from the trigger edges matched to it: leave out --window")
     result, about = _reconstructed(recording, oracle=oracle, schedule=schedule_path, calibration=calibration,
-                                   origin_px=origin_px, **options.kwargs())
+                                   origin_px=origin_px, keep_pixels=keep_pixels, **options.kwargs())
     n_events, sensor = about["events"], about["sensor_size"]
     save_reconstruction(output, result, sensor, {"source": str(recording)})
     pages = []

@@ -244,7 +244,9 @@ def read_reconstruction(path: str | os.PathLike[str], trust_external: bool | Non
     summary["sensor_size"] = list(sensor_dims(size[0], size[1], path, "the summary's sensor_size"))
     w, h = summary["sensor_size"]
     x0, x1, y0, y1 = region
-    if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h and (y1 - y0, x1 - x0) == tuple(on.shape[1:])):
+    # counts of (windows, 0, 0): the responses alone were kept (evtk reconstruct without --keep-pixels)
+    pixels = tuple(on.shape[1:]) in ((y1 - y0, x1 - x0), (0, 0))
+    if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h and pixels):
         raise FormatError(path, None, f"the summary's region {list(region)} is not the counts' "
                                       f"{on.shape[2]}x{on.shape[1]} pixels on the {w}x{h} sensor")
     return arrays, summary, region, events_used

@@ -436,8 +436,6 @@ def _jackknife_interval_db(terms, estimate_db, confidence):
     leaving a group out leaves no noise, the interval reaches ``+inf``; where
     it leaves no signal (a few events in mostly empty windows), ``-inf``.
     """
-    from scipy import stats
-
     m, pairs, power, sizes = terms
     g = sizes.size
     keep = np.ones((g, g)) - np.eye(g)  # row j: every group but j
@@ -456,8 +454,45 @@ def _jackknife_interval_db(terms, estimate_db, confidence):
         return lo, hi
     loo = 10.0 * np.log10(pw / noise)
     se = math.sqrt((g - 1) / g * float(np.sum((loo - loo.mean()) ** 2)))
-    t = float(stats.t.ppf(0.5 + confidence / 2, g - 1))
+    t = _t_quantile_two_sided(confidence, g - 1)
     return estimate_db - t * se, estimate_db + t * se
+
+
+def _t_central(t: float, df: int) -> float:
+    """P(|T| < t) of Student's t with ``df`` (a whole number >= 1) degrees of freedom, by its closed form for
+    whole degrees of freedom (Abramowitz and Stegun 26.7.3 for odd ``df``, 26.7.4 for even), with
+    ``theta = atan(t / sqrt(df))``."""
+    theta = math.atan(t / math.sqrt(df))
+    c2 = math.cos(theta) ** 2
+    if df % 2:  # odd: 2/pi (theta + sin theta (cos + 2/3 cos^3 + 2*4/(3*5) cos^5 + ...)), up to cos^(df - 2)
+        term, total = math.cos(theta), 0.0
+        for k in range((df - 1) // 2):
+            total += term
+            term *= c2 * (2 * k + 2) / (2 * k + 3)
+        return 2.0 / math.pi * (theta + math.sin(theta) * total)
+    term, total = 1.0, 0.0  # even: sin theta (1 + 1/2 cos^2 + 1*3/(2*4) cos^4 + ...), up to cos^(df - 2)
+    for k in range(df // 2):
+        total += term
+        term *= c2 * (2 * k + 1) / (2 * k + 2)
+    return math.sin(theta) * total
+
+
+def _t_quantile_two_sided(confidence: float, df: int) -> float:
+    """The ``t`` with P(|T| < t) = ``confidence`` (Student's t, ``df`` whole degrees of freedom): the
+    ``0.5 + confidence / 2`` quantile, found by bisection of :func:`_t_central` to the last bit (numpy and the
+    standard library alone: no scipy to import for an interval)."""
+    lo, hi = 0.0, 1.0
+    while _t_central(hi, df) < confidence:
+        lo, hi = hi, 2.0 * hi
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            break
+        if _t_central(mid, df) < confidence:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
 
 
 def _ratio_db(power, noise):

@@ -23,28 +23,48 @@ simulator (:mod:`evtk.simulate`) and the calibration (:mod:`evtk.calibrate`) pro
 
 from __future__ import annotations
 
-from .core import PixelModel, Plan, as_plan
-from .record import RECORD_SPECS, SimulationRecord
-from .schedule import (
-    DOT_MARKER_MIN,
-    DOTS_ID,
-    FLAT_ID,
-    LEVEL_ID,
-    METADATA_KEY,
-    SCHEDULE_SPECS,
-    CaptureCounts,
-    Schedule,
-    check_patterns,
-    check_schedule,
-    default_features,
-    dot_grid,
-    level_kernel,
-    level_steps,
-    load_patterns,
-    read_schedule,
-    sign_pass,
-    split_passes,
-)
+from typing import TYPE_CHECKING
+
+from .._lazymod import lazy_names
+
+# names load with their module on first use (PEP 562): the schedule's alone does not pull the optics and the
+# pixel model (numba, scipy), so that reading a schedule or cutting windows stays light
+_WHERE = {
+    **dict.fromkeys(["PixelModel", "Plan", "as_plan"], "core"),
+    **dict.fromkeys(["RECORD_SPECS", "SimulationRecord"], "record"),
+    **dict.fromkeys(["DOT_MARKER_MIN", "DOTS_ID", "FLAT_ID", "LEVEL_ID", "METADATA_KEY", "SCHEDULE_SPECS",
+                     "CaptureCounts", "Schedule", "check_patterns", "check_schedule", "default_features", "dot_grid",
+                     "level_kernel", "level_steps", "load_patterns", "read_schedule", "sign_pass", "split_passes"],
+                    "schedule"),
+}
+
+if TYPE_CHECKING:
+    from .core import PixelModel, Plan, as_plan
+    from .record import RECORD_SPECS, SimulationRecord
+    from .schedule import (
+        DOT_MARKER_MIN,
+        DOTS_ID,
+        FLAT_ID,
+        LEVEL_ID,
+        METADATA_KEY,
+        SCHEDULE_SPECS,
+        CaptureCounts,
+        Schedule,
+        check_patterns,
+        check_schedule,
+        default_features,
+        dot_grid,
+        level_kernel,
+        level_steps,
+        load_patterns,
+        read_schedule,
+        sign_pass,
+        split_passes,
+    )
+
+
+__getattr__, __dir__ = lazy_names(__name__, _WHERE)
+
 
 __all__ = [
     "Plan", "PixelModel", "as_plan", "SimulationRecord", "RECORD_SPECS",

@@ -33,39 +33,70 @@ imports the simulator. :func:`save_reconstruction` and :func:`load_reconstructio
 
 from __future__ import annotations
 
-from .accumulate import accumulate
-from .bench import load_schedule, match_windows
-from .binarize import binarize, binarize_rule
-from .calibrated import nominal_placement, schedule_of_record
-from .entry import ORACLE_ROUTE, reconstruct
-from .files import load_reconstruction, save_reconstruction
-from .fit import PixelFit, fit_pixel_model, level_statistics
-from .grid import (
-    combine_passes,
-    downsample,
-    footprint_matrix,
-    overlap_matrix,
-    sample_response_grid,
-    to_response_grid,
-)
-from .linearize import count_curve, flat_field_gain, linearize, linearize_by_model
-from .options import ReconstructOptions
-from .pipeline import (
-    Reconstruction,
-    check_crop,
-    plan,
-    reconstruct_counts,
-    response_error,
-    wants_times,
-    window_bytes,
-)
-from .summary import ReconstructionSummary
-from .timing import linearize_by_timing, timing_thresholds
-from .windows import WindowCounts, Windows, windows_from_schedule, windows_from_triggers, windows_periodic
+import sys
+import types
+from typing import TYPE_CHECKING, Any
 
-# internals the tests and benchmarks check stage by stage
-from .linearize import _count_curve, _expected_flat_counts, _flat_log_step  # noqa: F401, I001
-from .timing import _timing_factor  # noqa: F401
+from .._lazymod import lazy_names
+
+# names load with their module on first use (PEP 562): fixed windows reconstructed with numpy alone import no
+# compiler, no scipy and none of the stages a schedule needs
+_WHERE = {
+    **dict.fromkeys(["accumulate"], "accumulate"),
+    **dict.fromkeys(["load_schedule", "match_windows"], "bench"),
+    **dict.fromkeys(["binarize", "binarize_rule"], "binarize"),
+    **dict.fromkeys(["nominal_placement", "schedule_of_record"], "calibrated"),
+    **dict.fromkeys(["ORACLE_ROUTE", "reconstruct"], "entry"),
+    **dict.fromkeys(["load_reconstruction", "save_reconstruction"], "files"),
+    **dict.fromkeys(["PixelFit", "fit_pixel_model", "level_statistics"], "fit"),
+    **dict.fromkeys(["combine_passes", "downsample", "footprint_matrix", "overlap_matrix", "sample_response_grid",
+                     "to_response_grid"], "grid"),
+    **dict.fromkeys(["count_curve", "flat_field_gain", "linearize", "linearize_by_model", "_count_curve",
+                     "_expected_flat_counts", "_flat_log_step"], "linearize"),
+    **dict.fromkeys(["ReconstructOptions"], "options"),
+    **dict.fromkeys(["check_crop", "reconstruct_counts", "response_error", "wants_times"], "pipeline"),
+    **dict.fromkeys(["plan", "window_bytes"], "route"),
+    **dict.fromkeys(["Reconstruction"], "result"),
+    **dict.fromkeys(["ReconstructionSummary"], "summary"),
+    **dict.fromkeys(["linearize_by_timing", "timing_thresholds", "_timing_factor"], "timing"),
+    **dict.fromkeys(["WindowCounts", "Windows", "windows_from_schedule", "windows_from_triggers", "windows_periodic"], "windows"),
+}
+
+if TYPE_CHECKING:
+    from .accumulate import accumulate
+    from .bench import load_schedule, match_windows
+    from .binarize import binarize, binarize_rule
+    from .calibrated import nominal_placement, schedule_of_record
+    from .entry import ORACLE_ROUTE, reconstruct
+    from .files import load_reconstruction, save_reconstruction
+    from .fit import fit_pixel_model, level_statistics, PixelFit
+    from .grid import combine_passes, downsample, footprint_matrix, overlap_matrix, sample_response_grid, to_response_grid
+    from .linearize import count_curve, flat_field_gain, linearize, linearize_by_model
+    from .options import ReconstructOptions
+    from .pipeline import check_crop, reconstruct_counts, response_error, wants_times
+    from .result import Reconstruction
+    from .route import plan, window_bytes
+    from .summary import ReconstructionSummary
+    from .timing import linearize_by_timing, timing_thresholds
+    from .windows import WindowCounts, Windows, windows_from_schedule, windows_from_triggers, windows_periodic
+
+
+
+__getattr__, __dir__ = lazy_names(__name__, _WHERE)
+
+
+class _Package(types.ModuleType):
+    """The package, whose functions ``accumulate``, ``binarize`` and ``linearize`` keep their names when the
+    modules of the same names load (the import system sets a loaded submodule on its package)."""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if isinstance(value, types.ModuleType) and _WHERE.get(name) == name:
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
+
 
 __all__ = [
     "Windows", "WindowCounts", "windows_from_schedule", "windows_from_triggers", "windows_periodic",

@@ -6,15 +6,15 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-import numba
 import numpy as np
 
+from .._lazyjit import njit  # numba loads on the first count
 from ..errors import EvtkError
 from ..events import Events
 from ..limits import memory_limit_bytes, require_memory
 from .windows import WindowCounts, Windows
 
-__all__ = ["accumulate", "accumulate_batches", "batch_size"]
+__all__ = ["accumulate", "accumulate_batches", "batch_size", "span_chunks"]
 
 _END = object()
 
@@ -32,7 +32,7 @@ def _prefetched(chunks):
             yield item
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, started, first, last):
     """Add the chunk's events to every window; returns the number counted.
 
@@ -91,6 +91,39 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
                         first[k] = dt
                     last[k] = dt
     return used
+
+
+def span_chunks(source: Events | Any, a: int, z: int, chunk_events: int) -> Iterator[Events]:
+    """The events from ``a`` to ``z`` (us, half-open) in time order, in chunks, and perhaps others beside them.
+
+    A recording whose span is at most twice ``z - a`` is read whole, without its time-window filter (which
+    costs more than counting the events outside the span): the counting leaves out what no window holds.
+
+    Parameters
+    ----------
+    source : Events or Recording
+        Events sorted by time, or an open recording.
+    a, z : int
+        The span, us (half-open).
+    chunk_events : int
+        Most events a chunk holds.
+
+    Yields
+    ------
+    Events
+        The chunks, in time order.
+    """
+    if isinstance(source, Events):
+        i, j = (int(v) for v in np.searchsorted(source.t, [a, z], side="left"))
+        for k in range(i, j, chunk_events):
+            yield source[k:min(j, k + chunk_events)]
+        return
+    info = source.info()
+    first, last = info.get("t_start_us"), info.get("t_end_us")
+    if first is not None and last is not None and int(last) - int(first) <= 2 * (z - a):
+        yield from source.iter_events(chunk_events=chunk_events)
+    else:
+        yield from source.iter_events(chunk_events=chunk_events, t_start_us=a, t_end_us=z)
 
 
 def accumulate(source: Events | Any, windows: Windows, region: tuple[int, int, int, int] | None = None,
@@ -178,7 +211,7 @@ def accumulate(source: Events | Any, windows: Windows, region: tuple[int, int, i
     if isinstance(source, Events):
         chunks = [source.sorted()]
     else:
-        chunks = _prefetched(source.iter_events(chunk_events=chunk_events, t_start_us=span[0], t_end_us=span[1]))
+        chunks = _prefetched(span_chunks(source, span[0], span[1], chunk_events))
     used = 0
     total = np.zeros(n_w, np.int64)
     flat = counts.reshape(-1)

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import numpy.typing as npt
 
 from ..errors import EvtkError
-from ..plan import Plan, SimulationRecord
+
+if TYPE_CHECKING:
+    from ..plan import Plan, SimulationRecord
 
 __all__ = ["binarize_rule", "binarize"]
 
@@ -31,7 +35,11 @@ def binarize_rule(sim: Plan | SimulationRecord | dict | None) -> str:
     str
         "sign" or "mean".
     """
-    if sim is not None and (sim if isinstance(sim, Plan) else SimulationRecord.from_dict(sim)).signed:
+    if sim is None:
+        return "mean"
+    from ..plan import Plan, SimulationRecord
+
+    if (sim if isinstance(sim, Plan) else SimulationRecord.from_dict(sim)).signed:
         return "sign"
     return "mean"
 

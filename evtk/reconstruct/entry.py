@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import EvtkError
-from ..plan import Plan, SimulationRecord
-from .bench import _reconstruct_bench
-from .calibrated import _reconstruct_calibrated, nominal_placement
 from .options import ReconstructOptions
-from .pipeline import Reconstruction, _reconstruct_record
+from .result import Reconstruction
+from .route import has_record
+
+if TYPE_CHECKING:
+    from ..plan import Plan, SimulationRecord
 
 __all__ = ["reconstruct", "LINEARIZATIONS", "ORACLE_ROUTE"]
 
@@ -94,6 +95,22 @@ def reconstruct(rec: Any, plan: Plan | SimulationRecord | None = None, options: 
         opts = dataclasses.replace(opts, **settings)
     if linearization not in LINEARIZATIONS:
         raise EvtkError(f"linearization must be one of {', '.join(LINEARIZATIONS)}, not {linearization!r}")
+    if (plan is None and not keep_pixels and linearization == "auto" and opts.window != "schedule"
+            and not has_record(rec.metadata)):
+        # windows that stand alone, responses only: counted with numpy (no compiler, no scipy) when it can
+        from .fixed import fixed_responses, fixed_supported
+        from .route import plan as windows_of
+
+        stages = {k: v for k, v in opts.kwargs().items() if k not in ("window", "region")}
+        if fixed_supported(stages):
+            window: Any = opts.window  # (checked by plan)
+            _, win, pixels = windows_of(rec, window, opts.skip_us, opts.length_us, opts.region, check_memory=False)
+            return fixed_responses(rec, win, pixels, chunk_events=chunk_events, progress=progress, **stages)
+    from ..plan import Plan, SimulationRecord
+    from .bench import _reconstruct_bench
+    from .calibrated import _reconstruct_calibrated, nominal_placement
+    from .pipeline import _reconstruct_record
+
     if plan is not None and not isinstance(plan, (Plan, SimulationRecord)):
         hint = (f"; give windows as window={plan!r}" if isinstance(plan, (str, tuple)) else "")
         raise EvtkError(f"plan must be an evtk.plan.Plan or a SimulationRecord, not {type(plan).__name__}{hint}")

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import EvtkError, FormatError
 from ..io.reconstruction import read_reconstruction, save_reconstruction
-from .pipeline import Reconstruction
+from .result import Reconstruction
 from .summary import ReconstructionSummary
 from .windows import WindowCounts, Windows
 

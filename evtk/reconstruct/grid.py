@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import numpy.typing as npt
-from scipy.ndimage import map_coordinates
 
 from ..errors import EvtkError
-from ..optics import Bench, axis_weights, shadow_magnification
-from ..optics.camera import CellMap
-from ..plan import Schedule
+from ..plan.schedule import Schedule
+
+if TYPE_CHECKING:  # (the optics and scipy load where a function needs them: resizing needs neither)
+    from ..optics import Bench
+    from ..optics.camera import CellMap
 
 __all__ = ["combine_passes", "to_response_grid", "sample_response_grid", "downsample", "footprint_matrix",
            "overlap_matrix"]
@@ -111,6 +114,8 @@ def sample_response_grid(values: npt.ArrayLike, region: tuple, cell_map: CellMap
     coords = [px[:, 1] - y0, px[:, 0] - x0]
     lead = values.shape[:-2]
     flat = values.reshape((-1,) + values.shape[-2:])
+    from scipy.ndimage import map_coordinates
+
     out = np.stack([map_coordinates(v, coords, order=1, mode="constant", cval=0.0) for v in flat])
     return out.reshape(lead + (rows, cols))
 
@@ -222,6 +227,8 @@ def footprint_matrix(bench: Bench, origin: float, p0: int, p1: int, n_cells: int
     numpy.ndarray
         float64, shape ``(n_cells, n_cells)``: column i is the sampled image of a unit response in cell i.
     """
+
+    from ..optics import axis_weights, shadow_magnification
 
     psf_cells = bench.shadow_sigma_um / (shadow_magnification(bench.u_mm, bench.z_mm) * bench.feature_pitch_um)
     w = axis_weights(np.arange(p0, p1), n_cells, 1, bench, origin, psf_cells)[0]  # (pixels, cells)

@@ -2,23 +2,20 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 import numpy as np
 import numpy.typing as npt
 
 from .._blas import one_blas_thread
 from ..errors import EvtkError
-from ..limits import require_memory
 from ..optics import ideal_response, response_origin_px
 from ..optics.camera import CellMap
 from ..plan import FLAT_ID, LEVEL_ID, Plan, SimulationRecord
-from ._batched import fused_supported, reconstruct_responses, reconstruct_windows
+from ._batched import reconstruct_windows
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
 from .deblur import DEFAULT_LAMBDA, relative_noise, sampling_matrix, solve_cells
 from .fit import interior_pixels
+from .fixed import fixed_responses, fixed_supported
 from .grid import combine_passes, downsample, sample_response_grid, to_response_grid
 from .linearize import (
     _expected_flat_counts,
@@ -30,70 +27,14 @@ from .linearize import (
     linearize,
     linearize_by_model,
 )
+from .result import Reconstruction
+from .route import plan, window_bytes
 from .summary import ReconstructionSummary
 from .timing import _settle_residual, linearize_by_timing, timing_thresholds
-from .windows import WindowCounts, Windows, windows_from_schedule, windows_from_triggers, windows_periodic
+from .windows import WindowCounts
 
 __all__ = ["Reconstruction", "response_error", "plan", "window_bytes", "wants_times",
     "reconstruct_counts", "silent_failures"]
-
-
-@dataclass
-class Reconstruction:
-    """What :func:`reconstruct` found.
-
-    Parameters
-    ----------
-    responses : ndarray (n, rows, cols)
-        One signed response per (kernel, features, repeat) of the schedule, or
-        per window when the recording has none, resampled to ``size``.
-    binary : ndarray (n, rows, cols) of int8 (+1/-1)
-        The responses binarised.
-    pairs : ndarray (n, 3) or None
-        (kernel_id, features_id, repeat) of each response.
-    cells : ndarray (n, h, w)
-        The responses on the response's own cell grid, before resampling.
-    ideal : ndarray or None
-        Ground truth on the same cell grid (simulated recordings only).
-    counts : WindowCounts
-        The windows and their ON/OFF counts.
-    summary : ReconstructionSummary
-        Captures, windows, events used and dropped, parameters, errors (a dict given here is read into one).
-    thresholds : ndarray (rows, cols) or None
-        Each pixel's ON threshold (log units) as the linearisation used it:
-        from the flat fields' event times where they fit the model, else
-        the nominal one scaled by the flat-field gain (None when the event
-        times were not used).
-    """
-
-    responses: np.ndarray
-    binary: np.ndarray
-    pairs: np.ndarray | None
-    cells: np.ndarray
-    ideal: np.ndarray | None
-    counts: WindowCounts
-    summary: ReconstructionSummary
-    thresholds: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.summary, ReconstructionSummary):
-            self.summary = ReconstructionSummary.from_dict(self.summary)
-
-    def groups(self) -> dict:
-        """Indices of the responses of each scene, over its repeats.
-
-        Returns
-        -------
-        dict
-            ``{(kernel_id, features_id): ndarray of indices}``; without a schedule every window counts as a
-            repeat of one scene, keyed ``(-1, -1)``.
-        """
-        if self.pairs is None:
-            return {(-1, -1): np.arange(self.cells.shape[0])}
-        out: dict = {}
-        for i, (k, f, _) in enumerate(self.pairs.tolist()):
-            out.setdefault((k, f), []).append(i)
-        return {key: np.asarray(v) for key, v in out.items()}
 
 
 def response_error(got: npt.ArrayLike, ideal: npt.ArrayLike) -> dict:
@@ -134,82 +75,6 @@ def response_error(got: npt.ArrayLike, ideal: npt.ArrayLike) -> dict:
     span = float(np.ptp(ideal)) if ideal.size else 0.0
     return {"correlation": corr, "nrmse": rmse / rms if rms > 0 else None,
             "nrmse_range": rmse / span if span > 0 else None}
-
-
-def plan(rec: Any, window: str | tuple = "schedule", skip_us: int = 0, length_us: int | None = None,
-         region: tuple | None = None, check_memory: bool = True,
-         record: SimulationRecord | Plan | None = None) -> tuple[SimulationRecord | Plan | None, Windows, tuple]:
-    """What :func:`reconstruct` will count: the record (or plan), the windows and the region.
-
-    Parameters
-    ----------
-    rec : Recording
-        The open recording.
-    window : "schedule", "triggers" or ("period", period_us)
-        Where the windows come from.
-    skip_us, length_us : int
-        Shorten or delay every window.
-    region : tuple, optional
-        ``(x0, x1, y0, y1)``; default the record's response region (a plan's ``region``), else the whole
-        sensor.
-    check_memory : bool
-        Require the counts of every window at once to fit the memory budget
-        (:func:`evtk.limits.require_memory`).
-    record : SimulationRecord or Plan, optional
-        Takes the place of the one in the recording's metadata: a simulated run's record, or its plan (the
-        schedule's times on the recording's clock).
-
-    Returns
-    -------
-    tuple
-        ``(simulation record or the plan given, or None; Windows; region)``.
-    """
-    sim = record if record is not None else SimulationRecord.from_metadata(rec.metadata)
-    if window == "schedule":
-        if sim is None:
-            raise EvtkError("the recording carries no capture schedule: use window='triggers' or a period")
-        win = windows_from_schedule(sim.schedule if isinstance(sim, Plan) else sim, skip_us, length_us)
-    elif window == "triggers":
-        win = windows_from_triggers(rec.triggers(), skip_us, length_us)
-    elif isinstance(window, tuple) and len(window) == 2 and window[0] == "period":
-        info = rec.info()
-        end = None if info["t_end_us"] is None else info["t_end_us"] + 1
-        win = windows_periodic(info["t_start_us"], end, window[1], skip_us, length_us, events=info["events"])
-    else:
-        raise EvtkError(f"window must be 'schedule', 'triggers' or ('period', US), not {window!r}")
-    if region is None:
-        region = (sim.region if isinstance(sim, Plan) else sim.response_region) if sim is not None else None
-    if region is None:
-        region = (0, rec.sensor_size[0], 0, rec.sensor_size[1])
-    x0, x1, y0, y1 = (int(v) for v in region)
-    if check_memory:
-        require_memory(len(win) * window_bytes(region, sim is not None),
-                       f"counting {len(win):,} windows over {max(0, x1 - x0)}x{max(0, y1 - y0)} pixels")
-    return sim, win, tuple(region)
-
-
-def window_bytes(region: tuple, simulated: bool) -> int:
-    """Estimated peak bytes a window costs a reconstruction over a region.
-
-    Per pixel: ON and OFF counts (int32), with a simulation record the first
-    and last ON times, and the float64 stages after them (a minute of 10 ms
-    windows over 320x240 peaked at 53 bytes a window-pixel without a record:
-    measured, killed at 24 GB).
-
-    Parameters
-    ----------
-    region : tuple
-        ``(x0, x1, y0, y1)``.
-    simulated : bool
-        With a simulation record (event times are kept too).
-
-    Returns
-    -------
-    int
-        Bytes.
-    """
-    x0, x1, y0, y1 = (int(v) for v in region)
-    return max(0, x1 - x0) * max(0, y1 - y0) * (80 if simulated else 64)
 
 
 def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=(16, 16), binarize_method="auto",
@@ -281,8 +146,8 @@ def _reconstruct_record(rec, window="schedule", skip_us=0, length_us=None, size=
     if sim is None and not keep_pixels:  # no schedule: each window alone, a batch at a time
         stages = dict(size=size, binarize_method=binarize_method, linear=linear, theta=theta, crop=crop,
                       skip_us=skip_us, length_us=length_us, deblur=deblur, flat_field=flat_field, timing=timing)
-        if fused_supported(stages):
-            return reconstruct_responses(rec, win, region, chunk_events=chunk_events, progress=progress, **stages)
+        if fixed_supported(stages):
+            return fixed_responses(rec, win, region, chunk_events=chunk_events, progress=progress, **stages)
         return reconstruct_windows(rec, win, region, keep_pixels=False, chunk_events=chunk_events,
                                    progress=progress, **stages)
     counts = accumulate(rec, win, region, chunk_events=chunk_events, progress=progress,

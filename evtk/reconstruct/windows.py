@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..errors import EvtkError
 from ..events import TRIGGER_CHANNEL_ENV, TriggerKind, Triggers
 from ..limits import require_memory, require_window_work
-from ..plan import METADATA_KEY, CaptureCounts, Schedule, SimulationRecord
+from ..plan.schedule import METADATA_KEY, Schedule  # (light: the record's module loads when a schedule is read)
+
+if TYPE_CHECKING:
+    from ..plan import CaptureCounts, SimulationRecord
 
 __all__ = ["Windows", "WindowCounts", "windows_from_schedule", "windows_from_triggers", "windows_periodic"]
 
@@ -199,6 +202,8 @@ def windows_from_schedule(schedule: Schedule | SimulationRecord | dict, skip_us:
     EvtkError
         When a dict holds no schedule, ``skip_us`` < 0 or leaves nothing of a window, or ``length_us`` < 1.
     """
+    from ..plan.record import SimulationRecord
+
     if isinstance(schedule, SimulationRecord):
         schedule = schedule.schedule
     elif isinstance(schedule, dict):

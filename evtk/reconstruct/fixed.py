@@ -1,0 +1,391 @@
+"""Windows without a schedule straight to their responses with numpy alone: no compiler, no scipy.
+
+Each window of a recording without a schedule stands alone, and its response needs only its pixels' ON and
+OFF counts. :func:`fixed_responses` reads the events a batch of windows at a time (through the recording's
+time-window API, the next chunk decoded on another thread), maps each event to its window (binary search of
+the window bounds in the sorted time stamps) and through a look-up table of the region's pixels to what it
+counts for, and counts with :func:`numpy.bincount`:
+
+* net counts (``linear=False``) resized by whole factors: each event straight to its output cell, so a batch
+  is (windows, cells) integers and the response is the exact mean the whole-run path computes;
+* otherwise each event to its pixel of the region (windows, pixels) a few windows at a time, linearised by
+  the same ``expm1`` table as :func:`evtk.reconstruct.linearize` and resized by
+  :func:`evtk.reconstruct.downsample`.
+
+Memory stays bounded by the responses and one batch (:data:`BATCH_BINS` counts), never windows x sensor.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+
+from ..errors import EvtkError
+from ..events import Events
+from ..limits import memory_limit_bytes, require_memory
+from .binarize import binarize, binarize_rule
+from .grid import downsample
+from .result import Reconstruction
+from .summary import ReconstructionSummary
+from .windows import WindowCounts, Windows
+
+#: Most count bins (int64) one batch of windows holds: 16 MB, small enough to stay in cache.
+BATCH_BINS = 1 << 21
+
+#: Largest (ON, OFF) table of ``expm1`` values looked up; larger counts are linearised directly.
+_TABLE_MAX = 1 << 20
+
+#: The settings :func:`fixed_responses` takes (the rest need a schedule or the per-pixel stages).
+FIXED_OPTIONS = frozenset({"size", "binarize_method", "linear", "theta", "crop", "skip_us", "length_us", "deblur",
+                           "flat_field", "timing"})
+
+
+def fixed_supported(options: dict) -> bool:
+    """Whether :func:`fixed_responses` takes these :func:`evtk.reconstruct.reconstruct_counts` settings.
+
+    Parameters
+    ----------
+    options : dict
+        The settings.
+
+    Returns
+    -------
+    bool
+        True when every setting is one it takes, ``theta`` is a positive number or None and ``timing`` is
+        not asked for (without a pixel model there are no event times to read).
+    """
+    theta = options.get("theta")
+    return (set(options) <= FIXED_OPTIONS and options.get("timing") is not True
+            and (theta is None or (np.ndim(theta) == 0 and np.isfinite(theta) and float(theta) > 0))
+            and options.get("crop", "valid") in ("valid", "full"))
+
+
+def _region(source: Any, region: tuple) -> tuple[int, int, int, int]:
+    """``region`` as four ints, or an error when it is not a non-empty part of the source's sensor."""
+    sensor = tuple(source.sensor_size)
+    x0, x1, y0, y1 = (int(v) for v in region)
+    if not (0 <= x0 < x1 <= sensor[0] and 0 <= y0 < y1 <= sensor[1]):
+        raise EvtkError(f"region {tuple(region)} is not a non-empty part of the {sensor[0]}x{sensor[1]} sensor")
+    return x0, x1, y0, y1
+
+
+def _axis_table(n_px: int, lo: int, hi: int, per: int, stride: int) -> np.ndarray:
+    """Each sensor coordinate's part of a bin's index along one axis: ``(c - lo) // per * stride`` inside
+    ``[lo, hi)``, and the axis's extra (dump) place past the last block outside it."""
+    table = np.full(n_px, (hi - lo) // per * stride, np.int64)
+    table[lo:hi] = np.arange(hi - lo) // per * stride
+    return table
+
+
+def _window_events(source: Any, windows: Windows, first: int, last: int, chunk_events: int
+                   ) -> Iterator[Events]:
+    """The events of windows ``first .. last - 1`` in time order, in chunks: slices of sorted in-memory events,
+    or a recording's time-window reads."""
+    a = int(windows.t_start_us[first:last].min())
+    z = int(windows.t_end_us[first:last].max())
+    if isinstance(source, Events):
+        i, j = (int(v) for v in np.searchsorted(source.t, [a, z], side="left"))
+        for k in range(i, j, chunk_events):
+            yield source[k:min(j, k + chunk_events)]
+        return
+    yield from source.iter_events(chunk_events=chunk_events, t_start_us=a, t_end_us=z)
+
+
+#: Events counted at a time, so that their keys stay in cache.
+_PIECE = 1 << 16
+
+
+def _count(ev: Events, starts: np.ndarray, ends: np.ndarray, by_y: np.ndarray, by_x: np.ndarray, plane: int,
+           out: np.ndarray) -> np.ndarray:
+    """Add the chunk's events to ``out`` (flat int32 bins, ``per_window`` each): each window's events (``[start,
+    end)``, by binary search in the sorted time stamps; windows may overlap or come in any order) to the bin
+    ``by_y[y] + by_x[x] + p * plane`` of their window, a cache-sized piece at a time. Returns the number of
+    events of each window."""
+    lo = np.searchsorted(ev.t, starts, side="left")
+    hi = np.searchsorted(ev.t, ends, side="left")
+    n = hi - lo
+    total = int(n.sum())
+    if total == 0:
+        return n
+    a, z = int(lo[0]), int(hi[-1])
+    if z - a == total and np.array_equal(lo[1:], hi[:-1]):  # back to back: one slice, no gather
+        x, y, p = ev.x[a:z], ev.y[a:z], ev.p[a:z]
+    else:  # each window's events one after the other
+        where = np.arange(total, dtype=np.int64) + np.repeat(lo - (np.cumsum(n) - n), n)
+        x, y, p = ev.x[where], ev.y[where], ev.p[where]
+    bounds = np.concatenate(([0], np.cumsum(n)))  # of each window's events, in x, y, p
+    per_window = out.size // len(starts)
+    for s in range(0, total, _PIECE):
+        e = min(total, s + _PIECE)
+        wa = int(np.searchsorted(bounds, s, side="right")) - 1
+        wb = int(np.searchsorted(bounds, e, side="left"))
+        key = by_y.take(y[s:e])
+        key += by_x.take(x[s:e])
+        key += p[s:e] * key.dtype.type(plane)
+        if wb - wa > 1:
+            key += np.repeat(np.arange(0, (wb - wa) * per_window, per_window, dtype=key.dtype),
+                             np.diff(np.clip(bounds[wa:wb + 1], s, e)))
+        span = out[wa * per_window:wb * per_window]
+        if span.size <= 4 * (e - s):  # few bins: count them all (faster than scattered adds)
+            span += np.bincount(key, minlength=span.size)
+        else:
+            np.add.at(span, key, span.dtype.type(1))  # (a typed one: numpy's fast path)
+    return n
+
+
+def _linearised(on: np.ndarray, off: np.ndarray, theta: float) -> np.ndarray:
+    """``expm1(on * theta - off * theta)`` computed as :func:`evtk.reconstruct.linearize` computes it (its
+    look-up table of the distinct counts where that fits, else directly; the same rise, refused beyond exp(700))."""
+    hi_on, hi_off = int(on.max(initial=0)), int(off.max(initial=0))
+    if (hi_on + 1) * (hi_off + 1) <= _TABLE_MAX and hi_on * theta <= 700:  # else only the rises that occur
+        rise = np.arange(hi_on + 1.0)[:, None] * theta - np.arange(hi_off + 1.0)[None, :] * theta
+        index = np.multiply(on, hi_off + 1, dtype=np.int32)  # below 2**20: the table's size
+        index += off
+        return np.expm1(rise).ravel().take(index)
+    rise = on.astype(np.float64) * theta - off.astype(np.float64) * theta
+    if np.any(rise > 700):
+        raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
+    return np.expm1(rise)
+
+
+def _chunks(source: Any, windows: Windows, firsts: list[int], nb: int, chunk_events: int
+            ) -> Iterator[tuple[int, Events]]:
+    """(batch, chunk) pairs: the events of each batch of ``nb`` windows from ``firsts``, in time order."""
+    for b, i in enumerate(firsts):
+        for ev in _window_events(source, windows, i, min(i + nb, len(windows)), chunk_events):
+            yield b, ev
+
+
+def pixel_values(on: np.ndarray, off: np.ndarray, linear: bool, theta: float) -> np.ndarray:
+    """Each pixel's value from its ON and OFF counts, as the whole-run path computes it.
+
+    Parameters
+    ----------
+    on, off : ndarray of int
+        ON and OFF counts, of one shape.
+    linear : bool
+        ``expm1(on * theta - off * theta)`` (:func:`evtk.reconstruct.linearize`), else the net counts.
+    theta : float
+        The contrast threshold (log units).
+
+    Returns
+    -------
+    ndarray of float64
+        The values, the counts' shape.
+
+    Raises
+    ------
+    EvtkError
+        A rise beyond exp(700).
+    """
+    return _linearised(on, off, theta) if linear else (on - off).astype(np.float64)
+
+
+def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int, int, int],
+                  cells: tuple[int, int] | None = None, kept_bytes: int = 0, batch_windows: int | None = None,
+                  chunk_events: int = 4_000_000, progress: Callable[[int], Any] | None = None
+                  ) -> Iterator[tuple[int, np.ndarray, np.ndarray, int]]:
+    """ON and OFF counts of the windows over a region's pixels (or whole-factor blocks of them), a batch of
+    windows at a time, with numpy.
+
+    Parameters
+    ----------
+    source : Events or Recording
+        The events (in-memory events sorted by time) or an open recording.
+    windows : Windows
+        The windows, in any order (a batch spans consecutive ones).
+    region : tuple of int
+        (x0, x1, y0, y1), half-open sensor pixels.
+    cells : tuple of int, optional
+        (rows, cols) dividing the region's height and width: count each block of pixels as one.
+    kept_bytes : int
+        What the caller keeps for the whole run beside the batches (checked with them against the budget).
+    batch_windows : int, optional
+        Windows a batch; default as many as :data:`BATCH_BINS` counts (and a quarter of the budget) hold.
+    chunk_events : int
+        Most events read at once.
+    progress : callable, optional
+        Called with the number of events of each chunk read.
+
+    Yields
+    ------
+    tuple of (int, ndarray, ndarray, int)
+        The batch's first window, its ON and OFF counts (int32, (windows, rows, cols): views valid until the
+        next batch) and the number of events they hold.
+
+    Raises
+    ------
+    EvtkError
+        A region off the sensor, more memory than the budget allows, or a window holding more than 2**31 - 1
+        events.
+    """
+    x0, x1, y0, y1 = _region(source, region)
+    if isinstance(source, Events):
+        source = source.sorted()
+    h_px, w_px = y1 - y0, x1 - x0
+    n_w = len(windows)
+    sensor = (int(source.sensor_size[0]), int(source.sensor_size[1]))
+    fy, fx = (h_px // cells[0], w_px // cells[1]) if cells is not None else (1, 1)
+    rows, cols = h_px // fy, w_px // fx  # of bins, each with one more (the pixels outside the region)
+    plane = (rows + 1) * (cols + 1)  # OFF counts, then ON counts
+    per_window = 2 * plane
+    # a window's int32 bins, and for pixels their float64 values and what the caller makes of them
+    window_bytes = 4 * per_window + (0 if cells is not None else 24 * h_px * w_px)
+    if batch_windows is None:
+        fits = (memory_limit_bytes() // 4 - kept_bytes) // window_bytes
+        nb = max(1, min(n_w, BATCH_BINS // per_window, fits))
+    else:
+        nb = max(1, min(n_w, int(batch_windows)))
+    require_memory(kept_bytes + nb * window_bytes + _PIECE * 16,
+                   f"counting {n_w:,} windows over {w_px}x{h_px} pixels, {nb:,} at a time")
+    dtype = np.int32 if per_window * nb < 2**31 else np.int64
+    by_y = _axis_table(sensor[1], y0, y1, fy, cols + 1).astype(dtype)
+    by_x = _axis_table(sensor[0], x0, x1, fx, 1).astype(dtype)
+    firsts = list(range(0, n_w, nb))
+    starts, ends = windows.t_start_us, windows.t_end_us
+    from .accumulate import _prefetched, span_chunks
+
+    def finished(i: int, j: int, out: np.ndarray, totals: np.ndarray) -> tuple[int, np.ndarray, np.ndarray, int]:
+        bins = out.reshape(j - i, 2, rows + 1, cols + 1)
+        outside = int(bins[:, :, rows, :].sum()) + int(bins[:, :, :rows, cols].sum())
+        return i, bins[:, 1, :rows, :cols], bins[:, 0, :rows, :cols], int(totals.sum()) - outside
+
+    def add(ev: Events, i: int, j: int, out: np.ndarray, totals: np.ndarray) -> None:
+        totals += _count(ev, starts[i:j], ends[i:j], by_y, by_x, plane, out)
+        if totals.max(initial=0) > np.iinfo(np.int32).max:
+            raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
+                            "counts could overflow")
+
+    if n_w > 1 and np.all(starts[1:] >= np.maximum.accumulate(ends)[:-1]):
+        # windows in time order, none overlapping an earlier one: one pass over the events, each chunk counted
+        # into the batches it reaches, a batch handed on as soon as a chunk passes its last window's end (later
+        # chunks are later in time); overlapping windows go a batch at a time through the time-window reads
+        last_end = np.maximum.accumulate(ends)[[min(i + nb, n_w) - 1 for i in firsts]]
+        b = 0
+        out: np.ndarray | None = None
+        totals = np.zeros(0, np.int64)
+        for ev in _prefetched(span_chunks(source, int(starts[0]), int(last_end[-1]), max(1, int(chunk_events)))):
+            t_last = int(ev.t[-1]) if len(ev) else None
+            while b < len(firsts) and t_last is not None:
+                i, j = firsts[b], min(firsts[b] + nb, n_w)
+                if int(starts[i]) > t_last:  # this batch starts after the chunk
+                    break
+                if out is None:
+                    out, totals = np.zeros((j - i) * per_window, np.int32), np.zeros(j - i, np.int64)
+                add(ev, i, j, out, totals)
+                if int(last_end[b]) > t_last:  # the next chunk may hold more of it
+                    break
+                yield finished(i, j, out, totals)
+                b, out = b + 1, None
+            if progress is not None:
+                progress(len(ev))
+        for rest in range(b, len(firsts)):  # batches the last events did not close (or reach)
+            i, j = firsts[rest], min(firsts[rest] + nb, n_w)
+            if out is None:
+                out, totals = np.zeros((j - i) * per_window, np.int32), np.zeros(j - i, np.int64)
+            yield finished(i, j, out, totals)
+            out = None
+        return
+    chunks = _prefetched(_chunks(source, windows, firsts, nb, max(1, int(chunk_events))))
+    pending = next(chunks, None)
+    for b, i in enumerate(firsts):
+        j = min(i + nb, n_w)
+        out = np.zeros((j - i) * per_window, np.int32)
+        totals = np.zeros(j - i, np.int64)
+        while pending is not None and pending[0] == b:
+            add(pending[1], i, j, out, totals)
+            if progress is not None:
+                progress(len(pending[1]))
+            pending = next(chunks, None)
+        yield finished(i, j, out, totals)
+
+
+def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size: tuple = (16, 16),
+                    binarize_method: str | float = "auto", linear: bool = True, theta: float | None = None,
+                    skip_us: int = 0, length_us: int | None = None, chunk_events: int = 4_000_000,
+                    progress: Callable[[int], Any] | None = None, batch_windows: int | None = None,
+                    **ignored: Any) -> Reconstruction:
+    """The responses of windows without a schedule, counted with numpy a batch of windows at a time.
+
+    What :func:`evtk.reconstruct.reconstruct_counts` gives the same windows' counts without a plan (the same
+    responses to rounding, the same binary responses and summary), in memory bounded by the responses and one
+    batch: only the region's pixels are counted, in int64 bins (net counts resized by whole factors go
+    straight to their output cell), and no window's pixels are kept.
+
+    Parameters
+    ----------
+    source : Events or Recording
+        The events (in-memory events sorted by time) or an open recording.
+    windows : Windows
+        The windows, in any order (the responses keep it); windows in time order read each event once.
+    region : tuple of int
+        (x0, x1, y0, y1), half-open sensor pixels.
+    size : tuple of int
+        (rows, cols) of each response.
+    binarize_method : str or float
+        As :func:`evtk.reconstruct.binarize`; ``"auto"``: :func:`evtk.reconstruct.binarize_rule` without a plan.
+    linear : bool
+        Linearise by ``exp(n theta) - 1`` (eq. of :func:`evtk.reconstruct.linearize`), else net counts ON - OFF.
+        Only with ``theta`` given: without a plan nothing else says how counts map to light.
+    theta : float, optional
+        The contrast threshold of ``exp(n theta)``; None (default): net counts.
+    skip_us, length_us : int
+        Recorded in the summary (the windows already hold them).
+    chunk_events : int
+        Most events read at once.
+    progress : callable, optional
+        Called with the number of events of each chunk read.
+    batch_windows : int, optional
+        Windows counted at a time; default as many as :data:`BATCH_BINS` counts hold.
+    **ignored
+        Settings that change nothing without a schedule (``crop``, ``deblur``, ``flat_field``, ``timing``).
+
+    Returns
+    -------
+    Reconstruction
+        ``responses`` (float64, (windows, rows, cols)), ``binary``, ``cells`` (the responses themselves) and
+        the summary; the counts hold no pixels (``on``/``off`` of shape (windows, 0, 0)).
+
+    Raises
+    ------
+    EvtkError
+        No windows, a region off the sensor, a size below 1, counts whose rise exceeds exp(700), or more
+        memory than the budget allows.
+    """
+    n_w = len(windows)
+    if n_w == 0:
+        raise EvtkError("no windows to reconstruct")
+    x0, x1, y0, y1 = _region(source, region)
+    h_px, w_px = y1 - y0, x1 - x0
+    oh, ow = (int(v) for v in size)
+    if oh < 1 or ow < 1:
+        raise EvtkError(f"size must be positive, not {size}")
+    if theta is None:  # nothing in the plan to linearise by: net counts (as reconstruct_counts without a plan)
+        linear = False
+    theta_on = 0.2 if theta is None else float(theta)
+    cells = not linear and h_px % oh == 0 and w_px % ow == 0  # each event straight to its output cell
+    responses = np.empty((n_w, oh, ow), np.float64)
+    used = 0
+    for i, on, off, n_used in count_batches(source, windows, (x0, x1, y0, y1), (oh, ow) if cells else None,
+                                            n_w * oh * ow * 9, batch_windows, chunk_events, progress):
+        used += n_used
+        if cells:  # the block mean of net counts: their exact sum over the block's pixel count
+            responses[i:i + len(on)] = (on - off).astype(np.float64) / ((h_px // oh) * (w_px // ow))
+        else:
+            responses[i:i + len(on)] = downsample(pixel_values(on, off, linear, theta_on), (oh, ow))
+    method = binarize_rule(None) if isinstance(binarize_method, str) and binarize_method == "auto" else binarize_method
+    binary = binarize(responses, method)
+    summary = {
+        "captures": None, "windows": n_w, "window_source": windows.source, "windows_dropped": windows.dropped,
+        "events_used": used, "region": [x0, x1, y0, y1], "responses": n_w, "size": [oh, ow], "linear": bool(linear),
+        "theta_on": theta_on, "binarize": str(method), "skip_us": int(skip_us),
+        "length_us": None if length_us is None else int(length_us), "deblurred": False, "level_light_ratio": None,
+        "deblur_regularisation": None, "flat_field_captures": 0, "decimation": 1,
+        "linearization": "exp(n theta)" if linear else "counts", "timed_share": None, "timing_skipped": None,
+    }
+    empty = np.zeros((n_w, 0, 0), np.int32)
+    return Reconstruction(responses, binary, None, responses, None,
+                          WindowCounts(empty, empty, windows, (x0, x1, y0, y1), used),
+                          ReconstructionSummary.from_dict(summary))

@@ -1,0 +1,226 @@
+"""Fixed windows with numpy alone (evtk.reconstruct.fixed) against the whole-run path, and what it leaves out.
+
+The whole-run path (every window's counts by ``accumulate``, then ``reconstruct_counts``) is the reference: the
+numpy route must give the same responses (to 1e-9), the same binary responses and the same summary, for net
+counts and for ``exp(n theta)``, and must not load numba or scipy (``evtk reconstruct --window period:US``).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import evtk
+from evtk.errors import EvtkError
+from evtk.reconstruct import Windows, accumulate, reconstruct, reconstruct_counts, windows_periodic
+from evtk.reconstruct.fixed import fixed_responses
+
+ROOT = Path(__file__).resolve().parents[1]
+SENSOR = (40, 30)
+PERIOD_US = 1_000
+
+
+def _events(seed: int = 7) -> evtk.Events:
+    """Both polarities; a bright pixel with hundreds of events a window (huge counts); many events stamped
+    exactly on window boundaries; and an empty stretch (windows 20-24 hold no event)."""
+    rng = np.random.default_rng(seed)
+    n = 40_000
+    t = rng.integers(0, 40_000, n)
+    t = np.where(rng.random(n) < 0.1, (t // PERIOD_US) * PERIOD_US, t)  # on a boundary
+    t = np.where((t >= 20_000) & (t < 25_000), t + 5_000, t)  # nothing in windows 20-24
+    x = rng.integers(0, SENSOR[0], n)
+    y = rng.integers(0, SENSOR[1], n)
+    hot = rng.random(n) < 0.05  # one pixel with ~50 events a window, mostly ON
+    x[hot], y[hot] = 3, 4
+    p = np.where(hot, rng.random(n) < 0.8, rng.random(n) < 0.5)
+    order = np.argsort(t, kind="stable")
+    return evtk.Events(t[order], x[order].astype(np.uint16), y[order].astype(np.uint16),
+                       p[order].astype(np.uint8), SENSOR)
+
+
+def _whole_run(source, win, region, **options):
+    return reconstruct_counts(accumulate(source, win, region), None, **options)
+
+
+def _same(got, ref) -> None:
+    assert got.responses.shape == ref.responses.shape
+    scale = max(1.0, float(np.abs(ref.responses).max()))
+    np.testing.assert_allclose(got.responses, ref.responses, rtol=0, atol=1e-9 * scale)
+    np.testing.assert_array_equal(got.binary, ref.binary)
+    assert got.summary == ref.summary
+    assert got.counts.events_used == ref.counts.events_used
+    assert got.counts.on.size == 0 and got.cells.shape == got.responses.shape  # no windows x pixels kept
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    path = tmp_path_factory.mktemp("fixed") / "rec.aedat4"
+    evtk.write_events(path, _events())
+    return path
+
+
+@pytest.mark.parametrize("linear", [False, True])
+@pytest.mark.parametrize("region, size", [((0, 40, 0, 30), (15, 20)),  # whole factors: straight to the cells
+                                          ((0, 40, 0, 30), (7, 9)),  # area-weighted resizing
+                                          ((2, 38, 1, 29), (4, 4)),  # pixels outside the region
+                                          ((3, 4, 4, 5), (1, 1))])  # the hot pixel alone
+@pytest.mark.parametrize("batch", [None, 3])
+def test_equals_the_whole_run(linear, region, size, batch):
+    ev = _events()
+    win = windows_periodic(0, 40_000, PERIOD_US)
+    options = dict(linear=linear, size=size, theta=0.05 if linear else None)
+    _same(fixed_responses(ev, win, region, batch_windows=batch, **options), _whole_run(ev, win, region, **options))
+
+
+@pytest.mark.parametrize("linear", [False, True])
+def test_a_recording_read_in_small_chunks_equals_the_whole_run(recording, linear):
+    # windows span chunks, chunks span windows; skip and length leave gaps between the windows
+    with evtk.open(recording) as rec:
+        win = windows_periodic(0, 40_000, PERIOD_US, skip_us=100, length_us=700)
+        options = dict(linear=linear, theta=0.05 if linear else None, skip_us=100, length_us=700)
+        ref = _whole_run(rec, win, (0, 40, 0, 30), **options)
+        got = fixed_responses(rec, win, (0, 40, 0, 30), chunk_events=777, batch_windows=4, **options)
+    _same(got, ref)
+    assert ref.summary["events_used"] < 40_000  # the gaps left events out
+
+
+@pytest.mark.parametrize("span", [(0, 40_000), (5_000, 60_000), (-3_000, 20_000)])
+def test_windows_over_part_of_a_recording_or_beyond_it_equal_the_whole_run(recording, span):
+    # windows starting after the first event (a time-window read), running past the last (empty windows at the
+    # end), or starting before the recording
+    with evtk.open(recording) as rec:
+        win = windows_periodic(span[0], span[1], 1_500)
+        for linear in (False, True):
+            options = dict(linear=linear, theta=0.05 if linear else None, size=(5, 4))
+            _same(fixed_responses(rec, win, (0, 40, 0, 30), chunk_events=5_000, batch_windows=3, **options),
+                  _whole_run(rec, win, (0, 40, 0, 30), **options))
+
+
+def test_sliding_windows_equal_the_whole_run(recording):
+    # windows in time order overlapping their neighbours (and so the next batch's)
+    starts = np.arange(0, 38_000, 500)
+    win = Windows(starts, starts + 1_700, np.arange(starts.size), "test")
+    with evtk.open(recording) as rec:
+        for linear in (False, True):
+            options = dict(linear=linear, theta=0.05 if linear else None, size=(3, 4))
+            _same(fixed_responses(rec, win, (0, 40, 0, 30), chunk_events=3_000, batch_windows=4, **options),
+                  _whole_run(rec, win, (0, 40, 0, 30), **options))
+
+
+def test_windows_in_any_order_and_overlapping_equal_the_whole_run():
+    ev = _events()
+    rng = np.random.default_rng(2)
+    starts = rng.integers(0, 38_000, 31)
+    win = Windows(starts, starts + rng.integers(1, 3_000, 31), np.arange(31), "test")
+    for linear in (False, True):
+        options = dict(linear=linear, theta=0.05 if linear else None, size=(3, 4))
+        _same(fixed_responses(ev, win, (0, 40, 0, 30), batch_windows=5, **options),
+              _whole_run(ev, win, (0, 40, 0, 30), **options))
+
+
+def test_counts_too_many_for_the_value_table_equal_the_whole_run():
+    # one pixel with 1100 ON and 1000 OFF events: (ON + 1) x (OFF + 1) beyond the look-up table
+    n_on, n_off = 1100, 1000
+    p = np.r_[np.ones(n_on), np.zeros(n_off)].astype(np.uint8)
+    np.random.default_rng(0).shuffle(p)
+    extra = 5000  # every other pixel a few events, so that the whole run's table applies to its arrays
+    rng = np.random.default_rng(1)
+    t = np.sort(np.r_[np.arange(p.size), rng.integers(0, p.size, extra)])
+    x = np.r_[np.full(p.size, 2), rng.integers(0, 64, extra)].astype(np.uint16)
+    y = np.r_[np.full(p.size, 2), rng.integers(0, 64, extra)].astype(np.uint16)
+    order = np.argsort(np.r_[np.arange(p.size), rng.integers(0, p.size, extra)], kind="stable")
+    ev = evtk.Events(t, x[order], y[order], np.r_[p, rng.integers(0, 2, extra)].astype(np.uint8)[order], (64, 64))
+    win = Windows([0], [p.size], [0], "test")
+    for options in (dict(theta=0.2), dict(linear=False)):
+        _same(fixed_responses(ev, win, (0, 64, 0, 64), **options), _whole_run(ev, win, (0, 64, 0, 64), **options))
+
+
+def test_bad_settings_are_refused():
+    ev = _events()
+    win = windows_periodic(0, 40_000, PERIOD_US)
+    with pytest.raises(EvtkError, match="size must be positive"):
+        fixed_responses(ev, win, (0, 40, 0, 30), size=(0, 4))
+    with pytest.raises(EvtkError, match="not a non-empty part"):
+        fixed_responses(ev, win, (0, 40, 0, 31))
+    with pytest.raises(EvtkError, match="no windows"):
+        fixed_responses(ev, win[:0], (0, 40, 0, 30))
+
+
+def test_reconstruct_takes_the_numpy_route_for_responses_alone(recording):
+    with evtk.open(recording) as rec:
+        for linear in (False, True):
+            full = reconstruct(rec, window=("period", PERIOD_US), linear=linear)
+            lean = reconstruct(rec, window=("period", PERIOD_US), linear=linear, keep_pixels=False)
+            np.testing.assert_allclose(lean.responses, full.responses, rtol=0,
+                                       atol=1e-9 * max(1.0, np.abs(full.responses).max()))
+            np.testing.assert_array_equal(lean.binary, full.binary)
+            assert lean.summary == full.summary
+            assert lean.counts.on.shape == (len(lean.responses), 0, 0)
+
+
+_PROBE = """
+import sys
+from evtk.cli import main
+try:
+    main({args!r})
+except SystemExit as exc:
+    assert not exc.code, exc.code
+heavy = sorted({{m.split(".")[0] for m in sys.modules}} & {{"numba", "scipy", "llvmlite", "matplotlib", "skimage"}})
+print("HEAVY", heavy)
+"""
+
+
+def _cli(args):
+    done = subprocess.run([sys.executable, "-c", _PROBE.format(args=[str(a) for a in args])], capture_output=True,
+                          text=True, cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}, check=False)
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+def test_the_cli_on_fixed_windows_loads_no_compiler_and_stores_responses_only(recording, tmp_path):
+    out = tmp_path / "r.npz"
+    printed = _cli(["reconstruct", recording, "--window", f"period:{PERIOD_US}", "-o", out])
+    assert "HEAVY []" in printed  # neither numba nor scipy (nor plotting) for fixed windows
+    with zipfile.ZipFile(out) as z:
+        names = set(n[:-4] for n in z.namelist())
+    got = evtk.reconstruct.load_reconstruction(out)
+    with evtk.open(recording) as rec:
+        ref = reconstruct(rec, window=("period", PERIOD_US))
+    n = len(ref.responses)
+    assert {"responses", "binary", "on", "off"} <= names
+    assert got.counts.on.shape == (n, 0, 0) and got.cells.shape == got.responses.shape == (n, 16, 16)
+    np.testing.assert_allclose(got.responses, ref.responses, rtol=0, atol=1e-9 * max(1.0, np.abs(ref.responses).max()))
+    np.testing.assert_array_equal(got.binary, ref.binary)
+    # --keep-pixels stores every window's counts, as before
+    full = tmp_path / "full.npz"
+    _cli(["reconstruct", recording, "--window", f"period:{PERIOD_US}", "--keep-pixels", "-o", full])
+    kept = evtk.reconstruct.load_reconstruction(full)
+    np.testing.assert_array_equal(kept.counts.on, ref.counts.on)
+    assert kept.cells.shape == (n, 30, 40)
+    # the responses alone: no array grows with windows x pixels (the pixels' file holds several times more)
+    with np.load(out) as a, np.load(full) as b:
+        assert sum(a[k].size for k in a.files) * 3 < sum(b[k].size for k in b.files)
+    assert json.loads(json.dumps(dict(got.summary)))["events_used"] == ref.summary["events_used"]
+
+
+def test_enob_on_fixed_windows_loads_no_compiler(recording):
+    printed = _cli(["enob", recording, "--window", f"period:{PERIOD_US}"])
+    assert "HEAVY []" in printed
+
+
+@pytest.mark.parametrize("df", [1, 2, 3, 4, 7, 10, 31, 63, 200])
+def test_the_jackknife_t_quantile_equals_scipys(df):
+    # enob's interval takes Student's t quantile without importing scipy (half a second of a fresh process)
+    from scipy import stats
+
+    from evtk.metrics.sinad import _t_quantile_two_sided
+
+    for confidence in (0.5, 0.9, 0.95, 0.99):
+        assert _t_quantile_two_sided(confidence, df) == pytest.approx(stats.t.ppf(0.5 + confidence / 2, df),
+                                                                      rel=1e-11)
