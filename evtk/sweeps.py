@@ -234,7 +234,7 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
             binary[i:i + batch] = part.binary
     row = _scene_row(-1, -1, acc, binary, interval, per_pixel, seed)
     row["route"] = f"fixed windows (--window {spec}): " + (
-        f"exp(n theta), theta = {float(theta):g}" if linear else "net counts (ON - OFF), not linearised")
+        f"exp(n theta), theta = {theta:g}" if linear else "net counts (ON - OFF), not linearised")
     return [row]
 
 
