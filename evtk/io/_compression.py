@@ -229,11 +229,12 @@ class Scratch:
     Not to be shared between threads.
     """
 
-    __slots__ = ("_raw", "_out", "_lz4")
+    __slots__ = ("_raw", "_out", "_out_at", "_lz4")
 
     def __init__(self) -> None:
         self._raw = np.empty(0, np.uint8)
         self._out = np.empty(0, np.uint8)
+        self._out_at = 0  # the output buffer's address, for the LZ4 library
         self._lz4: _Lz4Context | None = None  # this thread's LZ4 decompression context, made on first use
 
     def room(self, n: int) -> np.ndarray:
@@ -258,7 +259,7 @@ class Scratch:
         if len(self._out) < n:
             grown = np.empty(n, np.uint8)
             grown[:keep] = self._out[:keep]
-            self._out = grown
+            self._out, self._out_at = grown, grown.ctypes.data
         return self._out
 
 
@@ -304,12 +305,14 @@ def decompress_into(code: int, body, limit: int, verify: bool, scratch: Scratch)
 
 _LZ4F_VERSION = 100  # LZ4F_VERSION of lz4frame.h: the context layout every lz4 1.x agrees on
 _lz4f_lib = None  # the bound LZ4 frame functions; False where they cannot be reached
+_LZ4F_HINT_MAX = 1 << 62  # above it a return value may be an error code
+_ctypes = None  # the ctypes module, once the LZ4 library is bound
 
 
 def _lz4f():
     """The LZ4 frame library python-lz4 carries (its extension module exports ``LZ4F_*``, or links the
     system's liblz4, which the lookup then finds), bound through ctypes; False when it cannot be reached."""
-    global _lz4f_lib
+    global _lz4f_lib, _ctypes
     if _lz4f_lib is None:
         try:
             import ctypes
@@ -328,7 +331,7 @@ def _lz4f():
             lib.LZ4F_isError.restype = ctypes.c_uint
             lib.LZ4F_getErrorName.argtypes = [size_t]
             lib.LZ4F_getErrorName.restype = ctypes.c_char_p
-            _lz4f_lib = lib
+            _lz4f_lib, _ctypes = lib, ctypes
         except (ImportError, OSError, AttributeError):  # another build of python-lz4: decompress() serves
             _lz4f_lib = False
     return _lz4f_lib
@@ -357,8 +360,12 @@ class _Lz4Context:
 def _lz4_into(lib, body, limit: int, verify: bool, scratch: Scratch) -> np.ndarray:
     """Decompress the LZ4 frame ``body`` into ``scratch``'s output buffer (see :func:`decompress_into`)."""
     body, size = _lz4_checked(body, limit, verify)
-    src = np.frombuffer(body, np.uint8)
-    n = len(src)
+    try:  # the body's address: a view of the scratch's read buffer (writable) costs a fifth of numpy's route
+        src_at = _ctypes.addressof(_ctypes.c_char.from_buffer(body))
+        n = memoryview(body).nbytes
+    except TypeError:  # read-only (bytes: the frame rebuilt without its checksums)
+        src = np.frombuffer(body, np.uint8)
+        src_at, n = src.ctypes.data, len(src)
     # the output buffer: the stated size exactly, else growing up to one byte past the limit (to see it passed)
     if size > 0:
         out, cap = scratch._output(size, 0), size
@@ -368,12 +375,11 @@ def _lz4_into(lib, body, limit: int, verify: bool, scratch: Scratch) -> np.ndarr
     d = scratch._lz4
     if d is None or d.lib is not lib:
         d = scratch._lz4 = _Lz4Context(lib)
-    src_at, written, read = src.ctypes.data, 0, 0
-    out_at = out.ctypes.data
+    written, read, out_at = 0, 0, scratch._out_at
     while True:
         d.dst_n.value, d.src_n.value = cap - written, n - read
         hint = lib.LZ4F_decompress(d.ctx, out_at + written, d.dst_p, src_at + read, d.src_p, None)
-        if lib.LZ4F_isError(hint):
+        if hint > _LZ4F_HINT_MAX and lib.LZ4F_isError(hint):  # errors are -code as a size_t; hints are small
             lib.LZ4F_resetDecompressionContext(d.ctx)
             name = lib.LZ4F_getErrorName(hint).decode("ascii", "replace")
             raise CodecError(_lz4_error(RuntimeError(f"LZ4F_decompress failed with code: {name}")))
@@ -393,7 +399,7 @@ def _lz4_into(lib, body, limit: int, verify: bool, scratch: Scratch) -> np.ndarr
                 lib.LZ4F_resetDecompressionContext(d.ctx)
                 raise CodecError(f"LZ4 frame decompresses to more than {limit} bytes")
             out = scratch._output(min(limit + 1, 2 * cap), written)
-            cap, out_at = min(len(out), limit + 1), out.ctypes.data
+            cap, out_at = min(len(out), limit + 1), scratch._out_at
             continue
         lib.LZ4F_resetDecompressionContext(d.ctx)
         raise CodecError("LZ4 frame ends before its end mark (truncated)")
