@@ -306,7 +306,7 @@ def decompress_into(code: int, body, limit: int, verify: bool, scratch: Scratch)
 _LZ4F_VERSION = 100  # LZ4F_VERSION of lz4frame.h: the context layout every lz4 1.x agrees on
 _lz4f_lib = None  # the bound LZ4 frame functions; False where they cannot be reached
 _LZ4F_HINT_MAX = 1 << 62  # above it a return value may be an error code
-_ctypes = None  # the ctypes module, once the LZ4 library is bound
+_ctypes: Any = None  # the ctypes module, once the LZ4 library is bound
 
 
 def _lz4f():
