@@ -12,10 +12,22 @@ median kept. The core counts alternate round by round (1, 2, 1, 2, ...) and
 the medians over ``--rounds`` rounds are compared: on a machine shared with
 other work a single process moves by a third, alternating keeps it fair.
 
+Each child also reports the CPU time of its reads (all threads): on a machine
+shared with other work the wall time moves with the load, the CPU time much
+less, and a CPU time that grows with the threads is contention (page faults,
+allocator locks) rather than a busy machine. The load average is printed
+with every row; figures taken at a load above about 1 say little about
+scaling.
+
 A second, in-process breakdown (``--phases``) times the stages of an AEDAT4
-read on one thread: reading the compressed bodies, decompressing them, and
-decoding the FlatBuffers events into the columns (into fresh memory and into
-memory already touched), so the stages that do not scale can be named.
+read on the threads of a process pinned to each core count: reading the
+compressed bodies (into new buffers and into one reused buffer), reading and
+decompressing them (into new buffers, as before issue 32, and into the
+reused per-thread buffers the reader uses), and decoding the FlatBuffers
+events of bodies already in memory into the columns, so the stages that do
+not scale can be named. What limits the read (docs/performance.md, "Every
+core"): the per-packet Python between the calls that release the GIL, some
+15 us a packet, a tenth of the read at 10,000-event packets.
 
 Files: the 20 M-event AEDAT4 files of ``bench_fresh_read.py`` (dv-processing's
 ``MonoCameraWriter``, LZ4, 10,000-event packets) and the same events written by

@@ -105,3 +105,17 @@ def test_decompress_into_keeps_the_bounds(tmp_path):
         cz.decompress(cz.LZ4, bytes(liar), 1 << 20)
     with pytest.raises(cz.CodecError):
         cz.decompress_into(cz.LZ4, bytes(liar), 1 << 20, True, scratch)
+
+
+def test_without_the_lz4_library_the_read_falls_back_to_python_lz4(tmp_path, monkeypatch):
+    """Where python-lz4's LZ4 frame functions cannot be reached (another build), decompress_into is
+    decompress: the same events, a new buffer per packet."""
+    evs, bodies = _packets(seed=60)
+    path = tmp_path / "fallback.aedat4"
+    _aedat4(path, cz.LZ4, _frames(cz.LZ4, bodies, False))
+    monkeypatch.setattr(cz, "_lz4f_lib", False)
+    with evtk.open(path) as rec:
+        assert rec.events() == evtk.Events.concatenate(evs)
+    frame = lz4.frame.compress(bodies[0])
+    got = cz.decompress_into(cz.LZ4, frame, cz.output_limit(len(frame)), True, cz.Scratch())
+    assert got.tobytes() == bodies[0] and len(cz.Scratch()._out) == 0
