@@ -201,15 +201,23 @@ def main() -> None:
     for fmt in args.formats.split(","):
         path = data_file(n, fmt)
         times: dict = {k: [] for k in cpus}
+        cpu: dict = {k: [] for k in cpus}
+        loads = [os.getloadavg()[0]]
         for _ in range(args.rounds):
             for k, c in cpus.items():
-                times[k].append(run(path, c, args.reads)["median_s"])
+                got = run(path, c, args.reads)
+                times[k].append(got["median_s"])
+                cpu[k].append(got["cpu_s"])
+            loads.append(os.getloadavg()[0])
         med = {k: statistics.median(v) for k, v in times.items()}
+        med_cpu = {k: statistics.median(v) for k, v in cpu.items()}
         base = med[min(med)]
-        row = dict(format=fmt, events=n, median_s=med, runs=times, speedup={k: base / v for k, v in med.items()})
+        row = dict(format=fmt, events=n, median_s=med, cpu_s=med_cpu, runs=times, load=loads,
+                   speedup={k: base / v for k, v in med.items()})
         results.append(row)
-        print(f"{fmt:<12}" + "  ".join(f"{k} core{'s' if k > 1 else ''} {med[k]:.3f} s ({base / med[k]:.2f}x)"
-                                        for k in med), f" load {os.getloadavg()[0]:.1f}", flush=True)
+        print(f"{fmt:<12}" + "  ".join(f"{k} core{'s' if k > 1 else ''} {med[k]:.3f} s ({base / med[k]:.2f}x, "
+                                        f"CPU {med_cpu[k]:.3f} s)" for k in med),
+              f" load {min(loads):.1f}-{max(loads):.1f}", flush=True)
         if args.phases and fmt.startswith("aedat4"):
             row["phases"] = {}
             for k, c in cpus.items():
