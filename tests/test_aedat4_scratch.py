@@ -44,9 +44,11 @@ def _fresh(rec):
 
 
 @pytest.mark.parametrize("code,sized", [(cz.NONE, True), (cz.LZ4, True), (cz.LZ4, False), (cz.ZSTD, True)])
-@pytest.mark.parametrize("threads", ["1", "2"])
-def test_reused_buffers_read_what_fresh_buffers_read(tmp_path, monkeypatch, code, sized, threads):
+@pytest.mark.parametrize("threads,into_min", [("1", cz.INTO_MIN_BYTES), ("2", cz.INTO_MIN_BYTES), ("2", 0)])
+def test_reused_buffers_read_what_fresh_buffers_read(tmp_path, monkeypatch, code, sized, threads, into_min):
+    """(``into_min`` 0: every LZ4 body, the smallest included, decompressed into the reused buffer.)"""
     monkeypatch.setenv("EVTK_THREADS", threads)
+    monkeypatch.setattr(cz, "INTO_MIN_BYTES", into_min)
     evs, bodies = _packets(seed=40)
     path = tmp_path / "sizes.aedat4"
     _aedat4(path, code, _frames(code, bodies, sized))
@@ -63,9 +65,10 @@ def test_reused_buffers_read_what_fresh_buffers_read(tmp_path, monkeypatch, code
 
 
 @pytest.mark.parametrize("sized", [True, False])
-def test_decompress_into_one_scratch_matches_lz4_frame_by_frame(sized):
+def test_decompress_into_one_scratch_matches_lz4_frame_by_frame(sized, monkeypatch):
     """Small after large, empty, checksummed, high compression: each frame's bytes, no more and no fewer,
     and a damaged frame in between neither stops nor spoils the next (the context is reset)."""
+    monkeypatch.setattr(cz, "INTO_MIN_BYTES", 0)
     rng = np.random.default_rng(7)
     raws = [rng.integers(0, 4, n, dtype=np.uint8).tobytes() for n in (300_000, 10, 0, 150_000, 64 << 10, 1)]
     scratch = cz.Scratch()
@@ -86,9 +89,10 @@ def test_decompress_into_one_scratch_matches_lz4_frame_by_frame(sized):
                 assert str(caught.value) == str(exc)
 
 
-def test_decompress_into_keeps_the_bounds(tmp_path):
+def test_decompress_into_keeps_the_bounds(monkeypatch):
     """A frame without a size that inflates past the limit is refused (as decompress refuses it), one that
     states more than the limit is refused before decoding, and a frame holding more than it states fails."""
+    monkeypatch.setattr(cz, "INTO_MIN_BYTES", 0)
     scratch = cz.Scratch()
     bomb = lz4.frame.compress(bytes(64 << 20), store_size=False)
     with pytest.raises(cz.CodecError, match="more than"):
@@ -117,5 +121,7 @@ def test_without_the_lz4_library_the_read_falls_back_to_python_lz4(tmp_path, mon
     with evtk.open(path) as rec:
         assert rec.events() == evtk.Events.concatenate(evs)
     frame = lz4.frame.compress(bodies[0])
-    got = cz.decompress_into(cz.LZ4, frame, cz.output_limit(len(frame)), True, cz.Scratch())
-    assert got.tobytes() == bodies[0] and len(cz.Scratch()._out) == 0
+    assert len(frame) >= cz.INTO_MIN_BYTES
+    scratch = cz.Scratch()
+    got = cz.decompress_into(cz.LZ4, frame, cz.output_limit(len(frame)), True, scratch)
+    assert got.tobytes() == bodies[0] and len(scratch._out) == 0

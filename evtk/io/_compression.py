@@ -266,9 +266,10 @@ class Scratch:
 def decompress_into(code: int, body, limit: int, verify: bool, scratch: Scratch) -> np.ndarray:
     """:func:`decompress`, into ``scratch`` instead of a new buffer where the codec allows.
 
-    LZ4 bodies are decompressed by the LZ4 frame library that python-lz4 is built with, straight into the
-    scratch's output buffer (the GIL released while it works, as python-lz4 does). Where that library's
-    functions cannot be reached, and for Zstandard bodies, this is :func:`decompress`. The checks, the
+    LZ4 bodies of :data:`INTO_MIN_BYTES` or more are decompressed by the LZ4 frame library that python-lz4 is
+    built with, straight into the scratch's output buffer (the GIL released while it works, as python-lz4
+    does). Where that library's functions cannot be reached, for smaller bodies and for Zstandard bodies,
+    this is :func:`decompress`. The checks, the
     limit and the errors are :func:`decompress`'s, and so are the bytes.
 
     Parameters
@@ -288,7 +289,7 @@ def decompress_into(code: int, body, limit: int, verify: bool, scratch: Scratch)
     -------
     numpy.ndarray
         The decompressed body, uint8: a view of ``body`` for :data:`NONE`, of the scratch's output buffer
-        for LZ4 (valid until the scratch's next use), else a view of a new buffer.
+        for LZ4 decompressed into it (valid until the scratch's next use), else a view of a new buffer.
 
     Raises
     ------
@@ -296,11 +297,16 @@ def decompress_into(code: int, body, limit: int, verify: bool, scratch: Scratch)
         As :func:`decompress`.
     """
     limit = min(int(limit), MAX_PACKET_BYTES)
-    if code in (LZ4, LZ4_HIGH):
+    if code in (LZ4, LZ4_HIGH) and len(body) >= INTO_MIN_BYTES:
         lib = _lz4f()
         if lib:
             return _lz4_into(lib, body, limit, verify, scratch)
     return np.frombuffer(decompress(code, body, limit, verify), np.uint8)
+
+
+#: Smallest LZ4 body :func:`decompress_into` decompresses into the scratch: below it python-lz4's new buffer and
+#: copy cost less than the ctypes call (a few µs), and the buffer is too small for glibc to map it on its own.
+INTO_MIN_BYTES = 8 << 10
 
 
 _LZ4F_VERSION = 100  # LZ4F_VERSION of lz4frame.h: the context layout every lz4 1.x agrees on

@@ -163,10 +163,7 @@ class Recording(_FileIndex, BaseRecording):
         """
         idx = self._index
         off, size = int(idx.offset[i]), int(idx.size[i])
-        if scratch is None:
-            data = self._pread(size + 8, off - 8)
-        else:
-            data = self._pread_into(scratch.room(size + 8), off - 8)
+        data = self._pread(size + 8, off - 8) if scratch is None else self._pread_into(scratch.room(size + 8), off - 8)
         if len(data) < size + 8:
             self._fail(off - 8, "file ends inside a packet")
         sid, sz = struct.unpack_from("<ii", data, 0)
