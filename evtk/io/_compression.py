@@ -3,8 +3,8 @@
 Both libraries release the GIL while they work, so the reader and writer run
 them on a small thread pool. The reader's threads each reuse one :class:`Scratch` for every packet they
 read: the compressed body is read into it and an LZ4 body decompressed into it, so a read allocates
-nothing per packet (fresh 100-200 KiB buffers per packet made glibc map, fault in and trim memory for
-each, which kept two threads from reading much faster than one).
+nothing per packet (new 100-200 KiB buffers for every packet are allocator work and page faults, which
+do not run in parallel, and python-lz4 copies each body once more with the GIL held).
 """
 
 from __future__ import annotations
@@ -254,10 +254,12 @@ class Scratch:
             self._raw = np.empty(max(n, 2 * len(self._raw)), np.uint8)
         return self._raw[:n]
 
-    def _output(self, n: int, keep: int) -> np.ndarray:
-        """The output buffer, at least ``n`` bytes, its first ``keep`` bytes kept when it has to grow."""
+    def _output(self, n: int, keep: int, most: int) -> np.ndarray:
+        """The output buffer, at least ``n`` bytes, its first ``keep`` bytes kept when it has to grow (to twice
+        its size, at most ``most`` >= ``n`` bytes, so that packets growing a little at a time do not each
+        allocate)."""
         if len(self._out) < n:
-            grown = np.empty(n, np.uint8)
+            grown = np.empty(min(most, max(n, 2 * len(self._out))), np.uint8)
             grown[:keep] = self._out[:keep]
             self._out, self._out_at = grown, grown.ctypes.data
         return self._out
@@ -374,9 +376,9 @@ def _lz4_into(lib, body, limit: int, verify: bool, scratch: Scratch) -> np.ndarr
         src_at, n = src.ctypes.data, len(src)
     # the output buffer: the stated size exactly, else growing up to one byte past the limit (to see it passed)
     if size > 0:
-        out, cap = scratch._output(size, 0), size
+        out, cap = scratch._output(size, 0, limit + 1), size
     else:
-        out = scratch._output(min(limit + 1, max(2 * n, 1 << 16)), 0)
+        out = scratch._output(min(limit + 1, max(2 * n, 1 << 16)), 0, limit + 1)
         cap = min(len(out), limit + 1)
     d = scratch._lz4
     if d is None or d.lib is not lib:
@@ -404,7 +406,7 @@ def _lz4_into(lib, body, limit: int, verify: bool, scratch: Scratch) -> np.ndarr
             if cap > limit:
                 lib.LZ4F_resetDecompressionContext(d.ctx)
                 raise CodecError(f"LZ4 frame decompresses to more than {limit} bytes")
-            out = scratch._output(min(limit + 1, 2 * cap), written)
+            out = scratch._output(min(limit + 1, 2 * cap), written, limit + 1)
             cap, out_at = min(len(out), limit + 1), scratch._out_at
             continue
         lib.LZ4F_resetDecompressionContext(d.ctx)
