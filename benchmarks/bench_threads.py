@@ -12,10 +12,22 @@ median kept. The core counts alternate round by round (1, 2, 1, 2, ...) and
 the medians over ``--rounds`` rounds are compared: on a machine shared with
 other work a single process moves by a third, alternating keeps it fair.
 
+Each child also reports the CPU time of its reads (all threads): on a machine
+shared with other work the wall time moves with the load, the CPU time much
+less, and a CPU time that grows with the threads is contention (page faults,
+allocator locks) rather than a busy machine. The load average is printed
+with every row; figures taken at a load above about 1 say little about
+scaling.
+
 A second, in-process breakdown (``--phases``) times the stages of an AEDAT4
-read on one thread: reading the compressed bodies, decompressing them, and
-decoding the FlatBuffers events into the columns (into fresh memory and into
-memory already touched), so the stages that do not scale can be named.
+read on the threads of a process pinned to each core count: reading the
+compressed bodies (into new buffers and into one reused buffer), reading and
+decompressing them (into new buffers, as before issue 32, and into the
+reused per-thread buffers the reader uses), and decoding the FlatBuffers
+events of bodies already in memory into the columns, so the stages that do
+not scale can be named. What limits the read (docs/performance.md, "Every
+core"): the per-packet Python between the calls that release the GIL, some
+15 us a packet, a tenth of the read at 10,000-event packets.
 
 Files: the 20 M-event AEDAT4 files of ``bench_fresh_read.py`` (dv-processing's
 ``MonoCameraWriter``, LZ4, 10,000-event packets) and the same events written by
@@ -77,62 +89,85 @@ def _child(path: str, reads: int) -> None:
     e = evtk.read_events(path)  # the page cache, the imports, the pool
     n = len(e)
     del e
-    times = []
+    times, cpu = [], []
     for _ in range(reads):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         e = evtk.read_events(path)
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
         del e
-    print(json.dumps({"events": n, "threads": workers(), "median_s": statistics.median(times), "times": times}))
+    print(json.dumps({"events": n, "threads": workers(), "median_s": statistics.median(times),
+                      "cpu_s": statistics.median(cpu), "times": times}))
 
 
-def _phases(path: str, repeats: int = 3) -> None:
-    """One thread, one process: where an AEDAT4 read spends its time."""
+def _phases(path: str, repeats: int = 5) -> None:
+    """Where an AEDAT4 read spends its time, each stage run over all packets on the threads the process has
+    (``workers()``: the parent pins the process to 1, 2, ... cores), best of ``repeats``."""
+    from concurrent.futures import ThreadPoolExecutor
+
     import numpy as np
 
     import evtk
+    from evtk._threads import workers
+    from evtk.io import _compression as cz
     from evtk.io import _fbpy
 
-    with evtk.open(path) as rec:
+    nw = workers()
+    with evtk.open(path) as rec, ThreadPoolExecutor(nw) as pool:
         s = rec._stream(None, "EVTS")
         idx = rec._index
         rows = np.flatnonzero(idx.stream == s.id)
         counts = idx.count[rows]
-        total = int(counts.sum())
-        best: dict = {}
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        total = int(starts[-1])
+        bodies = [rec._body(i) for i in rows]
+        cols = [np.empty(total, d) for d in (np.int64, np.uint16, np.uint16, np.uint8)]
+        width, height = s.sensor_size
+
+        def stage(name):
+            def run(k0, k1):
+                scratch = cz.Scratch()
+                for k in range(k0, k1):
+                    i = int(rows[k])
+                    if name == "read compressed bodies":
+                        rec._pread(int(idx.size[i]) + 8, int(idx.offset[i]) - 8)
+                    elif name == "read compressed bodies into one buffer":
+                        rec._pread_into(scratch.room(int(idx.size[i]) + 8), int(idx.offset[i]) - 8)
+                    elif name == "read and decompress into new buffers":
+                        rec._body(i)
+                    elif name == "read and decompress into one buffer":
+                        rec._body(i, scratch)
+                    else:  # decode bodies already in memory into columns already touched
+                        _fbpy.decode_events(bodies[k], b"EVTS", *cols, int(starts[k]), int(counts[k]), width,
+                                            height)
+            cuts = np.linspace(0, len(rows), 4 * nw + 1).astype(int)
+            t0 = time.perf_counter()
+            list(pool.map(lambda ab: run(*ab), zip(cuts[:-1], cuts[1:])))
+            return time.perf_counter() - t0
+
+        names = ["read compressed bodies", "read compressed bodies into one buffer",
+                 "read and decompress into new buffers", "read and decompress into one buffer", "decode"]
+        best = {name: min(stage(name) for _ in range(repeats)) for name in names}
+        evtk.read_events(path)
+        times = []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            for i in rows:
-                rec._pread(int(idx.size[i]) + 8, int(idx.offset[i]) - 8)
-            t1 = time.perf_counter()
-            bodies = [rec._body(i) for i in rows]
-            t2 = time.perf_counter()
-            cols = (np.empty(total, np.int64), np.empty(total, np.uint16), np.empty(total, np.uint16),
-                    np.empty(total, np.uint8))
-            for again in (False, True):
-                t3 = time.perf_counter()
-                off = 0
-                for b, c in zip(bodies, counts):
-                    _fbpy.decode_events(b, b"EVTS", *cols, off, int(c), 320, 240)
-                    off += int(c)
-                key = "decode into touched memory" if again else "decode into fresh memory"
-                best[key] = min(best.get(key, 1e9), time.perf_counter() - t3)
-            best["read compressed bodies"] = min(best.get("read compressed bodies", 1e9), t1 - t0)
-            best["read and decompress"] = min(best.get("read and decompress", 1e9), t2 - t1)
-            del bodies, cols
-        evtk.read_events(path)
-        t0 = time.perf_counter()
-        evtk.read_events(path)
-        best["whole read_events"] = time.perf_counter() - t0
-    print(json.dumps({"events": total, "packets": len(rows), "seconds": best}))
+            evtk.read_events(path)
+            times.append(time.perf_counter() - t0)
+        best["whole read_events"] = min(times)
+    print(json.dumps({"events": total, "packets": len(rows), "threads": nw, "seconds": best}))
+
+
+def env_without_threads() -> dict:
+    """The environment, less evtk's thread settings (the children take their thread count from taskset)."""
+    return {k: v for k, v in os.environ.items() if k not in ("EVTK_THREADS", "EVTK_IO_THREADS")}
 
 
 def run(path: Path, cpus: str, reads: int) -> dict:
     cmd = [sys.executable, __file__, "--child", str(path), str(reads)]
     if shutil.which("taskset"):
         cmd = ["taskset", "-c", cpus, *cmd]
-    env = {k: v for k, v in os.environ.items() if k not in ("EVTK_THREADS", "EVTK_IO_THREADS")}
-    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env_without_threads())
     if res.returncode != 0:
         raise SystemExit(f"a child failed: {res.stderr.strip().splitlines()[-1:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -166,23 +201,34 @@ def main() -> None:
     for fmt in args.formats.split(","):
         path = data_file(n, fmt)
         times: dict = {k: [] for k in cpus}
+        cpu: dict = {k: [] for k in cpus}
+        loads = [os.getloadavg()[0]]
         for _ in range(args.rounds):
             for k, c in cpus.items():
-                times[k].append(run(path, c, args.reads)["median_s"])
+                got = run(path, c, args.reads)
+                times[k].append(got["median_s"])
+                cpu[k].append(got["cpu_s"])
+            loads.append(os.getloadavg()[0])
         med = {k: statistics.median(v) for k, v in times.items()}
+        med_cpu = {k: statistics.median(v) for k, v in cpu.items()}
         base = med[min(med)]
-        row = dict(format=fmt, events=n, median_s=med, runs=times, speedup={k: base / v for k, v in med.items()})
+        row = dict(format=fmt, events=n, median_s=med, cpu_s=med_cpu, runs=times, load=loads,
+                   speedup={k: base / v for k, v in med.items()})
         results.append(row)
-        print(f"{fmt:<12}" + "  ".join(f"{k} core{'s' if k > 1 else ''} {med[k]:.3f} s ({base / med[k]:.2f}x)"
-                                        for k in med), f" load {os.getloadavg()[0]:.1f}", flush=True)
+        print(f"{fmt:<12}" + "  ".join(f"{k} core{'s' if k > 1 else ''} {med[k]:.3f} s ({base / med[k]:.2f}x, "
+                                        f"CPU {med_cpu[k]:.3f} s)" for k in med),
+              f" load {min(loads):.1f}-{max(loads):.1f}", flush=True)
         if args.phases and fmt.startswith("aedat4"):
-            cmd = [sys.executable, __file__, "--phases-child", str(path)]
-            if shutil.which("taskset"):
-                cmd = ["taskset", "-c", cpus[min(cpus)], *cmd]
-            res = subprocess.run(cmd, capture_output=True, text=True)
-            ph = json.loads(res.stdout.strip().splitlines()[-1])
-            row["phases"] = ph
-            print("   one thread: " + ", ".join(f"{k} {v:.3f} s" for k, v in ph["seconds"].items()), flush=True)
+            row["phases"] = {}
+            for k, c in cpus.items():
+                cmd = [sys.executable, __file__, "--phases-child", str(path)]
+                if shutil.which("taskset"):
+                    cmd = ["taskset", "-c", c, *cmd]
+                res = subprocess.run(cmd, capture_output=True, text=True, env=env_without_threads())
+                ph = json.loads(res.stdout.strip().splitlines()[-1])
+                row["phases"][k] = ph
+                print(f"   {k} core{'s' if k > 1 else ''}: " + ", ".join(f"{n} {v:.3f} s" for n, v in
+                                                                  ph["seconds"].items()), flush=True)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(results, indent=1))

@@ -142,7 +142,7 @@ def test_windowed_read_decodes_only_overlapping_packets(tmp_path, monkeypatch):
     with evtk.open(path) as rec:
         calls = []
         original = rec._body
-        monkeypatch.setattr(rec, "_body", lambda i: calls.append(i) or original(i))
+        monkeypatch.setattr(rec, "_body", lambda i, *scratch: calls.append(i) or original(i, *scratch))
         # the first window reads every packet once for the times it holds (a packet's stamps can be out of
         # order, so the data table's first and last stamp do not bound it); then only the packets a window meets
         rec.events(0, 1)

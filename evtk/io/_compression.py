@@ -1,7 +1,10 @@
 """Packet-body compression of AEDAT4 files (LZ4 frames and Zstandard frames).
 
 Both libraries release the GIL while they work, so the reader and writer run
-them on a small thread pool.
+them on a small thread pool. The reader's threads each reuse one :class:`Scratch` for every packet they
+read: the compressed body is read into it and an LZ4 body decompressed into it, so a read allocates
+nothing per packet (new 100-200 KiB buffers for every packet are allocator work and page faults, which
+do not run in parallel, and python-lz4 copies each body once more with the GIL held).
 """
 
 from __future__ import annotations
@@ -9,9 +12,10 @@ from __future__ import annotations
 import functools
 import os
 import threading
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import lz4.frame
+import numpy as np
 
 from .._threads import workers
 
@@ -141,14 +145,8 @@ def decompress(code: int, body, limit: int, verify: bool = True):
     if code == NONE:
         return body
     if code in (LZ4, LZ4_HIGH):
-        if bytes(body[:4]) != _LZ4_MAGIC:
-            raise CodecError(_mismatch("LZ4", body))
-        if not verify and len(body) > 6 and body[4] & _LZ4_CHECKSUMS:  # opted out: the checksums go unread
-            body = lz4_without_checksums(body)
+        body, size = _lz4_checked(body, limit, verify)
         try:
-            size = _lz4_content_size(body)
-            if size > limit:
-                raise CodecError(f"LZ4 frame announces {size} bytes, more than the {limit} allowed")
             if size > 0:
                 out = lz4.frame.decompress(body)
             else:  # no size in the frame header (DV, dv-processing): a step at a time, never past the limit
@@ -211,6 +209,215 @@ def decompress(code: int, body, limit: int, verify: bool = True):
     raise CodecError(f"unknown compression code {code}")
 
 
+def _lz4_checked(body, limit: int, verify: bool):
+    """``(body, content size)`` of an LZ4 body about to be decompressed: its magic checked, its checksums left
+    out when ``verify`` is off, its stated content size (0: none) within ``limit``; else :class:`CodecError`."""
+    if bytes(body[:4]) != _LZ4_MAGIC:
+        raise CodecError(_mismatch("LZ4", body))
+    if not verify and len(body) > 6 and body[4] & _LZ4_CHECKSUMS:  # opted out: the checksums go unread
+        body = lz4_without_checksums(body)
+    size = _lz4_content_size(body)
+    if size > limit:
+        raise CodecError(f"LZ4 frame announces {size} bytes, more than the {limit} allowed")
+    return body, size
+
+
+class Scratch:
+    """Buffers one thread reuses from packet to packet: the body as read from the file (:meth:`room`) and the
+    body decompressed (:func:`decompress_into`). Each grows to the largest packet met and is never shrunk;
+    what it holds is valid until the next packet, so a body decoded from it must be used (copied out) first.
+    Not to be shared between threads.
+    """
+
+    __slots__ = ("_raw", "_out", "_out_at", "_lz4")
+
+    def __init__(self) -> None:
+        self._raw = np.empty(0, np.uint8)
+        self._out = np.empty(0, np.uint8)
+        self._out_at = 0  # the output buffer's address, for the LZ4 library
+        self._lz4: _Lz4Context | None = None  # this thread's LZ4 decompression context, made on first use
+
+    def room(self, n: int) -> np.ndarray:
+        """A buffer of exactly ``n`` bytes to read a packet into (its contents are left from before).
+
+        Parameters
+        ----------
+        n : int
+            Bytes needed.
+
+        Returns
+        -------
+        numpy.ndarray
+            uint8, writable, ``n`` long.
+        """
+        if len(self._raw) < n:
+            self._raw = np.empty(max(n, 2 * len(self._raw)), np.uint8)
+        return self._raw[:n]
+
+    def _output(self, n: int, keep: int, most: int) -> np.ndarray:
+        """The output buffer, at least ``n`` bytes, its first ``keep`` bytes kept when it has to grow (to twice
+        its size, at most ``most`` >= ``n`` bytes, so that packets growing a little at a time do not each
+        allocate)."""
+        if len(self._out) < n:
+            grown = np.empty(min(most, max(n, 2 * len(self._out))), np.uint8)
+            grown[:keep] = self._out[:keep]
+            self._out, self._out_at = grown, grown.ctypes.data
+        return self._out
+
+
+def decompress_into(code: int, body, limit: int, verify: bool, scratch: Scratch) -> np.ndarray:
+    """:func:`decompress`, into ``scratch`` instead of a new buffer where the codec allows.
+
+    LZ4 bodies of :data:`INTO_MIN_BYTES` or more are decompressed by the LZ4 frame library that python-lz4 is
+    built with, straight into the scratch's output buffer (the GIL released while it works, as python-lz4
+    does). Where that library's functions cannot be reached, for smaller bodies and for Zstandard bodies,
+    this is :func:`decompress`. The checks, the
+    limit and the errors are :func:`decompress`'s, and so are the bytes.
+
+    Parameters
+    ----------
+    code : int
+        The compression code.
+    body : bytes-like
+        The packet body as stored in the file (it may lie in ``scratch``'s read buffer).
+    limit : int
+        Most bytes the body may decompress to (:func:`output_limit`).
+    verify : bool
+        Check the checksums the frame carries (see :func:`decompress`).
+    scratch : Scratch
+        This thread's buffers.
+
+    Returns
+    -------
+    numpy.ndarray
+        The decompressed body, uint8: a view of ``body`` for :data:`NONE`, of the scratch's output buffer
+        for LZ4 decompressed into it (valid until the scratch's next use), else a view of a new buffer.
+
+    Raises
+    ------
+    CodecError
+        As :func:`decompress`.
+    """
+    limit = min(int(limit), MAX_PACKET_BYTES)
+    if code in (LZ4, LZ4_HIGH) and len(body) >= INTO_MIN_BYTES:
+        lib = _lz4f()
+        if lib:
+            return _lz4_into(lib, body, limit, verify, scratch)
+    return np.frombuffer(decompress(code, body, limit, verify), np.uint8)
+
+
+#: Smallest LZ4 body :func:`decompress_into` decompresses into the scratch: below it python-lz4's new buffer and
+#: copy cost less than the ctypes call (a few µs), and the buffer is too small for glibc to map it on its own.
+INTO_MIN_BYTES = 8 << 10
+
+
+_LZ4F_VERSION = 100  # LZ4F_VERSION of lz4frame.h: the context layout every lz4 1.x agrees on
+_lz4f_lib = None  # the bound LZ4 frame functions; False where they cannot be reached
+_LZ4F_HINT_MAX = 1 << 62  # above it a return value may be an error code
+_ctypes: Any = None  # the ctypes module, once the LZ4 library is bound
+
+
+def _lz4f():
+    """The LZ4 frame library python-lz4 carries (its extension module exports ``LZ4F_*``, or links the
+    system's liblz4, which the lookup then finds), bound through ctypes; False when it cannot be reached."""
+    global _lz4f_lib, _ctypes
+    if _lz4f_lib is None:
+        try:
+            import ctypes
+
+            lib = ctypes.CDLL(lz4.frame._frame.__file__)
+            size_t, ptr, size_p = ctypes.c_size_t, ctypes.c_void_p, ctypes.POINTER(ctypes.c_size_t)
+            lib.LZ4F_createDecompressionContext.argtypes = [ctypes.POINTER(ptr), ctypes.c_uint]
+            lib.LZ4F_createDecompressionContext.restype = size_t
+            lib.LZ4F_freeDecompressionContext.argtypes = [ptr]
+            lib.LZ4F_freeDecompressionContext.restype = size_t
+            lib.LZ4F_resetDecompressionContext.argtypes = [ptr]
+            lib.LZ4F_resetDecompressionContext.restype = None
+            lib.LZ4F_decompress.argtypes = [ptr, ptr, size_p, ptr, size_p, ptr]
+            lib.LZ4F_decompress.restype = size_t
+            lib.LZ4F_isError.argtypes = [size_t]
+            lib.LZ4F_isError.restype = ctypes.c_uint
+            lib.LZ4F_getErrorName.argtypes = [size_t]
+            lib.LZ4F_getErrorName.restype = ctypes.c_char_p
+            _lz4f_lib, _ctypes = lib, ctypes
+        except (ImportError, OSError, AttributeError):  # another build of python-lz4: decompress() serves
+            _lz4f_lib = False
+    return _lz4f_lib
+
+
+class _Lz4Context:
+    """One LZ4 frame decompression context and the two size cells its calls pass, freed with the object."""
+
+    def __init__(self, lib) -> None:
+        import ctypes
+
+        self.lib = lib
+        self.ctx: Any = ctypes.c_void_p()
+        err = lib.LZ4F_createDecompressionContext(ctypes.byref(self.ctx), _LZ4F_VERSION)
+        if lib.LZ4F_isError(err):
+            raise CodecError(f"LZ4 cannot make a decompression context ({lib.LZ4F_getErrorName(err).decode()})")
+        self.dst_n, self.src_n = ctypes.c_size_t(), ctypes.c_size_t()
+        self.dst_p, self.src_p = ctypes.byref(self.dst_n), ctypes.byref(self.src_n)
+
+    def __del__(self) -> None:
+        if getattr(self, "ctx", None):
+            self.lib.LZ4F_freeDecompressionContext(self.ctx)
+            self.ctx = None
+
+
+def _lz4_into(lib, body, limit: int, verify: bool, scratch: Scratch) -> np.ndarray:
+    """Decompress the LZ4 frame ``body`` into ``scratch``'s output buffer (see :func:`decompress_into`)."""
+    body, size = _lz4_checked(body, limit, verify)
+    try:  # the body's address: a view of the scratch's read buffer (writable) costs a fifth of numpy's route
+        src_at = _ctypes.addressof(_ctypes.c_char.from_buffer(body))
+        n = memoryview(body).nbytes
+    except TypeError:  # read-only (bytes: the frame rebuilt without its checksums)
+        src = np.frombuffer(body, np.uint8)
+        src_at, n = src.ctypes.data, len(src)
+    # the output buffer: the stated size exactly, else growing up to one byte past the limit (to see it passed)
+    if size > 0:
+        out, cap = scratch._output(size, 0, limit + 1), size
+    else:
+        out = scratch._output(min(limit + 1, max(2 * n, 1 << 16)), 0, limit + 1)
+        cap = min(len(out), limit + 1)
+    d = scratch._lz4
+    if d is None or d.lib is not lib:
+        d = scratch._lz4 = _Lz4Context(lib)
+    written, read, out_at = 0, 0, scratch._out_at
+    while True:
+        d.dst_n.value, d.src_n.value = cap - written, n - read
+        hint = lib.LZ4F_decompress(d.ctx, out_at + written, d.dst_p, src_at + read, d.src_p, None)
+        if hint > _LZ4F_HINT_MAX and lib.LZ4F_isError(hint):  # errors are -code as a size_t; hints are small
+            lib.LZ4F_resetDecompressionContext(d.ctx)
+            name = lib.LZ4F_getErrorName(hint).decode("ascii", "replace")
+            raise CodecError(_lz4_error(RuntimeError(f"LZ4F_decompress failed with code: {name}")))
+        step_out, step_in = d.dst_n.value, d.src_n.value
+        written += step_out
+        read += step_in
+        if hint == 0:  # the end mark (and content checksum) read: the frame is whole
+            break
+        if step_out or step_in:
+            continue
+        # no progress: out of room (more room may let output held inside lz4 out) or out of input
+        if written == cap and (size == 0 or read < n):
+            if size > 0:
+                lib.LZ4F_resetDecompressionContext(d.ctx)
+                raise CodecError(f"LZ4 frame announces {size} bytes but holds more")
+            if cap > limit:
+                lib.LZ4F_resetDecompressionContext(d.ctx)
+                raise CodecError(f"LZ4 frame decompresses to more than {limit} bytes")
+            out = scratch._output(min(limit + 1, 2 * cap), written, limit + 1)
+            cap, out_at = min(len(out), limit + 1), scratch._out_at
+            continue
+        lib.LZ4F_resetDecompressionContext(d.ctx)
+        raise CodecError("LZ4 frame ends before its end mark (truncated)")
+    if written > limit:
+        raise CodecError(f"LZ4 frame decompresses to more than {limit} bytes")
+    if size > 0 and written != size:
+        raise CodecError(f"LZ4 frame announces {size} bytes but holds {written}")
+    return out[:written]
+
+
 _LZ4_CHECKSUMS = 0x14  # FLG bits: block checksums (0x10), content checksum (0x04)
 
 
@@ -253,6 +460,8 @@ def _lz4_header_checksum(desc: bytes) -> bytes:
 def _lz4_error(exc: Exception) -> str:
     """What lz4's error ``exc`` says about a frame, its failed checksums named plainly."""
     msg = str(exc)
+    if "Frame incomplete" in msg:  # lz4.frame.decompress on a frame that stops short
+        return "LZ4 frame ends before its end mark (truncated)"
     for code, what in (("contentChecksum", "content"), ("blockChecksum", "block"), ("headerChecksum", "header")):
         if code in msg:
             return f"LZ4 frame fails its xxHash32 {what} checksum (damaged data)"

@@ -116,9 +116,10 @@ class Recording(_FileIndex, BaseRecording):
         if typ not in _VECTOR_TYPES:
             return None
         out = np.zeros(len(rows), np.int64)
+        scratch = cz.Scratch()
         for k, i in enumerate(rows):
             try:
-                b = self._body(i)
+                b = self._body(i, scratch)
             except _Stop:
                 return out[:k]
             n = _fbpy.vector_length(b, typ.encode(), _STRUCT_SIZE.get(typ, 0))
@@ -153,11 +154,16 @@ class Recording(_FileIndex, BaseRecording):
         return value if isinstance(value, dict) else {"value": value}
 
     # -- packet bodies ------------------------------------------------------------
-    def _body(self, i):
-        """Decompressed body of packet ``i`` as a uint8 array (or raise/stop)."""
+    def _body(self, i, scratch: cz.Scratch | None = None):
+        """Decompressed body of packet ``i`` as a uint8 array (or raise/stop).
+
+        With ``scratch`` (one per thread, see :class:`~evtk.io._compression.Scratch`) the packet is read and
+        decompressed into its buffers and the array returned is a view of them, valid until the next call
+        with it: a loop over packets then allocates nothing per packet. Without, it is a new buffer.
+        """
         idx = self._index
         off, size = int(idx.offset[i]), int(idx.size[i])
-        data = self._pread(size + 8, off - 8)
+        data = self._pread(size + 8, off - 8) if scratch is None else self._pread_into(scratch.room(size + 8), off - 8)
         if len(data) < size + 8:
             self._fail(off - 8, "file ends inside a packet")
         sid, sz = struct.unpack_from("<ii", data, 0)
@@ -168,10 +174,25 @@ class Recording(_FileIndex, BaseRecording):
         if self._code == cz.NONE and cz.sniff(body):
             self._fail(off, f"the header declares no compression but the body is a {cz.sniff(body)} frame")
         try:
-            raw = cz.decompress(self._code, body, cz.output_limit(size), self.verify_checksums)
+            if scratch is None:
+                return np.frombuffer(cz.decompress(self._code, body, cz.output_limit(size), self.verify_checksums),
+                                     np.uint8)
+            return cz.decompress_into(self._code, body, cz.output_limit(size), self.verify_checksums, scratch)
         except cz.CodecError as exc:
             self._fail(off, f"packet body cannot be decompressed: {exc}")
-        return np.frombuffer(raw, np.uint8)
+            raise  # pragma: no cover - _fail always raises
+
+    def _pread_into(self, buf, offset: int):
+        """Read ``len(buf)`` bytes at ``offset`` into ``buf`` (fewer at the end of the file).
+
+        Returns
+        -------
+        numpy.ndarray
+            The part of ``buf`` read.
+        """
+        if self._fd < 0:
+            raise EvtkError(f"{self.path}: the recording is closed")
+        return buf[:os.preadv(self._fd, [buf], offset)]
 
     def _select(self, typ, stream, t_start_us, t_end_us):
         s = self._stream(stream, typ)
@@ -307,10 +328,11 @@ class Recording(_FileIndex, BaseRecording):
         decode = _fbpy.decode_events
 
         def work(k0, k1):
+            scratch = cz.Scratch()  # this range's buffers, reused packet after packet
             for k in range(k0, k1):
                 i = rows[k]
                 try:
-                    b = self._body(i)
+                    b = self._body(i, scratch)
                 except _Stop:
                     return k
                 cap = int(counts[k])
@@ -464,9 +486,10 @@ class Recording(_FileIndex, BaseRecording):
     def _event_packets(self, s, rows):
         width, height = s.sensor_size
         ident = b"EVTS"
+        scratch = cz.Scratch()
         for i in rows:
             try:
-                b = self._body(i)
+                b = self._body(i, scratch)
             except _Stop:
                 break
             n = _fbpy.vector_length(b, ident, _fbpy.EVENT_STRUCT)
@@ -526,9 +549,10 @@ class Recording(_FileIndex, BaseRecording):
     def _trigger_packets(self, s, rows):
         """Yield the triggers of each packet of ``rows``, stopping where salvage stops."""
         ident = b"TRIG"
+        scratch = cz.Scratch()
         for i in rows:
             try:
-                b = self._body(i)
+                b = self._body(i, scratch)
             except _Stop:
                 return
             n = _fbpy.vector_length(b, ident, 0)
