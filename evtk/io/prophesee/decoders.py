@@ -3,6 +3,7 @@ decoders."""
 
 from __future__ import annotations
 
+import bisect
 import os
 import re
 from collections.abc import Iterable
@@ -691,57 +692,69 @@ def _es_dvs_np(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
         status, bad = step(0, cur)
         if status != ST_OK:
             return finish(status, bad, False)
-    # the items from ``cur``: event starts and runs of 0xFE/0xFF bytes, in order
-    starts, ff_at = [], []
+    # the items from ``cur``: event starts and runs of 0xFE/0xFF bytes, in order. Every such byte of the slice
+    # (few: ES_MARKER_SHARE), the end of the run each one is in, and by position modulo 5 (the grid of starts)
+    hi = np.flatnonzero(data >= 0xFE)
+    cut = np.flatnonzero(np.diff(hi) != 1)
+    run_end = np.append(hi[cut] + 1, hi[-1:] + 1)[np.concatenate(([0], np.cumsum(np.diff(hi) != 1)))] \
+        if len(hi) else hi
+    hi_list = hi.tolist()
+    on_grid = [hi[hi % 5 == k].tolist() for k in range(5)]
+    starts, ends, runs = [], [], []  # event starts: range(starts[i], ends[i], 5), run i of such bytes after it
     while cur + 5 <= nb:
-        # where events may start, each with its four bytes inside the slice (512 at a time)
-        cand = data[cur:min(nb - 4, cur + 5 * 512):5]
-        mark = cand >= 0xFE
-        j = int(np.argmax(mark))
-        if not mark[j]:
-            starts.append(np.arange(cur, cur + 5 * len(cand), 5))
-            cur += 5 * len(cand)
-            continue
-        starts.append(np.arange(cur, cur + 5 * j, 5))
-        q = r = cur + 5 * j
-        while r < nb:  # the run of such bytes from q, each read where an event may start
-            seg = data[r:r + 256] >= 0xFE
-            k = int(np.argmin(seg))
-            if not seg[k]:
-                r += k
-                break
-            r += len(seg)
-        ff_at.append(q + np.flatnonzero(data[q:r] == 0xFF))
+        grid = on_grid[cur % 5]
+        k = bisect.bisect_left(grid, cur)
+        q = grid[k] if k < len(grid) else nb  # the first such byte where an event may start
+        if q + 5 > nb:  # none before the slice's last whole event: events to there
+            q = cur + 5 * ((nb - cur) // 5)
+            starts.append(cur)
+            ends.append(q)
+            cur = q
+            break
+        starts.append(cur)
+        ends.append(q)
+        j = bisect.bisect_left(hi_list, q)
+        r = int(run_end[j])  # the run of such bytes from q, each read where an event may start
+        runs.append(hi[j:j + r - q])
         cur = r
-    ev = np.concatenate(starts) if starts else np.zeros(0, np.int64)
-    ff = np.concatenate(ff_at) if ff_at else np.zeros(0, np.int64)
-    if len(ev):
-        # times: the start state's, plus every event's increment and 127 for every 0xFF up to it
-        inc = (data[ev] >> 1).astype(np.int64)
-        ff_before = np.searchsorted(ff, ev, side="right")
-        tcs = st[_ES_T] + np.cumsum(inc) + 127 * ff_before
-        xs = data[ev + 1].astype(np.int64) | (data[ev + 2].astype(np.int64) << 8)
-        ys = data[ev + 3].astype(np.int64) | (data[ev + 4].astype(np.int64) << 8)
-        off = (xs >= width) | (ys >= height)
+    ff = np.concatenate(runs) if runs else np.zeros(0, np.int64)
+    ff = ff[data[ff] == 0xFF]
+    counts = [(e - a) // 5 for a, e in zip(starts, ends)]
+    m = sum(counts)
+    if m:
+        # every event's five bytes, one row each: the ranges' own rows (views) joined
+        rec = np.concatenate([data[a:e].reshape(-1, 5) for a, e in zip(starts, ends)])
+        xy = rec[:, 1:5].view("<u2")  # x and y, little-endian 16 bits each (a view)
+        xs, ys = xy[:, 0], xy[:, 1]
+        # times: the start state's, plus every event's increment and 127 for every 0xFF before it (those of the
+        # runs before its range: the times never go back, so the first and last are the least and greatest)
+        tcs = np.cumsum(rec[:, 0] >> 1, dtype=np.int64)
+        total_inc = int(tcs[-1])
+        tcs += st[_ES_T]
+        if len(ff):
+            tcs += 127 * np.repeat(np.searchsorted(ff, starts), counts)
+        off = (xs >= np.uint32(width)) | (ys >= np.uint32(height))
         k = int(np.argmax(off))
         if off[k]:  # the clock moves to the event off the sensor (and the 0xFF bytes before it), then stops
             st[_ES_T] = int(tcs[k])
             st[_ES_PHASE] = 0
             if decode:
-                t[n:n + k], x[n:n + k], y[n:n + k] = tcs[:k], xs[:k], height - 1 - ys[:k]
-                p[n:n + k] = data[ev[:k]] & 1
+                t[n:n + k], x[n:n + k] = tcs[:k], xs[:k]
+                np.subtract(height - 1, ys[:k], out=y[n:n + k], casting="unsafe")
+                np.bitwise_and(rec[:k, 0], 1, out=p[n:n + k])
             if k:
-                t_min, t_max = min(t_min, int(tcs[:k].min())), max(t_max, int(tcs[:k].max()))
+                t_min, t_max = min(t_min, int(tcs[0])), max(t_max, int(tcs[k - 1]))
             n += k
-            return finish(ST_COORD, int(ev[k]) + 4, False)
+            i = int(np.searchsorted(np.cumsum(counts), k, side="right"))  # the range of event k
+            return finish(ST_COORD, starts[i] + 5 * (k - sum(counts[:i])) + 4, False)
         if decode:
-            m = len(ev)
-            t[n:n + m], x[n:n + m], y[n:n + m] = tcs, xs, height - 1 - ys
-            p[n:n + m] = data[ev] & 1
-        t_min, t_max = min(t_min, int(tcs.min())), max(t_max, int(tcs.max()))
-        n += len(ev)
-        st[_ES_X], st[_ES_Y], st[_ES_POL] = int(xs[-1]), int(ys[-1]), int(data[ev[-1]] & 1)
-    st[_ES_T] += int(np.sum(data[ev] >> 1, dtype=np.int64)) if len(ev) else 0
+            t[n:n + m], x[n:n + m] = tcs, xs
+            np.subtract(height - 1, ys, out=y[n:n + m], casting="unsafe")
+            np.bitwise_and(rec[:, 0], 1, out=p[n:n + m])
+        t_min, t_max = min(t_min, int(tcs[0])), max(t_max, int(tcs[-1]))
+        n += m
+        st[_ES_X], st[_ES_Y], st[_ES_POL] = int(xs[-1]), int(ys[-1]), int(rec[-1, 0] & 1)
+        st[_ES_T] += total_inc
     st[_ES_T] += 127 * len(ff)
     status, bad = step(cur, nb)  # the last bytes: a few 0xFE/0xFF, an event cut by the slice's end
     return finish(status, bad, status == ST_OK)
