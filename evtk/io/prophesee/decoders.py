@@ -365,6 +365,11 @@ def evt21_legacy(lines: list[str]) -> bool:
     return False
 
 
+#: The EVT 3.0 word types: 0, 2-8, 10, 14 and 15.
+_E3_KNOWN = np.isin(np.arange(16), (0, 2, 3, 4, 5, 6, 7, 8, 10, 14, 15))
+#: Set bits of each 12-bit value: the events of an EVT 3.0 vector word.
+_POP12 = np.unpackbits(np.arange(4096, dtype=">u2").view(np.uint8).reshape(-1, 2), axis=1).sum(axis=1, dtype=np.int64)
+
 # EVT 3.0 decoder state: time high, time low, epoch (wraps of the 24-bit time), y, vector base x, polarity
 _E3_HIGH, _E3_LOW, _E3_EPOCH, _E3_Y, _E3_BASE, _E3_POL = range(6)
 
@@ -383,12 +388,11 @@ def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     7, 14 and 15 carry no events. Decoding stops at a word of another type (ST_TYPE), at the first event off
     the sensor (ST_COORD: the events of that word before it are kept) or, decoding, at an event word whose
     12 possible events no longer fit ``t`` (ST_FULL, for the caller to resume at it)."""
-    w = np.asarray(words).astype(np.int64)
+    w = np.asarray(words).astype(np.uint16, copy=False)  # 16 bits throughout: half the memory traffic of int64
     kind = w >> 12
     v = w & 0xFFF
     n_words = len(w)
-    known = (kind == 0) | ((kind >= 2) & (kind <= 8)) | (kind == 10) | (kind >= 14)
-    stop, _ = _first_stop(~known)
+    stop, _ = _first_stop(~_E3_KNOWN[kind])
     status = ST_TYPE if stop >= 0 else ST_OK
     end = stop if stop >= 0 else n_words
     kind, v = kind[:end], v[:end]
@@ -396,15 +400,15 @@ def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     is_ev = is_x | is_v12 | is_v8
     mask = np.where(is_x, 1, np.where(is_v12, v, v & 0xFF))
     mask[~is_ev] = 0
+    counts = _POP12[mask]  # events of each word
     if decode:
-        counts = np.zeros(end, np.int64)
-        for k in range(12):
-            counts += (mask >> k) & 1
-        before = np.cumsum(counts) - counts  # events of the words before each
         is_trig = kind == 10
-        full, _ = _first_stop(is_ev & (before + 12 > len(t)), is_trig & (np.cumsum(is_trig) > len(tt)))
-        if full >= 0:
-            status, stop, end = ST_FULL, full, full
+        # where the outputs are full (not before all the events and 12 more fit, and all the triggers)
+        if int(counts.sum()) + 12 > len(t) or int(np.count_nonzero(is_trig)) > len(tt):
+            before = np.cumsum(counts) - counts  # events of the words before each
+            full, _ = _first_stop(is_ev & (before + 12 > len(t)), is_trig & (np.cumsum(is_trig) > len(tt)))
+            if full >= 0:
+                status, stop, end = ST_FULL, full, full
     # the state in effect at a word: the last word at or before it that sets each part (else the start state)
     kv = kind[:end]
     vv = v[:end]
@@ -412,18 +416,22 @@ def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     highs = vv[at_high]
     prev = np.concatenate(([state[_E3_HIGH]], highs[:-1]))
     epochs = state[_E3_EPOCH] + np.cumsum((highs < prev) & (prev - highs > 2048))
-    steps = np.where(is_v12[:end], 12, np.where(is_v8[:end], 8, 0))
+    has_vec = bool(is_v12[:end].any() or is_v8[:end].any())  # else every event is an EVT_ADDR_X word's
+    steps = np.where(is_v12[:end], 12, np.where(is_v8[:end], 8, 0)) if has_vec else np.zeros(end, np.int64)
     moved = np.cumsum(steps) - steps  # steps of the vectors before each word
 
-    def state_at(pos):
-        """(y, time, base x, polarity) in effect at the word positions ``pos`` (sorted)."""
+    def state_at(pos, with_base=True):
+        """(y, time, base x, polarity) in effect at the word positions ``pos`` (sorted); without ``with_base``
+        the base and polarity are None."""
         def last(setters, values, initial):
             k = np.searchsorted(setters, pos, side="right") - 1
             return np.where(k >= 0, values[np.maximum(k, 0)], initial) if len(setters) else np.full(len(pos), initial)
 
         yy = last(at_y, vv[at_y] & 0x7FF, state[_E3_Y])
-        tw = ((last(at_high, epochs, state[_E3_EPOCH]) << 24) | (last(at_high, highs, state[_E3_HIGH]) << 12)
+        tw = ((last(at_high, (epochs << 12) | highs, (state[_E3_EPOCH] << 12) | state[_E3_HIGH]) << 12)
               | last(at_low, vv[at_low], state[_E3_LOW]))
+        if not with_base:
+            return yy, tw, None, None
         kb = np.searchsorted(at_base, pos, side="right") - 1
         if len(at_base):
             b = at_base[np.maximum(kb, 0)]
@@ -435,9 +443,17 @@ def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
 
     # every event, in word order and by bit within a word
     ev_words = np.flatnonzero(is_ev[:end])
-    rows, bits = np.nonzero((mask[ev_words].astype(np.uint16)[:, None] >> np.arange(12, dtype=np.uint16)) & 1)
-    w_y, w_t, w_base, w_pol = state_at(ev_words)
-    ex = np.where(is_x[:end][ev_words], vv[ev_words] & 0x7FF, w_base)[rows] + bits  # EVT_ADDR_X: bit 0 only
+    w_y, w_t, w_base, w_pol = state_at(ev_words, has_vec)
+    if has_vec:
+        rows = np.repeat(np.arange(len(ev_words)), counts[ev_words])
+        bits = np.zeros(len(rows), np.int64)  # EVT_ADDR_X: bit 0; a vector's set bits, in order, from a bit matrix
+        vec = ~is_x[ev_words]
+        bits[np.repeat(vec, counts[ev_words])] = np.nonzero(
+            (mask[ev_words[vec]].astype(np.uint16)[:, None] >> np.arange(12, dtype=np.uint16)) & 1)[1]
+        ex = np.where(is_x[:end][ev_words], vv[ev_words] & 0x7FF, w_base)[rows] + bits  # EVT_ADDR_X: bit 0 only
+    else:  # one event a word
+        rows = np.arange(len(ev_words))
+        ex = vv[ev_words] & 0x7FF
     ey = w_y[rows]
     bad_ev, _ = _first_stop((ex >= width) | (ey >= height))
     done = end  # the words whose effects stand: those before the stop
@@ -455,9 +471,12 @@ def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
         t[:n] = et
         x[:n] = ex
         y[:n] = ey
-        p[:n] = np.where(is_x[:end][ev_words], (vv[ev_words] >> 11) & 1, w_pol)[rows]
+        if has_vec:
+            p[:n] = np.where(is_x[:end][ev_words], (vv[ev_words] >> 11) & 1, w_pol)[rows]
+        else:
+            p[:n] = (vv[ev_words[:n]] >> 11) & 1
         if m:
-            tt[:m] = state_at(trig)[1]
+            tt[:m] = state_at(trig, False)[1]
             tk[:m] = np.where(v[trig] & 1, 1, 2)
             tch[:m] = (v[trig] >> 8) & 0xF
     # the state after the words decoded (those before the stop)
