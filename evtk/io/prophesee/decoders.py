@@ -366,9 +366,13 @@ def evt21_legacy(lines: list[str]) -> bool:
 
 
 #: The EVT 3.0 word types: 0, 2-8, 10, 14 and 15.
-_E3_KNOWN = np.isin(np.arange(16), (0, 2, 3, 4, 5, 6, 7, 8, 10, 14, 15))
-#: Set bits of each 12-bit value: the events of an EVT 3.0 vector word.
-_POP12 = np.unpackbits(np.arange(4096, dtype=">u2").view(np.uint8).reshape(-1, 2), axis=1).sum(axis=1, dtype=np.int64)
+_E3_KNOWN = np.zeros(16, bool)
+_E3_KNOWN[[0, 2, 3, 4, 5, 6, 7, 8, 10, 14, 15]] = True
+#: Set bits of each 12-bit value (the events of an EVT 3.0 vector word): the values below 2**(k+1) are those below
+#: 2**k, then the same with bit k set (built by doubling: 0.1 ms of an import, half of an unpackbits table)
+_POP12 = np.zeros(1, np.int64)
+for _ in range(12):
+    _POP12 = np.concatenate((_POP12, _POP12 + 1))
 
 # EVT 3.0 decoder state: time high, time low, epoch (wraps of the 24-bit time), y, vector base x, polarity
 _E3_HIGH, _E3_LOW, _E3_EPOCH, _E3_Y, _E3_BASE, _E3_POL = range(6)
