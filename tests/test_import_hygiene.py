@@ -121,3 +121,18 @@ def test_the_lazily_loaded_names_are_listed_and_load(module):
     assert set(mod.__all__) <= set(dir(mod)), sorted(set(mod.__all__) - set(dir(mod)))
     for name in mod.__all__:
         assert getattr(mod, name) is not None
+
+
+@pytest.mark.parametrize("fmt", ["es", "evt3"])
+def test_evtk_info_loads_no_writer_or_archive_modules(tmp_path, fmt):
+    """``evtk info F`` in a fresh process: every command loaded evtk's output guard with hashlib, socket and
+    tempfile (13 ms) for a partial-file tag only a write uses, and ``info`` zipfile (with shutil, bz2 and lzma,
+    8 ms) to tell a reconstruction NPZ from a recording."""
+    path = _fixture(tmp_path, fmt)
+    names = ("hashlib", "socket", "tempfile", "zipfile", "shutil", "lzma", "bz2")
+    code = ("import sys\nfrom evtk.cli import main\n"
+            f"try:\n    main(['info', {str(path)!r}])\nexcept SystemExit as exc:\n    assert not exc.code, exc.code\n"
+            f"print('LOADED', sorted(m for m in {names!r} if m in sys.modules))\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
+    assert eval(out.split("LOADED", 1)[1].strip()) == []  # a list of names printed by the child
