@@ -17,26 +17,35 @@ batch output) can replace neither an input nor another output of the command.
 
 from __future__ import annotations
 
+import _thread
 import contextlib
 import contextvars
-import hashlib
 import io
 import os
 import signal
-import socket
-import tempfile
-import threading
 
 from .errors import EvtkError
 
 PARTIAL_SUFFIX = ".evtk-partial"
 
-#: A short tag of this machine in partial-file names: stale partial files are only removed by the host that made them.
-_HOST_TAG = hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:8]
+_HOST_TAG: str | None = None
+
+
+def _host_tag() -> str:
+    """A short tag of this machine in partial-file names: stale partial files are only removed by the host that
+    made them. Found on the first write (hashlib, socket and tempfile cost every command 13 ms at start)."""
+    global _HOST_TAG
+    if _HOST_TAG is None:
+        import hashlib
+        import socket
+
+        _HOST_TAG = hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:8]
+    return _HOST_TAG
+
 
 # partial files being written, by the process that writes them (a forked child must not remove its parent's)
 _LIVE: dict = {}
-_LIVE_LOCK = threading.RLock()  # re-entrant: the signal handler may run while the main thread holds it
+_LIVE_LOCK = _thread.RLock()  # re-entrant: the signal handler may run while the main thread holds it
 _PREVIOUS_HANDLERS: dict = {}
 _SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
@@ -70,6 +79,8 @@ def _on_signal(signum, frame):
 
 def _install_signal_handlers():
     """Chain :func:`_on_signal` before the handlers in place (once; only the main thread may)."""
+    import threading
+
     if threading.current_thread() is not threading.main_thread():
         return
     for signum in _SIGNALS:
@@ -107,7 +118,7 @@ def _partials_in(directory) -> set:
         names = _PARTIALS_SEEN.get(directory)
     if names is None:
         try:
-            names = {n for n in os.listdir(directory) if n.endswith(PARTIAL_SUFFIX) and f".{_HOST_TAG}-" in n}
+            names = {n for n in os.listdir(directory) if n.endswith(PARTIAL_SUFFIX) and f".{_host_tag()}-" in n}
         except OSError:
             names = set()
         with _LIVE_LOCK:
@@ -130,7 +141,7 @@ def remove_stale_partials(path) -> list:
     """
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
-    prefix = os.path.basename(path) + f".{_HOST_TAG}-"
+    prefix = os.path.basename(path) + f".{_host_tag()}-"
     removed = []
     names = _partials_in(directory)
     for name in [n for n in names if n.startswith(prefix)]:
@@ -165,8 +176,10 @@ class AtomicFile:
         _check_target(self.path)  # before the work of writing it
         remove_stale_partials(self.path)
         _install_signal_handlers()
+        import tempfile
+
         fd, self.tmp_path = tempfile.mkstemp(
-            prefix=f"{os.path.basename(self.path)}.{_HOST_TAG}-{os.getpid()}.", suffix=PARTIAL_SUFFIX, dir=directory
+            prefix=f"{os.path.basename(self.path)}.{_host_tag()}-{os.getpid()}.", suffix=PARTIAL_SUFFIX, dir=directory
         )
         with _LIVE_LOCK:
             _LIVE[self.tmp_path] = os.getpid()

@@ -15,12 +15,12 @@ from collections.abc import Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from ._table import columns_to_table, table_to_columns
 from .errors import EvtkError
 
 if TYPE_CHECKING:
+    import numpy.typing as npt  # for the annotations only: a fresh process need not load it
     import pyarrow as pa
 
 #: A sensor size as the API takes it: ``(width, height)`` in pixels, any two whole numbers (checked).

@@ -86,3 +86,53 @@ def test_info_and_convert_to_hdf5_load_no_compiler(tmp_path, fmt):
                         "        assert not exc.code, exc.code\n")
     assert set(loaded) <= {"h5py"}, loaded
     assert len(evtk.read_events(out)) == 50_000
+
+
+# what a fresh process's start pays for beyond Python, numpy and evtk's own modules: 0.5-2.5 ms each here, against
+# peers whose whole read of a small file takes a few (issue 32)
+START_UP = ("lz4", "zstandard", "xxhash", "hdf5plugin", "click", "xml.etree.ElementTree", "json", "threading",
+            "numpy.typing", "dataclasses")
+# an AEDAT4 file evtk writes has LZ4 packets: the codecs' module (which holds the thread pool's lock) loads for it
+START_UP_NEEDED = {"aedat4": {"lz4", "threading"}}
+
+
+@pytest.mark.parametrize("fmt", ["aedat4", "evt3", "es", "evt2", "dat"])
+def test_a_fresh_read_events_loads_no_module_it_does_not_use(tmp_path, fmt):
+    """``import evtk; evtk.read_events(F)`` in a fresh process: no compiler or other format's library, and none of the
+    modules a file of this format does not use. Every format's read loaded lz4 (the checksum setting lives beside
+    the codecs) and json, numpy.typing, threading and dataclasses (module-level imports); AEDAT4's xml.etree."""
+    path = _fixture(tmp_path, fmt)
+    names = HEAVY + START_UP
+    code = (f"import sys, evtk\nassert len(evtk.read_events({str(path)!r})) == 50_000\n"
+            f"print('LOADED', sorted(m for m in {names!r} if m in sys.modules))\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
+    loaded = set(eval(out.split("LOADED", 1)[1].strip()))  # a list of names printed by the child
+    assert loaded <= START_UP_NEEDED.get(fmt, set()), sorted(loaded - START_UP_NEEDED.get(fmt, set()))
+
+
+@pytest.mark.parametrize("module", ["evtk", "evtk.io"])
+def test_the_lazily_loaded_names_are_listed_and_load(module):
+    """The names loaded on first use (module ``__getattr__``) are in ``dir()`` and resolve, as ``from evtk import X``
+    does; ``dir(evtk)`` lacked Events, Triggers, Recording and the others."""
+    import importlib
+
+    mod = importlib.import_module(module)
+    assert set(mod.__all__) <= set(dir(mod)), sorted(set(mod.__all__) - set(dir(mod)))
+    for name in mod.__all__:
+        assert getattr(mod, name) is not None
+
+
+@pytest.mark.parametrize("fmt", ["es", "evt3"])
+def test_evtk_info_loads_no_writer_or_archive_modules(tmp_path, fmt):
+    """``evtk info F`` in a fresh process: every command loaded evtk's output guard with hashlib, socket and
+    tempfile (13 ms) for a partial-file tag only a write uses, and ``info`` zipfile (with shutil, bz2 and lzma,
+    8 ms) to tell a reconstruction NPZ from a recording."""
+    path = _fixture(tmp_path, fmt)
+    names = ("hashlib", "socket", "tempfile", "zipfile", "shutil", "lzma", "bz2")
+    code = ("import sys\nfrom evtk.cli import main\n"
+            f"try:\n    main(['info', {str(path)!r}])\nexcept SystemExit as exc:\n    assert not exc.code, exc.code\n"
+            f"print('LOADED', sorted(m for m in {names!r} if m in sys.modules))\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
+    assert eval(out.split("LOADED", 1)[1].strip()) == []  # a list of names printed by the child

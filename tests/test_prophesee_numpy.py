@@ -90,3 +90,40 @@ def test_event_stream_numpy_decoder_equals_the_numba_loop(monkeypatch, slice_wor
             assert r1 == r2 and np.array_equal(s1[:compared], s2[:compared]), (trial, decode, r1, r2)
             for a, b in zip(got[:4], want[:4]):
                 assert np.array_equal(a[:r1[0]], b[:r1[0]]), trial
+
+
+@pytest.mark.parametrize("slice_words", [1000, 1 << 16])
+def test_event_stream_numpy_decoder_equals_the_numba_loop_on_long_streams(monkeypatch, slice_words):
+    """As above on streams of up to 20 kB, with coordinates up to 639 (low bytes of 0xFE and 0xFF inside the
+    events, which are no markers) and runs of up to eight marker bytes: the numpy decoder finds the next marker on
+    the grid of event starts and the end of its run from tables of the slice's marker bytes."""
+    monkeypatch.setattr(decoders, "SLICE_WORDS", slice_words)
+    monkeypatch.setattr(decoders, "ES_MARKER_SHARE", 1.0)
+    rng = np.random.default_rng(11)
+    for trial in range(60):
+        n = int(rng.integers(0, 20_000))
+        parts, size = [], 0
+        while size < n:
+            r = rng.random()
+            if r < 0.02:
+                part = np.full(int(rng.integers(1, 9)), 0xFF, np.uint8)
+            elif r < 0.03:
+                part = np.array([0xFE, 0xFF][:int(rng.integers(1, 3))], np.uint8)
+            else:
+                b0, xx, yy = int(rng.integers(0, 0xFE)), int(rng.integers(0, 640)), int(rng.integers(0, 480))
+                part = np.array([b0, xx & 0xFF, xx >> 8, yy & 0xFF, yy >> 8], np.uint8)
+            parts.append(part)
+            size += len(part)
+        data = np.concatenate(parts)[:n] if parts else np.zeros(0, np.uint8)
+        width, height = (700, 500) if trial % 4 else (600, 470)  # every fourth: an event off the sensor
+        state = np.array([rng.integers(0, 1000), 0, 0, 0, 0], np.int64)
+        for decode in (False, True):
+            cap = len(data) // 5 + 1
+            got, want = _outs(cap), _outs(cap)
+            s1, s2 = state.copy(), state.copy()
+            r1 = tuple(int(a) for a in decoders._es_np_run(data, s1, width, height, decode, *got))
+            r2 = tuple(int(a) for a in decoders._es_dvs_run(data, s2, width, height, decode, *want))
+            compared = 2 if r2[2] == decoders.ST_COORD else 5
+            assert r1 == r2 and np.array_equal(s1[:compared], s2[:compared]), (trial, decode, r1, r2)
+            for a, b in zip(got[:4], want[:4]):
+                assert np.array_equal(a[:r1[0]], b[:r1[0]]), trial

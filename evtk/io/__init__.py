@@ -33,6 +33,11 @@ def __getattr__(name):
         return getattr(importlib.import_module(f"{__name__}.{module}"), attr)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))  # the names loaded on first use too
+
+
 #: Extension -> format name for writing.
 WRITE_EXTENSIONS = {".aedat4": "aedat4", ".h5": "hdf5", ".hdf5": "hdf5", ".parquet": "parquet", ".pq": "parquet",
                     ".raw": "evt3", ".dat": "dat", ".es": "es", ".csv": "csv", ".txt": "csv"}
@@ -224,8 +229,8 @@ def open(path: str | os.PathLike[str], salvage: bool = False,  # noqa: A001
         sensor_size = _sensor_size_from_env()
     if layout is None:
         layout = os.environ.get(LAYOUT_ENV, "").strip().lower() or None
-    if verify_checksums is None:
-        from ._compression import verify_by_default
+    if verify_checksums is None and fmt in ("aedat4", "parquet"):  # only these carry checksums: the codecs'
+        from ._compression import verify_by_default  # module (lz4, threads) loads for them alone
 
         verify_checksums = verify_by_default()
     if fmt == "aedat-other":
@@ -235,7 +240,7 @@ def open(path: str | os.PathLike[str], salvage: bool = False,  # noqa: A001
     if fmt == "aedat4":
         from .aedat4 import Recording
 
-        return Recording(path, salvage=salvage, verify_checksums=verify_checksums)
+        return Recording(path, salvage=salvage, verify_checksums=bool(verify_checksums))
     if fmt == "prophesee":
         from .prophesee import PropheseeRecording
 
@@ -257,7 +262,7 @@ def open(path: str | os.PathLike[str], salvage: bool = False,  # noqa: A001
         return Hdf5Recording(path, salvage=salvage, sensor_size=sensor_size, sort=sort, trust_external=trust_external)
     from .arrow import ParquetRecording
 
-    return ParquetRecording(path, salvage=salvage, sensor_size=sensor_size, verify_checksums=verify_checksums)
+    return ParquetRecording(path, salvage=salvage, sensor_size=sensor_size, verify_checksums=bool(verify_checksums))
 
 
 def read_events(path: str | os.PathLike[str], t_start_us: int | None = None, t_end_us: int | None = None) -> Events:

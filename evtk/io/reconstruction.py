@@ -12,16 +12,17 @@ from __future__ import annotations
 
 import json
 import os
-import zipfile
-import zlib
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .._atomic import AtomicFile
 from ..errors import EvtkError, FormatError
 from .base import load_json, sensor_dims
+
+if TYPE_CHECKING:  # zipfile (with shutil, bz2, lzma) loads where an NPZ is read: 8 ms of every `evtk info`
+    import zipfile
 
 __all__ = ["save_reconstruction", "read_reconstruction", "is_reconstruction", "describe_reconstruction",
            "LAYOUT_VERSION"]
@@ -115,6 +116,8 @@ def is_reconstruction(path: str | os.PathLike[str], trust_external: bool | None 
     if head.startswith(_HDF5_MAGIC):
         return _hdf5_kind(path, trust_external) == "reconstruction"
     if head.startswith(b"PK"):
+        import zipfile
+
         try:
             with zipfile.ZipFile(path) as z:
                 return "summary.npy" in z.namelist()
@@ -312,6 +315,9 @@ def _read_hdf5(path, trust_external):
 
 def _read_npz(path):
     """An NPZ's arrays, each member's declared size and ``.npy`` header checked before it is read."""
+    import zipfile
+    import zlib
+
     names = ("summary",) + _REQUIRED + _OPTIONAL
     try:
         with zipfile.ZipFile(path) as z:

@@ -13,8 +13,8 @@ _IDENT = {name: np.frombuffer(name.encode(), np.uint8) for name in ("EVTS", "TRI
 
 
 def _jit():
-    """The compiled FlatBuffers encoders (numba loads on first use: only writing needs them; reading decodes
-    with :mod:`evtk.io._fbpy`)."""
+    """The FlatBuffers encoders (:mod:`evtk.io._fb`, numpy; loaded on first use: only writing needs them,
+    reading decodes with :mod:`evtk.io._fbpy`)."""
     from .. import _fb
 
     return _fb
