@@ -76,15 +76,34 @@ def test_the_work_bound_grows_with_the_events():
     assert len(windows_periodic(0, 2 * 10**9, 1000, events=10**6)) == 2 * 10**6  # many events justify the windows
 
 
-@pytest.mark.parametrize("command", [("enob",), ("flips",), ("reconstruct", "-o", "OUT")])
+@pytest.mark.parametrize("command", [("enob",), ("flips",), ("reconstruct", "--keep-pixels", "-o", "OUT")])
 def test_huge_declared_sensor_is_refused_under_a_small_budget(tmp_path, command):
-    """A 2048x2048 sensor holding two events: one window's counts and stages take 256 MiB; the budget is 64."""
+    """A 2048x2048 sensor holding two events: one window's counts and stages take 256 MiB; the budget is 64.
+    (Responses alone need no window's pixels: see the next test.)"""
     path = _two_events(tmp_path / "wide.aedat4", [0, 10_000], sensor=(2048, 2048))
     args = [a if a != "OUT" else tmp_path / "r.h5" for a in command]
     code, out = _cli("--memory-limit-mb", "64", *args[:1], path, *args[1:], "--window", "period:1000")
     _one_line_error(code, out)
     assert "MiB" in out and "64 MiB allowed" in out, out
     assert not (tmp_path / "r.h5").exists()
+
+
+def test_responses_alone_of_a_huge_declared_sensor_fit_a_small_budget(tmp_path):
+    """Without --keep-pixels the fixed windows' net counts go straight to their output cells: the 2048x2048
+    sensor's 10 responses fit 64 MiB, and the one event counted lands in the right cell."""
+    path = _two_events(tmp_path / "wide.aedat4", [0, 10_000], sensor=(2048, 2048))
+    code, out = _cli("--memory-limit-mb", "64", "reconstruct", path, "-o", tmp_path / "r.npz",
+                     "--window", "period:1000")
+    assert code == 0, out
+    got = evtk.load_reconstruction(tmp_path / "r.npz")
+    assert got.responses.shape == (10, 16, 16)
+    ev = evtk.read_events(path)
+    first = ev.t == 0
+    cell = (int(ev.y[first][0]) // 128, int(ev.x[first][0]) // 128)
+    sign = 1.0 if int(ev.p[first][0]) else -1.0
+    expected = np.zeros((10, 16, 16))
+    expected[0][cell] = sign / 128**2  # one event's net count, the mean over its cell's 128x128 pixels
+    np.testing.assert_allclose(got.responses, expected, rtol=1e-12, atol=0)
 
 
 def test_a_normal_file_goes_through_under_the_default_budget(tmp_path):
