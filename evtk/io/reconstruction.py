@@ -75,7 +75,7 @@ def save_reconstruction(path: str | os.PathLike[str], result: Any, sensor_size: 
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if ext == ".npz":
         with AtomicFile(path) as f:
-            np.savez_compressed(f.file, summary=np.array(json.dumps(meta)), **arrays)
+            _write_npz(f.file, {"summary": np.array(json.dumps(meta)), **arrays})
     elif ext in (".h5", ".hdf5"):
         from .hdf5 import Hdf5Writer  # HDF5 (and its compiled checks) load only for .h5 outputs
 
@@ -84,6 +84,23 @@ def save_reconstruction(path: str | os.PathLike[str], result: Any, sensor_size: 
                 w.write_array(f"reconstruction/{name}", a)
     else:
         raise EvtkError(f"cannot tell the output format from {ext!r}: use .npz, .h5 or .hdf5")
+
+
+#: zlib level of the NPZ members: 1 deflates the responses about 3x faster than numpy's default (6), for a
+#: file about 1.4x larger (0.05 s against 0.16 s for 1000 windows of 16x16; what a fresh ``evtk reconstruct``
+#: spends besides its read, issue 32). Any deflate level reads back with ``np.load``.
+NPZ_COMPRESS_LEVEL = 1
+
+
+def _write_npz(file: Any, arrays: Mapping[str, Any]) -> None:
+    """An NPZ (a zip of ``.npy`` members, deflated at :data:`NPZ_COMPRESS_LEVEL`) of ``arrays`` into an open
+    binary file, as ``np.load`` reads it; no member is pickled."""
+    import zipfile
+
+    with zipfile.ZipFile(file, "w", zipfile.ZIP_DEFLATED, compresslevel=NPZ_COMPRESS_LEVEL, allowZip64=True) as z:
+        for name, a in arrays.items():
+            with z.open(f"{name}.npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(a), allow_pickle=False)
 
 
 def is_reconstruction(path: str | os.PathLike[str], trust_external: bool | None = None) -> bool:
