@@ -44,7 +44,7 @@ from .reconstruct import (
     window_bytes,
 )
 from .reconstruct.accumulate import accumulate_batches
-from .reconstruct.fixed import count_batches, fixed_supported, pixel_values
+from .reconstruct.fixed import count_batches, fixed_supported, linear_without_plan, pixel_values
 
 if TYPE_CHECKING:  # (the simulator, the optics and the per-pixel stages load where a function needs them:
     # measuring fixed windows needs none of them)
@@ -205,7 +205,7 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     batch = max(1, min(NOISE_BATCH_BYTES, (memory_limit_bytes() - fixed) // 2) // per_window)
     # the linearisation reconstruct_counts chooses without a plan: net counts unless a theta was given
     theta = options.get("theta")
-    linear = bool(options.get("linear", True)) and theta is not None
+    linear = linear_without_plan(options.get("linear", True), theta)
     acc: SinadAccumulator | None = None
     binary: np.ndarray | None = None
     if fixed_supported(dict(options, skip_us=skip_us, length_us=length_us)):

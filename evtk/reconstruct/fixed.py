@@ -31,7 +31,7 @@ from .result import Reconstruction
 from .summary import ReconstructionSummary
 from .windows import WindowCounts, Windows
 
-#: Most count bins (int64) one batch of windows holds: 16 MB, small enough to stay in cache.
+#: Most count bins (int32) one batch of windows holds: 8 MB, small enough to stay in cache.
 BATCH_BINS = 1 << 21
 
 #: Largest (ON, OFF) table of ``expm1`` values looked up; larger counts are linearised directly.
@@ -40,6 +40,28 @@ _TABLE_MAX = 1 << 20
 #: The settings :func:`fixed_responses` takes (the rest need a schedule or the per-pixel stages).
 FIXED_OPTIONS = frozenset({"size", "binarize_method", "linear", "theta", "crop", "skip_us", "length_us", "deblur",
                            "flat_field", "timing"})
+
+
+def linear_without_plan(linear: bool, theta: float | None) -> bool:
+    """Whether counts without a plan are linearised: only by a theta given (``exp(n theta)``).
+
+    Without a pixel model or a flat-field gain nothing says how counts map to light, so the responses are net
+    counts ON - OFF unless the user states a contrast threshold. The one rule of :func:`fixed_responses`,
+    :func:`evtk.reconstruct.reconstruct_counts` without a plan and :func:`evtk.sweeps.recording_noise`.
+
+    Parameters
+    ----------
+    linear : bool
+        Linearisation asked for (``--linearize``, the default) or not (``--counts``).
+    theta : float, optional
+        The contrast threshold given, if any.
+
+    Returns
+    -------
+    bool
+        True only for ``linear`` with a ``theta``.
+    """
+    return bool(linear) and theta is not None
 
 
 def fixed_supported(options: dict) -> bool:
@@ -311,7 +333,7 @@ def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size:
 
     What :func:`evtk.reconstruct.reconstruct_counts` gives the same windows' counts without a plan (the same
     responses to rounding, the same binary responses and summary), in memory bounded by the responses and one
-    batch: only the region's pixels are counted, in int64 bins (net counts resized by whole factors go
+    batch: only the region's pixels are counted, in int32 bins (net counts resized by whole factors go
     straight to their output cell), and no window's pixels are kept.
 
     Parameters
@@ -362,8 +384,7 @@ def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size:
     oh, ow = (int(v) for v in size)
     if oh < 1 or ow < 1:
         raise EvtkError(f"size must be positive, not {size}")
-    if theta is None:  # nothing in the plan to linearise by: net counts (as reconstruct_counts without a plan)
-        linear = False
+    linear = linear_without_plan(linear, theta)
     theta_on = 0.2 if theta is None else float(theta)
     cells = not linear and h_px % oh == 0 and w_px % ow == 0  # each event straight to its output cell
     responses = np.empty((n_w, oh, ow), np.float64)

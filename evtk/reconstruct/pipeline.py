@@ -15,7 +15,7 @@ from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
 from .deblur import DEFAULT_LAMBDA, relative_noise, sampling_matrix, solve_cells
 from .fit import interior_pixels
-from .fixed import fixed_responses, fixed_supported
+from .fixed import fixed_responses, fixed_supported, linear_without_plan
 from .grid import combine_passes, downsample, sample_response_grid, to_response_grid
 from .linearize import (
     _expected_flat_counts,
@@ -246,8 +246,8 @@ def _reconstruct_counts(counts, run, skip_us, length_us, size, binarize_method, 
                         flat_field, timing, curve=None):
     """:func:`reconstruct_counts`' stages on a plan ``run`` with a pixel model (:func:`_model_plan`'s), or None."""
     pixels = None if run is None else run.pixels
-    if run is None and curve is None and theta is None:  # nothing in the plan to linearise by: net counts
-        linear = False
+    if run is None and curve is None:  # nothing in the plan to linearise by: net counts unless a theta is given
+        linear = linear_without_plan(linear, theta)
     win = counts.windows
     region = counts.region
     if theta is None:
