@@ -1,0 +1,53 @@
+#!/bin/bash
+# Issue 32's many-core figures in one call on a lent 16-core machine (docs/performance.md, "Every core").
+#
+# The machine has Python 3.12 with numpy, numba, h5py, pyarrow, click and scikit-image but reaches no package
+# index: the other packages travel as wheels in .whl/ (git-ignored through .git/info/exclude), fetched here with
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 ... -d .whl \
+#     lz4 zstandard tomli_w dv-processing dask distributed tornado tblib zict partd locket
+# and the command is `bash benchmarks/device_run.sh [steps]`, carrying .whl. Results go to $OUT (or /tmp/evtk-out).
+# The data files are made there (benchmarks/data is too large to travel). Steps: threads fresh reconstruct batch.
+set -u
+OUT=${OUT:-/tmp/evtk-out}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+    || exit 1
+export PYTHONPATH=/tmp/site:$PWD
+STEPS=${*:-threads fresh reconstruct batch}
+echo "cores: $(nproc), $(python3 -c 'import sys, numpy, numba; print(sys.version.split()[0], numpy.__version__, numba.__version__)')"
+lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)|L3" || true
+free -g | head -2
+
+# the data, in parallel: the 20 M-event files of bench_threads and bench_fresh_read, batch's 16 recordings
+t0=$(date +%s)
+
+python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_fresh_read as b; b.make_file(20_000_000, 'dv-lz4')" &
+python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_fresh_read as b; b.make_file(20_000_000, 'evtk-zstd')" &
+if [[ " $STEPS " == *" batch "* ]]; then
+    for i in $(seq 0 15); do
+        python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_batch as b; b.make_one($i)" &
+    done
+fi
+wait
+echo "data made in $(( $(date +%s) - t0 )) s"; ls -la benchmarks/data
+
+step() {  # name, seconds, command...
+    local name=$1 secs=$2; shift 2
+    echo "== $name ($(date +%T), load $(cut -d' ' -f1 /proc/loadavg))"
+    timeout "$secs" "$@" 2>&1 | tee "$OUT/$name.log"
+}
+for s in $STEPS; do
+    case $s in
+    threads) step threads 200 python3 benchmarks/bench_threads.py --cores 1,2,4,8,16 --rounds 3 --reads 5 \
+                 --formats aedat4-dv --phases --json "$OUT/threads.json" ;;
+    fresh) step fresh 150 python3 benchmarks/bench_fresh_read.py --writers dv-lz4,evtk-zstd --repeats 5 \
+               --json "$OUT/fresh.json" ;;
+    reconstruct) step reconstruct 150 python3 benchmarks/bench_reconstruct.py --fixed --repeats 3 \
+                     --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 \
+                     --ops "reconstruct, responses only;evtk reconstruct -o x.npz;evtk enob" ;;
+    batch) step batch 200 python3 benchmarks/bench_batch.py --recordings 16 --workers 16 --rounds 1 --repeats 1 \
+               --json "$OUT/batch.json" ;;
+    esac
+done
+echo "== done $(date +%T)"
