@@ -119,7 +119,7 @@ def _whole_process(args, tree):
     import subprocess
     import sys
 
-    env = dict(os.environ, PYTHONPATH=str(tree))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH")) if p))
     t0 = time.perf_counter()
     done = subprocess.run(["/usr/bin/time", "-f", "%M", sys.executable, *args], check=True, capture_output=True,
                           text=True, env=env)

@@ -46,7 +46,7 @@ for s in $STEPS; do
     reconstruct) step reconstruct 150 python3 benchmarks/bench_reconstruct.py --fixed --repeats 3 \
                      --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 \
                      --ops "reconstruct, responses only;evtk reconstruct -o x.npz;evtk enob" ;;
-    batch) step batch 200 python3 benchmarks/bench_batch.py --recordings 16 --workers 16 --rounds 1 --repeats 1 \
+    batch) step batch 200 python3 benchmarks/bench_batch.py --recordings 16 --workers 16 --rounds 1 --repeats 1 --fmt npz \
                --json "$OUT/batch.json" ;;
     esac
 done
