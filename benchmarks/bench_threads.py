@@ -51,7 +51,7 @@ HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"
 sys.path.insert(0, str(HERE))
 
-FORMATS = ("aedat4-dv", "aedat4-evtk", "evt2", "evt3", "hdf5", "parquet")
+FORMATS = ("aedat4-dv", "aedat4-evtk", "aedat4-zstd", "evt2", "evt3", "hdf5", "parquet")
 
 
 def data_file(n: int, fmt: str) -> Path:
@@ -60,6 +60,8 @@ def data_file(n: int, fmt: str) -> Path:
 
     if fmt == "aedat4-dv":
         return make_file(n, "dv-lz4")
+    if fmt == "aedat4-zstd":
+        return make_file(n, "evtk-zstd")
     ext = {"aedat4-evtk": "aedat4", "evt2": "raw", "evt3": "raw", "hdf5": "h5", "parquet": "parquet"}[fmt]
     path = DATA / f"threads_{n}_{fmt}.{ext}"
     if path.exists():

@@ -41,6 +41,14 @@ for s in $STEPS; do
     case $s in
     threads) step threads 200 python3 benchmarks/bench_threads.py --cores 1,2,4,8,16 --rounds 3 --reads 5 \
                  --formats aedat4-dv --phases --json "$OUT/threads.json" ;;
+    threads-ab)  # this tree against the one in .new (git archive of a branch, carried), alternating
+        for r in 1 2; do
+            for tree in "$PWD" "$PWD/.new"; do
+                PYTHONPATH=/tmp/site:$tree step "threads-$r-$(basename "$tree")" 200 python3 benchmarks/bench_threads.py \
+                    --cores 1,2,4,8,16 --rounds 1 --reads 5 --formats aedat4-dv,aedat4-zstd \
+                    --json "$OUT/threads-$r-$(basename "$tree").json"
+            done
+        done ;;
     fresh) step fresh 150 python3 benchmarks/bench_fresh_read.py --writers dv-lz4,evtk-zstd --repeats 5 \
                --json "$OUT/fresh.json" ;;
     reconstruct) step reconstruct 150 python3 benchmarks/bench_reconstruct.py --fixed --repeats 3 \
