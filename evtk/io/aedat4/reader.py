@@ -17,8 +17,9 @@ from ..base import BaseRecording, StreamInfo, load_json
 from .common import _STRUCT_SIZE, _TYPE_NAMES, _VECTOR_TYPES, _status
 from .index import _CountMismatch, _FileIndex, _Stop
 
-#: Events a decode thread takes from the file at a time (4 MiB of FlatBuffers events): see ``Recording._batcher``.
-BATCH_EVENTS = 1 << 18
+#: Events a decode thread takes from the file at a time (1 MiB of FlatBuffers events, which stay in a core's
+#: cache for the column copies): see ``Recording._batcher``.
+BATCH_EVENTS = 1 << 16
 # room in a thread's staging buffer for packet headers and the bytes after a packet's events
 _BATCH_SLACK = 1 << 16
 
@@ -334,11 +335,16 @@ class Recording(_FileIndex, BaseRecording):
         decode = _fbpy.decode_events
         batch = self._batcher(rows, counts, starts, out, width, height)
 
+        free: list[cz.Scratch] = []  # the read's buffers: a range takes a set, gives it back for the next range
+
         def work(k0, k1):
-            scratch = cz.Scratch()  # this range's buffers, reused packet after packet
-            if batch is None:
-                return packets(k0, k1, scratch)
-            return batch(k0, k1, scratch, packets)
+            scratch = free.pop() if free else cz.Scratch()  # reused packet after packet (list ops: atomic)
+            try:
+                if batch is None:
+                    return packets(k0, k1, scratch)
+                return batch(k0, k1, scratch, packets)
+            finally:
+                free.append(scratch)
 
         def packets(k0, k1, scratch):
             for k in range(k0, k1):
