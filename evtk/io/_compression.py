@@ -229,13 +229,34 @@ class Scratch:
     Not to be shared between threads.
     """
 
-    __slots__ = ("_raw", "_out", "_out_at", "_lz4")
+    __slots__ = ("_raw", "_out", "_out_at", "_lz4", "_stage", "header_hint")
 
     def __init__(self) -> None:
         self._raw = np.empty(0, np.uint8)
         self._out = np.empty(0, np.uint8)
         self._out_at = 0  # the output buffer's address, for the LZ4 library
         self._lz4: _Lz4Context | None = None  # this thread's LZ4 decompression context, made on first use
+        self._stage = np.empty(0, np.uint8)
+        #: a packet header's length in bytes, as the last packet had it (the AEDAT4 reader's batches)
+        self.header_hint = 0
+
+    def stage(self, n: int) -> np.ndarray:
+        """A third buffer of at least ``n`` bytes, where several packets' bodies are laid out side by side
+        (the AEDAT4 reader's batches); its contents are left from before.
+
+        Parameters
+        ----------
+        n : int
+            Bytes needed.
+
+        Returns
+        -------
+        numpy.ndarray
+            uint8, writable, at least ``n`` long.
+        """
+        if len(self._stage) < n:
+            self._stage = np.empty(max(n, 2 * len(self._stage)), np.uint8)
+        return self._stage
 
     def room(self, n: int) -> np.ndarray:
         """A buffer of exactly ``n`` bytes to read a packet into (its contents are left from before).
@@ -365,6 +386,87 @@ class _Lz4Context:
             self.ctx = None
 
 
+def _context(lib, scratch: Scratch) -> _Lz4Context:
+    """``scratch``'s LZ4 decompression context (made on first use)."""
+    d = scratch._lz4
+    if d is None or d.lib is not lib:
+        d = scratch._lz4 = _Lz4Context(lib)
+    return d
+
+
+def _lz4_steps(lib, d: _Lz4Context, src_at: int, n: int, read: int, out_at: int, written: int,
+               cap: int) -> tuple[int, int, bool]:
+    """``LZ4F_decompress`` calls on the frame at ``src_at`` (``n`` bytes, ``read`` of them consumed) into
+    ``out_at`` (``cap`` bytes, ``written`` of them filled) until the frame ends or a call makes no progress
+    (out of room or out of input); returns ``(written, read, ended)``. A damaged frame raises
+    :class:`CodecError` (the context reset)."""
+    while True:
+        d.dst_n.value, d.src_n.value = cap - written, n - read
+        hint = lib.LZ4F_decompress(d.ctx, out_at + written, d.dst_p, src_at + read, d.src_p, None)
+        if hint > _LZ4F_HINT_MAX and lib.LZ4F_isError(hint):  # errors are -code as a size_t; hints are small
+            lib.LZ4F_resetDecompressionContext(d.ctx)
+            name = lib.LZ4F_getErrorName(hint).decode("ascii", "replace")
+            raise CodecError(_lz4_error(RuntimeError(f"LZ4F_decompress failed with code: {name}")))
+        step_out, step_in = d.dst_n.value, d.src_n.value
+        written += step_out
+        read += step_in
+        if hint == 0:  # the end mark (and content checksum) read: the frame is whole
+            return written, read, True
+        if not (step_out or step_in):
+            return written, read, False
+
+
+def lz4_into_at(body, src_at: int, limit: int, verify: bool, scratch: Scratch, out_at: int, cap: int) -> int:
+    """Decompress the LZ4 frame ``body`` (at address ``src_at``) to the address ``out_at``, at most ``cap``
+    bytes, with the frame library python-lz4 carries (the GIL released while it works).
+
+    The quick path of the AEDAT4 reader's batches: it reports only success. Whatever else happens (no
+    library, damage, a failed checksum, a frame larger than ``cap`` or ``limit``, a stated size not met) it
+    returns -1 and the caller decompresses the body again through :func:`decompress_into`, which names
+    the fault.
+
+    Parameters
+    ----------
+    body : bytes-like
+        The LZ4 frame.
+    src_at : int
+        Its address (``body`` must stay alive).
+    limit : int
+        Most bytes the body may decompress to (:func:`output_limit`).
+    verify : bool
+        Check the checksums the frame carries (see :func:`decompress`).
+    scratch : Scratch
+        This thread's buffers (their LZ4 context).
+    out_at : int
+        Where the output goes: the address of writable memory of at least ``cap`` bytes.
+    cap : int
+        Room there.
+
+    Returns
+    -------
+    int
+        Bytes written, or -1.
+    """
+    lib = _lz4f()
+    if not lib or bytes(body[:4]) != _LZ4_MAGIC:
+        return -1
+    if not verify and len(body) > 6 and body[4] & _LZ4_CHECKSUMS:
+        return -1  # the frame rebuilt without its checksums: decompress_into's route
+    size = _lz4_content_size(body)
+    limit = min(int(limit), MAX_PACKET_BYTES)
+    if size > limit or size > cap:
+        return -1
+    d = _context(lib, scratch)
+    try:
+        written, _, ended = _lz4_steps(lib, d, src_at, len(body), 0, out_at, 0, min(cap, limit))
+    except CodecError:
+        return -1
+    if not ended or (size > 0 and written != size):
+        lib.LZ4F_resetDecompressionContext(d.ctx)
+        return -1
+    return written
+
+
 def _lz4_into(lib, body, limit: int, verify: bool, scratch: Scratch) -> np.ndarray:
     """Decompress the LZ4 frame ``body`` into ``scratch``'s output buffer (see :func:`decompress_into`)."""
     body, size = _lz4_checked(body, limit, verify)
@@ -380,24 +482,12 @@ def _lz4_into(lib, body, limit: int, verify: bool, scratch: Scratch) -> np.ndarr
     else:
         out = scratch._output(min(limit + 1, max(2 * n, 1 << 16)), 0, limit + 1)
         cap = min(len(out), limit + 1)
-    d = scratch._lz4
-    if d is None or d.lib is not lib:
-        d = scratch._lz4 = _Lz4Context(lib)
+    d = _context(lib, scratch)
     written, read, out_at = 0, 0, scratch._out_at
     while True:
-        d.dst_n.value, d.src_n.value = cap - written, n - read
-        hint = lib.LZ4F_decompress(d.ctx, out_at + written, d.dst_p, src_at + read, d.src_p, None)
-        if hint > _LZ4F_HINT_MAX and lib.LZ4F_isError(hint):  # errors are -code as a size_t; hints are small
-            lib.LZ4F_resetDecompressionContext(d.ctx)
-            name = lib.LZ4F_getErrorName(hint).decode("ascii", "replace")
-            raise CodecError(_lz4_error(RuntimeError(f"LZ4F_decompress failed with code: {name}")))
-        step_out, step_in = d.dst_n.value, d.src_n.value
-        written += step_out
-        read += step_in
-        if hint == 0:  # the end mark (and content checksum) read: the frame is whole
+        written, read, ended = _lz4_steps(lib, d, src_at, n, read, out_at, written, cap)
+        if ended:
             break
-        if step_out or step_in:
-            continue
         # no progress: out of room (more room may let output held inside lz4 out) or out of input
         if written == cap and (size == 0 or read < n):
             if size > 0:

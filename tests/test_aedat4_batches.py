@@ -1,0 +1,138 @@
+"""The AEDAT4 reader's batches (issue 32, every core): a thread decompresses a batch of packets into one staging
+buffer, each packet's FlatBuffer header laid over the end of the events before it, and copies the columns out
+once. Whatever the packets' header lengths, sizes and codecs, a read returns what the packet-by-packet decode
+returns, and damage anywhere in a batch is named exactly as packet by packet."""
+
+from __future__ import annotations
+
+import struct
+
+import lz4.frame
+import numpy as np
+import pytest
+from conftest import random_events
+from test_hostile import _aedat4
+
+import evtk
+from evtk.io import _compression as cz
+from evtk.io.aedat4 import reader as a4r
+
+# events per packet and the padding between each packet's table and its vector: headers of 28 bytes up to
+# 28 + 70,000, longer and shorter than the packet before, odd lengths, empty packets between
+SIZES = (900, 0, 1, 2_500, 7, 3_000, 0, 640, 1_200, 33, 4_000, 5)
+PADS = (0, 4, 1, 0, 100, 3, 70_000, 8, 0, 13, 5, 0)
+
+
+def _body(ev, pad: int) -> bytes:
+    """An EVTS packet body laid out by hand: root offset, identifier, vtable, table, ``pad`` bytes, then the
+    event vector, which ends the buffer (a header of ``28 + pad`` bytes)."""
+    recs = np.zeros(len(ev), np.dtype({"names": ["t", "x", "y", "p"], "formats": ["<i8", "<u2", "<u2", "u1"],
+                                       "offsets": [0, 8, 10, 12], "itemsize": 16}))
+    recs["t"], recs["x"], recs["y"], recs["p"] = ev.t, ev.x, ev.y, ev.p
+    head = struct.pack("<I4sHHH2xiI", 16, b"EVTS", 6, 8, 4, 8, 4 + pad)
+    return head + (bytes(range(256)) * (pad // 256 + 1))[:pad] + struct.pack("<I", len(ev)) + recs.tobytes()
+
+
+def _frames(code, bodies):
+    if code == cz.NONE:
+        return list(bodies)
+    if code == cz.ZSTD:
+        return [cz.compress(cz.ZSTD, b) for b in bodies]
+    # with and without a content size (dv-processing writes none), every third one checksummed (faery)
+    return [lz4.frame.compress(b, store_size=bool(k % 2), content_checksum=k % 3 == 0, block_checksum=k % 3 == 0)
+            for k, b in enumerate(bodies)]
+
+
+def _packet_by_packet(rec, **kw):
+    """What the reader returns without batches (the decode before them)."""
+    rec._batcher = lambda *a: None
+    try:
+        return rec.events(**kw)
+    finally:
+        del rec._batcher
+
+
+@pytest.mark.parametrize("code", [cz.NONE, cz.LZ4, cz.ZSTD])
+@pytest.mark.parametrize("threads", ["1", "2"])
+@pytest.mark.parametrize("batch_events", [1, 1_000, 5_000, 1 << 18])
+def test_batches_read_what_packet_by_packet_reads(tmp_path, monkeypatch, code, threads, batch_events):
+    monkeypatch.setenv("EVTK_THREADS", threads)
+    monkeypatch.setattr(a4r, "BATCH_EVENTS", batch_events)
+    evs = [random_events(n, seed=60 + k) for k, n in enumerate(SIZES)]
+    path = tmp_path / "pads.aedat4"
+    _aedat4(path, code, _frames(code, [_body(ev, pad) for ev, pad in zip(evs, PADS)]))
+    expected = evtk.Events.concatenate(evs)
+    with evtk.open(path) as rec:
+        assert rec.events() == expected
+        assert _packet_by_packet(rec) == expected
+        assert rec.events(1_000, 400_000) == expected.between(1_000, 400_000)
+
+
+def test_batches_are_used(tmp_path, monkeypatch):
+    """The batched route really carries the read (not the packet-by-packet one it falls back to)."""
+    monkeypatch.setattr(a4r, "BATCH_EVENTS", 5_000)
+    evs = [random_events(n, seed=80 + k) for k, n in enumerate(SIZES)]
+    path = tmp_path / "used.aedat4"
+    _aedat4(path, cz.LZ4, _frames(cz.LZ4, [_body(ev, pad) for ev, pad in zip(evs, PADS)]))
+    calls = []
+    decode = a4r._fbpy.decode_events  # the packet-by-packet decode of one body
+    monkeypatch.setattr(a4r._fbpy, "decode_events", lambda *a: calls.append(1) or decode(*a))
+    with evtk.open(path) as rec:
+        assert rec.events() == evtk.Events.concatenate(evs)
+        assert calls == []
+        monkeypatch.setattr(rec, "_batcher", lambda *a: None)
+        assert rec.events() == evtk.Events.concatenate(evs)
+        assert len(calls) == len(SIZES)
+
+
+def _damage(kind, bodies, evs):
+    """The bodies with one packet in the middle damaged as ``kind`` says."""
+    bodies = list(bodies)
+    k = 5
+    if kind == "off sensor":
+        ev = evs[k]
+        x = np.array(ev.x)
+        x[1000] = 320
+        bodies[k] = _body(evtk.Events(ev.t, x, ev.y, ev.p, (400, 240)), PADS[k])
+    elif kind == "bad flatbuffer":
+        b = bytearray(bodies[k])
+        b[4:8] = b"XXXX"
+        bodies[k] = bytes(b)
+    elif kind == "polarity byte":
+        b = bytearray(bodies[k])
+        b[len(b) - 16 * 10 + 12] = 7  # event 10 from the end: a damaged bool, which reads as ON
+        bodies[k] = bytes(b)
+    return bodies
+
+
+@pytest.mark.parametrize("kind", ["off sensor", "bad flatbuffer", "polarity byte", "bad frame"])
+@pytest.mark.parametrize("salvage", [False, True])
+def test_damage_inside_a_batch_is_named_as_packet_by_packet(tmp_path, monkeypatch, kind, salvage):
+    monkeypatch.setattr(a4r, "BATCH_EVENTS", 20_000)  # the whole file one batch on one thread
+    monkeypatch.setenv("EVTK_THREADS", "1")
+    evs = [random_events(n, seed=90 + k) for k, n in enumerate(SIZES)]
+    bodies = _damage(kind, [_body(ev, pad) for ev, pad in zip(evs, PADS)], evs)
+    frames = _frames(cz.LZ4, bodies)
+    if kind == "bad frame":
+        frames[5] = frames[5][:-4]  # its end mark cut off
+    path = tmp_path / "bad.aedat4"
+    _aedat4(path, cz.LZ4, frames)
+    outcomes = []
+    for batched in (True, False):
+        with evtk.open(path, salvage=salvage) as rec:
+            try:
+                got = rec.events() if batched else _packet_by_packet(rec)
+                outcomes.append(("ok", got, str(rec.damage) if salvage else None))
+            except evtk.FormatError as exc:
+                outcomes.append(("error", str(exc), None))
+    assert outcomes[0][0] == outcomes[1][0]
+    if outcomes[0][0] == "ok":
+        assert outcomes[0][1] == outcomes[1][1] and outcomes[0][2] == outcomes[1][2]
+    else:
+        assert outcomes[0][1] == outcomes[1][1]
+    if kind == "polarity byte":  # not damage: the byte is read as ON, in both routes
+        assert outcomes[0][0] == "ok" and len(outcomes[0][1]) == sum(SIZES)
+    elif not salvage:
+        assert outcomes[0][0] == "error"
+    else:  # salvage: the packets before the damaged one, whole
+        assert outcomes[0][1] == evtk.Events.concatenate(evs[:5])
