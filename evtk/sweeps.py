@@ -44,7 +44,13 @@ from .reconstruct import (
     window_bytes,
 )
 from .reconstruct.accumulate import accumulate_batches
-from .reconstruct.fixed import count_batches, fixed_supported, linear_without_plan, pixel_values
+from .reconstruct.fixed import (
+    count_batches,
+    fixed_supported,
+    linear_without_plan,
+    net_count_batches,
+    pixel_values,
+)
 
 if TYPE_CHECKING:  # (the simulator, the optics and the per-pixel stages load where a function needs them:
     # measuring fixed windows needs none of them)
@@ -126,6 +132,10 @@ def _scene_row(kernel_id, features_id, acc, binary, interval, per_pixel, seed):
 
 #: Most memory one batch of windows of :func:`recording_noise` may take, in bytes.
 NOISE_BATCH_BYTES = 256 << 20
+
+#: Net counts (int32) one batch of :func:`recording_noise`'s net-count route holds: 2 MB, a core's cache, read
+#: four times (sums, squares, block means) after counting.
+NOISE_NET_BINS = 1 << 19
 
 
 def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedule", skip_us: int = 0,
@@ -217,10 +227,16 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
         method = binarize_rule(None) if isinstance(method, str) and method == "auto" else method
         acc = SinadAccumulator(len(win), (y1 - y0, x1 - x0))
         binary = np.empty((len(win),) + size, np.int8)
-        for i, on, off, _ in count_batches(rec, win, region, None, 0, batch, progress=progress):  # (fixed: checked)
-            values = pixel_values(on, off, linear, 0.2 if theta is None else float(theta))
-            acc.add(values)
-            binary[i:i + len(values)] = binarize(downsample(values, size), method)
+        if linear and theta is not None:
+            for i, on, off, _ in count_batches(rec, win, region, None, 0, batch, progress=progress):  # (checked)
+                values = pixel_values(on, off, linear, float(theta))
+                acc.add(values)
+                binary[i:i + len(values)] = binarize(downsample(values, size), method)
+        else:  # net counts: one signed int32 frame a window, summed exactly in integers by the accumulator
+            nb = max(1, NOISE_NET_BINS // pixels)
+            for i, net in net_count_batches(rec, win, region, nb, progress=progress):
+                acc.add(net)
+                binary[i:i + len(net)] = binarize(_net_block_means(net, size), method)
     else:
         from .reconstruct import reconstruct_counts
 
@@ -236,6 +252,18 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     row["route"] = f"fixed windows (--window {spec}): " + (
         f"exp(n theta), theta = {theta:g}" if linear else "net counts (ON - OFF), not linearised")
     return [row]
+
+
+def _net_block_means(net: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """:func:`evtk.reconstruct.downsample` of integer net counts: for whole factors each block's exact integer
+    sum over its pixel count (what the float block mean gives, without a float copy of every pixel)."""
+    h, w = net.shape[-2:]
+    oh, ow = size
+    if h % oh or w % ow:
+        return downsample(net, size)
+    fy, fx = h // oh, w // ow
+    rows = net.reshape(net.shape[0], oh, fy, w).sum(axis=2, dtype=np.int64)  # whole rows first: contiguous adds
+    return rows.reshape(net.shape[0], oh, ow, fx).sum(axis=3) / (fy * fx)
 
 
 def _mean_defined(values):
