@@ -27,7 +27,6 @@ from typing import TYPE_CHECKING, Any, Literal, overload
 import numpy as np
 import numpy.typing as npt
 
-from .cluster import run_tasks
 from .errors import EvtkError
 from .io import open as open_recording
 from .limits import memory_limit_bytes, require_memory, require_window_work
@@ -133,9 +132,9 @@ def _scene_row(kernel_id, features_id, acc, binary, interval, per_pixel, seed):
 #: Most memory one batch of windows of :func:`recording_noise` may take, in bytes.
 NOISE_BATCH_BYTES = 256 << 20
 
-#: Net counts (int32) one batch of :func:`recording_noise`'s net-count route holds: 2 MB, a core's cache, read
-#: four times (sums, squares, block means) after counting.
-NOISE_NET_BINS = 1 << 19
+#: Most net counts (int32) one batch of :func:`recording_noise`'s net-count route holds (16 MB); a batch is one
+#: group of the accumulator's repeats where that fits.
+NOISE_NET_BINS = 1 << 22
 
 
 def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedule", skip_us: int = 0,
@@ -233,10 +232,13 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
                 acc.add(values)
                 binary[i:i + len(values)] = binarize(downsample(values, size), method)
         else:  # net counts: one signed int32 frame a window, summed exactly in integers by the accumulator
+            # batches within the accumulator's groups of repeats (each group summed once), cut to the cap
             nb = max(1, NOISE_NET_BINS // pixels)
-            for i, net in net_count_batches(rec, win, region, nb, progress=progress):
+            starts = acc.group_starts.tolist()
+            firsts = [i for a, z in zip(starts, starts[1:] + [len(win)]) for i in range(a, z, nb)]
+            for i, net, most in net_count_batches(rec, win, region, firsts, progress=progress):
                 acc.add(net)
-                binary[i:i + len(net)] = binarize(_net_block_means(net, size), method)
+                binary[i:i + len(net)] = binarize(_net_block_means(net, size, most), method)
     else:
         from .reconstruct import reconstruct_counts
 
@@ -254,16 +256,20 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     return [row]
 
 
-def _net_block_means(net: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """:func:`evtk.reconstruct.downsample` of integer net counts: for whole factors each block's exact integer
-    sum over its pixel count (what the float block mean gives, without a float copy of every pixel)."""
+def _net_block_means(net: np.ndarray, size: tuple[int, int], most: int) -> np.ndarray:
+    """:func:`evtk.reconstruct.downsample` of integer net counts (magnitudes at most ``most``): for whole factors
+    each block's exact integer sum over its pixel count (what the float block mean gives, without a float copy of
+    every pixel)."""
     h, w = net.shape[-2:]
     oh, ow = size
     if h % oh or w % ow:
         return downsample(net, size)
     fy, fx = h // oh, w // ow
-    rows = net.reshape(net.shape[0], oh, fy, w).sum(axis=2, dtype=np.int64)  # whole rows first: contiguous adds
-    return rows.reshape(net.shape[0], oh, ow, fx).sum(axis=3) / (fy * fx)
+    blocks = net.reshape(net.shape[0], oh, fy, w)
+    if fy * fx * most >= 2**31:  # int32 sums where they cannot overflow
+        blocks = blocks.astype(np.int64)
+    rows = np.einsum("naxw->naw", blocks)  # whole rows first
+    return np.einsum("naox->nao", rows.reshape(net.shape[0], oh, ow, fx)) / (fy * fx)
 
 
 def _mean_defined(values):
@@ -471,6 +477,8 @@ def flip_sweep(powers_mw: Iterable[float], kernels: npt.ArrayLike, features: npt
     bench = bench if bench is not None else Bench()
     tasks = [(p, j, np.asarray(kernels), np.asarray(features), int(repeats), bench, sensor, window_us, seed)
              for j, p in enumerate(powers)]
+    from .cluster import run_tasks  # (its sockets and temporary files load only for a sweep)
+
     return [row for rows in run_tasks(_flip_task, tasks, client, progress) for row in rows]
 
 
@@ -607,6 +615,8 @@ def tradeoff(windows_us: Iterable[float], kernels: npt.ArrayLike, features: npt.
     settings = [(p, w, z, d) for p in powers for w in windows for z in settles for d in decs]
     tasks = [(i, p, w, z, d, np.asarray(kernels), np.asarray(features), int(repeats), bench, sensor, seed,
               time_events) for i, (p, w, z, d) in enumerate(settings)]
+    from .cluster import run_tasks
+
     rows = run_tasks(_tradeoff_task, tasks, client, progress)
     err = np.array([r["nrmse"] if r["nrmse"] is not None else np.inf for r in rows])
     finite = np.isfinite(err)

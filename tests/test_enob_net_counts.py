@@ -103,12 +103,15 @@ def test_net_counts_on_a_region_a_window_a_batch_and_sizes_that_do_not_divide(tm
         (row,) = recording_noise(rec, ("period", 1000), region=region, size=(5, 7), per_pixel=True)
         want, flips = _float_route(rec, ("period", 1000), region=region, size=(5, 7), batch=1, per_pixel=True)
         _, win, _ = plan(rec, ("period", 1000), region=region, check_memory=False)
-        one = np.concatenate([net.copy() for _, net in net_count_batches(rec, win, region, batch_windows=1)])
+        one = [(net.copy(), most) for _, net, most in net_count_batches(rec, win, region, batch_windows=1)]
+        some = [net.copy() for _, net, _ in net_count_batches(rec, win, region, [0, 2, 3, 11])]
         both = [(on - off) for _, on, off, _ in count_batches(rec, win, region, None, 0, 4)]
     assert row["sinad"].per_pixel_db.shape == (28, 37)
     _same_report(row["sinad"], want)
     assert row["flips"].pairwise_pct == flips.pairwise_pct
-    assert np.array_equal(one, np.concatenate(both))  # the same net counts, window by window
+    assert np.array_equal(np.concatenate([n for n, _ in one]), np.concatenate(both))  # the same, window by window
+    assert np.array_equal(np.concatenate(some), np.concatenate(both))  # batches of 2, 1, 8 and the rest
+    assert all(np.abs(n).max() <= most for n, most in one) and max(most for _, most in one) >= 300  # the hot pixel
 
 
 def test_the_net_route_forms_no_float_frame_per_window(tmp_path, monkeypatch):

@@ -163,10 +163,11 @@ def _whole_sums(block: np.ndarray, big: int) -> tuple[np.ndarray, np.ndarray] | 
     k = block.shape[0]
     if k * k * big * big >= 2**62:
         return None
-    # squares summed in int32 where they cannot overflow it (numpy sums products in the inputs' type)
-    b = block.astype(np.int32 if k * big * big < 2**31 else np.int64, copy=False)
-    s2 = np.einsum("rp,rp->p", b, b).astype(np.int64, copy=False)
-    return b.sum(axis=0, dtype=np.int64), s2
+    # summed in int32 where the sums cannot overflow it (einsum sums in the inputs' type), else in int64
+    narrow = block.dtype.itemsize <= 4 and block.dtype != np.uint32 and k * big * big < 2**31
+    b = block.astype(np.int32 if narrow else np.int64, copy=False)
+    s1 = np.einsum("rp->p", b).astype(np.int64, copy=False)
+    return s1, np.einsum("rp,rp->p", b, b).astype(np.int64, copy=False)
 
 
 class SinadAccumulator:
@@ -246,14 +247,26 @@ class SinadAccumulator:
         groups = min(max(int(repeats), 0), MAX_BOOTSTRAP_GROUPS)
         return 8 * int(pixels) * (2 * groups + 8)
 
+    @property
+    def group_starts(self) -> np.ndarray:
+        """The first repeat of each group of repeats: blocks of :meth:`add` that keep within one group are
+        merged once per group.
+
+        Returns
+        -------
+        numpy.ndarray
+            int64, increasing, from 0 (a copy).
+        """
+        return self._bounds[:-1].copy()
+
     def add(self, captures: npt.ArrayLike) -> None:
         """Add the next repeats, shape ``(k, *shape)``, in their order.
 
-        Integer captures (counts) are summed exactly in integers, a group's
-        block at a time: its per-pixel sum and sum of squares give the block's
-        mean and squared deviation without rounding, and a block whose squares
-        could overflow int64 goes the float route (Chan's update from a shift
-        near the data), as float captures do.
+        Integer captures (counts) are summed exactly in integers, a group of
+        repeats at a time: its per-pixel sum and sum of squares give the
+        group's mean and squared deviation without rounding, and a block whose
+        squares could overflow int64 goes the float route (Chan's update from a
+        shift near the data), as float captures do.
 
         Parameters
         ----------
@@ -276,7 +289,7 @@ class SinadAccumulator:
             raise EvtkError(f"SINAD: more than the {self.repeats} repeats announced")
         whole = np.issubdtype(x.dtype, np.integer) or x.dtype == bool
         # the largest magnitude of whole numbers (a Python int: no wrap), for the exact sums' overflow check
-        big = max(abs(int(x.max(initial=0))), abs(int(x.min(initial=0)))) if whole and x.size else None
+        big = max(abs(int(x.max())), abs(int(x.min()))) if whole and x.size else None
         if not whole:
             x = x.astype(np.float64, copy=False)
             if not np.all(np.isfinite(x)):
