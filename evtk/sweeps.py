@@ -207,8 +207,9 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     span = f"--window {spec} over {int(win.t_start_us[0]):,} .. {int(win.t_end_us[-1]):,} us"
     require_window_work(len(win), pixels, rec.info()["events"], span)
     out_px = math.prod(options.get("size", (16, 16)))
-    # what stays for the whole run: the accumulator, and the binary responses with the flip rates' copies
-    fixed = SinadAccumulator.bytes_needed(len(win), pixels) + len(win) * out_px + flip_rates_bytes(len(win), out_px)
+    # what stays for the whole run: the accumulator, the responses and binary responses, the flip rates' copies
+    fixed = (SinadAccumulator.bytes_needed(len(win), pixels) + 9 * len(win) * out_px  # responses, binary ones
+             + flip_rates_bytes(len(win), out_px))
     per_window = max(1, window_bytes(region, False))
     require_memory(fixed + per_window, f"{span}: measuring {len(win):,} windows over {x1 - x0}x{y1 - y0} pixels")
     batch = max(1, min(NOISE_BATCH_BYTES, (memory_limit_bytes() - fixed) // 2) // per_window)
@@ -236,9 +237,11 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
             nb = max(1, NOISE_NET_BINS // pixels)
             starts = acc.group_starts.tolist()
             firsts = [i for a, z in zip(starts, starts[1:] + [len(win)]) for i in range(a, z, nb)]
+            responses = np.empty(binary.shape)
             for i, net, most in net_count_batches(rec, win, region, firsts, progress=progress):
                 acc.add(net)
-                binary[i:i + len(net)] = binarize(_net_block_means(net, size, most), method)
+                responses[i:i + len(net)] = _net_block_means(net, size, most)
+            binary[:] = binarize(responses, method)  # each response at its own threshold: one call for all
     else:
         from .reconstruct import reconstruct_counts
 
