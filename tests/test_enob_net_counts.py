@@ -114,6 +114,30 @@ def test_net_counts_on_a_region_a_window_a_batch_and_sizes_that_do_not_divide(tm
     assert all(np.abs(n).max() <= most for n, most in one) and max(most for _, most in one) >= 300  # the hot pixel
 
 
+@pytest.mark.parametrize("in_memory", [True, False])
+def test_net_counts_of_windows_in_any_order_equal_on_minus_off(tmp_path, in_memory):
+    """Overlapping windows in any order (read a batch at a time through the time-window reads), read in chunks
+    of 777 events, from a file or from events in memory: each window's net counts are its ON minus OFF counts."""
+    from evtk.reconstruct.windows import Windows
+
+    path = tmp_path / "bench.aedat4"
+    ev = _hostile_recording(path, windows=30)
+    rng = np.random.default_rng(7)
+    starts = rng.integers(0, 29_000, 23)
+    win = Windows(starts, starts + rng.integers(1, 3_000, 23), np.arange(23), "test")
+    region = (0, 48, 0, 32)
+    with evtk.open(path) as rec:
+        source = ev if in_memory else rec
+        got = [(i, net.copy(), most) for i, net, most in net_count_batches(source, win, region, [0, 5, 6, 20],
+                                                                          chunk_events=777)]
+        want = np.concatenate([on - off for _, on, off, _ in count_batches(source, win, region, None, 0, 3)])
+    assert [i for i, _, _ in got] == [0, 5, 6, 20]
+    assert np.array_equal(np.concatenate([n for _, n, _ in got]), want)
+    assert all(np.abs(n).max(initial=0) <= most for _, n, most in got)
+    with pytest.raises(EvtkError, match="batches"):
+        next(net_count_batches(ev, win, region, [1, 5]))
+
+
 def test_the_net_route_forms_no_float_frame_per_window(tmp_path, monkeypatch):
     """Issue 32: enob without a plan or theta counts net counts into int32 frames and never takes the ON and OFF
     counts of every pixel through a float value (the work that made it 4.5x a read)."""
