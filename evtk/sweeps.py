@@ -238,7 +238,9 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
                 binary[i:i + len(values)] = binarize(downsample(values, size), method)
         else:  # net counts: one signed int32 frame a window, summed exactly in integers by the accumulator
             # batches within the accumulator's groups of repeats (each group summed once), cut to the cap
-            nb = max(1, NOISE_NET_BINS // pixels)
+            nb = max(1, min(NOISE_NET_BINS, (memory_limit_bytes() - fixed) // 8) // pixels)
+            require_memory(fixed + 4 * (nb * pixels + 1), f"{span}: measuring {len(win):,} windows over "
+                           f"{x1 - x0}x{y1 - y0} pixels, {nb:,} at a time")
             starts = acc.group_starts.tolist()
             firsts = [i for a, z in zip(starts, starts[1:] + [len(win)]) for i in range(a, z, nb)]
             responses = np.empty(binary.shape)

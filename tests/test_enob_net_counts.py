@@ -93,6 +93,25 @@ def test_net_counts_give_the_float_routes_numbers(tmp_path, interval, cut):
     assert row["flips"].pairwise_pct == whole["flips"].pairwise_pct
 
 
+def test_batches_smaller_than_a_group_of_repeats(tmp_path, monkeypatch):
+    """A batch cap of one window (each group of repeats summed over several batches before its one merge) and a
+    budget of 4 MiB give the same numbers."""
+    import evtk.sweeps as sweeps
+
+    path = tmp_path / "bench.aedat4"
+    _hostile_recording(path)
+    with evtk.open(path) as rec:
+        want, flips = _float_route(rec, ("period", 1000), per_pixel=True)
+        monkeypatch.setattr(sweeps, "NOISE_NET_BINS", 48 * 32)
+        (one,) = recording_noise(rec, ("period", 1000), per_pixel=True)
+        monkeypatch.undo()
+        monkeypatch.setenv("EVTK_MEMORY_LIMIT_MB", "4")
+        (small,) = recording_noise(rec, ("period", 1000), per_pixel=True)
+    for row in (one, small):
+        _same_report(row["sinad"], want)
+        assert row["flips"].pairwise_pct == flips.pairwise_pct
+
+
 def test_net_counts_on_a_region_a_window_a_batch_and_sizes_that_do_not_divide(tmp_path):
     """A region inside the sensor (events outside it left out), one window a batch, a response size that does not
     divide the region: still the float route's numbers."""
