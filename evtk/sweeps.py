@@ -27,7 +27,6 @@ from typing import TYPE_CHECKING, Any, Literal, overload
 import numpy as np
 import numpy.typing as npt
 
-from .cluster import run_tasks
 from .errors import EvtkError
 from .io import open as open_recording
 from .limits import memory_limit_bytes, require_memory, require_window_work
@@ -44,7 +43,13 @@ from .reconstruct import (
     window_bytes,
 )
 from .reconstruct.accumulate import accumulate_batches
-from .reconstruct.fixed import count_batches, fixed_supported, linear_without_plan, pixel_values
+from .reconstruct.fixed import (
+    count_batches,
+    fixed_supported,
+    linear_without_plan,
+    net_count_batches,
+    pixel_values,
+)
 
 if TYPE_CHECKING:  # (the simulator, the optics and the per-pixel stages load where a function needs them:
     # measuring fixed windows needs none of them)
@@ -127,6 +132,10 @@ def _scene_row(kernel_id, features_id, acc, binary, interval, per_pixel, seed):
 #: Most memory one batch of windows of :func:`recording_noise` may take, in bytes.
 NOISE_BATCH_BYTES = 256 << 20
 
+#: Most net counts (int32) one batch of :func:`recording_noise`'s net-count route holds (16 MB); a batch is one
+#: group of the accumulator's repeats where that fits.
+NOISE_NET_BINS = 1 << 22
+
 
 def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedule", skip_us: int = 0,
                     length_us: int | None = None, interval: str | None = "jackknife", per_pixel: bool = False,
@@ -141,7 +150,11 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     a whole sensor is measured in one pass. A scheduled (simulated) recording
     ties its windows together (passes, flat fields) and is reconstructed
     whole. Fixed windows give net counts ON - OFF, or ``exp(n theta)`` where
-    ``theta`` is given; the row's ``"route"`` says which.
+    ``theta`` is given; the row's ``"route"`` says which. Net counts are
+    counted into int32 frames a group of the accumulator's repeats at a time
+    (:func:`evtk.reconstruct.fixed.net_count_batches`, at most
+    :data:`NOISE_NET_BINS` counts) and summed exactly in integers; no float
+    value of a window's pixel is formed.
 
     Before any window is counted, the memory of one batch, the accumulator
     and the flip rates is checked against the budget
@@ -198,8 +211,9 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     span = f"--window {spec} over {int(win.t_start_us[0]):,} .. {int(win.t_end_us[-1]):,} us"
     require_window_work(len(win), pixels, rec.info()["events"], span)
     out_px = math.prod(options.get("size", (16, 16)))
-    # what stays for the whole run: the accumulator, and the binary responses with the flip rates' copies
-    fixed = SinadAccumulator.bytes_needed(len(win), pixels) + len(win) * out_px + flip_rates_bytes(len(win), out_px)
+    # what stays for the whole run: the accumulator, the responses and binary responses, the flip rates' copies
+    fixed = (SinadAccumulator.bytes_needed(len(win), pixels) + 9 * len(win) * out_px  # responses, binary ones
+             + flip_rates_bytes(len(win), out_px))
     per_window = max(1, window_bytes(region, False))
     require_memory(fixed + per_window, f"{span}: measuring {len(win):,} windows over {x1 - x0}x{y1 - y0} pixels")
     batch = max(1, min(NOISE_BATCH_BYTES, (memory_limit_bytes() - fixed) // 2) // per_window)
@@ -217,10 +231,23 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
         method = binarize_rule(None) if isinstance(method, str) and method == "auto" else method
         acc = SinadAccumulator(len(win), (y1 - y0, x1 - x0))
         binary = np.empty((len(win),) + size, np.int8)
-        for i, on, off, _ in count_batches(rec, win, region, None, 0, batch, progress=progress):  # (fixed: checked)
-            values = pixel_values(on, off, linear, 0.2 if theta is None else float(theta))
-            acc.add(values)
-            binary[i:i + len(values)] = binarize(downsample(values, size), method)
+        if linear and theta is not None:
+            for i, on, off, _ in count_batches(rec, win, region, None, 0, batch, progress=progress):  # (checked)
+                values = pixel_values(on, off, linear, float(theta))
+                acc.add(values)
+                binary[i:i + len(values)] = binarize(downsample(values, size), method)
+        else:  # net counts: one signed int32 frame a window, summed exactly in integers by the accumulator
+            # batches within the accumulator's groups of repeats (each group summed once), cut to the cap
+            nb = max(1, min(NOISE_NET_BINS, (memory_limit_bytes() - fixed) // 8) // pixels)
+            require_memory(fixed + 4 * (nb * pixels + 1), f"{span}: measuring {len(win):,} windows over "
+                           f"{x1 - x0}x{y1 - y0} pixels, {nb:,} at a time")
+            starts = acc.group_starts.tolist()
+            firsts = [i for a, z in zip(starts, starts[1:] + [len(win)]) for i in range(a, z, nb)]
+            responses = np.empty(binary.shape)
+            for i, net, most in net_count_batches(rec, win, region, firsts, progress=progress):
+                acc.add(net)
+                responses[i:i + len(net)] = _net_block_means(net, size, most)
+            binary[:] = binarize(responses, method)  # each response at its own threshold: one call for all
     else:
         from .reconstruct import reconstruct_counts
 
@@ -236,6 +263,22 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     row["route"] = f"fixed windows (--window {spec}): " + (
         f"exp(n theta), theta = {theta:g}" if linear else "net counts (ON - OFF), not linearised")
     return [row]
+
+
+def _net_block_means(net: np.ndarray, size: tuple[int, int], most: int) -> np.ndarray:
+    """:func:`evtk.reconstruct.downsample` of integer net counts (magnitudes at most ``most``): for whole factors
+    each block's exact integer sum over its pixel count (what the float block mean gives, without a float copy of
+    every pixel)."""
+    h, w = net.shape[-2:]
+    oh, ow = size
+    if h % oh or w % ow:
+        return downsample(net, size)
+    fy, fx = h // oh, w // ow
+    blocks = net.reshape(net.shape[0], oh, fy, w)
+    if fy * fx * most >= 2**31:  # int32 sums where they cannot overflow
+        blocks = blocks.astype(np.int64)
+    rows = np.einsum("naxw->naw", blocks)  # whole rows first
+    return np.einsum("naox->nao", rows.reshape(net.shape[0], oh, ow, fx)) / (fy * fx)
 
 
 def _mean_defined(values):
@@ -443,6 +486,8 @@ def flip_sweep(powers_mw: Iterable[float], kernels: npt.ArrayLike, features: npt
     bench = bench if bench is not None else Bench()
     tasks = [(p, j, np.asarray(kernels), np.asarray(features), int(repeats), bench, sensor, window_us, seed)
              for j, p in enumerate(powers)]
+    from .cluster import run_tasks  # (its sockets and temporary files load only for a sweep)
+
     return [row for rows in run_tasks(_flip_task, tasks, client, progress) for row in rows]
 
 
@@ -579,6 +624,8 @@ def tradeoff(windows_us: Iterable[float], kernels: npt.ArrayLike, features: npt.
     settings = [(p, w, z, d) for p in powers for w in windows for z in settles for d in decs]
     tasks = [(i, p, w, z, d, np.asarray(kernels), np.asarray(features), int(repeats), bench, sensor, seed,
               time_events) for i, (p, w, z, d) in enumerate(settings)]
+    from .cluster import run_tasks
+
     rows = run_tasks(_tradeoff_task, tasks, client, progress)
     err = np.array([r["nrmse"] if r["nrmse"] is not None else np.inf for r in rows])
     finite = np.isfinite(err)

@@ -273,6 +273,12 @@ def number_list(name, integer=False, allow_zero=False):
     return _Parsed("LIST", lambda text: _number_list(text, name, integer, allow_zero))
 
 
+#: ``--theta``, shared by reconstruct, batch reconstruct and enob (ReconstructOptions refuses NaN and infinity).
+_theta_option = click.option(
+    "--theta", type=click.FloatRange(min=0, min_open=True),
+    help="A fixed contrast threshold (log units) linearising by exp(n theta): fixed windows, or a simulated run in "
+         "place of its pixel model. Default: the plan's pixel model where there is one, else net counts.")
+
 _reconstruct_options = _options([
     click.option("--window", "window_spec", type=WINDOW, default="schedule", show_default=True,
                  help="schedule, triggers or period:US (without a schedule every window is a repeat of one scene)."),
@@ -285,10 +291,7 @@ _reconstruct_options = _options([
     click.option("--linearize/--counts", default=True, show_default=True,
                  help="Linearise counts to light, or keep net counts (ON - OFF). Fixed windows (--window triggers "
                       "or period:US) have no pixel model to linearise by and stay net counts, unless --theta."),
-    click.option("--theta", type=click.FloatRange(min=0, min_open=True),
-                 help="A fixed contrast threshold (log units) linearising by exp(n theta): fixed windows, or a "
-                      "simulated run in place of its pixel model. Default: the plan's pixel model where there is "
-                      "one, else net counts."),
+    _theta_option,
     click.option("--crop", type=click.Choice(["valid", "full"]), default="valid", show_default=True),
     click.option("--flat-field/--no-flat-field", default=True, show_default=True,
                  help="Calibrate each pixel's threshold on the recording's flat-field captures, if any."),

@@ -6,6 +6,7 @@ import click
 import numpy as np
 
 from .. import io as evio  # (light: its readers and writers load on first use)
+from ..errors import EvtkError
 from ._base import (
     _MAX_INT,
     OutputPath,
@@ -15,6 +16,7 @@ from ._base import (
     _scene_rows,
     _scheduler_option,
     _table,
+    _theta_option,
     _with_window_options,
     main,
     number_list,
@@ -27,29 +29,37 @@ from ._base import (
 @click.option("--interval", type=click.Choice(["jackknife", "bootstrap", "none"]), default="jackknife",
               show_default=True, help="The 95 % interval over repeats (the bootstrap undercovers with few repeats).")
 @click.option("--per-pixel", is_flag=True, help="Also report each pixel's SINAD (JSON only).")
+@_theta_option
 @click.option("--plot", "plot_path", type=OutputPath(dir_okay=False), help="ENOB per scene as a PNG.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def enob(recording, window_spec, skip_us, length_us, interval, per_pixel, plot_path, as_json):
+def enob(recording, window_spec, skip_us, length_us, interval, per_pixel, theta, plot_path, as_json):
     """SINAD and effective bits (eq. 8) of every scene captured more than once.
 
     Without a schedule every window is a repeat of one scene; they are
     measured a batch at a time, so memory stays bounded however many.
+    Their values are net counts ON - OFF, or exp(n theta) - 1 with --theta
+    (as reconstruct gives them).
     """
     from ..io.reconstruction import is_reconstruction
-    from ..reconstruct.files import load_reconstruction
-    from ..sweeps import scene_noise
+    from ..reconstruct.options import ReconstructOptions
 
+    ReconstructOptions(theta=theta)  # refuses a theta of NaN or infinity, as reconstruct does
     if is_reconstruction(recording):  # the responses of an earlier `evtk reconstruct`
+        if theta is not None:
+            raise EvtkError(f"--theta linearises a recording's counts; {recording} holds responses already")
+        from ..reconstruct.files import load_reconstruction
+        from ..sweeps import scene_noise
+
         scenes = scene_noise(load_reconstruction(recording), interval=None if interval == "none" else interval,
                              per_pixel=per_pixel)
         for s in scenes:
             s["route"] = f"the responses stored in {recording}" + (f" ({s['route']})" if s.get("route") else "")
     else:
-        scenes = _recording_noise(recording, window_spec, skip_us, length_us, interval, per_pixel)
+        scenes = _recording_noise(recording, window_spec, skip_us, length_us, interval, per_pixel, theta)
     _report_scenes(recording, scenes, plot_path, as_json)
 
 
-def _recording_noise(recording, window_spec, skip_us, length_us, interval, per_pixel):
+def _recording_noise(recording, window_spec, skip_us, length_us, interval, per_pixel, theta=None):
     from ..sweeps import recording_noise
 
     with evio.open(recording) as rec:
@@ -57,7 +67,7 @@ def _recording_noise(recording, window_spec, skip_us, length_us, interval, per_p
         try:
             scenes = recording_noise(rec, window_spec, skip_us, length_us,
                                      interval=None if interval == "none" else interval, per_pixel=per_pixel,
-                                     progress=update)
+                                     progress=update, **({} if theta is None else {"theta": theta}))
         finally:
             finish()
     return scenes

@@ -157,6 +157,19 @@ MAX_BOOTSTRAP_GROUPS = 64
 INTERVALS = ("jackknife", "bootstrap", None)
 
 
+def _whole_sums(block: np.ndarray, big: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per-pixel sum and sum of squares (int64, exact) of a block of whole-number repeats whose magnitudes are at
+    most ``big``; None where ``k * S2`` or ``S1 ** 2`` could leave int64 (then the float route measures it)."""
+    k = block.shape[0]
+    if k * k * big * big >= 2**62:
+        return None
+    # summed in int32 where the sums cannot overflow it (einsum sums in the inputs' type), else in int64
+    narrow = block.dtype.itemsize <= 4 and block.dtype != np.uint32 and k * big * big < 2**31
+    b = block.astype(np.int32 if narrow else np.int64, copy=False)
+    s1 = np.einsum("rp->p", b).astype(np.int64, copy=False)
+    return s1, np.einsum("rp,rp->p", b, b).astype(np.int64, copy=False)
+
+
 class SinadAccumulator:
     """SINAD (eq. 8) of repeated captures of one scene, fed a block of repeats at a time.
 
@@ -210,6 +223,7 @@ class SinadAccumulator:
         self._m2_px = np.zeros(p)  # the same per pixel, summed over groups
         self._sq = np.zeros(g)  # squares of the group's values, summed
         self._sq_px = np.zeros(p)
+        self._pending: list | None = None  # a group's integer sums not yet merged (:meth:`_stash`)
         self.added = 0
 
     @staticmethod
@@ -233,8 +247,26 @@ class SinadAccumulator:
         groups = min(max(int(repeats), 0), MAX_BOOTSTRAP_GROUPS)
         return 8 * int(pixels) * (2 * groups + 8)
 
+    @property
+    def group_starts(self) -> np.ndarray:
+        """The first repeat of each group of repeats: blocks of :meth:`add` that keep within one group are
+        merged once per group.
+
+        Returns
+        -------
+        numpy.ndarray
+            int64, increasing, from 0 (a copy).
+        """
+        return self._bounds[:-1].copy()
+
     def add(self, captures: npt.ArrayLike) -> None:
         """Add the next repeats, shape ``(k, *shape)``, in their order.
+
+        Integer captures (counts) are summed exactly in integers, a group of
+        repeats at a time: its per-pixel sum and sum of squares give the
+        group's mean and squared deviation without rounding, and a block whose
+        squares could overflow int64 goes the float route (Chan's update from a
+        shift near the data), as float captures do.
 
         Parameters
         ----------
@@ -252,42 +284,94 @@ class SinadAccumulator:
         p = self._mean.shape[1]
         if x.ndim < 1 or x.size != x.shape[0] * p:
             raise EvtkError(f"SINAD: each capture must hold {p} values, got shape {x.shape}")
-        x = x.reshape(x.shape[0], p).astype(np.float64, copy=False)
+        x = x.reshape(x.shape[0], p)
         if self.added + x.shape[0] > self.repeats:
             raise EvtkError(f"SINAD: more than the {self.repeats} repeats announced")
-        if not np.all(np.isfinite(x)):
-            raise EvtkError("SINAD: the captures hold NaN or infinite values")
+        whole = np.issubdtype(x.dtype, np.integer) or x.dtype == bool
+        # the largest magnitude of whole numbers (a Python int: no wrap), for the exact sums' overflow check
+        big = max(abs(int(x.max())), abs(int(x.min()))) if whole and x.size else None
+        if not whole:
+            x = x.astype(np.float64, copy=False)
+            if not np.all(np.isfinite(x)):
+                raise EvtkError("SINAD: the captures hold NaN or infinite values")
         i = 0
         while i < x.shape[0]:
             at = self.added + i
             g = int(np.searchsorted(self._bounds, at, side="right")) - 1
             block = x[i:i + int(self._bounds[g + 1]) - at]
             k = block.shape[0]
-            had = self._n[g]
-            ref = self._mean[g] if had else block[0]  # a shift near the data keeps the sums exact
-            dev = block - ref
-            s1 = dev.sum(axis=0)
-            s2 = np.einsum("rp,rp->p", dev, dev)
-            block_m2 = np.maximum(s2 - s1 * s1 / k, 0.0)
-            sq = k * ref * ref + 2.0 * ref * s1 + s2
-            delta = ref + s1 / k - self._mean[g]
-            w = had * k / (had + k)
-            self._m2_px += block_m2 + w * delta * delta
-            self._m2[g] += float(block_m2.sum()) + w * float(delta @ delta)
-            self._mean[g] += delta * (k / (had + k))
-            self._sq_px += sq
-            self._sq[g] += float(sq.sum())
-            self._n[g] += k
+            sums = None if big is None else _whole_sums(block, big)
+            if sums is not None and big is not None:  # counts: exact integer sums, kept until the group is complete
+                self._stash(g, k, big, *sums)
+            else:
+                self._flush()
+                block = block.astype(np.float64, copy=False)
+                ref = self._mean[g] if self._n[g] else block[0]  # a shift near the data keeps the sums exact
+                dev = block - ref
+                s1f = dev.sum(axis=0)
+                s2f = np.einsum("rp,rp->p", dev, dev)
+                block_m2 = np.maximum(s2f - s1f * s1f / k, 0.0)
+                sq = k * ref * ref + 2.0 * ref * s1f + s2f
+                self._merge(g, k, ref + s1f / k, block_m2, sq)
             i += k
         self.added += x.shape[0]
 
+    def _stash(self, g: int, k: int, big: int, s1: np.ndarray, s2: np.ndarray) -> None:
+        """Add a block of ``k`` whole-number repeats of group ``g`` (magnitudes at most ``big``, per-pixel sum
+        ``s1`` and sum of squares ``s2``, int64) to the group's integer sums; merged (:meth:`_flush`) when the
+        group is complete, or before its sums could leave int64."""
+        pend = self._pending
+        if pend is not None and (pend[0] != g or (pend[1] + k) ** 2 * max(pend[2], big) ** 2 >= 2**62):
+            self._flush()
+            pend = None
+        if pend is None:
+            self._pending = pend = [g, k, big, s1, s2]
+        else:
+            pend[1] += k
+            pend[2] = max(pend[2], big)
+            pend[3] += s1
+            pend[4] += s2
+        if self._n[g] + pend[1] == self._bounds[g + 1] - self._bounds[g]:
+            self._flush()
+
+    def _flush(self) -> None:
+        """Merge the stashed integer sums, if any: mean ``S1 / k`` and squared deviation ``(k S2 - S1^2) / k``,
+        whose numerator is an exact integer."""
+        if self._pending is None:
+            return
+        g, k, _, s1, s2 = self._pending
+        self._pending = None
+        self._merge(g, k, s1 / k, (k * s2 - s1 * s1) / k, s2.astype(np.float64))
+
+    def _merge(self, g: int, k: int, block_mean: np.ndarray, block_m2: np.ndarray, sq: np.ndarray) -> None:
+        """Merge a block of ``k`` repeats of group ``g`` (its per-pixel mean, squared deviation from that mean and
+        sum of squares) into the group by Chan's pairwise update."""
+        had = self._n[g]
+        if not had:  # the group's first block: nothing to merge with
+            self._m2_px += block_m2
+            self._m2[g] += float(block_m2.sum())
+            self._mean[g] = block_mean
+            self._sq_px += sq
+            self._sq[g] += float(sq.sum())
+            self._n[g] = k
+            return
+        delta = block_mean - self._mean[g]
+        w = had * k / (had + k)
+        self._m2_px += block_m2 + w * delta * delta
+        # (einsum, not @: a BLAS dot of one vector wakes its threads, 600x slower on a busy machine)
+        self._m2[g] += float(block_m2.sum()) + w * float(np.einsum("p,p->", delta, delta))
+        self._mean[g] += delta * (k / (had + k))
+        self._sq_px += sq
+        self._sq[g] += float(sq.sum())
+        self._n[g] += k
+
     def _centred(self):
         """Each group's mean centred on the overall mean, and its squared norm."""
-        off = self._mean - (self._n @ self._mean) / self.repeats
+        off = self._mean - np.einsum("g,gp->p", self._n, self._mean) / self.repeats
         return off, np.einsum("gp,gp->g", off, off)
 
-    def _group_terms(self):
-        """``(M, N, P, n)`` of the groups, for the intervals.
+    def _group_terms(self, centred=None):
+        """``(M, N, P, n)`` of the groups, for the intervals (``centred``: :meth:`_centred`'s, if at hand).
 
         With ``xc`` the captures centred per pixel and ``d_ij = mean_p (xc_i - xc_j)^2 / 2`` (half the squared
         difference of repeats i and j, pooled over pixels): ``M[g, h]`` the sum of ``d_ij`` over i in g and j
@@ -296,7 +380,7 @@ class SinadAccumulator:
         """
         p = self._mean.shape[1]
         n = self._n
-        off, between = self._centred()
+        off, between = self._centred() if centred is None else centred
         a = (self._m2 + n * between) / p  # per group: mean square of its centred repeats, summed
         # products of the groups' centred sums (n_g times their centred mean), without a groups x pixels copy
         k = n[:, None] * (off @ off.T) * n[None, :] / p
@@ -339,9 +423,11 @@ class SinadAccumulator:
             raise EvtkError(f"interval must be one of {INTERVALS}, not {interval!r}")
         if not 0 < confidence < 1:
             raise EvtkError(f"confidence must be between 0 and 1, not {confidence}")
+        self._flush()
         r, p = self.repeats, self._mean.shape[1]
         n = self._n
-        off, between = self._centred()
+        centred = self._centred()
+        off, between = centred
         power = float(self._sq.sum()) / (r * p)
         if power == 0.0:
             raise EvtkError("SINAD: the signal is zero everywhere (no light reached the pixels?)")
@@ -350,7 +436,7 @@ class SinadAccumulator:
         report = SinadReport(s_db, enob_bits(s_db), noise == 0.0, math.sqrt(power), math.sqrt(noise), r, p,
                              confidence=confidence)
         if interval is not None and r >= 3 and (interval == "jackknife" or resamples):
-            terms = self._group_terms()
+            terms = self._group_terms(centred)
             if interval == "jackknife":
                 lo, hi = _jackknife_interval_db(terms, s_db, confidence)
             else:

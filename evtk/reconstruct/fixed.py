@@ -410,3 +410,162 @@ def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size:
     return Reconstruction(responses, binary, None, responses, None,
                           WindowCounts(empty, empty, windows, (x0, x1, y0, y1), used),
                           ReconstructionSummary.from_dict(summary))
+
+
+def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int, int, int, int],
+                      batch_windows: int | list[int] | np.ndarray | None = None, chunk_events: int = 4_000_000,
+                      progress: Callable[[int], Any] | None = None) -> Iterator[tuple[int, np.ndarray, int]]:
+    """Net counts ON - OFF of the windows over a region's pixels, a batch of windows at a time, with numpy.
+
+    Each event adds its polarity's sign (+1 ON, -1 OFF) to its window's pixel in one int32 frame a batch: the
+    net counts :func:`pixel_values` gives without linearisation, without the separate ON and OFF counts or a
+    float copy. Windows in time order, none overlapping an earlier one, are counted in one pass over the
+    events; the others a batch at a time through the recording's time-window reads.
+
+    Parameters
+    ----------
+    source : Events or Recording
+        The events (in-memory events sorted by time) or an open recording.
+    windows : Windows
+        The windows, in any order (a batch spans consecutive ones).
+    region : tuple of int
+        (x0, x1, y0, y1), half-open sensor pixels.
+    batch_windows : int or list of int or ndarray, optional
+        Windows a batch, or the first window of each batch (increasing, from 0); default as many windows as
+        :data:`BATCH_BINS` counts hold.
+    chunk_events : int
+        Most events read at once.
+    progress : callable, optional
+        Called with the number of events of each chunk read.
+
+    Yields
+    ------
+    tuple of (int, ndarray, int)
+        The batch's first window, its net counts (int32, (windows, rows, cols), C-contiguous: valid until the
+        next batch) and the most events one of its windows holds (a bound on every net count's magnitude).
+
+    Raises
+    ------
+    EvtkError
+        A region off the sensor, batches that do not start at 0 and increase, more memory than the budget
+        allows, or a window holding more than 2**31 - 1 events.
+    """
+    x0, x1, y0, y1 = _region(source, region)
+    if isinstance(source, Events):
+        source = source.sorted()
+    h_px, w_px = y1 - y0, x1 - x0
+    frame = h_px * w_px
+    n_w = len(windows)
+    if n_w == 0:
+        return
+    if batch_windows is None or np.ndim(batch_windows) == 0:
+        step = max(1, BATCH_BINS // frame if batch_windows is None else int(batch_windows))  # type: ignore[arg-type]
+        firsts = list(range(0, n_w, step))
+    else:
+        firsts = [int(v) for v in batch_windows]  # type: ignore[union-attr]
+        if not firsts or firsts[0] != 0 or any(b <= a for a, b in zip(firsts, firsts[1:])) or firsts[-1] >= n_w:
+            raise EvtkError(f"batches must start at window 0 and increase below {n_w}")
+    nexts = firsts[1:] + [n_w]  # each batch's end
+    nb = max(j - i for i, j in zip(firsts, nexts))
+    require_memory(4 * (nb * frame + 1) + _PIECE * 16,
+                   f"counting {n_w:,} windows over {w_px}x{h_px} pixels, {nb:,} at a time")
+    # keys: window * frame + pixel inside the region; a pixel outside it gets a key past every window's frame,
+    # clipped to the one dump bin after the batch's frames
+    dump = nb * frame
+    dtype: type[np.signedinteger] = np.int32 if 3 * dump < 2**31 else np.int64
+    sensor = (int(source.sensor_size[0]), int(source.sensor_size[1]))
+    by_y = np.full(sensor[1], dump, dtype)
+    by_y[y0:y1] = np.arange(h_px, dtype=dtype) * w_px
+    by_x = np.full(sensor[0], dump, dtype)
+    by_x[x0:x1] = np.arange(w_px, dtype=dtype)
+    whole = (x0, x1, y0, y1) == (0, sensor[0], 0, sensor[1])
+    starts, ends = windows.t_start_us, windows.t_end_us
+
+    def add(ev: Events, i: int, j: int, out: np.ndarray, totals: np.ndarray) -> None:
+        lo = np.searchsorted(ev.t, starts[i:j], side="left")
+        hi = np.searchsorted(ev.t, ends[i:j], side="left")
+        n = hi - lo
+        totals += n
+        if totals.max(initial=0) > np.iinfo(np.int32).max:
+            raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
+                            "counts could overflow")
+        total = int(n.sum())
+        if total == 0:
+            return
+        a, z = int(lo[0]), int(hi[-1])
+        if z - a == total and np.array_equal(lo[1:], hi[:-1]):  # back to back: one slice, no gather
+            where: slice | np.ndarray = slice(a, z)
+        else:  # each window's events one after the other
+            where = np.arange(total, dtype=np.int64) + np.repeat(lo - (np.cumsum(n) - n), n)
+        if whole:  # the region is the sensor: the key by arithmetic, no table look-ups
+            key = np.multiply(ev.y[where], w_px, dtype=dtype)
+            key += ev.x[where]
+        else:
+            key = by_y.take(ev.y[where])
+            key += by_x.take(ev.x[where])
+        at = np.concatenate(([0], np.cumsum(n)))  # each window's events in key
+        for w in range(1, j - i):  # each window's frame after the first: a slice each, no per-event offsets
+            if at[w + 1] > at[w]:
+                key[at[w]:at[w + 1]] += dtype(w * frame)
+        if not whole:
+            np.minimum(key, dtype((j - i) * frame), out=key)  # every key outside the region: the dump bin
+        sign = np.multiply(ev.p[where], 2, dtype=np.int32)  # +1 ON, -1 OFF
+        sign -= 1
+        np.add.at(out, key, sign)
+
+    frames = np.empty(nb * frame + 1, np.int32)  # one buffer for every batch (its pages touched once)
+
+    def batch(b: int) -> tuple[int, np.ndarray, np.ndarray]:
+        i, j = firsts[b], nexts[b]
+        out = frames[:(j - i) * frame + 1]
+        out.fill(0)
+        return j, out, np.zeros(j - i, np.int64)
+
+    def finished(i: int, j: int, out: np.ndarray, totals: np.ndarray) -> tuple[int, np.ndarray, int]:
+        return i, out[:-1].reshape(j - i, h_px, w_px), int(totals.max(initial=0))
+
+    from .accumulate import _prefetched, span_chunks
+
+    if n_w > 1 and np.all(starts[1:] >= np.maximum.accumulate(ends)[:-1]) or n_w == 1:
+        # one pass over the events: each chunk counted into the batches it reaches, a batch handed on as soon
+        # as a chunk passes its last window's end (later chunks are later in time)
+        last_end = np.maximum.accumulate(ends)[[j - 1 for j in nexts]]
+        b = 0
+        current: tuple[int, np.ndarray, np.ndarray] | None = None
+        for ev in _prefetched(span_chunks(source, int(starts.min()), int(last_end[-1]), max(1, int(chunk_events)))):
+            t_last = int(ev.t[-1]) if len(ev) else None
+            while b < len(firsts) and t_last is not None:
+                i = firsts[b]
+                if int(starts[i]) > t_last:  # this batch starts after the chunk
+                    break
+                if current is None:
+                    current = batch(b)
+                j, out, totals = current
+                add(ev, i, j, out, totals)
+                if int(last_end[b]) > t_last:  # the next chunk may hold more of it
+                    break
+                yield finished(i, j, out, totals)
+                b, current = b + 1, None
+            if progress is not None:
+                progress(len(ev))
+        for rest in range(b, len(firsts)):  # batches the last events did not close (or reach)
+            j, out, totals = current if current is not None else batch(rest)
+            yield finished(firsts[rest], j, out, totals)
+            current = None
+        return
+
+    def batch_chunks() -> Iterator[tuple[int, Events]]:
+        for b, i in enumerate(firsts):
+            for ev in _window_events(source, windows, i, nexts[b], max(1, int(chunk_events))):
+                yield b, ev
+
+    chunks = _prefetched(batch_chunks())
+    pending = next(chunks, None)
+    for b, i in enumerate(firsts):
+        j, out, totals = batch(b)
+        while pending is not None and pending[0] == b:
+            add(pending[1], i, j, out, totals)
+            if progress is not None:
+                progress(len(pending[1]))
+            pending = next(chunks, None)
+        yield finished(i, j, out, totals)
