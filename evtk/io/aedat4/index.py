@@ -238,7 +238,8 @@ class _FileIndex:
             self.warnings.append("the data table is empty; packets were indexed by walking the file")
             return None
         try:
-            raw = cz.decompress(self._code, body, cz.output_limit(len(body)), self.verify_checksums)
+            # into a scratch buffer: as the packets are, without python-lz4's module where the packets need none
+            raw = cz.decompress_into(self._code, body, cz.output_limit(len(body)), self.verify_checksums, cz.Scratch())
         except cz.CodecError as exc:
             self.warnings.append(f"the data table is unreadable ({exc}); packets were indexed by walking the file")
             return None
