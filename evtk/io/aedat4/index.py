@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import os
+import pyexpat as expat  # what xml.parsers.expat re-exports, without the xml package (0.3 ms of a fresh read)
 import struct
-from xml.parsers import expat  # not xml.etree: 1.3 ms less of a fresh process's start
 
 import numpy as np
 
