@@ -112,6 +112,24 @@ def output_limit(compressed_bytes: int) -> int:
     return min(MAX_PACKET_BYTES, BODY_FLOOR_BYTES + BODY_RATIO * max(0, int(compressed_bytes)))
 
 
+def output_limits(compressed_bytes: np.ndarray) -> np.ndarray:
+    """:func:`output_limit` of many bodies at once (a data table's packets: a Python call each was 0.3 µs a
+    packet of every open).
+
+    Parameters
+    ----------
+    compressed_bytes : numpy.ndarray
+        The bodies' sizes in bytes (any integers).
+
+    Returns
+    -------
+    numpy.ndarray
+        int64, each :func:`output_limit` of its size.
+    """
+    sizes = np.clip(np.asarray(compressed_bytes, np.int64), 0, MAX_PACKET_BYTES)  # past it the limit is the cap
+    return np.minimum(MAX_PACKET_BYTES, BODY_FLOOR_BYTES + BODY_RATIO * sizes)
+
+
 def decompress(code: int, body, limit: int, verify: bool = True):
     """Decompress one packet body, refusing to produce more than ``limit`` bytes.
 

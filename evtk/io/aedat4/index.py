@@ -267,8 +267,7 @@ class _FileIndex:
         # the decompressor grants frames of pixels is no licence for event counts)
         evts = np.isin(stream, [sid for sid, st in self._streams.items() if st.type == "EVTS"])
         per_element = np.where(evts, _fbpy.EVENT_STRUCT, 1)
-        room = np.where(evts, cz.BODY_RATIO * size + 4096,
-                        np.array([cz.output_limit(z) for z in size], np.int64))
+        room = np.where(evts, cz.BODY_RATIO * size + 4096, cz.output_limits(size))
         plausible = count <= room // per_element
         if n and not plausible.all():
             self.warnings.append("the data table claims more elements than its packets can hold; "
