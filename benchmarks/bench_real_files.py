@@ -7,8 +7,10 @@
 Each run is a whole process, timed from outside: start Python, import the
 reader, read every event of the file into numpy arrays, exit. evtk's run
 (``evtk.read_events``) and the peer's alternate after one untimed run of
-each (page cache), and the medians of ``--repeats`` runs are compared. The
-peers, per format (each the fastest public reader of it installed here):
+each (page cache), and the medians of ``--repeats`` runs are compared, in
+wall time and in CPU time (user and system, every thread of the process: it
+moves less with the machine's load). The peers, per format (each the fastest
+public reader of it installed here):
 
 * AEDAT4: aedat (``aedat.Decoder``, the event packets concatenated);
 * EVT 2.0 and DAT: expelliarmus (``Wizard(encoding).read``);
@@ -31,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -103,12 +106,19 @@ def env_for(checkout) -> dict:
 
 
 def timed(argv, env, cwd) -> tuple[float, str]:
+    return timed_cpu(argv, env, cwd)[::2]
+
+
+def timed_cpu(argv, env, cwd) -> tuple[float, float, str]:
+    """Wall seconds, CPU seconds (user + system, every thread of the child) and the output of one run."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     res = subprocess.run(argv, env=env, cwd=cwd, capture_output=True, text=True)
     dt = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if res.returncode != 0:
         raise SystemExit(f"{argv[:4]} failed: {res.stderr.strip().splitlines()[-1:]}")
-    return dt, res.stdout.strip()
+    return dt, (r1.ru_utime + r1.ru_stime) - (r0.ru_utime + r0.ru_stime), res.stdout.strip()
 
 
 def main() -> None:
@@ -125,7 +135,8 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="evtk-real-"))  # cwd: no checkout shadows PYTHONPATH's
     py = sys.executable
     print(f"{args.repeats} alternating fresh processes per file, load {os.getloadavg()[0]:.1f}")
-    print(f"{'file':<62}{'format':<14}{'events':>9}{'evtk s':>8}{'peer':>14}{'peer s':>8}{'peer/evtk':>10}")
+    print(f"{'file':<62}{'format':<14}{'events':>9}{'evtk s':>8}{'peer':>14}{'peer s':>8}{'peer/evtk':>10}"
+          f"{'cpu ratio':>10}")
     rows = []
     for fmt, path in files(only):
         peer, program = PEERS[fmt]
@@ -133,21 +144,29 @@ def main() -> None:
         envs = {"evtk": env, "peer": peer_env}
         n = {k: timed(v, envs[k], work)[1] for k, v in runs.items()}  # untimed: page cache
         times: dict = {"evtk": [], "peer": []}
+        cpu: dict = {"evtk": [], "peer": []}  # CPU time of the whole process: it moves less with the load
         for _ in range(args.repeats):
             for k, argv in runs.items():
-                times[k].append(timed(argv, envs[k], work)[0])
+                wall, used, _ = timed_cpu(argv, envs[k], work)
+                times[k].append(wall)
+                cpu[k].append(used)
         med = {k: statistics.median(v) for k, v in times.items()}
+        med_cpu = {k: statistics.median(v) for k, v in cpu.items()}
         row = dict(file=path.name, format=fmt, events=int(n["evtk"]), peer=peer, peer_events=int(n["peer"]),
-                   evtk_s=med["evtk"], peer_s=med["peer"], peer_over_evtk=med["peer"] / med["evtk"], runs=times)
+                   evtk_s=med["evtk"], peer_s=med["peer"], peer_over_evtk=med["peer"] / med["evtk"], runs=times,
+                   evtk_cpu_s=med_cpu["evtk"], peer_cpu_s=med_cpu["peer"],
+                   peer_over_evtk_cpu=med_cpu["peer"] / med_cpu["evtk"], cpu_runs=cpu)
         rows.append(row)
         print(f"{path.name[:61]:<62}{fmt:<14}{row['events']:>9}{med['evtk']:>8.3f}{peer:>14}{med['peer']:>8.3f}"
-              f"{row['peer_over_evtk']:>10.2f}", flush=True)
+              f"{row['peer_over_evtk']:>10.2f}{row['peer_over_evtk_cpu']:>10.2f}", flush=True)
     by_fmt: dict = {}
     for r in rows:
-        by_fmt.setdefault(r["format"], []).append(r["peer_over_evtk"])
-    print("\nper format: median of the files' peer/evtk ratios (min-max)")
+        by_fmt.setdefault(r["format"], []).append((r["peer_over_evtk"], r["peer_over_evtk_cpu"]))
+    print("\nper format: median of the files' peer/evtk ratios (min-max), wall and CPU time")
     for fmt, v in by_fmt.items():
-        print(f"  {fmt:<14}{statistics.median(v):6.2f}  ({min(v):.2f}-{max(v):.2f}, {len(v)} files)")
+        w, c = [a for a, _ in v], [b for _, b in v]
+        print(f"  {fmt:<14}{statistics.median(w):6.2f}  ({min(w):.2f}-{max(w):.2f}, {len(v)} files)"
+              f"   cpu {statistics.median(c):.2f}  ({min(c):.2f}-{max(c):.2f})")
     commands = []
     if args.commands:
         largest: dict = {}

@@ -477,3 +477,15 @@ def test_window_reads_find_an_out_of_order_stamp_inside_a_packet(tmp_path):
             assert 5 in want.t or lo > 5
             assert rec.events(lo, hi) == want
             assert evtk.Events.concatenate(list(rec.iter_events(777, lo, hi)), sensor_size=ev.sensor_size) == want
+
+
+def test_data_table_output_limits_are_each_packets_own():
+    """The open checks a data table's element counts against every packet's decompression limit at once (a Python
+    call a packet was a third of a 1,400-packet file's open): the same limits, for hostile sizes too."""
+    from evtk.io import _compression as cz
+
+    sizes = np.array([-2**62, -1, 0, 1, 100, 1 << 20, (1 << 26) - 1, 1 << 26, cz.MAX_PACKET_BYTES,
+                      cz.MAX_PACKET_BYTES + 1, 2**40, 2**62], np.int64)
+    got = cz.output_limits(sizes)
+    assert got.dtype == np.int64
+    assert got.tolist() == [cz.output_limit(int(z)) for z in sizes]

@@ -9,12 +9,12 @@ do not run in parallel, and python-lz4 copies each body once more with the GIL h
 
 from __future__ import annotations
 
+import _thread  # threading itself costs a fresh read 0.6 ms; its local and Lock are these
 import functools
 import os
-import threading
+import sys
 from typing import TYPE_CHECKING, Any
 
-import lz4.frame
 import numpy as np
 
 from .._threads import workers
@@ -22,8 +22,8 @@ from .._threads import workers
 if TYPE_CHECKING:
     from concurrent.futures import ThreadPoolExecutor
 
-# zstandard, xxhash and concurrent.futures load where first needed: an LZ4 file small enough to decode on one
-# thread needs none of them
+# lz4.frame, zstandard, xxhash and concurrent.futures load where first needed: an LZ4 file small enough to decode
+# on one thread needs none of them (its frames go through the LZ4 library bound by ctypes, :func:`decompress_into`)
 
 NONE, LZ4, LZ4_HIGH, ZSTD, ZSTD_HIGH = range(5)
 
@@ -37,10 +37,10 @@ _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 # Largest FlatBuffer a packet can hold; nothing decompresses past it.
 MAX_PACKET_BYTES = 2**31 - 1
 
-_local = threading.local()
+_local = _thread._local()  # threading.local
 _pool = None
 _pool_size = 0
-_pool_lock = threading.Lock()
+_pool_lock = _thread.allocate_lock()  # threading.Lock
 
 
 #: The environment variable that turns checksum verification off (``0``); ``evtk --no-verify-checksums`` sets it.
@@ -112,6 +112,24 @@ def output_limit(compressed_bytes: int) -> int:
     return min(MAX_PACKET_BYTES, BODY_FLOOR_BYTES + BODY_RATIO * max(0, int(compressed_bytes)))
 
 
+def output_limits(compressed_bytes: np.ndarray) -> np.ndarray:
+    """:func:`output_limit` of many bodies at once (a data table's packets: a Python call each was 0.3 µs a
+    packet of every open).
+
+    Parameters
+    ----------
+    compressed_bytes : numpy.ndarray
+        The bodies' sizes in bytes (any integers).
+
+    Returns
+    -------
+    numpy.ndarray
+        int64, each :func:`output_limit` of its size.
+    """
+    sizes = np.clip(np.asarray(compressed_bytes, np.int64), 0, MAX_PACKET_BYTES)  # past it the limit is the cap
+    return np.minimum(MAX_PACKET_BYTES, BODY_FLOOR_BYTES + BODY_RATIO * sizes)
+
+
 def decompress(code: int, body, limit: int, verify: bool = True):
     """Decompress one packet body, refusing to produce more than ``limit`` bytes.
 
@@ -145,6 +163,8 @@ def decompress(code: int, body, limit: int, verify: bool = True):
     if code == NONE:
         return body
     if code in (LZ4, LZ4_HIGH):
+        import lz4.frame
+
         body, size = _lz4_checked(body, limit, verify)
         try:
             if size > 0:
@@ -289,10 +309,11 @@ class Scratch:
 def decompress_into(code: int, body, limit: int, verify: bool, scratch: Scratch) -> np.ndarray:
     """:func:`decompress`, into ``scratch`` instead of a new buffer where the codec allows.
 
-    LZ4 bodies of :data:`INTO_MIN_BYTES` or more are decompressed by the LZ4 frame library that python-lz4 is
-    built with, straight into the scratch's output buffer (the GIL released while it works, as python-lz4
-    does). Where that library's functions cannot be reached, for smaller bodies and for Zstandard bodies,
-    this is :func:`decompress`. The checks, the
+    LZ4 bodies are decompressed by the LZ4 frame library that python-lz4 is built with, straight into the
+    scratch's output buffer (the GIL released while it works, as python-lz4 does), but for bodies under
+    :data:`INTO_MIN_BYTES` whose frame states its content size once ``lz4.frame`` is loaded (python-lz4's
+    one call is then cheaper by 1-2 us; loading it costs a fresh process 1 ms). Where that library's
+    functions cannot be reached, and for Zstandard bodies, this is :func:`decompress`. The checks, the
     limit and the errors are :func:`decompress`'s, and so are the bytes.
 
     Parameters
@@ -320,15 +341,18 @@ def decompress_into(code: int, body, limit: int, verify: bool, scratch: Scratch)
         As :func:`decompress`.
     """
     limit = min(int(limit), MAX_PACKET_BYTES)
-    if code in (LZ4, LZ4_HIGH) and len(body) >= INTO_MIN_BYTES:
+    if code in (LZ4, LZ4_HIGH) and (len(body) >= INTO_MIN_BYTES or "lz4.frame" not in sys.modules
+                                    or not _lz4_content_size(body)):
         lib = _lz4f()
         if lib:
             return _lz4_into(lib, body, limit, verify, scratch)
     return np.frombuffer(decompress(code, body, limit, verify), np.uint8)
 
 
-#: Smallest LZ4 body :func:`decompress_into` decompresses into the scratch: below it python-lz4's new buffer and
-#: copy cost less than the ctypes call (a few µs), and the buffer is too small for glibc to map it on its own.
+#: Smallest LZ4 body :func:`decompress_into` decompresses into the scratch whatever its frame: below it, for a
+#: frame that states its size, python-lz4's new buffer and copy cost less than the ctypes call (1-2 µs, once
+#: ``lz4.frame`` is loaded), and the buffer is too small for glibc to map it on its own. A frame without its
+#: size (DV's) costs python-lz4 as much as the ctypes call, through its streaming decompressor.
 INTO_MIN_BYTES = 8 << 10
 
 
@@ -346,7 +370,7 @@ def _lz4f():
         try:
             import ctypes
 
-            lib = ctypes.CDLL(lz4.frame._frame.__file__)
+            lib = ctypes.CDLL(_lz4_frame_file())
             size_t, ptr, size_p = ctypes.c_size_t, ctypes.c_void_p, ctypes.POINTER(ctypes.c_size_t)
             lib.LZ4F_createDecompressionContext.argtypes = [ctypes.POINTER(ptr), ctypes.c_uint]
             lib.LZ4F_createDecompressionContext.restype = size_t
@@ -361,9 +385,26 @@ def _lz4f():
             lib.LZ4F_getErrorName.argtypes = [size_t]
             lib.LZ4F_getErrorName.restype = ctypes.c_char_p
             _lz4f_lib, _ctypes = lib, ctypes
-        except (ImportError, OSError, AttributeError):  # another build of python-lz4: decompress() serves
+        except (ImportError, OSError, AttributeError, TypeError):  # another build of python-lz4: decompress() serves
             _lz4f_lib = False
     return _lz4f_lib
+
+
+def _lz4_frame_file() -> str:
+    """The file of python-lz4's frame extension (``lz4.frame._frame``), found without importing ``lz4.frame``:
+    its Python part (with ``_compression`` and the file classes) is 1 ms of a fresh process that only decodes."""
+    loaded = getattr(sys.modules.get("lz4.frame._frame"), "__file__", None)
+    if loaded:
+        return loaded
+    from importlib.machinery import PathFinder
+
+    package = PathFinder.find_spec("lz4")
+    if package is None or not package.submodule_search_locations:
+        raise ImportError("lz4 is not installed")
+    frame = PathFinder.find_spec("_frame", [os.path.join(d, "frame") for d in package.submodule_search_locations])
+    if frame is None or not frame.origin:
+        raise ImportError("lz4.frame._frame not found")
+    return frame.origin
 
 
 class _Lz4Context:
@@ -579,6 +620,8 @@ def compress(code: int, data) -> bytes:
     if code == NONE:
         return bytes(data)
     if code in (LZ4, LZ4_HIGH):
+        import lz4.frame
+
         return lz4.frame.compress(
             data,
             compression_level=0 if code == LZ4 else 9,

@@ -239,13 +239,11 @@ def decode_events(b, ident: bytes, t, x, y, p, offset: int, capacity: int, width
 
 
 def _gather(b, pos, width, signed):
-    """Little-endian integers of ``width`` bytes at the positions ``pos`` (all already checked)."""
-    out = np.zeros(len(pos), np.uint64)
-    for k in range(width):
-        out |= b[pos + k].astype(np.uint64) << np.uint64(8 * k)
-    if signed:
-        return out.view(np.int64) if width == 8 else (out.astype(np.int64) ^ (1 << (8 * width - 1))) - (1 << (8 * width - 1))
-    return out.astype(np.int64)
+    """Little-endian integers of ``width`` (2, 4 or 8) bytes at the positions ``pos`` (all already checked), as
+    int64: each one's bytes gathered into a row and the rows read as one integer each (a pass per byte cost a
+    small file's open 0.3 ms in numpy calls)."""
+    rows = b[np.asarray(pos, np.int64)[:, None] + np.arange(width)]  # C-ordered: row k holds integer k's bytes
+    return rows.view(f"<{'i' if signed else 'u'}{width}").reshape(-1).astype(np.int64)
 
 
 def _tables(b, slots):

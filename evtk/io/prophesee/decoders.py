@@ -3,9 +3,9 @@ decoders."""
 
 from __future__ import annotations
 
-import bisect
 import os
 import re
+from _bisect import bisect_left  # bisect's C half: the module bisect itself is 0.1 ms more of a fresh read
 from collections.abc import Iterable
 
 import numpy as np
@@ -726,7 +726,7 @@ def _es_dvs_np(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
     starts, ends, runs = [], [], []  # event starts: range(starts[i], ends[i], 5), run i of such bytes after it
     while cur + 5 <= nb:
         grid = on_grid[cur % 5]
-        k = bisect.bisect_left(grid, cur)
+        k = bisect_left(grid, cur)
         q = grid[k] if k < len(grid) else nb  # the first such byte where an event may start
         if q + 5 > nb:  # none before the slice's last whole event: events to there
             q = cur + 5 * ((nb - cur) // 5)
@@ -736,7 +736,7 @@ def _es_dvs_np(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
             break
         starts.append(cur)
         ends.append(q)
-        j = bisect.bisect_left(hi_list, q)
+        j = bisect_left(hi_list, q)
         r = int(run_end[j])  # the run of such bytes from q, each read where an event may start
         runs.append(hi[j:j + r - q])
         cur = r
