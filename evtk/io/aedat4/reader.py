@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import struct
-from bisect import bisect_right
+from _bisect import bisect_right  # (the C module: bisect.py is a module more to load)
 from collections.abc import Iterator
 
 import numpy as np
