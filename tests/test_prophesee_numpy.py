@@ -4,6 +4,10 @@ against reads one block at a time: the same events, triggers, index and damage."
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -87,9 +91,12 @@ def _random_words(rng, n, trial):
     return ((kinds << 12) | v).astype(np.uint16)
 
 
-@pytest.mark.parametrize("slice_words", [8, 1 << 16])
-def test_evt3_numpy_decoder_equals_a_word_by_word_loop(monkeypatch, slice_words):
+@pytest.mark.parametrize("slice_words, h_limit", [(8, evt3._H_LIMIT), (1 << 16, evt3._H_LIMIT), (1 << 16, 0)],
+                         ids=["slices-of-8", "one-slice", "time-high-apart"])
+def test_evt3_numpy_decoder_equals_a_word_by_word_loop(monkeypatch, slice_words, h_limit):
+    """h_limit 0: the time high's part added apart, as after 2**28 wraps of the 24-bit time."""
     monkeypatch.setattr(evt3, "SLICE_WORDS", slice_words)
+    monkeypatch.setattr(evt3, "_H_LIMIT", h_limit)
     rng = np.random.default_rng(7)
     for trial in range(600):
         n = int(rng.integers(0, 90))
@@ -174,3 +181,40 @@ def test_a_large_evt3_file_reads_its_writer_s_events(tmp_path, monkeypatch):
     got = evtk.read_events(path)
     for a, b in zip((got.t, got.x, got.y, got.p), (ev.t, ev.x, ev.y, ev.p)):
         assert np.array_equal(a, b)
+
+
+_PEAK_CHILD = """
+import sys
+import evtk
+
+def hwm():
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) * 1024
+
+with evtk.open(sys.argv[1]) as rec:
+    before = hwm()
+    ev = rec.events()
+    after = hwm()
+arrays = sum(a.nbytes for a in (ev.t, ev.x, ev.y, ev.p))
+print(len(ev), (after - before) / arrays, "numba" in sys.modules)
+"""
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads VmHWM from /proc")
+def test_a_large_evt3_read_peaks_within_a_tenth_of_its_arrays_and_loads_no_compiler(tmp_path):
+    """Issue 32 item 5: 8.4 M words (more than the 8 M from which numba's loop, 100 MiB and more of runtime, used
+    to decode) read whole on two threads in a fresh process: the peak resident memory grows by at most 1.1 times
+    the arrays returned, and numba is never imported."""
+    n_ev = 4_200_000
+    k = np.arange(n_ev)
+    words = np.empty(2 * n_ev, np.uint16)
+    words[0::2] = k * 7 % 480  # EVT_ADDR_Y
+    words[1::2] = (2 << 12) | (k * 13 % 640) | ((k & 1) << 11)  # EVT_ADDR_X
+    words[0:-1:40] = (6 << 12) | ((k[::20] // 20) & 0xFFF)  # a time low every 20 events, for a y word
+    _evt3_file(tmp_path / "big.raw", words, (640, 480))
+    env = dict(os.environ, EVTK_THREADS="2", PYTHONPATH=os.pathsep.join(sys.path))
+    out = subprocess.run([sys.executable, "-c", _PEAK_CHILD, str(tmp_path / "big.raw")], env=env, cwd=tmp_path,
+                         capture_output=True, text=True, check=True).stdout.split()
+    assert int(out[0]) == n_ev
+    assert float(out[1]) <= 1.1, out
+    assert out[2] == "False"

@@ -23,8 +23,11 @@ import numpy as np
 
 from ..._threads import workers
 from ...limits import require_memory
-from .decoders import SLICE_WORDS, ST_COORD, ST_FULL, ST_OK, ST_TYPE
+from .decoders import ST_COORD, ST_FULL, ST_OK, ST_TYPE
 
+#: Words each numpy pass takes at a time: its temporaries (some 40 bytes a word) stay in the cache, and a thread's
+#: whole working memory is about 1.5 MiB whatever the file.
+SLICE_WORDS = 1 << 15
 # decoder state (int64 arrays, updated in place): time high, time low, epoch (wraps of the 24-bit time), y,
 # vector base x, polarity
 E3_HIGH, E3_LOW, E3_EPOCH, E3_Y, E3_BASE, E3_POL = range(6)
@@ -246,11 +249,8 @@ def run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     return n, m, ST_OK, -1, t_min, t_max
 
 
-def scan(words) -> tuple[int, int, int, tuple[int, ...]]:
-    """Count the events and triggers of EVT 3.0 words without decoding them, and sum up their effect on the
-    decoder's state (up to any word of no type): ``(events, triggers, index of a word of no type or -1, effect)``
-    (``effect`` for :func:`advance`). Events off the sensor are counted (the decoder finds them)."""
-    w = np.asarray(words).astype(np.uint16, copy=False)
+def _scan_slice(w: np.ndarray) -> tuple[int, int, int, tuple[int, ...]]:
+    """:func:`scan` of one slice."""
     kind = w >> 12
     stop = _unknown_at(kind)
     if stop >= 0:
@@ -271,6 +271,32 @@ def scan(words) -> tuple[int, int, int, tuple[int, ...]]:
               int(highs[0]) if len(highs) else -1, int(highs[-1]) if len(highs) else -1, wraps,
               int(w[at_base]) & 0xFFF if at_base >= 0 else -1, steps)
     return n_ev, n_tr, stop, effect
+
+
+def _then(a: tuple[int, ...], b: tuple[int, ...]) -> tuple[int, ...]:
+    """The effect of words with effect ``a`` followed by words with effect ``b`` (see :func:`scan`)."""
+    y_a, low_a, first_a, last_a, wraps_a, base_a, steps_a = a
+    y_b, low_b, first_b, last_b, wraps_b, base_b, steps_b = b
+    wraps = wraps_a + wraps_b + int(last_a >= 0 and first_b >= 0 and first_b < last_a and last_a - first_b > 2048)
+    return (y_b if y_b >= 0 else y_a, low_b if low_b >= 0 else low_a, first_a if first_a >= 0 else first_b,
+            last_b if last_b >= 0 else last_a, wraps, base_b if base_b >= 0 else base_a,
+            steps_b if base_b >= 0 else steps_a + steps_b)
+
+
+def scan(words) -> tuple[int, int, int, tuple[int, ...]]:
+    """Count the events and triggers of EVT 3.0 words without decoding them, and sum up their effect on the
+    decoder's state (up to any word of no type), :data:`SLICE_WORDS` at a time: ``(events, triggers, index of a
+    word of no type or -1, effect)`` (``effect`` for :func:`advance`). Events off the sensor are counted (the
+    decoder finds them)."""
+    w = np.asarray(words).astype(np.uint16, copy=False)
+    n_ev = n_tr = 0
+    effect = (-1, -1, -1, -1, 0, -1, 0)
+    for a in range(0, len(w), SLICE_WORDS):
+        k, j, stop, part = _scan_slice(w[a:a + SLICE_WORDS])
+        n_ev, n_tr, effect = n_ev + k, n_tr + j, _then(effect, part)
+        if stop >= 0:
+            return n_ev, n_tr, a + stop, effect
+    return n_ev, n_tr, -1, effect
 
 
 def advance(state: np.ndarray, effect: tuple[int, ...]) -> None:
@@ -314,6 +340,11 @@ def _keep_temporaries_mapped() -> None:
 #: Files of fewer blocks than this (4 M words, some 60 ms of decoding) decode on the calling thread: the pool's
 #: imports and start (about 10 ms of a fresh process) cost more than the threads save on fewer.
 THREADED_BLOCKS = 16
+#: A decoding thread's working memory (its slices' temporaries, its block's words, its allocator arena), measured.
+THREAD_BYTES = 2 << 20
+#: The share of the events' own memory the decoding threads may add: no more threads decode than it pays for
+#: (a whole read's peak is to stay within 1.1 times its arrays).
+MEMORY_SHARE = 0.08
 
 
 def read_whole(path: str, start: int, count: int, block_words: int, width: int, height: int,
@@ -323,7 +354,8 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
     A first pass (:func:`scan`) counts each block's events and triggers and sums up its effect on the state, so
     that each block's start state and place in the columns are known; the second decodes each block from that
     state straight into its place. Both run on :func:`evtk._threads.workers` threads (numpy releases the GIL in
-    its array operations); temporaries are a block's per thread, so the peak is the columns and a few MiB.
+    its array operations), the decoding on no more than :data:`MEMORY_SHARE` of the columns' memory pays for
+    (:data:`THREAD_BYTES` each), so that the peak is the columns and a few MiB.
 
     Parameters
     ----------
@@ -349,7 +381,10 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
         index).
     """
     n_blocks = -(-count // block_words)
-    threads = workers() if n_blocks >= THREADED_BLOCKS else 1
+    # threads while counting: as many as the file's own size pays for (its events take at least as much memory
+    # as its words unless it is mostly time words); while decoding, as many as the events' memory pays for
+    threads = min(workers(), max(1, int(MEMORY_SHARE * 2 * count) // THREAD_BYTES)) if n_blocks >= THREADED_BLOCKS \
+        else 1
     _keep_temporaries_mapped()
     fd = os.open(path, os.O_RDONLY)
     try:
@@ -359,11 +394,20 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
             return np.frombuffer(raw, "<u2", len(raw) // 2)
 
         def each(fn, n):
-            if threads > 1:
-                from .._compression import pool
+            """``[fn(b) for b in range(n)]``, on ``threads`` threads that each take the next block when done."""
+            if threads < 2 or n < 2:
+                return [fn(b) for b in range(n)]
+            from .._compression import pool
 
-                return list(pool().map(fn, range(n)))
-            return [fn(b) for b in range(n)]
+            blocks, out = iter(range(n)), [None] * n
+
+            def work():
+                for b in blocks:  # a range iterator hands each block to one thread (its next holds the GIL)
+                    out[b] = fn(b)
+
+            for job in [pool().submit(work) for _ in range(min(threads, n))]:
+                job.result()
+            return out
 
         scans = each(lambda b: scan(words_of(b)), n_blocks)
         starts, offs, toffs = [], [0], [0]
@@ -376,7 +420,10 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
             if stop >= 0:  # nothing after a word of no type is read
                 n_blocks = b + 1
                 break
-        require_memory(13 * offs[-1] + 10 * toffs[-1], f"decoding the events of {path}")
+        out_bytes = 13 * offs[-1] + 10 * toffs[-1]
+        require_memory(out_bytes, f"decoding the events of {path}")
+        threads = min(workers(), max(1, int(MEMORY_SHARE * out_bytes) // THREAD_BYTES)) \
+            if n_blocks >= THREADED_BLOCKS else 1
         t, x, y, p = (np.empty(offs[-1], np.int64), np.empty(offs[-1], np.uint16), np.empty(offs[-1], np.uint16),
                       np.empty(offs[-1], np.uint8))
         tt, tk, tch = np.empty(toffs[-1], np.int64), np.empty(toffs[-1], np.uint8), np.empty(toffs[-1], np.uint8)
