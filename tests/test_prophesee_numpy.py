@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 import evtk
-from evtk.io.prophesee import evt3, recording
+from evtk.io.prophesee import _evt3 as evt3
+from evtk.io.prophesee import recording
 from evtk.io.prophesee.decoders import ST_COORD, ST_FULL, ST_OK, ST_TYPE
 
 

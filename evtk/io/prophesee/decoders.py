@@ -101,7 +101,7 @@ def _sensor_from_header(lines, path):
     return None
 
 
-# -- decoding (numpy; numba for EVT 2.1; EVT 3.0 in evt3.py) -------------------------------------------------------
+# -- decoding (numpy; numba for EVT 2.1; EVT 3.0 in _evt3.py) -------------------------------------------------------
 
 
 # decoder states (int64 arrays, updated in place so that a block goes on where the one before ended)
@@ -561,7 +561,7 @@ def _es_dvs_np(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
 _es_np_run = _sliced(_es_dvs_np)
 
 
-_RUNNERS = {EVT2: _evt2_run, EVT21: _evt21_run, DAT: _dat_run, ES: _es_np_run}  # EVT 3.0: evt3.run
+_RUNNERS = {EVT2: _evt2_run, EVT21: _evt21_run, DAT: _dat_run, ES: _es_np_run}  # EVT 3.0: _evt3.run
 _STATE_SIZE = {EVT2: 2, EVT21: 3, EVT3: 6, DAT: 2, ES: 5}
 _DTYPE = {EVT2: "<u4", EVT21: "<u8", EVT3: "<u2", DAT: "<u4", ES: "u1"}
 # where a word's type sits, and the types a format has (for the message about a word of another type)

@@ -12,7 +12,7 @@ from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
 from ...limits import require_memory
 from ..base import BaseRecording, Damage, StreamInfo, _event_columns, _put_events, sensor_dims
-from . import evt3
+from . import _evt3 as evt3
 from .decoders import (
     _DAT_PREV,
     _DTYPE,
@@ -363,7 +363,7 @@ class PropheseeRecording(BaseRecording):
         """Every event, block by block (:meth:`_through`, which leaves the index behind) into one set of columns
         sized by what the file's words can hold (pages never written cost no memory), so that the peak is the
         events plus one block's decoding, not the events twice. EVT 3.0 decodes its blocks on the reader's
-        threads into exact-size columns (:func:`evt3.read_whole`)."""
+        threads into exact-size columns (:func:`_evt3.read_whole`)."""
         if self.encoding == EVT3:
             return self._whole_evt3()
         cap = {EVT2: self._count, EVT21: self._count, EVT3: self._count + 12, DAT: self._count,
@@ -390,7 +390,8 @@ class PropheseeRecording(BaseRecording):
     def _whole_evt3(self) -> Events:
         """:meth:`_whole` of an EVT 3.0 file: the events; the triggers and the index are kept when no problem
         stopped the read."""
-        got = evt3.read_whole(self.path, self._start, self._count, self._per_block(), *self._size,
+        width, height = self._size
+        got = evt3.read_whole(str(self.path), self._start, self._count, self._per_block(), width, height,
                               self._initial_state())
         if got["status"] != ST_OK:
             self._stop(self._word_problem(np.array([got["word"]], np.uint16), got["status"], 0, got["bad"]))

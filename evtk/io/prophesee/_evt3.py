@@ -290,7 +290,7 @@ def scan(words) -> tuple[int, int, int, tuple[int, ...]]:
     decoder finds them)."""
     w = np.asarray(words).astype(np.uint16, copy=False)
     n_ev = n_tr = 0
-    effect = (-1, -1, -1, -1, 0, -1, 0)
+    effect: tuple[int, ...] = (-1, -1, -1, -1, 0, -1, 0)
     for a in range(0, len(w), SLICE_WORDS):
         k, j, stop, part = _scan_slice(w[a:a + SLICE_WORDS])
         n_ev, n_tr, effect = n_ev + k, n_tr + j, _then(effect, part)
