@@ -23,7 +23,7 @@ import numpy as np
 
 from ..._threads import workers
 from ...limits import require_memory
-from .decoders import ST_COORD, ST_FULL, ST_OK, ST_TYPE
+from .decoders import ST_COORD, ST_FULL, ST_OK, ST_TYPE, _sliced
 
 #: Words each numpy pass takes at a time: its temporaries (some 40 bytes a word) stay in the cache, and a thread's
 #: whole working memory is about 1.5 MiB whatever the file.
@@ -235,18 +235,9 @@ def _core(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
         (int(et.max()) if n else -(2**62))
 
 
-def run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """Decode or count EVT 3.0 words :data:`~evtk.io.prophesee.decoders.SLICE_WORDS` at a time (temporaries in
-    the cache), the state carried from slice to slice: :func:`_core`'s arguments and results, over all the words."""
-    n = m = 0
-    t_min, t_max = 2**62, -(2**62)
-    for a in range(0, max(len(words), 1), SLICE_WORDS):
-        k, j, status, bad, lo, hi = _core(words[a:a + SLICE_WORDS], state, width, height, decode, t[n:], x[n:],
-                                          y[n:], p[n:], tt[m:], tk[m:], tch[m:])
-        n, m, t_min, t_max = n + k, m + j, min(t_min, lo), max(t_max, hi)
-        if status != ST_OK:
-            return n, m, status, a + bad, t_min, t_max
-    return n, m, ST_OK, -1, t_min, t_max
+#: Decode or count EVT 3.0 words :data:`SLICE_WORDS` at a time (temporaries in the cache), the state carried from
+#: slice to slice: :func:`_core`'s arguments and results, over all the words.
+run = _sliced(_core, slice_words=lambda: SLICE_WORDS)
 
 
 def _scan_slice(w: np.ndarray) -> tuple[int, int, int, tuple[int, ...]]:

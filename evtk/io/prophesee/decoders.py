@@ -125,17 +125,18 @@ def _first_stop(*masks) -> tuple[int, int]:
 SLICE_WORDS = 1 << 16
 
 
-def _sliced(core, words_per_item=1):
-    """A runner that applies ``core`` (a numpy runner) to :data:`SLICE_WORDS` words at a time, the state
-    carried from slice to slice and each slice's events written after the last's: the same results as one
-    call over all the words, with temporaries bounded by the slice. The problem's index counts items of
-    ``words_per_item`` words (DAT: events of two)."""
+def _sliced(core, words_per_item=1, slice_words=lambda: SLICE_WORDS):
+    """A runner that applies ``core`` (a numpy runner) to :data:`SLICE_WORDS` words at a time (or
+    ``slice_words()``), the state carried from slice to slice and each slice's events written after the last's:
+    the same results as one call over all the words, with temporaries bounded by the slice. The problem's index
+    counts items of ``words_per_item`` words (DAT: events of two)."""
 
     def run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
         n = m = 0
         t_min, t_max = 2**62, -(2**62)
-        for a in range(0, max(len(words), 1), SLICE_WORDS):
-            k, j, status, bad, lo, hi = core(words[a:a + SLICE_WORDS], state, width, height, decode, t[n:], x[n:],
+        size = slice_words()
+        for a in range(0, max(len(words), 1), size):
+            k, j, status, bad, lo, hi = core(words[a:a + size], state, width, height, decode, t[n:], x[n:],
                                              y[n:], p[n:], tt[m:], tk[m:], tch[m:])
             n, m, t_min, t_max = n + k, m + j, min(t_min, lo), max(t_max, hi)
             if status != ST_OK:
