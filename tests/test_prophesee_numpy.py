@@ -126,6 +126,19 @@ def _evt3_file(path, words, sensor=(40, 25)):
     path.write_bytes(head + np.asarray(words, "<u2").tobytes())
 
 
+def _index_one_block_at_a_time(path):
+    """The reader's index counted block after block from the state the last one left: rows and first problem."""
+    with evtk.open(path, salvage=True) as rec:
+        rows, state = [], rec._initial_state()
+        for b in range(rec._n_blocks()):
+            start, words = state.copy(), rec._words(b)
+            n_ev, n_tr, st, bad, lo, hi = evt3.run(words, state, 1 << 16, 1 << 16, False, *_outs(0))
+            rows.append((start, n_ev, n_tr, lo, hi))
+            if st != ST_OK:
+                return rows, rec._word_problem(words, st, bad, b * rec._per_block())
+        return rows, None
+
+
 def _one_block_at_a_time(path, salvage):
     """Events, triggers, index and damage read block by block (the reader's streaming path)."""
     with evtk.open(path, salvage=salvage) as rec:
@@ -152,6 +165,19 @@ def test_a_whole_evt3_read_on_threads_equals_the_block_by_block_read(tmp_path, m
         words = _random_words(rng, int(rng.integers(0, 900)), trial if trial % 2 else 5 * trial)
         _evt3_file(path, words)
         for salvage in (False, True):
+            # the index alone (a window's first step, `evtk info`), counted on the threads
+            rows_i, problem_i = _index_one_block_at_a_time(path)
+            with evtk.open(path, salvage=salvage) as rec:
+                if problem_i and not salvage:
+                    with pytest.raises(evtk.FormatError) as err:
+                        rec._index()
+                    assert err.value.offset == problem_i[0], trial
+                else:
+                    rows = rec._index()
+                    assert (rec.damage.offset if problem_i else None) == (problem_i[0] if problem_i else None), trial
+                    assert len(rows) == len(rows_i), trial
+                    for a, b in zip(rows, rows_i):
+                        assert np.array_equal(a[0], b[0]) and tuple(int(v) for v in a[1:]) == b[1:], trial
             ev_b, tr_b, rows_b, problem = _one_block_at_a_time(path, salvage)
             with evtk.open(path, salvage=salvage) as rec:
                 if problem and not salvage:

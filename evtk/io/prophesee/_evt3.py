@@ -339,14 +339,15 @@ MEMORY_SHARE = 0.08
 
 
 def read_whole(path: str, start: int, count: int, block_words: int, width: int, height: int,
-               state: np.ndarray) -> dict[str, Any]:
+               state: np.ndarray, decode: bool = True) -> dict[str, Any]:
     """Decode every word of an EVT 3.0 file into exact-size columns, its blocks on the reader's threads.
 
     A first pass (:func:`scan`) counts each block's events and triggers and sums up its effect on the state, so
     that each block's start state and place in the columns are known; the second decodes each block from that
     state straight into its place. Both run on :func:`evtk._threads.workers` threads (numpy releases the GIL in
     its array operations), the decoding on no more than :data:`MEMORY_SHARE` of the columns' memory pays for
-    (:data:`THREAD_BYTES` each), so that the peak is the columns and a few MiB.
+    (:data:`THREAD_BYTES` each), so that the peak is the columns and a few MiB. Without ``decode``, the blocks
+    are counted only (their time ranges too), on the sensor of 65536 x 65536 the reader's index takes: the index.
 
     Parameters
     ----------
@@ -362,6 +363,8 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
         The sensor, in pixels.
     state : numpy.ndarray
         The state before the first word (6 int64), left as it is.
+    decode : bool
+        Decode the events and triggers; else only the index.
 
     Returns
     -------
@@ -369,7 +372,7 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
         ``t``, ``x``, ``y``, ``p`` (the events), ``tt``, ``tk``, ``tch`` (the triggers), ``status`` and
         ``bad`` (the first stop and its word index in the file; ST_OK and -1 when none), ``word`` (the word
         there) and ``rows`` (per block up to the stop: start state, events, triggers, min t, max t: the reader's
-        index).
+        index); without ``decode``, the columns are empty and the events and triggers those counted.
     """
     n_blocks = -(-count // block_words)
     # threads while counting: as many as the file's own size pays for (its events take at least as much memory
@@ -411,10 +414,14 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
             if stop >= 0:  # nothing after a word of no type is read
                 n_blocks = b + 1
                 break
-        out_bytes = 13 * offs[-1] + 10 * toffs[-1]
-        require_memory(out_bytes, f"decoding the events of {path}")
-        threads = min(workers(), max(1, int(MEMORY_SHARE * out_bytes) // THREAD_BYTES)) \
-            if n_blocks >= THREADED_BLOCKS else 1
+        if decode:
+            out_bytes = 13 * offs[-1] + 10 * toffs[-1]
+            require_memory(out_bytes, f"decoding the events of {path}")
+            threads = min(workers(), max(1, int(MEMORY_SHARE * out_bytes) // THREAD_BYTES)) \
+                if n_blocks >= THREADED_BLOCKS else 1
+        else:  # counting: no columns; the sensor the index counts on
+            offs, toffs = [0] * (n_blocks + 1), [0] * (n_blocks + 1)
+            width = height = 1 << 16
         t, x, y, p = (np.empty(offs[-1], np.int64), np.empty(offs[-1], np.uint16), np.empty(offs[-1], np.uint16),
                       np.empty(offs[-1], np.uint8))
         tt, tk, tch = np.empty(toffs[-1], np.int64), np.empty(toffs[-1], np.uint8), np.empty(toffs[-1], np.uint8)
@@ -422,10 +429,10 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
         def decode_block(b):
             a0, a1, m0, m1 = offs[b], offs[b + 1], toffs[b], toffs[b + 1]
             words = words_of(b)
-            res = run(words, starts[b].copy(), width, height, True, t[a0:a1], x[a0:a1], y[a0:a1], p[a0:a1],
+            res = run(words, starts[b].copy(), width, height, decode, t[a0:a1], x[a0:a1], y[a0:a1], p[a0:a1],
                       tt[m0:m1], tk[m0:m1], tch[m0:m1])
             n, where = res[0], res[3]
-            lo, hi = (int(res[4]), int(res[5])) if n else (0, -1)
+            lo, hi = (int(res[4]), int(res[5])) if n or not decode else (0, -1)
             return res[:4], lo, hi, (int(words[where]) if where >= 0 else -1)
 
         decoded = each(decode_block, n_blocks)

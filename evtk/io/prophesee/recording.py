@@ -159,6 +159,13 @@ class PropheseeRecording(BaseRecording):
     def _index(self):
         """One counting pass over the file: every block's decoder state at its start, its event and trigger
         counts and its time range."""
+        if self._blocks is None and self.encoding == EVT3:  # counted on the reader's threads
+            width, height = self._size
+            got = evt3.read_whole(str(self.path), self._start, self._count, self._per_block(), width, height,
+                                  self._initial_state(), decode=False)
+            if got["status"] != ST_OK:
+                self._stop(self._word_problem(np.array([got["word"]], np.uint16), got["status"], 0, got["bad"]))
+            self._blocks = got["rows"]
         if self._blocks is None:
             run = self._runner()
             rows = []
