@@ -196,6 +196,25 @@ def test_a_whole_evt3_read_on_threads_equals_the_block_by_block_read(tmp_path, m
                     assert np.array_equal(a[0], b[0]) and a[1:] == b[1:], trial
 
 
+def test_the_evt3_index_finds_a_vector_base_moved_off_the_counting_sensor(tmp_path, monkeypatch):
+    """The index counts on a 65536-wide sensor without decoding, unless a block's vectors could reach its edge:
+    5,600 VECT_12 words after one base move the base past x = 65535, a stop the index must give as the
+    block-by-block count does (and time ranges around it)."""
+    monkeypatch.setattr(recording, "BLOCK_WORDS", 512)
+    monkeypatch.setattr(evt3, "THREADED_BLOCKS", 2)
+    monkeypatch.setenv("EVTK_THREADS", "2")
+    words = [(8 << 12) | 5, (6 << 12) | 9, 3, (3 << 12)] + [(4 << 12) | 0xFFF, (6 << 12) | 10] * 5600
+    path = tmp_path / "far.raw"
+    _evt3_file(path, words)
+    rows_i, problem_i = _index_one_block_at_a_time(path)
+    assert problem_i is not None and "outside" in problem_i[1]
+    with evtk.open(path, salvage=True) as rec:
+        rows = rec._index()
+        assert rec.damage.offset == problem_i[0] and len(rows) == len(rows_i)
+        for a, b in zip(rows, rows_i):
+            assert np.array_equal(a[0], b[0]) and tuple(int(v) for v in a[1:]) == b[1:]
+
+
 def test_a_large_evt3_file_reads_its_writer_s_events(tmp_path, monkeypatch):
     monkeypatch.setattr(recording, "BLOCK_WORDS", 1 << 12)
     monkeypatch.setenv("EVTK_THREADS", "2")

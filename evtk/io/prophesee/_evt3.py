@@ -319,6 +319,40 @@ def _last(kind: np.ndarray, typ: int) -> int:
     return -1
 
 
+def _time_range(words: np.ndarray, state: np.ndarray) -> tuple[int, int] | None:
+    """The first and last time (min and max) of the events of EVT 3.0 words decoded from ``state``, without
+    decoding them: the time after each time word, kept where events follow it. ``(2**62, -(2**62))`` without
+    events; None where a vector could reach x = 65536 (the counting sensor's edge: decode to find the stop)."""
+    w = np.asarray(words).astype(np.uint16, copy=False)
+    kind = w >> 12
+    is_v12, is_v8 = kind == 4, kind == 5
+    steps = 12 * int(np.count_nonzero(is_v12)) + 8 * int(np.count_nonzero(is_v8))
+    if steps and max(int(state[E3_BASE]), 0x7FF) + steps + 11 >= 1 << 16:
+        return None
+    has_ev = (kind == 2) | (is_v12 & ((w & 0xFFF) != 0)) | (is_v8 & ((w & 0xFF) != 0))
+    ev_before = np.cumsum(has_ev, dtype=np.int32)
+    if not len(w) or not ev_before[-1]:
+        return 2**62, -(2**62)
+    at_t = np.flatnonzero((kind == 6) | (kind == 8))
+    tw = w[at_t]
+    hi_t = (tw >> 12) == 8
+    highs = np.compress(hi_t, tw).astype(np.int64) & 0xFFF
+    hv = np.empty(len(highs) + 1, np.int64)
+    hv[0] = (int(state[E3_EPOCH]) << 24) | (int(state[E3_HIGH]) << 12)
+    hv[1:] = (_highs_epochs(highs, int(state[E3_HIGH]), int(state[E3_EPOCH])) << 24) | (highs << 12)
+    lv = np.empty(len(tw) - len(highs) + 1, np.int64)
+    lv[0] = state[E3_LOW]
+    lv[1:] = np.compress(~hi_t, tw) & 0xFFF
+    tval = np.empty(len(tw) + 1, np.int64)  # the time in effect after each time word (the start's first)
+    tval[0] = hv[0] | lv[0]
+    tval[1:] = hv[np.cumsum(hi_t, dtype=np.intp)] | lv[np.cumsum(~hi_t, dtype=np.intp)]
+    ends = np.empty(len(at_t) + 1, np.int64)  # event words up to each time word, then up to the end
+    ends[:-1] = ev_before[at_t]
+    ends[-1] = ev_before[-1]
+    used = tval[np.diff(ends, prepend=0) > 0]
+    return int(used.min()), int(used.max())
+
+
 def _keep_temporaries_mapped() -> None:
     """Let the allocator keep the decoder's temporaries between slices. glibc returns the free memory at the top
     of its heap to the system once it passes a threshold, which it raises to twice the largest mapped block it has
@@ -429,6 +463,12 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
         def decode_block(b):
             a0, a1, m0, m1 = offs[b], offs[b + 1], toffs[b], toffs[b + 1]
             words = words_of(b)
+            if not decode:  # the counts are the scan's, the time range a cheaper pass's, unless x could pass 65535
+                n_ev, n_tr, stop, _ = scans[b]
+                timed = _time_range(words[:stop] if stop >= 0 else words, starts[b])
+                if timed is not None:
+                    return (n_ev, n_tr, ST_TYPE if stop >= 0 else ST_OK, stop), timed[0], timed[1], \
+                        (int(words[stop]) if stop >= 0 else -1)
             res = run(words, starts[b].copy(), width, height, decode, t[a0:a1], x[a0:a1], y[a0:a1], p[a0:a1],
                       tt[m0:m1], tk[m0:m1], tch[m0:m1])
             n, where = res[0], res[3]

@@ -239,6 +239,8 @@ class PropheseeRecording(BaseRecording):
         it sees are kept, and become the index when the pass reaches the end without a problem."""
         state = self._initial_state()
         rows = []
+        if self.encoding == EVT3:
+            evt3._keep_temporaries_mapped()
         for b in range(self._n_blocks()):
             start = state.copy()
             ev, tr, problem = self._decode(self._words(b), state, b * self._per_block())
