@@ -1,5 +1,5 @@
-"""Prophesee RAW (EVT 2.0, EVT 2.1, EVT 3.0), DAT and Event Stream: recognising them, their headers, and the numba
-decoders."""
+"""Prophesee RAW (EVT 2.0, EVT 2.1, EVT 3.0), DAT and Event Stream: recognising them, their headers, and their
+decoders (numpy; numba for EVT 2.1 and Event Stream's dense stretches; EVT 3.0's in ``_evt3.py``)."""
 
 from __future__ import annotations
 
