@@ -23,10 +23,11 @@ when reading; Prophesee's tools and expelliarmus do not: evtk reports it in
 ``metadata`` and keeps the stamps as stored). Counters that wrap (EVT 2.0's
 34-bit time, DAT's 32-bit one) are unwrapped.
 
-A full read is one decoder call over the memory-mapped file. For windows the
-reader makes its own block index in one counting pass (numba), so a window
-decodes only the blocks it overlaps, and streaming holds one block at a time;
-nothing in the index comes from the file's claims.
+A full read decodes the file block by block into one set of columns (EVT
+3.0's blocks on the reader's threads, each from the state a counting pass
+gives it). For windows the reader makes its own block index in one counting
+pass, so a window decodes only the blocks it overlaps, and streaming holds
+one block at a time; nothing in the index comes from the file's claims.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""Prophesee RAW (EVT 2.0, EVT 2.1, EVT 3.0), DAT and Event Stream: recognising them, their headers, and the numba
-decoders."""
+"""Prophesee RAW (EVT 2.0, EVT 2.1, EVT 3.0), DAT and Event Stream: recognising them, their headers, and their
+decoders (numpy; numba for EVT 2.1 and Event Stream's dense stretches; EVT 3.0's in ``_evt3.py``)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from ..._lazyjit import njit  # Event Stream and large EVT 3.0 files: numba loads when first needed
+from ..._lazyjit import njit  # EVT 2.1: numba loads when first needed
 from ..base import sensor_dims, text_header
 
 __all__ = ["sniff", "sniff_lines", "word_type", "evt21_legacy"]
@@ -101,7 +101,7 @@ def _sensor_from_header(lines, path):
     return None
 
 
-# -- decoding (numpy; numba for Event Stream and large EVT 3.0) -------------------------------------------------------
+# -- decoding (numpy; numba for EVT 2.1; EVT 3.0 in _evt3.py) -------------------------------------------------------
 
 
 # decoder states (int64 arrays, updated in place so that a block goes on where the one before ended)
@@ -125,17 +125,18 @@ def _first_stop(*masks) -> tuple[int, int]:
 SLICE_WORDS = 1 << 16
 
 
-def _sliced(core, words_per_item=1):
-    """A runner that applies ``core`` (a numpy runner) to :data:`SLICE_WORDS` words at a time, the state
-    carried from slice to slice and each slice's events written after the last's: the same results as one
-    call over all the words, with temporaries bounded by the slice. The problem's index counts items of
-    ``words_per_item`` words (DAT: events of two)."""
+def _sliced(core, words_per_item=1, slice_words=lambda: SLICE_WORDS):
+    """A runner that applies ``core`` (a numpy runner) to :data:`SLICE_WORDS` words at a time (or
+    ``slice_words()``), the state carried from slice to slice and each slice's events written after the last's:
+    the same results as one call over all the words, with temporaries bounded by the slice. The problem's index
+    counts items of ``words_per_item`` words (DAT: events of two)."""
 
     def run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
         n = m = 0
         t_min, t_max = 2**62, -(2**62)
-        for a in range(0, max(len(words), 1), SLICE_WORDS):
-            k, j, status, bad, lo, hi = core(words[a:a + SLICE_WORDS], state, width, height, decode, t[n:], x[n:],
+        size = slice_words()
+        for a in range(0, max(len(words), 1), size):
+            k, j, status, bad, lo, hi = core(words[a:a + size], state, width, height, decode, t[n:], x[n:],
                                              y[n:], p[n:], tt[m:], tk[m:], tch[m:])
             n, m, t_min, t_max = n + k, m + j, min(t_min, lo), max(t_max, hi)
             if status != ST_OK:
@@ -365,231 +366,6 @@ def evt21_legacy(lines: list[str]) -> bool:
     return False
 
 
-#: The EVT 3.0 word types: 0, 2-8, 10, 14 and 15.
-_E3_KNOWN = np.zeros(16, bool)
-_E3_KNOWN[[0, 2, 3, 4, 5, 6, 7, 8, 10, 14, 15]] = True
-#: Set bits of each 12-bit value (the events of an EVT 3.0 vector word): the values below 2**(k+1) are those below
-#: 2**k, then the same with bit k set (built by doubling: 0.1 ms of an import, half of an unpackbits table)
-_POP12 = np.zeros(1, np.int64)
-for _ in range(12):
-    _POP12 = np.concatenate((_POP12, _POP12 + 1))
-
-# EVT 3.0 decoder state: time high, time low, epoch (wraps of the 24-bit time), y, vector base x, polarity
-_E3_HIGH, _E3_LOW, _E3_EPOCH, _E3_Y, _E3_BASE, _E3_POL = range(6)
-
-
-@_sliced
-def _evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """One pass over EVT 3.0 words (16 bits, type in the top four), vectorised with numpy: counts, or with
-    ``decode`` the events and triggers. ``state`` (:data:`_E3_HIGH` ...) carries over from the previous block
-    and is updated. Returns (events, triggers, status, word index of the problem, min t, max t).
-
-    EVT_ADDR_Y (0) sets y; EVT_ADDR_X (2) is one event at its x with its polarity (bit 11); VECT_BASE_X (3)
-    sets the x and polarity of the vectors after it; VECT_12 (4) and VECT_8 (5) are events at base x + k for
-    each set bit k of their 12 or 8 bits, and move the base on by 12 or 8; EVT_TIME_LOW (6) and
-    EVT_TIME_HIGH (8) set bits 0..11 and 12..23 of the time (a drop of more than half the high bits' range is a
-    wrap: the epoch counts them); EXT_TRIGGER (10) holds the edge in bit 0 and the channel in bits 8..11;
-    7, 14 and 15 carry no events. Decoding stops at a word of another type (ST_TYPE), at the first event off
-    the sensor (ST_COORD: the events of that word before it are kept) or, decoding, at an event word whose
-    12 possible events no longer fit ``t`` (ST_FULL, for the caller to resume at it)."""
-    w = np.asarray(words).astype(np.uint16, copy=False)  # 16 bits throughout: half the memory traffic of int64
-    kind = w >> 12
-    v = w & 0xFFF
-    n_words = len(w)
-    stop, _ = _first_stop(~_E3_KNOWN[kind])
-    status = ST_TYPE if stop >= 0 else ST_OK
-    end = stop if stop >= 0 else n_words
-    kind, v = kind[:end], v[:end]
-    is_x, is_v12, is_v8 = kind == 2, kind == 4, kind == 5
-    is_ev = is_x | is_v12 | is_v8
-    mask = np.where(is_x, 1, np.where(is_v12, v, v & 0xFF))
-    mask[~is_ev] = 0
-    counts = _POP12[mask]  # events of each word
-    if decode:
-        is_trig = kind == 10
-        # where the outputs are full (not before all the events and 12 more fit, and all the triggers)
-        if int(counts.sum()) + 12 > len(t) or int(np.count_nonzero(is_trig)) > len(tt):
-            before = np.cumsum(counts) - counts  # events of the words before each
-            full, _ = _first_stop(is_ev & (before + 12 > len(t)), is_trig & (np.cumsum(is_trig) > len(tt)))
-            if full >= 0:
-                status, stop, end = ST_FULL, full, full
-    # the state in effect at a word: the last word at or before it that sets each part (else the start state)
-    kv = kind[:end]
-    vv = v[:end]
-    at_y, at_low, at_high, at_base = (np.flatnonzero(kv == k) for k in (0, 6, 8, 3))
-    highs = vv[at_high]
-    prev = np.concatenate(([state[_E3_HIGH]], highs[:-1]))
-    epochs = state[_E3_EPOCH] + np.cumsum((highs < prev) & (prev - highs > 2048))
-    has_vec = bool(is_v12[:end].any() or is_v8[:end].any())  # else every event is an EVT_ADDR_X word's
-    steps = np.where(is_v12[:end], 12, np.where(is_v8[:end], 8, 0)) if has_vec else np.zeros(end, np.int64)
-    moved = np.cumsum(steps) - steps  # steps of the vectors before each word
-
-    def state_at(pos, with_base=True):
-        """(y, time, base x, polarity) in effect at the word positions ``pos`` (sorted); without ``with_base``
-        the base and polarity are None."""
-        def last(setters, values, initial):
-            k = np.searchsorted(setters, pos, side="right") - 1
-            return np.where(k >= 0, values[np.maximum(k, 0)], initial) if len(setters) else np.full(len(pos), initial)
-
-        yy = last(at_y, vv[at_y] & 0x7FF, state[_E3_Y])
-        tw = ((last(at_high, (epochs << 12) | highs, (state[_E3_EPOCH] << 12) | state[_E3_HIGH]) << 12)
-              | last(at_low, vv[at_low], state[_E3_LOW]))
-        if not with_base:
-            return yy, tw, None, None
-        kb = np.searchsorted(at_base, pos, side="right") - 1
-        if len(at_base):
-            b = at_base[np.maximum(kb, 0)]
-            base = np.where(kb >= 0, (vv[b] & 0x7FF) + moved[pos] - moved[b], state[_E3_BASE] + moved[pos])
-            pol = np.where(kb >= 0, (vv[b] >> 11) & 1, state[_E3_POL])
-        else:
-            base, pol = state[_E3_BASE] + moved[pos], np.full(len(pos), state[_E3_POL])
-        return yy, tw, base, pol
-
-    # every event, in word order and by bit within a word
-    ev_words = np.flatnonzero(is_ev[:end])
-    w_y, w_t, w_base, w_pol = state_at(ev_words, has_vec)
-    if has_vec:
-        rows = np.repeat(np.arange(len(ev_words)), counts[ev_words])
-        bits = np.zeros(len(rows), np.int64)  # EVT_ADDR_X: bit 0; a vector's set bits, in order, from a bit matrix
-        vec = ~is_x[ev_words]
-        bits[np.repeat(vec, counts[ev_words])] = np.nonzero(
-            (mask[ev_words[vec]].astype(np.uint16)[:, None] >> np.arange(12, dtype=np.uint16)) & 1)[1]
-        ex = np.where(is_x[:end][ev_words], vv[ev_words] & 0x7FF, w_base)[rows] + bits  # EVT_ADDR_X: bit 0 only
-    else:  # one event a word
-        rows = np.arange(len(ev_words))
-        ex = vv[ev_words] & 0x7FF
-    ey = w_y[rows]
-    bad_ev, _ = _first_stop((ex >= width) | (ey >= height))
-    done = end  # the words whose effects stand: those before the stop
-    if bad_ev >= 0:
-        status, stop = ST_COORD, int(ev_words[rows[bad_ev]])
-        done = stop
-        n = bad_ev
-    else:
-        n = len(rows)
-    rows, ex, ey = rows[:n], ex[:n], ey[:n]
-    et = w_t[rows]
-    trig = np.flatnonzero(kv[:done] == 10)
-    m = len(trig)
-    if decode:
-        t[:n] = et
-        x[:n] = ex
-        y[:n] = ey
-        if has_vec:
-            p[:n] = np.where(is_x[:end][ev_words], (vv[ev_words] >> 11) & 1, w_pol)[rows]
-        else:
-            p[:n] = (vv[ev_words[:n]] >> 11) & 1
-        if m:
-            tt[:m] = state_at(trig, False)[1]
-            tk[:m] = np.where(v[trig] & 1, 1, 2)
-            tch[:m] = (v[trig] >> 8) & 0xF
-    # the state after the words decoded (those before the stop)
-    if done:
-        last_y, last_t, last_base, last_pol = state_at(np.array([done - 1]))
-        state[_E3_Y], state[_E3_POL] = last_y[0], last_pol[0]
-        state[_E3_BASE] = last_base[0] + steps[done - 1]
-        k = np.searchsorted(at_high, done - 1, side="right") - 1
-        if k >= 0:
-            state[_E3_HIGH], state[_E3_EPOCH] = highs[k], epochs[k]
-        k = np.searchsorted(at_low, done - 1, side="right") - 1
-        if k >= 0:
-            state[_E3_LOW] = vv[at_low[k]]
-    return n, m, status, (stop if status != ST_OK else -1), (int(et.min()) if n else 2**62), \
-        (int(et.max()) if n else -(2**62))
-
-
-#: EVT 3.0 files of at least this many words decode with :func:`_evt3_run_jit`: the numpy decoder takes about
-#: 0.09 s a million words, numba's about 0.01 once loaded, and loading it (import and cached machine code) about
-#: 0.7 s of a fresh process.
-EVT3_JIT_WORDS = 8 << 20
-
-
-@njit(cache=True, nogil=True)
-def _evt3_run_jit(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """:func:`_evt3_run` compiled by numba, for large files (:data:`EVT3_JIT_WORDS`): the same arguments,
-    results and stops."""
-    high = state[_E3_HIGH]
-    low = state[_E3_LOW]
-    epoch = state[_E3_EPOCH]
-    yy = state[_E3_Y]
-    base = state[_E3_BASE]
-    pol = state[_E3_POL]
-    n = 0
-    m = 0
-    t_min = np.int64(2**62)
-    t_max = np.int64(-(2**62))
-    status = ST_OK
-    bad = -1
-    for i in range(len(words)):
-        w = np.int64(words[i])
-        kind = w >> 12
-        v = w & 0xFFF
-        if kind == 0:  # EVT_ADDR_Y
-            yy = v & 0x7FF
-        elif kind == 2 or kind == 4 or kind == 5:  # EVT_ADDR_X, VECT_12, VECT_8
-            if decode and n + 12 > len(t):  # no room for a whole vector: the caller resumes at this word
-                status = ST_FULL
-                bad = i
-                break
-            if kind == 2:
-                first, mask, step = v & 0x7FF, np.int64(1), 0
-                ep = (v >> 11) & 1
-            else:
-                first, mask, step = base, v if kind == 4 else v & 0xFF, 12 if kind == 4 else 8
-                ep = pol
-            tcur = (epoch << 24) | (high << 12) | low
-            for k in range(12):
-                if (mask >> k) & 1:
-                    xi = first + k
-                    if xi >= width or yy >= height:
-                        status = ST_COORD
-                        bad = i
-                        break
-                    if decode:
-                        t[n] = tcur
-                        x[n] = xi
-                        y[n] = yy
-                        p[n] = ep
-                    n += 1
-                    if tcur < t_min:
-                        t_min = tcur
-                    if tcur > t_max:
-                        t_max = tcur
-            if status != ST_OK:
-                break
-            base += step
-        elif kind == 3:  # VECT_BASE_X
-            base = v & 0x7FF
-            pol = (v >> 11) & 1
-        elif kind == 6:  # EVT_TIME_LOW
-            low = v
-        elif kind == 8:  # EVT_TIME_HIGH
-            if v < high and high - v > 2048:  # the 24-bit time wrapped
-                epoch += 1
-            high = v
-        elif kind == 10:  # EXT_TRIGGER: the edge in bit 0, the channel in bits 8..11
-            if decode and m >= len(tt):
-                status = ST_FULL
-                bad = i
-                break
-            if decode:
-                tt[m] = (epoch << 24) | (high << 12) | low
-                tk[m] = 1 if (v & 1) else 2
-                tch[m] = (v >> 8) & 0xF
-            m += 1
-        elif kind != 7 and kind != 14 and kind != 15:  # CONTINUED_4, OTHERS, CONTINUED_12
-            status = ST_TYPE
-            bad = i
-            break
-    state[_E3_HIGH] = high
-    state[_E3_LOW] = low
-    state[_E3_EPOCH] = epoch
-    state[_E3_Y] = yy
-    state[_E3_BASE] = base
-    state[_E3_POL] = pol
-    return n, m, status, bad, t_min, t_max
-
-
 # Event Stream (DVS) decoder state: time, position inside an event (0: at its first byte), x, y, polarity
 _ES_T, _ES_PHASE, _ES_X, _ES_Y, _ES_POL = range(5)
 ES = "es"
@@ -786,7 +562,7 @@ def _es_dvs_np(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
 _es_np_run = _sliced(_es_dvs_np)
 
 
-_RUNNERS = {EVT2: _evt2_run, EVT21: _evt21_run, EVT3: _evt3_run, DAT: _dat_run, ES: _es_np_run}
+_RUNNERS = {EVT2: _evt2_run, EVT21: _evt21_run, DAT: _dat_run, ES: _es_np_run}  # EVT 3.0: _evt3.run
 _STATE_SIZE = {EVT2: 2, EVT21: 3, EVT3: 6, DAT: 2, ES: 5}
 _DTYPE = {EVT2: "<u4", EVT21: "<u8", EVT3: "<u2", DAT: "<u4", ES: "u1"}
 # where a word's type sits, and the types a format has (for the message about a word of another type)

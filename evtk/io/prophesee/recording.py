@@ -12,6 +12,7 @@ from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
 from ...limits import require_memory
 from ..base import BaseRecording, Damage, StreamInfo, _event_columns, _put_events, sensor_dims
+from . import _evt3 as evt3
 from .decoders import (
     _DAT_PREV,
     _DTYPE,
@@ -27,12 +28,10 @@ from .decoders import (
     ES_MAGIC,
     EVT2,
     EVT3,
-    EVT3_JIT_WORDS,
     EVT21,
     ST_COORD,
     ST_FULL,
     ST_OK,
-    _evt3_run_jit,
     _header,
     _sensor_from_header,
     evt21_legacy,
@@ -154,12 +153,19 @@ class PropheseeRecording(BaseRecording):
         return state
 
     def _runner(self):
-        """The decoder of this file's encoding (numba's for a large EVT 3.0 file, where its loading pays)."""
-        return _evt3_run_jit if self.encoding == EVT3 and self._count >= EVT3_JIT_WORDS else _RUNNERS[self.encoding]
+        """The decoder of this file's encoding."""
+        return evt3.run if self.encoding == EVT3 else _RUNNERS[self.encoding]
 
     def _index(self):
         """One counting pass over the file: every block's decoder state at its start, its event and trigger
         counts and its time range."""
+        if self._blocks is None and self.encoding == EVT3:  # counted on the reader's threads
+            width, height = self._size
+            got = evt3.read_whole(str(self.path), self._start, self._count, self._per_block(), width, height,
+                                  self._initial_state(), decode=False)
+            if got["status"] != ST_OK:
+                self._stop(self._word_problem(np.array([got["word"]], np.uint16), got["status"], 0, got["bad"]))
+            self._blocks = got["rows"]
         if self._blocks is None:
             run = self._runner()
             rows = []
@@ -233,6 +239,8 @@ class PropheseeRecording(BaseRecording):
         it sees are kept, and become the index when the pass reaches the end without a problem."""
         state = self._initial_state()
         rows = []
+        if self.encoding == EVT3:
+            evt3._keep_temporaries_mapped()
         for b in range(self._n_blocks()):
             start = state.copy()
             ev, tr, problem = self._decode(self._words(b), state, b * self._per_block())
@@ -363,7 +371,10 @@ class PropheseeRecording(BaseRecording):
     def _whole(self) -> Events:
         """Every event, block by block (:meth:`_through`, which leaves the index behind) into one set of columns
         sized by what the file's words can hold (pages never written cost no memory), so that the peak is the
-        events plus one block's decoding, not the events twice."""
+        events plus one block's decoding, not the events twice. EVT 3.0 decodes its blocks on the reader's
+        threads into exact-size columns (:func:`_evt3.read_whole`)."""
+        if self.encoding == EVT3:
+            return self._whole_evt3()
         cap = {EVT2: self._count, EVT21: self._count, EVT3: self._count + 12, DAT: self._count,
                ES: self._count // 5 + 1}[self.encoding]
         cols = _event_columns(cap)
@@ -384,6 +395,20 @@ class PropheseeRecording(BaseRecording):
             self._triggers = Triggers.concatenate(trs)
         t, x, y, p = (c[:n] for c in cols)
         return Events._trusted(t, x, y, p, self._size)
+
+    def _whole_evt3(self) -> Events:
+        """:meth:`_whole` of an EVT 3.0 file: the events; the triggers and the index are kept when no problem
+        stopped the read."""
+        width, height = self._size
+        got = evt3.read_whole(str(self.path), self._start, self._count, self._per_block(), width, height,
+                              self._initial_state())
+        if got["status"] != ST_OK:
+            self._stop(self._word_problem(np.array([got["word"]], np.uint16), got["status"], 0, got["bad"]))
+        else:
+            self._blocks = got["rows"]
+            if self._triggers is None:
+                self._triggers = Triggers(got["tt"], got["tk"], got["tch"])
+        return Events._trusted(got["t"], got["x"], got["y"], got["p"], self._size)
 
     def triggers(self, t_start_us: int | None = None, t_end_us: int | None = None) -> Triggers:
         """The trigger edges with ``t_start_us <= t < t_end_us``.
