@@ -6,7 +6,8 @@
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 ... -d .whl \
 #     lz4 zstandard tomli_w dv-processing dask distributed tornado tblib zict partd locket
 # and the command is `bash benchmarks/device_run.sh [steps]`, carrying .whl. Results go to $OUT (or /tmp/evtk-out).
-# The data files are made there (benchmarks/data is too large to travel). Steps: threads fresh reconstruct batch.
+# The data files are made there (benchmarks/data is too large to travel). Steps: threads fresh reconstruct batch
+# calibrate (all by default; about 6 minutes with the machine's start), threads-ab (against a tree in .new).
 set -u
 OUT=${OUT:-/tmp/evtk-out}
 mkdir -p "$OUT"
@@ -14,7 +15,7 @@ export PYTHONUNBUFFERED=1
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
     || exit 1
 export PYTHONPATH=/tmp/site:$PWD
-STEPS=${*:-threads fresh reconstruct batch}
+STEPS=${*:-threads fresh reconstruct batch calibrate}
 echo "cores: $(nproc), $(python3 -c 'import sys, numpy, numba; print(sys.version.split()[0], numpy.__version__, numba.__version__)')"
 lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)|L3" || true
 free -g | head -2
@@ -24,6 +25,9 @@ t0=$(date +%s)
 
 python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_fresh_read as b; b.make_file(20_000_000, 'dv-lz4')" &
 python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_fresh_read as b; b.make_file(20_000_000, 'evtk-zstd')" &
+if [[ " $STEPS " == *" threads "* ]]; then
+    python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_threads as b; b.data_file(20_000_000, 'evt3')" &
+fi
 if [[ " $STEPS " == *" batch "* ]]; then
     for i in $(seq 0 15); do
         python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_batch as b; b.make_one($i)" &
@@ -39,8 +43,8 @@ step() {  # name, seconds, command...
 }
 for s in $STEPS; do
     case $s in
-    threads) step threads 200 python3 benchmarks/bench_threads.py --cores 1,2,4,8,16 --rounds 3 --reads 5 \
-                 --formats aedat4-dv --phases --json "$OUT/threads.json" ;;
+    threads) step threads 150 python3 benchmarks/bench_threads.py --cores 1,2,4,8,16 --rounds 2 --reads 5 \
+                 --formats aedat4-dv,aedat4-zstd,evt3 --json "$OUT/threads.json" ;;
     threads-ab)  # this tree against the one in .new (git archive of a branch, carried), alternating
         for r in 1 2; do
             for tree in "$PWD" "$PWD/.new"; do
@@ -49,13 +53,15 @@ for s in $STEPS; do
                     --json "$OUT/threads-$r-$(basename "$tree").json"
             done
         done ;;
-    fresh) step fresh 150 python3 benchmarks/bench_fresh_read.py --writers dv-lz4,evtk-zstd --repeats 5 \
+    fresh) step fresh 70 python3 benchmarks/bench_fresh_read.py --writers dv-lz4,evtk-zstd --repeats 5 \
                --json "$OUT/fresh.json" ;;
-    reconstruct) step reconstruct 150 python3 benchmarks/bench_reconstruct.py --fixed --repeats 3 \
+    reconstruct) step reconstruct 60 python3 benchmarks/bench_reconstruct.py --fixed --repeats 3 \
                      --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 \
                      --ops "reconstruct, responses only;evtk reconstruct -o x.npz;evtk enob" ;;
-    batch) step batch 200 python3 benchmarks/bench_batch.py --recordings 16 --workers 16 --rounds 1 --repeats 1 --fmt npz \
+    batch) step batch 100 python3 benchmarks/bench_batch.py --recordings 16 --workers 16 --rounds 1 --repeats 1 --fmt npz \
                --json "$OUT/batch.json" ;;
+    calibrate) step calibrate 80 python3 benchmarks/bench_calibrate.py --repeat 150 --runs 3 \
+                   --json "$OUT/calibrate.json" ;;
     esac
 done
 echo "== done $(date +%T)"
