@@ -224,3 +224,25 @@ def test_the_jackknife_t_quantile_equals_scipys(df):
     for confidence in (0.5, 0.9, 0.95, 0.99):
         assert _t_quantile_two_sided(confidence, df) == pytest.approx(stats.t.ppf(0.5 + confidence / 2, df),
                                                                       rel=1e-11)
+
+
+def test_small_npz_outputs_are_stored_and_large_ones_deflated(recording, tmp_path, monkeypatch):
+    # responses alone are stored as they are (deflating them cost a fresh evtk reconstruct more than its counting);
+    # outputs beyond NPZ_STORE_BYTES are deflated; either reads back the same
+    from evtk.io import reconstruction as recio
+
+    with evtk.open(recording) as rec:
+        result = reconstruct(rec, window=("period", PERIOD_US), keep_pixels=False)
+    small, large = tmp_path / "small.npz", tmp_path / "large.npz"
+    recio.save_reconstruction(small, result, SENSOR, {"source": "x"})
+    with zipfile.ZipFile(small) as z:
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_STORED}
+    monkeypatch.setattr(recio, "NPZ_STORE_BYTES", 1000)  # every output is now "large"
+    recio.save_reconstruction(large, result, SENSOR, {"source": "x"})
+    with zipfile.ZipFile(large) as z:
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_DEFLATED}
+    a, b = evtk.reconstruct.load_reconstruction(small), evtk.reconstruct.load_reconstruction(large)
+    np.testing.assert_array_equal(a.responses, result.responses)
+    np.testing.assert_array_equal(b.responses, result.responses)
+    np.testing.assert_array_equal(a.binary, b.binary)
+    assert dict(a.summary) == dict(b.summary)

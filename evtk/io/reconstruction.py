@@ -86,21 +86,29 @@ def save_reconstruction(path: str | os.PathLike[str], result: Any, sensor_size: 
         raise EvtkError(f"cannot tell the output format from {ext!r}: use .npz, .h5 or .hdf5")
 
 
-#: zlib level of the NPZ members: 1 deflates the responses about 3x faster than numpy's default (6), for a
-#: file about 1.4x larger (0.05 s against 0.16 s for 1000 windows of 16x16; what a fresh ``evtk reconstruct``
-#: spends besides its read, issue 32). Any deflate level reads back with ``np.load``.
+#: zlib level of the NPZ members of a large output: 1 deflates the responses about 3x faster than numpy's
+#: default (6), for a file about 1.4x larger. Any deflate level reads back with ``np.load``.
 NPZ_COMPRESS_LEVEL = 1
+
+#: Outputs whose arrays hold at most this many bytes are stored without compression: deflating 1000 windows of
+#: 16x16 responses (4 MB) took 0.05 s at level 1, more than a fresh ``evtk reconstruct`` spends on anything
+#: but its read (issue 32), to save 3 MB of disk. Larger outputs (every window's pixels) are deflated.
+NPZ_STORE_BYTES = 16 << 20
 
 
 def _write_npz(file: Any, arrays: Mapping[str, Any]) -> None:
-    """An NPZ (a zip of ``.npy`` members, deflated at :data:`NPZ_COMPRESS_LEVEL`) of ``arrays`` into an open
-    binary file, as ``np.load`` reads it; no member is pickled."""
+    """An NPZ (a zip of ``.npy`` members: stored when they hold at most :data:`NPZ_STORE_BYTES` together, else
+    deflated at :data:`NPZ_COMPRESS_LEVEL`) of ``arrays`` into an open binary file, as ``np.load`` reads it; no
+    member is pickled."""
     import zipfile
 
-    with zipfile.ZipFile(file, "w", zipfile.ZIP_DEFLATED, compresslevel=NPZ_COMPRESS_LEVEL, allowZip64=True) as z:
+    arrays = {name: np.asanyarray(a) for name, a in arrays.items()}
+    small = sum(a.nbytes for a in arrays.values()) <= NPZ_STORE_BYTES
+    mode = (zipfile.ZIP_STORED, None) if small else (zipfile.ZIP_DEFLATED, NPZ_COMPRESS_LEVEL)
+    with zipfile.ZipFile(file, "w", mode[0], compresslevel=mode[1], allowZip64=True) as z:
         for name, a in arrays.items():
             with z.open(f"{name}.npy", "w", force_zip64=True) as member:
-                np.lib.format.write_array(member, np.asanyarray(a), allow_pickle=False)
+                np.lib.format.write_array(member, a, allow_pickle=False)
 
 
 def is_reconstruction(path: str | os.PathLike[str], trust_external: bool | None = None) -> bool:
