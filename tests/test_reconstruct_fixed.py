@@ -248,18 +248,21 @@ def test_small_npz_outputs_are_stored_and_large_ones_deflated(recording, tmp_pat
     assert dict(a.summary) == dict(b.summary)
 
 
-def test_writing_the_responses_loads_no_hash_or_socket_module(recording, tmp_path):
+def test_writing_the_responses_loads_no_hash_socket_zip_or_tempfile_module(recording, tmp_path):
     # the output's partial-file host tag comes from os.uname and zlib (hashlib and socket: 6 ms of every fresh
-    # evtk reconstruct); the tag still names this machine and the stale-partial clean-up goes by it
+    # evtk reconstruct), its partial file from os.open (tempfile, shutil), and a stored NPZ is written without
+    # zipfile (pathlib): the file is still a valid zip (checked by zipfile's CRC test) that np.load reads
     code = (f"import sys, evtk\nfrom evtk.reconstruct import reconstruct, save_reconstruction\n"
             f"with evtk.open({str(recording)!r}) as rec:\n"
             f"    r = reconstruct(rec, window=('period', {PERIOD_US}), keep_pixels=False)\n"
             f"save_reconstruction({str(tmp_path / 'r.npz')!r}, r, rec.sensor_size)\n"
             "from evtk._atomic import _host_tag\n"
-            "print(sorted({'hashlib', 'socket'} & set(sys.modules)), _host_tag())")
+            "print(sorted({'hashlib', 'socket', 'zipfile', 'tempfile', 'shutil'} & set(sys.modules)), _host_tag())")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
                           env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}, check=False)
     assert done.returncode == 0, done.stderr
     loaded, tag = done.stdout.split("] ")
     assert loaded == "[" and len(tag.strip()) == 8 and int(tag, 16) >= 0
     assert evtk.reconstruct.load_reconstruction(tmp_path / "r.npz").responses.shape[1:] == (16, 16)
+    with zipfile.ZipFile(tmp_path / "r.npz") as z:
+        assert z.testzip() is None and all(i.compress_type == zipfile.ZIP_STORED for i in z.infolist())
