@@ -266,3 +266,21 @@ def test_writing_the_responses_loads_no_hash_socket_zip_or_tempfile_module(recor
     assert evtk.reconstruct.load_reconstruction(tmp_path / "r.npz").responses.shape[1:] == (16, 16)
     with zipfile.ZipFile(tmp_path / "r.npz") as z:
         assert z.testzip() is None and all(i.compress_type == zipfile.ZIP_STORED for i in z.infolist())
+
+
+def test_a_recording_is_read_in_chunks_of_at_most_read_events(recording, monkeypatch):
+    # whatever chunk_events the caller gives (reconstruct passes 4 M), the numpy route reads at most READ_EVENTS
+    # at a time (4 M-event chunks were mapped and faulted in afresh, 133 MB peak for responses of 4 MB); chunks
+    # of 999 events end inside the file's packets and inside windows, and the numbers stay the whole run's
+    from evtk.reconstruct import fixed
+
+    monkeypatch.setattr(fixed, "READ_EVENTS", 999)
+    sizes: list[int] = []
+    with evtk.open(recording) as rec:
+        win = windows_periodic(0, 40_000, PERIOD_US)
+        for linear in (False, True):
+            options = dict(linear=linear, theta=0.05 if linear else None, size=(5, 4))
+            got = fixed_responses(rec, win, (0, 40, 0, 30), chunk_events=4_000_000, progress=sizes.append,
+                                  **options)
+            _same(got, _whole_run(rec, win, (0, 40, 0, 30), **options))
+    assert max(sizes) == 999 and sum(sizes) == 2 * 40_000
