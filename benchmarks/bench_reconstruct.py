@@ -114,7 +114,8 @@ _FIXED = {
 
 def _whole_process(args, tree):
     """Wall seconds and peak RSS (MB, GNU time's %M) of one process running ``args`` with ``tree`` first on
-    the path."""
+    the path: run in ``tree`` (``python -c`` and ``-m`` put the working folder before PYTHONPATH, so from this
+    checkout a baseline tree's rows would time this checkout's evtk)."""
     import os
     import subprocess
     import sys
@@ -122,7 +123,7 @@ def _whole_process(args, tree):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH")) if p))
     t0 = time.perf_counter()
     done = subprocess.run(["/usr/bin/time", "-f", "%M", sys.executable, *args], check=True, capture_output=True,
-                          text=True, env=env)
+                          text=True, env=env, cwd=str(tree))
     wall = time.perf_counter() - t0
     return wall, int(done.stderr.split()[-1]) / 1024
 
@@ -131,7 +132,7 @@ def fixed(n, repeats, ops, baseline=None, file=None):
     import os
     import tempfile
 
-    path = Path(file) if file else _fixed_file(n)
+    path = Path(file).resolve() if file else _fixed_file(n)
     trees = {"": HERE.parent}
     if baseline:
         trees["base: "] = Path(baseline).resolve()

@@ -33,13 +33,19 @@ _HOST_TAG: str | None = None
 
 def _host_tag() -> str:
     """A short tag of this machine in partial-file names: stale partial files are only removed by the host that
-    made them. Found on the first write (hashlib, socket and tempfile cost every command 13 ms at start)."""
+    made them. Found on the first write, from ``os.uname`` and zlib's CRC-32 (hashlib and socket cost a fresh
+    process 6 ms, a sixtieth of a 20 M-event read)."""
     global _HOST_TAG
     if _HOST_TAG is None:
-        import hashlib
-        import socket
+        import zlib
 
-        _HOST_TAG = hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:8]
+        try:
+            name = os.uname().nodename
+        except AttributeError:  # pragma: no cover - Windows
+            import socket
+
+            name = socket.gethostname()
+        _HOST_TAG = f"{zlib.crc32(name.encode('utf-8', 'replace')):08x}"
     return _HOST_TAG
 
 
@@ -157,6 +163,26 @@ def remove_stale_partials(path) -> list:
     return removed
 
 
+def _new_partial(directory: str, prefix: str) -> tuple[int, str]:
+    """Create ``<prefix><random>.evtk-partial`` in ``directory`` as :func:`tempfile.mkstemp` does (exclusively,
+    mode 0600, never through a link), without importing tempfile and shutil (2-8 ms of a fresh process).
+
+    Returns
+    -------
+    tuple of (int, str)
+        The open descriptor (read and write) and the path.
+    """
+    flags = os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0) \
+        | getattr(os, "O_BINARY", 0)
+    for _ in range(100):
+        path = os.path.join(directory, f"{prefix}{os.urandom(6).hex()}{PARTIAL_SUFFIX}")
+        try:
+            return os.open(path, flags, 0o600), path
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"no free partial-file name for {prefix} in {directory}")  # pragma: no cover
+
+
 class AtomicFile:
     """A binary file that appears under ``path`` only when :meth:`commit` runs.
 
@@ -176,14 +202,10 @@ class AtomicFile:
         _check_target(self.path)  # before the work of writing it
         remove_stale_partials(self.path)
         _install_signal_handlers()
-        import tempfile
-
-        fd, self.tmp_path = tempfile.mkstemp(
-            prefix=f"{os.path.basename(self.path)}.{_host_tag()}-{os.getpid()}.", suffix=PARTIAL_SUFFIX, dir=directory
-        )
+        fd, self.tmp_path = _new_partial(directory, f"{os.path.basename(self.path)}.{_host_tag()}-{os.getpid()}.")
         with _LIVE_LOCK:
             _LIVE[self.tmp_path] = os.getpid()
-        # mkstemp creates 0600 files; give the result the mode a plain open()
+        # the partial file is created 0600; give the result the mode a plain open()
         # would (or keep the mode of the file being replaced)
         try:
             mode = os.stat(self.path).st_mode & 0o7777

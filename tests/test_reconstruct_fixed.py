@@ -224,3 +224,63 @@ def test_the_jackknife_t_quantile_equals_scipys(df):
     for confidence in (0.5, 0.9, 0.95, 0.99):
         assert _t_quantile_two_sided(confidence, df) == pytest.approx(stats.t.ppf(0.5 + confidence / 2, df),
                                                                       rel=1e-11)
+
+
+def test_small_npz_outputs_are_stored_and_large_ones_deflated(recording, tmp_path, monkeypatch):
+    # responses alone are stored as they are (deflating them cost a fresh evtk reconstruct more than its counting);
+    # outputs beyond NPZ_STORE_BYTES are deflated; either reads back the same
+    from evtk.io import reconstruction as recio
+
+    with evtk.open(recording) as rec:
+        result = reconstruct(rec, window=("period", PERIOD_US), keep_pixels=False)
+    small, large = tmp_path / "small.npz", tmp_path / "large.npz"
+    recio.save_reconstruction(small, result, SENSOR, {"source": "x"})
+    with zipfile.ZipFile(small) as z:
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_STORED}
+    monkeypatch.setattr(recio, "NPZ_STORE_BYTES", 1000)  # every output is now "large"
+    recio.save_reconstruction(large, result, SENSOR, {"source": "x"})
+    with zipfile.ZipFile(large) as z:
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_DEFLATED}
+    a, b = evtk.reconstruct.load_reconstruction(small), evtk.reconstruct.load_reconstruction(large)
+    np.testing.assert_array_equal(a.responses, result.responses)
+    np.testing.assert_array_equal(b.responses, result.responses)
+    np.testing.assert_array_equal(a.binary, b.binary)
+    assert dict(a.summary) == dict(b.summary)
+
+
+def test_writing_the_responses_loads_no_hash_socket_zip_or_tempfile_module(recording, tmp_path):
+    # the output's partial-file host tag comes from os.uname and zlib (hashlib and socket: 6 ms of every fresh
+    # evtk reconstruct), its partial file from os.open (tempfile, shutil), and a stored NPZ is written without
+    # zipfile (pathlib): the file is still a valid zip (checked by zipfile's CRC test) that np.load reads
+    code = (f"import sys, evtk\nfrom evtk.reconstruct import reconstruct, save_reconstruction\n"
+            f"with evtk.open({str(recording)!r}) as rec:\n"
+            f"    r = reconstruct(rec, window=('period', {PERIOD_US}), keep_pixels=False)\n"
+            f"save_reconstruction({str(tmp_path / 'r.npz')!r}, r, rec.sensor_size)\n"
+            "from evtk._atomic import _host_tag\n"
+            "print(sorted({'hashlib', 'socket', 'zipfile', 'tempfile', 'shutil'} & set(sys.modules)), _host_tag())")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                          env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}, check=False)
+    assert done.returncode == 0, done.stderr
+    loaded, tag = done.stdout.split("] ")
+    assert loaded == "[" and len(tag.strip()) == 8 and int(tag, 16) >= 0
+    assert evtk.reconstruct.load_reconstruction(tmp_path / "r.npz").responses.shape[1:] == (16, 16)
+    with zipfile.ZipFile(tmp_path / "r.npz") as z:
+        assert z.testzip() is None and all(i.compress_type == zipfile.ZIP_STORED for i in z.infolist())
+
+
+def test_a_recording_is_read_in_chunks_of_at_most_read_events(recording, monkeypatch):
+    # whatever chunk_events the caller gives (reconstruct passes 4 M), the numpy route reads at most READ_EVENTS
+    # at a time (4 M-event chunks were mapped and faulted in afresh, 133 MB peak for responses of 4 MB); chunks
+    # of 999 events end inside the file's packets and inside windows, and the numbers stay the whole run's
+    from evtk.reconstruct import fixed
+
+    monkeypatch.setattr(fixed, "READ_EVENTS", 999)
+    sizes: list[int] = []
+    with evtk.open(recording) as rec:
+        win = windows_periodic(0, 40_000, PERIOD_US)
+        for linear in (False, True):
+            options = dict(linear=linear, theta=0.05 if linear else None, size=(5, 4))
+            got = fixed_responses(rec, win, (0, 40, 0, 30), chunk_events=4_000_000, progress=sizes.append,
+                                  **options)
+            _same(got, _whole_run(rec, win, (0, 40, 0, 30), **options))
+    assert max(sizes) == 999 and sum(sizes) == 2 * 40_000

@@ -86,21 +86,63 @@ def save_reconstruction(path: str | os.PathLike[str], result: Any, sensor_size: 
         raise EvtkError(f"cannot tell the output format from {ext!r}: use .npz, .h5 or .hdf5")
 
 
-#: zlib level of the NPZ members: 1 deflates the responses about 3x faster than numpy's default (6), for a
-#: file about 1.4x larger (0.05 s against 0.16 s for 1000 windows of 16x16; what a fresh ``evtk reconstruct``
-#: spends besides its read, issue 32). Any deflate level reads back with ``np.load``.
+#: zlib level of the NPZ members of a large output: 1 deflates the responses about 3x faster than numpy's
+#: default (6), for a file about 1.4x larger. Any deflate level reads back with ``np.load``.
 NPZ_COMPRESS_LEVEL = 1
+
+#: Outputs whose arrays hold at most this many bytes are stored without compression: deflating 1000 windows of
+#: 16x16 responses (4 MB) took 0.05 s at level 1, more than a fresh ``evtk reconstruct`` spends on anything
+#: but its read (issue 32), to save 3 MB of disk. Larger outputs (every window's pixels) are deflated.
+NPZ_STORE_BYTES = 16 << 20
 
 
 def _write_npz(file: Any, arrays: Mapping[str, Any]) -> None:
-    """An NPZ (a zip of ``.npy`` members, deflated at :data:`NPZ_COMPRESS_LEVEL`) of ``arrays`` into an open
-    binary file, as ``np.load`` reads it; no member is pickled."""
+    """An NPZ (a zip of ``.npy`` members: stored when they hold at most :data:`NPZ_STORE_BYTES` together, else
+    deflated at :data:`NPZ_COMPRESS_LEVEL`) of ``arrays`` into an open binary file, as ``np.load`` reads it; no
+    member is pickled."""
+    arrays = {name: np.asanyarray(a) for name, a in arrays.items()}
+    if sum(a.nbytes for a in arrays.values()) <= NPZ_STORE_BYTES:
+        import io
+
+        members = {}
+        for name, a in arrays.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, a, allow_pickle=False)
+            members[f"{name}.npy"] = buf.getbuffer()
+        _write_stored_zip(file, members)
+        return
     import zipfile
 
     with zipfile.ZipFile(file, "w", zipfile.ZIP_DEFLATED, compresslevel=NPZ_COMPRESS_LEVEL, allowZip64=True) as z:
         for name, a in arrays.items():
             with z.open(f"{name}.npy", "w", force_zip64=True) as member:
-                np.lib.format.write_array(member, np.asanyarray(a), allow_pickle=False)
+                np.lib.format.write_array(member, a, allow_pickle=False)
+
+
+def _write_stored_zip(file: Any, members: Mapping[str, Any]) -> None:
+    """A zip archive of ``members`` (ASCII name -> bytes, together below 4 GiB) stored without compression into
+    an open binary file at its start: what :mod:`zipfile` writes with ``ZIP_STORED``, without importing it
+    (with pathlib and shutil, 9 ms of a fresh process: a fortieth of a 20 M-event read, issue 32)."""
+    import struct
+    import time
+    import zlib
+
+    now = time.localtime()
+    stamp = ((now.tm_hour << 11) | (now.tm_min << 5) | (now.tm_sec // 2),
+             ((max(now.tm_year, 1980) - 1980) << 9) | (now.tm_mon << 5) | now.tm_mday)  # MS-DOS time, date
+    central, offset = [], 0
+    for name, data in members.items():
+        raw, crc, size = name.encode("ascii"), zlib.crc32(data), len(data)
+        head = struct.pack("<4s5H3I2H", b"PK\x03\x04", 20, 0, 0, *stamp, crc, size, size, len(raw), 0)
+        file.write(head)
+        file.write(raw)
+        file.write(data)
+        central.append(struct.pack("<4s6H3I5H2I", b"PK\x01\x02", 20 | 3 << 8, 20, 0, 0, *stamp, crc, size, size,
+                                   len(raw), 0, 0, 0, 0, 0o644 << 16, offset) + raw)
+        offset += len(head) + len(raw) + size
+    directory = b"".join(central)
+    file.write(directory)
+    file.write(struct.pack("<4s4H2IH", b"PK\x05\x06", 0, 0, len(central), len(central), len(directory), offset, 0))
 
 
 def is_reconstruction(path: str | os.PathLike[str], trust_external: bool | None = None) -> bool:
