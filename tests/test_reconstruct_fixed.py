@@ -284,3 +284,24 @@ def test_a_recording_is_read_in_chunks_of_at_most_read_events(recording, monkeyp
                                   **options)
             _same(got, _whole_run(rec, win, (0, 40, 0, 30), **options))
     assert max(sizes) == 999 and sum(sizes) == 2 * 40_000
+
+
+@pytest.mark.parametrize("x,y", [(320, 0), (0, 240), (65535, 3)])
+@pytest.mark.parametrize("net", [True, False])
+def test_in_memory_events_off_their_sensor_are_refused(x, y, net):
+    """``Events`` does not check coordinates against its sensor size (the readers do): the fixed route refuses
+    such events by name instead of counting them in another pixel's bin (net counts over the whole sensor key by
+    ``y * width + x``) or failing on a table look-up with an IndexError."""
+    from evtk.reconstruct.fixed import fixed_responses, net_count_batches
+    from evtk.reconstruct.windows import Windows
+
+    n = 3000
+    xs, ys = np.full(n, 5), np.full(n, 7)
+    xs[1234], ys[1234] = x, y
+    ev = evtk.Events(np.arange(n) * 10, xs, ys, np.arange(n) % 2, (320, 240))
+    win = Windows(np.arange(0, 30_000, 1000), np.arange(1000, 31_000, 1000), np.arange(30), "period")
+    with pytest.raises(EvtkError, match=r"outside their 320x240 sensor"):
+        if net:
+            list(net_count_batches(ev, win, (0, 320, 0, 240), [0]))
+        else:
+            fixed_responses(ev, win, (0, 320, 0, 240), linear=False)

@@ -121,6 +121,18 @@ def _window_events(source: Any, windows: Windows, first: int, last: int, chunk_e
     yield from source.iter_events(chunk_events=chunk_events, t_start_us=a, t_end_us=z)
 
 
+def _check_on_sensor(ev: Events, i: int, j: int) -> None:
+    """Refuse in-memory events ``i:j`` that lie off their sensor (``Events`` does not check its coordinates
+    against its size; the readers do): their bins would be another pixel's or out of the tables."""
+    if j <= i:
+        return
+    w, h = ev.sensor_size
+    x_max, y_max = int(ev.x[i:j].max()), int(ev.y[i:j].max())
+    if x_max >= w or y_max >= h:
+        raise EvtkError(f"events lie outside their {w}x{h} sensor (x up to {x_max}, y up to {y_max}): give the "
+                        "Events the sensor size they were recorded on")
+
+
 #: Events counted at a time, so that their keys stay in cache.
 _PIECE = 1 << 16
 
@@ -252,6 +264,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
     x0, x1, y0, y1 = _region(source, region)
     if isinstance(source, Events):
         source = source.sorted()
+        _check_on_sensor(source, 0, len(source))
     h_px, w_px = y1 - y0, x1 - x0
     n_w = len(windows)
     sensor = (int(source.sensor_size[0]), int(source.sensor_size[1]))
@@ -460,6 +473,7 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
     x0, x1, y0, y1 = _region(source, region)
     if isinstance(source, Events):
         source = source.sorted()
+        _check_on_sensor(source, 0, len(source))
     h_px, w_px = y1 - y0, x1 - x0
     frame = h_px * w_px
     n_w = len(windows)
