@@ -270,14 +270,18 @@ def synchronous_readout(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLik
     parts = [e for e in parts if e.t.size]
     if not parts:
         return None
-    t = np.concatenate([e.t for e in parts]).astype(np.int64)
-    pix = np.concatenate([e.y.astype(np.int64) * w + e.x for e in parts])
-    stamps = np.unique(t)
-    if stamps.size < 16:  # a few windows of a few frames each: the grid's step is the stamps' common divisor
+    t = np.concatenate([e.t for e in parts]).astype(np.int64, copy=False)
+    steps = np.diff(t)
+    if steps.size and steps.min() >= 0:  # windows in time order: the distinct stamps' steps are the rises
+        steps = steps[steps > 0]
+    else:
+        steps = np.diff(np.unique(t))
+    if steps.size + 1 < 16:  # a few windows of a few frames each: the grid's step is the stamps' common divisor
         return None
-    period = int(np.gcd.reduce(np.diff(stamps)))
+    period = int(np.gcd.reduce(steps))
     if period <= MAX_TIMING_STAMP_US:
         return None
+    pix = np.concatenate([e.y.astype(np.int64) * w + e.x for e in parts])
     order = np.lexsort((t, pix))
     t, pix = t[order], pix[order]
     same = pix[1:] == pix[:-1]
