@@ -162,3 +162,34 @@ def test_calibrated_route_gives_the_same_numbers_with_the_kept_system(calibrated
     assert np.max(np.abs(first.cells - plain.cells)) <= 1e-9 * scale
     assert first.summary["deblur_regularisation"] == pytest.approx(plain.summary["deblur_regularisation"], rel=1e-9)
     deblur._systems.clear()
+
+
+def test_a_whole_read_is_counted_while_its_next_chunk_is_decoded(tmp_path):
+    """Windows over the whole recording read it whole, in chunks of an eighth (at least 2**18 events), so that
+    each is counted while the reader's threads decode the next (one 4 M-event chunk left the counting after all
+    the decoding); the counts are those of the events in memory."""
+    from conftest import random_events
+
+    from evtk.reconstruct import Windows, accumulate
+
+    ev = random_events(700_000, seed=9, span_us=2_000_000)
+    path = tmp_path / "r.aedat4"
+    evtk.write_events(path, ev)
+    starts = np.arange(0, 2_000_000, 50_000)
+    win = Windows(starts, starts + 30_000, np.arange(len(starts)), "test")
+    sizes = []
+    with evtk.open(path) as rec:
+        real = rec.iter_events
+
+        def spy(*args, **kwargs):
+            for chunk in real(*args, **kwargs):
+                sizes.append(len(chunk))
+                yield chunk
+
+        rec.iter_events = spy
+        got = accumulate(rec, win, (100, 200, 50, 150), times=True)
+    want = accumulate(ev, win, (100, 200, 50, 150), times=True)
+    assert sizes == [2**18, 2**18, 700_000 - 2**19]
+    assert np.array_equal(got.on, want.on) and np.array_equal(got.off, want.off)
+    assert np.array_equal(got.on_first_us, want.on_first_us) and np.array_equal(got.on_last_us, want.on_last_us)
+    assert got.stamp_period_us == want.stamp_period_us
