@@ -53,8 +53,12 @@ def _turned_view():
     return CellMap(matrix, 0.0, (320, 240))
 
 
-def test_sampling_matrix_equals_the_cell_by_cell_model():
-    bench, view = Bench(), _turned_view()
+@pytest.mark.parametrize("turned", [True, False])
+def test_sampling_matrix_equals_the_cell_by_cell_model(turned):
+    """A turned view, and one along the sensor's axes (built as the outer product of a row and a column factor,
+    equal to the sum over every sample but for rounding)."""
+    bench = Bench()
+    view = _turned_view() if turned else CellMap.scale_shift((150.3, 100.7), 1.02, (320, 240))
     region, shape = (146, 172, 98, 124), (18, 18)
     got = sampling_matrix(bench, view.to_cells, region, shape)
     want = _dense_sampling_matrix(bench, view.to_cells, region, shape)

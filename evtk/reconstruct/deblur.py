@@ -99,6 +99,12 @@ def sampling_matrix(bench: Bench, to_cells: Callable[[np.ndarray], npt.ArrayLike
     # the footprint of evtk.optics.axis_weights (a pixel a sample wide), but over the few cells around each sample:
     # the dense form over every cell took four times as long here
     def weights(u, n_cells):  # (N, 2r + 1) shares of the cells around u, and their indices
+        # a view along the sensor's axes puts a column's (a row's) samples at the same few cell coordinates: the
+        # footprint is evaluated once for each (the same floats, gathered)
+        distinct, back = np.unique(u, return_inverse=True)
+        if 2 * distinct.size <= u.size:
+            w, n = weights(distinct, n_cells)
+            return w[back], n[back]
         base = np.floor(u).astype(np.int64)[:, None]
         n = base + offsets[None, :]
         low = u[:, None] - 0.5 * (a + b)
@@ -108,13 +114,29 @@ def sampling_matrix(bench: Bench, to_cells: Callable[[np.ndarray], npt.ArrayLike
         w = cdf[:, 1:] - cdf[:, :-1]
         return np.where((n >= 0) & (n < n_cells), np.maximum(w, 0.0), 0.0), np.clip(n, 0, n_cells - 1)
 
-    wx, nx = weights(uv[:, 0], cols)
-    wy, ny = weights(uv[:, 1], rows)
     npix, ncell = (y1 - y0) * (x1 - x0), rows * cols
-    pix = np.repeat(np.arange(npix), s * s)
-    flat = pix[:, None, None] * ncell + ny[:, :, None] * cols + nx[:, None, :]
-    val = wy[:, :, None] * wx[:, None, :] / (s * s)
-    a_mat = np.bincount(flat.ravel(), weights=val.ravel(), minlength=npix * ncell).reshape(npix, ncell)
+    grid = uv.reshape(y1 - y0, x1 - x0, s, s, 2)  # (pixel row, pixel column, sub-row, sub-column)
+    u4, v4 = grid[..., 0], grid[..., 1]
+    if np.array_equal(u4, np.broadcast_to(u4[:1, :, :1, :], u4.shape)) and \
+            np.array_equal(v4, np.broadcast_to(v4[:, :1, :, :1], v4.shape)):
+        # a view along the sensor's axes: a sample's cell column follows its pixel column alone and its cell row
+        # its pixel row alone, so A is the outer product of a row and a column factor (the sums over the
+        # samples taken per factor; equal to the sum of products but for rounding)
+        def factor(coords, n_cells):  # (pixels along the axis, cells along it): each pixel's summed shares
+            w, n = weights(coords.ravel(), n_cells)
+            at = np.repeat(np.arange(coords.shape[0]), s)[:, None] * n_cells + n
+            return np.bincount(at.ravel(), weights=w.ravel(), minlength=coords.shape[0] * n_cells).reshape(
+                coords.shape[0], n_cells)
+
+        fx, fy = factor(u4[0, :, 0, :], cols), factor(v4[:, 0, :, 0], rows)
+        a_mat = (fy[:, None, :, None] * fx[None, :, None, :]).reshape(npix, ncell) / (s * s)
+    else:
+        wx, nx = weights(uv[:, 0], cols)
+        wy, ny = weights(uv[:, 1], rows)
+        pix = np.repeat(np.arange(npix), s * s)
+        flat = pix[:, None, None] * ncell + ny[:, :, None] * cols + nx[:, None, :]
+        val = wy[:, :, None] * wx[:, None, :] / (s * s)
+        a_mat = np.bincount(flat.ravel(), weights=val.ravel(), minlength=npix * ncell).reshape(npix, ncell)
     if blur_px > 0:
         img = a_mat.reshape(y1 - y0, x1 - x0, ncell)
         a_mat = gaussian_filter(img, (blur_px, blur_px, 0), mode="constant").reshape(npix, ncell)
