@@ -197,3 +197,46 @@ def test_a_whole_read_is_counted_while_its_next_chunk_is_decoded(tmp_path):
     assert np.array_equal(got.on, want.on) and np.array_equal(got.off, want.off)
     assert np.array_equal(got.on_first_us, want.on_first_us) and np.array_equal(got.on_last_us, want.on_last_us)
     assert got.stamp_period_us == want.stamp_period_us
+
+
+def test_match_windows_tries_every_offset_at_once_as_one_at_a_time(calibrated_job):
+    """The trigger windows' clock offset is chosen among candidates all at once: the same choice as trying each
+    in turn (the first of the most matches, then of the least total distance), on edges dropped, shifted and
+    jittered."""
+    from evtk.reconstruct.bench import match_windows
+    from evtk.reconstruct.windows import windows_from_triggers
+
+    path, plan = calibrated_job
+    schedule = plan.schedule
+    with evtk.open(path) as rec:
+        triggers = rec.triggers()
+    order = np.argsort(schedule.t_on_us, kind="stable")
+    sorted_on = schedule.t_on_us[order]
+
+    def one_at_a_time(trig, tol):
+        starts = windows_from_triggers(trig).t_start_us
+        k = min(8, len(starts), len(sorted_on))
+        best, best_score = None, None
+        for off in np.unique((starts[:k, None] - sorted_on[None, :k]).ravel()).tolist():
+            rel = starts - off
+            j = np.clip(np.searchsorted(sorted_on, rel), 1, max(1, len(sorted_on) - 1))
+            cand = np.stack([j - 1, np.minimum(j, len(sorted_on) - 1)])
+            near = cand[np.argmin(np.abs(sorted_on[cand] - rel), axis=0), np.arange(len(rel))]
+            dist = np.abs(sorted_on[near] - rel)
+            ok = dist <= tol
+            score = (int(ok.sum()), -float(dist[ok].sum()))
+            if best_score is None or score > best_score:
+                best, best_score = off, score
+        return best
+
+    rng = np.random.default_rng(5)
+    gaps = np.diff(np.sort(schedule.t_on_us))
+    for trial in range(12):
+        pairs = rng.random(len(triggers) // 2) > 0.2 * (trial % 4)  # whole windows (rising and falling) dropped
+        keep = np.repeat(pairs, 2)
+        jitter = rng.integers(-3, 4, int(keep.sum())) * (trial % 2)
+        trig = evtk.Triggers(triggers.t[keep] + int(rng.integers(-10**6, 10**6)) + jitter, triggers.kind[keep])
+        for tol in (None, 40.0):
+            _, report = match_windows(trig, schedule, tol)
+            want = one_at_a_time(trig, tol if tol is not None else max(1.0, 0.25 * float(gaps.min())))
+            assert report["offset_us"] == want
