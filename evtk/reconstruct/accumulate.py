@@ -93,11 +93,17 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
     return used
 
 
+#: Least events a chunk of a whole read holds when it is split so that counting overlaps decoding (:func:`span_chunks`).
+OVERLAP_CHUNK_EVENTS = 1 << 18
+
+
 def span_chunks(source: Events | Any, a: int, z: int, chunk_events: int) -> Iterator[Events]:
     """The events from ``a`` to ``z`` (us, half-open) in time order, in chunks, and perhaps others beside them.
 
     A recording whose span is at most twice ``z - a`` is read whole, without its time-window filter (which
-    costs more than counting the events outside the span): the counting leaves out what no window holds.
+    costs more than counting the events outside the span): the counting leaves out what no window holds. Its
+    chunks are then an eighth of it (at least :data:`OVERLAP_CHUNK_EVENTS`, at most ``chunk_events``), so that
+    :func:`accumulate` counts one while the reader's threads decode the next.
 
     Parameters
     ----------
@@ -121,6 +127,9 @@ def span_chunks(source: Events | Any, a: int, z: int, chunk_events: int) -> Iter
     info = source.info()
     first, last = info.get("t_start_us"), info.get("t_end_us")
     if first is not None and last is not None and int(last) - int(first) <= 2 * (z - a):
+        n = info.get("events")
+        if isinstance(n, int) and n > 0:  # eight chunks at least: each is counted while the next is decoded
+            chunk_events = min(chunk_events, max(OVERLAP_CHUNK_EVENTS, -(-n // 8)))
         yield from source.iter_events(chunk_events=chunk_events)
     else:
         yield from source.iter_events(chunk_events=chunk_events, t_start_us=a, t_end_us=z)

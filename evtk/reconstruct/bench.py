@@ -89,26 +89,26 @@ def match_windows(triggers: Triggers, schedule: Schedule, tolerance_us: float | 
     order = np.argsort(t_on, kind="stable")
     sorted_on = t_on[order]
 
-    def assign(offset):
+    def assign(offset):  # an offset, or a column of them: each window's nearest capture start, per offset
         rel = win.t_start_us - offset
         j = np.clip(np.searchsorted(sorted_on, rel), 1, max(1, len(sorted_on) - 1))
         cand = np.stack([j - 1, np.minimum(j, len(sorted_on) - 1)])
         dist = np.abs(sorted_on[cand] - rel)
-        best = cand[np.argmin(dist, axis=0), np.arange(len(rel))]
+        best = np.where(dist[1] < dist[0], cand[1], cand[0])  # the earlier on a tie, as argmin
         ok = np.abs(sorted_on[best] - rel) <= tol
         return best, ok, np.abs(sorted_on[best] - rel)
 
     # a schedule of equal periods lines up almost as well one capture off: the most matches win, then the
     # smallest total distance (a constant clock offset lines every start up to the microsecond)
-    best_offset: int = 0  # set by the first candidate (there is at least one window and one capture)
-    best_score: tuple[int, float] | None = None
     k = min(8, len(win), len(t_on))
     candidates = np.unique((win.t_start_us[:k, None] - sorted_on[None, :k]).ravel())
-    for off in candidates.tolist():
-        _, ok, dist = assign(off)
-        score = (int(ok.sum()), -float(dist[ok].sum()))
-        if best_score is None or score > best_score:
-            best_offset, best_score = int(off), score
+    # every candidate's matching at once; then, as one at a time did, the first of the most matches with the least
+    # total distance
+    _, ok_all, dist_all = assign(candidates[:, None])
+    matches = ok_all.sum(axis=1)
+    spread = np.array([float(d[o].sum()) for d, o in zip(dist_all, ok_all)])
+    top = matches == matches.max()
+    best_offset = int(candidates[np.flatnonzero(top & (spread == spread[top].min()))[0]])
     idx, ok, dist = assign(best_offset)
     if not ok.any():
         raise EvtkError("no trigger window lines up with the schedule: is it the schedule of this recording?")
@@ -270,14 +270,18 @@ def synchronous_readout(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLik
     parts = [e for e in parts if e.t.size]
     if not parts:
         return None
-    t = np.concatenate([e.t for e in parts]).astype(np.int64)
-    pix = np.concatenate([e.y.astype(np.int64) * w + e.x for e in parts])
-    stamps = np.unique(t)
-    if stamps.size < 16:  # a few windows of a few frames each: the grid's step is the stamps' common divisor
+    t = np.concatenate([e.t for e in parts]).astype(np.int64, copy=False)
+    steps = np.diff(t)
+    if steps.size and steps.min() >= 0:  # windows in time order: the distinct stamps' steps are the rises
+        steps = steps[steps > 0]
+    else:
+        steps = np.diff(np.unique(t))
+    if steps.size + 1 < 16:  # a few windows of a few frames each: the grid's step is the stamps' common divisor
         return None
-    period = int(np.gcd.reduce(np.diff(stamps)))
+    period = int(np.gcd.reduce(steps))
     if period <= MAX_TIMING_STAMP_US:
         return None
+    pix = np.concatenate([e.y.astype(np.int64) * w + e.x for e in parts])
     order = np.lexsort((t, pix))
     t, pix = t[order], pix[order]
     same = pix[1:] == pix[:-1]

@@ -25,6 +25,8 @@ would amplify is damped rather than inverted.
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -32,11 +34,12 @@ import numpy.typing as npt
 from numpy.linalg import LinAlgError
 from scipy.linalg import cho_factor, cho_solve, eigvalsh
 from scipy.ndimage import gaussian_filter
+from scipy.sparse import csr_array
 
 from .._blas import one_blas_thread
 from ..errors import EvtkError
 from ..optics import Bench, shadow_magnification
-from ..optics.camera import footprint_points
+from ..optics.camera import CellMap, footprint_points
 from ..optics.screen import footprint_cdf
 
 __all__ = ["sampling_matrix", "solve_cells", "relative_noise", "wiener_lambda", "DEFAULT_LAMBDA"]
@@ -96,18 +99,44 @@ def sampling_matrix(bench: Bench, to_cells: Callable[[np.ndarray], npt.ArrayLike
     # the footprint of evtk.optics.axis_weights (a pixel a sample wide), but over the few cells around each sample:
     # the dense form over every cell took four times as long here
     def weights(u, n_cells):  # (N, 2r + 1) shares of the cells around u, and their indices
-        n = np.floor(u).astype(np.int64)[:, None] + offsets[None, :]
+        # a view along the sensor's axes puts a column's (a row's) samples at the same few cell coordinates: the
+        # footprint is evaluated once for each (the same floats, gathered)
+        distinct, back = np.unique(u, return_inverse=True)
+        if 2 * distinct.size <= u.size:
+            w, n = weights(distinct, n_cells)
+            return w[back], n[back]
+        base = np.floor(u).astype(np.int64)[:, None]
+        n = base + offsets[None, :]
         low = u[:, None] - 0.5 * (a + b)
-        w = footprint_cdf(n + 0.5 - low, a, b, psf) - footprint_cdf(n - 0.5 - low, a, b, psf)
+        # the CDF at the 2r + 2 cell edges around u, each edge once (a cell's lower edge is the one below's
+        # upper edge: n - 0.5 and (n - 1) + 0.5 are the same float)
+        cdf = footprint_cdf(base + np.arange(-r - 1, r + 1)[None, :] + 0.5 - low, a, b, psf)
+        w = cdf[:, 1:] - cdf[:, :-1]
         return np.where((n >= 0) & (n < n_cells), np.maximum(w, 0.0), 0.0), np.clip(n, 0, n_cells - 1)
 
-    wx, nx = weights(uv[:, 0], cols)
-    wy, ny = weights(uv[:, 1], rows)
     npix, ncell = (y1 - y0) * (x1 - x0), rows * cols
-    pix = np.repeat(np.arange(npix), s * s)
-    flat = pix[:, None, None] * ncell + ny[:, :, None] * cols + nx[:, None, :]
-    val = wy[:, :, None] * wx[:, None, :] / (s * s)
-    a_mat = np.bincount(flat.ravel(), weights=val.ravel(), minlength=npix * ncell).reshape(npix, ncell)
+    grid = uv.reshape(y1 - y0, x1 - x0, s, s, 2)  # (pixel row, pixel column, sub-row, sub-column)
+    u4, v4 = grid[..., 0], grid[..., 1]
+    if np.array_equal(u4, np.broadcast_to(u4[:1, :, :1, :], u4.shape)) and \
+            np.array_equal(v4, np.broadcast_to(v4[:, :1, :, :1], v4.shape)):
+        # a view along the sensor's axes: a sample's cell column follows its pixel column alone and its cell row
+        # its pixel row alone, so A is the outer product of a row and a column factor (the sums over the
+        # samples taken per factor; equal to the sum of products but for rounding)
+        def factor(coords, n_cells):  # (pixels along the axis, cells along it): each pixel's summed shares
+            w, n = weights(coords.ravel(), n_cells)
+            at = np.repeat(np.arange(coords.shape[0]), s)[:, None] * n_cells + n
+            return np.bincount(at.ravel(), weights=w.ravel(), minlength=coords.shape[0] * n_cells).reshape(
+                coords.shape[0], n_cells)
+
+        fx, fy = factor(u4[0, :, 0, :], cols), factor(v4[:, 0, :, 0], rows)
+        a_mat = (fy[:, None, :, None] * fx[None, :, None, :]).reshape(npix, ncell) / (s * s)
+    else:
+        wx, nx = weights(uv[:, 0], cols)
+        wy, ny = weights(uv[:, 1], rows)
+        pix = np.repeat(np.arange(npix), s * s)
+        flat = pix[:, None, None] * ncell + ny[:, :, None] * cols + nx[:, None, :]
+        val = wy[:, :, None] * wx[:, None, :] / (s * s)
+        a_mat = np.bincount(flat.ravel(), weights=val.ravel(), minlength=npix * ncell).reshape(npix, ncell)
     if blur_px > 0:
         img = a_mat.reshape(y1 - y0, x1 - x0, ncell)
         a_mat = gaussian_filter(img, (blur_px, blur_px, 0), mode="constant").reshape(npix, ncell)
@@ -217,6 +246,17 @@ def wiener_lambda(a_mat: np.ndarray, v: np.ndarray, noise_var: np.ndarray, top: 
     return float(min(1.0, math.sqrt(noise / signal / top)))
 
 
+def _csr(a_mat: np.ndarray) -> csr_array:
+    """``a_mat`` (2-d, float64) as a CSR matrix, built straight from its nonzero entries (``csr_array`` of a
+    dense array goes through a COO copy, which took as long as the dense product it saves here)."""
+    a = np.ascontiguousarray(a_mat, np.float64)
+    n_rows, n_cols = a.shape
+    flat = np.flatnonzero(a)
+    indptr = np.zeros(n_rows + 1, np.int64)
+    np.cumsum(np.bincount(flat // n_cols, minlength=n_rows), out=indptr[1:])
+    return csr_array((a.ravel()[flat], flat % n_cols, indptr), shape=(n_rows, n_cols))
+
+
 def solve_cells(values: npt.ArrayLike, a_mat: np.ndarray, lam: float = 0.0,
                 noise_var: npt.ArrayLike | None = None) -> tuple[np.ndarray, float]:
     """Cell values from pixel values through ``a_mat`` (:func:`sampling_matrix`), Tikhonov-regularised:
@@ -247,21 +287,107 @@ def solve_cells(values: npt.ArrayLike, a_mat: np.ndarray, lam: float = 0.0,
         When the pixel counts of ``values`` and ``a_mat`` differ, the sampling matrix is zero, or ``lam`` is
         negative or not finite.
     """
+    return _solve(values, _System(a_mat), lam, noise_var)
+
+
+class _System:
+    """A sampling matrix with what every solve through it needs: its sparse form, ``A^T A`` and that
+    matrix's largest eigenvalue (computed on first use and kept; the arrays are not to be written)."""
+
+    def __init__(self, a_mat: np.ndarray) -> None:
+        self.a_mat = a_mat
+        # a pixel sees the few cells around its footprint (a few percent of the matrix): its products run sparse
+        self.a_sparse = _csr(a_mat)
+        self._gram: np.ndarray | None = None
+        self._top: float | None = None
+
+    def gram_top(self) -> tuple[np.ndarray, float]:
+        """``(A^T A, its largest eigenvalue)``: the matrix is shared, copy it before writing."""
+        if self._gram is None or self._top is None:
+            with one_blas_thread():
+                gram = (self.a_sparse.T @ self.a_sparse).toarray()
+                self._top = _top_eigenvalue(gram)
+            gram.flags.writeable = False
+            self._gram = gram
+        return self._gram, self._top
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held, bytes (the dense matrix, its sparse form and ``A^T A``)."""
+        ncell = self.a_mat.shape[1]
+        return int(self.a_mat.nbytes + self.a_sparse.data.nbytes * 2 + ncell * ncell * 8)
+
+
+#: Most memory the sampling matrices kept between reconstructions may hold (:func:`_deblur_system`), bytes.
+SYSTEM_CACHE_BYTES = 64 << 20
+_systems: OrderedDict[tuple, _System] = OrderedDict()
+_systems_lock = threading.Lock()
+
+
+def _deblur_system(bench: Bench, cell_map: CellMap, region: Sequence[int], shape: tuple[int, int],
+                  blur_px: float = 0.0) -> _System:
+    """The sampling matrix (:func:`sampling_matrix`) of a view, with ``A^T A`` and its largest eigenvalue, kept
+    for the next reconstruction through the same calibration (a few per process, at most
+    :data:`SYSTEM_CACHE_BYTES`): they depend on the bench, view, region, response shape and defocus only, not on
+    the recording.
+
+    Parameters
+    ----------
+    bench : Bench
+        The bench (sources' extent, shadow blur).
+    cell_map : CellMap
+        The view: sensor pixels to cells through :meth:`~evtk.optics.camera.CellMap.to_cells`.
+    region : sequence of int
+        ``(x0, x1, y0, y1)``: the sensor pixels (half-open) whose light is modelled.
+    shape : tuple of int
+        ``(rows, cols)``: cells of the full response.
+    blur_px : float
+        The camera's defocus, pixels.
+
+    Returns
+    -------
+    _System
+        Its ``a_mat`` (read-only) and the rest, for :func:`solve_cells`' work (``_solve``).
+    """
+    matrix = np.asarray(cell_map.matrix, np.float64)
+    key = (bench, matrix.tobytes(), float(cell_map.k1), tuple(int(v) for v in cell_map.sensor_size),
+           tuple(int(v) for v in region), tuple(int(v) for v in shape), float(blur_px))
+    with _systems_lock:
+        got = _systems.get(key)
+        if got is not None:
+            _systems.move_to_end(key)
+            return got
+    a_mat = sampling_matrix(bench, cell_map.to_cells, region, shape, blur_px)
+    a_mat.flags.writeable = False
+    system = _System(a_mat)
+    system.gram_top()
+    if system.nbytes <= SYSTEM_CACHE_BYTES // 2:
+        with _systems_lock:
+            _systems[key] = system
+            while sum(v.nbytes for v in _systems.values()) > SYSTEM_CACHE_BYTES:
+                _systems.popitem(last=False)
+    return system
+
+
+def _solve(values: npt.ArrayLike, system: _System, lam: float = 0.0,
+           noise_var: npt.ArrayLike | None = None) -> tuple[np.ndarray, float]:
+    """:func:`solve_cells` through a :class:`_System` (whose ``A^T A`` and top eigenvalue may be kept)."""
+    a_mat, a_sparse = system.a_mat, system.a_sparse
     vals = np.asarray(values, dtype=np.float64)
     lead = vals.shape[:-1]
     v = vals.reshape(-1, vals.shape[-1]).T  # (pixels, m)
     if v.shape[0] != a_mat.shape[0]:
         raise EvtkError(f"{v.shape[0]} pixel values for a sampling matrix of {a_mat.shape[0]} pixels")
+    shared, top = system.gram_top()
+    gram = shared.copy()
     with one_blas_thread():
-        gram = a_mat.T @ a_mat
-        top = _top_eigenvalue(gram)
         if noise_var is not None:
             lam = wiener_lambda(a_mat, v, np.asarray(noise_var, np.float64).reshape(v.T.shape).T, top)
         if not (math.isfinite(lam) and lam >= 0):
             raise EvtkError(f"the regularisation must be a finite number >= 0, not {lam}")
         gram[np.diag_indices(gram.shape[0])] += lam * lam * top
         try:
-            cells = cho_solve(cho_factor(gram), a_mat.T @ v)
+            cells = cho_solve(cho_factor(gram), a_sparse.T @ v)
         except LinAlgError:  # lam = 0 on a singular system
             cells = np.linalg.lstsq(a_mat, v, rcond=None)[0]
     return cells.T.reshape(lead + (a_mat.shape[1],)), float(lam)

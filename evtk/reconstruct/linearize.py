@@ -297,14 +297,15 @@ def _flat_through_map(kernel, features, bench, cell_map, region):
     return footprint_light(kernel, features, nominal, region, lambda pts: pad + step * cell_map.to_cells(pts))
 
 
-def _expected_flat_counts(sim, bench, region, curve, theta_on):
+def _expected_flat_counts(sim, bench, region, curve, theta_on, u=None):
     """Net count a nominal pixel gives in a flat-field window, per pixel of ``region`` (y, x).
 
     The light is the optics' own (every mirror on, borders included); with
     a count curve the count is the curve read continuously, else
-    ``log-step / theta_on``.
+    ``log-step / theta_on``. ``u``: :func:`_flat_log_step`'s result, when the caller has it already.
     """
-    u = _flat_log_step(sim, bench, region)
+    if u is None:
+        u = _flat_log_step(sim, bench, region)
     if curve is None:
         return u / theta_on
     levels, mid = _count_steps(curve)

@@ -13,7 +13,7 @@ from ..plan import FLAT_ID, LEVEL_ID, Plan, SimulationRecord
 from ._batched import reconstruct_windows
 from .accumulate import accumulate
 from .binarize import binarize, binarize_rule
-from .deblur import DEFAULT_LAMBDA, relative_noise, sampling_matrix, solve_cells
+from .deblur import DEFAULT_LAMBDA, _deblur_system, _solve, relative_noise
 from .fit import interior_pixels
 from .fixed import fixed_responses, fixed_supported, linear_without_plan
 from .grid import combine_passes, downsample, sample_response_grid, to_response_grid
@@ -262,9 +262,11 @@ def _reconstruct_counts(counts, run, skip_us, length_us, size, binarize_method, 
         curve = count_curve(run, skip_us, length_us) if run is not None and linear and theta is None else None
     needs_net = not linear or curve is not None or (flat_field and schedule is not None)
     net = counts.on.astype(np.float64) - counts.off if needs_net else None
-    gain = None
+    gain = flat_u = None
     if linear and flat_field and schedule is not None and np.any(schedule.kernel_id == FLAT_ID):
-        gain = flat_field_gain(net[schedule.kernel_id == FLAT_ID], _expected_flat_counts(run, bench, region, curve, theta_on))
+        flat_u = _flat_log_step(run, bench, region)  # the flat field's light per pixel: the gain's and the timing's
+        gain = flat_field_gain(net[schedule.kernel_id == FLAT_ID],
+                               _expected_flat_counts(run, bench, region, curve, theta_on, flat_u))
     timed_share = thresholds = None
     why = _no_timing(counts, run, schedule, curve, skip_us) if timing is not False else "not asked for"
     if why is not None and timing:
@@ -273,7 +275,7 @@ def _reconstruct_counts(counts, run, skip_us, length_us, size, binarize_method, 
         values = net
     elif why is None:  # the pixel model, read below one threshold from the event times
         values, timed_share, thresholds = _refine_by_timing(net if gain is None else net * gain, counts, run, bench,
-                                                            schedule, curve, gain, theta_on, skip_us)
+                                                            schedule, curve, gain, theta_on, skip_us, flat_u)
     elif curve is not None:  # invert the recording's own pixel model
         values = linearize_by_model(net if gain is None else net * gain, curve)
     elif gain is None:
@@ -308,14 +310,14 @@ def _reconstruct_counts(counts, run, skip_us, length_us, size, binarize_method, 
         deblurred = bool(deblur) and abs(bench.kernel_step_cells - 1.0) < 1e-9 and bench.decimation == 1
         if deblurred:  # undo the footprint (sources, pixels, diffuser) and the defocus through the whole view
             on_pixels, pairs = combine_passes(values, schedule)
-            a_mat = sampling_matrix(bench, view.to_cells, region, shape, run.blur_px)
+            system = _deblur_system(bench, view, region, shape, run.blur_px)  # kept for the next run
             share = relative_noise(values, schedule.level, is_level, schedule.kernel_id == FLAT_ID, inner)
             noise_var = None
             if share is not None:  # the run's own error against the responses' power
                 noise_var = share ** 2 * combine_passes(values ** 2, schedule, signed=False)[0].reshape(len(pairs), -1)
             # else nothing says how much: the plain inverse for a square view, a measured default otherwise
             lam = 0.0 if placement is None and run.blur_px == 0 else DEFAULT_LAMBDA
-            solved, regularisation = solve_cells(on_pixels.reshape(len(pairs), -1), a_mat, lam, noise_var)
+            solved, regularisation = _solve(on_pixels.reshape(len(pairs), -1), system, lam, noise_var)
             combined = solved.reshape((len(pairs),) + shape)
         else:
             if placement is not None:  # sampled through the map
@@ -451,7 +453,7 @@ def _no_timing(counts, run, schedule, curve, skip_us):
 MAX_TIMING_STAMP_US = 10.0
 
 
-def _refine_by_timing(net, counts, run, bench, schedule, curve, gain, theta_on, skip_us):
+def _refine_by_timing(net, counts, run, bench, schedule, curve, gain, theta_on, skip_us, flat_u=None):
     """Light from :func:`linearize_by_timing` wherever the times determine it, else from the (calibrated)
     net counts ``net`` through :func:`linearize_by_model`.
 
@@ -464,7 +466,9 @@ def _refine_by_timing(net, counts, run, bench, schedule, curve, gain, theta_on, 
     theta = np.full(counts.on.shape[1:], float(theta_on))
     if gain is not None:
         ff = schedule.kernel_id == FLAT_ID
-        flat_u = np.broadcast_to(_flat_log_step(run, bench, counts.region), (int(ff.sum()),) + theta.shape)
+        if flat_u is None:
+            flat_u = _flat_log_step(run, bench, counts.region)
+        flat_u = np.broadcast_to(flat_u, (int(ff.sum()),) + theta.shape)
         flat_u = flat_u - _settle_residual(flat_u, schedule.t_on_us[ff], schedule.t_off_us[ff], sm, blank)
         t = timing_thresholds(counts.on[ff], counts.on_first_us[ff], counts.on_last_us[ff], flat_u, sm, blank,
                               skip_us)

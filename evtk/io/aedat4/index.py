@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import _thread  # the lock of _fail: threading is a module more for a fresh read to load
 import os
 import pyexpat as expat  # what xml.parsers.expat re-exports, without the xml package (0.3 ms of a fresh read)
 import struct
@@ -13,6 +14,8 @@ from .. import _compression as cz
 from .. import _fbpy
 from ..base import Damage, StreamInfo, sensor_dims
 from .common import _HEADER_START, MAGIC, _status
+
+_DAMAGE_LOCK = _thread.allocate_lock()
 
 
 class _Stop(Exception):
@@ -151,8 +154,9 @@ class _FileIndex:
         """Raise in strict mode; in salvage mode record the damage and stop."""
         if not self.salvage:
             raise FormatError(self.path, offset, reason)
-        if self.damage is None or offset < self.damage.offset:
-            self.damage = Damage(int(offset), reason)
+        with _DAMAGE_LOCK:  # decoding threads may meet damage at once: the earliest is kept
+            if self.damage is None or offset < self.damage.offset:
+                self.damage = Damage(int(offset), reason)
         raise _Stop(offset, reason)
 
     # -- header ---------------------------------------------------------------

@@ -202,20 +202,38 @@ class Recording(_FileIndex, BaseRecording):
         return buf[:os.preadv(self._fd, [buf], offset)]
 
     def _select(self, typ, stream, t_start_us, t_end_us):
+        """The stream of ``typ`` and the rows of its packets that can hold stamps in the window.
+
+        Returns
+        -------
+        s : StreamInfo or None
+            The stream (None when the file has none of ``typ``).
+        rows : numpy.ndarray
+            Its packets' rows in the index, in file order: with a data table and a window, those whose stamps
+            (:meth:`_packet_spans`) meet the window; else all.
+        edge : numpy.ndarray or None
+            Per row of ``rows``, whether the packet may hold stamps outside the window (True: its events
+            are to be filtered; False: it lies inside the window, kept whole); None without a window.
+        """
         s = self._stream(stream, typ)
         if s is None:
-            return None, np.zeros(0, np.int64)
+            return None, np.zeros(0, np.int64), None
         idx = self._index
         rows = np.flatnonzero(idx.stream == s.id)
-        if idx.from_table and (t_start_us is not None or t_end_us is not None):
-            lo, hi = self._packet_spans(s, rows)
-            keep = np.ones(len(rows), bool)
-            if t_start_us is not None:
-                keep &= hi >= int(t_start_us)
-            if t_end_us is not None:
-                keep &= lo < int(t_end_us)
-            rows = rows[keep]
-        return s, rows
+        if t_start_us is None and t_end_us is None:
+            return s, rows, None
+        if not idx.from_table:
+            return s, rows, np.ones(len(rows), bool)
+        lo, hi = self._packet_spans(s, rows)
+        keep = np.ones(len(rows), bool)
+        inside = np.ones(len(rows), bool)
+        if t_start_us is not None:
+            keep &= hi >= int(t_start_us)
+            inside &= lo >= int(t_start_us)
+        if t_end_us is not None:
+            keep &= lo < int(t_end_us)
+            inside &= hi < int(t_end_us)
+        return s, rows[keep], ~inside[keep]
 
     def _packet_spans(self, s, rows):
         """The earliest and latest time stamp of each packet of ``rows`` (stream ``s``), as the packets hold
@@ -241,13 +259,16 @@ class Recording(_FileIndex, BaseRecording):
         """
         spans = self._spans.get(s.id)
         if spans is None:
-            n = len(rows)
-            lo = np.full(n, np.iinfo(np.int64).min)
-            hi = np.full(n, np.iinfo(np.int64).max)
-            packets = self._trigger_packets(s, rows) if s.type == "TRIG" else self._event_packets(s, rows)
-            for k, got in enumerate(packets):  # where salvage stops, the packets left stay in every window
-                t = got.t
-                lo[k], hi[k] = (t.min(), t.max()) if len(t) else (np.iinfo(np.int64).max, np.iinfo(np.int64).min)
+            if s.type == "TRIG":
+                n = len(rows)
+                lo = np.full(n, np.iinfo(np.int64).min)
+                hi = np.full(n, np.iinfo(np.int64).max)
+                for k, got in enumerate(self._trigger_packets(s, rows)):  # where salvage stops, the packets
+                    t = got.t                                              # left stay in every window
+                    lo[k], hi[k] = (t.min(), t.max()) if len(t) else (np.iinfo(np.int64).max,
+                                                                      np.iinfo(np.int64).min)
+            else:
+                lo, hi = self._event_spans(s, rows)
             spans = self._spans[s.id] = (lo, hi)
             idx = self._index
             table = (idx.t0[rows], idx.t1[rows])
@@ -256,6 +277,65 @@ class Recording(_FileIndex, BaseRecording):
                 self._warn_once("the data table's packet times disagree with the packets or are out of order; "
                                 "windows go by the times the packets hold", s.name)
         return spans
+
+    def _event_spans(self, s, rows):
+        """The earliest and latest stamp of each event packet of ``rows``, on the I/O threads.
+
+        Each packet is read and decompressed into its thread's scratch buffers and checked as
+        :meth:`_event_packets` checks it (its FlatBuffer, every event on the sensor), and its stamps' least
+        and greatest taken where they lie, nothing copied out. Damage stops the scan where the one-thread
+        scan would stop it: the earliest damaged packet raises (strict) or ends what is scanned (salvage),
+        and the packets from there on keep the widest span, meeting every window.
+
+        Parameters
+        ----------
+        s : StreamInfo
+            The event stream.
+        rows : numpy.ndarray
+            Its packets' rows in the index, in file order.
+
+        Returns
+        -------
+        lo, hi : numpy.ndarray
+            int64 per row: the earliest and latest stamp (``lo > hi`` for an empty packet).
+        """
+        n = len(rows)
+        lo = np.full(n, np.iinfo(np.int64).min)
+        hi = np.full(n, np.iinfo(np.int64).max)
+        width, height = s.sensor_size
+        ident = b"EVTS"
+
+        def work(k0, k1):
+            scratch = cz.Scratch()
+            for k in range(k0, k1):
+                i = rows[k]
+                try:
+                    b = self._body(i, scratch)
+                    reason = None
+                    start, count = _fbpy._root_vector(b, ident, _fbpy.EVENT_STRUCT)
+                    if start < 0:
+                        reason = f"event packet: {_status(start)}"
+                    elif count == 0:
+                        lo[k], hi[k] = np.iinfo(np.int64).max, np.iinfo(np.int64).min
+                    else:
+                        ev = b[start:start + _fbpy.EVENT_STRUCT * count].view(_fbpy.EVENT_DTYPE)
+                        xs, ys = ev["x"], ev["y"]
+                        if int(xs.max()) >= width or int(ys.max()) >= height:
+                            first = int(np.argmax((xs >= width) | (ys >= height)))
+                            reason = f"event {first} of the packet lies outside the {width}x{height} sensor"
+                        else:
+                            ts = ev["t"]
+                            lo[k], hi[k] = ts.min(), ts.max()
+                    if reason is not None:
+                        self._fail(int(self._index.offset[i]), reason)
+                except _Stop:
+                    return k
+            return k1
+
+        stopped = _run_split(work, n, np.maximum(self._index.count[rows], 0))
+        lo[stopped:] = np.iinfo(np.int64).min  # where salvage stopped: the packets left meet every window
+        hi[stopped:] = np.iinfo(np.int64).max
+        return lo, hi
 
     # -- events -------------------------------------------------------------------
     def events(self, t_start_us: int | None = None, t_end_us: int | None = None,
@@ -295,7 +375,7 @@ class Recording(_FileIndex, BaseRecording):
             return self._events(t_start_us, t_end_us, stream)
 
     def _events(self, t_start_us, t_end_us, stream) -> Events:
-        s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
+        s, rows, edge = self._select("EVTS", stream, t_start_us, t_end_us)
         if s is None:
             raise FormatError(self.path, None, f"no event stream; the streams are {self._stream_names()}")
         counts = self._index.count[rows]
@@ -303,8 +383,10 @@ class Recording(_FileIndex, BaseRecording):
             counts = self._count_elements(rows, "EVTS")
             rows = rows[: len(counts)]
         ev, _ = self._decode_rows(s, rows, counts)
-        if t_start_us is not None or t_end_us is not None:
-            ev = ev.between(t_start_us, t_end_us)
+        if edge is not None:
+            ends = np.cumsum(counts)
+            cut = edge[: len(rows)]
+            ev = _cut(ev, (ends - counts)[cut], ends[cut], t_start_us, t_end_us)
         return ev
 
     def _decode_rows(self, s, rows, counts):
@@ -525,30 +607,38 @@ class Recording(_FileIndex, BaseRecording):
         chunk_events = int(chunk_events)
         if chunk_events < 1:
             raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
-        s, rows = self._select("EVTS", stream, t_start_us, t_end_us)
+        s, rows, edge = self._select("EVTS", stream, t_start_us, t_end_us)
         if s is None:
             raise FormatError(self.path, None, f"no event stream; the streams are {self._stream_names()}")
         counts = self._index.count[rows]
         if len(rows) and np.all(counts >= 0):
-            stopped_at = yield from self._chunks_from_table(s, rows, counts, chunk_events, t_start_us, t_end_us)
+            stopped_at = yield from self._chunks_from_table(s, rows, counts, chunk_events, t_start_us, t_end_us,
+                                                            edge)
             if stopped_at is None:
                 return
             rows = rows[stopped_at:]
         yield from self._chunks_from_packets(s, rows, chunk_events, t_start_us, t_end_us)
 
-    def _chunks_from_table(self, s, rows, counts, chunk_events, t_start_us, t_end_us):
-        """Chunks of exactly ``chunk_events`` (the last one shorter), packets decoded on both cores
-        straight into each chunk's arrays. Returns None when done, or the row to go on from packet
+    def _chunks_from_table(self, s, rows, counts, chunk_events, t_start_us, t_end_us, edge=None):
+        """Chunks of at most ``chunk_events``, packets decoded on every core straight into each chunk's
+        arrays (a window's: those of the packets that meet it, then the events of those that cross its
+        edges (``edge``) outside it left out). Returns None when done, or the row to go on from packet
         by packet when the data table's counts prove wrong."""
-        bounded = t_start_us is not None or t_end_us is not None
         cum = np.zeros(len(rows) + 1, np.int64)
         np.cumsum(counts, out=cum[1:])
         buf = None
         fill = 0
+        seg_lo: list[np.ndarray] = []  # where the current chunk's packets that cross the window's edges lie
+        seg_hi: list[np.ndarray] = []
 
         def chunk(n):
             ev = Events._trusted(buf[0][:n], buf[1][:n], buf[2][:n], buf[3][:n], s.sensor_size)
-            return ev.between(t_start_us, t_end_us) if bounded else ev
+            if edge is None:
+                return ev
+            cut = (np.concatenate(seg_lo), np.concatenate(seg_hi)) if seg_lo else (np.zeros(0, np.int64),) * 2
+            seg_lo.clear()
+            seg_hi.clear()
+            return _cut(ev, cut[0], cut[1], t_start_us, t_end_us)
 
         def new_buffer():
             return (np.empty(chunk_events, np.int64), np.empty(chunk_events, np.uint16),
@@ -563,6 +653,10 @@ class Recording(_FileIndex, BaseRecording):
             try:
                 if j > k:
                     n, complete = self._decode_into(s, rows[k:j], counts[k:j], buf, fill)
+                    if edge is not None:
+                        e = k + np.flatnonzero(edge[k:j])
+                        seg_lo.append(fill + cum[e] - cum[k])
+                        seg_hi.append(fill + cum[e + 1] - cum[k])
                     fill += n
                     k = j
                 else:  # one packet larger than the room left: decode it alone and split it
@@ -574,6 +668,9 @@ class Recording(_FileIndex, BaseRecording):
                         take = min(chunk_events - fill, len(ev1) - pos)
                         for dst, src in zip(buf, (ev1.t, ev1.x, ev1.y, ev1.p)):
                             dst[fill:fill + take] = src[pos:pos + take]
+                        if edge is not None and edge[k]:
+                            seg_lo.append(np.array([fill], np.int64))
+                            seg_hi.append(np.array([fill + take], np.int64))
                         fill += take
                         pos += take
                         if fill == chunk_events:
@@ -673,7 +770,7 @@ class Recording(_FileIndex, BaseRecording):
         FormatError
             At damage in a trigger packet (without salvage).
         """
-        s, rows = self._select("TRIG", stream, t_start_us, t_end_us)
+        s, rows, _ = self._select("TRIG", stream, t_start_us, t_end_us)
         if s is None:
             return Triggers()
         trig = self._decode_triggers(s, rows)
@@ -771,6 +868,58 @@ class Recording(_FileIndex, BaseRecording):
 
 
 
+
+
+def _cut(ev: Events, seg_lo: np.ndarray, seg_hi: np.ndarray, t_start_us: int | None,
+         t_end_us: int | None) -> Events:
+    """``ev`` with ``t_start_us <= t < t_end_us`` (None: no bound), as ``ev.between`` gives it, where only the
+    events at ``seg_lo[i]:seg_hi[i]`` can lie outside the window (the packets that cross its edges).
+
+    Parameters
+    ----------
+    ev : Events
+        Decoded packets, in file order.
+    seg_lo, seg_hi : numpy.ndarray
+        int64 start and end (exclusive) of each stretch of ``ev`` to filter; clipped to ``ev``.
+    t_start_us : int, optional
+        First time kept (µs, inclusive); None: from the start.
+    t_end_us : int, optional
+        End of the window (µs, exclusive); None: to the end.
+
+    Returns
+    -------
+    Events
+        A slice of ``ev`` (no copy) when what is kept is contiguous, else a copy of the events kept.
+    """
+    n = len(ev)
+    seg_hi = np.minimum(seg_hi, n)
+    live = seg_lo < seg_hi
+    seg_lo, seg_hi = seg_lo[live], seg_hi[live]
+    if not len(seg_lo):
+        return ev
+    if len(seg_lo) > 16:  # many packets cross the edges (stamps out of order): filter every event at once
+        return ev.between(t_start_us, t_end_us)
+    keep = np.ones(n, bool)
+    kept = n
+    for u, v in zip(seg_lo.tolist(), seg_hi.tolist()):
+        t, m = ev.t[u:v], keep[u:v]
+        if t_start_us is not None:
+            np.greater_equal(t, int(t_start_us), out=m)
+        if t_end_us is not None:
+            if t_start_us is not None:
+                m &= t < int(t_end_us)
+            else:
+                np.less(t, int(t_end_us), out=m)
+        kept -= (v - u) - int(np.count_nonzero(m))
+    if kept == n:
+        return ev
+    if kept == 0:
+        return ev[0:0]
+    first = int(np.argmax(keep))
+    end = n - int(np.argmax(keep[::-1]))
+    if end - first == kept:
+        return ev[first:end]
+    return Events._trusted(ev.t[keep], ev.x[keep], ev.y[keep], ev.p[keep], ev.sensor_size)
 
 
 def _run_split(work, n_rows, counts) -> int:
