@@ -43,7 +43,7 @@ step() {  # name, seconds, command...
 }
 for s in $STEPS; do
     case $s in
-    threads) step threads 150 python3 benchmarks/bench_threads.py --cores 1,2,4,8,16 --rounds 2 --reads 5 \
+    threads) step threads 120 python3 benchmarks/bench_threads.py --cores 1,2,4,8,16 --rounds 2 --reads 5 \
                  --formats aedat4-dv,aedat4-zstd,evt3 --json "$OUT/threads.json" ;;
     threads-ab)  # this tree against the one in .new (git archive of a branch, carried), alternating
         for r in 1 2; do
@@ -53,14 +53,14 @@ for s in $STEPS; do
                     --json "$OUT/threads-$r-$(basename "$tree").json"
             done
         done ;;
-    fresh) step fresh 70 python3 benchmarks/bench_fresh_read.py --writers dv-lz4,evtk-zstd --repeats 5 \
+    fresh) step fresh 55 python3 benchmarks/bench_fresh_read.py --writers dv-lz4,evtk-zstd --repeats 5 \
                --json "$OUT/fresh.json" ;;
-    reconstruct) step reconstruct 60 python3 benchmarks/bench_reconstruct.py --fixed --repeats 3 \
+    reconstruct) step reconstruct 50 python3 benchmarks/bench_reconstruct.py --fixed --repeats 3 \
                      --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 \
                      --ops "reconstruct, responses only;evtk reconstruct -o x.npz;evtk enob" ;;
-    batch) step batch 100 python3 benchmarks/bench_batch.py --recordings 16 --workers 16 --rounds 1 --repeats 1 --fmt npz \
+    batch) step batch 80 python3 benchmarks/bench_batch.py --recordings 16 --workers 16 --rounds 1 --repeats 1 --fmt npz \
                --json "$OUT/batch.json" ;;
-    calibrate) step calibrate 80 python3 benchmarks/bench_calibrate.py --repeat 150 --runs 3 \
+    calibrate) step calibrate 50 python3 benchmarks/bench_calibrate.py --repeat 150 --runs 3 \
                    --json "$OUT/calibrate.json" ;;
     esac
 done
