@@ -279,3 +279,24 @@ def test_to_dask_reads_lazily_by_time(tmp_path, ext):
     np.testing.assert_array_equal(got["p"].to_numpy(), ev.p)
     assert int(df[df.p == 1].t.count().compute(scheduler="synchronous")) == int(ev.p.sum())
     assert evtk.to_dask(path).npartitions == 1  # 50 000 events: one default partition
+
+
+def test_local_workers_start_warm():
+    """Issue 32 item 4: a worker of evtk's local cluster has loaded what a batch task loads before the first
+    task (the reader, the reconstruction, numba and its cached kernels of the schedule route), so no task
+    pays for it; the warm-up runs when the worker starts (the cluster's start, reported apart)."""
+    import subprocess
+    import sys
+
+    code = """
+import json, sys
+from evtk.cluster import scheduler
+with scheduler("local:1") as c:
+    got = list(c.run(lambda: sorted(m for m in ("numba", "evtk.reconstruct.accumulate", "evtk.io.aedat4.reader",
+                                                "evtk.batch") if m in sys.modules)).values())
+print(json.dumps(got))
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads(r.stdout.strip().splitlines()[-1]) == [
+        ["evtk.batch", "evtk.io.aedat4.reader", "evtk.reconstruct.accumulate", "numba"]]
