@@ -42,3 +42,27 @@ def workers() -> int:
                 break  # not a number: the cores, as when unset
     return cores()
 
+
+
+#: The share of a read's own arrays that its decoding threads' working memory may add: no more threads decode
+#: than it pays for (issue 32: a whole read's peak within 1.1 times the arrays it returns, on any core count).
+MEMORY_SHARE = 0.08
+
+
+def workers_within(output_bytes: int, thread_bytes: int) -> int:
+    """:func:`workers`, but no more threads than :data:`MEMORY_SHARE` of ``output_bytes`` pays for at
+    ``thread_bytes`` each (and at least one).
+
+    Parameters
+    ----------
+    output_bytes : int
+        The bytes of what the threads produce (the arrays a read returns).
+    thread_bytes : int
+        One thread's working memory (its buffers, its allocator arena).
+
+    Returns
+    -------
+    int
+        At least 1.
+    """
+    return min(workers(), max(1, int(MEMORY_SHARE * output_bytes) // max(1, int(thread_bytes))))

@@ -9,6 +9,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from ..._threads import workers_within
 from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
 from .. import _compression as cz
@@ -22,6 +23,9 @@ from .index import _CountMismatch, _FileIndex, _Stop
 BATCH_EVENTS = 1 << 16
 # room in a thread's staging buffer for packet headers and the bytes after a packet's events
 _BATCH_SLACK = 1 << 16
+# a decode thread's buffers with batches: the staging buffer (16 bytes an event and the slack), the batch's
+# compressed bytes, its allocator arena's share (about 2.5 MiB)
+_THREAD_BYTES = 40 * BATCH_EVENTS
 
 
 class Recording(_FileIndex, BaseRecording):
@@ -451,7 +455,7 @@ class Recording(_FileIndex, BaseRecording):
                         return k
             return k1
 
-        stopped = _run_split(work, len(rows), counts)
+        stopped = _run_split(work, len(rows), counts, 0 if batch is None else _THREAD_BYTES)
         return int(starts[stopped]) - offset, stopped == len(rows)
 
     def _batcher(self, rows, counts, starts, out, width: int, height: int):
@@ -922,27 +926,33 @@ def _cut(ev: Events, seg_lo: np.ndarray, seg_hi: np.ndarray, t_start_us: int | N
     return Events._trusted(ev.t[keep], ev.x[keep], ev.y[keep], ev.p[keep], ev.sensor_size)
 
 
-def _run_split(work, n_rows, counts) -> int:
+def _run_split(work, n_rows, counts, thread_bytes: int = 0) -> int:
     """Run ``work(k0, k1)`` over contiguous row ranges on the I/O pool.
 
     Each call returns the first row it did not finish (``k1`` on success);
-    the result is the length of the intact prefix.
+    the result is the length of the intact prefix. With ``thread_bytes`` (one thread's buffers), no more
+    threads work than the events' memory pays for (:func:`evtk._threads.workers_within`).
     """
     if n_rows == 0:
         return 0
-    nw = cz.workers()
     total = int(np.sum(counts))
+    # no more threads than the events' memory pays for (each holds a batch's buffers): on 16 cores a 20 M-event
+    # read peaked at 1.13-1.15x its arrays with one per core, and ran no faster than on 8
+    nw = workers_within(13 * total, thread_bytes) if thread_bytes else cz.workers()
     if nw == 1 or n_rows < 4 or total < 200_000:
         return work(0, n_rows)
-    # balance by elements: 4 ranges per worker keeps both cores busy to the end
+    # balance by elements: 4 ranges per thread keeps every thread busy to the end
     parts = nw * 4
     cum = np.cumsum(counts)
     cuts = np.searchsorted(cum, np.linspace(0, total, parts + 1)[1:-1], side="left")
     bounds = sorted({0, n_rows, *cuts.tolist()})  # (np.unique would import numpy.ma, 7-8 ms of a first read)
-    futures = [cz.pool().submit(work, a, b) for a, b in zip(bounds[:-1], bounds[1:])]
-    done = n_rows
-    for b, fut in zip(bounds[1:], futures):
-        got = fut.result()
-        if got < b:
-            done = min(done, got)
-    return done
+    ranges = iter(list(zip(bounds[:-1], bounds[1:])))  # taken in order by nw runners (next() holds the GIL)
+    got: dict[int, tuple[int, int]] = {}
+
+    def runner() -> None:
+        for a, b in ranges:
+            got[a] = (b, work(a, b))
+
+    for fut in [cz.pool().submit(runner) for _ in range(min(nw, parts))]:
+        fut.result()
+    return min((stop for b, stop in got.values() if stop < b), default=n_rows)

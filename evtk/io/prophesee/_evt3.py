@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ..._threads import workers
+from ..._threads import workers_within
 from ...limits import require_memory
 from .decoders import ST_COORD, ST_FULL, ST_OK, ST_TYPE, _sliced
 
@@ -367,9 +367,6 @@ def _keep_temporaries_mapped() -> None:
 THREADED_BLOCKS = 16
 #: A decoding thread's working memory (its slices' temporaries, its block's words, its allocator arena), measured.
 THREAD_BYTES = 2 << 20
-#: The share of the events' own memory the decoding threads may add: no more threads decode than it pays for
-#: (a whole read's peak is to stay within 1.1 times its arrays).
-MEMORY_SHARE = 0.08
 
 
 def read_whole(path: str, start: int, count: int, block_words: int, width: int, height: int,
@@ -379,7 +376,7 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
     A first pass (:func:`scan`) counts each block's events and triggers and sums up its effect on the state, so
     that each block's start state and place in the columns are known; the second decodes each block from that
     state straight into its place. Both run on :func:`evtk._threads.workers` threads (numpy releases the GIL in
-    its array operations), the decoding on no more than :data:`MEMORY_SHARE` of the columns' memory pays for
+    its array operations), the decoding on no more than :data:`evtk._threads.MEMORY_SHARE` of the columns' memory pays for
     (:data:`THREAD_BYTES` each), so that the peak is the columns and a few MiB. Without ``decode``, the blocks
     are counted only (their time ranges too), on the sensor of 65536 x 65536 the reader's index takes: the index.
 
@@ -411,8 +408,7 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
     n_blocks = -(-count // block_words)
     # threads while counting: as many as the file's own size pays for (its events take at least as much memory
     # as its words unless it is mostly time words); while decoding, as many as the events' memory pays for
-    threads = min(workers(), max(1, int(MEMORY_SHARE * 2 * count) // THREAD_BYTES)) if n_blocks >= THREADED_BLOCKS \
-        else 1
+    threads = workers_within(2 * count, THREAD_BYTES) if n_blocks >= THREADED_BLOCKS else 1
     _keep_temporaries_mapped()
     fd = os.open(path, os.O_RDONLY)
     try:
@@ -451,8 +447,7 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
         if decode:
             out_bytes = 13 * offs[-1] + 10 * toffs[-1]
             require_memory(out_bytes, f"decoding the events of {path}")
-            threads = min(workers(), max(1, int(MEMORY_SHARE * out_bytes) // THREAD_BYTES)) \
-                if n_blocks >= THREADED_BLOCKS else 1
+            threads = workers_within(out_bytes, THREAD_BYTES) if n_blocks >= THREADED_BLOCKS else 1
         else:  # counting: no columns; the sensor the index counts on
             offs, toffs = [0] * (n_blocks + 1), [0] * (n_blocks + 1)
             width = height = 1 << 16
