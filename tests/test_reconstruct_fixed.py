@@ -305,3 +305,14 @@ def test_in_memory_events_off_their_sensor_are_refused(x, y, net):
             list(net_count_batches(ev, win, (0, 320, 0, 240), [0]))
         else:
             fixed_responses(ev, win, (0, 320, 0, 240), linear=False)
+
+
+def test_reconstruct_refuses_what_is_not_an_open_recording():
+    """``reconstruct(events)`` failed with an AttributeError ('Events' object has no attribute 'metadata'); it
+    says what it takes instead."""
+    from evtk.reconstruct import reconstruct
+
+    ev = evtk.Events(np.arange(100) * 10, np.zeros(100), np.zeros(100), np.ones(100), (32, 32))
+    for bad in (ev, "path.aedat4", None):
+        with pytest.raises(EvtkError, match="takes an open recording"):
+            reconstruct(bad, window=("period", 100), keep_pixels=False)

@@ -76,6 +76,12 @@ def reconstruct(rec: Any, plan: Plan | SimulationRecord | None = None, options: 
         The responses, their binarisation, the counts and a :class:`~evtk.reconstruct.ReconstructionSummary`
         (``linearization`` says which was used).
 
+    Raises
+    ------
+    EvtkError
+        When ``rec`` is not an open recording (in-memory events included), a setting is unknown or does not
+        go with the plan's route, or the work would not fit the memory budget.
+
     Examples
     --------
     >>> import evtk, tempfile, os
@@ -87,6 +93,11 @@ def reconstruct(rec: Any, plan: Plan | SimulationRecord | None = None, options: 
     >>> result.responses.shape, result.summary.linearization
     ((2, 4, 4), 'pixel model and event times')
     """
+    if not (hasattr(rec, "metadata") and hasattr(rec, "iter_events")):
+        what = "in-memory Events" if type(rec).__name__ == "Events" else type(rec).__name__
+        raise EvtkError(f"reconstruct takes an open recording (with evtk.open(path) as rec: ...), not {what}; "
+                        "events in memory can be written first (evtk.write_events), or their fixed windows "
+                        "counted with evtk.reconstruct.fixed.fixed_responses")
     opts = options if options is not None else ReconstructOptions()
     if settings:
         unknown = sorted(set(settings) - {f.name for f in dataclasses.fields(ReconstructOptions)})
