@@ -136,3 +136,42 @@ def test_damage_inside_a_batch_is_named_as_packet_by_packet(tmp_path, monkeypatc
         assert outcomes[0][0] == "error"
     else:  # salvage: the packets before the damaged one, whole
         assert outcomes[0][1] == evtk.Events.concatenate(evs[:5])
+
+
+def test_of_two_damaged_packets_the_first_is_named_whichever_thread_meets_it(tmp_path, monkeypatch):
+    """Strict reads on several threads raise the fault of the earliest damaged packet, as one thread reading
+    packet by packet would, even when a later range fails first (here the ranges before the first damage are
+    slowed down, so the later damage is met first)."""
+    import time as _time
+
+    from evtk.io import _fbpy
+
+    monkeypatch.setenv("EVTK_THREADS", "3")
+    monkeypatch.setattr(a4r, "_THREAD_BYTES", 1)
+    ev = random_events(270_000, seed=210)
+    path = tmp_path / "two.aedat4"
+    evtk.write_events(path, ev, compression="none", packet_events=3_000, packet_us=None)
+    data = bytearray(path.read_bytes())
+    with evtk.open(path) as rec:
+        offsets = [int(v) for v in rec._index.offset]
+        sizes = [int(v) for v in rec._index.size]
+    for k in (20, 80):  # the first event of each moved off the 320-pixel-wide sensor
+        body = np.frombuffer(bytes(data[offsets[k]:offsets[k] + sizes[k]]), np.uint8)
+        start, count = _fbpy._root_vector(body, b"EVTS", 16)
+        assert count == 3_000
+        data[offsets[k] + start + 8:offsets[k] + start + 10] = (400).to_bytes(2, "little")
+    path.write_bytes(bytes(data))
+    with evtk.open(path) as rec:
+        body = rec._body
+        slow = set(offsets[10:21])
+
+        def late(i, *s):  # the packets before the first damage take longer
+            if int(rec._index.offset[i]) in slow:
+                _time.sleep(0.02)
+            return body(i, *s)
+
+        monkeypatch.setattr(rec, "_body", late)
+        monkeypatch.setattr(rec, "_batcher", lambda *a: None)
+        with pytest.raises(evtk.FormatError) as err:
+            rec.events()
+    assert f"at byte {offsets[20]}" in str(err.value), str(err.value)

@@ -948,11 +948,19 @@ def _run_split(work, n_rows, counts, thread_bytes: int = 0) -> int:
     bounds = sorted({0, n_rows, *cuts.tolist()})  # (np.unique would import numpy.ma, 7-8 ms of a first read)
     ranges = iter(list(zip(bounds[:-1], bounds[1:])))  # taken in order by nw runners (next() holds the GIL)
     got: dict[int, tuple[int, int]] = {}
+    failed: dict[int, BaseException] = {}
 
     def runner() -> None:
         for a, b in ranges:
-            got[a] = (b, work(a, b))
+            if failed:  # a range failed: the ranges after it are not needed (those before it are under way)
+                return
+            try:
+                got[a] = (b, work(a, b))
+            except BaseException as exc:  # noqa: BLE001 - raised below, the earliest range's first
+                failed[a] = exc
 
     for fut in [cz.pool().submit(runner) for _ in range(min(nw, parts))]:
         fut.result()
+    if failed:  # the fault a read packet by packet would meet first, whichever thread met which
+        raise failed[min(failed)]
     return min((stop for b, stop in got.values() if stop < b), default=n_rows)
