@@ -25,9 +25,11 @@ from ..._threads import workers_within
 from ...limits import require_memory
 from .decoders import ST_COORD, ST_FULL, ST_OK, ST_TYPE, _sliced
 
-#: Words each numpy pass takes at a time: its temporaries (some 40 bytes a word) stay in the cache, and a thread's
-#: whole working memory is about 1.5 MiB whatever the file.
-SLICE_WORDS = 1 << 15
+#: Words each numpy pass takes at a time: its temporaries take some 40 bytes a word (a thread's whole working
+#: memory about 5 MiB whatever the file). 32 K-word slices kept them in a core's cache, but each numpy call
+#: releases and takes back the GIL, and with two threads those hand-overs made a read spend half again the CPU
+#: time of one thread (two cores read 20 M events slower than one); 128 K words take a quarter of the calls.
+SLICE_WORDS = 1 << 17
 # decoder state (int64 arrays, updated in place): time high, time low, epoch (wraps of the 24-bit time), y,
 # vector base x, polarity
 E3_HIGH, E3_LOW, E3_EPOCH, E3_Y, E3_BASE, E3_POL = range(6)
@@ -365,8 +367,9 @@ def _keep_temporaries_mapped() -> None:
 #: Files of fewer blocks than this (4 M words, some 60 ms of decoding) decode on the calling thread: the pool's
 #: imports and start (about 10 ms of a fresh process) cost more than the threads save on fewer.
 THREADED_BLOCKS = 16
-#: A decoding thread's working memory (its slices' temporaries, its block's words, its allocator arena), measured.
-THREAD_BYTES = 2 << 20
+#: A decoding thread's working memory (its slices' temporaries, its block's words, its allocator arena), measured
+#: (a 20 M-event read on two threads peaked 5 MiB above one thread's).
+THREAD_BYTES = 6 << 20
 
 
 def read_whole(path: str, start: int, count: int, block_words: int, width: int, height: int,
