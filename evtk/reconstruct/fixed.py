@@ -137,24 +137,84 @@ def _check_on_sensor(ev: Events, i: int, j: int) -> None:
 _PIECE = 1 << 16
 
 
+def _window_picks(ev: Events, starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, slice | np.ndarray]:
+    """Each window's number of events in the chunk (``[start, end)`` by binary search in its sorted time stamps;
+    windows may overlap or come in any order) and what picks them out, window after window: one slice when
+    they lie back to back, else the indices."""
+    lo = np.searchsorted(ev.t, starts, side="left")
+    hi = np.searchsorted(ev.t, ends, side="left")
+    n = hi - lo
+    total = int(n.sum())
+    a, z = (int(lo[0]), int(hi[-1])) if len(n) else (0, 0)
+    if z - a == total and np.array_equal(lo[1:], hi[:-1]):  # back to back: one slice, no gather
+        return n, slice(a, z)
+    return n, np.arange(total, dtype=np.int64) + np.repeat(lo - (np.cumsum(n) - n), n)
+
+
+def _batches(source: Any, windows: Windows, firsts: list[int], nexts: list[int], chunk_events: int,
+             progress: Callable[[int], Any] | None, batch: Callable[[int], Any], add: Callable[..., None],
+             finished: Callable[..., Any]) -> Iterator[Any]:
+    """Count the windows a batch at a time (windows ``firsts[b]:nexts[b]``), yielding ``finished(i, j, *state)``
+    of each batch in order: ``batch(b)`` makes a batch's state, ``add(ev, i, j, *state)`` counts a chunk of
+    events into it. Windows in time order, none overlapping an earlier one, take one pass over the events, each
+    chunk counted into the batches it reaches and a batch handed on as soon as a chunk passes its last window's
+    end (later chunks are later in time); others go a batch at a time through the time-window reads."""
+    from .accumulate import _prefetched, span_chunks
+
+    starts, ends = windows.t_start_us, windows.t_end_us
+    n_w = len(windows)
+    if n_w == 1 or np.all(starts[1:] >= np.maximum.accumulate(ends)[:-1]):
+        last_end = np.maximum.accumulate(ends)[[j - 1 for j in nexts]]
+        b = 0
+        current = None
+        for ev in _prefetched(span_chunks(source, int(starts[0]), int(last_end[-1]), chunk_events)):
+            t_last = int(ev.t[-1]) if len(ev) else None
+            while b < len(firsts) and t_last is not None:
+                i, j = firsts[b], nexts[b]
+                if int(starts[i]) > t_last:  # this batch starts after the chunk
+                    break
+                if current is None:
+                    current = batch(b)
+                add(ev, i, j, *current)
+                if int(last_end[b]) > t_last:  # the next chunk may hold more of it
+                    break
+                yield finished(i, j, *current)
+                b, current = b + 1, None
+            if progress is not None:
+                progress(len(ev))
+        for rest in range(b, len(firsts)):  # batches the last events did not close (or reach)
+            yield finished(firsts[rest], nexts[rest], *(current if current is not None else batch(rest)))
+            current = None
+        return
+
+    def batch_chunks() -> Iterator[tuple[int, Events]]:
+        for b, i in enumerate(firsts):
+            for ev in _window_events(source, windows, i, nexts[b], chunk_events):
+                yield b, ev
+
+    chunks = _prefetched(batch_chunks())
+    pending = next(chunks, None)
+    for b, i in enumerate(firsts):
+        state = batch(b)
+        while pending is not None and pending[0] == b:
+            add(pending[1], i, nexts[b], *state)
+            if progress is not None:
+                progress(len(pending[1]))
+            pending = next(chunks, None)
+        yield finished(i, nexts[b], *state)
+
+
 def _count(ev: Events, starts: np.ndarray, ends: np.ndarray, by_y: np.ndarray, by_x: np.ndarray, plane: int,
            out: np.ndarray) -> np.ndarray:
     """Add the chunk's events to ``out`` (flat int32 bins, ``per_window`` each): each window's events (``[start,
     end)``, by binary search in the sorted time stamps; windows may overlap or come in any order) to the bin
     ``by_y[y] + by_x[x] + p * plane`` of their window, a cache-sized piece at a time. Returns the number of
     events of each window."""
-    lo = np.searchsorted(ev.t, starts, side="left")
-    hi = np.searchsorted(ev.t, ends, side="left")
-    n = hi - lo
+    n, where = _window_picks(ev, starts, ends)
     total = int(n.sum())
     if total == 0:
         return n
-    a, z = int(lo[0]), int(hi[-1])
-    if z - a == total and np.array_equal(lo[1:], hi[:-1]):  # back to back: one slice, no gather
-        x, y, p = ev.x[a:z], ev.y[a:z], ev.p[a:z]
-    else:  # each window's events one after the other
-        where = np.arange(total, dtype=np.int64) + np.repeat(lo - (np.cumsum(n) - n), n)
-        x, y, p = ev.x[where], ev.y[where], ev.p[where]
+    x, y, p = ev.x[where], ev.y[where], ev.p[where]
     bounds = np.concatenate(([0], np.cumsum(n)))  # of each window's events, in x, y, p
     per_window = out.size // len(starts)
     for s in range(0, total, _PIECE):
@@ -188,14 +248,6 @@ def _linearised(on: np.ndarray, off: np.ndarray, theta: float) -> np.ndarray:
     if np.any(rise > 700):
         raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
     return np.expm1(rise)
-
-
-def _chunks(source: Any, windows: Windows, firsts: list[int], nb: int, chunk_events: int
-            ) -> Iterator[tuple[int, Events]]:
-    """(batch, chunk) pairs: the events of each batch of ``nb`` windows from ``firsts``, in time order."""
-    for b, i in enumerate(firsts):
-        for ev in _window_events(source, windows, i, min(i + nb, len(windows)), chunk_events):
-            yield b, ev
 
 
 def pixel_values(on: np.ndarray, off: np.ndarray, linear: bool, theta: float) -> np.ndarray:
@@ -285,9 +337,12 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
     by_y = _axis_table(sensor[1], y0, y1, fy, cols + 1).astype(dtype)
     by_x = _axis_table(sensor[0], x0, x1, fx, 1).astype(dtype)
     firsts = list(range(0, n_w, nb))
+    nexts = [min(i + nb, n_w) for i in firsts]
     starts, ends = windows.t_start_us, windows.t_end_us
-    chunk_events = max(1, min(int(chunk_events), READ_EVENTS))
-    from .accumulate import _prefetched, span_chunks
+
+    def batch(b: int) -> tuple[np.ndarray, np.ndarray]:
+        j = nexts[b] - firsts[b]
+        return np.zeros(j * per_window, np.int32), np.zeros(j, np.int64)
 
     def finished(i: int, j: int, out: np.ndarray, totals: np.ndarray) -> tuple[int, np.ndarray, np.ndarray, int]:
         bins = out.reshape(j - i, 2, rows + 1, cols + 1)
@@ -300,48 +355,8 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
             raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
                             "counts could overflow")
 
-    if n_w > 1 and np.all(starts[1:] >= np.maximum.accumulate(ends)[:-1]):
-        # windows in time order, none overlapping an earlier one: one pass over the events, each chunk counted
-        # into the batches it reaches, a batch handed on as soon as a chunk passes its last window's end (later
-        # chunks are later in time); overlapping windows go a batch at a time through the time-window reads
-        last_end = np.maximum.accumulate(ends)[[min(i + nb, n_w) - 1 for i in firsts]]
-        b = 0
-        out: np.ndarray | None = None
-        totals = np.zeros(0, np.int64)
-        for ev in _prefetched(span_chunks(source, int(starts[0]), int(last_end[-1]), chunk_events)):
-            t_last = int(ev.t[-1]) if len(ev) else None
-            while b < len(firsts) and t_last is not None:
-                i, j = firsts[b], min(firsts[b] + nb, n_w)
-                if int(starts[i]) > t_last:  # this batch starts after the chunk
-                    break
-                if out is None:
-                    out, totals = np.zeros((j - i) * per_window, np.int32), np.zeros(j - i, np.int64)
-                add(ev, i, j, out, totals)
-                if int(last_end[b]) > t_last:  # the next chunk may hold more of it
-                    break
-                yield finished(i, j, out, totals)
-                b, out = b + 1, None
-            if progress is not None:
-                progress(len(ev))
-        for rest in range(b, len(firsts)):  # batches the last events did not close (or reach)
-            i, j = firsts[rest], min(firsts[rest] + nb, n_w)
-            if out is None:
-                out, totals = np.zeros((j - i) * per_window, np.int32), np.zeros(j - i, np.int64)
-            yield finished(i, j, out, totals)
-            out = None
-        return
-    chunks = _prefetched(_chunks(source, windows, firsts, nb, chunk_events))
-    pending = next(chunks, None)
-    for b, i in enumerate(firsts):
-        j = min(i + nb, n_w)
-        out = np.zeros((j - i) * per_window, np.int32)
-        totals = np.zeros(j - i, np.int64)
-        while pending is not None and pending[0] == b:
-            add(pending[1], i, j, out, totals)
-            if progress is not None:
-                progress(len(pending[1]))
-            pending = next(chunks, None)
-        yield finished(i, j, out, totals)
+    yield from _batches(source, windows, firsts, nexts, max(1, min(int(chunk_events), READ_EVENTS)), progress,
+                        batch, add, finished)
 
 
 def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size: tuple = (16, 16),
@@ -503,21 +518,13 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
     starts, ends = windows.t_start_us, windows.t_end_us
 
     def add(ev: Events, i: int, j: int, out: np.ndarray, totals: np.ndarray) -> None:
-        lo = np.searchsorted(ev.t, starts[i:j], side="left")
-        hi = np.searchsorted(ev.t, ends[i:j], side="left")
-        n = hi - lo
+        n, where = _window_picks(ev, starts[i:j], ends[i:j])
         totals += n
         if totals.max(initial=0) > np.iinfo(np.int32).max:
             raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
                             "counts could overflow")
-        total = int(n.sum())
-        if total == 0:
+        if int(n.sum()) == 0:
             return
-        a, z = int(lo[0]), int(hi[-1])
-        if z - a == total and np.array_equal(lo[1:], hi[:-1]):  # back to back: one slice, no gather
-            where: slice | np.ndarray = slice(a, z)
-        else:  # each window's events one after the other
-            where = np.arange(total, dtype=np.int64) + np.repeat(lo - (np.cumsum(n) - n), n)
         if whole:  # the region is the sensor: the key by arithmetic, no table look-ups
             key = np.multiply(ev.y[where], w_px, dtype=dtype)
             key += ev.x[where]
@@ -536,57 +543,12 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
 
     frames = np.empty(nb * frame + 1, np.int32)  # one buffer for every batch (its pages touched once)
 
-    def batch(b: int) -> tuple[int, np.ndarray, np.ndarray]:
-        i, j = firsts[b], nexts[b]
-        out = frames[:(j - i) * frame + 1]
+    def batch(b: int) -> tuple[np.ndarray, np.ndarray]:  # the shared frames: a batch is used before the next
+        out = frames[:(nexts[b] - firsts[b]) * frame + 1]
         out.fill(0)
-        return j, out, np.zeros(j - i, np.int64)
+        return out, np.zeros(nexts[b] - firsts[b], np.int64)
 
     def finished(i: int, j: int, out: np.ndarray, totals: np.ndarray) -> tuple[int, np.ndarray, int]:
         return i, out[:-1].reshape(j - i, h_px, w_px), int(totals.max(initial=0))
 
-    from .accumulate import _prefetched, span_chunks
-
-    if n_w > 1 and np.all(starts[1:] >= np.maximum.accumulate(ends)[:-1]) or n_w == 1:
-        # one pass over the events: each chunk counted into the batches it reaches, a batch handed on as soon
-        # as a chunk passes its last window's end (later chunks are later in time)
-        last_end = np.maximum.accumulate(ends)[[j - 1 for j in nexts]]
-        b = 0
-        current: tuple[int, np.ndarray, np.ndarray] | None = None
-        for ev in _prefetched(span_chunks(source, int(starts.min()), int(last_end[-1]), max(1, int(chunk_events)))):
-            t_last = int(ev.t[-1]) if len(ev) else None
-            while b < len(firsts) and t_last is not None:
-                i = firsts[b]
-                if int(starts[i]) > t_last:  # this batch starts after the chunk
-                    break
-                if current is None:
-                    current = batch(b)
-                j, out, totals = current
-                add(ev, i, j, out, totals)
-                if int(last_end[b]) > t_last:  # the next chunk may hold more of it
-                    break
-                yield finished(i, j, out, totals)
-                b, current = b + 1, None
-            if progress is not None:
-                progress(len(ev))
-        for rest in range(b, len(firsts)):  # batches the last events did not close (or reach)
-            j, out, totals = current if current is not None else batch(rest)
-            yield finished(firsts[rest], j, out, totals)
-            current = None
-        return
-
-    def batch_chunks() -> Iterator[tuple[int, Events]]:
-        for b, i in enumerate(firsts):
-            for ev in _window_events(source, windows, i, nexts[b], max(1, int(chunk_events))):
-                yield b, ev
-
-    chunks = _prefetched(batch_chunks())
-    pending = next(chunks, None)
-    for b, i in enumerate(firsts):
-        j, out, totals = batch(b)
-        while pending is not None and pending[0] == b:
-            add(pending[1], i, j, out, totals)
-            if progress is not None:
-                progress(len(pending[1]))
-            pending = next(chunks, None)
-        yield finished(i, j, out, totals)
+    yield from _batches(source, windows, firsts, nexts, max(1, int(chunk_events)), progress, batch, add, finished)
