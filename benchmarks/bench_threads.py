@@ -84,6 +84,21 @@ def data_file(n: int, fmt: str) -> Path:
     return path
 
 
+def _apply(settings: list[str]) -> None:
+    """Set module constants for an experiment (``--set evtk._threads.MEMORY_SHARE=1``): ``module.NAME=value``,
+    the value a Python literal; the reader looks its constants up at each read, so they take effect."""
+    import ast
+    import importlib
+
+    for item in settings:
+        target, value = item.split("=", 1)
+        module, name = target.rsplit(".", 1)
+        mod = importlib.import_module(module)
+        if not hasattr(mod, name):
+            raise SystemExit(f"--set {item}: {module} has no {name}")
+        setattr(mod, name, ast.literal_eval(value))
+
+
 def _child(path: str, reads: int) -> None:
     import evtk
     from evtk._threads import workers
@@ -137,17 +152,25 @@ def _phases(path: str, repeats: int = 5) -> None:
                         rec._pread_into(scratch.room(int(idx.size[i]) + 8), int(idx.offset[i]) - 8)
                     elif name == "read and decompress into new buffers":
                         rec._body(i)
+                    elif name == "touch fresh columns":  # once per slice: the page faults of new arrays
+                        pass
                     elif name == "read and decompress into one buffer":
                         rec._body(i, scratch)
                     else:  # decode bodies already in memory into columns already touched
                         _fbpy.decode_events(bodies[k], b"EVTS", *cols, int(starts[k]), int(counts[k]), width,
                                             height)
             cuts = np.linspace(0, len(rows), 4 * nw + 1).astype(int)
+            if name == "touch fresh columns":
+                fresh = [np.empty(total, c.dtype) for c in cols]
+                edges = np.linspace(0, total, 4 * nw + 1).astype(int)
+                t0 = time.perf_counter()
+                list(pool.map(lambda ab: [c[ab[0]:ab[1]].fill(1) for c in fresh], zip(edges[:-1], edges[1:])))
+                return time.perf_counter() - t0
             t0 = time.perf_counter()
             list(pool.map(lambda ab: run(*ab), zip(cuts[:-1], cuts[1:])))
             return time.perf_counter() - t0
 
-        names = ["read compressed bodies", "read compressed bodies into one buffer",
+        names = ["touch fresh columns", "read compressed bodies", "read compressed bodies into one buffer",
                  "read and decompress into new buffers", "read and decompress into one buffer", "decode"]
         best = {name: min(stage(name) for _ in range(repeats)) for name in names}
         evtk.read_events(path)
@@ -165,8 +188,8 @@ def env_without_threads() -> dict:
     return {k: v for k, v in os.environ.items() if k not in ("EVTK_THREADS", "EVTK_IO_THREADS")}
 
 
-def run(path: Path, cpus: str, reads: int) -> dict:
-    cmd = [sys.executable, __file__, "--child", str(path), str(reads)]
+def run(path: Path, cpus: str, reads: int, settings: list[str] | None = None) -> dict:
+    cmd = [sys.executable, __file__, "--child", str(path), str(reads), *(f"--set={s}" for s in settings or [])]
     if shutil.which("taskset"):
         cmd = ["taskset", "-c", cpus, *cmd]
     res = subprocess.run(cmd, capture_output=True, text=True, env=env_without_threads())
@@ -184,9 +207,12 @@ def main() -> None:
     ap.add_argument("--reads", type=int, default=5, help="timed reads per process (their median)")
     ap.add_argument("--phases", action="store_true", help="also time the stages of an AEDAT4 read on one thread")
     ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--set", action="append", default=[], metavar="MODULE.NAME=VALUE",
+                    help="an experiment: set a constant in every child (evtk._threads.MEMORY_SHARE=1, say)")
     ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     ap.add_argument("--phases-child", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    _apply(args.set)
     if args.child:
         _child(args.child[0], int(args.child[1]))
         return
@@ -207,7 +233,7 @@ def main() -> None:
         loads = [os.getloadavg()[0]]
         for _ in range(args.rounds):
             for k, c in cpus.items():
-                got = run(path, c, args.reads)
+                got = run(path, c, args.reads, args.set)
                 times[k].append(got["median_s"])
                 cpu[k].append(got["cpu_s"])
             loads.append(os.getloadavg()[0])
@@ -223,7 +249,7 @@ def main() -> None:
         if args.phases and fmt.startswith("aedat4"):
             row["phases"] = {}
             for k, c in cpus.items():
-                cmd = [sys.executable, __file__, "--phases-child", str(path)]
+                cmd = [sys.executable, __file__, "--phases-child", str(path), *(f"--set={s}" for s in args.set)]
                 if shutil.which("taskset"):
                     cmd = ["taskset", "-c", c, *cmd]
                 res = subprocess.run(cmd, capture_output=True, text=True, env=env_without_threads())

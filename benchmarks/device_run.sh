@@ -7,7 +7,9 @@
 #     lz4 zstandard tomli_w dv-processing dask distributed tornado tblib zict partd locket
 # and the command is `bash benchmarks/device_run.sh [steps]`, carrying .whl. Results go to $OUT (or /tmp/evtk-out).
 # The data files are made there (benchmarks/data is too large to travel). Steps: threads fresh reconstruct batch
-# calibrate (all by default; about 6 minutes with the machine's start), threads-ab (against a tree in .new).
+# calibrate (all by default; about 6 minutes with the machine's start), threads-ab (against a tree in .new),
+# limits (what bounds the AEDAT4 read on 16 cores: the stages of a read, and the read with the memory bound on
+# its threads lifted and with half-size batches).
 set -u
 OUT=${OUT:-/tmp/evtk-out}
 mkdir -p "$OUT"
@@ -53,6 +55,14 @@ for s in $STEPS; do
                     --json "$OUT/threads-$r-$(basename "$tree").json"
             done
         done ;;
+    limits)
+        step limits-phases 90 python3 benchmarks/bench_threads.py --cores 1,4,16 --rounds 1 --reads 3 --phases \
+            --formats aedat4-dv
+        step limits-unbounded 90 python3 benchmarks/bench_threads.py --cores 1,8,16 --rounds 1 --reads 5 \
+            --formats aedat4-dv,aedat4-zstd --set evtk._threads.MEMORY_SHARE=1.0
+        step limits-half-batch 90 python3 benchmarks/bench_threads.py --cores 1,8,16 --rounds 1 --reads 5 \
+            --formats aedat4-dv,aedat4-zstd --set evtk.io.aedat4.reader.BATCH_EVENTS=32768 \
+            --set evtk.io.aedat4.reader._THREAD_BYTES=1310720 ;;
     fresh) step fresh 55 python3 benchmarks/bench_fresh_read.py --writers dv-lz4,evtk-zstd --repeats 5 \
                --json "$OUT/fresh.json" ;;
     reconstruct) step reconstruct 50 python3 benchmarks/bench_reconstruct.py --fixed --repeats 3 \
