@@ -141,7 +141,7 @@ def _full_read_child(path, warm=False):
                       "arrays_mib": arrays, "peak_over_arrays": (peak - base) / arrays}))
 
 
-def full_reads(n, keep):
+def full_reads(n, keep, only=None):
     """Write ``n`` events in every format, read each whole in a fresh process: peak over arrays."""
     import numpy as np
 
@@ -155,6 +155,8 @@ def full_reads(n, keep):
     print(f"{'format':<14}{'events':>12}{'arrays MiB':>12}{'read peak MiB':>15}{'peak/arrays':>13}"
           f"{f'<= {TARGET}':>8}{'warm':>8}{'seconds':>9}")
     for fmt, ext in FULL_FORMATS.items():
+        if only and fmt not in only:
+            continue
         path = DATA / f"full_{n}_{fmt}.{ext}"
         if not path.exists():
             if fmt == "h5-prophesee":
@@ -181,6 +183,7 @@ def main():
     ap.add_argument("--keep", action="store_true")
     ap.add_argument("--json")
     ap.add_argument("--full-reads", type=float, metavar="N", help="peak of a whole read of each format, N events")
+    ap.add_argument("--only", help=f"with --full-reads: these formats (comma-separated, of {', '.join(FULL_FORMATS)})")
     ap.add_argument("--child", nargs=3, metavar=("MODE", "PATH", "N"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -190,7 +193,7 @@ def main():
             _child(args.child[0], args.child[1], int(args.child[2]))
         return
     if args.full_reads:
-        rows = full_reads(int(args.full_reads), args.keep)
+        rows = full_reads(int(args.full_reads), args.keep, args.only.split(",") if args.only else None)
         if args.json:
             with open(args.json, "w") as fh:
                 json.dump(rows, fh, indent=1)

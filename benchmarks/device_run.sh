@@ -9,7 +9,7 @@
 # The data files are made there (benchmarks/data is too large to travel). Steps: threads fresh reconstruct batch
 # calibrate (all by default; about 6 minutes with the machine's start), threads-ab (against a tree in .new),
 # limits (what bounds the AEDAT4 read on 16 cores: the stages of a read, and the read with the memory bound on
-# its threads lifted and with half-size batches).
+# its threads lifted and with half-size batches), memory (a whole read's peak, AEDAT4 and EVT 3.0, 20 M events).
 set -u
 OUT=${OUT:-/tmp/evtk-out}
 mkdir -p "$OUT"
@@ -63,6 +63,7 @@ for s in $STEPS; do
         step limits-half-batch 90 python3 benchmarks/bench_threads.py --cores 1,8,16 --rounds 1 --reads 5 \
             --formats aedat4-dv,aedat4-zstd --set evtk.io.aedat4.reader.BATCH_EVENTS=32768 \
             --set evtk.io.aedat4.reader._THREAD_BYTES=1310720 ;;
+    memory) step memory 90 python3 benchmarks/bench_memory.py --full-reads 2e7 --only aedat4,evt3 ;;
     fresh) step fresh 55 python3 benchmarks/bench_fresh_read.py --writers dv-lz4,evtk-zstd --repeats 5 \
                --json "$OUT/fresh.json" ;;
     reconstruct) step reconstruct 50 python3 benchmarks/bench_reconstruct.py --fixed --repeats 3 \
