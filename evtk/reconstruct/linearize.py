@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import json
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
@@ -97,8 +98,8 @@ def _count_table(on, off, theta_on, theta_off):
     if rise.max() > 700:
         raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
     out = np.empty(on.shape, np.float64)
-    with _thread_budget():
-        _look_up(on_flat, off_flat, np.expm1(rise).ravel(), hi_off + 1, out.reshape(-1))
+    flat, table, stride = out.reshape(-1), np.expm1(rise).ravel(), hi_off + 1
+    _on_threads(lambda a, b: _look_up(on_flat[a:b], off_flat[a:b], table, stride, flat[a:b]), on_flat.size, 1 << 16)
     return out
 
 
@@ -116,9 +117,9 @@ def _count_extent(on, off):
     return lo, hi_on, hi_off
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _look_up(on, off, table, stride, out):
-    for i in numba.prange(on.size):
+    for i in range(on.size):
         out[i] = table[on[i] * stride + off[i]]
 
 
@@ -246,16 +247,26 @@ def _model_log_step(net_counts, curve):
     return np.interp(n, levels, mid)
 
 
-@contextlib.contextmanager
-def _thread_budget():
-    """numba's parallel loops on as many threads as evtk's decoding (``EVTK_IO_THREADS``; a local cluster's
-    workers each get their share), restored afterwards."""
-    before = numba.get_num_threads()
-    numba.set_num_threads(max(1, min(workers(), numba.config.NUMBA_NUM_THREADS)))
-    try:
-        yield
-    finally:
-        numba.set_num_threads(before)
+def _on_threads(kernel: Callable[[int, int], object], rows: int, least_rows: int = 1) -> None:
+    """Run ``kernel(lo, hi)`` over the rows ``[0, rows)`` in contiguous blocks, one per thread of evtk's budget
+    (:func:`evtk._threads.workers`: ``--threads`` / ``EVTK_THREADS``, else the cores this process may use), at
+    least ``least_rows`` rows a block; the calling thread takes the first block.
+
+    ``kernel`` is a numba function compiled with ``nogil=True`` (or numpy work that releases the GIL) that writes
+    each row independently, so the result does not depend on the number of threads. Plain Python threads, not
+    numba's parallel loops: no threading layer to start in a fresh process, and no worker threads left spinning
+    after the loop while the next stage (or the reader's threads) wants the cores.
+    """
+    n = max(1, min(workers(), rows // max(1, least_rows)))
+    if n == 1:
+        kernel(0, rows)
+        return
+    bounds = [rows * i // n for i in range(n + 1)]
+    with ThreadPoolExecutor(n - 1, thread_name_prefix="evtk-rows") as ex:
+        pending = [ex.submit(kernel, a, b) for a, b in zip(bounds[1:-1], bounds[2:])]
+        kernel(bounds[0], bounds[1])
+        for f in pending:
+            f.result()
 
 
 def _flat_log_step(sim, bench, region):
