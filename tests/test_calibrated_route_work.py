@@ -240,3 +240,33 @@ def test_match_windows_tries_every_offset_at_once_as_one_at_a_time(calibrated_jo
             _, report = match_windows(trig, schedule, tol)
             want = one_at_a_time(trig, tol if tol is not None else max(1.0, 0.25 * float(gaps.min())))
             assert report["offset_us"] == want
+
+
+def test_flat_field_light_is_kept_per_placement(calibrated_job, monkeypatch):
+    """The flat field's light per pixel depends on the bench and the placement only: a second reconstruction
+    through the same calibration reuses it (the optics ran for each before), another region computes its own,
+    and the numbers are those computed afresh."""
+    path, plan = calibrated_job
+    linearize = importlib.import_module("evtk.reconstruct.linearize")
+    linearize._flat_lights.clear()
+    calls = []
+    for name in ("screen_response", "_flat_through_map"):
+        real = getattr(linearize, name)
+        monkeypatch.setattr(linearize, name, lambda *a, _real=real, **k: calls.append(1) or _real(*a, **k))
+    with evtk.open(path) as rec:
+        first = reconstruct(rec, plan)
+        assert len(calls) == 1
+        again = reconstruct(rec, plan)
+        assert len(calls) == 1
+        x0, x1, y0, y1 = plan.region
+        other = reconstruct(rec, plan.replace(region=(x0 - 1, x1 + 1, y0 - 1, y1 + 1)))
+        assert len(calls) == 2
+        kept = next(iter(linearize._flat_lights.values()))
+        with pytest.raises(ValueError):
+            kept[0, 0] = 1.0
+        linearize._flat_lights.clear()
+        fresh = reconstruct(rec, plan)
+    assert np.array_equal(first.cells, again.cells) and np.array_equal(first.cells, fresh.cells)
+    assert np.array_equal(first.thresholds, fresh.thresholds, equal_nan=True)
+    assert other.summary["region"] != first.summary["region"]
+    linearize._flat_lights.clear()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import functools
 import json
+import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -273,20 +275,56 @@ def _flat_log_step(sim, bench, region):
     """Log-light step ``u`` each pixel of ``region`` (y, x) sees in a flat-field window (every mirror on), as the
     plan ``sim`` (or a simulation record) places the response and models the pixels."""
     plan = _model_plan(sim)
-    k, f = np.ones(plan.kernels.shape[1:], np.int8), np.ones(plan.features.shape[1:], np.int8)
     if plan.camera is not None:  # the simulated camera's view of the flat field
+        k, f = np.ones(plan.kernels.shape[1:], np.int8), np.ones(plan.features.shape[1:], np.int8)
         return _log_step(plan, plan.camera.view(k, f, bench, tuple(region)))
-    origin = plan.origin_px
+    return _log_step(plan, _flat_light(bench, plan.kernels.shape[1:], plan.features.shape[1:], plan.origin_px,
+                                       plan.cell_map, region))
+
+
+#: Flat-field light per pixel kept between reconstructions through one placement (:func:`_flat_light`).
+_FLAT_LIGHT_KEPT = 16
+_flat_lights: OrderedDict[tuple, np.ndarray] = OrderedDict()
+_flat_lights_lock = threading.Lock()
+
+
+def _flat_light(bench: Bench, kernel_shape: tuple, features_shape: tuple, origin_px, cell_map, region) -> np.ndarray:
+    """The light (response units) each pixel of ``region`` (y, x) receives in a flat-field window, where the
+    origin (default: the bench geometry's) or the fitted ``cell_map`` places the response.
+
+    It depends on the bench and the placement only, not on the recording or the pixels: the last
+    :data:`_FLAT_LIGHT_KEPT` are kept (read-only) for the next reconstruction through the same calibration.
+    """
+    view = None if cell_map is None else (np.asarray(cell_map.matrix, np.float64).tobytes(), float(cell_map.k1),
+                                          tuple(int(v) for v in cell_map.sensor_size))
+    key = (bench, tuple(int(v) for v in kernel_shape), tuple(int(v) for v in features_shape),
+           None if origin_px is None else tuple(float(v) for v in origin_px), view, tuple(int(v) for v in region))
+    with _flat_lights_lock:
+        got = _flat_lights.get(key)
+        if got is not None:
+            _flat_lights.move_to_end(key)
+            return got
+    k, f = np.ones(key[1], np.int8), np.ones(key[2], np.int8)
+    origin = origin_px
     if origin is None:  # the bench geometry's
         origin = response_origin_px(bench, k.shape, f.shape)
-    if plan.cell_map is not None:  # a fitted map: a scale and shift is an origin, anything else is seen through
+    light = None
+    if cell_map is not None:  # a fitted map: a scale and shift is an origin, anything else is seen through
         full = (k.shape[0] + f.shape[0] - 1, k.shape[1] + f.shape[1] - 1)
-        aligned = plan.cell_map.axis_aligned(full)
+        aligned = cell_map.axis_aligned(full)
         if aligned is None:  # turned, tilted or distorted
-            return _log_step(plan, _flat_through_map(k, f, bench, plan.cell_map, tuple(region)))
-        origin = aligned[0]
-    # where the plan places the response (a calibration's origin, or the bench's own)
-    return _log_step(plan, screen_response(k, f, bench.replace(origin_px=tuple(origin)), tuple(region)))
+            light = _flat_through_map(k, f, bench, cell_map, tuple(region))
+        else:
+            origin = aligned[0]
+    if light is None:  # where the plan places the response (a calibration's origin, or the bench's own)
+        light = screen_response(k, f, bench.replace(origin_px=tuple(origin)), tuple(region))
+    light = np.array(light)  # its own copy, kept read-only
+    light.flags.writeable = False
+    with _flat_lights_lock:
+        _flat_lights[key] = light
+        while len(_flat_lights) > _FLAT_LIGHT_KEPT:
+            _flat_lights.popitem(last=False)
+    return light
 
 
 def _log_step(plan, light):
