@@ -191,6 +191,14 @@ def test_a_whole_read_is_counted_while_its_next_chunk_is_decoded(tmp_path):
                 yield chunk
 
         rec.iter_events = spy
+        real_meeting = rec.iter_events_meeting  # a fresh recording knows no packet spans: it reads every packet
+
+        def spy_meeting(*args, **kwargs):
+            for chunk in real_meeting(*args, **kwargs):
+                sizes.append(len(chunk))
+                yield chunk
+
+        rec.iter_events_meeting = spy_meeting
         got = accumulate(rec, win, (100, 200, 50, 150), times=True)
     want = accumulate(ev, win, (100, 200, 50, 150), times=True)
     assert sizes == [2**18, 2**18, 700_000 - 2**19]
@@ -270,3 +278,67 @@ def test_flat_field_light_is_kept_per_placement(calibrated_job, monkeypatch):
     assert np.array_equal(first.thresholds, fresh.thresholds, equal_nan=True)
     assert other.summary["region"] != first.summary["region"]
     linearize._flat_lights.clear()
+
+
+def _gappy_recording(tmp_path, packet_events=500):
+    """Events in bursts (a bench's lit windows) with fewer events between them, written in small packets; the
+    windows are the bursts."""
+    from conftest import random_events
+
+    parts, starts = [], np.arange(20) * 20_000 + 1_000
+    for k, a in enumerate(starts):
+        parts.append(random_events(6_000, seed=k, t0=int(a), span_us=1_000))
+        parts.append(random_events(4_000, seed=100 + k, t0=int(a) + 1_000, span_us=19_000))
+    ev = evtk.Events.concatenate(parts).sorted()
+    path = tmp_path / "bursts.aedat4"
+    evtk.write_events(path, ev, packet_events=packet_events)
+    return path, ev, starts, starts + 1_000
+
+
+def test_iter_events_meeting_decodes_only_the_packets_that_meet_a_window(tmp_path):
+    """Once the packets' spans are known (a windowed read scanned them), the packets that meet no window are left
+    out, whole packets are given (the window's events all among them), in time order; before that, with the
+    windows in any order or overlapping, every packet a brute-force test says meets a window is there."""
+    path, ev, a, b = _gappy_recording(tmp_path)
+    with evtk.open(path) as rec:
+        assert sum(len(c) for c in rec.iter_events_meeting(a, b)) == len(ev)  # no spans known: every packet
+        rec.events(int(a[0]), int(b[0]))  # a windowed read: the spans are scanned
+        for starts, ends in ((a, b), (a[::-1], b[::-1]), (np.r_[a, a[3]], np.r_[b, b[3] + 30_000])):
+            got = evtk.Events.concatenate(list(rec.iter_events_meeting(starts, ends, chunk_events=5_000)))
+            assert np.all(np.diff(got.t) >= 0)
+            inside = np.zeros(len(got), bool)
+            want = np.zeros(len(ev), bool)
+            for x, y in zip(starts, ends):
+                inside |= (got.t >= x) & (got.t < y)
+                want |= (ev.t >= x) & (ev.t < y)
+            assert inside.sum() == want.sum()  # every window's events, none lost
+            assert len(got) < 0.8 * len(ev)  # the sparse stretches' packets left out
+        assert sum(len(c) for c in rec.iter_events_meeting(np.zeros(0), np.zeros(0))) == 0
+        with pytest.raises(evtk.EvtkError, match="starts"):
+            next(rec.iter_events_meeting(a, b[:-1]))
+
+
+def test_accumulate_over_windows_with_gaps_counts_as_the_events_in_memory(tmp_path):
+    """accumulate on a recording whose packet spans are known decodes only the packets meeting a window; the
+    counts and event times are those of the events in memory."""
+    from evtk.reconstruct import Windows, accumulate
+
+    path, ev, a, b = _gappy_recording(tmp_path)
+    win = Windows(a, b, np.arange(len(a)), "test")
+    want = accumulate(ev, win, (50, 250, 20, 200), times=True)
+    with evtk.open(path) as rec:
+        rec.events(int(a[0]), int(b[0]))
+        decoded = []
+        real = rec.iter_events_meeting
+
+        def spy(*args, **kwargs):
+            for chunk in real(*args, **kwargs):
+                decoded.append(len(chunk))
+                yield chunk
+
+        rec.iter_events_meeting = spy
+        got = accumulate(rec, win, (50, 250, 20, 200), times=True)
+    assert 0 < sum(decoded) < 0.8 * len(ev)
+    for name in ("on", "off", "on_first_us", "on_last_us"):
+        assert np.array_equal(getattr(got, name), getattr(want, name))
+    assert got.events_used == want.events_used
