@@ -297,17 +297,19 @@ def _flat_light(bench: Bench, kernel_shape: tuple, features_shape: tuple, origin
     """
     view = None if cell_map is None else (np.asarray(cell_map.matrix, np.float64).tobytes(), float(cell_map.k1),
                                           tuple(int(v) for v in cell_map.sensor_size))
-    key = (bench, tuple(int(v) for v in kernel_shape), tuple(int(v) for v in features_shape),
-           None if origin_px is None else tuple(float(v) for v in origin_px), view, tuple(int(v) for v in region))
+    ks = (int(kernel_shape[0]), int(kernel_shape[1]))
+    fs = (int(features_shape[0]), int(features_shape[1]))
+    key = (bench, ks, fs, None if origin_px is None else tuple(float(v) for v in origin_px), view,
+           tuple(int(v) for v in region))
     with _flat_lights_lock:
         got = _flat_lights.get(key)
         if got is not None:
             _flat_lights.move_to_end(key)
             return got
-    k, f = np.ones(key[1], np.int8), np.ones(key[2], np.int8)
+    k, f = np.ones(ks, np.int8), np.ones(fs, np.int8)
     origin = origin_px
     if origin is None:  # the bench geometry's
-        origin = response_origin_px(bench, k.shape, f.shape)
+        origin = response_origin_px(bench, ks, fs)
     light = None
     if cell_map is not None:  # a fitted map: a scale and shift is an origin, anything else is seen through
         full = (k.shape[0] + f.shape[0] - 1, k.shape[1] + f.shape[1] - 1)
