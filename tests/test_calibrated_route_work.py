@@ -342,3 +342,29 @@ def test_accumulate_over_windows_with_gaps_counts_as_the_events_in_memory(tmp_pa
     for name in ("on", "off", "on_first_us", "on_last_us"):
         assert np.array_equal(getattr(got, name), getattr(want, name))
     assert got.events_used == want.events_used
+
+
+def test_calibrated_route_numbers_do_not_depend_on_packets_left_out_threads_or_kept_work(calibrated_job, monkeypatch):
+    """The route as it was (every packet decoded, one thread, nothing kept between reconstructions) and as it
+    runs now (the packets meeting no window left out, the timing solve on three threads, the flat field's light
+    and the deblur system kept): the same numbers, to 1e-9 of their scale."""
+    path, plan = calibrated_job
+    linearize = importlib.import_module("evtk.reconstruct.linearize")
+    linearize._flat_lights.clear()
+    deblur._systems.clear()
+    monkeypatch.setenv("EVTK_THREADS", "1")
+    with evtk.open(path) as rec:
+        rec.iter_events_meeting = lambda starts, ends, chunk_events: rec.iter_events(chunk_events=chunk_events)
+        before = reconstruct(rec, plan)
+    monkeypatch.setenv("EVTK_THREADS", "3")
+    with evtk.open(path) as rec:
+        reconstruct(rec, plan)
+        now = reconstruct(rec, plan)
+    for name in ("cells", "responses", "thresholds"):
+        a, b = getattr(before, name), getattr(now, name)
+        assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
+    assert np.array_equal(before.binary, now.binary)
+    assert before.summary["events_used"] == now.summary["events_used"]
+    assert before.summary["error"] == pytest.approx(now.summary["error"], rel=1e-9)
+    linearize._flat_lights.clear()
+    deblur._systems.clear()
