@@ -168,6 +168,17 @@ def test_calibrated_route_gives_the_same_numbers_with_the_kept_system(calibrated
     deblur._systems.clear()
 
 
+def _chunk_sizes(method, sizes):
+    """``method`` (a recording's chunk iterator) that appends each chunk's length to ``sizes``."""
+
+    def spy(*args, **kwargs):
+        for chunk in method(*args, **kwargs):
+            sizes.append(len(chunk))
+            yield chunk
+
+    return spy
+
+
 def test_a_whole_read_is_counted_while_its_next_chunk_is_decoded(tmp_path):
     """Windows over the whole recording read it whole, in chunks of an eighth (at least 2**18 events), so that
     each is counted while the reader's threads decode the next (one 4 M-event chunk left the counting after all
@@ -183,22 +194,9 @@ def test_a_whole_read_is_counted_while_its_next_chunk_is_decoded(tmp_path):
     win = Windows(starts, starts + 30_000, np.arange(len(starts)), "test")
     sizes = []
     with evtk.open(path) as rec:
-        real = rec.iter_events
-
-        def spy(*args, **kwargs):
-            for chunk in real(*args, **kwargs):
-                sizes.append(len(chunk))
-                yield chunk
-
-        rec.iter_events = spy
-        real_meeting = rec.iter_events_meeting  # a fresh recording knows no packet spans: it reads every packet
-
-        def spy_meeting(*args, **kwargs):
-            for chunk in real_meeting(*args, **kwargs):
-                sizes.append(len(chunk))
-                yield chunk
-
-        rec.iter_events_meeting = spy_meeting
+        rec.iter_events = _chunk_sizes(rec.iter_events, sizes)
+        # a fresh recording knows no packet spans: it reads every packet
+        rec.iter_events_meeting = _chunk_sizes(rec.iter_events_meeting, sizes)
         got = accumulate(rec, win, (100, 200, 50, 150), times=True)
     want = accumulate(ev, win, (100, 200, 50, 150), times=True)
     assert sizes == [2**18, 2**18, 700_000 - 2**19]
@@ -329,14 +327,7 @@ def test_accumulate_over_windows_with_gaps_counts_as_the_events_in_memory(tmp_pa
     with evtk.open(path) as rec:
         rec.events(int(a[0]), int(b[0]))
         decoded = []
-        real = rec.iter_events_meeting
-
-        def spy(*args, **kwargs):
-            for chunk in real(*args, **kwargs):
-                decoded.append(len(chunk))
-                yield chunk
-
-        rec.iter_events_meeting = spy
+        rec.iter_events_meeting = _chunk_sizes(rec.iter_events_meeting, decoded)
         got = accumulate(rec, win, (50, 250, 20, 200), times=True)
     assert 0 < sum(decoded) < 0.8 * len(ev)
     for name in ("on", "off", "on_first_us", "on_last_us"):
