@@ -7,9 +7,9 @@ The older checkout's ``evtk`` is copied as a package ``evtk_old`` (its imports a
 this one. bench_calibrate's two runs (a calibration run and the job, ``--repeat`` repeats of one 3x3 kernel,
 written as a camera would) are simulated once; then every round times, for each checkout in turn, a read of the
 job (`read_events`), the calibrated route (`reconstruct(rec, plan)` with the calibration's pixel model and
-placement) and the same with the deblur's kept sampling matrices cleared first (a first reconstruction through a
-calibration). Medians over the rounds, wall and the process's CPU time: on a loaded machine both checkouts see the
-same load, which separate processes minutes apart do not.
+placement) and the same with what is kept per calibration cleared first (the deblur's sampling matrices and the
+flat field's light: a first reconstruction through a calibration). Medians over the rounds, wall and the process's
+CPU time: on a loaded machine both checkouts see the same load, which separate processes minutes apart do not.
 """
 
 from __future__ import annotations
@@ -56,11 +56,13 @@ def main():
             plan = sub["plan"].as_plan(os.path.join(tmp, "job", "schedule.json")).replace(
                 pixel_model=cal.pixel_model, region=cal.region, origin_px=cal.origin_px, cell_map=cal.cell_map(),
                 blur_px=cal.blur_px)
-            kept = getattr(importlib.import_module(f"{pkg.__name__}.reconstruct.deblur"), "_systems", None)
+            kept = [getattr(importlib.import_module(f"{pkg.__name__}.reconstruct.{m}"), name, None)
+                    for m, name in (("deblur", "_systems"), ("linearize", "_flat_lights"))]
 
             def rebuilt():
-                if kept is not None:
-                    kept.clear()
+                for held in kept:
+                    if held is not None:
+                        held.clear()
                 return sub["reconstruct"].reconstruct(rec_job, plan)
 
             return {"read": lambda: pkg.read_events(os.path.join(tmp, "job.aedat4")),

@@ -168,6 +168,17 @@ def test_calibrated_route_gives_the_same_numbers_with_the_kept_system(calibrated
     deblur._systems.clear()
 
 
+def _chunk_sizes(method, sizes):
+    """``method`` (a recording's chunk iterator) that appends each chunk's length to ``sizes``."""
+
+    def spy(*args, **kwargs):
+        for chunk in method(*args, **kwargs):
+            sizes.append(len(chunk))
+            yield chunk
+
+    return spy
+
+
 def test_a_whole_read_is_counted_while_its_next_chunk_is_decoded(tmp_path):
     """Windows over the whole recording read it whole, in chunks of an eighth (at least 2**18 events), so that
     each is counted while the reader's threads decode the next (one 4 M-event chunk left the counting after all
@@ -183,14 +194,9 @@ def test_a_whole_read_is_counted_while_its_next_chunk_is_decoded(tmp_path):
     win = Windows(starts, starts + 30_000, np.arange(len(starts)), "test")
     sizes = []
     with evtk.open(path) as rec:
-        real = rec.iter_events
-
-        def spy(*args, **kwargs):
-            for chunk in real(*args, **kwargs):
-                sizes.append(len(chunk))
-                yield chunk
-
-        rec.iter_events = spy
+        rec.iter_events = _chunk_sizes(rec.iter_events, sizes)
+        # a fresh recording knows no packet spans: it reads every packet
+        rec.iter_events_meeting = _chunk_sizes(rec.iter_events_meeting, sizes)
         got = accumulate(rec, win, (100, 200, 50, 150), times=True)
     want = accumulate(ev, win, (100, 200, 50, 150), times=True)
     assert sizes == [2**18, 2**18, 700_000 - 2**19]
@@ -240,3 +246,116 @@ def test_match_windows_tries_every_offset_at_once_as_one_at_a_time(calibrated_jo
             _, report = match_windows(trig, schedule, tol)
             want = one_at_a_time(trig, tol if tol is not None else max(1.0, 0.25 * float(gaps.min())))
             assert report["offset_us"] == want
+
+
+def test_flat_field_light_is_kept_per_placement(calibrated_job, monkeypatch):
+    """The flat field's light per pixel depends on the bench and the placement only: a second reconstruction
+    through the same calibration reuses it (the optics ran for each before), another region computes its own,
+    and the numbers are those computed afresh."""
+    path, plan = calibrated_job
+    linearize = importlib.import_module("evtk.reconstruct.linearize")
+    linearize._flat_lights.clear()
+    calls = []
+    for name in ("screen_response", "_flat_through_map"):
+        real = getattr(linearize, name)
+        monkeypatch.setattr(linearize, name, lambda *a, _real=real, **k: calls.append(1) or _real(*a, **k))
+    with evtk.open(path) as rec:
+        first = reconstruct(rec, plan)
+        assert len(calls) == 1
+        again = reconstruct(rec, plan)
+        assert len(calls) == 1
+        x0, x1, y0, y1 = plan.region
+        other = reconstruct(rec, plan.replace(region=(x0 - 1, x1 + 1, y0 - 1, y1 + 1)))
+        assert len(calls) == 2
+        kept = next(iter(linearize._flat_lights.values()))
+        with pytest.raises(ValueError):
+            kept[0, 0] = 1.0
+        linearize._flat_lights.clear()
+        fresh = reconstruct(rec, plan)
+    assert np.array_equal(first.cells, again.cells) and np.array_equal(first.cells, fresh.cells)
+    assert np.array_equal(first.thresholds, fresh.thresholds, equal_nan=True)
+    assert other.summary["region"] != first.summary["region"]
+    linearize._flat_lights.clear()
+
+
+def _gappy_recording(tmp_path, packet_events=500):
+    """Events in bursts (a bench's lit windows) with fewer events between them, written in small packets; the
+    windows are the bursts."""
+    from conftest import random_events
+
+    parts, starts = [], np.arange(20) * 20_000 + 1_000
+    for k, a in enumerate(starts):
+        parts.append(random_events(6_000, seed=k, t0=int(a), span_us=1_000))
+        parts.append(random_events(4_000, seed=100 + k, t0=int(a) + 1_000, span_us=19_000))
+    ev = evtk.Events.concatenate(parts).sorted()
+    path = tmp_path / "bursts.aedat4"
+    evtk.write_events(path, ev, packet_events=packet_events)
+    return path, ev, starts, starts + 1_000
+
+
+def test_iter_events_meeting_decodes_only_the_packets_that_meet_a_window(tmp_path):
+    """Once the packets' spans are known (a windowed read scanned them), the packets that meet no window are left
+    out, whole packets are given (the window's events all among them), in time order; before that, with the
+    windows in any order or overlapping, every packet a brute-force test says meets a window is there."""
+    path, ev, a, b = _gappy_recording(tmp_path)
+    with evtk.open(path) as rec:
+        assert sum(len(c) for c in rec.iter_events_meeting(a, b)) == len(ev)  # no spans known: every packet
+        rec.events(int(a[0]), int(b[0]))  # a windowed read: the spans are scanned
+        for starts, ends in ((a, b), (a[::-1], b[::-1]), (np.r_[a, a[3]], np.r_[b, b[3] + 30_000])):
+            got = evtk.Events.concatenate(list(rec.iter_events_meeting(starts, ends, chunk_events=5_000)))
+            assert np.all(np.diff(got.t) >= 0)
+            inside = np.zeros(len(got), bool)
+            want = np.zeros(len(ev), bool)
+            for x, y in zip(starts, ends):
+                inside |= (got.t >= x) & (got.t < y)
+                want |= (ev.t >= x) & (ev.t < y)
+            assert inside.sum() == want.sum()  # every window's events, none lost
+            assert len(got) < 0.8 * len(ev)  # the sparse stretches' packets left out
+        assert sum(len(c) for c in rec.iter_events_meeting(np.zeros(0), np.zeros(0))) == 0
+        with pytest.raises(evtk.EvtkError, match="starts"):
+            next(rec.iter_events_meeting(a, b[:-1]))
+
+
+def test_accumulate_over_windows_with_gaps_counts_as_the_events_in_memory(tmp_path):
+    """accumulate on a recording whose packet spans are known decodes only the packets meeting a window; the
+    counts and event times are those of the events in memory."""
+    from evtk.reconstruct import Windows, accumulate
+
+    path, ev, a, b = _gappy_recording(tmp_path)
+    win = Windows(a, b, np.arange(len(a)), "test")
+    want = accumulate(ev, win, (50, 250, 20, 200), times=True)
+    with evtk.open(path) as rec:
+        rec.events(int(a[0]), int(b[0]))
+        decoded = []
+        rec.iter_events_meeting = _chunk_sizes(rec.iter_events_meeting, decoded)
+        got = accumulate(rec, win, (50, 250, 20, 200), times=True)
+    assert 0 < sum(decoded) < 0.8 * len(ev)
+    for name in ("on", "off", "on_first_us", "on_last_us"):
+        assert np.array_equal(getattr(got, name), getattr(want, name))
+    assert got.events_used == want.events_used
+
+
+def test_calibrated_route_numbers_do_not_depend_on_packets_left_out_threads_or_kept_work(calibrated_job, monkeypatch):
+    """The route as it was (every packet decoded, one thread, nothing kept between reconstructions) and as it
+    runs now (the packets meeting no window left out, the timing solve on three threads, the flat field's light
+    and the deblur system kept): the same numbers, to 1e-9 of their scale."""
+    path, plan = calibrated_job
+    linearize = importlib.import_module("evtk.reconstruct.linearize")
+    linearize._flat_lights.clear()
+    deblur._systems.clear()
+    monkeypatch.setenv("EVTK_THREADS", "1")
+    with evtk.open(path) as rec:
+        rec.iter_events_meeting = lambda starts, ends, chunk_events: rec.iter_events(chunk_events=chunk_events)
+        before = reconstruct(rec, plan)
+    monkeypatch.setenv("EVTK_THREADS", "3")
+    with evtk.open(path) as rec:
+        reconstruct(rec, plan)
+        now = reconstruct(rec, plan)
+    for name in ("cells", "responses", "thresholds"):
+        a, b = getattr(before, name), getattr(now, name)
+        assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
+    assert np.array_equal(before.binary, now.binary)
+    assert before.summary["events_used"] == now.summary["events_used"]
+    assert before.summary["error"] == pytest.approx(now.summary["error"], rel=1e-9)
+    linearize._flat_lights.clear()
+    deblur._systems.clear()

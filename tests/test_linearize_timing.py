@@ -252,3 +252,40 @@ def test_a_pixel_model_that_does_not_fit_the_camera_degrades_gracefully(tmp_path
     for o, a in errors:
         assert a > o - 0.05, errors
 
+
+
+def test_linearize_by_timing_splits_windows_over_evtks_threads_with_the_same_numbers(monkeypatch):
+    """The timing solve runs on evtk's thread budget (EVTK_THREADS) as blocks of windows on plain threads, not
+    numba's parallel loop: the caller takes one block, pool threads the others, and the numbers those of one
+    thread, bit for bit."""
+    import threading
+
+    from evtk.reconstruct import timing
+
+    meta = _meta(QUIET)
+    blank, curve = meta["blank_rate_e_per_s"], count_curve(meta)
+    rng = np.random.default_rng(5)
+    u = rng.uniform(0.5, 0.95 * curve[0][-1], 96 * 128)
+    n, first, last = _step_events(QUIET, blank, u, np.zeros(u.size), np.full(u.size, 0.2), meta["window_us"])
+    stamp = lambda t: np.where(np.isfinite(t), np.floor(t), -1).astype(np.int64)  # noqa: E731
+    n, first, last = n.reshape(96, 128), stamp(first).reshape(96, 128), stamp(last).reshape(96, 128)
+    theta = rng.uniform(0.15, 0.25, 128)
+    calls = []
+    real = timing._timing_solve
+
+    def spy(n_on, *rest):
+        calls.append((threading.get_ident(), n_on.shape[0]))
+        return real(n_on, *rest)
+
+    monkeypatch.setattr(timing, "_timing_solve", spy)
+    monkeypatch.setenv("EVTK_THREADS", "1")
+    one = linearize_by_timing(n, first, last, theta, QUIET, blank, curve)
+    assert [rows for _, rows in calls] == [96]
+    calls.clear()
+    monkeypatch.setenv("EVTK_THREADS", "3")
+    three = linearize_by_timing(n, first, last, theta, QUIET, blank, curve)
+    assert sorted(rows for _, rows in calls) == [32, 32, 32]
+    idents = {ident for ident, _ in calls}  # the caller takes the first block, the pool's threads the rest
+    assert threading.get_ident() in idents and len(idents) >= 2
+    assert np.isfinite(one).mean() > 0.5
+    assert np.array_equal(one, three, equal_nan=True)

@@ -97,13 +97,16 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
 OVERLAP_CHUNK_EVENTS = 1 << 18
 
 
-def span_chunks(source: Events | Any, a: int, z: int, chunk_events: int) -> Iterator[Events]:
+def span_chunks(source: Events | Any, a: int, z: int, chunk_events: int, starts: np.ndarray | None = None,
+                ends: np.ndarray | None = None) -> Iterator[Events]:
     """The events from ``a`` to ``z`` (us, half-open) in time order, in chunks, and perhaps others beside them.
 
     A recording whose span is at most twice ``z - a`` is read whole, without its time-window filter (which
     costs more than counting the events outside the span): the counting leaves out what no window holds. Its
     chunks are then an eighth of it (at least :data:`OVERLAP_CHUNK_EVENTS`, at most ``chunk_events``), so that
-    :func:`accumulate` counts one while the reader's threads decode the next.
+    :func:`accumulate` counts one while the reader's threads decode the next; given the windows themselves
+    (``starts``, ``ends``), a reader that knows its packets' spans (AEDAT4's ``iter_events_meeting``) then leaves
+    out the packets that meet none of them (the dark time between a bench's captures).
 
     Parameters
     ----------
@@ -113,6 +116,8 @@ def span_chunks(source: Events | Any, a: int, z: int, chunk_events: int) -> Iter
         The span, us (half-open).
     chunk_events : int
         Most events a chunk holds.
+    starts, ends : numpy.ndarray, optional
+        The windows within the span (µs, half-open), when only their events are wanted.
 
     Yields
     ------
@@ -126,11 +131,15 @@ def span_chunks(source: Events | Any, a: int, z: int, chunk_events: int) -> Iter
         return
     info = source.info()
     first, last = info.get("t_start_us"), info.get("t_end_us")
+    meeting = getattr(source, "iter_events_meeting", None) if starts is not None and ends is not None else None
     if first is not None and last is not None and int(last) - int(first) <= 2 * (z - a):
         n = info.get("events")
         if isinstance(n, int) and n > 0:  # eight chunks at least: each is counted while the next is decoded
             chunk_events = min(chunk_events, max(OVERLAP_CHUNK_EVENTS, -(-n // 8)))
-        yield from source.iter_events(chunk_events=chunk_events)
+        if meeting is not None:
+            yield from meeting(starts, ends, chunk_events=chunk_events)
+        else:
+            yield from source.iter_events(chunk_events=chunk_events)
     else:
         yield from source.iter_events(chunk_events=chunk_events, t_start_us=a, t_end_us=z)
 
@@ -220,7 +229,7 @@ def accumulate(source: Events | Any, windows: Windows, region: tuple[int, int, i
     if isinstance(source, Events):
         chunks = [source.sorted()]
     else:
-        chunks = _prefetched(span_chunks(source, span[0], span[1], chunk_events))
+        chunks = _prefetched(span_chunks(source, span[0], span[1], chunk_events, starts, ends))
     used = 0
     total = np.zeros(n_w, np.int64)
     flat = counts.reshape(-1)

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import json
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
@@ -97,8 +100,8 @@ def _count_table(on, off, theta_on, theta_off):
     if rise.max() > 700:
         raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
     out = np.empty(on.shape, np.float64)
-    with _thread_budget():
-        _look_up(on_flat, off_flat, np.expm1(rise).ravel(), hi_off + 1, out.reshape(-1))
+    flat, table, stride = out.reshape(-1), np.expm1(rise).ravel(), hi_off + 1
+    _on_threads(lambda a, b: _look_up(on_flat[a:b], off_flat[a:b], table, stride, flat[a:b]), on_flat.size, 1 << 16)
     return out
 
 
@@ -116,9 +119,9 @@ def _count_extent(on, off):
     return lo, hi_on, hi_off
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _look_up(on, off, table, stride, out):
-    for i in numba.prange(on.size):
+    for i in range(on.size):
         out[i] = table[on[i] * stride + off[i]]
 
 
@@ -246,36 +249,84 @@ def _model_log_step(net_counts, curve):
     return np.interp(n, levels, mid)
 
 
-@contextlib.contextmanager
-def _thread_budget():
-    """numba's parallel loops on as many threads as evtk's decoding (``EVTK_IO_THREADS``; a local cluster's
-    workers each get their share), restored afterwards."""
-    before = numba.get_num_threads()
-    numba.set_num_threads(max(1, min(workers(), numba.config.NUMBA_NUM_THREADS)))
-    try:
-        yield
-    finally:
-        numba.set_num_threads(before)
+def _on_threads(kernel: Callable[[int, int], object], rows: int, least_rows: int = 1) -> None:
+    """Run ``kernel(lo, hi)`` over the rows ``[0, rows)`` in contiguous blocks, one per thread of evtk's budget
+    (:func:`evtk._threads.workers`: ``--threads`` / ``EVTK_THREADS``, else the cores this process may use), at
+    least ``least_rows`` rows a block; the calling thread takes the first block.
+
+    ``kernel`` is a numba function compiled with ``nogil=True`` (or numpy work that releases the GIL) that writes
+    each row independently, so the result does not depend on the number of threads. Plain Python threads, not
+    numba's parallel loops: no threading layer to start in a fresh process, and no worker threads left spinning
+    after the loop while the next stage (or the reader's threads) wants the cores.
+    """
+    n = max(1, min(workers(), rows // max(1, least_rows)))
+    if n == 1:
+        kernel(0, rows)
+        return
+    bounds = [rows * i // n for i in range(n + 1)]
+    with ThreadPoolExecutor(n - 1, thread_name_prefix="evtk-rows") as ex:
+        pending = [ex.submit(kernel, a, b) for a, b in zip(bounds[1:-1], bounds[2:])]
+        kernel(bounds[0], bounds[1])
+        for f in pending:
+            f.result()
 
 
 def _flat_log_step(sim, bench, region):
     """Log-light step ``u`` each pixel of ``region`` (y, x) sees in a flat-field window (every mirror on), as the
     plan ``sim`` (or a simulation record) places the response and models the pixels."""
     plan = _model_plan(sim)
-    k, f = np.ones(plan.kernels.shape[1:], np.int8), np.ones(plan.features.shape[1:], np.int8)
     if plan.camera is not None:  # the simulated camera's view of the flat field
+        k, f = np.ones(plan.kernels.shape[1:], np.int8), np.ones(plan.features.shape[1:], np.int8)
         return _log_step(plan, plan.camera.view(k, f, bench, tuple(region)))
-    origin = plan.origin_px
+    return _log_step(plan, _flat_light(bench, plan.kernels.shape[1:], plan.features.shape[1:], plan.origin_px,
+                                       plan.cell_map, region))
+
+
+#: Flat-field light per pixel kept between reconstructions through one placement (:func:`_flat_light`).
+_FLAT_LIGHT_KEPT = 16
+_flat_lights: OrderedDict[tuple, np.ndarray] = OrderedDict()
+_flat_lights_lock = threading.Lock()
+
+
+def _flat_light(bench: Bench, kernel_shape: tuple, features_shape: tuple, origin_px, cell_map, region) -> np.ndarray:
+    """The light (response units) each pixel of ``region`` (y, x) receives in a flat-field window, where the
+    origin (default: the bench geometry's) or the fitted ``cell_map`` places the response.
+
+    It depends on the bench and the placement only, not on the recording or the pixels: the last
+    :data:`_FLAT_LIGHT_KEPT` are kept (read-only) for the next reconstruction through the same calibration.
+    """
+    view = None if cell_map is None else (np.asarray(cell_map.matrix, np.float64).tobytes(), float(cell_map.k1),
+                                          tuple(int(v) for v in cell_map.sensor_size))
+    ks = (int(kernel_shape[0]), int(kernel_shape[1]))
+    fs = (int(features_shape[0]), int(features_shape[1]))
+    key = (bench, ks, fs, None if origin_px is None else tuple(float(v) for v in origin_px), view,
+           tuple(int(v) for v in region))
+    with _flat_lights_lock:
+        got = _flat_lights.get(key)
+        if got is not None:
+            _flat_lights.move_to_end(key)
+            return got
+    k, f = np.ones(ks, np.int8), np.ones(fs, np.int8)
+    origin = origin_px
     if origin is None:  # the bench geometry's
-        origin = response_origin_px(bench, k.shape, f.shape)
-    if plan.cell_map is not None:  # a fitted map: a scale and shift is an origin, anything else is seen through
+        origin = response_origin_px(bench, ks, fs)
+    light = None
+    if cell_map is not None:  # a fitted map: a scale and shift is an origin, anything else is seen through
         full = (k.shape[0] + f.shape[0] - 1, k.shape[1] + f.shape[1] - 1)
-        aligned = plan.cell_map.axis_aligned(full)
+        aligned = cell_map.axis_aligned(full)
         if aligned is None:  # turned, tilted or distorted
-            return _log_step(plan, _flat_through_map(k, f, bench, plan.cell_map, tuple(region)))
-        origin = aligned[0]
-    # where the plan places the response (a calibration's origin, or the bench's own)
-    return _log_step(plan, screen_response(k, f, bench.replace(origin_px=tuple(origin)), tuple(region)))
+            light = _flat_through_map(k, f, bench, cell_map, tuple(region))
+        else:
+            origin = aligned[0]
+    if light is None:  # where the plan places the response (a calibration's origin, or the bench's own)
+        light = screen_response(k, f, bench.replace(origin_px=tuple(origin)), tuple(region))
+    light = np.array(light)  # its own copy, kept read-only
+    light.flags.writeable = False
+    with _flat_lights_lock:
+        _flat_lights[key] = light
+        while len(_flat_lights) > _FLAT_LIGHT_KEPT:
+            _flat_lights.popitem(last=False)
+    return light
 
 
 def _log_step(plan, light):

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..errors import EvtkError
 from ..sensor import SensorModel, time_constant_us
-from .linearize import _count_bands, _thread_budget
+from .linearize import _count_bands, _on_threads
 
 __all__ = ["linearize_by_timing", "timing_thresholds"]
 
@@ -76,13 +76,13 @@ def _timing_factor(n, a_us, b_us, log_rate, tau_min_us, tau_electrons, refr_us):
     return np.exp(np.log(-np.expm1(-(n - 1) * r)) - log_den)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _timing_solve(n_on, first, last, theta, theta_nominal, band_lo, band_hi, offset_us, log_blank, tau_min_us,
                   tau_electrons, refr_us, out):
     """Log-light steps from ON-event times, :func:`linearize_by_timing`'s work, per (window, pixel)."""
     n_w, n_px = n_on.shape
     top = band_lo.size - 1
-    for w in numba.prange(n_w):
+    for w in range(n_w):
         for i in range(n_px):
             n = n_on[w, i]
             out[w, i] = np.nan
@@ -200,12 +200,15 @@ def linearize_by_timing(on: np.ndarray, on_first_us: np.ndarray, on_last_us: np.
     _, band_lo, band_hi = _count_bands(curve)
     rows = n.shape[0]
     out = np.empty(n.shape, np.float64)
-    with _thread_budget():
-        _timing_solve(n.reshape(rows, -1).astype(np.int64), first.reshape(rows, -1).astype(np.int64),
-                      last.reshape(rows, -1).astype(np.int64), np.ascontiguousarray(th.ravel()), sm.theta_on,
-                      np.ascontiguousarray(band_lo, np.float64), np.ascontiguousarray(band_hi, np.float64),
-                      float(offset_us), log_blank, sm.tau_min_us, sm.tau_electrons, sm.refractory_us,
-                      out.reshape(rows, -1))
+    n2, first2, last2 = (np.ascontiguousarray(a.reshape(rows, -1), np.int64) for a in (n, first, last))
+    th2, out2 = np.ascontiguousarray(th.ravel()), out.reshape(rows, -1)
+    lo_band, hi_band = np.ascontiguousarray(band_lo, np.float64), np.ascontiguousarray(band_hi, np.float64)
+
+    def rows_of(a, b):  # windows a..b: each pixel-window is solved alone, so any split gives the same numbers
+        _timing_solve(n2[a:b], first2[a:b], last2[a:b], th2, sm.theta_on, lo_band, hi_band, float(offset_us),
+                      log_blank, sm.tau_min_us, sm.tau_electrons, sm.refractory_us, out2[a:b])
+
+    _on_threads(rows_of, rows, max(1, 4096 // max(1, n2.shape[1])))
     return out
 
 

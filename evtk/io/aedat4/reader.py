@@ -6,6 +6,7 @@ import os
 import struct
 from _bisect import bisect_right  # (the C module: bisect.py is a module more to load)
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,6 +18,9 @@ from .. import _fbpy
 from ..base import BaseRecording, StreamInfo, load_json
 from .common import _STRUCT_SIZE, _TYPE_NAMES, _VECTOR_TYPES, _status
 from .index import _CountMismatch, _FileIndex, _Stop
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 #: Events a decode thread takes from the file at a time (1 MiB of FlatBuffers events, which stay in a core's
 #: cache for the column copies): see ``Recording._batcher``.
@@ -622,6 +626,66 @@ class Recording(_FileIndex, BaseRecording):
                 return
             rows = rows[stopped_at:]
         yield from self._chunks_from_packets(s, rows, chunk_events, t_start_us, t_end_us)
+
+    def iter_events_meeting(self, t_start_us: npt.ArrayLike, t_end_us: npt.ArrayLike, chunk_events: int = 1_000_000,
+                            stream: int | str | None = None) -> Iterator[Events]:
+        """Yield the events of the packets that may hold a stamp in any of the windows ``[t_start_us, t_end_us)``,
+        in file order, at most ``chunk_events`` at a time, each packet whole (events outside the windows
+        included: the caller keeps what it wants; a packet that meets no window is neither decoded nor yielded).
+
+        The packets' spans are those a windowed read scans once per open recording (:meth:`_packet_spans`): when
+        they are not known yet, or without a data table, or with salvage, every packet is read (the scan costs
+        more than the decoding it would save).
+
+        Parameters
+        ----------
+        t_start_us, t_end_us : array_like of int
+            The windows' starts (inclusive) and ends (exclusive), µs, one each, in any order.
+        chunk_events : int
+            Most events a chunk holds (at least 1).
+        stream : int or str, optional
+            The event stream (id or name); None: the first.
+
+        Yields
+        ------
+        Events
+            The next chunk.
+
+        Raises
+        ------
+        FormatError
+            When the file has no event stream, or at damage (without salvage).
+        EvtkError
+            When ``chunk_events`` is below 1 or the starts and ends differ in number.
+        """
+        chunk_events = int(chunk_events)
+        if chunk_events < 1:
+            raise EvtkError(f"chunk_events must be at least 1, got {chunk_events}")
+        starts = np.asarray(t_start_us, np.int64).ravel()
+        ends = np.asarray(t_end_us, np.int64).ravel()
+        if starts.shape != ends.shape:
+            raise EvtkError(f"{starts.size} window starts for {ends.size} ends")
+        s, rows, _ = self._select("EVTS", stream, None, None)
+        if s is None:
+            raise FormatError(self.path, None, f"no event stream; the streams are {self._stream_names()}")
+        spans = self._spans.get(s.id)
+        if spans is not None and self._index.from_table and not self.salvage and len(rows) == len(spans[0]):
+            lo, hi = spans
+            order = np.argsort(starts, kind="stable")
+            first, reach = starts[order], np.maximum.accumulate(ends[order])
+            # the first window (by start) that some window up to it ends after the packet's earliest stamp: the
+            # packet meets a window exactly when that one starts by its latest stamp (an empty packet: none)
+            j = np.searchsorted(reach, lo, side="right")
+            keep = j < first.size
+            keep[keep] = first[j[keep]] <= hi[keep]
+            rows = rows[keep]
+        counts = self._index.count[rows]
+        if len(rows) and np.all(counts >= 0):
+            stopped_at = yield from self._chunks_from_table(s, rows, counts, chunk_events, None, None)
+            if stopped_at is None:
+                return
+            rows = rows[stopped_at:]
+        yield from self._chunks_from_packets(s, rows, chunk_events, None, None)
 
     def _chunks_from_table(self, s, rows, counts, chunk_events, t_start_us, t_end_us, edge=None):
         """Chunks of at most ``chunk_events``, packets decoded on every core straight into each chunk's
