@@ -17,7 +17,7 @@ event counts), and the blocks then decode independently (numpy releases the GIL 
 from __future__ import annotations
 
 import os
-import threading
+from _thread import get_ident  # threading itself is a module more for a fresh read
 from typing import Any
 
 import numpy as np
@@ -424,7 +424,7 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
     _keep_temporaries_mapped()
     fd = os.open(path, os.O_RDONLY)
     try:
-        mine = threading.local()  # each thread reads its blocks into one buffer of its own
+        buffers: dict[int, np.ndarray] = {}  # each thread reads its blocks into one buffer of its own
 
         def words_of(b):
             a = b * block_words
@@ -432,9 +432,9 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
             if not hasattr(os, "preadv"):
                 raw = os.pread(fd, size, start + 2 * a)
                 return np.frombuffer(raw, "<u2", len(raw) // 2)
-            buf = getattr(mine, "buf", None)
+            buf = buffers.get(get_ident())
             if buf is None:
-                buf = mine.buf = np.empty(2 * block_words, np.uint8)
+                buf = buffers[get_ident()] = np.empty(2 * block_words, np.uint8)
             got = os.preadv(fd, [buf[:size]], start + 2 * a)
             return buf[:got & ~1].view("<u2")
 
