@@ -82,6 +82,8 @@ def _random_words(rng, n, trial):
         probs[11:] = 0
     if trial % 7 == 0:  # y and time low rarely (runs of events: the decoder's other way of carrying them)
         probs[[0, 6, 8]] = .005
+    if trial % 4 == 1:  # no vectors (the decoder's one-event-a-word way), vector bases still set and carried
+        probs[[3, 4]] = 0
     kinds = rng.choice(kinds_all, n, p=probs / probs.sum())
     v = rng.integers(0, 4096, n)
     if trial % 3:  # mostly on the 40x25 sensor; else ST_COORD early

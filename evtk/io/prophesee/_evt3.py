@@ -17,6 +17,7 @@ event counts), and the blocks then decode independently (numpy releases the GIL 
 from __future__ import annotations
 
 import os
+from _thread import get_ident  # threading itself is a module more for a fresh read
 from typing import Any
 
 import numpy as np
@@ -93,11 +94,14 @@ _H_LIMIT = 1 << 40
 def _put_changes(packed: np.ndarray, at: np.ndarray, values: np.ndarray, before: int, shift: int) -> None:
     """Write into ``packed`` at the positions ``at`` each value's change from the one before (``before`` first),
     shifted left by ``shift``: their running sum is then the value in effect."""
-    d = values.astype(np.int64)
-    if len(d):
-        d[1:] -= values[:-1]
-        d[0] -= before
-        packed[at] = d << shift if shift else d
+    if len(values):
+        v = values.astype(np.int64)
+        d = np.empty_like(v)
+        d[0] = v[0] - before
+        np.subtract(v[1:], v[:-1], out=d[1:])  # in int64: a uint16 operand would take numpy's slow casting loop
+        if shift:
+            np.left_shift(d, shift, out=d)
+        packed[at] = d
 
 
 def _core(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
@@ -114,24 +118,26 @@ def _core(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     if stop >= 0:
         status, w, kind = ST_TYPE, w[:stop], kind[:stop]
     n_words = len(w)
-    e = np.flatnonzero((kind == 2) | ((kind - np.uint16(4)) < 2))  # the event words (types 2, 4 and 5)
+    is_vec = (kind - np.uint16(4)) < 2  # the vector words (types 4 and 5)
+    has_vec = bool(is_vec.any())
+    e = np.flatnonzero((kind == 2) | is_vec if has_vec else kind == 2)  # the event words (types 2, 4 and 5)
     we = w[e]
-    ke = we >> 12
-    is_xe = ke == 2
-    has_vec = not bool(is_xe.all())
     if has_vec:
+        ke = we >> 12
+        is_xe = ke == 2
         mask_e = np.where(is_xe, 1, np.where(ke == 4, we & 0xFFF, we & 0xFF))
         cnt_e = _POP12[mask_e]
         n_all = int(cnt_e.sum(dtype=np.int64))
     else:
         n_all = len(e)
     is_tr = kind == 10
-    if decode and (n_all > len(t) or int(np.count_nonzero(is_tr)) > len(tt)):
+    n_tr = int(np.count_nonzero(is_tr))
+    if decode and (n_all > len(t) or n_tr > len(tt)):
         full = n_words
         if n_all > len(t):
             over = np.cumsum(cnt_e, dtype=np.int64) > len(t) if has_vec else np.arange(1, len(e) + 1) > len(t)
             full = int(e[_first(over)])
-        if int(np.count_nonzero(is_tr)) > len(tt):
+        if n_tr > len(tt):
             full = min(full, int(np.flatnonzero(is_tr)[len(tt)]))
         res = _core(w[:full], state, width, height, decode, t, x, y, p, tt, tk, tch)
         return res if res[2] != ST_OK else (res[0], res[1], ST_FULL, full, res[4], res[5])
@@ -164,7 +170,6 @@ def _core(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     pk = packed[e]
     n = len(e)
     done = n_words  # the words whose effects stand: those before the stop
-    bpos = np.flatnonzero(kind == 3)
     if not has_vec:  # one event a word (EVT_ADDR_X): written straight into the outputs when decoding
         if decode:
             et, ex, ey = t[:n], x[:n], y[:n]
@@ -174,13 +179,14 @@ def _core(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
             np.bitwise_and(we >> 11, 1, out=p[:n], casting="unsafe")
         else:
             et, ex, ey = (pk >> 11 if whole else time_at(e)), we & 0x7FF, pk & 0x7FF
-        if width <= 0x7FF or height <= 0x7FF:
+        if n and (int(ex.max()) >= width or int(ey.max()) >= height):
             bad = _first((ex >= width) | (ey >= height))
             if bad >= 0:
                 n, status = bad, ST_COORD
                 stop = done = int(e[bad])
         et = et[:n]
     else:
+        bpos = np.flatnonzero(kind == 3)
         t_e = pk >> 11 if whole else time_at(e)
         y_e = (pk & 0x7FF).astype(np.uint16)
         # vector base x and polarity: the last VECT_BASE_X word's, moved on by the vectors since
@@ -214,7 +220,7 @@ def _core(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
             x[:n] = ex[:n]
             y[:n] = ey[:n]
             p[:n] = pw[rows[:n]]
-    trig = np.flatnonzero(is_tr[:done])
+    trig = np.flatnonzero(is_tr[:done]) if n_tr else e[:0]
     m = len(trig)
     if decode and m:
         wt = w[trig]
@@ -226,9 +232,12 @@ def _core(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
         state[E3_Y], state[E3_LOW] = last & 0x7FF, (last >> 11) & 0xFFF
         h = int(hv[np.searchsorted(at_hi, done)])
         state[E3_EPOCH], state[E3_HIGH] = h >> 12, h & 0xFFF
-        nb = int(np.searchsorted(bpos, done))  # base words before the stop
-        since = int(bpos[nb - 1]) if nb else -1
-        if nb:
+        if has_vec:
+            nb = int(np.searchsorted(bpos, done))  # base words before the stop
+            since = int(bpos[nb - 1]) if nb else -1
+        else:
+            since = _last(kind[:done], 3)
+        if since >= 0:
             state[E3_BASE], state[E3_POL] = int(w[since]) & 0x7FF, (int(w[since]) >> 11) & 1
         if has_vec:
             a, b = np.searchsorted(e, since, side="right"), np.searchsorted(e, done)
@@ -415,10 +424,19 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
     _keep_temporaries_mapped()
     fd = os.open(path, os.O_RDONLY)
     try:
+        buffers: dict[int, np.ndarray] = {}  # each thread reads its blocks into one buffer of its own
+
         def words_of(b):
             a = b * block_words
-            raw = os.pread(fd, 2 * min(block_words, count - a), start + 2 * a)
-            return np.frombuffer(raw, "<u2", len(raw) // 2)
+            size = 2 * min(block_words, count - a)
+            if not hasattr(os, "preadv"):
+                raw = os.pread(fd, size, start + 2 * a)
+                return np.frombuffer(raw, "<u2", len(raw) // 2)
+            buf = buffers.get(get_ident())
+            if buf is None:
+                buf = buffers[get_ident()] = np.empty(2 * block_words, np.uint8)
+            got = os.preadv(fd, [buf[:size]], start + 2 * a)
+            return buf[:got & ~1].view("<u2")
 
         def each(fn, n):
             """``[fn(b) for b in range(n)]``, on ``threads`` threads that each take the next block when done."""
