@@ -140,3 +140,31 @@ def test_enob_of_a_recording_on_several_threads_equals_one_thread(cut_small, mon
     np.testing.assert_array_equal(one["sinad"].per_pixel_db, many["sinad"].per_pixel_db)
     assert one["flips"].pairwise_pct == many["flips"].pairwise_pct
     np.testing.assert_array_equal(one["flips"].per_pixel, many["flips"].per_pixel)
+
+
+@pytest.mark.parametrize("region, cells", [((0, 23, 0, 17), None), ((2, 20, 1, 15), (7, 9)), ((0, 23, 0, 17), (17, 1))])
+@pytest.mark.parametrize("batch, chunk", [(None, 4_000_000), (4, 1_111)])
+def test_on_and_off_counts_on_several_threads_equal_one_thread(cut_small, monkeypatch, tmp_path, region, cells,
+                                                               batch, chunk):
+    # count_batches (evtk reconstruct's route): each run of windows counts into its own windows' bins
+    from evtk.reconstruct.fixed import count_batches
+
+    ev = _events(11)
+    path = tmp_path / "r.aedat4"
+    evtk.write_events(path, ev)
+    win = windows_periodic(0, 30_000, 1000)
+    got = []
+    for threads in ("1", "3"):
+        monkeypatch.setenv("EVTK_THREADS", threads)
+        with evtk.open(path) as rec:
+            got.append([(i, on.copy(), off.copy(), used) for i, on, off, used in
+                        count_batches(rec, win, region, cells, batch_windows=batch, chunk_events=chunk)])
+    assert max(cut_small) > 1
+    one, many = got
+    assert [(i, used) for i, _, _, used in one] == [(i, used) for i, _, _, used in many]
+    for (_, on1, off1, _), (_, on2, off2, _) in zip(one, many):
+        np.testing.assert_array_equal(on1, on2)
+        np.testing.assert_array_equal(off1, off2)
+    net = np.concatenate([on - off for _, on, off, _ in one])
+    if cells is None:  # and they are the counts themselves
+        np.testing.assert_array_equal(net, _reference(ev, win, region))

@@ -352,7 +352,12 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
         return i, bins[:, 1, :rows, :cols], bins[:, 0, :rows, :cols], int(totals.sum()) - outside
 
     def add(ev: Events, i: int, j: int, out: np.ndarray, totals: np.ndarray) -> None:
-        totals += _count(ev, starts[i:j], ends[i:j], by_y, by_x, plane, out)
+        # runs of whole windows (about equal events), one a thread: each counts into its own windows' bins
+        n = np.searchsorted(ev.t, ends[i:j], side="left") - np.searchsorted(ev.t, starts[i:j], side="left")
+        bounds = cuts(n, parts(int(n.sum())))
+        totals += np.concatenate(run(_count, [(ev, starts[i + a:i + z], ends[i + a:i + z], by_y, by_x, plane,
+                                               out[a * per_window:z * per_window])
+                                              for a, z in zip(bounds, bounds[1:])]))
         if totals.max(initial=0) > np.iinfo(np.int32).max:
             raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
                             "counts could overflow")
