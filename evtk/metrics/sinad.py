@@ -376,7 +376,9 @@ class SinadAccumulator:
         sq = np.empty(s1.size)
 
         def part(a: int, z: int) -> None:
-            m2[a:z] = (k * s2[a:z] - s1[a:z] * s1[a:z]) / k
+            num = np.multiply(s2[a:z], k)  # k S2 - S1^2: exact in int64, divided once (no temporaries)
+            num -= np.square(s1[a:z])
+            np.divide(num, k, out=m2[a:z])
             self._m2_px[a:z] += m2[a:z]
             np.divide(s1[a:z], k, out=self._mean[g, a:z])
             sq[a:z] = s2[a:z]
