@@ -26,8 +26,8 @@ _pool_size = 0
 
 
 def parts(work: int) -> int:
-    """How many parts ``work`` elements are cut into: :func:`evtk._threads.workers` at most, each at least
-    :data:`MIN_PART`.
+    """How many parts ``work`` elements are cut into: half of :func:`evtk._threads.workers` at most (the other
+    half decode the next chunk of the recording meanwhile), each at least :data:`MIN_PART`.
 
     Parameters
     ----------
@@ -39,7 +39,7 @@ def parts(work: int) -> int:
     int
         At least 1.
     """
-    return max(1, min(workers(), int(work) // MIN_PART))
+    return max(1, min(workers() // 2, int(work) // MIN_PART))
 
 
 def cuts(weights: np.ndarray, n_parts: int) -> list[int]:
@@ -92,9 +92,10 @@ def run(fn: Callable[..., Any], args: Sequence[tuple]) -> list:
 
 
 def _shared_pool() -> ThreadPoolExecutor:
-    """The counting threads (:func:`evtk._threads.workers` less this one; made again when that changes)."""
+    """The counting threads (as many as :func:`parts` may ask for, less this one; made again when that
+    changes)."""
     global _pool, _pool_size
-    n = max(1, workers() - 1)
+    n = max(1, workers() // 2 - 1)
     with _lock:
         if _pool is None or _pool_size != n:
             if _pool is not None:
