@@ -13,6 +13,9 @@ counts for, and counts with :func:`numpy.bincount`:
   :func:`evtk.reconstruct.downsample`.
 
 Memory stays bounded by the responses and one batch (:data:`BATCH_BINS` counts), never windows x sensor.
+A chunk's windows are counted in runs of whole windows on several threads (:mod:`evtk._parallel`: half of
+``EVTK_THREADS`` or the cores, the other half decoding the next chunk), each run into its own windows' bins,
+so the counts are one thread's exactly.
 """
 
 from __future__ import annotations
