@@ -168,3 +168,16 @@ def test_on_and_off_counts_on_several_threads_equal_one_thread(cut_small, monkey
     net = np.concatenate([on - off for _, on, off, _ in one])
     if cells is None:  # and they are the counts themselves
         np.testing.assert_array_equal(net, _reference(ev, win, region))
+
+
+@pytest.mark.parametrize("pixels", [1, 2, 5])
+def test_captures_of_fewer_pixels_than_threads(cut_small, monkeypatch, pixels):
+    # many repeats of a few pixels: the runs of pixels are never empty (an empty run's max raised)
+    monkeypatch.setenv("EVTK_THREADS", "16")
+    x = np.random.default_rng(2).integers(-9, 9, (4_000, pixels)).astype(np.int32)
+    acc = SinadAccumulator(4_000, pixels)
+    acc.add(x)
+    monkeypatch.setenv("EVTK_THREADS", "1")
+    one = SinadAccumulator(4_000, pixels)
+    one.add(x)
+    assert acc.report().sinad_db == one.report().sinad_db

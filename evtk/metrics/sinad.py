@@ -161,7 +161,7 @@ INTERVALS = ("jackknife", "bootstrap", None)
 def _pixel_parts(block: np.ndarray) -> list[tuple[int, int]]:
     """Runs of a block's pixels (columns), one a counting thread (:func:`evtk._parallel.parts`)."""
     p = block.shape[1]
-    n = parts(block.size)
+    n = min(parts(block.size), p)  # (never an empty run)
     return [(p * r // n, p * (r + 1) // n) for r in range(n)]
 
 
