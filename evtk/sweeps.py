@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any, Literal, overload
 import numpy as np
 import numpy.typing as npt
 
+from ._parallel import cuts, parts, run
 from .errors import EvtkError
 from .io import open as open_recording
 from .limits import memory_limit_bytes, require_memory, require_window_work
@@ -274,11 +275,18 @@ def _net_block_means(net: np.ndarray, size: tuple[int, int], most: int) -> np.nd
     if h % oh or w % ow:
         return downsample(net, size)
     fy, fx = h // oh, w // ow
-    blocks = net.reshape(net.shape[0], oh, fy, w)
-    if fy * fx * most >= 2**31:  # int32 sums where they cannot overflow
-        blocks = blocks.astype(np.int64)
-    rows = np.einsum("naxw->naw", blocks)  # whole rows first
-    return np.einsum("naox->nao", rows.reshape(net.shape[0], oh, ow, fx)) / (fy * fx)
+    out = np.empty((net.shape[0], oh, ow))
+
+    def part(a: int, z: int) -> None:  # windows a .. z - 1 (runs of windows on the counting threads)
+        blocks = net[a:z].reshape(z - a, oh, fy, w)
+        if fy * fx * most >= 2**31:  # int32 sums where they cannot overflow
+            blocks = blocks.astype(np.int64)
+        rows = np.einsum("naxw->naw", blocks)  # whole rows first
+        np.divide(np.einsum("naox->nao", rows.reshape(z - a, oh, ow, fx)), fy * fx, out=out[a:z])
+
+    bounds = cuts(np.ones(net.shape[0], np.int64), parts(net.size))
+    run(part, list(zip(bounds, bounds[1:])))
+    return out
 
 
 def _mean_defined(values):

@@ -9,6 +9,7 @@ from typing import overload
 import numpy as np
 import numpy.typing as npt
 
+from .._parallel import parts, run
 from ..errors import EvtkError
 from ..limits import require_memory
 
@@ -157,17 +158,42 @@ MAX_BOOTSTRAP_GROUPS = 64
 INTERVALS = ("jackknife", "bootstrap", None)
 
 
+def _pixel_parts(block: np.ndarray) -> list[tuple[int, int]]:
+    """Runs of a block's pixels (columns), one a counting thread (:func:`evtk._parallel.parts`)."""
+    p = block.shape[1]
+    n = min(parts(block.size), p)  # (never an empty run)
+    return [(p * r // n, p * (r + 1) // n) for r in range(n)]
+
+
+def _magnitude(x: np.ndarray) -> int:
+    """The largest magnitude of whole numbers ``x`` (rows x pixels), as a Python int (no wrap); runs of pixels
+    on the counting threads."""
+    def part(a: int, b: int) -> int:
+        v = x[:, a:b]
+        return max(abs(int(v.max())), abs(int(v.min())))
+
+    return max(run(part, _pixel_parts(x)))
+
+
 def _whole_sums(block: np.ndarray, big: int) -> tuple[np.ndarray, np.ndarray] | None:
     """Per-pixel sum and sum of squares (int64, exact) of a block of whole-number repeats whose magnitudes are at
-    most ``big``; None where ``k * S2`` or ``S1 ** 2`` could leave int64 (then the float route measures it)."""
+    most ``big``; None where ``k * S2`` or ``S1 ** 2`` could leave int64 (then the float route measures it). Runs
+    of pixels go to the counting threads (each pixel's sums are its own: the same whatever the runs)."""
     k = block.shape[0]
     if k * k * big * big >= 2**62:
         return None
     # summed in int32 where the sums cannot overflow it (einsum sums in the inputs' type), else in int64
     narrow = block.dtype.itemsize <= 4 and block.dtype != np.uint32 and k * big * big < 2**31
-    b = block.astype(np.int32 if narrow else np.int64, copy=False)
-    s1 = np.einsum("rp->p", b).astype(np.int64, copy=False)
-    return s1, np.einsum("rp,rp->p", b, b).astype(np.int64, copy=False)
+    s1 = np.empty(block.shape[1], np.int64)
+    s2 = np.empty(block.shape[1], np.int64)
+
+    def part(a: int, z: int) -> None:
+        b = block[:, a:z].astype(np.int32 if narrow else np.int64, copy=False)
+        s1[a:z] = np.einsum("rp->p", b)
+        s2[a:z] = np.einsum("rp,rp->p", b, b)
+
+    run(part, _pixel_parts(block))
+    return s1, s2
 
 
 class SinadAccumulator:
@@ -289,7 +315,7 @@ class SinadAccumulator:
             raise EvtkError(f"SINAD: more than the {self.repeats} repeats announced")
         whole = np.issubdtype(x.dtype, np.integer) or x.dtype == bool
         # the largest magnitude of whole numbers (a Python int: no wrap), for the exact sums' overflow check
-        big = max(abs(int(x.max())), abs(int(x.min()))) if whole and x.size else None
+        big = _magnitude(x) if whole and x.size else None
         if not whole:
             x = x.astype(np.float64, copy=False)
             if not np.all(np.isfinite(x)):
@@ -341,7 +367,27 @@ class SinadAccumulator:
             return
         g, k, _, s1, s2 = self._pending
         self._pending = None
-        self._merge(g, k, s1 / k, (k * s2 - s1 * s1) / k, s2.astype(np.float64))
+        if self._n[g]:
+            self._merge(g, k, s1 / k, (k * s2 - s1 * s1) / k, s2.astype(np.float64))
+            return
+        # the group's first block (as :meth:`_merge` takes it), elementwise on runs of pixels on the counting
+        # threads: each pixel's figures are the same whatever the runs; the totals summed whole afterwards
+        m2 = np.empty(s1.size)
+        sq = np.empty(s1.size)
+
+        def part(a: int, z: int) -> None:
+            num = np.multiply(s2[a:z], k)  # k S2 - S1^2: exact in int64, divided once (no temporaries)
+            num -= np.square(s1[a:z])
+            np.divide(num, k, out=m2[a:z])
+            self._m2_px[a:z] += m2[a:z]
+            np.divide(s1[a:z], k, out=self._mean[g, a:z])
+            sq[a:z] = s2[a:z]
+            self._sq_px[a:z] += sq[a:z]
+
+        run(part, _pixel_parts(s1.reshape(1, -1)))
+        self._m2[g] += float(m2.sum())
+        self._sq[g] += float(sq.sum())
+        self._n[g] = k
 
     def _merge(self, g: int, k: int, block_mean: np.ndarray, block_m2: np.ndarray, sq: np.ndarray) -> None:
         """Merge a block of ``k`` repeats of group ``g`` (its per-pixel mean, squared deviation from that mean and

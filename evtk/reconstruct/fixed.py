@@ -13,6 +13,9 @@ counts for, and counts with :func:`numpy.bincount`:
   :func:`evtk.reconstruct.downsample`.
 
 Memory stays bounded by the responses and one batch (:data:`BATCH_BINS` counts), never windows x sensor.
+A chunk's windows are counted in runs of whole windows on several threads (:mod:`evtk._parallel`: half of
+``EVTK_THREADS`` or the cores, the other half decoding the next chunk), each run into its own windows' bins,
+so the counts are one thread's exactly.
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from .._parallel import cuts, parts, run
+from .._threads import workers
 from ..errors import EvtkError
 from ..events import Events
 from ..limits import memory_limit_bytes, require_memory
@@ -350,7 +355,12 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
         return i, bins[:, 1, :rows, :cols], bins[:, 0, :rows, :cols], int(totals.sum()) - outside
 
     def add(ev: Events, i: int, j: int, out: np.ndarray, totals: np.ndarray) -> None:
-        totals += _count(ev, starts[i:j], ends[i:j], by_y, by_x, plane, out)
+        # runs of whole windows (about equal events), one a thread: each counts into its own windows' bins
+        n = np.searchsorted(ev.t, ends[i:j], side="left") - np.searchsorted(ev.t, starts[i:j], side="left")
+        bounds = cuts(n, parts(int(n.sum())))
+        totals += np.concatenate(run(_count, [(ev, starts[i + a:i + z], ends[i + a:i + z], by_y, by_x, plane,
+                                               out[a * per_window:z * per_window])
+                                              for a, z in zip(bounds, bounds[1:])]))
         if totals.max(initial=0) > np.iinfo(np.int32).max:
             raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
                             "counts could overflow")
@@ -503,12 +513,13 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
             raise EvtkError(f"batches must start at window 0 and increase below {n_w}")
     nexts = firsts[1:] + [n_w]  # each batch's end
     nb = max(j - i for i, j in zip(firsts, nexts))
-    require_memory(4 * (nb * frame + 1) + _PIECE * 16,
+    dumps = workers()  # a dump bin a counting thread (events outside the region)
+    require_memory(4 * (nb * frame + dumps) + _PIECE * 16,
                    f"counting {n_w:,} windows over {w_px}x{h_px} pixels, {nb:,} at a time")
     # keys: window * frame + pixel inside the region; a pixel outside it gets a key past every window's frame,
-    # clipped to the one dump bin after the batch's frames
+    # clipped to its thread's dump bin after the batch's frames
     dump = nb * frame
-    dtype: type[np.signedinteger] = np.int32 if 3 * dump < 2**31 else np.int64
+    dtype: type[np.signedinteger] = np.int32 if 3 * dump + dumps < 2**31 else np.int64
     sensor = (int(source.sensor_size[0]), int(source.sensor_size[1]))
     by_y = np.full(sensor[1], dump, dtype)
     by_y[y0:y1] = np.arange(h_px, dtype=dtype) * w_px
@@ -523,32 +534,50 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
         if totals.max(initial=0) > np.iinfo(np.int32).max:
             raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
                             "counts could overflow")
-        if int(n.sum()) == 0:
+        total = int(n.sum())
+        if total == 0:
             return
-        if whole:  # the region is the sensor: the key by arithmetic, no table look-ups
-            key = np.multiply(ev.y[where], w_px, dtype=dtype)
-            key += ev.x[where]
-        else:
-            key = by_y.take(ev.y[where])
-            key += by_x.take(ev.x[where])
-        at = np.concatenate(([0], np.cumsum(n)))  # each window's events in key
-        for w in range(1, j - i):  # each window's frame after the first: a slice each, no per-event offsets
-            if at[w + 1] > at[w]:
-                key[at[w]:at[w + 1]] += dtype(w * frame)
-        if not whole:
-            np.minimum(key, dtype((j - i) * frame), out=key)  # every key outside the region: the dump bin
-        sign = np.multiply(ev.p[where], 2, dtype=np.int32)  # +1 ON, -1 OFF
-        sign -= 1
-        np.add.at(out, key, sign)
+        at = np.concatenate(([0], np.cumsum(n)))  # each window's events among the picked ones
+        # runs of whole windows, one a thread: each writes its own windows' frames and its own dump bin
+        bounds = cuts(n, min(dumps, parts(total)))
+        run(_net_count_run, [(ev, where, at, wa, wb, r, j - i, frame, w_px, whole, by_y, by_x, dtype, out)
+                             for r, (wa, wb) in enumerate(zip(bounds, bounds[1:]))])
 
-    frames = np.empty(nb * frame + 1, np.int32)  # one buffer for every batch (its pages touched once)
+    frames = np.empty(nb * frame + dumps, np.int32)  # one buffer for every batch (its pages touched once)
 
     def batch(b: int) -> tuple[np.ndarray, np.ndarray]:  # the shared frames: a batch is used before the next
-        out = frames[:(nexts[b] - firsts[b]) * frame + 1]
+        out = frames[:(nexts[b] - firsts[b]) * frame + dumps]
         out.fill(0)
         return out, np.zeros(nexts[b] - firsts[b], np.int64)
 
     def finished(i: int, j: int, out: np.ndarray, totals: np.ndarray) -> tuple[int, np.ndarray, int]:
-        return i, out[:-1].reshape(j - i, h_px, w_px), int(totals.max(initial=0))
+        return i, out[:(j - i) * frame].reshape(j - i, h_px, w_px), int(totals.max(initial=0))
 
-    yield from _batches(source, windows, firsts, nexts, max(1, int(chunk_events)), progress, batch, add, finished)
+    yield from _batches(source, windows, firsts, nexts, max(1, min(int(chunk_events), READ_EVENTS)), progress,
+                        batch, add, finished)
+
+
+def _net_count_run(ev: Events, where: slice | np.ndarray, at: np.ndarray, wa: int, wb: int, r: int, n_w: int,
+                   frame: int, w_px: int, whole: bool, by_y: np.ndarray, by_x: np.ndarray, dtype: Any,
+                   out: np.ndarray) -> None:
+    """Add the signs of the picked events of windows ``wa .. wb - 1`` (``at``: each window's first among them)
+    to their frames in ``out`` (``n_w`` windows of ``frame`` bins, then a dump bin per run: this run's is
+    ``n_w * frame + r``). Runs of different windows write different bins, so they may go on threads."""
+    a, z = int(at[wa]), int(at[wb])
+    if z <= a:
+        return
+    pick = slice(where.start + a, where.start + z) if isinstance(where, slice) else where[a:z]
+    if whole:  # the region is the sensor: the key by arithmetic, no table look-ups
+        key = np.multiply(ev.y[pick], w_px, dtype=dtype)
+        key += ev.x[pick]
+    else:
+        key = by_y.take(ev.y[pick])
+        key += by_x.take(ev.x[pick])
+    for w in range(max(wa, 1), wb):  # each window's frame after the first: a slice each, no per-event offsets
+        if at[w + 1] > at[w]:
+            key[at[w] - a:at[w + 1] - a] += dtype(w * frame)
+    if not whole:
+        np.minimum(key, dtype(n_w * frame + r), out=key)  # every key outside the region: this run's dump bin
+    sign = np.multiply(ev.p[pick], 2, dtype=np.int32)  # +1 ON, -1 OFF
+    sign -= 1
+    np.add.at(out, key, sign)

@@ -1,0 +1,104 @@
+"""Numpy work split over threads: the counting and summing of fixed windows, in parts that release the GIL.
+
+Most numpy loops (ufuncs, ``take``, ``einsum``, reductions) release the GIL, so parts of one array handed to
+several threads run on several cores; ``np.add.at`` and ``np.bincount`` keep it and stay serial among them.
+The parts are always cut so that no two threads write the same memory and every integer result is the same
+whatever the cut (each part's sums are added in integers afterwards).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import numpy as np
+
+from ._threads import workers
+
+#: Least work (elements) worth a part of its own: below it a thread's hand-over costs more than it saves.
+MIN_PART = 1 << 16
+
+_lock = threading.Lock()
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+
+
+def parts(work: int) -> int:
+    """How many parts ``work`` elements are cut into: half of :func:`evtk._threads.workers` at most (the other
+    half decode the next chunk of the recording meanwhile), each at least :data:`MIN_PART`.
+
+    Parameters
+    ----------
+    work : int
+        Elements of work.
+
+    Returns
+    -------
+    int
+        At least 1.
+    """
+    return max(1, min(workers() // 2, int(work) // MIN_PART))
+
+
+def cuts(weights: np.ndarray, n_parts: int) -> list[int]:
+    """Cut items with ``weights`` into at most ``n_parts`` runs of about equal weight.
+
+    Parameters
+    ----------
+    weights : ndarray
+        Each item's weight (non-negative).
+    n_parts : int
+        Most runs.
+
+    Returns
+    -------
+    list of int
+        Increasing bounds from 0 to ``len(weights)``: run ``r`` is items ``bounds[r]:bounds[r + 1]`` (never empty).
+    """
+    n = len(weights)
+    if n_parts <= 1 or n <= 1:
+        return [0, n]
+    cum = np.cumsum(weights, dtype=np.int64)
+    total = int(cum[-1]) if n else 0
+    if total <= 0:
+        return [0, n]
+    at = np.searchsorted(cum, np.arange(1, n_parts) * (total / n_parts), side="left") + 1
+    return sorted({0, n, *(int(v) for v in at if 0 < v < n)})
+
+
+def run(fn: Callable[..., Any], args: Sequence[tuple]) -> list:
+    """``fn(*a)`` for each ``a`` of ``args``, on the shared counting threads when more than one, in order.
+
+    Parameters
+    ----------
+    fn : callable
+        The work of one part.
+    args : sequence of tuple
+        Each part's arguments.
+
+    Returns
+    -------
+    list
+        The results, in the order of ``args`` (the first exception raised, if any, is raised here).
+    """
+    if len(args) <= 1:
+        return [fn(*a) for a in args]
+    pool = _shared_pool()
+    futures = [pool.submit(fn, *a) for a in args[1:]]
+    first = fn(*args[0])  # this thread does a part too
+    return [first] + [f.result() for f in futures]
+
+
+def _shared_pool() -> ThreadPoolExecutor:
+    """The counting threads (as many as :func:`parts` may ask for, less this one; made again when that
+    changes)."""
+    global _pool, _pool_size
+    n = max(1, workers() // 2 - 1)
+    with _lock:
+        if _pool is None or _pool_size != n:
+            if _pool is not None:
+                _pool.shutdown(wait=False)
+            _pool, _pool_size = ThreadPoolExecutor(max_workers=n, thread_name_prefix="evtk-count"), n
+        return _pool
