@@ -45,7 +45,7 @@ step() {  # name, seconds, command...
 }
 for s in $STEPS; do
     case $s in
-    threads) step threads 120 python3 benchmarks/bench_threads.py --cores 1,2,4,8,16 --rounds 2 --reads 5 \
+    threads) step threads 150 python3 benchmarks/bench_threads.py --cores 1,2,8,16 --rounds 2 --reads 3 \
                  --formats aedat4-dv,aedat4-zstd,evt3 --json "$OUT/threads.json" ;;
     threads-ab)  # this tree against the one in .new (git archive of a branch, carried), alternating
         for r in 1 2; do
@@ -55,15 +55,15 @@ for s in $STEPS; do
                     --json "$OUT/threads-$r-$(basename "$tree").json"
             done
         done ;;
-    limits)
-        step limits-phases 90 python3 benchmarks/bench_threads.py --cores 1,4,16 --rounds 1 --reads 3 --phases \
+    limits)  # against the threads step's 1-core read on the same machine
+        step limits-phases 60 python3 benchmarks/bench_threads.py --cores 1,16 --rounds 1 --reads 3 --phases \
             --formats aedat4-dv
-        step limits-unbounded 90 python3 benchmarks/bench_threads.py --cores 1,8,16 --rounds 1 --reads 5 \
+        step limits-unbounded 60 python3 benchmarks/bench_threads.py --cores 8,16 --rounds 1 --reads 5 \
             --formats aedat4-dv,aedat4-zstd --set evtk._threads.MEMORY_SHARE=1.0
-        step limits-half-batch 90 python3 benchmarks/bench_threads.py --cores 1,8,16 --rounds 1 --reads 5 \
+        step limits-half-batch 60 python3 benchmarks/bench_threads.py --cores 8,16 --rounds 1 --reads 5 \
             --formats aedat4-dv,aedat4-zstd --set evtk.io.aedat4.reader.BATCH_EVENTS=32768 \
             --set evtk.io.aedat4.reader._THREAD_BYTES=1310720 ;;
-    memory) step memory 90 python3 benchmarks/bench_memory.py --full-reads 2e7 --only aedat4,evt3 ;;
+    memory) step memory 60 python3 benchmarks/bench_memory.py --full-reads 2e7 --only aedat4,evt3 ;;
     fresh) step fresh 55 python3 benchmarks/bench_fresh_read.py --writers dv-lz4,evtk-zstd --repeats 5 \
                --json "$OUT/fresh.json" ;;
     reconstruct) step reconstruct 50 python3 benchmarks/bench_reconstruct.py --fixed --repeats 3 \
