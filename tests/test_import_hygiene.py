@@ -167,8 +167,11 @@ def calibrated_job(tmp_path_factory):
 
 
 # what a calibrated reconstruction has no step for: peak finding and statistics (scipy.signal, scipy.stats),
-# image analysis (skimage), optimisers (scipy.optimize: the pixel model is the calibration's)
-NOT_FOR_RECONSTRUCT = ("scipy.signal", "scipy.stats", "scipy.optimize", "skimage", "matplotlib")
+# image analysis (skimage, scipy.ndimage: no blur or filter on this route), optimisers (scipy.optimize: the pixel
+# model is the calibration's), special functions (scipy.special: no footprint modelled). numba stays (the count
+# table simulates the pixel model), and with it scipy.linalg (numba's BLAS check); scipy.sparse for the deblur.
+NOT_FOR_RECONSTRUCT = ("scipy.signal", "scipy.stats", "scipy.optimize", "scipy.ndimage", "scipy.special", "skimage",
+                       "matplotlib")
 
 
 def test_a_fresh_calibrated_reconstruction_loads_no_signal_or_image_library(calibrated_job):
