@@ -29,12 +29,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
-from scipy.ndimage import gaussian_filter, median_filter
-from scipy.optimize import least_squares
-from skimage.feature import peak_local_max
-from skimage.filters import threshold_otsu
-from skimage.measure import ransac
-from skimage.transform import ProjectiveTransform
 
 from ._atomic import AtomicFile
 from .errors import EvtkError
@@ -214,6 +208,10 @@ def _blobs(image, spacing_px=None, radius=2):
     spacing), background (the window's lowest count) taken off, so that the
     faint pixels a sub-pixel position spreads light into count too.
     """
+    from scipy.ndimage import gaussian_filter  # scipy and scikit-image load when calibrating only: a
+    from skimage.feature import peak_local_max  # reconstruction that loads a calibration does not need them
+    from skimage.filters import threshold_otsu
+
     img = np.asarray(image, dtype=np.float64)
     if not np.any(img > 0):
         return np.zeros((0, 2))
@@ -321,6 +319,9 @@ def calibrate(rec: BaseRecording, schedule: Plan | str | os.PathLike[str] | dict
                         f"{len(expected)} shown: is the schedule that of this recording?")
     src = places[[j for _, j in pairs]]
     dst = found[[i for i, _ in pairs]]
+    from skimage.measure import ransac
+    from skimage.transform import ProjectiveTransform
+
     model, inliers = ransac((src, dst), ProjectiveTransform, min_samples=4, residual_threshold=1.0,
                             max_trials=500, rng=0)
     if model is None or inliers is None or inliers.sum() < MIN_DOTS:
@@ -449,6 +450,9 @@ def dot_blur_px(net: npt.ArrayLike, region: tuple[int, int, int, int] | list[int
             return np.log1p(p[0] * light) / p[1]
         start, lo, hi = [1.0, 0.2], [1e-3, 1e-3], [1e3, 10.0]
 
+    from scipy.ndimage import gaussian_filter
+    from scipy.optimize import least_squares
+
     def misfit(sigma):
         light = (gaussian_filter(a0, sigma, mode="constant") if sigma > 0 else a0)[use]
         fit = least_squares(lambda p: counts(light, p) - data, start, bounds=(lo, hi))
@@ -513,6 +517,8 @@ def _without(image, mask):
     """``image`` with the pixels of ``mask`` replaced by the median of their 3x3 neighbourhood."""
     if not np.any(mask):
         return image
+    from scipy.ndimage import median_filter
+
     out = image.copy()
     out[mask] = median_filter(image, size=3, mode="nearest")[mask]
     return out
@@ -523,6 +529,8 @@ def _with_distortion(cmap, src, dst, res):
     when that fits the dots better (RMS down by more than 10 %): ``(map, residuals)``."""
     if len(src) < 10:
         return cmap, res
+    from scipy.optimize import least_squares
+
     h0 = np.asarray(cmap.matrix, np.float64) / cmap.matrix[2, 2]
 
     def residuals(p):

@@ -139,3 +139,72 @@ def test_evtk_info_loads_no_writer_or_archive_modules(tmp_path, fmt):
     env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
     assert eval(out.split("LOADED", 1)[1].strip()) == []  # a list of names printed by the child
+
+
+@pytest.fixture(scope="module")
+def calibrated_job(tmp_path_factory):
+    """A small simulated bench run: a calibration run (dots and levels), ``evtk calibrate`` on it, and a job run,
+    both as the camera's AEDAT4 copy (no simulation record)."""
+    from click.testing import CliRunner
+
+    from evtk.cli import main
+    from evtk.patterns import job_simulation
+
+    tmp = tmp_path_factory.mktemp("calibrated")
+    base = 'kernels = ["010111010"]\nrepeat = 1\nflat_field = 2\nwindow_us = 1000\nseed = 4\n'
+    (tmp / "cal.toml").write_text(base + "calibration = 2\nlevels = 6\n")
+    (tmp / "job.toml").write_text(base + "levels = 0\n")
+    for name in ("cal", "job"):
+        res = CliRunner().invoke(main, ["patterns", str(tmp / f"{name}.toml"), "-o", str(tmp / name)])
+        assert res.exit_code == 0, res.output
+        job_simulation(tmp / f"{name}.toml").write(tmp / f"{name}_sim.h5")
+        with evtk.open(tmp / f"{name}_sim.h5") as rec:
+            evtk.write_events(tmp / f"{name}_cam.aedat4", rec.events(), rec.triggers())
+    res = CliRunner().invoke(main, ["calibrate", str(tmp / "cal_cam.aedat4"), "--schedule",
+                                    str(tmp / "cal" / "schedule.json"), "-o", str(tmp / "c.toml")])
+    assert res.exit_code == 0, res.output
+    return tmp
+
+
+# what a calibrated reconstruction has no step for: peak finding and statistics (scipy.signal, scipy.stats),
+# image analysis (skimage, scipy.ndimage: no blur or filter on this route), optimisers (scipy.optimize: the pixel
+# model is the calibration's), special functions (scipy.special: no footprint modelled). numba stays (the count
+# table simulates the pixel model), and with it scipy.linalg (numba's BLAS check); scipy.sparse for the deblur.
+NOT_FOR_RECONSTRUCT = ("scipy.signal", "scipy.stats", "scipy.optimize", "scipy.ndimage", "scipy.special", "skimage",
+                       "matplotlib")
+
+
+def test_a_fresh_calibrated_reconstruction_loads_no_signal_or_image_library(calibrated_job):
+    """``evtk reconstruct F --schedule S --calibration C`` in a fresh process: loading the calibration imported
+    evtk.calibrate with scipy.ndimage, scipy.optimize and scikit-image (0.65 s), and the ideal response's small
+    correlation scipy.signal (0.85 s), of a run whose read takes 0.14 s (issue 32)."""
+    tmp = calibrated_job
+    code = ("import sys\nfrom evtk.cli import main\n"
+            f"args = ['reconstruct', {str(tmp / 'job_cam.aedat4')!r}, '--schedule', "
+            f"{str(tmp / 'job' / 'schedule.json')!r}, '--calibration', {str(tmp / 'c.toml')!r}, "
+            f"'-o', {str(tmp / 'r.npz')!r}]\n"
+            "try:\n    main(args)\nexcept SystemExit as exc:\n    assert not exc.code, exc.code\n"
+            f"print('LOADED', sorted(m for m in {NOT_FOR_RECONSTRUCT!r} if m in sys.modules))\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
+    assert eval(out.split("LOADED", 1)[1].strip()) == []  # a list of names printed by the child
+    assert evtk.load_reconstruction(tmp / "r.npz").responses.shape[1:] == (16, 16)  # the default --size
+
+
+def test_the_ideal_response_is_scipys_correlation_to_the_bit():
+    """The ideal response sums integer patterns in numpy (scipy.signal costs a process 0.85 s to import): the same
+    floats as ``scipy.signal.correlate2d`` / ``convolve2d``, signed and flipped kernels included; real-valued
+    patterns still go through scipy."""
+    from scipy import signal
+
+    from evtk.optics import Bench, ideal_response
+
+    rng = np.random.default_rng(32)
+    flipped = Bench(kernel_flipped=True)
+    for _ in range(300):
+        k = rng.integers(-4, 5, (rng.integers(1, 8), rng.integers(1, 8))).astype(np.float64)
+        f = rng.integers(-3, 4, (rng.integers(1, 24), rng.integers(1, 24))).astype(np.float64)
+        assert ideal_response(k, f).tobytes() == signal.correlate2d(f, k, mode="full").tobytes()
+        assert ideal_response(k, f, flipped).tobytes() == signal.convolve2d(f, k, mode="full").tobytes()
+        real = f + rng.random(f.shape)
+        assert ideal_response(k, real).tobytes() == signal.correlate2d(real, k, mode="full").tobytes()

@@ -25,7 +25,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.ndimage import gaussian_filter, map_coordinates
 
 from ..errors import EvtkError
 from .bench import Bench
@@ -349,6 +348,8 @@ class Camera:
             c, norm = self._frame(size)
             out = out * (1.0 - self.vignetting * ((xx - c[0]) ** 2 + (yy - c[1]) ** 2) / (norm * norm))
         if self.defocus_px > 0:
+            from scipy.ndimage import gaussian_filter  # scipy loads where a camera renders, not with the module
+
             out = gaussian_filter(out, self.defocus_px, mode="nearest")
         return out[pad:pad + (y1 - y0), pad:pad + (x1 - x0)]
 
@@ -399,6 +400,8 @@ def footprint_light(
     if fx1 <= fx0 or fy1 <= fy0:  # the view misses the nominal grid: only the glow
         light = np.full(pts.shape[0], float(render_nominal(kernel, features, bench, (0, 1, 0, 1), s).mean()))
     else:
+        from scipy.ndimage import map_coordinates
+
         img = render_nominal(kernel, features, bench, (fx0, fx1, fy0, fy1), s)
         light = map_coordinates(img, [fine[:, 1] - fy0, fine[:, 0] - fx0], order=1, mode="nearest")
     return light.reshape((y1 - y0, x1 - x0, s * s)).mean(axis=-1)

@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 import numpy.typing as npt
-from scipy import special
 
 from ..errors import EvtkError
 from .bench import Bench
@@ -21,11 +20,15 @@ __all__ = [
 
 def _phi1(x):
     """First antiderivative of the normal CDF: x*Phi(x) + phi(x)."""
+    from scipy import special  # (scipy loads where a footprint is modelled, not with the module)
+
     return x * special.ndtr(x) + np.exp(-0.5 * x * x) / math.sqrt(2 * math.pi)
 
 
 def _phi2(x):
     """Second antiderivative of the normal CDF: ((x^2+1)*Phi(x) + x*phi(x)) / 2."""
+    from scipy import special
+
     return 0.5 * ((x * x + 1.0) * special.ndtr(x) + x * np.exp(-0.5 * x * x) / math.sqrt(2 * math.pi))
 
 
@@ -333,13 +336,41 @@ def ideal_response(kernel: npt.ArrayLike, features: npt.ArrayLike, bench: Bench 
     numpy.ndarray
         float64, shape ``(fh + kh - 1, fw + kw - 1)``.
     """
-    from scipy import signal
-
     k = np.asarray(kernel, dtype=np.float64)
     f = np.asarray(features, dtype=np.float64)
-    if bench is not None and bench.kernel_flipped:
+    flipped = bench is not None and bench.kernel_flipped
+    if k.ndim == 2 and f.ndim == 2 and _exact_in_any_order(k, f):
+        return _correlate_full(f, k[::-1, ::-1] if flipped else k)
+    from scipy import signal  # real-valued patterns: scipy's sums (importing scipy.signal is ~0.5 s of a process)
+
+    if flipped:
         return signal.convolve2d(f, k, mode="full")
     return signal.correlate2d(f, k, mode="full")
+
+
+def _exact_in_any_order(k: np.ndarray, f: np.ndarray) -> bool:
+    """Whether every product and partial sum of the correlation of ``f`` with ``k`` is an exact float64 integer.
+
+    True for integer-valued patterns whose largest possible sum, max|f| * sum|k|, is below 2**53: then the
+    correlation is the same floats whatever the order of its sums (scipy's or :func:`_correlate_full`'s).
+    """
+    if k.size == 0 or f.size == 0 or not (np.all(np.isfinite(k)) and np.all(np.isfinite(f))):
+        return False
+    if not (np.array_equal(k, np.round(k)) and np.array_equal(f, np.round(f))):
+        return False
+    return float(np.abs(f).max()) * float(np.abs(k).sum()) < 2.0 ** 53
+
+
+def _correlate_full(f: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Full 2-D correlation ``out[i, j] = sum_ab f[i + a - kh + 1, j + b - kw + 1] * k[a, b]`` (zero outside
+    ``f``): one shifted, scaled copy of ``f`` added per kernel element."""
+    (fh, fw), (kh, kw) = f.shape, k.shape
+    out = np.zeros((fh + kh - 1, fw + kw - 1))
+    for a in range(kh):
+        for b in range(kw):
+            if k[a, b] != 0:
+                out[kh - 1 - a:kh - 1 - a + fh, kw - 1 - b:kw - 1 - b + fw] += k[a, b] * f
+    return out
 
 
 def response_to_sensor_grid(

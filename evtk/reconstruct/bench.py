@@ -18,7 +18,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.ndimage import median_filter
 
 from ..errors import EvtkError
 from ..events import Triggers
@@ -320,6 +319,8 @@ def neighbourhood_flat_gain(net_flat):
     """:func:`flat_field_gain` without a pixel model: what a nominal pixel would count in the flat windows
     ``net_flat`` (windows, rows, cols) is taken as the 5x5 median of its neighbours' mean (the flat response is
     smooth; threshold mismatch is not)."""
+    from scipy.ndimage import median_filter  # (scipy where a step uses it: not on import)
+
     return flat_field_gain(net_flat, median_filter(net_flat.mean(axis=0), size=5, mode="nearest"))
 
 

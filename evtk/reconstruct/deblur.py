@@ -28,19 +28,20 @@ import math
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 from numpy.linalg import LinAlgError
-from scipy.linalg import cho_factor, cho_solve, eigvalsh
-from scipy.ndimage import gaussian_filter
-from scipy.sparse import csr_array
 
 from .._blas import one_blas_thread
 from ..errors import EvtkError
 from ..optics import Bench, shadow_magnification
 from ..optics.camera import CellMap, footprint_points
 from ..optics.screen import footprint_cdf
+
+if TYPE_CHECKING:
+    from scipy.sparse import csr_array
 
 __all__ = ["sampling_matrix", "solve_cells", "relative_noise", "wiener_lambda", "DEFAULT_LAMBDA"]
 
@@ -138,6 +139,8 @@ def sampling_matrix(bench: Bench, to_cells: Callable[[np.ndarray], npt.ArrayLike
         val = wy[:, :, None] * wx[:, None, :] / (s * s)
         a_mat = np.bincount(flat.ravel(), weights=val.ravel(), minlength=npix * ncell).reshape(npix, ncell)
     if blur_px > 0:
+        from scipy.ndimage import gaussian_filter  # (scipy where a step uses it: not on import)
+
         img = a_mat.reshape(y1 - y0, x1 - x0, ncell)
         a_mat = gaussian_filter(img, (blur_px, blur_px, 0), mode="constant").reshape(npix, ncell)
     return a_mat
@@ -197,6 +200,8 @@ def relative_noise(values: np.ndarray, level_light: np.ndarray, is_level: npt.Ar
 
 def _top_eigenvalue(gram):
     """The largest eigenvalue of ``A^T A`` (the largest singular value of ``A``, squared)."""
+    from scipy.linalg import eigvalsh
+
     n = gram.shape[0]
     top = float(eigvalsh(gram, subset_by_index=[n - 1, n - 1])[0])
     if top <= 1e-12:
@@ -249,6 +254,8 @@ def wiener_lambda(a_mat: np.ndarray, v: np.ndarray, noise_var: np.ndarray, top: 
 def _csr(a_mat: np.ndarray) -> csr_array:
     """``a_mat`` (2-d, float64) as a CSR matrix, built straight from its nonzero entries (``csr_array`` of a
     dense array goes through a COO copy, which took as long as the dense product it saves here)."""
+    from scipy.sparse import csr_array
+
     a = np.ascontiguousarray(a_mat, np.float64)
     n_rows, n_cols = a.shape
     flat = np.flatnonzero(a)
@@ -378,6 +385,8 @@ def _solve(values: npt.ArrayLike, system: _System, lam: float = 0.0,
     v = vals.reshape(-1, vals.shape[-1]).T  # (pixels, m)
     if v.shape[0] != a_mat.shape[0]:
         raise EvtkError(f"{v.shape[0]} pixel values for a sampling matrix of {a_mat.shape[0]} pixels")
+    from scipy.linalg import cho_factor, cho_solve
+
     shared, top = system.gram_top()
     gram = shared.copy()
     with one_blas_thread():

@@ -33,8 +33,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.ndimage import percentile_filter
-from scipy.optimize import least_squares, minimize
 
 from ..errors import EvtkError
 from ..optics.camera import CellMap
@@ -440,6 +438,8 @@ def hot_pixels(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLike, max_ga
     dark = counts.reshape(h, w)
     # against its own neighbourhood: a response's pixels fire in the dark more than the bare sensor around it,
     # and at the response's edge half the neighbours are outside: the busiest tenth of 11x11 is the reference
+    from scipy.ndimage import percentile_filter  # (scipy where a step uses it: not on import)
+
     local = percentile_filter(dark.astype(np.float64), 90, size=11, mode="nearest")
     limit = np.maximum(HOT_MIN_EVENTS, 4.0 * local + 6.0 * np.sqrt(local + 1.0))
     return (dark >= limit) & (3 * seen.reshape(h, w) >= max(1, len(stretches)))
@@ -1052,6 +1052,8 @@ def fit_pixel_model(stats: LevelStatistics, window_us: int, settle_us: int, skip
 
     def loss(x):
         return float(np.sum(residuals(x) ** 2))
+
+    from scipy.optimize import least_squares, minimize
 
     # a trust region on finite differences coarser than the counts' steps, then Nelder-Mead to polish
     # from the log fit's blank level and from two either side of it: theta and blank trade off along a valley
