@@ -139,3 +139,15 @@ def test_evtk_info_loads_no_writer_or_archive_modules(tmp_path, fmt):
     env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
     assert eval(out.split("LOADED", 1)[1].strip()) == []  # a list of names printed by the child
+
+
+@pytest.mark.parametrize("fmt", ["es", "evt2", "dat"])
+def test_a_fresh_read_of_another_prophesee_encoding_loads_no_evt3_decoder(tmp_path, fmt):
+    """``evtk.read_events`` of an Event Stream, EVT 2.0 or DAT file in a fresh process: the EVT 3.0 decoder module
+    (1.5-5 ms of the start, issue 32) was imported with the Prophesee reader whatever the file's encoding."""
+    path = _fixture(tmp_path, fmt)
+    code = (f"import sys, evtk\nassert len(evtk.read_events({str(path)!r})) == 50_000\n"
+            "print('LOADED', 'evtk.io.prophesee._evt3' in sys.modules)\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
+    assert out.split("LOADED", 1)[1].strip() == "False"
