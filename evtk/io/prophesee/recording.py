@@ -76,6 +76,8 @@ class PropheseeRecording(BaseRecording):
             raise FormatError(self.path, 0, "not a Prophesee EVT 2.0, EVT 2.1, EVT 3.0 or DAT file (no recognised % "
                                             "header)")
         self.encoding = kind
+        if kind == EVT3:  # its decoder loads with the file, not inside the first read's memory and time
+            _evt3()
         #: EVT 2.1 only: the IMX636's word layout (OpenEB's ``endianness=legacy``)
         self.legacy_layout = kind == EVT21 and evt21_legacy(self._lines)
         size = _sensor_from_header(self._lines, self.path)
