@@ -91,10 +91,11 @@ def test_info_and_convert_to_hdf5_load_no_compiler(tmp_path, fmt):
 # what a fresh process's start pays for beyond Python, numpy and evtk's own modules: 0.5-2.5 ms each here, against
 # peers whose whole read of a small file takes a few (issue 32)
 START_UP = ("lz4", "zstandard", "xxhash", "hdf5plugin", "click", "xml.etree.ElementTree", "json", "threading",
-            "numpy.typing", "dataclasses", "xml.parsers.expat", "bisect")
+            "numpy.typing", "dataclasses", "xml.parsers.expat", "bisect", "_bisect")
 # an AEDAT4 file evtk writes has LZ4 packets, decoded through the LZ4 library bound by ctypes: python-lz4's frame
 # module (with the stdlib's _compression) and threading (the pool's lock is _thread's) load for none of them
-START_UP_NEEDED: dict[str, set[str]] = {}
+# module; _bisect (a shared library to load, 0.2-0.7 ms) loads only for the Prophesee decoders, which search with it
+START_UP_NEEDED: dict[str, set[str]] = {fmt: {"_bisect"} for fmt in ("evt3", "es", "evt2", "dat")}
 
 
 @pytest.mark.parametrize("fmt", ["aedat4", "evt3", "es", "evt2", "dat"])
@@ -208,3 +209,15 @@ def test_the_ideal_response_is_scipys_correlation_to_the_bit():
         assert ideal_response(k, f, flipped).tobytes() == signal.convolve2d(f, k, mode="full").tobytes()
         real = f + rng.random(f.shape)
         assert ideal_response(k, real).tobytes() == signal.correlate2d(real, k, mode="full").tobytes()
+
+
+@pytest.mark.parametrize("fmt", ["es", "evt2", "dat"])
+def test_a_fresh_read_of_another_prophesee_encoding_loads_no_evt3_decoder(tmp_path, fmt):
+    """``evtk.read_events`` of an Event Stream, EVT 2.0 or DAT file in a fresh process: the EVT 3.0 decoder module
+    (1.5-5 ms of the start, issue 32) was imported with the Prophesee reader whatever the file's encoding."""
+    path = _fixture(tmp_path, fmt)
+    code = (f"import sys, evtk\nassert len(evtk.read_events({str(path)!r})) == 50_000\n"
+            "print('LOADED', 'evtk.io.prophesee._evt3' in sys.modules)\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
+    assert out.split("LOADED", 1)[1].strip() == "False"
