@@ -69,7 +69,7 @@ for s in $STEPS; do
     reconstruct) step reconstruct 50 python3 benchmarks/bench_reconstruct.py --fixed --repeats 3 \
                      --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 \
                      --ops "reconstruct, responses only;evtk reconstruct -o x.npz;evtk enob" ;;
-    batch) step batch 80 python3 benchmarks/bench_batch.py --recordings 16 --workers 16 --rounds 1 --repeats 1 --fmt npz \
+    batch) step batch 150 python3 benchmarks/bench_batch.py --recordings 16 --workers 16 --rounds 2 --repeats 3 --fmt npz \
                --json "$OUT/batch.json" ;;
     calibrate) step calibrate 50 python3 benchmarks/bench_calibrate.py --repeat 150 --runs 3 \
                    --json "$OUT/calibrate.json" ;;
