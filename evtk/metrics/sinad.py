@@ -367,27 +367,7 @@ class SinadAccumulator:
             return
         g, k, _, s1, s2 = self._pending
         self._pending = None
-        if self._n[g]:
-            self._merge(g, k, s1 / k, (k * s2 - s1 * s1) / k, s2.astype(np.float64))
-            return
-        # the group's first block (as :meth:`_merge` takes it), elementwise on runs of pixels on the counting
-        # threads: each pixel's figures are the same whatever the runs; the totals summed whole afterwards
-        m2 = np.empty(s1.size)
-        sq = np.empty(s1.size)
-
-        def part(a: int, z: int) -> None:
-            num = np.multiply(s2[a:z], k)  # k S2 - S1^2: exact in int64, divided once (no temporaries)
-            num -= np.square(s1[a:z])
-            np.divide(num, k, out=m2[a:z])
-            self._m2_px[a:z] += m2[a:z]
-            np.divide(s1[a:z], k, out=self._mean[g, a:z])
-            sq[a:z] = s2[a:z]
-            self._sq_px[a:z] += sq[a:z]
-
-        run(part, _pixel_parts(s1.reshape(1, -1)))
-        self._m2[g] += float(m2.sum())
-        self._sq[g] += float(sq.sum())
-        self._n[g] = k
+        self._merge(g, k, s1 / k, (k * s2 - s1 * s1) / k, s2.astype(np.float64))
 
     def _merge(self, g: int, k: int, block_mean: np.ndarray, block_m2: np.ndarray, sq: np.ndarray) -> None:
         """Merge a block of ``k`` repeats of group ``g`` (its per-pixel mean, squared deviation from that mean and
