@@ -1,4 +1,5 @@
-"""Numpy work split over threads: the counting and summing of fixed windows, in parts that release the GIL.
+"""Work split over threads, in parts that release the GIL: the counting and summing of fixed windows (numpy), the
+linearisation's look-ups and timing solve (``nogil`` numba kernels); one shared pool for all of them.
 
 Most numpy loops (ufuncs, ``take``, ``einsum``, reductions) release the GIL, so parts of one array handed to
 several threads run on several cores; ``np.add.at`` and ``np.bincount`` keep it and stay serial among them.
@@ -69,7 +70,8 @@ def cuts(weights: np.ndarray, n_parts: int) -> list[int]:
 
 
 def run(fn: Callable[..., Any], args: Sequence[tuple]) -> list:
-    """``fn(*a)`` for each ``a`` of ``args``, on the shared counting threads when more than one, in order.
+    """``fn(*a)`` for each ``a`` of ``args``, on evtk's shared worker threads when more than one, in order (the
+    calling thread does the first). ``fn`` must not itself call :func:`run` (the pool could run out of threads).
 
     Parameters
     ----------
@@ -92,13 +94,13 @@ def run(fn: Callable[..., Any], args: Sequence[tuple]) -> list:
 
 
 def _shared_pool() -> ThreadPoolExecutor:
-    """The counting threads (as many as :func:`parts` may ask for, less this one; made again when that
-    changes)."""
+    """The worker threads :func:`run` hands parts to: one fewer than :func:`evtk._threads.workers` (the calling
+    thread does a part), started as parts first need them, made again when the budget changes."""
     global _pool, _pool_size
-    n = max(1, workers() // 2 - 1)
+    n = max(1, workers() - 1)
     with _lock:
         if _pool is None or _pool_size != n:
             if _pool is not None:
                 _pool.shutdown(wait=False)
-            _pool, _pool_size = ThreadPoolExecutor(max_workers=n, thread_name_prefix="evtk-count"), n
+            _pool, _pool_size = ThreadPoolExecutor(max_workers=n, thread_name_prefix="evtk-part"), n
         return _pool

@@ -7,12 +7,12 @@ import json
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
 import numpy.typing as npt
 
+from .._parallel import run
 from .._threads import workers
 from ..errors import EvtkError
 from ..optics import Bench, brightest_response, response_origin_px, screen_response
@@ -260,15 +260,8 @@ def _on_threads(kernel: Callable[[int, int], object], rows: int, least_rows: int
     after the loop while the next stage (or the reader's threads) wants the cores.
     """
     n = max(1, min(workers(), rows // max(1, least_rows)))
-    if n == 1:
-        kernel(0, rows)
-        return
     bounds = [rows * i // n for i in range(n + 1)]
-    with ThreadPoolExecutor(n - 1, thread_name_prefix="evtk-rows") as ex:
-        pending = [ex.submit(kernel, a, b) for a, b in zip(bounds[1:-1], bounds[2:])]
-        kernel(bounds[0], bounds[1])
-        for f in pending:
-            f.result()
+    run(kernel, list(zip(bounds, bounds[1:])))  # (evtk._parallel's shared threads, not a pool made per call)
 
 
 def _flat_log_step(sim, bench, region):
