@@ -70,3 +70,18 @@ def njit(**options: Any) -> Callable[[Callable], Deferred]:
         return Deferred(func, options)
 
     return wrap
+
+
+def numba_ready() -> bool:
+    """Whether numba is already imported in this process, so that a kernel's first call costs no compiler start.
+
+    A fresh process pays about 0.6 s for numba's import and its target's registries on the first kernel call
+    (docs/performance.md, "The calibrated route in a fresh process"); a numpy path that does the same work in
+    less than that is the faster choice until something else has paid it.
+
+    Returns
+    -------
+    bool
+        True when ``numba`` is in ``sys.modules``.
+    """
+    return "numba" in sys.modules
