@@ -22,6 +22,16 @@ caches loaded):
 
 The ratio of a reconstruction to the read of the same file is what the
 issue bounds (1.5x).
+
+``--fresh N`` times the same route as a user runs it, in whole fresh processes
+(start Python, import, work, exit), alternating N rounds after one untimed
+round: ``python -c "import evtk, sys; evtk.read_events(sys.argv[1])" job``
+against ``evtk reconstruct job --schedule S --calibration C -o x.npz``, where
+``C`` comes from ``evtk calibrate`` on the calibration run; medians of wall
+and CPU time (user + system) and of the rounds' ratios to the read, peak RSS.
+``--baseline DIR`` also runs the reconstruction with another evtk tree
+(``git archive COMMIT evtk | tar -x -C DIR``), alternating; ``--keep DIR``
+writes (or reuses) the runs there instead of a temporary folder.
 """
 
 from __future__ import annotations
@@ -29,8 +39,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import tempfile
 import time
+from pathlib import Path
+
+from harness import whole_process
+
+HERE = Path(__file__).resolve().parent
 
 
 def camera_copy(sim_path, out, writer):
@@ -87,6 +103,49 @@ def best(fn, runs):
     return min(times)
 
 
+def fresh(rounds, writer, keep=None, baseline=None):
+    """The calibrated route against a read of the same file, in whole fresh processes (module docstring)."""
+    from evtk.patterns import write_patterns
+    from evtk.simulate import Simulation, default_features
+
+    kernel = [[0, 1, 0], [1, 1, 1], [0, 1, 0]]
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(keep or tmp).resolve()
+        d.mkdir(parents=True, exist_ok=True)
+        for name, extra in (("cal", {"calibration": 2, "levels": 6}), ("job", {})):
+            if not (d / f"{name}.aedat4").exists():
+                sim = Simulation(kernel, default_features(), repeat=150, seed=1, **extra)
+                write_patterns(sim, str(d / name))
+                sim.write(str(d / f"{name}_sim.aedat4"))
+                camera_copy(str(d / f"{name}_sim.aedat4"), str(d / f"{name}.aedat4"), writer)
+        if not (d / "cal.toml").exists():
+            whole_process(["-m", "evtk.cli", "calibrate", str(d / "cal.aedat4"), "--schedule",
+                           str(d / "cal" / "schedule.json"), "-o", str(d / "cal.toml")], HERE.parent)
+        job = str(d / "job.aedat4")
+        route = ["-m", "evtk.cli", "reconstruct", job, "--schedule", str(d / "job" / "schedule.json"),
+                 "--calibration", str(d / "cal.toml"), "-o", str(d / "x.npz")]
+        plan = [("read", ["-c", "import evtk, sys; evtk.read_events(sys.argv[1])", job], HERE.parent),
+                ("evtk reconstruct --calibration", route, HERE.parent)]
+        if baseline:
+            plan.append(("base: evtk reconstruct --calibration", route, Path(baseline).resolve()))
+        for _, args, tree in plan:  # untimed: page cache, numba's cache if any
+            whole_process(args, tree)
+        runs: dict = {name: [] for name, _, _ in plan}
+        for r in range(rounds):  # alternating, every other round reversed
+            for name, args, tree in (plan if r % 2 == 0 else plan[::-1]):
+                runs[name].append(whole_process(args, tree))
+    load = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    print(f"\nbench job ({writer}'s AEDAT4), whole fresh processes, median of {rounds}, alternating; "
+          f"{os.cpu_count()} CPUs, load average {load} at the end\n")
+    print("| operation | wall (s) | x read, wall | CPU (s) | x read, CPU | peak RSS (MB) |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for name, got in runs.items():
+        wall = statistics.median(a[0] / b[0] for a, b in zip(got, runs["read"]))
+        cpu = statistics.median(a[2] / b[2] for a, b in zip(got, runs["read"]))
+        print(f"| {name} | {statistics.median(g[0] for g in got):.3f} | {wall:.2f} | "
+              f"{statistics.median(g[2] for g in got):.3f} | {cpu:.2f} | {max(g[1] for g in got):.0f} |")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeat", type=int, default=300)
@@ -94,7 +153,13 @@ def main():
     ap.add_argument("--json", dest="json_out")
     ap.add_argument("--writer", choices=["evtk", "dv"], default="evtk",
                     help="who writes the camera's files: evtk, or dv-processing as DV would")
+    ap.add_argument("--fresh", type=int, metavar="N", help="N rounds of whole fresh processes (see above)")
+    ap.add_argument("--keep", help="--fresh: write or reuse the runs in this folder")
+    ap.add_argument("--baseline", help="--fresh: another evtk tree to run the reconstruction with, alternately")
     args = ap.parse_args()
+    if args.fresh:
+        fresh(args.fresh, args.writer, args.keep, args.baseline)
+        return
 
     import evtk
     from evtk.calibrate import calibrate

@@ -35,7 +35,7 @@ import statistics
 import time
 from pathlib import Path
 
-from harness import child_runs
+from harness import child_runs, whole_process
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"
@@ -112,22 +112,6 @@ _FIXED = {
 }
 
 
-def _whole_process(args, tree):
-    """Wall seconds and peak RSS (MB, GNU time's %M) of one process running ``args`` with ``tree`` first on
-    the path: run in ``tree`` (``python -c`` and ``-m`` put the working folder before PYTHONPATH, so from this
-    checkout a baseline tree's rows would time this checkout's evtk)."""
-    import os
-    import subprocess
-    import sys
-
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH")) if p))
-    t0 = time.perf_counter()
-    done = subprocess.run(["/usr/bin/time", "-f", "%M", sys.executable, *args], check=True, capture_output=True,
-                          text=True, env=env, cwd=str(tree))
-    wall = time.perf_counter() - t0
-    return wall, int(done.stderr.split()[-1]) / 1024
-
-
 def fixed(n, repeats, ops, baseline=None, file=None):
     import os
     import tempfile
@@ -140,12 +124,12 @@ def fixed(n, repeats, ops, baseline=None, file=None):
                           for a in _FIXED[op]], tree) for op in ops for label, tree in trees.items()]
     plan.insert(0, ("read", [a.format(p=str(path)) for a in _FIXED["read"]], HERE.parent))
     for _, args, tree in plan:  # untimed: page cache, numba's cache
-        _whole_process(args, tree)
+        whole_process(args, tree)
     runs: dict = {name: [] for name, _, _ in plan}
     rss: dict = {name: [] for name, _, _ in plan}
     for r in range(repeats):  # alternating, so that a slow minute hits every one; every other round reversed,
         for name, args, tree in (plan if r % 2 == 0 else plan[::-1]):  # so that no one always follows another
-            wall, peak = _whole_process(args, tree)
+            wall, peak, _ = whole_process(args, tree)
             runs[name].append(wall)
             rss[name].append(peak)
     load = " ".join(f"{v:.2f}" for v in os.getloadavg())

@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 
 
 class ChildFailed(RuntimeError):
@@ -33,3 +34,22 @@ def child_runs(script, args, repeats=1, pin_cpu=False, single_thread=False) -> l
             raise ChildFailed(lines[-1] if lines else f"exit status {res.returncode}")
         out.append(json.loads(res.stdout.strip().splitlines()[-1]))
     return out
+
+
+def whole_process(args, tree) -> tuple[float, float, float]:
+    """Wall seconds, peak RSS (MB) and CPU seconds (user + system) of one whole process ``python ARGS`` with the
+    evtk tree ``tree`` first on the path, under GNU time.
+
+    Run in ``tree``: ``python -c`` and ``-m`` put the working folder before PYTHONPATH, so run from another
+    checkout a baseline tree's rows would time that checkout's evtk. File arguments must be absolute paths.
+    """
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH")) if p))
+    t0 = time.perf_counter()
+    done = subprocess.run(["/usr/bin/time", "-f", "%M %U %S", sys.executable, *args], capture_output=True,
+                          text=True, env=env, cwd=str(tree))
+    wall = time.perf_counter() - t0
+    if done.returncode != 0:
+        lines = done.stderr.strip().splitlines()
+        raise ChildFailed(lines[-2] if len(lines) > 1 else f"exit status {done.returncode}")
+    peak_kb, user_s, sys_s = done.stderr.split()[-3:]
+    return wall, int(peak_kb) / 1024, float(user_s) + float(sys_s)
