@@ -264,8 +264,10 @@ def synchronous_readout(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLik
         The frame period (µs), or None for an asynchronous readout.
     """
     w = int(rec.sensor_size[0])
-    parts = [rec.events(int(a), int(b)) for a, b in zip(np.asarray(t_on_us)[:max_windows].tolist(),
-                                                      np.asarray(t_off_us)[:max_windows].tolist())]
+    bounds = list(zip(np.asarray(t_on_us)[:max_windows].tolist(), np.asarray(t_off_us)[:max_windows].tolist()))
+    if _asynchronous_early(rec, bounds):
+        return None
+    parts = [rec.events(int(a), int(b)) for a, b in bounds]
     parts = [e for e in parts if e.t.size]
     if not parts:
         return None
@@ -288,6 +290,34 @@ def synchronous_readout(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLik
     doubled = int(np.sum(same & (dt == 0)))
     runs = int(np.sum(same & (np.abs(dt - period) <= 1)))
     return float(period) if doubled <= 1e-4 * t.size and runs >= SYNC_MIN_RUNS else None
+
+
+#: Events a chunk of :func:`_asynchronous_early`'s probe holds.
+SYNC_PROBE_EVENTS = 1 << 14
+
+
+def _asynchronous_early(rec: Any, bounds: list) -> bool:
+    """Whether the first events of the windows ``bounds`` already rule a frame grid out, read a chunk at a time.
+
+    The grid :func:`synchronous_readout` looks for is the greatest common divisor of the differences between all
+    its stamps; that of a subset is a multiple of the whole set's. So once the stamps read so far have a divisor
+    of at most :data:`~evtk.reconstruct.pipeline.MAX_TIMING_STAMP_US`, the whole set's is too and the answer is
+    None, as the full test would find: an asynchronous camera shows it within its first events, and the rest of
+    the windows need not be read.
+    """
+    t0 = None
+    g = 0
+    for a, b in bounds:
+        for chunk in rec.iter_events(SYNC_PROBE_EVENTS, int(a), int(b)):
+            if not chunk.t.size:
+                continue
+            t = chunk.t.astype(np.int64, copy=False)
+            if t0 is None:
+                t0 = int(t[0])
+            g = int(np.gcd.reduce(np.abs(t - t0), initial=g))
+            if 0 < g <= MAX_TIMING_STAMP_US:
+                return True
+    return False
 
 
 def refuse_synchronous(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLike) -> None:
