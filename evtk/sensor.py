@@ -80,10 +80,10 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from ._lazyjit import njit  # numba loads on the first run
 from ._rng import normal, normal_outlined, rng_state, uniform
 from .errors import EvtkError, check_parameters
 
@@ -547,7 +547,7 @@ def simulate_pixels(
     return out_t[:n], out_i[:n], out_p[:n], on_c, off_c
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def _record(emit, n, tc, i, pol, slot, out_t, out_i, out_p, on_c, off_c):
     """Write one event (when emitting) and count it in its slot; returns the events written."""
     if emit:
@@ -563,7 +563,7 @@ def _record(emit, n, tc, i, pol, slot, out_t, out_i, out_p, on_c, off_c):
     return n
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _advance(m, v, L, tau, s, dt):
     if dt <= 0.0:
         return m, v
@@ -573,7 +573,7 @@ def _advance(m, v, L, tau, s, dt):
     return m, v
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step_frac, step_max,
                 mean, var, vref, blind, seed, emit, count_slot, on_c, off_c, i0, out_t, out_i, out_p, n,
                 per_pixel_bound):
@@ -718,7 +718,7 @@ def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step
     return n_pix, n
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _run_stepped(mode, params, level, tau, noise, seg_start, seg_end, th_on, th_off, mean, vref, blind, seed,
                  emit, count_slot, on_c, off_c, i0, out_t, out_i, out_p, n, per_pixel_bound):
     """The stepped pixels (``mode``: index in :data:`PIXELS`), i0.. until done or the output might overflow.
