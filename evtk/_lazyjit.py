@@ -15,9 +15,10 @@ _lock = _thread.RLock()
 class Deferred:
     """A function to be compiled by ``numba.njit(**options)`` when first called.
 
-    On that call every deferred kernel the defining module holds is compiled and
-    put in the module's namespace in place of its :class:`Deferred`, so that
-    kernels calling each other see numba's dispatchers.
+    On that call every deferred kernel the defining module holds, and those of
+    the modules whose kernels it imported, is compiled and put in the modules'
+    namespaces in place of its :class:`Deferred`, so that kernels calling each
+    other, within a module or across modules, see numba's dispatchers.
 
     Parameters
     ----------
@@ -35,21 +36,45 @@ class Deferred:
 
     def __call__(self, *args: Any) -> Any:
         if self.compiled is None:
-            _compile_module(self.py_func.__module__)
+            _compile_module(self.py_func.__globals__)
         return self.compiled(*args)
 
 
-def _compile_module(name: str) -> None:
-    """Compile every :class:`Deferred` the module ``name`` holds and replace it there by numba's dispatcher."""
+def _compile_module(namespace: dict) -> None:
+    """Compile every :class:`Deferred` a module holds and replace it there by numba's dispatcher.
+
+    ``namespace`` is the module's dict (the kernels' ``__globals__``).
+
+    A :class:`Deferred` the module imported from another one (``from ._rng import normal``) brings that module
+    along, and so on (cycles allowed): every module reached gets dispatchers for all its kernels and in place
+    of every :class:`Deferred` it holds, so that numba, which reads a kernel's callees from its module's
+    namespace when it compiles, sees no :class:`Deferred` anywhere (and keeps options such as
+    ``inline="always"``, which it reads from the callee's dispatcher). numba's ``njit`` only wraps here; the
+    compiling itself happens on each kernel's first call. ``compiled`` is set last, once every namespace is
+    done, so that a thread that finds it set and skips the lock never meets a :class:`Deferred`.
+    """
     import numba
 
     with _lock:
-        module = sys.modules[name]
-        for attr, obj in list(vars(module).items()):
-            if isinstance(obj, Deferred):
-                if obj.compiled is None:
-                    obj.compiled = numba.njit(**obj.options)(obj.py_func)
-                setattr(module, attr, obj.compiled)
+        # the namespaces reachable through the Deferreds they hold (a kernel's globals are its module's dict)
+        todo, spaces = [namespace], {}
+        while todo:
+            space = todo.pop()
+            if id(space) in spaces:
+                continue
+            held = [(attr, obj) for attr, obj in space.items() if isinstance(obj, Deferred)]
+            spaces[id(space)] = (space, held)
+            todo.extend(obj.py_func.__globals__ for _, obj in held if obj.compiled is None)
+        made: dict[int, tuple[Deferred, Any]] = {}
+        for _, held in spaces.values():
+            for _, obj in held:
+                if obj.compiled is None and id(obj) not in made:
+                    made[id(obj)] = (obj, numba.njit(**obj.options)(obj.py_func))
+        for space, held in spaces.values():
+            for attr, obj in held:
+                space[attr] = obj.compiled if obj.compiled is not None else made[id(obj)][1]
+        for obj, dispatcher in made.values():
+            obj.compiled = dispatcher
 
 
 def njit(**options: Any) -> Callable[[Callable], Deferred]:

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from ._lazyjit import njit  # numba loads on the first draw
 
-@numba.njit(cache=True)
+
+@njit(cache=True)
 def rng_state(seed):
     """xoshiro256+ state from a seed through splitmix64."""
     st = np.empty(4, np.uint64)
@@ -27,7 +28,7 @@ def rng_state(seed):
     return st
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def _next_u64(st):
     """The next 64-bit word of xoshiro256+ (its lowest bits are its weakest)."""
     s0, s1, s2, s3 = st[0], st[1], st[2], st[3]
@@ -43,7 +44,7 @@ def _next_u64(st):
     return result
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def uniform(st):
     """A double in [0, 1) from the 53 high bits of a draw."""
     return float(_next_u64(st) >> np.uint64(11)) * 1.1102230246251565e-16
@@ -80,7 +81,7 @@ def _ziggurat_tables(layers=256, r=_ZIG_R):
 _ZIG_W, _ZIG_IN, _ZIG_LO, _ZIG_HI = _ziggurat_tables()
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _normal_tail(st):
     """A normal deviate conditioned on exceeding the ziggurat's r (Marsaglia's method)."""
     while True:
@@ -90,7 +91,7 @@ def _normal_tail(st):
             return _ZIG_R + a
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def normal(st):
     """A standard normal deviate by the ziggurat (exact up to rounding; one 64-bit draw 99 % of the time).
 
@@ -110,7 +111,7 @@ def normal(st):
             return -x if (word >> np.uint64(3)) & np.uint64(1) else x
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def normal_outlined(st):
     """:func:`normal` as a call, for the less frequent draws (keeps the pixel loop's code small)."""
     return normal(st)

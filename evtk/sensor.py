@@ -80,10 +80,10 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from ._lazyjit import njit, numba_ready  # numba loads on the first stochastic or large run
 from ._rng import normal, normal_outlined, rng_state, uniform
 from .errors import EvtkError, check_parameters
 
@@ -99,6 +99,13 @@ __all__ = [
 
 #: Standard deviations from a threshold beyond which the noisy state is advanced without sampling.
 FAR_SD = 5.0
+
+# simulate_pixels' numpy loop for noise-free pixels (_run_pixels_numpy) costs about 40 us per round (all active
+# pixels' next event) on top of about as much per event as numba's kernel: it runs while numba is not loaded
+# (numba's start, about 0.5 s, costs more than 10_000 rounds) and, once it is, for at least _NUMPY_WARM_PIXELS
+# pixels, where its vector arithmetic is as fast as the compiled loop (docs/performance.md)
+_NUMPY_MAX_ROUNDS = 10_000
+_NUMPY_WARM_PIXELS = 4000
 
 #: The pixel physics :class:`SensorModel` offers (its ``pixel`` field).
 PIXELS = ("evtk", "v2e", "log-node")
@@ -450,6 +457,10 @@ def simulate_pixels(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Advance pixels through segments of constant light; return events and/or counts.
 
+    evtk's own pixel without noise (no shot noise, a state without variance) runs in numpy, all pixels a round
+    at a time, while numba is not loaded (a fresh process, where numba's start costs 0.5 s) or for thousands of
+    pixels (as fast as the compiled loop): the same events and counts as numba's kernel, times to rounding.
+
     Parameters
     ----------
     state : PixelState
@@ -502,6 +513,14 @@ def simulate_pixels(
     seg_start = np.ascontiguousarray(seg_start_us, dtype=np.float64)
     seg_end = np.ascontiguousarray(seg_end_us, dtype=np.float64)
     refr = float(model.refractory_us)
+    if _numpy_path(state, level, tau_us, noise_std, seg_start, seg_end, model):
+        on_c = np.zeros((n_slots, n_pix), np.int32)
+        off_c = np.zeros((n_slots, n_pix), np.int32)
+        ev_t, ev_i, ev_p = _run_pixels_numpy(level, tau_us, seg_start, seg_end, state.theta_on, state.theta_off,
+                                             refr, state.mean, state.vref, state.blind_until_us, emit, count_slot,
+                                             on_c, off_c)
+        state.blind_until_us -= seg_end[-1] if n_seg else 0.0
+        return ev_t, ev_i, ev_p, on_c, off_c
     seg_len = np.maximum(seg_end - seg_start, 0.0)
     per_pixel_bound = int(np.sum(np.floor(seg_len / refr) + 2.0)) if n_seg else 0
     cap = max(1 << 16, 4 * per_pixel_bound) if emit else 0
@@ -547,7 +566,103 @@ def simulate_pixels(
     return out_t[:n], out_i[:n], out_p[:n], on_c, off_c
 
 
-@numba.njit(cache=True, inline="always")
+def _numpy_path(state: PixelState, level: np.ndarray, tau_us: np.ndarray, noise_std: np.ndarray, seg_start: np.ndarray,
+                seg_end: np.ndarray, model: SensorModel) -> bool:
+    """Whether :func:`simulate_pixels` runs :func:`_run_pixels_numpy`: evtk's asynchronous pixel with no noise
+    and an exact state (:func:`_run_pixels`' closed-form branch only), in few enough rounds
+    (:data:`_NUMPY_MAX_ROUNDS`), while numba is not loaded or for many pixels (:data:`_NUMPY_WARM_PIXELS`)."""
+    n_seg, n_pix = level.shape
+    if model.stepped or np.any(noise_std) or np.any(state.var) or (numba_ready() and n_pix < _NUMPY_WARM_PIXELS):
+        return False
+    if not n_seg * n_pix:
+        return True
+    # within a segment each event takes the photoreceptor at least one threshold nearer the light's level, so a
+    # pixel has at most span / theta + 1 events there, two rounds each (the event, the wake-up)
+    span = max(level.max(), state.mean.max()) - min(level.min(), state.mean.min())
+    theta = min(state.theta_on.min(), state.theta_off.min()) if n_pix else 1.0
+    live = np.count_nonzero(seg_end > seg_start)
+    if not live * 2.0 * (span / theta + 2.0) <= _NUMPY_MAX_ROUNDS:  # NaN: numba
+        return False
+    # a time constant that is not a positive finite number turns the kernel's variance into NaN (its noisy branch)
+    return bool(np.all(np.isfinite(tau_us) & (tau_us > 0.0)))
+
+
+def _run_pixels_numpy(level: np.ndarray, tau: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray,
+                      th_on: np.ndarray, th_off: np.ndarray, refr: float, mean: np.ndarray, vref: np.ndarray,
+                      blind: np.ndarray, emit: bool, count_slot: np.ndarray, on_c: np.ndarray,
+                      off_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_run_pixels` without noise, in numpy: the same closed-form steps, taken by all pixels at once.
+
+    Within each segment the still-active pixels advance one event at a time together: a blind pixel wakes
+    (its reference the photoreceptor's level then), an awake one crosses a threshold at
+    ``t + tau log((m - L) / (b - L))`` or relaxes to the segment's end. The operations, their order and
+    their comparisons (NaN included) are :func:`_run_pixels`' own, so counts and state agree with it up to
+    the last bit of numpy's ``exp``/``log`` against the C library's. ``mean``, ``vref`` and ``blind`` are
+    updated in place (times not shifted). Returns the events (time, pixel, polarity) in pixel order.
+    """
+    n_seg, n_pix = level.shape
+    ev_t: list[np.ndarray] = []
+    ev_i: list[np.ndarray] = []
+    ev_p: list[np.ndarray] = []
+    with np.errstate(all="ignore"):  # NaN and inf take the kernel's own paths through the comparisons
+        for k in range(n_seg):
+            t0, t_end = float(seg_start[k]), float(seg_end[k])
+            if not t0 < t_end:
+                continue
+            slot = int(count_slot[k])
+            idx = np.arange(n_pix)
+            L, tk, ton, toff = level[k], tau[k], th_on, th_off
+            m, vr, bl = mean.copy(), vref.copy(), blind.copy()
+            t = np.full(n_pix, t0)
+            while idx.size:
+                asleep = bl > t
+                if asleep.any():  # blind: relax to the wake-up (or the segment's end); the reference is set there
+                    tr = np.where(bl < t_end, bl, t_end)
+                    m = np.where(asleep, L + (m - L) * np.exp(-(tr - t) / tk), m)
+                    t = np.where(asleep, tr, t)
+                    woken = asleep & ~(bl >= t_end)
+                    vr = np.where(woken, m, vr)
+                    asleep &= ~woken
+                bon = vr + ton
+                boff = vr - toff
+                up = L > bon
+                cross = up | (L < boff)
+                b = np.where(up, bon, boff)
+                tc = np.where(cross, t + tk * np.log((m - L) / (b - L)), -1.0)
+                miss = ~asleep & ((tc < 0.0) | (tc >= t_end))
+                if miss.any():  # no crossing in the segment: relax to its end
+                    dt = t_end - t
+                    m = np.where(miss & ~(dt <= 0.0), L + (m - L) * np.exp(-dt / tk), m)
+                event = ~asleep & ~miss
+                m = np.where(event, b, m)
+                bl = np.where(event, tc + refr, bl)
+                if event.any():
+                    who = idx[event]
+                    pol = up[event]
+                    if slot >= 0:
+                        on_c[slot, who[pol]] += 1
+                        off_c[slot, who[~pol]] += 1
+                    if emit:
+                        ev_t.append(tc[event])
+                        ev_i.append(who)
+                        ev_p.append(pol.astype(np.uint8))
+                done = ~(event & (tc < t_end))
+                if done.any():
+                    out = idx[done]
+                    mean[out], vref[out], blind[out] = m[done], vr[done], bl[done]
+                    keep = ~done
+                    idx, m, vr, bl, t = idx[keep], m[keep], vr[keep], bl[keep], tc[keep]
+                    L, tk, ton, toff = L[keep], tk[keep], ton[keep], toff[keep]
+                else:
+                    t = tc
+    if not ev_t:
+        return np.empty(0, np.float64), np.empty(0, np.int64), np.empty(0, np.uint8)
+    pix = np.concatenate(ev_i)
+    order = np.argsort(pix, kind="stable")  # the kernel's order: pixel by pixel, each in time
+    return np.concatenate(ev_t)[order], pix[order], np.concatenate(ev_p)[order]
+
+
+@njit(cache=True, inline="always")
 def _record(emit, n, tc, i, pol, slot, out_t, out_i, out_p, on_c, off_c):
     """Write one event (when emitting) and count it in its slot; returns the events written."""
     if emit:
@@ -563,7 +678,7 @@ def _record(emit, n, tc, i, pol, slot, out_t, out_i, out_p, on_c, off_c):
     return n
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _advance(m, v, L, tau, s, dt):
     if dt <= 0.0:
         return m, v
@@ -573,7 +688,7 @@ def _advance(m, v, L, tau, s, dt):
     return m, v
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step_frac, step_max,
                 mean, var, vref, blind, seed, emit, count_slot, on_c, off_c, i0, out_t, out_i, out_p, n,
                 per_pixel_bound):
@@ -718,7 +833,7 @@ def _run_pixels(level, tau, noise, seg_start, seg_end, th_on, th_off, refr, step
     return n_pix, n
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _run_stepped(mode, params, level, tau, noise, seg_start, seg_end, th_on, th_off, mean, vref, blind, seed,
                  emit, count_slot, on_c, off_c, i0, out_t, out_i, out_p, n, per_pixel_bound):
     """The stepped pixels (``mode``: index in :data:`PIXELS`), i0.. until done or the output might overflow.

@@ -198,7 +198,11 @@ def test_ziggurat_normals_follow_the_normal_law():
     import numba
     from scipy import stats
 
-    from evtk._rng import _ZIG_R, normal, rng_state
+    from evtk import _rng
+    from evtk._rng import _ZIG_R
+
+    _rng.rng_state(0)  # compiles the module's kernels (evtk._lazyjit): a kernel below calls numba's dispatchers
+    normal, rng_state = _rng.normal, _rng.rng_state
 
     @numba.njit
     def draw(n, seed):
