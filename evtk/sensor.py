@@ -419,19 +419,31 @@ class PixelState:
         Per-pixel ON thresholds (:func:`pixel_thresholds`), natural-log units.
     theta_off : array_like
         Per-pixel OFF thresholds.
-    rng : numpy.random.Generator
-        Draws the starting state (steady state in the first light, freshly reset).
+    rng : numpy.random.Generator, optional
+        Draws the starting state (steady state in the first light, freshly reset). None where every pixel's
+        ``noise_std`` is 0: the state is then the light itself, and numpy.random (12 ms of a fresh process) is
+        not loaded.
+
+    Raises
+    ------
+    EvtkError
+        Without ``rng`` where a pixel has noise.
     """
 
     def __init__(self, level: npt.ArrayLike, noise_std: npt.ArrayLike, theta_on: npt.ArrayLike,
-                 theta_off: npt.ArrayLike, rng: np.random.Generator) -> None:
+                 theta_off: npt.ArrayLike, rng: np.random.Generator | None = None) -> None:
         level = np.asarray(level, dtype=np.float64)
         n = level.size
         self.theta_on = np.ascontiguousarray(theta_on, dtype=np.float64)
         self.theta_off = np.ascontiguousarray(theta_off, dtype=np.float64)
         s = np.broadcast_to(np.asarray(noise_std, dtype=np.float64), (n,))
         # steady state in the first light, freshly reset
-        self.mean = level + s * rng.standard_normal(n)
+        if rng is not None:
+            self.mean = level + s * rng.standard_normal(n)
+        elif np.any(s != 0):
+            raise EvtkError("PixelState: pixels with noise need an rng to draw their starting state")
+        else:
+            self.mean = level + 0.0  # the values level + 0 * a normal draw gives
         self.var = np.zeros(n)
         self.vref = self.mean.copy()
         self.blind_until_us = np.full(n, -np.inf)

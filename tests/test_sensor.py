@@ -221,3 +221,16 @@ def test_ziggurat_normals_follow_the_normal_law():
     assert abs(x.mean()) < 5 / np.sqrt(n) and abs(x.var() - 1) < 5 * np.sqrt(2 / n)
     assert abs(stats.skew(x)) < 5 * np.sqrt(6 / n) and abs(stats.kurtosis(x)) < 5 * np.sqrt(24 / n)
     assert np.sum(x > 0) == pytest.approx(n / 2, abs=5 * np.sqrt(n / 4))
+
+
+def test_a_noise_free_pixel_state_needs_no_generator():
+    """Noise-free pixels start at their light whether or not a generator is given (the count table's state loaded
+    numpy.random, 12 ms of a fresh process, for a draw multiplied by 0); pixels with noise still need one."""
+    from evtk.sensor import PixelState
+
+    level = np.log(np.array([1e2, 5e3, 7e5]))
+    with_rng = PixelState(level, 0.0, np.full(3, 0.2), np.full(3, 0.2), np.random.default_rng(3))
+    without = PixelState(level, 0.0, np.full(3, 0.2), np.full(3, 0.2))
+    assert np.array_equal(with_rng.mean, without.mean) and np.array_equal(with_rng.vref, without.vref)
+    with pytest.raises(EvtkError, match="need an rng"):
+        PixelState(level, np.array([0.0, 0.01, 0.0]), np.full(3, 0.2), np.full(3, 0.2))

@@ -875,7 +875,7 @@ def _simulate_steps(params, light, window_us, settle_us, refractory_us, spread):
     starts, ends = np.array([0.0, z, z + w]), np.array([z, z + w, 2 * z + w])
     lvl = np.stack([np.full(u.size, b0), b0 + u, np.full(u.size, b0)])
     slot = np.array([-1, 0, -1])
-    st = PixelState(lvl[0], 0.0, np.maximum(th, 1e-6), np.maximum(th, 1e-6), np.random.default_rng(0))
+    st = PixelState(lvl[0], 0.0, np.maximum(th, 1e-6), np.maximum(th, 1e-6))
     t, idx, p, on, off = simulate_pixels(st, lvl, time_constant_us(np.exp(lvl), sm), np.zeros_like(lvl), starts,
                                          ends, sm, 0, emit=True, count_slot=slot, n_slots=1)
     return t, idx, p, on, off, weight
