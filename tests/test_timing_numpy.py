@@ -105,7 +105,7 @@ def test_numpy_path_matches_numba_on_random_and_edge_inputs(monkeypatch, seed):
     rng = np.random.default_rng(seed)
     theta = rng.uniform(0.15, 0.25, 97)
     n, first, last = _edge_inputs(rng, curve, 40, 97, blank, theta, 37)
-    monkeypatch.setattr(timing, "_NUMPY_CHUNK_PAIRS", 500)  # several chunks, some rows split over threads
+    monkeypatch.setattr(timing, "_NUMPY_CHUNK_PAIRS", 500)  # several chunks
     got, want = _both(monkeypatch, timing.linearize_by_timing, n, first, last, theta, QUIET, blank, curve, 37.0)
     assert np.isfinite(want).mean() > 0.15 and np.isnan(want).mean() > 0.4  # both kinds of answer are exercised
     _assert_close(got, want)

@@ -14,9 +14,9 @@ from .linearize import _count_bands, _on_threads
 __all__ = ["linearize_by_timing", "timing_thresholds"]
 
 #: (window, pixel) pairs up to which :func:`linearize_by_timing` solves with numpy while numba is not loaded:
-#: numpy takes about 30 ns a pair more than numba's loop (docs/performance.md), numba's start in a fresh
-#: process about 0.6 s, so below this numpy finishes first with room to spare.
-_NUMPY_MAX_PAIRS = 8_000_000
+#: numpy takes about 150 ns a pair on one thread (numba's kernel 120 ns, on every thread), numba's start in a
+#: fresh process about 0.6 s (docs/performance.md), so up to this numpy (0.3 s) finishes first on any core count.
+_NUMPY_MAX_PAIRS = 2_000_000
 #: Pairs numpy solves at a time: bounded work arrays, which also stay in cache.
 _NUMPY_CHUNK_PAIRS = 32_768
 
@@ -210,7 +210,10 @@ def linearize_by_timing(on: np.ndarray, on_first_us: np.ndarray, on_last_us: np.
         _timing_solve(n2[a:b], first2[a:b], last2[a:b], th2, sm.theta_on, lo_band, hi_band, float(offset_us),
                       log_blank, sm.tau_min_us, sm.tau_electrons, sm.refractory_us, out2[a:b], jit)
 
-    _on_threads(rows_of, rows, max(1, (4096 if jit else _NUMPY_CHUNK_PAIRS) // max(1, n2.shape[1])))
+    if jit:
+        _on_threads(rows_of, rows, max(1, 4096 // max(1, cols)))
+    else:  # numpy's many short calls hold the GIL between them: more threads add CPU time, not speed
+        rows_of(0, rows)
     return out
 
 
@@ -353,31 +356,32 @@ def _timing_solve_np(n_on, first, last, theta, theta_nominal, band_lo, band_hi, 
     u0 = 0.5 * (lo + hi)
     f = _factor(m, d, b, log_blank + u0, tau_min_us, tau_electrons, refr_us)
     k = ~(f < 0.0)  # f < 0 depends on the times only: no chain gives them
-    pos, m, d, b, th, lo, hi, u0, f = (v[k] for v in (pos, m, d, b, th, lo, hi, u0, f))
+    if not k.all():
+        pos, m, d, b, th, lo, hi, u0, f = (v[k] for v in (pos, m, d, b, th, lo, hi, u0, f))
     h0 = u0 - th * f
     u1 = th * f
     unsolved = np.zeros(pos.size, bool)
-    live = (np.arange(pos.size), m, d, b, th, hi, u0, h0, u1)
+    # the pairs still stepping, one row a quantity (one compress a step); indices are exact in float64
+    live = np.stack([np.arange(pos.size, dtype=np.float64), m, d, b, th, lo, hi, u0, h0, u1])
     with np.errstate(all="ignore"):
         for _ in range(10):
-            if not live[0].size:
+            if not live.shape[1]:
                 break
-            j, m_j, d_j, b_j, th_j, hi_j, u0, h0, u1 = live
+            j, m_j, d_j, b_j, th_j, lo_j, hi_j, u0, h0, u1 = live
+            j = j.astype(np.intp)
             h1 = h_of(u1, m_j, d_j, b_j, th_j)
             close = np.abs(h1) <= 1e-4 * (1.0 + np.abs(u1))
-            done = close & (lo[j] <= u1) & (u1 <= hi_j)
+            done = close & (lo_j <= u1) & (u1 <= hi_j)
             res[pos[j[done]]] = u1[done]
             stuck = ~close & (h1 == h0)
-            unsolved[j[(close & ~done) | stuck]] = True
-            u0, h0, u1 = u1, h1, u1 - h1 * (u1 - u0) / (h1 - h0)
             go = ~(close | stuck)
-            diverged = go & ~((-1.0 < u1) & (u1 < 2.0 * hi_j + 1.0))
-            unsolved[j[diverged]] = True
-            live = (j, m_j, d_j, b_j, th_j, hi_j, u0, h0, u1)
-            if not go.all() or diverged.any():
-                keep = go & ~diverged
-                live = tuple(v[keep] for v in live)
-        unsolved[live[0]] = True  # no answer in ten steps
+            step = u1 - h1 * (u1 - u0) / (h1 - h0)
+            keep = go & (-1.0 < step) & (step < 2.0 * hi_j + 1.0)
+            unsolved[j[~(done | keep)]] = True  # out of band, stuck or diverging: the bracketed method
+            live[7], live[8], live[9] = u1, h1, step
+            if not keep.all():
+                live = live[:, keep]
+        unsolved[live[0].astype(np.intp)] = True  # no answer in ten steps
         # the Illinois method within the band, where the band brackets a root
         pos, m, d, b, th, lo, hi = (v[unsolved] for v in (pos, m, d, b, th, lo, hi))
         h_lo, h_hi = h_of(lo, m, d, b, th), h_of(hi, m, d, b, th)
