@@ -278,6 +278,7 @@ def test_linearize_by_timing_splits_windows_over_evtks_threads_with_the_same_num
         return real(n_on, *rest)
 
     monkeypatch.setattr(timing, "_timing_solve", spy)
+    monkeypatch.setattr(timing, "numba_ready", lambda: True)  # numba's kernel (numpy's path runs on one thread)
     monkeypatch.setenv("EVTK_THREADS", "1")
     one = linearize_by_timing(n, first, last, theta, QUIET, blank, curve)
     assert [rows for _, rows in calls] == [96]
