@@ -36,14 +36,15 @@ class Deferred:
 
     def __call__(self, *args: Any) -> Any:
         if self.compiled is None:
-            _compile_module(self.py_func.__globals__)
+            _compile_module(self.py_func.__globals__, self)
         return self.compiled(*args)
 
 
-def _compile_module(namespace: dict) -> None:
+def _compile_module(namespace: dict, caller: Deferred | None = None) -> None:
     """Compile every :class:`Deferred` a module holds and replace it there by numba's dispatcher.
 
-    ``namespace`` is the module's dict (the kernels' ``__globals__``).
+    ``namespace`` is the module's dict (the kernels' ``__globals__``); ``caller``, the kernel being called, is
+    compiled too when its module no longer holds it (a test's spy put in its place).
 
     A :class:`Deferred` the module imported from another one (``from ._rng import normal``) brings that module
     along, and so on (cycles allowed): every module reached gets dispatchers for all its kernels and in place
@@ -70,6 +71,8 @@ def _compile_module(namespace: dict) -> None:
             for _, obj in held:
                 if obj.compiled is None and id(obj) not in made:
                     made[id(obj)] = (obj, numba.njit(**obj.options)(obj.py_func))
+        if caller is not None and caller.compiled is None and id(caller) not in made:
+            made[id(caller)] = (caller, numba.njit(**caller.options)(caller.py_func))
         for space, held in spaces.values():
             for attr, obj in held:
                 space[attr] = obj.compiled if obj.compiled is not None else made[id(obj)][1]

@@ -267,3 +267,12 @@ def test_deferred_kernels_compile_once_from_many_threads(tmp_path, monkeypatch):
     assert not errors, errors
     assert sorted(results) == [("back", 4.0), ("plus_one", 5.0), ("twice", 12.0), ("twice_plus_one", 11.0),
                                ("use", 7.0), ("use", 12.0)]
+
+
+def test_a_deferred_kernel_replaced_in_its_module_still_compiles(tmp_path, monkeypatch):
+    """A test's spy put in a kernel's place before its first call: the module's kernels were compiled but not the
+    one the spy holds, whose call then failed ("'NoneType' object is not callable")."""
+    lazy_a, _ = _lazy_modules(tmp_path, monkeypatch, "spy")
+    original = lazy_a.twice_plus_one
+    monkeypatch.setattr(lazy_a, "twice_plus_one", lambda x: original(x))
+    assert lazy_a.twice_plus_one(2.0) == 5.0
