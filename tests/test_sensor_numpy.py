@@ -272,7 +272,21 @@ def test_deferred_kernels_compile_once_from_many_threads(tmp_path, monkeypatch):
 def test_a_deferred_kernel_replaced_in_its_module_still_compiles(tmp_path, monkeypatch):
     """A test's spy put in a kernel's place before its first call: the module's kernels were compiled but not the
     one the spy holds, whose call then failed ("'NoneType' object is not callable")."""
-    lazy_a, _ = _lazy_modules(tmp_path, monkeypatch, "spy")
-    original = lazy_a.twice_plus_one
-    monkeypatch.setattr(lazy_a, "twice_plus_one", lambda x: original(x))
-    assert lazy_a.twice_plus_one(2.0) == 5.0
+    import importlib
+
+    (tmp_path / "lazy_spy.py").write_text(textwrap.dedent("""
+        from evtk._lazyjit import njit
+
+        @njit()
+        def half(x):
+            return 0.5 * x
+
+        @njit()
+        def other(x):
+            return x
+        """))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    mod = importlib.import_module("lazy_spy")
+    original = mod.half
+    monkeypatch.setattr(mod, "half", lambda x: original(x))
+    assert mod.half(3.0) == 1.5
