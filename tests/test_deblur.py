@@ -110,3 +110,66 @@ def test_bad_input_is_named():
         solve_cells(np.zeros(16), a, lam=-1.0)
     with pytest.raises(EvtkError, match="zero"):  # a view that misses the response altogether
         solve_cells(np.zeros(16), sampling_matrix(bench, lambda p: p + 100.0, (0, 4, 0, 4), (2, 2)))
+
+
+def _scipy_reference(values, a_mat, lam):
+    """The deblur's solve as scipy did it before: sparse products, LAPACK's top eigenvalue, a Cholesky solve."""
+    from scipy.linalg import cho_factor, cho_solve, eigvalsh
+    from scipy.sparse import csr_array
+
+    a = csr_array(a_mat)
+    gram = (a.T @ a).toarray()
+    n = gram.shape[0]
+    top = float(eigvalsh(gram, subset_by_index=[n - 1, n - 1])[0])
+    gram[np.diag_indices(n)] += lam * lam * top
+    return cho_solve(cho_factor(gram), a.T @ np.asarray(values, np.float64).T).T
+
+
+@pytest.mark.parametrize("blur_px", [0.0, 0.7, 2.3])
+@pytest.mark.parametrize("shape", [(4, 5), (16, 16)])
+def test_the_numpy_solve_is_scipys_to_rounding(blur_px, shape):
+    """Up to DENSE_MAX_CELLS cells the deblur runs in numpy (dense products, numpy's eigenvalues and solve, the
+    defocus as a separable Gaussian): a fresh process loaded scipy.sparse, scipy.linalg and scipy.ndimage for it,
+    more than the route's whole read. Same cells as scipy's path to rounding, and the same sampling matrix as
+    scipy.ndimage's Gaussian filter."""
+    from scipy.ndimage import gaussian_filter
+
+    from evtk.reconstruct import deblur
+
+    rows, cols = shape
+    cmap = CellMap(np.array([[1.02, 0.03, 40.3], [-0.02, 0.98, 30.6], [0, 0, 1]]), 0.0, (320, 240))
+    region = (38, 40 + cols + 3, 28, 30 + rows + 3)
+    sharp = deblur.sampling_matrix(Bench(), cmap.to_cells, region, shape, 0.0)
+    a_mat = deblur.sampling_matrix(Bench(), cmap.to_cells, region, shape, blur_px)
+    if blur_px:
+        h, w = region[3] - region[2], region[1] - region[0]
+        want = gaussian_filter(sharp.reshape(h, w, -1), (blur_px, blur_px, 0), mode="constant").reshape(sharp.shape)
+        assert np.allclose(a_mat, want, rtol=0, atol=1e-13 * sharp.max())
+    else:
+        assert np.array_equal(a_mat, sharp)
+    rng = np.random.default_rng(5)
+    values = rng.random((7, a_mat.shape[0]))
+    for lam in (0.15, 0.02) if blur_px else (0.0, 0.15):  # (a blurred system's plain least squares is too
+        got, used = deblur.solve_cells(values, a_mat, lam)  # ill-conditioned for any two solvers to agree)
+        ref = _scipy_reference(values, a_mat, lam)
+        assert used == lam and np.allclose(got, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+
+
+def test_a_small_deblur_loads_no_scipy():
+    """A fresh process solving a 16x16 response with defocus: no scipy module loads (0.15 s and more)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import evtk
+
+    code = ("import sys\nimport numpy as np\nfrom evtk.optics import Bench\nfrom evtk.optics.camera import CellMap\n"
+            "from evtk.reconstruct.deblur import sampling_matrix, solve_cells\n"
+            "cmap = CellMap(np.array([[1.0, 0.0, 40.0], [0.0, 1.0, 30.0], [0, 0, 1]]), 0.0, (320, 240))\n"
+            "a = sampling_matrix(Bench(), cmap.to_cells, (38, 58, 28, 48), (16, 16), 1.2)\n"
+            "solve_cells(np.ones((3, a.shape[0])), a, 0.15)\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] == 'scipy'))\n")
+    env = {"PYTHONPATH": str(Path(evtk.__file__).parents[1]), "PATH": "/usr/bin:/bin"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[]"

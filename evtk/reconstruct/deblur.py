@@ -139,11 +139,28 @@ def sampling_matrix(bench: Bench, to_cells: Callable[[np.ndarray], npt.ArrayLike
         val = wy[:, :, None] * wx[:, None, :] / (s * s)
         a_mat = np.bincount(flat.ravel(), weights=val.ravel(), minlength=npix * ncell).reshape(npix, ncell)
     if blur_px > 0:
-        from scipy.ndimage import gaussian_filter  # (scipy where a step uses it: not on import)
-
         img = a_mat.reshape(y1 - y0, x1 - x0, ncell)
-        a_mat = gaussian_filter(img, (blur_px, blur_px, 0), mode="constant").reshape(npix, ncell)
+        a_mat = _gaussian_blur(_gaussian_blur(img, blur_px, 0), blur_px, 1).reshape(npix, ncell)
     return a_mat
+
+
+def _gaussian_blur(img: np.ndarray, sigma_px: float, axis: int) -> np.ndarray:
+    """``img`` correlated along ``axis`` with a sampled Gaussian of ``sigma_px``, zero outside (the separable
+    filter ``scipy.ndimage.gaussian_filter(..., mode="constant")`` applies per axis: weights ``exp(-x^2 / 2
+    sigma^2)`` on ``|x| <= int(4 sigma + 0.5)``, summing to 1), in numpy: a fresh process loads no scipy for it
+    (scipy.ndimage costs more than the route's read)."""
+    radius = int(4.0 * float(sigma_px) + 0.5)
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    w = np.exp(-0.5 / (float(sigma_px) * float(sigma_px)) * x * x)
+    w = w / w.sum()
+    src = np.moveaxis(img, axis, 0)
+    n = src.shape[0]
+    out = np.zeros(src.shape, np.float64)
+    for k, wk in zip(range(-radius, radius + 1), w.tolist()):  # out[i] += w[k] * src[i + k] where i + k is inside
+        lo, hi = max(0, -k), min(n, n - k)
+        if lo < hi:
+            out[lo:hi] += wk * src[lo + k:hi + k]
+    return np.moveaxis(out, 0, axis)
 
 
 #: Relative regularisation when the run holds no measure of its own noise and the view needs deblurring beyond the
@@ -198,12 +215,21 @@ def relative_noise(values: np.ndarray, level_light: np.ndarray, is_level: npt.Ar
     return float(np.median(shares)) if shares else None
 
 
+#: Most cells a sampling matrix may have for its products and solves to run dense in numpy (below, scipy's sparse
+#: products and LAPACK's single eigenvalue: a fresh process would spend more loading scipy.sparse and scipy.linalg,
+#: 0.15 s, than numpy spends on 512 cells, 40 ms; above, the dense work grows as the cube).
+DENSE_MAX_CELLS = 512
+
+
 def _top_eigenvalue(gram):
     """The largest eigenvalue of ``A^T A`` (the largest singular value of ``A``, squared)."""
-    from scipy.linalg import eigvalsh
-
     n = gram.shape[0]
-    top = float(eigvalsh(gram, subset_by_index=[n - 1, n - 1])[0])
+    if n <= DENSE_MAX_CELLS:
+        top = float(np.linalg.eigvalsh(gram)[-1])
+    else:
+        from scipy.linalg import eigvalsh
+
+        top = float(eigvalsh(gram, subset_by_index=[n - 1, n - 1])[0])
     if top <= 1e-12:
         raise EvtkError("the sampling matrix is zero: no cell reaches the region's pixels")
     return top
@@ -303,16 +329,24 @@ class _System:
 
     def __init__(self, a_mat: np.ndarray) -> None:
         self.a_mat = a_mat
-        # a pixel sees the few cells around its footprint (a few percent of the matrix): its products run sparse
-        self.a_sparse = _csr(a_mat)
+        # a pixel sees the few cells around its footprint (a few percent of the matrix): a large one's products
+        # run sparse; up to DENSE_MAX_CELLS cells they run dense, in numpy alone
+        self.a_sparse = _csr(a_mat) if a_mat.shape[1] > DENSE_MAX_CELLS else None
         self._gram: np.ndarray | None = None
         self._top: float | None = None
+
+    def transpose_times(self, m: np.ndarray) -> np.ndarray:
+        """``A^T m``, dense or sparse (:data:`DENSE_MAX_CELLS`)."""
+        return self.a_mat.T @ m if self.a_sparse is None else self.a_sparse.T @ m
 
     def gram_top(self) -> tuple[np.ndarray, float]:
         """``(A^T A, its largest eigenvalue)``: the matrix is shared, copy it before writing."""
         if self._gram is None or self._top is None:
             with one_blas_thread():
-                gram = (self.a_sparse.T @ self.a_sparse).toarray()
+                if self.a_sparse is None:
+                    gram = np.ascontiguousarray(self.a_mat.T @ self.a_mat)
+                else:
+                    gram = (self.a_sparse.T @ self.a_sparse).toarray()
                 self._top = _top_eigenvalue(gram)
             gram.flags.writeable = False
             self._gram = gram
@@ -322,7 +356,8 @@ class _System:
     def nbytes(self) -> int:
         """Memory held, bytes (the dense matrix, its sparse form and ``A^T A``)."""
         ncell = self.a_mat.shape[1]
-        return int(self.a_mat.nbytes + self.a_sparse.data.nbytes * 2 + ncell * ncell * 8)
+        sparse = 0 if self.a_sparse is None else self.a_sparse.data.nbytes * 2
+        return int(self.a_mat.nbytes + sparse + ncell * ncell * 8)
 
 
 #: Most memory the sampling matrices kept between reconstructions may hold (:func:`_deblur_system`), bytes.
@@ -379,14 +414,12 @@ def _deblur_system(bench: Bench, cell_map: CellMap, region: Sequence[int], shape
 def _solve(values: npt.ArrayLike, system: _System, lam: float = 0.0,
            noise_var: npt.ArrayLike | None = None) -> tuple[np.ndarray, float]:
     """:func:`solve_cells` through a :class:`_System` (whose ``A^T A`` and top eigenvalue may be kept)."""
-    a_mat, a_sparse = system.a_mat, system.a_sparse
+    a_mat = system.a_mat
     vals = np.asarray(values, dtype=np.float64)
     lead = vals.shape[:-1]
     v = vals.reshape(-1, vals.shape[-1]).T  # (pixels, m)
     if v.shape[0] != a_mat.shape[0]:
         raise EvtkError(f"{v.shape[0]} pixel values for a sampling matrix of {a_mat.shape[0]} pixels")
-    from scipy.linalg import cho_factor, cho_solve
-
     shared, top = system.gram_top()
     gram = shared.copy()
     with one_blas_thread():
@@ -396,7 +429,19 @@ def _solve(values: npt.ArrayLike, system: _System, lam: float = 0.0,
             raise EvtkError(f"the regularisation must be a finite number >= 0, not {lam}")
         gram[np.diag_indices(gram.shape[0])] += lam * lam * top
         try:
-            cells = cho_solve(cho_factor(gram), a_sparse.T @ v)
+            cells = _spd_solve(gram, system.transpose_times(v))
         except LinAlgError:  # lam = 0 on a singular system
             cells = np.linalg.lstsq(a_mat, v, rcond=None)[0]
     return cells.T.reshape(lead + (a_mat.shape[1],)), float(lam)
+
+
+def _spd_solve(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``gram^-1 rhs`` for a symmetric matrix that must be positive definite (else :class:`LinAlgError`, as a
+    Cholesky factor's failure says): numpy's up to :data:`DENSE_MAX_CELLS` cells (its Cholesky as the test, then
+    an LU solve, 2 ms at 256 cells), scipy's Cholesky solve above."""
+    if gram.shape[0] <= DENSE_MAX_CELLS:
+        np.linalg.cholesky(gram)
+        return np.linalg.solve(gram, rhs)
+    from scipy.linalg import cho_factor, cho_solve
+
+    return cho_solve(cho_factor(gram), rhs)
