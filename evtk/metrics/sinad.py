@@ -382,16 +382,22 @@ class SinadAccumulator:
         self._pending = None
         num = np.multiply(s2, k)  # k S2 - S1^2 (exact in int64), with one temporary
         num -= np.square(s1)
-        self._merge(g, k, s1 / k, np.divide(num, k), s2.astype(np.float64))
+        if self._n[g]:
+            self._merge(g, k, s1 / k, np.divide(num, k), s2.astype(np.float64))
+        else:  # the group's first block (a whole group of counts, as enob gives them): its mean straight in place
+            np.divide(s1, k, out=self._mean[g])
+            self._merge(g, k, None, np.divide(num, k), s2.astype(np.float64))
 
-    def _merge(self, g: int, k: int, block_mean: np.ndarray, block_m2: np.ndarray, sq: np.ndarray) -> None:
+    def _merge(self, g: int, k: int, block_mean: np.ndarray | None, block_m2: np.ndarray, sq: np.ndarray) -> None:
         """Merge a block of ``k`` repeats of group ``g`` (its per-pixel mean, squared deviation from that mean and
-        sum of squares) into the group by Chan's pairwise update."""
+        sum of squares) into the group by Chan's pairwise update (a group's first block: ``block_mean`` None where
+        it is in the group's row already)."""
         had = self._n[g]
         if not had:  # the group's first block: nothing to merge with
             self._m2_px += block_m2
             self._m2[g] += float(block_m2.sum())
-            self._mean[g] = block_mean
+            if block_mean is not None:
+                self._mean[g] = block_mean
             self._sq_px += sq
             self._sq[g] += float(sq.sum())
             self._n[g] = k
