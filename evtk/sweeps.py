@@ -152,7 +152,7 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     ties its windows together (passes, flat fields) and is reconstructed
     whole. Fixed windows give net counts ON - OFF, or ``exp(n theta)`` where
     ``theta`` is given; the row's ``"route"`` says which. Net counts are
-    counted into int32 frames a group of the accumulator's repeats at a time
+    counted into int16 (or int32) frames a group of the accumulator's repeats at a time
     (:func:`evtk.reconstruct.fixed.net_count_batches`, at most
     :data:`NOISE_NET_BINS` counts) and summed exactly in integers; no float
     value of a window's pixel is formed.
