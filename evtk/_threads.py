@@ -49,9 +49,9 @@ def workers() -> int:
 MEMORY_SHARE = 0.08
 
 
-def workers_within(output_bytes: int, thread_bytes: int) -> int:
-    """:func:`workers`, but no more threads than :data:`MEMORY_SHARE` of ``output_bytes`` pays for at
-    ``thread_bytes`` each (and at least one).
+def workers_within(output_bytes: int, thread_bytes: int, share: float = MEMORY_SHARE) -> int:
+    """:func:`workers`, but no more threads than ``share`` (:data:`MEMORY_SHARE`) of ``output_bytes`` pays for
+    at ``thread_bytes`` each (and at least one).
 
     Parameters
     ----------
@@ -59,10 +59,12 @@ def workers_within(output_bytes: int, thread_bytes: int) -> int:
         The bytes of what the threads produce (the arrays a read returns).
     thread_bytes : int
         One thread's working memory (its buffers, its allocator arena).
+    share : float
+        The share of ``output_bytes`` the threads' memory may add.
 
     Returns
     -------
     int
         At least 1.
     """
-    return min(workers(), max(1, int(MEMORY_SHARE * output_bytes) // max(1, int(thread_bytes))))
+    return min(workers(), max(1, int(share * output_bytes) // max(1, int(thread_bytes))))

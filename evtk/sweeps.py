@@ -152,7 +152,7 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
     ties its windows together (passes, flat fields) and is reconstructed
     whole. Fixed windows give net counts ON - OFF, or ``exp(n theta)`` where
     ``theta`` is given; the row's ``"route"`` says which. Net counts are
-    counted into int32 frames a group of the accumulator's repeats at a time
+    counted into int16 (or int32) frames a group of the accumulator's repeats at a time
     (:func:`evtk.reconstruct.fixed.net_count_batches`, at most
     :data:`NOISE_NET_BINS` counts) and summed exactly in integers; no float
     value of a window's pixel is formed.
@@ -246,8 +246,8 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
             firsts = [i for a, z in zip(starts, starts[1:] + [len(win)]) for i in range(a, z, nb)]
             responses = np.empty(binary.shape)
             for i, net, most in net_count_batches(rec, win, region, firsts, progress=progress):
-                acc.add(net)
-                responses[i:i + len(net)] = _net_block_means(net, size, most)
+                big = acc.add(net)  # the largest magnitude (the events of a window only bound it)
+                responses[i:i + len(net)] = _net_block_means(net, size, most if big is None else big)
             binary[:] = binarize(responses, method)  # each response at its own threshold: one call for all
     else:
         from .reconstruct import reconstruct_counts
@@ -279,9 +279,14 @@ def _net_block_means(net: np.ndarray, size: tuple[int, int], most: int) -> np.nd
 
     def part(a: int, z: int) -> None:  # windows a .. z - 1 (runs of windows on the counting threads)
         blocks = net[a:z].reshape(z - a, oh, fy, w)
-        if fy * fx * most >= 2**31:  # int32 sums where they cannot overflow
-            blocks = blocks.astype(np.int64)
+        # einsum sums in its input's type: whole rows in it where they cannot leave it (int16 counts), then the
+        # rows' sums in int32 where they cannot overflow it, else in int64
+        wide = np.int32 if fy * fx * most < 2**31 else np.int64
+        if fy * most > np.iinfo(blocks.dtype).max:
+            blocks = blocks.astype(wide)
         rows = np.einsum("naxw->naw", blocks)  # whole rows first
+        if fy * fx * most > np.iinfo(rows.dtype).max:
+            rows = rows.astype(wide)
         np.divide(np.einsum("naox->nao", rows.reshape(z - a, oh, ow, fx)), fy * fx, out=out[a:z])
 
     bounds = cuts(np.ones(net.shape[0], np.int64), parts(net.size))

@@ -175,3 +175,32 @@ def test_of_two_damaged_packets_the_first_is_named_whichever_thread_meets_it(tmp
         with pytest.raises(evtk.FormatError) as err:
             rec.events()
     assert f"at byte {offsets[20]}" in str(err.value), str(err.value)
+
+
+def test_a_chunked_read_decodes_each_chunk_on_more_than_one_thread(tmp_path, monkeypatch):
+    """A whole read keeps its decoding threads' memory within 8 % of its arrays, but a chunked read's memory is a
+    chunk's whatever the file: its chunks are decoded on the threads the chunk's own memory pays for (one thread
+    for 8 % of a 1 M-event chunk left fixed windows' counting decoding on one core), and give the same events."""
+    monkeypatch.setenv("EVTK_THREADS", "2")
+    rng = np.random.default_rng(3)
+    n = 600_000
+    ev = evtk.Events(np.sort(rng.integers(0, 10**6, n)), rng.integers(0, 320, n).astype(np.uint16),
+                     rng.integers(0, 240, n).astype(np.uint16), rng.integers(0, 2, n).astype(np.uint8), (320, 240))
+    path = tmp_path / "chunked.aedat4"
+    evtk.write_events(path, ev)
+    threads: list[int] = []
+    real = a4r.workers_within
+
+    def counted(*args):
+        threads.append(real(*args))
+        return threads[-1]
+
+    monkeypatch.setattr(a4r, "workers_within", counted)
+    with evtk.open(path) as rec:
+        whole = rec.events()
+        assert threads and max(threads) == 1  # 8 % of 7.8 MB of arrays: one thread's buffers
+        threads.clear()
+        chunks = list(rec.iter_events(chunk_events=n))
+    assert threads and max(threads) == 2
+    for got in (whole, evtk.Events(*(np.concatenate([getattr(c, k) for c in chunks]) for k in "txyp"), (320, 240))):
+        assert all(np.array_equal(getattr(got, k), getattr(ev, k)) for k in "txyp")

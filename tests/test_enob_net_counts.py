@@ -252,3 +252,80 @@ def test_enob_theta_linearises_as_reconstruct_does(tmp_path):
         from evtk.reconstruct import ReconstructOptions
 
         ReconstructOptions(theta=float("nan"))
+
+
+@pytest.mark.parametrize("region", [(0, 8, 0, 4), (0, 6, 1, 4)])
+def test_int16_frames_widen_before_a_window_could_overflow_them(region):
+    """Net counts go into int16 frames while no window of the batch holds more than 32,767 events: a window of
+    40,000 ON events at one pixel (counted 1,000 events a chunk, so the batch widens to int32 after counting
+    began) keeps its 40,000, a window of exactly 32,767 stays int16, an empty window and a one-event window count
+    right, and events outside a region (its dump bins, which may wrap) never reach a pixel."""
+    from evtk.reconstruct.windows import Windows
+
+    rng = np.random.default_rng(11)
+    parts = [  # (t0, events, x, y, p) of each window of 1,000 us
+        (0, 40_000, 3, 2, 1), (1000, 0, 0, 0, 0), (2000, 1, 2, 3, 0), (3000, 32_767, 0, 1, 1), (4000, 300, 7, 0, 0)]
+    t, x, y, p = [], [], [], []
+    for t0, n, px, py, pol in parts:
+        t.append(np.sort(rng.integers(t0, t0 + 1000, n)))
+        x.append(np.full(n, px))
+        y.append(np.full(n, py))
+        p.append(np.full(n, pol))
+    noise = rng.integers(0, 2000, 2000)  # and a sprinkle over windows 0 and 4, everywhere, both polarities
+    noise[noise >= 1000] += 3000
+    t = np.concatenate(t + [noise])
+    order = np.argsort(t, kind="stable")
+    x = np.concatenate(x + [rng.integers(0, 8, 2000)])[order].astype(np.uint16)
+    y = np.concatenate(y + [rng.integers(0, 4, 2000)])[order].astype(np.uint16)
+    p = np.concatenate(p + [rng.integers(0, 2, 2000)])[order].astype(np.uint8)
+    ev = evtk.Events(t[order], x, y, p, (8, 4))
+    win = Windows(np.arange(5) * 1000, np.arange(1, 6) * 1000, np.arange(5), "test")
+    x0, x1, y0, y1 = region
+    want = np.zeros((5, y1 - y0, x1 - x0), np.int64)  # each window's net counts, one event at a time
+    w = ev.t // 1000
+    inside = (ev.x >= x0) & (ev.x < x1) & (ev.y >= y0) & (ev.y < y1)
+    np.add.at(want, (w[inside], ev.y[inside] - y0, ev.x[inside] - x0), 2 * ev.p[inside].astype(np.int64) - 1)
+    assert want.max() > 40_000 - 100 and np.abs(want).max() > np.iinfo(np.int16).max
+    for batches in ([0, 1, 2, 3, 4], [0], [0, 3]):
+        got = [(i, net.copy()) for i, net, _ in net_count_batches(ev, win, region, batches, chunk_events=1000)]
+        assert np.array_equal(np.concatenate([n for _, n in got]), want), batches
+        for i, net in got:  # int16 exactly where every window of the batch held at most 32,767 events
+            held = max(int(np.sum(w == k)) for k in range(i, i + len(net)))
+            assert net.dtype == (np.int16 if held <= np.iinfo(np.int16).max else np.int32), (batches, i)
+
+
+def test_int16_captures_are_summed_in_their_own_type_only_where_they_cannot_leave_it():
+    """A block's sums in int16 (no copy) where k * largest**2 fits it, int32 beyond: the reports equal those of
+    the same counts as int64, bit for bit, on both sides of the limit (16 repeats of magnitude 45: squares summed
+    to 32,400; of 46: 33,856, which int16 would wrap; 1,024 repeats: groups of 16). add returns the magnitude it
+    checked."""
+    rng = np.random.default_rng(2)
+    for big in (45, 46, 181):
+        x = rng.integers(-big, big + 1, (1024, 5, 7)).astype(np.int16)
+        x[:, 0, 0] = big  # the largest magnitude at one pixel in every repeat: its squares summed reach k * big**2
+        x[::3, 1, 1] = -big
+        wide = SinadAccumulator(1024, (5, 7))
+        narrow = SinadAccumulator(1024, (5, 7))
+        for a, b in ((0, 16), (16, 20), (20, 1024)):  # a group, part of one, and the rest
+            assert narrow.add(x[a:b]) == big
+            wide.add(x[a:b].astype(np.int64))
+        got, want = narrow.report(per_pixel=True), wide.report(per_pixel=True)
+        assert (got.sinad_db, got.noise_std, got.signal_rms, got.ci_db) == (want.sinad_db, want.noise_std,
+                                                                             want.signal_rms, want.ci_db), big
+        assert np.array_equal(got.per_pixel_db.filled(-1.0), want.per_pixel_db.filled(-1.0)), big
+        assert np.array_equal(got.per_pixel_db.mask, want.per_pixel_db.mask)
+    assert SinadAccumulator(2, 1).add([[0.5], [1.5]]) is None  # float captures: no magnitude
+
+
+@pytest.mark.parametrize("level", [3000, 1000, 20])
+def test_block_means_of_int16_counts_sum_in_a_type_they_fit(level):
+    """Block means of int16 net counts: rows of 15 pixels summed in int16 only where 15 * largest fits it, the
+    rows' sums of 300 pixels in int32 where int16 would wrap (3,000: rows of 45,000; 1,000: blocks of 300,000)."""
+    from evtk.sweeps import _net_block_means
+
+    rng = np.random.default_rng(4)
+    net = rng.integers(-level, level + 1, (3, 30, 40)).astype(np.int16)
+    net[:, :15, :20] = level  # a whole block at the largest magnitude
+    net[1, 15:, 20:] = -level
+    want = net.astype(np.int64).reshape(3, 2, 15, 2, 20).sum(axis=(2, 4)) / 300
+    assert np.array_equal(_net_block_means(net, (2, 2), level), want)

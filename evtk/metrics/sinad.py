@@ -182,13 +182,19 @@ def _whole_sums(block: np.ndarray, big: int) -> tuple[np.ndarray, np.ndarray] | 
     k = block.shape[0]
     if k * k * big * big >= 2**62:
         return None
-    # summed in int32 where the sums cannot overflow it (einsum sums in the inputs' type), else in int64
-    narrow = block.dtype.itemsize <= 4 and block.dtype != np.uint32 and k * big * big < 2**31
+    # einsum sums in its inputs' type: in the block's own signed type where neither sum can leave it (int16 net
+    # counts: no copy), else in int32 where they cannot overflow it, else in int64
+    if block.dtype.kind == "i" and block.dtype.itemsize <= 4 and k * big * big <= np.iinfo(block.dtype).max:
+        kind = block.dtype
+    elif block.dtype.itemsize <= 4 and block.dtype != np.uint32 and k * big * big < 2**31:
+        kind = np.dtype(np.int32)
+    else:
+        kind = np.dtype(np.int64)
     s1 = np.empty(block.shape[1], np.int64)
     s2 = np.empty(block.shape[1], np.int64)
 
     def part(a: int, z: int) -> None:
-        b = block[:, a:z].astype(np.int32 if narrow else np.int64, copy=False)
+        b = block[:, a:z].astype(kind, copy=False)
         s1[a:z] = np.einsum("rp->p", b)
         s2[a:z] = np.einsum("rp,rp->p", b, b)
 
@@ -250,6 +256,7 @@ class SinadAccumulator:
         self._sq = np.zeros(g)  # squares of the group's values, summed
         self._sq_px = np.zeros(p)
         self._pending: list | None = None  # a group's integer sums not yet merged (:meth:`_stash`)
+        self._centred_means: tuple[np.ndarray, np.ndarray] | None = None  # (:meth:`_centred`, once complete)
         self.added = 0
 
     @staticmethod
@@ -266,12 +273,11 @@ class SinadAccumulator:
         Returns
         -------
         int
-            Bytes: two groups x pixels float64 arrays (the groups' means
-            and, in the report, their centred copy) and eight per-pixel
-            ones.
+            Bytes: one groups x pixels float64 array (the groups' means,
+            centred in place by the report) and eight per-pixel ones.
         """
         groups = min(max(int(repeats), 0), MAX_BOOTSTRAP_GROUPS)
-        return 8 * int(pixels) * (2 * groups + 8)
+        return 8 * int(pixels) * (groups + 8)
 
     @property
     def group_starts(self) -> np.ndarray:
@@ -285,7 +291,7 @@ class SinadAccumulator:
         """
         return self._bounds[:-1].copy()
 
-    def add(self, captures: npt.ArrayLike) -> None:
+    def add(self, captures: npt.ArrayLike) -> int | None:
         """Add the next repeats, shape ``(k, *shape)``, in their order.
 
         Integer captures (counts) are summed exactly in integers, a group of
@@ -298,6 +304,12 @@ class SinadAccumulator:
         ----------
         captures : array_like
             ``k`` repeats, numeric (any shape whose size is ``k`` times the pixels of one capture).
+
+        Returns
+        -------
+        int or None
+            The largest magnitude among whole-number captures (integers or booleans; what the exact sums were
+            checked against), None for other captures or none at all.
 
         Raises
         ------
@@ -341,6 +353,7 @@ class SinadAccumulator:
                 self._merge(g, k, ref + s1f / k, block_m2, sq)
             i += k
         self.added += x.shape[0]
+        return big
 
     def _stash(self, g: int, k: int, big: int, s1: np.ndarray, s2: np.ndarray) -> None:
         """Add a block of ``k`` whole-number repeats of group ``g`` (magnitudes at most ``big``, per-pixel sum
@@ -367,16 +380,24 @@ class SinadAccumulator:
             return
         g, k, _, s1, s2 = self._pending
         self._pending = None
-        self._merge(g, k, s1 / k, (k * s2 - s1 * s1) / k, s2.astype(np.float64))
+        num = np.multiply(s2, k)  # k S2 - S1^2 (exact in int64), with one temporary
+        num -= np.square(s1)
+        if self._n[g]:
+            self._merge(g, k, s1 / k, np.divide(num, k), s2.astype(np.float64))
+        else:  # the group's first block (a whole group of counts, as enob gives them): its mean straight in place
+            np.divide(s1, k, out=self._mean[g])
+            self._merge(g, k, None, np.divide(num, k), s2.astype(np.float64))
 
-    def _merge(self, g: int, k: int, block_mean: np.ndarray, block_m2: np.ndarray, sq: np.ndarray) -> None:
+    def _merge(self, g: int, k: int, block_mean: np.ndarray | None, block_m2: np.ndarray, sq: np.ndarray) -> None:
         """Merge a block of ``k`` repeats of group ``g`` (its per-pixel mean, squared deviation from that mean and
-        sum of squares) into the group by Chan's pairwise update."""
+        sum of squares) into the group by Chan's pairwise update (a group's first block: ``block_mean`` None where
+        it is in the group's row already)."""
         had = self._n[g]
         if not had:  # the group's first block: nothing to merge with
             self._m2_px += block_m2
             self._m2[g] += float(block_m2.sum())
-            self._mean[g] = block_mean
+            if block_mean is not None:
+                self._mean[g] = block_mean
             self._sq_px += sq
             self._sq[g] += float(sq.sum())
             self._n[g] = k
@@ -392,9 +413,13 @@ class SinadAccumulator:
         self._n[g] += k
 
     def _centred(self):
-        """Each group's mean centred on the overall mean, and its squared norm."""
-        off = self._mean - np.einsum("g,gp->p", self._n, self._mean) / self.repeats
-        return off, np.einsum("gp,gp->g", off, off)
+        """Each group's mean centred on the overall mean, and its squared norm: computed once, in place of the
+        means (asked for only once every repeat is in, when no mean is needed again; no groups x pixels copy)."""
+        if self._centred_means is None:
+            off = self._mean
+            off -= np.einsum("g,gp->p", self._n, off) / self.repeats
+            self._centred_means = off, np.einsum("gp,gp->g", off, off)
+        return self._centred_means
 
     def _group_terms(self, centred=None):
         """``(M, N, P, n)`` of the groups, for the intervals (``centred``: :meth:`_centred`'s, if at hand).

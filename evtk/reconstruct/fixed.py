@@ -462,7 +462,7 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
                       progress: Callable[[int], Any] | None = None) -> Iterator[tuple[int, np.ndarray, int]]:
     """Net counts ON - OFF of the windows over a region's pixels, a batch of windows at a time, with numpy.
 
-    Each event adds its polarity's sign (+1 ON, -1 OFF) to its window's pixel in one int32 frame a batch: the
+    Each event adds its polarity's sign (+1 ON, -1 OFF) to its window's pixel in one integer frame a batch: the
     net counts :func:`pixel_values` gives without linearisation, without the separate ON and OFF counts or a
     float copy. Windows in time order, none overlapping an earlier one, are counted in one pass over the
     events; the others a batch at a time through the recording's time-window reads.
@@ -486,8 +486,9 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
     Yields
     ------
     tuple of (int, ndarray, int)
-        The batch's first window, its net counts (int32, (windows, rows, cols), C-contiguous: valid until the
-        next batch) and the most events one of its windows holds (a bound on every net count's magnitude).
+        The batch's first window, its net counts ((windows, rows, cols), C-contiguous: valid until the next
+        batch; int16 where no window of the batch holds more than 32,767 events, else int32) and the most
+        events one of its windows holds (a bound on every net count's magnitude).
 
     Raises
     ------
@@ -528,15 +529,19 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
     whole = (x0, x1, y0, y1) == (0, sensor[0], 0, sensor[1])
     starts, ends = windows.t_start_us, windows.t_end_us
 
-    def add(ev: Events, i: int, j: int, out: np.ndarray, totals: np.ndarray) -> None:
+    def add(ev: Events, i: int, j: int, state: list) -> None:
         n, where = _window_picks(ev, starts[i:j], ends[i:j])
+        out, totals = state
         totals += n
-        if totals.max(initial=0) > np.iinfo(np.int32).max:
+        most = int(totals.max(initial=0))
+        if most > np.iinfo(np.int32).max:
             raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
                             "counts could overflow")
         total = int(n.sum())
         if total == 0:
             return
+        if out.dtype == np.int16 and most > np.iinfo(np.int16).max:  # a pixel's net count could leave int16
+            state[0] = out = _widened(out, frames)
         at = np.concatenate(([0], np.cumsum(n)))  # each window's events among the picked ones
         # runs of whole windows, one a thread: each writes its own windows' frames and its own dump bin
         bounds = cuts(n, min(dumps, parts(total)))
@@ -545,16 +550,26 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
 
     frames = np.empty(nb * frame + dumps, np.int32)  # one buffer for every batch (its pages touched once)
 
-    def batch(b: int) -> tuple[np.ndarray, np.ndarray]:  # the shared frames: a batch is used before the next
-        out = frames[:(nexts[b] - firsts[b]) * frame + dumps]
+    def batch(b: int) -> tuple[list]:  # the shared frames: a batch is used before the next
+        # int16 frames (half the memory to clear, count into and sum) until a window's events could exceed them
+        out = frames.view(np.int16)[:(nexts[b] - firsts[b]) * frame + dumps]
         out.fill(0)
-        return out, np.zeros(nexts[b] - firsts[b], np.int64)
+        return [out, np.zeros(nexts[b] - firsts[b], np.int64)],
 
-    def finished(i: int, j: int, out: np.ndarray, totals: np.ndarray) -> tuple[int, np.ndarray, int]:
+    def finished(i: int, j: int, state: list) -> tuple[int, np.ndarray, int]:
+        out, totals = state
         return i, out[:(j - i) * frame].reshape(j - i, h_px, w_px), int(totals.max(initial=0))
 
     yield from _batches(source, windows, firsts, nexts, max(1, min(int(chunk_events), READ_EVENTS)), progress,
                         batch, add, finished)
+
+
+def _widened(out: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """int16 bins ``out`` (the start of the int32 buffer ``frames``) as int32 bins at the start of ``frames``,
+    for counts that could leave int16 (a window of more than 32,767 events)."""
+    wide = out.astype(np.int32)  # (a copy: the int32 bins overlap the int16 ones)
+    frames[:wide.size] = wide
+    return frames[:wide.size]
 
 
 def _net_count_run(ev: Events, where: slice | np.ndarray, at: np.ndarray, wa: int, wb: int, r: int, n_w: int,
@@ -578,6 +593,6 @@ def _net_count_run(ev: Events, where: slice | np.ndarray, at: np.ndarray, wa: in
             key[at[w] - a:at[w + 1] - a] += dtype(w * frame)
     if not whole:
         np.minimum(key, dtype(n_w * frame + r), out=key)  # every key outside the region: this run's dump bin
-    sign = np.multiply(ev.p[pick], 2, dtype=np.int32)  # +1 ON, -1 OFF
+    sign = np.multiply(ev.p[pick], 2, dtype=out.dtype)  # +1 ON, -1 OFF, in the bins' type (numpy's fast path)
     sign -= 1
     np.add.at(out, key, sign)

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..._threads import workers_within
+from ..._threads import MEMORY_SHARE, workers_within
 from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
 from .. import _compression as cz
@@ -29,6 +29,11 @@ _BATCH_SLACK = 1 << 16
 # a decode thread's buffers with batches: the staging buffer (16 bytes an event and the slack), the batch's
 # compressed bytes, its allocator arena's share (about 2.5 MiB)
 _THREAD_BYTES = 40 * BATCH_EVENTS
+
+#: The share of a chunk's memory its decoding threads may add in a chunked read (``iter_events``): its memory is
+#: a chunk's whatever the file's size, and :data:`evtk._threads.MEMORY_SHARE` (a whole read's rule) of a 1 M-event
+#: chunk pays for one thread, which left the chunk-by-chunk counting of fixed windows decoding on one core.
+_CHUNK_SHARE = 1.0
 
 
 class Recording(_FileIndex, BaseRecording):
@@ -410,8 +415,9 @@ class Recording(_FileIndex, BaseRecording):
         end, complete = self._decode_into(s, rows, counts, (t, x, y, p), 0)
         return Events._trusted(t[:end], x[:end], y[:end], p[:end], s.sensor_size), complete
 
-    def _decode_into(self, s, rows, counts, out, offset):
-        """Decode the packets ``rows`` into the columns ``out`` from ``offset``, on both cores.
+    def _decode_into(self, s, rows, counts, out, offset, share=MEMORY_SHARE):
+        """Decode the packets ``rows`` into the columns ``out`` from ``offset``, on the threads that ``share`` of
+        the events' memory pays for (:func:`evtk._threads.workers_within`).
 
         Returns ``(events written, complete)``.
         """
@@ -458,7 +464,7 @@ class Recording(_FileIndex, BaseRecording):
                         return k
             return k1
 
-        stopped = _run_split(work, len(rows), counts, 0 if batch is None else _THREAD_BYTES)
+        stopped = _run_split(work, len(rows), counts, 0 if batch is None else _THREAD_BYTES, share)
         return int(starts[stopped]) - offset, stopped == len(rows)
 
     def _batcher(self, rows, counts, starts, out, width: int, height: int):
@@ -723,7 +729,7 @@ class Recording(_FileIndex, BaseRecording):
             j = int(np.searchsorted(cum, cum[k] + (chunk_events - fill), side="right")) - 1
             try:
                 if j > k:
-                    n, complete = self._decode_into(s, rows[k:j], counts[k:j], buf, fill)
+                    n, complete = self._decode_into(s, rows[k:j], counts[k:j], buf, fill, _CHUNK_SHARE)
                     if edge is not None:
                         e = k + np.flatnonzero(edge[k:j])
                         seg_lo.append(fill + cum[e] - cum[k])
@@ -993,19 +999,19 @@ def _cut(ev: Events, seg_lo: np.ndarray, seg_hi: np.ndarray, t_start_us: int | N
     return Events._trusted(ev.t[keep], ev.x[keep], ev.y[keep], ev.p[keep], ev.sensor_size)
 
 
-def _run_split(work, n_rows, counts, thread_bytes: int = 0) -> int:
+def _run_split(work, n_rows, counts, thread_bytes: int = 0, share: float = MEMORY_SHARE) -> int:
     """Run ``work(k0, k1)`` over contiguous row ranges on the I/O pool.
 
     Each call returns the first row it did not finish (``k1`` on success);
     the result is the length of the intact prefix. With ``thread_bytes`` (one thread's buffers), no more
-    threads work than the events' memory pays for (:func:`evtk._threads.workers_within`).
+    threads work than ``share`` of the events' memory pays for (:func:`evtk._threads.workers_within`).
     """
     if n_rows == 0:
         return 0
     total = int(np.sum(counts))
     # no more threads than the events' memory pays for (each holds a batch's buffers): on 16 cores a 20 M-event
     # read peaked at 1.13-1.15x its arrays with one per core, and ran no faster than on 8
-    nw = workers_within(13 * total, thread_bytes) if thread_bytes else cz.workers()
+    nw = workers_within(13 * total, thread_bytes, share) if thread_bytes else cz.workers()
     if nw == 1 or n_rows < 4 or total < 200_000:
         return work(0, n_rows)
     # balance by elements: 4 ranges per thread keeps every thread busy to the end
