@@ -163,10 +163,10 @@ def _plain_xml_tree(text: str) -> _Node | None:
                 if seg.strip(_SPACE):
                     return None  # text outside the root
             elif not node.children:
-                seg = _unescape(seg)
-                if seg is None:
+                plain = _unescape(seg)
+                if plain is None:
                     return None
-                node.text += seg
+                node.text += plain
             elif "&" in seg and _unescape(seg) is None:
                 return None
         gt = find(">", lt)
