@@ -489,3 +489,122 @@ def test_data_table_output_limits_are_each_packets_own():
     got = cz.output_limits(sizes)
     assert got.dtype == np.int64
     assert got.tolist() == [cz.output_limit(int(z)) for z in sizes]
+
+
+def test_malformed_xml_names_the_byte_of_the_fault(tmp_path, good):
+    """A header whose XML closes its root with another tag: the error names the file's byte where expat found the
+    mismatched end tag's name (it named the header's start, byte 14, for every XML fault)."""
+    def edit(d, L):
+        i = d.rindex(b"</dv>")
+        d[i:i + 5] = b"</dx>"
+        return d
+
+    p = damaged(tmp_path, good, edit)
+    at = p.read_bytes().rindex(b"</dx>") + 2  # the end tag's name
+    expect_error(p, "XML is malformed.*mismatched tag", offset=at)
+
+
+def _expat_tree(text):
+    """The header XML's tree through expat itself (the reference for the plain parser)."""
+    import pyexpat
+
+    from evtk.io.aedat4 import index
+
+    root = index._Node("", {})
+    stack = [root]
+
+    def start(tag, attrib):
+        node = index._Node(tag, attrib)
+        stack[-1].children.append(node)
+        stack.append(node)
+
+    def data(chunk):
+        if not stack[-1].children:
+            stack[-1].text += chunk
+
+    parser = pyexpat.ParserCreate()
+    parser.buffer_text = True
+    parser.StartElementHandler, parser.EndElementHandler, parser.CharacterDataHandler = \
+        start, lambda tag: stack.pop(), data
+    parser.Parse(text, True)
+    return root.children[0]
+
+
+def _dump(node):
+    return node.tag, node.attrib, node.text, [_dump(c) for c in node.children]
+
+
+_HEADER = ('<dv version="2.0">\n    <node name="outInfo" path="/outInfo/">\n        <node name="0" path="/outInfo/0/">\n'
+           '            <attr key="typeIdentifier" type="string">EVTS</attr>\n'
+           "            <attr key='compression' type=\"string\">LZ4 &amp; &lt;x&gt;</attr>\n"
+           '            <node name="info" path="/outInfo/0/info/">\n'
+           '                <attr key="sizeX" type="int">346</attr><attr key="sizeY" type="int">260</attr>\n'
+           '                <empty a="1"/>\n            </node>\n        </node>\n    </node>\n</dv>\n')
+_PIECES = ["<", ">", "</", "/>", "/", "=", '"', "'", " ", "\n", "\t", "\r", "&", "amp;", "lt;", "&#65;", "&x;", "a",
+           "dv", "node", "1", "-", ".", ":", "_", "<!-- c -->", "<![CDATA[x]]>", "]]>", '<?xml version="1.0"?>',
+           "<!DOCTYPE dv>", "\x00", "\x01", "\u00e9", "\ufffd", "<a>", "</a>", '<a x="1">', "<dv>", "</dv>", "<a/>",
+           '<b y="2"/>', 'x="1"', " y='2'", "\"'"]
+
+
+def _plain_agrees_with_expat(text):
+    from evtk.io.aedat4 import index
+
+    plain = index._plain_xml_tree(text)
+    try:
+        want = _dump(_expat_tree(text))
+    except Exception as exc:  # noqa: BLE001 - expat's ExpatError (or a ValueError for NUL bytes)
+        assert plain is None, (text, exc)  # malformed: the plain parser leaves it to expat, which refuses it
+        return
+    assert plain is None or _dump(plain) == want, text
+
+
+def test_the_plain_header_parser_gives_expat_s_tree_on_the_real_headers():
+    """The str-scanning parser (no expat to load) takes every real AEDAT4 header and evtk's, giving expat's tree."""
+    from pathlib import Path
+
+    from evtk.io.aedat4 import index
+
+    real = sorted((Path(__file__).resolve().parents[2] / "shared" / "real-files").glob("*.aedat4")) + \
+        sorted((Path(__file__).resolve().parents[3] / "shared" / "real-files").glob("*.aedat4"))
+    texts = [_HEADER]
+    for path in real:
+        with evtk.open(path) as rec:
+            texts.append(rec.header_xml)
+    for text in texts:
+        plain = index._plain_xml_tree(text)
+        assert plain is not None and _dump(plain) == _dump(_expat_tree(text))
+
+
+@pytest.mark.parametrize("text", [
+    "<a/><a/>", '<a x="1" x="2"/>', '<a x="1"y="2"/>', "<a></b>", "<a>t</a> x", "x<a/>", "<a>&foo;</a>", "<a>&#65;</a>",
+    '<a x="<"/>', '<a x="&amp;&lt;"/>', "<a>]]></a>", "<a>\r\n</a>", "<a/ >", "< a/>", "</ a>", "<a></ a>",
+    "<1a/>", "<a 1x='2'/>", "<a x='1\"/>", "<a x=1/>", "<a\x01/>", "", "  ", "<a>", "<a>\u00e9</a>",
+    '<a x="t\tn\n"> <b/>c</a>', "<a:b c-d.e='f'/>", "<a><b></a></b>", '<?xml version="1.0"?><a/>'])
+def test_the_plain_header_parser_on_hostile_headers(text):
+    """Each fault expat refuses (a second root, a repeated attribute, no space between attributes, crossed tags,
+    unknown references, a '<' in a value, ']]>' in text) gets no tree from the plain parser; what it accepts
+    (named entities, whitespace in values, names with ':', '-' and '.') is expat's tree."""
+    _plain_agrees_with_expat(text)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_plain_header_parser_never_accepts_what_expat_refuses(seed):
+    """Headers edited at random (pieces of XML inserted, bytes dropped or replaced) and strings of XML pieces: the
+    plain parser returns a tree only where expat gives the same one, and nothing where expat refuses the text."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    edits = st.lists(st.tuples(st.integers(0, len(_HEADER)), st.integers(0, 3), st.sampled_from(_PIECES)),
+                     min_size=1, max_size=3)
+
+    @settings(max_examples=400, deadline=None, derandomize=True, database=None)
+    @given(edits, st.lists(st.sampled_from(_PIECES), max_size=25))
+    def check(changes, pieces):
+        text = _HEADER
+        for at, drop, piece in changes:
+            at = (at + seed * 97) % (len(text) + 1)
+            text = text[:at] + piece + text[at + drop:]
+        _plain_agrees_with_expat(text)
+        _plain_agrees_with_expat("".join(pieces))
+
+    check()

@@ -91,7 +91,7 @@ def test_info_and_convert_to_hdf5_load_no_compiler(tmp_path, fmt):
 # what a fresh process's start pays for beyond Python, numpy and evtk's own modules: 0.5-2.5 ms each here, against
 # peers whose whole read of a small file takes a few (issue 32)
 START_UP = ("lz4", "zstandard", "xxhash", "hdf5plugin", "click", "xml.etree.ElementTree", "json", "threading",
-            "numpy.typing", "dataclasses", "xml.parsers.expat", "bisect", "_bisect")
+            "numpy.typing", "dataclasses", "xml.parsers.expat", "pyexpat", "bisect", "_bisect")
 # an AEDAT4 file evtk writes has LZ4 packets, decoded through the LZ4 library bound by ctypes: python-lz4's frame
 # module (with the stdlib's _compression) and threading (the pool's lock is _thread's) load for none of them
 # module; _bisect (a shared library to load, 0.2-0.7 ms) loads only for the Prophesee decoders, which search with it
@@ -104,7 +104,8 @@ def test_a_fresh_read_events_loads_no_module_it_does_not_use(tmp_path, fmt):
     modules a file of this format does not use. Every format's read loaded lz4 (the checksum setting lives beside
     the codecs) and json, numpy.typing, threading and dataclasses (module-level imports); AEDAT4's xml.etree, and
     for its LZ4 packets and data table lz4.frame and threading, for its header the xml package (expat's parser is
-    pyexpat); Event Stream's decoder the bisect module (its functions are _bisect's)."""
+    pyexpat, which the plain headers DV and evtk write no longer need); Event Stream's decoder the bisect module
+    (its functions are _bisect's)."""
     path = _fixture(tmp_path, fmt)
     names = HEAVY + START_UP
     code = (f"import sys, evtk\nassert len(evtk.read_events({str(path)!r})) == 50_000\n"

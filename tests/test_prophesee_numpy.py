@@ -266,3 +266,75 @@ def test_a_large_evt3_read_peaks_within_a_tenth_of_its_arrays_and_loads_no_compi
     assert int(out[0]) == n_ev
     assert float(out[1]) <= 1.1, out
     assert out[2] == "False"
+
+
+def _es_loop(data, state, width, height):
+    """Event Stream 2.x DVS bytes decoded one at a time, as the format describes them (the reference): returns
+    the events, the stop (``(ST_COORD, index of the event's last byte)`` or ``(ST_OK, -1)``) and the state."""
+    tc, phase, xi, yi, pol = (int(v) for v in state)
+    ev = []
+    for i, b in enumerate(data.tolist()):
+        if phase == 0:
+            if b == 0xFF:
+                tc += 127
+            elif b != 0xFE:
+                tc, pol, phase = tc + (b >> 1), b & 1, 1
+        elif phase == 1:
+            xi, phase = b, 2
+        elif phase == 2:
+            xi, phase = xi | b << 8, 3
+        elif phase == 3:
+            yi, phase = b, 4
+        else:
+            yi, phase = yi | b << 8, 0
+            if xi >= width or yi >= height:
+                return ev, (ST_COORD, i), [tc, phase]
+            ev.append((tc, xi, height - 1 - yi, pol))
+    return ev, (ST_OK, -1), [tc, phase, xi, yi, pol]
+
+
+def _es_bytes(rng, items, ff_share):
+    """Random Event Stream bytes: events (some with 0xFE/0xFF inside, a few off a 640x480 sensor) between single
+    0xFE bytes and runs of 0xFF."""
+    out = []
+    for _ in range(items):
+        r = rng.random()
+        if r < ff_share:
+            out += [0xFF] * int(rng.integers(1, 12))
+        elif r < 1.2 * ff_share:
+            out.append(0xFE)
+        else:
+            x, y = int(rng.integers(0, 640)), int(rng.integers(0, 480))
+            if rng.random() < 0.05:
+                x, y = 0x1FF, 0xFE  # x's low byte 0xFF, y's 0xFE: such bytes inside an event are not markers
+            if rng.random() < 0.0005:
+                x = 640 + int(rng.integers(0, 100))
+            out += [int(rng.integers(0, 0xFE)), x & 0xFF, x >> 8, y & 0xFF, y >> 8]
+    return np.array(out, np.uint8)
+
+
+@pytest.mark.parametrize("slice_bytes", [7, 333, 1 << 16])
+def test_event_stream_numpy_decoder_equals_a_byte_by_byte_loop(monkeypatch, slice_bytes):
+    """The numpy Event Stream decoder (one cumulative sum for the times, straight into the time column, with the
+    0xFF bytes between event ranges added at each range's first event) gives the loop's events, stop and clock,
+    slices cutting events and runs of 0xFF anywhere, with and without decoding (the index's count)."""
+    from evtk.io.prophesee import decoders
+
+    monkeypatch.setattr(decoders, "ES_MARKER_SHARE", 1.0)  # every slice through numpy, however many 0xFF
+    monkeypatch.setattr(decoders, "ES_SLICE_BYTES", slice_bytes)
+    rng = np.random.default_rng(slice_bytes)
+    for trial in range(60):
+        data = _es_bytes(rng, int(rng.integers(1, 2500)), [0.0, 0.002, 0.02, 0.2][trial % 4])
+        start = [int(rng.integers(0, 1 << 40)), 0, 0, 0, 0]
+        want, stop, clock = _es_loop(data, start, 640, 480)
+        for decode in (True, False):
+            state = np.array(start, np.int64)
+            out = _outs(len(data) // 5 + 1)
+            n, _, status, bad, lo, hi = decoders._es_np_run(data, state, 640, 480, decode, *out)
+            assert (status, bad) == stop and n == len(want)
+            assert state[:len(clock)].tolist() == clock
+            if want:
+                assert (lo, hi) == (want[0][0], want[-1][0])
+            if decode:
+                got = list(zip(*(c[:n].tolist() for c in out[:4])))
+                assert got == want

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import _thread  # the lock of _fail: threading is a module more for a fresh read to load
 import os
-import pyexpat as expat  # what xml.parsers.expat re-exports, without the xml package (0.3 ms of a fresh read)
 import struct
 
 import numpy as np
@@ -67,7 +66,16 @@ class _Node:
 
 
 def _xml_tree(text: str) -> _Node:
-    """The element tree of ``text`` (expat's parse, as xml.etree's; ``expat.ExpatError`` when malformed)."""
+    """The element tree of ``text`` (expat's parse, as xml.etree's; :class:`_XmlError` when malformed).
+
+    Headers in the plain form DV and evtk write go through :func:`_plain_xml_tree` (``str`` methods only);
+    any other, or any it finds malformed, through expat, loaded then (0.5-1.5 ms of a fresh read otherwise).
+    """
+    tree = _plain_xml_tree(text)
+    if tree is not None:
+        return tree
+    import pyexpat as expat  # what xml.parsers.expat re-exports, without the xml package
+
     root = _Node("", {})
     stack = [root]
 
@@ -84,16 +92,142 @@ def _xml_tree(text: str) -> _Node:
     parser.buffer_text = True
     parser.StartElementHandler, parser.EndElementHandler, parser.CharacterDataHandler = start, \
         lambda tag: stack.pop(), data
-    parser.Parse(text, True)
+    try:
+        parser.Parse(text, True)
+    except expat.ExpatError as exc:
+        raise _XmlError(parser.ErrorByteIndex, str(exc)) from None
     return root.children[0]
 
 
-def _parse_xml(text: str, path) -> dict:
-    """Streams described by the header XML: ``{id: (attrs, info_attrs)}``."""
+class _XmlError(Exception):
+    """Malformed header XML: expat's message and the byte of the XML (UTF-8) where it found the fault."""
+
+    def __init__(self, at: int, reason: str) -> None:
+        super().__init__(reason)
+        self.at, self.reason = max(0, at), reason
+
+
+# ASCII control characters: XML allows none but tab, line feed and carriage return (which expat folds: expat's)
+_CONTROL = bytes(c for c in range(32) if c not in (9, 10)) + b"\r"
+_ENTITIES = {"lt": "<", "gt": ">", "amp": "&", "quot": '"', "apos": "'"}
+_SPACE = " \t\n"
+
+
+def _name_ok(name: str) -> bool:
+    """An XML name in ASCII: a letter, ``_`` or ``:``, then letters, digits, ``_``, ``:``, ``-`` or ``.``."""
+    return bool(name) and (name[0].isalpha() or name[0] in "_:") and \
+        name.replace("_", "a").replace(":", "a").replace("-", "a").replace(".", "a").isalnum()
+
+
+def _unescape(seg: str) -> str | None:
+    """``seg`` with XML's five named entities replaced; None for any other reference (expat's case)."""
+    if "&" not in seg:
+        return seg
+    parts = seg.split("&")
+    out = [parts[0]]
+    for part in parts[1:]:
+        name, semi, rest = part.partition(";")
+        if not semi or name not in _ENTITIES:
+            return None
+        out.append(_ENTITIES[name] + rest)
+    return "".join(out)
+
+
+def _plain_xml_tree(text: str) -> _Node | None:
+    """The tree of ``text`` in the plain XML subset headers use, with ``str`` methods only (no expat to load).
+
+    The subset: ASCII; elements with attributes in either quotes; text; the five named entities; whitespace
+    around the root. No declaration, comment, processing instruction, CDATA, DOCTYPE, other reference or
+    carriage return. Returns None for anything outside it or malformed, for expat to parse or refuse (its
+    message then names the place): a tree is returned only where expat gives the same one.
+    """
+    if not text.isascii():
+        return None
+    raw = text.encode("ascii")
+    if raw.translate(None, _CONTROL) != raw or "<!" in text or "<?" in text or "]]>" in text:
+        return None
+    pos = len(text) - len(text.lstrip(_SPACE))
+    top = _Node("", {})
+    stack = [top]
+    find = text.find
+    while True:
+        lt = find("<", pos)
+        if lt < 0:
+            if len(stack) > 1 or not top.children or text[pos:].strip(_SPACE):
+                return None  # an element left open, no element, or text after the root
+            return top.children[0]
+        if lt > pos:  # character data
+            seg = text[pos:lt]
+            node = stack[-1]
+            if node is top:
+                if seg.strip(_SPACE):
+                    return None  # text outside the root
+            elif not node.children:
+                plain = _unescape(seg)
+                if plain is None:
+                    return None
+                node.text += plain
+            elif "&" in seg and _unescape(seg) is None:
+                return None
+        gt = find(">", lt)
+        if gt < 0:
+            return None
+        if text[lt + 1:lt + 2] == "/":  # end tag: '</name' and optional whitespace
+            name = text[lt + 2:gt].rstrip(_SPACE)
+            if len(stack) < 2 or name != stack[-1].tag:
+                return None
+            stack.pop()
+            pos = gt + 1
+            continue
+        if len(stack) == 1 and top.children:
+            return None  # a second root
+        inner = text[lt + 1:gt]
+        empty = inner.endswith("/")
+        if empty:
+            inner = inner[:-1]
+        # the name runs to the first whitespace; then ' key="value"' pairs, each after whitespace
+        cut = len(inner)
+        for c in _SPACE:
+            k = inner.find(c)
+            if 0 <= k < cut:
+                cut = k
+        name = inner[:cut]
+        if not _name_ok(name):
+            return None
+        attrib: dict[str, str] = {}
+        rest = inner[cut:]
+        while True:
+            stripped = rest.lstrip(_SPACE)
+            if not stripped:
+                break
+            if len(stripped) == len(rest):
+                return None  # no whitespace before an attribute
+            key, eq, rest = stripped.partition("=")
+            key = key.rstrip(_SPACE)
+            rest = rest.lstrip(_SPACE)
+            if not eq or not _name_ok(key) or key in attrib or not rest or rest[0] not in "\"'":
+                return None
+            close = rest.find(rest[0], 1)
+            if close < 0:
+                return None  # the value runs on (past a '>' it may hold): expat decides
+            value = None if "<" in rest[1:close] else _unescape(rest[1:close])
+            if value is None:
+                return None
+            attrib[key] = value.replace("\t", " ").replace("\n", " ")
+            rest = rest[close + 1:]
+        node = _Node(name, attrib)
+        stack[-1].children.append(node)
+        if not empty:
+            stack.append(node)
+        pos = gt + 1
+
+
+def _parse_xml(text: str, path, offset: int = _HEADER_START) -> dict:
+    """Streams described by the header XML (at byte ``offset`` of the file): ``{id: (attrs, info_attrs)}``."""
     try:
         root = _xml_tree(text)
-    except expat.ExpatError as exc:
-        raise FormatError(path, _HEADER_START, f"the header's XML is malformed ({exc})") from None
+    except _XmlError as exc:
+        raise FormatError(path, offset + exc.at, f"the header's XML is malformed ({exc.reason})") from None
 
     def attrs(node):
         out = {}
@@ -201,7 +335,7 @@ class _FileIndex:
         if s + 4 + slen > len(buf):
             raise FormatError(self.path, _HEADER_START + s, "the header's infoNode string runs past the header")
         self.header_xml = buf[s + 4 : s + 4 + slen].decode("utf-8", "replace").rstrip("\x00")
-        described = _parse_xml(self.header_xml, self.path)
+        described = _parse_xml(self.header_xml, self.path, _HEADER_START + s + 4)
         self._streams: dict[int, StreamInfo] = {}
         for sid, (attrs, info) in sorted(described.items()):
             typ = str(attrs.get("typeIdentifier", "")).strip()

@@ -527,20 +527,25 @@ class EventStreamRecording(PropheseeRecording):
         run, none = self._runner(), _NO_OUT[4:]
         state = self._initial_state()
         rows, n = [], 0
-        for b in range(self._n_blocks()):
-            start = state.copy()
-            words = self._words(b)
-            k, _, st, bad, lo, hi = run(words, state, w, h, True, t[n:], x[n:], y[n:], p[n:], *none)
-            k = int(k)
-            rows.append((start, k, 0, int(lo) if k else 0, int(hi) if k else -1))
-            n += k
-            if st != ST_OK:
-                self._stop(self._word_problem(words, st, bad, b * self._per_block()))
-                break
-        else:
-            if self._blocks is None:
-                self._blocks = rows
-                self._check_es_end(state)
-            if self._triggers is None:
-                self._triggers = Triggers.concatenate([])
+        per = self._per_block()
+        buf = bytearray(min(per, self._count))  # every block read into one buffer, the file opened once
+        room = memoryview(buf)
+        with open(self.path, "rb") as f:
+            f.seek(self._start)
+            for b in range(self._n_blocks()):
+                start = state.copy()
+                words = np.frombuffer(buf, np.uint8, f.readinto(room[:min(per, self._count - b * per)]))
+                k, _, st, bad, lo, hi = run(words, state, w, h, True, t[n:], x[n:], y[n:], p[n:], *none)
+                k = int(k)
+                rows.append((start, k, 0, int(lo) if k else 0, int(hi) if k else -1))
+                n += k
+                if st != ST_OK:
+                    self._stop(self._word_problem(words, st, bad, b * self._per_block()))
+                    break
+            else:
+                if self._blocks is None:
+                    self._blocks = rows
+                    self._check_es_end(state)
+                if self._triggers is None:
+                    self._triggers = Triggers.concatenate([])
         return Events._trusted(t[:n], x[:n], y[:n], p[:n], self._size)
