@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .._lazyjit import njit  # numba loads on the first count
+from .._lazyjit import njit, numba_ready  # numba loads on the first count, when numpy does not count
 from ..errors import EvtkError
 from ..events import Events
 from ..limits import memory_limit_bytes, require_memory
@@ -33,9 +33,10 @@ def _prefetched(chunks):
 
 
 @njit(cache=True, nogil=True)
-def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, started, first, last):
+def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, counts, total, started, first, last):
     """Add the chunk's events to every window; returns the number counted.
 
+    ``whole``: the region is the whole sensor, so every event is inside it (the reader checked).
     ``counts`` is the flat (2, windows, y1 - y0, x1 - x0) array, OFF then ON,
     not yet zeroed: a window's frames are zeroed when it is first reached
     (``started``), which also brings them into cache just before the scattered
@@ -53,7 +54,6 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
     w_px = x1 - x0
     frame = (y1 - y0) * w_px
     plane = starts.size * frame
-    full = x0 == 0 and y0 == 0
     timed = first.size > 0
     for w in range(starts.size):
         a = starts[w]
@@ -71,7 +71,7 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
                 first[base:base + frame] = -1
                 last[base:base + frame] = -1
             started[w] = True
-        if full and x1 >= 0 and y1 >= 0 and not timed:
+        if whole and not timed:
             # every event is on the sensor (the reader checked), so inside a full-sensor region
             for i in range(lo, hi):
                 counts[np.int64(p[i]) * plane + base + np.int64(y[i]) * w_px + np.int64(x[i])] += 1
@@ -90,6 +90,89 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
                     if first[k] < 0:
                         first[k] = dt
                     last[k] = dt
+    return used
+
+
+_INT32_MAX = np.iinfo(np.int32).max
+
+#: Most events a count takes in numpy while numba is not loaded: numpy costs about 12 ms more than numba a million
+#: events (with times; 6 ms without), numba's start in a fresh process about 0.6 s (docs/performance.md).
+_NUMPY_MAX_EVENTS = 20_000_000
+
+
+def _chunk_counter(events: int | None):
+    """The chunk counter for a count of about ``events`` events (None: unknown): numpy while numba is not
+    loaded and the count is small enough that numba's start would cost more than numpy's slower loop."""
+    if numba_ready() or events is None or events > _NUMPY_MAX_EVENTS:
+        return _accumulate_chunk
+    return _accumulate_chunk_numpy
+
+
+def _accumulate_chunk_numpy(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, counts, total, started, first, last):
+    """:func:`_accumulate_chunk` in numpy, window by window (the same counts, totals and times).
+
+    Each window's events are one slice of the time-sorted chunk (``searchsorted``), so a window costs a few
+    numpy calls on its own events: the region's mask, the pixel keys, one ``bincount`` of OFF and ON together,
+    and with times the least and greatest ON time of each pixel (``minimum.at``/``maximum.at``).
+    """
+    n = t.size
+    if n == 0:
+        return 0
+    w_px = x1 - x0
+    h_px = y1 - y0
+    frame = h_px * w_px
+    plane = starts.size * frame
+    timed = first.size > 0
+    live = np.flatnonzero((ends > t[0]) & (starts <= t[n - 1]))
+    if live.size == 0:
+        return 0
+    los = np.searchsorted(t, starts[live])
+    his = np.searchsorted(t, ends[live])
+    used = 0
+    for w, lo, hi in zip(live.tolist(), los.tolist(), his.tolist()):
+        total[w] += hi - lo
+        base = w * frame
+        if not started[w]:
+            counts[base:base + frame] = 0
+            counts[plane + base:plane + base + frame] = 0
+            if timed:
+                first[base:base + frame] = -1
+                last[base:base + frame] = -1
+            started[w] = True
+        if hi == lo:
+            continue
+        xi = x[lo:hi].astype(np.intp)
+        yi = y[lo:hi].astype(np.intp)
+        on = p[lo:hi] != 0
+        if x0 or y0:
+            xi -= x0
+            yi -= y0
+        sel = None
+        if not whole:
+            # uint16 coordinates less the region's corner: negative or past its far edge when outside
+            inside = (xi >= 0) & (xi < w_px) & (yi >= 0) & (yi < h_px)
+            if not inside.all():
+                sel = np.flatnonzero(inside)
+        keys = yi
+        keys *= w_px
+        keys += xi
+        if sel is not None:
+            keys, on = keys[sel], on[sel]
+        used += keys.size
+        both = np.bincount(keys + on * frame, minlength=2 * frame)
+        counts[base:base + frame] += both[:frame].astype(np.int32)
+        counts[plane + base:plane + base + frame] += both[frame:].astype(np.int32)
+        if timed and on.any():
+            ts = t[lo:hi] if sel is None else t[lo:hi][sel]
+            k_on = keys[on]
+            dt = (ts[on] - starts[w]).astype(np.int32)  # windows shorter than 2**31 us (checked by the caller)
+            f = first[base:base + frame]
+            # a pixel's first time stays from an earlier chunk; the chunk's least time where it had none
+            lo_dt = np.full(frame, _INT32_MAX, np.int32)
+            np.minimum.at(lo_dt, k_on, dt)
+            fresh = (f < 0) & (lo_dt < _INT32_MAX)
+            f[fresh] = lo_dt[fresh]
+            np.maximum.at(last[base:base + frame], k_on, dt)
     return used
 
 
@@ -237,10 +320,12 @@ def accumulate(source: Events | Any, windows: Windows, region: tuple[int, int, i
     first_flat = first.reshape(-1) if first is not None else no_times
     last_flat = last.reshape(-1) if last is not None else no_times
     period = None
+    count = _chunk_counter(len(source) if isinstance(source, Events) else _recording_events(source))
+    whole = (x0, x1, y0, y1) == (0, sensor[0], 0, sensor[1])
     for ev in chunks:
         if times and period is None:
             period = ev.stamp_period_us()
-        used += _accumulate_chunk(ev.t, ev.x, ev.y, ev.p, starts, ends, x0, x1, y0, y1, flat, total, started,
+        used += count(ev.t, ev.x, ev.y, ev.p, starts, ends, x0, x1, y0, y1, whole, flat, total, started,
                                   first_flat, last_flat)
         if total.max() > np.iinfo(np.int32).max:
             w = int(order[np.argmax(total)])
@@ -294,6 +379,13 @@ def batch_size(region: tuple[int, int, int, int], n_windows: int) -> int:
     require_memory(per_window, f"one window over {x1 - x0}x{y1 - y0} pixels")
     n = max(1, min(BATCH_BYTES, memory_limit_bytes() // 4) // per_window)
     return int(max(1, min(n, int(n_windows))))
+
+
+def _recording_events(source) -> int | None:
+    """Events an open recording holds, when its header says (None otherwise)."""
+    info = getattr(source, "info", None)
+    n = info().get("events") if callable(info) else None
+    return n if isinstance(n, int) else None
 
 
 def _checked_region(source, region) -> tuple[int, int, int, int]:
@@ -383,6 +475,9 @@ def _counted_batches(source, windows: Windows, region, nb: int, chunk_events: in
     pending = next(chunks, None)
     no_times = np.empty(0, np.int32)
     buffer = np.empty(2 * min(nb, n_w) * frame, np.int32) if reuse else None
+    count = _chunk_counter(len(source) if isinstance(source, Events) else _recording_events(source))
+    sensor = tuple(source.sensor_size)
+    whole = (x0, x1, y0, y1) == (0, sensor[0], 0, sensor[1])
     for b, i in enumerate(firsts):
         win = windows[i:i + nb]
         m = len(win)
@@ -392,7 +487,7 @@ def _counted_batches(source, windows: Windows, region, nb: int, chunk_events: in
         used = 0
         while pending is not None and pending[0] == b:
             ev = pending[1]
-            used += _accumulate_chunk(ev.t, ev.x, ev.y, ev.p, win.t_start_us, win.t_end_us, x0, x1, y0, y1, flat,
+            used += count(ev.t, ev.x, ev.y, ev.p, win.t_start_us, win.t_end_us, x0, x1, y0, y1, whole, flat,
                                       totals, started, no_times, no_times)
             if totals.max(initial=0) > np.iinfo(np.int32).max:
                 raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "
