@@ -141,37 +141,36 @@ def _accumulate_chunk_numpy(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, cou
             started[w] = True
         if hi == lo:
             continue
-        xi = x[lo:hi].astype(np.intp)
-        yi = y[lo:hi].astype(np.intp)
-        on = p[lo:hi] != 0
-        if x0 or y0:
-            xi -= x0
-            yi -= y0
+        xs, ys, ps = x[lo:hi], y[lo:hi], p[lo:hi]
         sel = None
         if not whole:
-            # uint16 coordinates less the region's corner: negative or past its far edge when outside
-            inside = (xi >= 0) & (xi < w_px) & (yi >= 0) & (yi < h_px)
+            if xs.dtype.kind != "u" or ys.dtype.kind != "u":
+                xs, ys = xs.astype(np.uint64), ys.astype(np.uint64)
+            # coordinates less the region's corner, wrapping (unsigned) past the far edge when below it
+            xs = xs - xs.dtype.type(x0)
+            ys = ys - ys.dtype.type(y0)
+            inside = xs < w_px
+            inside &= ys < h_px
             if not inside.all():
                 sel = np.flatnonzero(inside)
-        keys = yi
+                xs, ys, ps = xs[sel], ys[sel], ps[sel]
+        keys = ys.astype(np.intp)
         keys *= w_px
-        keys += xi
-        if sel is not None:
-            keys, on = keys[sel], on[sel]
+        keys += xs
         used += keys.size
-        both = np.bincount(keys + on * frame, minlength=2 * frame)
+        on = ps != 0
+        both = np.bincount(np.where(on, keys + frame, keys), minlength=2 * frame)
         counts[base:base + frame] += both[:frame].astype(np.int32)
         counts[plane + base:plane + base + frame] += both[frame:].astype(np.int32)
         if timed and on.any():
             ts = t[lo:hi] if sel is None else t[lo:hi][sel]
             k_on = keys[on]
             dt = (ts[on] - starts[w]).astype(np.int32)  # windows shorter than 2**31 us (checked by the caller)
+            # the least time of each pixel: an earlier chunk's stays (times are sorted), none (-1) counts as the most
             f = first[base:base + frame]
-            # a pixel's first time stays from an earlier chunk; the chunk's least time where it had none
-            lo_dt = np.full(frame, _INT32_MAX, np.int32)
-            np.minimum.at(lo_dt, k_on, dt)
-            fresh = (f < 0) & (lo_dt < _INT32_MAX)
-            f[fresh] = lo_dt[fresh]
+            f[f < 0] = _INT32_MAX
+            np.minimum.at(f, k_on, dt)
+            f[f == _INT32_MAX] = -1  # (dt < 2**31 - 1: windows shorter than 2**31 us)
             np.maximum.at(last[base:base + frame], k_on, dt)
     return used
 
