@@ -89,11 +89,12 @@ def test_accumulate_same_through_both_counters(monkeypatch, times):
 
 def test_counter_choice(monkeypatch):
     monkeypatch.setattr(A, "numba_ready", lambda: False)
-    assert A._chunk_counter(1000) is A._accumulate_chunk_numpy
-    assert A._chunk_counter(A._NUMPY_MAX_EVENTS + 1) is A._accumulate_chunk
-    assert A._chunk_counter(None) is A._accumulate_chunk
+    assert A._chunk_counter(1000, 5000) is A._accumulate_chunk_numpy
+    assert A._chunk_counter(A._NUMPY_MAX_EVENTS + 1, 0) is A._accumulate_chunk
+    assert A._chunk_counter(1000, 5 * A._NUMPY_MAX_EVENTS) is A._accumulate_chunk  # many windows' pixels
+    assert A._chunk_counter(None, 0) is A._accumulate_chunk
     monkeypatch.setattr(A, "numba_ready", lambda: True)
-    assert A._chunk_counter(1000) is A._accumulate_chunk
+    assert A._chunk_counter(1000, 5000) is A._accumulate_chunk
 
 
 @pytest.mark.parametrize("limit", [10**9, -1])

@@ -95,15 +95,17 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, counts, t
 
 _INT32_MAX = np.iinfo(np.int32).max
 
-#: Most events a count takes in numpy while numba is not loaded: numpy costs about 12 ms more than numba a million
-#: events (with times; 6 ms without), numba's start in a fresh process about 0.6 s (docs/performance.md).
+#: Most work a count takes in numpy while numba is not loaded, in events (a window's pixel costs a fifth of one):
+#: numpy costs about 12 ns an event more than numba (with times; 6 without) and 2-2.5 ns a window's pixel (zeroed
+#: and added once per window), numba's start in a fresh process 0.4-0.6 s (docs/performance.md).
 _NUMPY_MAX_EVENTS = 20_000_000
 
 
-def _chunk_counter(events: int | None):
-    """The chunk counter for a count of about ``events`` events (None: unknown): numpy while numba is not
-    loaded and the count is small enough that numba's start would cost more than numpy's slower loop."""
-    if numba_ready() or events is None or events > _NUMPY_MAX_EVENTS:
+def _chunk_counter(events: int | None, window_pixels: int):
+    """The chunk counter for a count of about ``events`` events (None: unknown) into ``window_pixels`` pixels of
+    all windows: numpy while numba is not loaded and the count is small enough that numba's start would cost
+    more than numpy's slower loop."""
+    if numba_ready() or events is None or events + window_pixels // 5 > _NUMPY_MAX_EVENTS:
         return _accumulate_chunk
     return _accumulate_chunk_numpy
 
@@ -319,7 +321,7 @@ def accumulate(source: Events | Any, windows: Windows, region: tuple[int, int, i
     first_flat = first.reshape(-1) if first is not None else no_times
     last_flat = last.reshape(-1) if last is not None else no_times
     period = None
-    count = _chunk_counter(len(source) if isinstance(source, Events) else _recording_events(source))
+    count = _chunk_counter(len(source) if isinstance(source, Events) else _recording_events(source), flat.size // 2)
     whole = (x0, x1, y0, y1) == (0, sensor[0], 0, sensor[1])
     for ev in chunks:
         if times and period is None:
@@ -474,7 +476,7 @@ def _counted_batches(source, windows: Windows, region, nb: int, chunk_events: in
     pending = next(chunks, None)
     no_times = np.empty(0, np.int32)
     buffer = np.empty(2 * min(nb, n_w) * frame, np.int32) if reuse else None
-    count = _chunk_counter(len(source) if isinstance(source, Events) else _recording_events(source))
+    count = _chunk_counter(len(source) if isinstance(source, Events) else _recording_events(source), n_w * frame)
     sensor = tuple(source.sensor_size)
     whole = (x0, x1, y0, y1) == (0, sensor[0], 0, sensor[1])
     for b, i in enumerate(firsts):
