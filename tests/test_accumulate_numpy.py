@@ -76,6 +76,7 @@ def test_accumulate_same_through_both_counters(monkeypatch, times):
     out = {}
     for name, limit in (("numpy", 10**9), ("numba", -1)):
         monkeypatch.setattr(A, "_NUMPY_MAX_EVENTS", limit)
+        monkeypatch.setattr(A, "_numpy_work", 0)
         monkeypatch.setattr(A, "numba_ready", lambda: False)
         c = accumulate(ev, win, (2, 17, 1, 9), times=times)
         out[name] = (c.on, c.off, c.on_first_us, c.on_last_us, c.events_used)
@@ -89,10 +90,17 @@ def test_accumulate_same_through_both_counters(monkeypatch, times):
 
 def test_counter_choice(monkeypatch):
     monkeypatch.setattr(A, "numba_ready", lambda: False)
+    monkeypatch.setattr(A, "_numpy_work", 0)
     assert A._chunk_counter(1000, 5000) is A._accumulate_chunk_numpy
     assert A._chunk_counter(A._NUMPY_MAX_EVENTS + 1, 0) is A._accumulate_chunk
     assert A._chunk_counter(1000, 5 * A._NUMPY_MAX_EVENTS) is A._accumulate_chunk  # many windows' pixels
     assert A._chunk_counter(None, 0) is A._accumulate_chunk
+    # numpy's work adds up in a process: past the limit, numba's start costs less than more numpy
+    monkeypatch.setattr(A, "_numpy_work", 0)
+    half = A._NUMPY_MAX_EVENTS // 2
+    assert A._chunk_counter(half, 0) is A._accumulate_chunk_numpy
+    assert A._chunk_counter(half, 0) is A._accumulate_chunk_numpy
+    assert A._chunk_counter(half, 0) is A._accumulate_chunk
     monkeypatch.setattr(A, "numba_ready", lambda: True)
     assert A._chunk_counter(1000, 5000) is A._accumulate_chunk
 
@@ -102,6 +110,7 @@ def test_region_at_the_corner_leaves_out_events_beyond_it(monkeypatch, limit):
     # a region from (0, 0) smaller than the sensor: the old kernel took it for the whole sensor and counted the
     # events beyond it at wrong pixels (or past the end of the counts)
     monkeypatch.setattr(A, "_NUMPY_MAX_EVENTS", limit)
+    monkeypatch.setattr(A, "_numpy_work", 0)
     monkeypatch.setattr(A, "numba_ready", lambda: False)
     ev = Events([1, 2, 3, 4], [5, 1, 0, 7], [0, 0, 1, 3], [1, 1, 1, 0], (8, 4))
     c = accumulate(ev, Windows([0], [10], [0], "one"), (0, 2, 0, 2))

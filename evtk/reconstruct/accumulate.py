@@ -95,18 +95,27 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, counts, t
 
 _INT32_MAX = np.iinfo(np.int32).max
 
-#: Most work a count takes in numpy while numba is not loaded, in events (a window's pixel costs a fifth of one):
+#: Most work counted in numpy in a process while numba is not loaded, in events (a window's pixel costs a fifth of one):
 #: numpy costs about 12 ns an event more than numba (with times; 6 without) and 2-2.5 ns a window's pixel (zeroed
 #: and added once per window), numba's start in a fresh process 0.4-0.6 s (docs/performance.md).
 _NUMPY_MAX_EVENTS = 20_000_000
 
 
+#: Work counted in numpy in this process so far (as in :data:`_NUMPY_MAX_EVENTS`).
+_numpy_work = 0
+
+
 def _chunk_counter(events: int | None, window_pixels: int):
     """The chunk counter for a count of about ``events`` events (None: unknown) into ``window_pixels`` pixels of
-    all windows: numpy while numba is not loaded and the count is small enough that numba's start would cost
-    more than numpy's slower loop."""
-    if numba_ready() or events is None or events + window_pixels // 5 > _NUMPY_MAX_EVENTS:
+    all windows: numpy while numba is not loaded and this count, with those counted in numpy before it in this
+    process, is small enough that numba's start would cost more than numpy's slower loop."""
+    global _numpy_work
+    if numba_ready() or events is None:
         return _accumulate_chunk
+    work = events + window_pixels // 5
+    if _numpy_work + work > _NUMPY_MAX_EVENTS:
+        return _accumulate_chunk
+    _numpy_work += work
     return _accumulate_chunk_numpy
 
 
