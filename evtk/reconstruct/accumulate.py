@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .._lazyjit import njit  # numba loads on the first count
+from .._lazyjit import njit, numba_ready  # numba loads on the first count, when numpy does not count
 from ..errors import EvtkError
 from ..events import Events
 from ..limits import memory_limit_bytes, require_memory
@@ -33,9 +33,10 @@ def _prefetched(chunks):
 
 
 @njit(cache=True, nogil=True)
-def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, started, first, last):
+def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, counts, total, started, first, last):
     """Add the chunk's events to every window; returns the number counted.
 
+    ``whole``: the region is the whole sensor, so every event is inside it (the reader checked).
     ``counts`` is the flat (2, windows, y1 - y0, x1 - x0) array, OFF then ON,
     not yet zeroed: a window's frames are zeroed when it is first reached
     (``started``), which also brings them into cache just before the scattered
@@ -53,7 +54,6 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
     w_px = x1 - x0
     frame = (y1 - y0) * w_px
     plane = starts.size * frame
-    full = x0 == 0 and y0 == 0
     timed = first.size > 0
     for w in range(starts.size):
         a = starts[w]
@@ -71,7 +71,7 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
                 first[base:base + frame] = -1
                 last[base:base + frame] = -1
             started[w] = True
-        if full and x1 >= 0 and y1 >= 0 and not timed:
+        if whole and not timed:
             # every event is on the sensor (the reader checked), so inside a full-sensor region
             for i in range(lo, hi):
                 counts[np.int64(p[i]) * plane + base + np.int64(y[i]) * w_px + np.int64(x[i])] += 1
@@ -90,6 +90,99 @@ def _accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, s
                     if first[k] < 0:
                         first[k] = dt
                     last[k] = dt
+    return used
+
+
+_INT32_MAX = np.iinfo(np.int32).max
+
+#: Most work counted in numpy in a process while numba is not loaded, in events (a window's pixel costs a fifth of one):
+#: numpy costs about 12 ns an event more than numba (with times; 6 without) and 2-2.5 ns a window's pixel (zeroed
+#: and added once per window), numba's start in a fresh process 0.4-0.6 s (docs/performance.md).
+_NUMPY_MAX_EVENTS = 20_000_000
+
+
+#: Work counted in numpy in this process so far (as in :data:`_NUMPY_MAX_EVENTS`).
+_numpy_work = 0
+
+
+def _chunk_counter(events: int | None, window_pixels: int):
+    """The chunk counter for a count of about ``events`` events (None: unknown) into ``window_pixels`` pixels of
+    all windows: numpy while numba is not loaded and this count, with those counted in numpy before it in this
+    process, is small enough that numba's start would cost more than numpy's slower loop."""
+    global _numpy_work
+    if numba_ready() or events is None:
+        return _accumulate_chunk
+    work = events + window_pixels // 5
+    if _numpy_work + work > _NUMPY_MAX_EVENTS:
+        return _accumulate_chunk
+    _numpy_work += work
+    return _accumulate_chunk_numpy
+
+
+def _accumulate_chunk_numpy(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, counts, total, started, first, last):
+    """:func:`_accumulate_chunk` in numpy, window by window (the same counts, totals and times).
+
+    Each window's events are one slice of the time-sorted chunk (``searchsorted``), so a window costs a few
+    numpy calls on its own events: the region's mask, the pixel keys, one ``bincount`` of OFF and ON together,
+    and with times the least and greatest ON time of each pixel (``minimum.at``/``maximum.at``).
+    """
+    n = t.size
+    if n == 0:
+        return 0
+    w_px = x1 - x0
+    h_px = y1 - y0
+    frame = h_px * w_px
+    plane = starts.size * frame
+    timed = first.size > 0
+    live = np.flatnonzero((ends > t[0]) & (starts <= t[n - 1]))
+    if live.size == 0:
+        return 0
+    los = np.searchsorted(t, starts[live])
+    his = np.searchsorted(t, ends[live])
+    used = 0
+    for w, lo, hi in zip(live.tolist(), los.tolist(), his.tolist()):
+        total[w] += hi - lo
+        base = w * frame
+        if not started[w]:
+            counts[base:base + frame] = 0
+            counts[plane + base:plane + base + frame] = 0
+            if timed:
+                first[base:base + frame] = -1
+                last[base:base + frame] = -1
+            started[w] = True
+        if hi == lo:
+            continue
+        xs, ys, ps = x[lo:hi], y[lo:hi], p[lo:hi]
+        sel = None
+        if not whole:
+            if xs.dtype.kind != "u" or ys.dtype.kind != "u":
+                xs, ys = xs.astype(np.uint64), ys.astype(np.uint64)
+            # coordinates less the region's corner, wrapping (unsigned) past the far edge when below it
+            xs = xs - xs.dtype.type(x0)
+            ys = ys - ys.dtype.type(y0)
+            inside = xs < w_px
+            inside &= ys < h_px
+            if not inside.all():
+                sel = np.flatnonzero(inside)
+                xs, ys, ps = xs[sel], ys[sel], ps[sel]
+        keys = ys.astype(np.intp)
+        keys *= w_px
+        keys += xs
+        used += keys.size
+        on = ps != 0
+        both = np.bincount(np.where(on, keys + frame, keys), minlength=2 * frame)
+        counts[base:base + frame] += both[:frame].astype(np.int32)
+        counts[plane + base:plane + base + frame] += both[frame:].astype(np.int32)
+        if timed and on.any():
+            ts = t[lo:hi] if sel is None else t[lo:hi][sel]
+            k_on = keys[on]
+            dt = (ts[on] - starts[w]).astype(np.int32)  # windows shorter than 2**31 us (checked by the caller)
+            # the least time of each pixel: an earlier chunk's stays (times are sorted), none (-1) counts as the most
+            f = first[base:base + frame]
+            f[f < 0] = _INT32_MAX
+            np.minimum.at(f, k_on, dt)
+            f[f == _INT32_MAX] = -1  # (dt < 2**31 - 1: windows shorter than 2**31 us)
+            np.maximum.at(last[base:base + frame], k_on, dt)
     return used
 
 
@@ -237,10 +330,12 @@ def accumulate(source: Events | Any, windows: Windows, region: tuple[int, int, i
     first_flat = first.reshape(-1) if first is not None else no_times
     last_flat = last.reshape(-1) if last is not None else no_times
     period = None
+    count = _chunk_counter(len(source) if isinstance(source, Events) else _recording_events(source), flat.size // 2)
+    whole = (x0, x1, y0, y1) == (0, sensor[0], 0, sensor[1])
     for ev in chunks:
         if times and period is None:
             period = ev.stamp_period_us()
-        used += _accumulate_chunk(ev.t, ev.x, ev.y, ev.p, starts, ends, x0, x1, y0, y1, flat, total, started,
+        used += count(ev.t, ev.x, ev.y, ev.p, starts, ends, x0, x1, y0, y1, whole, flat, total, started,
                                   first_flat, last_flat)
         if total.max() > np.iinfo(np.int32).max:
             w = int(order[np.argmax(total)])
@@ -294,6 +389,13 @@ def batch_size(region: tuple[int, int, int, int], n_windows: int) -> int:
     require_memory(per_window, f"one window over {x1 - x0}x{y1 - y0} pixels")
     n = max(1, min(BATCH_BYTES, memory_limit_bytes() // 4) // per_window)
     return int(max(1, min(n, int(n_windows))))
+
+
+def _recording_events(source) -> int | None:
+    """Events an open recording holds, when its header says (None otherwise)."""
+    info = getattr(source, "info", None)
+    n = info().get("events") if callable(info) else None
+    return n if isinstance(n, int) else None
 
 
 def _checked_region(source, region) -> tuple[int, int, int, int]:
@@ -383,6 +485,9 @@ def _counted_batches(source, windows: Windows, region, nb: int, chunk_events: in
     pending = next(chunks, None)
     no_times = np.empty(0, np.int32)
     buffer = np.empty(2 * min(nb, n_w) * frame, np.int32) if reuse else None
+    count = _chunk_counter(len(source) if isinstance(source, Events) else _recording_events(source), n_w * frame)
+    sensor = tuple(source.sensor_size)
+    whole = (x0, x1, y0, y1) == (0, sensor[0], 0, sensor[1])
     for b, i in enumerate(firsts):
         win = windows[i:i + nb]
         m = len(win)
@@ -392,7 +497,7 @@ def _counted_batches(source, windows: Windows, region, nb: int, chunk_events: in
         used = 0
         while pending is not None and pending[0] == b:
             ev = pending[1]
-            used += _accumulate_chunk(ev.t, ev.x, ev.y, ev.p, win.t_start_us, win.t_end_us, x0, x1, y0, y1, flat,
+            used += count(ev.t, ev.x, ev.y, ev.p, win.t_start_us, win.t_end_us, x0, x1, y0, y1, whole, flat,
                                       totals, started, no_times, no_times)
             if totals.max(initial=0) > np.iinfo(np.int32).max:
                 raise EvtkError(f"window {i + int(np.argmax(totals))} holds more than 2**31 - 1 events: its int32 "

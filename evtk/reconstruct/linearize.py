@@ -8,10 +8,10 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from .._lazyjit import njit, numba_ready
 from .._parallel import run
 from .._threads import workers
 from ..errors import EvtkError
@@ -93,7 +93,9 @@ def _count_table(on, off, theta_on, theta_off):
         return None
     on_flat = np.ascontiguousarray(on).reshape(-1)
     off_flat = np.ascontiguousarray(off).reshape(-1)
-    lo, hi_on, hi_off = (int(v) for v in _count_extent(on_flat, off_flat))
+    jit = numba_ready()  # numpy until something has paid numba's start (a few ms more a million counts)
+    extent, look_up = (_count_extent_jit, _look_up_jit) if jit else (_count_extent, _look_up)
+    lo, hi_on, hi_off = (int(v) for v in extent(on_flat, off_flat))
     if lo < 0 or (hi_on + 1) * (hi_off + 1) > _TABLE_MAX:
         return None
     rise = np.arange(hi_on + 1.0)[:, None] * float(theta_on) - np.arange(hi_off + 1.0)[None, :] * float(theta_off)
@@ -101,12 +103,27 @@ def _count_table(on, off, theta_on, theta_off):
         raise EvtkError("counts imply an intensity rise beyond exp(700): not a linearisable response")
     out = np.empty(on.shape, np.float64)
     flat, table, stride = out.reshape(-1), np.expm1(rise).ravel(), hi_off + 1
-    _on_threads(lambda a, b: _look_up(on_flat[a:b], off_flat[a:b], table, stride, flat[a:b]), on_flat.size, 1 << 16)
+    _on_threads(lambda a, b: look_up(on_flat[a:b], off_flat[a:b], table, stride, flat[a:b]), on_flat.size, 1 << 16)
     return out
 
 
-@numba.njit(cache=True)
-def _count_extent(on, off):
+def _count_extent(on: np.ndarray, off: np.ndarray) -> tuple[int, int, int]:
+    """The least count of both (0 when none is negative), the greatest ON count and the greatest OFF count."""
+    lo = min(0, int(on.min(initial=0)), int(off.min(initial=0)))
+    return lo, max(0, int(on.max(initial=0))), max(0, int(off.max(initial=0)))
+
+
+def _look_up(on: np.ndarray, off: np.ndarray, table: np.ndarray, stride: int, out: np.ndarray) -> None:
+    """``out = table[on * stride + off]`` (numpy releases the GIL for each step, so blocks run on threads)."""
+    key = on.astype(np.intp)
+    key *= stride
+    key += off
+    np.take(table, key, out=out)
+
+
+@njit(cache=True)
+def _count_extent_jit(on, off):
+    """:func:`_count_extent` in one pass (numba)."""
     lo = 0
     hi_on = 0
     hi_off = 0
@@ -119,8 +136,9 @@ def _count_extent(on, off):
     return lo, hi_on, hi_off
 
 
-@numba.njit(cache=True, nogil=True)
-def _look_up(on, off, table, stride, out):
+@njit(cache=True, nogil=True)
+def _look_up_jit(on, off, table, stride, out):
+    """:func:`_look_up` without the keys' array (numba)."""
     for i in range(on.size):
         out[i] = table[on[i] * stride + off[i]]
 
@@ -254,7 +272,7 @@ def _on_threads(kernel: Callable[[int, int], object], rows: int, least_rows: int
     (:func:`evtk._threads.workers`: ``--threads`` / ``EVTK_THREADS``, else the cores this process may use), at
     least ``least_rows`` rows a block; the calling thread takes the first block.
 
-    ``kernel`` is a numba function compiled with ``nogil=True`` (or numpy work that releases the GIL) that writes
+    ``kernel`` is numpy work that releases the GIL (or a numba function compiled with ``nogil=True``) that writes
     each row independently, so the result does not depend on the number of threads. Plain Python threads, not
     numba's parallel loops: no threading layer to start in a fresh process, and no worker threads left spinning
     after the loop while the next stage (or the reader's threads) wants the cores.
