@@ -226,8 +226,7 @@ def _count_curve(key):
     lit = (starts >= z) & (starts < z + w)
     lvl = np.where(lit[:, None], np.log(blank) + u[None, :], np.log(blank))
     slot = np.where((starts >= a) & (ends <= b), 0, -1)
-    st = PixelState(lvl[0], 0.0, np.full(u.size, sm.theta_on), np.full(u.size, sm.theta_off),
-                    np.random.default_rng(0))
+    st = PixelState(lvl[0], 0.0, np.full(u.size, sm.theta_on), np.full(u.size, sm.theta_off))
     _, _, _, on, off = simulate_pixels(st, lvl, time_constant_us(np.exp(lvl), sm), log_noise_std(np.exp(lvl), sm),
                                        starts, ends, sm, 0, emit=False, count_slot=slot, n_slots=1)
     counts = np.maximum.accumulate(on[0] - off[0])
