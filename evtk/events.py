@@ -410,7 +410,9 @@ class Events:
         if t.size < 64:
             return None
         d = np.diff(t)
-        u = t[np.r_[True, d > 0]] if np.all(d >= 0) else np.unique(t)  # sorted stamps: distinct in one pass
+        from ._arrays import distinct
+
+        u = t[np.r_[True, d > 0]] if np.all(d >= 0) else distinct(t)  # sorted stamps: distinct in one pass
         if u.size < 64:
             return None
         gaps = np.diff(u)
@@ -613,7 +615,9 @@ class Triggers:
     @property
     def channels(self) -> list[int]:
         """The channels the triggers came from, in increasing order."""
-        return [int(c) for c in np.unique(self.channel)]
+        from ._arrays import distinct  # (here: the read path loads no more modules)
+
+        return [int(c) for c in distinct(self.channel)]
 
     def of_channel(self, channel: int | None = None) -> Triggers:
         """The triggers of one input channel, so that windows come from one signal.

@@ -32,8 +32,8 @@ class _Rec:
     def events(self, a, b):
         return self._rows(*np.searchsorted(self.t, [a, b]))
 
-    def iter_events(self, chunk_events, a, b):
-        i, j = np.searchsorted(self.t, [a, b])
+    def iter_events(self, chunk_events, a=None, b=None):
+        i, j = np.searchsorted(self.t, [-2**62 if a is None else a, 2**62 if b is None else b])
         for k in range(i, j, chunk_events):
             yield self._rows(k, min(j, k + chunk_events))
 
@@ -60,7 +60,8 @@ def test_the_probe_answers_as_the_full_test(period, jitter_every, n, seed):
 
 def test_an_asynchronous_camera_is_told_from_its_first_events():
     """Before, every window's events were read whole (two bright flat fields: most of a second of events); now
-    the first chunk shows stamps 1 us apart and the rest is not read."""
+    the first chunk shows stamps 1 us apart and the rest is not read. The probe reads from the start without a
+    window (no packet-span scan); events before and between the windows count for nothing."""
     t = np.arange(200_000) // 3  # three events a microsecond
     rec = _Rec(t, np.arange(t.size) % 32)
     on, off = np.array([0, 40_000]), np.array([40_000, 70_000])
@@ -89,3 +90,17 @@ def test_a_frame_grid_is_still_named(period, off_grid):
     want = None if off_grid else float(period)
     assert _full(_Rec(t, pix), on, off) == want
     assert bench.synchronous_readout(_Rec(t, pix), on, off) == want
+
+
+def test_stamps_outside_the_windows_do_not_rule_a_grid_out():
+    """The probe reads from the recording's start: events before and between the windows (off the grid here)
+    must count for nothing, or a synchronous readout would pass for an asynchronous one."""
+    period = 150
+    frames = np.repeat(np.arange(40), 32)
+    t_grid = 30_000 + frames * period  # the window [30000, 36000)
+    noise = np.array([5, 17, 29_999, 36_001, 36_007])  # off the grid, outside it
+    t = np.concatenate([t_grid, noise])
+    pix = np.concatenate([np.tile(np.arange(32), 40), np.arange(noise.size)])
+    on, off = np.array([30_000]), np.array([36_000])
+    assert _full(_Rec(t, pix), on, off) == float(period)
+    assert bench.synchronous_readout(_Rec(t, pix), on, off) == float(period)

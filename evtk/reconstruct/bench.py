@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from .._arrays import distinct
 from ..errors import EvtkError
 from ..events import Triggers
 from ..optics import response_origin_px
@@ -100,7 +101,7 @@ def match_windows(triggers: Triggers, schedule: Schedule, tolerance_us: float | 
     # a schedule of equal periods lines up almost as well one capture off: the most matches win, then the
     # smallest total distance (a constant clock offset lines every start up to the microsecond)
     k = min(8, len(win), len(t_on))
-    candidates = np.unique((win.t_start_us[:k, None] - sorted_on[None, :k]).ravel())
+    candidates = distinct(win.t_start_us[:k, None] - sorted_on[None, :k])
     # every candidate's matching at once; then, as one at a time did, the first of the most matches with the least
     # total distance
     _, ok_all, dist_all = assign(candidates[:, None])
@@ -276,7 +277,7 @@ def synchronous_readout(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLik
     if steps.size and steps.min() >= 0:  # windows in time order: the distinct stamps' steps are the rises
         steps = steps[steps > 0]
     else:
-        steps = np.diff(np.unique(t))
+        steps = np.diff(distinct(t))
     if steps.size + 1 < 16:  # a few windows of a few frames each: the grid's step is the stamps' common divisor
         return None
     period = int(np.gcd.reduce(steps))
@@ -292,31 +293,45 @@ def synchronous_readout(rec: Any, t_on_us: npt.ArrayLike, t_off_us: npt.ArrayLik
     return float(period) if doubled <= 1e-4 * t.size and runs >= SYNC_MIN_RUNS else None
 
 
-#: Events a chunk of :func:`_asynchronous_early`'s probe holds.
+#: Events a chunk of :func:`_asynchronous_early`'s probe holds, and most events it reads.
 SYNC_PROBE_EVENTS = 1 << 14
+SYNC_PROBE_MAX_EVENTS = 1 << 18
 
 
 def _asynchronous_early(rec: Any, bounds: list) -> bool:
-    """Whether the first events of the windows ``bounds`` already rule a frame grid out, read a chunk at a time.
+    """Whether the first events that fall in the windows ``bounds`` already rule a frame grid out.
 
     The grid :func:`synchronous_readout` looks for is the greatest common divisor of the differences between all
     its stamps; that of a subset is a multiple of the whole set's. So once the stamps read so far have a divisor
     of at most :data:`~evtk.reconstruct.pipeline.MAX_TIMING_STAMP_US`, the whole set's is too and the answer is
     None, as the full test would find: an asynchronous camera shows it within its first events, and the rest of
-    the windows need not be read.
+    the windows need not be read. The recording is read from its start, a chunk at a time, keeping the stamps
+    inside a window, for at most :data:`SYNC_PROBE_MAX_EVENTS` events or until past the last window: a
+    recording that can read one window alone (AEDAT4) would first scan every packet's times for it, which costs
+    a fresh process more than the whole test.
     """
-    t0 = None
+    if not bounds:
+        return False
+    lo = np.array([a for a, _ in bounds], np.int64)
+    hi = np.array([b for _, b in bounds], np.int64)
+    order = np.argsort(lo, kind="stable")
+    lo, reach = lo[order], np.maximum.accumulate(hi[order])  # a stamp is in a window if below the reach of
+    t0 = None                                                # the windows starting at or before it
     g = 0
-    for a, b in bounds:
-        for chunk in rec.iter_events(SYNC_PROBE_EVENTS, int(a), int(b)):
-            if not chunk.t.size:
-                continue
-            t = chunk.t.astype(np.int64, copy=False)
+    read = 0
+    for chunk in rec.iter_events(SYNC_PROBE_EVENTS):
+        t = chunk.t.astype(np.int64, copy=False)
+        k = np.searchsorted(lo, t, side="right") - 1
+        t = t[(k >= 0) & (t < reach[np.maximum(k, 0)])]
+        if t.size:
             if t0 is None:
                 t0 = int(t[0])
             g = int(np.gcd.reduce(np.abs(t - t0), initial=g))
             if 0 < g <= MAX_TIMING_STAMP_US:
                 return True
+        read += chunk.t.size
+        if read >= SYNC_PROBE_MAX_EVENTS or (chunk.t.size and int(chunk.t[-1]) >= int(reach[-1])):
+            return False
     return False
 
 

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from .._arrays import median
 from ..errors import EvtkError
 from ..optics import response_origin_px, response_region
 from ..optics.camera import CellMap
@@ -329,7 +330,7 @@ def held_out_table_error(level_light: npt.ArrayLike, level_counts: npt.ArrayLike
         except EvtkError:
             return None
         errs.append(abs(np.log(read / light[j])) if read > 0 and light[j] > 0 else np.inf)
-    return float(np.median(errs))
+    return median(errs)
 
 
 #: How long before the trigger edges the pixel model's statistics are first counted (µs): a light that comes a

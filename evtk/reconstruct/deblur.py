@@ -34,6 +34,7 @@ import numpy as np
 import numpy.typing as npt
 from numpy.linalg import LinAlgError
 
+from .._arrays import median
 from .._blas import one_blas_thread
 from ..errors import EvtkError
 from ..optics import Bench, shadow_magnification
@@ -212,7 +213,7 @@ def relative_noise(values: np.ndarray, level_light: np.ndarray, is_level: npt.Ar
         mean = 0.5 * (np.mean(values[a][inner]) + np.mean(values[b][inner]))
         if mean > 0:
             shares.append(float(np.std(values[a][inner] - values[b][inner]) / math.sqrt(2.0) / mean))
-    return float(np.median(shares)) if shares else None
+    return median(shares) if shares else None
 
 
 #: Most cells a sampling matrix may have for its products and solves to run dense in numpy (below, scipy's sparse
