@@ -1,0 +1,37 @@
+"""The ``evtk`` command loads the module of the command it runs, not every command's (issue 32: a fresh process's
+start-up), and its table of which module registers which command stays complete."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import evtk
+from evtk.cli import COMMAND_MODULES, main
+
+
+def test_every_command_is_in_the_table_under_its_module():
+    commands = dict(main.commands.items())  # lists them: every module loads
+    assert sorted(commands) == sorted(COMMAND_MODULES)
+    for name, cmd in commands.items():
+        assert cmd.callback is not None and cmd.callback.__module__ == f"evtk.cli.{COMMAND_MODULES[name]}", name
+
+
+def test_a_command_loads_its_own_module_only():
+    code = ("import sys\nfrom evtk.cli import main\n"
+            "try:\n    main(['reconstruct', '--help'])\nexcept SystemExit as exc:\n    assert not exc.code\n"
+            "print('LOADED', sorted(m for m in sys.modules if m.startswith('evtk.cli.')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={"PYTHONPATH": str(Path(evtk.__file__).parents[1]), "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split("LOADED", 1)[1].strip() == "['evtk.cli._base', 'evtk.cli.reconstruct']"
+
+
+def test_the_help_lists_every_command_and_an_unknown_one_is_refused():
+    from click.testing import CliRunner
+
+    res = CliRunner().invoke(main, ["--help"])
+    assert res.exit_code == 0 and all(f"  {name} " in res.output for name in COMMAND_MODULES)
+    res = CliRunner().invoke(main, ["reconstrct"])
+    assert res.exit_code != 0 and "No such command" in res.output
