@@ -316,6 +316,33 @@ def test_iter_events_meeting_decodes_only_the_packets_that_meet_a_window(tmp_pat
             next(rec.iter_events_meeting(a, b[:-1]))
 
 
+@pytest.mark.parametrize("chunk_events", [1_000_000, 5_000, 777])
+def test_a_full_read_of_the_meeting_packets_learns_their_spans(tmp_path, chunk_events):
+    """The first iter_events_meeting of an open recording reads every packet (no spans known, and scanning them
+    costs a fresh process more than it saves); it now keeps each packet's earliest and latest stamp from what it
+    decoded, the same spans a windowed read's scan finds, so that the next call skips packets without a scan.
+    Chunks smaller than a packet split packets across chunks."""
+    path, ev, a, b = _gappy_recording(tmp_path)
+    with evtk.open(path) as scanned:
+        scanned.events(int(a[0]), int(b[0]))  # the scan
+        (want,) = scanned._spans.values()
+    with evtk.open(path) as rec:
+        assert sum(len(c) for c in rec.iter_events_meeting(a, b, chunk_events=chunk_events)) == len(ev)
+        (got,) = rec._spans.values()
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+        second = evtk.Events.concatenate(list(rec.iter_events_meeting(a, b, chunk_events=chunk_events)))
+        assert len(second) < 0.8 * len(ev)
+        keep, kept = np.zeros(len(ev), bool), np.zeros(len(second), bool)
+        for x, y in zip(a, b):
+            keep |= (ev.t >= x) & (ev.t < y)
+            kept |= (second.t >= x) & (second.t < y)
+        for col in ("t", "x", "y", "p"):  # every window's events, in order
+            assert np.array_equal(getattr(second, col)[kept], getattr(ev, col)[keep])
+    with evtk.open(path) as rec:  # a read given up before its end learns nothing
+        next(rec.iter_events_meeting(a, b, chunk_events=777))
+        assert rec._spans == {}
+
+
 def test_accumulate_over_windows_with_gaps_counts_as_the_events_in_memory(tmp_path):
     """accumulate on a recording whose packet spans are known decodes only the packets meeting a window; the
     counts and event times are those of the events in memory."""

@@ -281,14 +281,53 @@ class Recording(_FileIndex, BaseRecording):
                                                                       np.iinfo(np.int64).min)
             else:
                 lo, hi = self._event_spans(s, rows)
-            spans = self._spans[s.id] = (lo, hi)
-            idx = self._index
-            table = (idx.t0[rows], idx.t1[rows])
-            read = lo <= hi
-            if np.any(read & ((table[0] != lo) | (table[1] != hi))):
-                self._warn_once("the data table's packet times disagree with the packets or are out of order; "
-                                "windows go by the times the packets hold", s.name)
+            spans = self._keep_spans(s, rows, lo, hi)
         return spans
+
+    def _keep_spans(self, s, rows, lo, hi):
+        """Keep each packet's earliest and latest stamp (``lo``, ``hi``: int64 per row of ``rows``, all of
+        stream ``s``'s packets; ``lo > hi`` for an empty one) for the windows to come, warning once where the
+        data table's times differ from them. Returns ``(lo, hi)``."""
+        spans = self._spans[s.id] = (lo, hi)
+        idx = self._index
+        table = (idx.t0[rows], idx.t1[rows])
+        read = lo <= hi
+        if np.any(read & ((table[0] != lo) | (table[1] != hi))):
+            self._warn_once("the data table's packet times disagree with the packets or are out of order; "
+                            "windows go by the times the packets hold", s.name)
+        return spans
+
+    def _learning_spans(self, s, rows, counts, chunks):
+        """Pass the chunks of a read of all of stream ``s``'s packets (``rows``, ``counts`` events each, decoded
+        whole and in order: :meth:`_chunks_from_table`'s) through, taking each packet's earliest and latest stamp
+        from them; once the read has gone through every packet, keep them (:meth:`_keep_spans`) as the windowed
+        reads' scan would have, so that later windowed reads of this open recording skip packets without that
+        scan. Returns what ``chunks`` returns."""
+        cum = np.zeros(len(rows) + 1, np.int64)
+        np.cumsum(counts, out=cum[1:])
+        lo = np.full(len(rows), np.iinfo(np.int64).max)
+        hi = np.full(len(rows), np.iinfo(np.int64).min)
+        pos = 0
+        while True:
+            try:
+                ev = next(chunks)
+            except StopIteration as stop:
+                result = stop.value
+                break
+            n = len(ev)
+            a = int(np.searchsorted(cum, pos, side="right")) - 1  # the packets this chunk's events belong to
+            b = int(np.searchsorted(cum, pos + n, side="left"))
+            seg = np.clip(cum[a:b + 1], pos, pos + n) - pos
+            full = np.flatnonzero(seg[1:] > seg[:-1])
+            if full.size:
+                t = ev.t
+                lo[a + full] = np.minimum(lo[a + full], np.minimum.reduceat(t, seg[full]))
+                hi[a + full] = np.maximum(hi[a + full], np.maximum.reduceat(t, seg[full]))
+            pos += n
+            yield ev
+        if result is None and pos == cum[-1]:
+            self._keep_spans(s, rows, lo, hi)
+        return result
 
     def _event_spans(self, s, rows):
         """The earliest and latest stamp of each event packet of ``rows``, on the I/O threads.
@@ -644,7 +683,8 @@ class Recording(_FileIndex, BaseRecording):
 
         The packets' spans are those a windowed read scans once per open recording (:meth:`_packet_spans`): when
         they are not known yet, or without a data table, or with salvage, every packet is read (the scan costs
-        more than the decoding it would save).
+        more than the decoding it would save), and a read that goes through all of them with a data table and
+        without salvage keeps their spans for the next call.
 
         Parameters
         ----------
@@ -690,7 +730,10 @@ class Recording(_FileIndex, BaseRecording):
             rows = rows[keep]
         counts = self._index.count[rows]
         if len(rows) and np.all(counts >= 0):
-            stopped_at = yield from self._chunks_from_table(s, rows, counts, chunk_events, None, None)
+            chunks = self._chunks_from_table(s, rows, counts, chunk_events, None, None)
+            if spans is None and self._index.from_table and not self.salvage:  # every packet read: learn their spans
+                chunks = self._learning_spans(s, rows, counts, chunks)
+            stopped_at = yield from chunks
             if stopped_at is None:
                 return
             rows = rows[stopped_at:]
