@@ -134,6 +134,21 @@ def fresh(rounds, writer, keep=None, baseline=None):
         for r in range(rounds):  # alternating, every other round reversed
             for name, args, tree in (plan if r % 2 == 0 else plan[::-1]):
                 runs[name].append(whole_process(args, tree))
+        # the same route warm in one process that never loads numba (a session reading and reconstructing
+        # alone: numpy's paths), best of rounds, against the read warm in that process
+        child = ("import sys, time, json\nimport evtk\nfrom evtk.calibrate import load_calibration\n"
+                 "from evtk.plan import as_plan\nfrom evtk.reconstruct import reconstruct\n"
+                 "job, sched, cal, n = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])\n"
+                 "c = load_calibration(cal)\n"
+                 "plan = as_plan(sched).replace(pixel_model=c.pixel_model, region=c.region, origin_px=c.origin_px, "
+                 "cell_map=c.cell_map(), blur_px=c.blur_px)\n"
+                 "def best(fn):\n    fn()\n    out = []\n    for _ in range(n):\n"
+                 "        t0 = time.perf_counter(); fn(); out.append(time.perf_counter() - t0)\n    return min(out)\n"
+                 "with evtk.open(job) as rec:\n    r = best(lambda: evtk.read_events(job))\n"
+                 "    q = best(lambda: reconstruct(rec, plan))\n"
+                 "print(json.dumps({'read': r, 'route': q, 'numba': 'numba' in sys.modules}))\n")
+        warm = whole_process(["-c", child, job, str(d / "job" / "schedule.json"), str(d / "cal.toml"),
+                              str(max(rounds, 5))], HERE.parent, stdout=True)
     load = " ".join(f"{v:.2f}" for v in os.getloadavg())
     print(f"\nbench job ({writer}'s AEDAT4), whole fresh processes, median of {rounds}, alternating; "
           f"{os.cpu_count()} CPUs, load average {load} at the end\n")
@@ -144,6 +159,9 @@ def fresh(rounds, writer, keep=None, baseline=None):
         cpu = statistics.median(a[2] / b[2] for a, b in zip(got, runs["read"]))
         print(f"| {name} | {statistics.median(g[0] for g in got):.3f} | {wall:.2f} | "
               f"{statistics.median(g[2] for g in got):.3f} | {cpu:.2f} | {max(g[1] for g in got):.0f} |")
+    w = json.loads(warm[3].strip().splitlines()[-1])
+    print(f"\nwarm, one process that never loads numba (numba loaded: {w['numba']}), best of {max(rounds, 5)}: read "
+          f"{w['read'] * 1e3:.1f} ms, calibrated route {w['route'] * 1e3:.1f} ms ({w['route'] / w['read']:.2f}x the read)")
 
 
 def main():

@@ -36,12 +36,13 @@ def child_runs(script, args, repeats=1, pin_cpu=False, single_thread=False) -> l
     return out
 
 
-def whole_process(args, tree) -> tuple[float, float, float]:
+def whole_process(args, tree, stdout=False) -> tuple:
     """Wall seconds, peak RSS (MB) and CPU seconds (user + system) of one whole process ``python ARGS`` with the
     evtk tree ``tree`` first on the path, under GNU time.
 
     Run in ``tree``: ``python -c`` and ``-m`` put the working folder before PYTHONPATH, so run from another
     checkout a baseline tree's rows would time that checkout's evtk. File arguments must be absolute paths.
+    With ``stdout``, the process's standard output comes fourth.
     """
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH")) if p))
     t0 = time.perf_counter()
@@ -52,4 +53,6 @@ def whole_process(args, tree) -> tuple[float, float, float]:
         lines = done.stderr.strip().splitlines()
         raise ChildFailed(lines[-2] if len(lines) > 1 else f"exit status {done.returncode}")
     peak_kb, user_s, sys_s = done.stderr.split()[-3:]
+    if stdout:
+        return wall, int(peak_kb) / 1024, float(user_s) + float(sys_s), done.stdout
     return wall, int(peak_kb) / 1024, float(user_s) + float(sys_s)
