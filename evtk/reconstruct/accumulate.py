@@ -191,7 +191,7 @@ OVERLAP_CHUNK_EVENTS = 1 << 18
 
 
 def span_chunks(source: Events | Any, a: int, z: int, chunk_events: int, starts: np.ndarray | None = None,
-                ends: np.ndarray | None = None) -> Iterator[Events]:
+                ends: np.ndarray | None = None, overlap: bool = True) -> Iterator[Events]:
     """The events from ``a`` to ``z`` (us, half-open) in time order, in chunks, and perhaps others beside them.
 
     A recording whose span is at most twice ``z - a`` is read whole, without its time-window filter (which
@@ -211,6 +211,9 @@ def span_chunks(source: Events | Any, a: int, z: int, chunk_events: int, starts:
         Most events a chunk holds.
     starts, ends : numpy.ndarray, optional
         The windows within the span (µs, half-open), when only their events are wanted.
+    overlap : bool
+        Whether each chunk is counted while the next is decoded (then a whole read comes in eighths at least);
+        False: chunks of ``chunk_events``, each decoded on the reader's threads before it is counted.
 
     Yields
     ------
@@ -227,7 +230,7 @@ def span_chunks(source: Events | Any, a: int, z: int, chunk_events: int, starts:
     meeting = getattr(source, "iter_events_meeting", None) if starts is not None and ends is not None else None
     if first is not None and last is not None and int(last) - int(first) <= 2 * (z - a):
         n = info.get("events")
-        if isinstance(n, int) and n > 0:  # eight chunks at least: each is counted while the next is decoded
+        if overlap and isinstance(n, int) and n > 0:  # eight chunks at least: each counted while the next decodes
             chunk_events = min(chunk_events, max(OVERLAP_CHUNK_EVENTS, -(-n // 8)))
         if meeting is not None:
             yield from meeting(starts, ends, chunk_events=chunk_events)
@@ -319,18 +322,23 @@ def accumulate(source: Events | Any, windows: Windows, region: tuple[int, int, i
     starts = windows.t_start_us[order]
     ends = windows.t_end_us[order]
     span = (int(starts.min()), int(ends.max()))
+    flat = counts.reshape(-1)
+    count = _chunk_counter(len(source) if isinstance(source, Events) else _recording_events(source), flat.size // 2)
     if isinstance(source, Events):
-        chunks = [source.sorted()]
-    else:
+        chunks: Any = [source.sorted()]
+    elif count is _accumulate_chunk:
+        # numba's counter holds no GIL: it counts one chunk while another thread decodes the next
         chunks = _prefetched(span_chunks(source, span[0], span[1], chunk_events, starts, ends))
+    else:
+        # numpy's counter makes many small calls, each taking the GIL back from the decoding threads: decoding a
+        # chunk on the reader's threads, then counting it, is quicker
+        chunks = span_chunks(source, span[0], span[1], chunk_events, starts, ends, overlap=False)
     used = 0
     total = np.zeros(n_w, np.int64)
-    flat = counts.reshape(-1)
     no_times = np.empty(0, np.int32)  # the numba loop keeps no times when given empty arrays
     first_flat = first.reshape(-1) if first is not None else no_times
     last_flat = last.reshape(-1) if last is not None else no_times
     period = None
-    count = _chunk_counter(len(source) if isinstance(source, Events) else _recording_events(source), flat.size // 2)
     whole = (x0, x1, y0, y1) == (0, sensor[0], 0, sensor[1])
     for ev in chunks:
         if times and period is None:
