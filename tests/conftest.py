@@ -39,6 +39,20 @@ def fixtures_dir():
     return FIXTURES
 
 
+def modules_after(code: str) -> list[str]:
+    """The modules a fresh interpreter has loaded after running ``code`` with this checkout's evtk first on the
+    path (sorted); the calling test fails, with the child's stderr, when the code fails."""
+    import json
+    import subprocess
+    import sys
+
+    code += "\nimport json as _j, sys as _s\nprint('MODULES', _j.dumps(sorted(_s.modules)))\n"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={"PYTHONPATH": str(Path(evtk.__file__).parents[1]), "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.split("MODULES", 1)[1])
+
+
 class Hang(Exception):
     """What :func:`no_hang` raises when its block runs past the limit."""
 

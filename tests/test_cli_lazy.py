@@ -3,11 +3,8 @@ start-up), and its table of which module registers which command stays complete.
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
+from conftest import modules_after
 
-import evtk
 from evtk.cli import COMMAND_MODULES, main
 
 
@@ -19,13 +16,9 @@ def test_every_command_is_in_the_table_under_its_module():
 
 
 def test_a_command_loads_its_own_module_only():
-    code = ("import sys\nfrom evtk.cli import main\n"
-            "try:\n    main(['reconstruct', '--help'])\nexcept SystemExit as exc:\n    assert not exc.code\n"
-            "print('LOADED', sorted(m for m in sys.modules if m.startswith('evtk.cli.')))\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         env={"PYTHONPATH": str(Path(evtk.__file__).parents[1]), "PATH": "/usr/bin:/bin"})
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.split("LOADED", 1)[1].strip() == "['evtk.cli._base', 'evtk.cli.reconstruct']"
+    loaded = modules_after("from evtk.cli import main\n"
+                           "try:\n    main(['reconstruct', '--help'])\nexcept SystemExit as exc:\n    assert not exc.code\n")
+    assert [m for m in loaded if m.startswith("evtk.cli.")] == ["evtk.cli._base", "evtk.cli.reconstruct"]
 
 
 def test_the_help_lists_every_command_and_an_unknown_one_is_refused():
