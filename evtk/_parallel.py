@@ -11,18 +11,17 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
-from ._threads import workers
+from ._threads import Pool, workers
 
 #: Least work (elements) worth a part of its own: below it a thread's hand-over costs more than it saves.
 MIN_PART = 1 << 16
 
 _lock = threading.Lock()
-_pool: ThreadPoolExecutor | None = None
+_pool: Pool | None = None
 _pool_size = 0
 
 
@@ -93,7 +92,7 @@ def run(fn: Callable[..., Any], args: Sequence[tuple]) -> list:
     return [first] + [f.result() for f in futures]
 
 
-def _shared_pool() -> ThreadPoolExecutor:
+def _shared_pool() -> Pool:
     """The worker threads :func:`run` hands parts to: one fewer than :func:`evtk._threads.workers` (the calling
     thread does a part), started as parts first need them, made again when the budget changes."""
     global _pool, _pool_size
@@ -101,6 +100,6 @@ def _shared_pool() -> ThreadPoolExecutor:
     with _lock:
         if _pool is None or _pool_size != n:
             if _pool is not None:
-                _pool.shutdown(wait=False)
-            _pool, _pool_size = ThreadPoolExecutor(max_workers=n, thread_name_prefix="evtk-part"), n
+                _pool.shutdown()
+            _pool, _pool_size = Pool(n, "evtk-part"), n
         return _pool

@@ -34,7 +34,6 @@ from ._atomic import AtomicFile
 from .errors import EvtkError
 from .optics.camera import CellMap
 from .plan import DOTS_ID, FLAT_ID, LEVEL_ID, Plan, as_plan, dot_grid
-from .plots import pyplot, save_png
 from .reconstruct import PixelFit, accumulate, match_windows
 from .reconstruct.bench import refuse_synchronous
 from .reconstruct.calibrated import fit_on_edges, refuse_pixel_fit
@@ -786,6 +785,8 @@ def plot_calibration(path: str | os.PathLike[str], cal: Calibration) -> None:
     if evidence is None:
         raise EvtkError("a calibration read from a file holds no evidence to draw; calibrate the recording again")
     image, found, expected = evidence
+    from .plots import pyplot, save_png  # plotting only: a reconstruction that loads a calibration skips it
+
     plt = pyplot()
     model = PixelFit.from_dict(cal.pixel_model) if cal.pixel_model else None
     if model is None:

@@ -23,7 +23,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-import tomli_w
 
 from .errors import EvtkError
 from .limits import require_memory
@@ -464,6 +463,8 @@ def toml_text(table: Mapping[str, Any], what: str = "settings", comment: str | N
         When a value cannot be stored in TOML: ``None``, NaN or infinity (which evtk's readers refuse), or an
         object that is not one of the types above. The message names the key.
     """
+    import tomli_w  # writing only: a run that reads its settings does not load it
+
     text = tomli_w.dumps(_toml_ready(table, what, ""))
     head = "".join(f"# {line}".rstrip() + "\n" for line in comment.splitlines()) if comment else ""
     return head + text

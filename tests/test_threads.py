@@ -107,3 +107,100 @@ def test_aedat4_decode_threads_are_bounded_by_the_events_memory(tmp_path, monkey
         assert 1 <= len(names) <= most, names
     else:
         assert len(names) >= 2, names
+
+
+# -- evtk's own thread pool (issue 32: concurrent.futures and its logging were 4-5 ms of a fresh process) --------
+
+
+def test_the_pool_returns_each_result_and_raises_each_error_where_it_is_awaited():
+    pool = _threads.Pool(3, "test-pool")
+    tasks = [pool.submit(divmod, 100 + i, 7) for i in range(50)]
+    bad = pool.submit(divmod, 1, 0)
+    assert [t.result() for t in tasks] == [divmod(100 + i, 7) for i in range(50)]
+    with pytest.raises(ZeroDivisionError):
+        bad.result()
+    with pytest.raises(ZeroDivisionError):  # awaited again: the same error, not a hang
+        bad.result()
+    assert 1 <= pool._threads <= 3
+    pool.shutdown()
+    with pytest.raises(RuntimeError, match="shut down"):
+        pool.submit(divmod, 1, 1)
+
+
+def test_the_pool_runs_work_side_by_side_up_to_its_size():
+    """Three pieces of work that each wait for all three to have started finish only if three threads run them."""
+    import threading
+
+    pool = _threads.Pool(3, "test-side")
+    barrier = threading.Barrier(3, timeout=10)
+    tasks = [pool.submit(barrier.wait) for _ in range(3)]
+    assert sorted(t.result() for t in tasks) == [0, 1, 2]
+    pool.shutdown()
+
+
+def test_a_forked_child_gets_threads_of_its_own():
+    """A child forked from a process whose pool had threads (a Dask or multiprocessing worker forked after a read)
+    found none of them: work handed to the pool waited forever. It now starts its own."""
+    if not hasattr(os, "fork"):
+        pytest.skip("no fork here")
+    code = ("import os, sys\n"
+            "from evtk import _threads\n"
+            "pool = _threads.Pool(2, 'p')\n"
+            "assert pool.submit(abs, -3).result() == 3\n"
+            "pid = os.fork()\n"
+            "if pid == 0:\n"
+            "    os._exit(0 if pool.submit(abs, -4).result() == 4 else 1)\n"
+            "_, status = os.waitpid(pid, 0)\n"
+            "sys.exit(os.waitstatus_to_exitcode(status))\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))
+    done = subprocess.run([sys.executable, "-c", code], env=env, timeout=60, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+
+
+def test_a_prefetch_closed_early_finishes_the_chunk_under_way_first():
+    """Closing the counting early (an error, a break) must not let go of the recording while a thread still reads
+    its next chunk."""
+    from evtk.reconstruct.accumulate import _prefetched
+
+    log = []
+
+    def chunks():
+        for i in range(5):
+            time.sleep(0.05)
+            log.append(f"made {i}")
+            yield i
+
+    it = _prefetched(chunks())
+    assert next(it) == 0  # chunk 1 is now being made on the prefetch thread
+    it.close()
+    log.append("closed")
+    assert log == ["made 0", "made 1", "closed"]
+
+
+def test_a_prefetch_raises_the_sources_error_in_the_caller():
+    from evtk.reconstruct.accumulate import _prefetched
+
+    def chunks():
+        yield 1
+        raise evtk.EvtkError("bad packet at byte 12")
+
+    it = _prefetched(chunks())
+    assert next(it) == 1
+    with pytest.raises(evtk.EvtkError, match="byte 12"):
+        next(it)
+
+
+def test_threaded_reads_and_counts_load_no_concurrent_futures(tmp_path):
+    """A multi-threaded read and a fixed-window count in a fresh process use evtk's pool: concurrent.futures,
+    with the logging it imports, cost 4-5 ms of every such process."""
+    from conftest import modules_after
+
+    path = tmp_path / "big.aedat4"
+    evtk.write_events(path, random_events(400_000, seed=2), packet_events=5_000)
+    loaded = modules_after("import os\nos.environ['EVTK_THREADS'] = '2'\nimport evtk\n"
+                           f"from evtk.cli import main\n"
+                           f"assert len(evtk.read_events({str(path)!r})) == 400_000\n"
+                           f"try:\n    main(['enob', {str(path)!r}, '--window', 'period:1000'])\n"
+                           "except SystemExit as exc:\n    assert not exc.code, exc.code\n")
+    assert "evtk.reconstruct.fixed" in loaded and "threading" in loaded  # the count ran, on threads
+    assert not {"concurrent.futures", "logging"} & set(loaded)

@@ -13,16 +13,13 @@ import _thread  # threading itself costs a fresh read 0.6 ms; its local and Lock
 import functools
 import os
 import sys
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from .._threads import workers
+from .._threads import Pool, workers
 
-if TYPE_CHECKING:
-    from concurrent.futures import ThreadPoolExecutor
-
-# lz4.frame, zstandard, xxhash and concurrent.futures load where first needed: an LZ4 file small enough to decode
+# lz4.frame, zstandard and xxhash load where first needed: an LZ4 file small enough to decode
 # on one thread needs none of them (its frames go through the LZ4 library bound by ctypes, :func:`decompress_into`)
 
 NONE, LZ4, LZ4_HIGH, ZSTD, ZSTD_HIGH = range(5)
@@ -59,12 +56,12 @@ def verify_by_default() -> bool:
     return os.environ.get(VERIFY_ENV, "").strip().lower() not in ("0", "false", "no", "off")
 
 
-def pool() -> ThreadPoolExecutor:
+def pool() -> Pool:
     """The decode and compression threads, :func:`evtk._threads.workers` of them (made again when that changes).
 
     Returns
     -------
-    concurrent.futures.ThreadPoolExecutor
+    evtk._threads.Pool
         The shared pool.
     """
     global _pool, _pool_size
@@ -72,10 +69,8 @@ def pool() -> ThreadPoolExecutor:
     with _pool_lock:
         if _pool is None or _pool_size != n:
             if _pool is not None:
-                _pool.shutdown(wait=False)  # what it runs finishes; new work goes to the new pool
-            from concurrent.futures import ThreadPoolExecutor
-
-            _pool, _pool_size = ThreadPoolExecutor(max_workers=n, thread_name_prefix="evtk-io"), n
+                _pool.shutdown()  # what it runs finishes; new work goes to the new pool
+            _pool, _pool_size = Pool(n, "evtk-io"), n
         return _pool
 
 

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
 from .._lazyjit import njit, numba_ready  # numba loads on the first count, when numpy does not count
+from .._threads import Pool
 from ..errors import EvtkError
 from ..events import Events
 from ..limits import memory_limit_bytes, require_memory
@@ -22,14 +22,21 @@ _END = object()
 def _prefetched(chunks):
     """Yield the items of the iterator ``chunks`` while the next one is produced on another thread: the next
     chunk is read and decoded (on the I/O threads) while this one is counted."""
-    with ThreadPoolExecutor(1, thread_name_prefix="evtk-prefetch") as ex:
-        pending = ex.submit(next, chunks, _END)
+    ex = Pool(1, "evtk-prefetch")
+    pending = ex.submit(next, chunks, _END)
+    try:
         while True:
             item = pending.result()
             if item is _END:
                 return
             pending = ex.submit(next, chunks, _END)
             yield item
+    finally:  # closed early too: the chunk under way is finished before the chunks' source is let go
+        try:
+            pending.result()
+        except BaseException:  # noqa: BLE001 - raised where it was met, or not needed
+            pass
+        ex.shutdown()
 
 
 @njit(cache=True, nogil=True)
