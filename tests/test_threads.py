@@ -204,3 +204,26 @@ def test_threaded_reads_and_counts_load_no_concurrent_futures(tmp_path):
                            "except SystemExit as exc:\n    assert not exc.code, exc.code\n")
     assert "evtk.reconstruct.fixed" in loaded and "threading" in loaded  # the count ran, on threads
     assert not {"concurrent.futures", "logging"} & set(loaded)
+
+
+def test_a_read_in_a_forked_child_after_a_threaded_read_in_the_parent(tmp_path):
+    """A multiprocessing worker forked after a multi-threaded read (Linux's default start method) hung on its
+    own first multi-threaded read: the executor it inherited counted the parent's idle thread as its own."""
+    if not hasattr(os, "fork"):
+        pytest.skip("no fork here")
+    path = tmp_path / "big.aedat4"
+    evtk.write_events(path, random_events(400_000, seed=3), packet_events=5_000)
+    code = ("import os, sys, time\nos.environ['EVTK_THREADS'] = '2'\nimport evtk\n"
+            "from evtk.io.aedat4 import reader\n"
+            "reader._THREAD_BYTES = 1024  # two decode threads for a small file\n"
+            f"n = len(evtk.read_events({str(path)!r}))\n"
+            "assert sum(t.name.startswith('evtk-io') for t in __import__('threading').enumerate()) == 2\n"
+            "time.sleep(0.1)  # the parent's decode threads idle\n"
+            "pid = os.fork()\n"
+            "if pid == 0:\n"
+            f"    os._exit(0 if len(evtk.read_events({str(path)!r})) == n else 1)\n"
+            "_, status = os.waitpid(pid, 0)\n"
+            "sys.exit(os.waitstatus_to_exitcode(status))\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))
+    done = subprocess.run([sys.executable, "-c", code], env=env, timeout=60, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
