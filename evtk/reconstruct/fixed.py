@@ -104,12 +104,56 @@ def _region(source: Any, region: tuple) -> tuple[int, int, int, int]:
     return x0, x1, y0, y1
 
 
-def _axis_table(n_px: int, lo: int, hi: int, per: int, stride: int) -> np.ndarray:
-    """Each sensor coordinate's part of a bin's index along one axis: ``(c - lo) // per * stride`` inside
-    ``[lo, hi)``, and the axis's extra (dump) place past the last block outside it."""
-    table = np.full(n_px, (hi - lo) // per * stride, np.int64)
-    table[lo:hi] = np.arange(hi - lo) // per * stride
-    return table
+class _Cells:
+    """How an event's pixel and polarity map to its bin within its window, by arithmetic in a small unsigned type.
+
+    Along each axis a sensor coordinate ``c`` goes to ``min(c - lo, n) // per`` (``c - lo`` wrapping below ``lo``
+    to a value past ``n``): its block inside ``[lo, lo + n)`` and one extra (dump) place past the last block
+    outside it. The bin is ``row * (cols + 1) + col + p * plane`` (OFF counts, then ON counts). Coordinates and
+    keys stay in ``dtype`` (uint16 where a window's bins fit it: 2-byte passes, no look-up tables, whose
+    ``take`` casts every index to intp), so a key costs a few cheap passes before :func:`numpy.bincount`.
+    """
+
+    def __init__(self, region: tuple[int, int, int, int], sensor: tuple[int, int], fy: int, fx: int, cols: int,
+                 plane: int) -> None:
+        x0, x1, y0, y1 = region
+        # uint16 where every key of a window and every wrapped coordinate (below 2**16 + lo) fits it
+        self.dtype: type[np.unsignedinteger] = (np.uint16 if 2 * plane <= 1 << 16 and max(sensor) <= 1 << 15
+                                                else np.uint32 if 2 * plane <= 1 << 32 else np.uint64)
+        u = self.dtype
+        # (lo, n, per, mul) of y, then of x; None where the step changes nothing
+        self.y = (u(y0) if y0 else None, u(y1 - y0) if (y0, y1) != (0, sensor[1]) else None,
+                  u(fy) if fy > 1 else None, u(cols + 1))
+        self.x = (u(x0) if x0 else None, u(x1 - x0) if (x0, x1) != (0, sensor[0]) else None,
+                  u(fx) if fx > 1 else None, None)
+        self.plane = u(plane)
+
+    def keys(self, x: np.ndarray, y: np.ndarray, p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Each event's bin within its window into ``a`` (``b``: room of the same size and type); returns ``a``."""
+        self._axis(y, self.y, a)
+        self._axis(x, self.x, b)
+        a += b
+        np.multiply(p, self.plane, out=b)
+        a += b
+        return a
+
+    @staticmethod
+    def _axis(c: np.ndarray, spec: tuple, out: np.ndarray) -> None:
+        lo, n, per, mul = spec
+        src = c
+        if lo is not None:
+            np.subtract(src, lo, out=out)  # wraps below lo: past n, clipped to the dump place next
+            src = out
+        if n is not None:
+            np.minimum(src, n, out=out)
+            src = out
+        if per is not None:
+            np.floor_divide(src, per, out=out)
+            src = out
+        if mul is not None:
+            np.multiply(src, mul, out=out)
+        elif src is not out:
+            out[...] = src
 
 
 def _window_events(source: Any, windows: Windows, first: int, last: int, chunk_events: int
@@ -209,34 +253,39 @@ def _batches(source: Any, windows: Windows, firsts: list[int], nexts: list[int],
         yield finished(i, nexts[b], *state)
 
 
-def _count(ev: Events, starts: np.ndarray, ends: np.ndarray, by_y: np.ndarray, by_x: np.ndarray, plane: int,
-           out: np.ndarray) -> np.ndarray:
+def _count(ev: Events, starts: np.ndarray, ends: np.ndarray, cells: _Cells, out: np.ndarray) -> np.ndarray:
     """Add the chunk's events to ``out`` (flat int32 bins, ``per_window`` each): each window's events (``[start,
-    end)``, by binary search in the sorted time stamps; windows may overlap or come in any order) to the bin
-    ``by_y[y] + by_x[x] + p * plane`` of their window, a cache-sized piece at a time. Returns the number of
-    events of each window."""
+    end)``, by binary search in the sorted time stamps; windows may overlap or come in any order) to their bin
+    within the window (:class:`_Cells`) in their window's bins, a cache-sized piece at a time. Returns the number
+    of events of each window."""
     n, where = _window_picks(ev, starts, ends)
     total = int(n.sum())
     if total == 0:
         return n
     x, y, p = ev.x[where], ev.y[where], ev.p[where]
-    bounds = np.concatenate(([0], np.cumsum(n)))  # of each window's events, in x, y, p
+    bounds = [0, *np.cumsum(n).tolist()]  # of each window's events, in x, y, p
     per_window = out.size // len(starts)
+    room = min(total, _PIECE)
+    a, b = np.empty(room, cells.dtype), np.empty(room, cells.dtype)
+    keys = np.empty(room, np.uint64)  # (as intp below: every key is under the batch's bins)
+    w = 0
     for s in range(0, total, _PIECE):
         e = min(total, s + _PIECE)
-        wa = int(np.searchsorted(bounds, s, side="right")) - 1
-        wb = int(np.searchsorted(bounds, e, side="left"))
-        key = by_y.take(y[s:e])
-        key += by_x.take(x[s:e])
-        key += p[s:e] * key.dtype.type(plane)
-        if wb - wa > 1:
-            key += np.repeat(np.arange(0, (wb - wa) * per_window, per_window, dtype=key.dtype),
-                             np.diff(np.clip(bounds[wa:wb + 1], s, e)))
-        span = out[wa * per_window:wb * per_window]
-        if span.size <= 4 * (e - s):  # few bins: count them all (faster than scattered adds)
-            span += np.bincount(key, minlength=span.size)
+        m = e - s
+        inside = cells.keys(x[s:e], y[s:e], p[s:e], a[:m], b[:m])
+        key = keys[:m]
+        while bounds[w + 1] <= s:  # the piece's first window
+            w += 1
+        first = v = w
+        while v < len(n) and bounds[v] < e:  # each window's events of the piece: its offset among the span's bins
+            lo, hi = max(bounds[v], s) - s, min(bounds[v + 1], e) - s
+            np.add(inside[lo:hi], np.uint64((v - first) * per_window), out=key[lo:hi])
+            v += 1
+        span = out[first * per_window:v * per_window]
+        if span.size <= 4 * m:  # few bins: count them all (faster than scattered adds)
+            span += np.bincount(key.view(np.intp), minlength=span.size)
         else:
-            np.add.at(span, key, span.dtype.type(1))  # (a typed one: numpy's fast path)
+            np.add.at(span, key.view(np.intp), span.dtype.type(1))  # (a typed one: numpy's fast path)
     return n
 
 
@@ -338,9 +387,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
         nb = max(1, min(n_w, int(batch_windows)))
     require_memory(kept_bytes + nb * window_bytes + _PIECE * 16,
                    f"counting {n_w:,} windows over {w_px}x{h_px} pixels, {nb:,} at a time")
-    dtype = np.int32 if per_window * nb < 2**31 else np.int64
-    by_y = _axis_table(sensor[1], y0, y1, fy, cols + 1).astype(dtype)
-    by_x = _axis_table(sensor[0], x0, x1, fx, 1).astype(dtype)
+    keys = _Cells((x0, x1, y0, y1), sensor, fy, fx, cols, plane)
     firsts = list(range(0, n_w, nb))
     nexts = [min(i + nb, n_w) for i in firsts]
     starts, ends = windows.t_start_us, windows.t_end_us
@@ -358,7 +405,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
         # runs of whole windows (about equal events), one a thread: each counts into its own windows' bins
         n = np.searchsorted(ev.t, ends[i:j], side="left") - np.searchsorted(ev.t, starts[i:j], side="left")
         bounds = cuts(n, parts(int(n.sum())))
-        totals += np.concatenate(run(_count, [(ev, starts[i + a:i + z], ends[i + a:i + z], by_y, by_x, plane,
+        totals += np.concatenate(run(_count, [(ev, starts[i + a:i + z], ends[i + a:i + z], keys,
                                                out[a * per_window:z * per_window])
                                               for a, z in zip(bounds, bounds[1:])]))
         if totals.max(initial=0) > np.iinfo(np.int32).max:
