@@ -7,6 +7,7 @@ counts and for ``exp(n theta)``, and must not load numba or scipy (``evtk recons
 
 from __future__ import annotations
 
+import importlib
 import json
 import subprocess
 import sys
@@ -361,3 +362,27 @@ def test_block_counts_by_arithmetic_match_plain_indexing(sensor, region, cells):
     np.testing.assert_array_equal(np.concatenate([b[1] for b in got]), on)
     np.testing.assert_array_equal(np.concatenate([b[2] for b in got]), off)
     assert sum(b[3] for b in got) == used
+
+
+@pytest.mark.parametrize("linear, size, overlapped", [(False, (15, 20), False),  # straight to the cells
+                                                      (True, (15, 20), True),  # linearised: work a batch
+                                                      (False, (7, 9), True)])  # resized: work a batch
+def test_only_responses_with_work_of_their_own_decode_the_next_chunk_meanwhile(recording, monkeypatch, linear, size,
+                                                                               overlapped):
+    # straight to the cells the counting is all the work: a thread decoding the next chunk beside it only
+    # competes with the reader's own threads, so each chunk is decoded, then counted; the same responses
+    acc_module = importlib.import_module("evtk.reconstruct.accumulate")  # (the package's name is the function)
+    prefetched = []
+    real = acc_module._prefetched
+
+    def spy(chunks):
+        prefetched.append(1)
+        return real(chunks)
+
+    monkeypatch.setattr(acc_module, "_prefetched", spy)
+    win = windows_periodic(0, 40_000, PERIOD_US)
+    options = dict(linear=linear, size=size, theta=0.05 if linear else None)
+    with evtk.open(recording) as rec:
+        got = fixed_responses(rec, win, (0, 40, 0, 30), chunk_events=5_000, batch_windows=4, **options)
+    assert bool(prefetched) == overlapped
+    _same(got, _whole_run(_events(), win, (0, 40, 0, 30), **options))

@@ -2,9 +2,10 @@
 
 Each window of a recording without a schedule stands alone, and its response needs only its pixels' ON and
 OFF counts. :func:`fixed_responses` reads the events a batch of windows at a time (through the recording's
-time-window API, the next chunk decoded on another thread), maps each event to its window (binary search of
-the window bounds in the sorted time stamps) and through a look-up table of the region's pixels to what it
-counts for, and counts with :func:`numpy.bincount`:
+time-window API; where a batch's responses take work of their own, the next chunk decoded on another thread
+meanwhile), maps each event to its window (binary search of the window bounds in the sorted time stamps) and by
+unsigned arithmetic on its coordinates to the bin of the region it counts for, and counts with
+:func:`numpy.bincount`:
 
 * net counts (``linear=False``) resized by whole factors: each event straight to its output cell, so a batch
   is (windows, cells) integers and the response is the exact mean the whole-run path computes;
@@ -14,8 +15,7 @@ counts for, and counts with :func:`numpy.bincount`:
 
 Memory stays bounded by the responses and one batch (:data:`BATCH_BINS` counts), never windows x sensor.
 A chunk's windows are counted in runs of whole windows on several threads (:mod:`evtk._parallel`: half of
-``EVTK_THREADS`` or the cores, the other half decoding the next chunk), each run into its own windows' bins,
-so the counts are one thread's exactly.
+``EVTK_THREADS`` or the cores), each run into its own windows' bins, so the counts are one thread's exactly.
 """
 
 from __future__ import annotations
@@ -202,12 +202,18 @@ def _window_picks(ev: Events, starts: np.ndarray, ends: np.ndarray) -> tuple[np.
 
 def _batches(source: Any, windows: Windows, firsts: list[int], nexts: list[int], chunk_events: int,
              progress: Callable[[int], Any] | None, batch: Callable[[int], Any], add: Callable[..., None],
-             finished: Callable[..., Any]) -> Iterator[Any]:
+             finished: Callable[..., Any], overlap: bool = True) -> Iterator[Any]:
     """Count the windows a batch at a time (windows ``firsts[b]:nexts[b]``), yielding ``finished(i, j, *state)``
     of each batch in order: ``batch(b)`` makes a batch's state, ``add(ev, i, j, *state)`` counts a chunk of
     events into it. Windows in time order, none overlapping an earlier one, take one pass over the events, each
     chunk counted into the batches it reaches and a batch handed on as soon as a chunk passes its last window's
-    end (later chunks are later in time); others go a batch at a time through the time-window reads."""
+    end (later chunks are later in time); others go a batch at a time through the time-window reads.
+
+    ``overlap``: the next chunk is decoded on another thread while this one is counted and its batches used
+    (where the caller's work on a batch is long and mostly outside the GIL: enob's sums); False: each chunk is
+    decoded on the reader's threads, then counted (where the counting is all there is: numpy's bincount holds
+    the GIL and its many small calls take it back from the decoding, and a third thread on two cores only
+    competes with them)."""
     from .accumulate import _prefetched, span_chunks
 
     starts, ends = windows.t_start_us, windows.t_end_us
@@ -216,7 +222,8 @@ def _batches(source: Any, windows: Windows, firsts: list[int], nexts: list[int],
         last_end = np.maximum.accumulate(ends)[[j - 1 for j in nexts]]
         b = 0
         current = None
-        for ev in _prefetched(span_chunks(source, int(starts[0]), int(last_end[-1]), chunk_events)):
+        chunks = span_chunks(source, int(starts[0]), int(last_end[-1]), chunk_events, overlap=overlap)
+        for ev in _prefetched(chunks) if overlap else chunks:
             t_last = int(ev.t[-1]) if len(ev) else None
             while b < len(firsts) and t_last is not None:
                 i, j = firsts[b], nexts[b]
@@ -331,8 +338,8 @@ def pixel_values(on: np.ndarray, off: np.ndarray, linear: bool, theta: float) ->
 
 def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int, int, int],
                   cells: tuple[int, int] | None = None, kept_bytes: int = 0, batch_windows: int | None = None,
-                  chunk_events: int = 4_000_000, progress: Callable[[int], Any] | None = None
-                  ) -> Iterator[tuple[int, np.ndarray, np.ndarray, int]]:
+                  chunk_events: int = 4_000_000, progress: Callable[[int], Any] | None = None,
+                  overlap: bool = True) -> Iterator[tuple[int, np.ndarray, np.ndarray, int]]:
     """ON and OFF counts of the windows over a region's pixels (or whole-factor blocks of them), a batch of
     windows at a time, with numpy.
 
@@ -354,6 +361,10 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
         Most events read at once (at most :data:`READ_EVENTS`).
     progress : callable, optional
         Called with the number of events of each chunk read.
+    overlap : bool
+        Decode the next chunk on another thread while one is counted and the batches it closes are used (for
+        callers with much work on each batch); False: decode each chunk, then count it (quicker where the
+        counting is all the work: a third thread on two cores only competes with the decoding ones).
 
     Yields
     ------
@@ -413,7 +424,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
                             "counts could overflow")
 
     yield from _batches(source, windows, firsts, nexts, max(1, min(int(chunk_events), READ_EVENTS)), progress,
-                        batch, add, finished)
+                        batch, add, finished, overlap)
 
 
 def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size: tuple = (16, 16),
@@ -481,8 +492,10 @@ def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size:
     cells = not linear and h_px % oh == 0 and w_px % ow == 0  # each event straight to its output cell
     responses = np.empty((n_w, oh, ow), np.float64)
     used = 0
+    # straight to the cells, a batch needs nothing but its counts: each chunk decoded, then counted
     for i, on, off, n_used in count_batches(source, windows, (x0, x1, y0, y1), (oh, ow) if cells else None,
-                                            n_w * oh * ow * 9, batch_windows, chunk_events, progress):
+                                            n_w * oh * ow * 9, batch_windows, chunk_events, progress,
+                                            overlap=not cells):
         used += n_used
         if cells:  # the block mean of net counts: their exact sum over the block's pixel count
             responses[i:i + len(on)] = (on - off).astype(np.float64) / ((h_px // oh) * (w_px // ow))
