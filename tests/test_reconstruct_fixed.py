@@ -7,6 +7,7 @@ counts and for ``exp(n theta)``, and must not load numba or scipy (``evtk recons
 
 from __future__ import annotations
 
+import importlib
 import json
 import subprocess
 import sys
@@ -316,3 +317,72 @@ def test_reconstruct_refuses_what_is_not_an_open_recording():
     for bad in (ev, "path.aedat4", None):
         with pytest.raises(EvtkError, match="takes an open recording"):
             reconstruct(bad, window=("period", 100), keep_pixels=False)
+
+
+def _block_counts(ev: evtk.Events, win, region, cells) -> tuple[np.ndarray, np.ndarray, int]:
+    """ON and OFF counts of each window's blocks (``cells`` rows x cols of whole pixels; a remainder that does
+    not fill a block left out), one window at a time with plain indexing, and the events they hold."""
+    x0, x1, y0, y1 = region
+    fy, fx = ((y1 - y0) // cells[0], (x1 - x0) // cells[1]) if cells else (1, 1)
+    rows, cols = (y1 - y0) // fy, (x1 - x0) // fx
+    on = np.zeros((len(win), rows, cols), np.int64)
+    off = np.zeros_like(on)
+    x, y = ev.x.astype(np.int64), ev.y.astype(np.int64)
+    for w in range(len(win)):
+        m = (ev.t >= win.t_start_us[w]) & (ev.t < win.t_end_us[w]) & (x >= x0) & (x < x1) & (y >= y0) & (y < y1)
+        r, c = (y - y0) // fy, (x - x0) // fx
+        m &= (r < rows) & (c < cols)
+        np.add.at(on[w], (r[m & (ev.p == 1)], c[m & (ev.p == 1)]), 1)
+        np.add.at(off[w], (r[m & (ev.p == 0)], c[m & (ev.p == 0)]), 1)
+    return on, off, int(on.sum() + off.sum())
+
+
+@pytest.mark.parametrize("sensor, region, cells", [
+    ((320, 240), (0, 320, 0, 240), (16, 16)),  # the CLI's default: whole sensor, whole factors, 2-byte keys
+    ((320, 240), (1, 319, 2, 239), (5, 7)),  # blocks that leave a remainder, pixels outside on every side
+    ((32_768, 3), (1, 32_768, 0, 3), None),  # the widest sensor with 2-byte keys: coordinates wrap below x0
+    ((32_769, 3), (32_000, 32_769, 1, 2), (1, 7)),  # one wider: 4-byte keys
+    ((300, 200), (0, 300, 0, 200), None),  # a window's pixels past 2**16 bins: 4-byte keys, scattered adds
+])
+def test_block_counts_by_arithmetic_match_plain_indexing(sensor, region, cells):
+    # each event's bin is found by unsigned arithmetic (coordinates below the region wrap past it, to the dump
+    # place): every sensor edge, every key width and a remainder of pixels that fill no block
+    rng = np.random.default_rng(17)
+    n = 60_000
+    xs = np.concatenate([rng.integers(0, sensor[0], n - 8), [0, sensor[0] - 1] * 4])
+    ys = np.concatenate([rng.integers(0, sensor[1], n - 8), [0, sensor[1] - 1, sensor[1] - 1, 0] * 2])
+    t = np.sort(rng.integers(0, 20_000, n))
+    ev = evtk.Events(t, xs.astype(np.uint16), ys.astype(np.uint16), rng.integers(0, 2, n).astype(np.uint8), sensor)
+    from evtk.reconstruct.fixed import count_batches
+
+    win = Windows(np.array([0, 1_000, 5_000, 4_000, 19_000], np.int64), np.array([1_000, 6_000, 9_000, 4_500,
+                  25_000], np.int64), np.arange(5), "test")  # overlapping and out of order too
+    got = list(count_batches(ev, win, region, cells, batch_windows=2, chunk_events=7_001))
+    on, off, used = _block_counts(ev, win, region, cells)
+    np.testing.assert_array_equal(np.concatenate([b[1] for b in got]), on)
+    np.testing.assert_array_equal(np.concatenate([b[2] for b in got]), off)
+    assert sum(b[3] for b in got) == used
+
+
+@pytest.mark.parametrize("linear, size, overlapped", [(False, (15, 20), False),  # straight to the cells
+                                                      (True, (15, 20), True),  # linearised: work a batch
+                                                      (False, (7, 9), True)])  # resized: work a batch
+def test_only_responses_with_work_of_their_own_decode_the_next_chunk_meanwhile(recording, monkeypatch, linear, size,
+                                                                               overlapped):
+    # straight to the cells the counting is all the work: a thread decoding the next chunk beside it only
+    # competes with the reader's own threads, so each chunk is decoded, then counted; the same responses
+    acc_module = importlib.import_module("evtk.reconstruct.accumulate")  # (the package's name is the function)
+    prefetched = []
+    real = acc_module._prefetched
+
+    def spy(chunks):
+        prefetched.append(1)
+        return real(chunks)
+
+    monkeypatch.setattr(acc_module, "_prefetched", spy)
+    win = windows_periodic(0, 40_000, PERIOD_US)
+    options = dict(linear=linear, size=size, theta=0.05 if linear else None)
+    with evtk.open(recording) as rec:
+        got = fixed_responses(rec, win, (0, 40, 0, 30), chunk_events=5_000, batch_windows=4, **options)
+    assert bool(prefetched) == overlapped
+    _same(got, _whole_run(_events(), win, (0, 40, 0, 30), **options))

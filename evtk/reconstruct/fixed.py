@@ -2,9 +2,10 @@
 
 Each window of a recording without a schedule stands alone, and its response needs only its pixels' ON and
 OFF counts. :func:`fixed_responses` reads the events a batch of windows at a time (through the recording's
-time-window API, the next chunk decoded on another thread), maps each event to its window (binary search of
-the window bounds in the sorted time stamps) and through a look-up table of the region's pixels to what it
-counts for, and counts with :func:`numpy.bincount`:
+time-window API; where a batch's responses take work of their own, the next chunk decoded on another thread
+meanwhile), maps each event to its window (binary search of the window bounds in the sorted time stamps) and by
+unsigned arithmetic on its coordinates to the bin of the region it counts for, and counts with
+:func:`numpy.bincount`:
 
 * net counts (``linear=False``) resized by whole factors: each event straight to its output cell, so a batch
   is (windows, cells) integers and the response is the exact mean the whole-run path computes;
@@ -14,8 +15,7 @@ counts for, and counts with :func:`numpy.bincount`:
 
 Memory stays bounded by the responses and one batch (:data:`BATCH_BINS` counts), never windows x sensor.
 A chunk's windows are counted in runs of whole windows on several threads (:mod:`evtk._parallel`: half of
-``EVTK_THREADS`` or the cores, the other half decoding the next chunk), each run into its own windows' bins,
-so the counts are one thread's exactly.
+``EVTK_THREADS`` or the cores), each run into its own windows' bins, so the counts are one thread's exactly.
 """
 
 from __future__ import annotations
@@ -104,12 +104,56 @@ def _region(source: Any, region: tuple) -> tuple[int, int, int, int]:
     return x0, x1, y0, y1
 
 
-def _axis_table(n_px: int, lo: int, hi: int, per: int, stride: int) -> np.ndarray:
-    """Each sensor coordinate's part of a bin's index along one axis: ``(c - lo) // per * stride`` inside
-    ``[lo, hi)``, and the axis's extra (dump) place past the last block outside it."""
-    table = np.full(n_px, (hi - lo) // per * stride, np.int64)
-    table[lo:hi] = np.arange(hi - lo) // per * stride
-    return table
+class _Cells:
+    """How an event's pixel and polarity map to its bin within its window, by arithmetic in a small unsigned type.
+
+    Along each axis a sensor coordinate ``c`` goes to ``min(c - lo, n) // per`` (``c - lo`` wrapping below ``lo``
+    to a value past ``n``): its block inside ``[lo, lo + n)`` and one extra (dump) place past the last block
+    outside it. The bin is ``row * (cols + 1) + col + p * plane`` (OFF counts, then ON counts). Coordinates and
+    keys stay in ``dtype`` (uint16 where a window's bins fit it: 2-byte passes, no look-up tables, whose
+    ``take`` casts every index to intp), so a key costs a few cheap passes before :func:`numpy.bincount`.
+    """
+
+    def __init__(self, region: tuple[int, int, int, int], sensor: tuple[int, int], fy: int, fx: int, cols: int,
+                 plane: int) -> None:
+        x0, x1, y0, y1 = region
+        # uint16 where every key of a window and every wrapped coordinate (below 2**16 + lo) fits it
+        self.dtype: type[np.unsignedinteger] = (np.uint16 if 2 * plane <= 1 << 16 and max(sensor) <= 1 << 15
+                                                else np.uint32 if 2 * plane <= 1 << 32 else np.uint64)
+        u = self.dtype
+        # (lo, n, per, mul) of y, then of x; None where the step changes nothing
+        self.y = (u(y0) if y0 else None, u(y1 - y0) if (y0, y1) != (0, sensor[1]) else None,
+                  u(fy) if fy > 1 else None, u(cols + 1))
+        self.x = (u(x0) if x0 else None, u(x1 - x0) if (x0, x1) != (0, sensor[0]) else None,
+                  u(fx) if fx > 1 else None, None)
+        self.plane = u(plane)
+
+    def keys(self, x: np.ndarray, y: np.ndarray, p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Each event's bin within its window into ``a`` (``b``: room of the same size and type); returns ``a``."""
+        self._axis(y, self.y, a)
+        self._axis(x, self.x, b)
+        a += b
+        np.multiply(p, self.plane, out=b)
+        a += b
+        return a
+
+    @staticmethod
+    def _axis(c: np.ndarray, spec: tuple, out: np.ndarray) -> None:
+        lo, n, per, mul = spec
+        src = c
+        if lo is not None:
+            np.subtract(src, lo, out=out)  # wraps below lo: past n, clipped to the dump place next
+            src = out
+        if n is not None:
+            np.minimum(src, n, out=out)
+            src = out
+        if per is not None:
+            np.floor_divide(src, per, out=out)
+            src = out
+        if mul is not None:
+            np.multiply(src, mul, out=out)
+        elif src is not out:
+            out[...] = src
 
 
 def _window_events(source: Any, windows: Windows, first: int, last: int, chunk_events: int
@@ -158,12 +202,18 @@ def _window_picks(ev: Events, starts: np.ndarray, ends: np.ndarray) -> tuple[np.
 
 def _batches(source: Any, windows: Windows, firsts: list[int], nexts: list[int], chunk_events: int,
              progress: Callable[[int], Any] | None, batch: Callable[[int], Any], add: Callable[..., None],
-             finished: Callable[..., Any]) -> Iterator[Any]:
+             finished: Callable[..., Any], overlap: bool = True) -> Iterator[Any]:
     """Count the windows a batch at a time (windows ``firsts[b]:nexts[b]``), yielding ``finished(i, j, *state)``
     of each batch in order: ``batch(b)`` makes a batch's state, ``add(ev, i, j, *state)`` counts a chunk of
     events into it. Windows in time order, none overlapping an earlier one, take one pass over the events, each
     chunk counted into the batches it reaches and a batch handed on as soon as a chunk passes its last window's
-    end (later chunks are later in time); others go a batch at a time through the time-window reads."""
+    end (later chunks are later in time); others go a batch at a time through the time-window reads.
+
+    ``overlap``: the next chunk is decoded on another thread while this one is counted and its batches used
+    (where the caller's work on a batch is long and mostly outside the GIL: enob's sums); False: each chunk is
+    decoded on the reader's threads, then counted (where the counting is all there is: numpy's bincount holds
+    the GIL and its many small calls take it back from the decoding, and a third thread on two cores only
+    competes with them)."""
     from .accumulate import _prefetched, span_chunks
 
     starts, ends = windows.t_start_us, windows.t_end_us
@@ -172,7 +222,8 @@ def _batches(source: Any, windows: Windows, firsts: list[int], nexts: list[int],
         last_end = np.maximum.accumulate(ends)[[j - 1 for j in nexts]]
         b = 0
         current = None
-        for ev in _prefetched(span_chunks(source, int(starts[0]), int(last_end[-1]), chunk_events)):
+        chunks = span_chunks(source, int(starts[0]), int(last_end[-1]), chunk_events, overlap=overlap)
+        for ev in _prefetched(chunks) if overlap else chunks:
             t_last = int(ev.t[-1]) if len(ev) else None
             while b < len(firsts) and t_last is not None:
                 i, j = firsts[b], nexts[b]
@@ -209,34 +260,39 @@ def _batches(source: Any, windows: Windows, firsts: list[int], nexts: list[int],
         yield finished(i, nexts[b], *state)
 
 
-def _count(ev: Events, starts: np.ndarray, ends: np.ndarray, by_y: np.ndarray, by_x: np.ndarray, plane: int,
-           out: np.ndarray) -> np.ndarray:
+def _count(ev: Events, starts: np.ndarray, ends: np.ndarray, cells: _Cells, out: np.ndarray) -> np.ndarray:
     """Add the chunk's events to ``out`` (flat int32 bins, ``per_window`` each): each window's events (``[start,
-    end)``, by binary search in the sorted time stamps; windows may overlap or come in any order) to the bin
-    ``by_y[y] + by_x[x] + p * plane`` of their window, a cache-sized piece at a time. Returns the number of
-    events of each window."""
+    end)``, by binary search in the sorted time stamps; windows may overlap or come in any order) to their bin
+    within the window (:class:`_Cells`) in their window's bins, a cache-sized piece at a time. Returns the number
+    of events of each window."""
     n, where = _window_picks(ev, starts, ends)
     total = int(n.sum())
     if total == 0:
         return n
     x, y, p = ev.x[where], ev.y[where], ev.p[where]
-    bounds = np.concatenate(([0], np.cumsum(n)))  # of each window's events, in x, y, p
+    bounds = [0, *np.cumsum(n).tolist()]  # of each window's events, in x, y, p
     per_window = out.size // len(starts)
+    room = min(total, _PIECE)
+    a, b = np.empty(room, cells.dtype), np.empty(room, cells.dtype)
+    keys = np.empty(room, np.uint64)  # (as intp below: every key is under the batch's bins)
+    w = 0
     for s in range(0, total, _PIECE):
         e = min(total, s + _PIECE)
-        wa = int(np.searchsorted(bounds, s, side="right")) - 1
-        wb = int(np.searchsorted(bounds, e, side="left"))
-        key = by_y.take(y[s:e])
-        key += by_x.take(x[s:e])
-        key += p[s:e] * key.dtype.type(plane)
-        if wb - wa > 1:
-            key += np.repeat(np.arange(0, (wb - wa) * per_window, per_window, dtype=key.dtype),
-                             np.diff(np.clip(bounds[wa:wb + 1], s, e)))
-        span = out[wa * per_window:wb * per_window]
-        if span.size <= 4 * (e - s):  # few bins: count them all (faster than scattered adds)
-            span += np.bincount(key, minlength=span.size)
+        m = e - s
+        inside = cells.keys(x[s:e], y[s:e], p[s:e], a[:m], b[:m])
+        key = keys[:m]
+        while bounds[w + 1] <= s:  # the piece's first window
+            w += 1
+        first = v = w
+        while v < len(n) and bounds[v] < e:  # each window's events of the piece: its offset among the span's bins
+            lo, hi = max(bounds[v], s) - s, min(bounds[v + 1], e) - s
+            np.add(inside[lo:hi], np.uint64((v - first) * per_window), out=key[lo:hi])
+            v += 1
+        span = out[first * per_window:v * per_window]
+        if span.size <= 4 * m:  # few bins: count them all (faster than scattered adds)
+            span += np.bincount(key.view(np.intp), minlength=span.size)
         else:
-            np.add.at(span, key, span.dtype.type(1))  # (a typed one: numpy's fast path)
+            np.add.at(span, key.view(np.intp), span.dtype.type(1))  # (a typed one: numpy's fast path)
     return n
 
 
@@ -282,8 +338,8 @@ def pixel_values(on: np.ndarray, off: np.ndarray, linear: bool, theta: float) ->
 
 def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int, int, int],
                   cells: tuple[int, int] | None = None, kept_bytes: int = 0, batch_windows: int | None = None,
-                  chunk_events: int = 4_000_000, progress: Callable[[int], Any] | None = None
-                  ) -> Iterator[tuple[int, np.ndarray, np.ndarray, int]]:
+                  chunk_events: int = 4_000_000, progress: Callable[[int], Any] | None = None,
+                  overlap: bool = True) -> Iterator[tuple[int, np.ndarray, np.ndarray, int]]:
     """ON and OFF counts of the windows over a region's pixels (or whole-factor blocks of them), a batch of
     windows at a time, with numpy.
 
@@ -305,6 +361,10 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
         Most events read at once (at most :data:`READ_EVENTS`).
     progress : callable, optional
         Called with the number of events of each chunk read.
+    overlap : bool
+        Decode the next chunk on another thread while one is counted and the batches it closes are used (for
+        callers with much work on each batch); False: decode each chunk, then count it (quicker where the
+        counting is all the work: a third thread on two cores only competes with the decoding ones).
 
     Yields
     ------
@@ -338,9 +398,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
         nb = max(1, min(n_w, int(batch_windows)))
     require_memory(kept_bytes + nb * window_bytes + _PIECE * 16,
                    f"counting {n_w:,} windows over {w_px}x{h_px} pixels, {nb:,} at a time")
-    dtype = np.int32 if per_window * nb < 2**31 else np.int64
-    by_y = _axis_table(sensor[1], y0, y1, fy, cols + 1).astype(dtype)
-    by_x = _axis_table(sensor[0], x0, x1, fx, 1).astype(dtype)
+    keys = _Cells((x0, x1, y0, y1), sensor, fy, fx, cols, plane)
     firsts = list(range(0, n_w, nb))
     nexts = [min(i + nb, n_w) for i in firsts]
     starts, ends = windows.t_start_us, windows.t_end_us
@@ -358,7 +416,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
         # runs of whole windows (about equal events), one a thread: each counts into its own windows' bins
         n = np.searchsorted(ev.t, ends[i:j], side="left") - np.searchsorted(ev.t, starts[i:j], side="left")
         bounds = cuts(n, parts(int(n.sum())))
-        totals += np.concatenate(run(_count, [(ev, starts[i + a:i + z], ends[i + a:i + z], by_y, by_x, plane,
+        totals += np.concatenate(run(_count, [(ev, starts[i + a:i + z], ends[i + a:i + z], keys,
                                                out[a * per_window:z * per_window])
                                               for a, z in zip(bounds, bounds[1:])]))
         if totals.max(initial=0) > np.iinfo(np.int32).max:
@@ -366,7 +424,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
                             "counts could overflow")
 
     yield from _batches(source, windows, firsts, nexts, max(1, min(int(chunk_events), READ_EVENTS)), progress,
-                        batch, add, finished)
+                        batch, add, finished, overlap)
 
 
 def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size: tuple = (16, 16),
@@ -434,8 +492,10 @@ def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size:
     cells = not linear and h_px % oh == 0 and w_px % ow == 0  # each event straight to its output cell
     responses = np.empty((n_w, oh, ow), np.float64)
     used = 0
+    # straight to the cells, a batch needs nothing but its counts: each chunk decoded, then counted
     for i, on, off, n_used in count_batches(source, windows, (x0, x1, y0, y1), (oh, ow) if cells else None,
-                                            n_w * oh * ow * 9, batch_windows, chunk_events, progress):
+                                            n_w * oh * ow * 9, batch_windows, chunk_events, progress,
+                                            overlap=not cells):
         used += n_used
         if cells:  # the block mean of net counts: their exact sum over the block's pixel count
             responses[i:i + len(on)] = (on - off).astype(np.float64) / ((h_px // oh) * (w_px // ow))
