@@ -364,6 +364,41 @@ def test_block_counts_by_arithmetic_match_plain_indexing(sensor, region, cells):
     assert sum(b[3] for b in got) == used
 
 
+class _OffSensorChunks:
+    """A recording whose reader let events off its 32x24 sensor through (the readers refuse them): x = 40 and
+    y = 30 on an event each."""
+
+    sensor_size = (32, 24)
+
+    def __init__(self, ev):
+        self.ev = ev
+
+    def info(self):
+        return {"t_start_us": int(self.ev.t[0]), "t_end_us": int(self.ev.t[-1]), "events": len(self.ev)}
+
+    def iter_events(self, chunk_events=1_000_000, t_start_us=None, t_end_us=None, **kw):
+        yield self.ev
+
+
+@pytest.mark.parametrize("cells", [None, (4, 4)])
+def test_an_event_off_the_sensor_never_lands_in_another_pixels_bin(cells):
+    # the bins are found by arithmetic on the coordinates; on a whole-sensor region an x past the width landed in
+    # the next row's pixel (a row of 32 pixels: x = 40 is row + 1, x = 8), silently
+    from evtk.reconstruct.fixed import count_batches
+
+    t = np.array([10, 20, 30], np.int64)
+    x = np.array([40, 3, 5], np.uint16)
+    y = np.array([2, 30, 6], np.uint16)
+    ev = evtk.Events._trusted(t, x, y, np.ones(3, np.uint8), (32, 24))
+    win = Windows(np.array([0], np.int64), np.array([100], np.int64), np.arange(1), "test")
+    (_, on, off, used), = list(count_batches(_OffSensorChunks(ev), win, (0, 32, 0, 24), cells))
+    assert used == 1 and int(on.sum()) == 1 and int(off.sum()) == 0
+    if cells is None:
+        assert on[0, 6, 5] == 1  # the one event on the sensor, where it is
+    else:
+        assert on[0, 6 // 6, 5 // 8] == 1
+
+
 @pytest.mark.parametrize("linear, size, overlapped", [(False, (15, 20), False),  # straight to the cells
                                                       (True, (15, 20), True),  # linearised: work a batch
                                                       (False, (7, 9), True)])  # resized: work a batch

@@ -122,10 +122,10 @@ class _Cells:
                                                 else np.uint32 if 2 * plane <= 1 << 32 else np.uint64)
         u = self.dtype
         # (lo, n, per, mul) of y, then of x; None where the step changes nothing
-        self.y = (u(y0) if y0 else None, u(y1 - y0) if (y0, y1) != (0, sensor[1]) else None,
-                  u(fy) if fy > 1 else None, u(cols + 1))
-        self.x = (u(x0) if x0 else None, u(x1 - x0) if (x0, x1) != (0, sensor[0]) else None,
-                  u(fx) if fx > 1 else None, None)
+        # the clip is kept on a whole-sensor axis too: a coordinate off the sensor (the readers refuse them, but
+        # a source that did not) goes to the dump place, never to another pixel's or window's bin
+        self.y = (u(y0) if y0 else None, u(y1 - y0), u(fy) if fy > 1 else None, u(cols + 1))
+        self.x = (u(x0) if x0 else None, u(x1 - x0), u(fx) if fx > 1 else None, None)
         self.plane = u(plane)
 
     def keys(self, x: np.ndarray, y: np.ndarray, p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
