@@ -85,6 +85,24 @@ def test_batches_are_used(tmp_path, monkeypatch):
         assert len(calls) == len(SIZES)
 
 
+@pytest.mark.parametrize("small", [1_000, 1 << 20])
+def test_a_small_read_takes_small_batches(tmp_path, monkeypatch, small):
+    """A read of fewer than 16 batches' events takes batches of a sixteenth of it, at least
+    ``SMALL_BATCH_EVENTS`` (the memory a fresh process touches first costs page faults), and reads the same."""
+    monkeypatch.setattr(a4r, "SMALL_BATCH_EVENTS", small)
+    evs = [random_events(n, seed=70 + k) for k, n in enumerate(SIZES)]
+    path = tmp_path / "small.aedat4"
+    _aedat4(path, cz.LZ4, _frames(cz.LZ4, [_body(ev, pad) for ev, pad in zip(evs, PADS)]))
+    with evtk.open(path) as rec:
+        assert rec.events() == evtk.Events.concatenate(evs)  # (this file's packets counted: no data table)
+        reads = []
+        pread = rec._pread_into
+        monkeypatch.setattr(rec, "_pread_into", lambda buf, off: reads.append(off) or pread(buf, off))
+        assert rec.events() == evtk.Events.concatenate(evs)
+    # 1,000-event batches: the packets of 900 to 4,000 events one or two at a time; else the file in one read
+    assert len(reads) == (9 if small == 1_000 else 1), reads
+
+
 def _damage(kind, bodies, evs):
     """The bodies with one packet in the middle damaged as ``kind`` says."""
     bodies = list(bodies)
@@ -109,6 +127,7 @@ def _damage(kind, bodies, evs):
 @pytest.mark.parametrize("salvage", [False, True])
 def test_damage_inside_a_batch_is_named_as_packet_by_packet(tmp_path, monkeypatch, kind, salvage):
     monkeypatch.setattr(a4r, "BATCH_EVENTS", 20_000)  # the whole file one batch on one thread
+    monkeypatch.setattr(a4r, "SMALL_BATCH_EVENTS", 20_000)
     monkeypatch.setenv("EVTK_THREADS", "1")
     evs = [random_events(n, seed=90 + k) for k, n in enumerate(SIZES)]
     bodies = _damage(kind, [_body(ev, pad) for ev, pad in zip(evs, PADS)], evs)
