@@ -343,21 +343,85 @@ def decode_data_table(b, ident: bytes):
     start, count = fb_vector(b, root, 0, 4)
     if start < 0:
         return None, start
-    tables, vts, vt_size, tb_size, bad = _tables(b, start + 4 * np.arange(count, dtype=np.int64))
-    if np.any(bad):
-        return None, ST_BAD_OFFSET
-    out = []
-    for slot, size, signed, required in ((0, 8, True, True), (1, 8, False, True), (2, 8, True, False),
-                                         (3, 8, True, False), (4, 8, True, False)):
-        pos, bad = _fields(b, tables, vts, vt_size, tb_size, slot, size)
-        if required and np.any((pos == 0) & ~bad):
-            return None, ST_MISSING
-        if np.any(bad):
-            return None, ST_BAD_OFFSET
-        out.append(np.where(pos > 0, _gather(b, pos, size, signed), 0))
+    out = _table_entries_alike(b, start, count, _FTAB_FIELDS)
+    if out is None:
+        out = _table_entries(b, start, count, _FTAB_FIELDS)
+        if not isinstance(out, list):
+            return None, out
     offset, header, cnt, t0, t1 = out
     low = (header & 0xFFFFFFFF).astype(np.int64)
     stream = np.where(low >= 2**31, low - 2**32, low)
     high = (header >> 32).astype(np.int64)
     sizes = np.where(high >= 2**31, high - 2**32, high)
     return (offset, stream, sizes, cnt, t0, t1), ST_OK
+
+
+# the data table entry's fields (PacketInfo): slot, bytes, signed, required
+_FTAB_FIELDS = ((0, 8, True, True), (1, 8, False, True), (2, 8, True, False), (3, 8, True, False), (4, 8, True, False))
+
+
+def _table_entries(b, start: int, count: int, fields):
+    """The ``fields`` (``(slot, bytes, signed, required)`` each) of every table of the vector of ``count``
+    offsets at ``start``, as int64 columns (0 where an optional field is absent), or a negative status."""
+    tables, vts, vt_size, tb_size, bad = _tables(b, start + 4 * np.arange(count, dtype=np.int64))
+    if np.any(bad):
+        return ST_BAD_OFFSET
+    out = []
+    for slot, size, signed, required in fields:
+        pos, bad = _fields(b, tables, vts, vt_size, tb_size, slot, size)
+        if required and np.any((pos == 0) & ~bad):
+            return ST_MISSING
+        if np.any(bad):
+            return ST_BAD_OFFSET
+        out.append(np.where(pos > 0, _gather(b, pos, size, signed), 0))
+    return out
+
+
+def _table_entries_alike(b, start: int, count: int, fields):
+    """:func:`_table_entries` of a vector whose tables' vtables all hold the same field offsets (as writers lay
+    a data table out; only the tables' sizes may differ), or None where that or anything else does not hold
+    (the general route then reads it, or names what is wrong). Every bound the general route checks is
+    checked, and the columns are the same; each is read with one gather for all fields instead of a dozen
+    numpy passes (0.3 ms of a fresh process's open of a recording).
+
+    Returns
+    -------
+    list of numpy.ndarray or None
+        The int64 columns, one per field, or None.
+    """
+    n = len(b)
+    if count == 0 or any(size != 8 for _, size, _, _ in fields):
+        return None
+    tables = b[start:start + 4 * count].view("<u4") + (start + 4 * np.arange(count, dtype=np.int64))
+    if int(tables.max()) + 4 > n:
+        return None
+    vts = tables - b[tables[:, None] + np.arange(4)].view("<i4").reshape(-1)
+    v0 = int(vts[0])
+    if int(vts.min()) < 0 or v0 + 4 > n:
+        return None
+    vt_size = u16(b, v0)
+    if vt_size < 4 or int(vts.max()) + vt_size > n:
+        return None
+    vtables = b[vts[:, None] + np.arange(vt_size)]
+    same = vtables == vtables[0]
+    same[:, 2:4] = True  # the tables' own sizes (padding) may differ
+    if not same.all():
+        return None
+    tb_size = vtables[:, 2:4].copy().view("<u2").reshape(-1)
+    if int((tables + tb_size).max()) > n:
+        return None
+    room = int(tb_size.min())
+    offs = [u16(b, v0 + 4 + 2 * slot) if 4 + 2 * slot + 2 <= vt_size else 0 for slot, _, _, _ in fields]
+    if any((off == 0 and required) or off + 8 > room for off, (_, _, _, required) in zip(offs, fields)):
+        return None
+    present = [off for off in offs if off]
+    values = b[(tables[:, None] + np.array(present, np.int64))[:, :, None] + np.arange(8)]
+    values = values.view("<i8").reshape(count, len(present))
+    out, k = [], 0
+    for off in offs:
+        if off:
+            out.append(values[:, k].copy())
+            k += 1
+        else:
+            out.append(np.zeros(count, np.int64))
+    return out
