@@ -16,10 +16,11 @@ from evtk.io import _fbpy
 USUAL = (4, 12, 20, 28, 36)
 
 
-def _table(entries, offsets=lambda k: USUAL, pad=lambda k: 0, shared=False) -> bytes:
+def _table(entries, offsets=lambda k: USUAL, pad=lambda k: 0, shared=False, at=4) -> bytes:
     """A size-prefixed FileDataTable laid out by hand: each entry ``(offset, stream, size, count, t0, t1)`` a table
     with its fields at ``offsets(k)`` (0: absent) and ``pad(k)`` bytes more room, each with its own vtable before
-    it (as dv-processing writes them) or, with ``shared``, all pointing to the first one's."""
+    it (as dv-processing writes them) or, with ``shared``, all pointing to the first one's; each table at ``at``
+    modulo 8 (FlatBuffers puts it at 4, so that its 8-byte fields lie on multiples of 8)."""
     n = len(entries)
     buf = bytearray(4 + 4 + 4)  # size prefix, root offset, identifier
     buf[8:12] = b"FTAB"
@@ -40,7 +41,7 @@ def _table(entries, offsets=lambda k: USUAL, pad=lambda k: 0, shared=False) -> b
             first_vt = first_vt if first_vt is not None else vt
         else:
             vt = first_vt
-        while len(buf) % 8 != 4:
+        while len(buf) % 8 != at:
             buf += b"\0"
         table = len(buf)
         body = bytearray(max(tb_size, max(offs) + 8))  # (a table size cut short in its vtable: the bytes are there)
@@ -110,6 +111,9 @@ HOSTILE = {
     "one vtable differs": ({"offsets": lambda k: (36, 4, 12, 20, 28) if k == 7 else USUAL}, True),
     # a table too short for a field (its vtable's table size cut): damaged
     "a table too short": ({"pad": lambda k: -8 if k == 30 else 0}, False),
+    # tables off the alignment FlatBuffers gives them (readable, not by whole words)
+    "tables not on multiples of 4": ({"at": 2}, True),
+    "fields not on multiples of 8": ({"at": 0}, True),
     # the required PacketInfo absent everywhere: missing
     "a required field absent": ({"offsets": lambda k: (4, 0, 12, 20, 28)}, False),
 }
