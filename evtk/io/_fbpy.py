@@ -143,15 +143,75 @@ def fb_vector(b, table: int, slot: int, elem_size: int):
 def _root_vector(b, ident: bytes, struct_size: int):
     """``(start, length)`` of the vector in field 0 of the root table, or ``(status, 0)``; a vector of
     ``struct_size``-byte structs (``struct_size`` > 0) must end the buffer, as writers lay it out."""
-    root = fb_root(b, ident)
-    if root < 0:
-        return root, 0
-    start, count = fb_vector(b, root, 0, max(1, struct_size))
-    if start < 0:
-        return start, 0
+    return _root_vector_at(b, 0, len(b), bytes(ident), struct_size)
+
+
+_HEAD = struct.Struct("<I4s")
+_I32 = struct.Struct("<i")
+_U16X2 = struct.Struct("<HH")
+_U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
+
+
+def _root_vector_at(buf, at: int, n: int, ident: bytes, struct_size: int):
+    """:func:`_root_vector` of the ``n`` bytes of ``buf`` from ``at`` (positions returned from ``at``), read in
+    place: :func:`fb_root`, :func:`fb_field` and :func:`fb_vector`'s checks, every one, in one call (the
+    AEDAT4 reader's batches parse a packet's header with it, 4-5 us a packet less than through them).
+
+    Parameters
+    ----------
+    buf : numpy.ndarray or bytes
+        The buffer holding the FlatBuffer.
+    at : int
+        Where the FlatBuffer starts in ``buf``.
+    n : int
+        Its length; nothing past ``at + n`` is read.
+    ident : bytes
+        The four-byte identifier.
+    struct_size : int
+        As :func:`_root_vector`'s.
+
+    Returns
+    -------
+    start, length : int, int
+        The vector's start (from ``at``) and length, or ``(status, 0)``.
+    """
+    # the root: a size-prefixed buffer (identifier at 8) or a plain one (at 4)
+    if n >= 12 and _HEAD.unpack_from(buf, at + 4)[1] == ident:
+        root = 4 + _U32.unpack_from(buf, at + 4)[0]
+    elif n >= 8 and _HEAD.unpack_from(buf, at)[1] == ident:
+        root = _U32.unpack_from(buf, at)[0]
+    else:
+        return ST_BAD_IDENT, 0
+    if root + 4 > n:
+        return ST_BAD_OFFSET, 0
+    # field 0 of the root table (fb_field), whose value is the offset to the vector
+    vt = root - _I32.unpack_from(buf, at + root)[0]
+    if vt < 0 or vt + 4 > n:
+        return ST_BAD_OFFSET, 0
+    vt_size, tb_size = _U16X2.unpack_from(buf, at + vt)
+    if vt_size < 4 or vt + vt_size > n or root + tb_size > n:
+        return ST_BAD_OFFSET, 0
+    off = _U16.unpack_from(buf, at + vt + 4)[0] if vt_size >= 6 else 0
+    if off == 0:  # absent: an empty vector at 0
+        start = count = 0
+    else:
+        field = root + off
+        if off + 1 > tb_size or field + 1 > n:
+            return ST_BAD_OFFSET, 0
+        # the vector (fb_deref, fb_vector)
+        if field + 4 > n:
+            return ST_BAD_OFFSET, 0
+        v = field + _U32.unpack_from(buf, at + field)[0]
+        if v + 4 > n:
+            return ST_BAD_OFFSET, 0
+        count = _U32.unpack_from(buf, at + v)[0]
+        if v + 4 + count * max(1, struct_size) > n:
+            return ST_BAD_OFFSET, 0
+        start = v + 4
     # writers build a vector of structs first, so it ends the buffer (FlatBuffers fills from the back): room
     # for another element after it means a length that shrank, whose elements would vanish without a word
-    if struct_size > 0 and len(b) - (start + struct_size * count) >= struct_size:
+    if struct_size > 0 and n - (start + struct_size * count) >= struct_size:
         return ST_SLACK, 0
     return start, count
 

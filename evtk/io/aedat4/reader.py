@@ -547,7 +547,7 @@ class Recording(_FileIndex, BaseRecording):
         lz4 = code in (cz.LZ4, cz.LZ4_HIGH)
         t, x, y, p = out
         unpack_from = struct.unpack_from
-        root_vector = _fbpy._root_vector
+        root_vector_at = _fbpy._root_vector_at
         searchsorted = np.searchsorted
         pread_into = self._pread_into
         slack = _BATCH_SLACK
@@ -596,7 +596,7 @@ class Recording(_FileIndex, BaseRecording):
                     if n > room - dst:
                         return False
                     stage[dst:dst + n] = dec
-                st, c = root_vector(stage[dst:dst + n], ident, 16)
+                st, c = root_vector_at(stage, dst, n, ident, 16)
                 if st < 0 or c != cnt[j]:
                     return False
                 if base < 0:
