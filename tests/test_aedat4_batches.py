@@ -85,6 +85,24 @@ def test_batches_are_used(tmp_path, monkeypatch):
         assert len(calls) == len(SIZES)
 
 
+@pytest.mark.parametrize("small", [1_000, 1 << 20])
+def test_a_small_read_takes_small_batches(tmp_path, monkeypatch, small):
+    """A read of fewer than 16 batches' events takes batches of a sixteenth of it, at least
+    ``SMALL_BATCH_EVENTS`` (the memory a fresh process touches first costs page faults), and reads the same."""
+    monkeypatch.setattr(a4r, "SMALL_BATCH_EVENTS", small)
+    evs = [random_events(n, seed=70 + k) for k, n in enumerate(SIZES)]
+    path = tmp_path / "small.aedat4"
+    _aedat4(path, cz.LZ4, _frames(cz.LZ4, [_body(ev, pad) for ev, pad in zip(evs, PADS)]))
+    with evtk.open(path) as rec:
+        assert rec.events() == evtk.Events.concatenate(evs)  # (this file's packets counted: no data table)
+        reads = []
+        pread = rec._pread_into
+        monkeypatch.setattr(rec, "_pread_into", lambda buf, off: reads.append(off) or pread(buf, off))
+        assert rec.events() == evtk.Events.concatenate(evs)
+    # 1,000-event batches: the packets of 900 to 4,000 events one or two at a time; else the file in one read
+    assert len(reads) == (9 if small == 1_000 else 1), reads
+
+
 def _damage(kind, bodies, evs):
     """The bodies with one packet in the middle damaged as ``kind`` says."""
     bodies = list(bodies)
@@ -109,6 +127,7 @@ def _damage(kind, bodies, evs):
 @pytest.mark.parametrize("salvage", [False, True])
 def test_damage_inside_a_batch_is_named_as_packet_by_packet(tmp_path, monkeypatch, kind, salvage):
     monkeypatch.setattr(a4r, "BATCH_EVENTS", 20_000)  # the whole file one batch on one thread
+    monkeypatch.setattr(a4r, "SMALL_BATCH_EVENTS", 20_000)
     monkeypatch.setenv("EVTK_THREADS", "1")
     evs = [random_events(n, seed=90 + k) for k, n in enumerate(SIZES)]
     bodies = _damage(kind, [_body(ev, pad) for ev, pad in zip(evs, PADS)], evs)
@@ -204,3 +223,51 @@ def test_a_chunked_read_decodes_each_chunk_on_more_than_one_thread(tmp_path, mon
     assert threads and max(threads) == 2
     for got in (whole, evtk.Events(*(np.concatenate([getattr(c, k) for c in chunks]) for k in "txyp"), (320, 240))):
         assert all(np.array_equal(getattr(got, k), getattr(ev, k)) for k in "txyp")
+
+
+def _root_vector_by_parts(b, ident, struct_size):
+    """The root vector found through fb_root, fb_vector and the slack rule, one step at a time (the reference
+    :func:`_fbpy._root_vector_at` must agree with)."""
+    from evtk.io import _fbpy
+
+    root = _fbpy.fb_root(b, ident)
+    if root < 0:
+        return root, 0
+    start, count = _fbpy.fb_vector(b, root, 0, max(1, struct_size))
+    if start < 0:
+        return start, 0
+    if struct_size > 0 and len(b) - (start + struct_size * count) >= struct_size:
+        return _fbpy.ST_SLACK, 0
+    return start, count
+
+
+def test_a_packet_header_read_in_place_is_read_as_step_by_step():
+    """The batches' one-call parse of a packet's FlatBuffer header, in place in the staging buffer, gives what
+    the step-by-step parse of the body alone gives, on intact, cut, bit-flipped and random headers."""
+    from evtk.io import _fbpy
+
+    rng = np.random.default_rng(7)
+    bodies = [_body(random_events(n, seed=n), pad) for n, pad in ((0, 0), (1, 0), (3, 5), (40, 64), (2, 300))]
+    bodies.append(struct.pack("<I4sHHi", 12, b"EVTS", 4, 4, 4) + bytes(8))  # root tables without field 0
+    bodies.append(struct.pack("<I4sHHHxxi", 16, b"EVTS", 6, 4, 0, 8) + bytes(4))
+    bodies.append(bodies[2][4:])  # not size-prefixed
+    seen = set()
+    for k in range(6000):
+        b = bytearray(bodies[k % len(bodies)])
+        kind = k % 4
+        if kind == 1 and len(b):  # cut
+            b = b[:int(rng.integers(0, len(b)))]
+        elif kind == 2:  # a few bytes of the header changed
+            for _ in range(int(rng.integers(1, 4))):
+                b[int(rng.integers(0, min(len(b), 48)))] = int(rng.integers(0, 256))
+        elif kind == 3:  # random
+            b = bytearray(rng.integers(0, 256, int(rng.integers(0, 80)), dtype=np.uint8).tobytes())
+            if len(b) >= 12 and k % 8 == 3:
+                b[8:12] = b"EVTS"
+        pad = int(rng.integers(0, 9))
+        buf = np.frombuffer(bytes(rng.integers(0, 256, pad, dtype=np.uint8)) + bytes(b) + b"\xff" * 32, np.uint8)
+        for size in (16, 0):
+            want = _root_vector_by_parts(np.frombuffer(bytes(b), np.uint8), b"EVTS", size)
+            assert _fbpy._root_vector_at(buf, pad, len(b), b"EVTS", size) == want, (k, bytes(b).hex())
+            seen.add(want[0] if want[0] < 0 else "ok")
+    assert seen >= {"ok", _fbpy.ST_BAD_IDENT, _fbpy.ST_BAD_OFFSET, _fbpy.ST_SLACK}, seen

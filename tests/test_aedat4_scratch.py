@@ -126,3 +126,47 @@ def test_without_the_lz4_library_the_read_falls_back_to_python_lz4(tmp_path, mon
     scratch = cz.Scratch()
     got = cz.decompress_into(cz.LZ4, frame, cz.output_limit(len(frame)), True, scratch)
     assert got.tobytes() == bodies[0] and len(scratch._out) == 0
+
+
+def test_lz4_into_at_gives_decompress_intos_bytes_or_hands_the_frame_back():
+    """The batches' LZ4 call (one LZ4F_decompress for a whole frame, steps otherwise) writes exactly what
+    decompress_into returns, or returns -1 for decompress_into to name the fault: over frames with and without
+    a content size, with checksums (checked, or left to decompress_into when not verified), cut, damaged,
+    with bytes after them, and with too little room."""
+    import lz4.frame
+
+    rng = np.random.default_rng(11)
+    data = [bytes(rng.integers(0, 4, n, dtype=np.uint8)) for n in (0, 1, 100, 70_000, 300_000)]
+    cases = []
+    for raw in data:
+        for sized in (False, True):
+            for summed in (False, True):
+                frame = lz4.frame.compress(raw, store_size=sized, content_checksum=summed, block_checksum=summed,
+                                           block_size=lz4.frame.BLOCKSIZE_MAX64KB)
+                cases += [(raw, frame, len(raw) + 64), (raw, frame, max(0, len(raw) - 1)),  # room short by one
+                          (raw, frame[:-3], len(raw) + 64), (raw, frame + b"tail", len(raw) + 64)]
+                bad = bytearray(frame)
+                bad[len(bad) // 2] ^= 0x5A  # (unchecked, it may decode to other bytes: decompress_into's too)
+                cases.append((None, bytes(bad), len(raw) + 64))
+    cases.append((b"", lz4.frame.compress(b"")[:5], 64))  # too short for its descriptor
+    whole = 0
+    for raw, frame, room in cases:
+        for verify in (True, False):
+            src = np.frombuffer(frame, np.uint8).copy()
+            out = np.full(room + 16, 0xEE, np.uint8)
+            scratch = cz.Scratch()
+            n = cz.lz4_into_at(src, src.ctypes.data, cz.output_limit(len(frame)), verify, scratch, out.ctypes.data,
+                               room)
+            try:
+                want = bytes(cz.decompress_into(cz.LZ4, memoryview(src), cz.output_limit(len(frame)), verify,
+                                                cz.Scratch()))
+            except cz.CodecError:
+                want = None
+            if n < 0:
+                continue
+            assert want is not None and bytes(out[:n]) == want and n <= room and out[room] == 0xEE
+            if raw is not None:
+                whole += 1
+                assert want == raw
+    # every intact frame with room for it read in the quick call (checksummed ones when verified)
+    assert whole >= 2 * len(data) * 2 * 2 - len(data), whole

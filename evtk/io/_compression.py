@@ -12,6 +12,7 @@ from __future__ import annotations
 import _thread  # threading itself costs a fresh read 0.6 ms; its local and Lock are these
 import functools
 import os
+import struct
 import sys
 from typing import Any
 
@@ -483,20 +484,36 @@ def lz4_into_at(body, src_at: int, limit: int, verify: bool, scratch: Scratch, o
     int
         Bytes written, or -1.
     """
-    lib = _lz4f()
-    if not lib or bytes(body[:4]) != _LZ4_MAGIC:
+    n = len(body)
+    lib = _lz4f_lib or _lz4f()
+    if not lib or n < 6:  # (a frame too short for its descriptor: decompress_into names it)
         return -1
-    if not verify and len(body) > 6 and body[4] & _LZ4_CHECKSUMS:
+    magic, flg = _LZ4_START.unpack_from(body, 0)  # the frame's start read at once, not a numpy slice a field
+    if magic != _LZ4_MAGIC:
+        return -1
+    if not verify and n > 6 and flg & _LZ4_CHECKSUMS:
         return -1  # the frame rebuilt without its checksums: decompress_into's route
-    size = _lz4_content_size(body)
+    size = _LZ4_SIZE.unpack_from(body, 6)[0] if n >= 15 and flg & 0x08 else 0  # as _lz4_content_size
     limit = min(int(limit), MAX_PACKET_BYTES)
     if size > limit or size > cap:
         return -1
-    d = _context(lib, scratch)
-    try:
-        written, _, ended = _lz4_steps(lib, d, src_at, len(body), 0, out_at, 0, min(cap, limit))
-    except CodecError:
+    d = scratch._lz4
+    if d is None or d.lib is not lib:
+        d = _context(lib, scratch)
+    room = min(cap, limit)
+    # the whole frame and the room for it in one call, which a frame of one packet's body needs; else steps
+    d.dst_n.value, d.src_n.value = room, n
+    hint = lib.LZ4F_decompress(d.ctx, out_at, d.dst_p, src_at, d.src_p, None)
+    if hint == 0:
+        written, ended = d.dst_n.value, True
+    elif hint > _LZ4F_HINT_MAX and lib.LZ4F_isError(hint):
+        lib.LZ4F_resetDecompressionContext(d.ctx)
         return -1
+    else:
+        try:
+            written, _, ended = _lz4_steps(lib, d, src_at, n, d.src_n.value, out_at, d.dst_n.value, room)
+        except CodecError:
+            return -1
     if not ended or (size > 0 and written != size):
         lib.LZ4F_resetDecompressionContext(d.ctx)
         return -1
@@ -545,6 +562,8 @@ def _lz4_into(lib, body, limit: int, verify: bool, scratch: Scratch) -> np.ndarr
 
 
 _LZ4_CHECKSUMS = 0x14  # FLG bits: block checksums (0x10), content checksum (0x04)
+_LZ4_START = struct.Struct("<4sB")  # a frame's magic number and FLG byte
+_LZ4_SIZE = struct.Struct("<Q")  # the content size a frame's descriptor may state (at byte 6)
 
 
 def lz4_without_checksums(body):

@@ -24,6 +24,12 @@ if TYPE_CHECKING:
 #: Events a decode thread takes from the file at a time (1 MiB of FlatBuffers events, which stay in a core's
 #: cache for the column copies): see ``Recording._batcher``.
 BATCH_EVENTS = 1 << 16
+#: The least events of a batch in a read of fewer than ``16 * BATCH_EVENTS`` events, whose batches hold a
+#: sixteenth of it (at most :data:`BATCH_EVENTS`): a batch's compressed bytes and staging buffer are memory a
+#: fresh process touches for the first time, a page fault per 4 KiB (24 bytes an event of a batch), and a
+#: recording of 100 k events read in 64 k-event batches touched 1.2 MB more of it than in 8 k-event ones
+#: (600 page faults, 1-1.5 ms of a 3-4 ms decode here), while a large read keeps its batches' calls few.
+SMALL_BATCH_EVENTS = 1 << 13
 # room in a thread's staging buffer for packet headers and the bytes after a packet's events
 _BATCH_SLACK = 1 << 16
 # a decode thread's buffers with batches: the staging buffer (16 bytes an event and the slack), the batch's
@@ -509,7 +515,8 @@ class Recording(_FileIndex, BaseRecording):
     def _batcher(self, rows, counts, starts, out, width: int, height: int):
         """The batched decode of :meth:`_decode_into`'s packet ranges, or None where it does not apply.
 
-        A thread's packets go a batch at a time (about :data:`BATCH_EVENTS` events): the batch's bytes come
+        A thread's packets go a batch at a time (about :data:`BATCH_EVENTS` events, fewer in a small read: see
+        :data:`SMALL_BATCH_EVENTS`): the batch's bytes come
         from the file in one read, each body is decompressed into the thread's staging buffer so that its
         events follow the previous packet's (the packet is put where its FlatBuffer header overlaps the end
         of the events before it, which are kept aside and put back), and the columns are copied out of the
@@ -540,10 +547,11 @@ class Recording(_FileIndex, BaseRecording):
         lz4 = code in (cz.LZ4, cz.LZ4_HIGH)
         t, x, y, p = out
         unpack_from = struct.unpack_from
-        root_vector = _fbpy._root_vector
+        root_vector_at = _fbpy._root_vector_at
         searchsorted = np.searchsorted
         pread_into = self._pread_into
         slack = _BATCH_SLACK
+        batch_events = min(BATCH_EVENTS, max(SMALL_BATCH_EVENTS, at[-1] - at[0] >> 4))
 
         def one(k, kb, scratch) -> bool:
             o0 = offs[k] - 8
@@ -588,7 +596,7 @@ class Recording(_FileIndex, BaseRecording):
                     if n > room - dst:
                         return False
                     stage[dst:dst + n] = dec
-                st, c = root_vector(stage[dst:dst + n], ident, 16)
+                st, c = root_vector_at(stage, dst, n, ident, 16)
                 if st < 0 or c != cnt[j]:
                     return False
                 if base < 0:
@@ -619,7 +627,7 @@ class Recording(_FileIndex, BaseRecording):
             while k < k1:
                 # the first row past the batch (numpy's search: _bisect is a shared library more for a fresh
                 # read to load, 0.2-0.7 ms; the starts are non-decreasing, so it is past k)
-                past = min(k1 + 1, int(searchsorted(starts, at[k] + BATCH_EVENTS, "right")))
+                past = min(k1 + 1, int(searchsorted(starts, at[k] + batch_events, "right")))
                 kb = min(k1, max(k + 1, past - 1))
                 if not one(k, kb, scratch):
                     got = packets(k, kb, scratch)
