@@ -572,7 +572,7 @@ def lz4_without_checksums(body):
     Returns ``body`` unchanged when its block structure does not parse, so
     that the decompressor reports the damage.
     """
-    flg = body[4]
+    flg = int(body[4])  # (a numpy uint8 would refuse the negative mask below)
     desc_len = 2 + (8 if flg & 0x08 else 0) + (4 if flg & 0x01 else 0)
     pos = 4 + desc_len + 1
     block_sum = 4 if flg & 0x10 else 0
