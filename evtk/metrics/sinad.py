@@ -165,41 +165,48 @@ def _pixel_parts(block: np.ndarray) -> list[tuple[int, int]]:
     return [(p * r // n, p * (r + 1) // n) for r in range(n)]
 
 
-def _magnitude(x: np.ndarray) -> int:
-    """The largest magnitude of whole numbers ``x`` (rows x pixels), as a Python int (no wrap); runs of pixels
-    on the counting threads."""
+def _magnitude(x: np.ndarray, runs: list[tuple[int, int]]) -> int:
+    """The largest magnitude of whole numbers ``x`` (rows x pixels), as a Python int (no wrap); ``runs`` of pixels
+    (:func:`_pixel_parts`) on the counting threads."""
     def part(a: int, b: int) -> int:
         v = x[:, a:b]
         return max(abs(int(v.max())), abs(int(v.min())))
 
-    return max(run(part, _pixel_parts(x)))
+    return max(run(part, runs))
 
 
-def _whole_sums(block: np.ndarray, big: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """Per-pixel sum and sum of squares (int64, exact) of a block of whole-number repeats whose magnitudes are at
-    most ``big``; None where ``k * S2`` or ``S1 ** 2`` could leave int64 (then the float route measures it). Runs
-    of pixels go to the counting threads (each pixel's sums are its own: the same whatever the runs)."""
+def _whole_sums(block: np.ndarray, big: int, runs: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per-pixel sum and sum of squares (exact) of a block of whole-number repeats whose magnitudes are at most
+    ``big``, in the narrowest signed type of the block's own, int32 and int64 that holds them; None where ``k * S2``
+    or ``S1 ** 2`` could leave int64 (then the float route measures it). ``runs`` of pixels (:func:`_pixel_parts`)
+    go to the counting threads (each pixel's sums are its own: the same whatever the runs)."""
     k = block.shape[0]
     if k * k * big * big >= 2**62:
         return None
     # einsum sums in its inputs' type: in the block's own signed type where neither sum can leave it (int16 net
-    # counts: no copy), else in int32 where they cannot overflow it, else in int64
+    # counts: no copy), else in int32 where they cannot overflow it, else in int64; the sums stay in that type
+    # (no int64 copy of them: the merge widens what it must, one step at a time)
     if block.dtype.kind == "i" and block.dtype.itemsize <= 4 and k * big * big <= np.iinfo(block.dtype).max:
         kind = block.dtype
     elif block.dtype.itemsize <= 4 and block.dtype != np.uint32 and k * big * big < 2**31:
         kind = np.dtype(np.int32)
     else:
         kind = np.dtype(np.int64)
-    s1 = np.empty(block.shape[1], np.int64)
-    s2 = np.empty(block.shape[1], np.int64)
+    s1 = np.empty(block.shape[1], kind)
+    s2 = np.empty(block.shape[1], kind)
 
     def part(a: int, z: int) -> None:
         b = block[:, a:z].astype(kind, copy=False)
-        s1[a:z] = np.einsum("rp->p", b)
-        s2[a:z] = np.einsum("rp,rp->p", b, b)
+        np.einsum("rp->p", b, out=s1[a:z])
+        np.einsum("rp,rp->p", b, b, out=s2[a:z])
 
-    run(part, _pixel_parts(block))
+    run(part, runs)
     return s1, s2
+
+
+#: Most sizes of groups whose whole-number sums the accumulator keeps apart at once (:meth:`SinadAccumulator._pool`):
+#: equal groups of repeats have at most two sizes.
+_SIZES_KEPT = 2
 
 
 class SinadAccumulator:
@@ -256,6 +263,9 @@ class SinadAccumulator:
         self._sq = np.zeros(g)  # squares of the group's values, summed
         self._sq_px = np.zeros(p)
         self._pending: list | None = None  # a group's integer sums not yet merged (:meth:`_stash`)
+        # per size k of group: the per-pixel sums over its whole-number groups of S2 and of S1^2 (int64, exact),
+        # and bounds of the two (:meth:`_pool`; into _m2_px and _sq_px by :meth:`_spill`)
+        self._sizes: dict[int, list] = {}
         self._centred_means: tuple[np.ndarray, np.ndarray] | None = None  # (:meth:`_centred`, once complete)
         self.added = 0
 
@@ -274,10 +284,11 @@ class SinadAccumulator:
         -------
         int
             Bytes: one groups x pixels float64 array (the groups' means,
-            centred in place by the report) and eight per-pixel ones.
+            centred in place by the report) and eight per-pixel ones, with
+            two int64 per-pixel sums for each size of group kept apart.
         """
         groups = min(max(int(repeats), 0), MAX_BOOTSTRAP_GROUPS)
-        return 8 * int(pixels) * (groups + 8)
+        return 8 * int(pixels) * (groups + 8 + 2 * _SIZES_KEPT)
 
     @property
     def group_starts(self) -> np.ndarray:
@@ -326,8 +337,9 @@ class SinadAccumulator:
         if self.added + x.shape[0] > self.repeats:
             raise EvtkError(f"SINAD: more than the {self.repeats} repeats announced")
         whole = np.issubdtype(x.dtype, np.integer) or x.dtype == bool
+        runs = _pixel_parts(x) if whole and x.size else []
         # the largest magnitude of whole numbers (a Python int: no wrap), for the exact sums' overflow check
-        big = _magnitude(x) if whole and x.size else None
+        big = _magnitude(x, runs) if runs else None
         if not whole:
             x = x.astype(np.float64, copy=False)
             if not np.all(np.isfinite(x)):
@@ -338,7 +350,7 @@ class SinadAccumulator:
             g = int(np.searchsorted(self._bounds, at, side="right")) - 1
             block = x[i:i + int(self._bounds[g + 1]) - at]
             k = block.shape[0]
-            sums = None if big is None else _whole_sums(block, big)
+            sums = None if big is None else _whole_sums(block, big, runs)
             if sums is not None and big is not None:  # counts: exact integer sums, kept until the group is complete
                 self._stash(g, k, big, *sums)
             else:
@@ -357,36 +369,92 @@ class SinadAccumulator:
 
     def _stash(self, g: int, k: int, big: int, s1: np.ndarray, s2: np.ndarray) -> None:
         """Add a block of ``k`` whole-number repeats of group ``g`` (magnitudes at most ``big``, per-pixel sum
-        ``s1`` and sum of squares ``s2``, int64) to the group's integer sums; merged (:meth:`_flush`) when the
-        group is complete, or before its sums could leave int64."""
+        ``s1`` and sum of squares ``s2``, exact in an integer type) to the group's integer sums; merged
+        (:meth:`_flush`) when the group is complete, or before its sums could leave int64. A block that is a whole
+        group (as enob gives them) is merged straight from its own sums."""
         pend = self._pending
         if pend is not None and (pend[0] != g or (pend[1] + k) ** 2 * max(pend[2], big) ** 2 >= 2**62):
             self._flush()
             pend = None
+        complete = self._n[g] + k + (0 if pend is None else pend[1]) == self._bounds[g + 1] - self._bounds[g]
         if pend is None:
-            self._pending = pend = [g, k, big, s1, s2]
+            if complete:
+                self._merge_sums(g, k, big, s1, s2)
+                return
+            self._pending = pend = [g, k, big, s1.astype(np.int64), s2.astype(np.int64)]
         else:
             pend[1] += k
             pend[2] = max(pend[2], big)
             pend[3] += s1
             pend[4] += s2
-        if self._n[g] + pend[1] == self._bounds[g + 1] - self._bounds[g]:
+        if complete:
             self._flush()
 
     def _flush(self) -> None:
-        """Merge the stashed integer sums, if any: mean ``S1 / k`` and squared deviation ``(k S2 - S1^2) / k``,
-        whose numerator is an exact integer."""
-        if self._pending is None:
-            return
-        g, k, _, s1, s2 = self._pending
-        self._pending = None
-        num = np.multiply(s2, k)  # k S2 - S1^2 (exact in int64), with one temporary
-        num -= np.square(s1)
-        if self._n[g]:
+        """Merge the stashed integer sums, if any (:meth:`_merge_sums`)."""
+        if self._pending is not None:
+            g, k, big, s1, s2 = self._pending
+            self._pending = None
+            self._merge_sums(g, k, big, s1, s2)
+
+    def _merge_sums(self, g: int, k: int, big: int, s1: np.ndarray, s2: np.ndarray) -> None:
+        """Merge ``k`` whole-number repeats of group ``g`` given by their per-pixel sum ``s1`` and sum of squares
+        ``s2`` (exact integers, magnitudes of the values at most ``big``): mean ``S1 / k`` and squared deviation
+        ``(k S2 - S1^2) / k``, whose numerator is an exact integer.
+
+        A group's only block (a whole group of counts, as enob gives them) writes its mean in place, its two
+        summed scalars from exact integer sums, and its per-pixel sums into those of its size of group
+        (:meth:`_pool`): a handful of passes over the pixels a group, each in the narrowest exact type.
+        """
+        big2 = k * big * big  # bounds S2 (and k S2 bounds S1^2)
+        if self._n[g]:  # a block after a float-merged one (rare): Chan's update from the block's own mean
+            s1 = s1.astype(np.int64, copy=False)
+            num = np.multiply(s2, k, dtype=np.int64)  # k S2 - S1^2 (exact in int64), with one temporary
+            num -= np.square(s1)
             self._merge(g, k, s1 / k, np.divide(num, k), s2.astype(np.float64))
-        else:  # the group's first block (a whole group of counts, as enob gives them): its mean straight in place
-            np.divide(s1, k, out=self._mean[g])
-            self._merge(g, k, None, np.divide(num, k), s2.astype(np.float64))
+            return
+        np.divide(s1, k, out=self._mean[g])
+        q = np.square(s1, dtype=np.int64)  # S1^2, exact: below 2**62 (checked by _whole_sums)
+        p = s1.size
+        if p * k * big2 < 2**63:  # the pixels' sums of S2 and S1^2 stay in int64: exact, as Python ints
+            s2_sum = int(np.add.reduce(s2, dtype=np.int64))
+            self._m2[g] += (k * s2_sum - int(np.add.reduce(q))) / k
+            self._sq[g] += float(s2_sum)
+        else:
+            num = np.multiply(s2, k, dtype=np.int64)
+            num -= q
+            self._m2[g] += float(np.divide(num, k).sum())
+            self._sq[g] += float(s2.sum(dtype=np.float64))
+        self._pool(k, big2, s2, q)
+        self._n[g] = k
+
+    def _pool(self, k: int, big2: int, s2: np.ndarray, q: np.ndarray) -> None:
+        """Add a whole group of ``k`` repeats' per-pixel ``S2`` and ``S1^2`` (``s2`` at most ``big2``) to the int64
+        sums of the groups of its size, spilling (:meth:`_spill`) those before they could leave int64 and the
+        oldest size beyond :data:`_SIZES_KEPT`."""
+        kept = self._sizes.get(k)
+        if kept is not None and (k * (kept[2] + big2) >= 2**62 or kept[3] + k * big2 >= 2**62):
+            self._spill(k)
+            kept = None
+        if kept is None:
+            if len(self._sizes) >= _SIZES_KEPT:
+                self._spill(next(iter(self._sizes)))
+            self._sizes[k] = [s2.astype(np.int64), q, big2, k * big2]
+            return
+        np.add(kept[0], s2, out=kept[0])
+        np.add(kept[1], q, out=kept[1])
+        kept[2] += big2
+        kept[3] += k * big2
+
+    def _spill(self, k: int | None = None) -> None:
+        """Move the int64 sums of the groups of ``k`` repeats (every size: None) into the float per-pixel squared
+        deviation (``(k S2 - S1^2) / k`` over those groups) and sum of squares."""
+        for size in list(self._sizes) if k is None else [k]:
+            s2, q, _, _ = self._sizes.pop(size)
+            q *= -1
+            q += s2 * size  # k S2 - S1^2, exact: below 2**62 (checked by _pool)
+            self._m2_px += q / size
+            self._sq_px += s2
 
     def _merge(self, g: int, k: int, block_mean: np.ndarray | None, block_m2: np.ndarray, sq: np.ndarray) -> None:
         """Merge a block of ``k`` repeats of group ``g`` (its per-pixel mean, squared deviation from that mean and
@@ -475,6 +543,8 @@ class SinadAccumulator:
         if not 0 < confidence < 1:
             raise EvtkError(f"confidence must be between 0 and 1, not {confidence}")
         self._flush()
+        if per_pixel:
+            self._spill()
         r, p = self.repeats, self._mean.shape[1]
         n = self._n
         centred = self._centred()
