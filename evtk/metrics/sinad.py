@@ -204,6 +204,10 @@ def _whole_sums(block: np.ndarray, big: int, runs: list[tuple[int, int]]) -> tup
     return s1, s2
 
 
+#: The report centres the groups' means a run of pixels at a time: a groups x run float64 buffer of at most
+#: this many per-pixel arrays' worth (or this many times 32 runs of pixels a group, where more).
+_REPORT_RUN = 2
+
 #: Most sizes of groups whose whole-number sums the accumulator keeps apart at once (:meth:`SinadAccumulator._pool`):
 #: equal groups of repeats have at most two sizes.
 _SIZES_KEPT = 2
@@ -216,7 +220,8 @@ class SinadAccumulator:
     :data:`MAX_BOOTSTRAP_GROUPS` repeats, contiguous blocks beyond), the
     group's per-pixel mean, its summed squared deviation and its summed
     squares, merged block by block with Chan's pairwise update (exact for
-    large means with tiny noise). Memory is groups x pixels whatever the
+    large means with tiny noise); a group of whole numbers (counts) is kept
+    as its exact integer sums instead. Memory is groups x pixels whatever the
     number of repeats, so a minute of 10 ms windows is measured in one pass;
     :func:`sinad` is one accumulator given every repeat at once.
 
@@ -257,7 +262,11 @@ class SinadAccumulator:
         g = min(repeats, MAX_BOOTSTRAP_GROUPS)
         self._bounds = np.linspace(0, repeats, g + 1).round().astype(np.int64)
         self._n = np.zeros(g)
-        self._mean = np.zeros((g, p))
+        self._mean = np.zeros((g, p))  # the groups' means (pages touched only by groups merged in floats)
+        # the per-pixel sums of the groups merged from whole numbers (int16 or int32: a quarter or half of their
+        # float means' pages), the group's mean their quotient by its size (:meth:`_mean_of`)
+        self._s1: np.ndarray | None = None
+        self._whole = np.zeros(g, bool)
         self._m2 = np.zeros(g)  # squared deviations from the group's mean, summed over its repeats and pixels
         self._m2_px = np.zeros(p)  # the same per pixel, summed over groups
         self._sq = np.zeros(g)  # squares of the group's values, summed
@@ -266,7 +275,6 @@ class SinadAccumulator:
         # per size k of group: the per-pixel sums over its whole-number groups of S2 and of S1^2 (int64, exact),
         # and bounds of the two (:meth:`_pool`; into _m2_px and _sq_px by :meth:`_spill`)
         self._sizes: dict[int, list] = {}
-        self._centred_means: tuple[np.ndarray, np.ndarray] | None = None  # (:meth:`_centred`, once complete)
         self.added = 0
 
     @staticmethod
@@ -283,12 +291,14 @@ class SinadAccumulator:
         Returns
         -------
         int
-            Bytes: one groups x pixels float64 array (the groups' means,
-            centred in place by the report) and eight per-pixel ones, with
-            two int64 per-pixel sums for each size of group kept apart.
+            Bytes: one groups x pixels float64 array (the groups' means;
+            a group merged from whole numbers leaves its pages untouched and
+            keeps its int16 or int32 sums instead), eight per-pixel float64
+            ones, two int64 per-pixel sums for each size of group kept apart,
+            and the report's groups x run-of-pixels buffer.
         """
         groups = min(max(int(repeats), 0), MAX_BOOTSTRAP_GROUPS)
-        return 8 * int(pixels) * (groups + 8 + 2 * _SIZES_KEPT)
+        return 8 * int(pixels) * (groups + 8 + _REPORT_RUN + 2 * _SIZES_KEPT) + 8 * 32 * _REPORT_RUN * groups
 
     @property
     def group_starts(self) -> np.ndarray:
@@ -356,7 +366,7 @@ class SinadAccumulator:
             else:
                 self._flush()
                 block = block.astype(np.float64, copy=False)
-                ref = self._mean[g] if self._n[g] else block[0]  # a shift near the data keeps the sums exact
+                ref = self._mean_of(g) if self._n[g] else block[0]  # a shift near the data keeps the sums exact
                 dev = block - ref
                 s1f = dev.sum(axis=0)
                 s2f = np.einsum("rp,rp->p", dev, dev)
@@ -413,7 +423,13 @@ class SinadAccumulator:
             num -= np.square(s1)
             self._merge(g, k, s1 / k, np.divide(num, k), s2.astype(np.float64))
             return
-        np.divide(s1, k, out=self._mean[g])
+        most = k * big  # bounds S1, below 2**31 (checked by _whole_sums)
+        if self._s1 is None:
+            self._s1 = np.zeros(self._mean.shape, np.int16 if most <= np.iinfo(np.int16).max else np.int32)
+        elif most > np.iinfo(self._s1.dtype).max:
+            self._s1 = self._s1.astype(np.int32)
+        self._s1[g] = s1
+        self._whole[g] = True
         q = np.square(s1, dtype=np.int64)  # S1^2, exact: below 2**62 (checked by _whole_sums)
         p = s1.size
         if p * k * big2 < 2**63:  # the pixels' sums of S2 and S1^2 stay in int64: exact, as Python ints
@@ -470,7 +486,7 @@ class SinadAccumulator:
             self._sq[g] += float(sq.sum())
             self._n[g] = k
             return
-        delta = block_mean - self._mean[g]
+        delta = block_mean - self._mean_of(g)
         w = had * k / (had + k)
         self._m2_px += block_m2 + w * delta * delta
         # (einsum, not @: a BLAS dot of one vector wakes its threads, 600x slower on a busy machine)
@@ -480,17 +496,50 @@ class SinadAccumulator:
         self._sq[g] += float(sq.sum())
         self._n[g] += k
 
-    def _centred(self):
-        """Each group's mean centred on the overall mean, and its squared norm: computed once, in place of the
-        means (asked for only once every repeat is in, when no mean is needed again; no groups x pixels copy)."""
-        if self._centred_means is None:
-            off = self._mean
-            off -= np.einsum("g,gp->p", self._n, off) / self.repeats
-            self._centred_means = off, np.einsum("gp,gp->g", off, off)
-        return self._centred_means
+    def _mean_of(self, g: int) -> np.ndarray:
+        """Group ``g``'s mean row, its float row from now on where the group held integer sums."""
+        if self._whole[g]:
+            assert self._s1 is not None
+            np.divide(self._s1[g], self._n[g], out=self._mean[g])
+            self._whole[g] = False
+        return self._mean[g]
+
+    def _between(self, gram: bool, per_pixel: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """The groups' means centred on the overall mean, a run of pixels at a time (never a groups x pixels
+        float copy): each group's squared norm of them, with their Gram matrix (``gram``) and the per-pixel sum
+        over groups of ``n_g`` times their square (``per_pixel``)."""
+        g, p = self._mean.shape
+        n = self._n
+        run_px = min(p, max(32 * _REPORT_RUN, _REPORT_RUN * p // g))  # (bytes_needed counts its buffer)
+        buf = np.empty((g, run_px))
+        between = np.zeros(g)
+        gm = np.zeros((g, g)) if gram else None
+        pp = np.empty(p) if per_pixel else None
+        whole = self._whole.all()
+        for a in range(0, p, run_px):
+            z = min(p, a + run_px)
+            off = buf[:, :z - a]
+            if whole:
+                assert self._s1 is not None
+                np.divide(self._s1[:, a:z], n[:, None], out=off)
+            else:
+                for i in range(g):
+                    if self._whole[i]:
+                        assert self._s1 is not None
+                        np.divide(self._s1[i, a:z], n[i], out=off[i])
+                    else:
+                        off[i] = self._mean[i, a:z]
+            off -= np.einsum("g,gp->p", n, off) / self.repeats
+            between += np.einsum("gp,gp->g", off, off)
+            if gm is not None:
+                gm += off @ off.T
+            if pp is not None:
+                pp[a:z] = np.einsum("g,gp,gp->p", n, off, off)
+        return between, gm, pp
 
     def _group_terms(self, centred=None):
-        """``(M, N, P, n)`` of the groups, for the intervals (``centred``: :meth:`_centred`'s, if at hand).
+        """``(M, N, P, n)`` of the groups, for the intervals (``centred``: :meth:`_between`'s squared norms and
+        Gram matrix, if at hand).
 
         With ``xc`` the captures centred per pixel and ``d_ij = mean_p (xc_i - xc_j)^2 / 2`` (half the squared
         difference of repeats i and j, pooled over pixels): ``M[g, h]`` the sum of ``d_ij`` over i in g and j
@@ -499,10 +548,10 @@ class SinadAccumulator:
         """
         p = self._mean.shape[1]
         n = self._n
-        off, between = self._centred() if centred is None else centred
+        between, gram = self._between(True, False)[:2] if centred is None else centred
         a = (self._m2 + n * between) / p  # per group: mean square of its centred repeats, summed
         # products of the groups' centred sums (n_g times their centred mean), without a groups x pixels copy
-        k = n[:, None] * (off @ off.T) * n[None, :] / p
+        k = n[:, None] * gram * n[None, :] / p
         m = (n[None, :] * a[:, None] + n[:, None] * a[None, :] - 2.0 * k) / 2.0  # between groups
         np.fill_diagonal(m, n * a - np.diag(k))  # twice the within-group sum
         pairs = np.outer(n, n)
@@ -547,8 +596,8 @@ class SinadAccumulator:
             self._spill()
         r, p = self.repeats, self._mean.shape[1]
         n = self._n
-        centred = self._centred()
-        off, between = centred
+        want_interval = interval is not None and r >= 3 and (interval == "jackknife" or bool(resamples))
+        between, gram, pp_between = self._between(want_interval, per_pixel)
         power = float(self._sq.sum()) / (r * p)
         if power == 0.0:
             raise EvtkError("SINAD: the signal is zero everywhere (no light reached the pixels?)")
@@ -556,8 +605,8 @@ class SinadAccumulator:
         s_db = _ratio_db(power, noise)
         report = SinadReport(s_db, enob_bits(s_db), noise == 0.0, math.sqrt(power), math.sqrt(noise), r, p,
                              confidence=confidence)
-        if interval is not None and r >= 3 and (interval == "jackknife" or resamples):
-            terms = self._group_terms(centred)
+        if want_interval:
+            terms = self._group_terms((between, gram))
             if interval == "jackknife":
                 lo, hi = _jackknife_interval_db(terms, s_db, confidence)
             else:
@@ -568,8 +617,8 @@ class SinadAccumulator:
             report.ci_db = (lo, hi)
             report.ci_enob = (enob_bits(lo), enob_bits(hi))
             report.interval = interval
-        if per_pixel:
-            var = (self._m2_px + np.einsum("g,gp,gp->p", n, off, off)) / (r - 1)
+        if pp_between is not None:  # (per_pixel)
+            var = (self._m2_px + pp_between) / (r - 1)
             ms = self._sq_px / r
             pp = np.full(p, np.inf)
             noisy = var > 0
