@@ -412,9 +412,11 @@ class SinadAccumulator:
         ``s2`` (exact integers, magnitudes of the values at most ``big``): mean ``S1 / k`` and squared deviation
         ``(k S2 - S1^2) / k``, whose numerator is an exact integer.
 
-        A group's only block (a whole group of counts, as enob gives them) writes its mean in place, its two
-        summed scalars from exact integer sums, and its per-pixel sums into those of its size of group
-        (:meth:`_pool`): a handful of passes over the pixels a group, each in the narrowest exact type.
+        A group's only block (a whole group of counts, as enob gives them) keeps its per-pixel sum as the group's
+        row of integer sums (int16 or int32; its mean that over ``k``, formed by the report a run of pixels at a
+        time), its two summed scalars from exact integer sums, and its per-pixel ``S2`` and ``S1^2`` in the sums
+        of its size of group (:meth:`_pool`): a handful of passes over the pixels a group, each in the narrowest
+        exact type.
         """
         big2 = k * big * big  # bounds S2 (and k S2 bounds S1^2)
         if self._n[g]:  # a block after a float-merged one (rare): Chan's update from the block's own mean
