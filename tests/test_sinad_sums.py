@@ -149,3 +149,28 @@ def test_bootstrap_of_counts_equals_the_float_routes():
     assert _close(got.sinad_db, want.sinad_db)
     assert np.allclose(got.ci_db, want.ci_db, rtol=1e-9, atol=1e-9)
     assert np.allclose(got.per_pixel_db, want.per_pixel_db, rtol=1e-9)
+
+
+def test_runs_of_pixels_on_several_threads_give_the_same_sums(monkeypatch):
+    """Blocks large enough to be cut into runs of pixels on the counting threads (8 threads asked for): the
+    numbers of the float route (every pixel's own sums, whatever the runs)."""
+    from evtk._parallel import parts
+
+    monkeypatch.setenv("EVTK_THREADS", "8")
+    rng = np.random.default_rng(8)
+    x = rng.integers(-6, 7, (130, 2, 40000)).astype(np.int16)
+    x[:, 1, :100] = 300  # int32 sums in the groups' first run
+    x[::2, 1, 100] = -300
+    blocks = _enob_blocks(130)
+    assert parts(x[: blocks[1]].size) > 1
+    acc = SinadAccumulator(130, x.shape[1:])
+    for a, b in zip(blocks, blocks[1:]):
+        assert acc.add(x[a:b]) == 300
+    for interval in ("jackknife", "bootstrap"):
+        got = acc.report(per_pixel=True, interval=interval)
+        want = sinad(x.astype(np.float64), per_pixel=True, interval=interval)
+        for key in ("sinad_db", "signal_rms", "noise_std"):
+            assert _close(getattr(got, key), getattr(want, key)), key
+        assert np.allclose(got.ci_db, want.ci_db, rtol=1e-9, atol=1e-12)
+        assert np.array_equal(got.per_pixel_db.mask, want.per_pixel_db.mask)
+        assert np.allclose(got.per_pixel_db, want.per_pixel_db, rtol=1e-9, atol=1e-12)
