@@ -165,41 +165,52 @@ def _pixel_parts(block: np.ndarray) -> list[tuple[int, int]]:
     return [(p * r // n, p * (r + 1) // n) for r in range(n)]
 
 
-def _magnitude(x: np.ndarray) -> int:
-    """The largest magnitude of whole numbers ``x`` (rows x pixels), as a Python int (no wrap); runs of pixels
-    on the counting threads."""
+def _magnitude(x: np.ndarray, runs: list[tuple[int, int]]) -> int:
+    """The largest magnitude of whole numbers ``x`` (rows x pixels), as a Python int (no wrap); ``runs`` of pixels
+    (:func:`_pixel_parts`) on the counting threads."""
     def part(a: int, b: int) -> int:
         v = x[:, a:b]
         return max(abs(int(v.max())), abs(int(v.min())))
 
-    return max(run(part, _pixel_parts(x)))
+    return max(run(part, runs))
 
 
-def _whole_sums(block: np.ndarray, big: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """Per-pixel sum and sum of squares (int64, exact) of a block of whole-number repeats whose magnitudes are at
-    most ``big``; None where ``k * S2`` or ``S1 ** 2`` could leave int64 (then the float route measures it). Runs
-    of pixels go to the counting threads (each pixel's sums are its own: the same whatever the runs)."""
+def _whole_sums(block: np.ndarray, big: int, runs: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per-pixel sum and sum of squares (exact) of a block of whole-number repeats whose magnitudes are at most
+    ``big``, in the narrowest signed type of the block's own, int32 and int64 that holds them; None where ``k * S2``
+    or ``S1 ** 2`` could leave int64 (then the float route measures it). ``runs`` of pixels (:func:`_pixel_parts`)
+    go to the counting threads (each pixel's sums are its own: the same whatever the runs)."""
     k = block.shape[0]
     if k * k * big * big >= 2**62:
         return None
     # einsum sums in its inputs' type: in the block's own signed type where neither sum can leave it (int16 net
-    # counts: no copy), else in int32 where they cannot overflow it, else in int64
+    # counts: no copy), else in int32 where they cannot overflow it, else in int64; the sums stay in that type
+    # (no int64 copy of them: the merge widens what it must, one step at a time)
     if block.dtype.kind == "i" and block.dtype.itemsize <= 4 and k * big * big <= np.iinfo(block.dtype).max:
         kind = block.dtype
     elif block.dtype.itemsize <= 4 and block.dtype != np.uint32 and k * big * big < 2**31:
         kind = np.dtype(np.int32)
     else:
         kind = np.dtype(np.int64)
-    s1 = np.empty(block.shape[1], np.int64)
-    s2 = np.empty(block.shape[1], np.int64)
+    s1 = np.empty(block.shape[1], kind)
+    s2 = np.empty(block.shape[1], kind)
 
     def part(a: int, z: int) -> None:
         b = block[:, a:z].astype(kind, copy=False)
-        s1[a:z] = np.einsum("rp->p", b)
-        s2[a:z] = np.einsum("rp,rp->p", b, b)
+        np.einsum("rp->p", b, out=s1[a:z])
+        np.einsum("rp,rp->p", b, b, out=s2[a:z])
 
-    run(part, _pixel_parts(block))
+    run(part, runs)
     return s1, s2
+
+
+#: The report centres the groups' means a run of pixels at a time: a groups x run float64 buffer of at most
+#: this many per-pixel arrays' worth (or this many times 32 runs of pixels a group, where more).
+_REPORT_RUN = 2
+
+#: Most sizes of groups whose whole-number sums the accumulator keeps apart at once (:meth:`SinadAccumulator._pool`):
+#: equal groups of repeats have at most two sizes.
+_SIZES_KEPT = 2
 
 
 class SinadAccumulator:
@@ -209,7 +220,8 @@ class SinadAccumulator:
     :data:`MAX_BOOTSTRAP_GROUPS` repeats, contiguous blocks beyond), the
     group's per-pixel mean, its summed squared deviation and its summed
     squares, merged block by block with Chan's pairwise update (exact for
-    large means with tiny noise). Memory is groups x pixels whatever the
+    large means with tiny noise); a group of whole numbers (counts) is kept
+    as its exact integer sums instead. Memory is groups x pixels whatever the
     number of repeats, so a minute of 10 ms windows is measured in one pass;
     :func:`sinad` is one accumulator given every repeat at once.
 
@@ -250,13 +262,19 @@ class SinadAccumulator:
         g = min(repeats, MAX_BOOTSTRAP_GROUPS)
         self._bounds = np.linspace(0, repeats, g + 1).round().astype(np.int64)
         self._n = np.zeros(g)
-        self._mean = np.zeros((g, p))
+        self._mean = np.zeros((g, p))  # the groups' means (pages touched only by groups merged in floats)
+        # the per-pixel sums of the groups merged from whole numbers (int16 or int32: a quarter or half of their
+        # float means' pages), the group's mean their quotient by its size (:meth:`_mean_of`)
+        self._s1: np.ndarray | None = None
+        self._whole = np.zeros(g, bool)
         self._m2 = np.zeros(g)  # squared deviations from the group's mean, summed over its repeats and pixels
         self._m2_px = np.zeros(p)  # the same per pixel, summed over groups
         self._sq = np.zeros(g)  # squares of the group's values, summed
         self._sq_px = np.zeros(p)
         self._pending: list | None = None  # a group's integer sums not yet merged (:meth:`_stash`)
-        self._centred_means: tuple[np.ndarray, np.ndarray] | None = None  # (:meth:`_centred`, once complete)
+        # per size k of group: the per-pixel sums over its whole-number groups of S2 and of S1^2 (int64, exact),
+        # and bounds of the two (:meth:`_pool`; into _m2_px and _sq_px by :meth:`_spill`)
+        self._sizes: dict[int, list] = {}
         self.added = 0
 
     @staticmethod
@@ -273,11 +291,14 @@ class SinadAccumulator:
         Returns
         -------
         int
-            Bytes: one groups x pixels float64 array (the groups' means,
-            centred in place by the report) and eight per-pixel ones.
+            Bytes: one groups x pixels float64 array (the groups' means;
+            a group merged from whole numbers leaves its pages untouched and
+            keeps its int16 or int32 sums instead), eight per-pixel float64
+            ones, two int64 per-pixel sums for each size of group kept apart,
+            and the report's groups x run-of-pixels buffer.
         """
         groups = min(max(int(repeats), 0), MAX_BOOTSTRAP_GROUPS)
-        return 8 * int(pixels) * (groups + 8)
+        return 8 * int(pixels) * (groups + 8 + _REPORT_RUN + 2 * _SIZES_KEPT) + 8 * 32 * _REPORT_RUN * groups
 
     @property
     def group_starts(self) -> np.ndarray:
@@ -326,8 +347,9 @@ class SinadAccumulator:
         if self.added + x.shape[0] > self.repeats:
             raise EvtkError(f"SINAD: more than the {self.repeats} repeats announced")
         whole = np.issubdtype(x.dtype, np.integer) or x.dtype == bool
+        runs = _pixel_parts(x) if whole and x.size else []
         # the largest magnitude of whole numbers (a Python int: no wrap), for the exact sums' overflow check
-        big = _magnitude(x) if whole and x.size else None
+        big = _magnitude(x, runs) if runs else None
         if not whole:
             x = x.astype(np.float64, copy=False)
             if not np.all(np.isfinite(x)):
@@ -338,13 +360,13 @@ class SinadAccumulator:
             g = int(np.searchsorted(self._bounds, at, side="right")) - 1
             block = x[i:i + int(self._bounds[g + 1]) - at]
             k = block.shape[0]
-            sums = None if big is None else _whole_sums(block, big)
+            sums = None if big is None else _whole_sums(block, big, runs)
             if sums is not None and big is not None:  # counts: exact integer sums, kept until the group is complete
                 self._stash(g, k, big, *sums)
             else:
                 self._flush()
                 block = block.astype(np.float64, copy=False)
-                ref = self._mean[g] if self._n[g] else block[0]  # a shift near the data keeps the sums exact
+                ref = self._mean_of(g) if self._n[g] else block[0]  # a shift near the data keeps the sums exact
                 dev = block - ref
                 s1f = dev.sum(axis=0)
                 s2f = np.einsum("rp,rp->p", dev, dev)
@@ -357,36 +379,100 @@ class SinadAccumulator:
 
     def _stash(self, g: int, k: int, big: int, s1: np.ndarray, s2: np.ndarray) -> None:
         """Add a block of ``k`` whole-number repeats of group ``g`` (magnitudes at most ``big``, per-pixel sum
-        ``s1`` and sum of squares ``s2``, int64) to the group's integer sums; merged (:meth:`_flush`) when the
-        group is complete, or before its sums could leave int64."""
+        ``s1`` and sum of squares ``s2``, exact in an integer type) to the group's integer sums; merged
+        (:meth:`_flush`) when the group is complete, or before its sums could leave int64. A block that is a whole
+        group (as enob gives them) is merged straight from its own sums."""
         pend = self._pending
         if pend is not None and (pend[0] != g or (pend[1] + k) ** 2 * max(pend[2], big) ** 2 >= 2**62):
             self._flush()
             pend = None
+        complete = self._n[g] + k + (0 if pend is None else pend[1]) == self._bounds[g + 1] - self._bounds[g]
         if pend is None:
-            self._pending = pend = [g, k, big, s1, s2]
+            if complete:
+                self._merge_sums(g, k, big, s1, s2)
+                return
+            self._pending = pend = [g, k, big, s1.astype(np.int64), s2.astype(np.int64)]
         else:
             pend[1] += k
             pend[2] = max(pend[2], big)
             pend[3] += s1
             pend[4] += s2
-        if self._n[g] + pend[1] == self._bounds[g + 1] - self._bounds[g]:
+        if complete:
             self._flush()
 
     def _flush(self) -> None:
-        """Merge the stashed integer sums, if any: mean ``S1 / k`` and squared deviation ``(k S2 - S1^2) / k``,
-        whose numerator is an exact integer."""
-        if self._pending is None:
-            return
-        g, k, _, s1, s2 = self._pending
-        self._pending = None
-        num = np.multiply(s2, k)  # k S2 - S1^2 (exact in int64), with one temporary
-        num -= np.square(s1)
-        if self._n[g]:
+        """Merge the stashed integer sums, if any (:meth:`_merge_sums`)."""
+        if self._pending is not None:
+            g, k, big, s1, s2 = self._pending
+            self._pending = None
+            self._merge_sums(g, k, big, s1, s2)
+
+    def _merge_sums(self, g: int, k: int, big: int, s1: np.ndarray, s2: np.ndarray) -> None:
+        """Merge ``k`` whole-number repeats of group ``g`` given by their per-pixel sum ``s1`` and sum of squares
+        ``s2`` (exact integers, magnitudes of the values at most ``big``): mean ``S1 / k`` and squared deviation
+        ``(k S2 - S1^2) / k``, whose numerator is an exact integer.
+
+        A group's only block (a whole group of counts, as enob gives them) keeps its per-pixel sum as the group's
+        row of integer sums (int16 or int32; its mean that over ``k``, formed by the report a run of pixels at a
+        time), its two summed scalars from exact integer sums, and its per-pixel ``S2`` and ``S1^2`` in the sums
+        of its size of group (:meth:`_pool`): a handful of passes over the pixels a group, each in the narrowest
+        exact type.
+        """
+        big2 = k * big * big  # bounds S2 (and k S2 bounds S1^2)
+        if self._n[g]:  # a block after a float-merged one (rare): Chan's update from the block's own mean
+            s1 = s1.astype(np.int64, copy=False)
+            num = np.multiply(s2, k, dtype=np.int64)  # k S2 - S1^2 (exact in int64), with one temporary
+            num -= np.square(s1)
             self._merge(g, k, s1 / k, np.divide(num, k), s2.astype(np.float64))
-        else:  # the group's first block (a whole group of counts, as enob gives them): its mean straight in place
-            np.divide(s1, k, out=self._mean[g])
-            self._merge(g, k, None, np.divide(num, k), s2.astype(np.float64))
+            return
+        most = k * big  # bounds S1, below 2**31 (checked by _whole_sums)
+        if self._s1 is None:
+            self._s1 = np.zeros(self._mean.shape, np.int16 if most <= np.iinfo(np.int16).max else np.int32)
+        elif most > np.iinfo(self._s1.dtype).max:
+            self._s1 = self._s1.astype(np.int32)
+        self._s1[g] = s1
+        self._whole[g] = True
+        q = np.square(s1, dtype=np.int64)  # S1^2, exact: below 2**62 (checked by _whole_sums)
+        p = s1.size
+        if p * k * big2 < 2**63:  # the pixels' sums of S2 and S1^2 stay in int64: exact, as Python ints
+            s2_sum = int(np.add.reduce(s2, dtype=np.int64))
+            self._m2[g] += (k * s2_sum - int(np.add.reduce(q))) / k
+            self._sq[g] += float(s2_sum)
+        else:
+            num = np.multiply(s2, k, dtype=np.int64)
+            num -= q
+            self._m2[g] += float(np.divide(num, k).sum())
+            self._sq[g] += float(s2.sum(dtype=np.float64))
+        self._pool(k, big2, s2, q)
+        self._n[g] = k
+
+    def _pool(self, k: int, big2: int, s2: np.ndarray, q: np.ndarray) -> None:
+        """Add a whole group of ``k`` repeats' per-pixel ``S2`` and ``S1^2`` (``s2`` at most ``big2``) to the int64
+        sums of the groups of its size, spilling (:meth:`_spill`) those before they could leave int64 and the
+        oldest size beyond :data:`_SIZES_KEPT`."""
+        kept = self._sizes.get(k)
+        if kept is not None and (k * (kept[2] + big2) >= 2**62 or kept[3] + k * big2 >= 2**62):
+            self._spill(k)
+            kept = None
+        if kept is None:
+            if len(self._sizes) >= _SIZES_KEPT:
+                self._spill(next(iter(self._sizes)))
+            self._sizes[k] = [s2.astype(np.int64), q, big2, k * big2]
+            return
+        np.add(kept[0], s2, out=kept[0])
+        np.add(kept[1], q, out=kept[1])
+        kept[2] += big2
+        kept[3] += k * big2
+
+    def _spill(self, k: int | None = None) -> None:
+        """Move the int64 sums of the groups of ``k`` repeats (every size: None) into the float per-pixel squared
+        deviation (``(k S2 - S1^2) / k`` over those groups) and sum of squares."""
+        for size in list(self._sizes) if k is None else [k]:
+            s2, q, _, _ = self._sizes.pop(size)
+            q *= -1
+            q += s2 * size  # k S2 - S1^2, exact: below 2**62 (checked by _pool)
+            self._m2_px += q / size
+            self._sq_px += s2
 
     def _merge(self, g: int, k: int, block_mean: np.ndarray | None, block_m2: np.ndarray, sq: np.ndarray) -> None:
         """Merge a block of ``k`` repeats of group ``g`` (its per-pixel mean, squared deviation from that mean and
@@ -402,7 +488,7 @@ class SinadAccumulator:
             self._sq[g] += float(sq.sum())
             self._n[g] = k
             return
-        delta = block_mean - self._mean[g]
+        delta = block_mean - self._mean_of(g)
         w = had * k / (had + k)
         self._m2_px += block_m2 + w * delta * delta
         # (einsum, not @: a BLAS dot of one vector wakes its threads, 600x slower on a busy machine)
@@ -412,17 +498,50 @@ class SinadAccumulator:
         self._sq[g] += float(sq.sum())
         self._n[g] += k
 
-    def _centred(self):
-        """Each group's mean centred on the overall mean, and its squared norm: computed once, in place of the
-        means (asked for only once every repeat is in, when no mean is needed again; no groups x pixels copy)."""
-        if self._centred_means is None:
-            off = self._mean
-            off -= np.einsum("g,gp->p", self._n, off) / self.repeats
-            self._centred_means = off, np.einsum("gp,gp->g", off, off)
-        return self._centred_means
+    def _mean_of(self, g: int) -> np.ndarray:
+        """Group ``g``'s mean row, its float row from now on where the group held integer sums."""
+        if self._whole[g]:
+            assert self._s1 is not None
+            np.divide(self._s1[g], self._n[g], out=self._mean[g])
+            self._whole[g] = False
+        return self._mean[g]
+
+    def _between(self, gram: bool, per_pixel: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """The groups' means centred on the overall mean, a run of pixels at a time (never a groups x pixels
+        float copy): each group's squared norm of them, with their Gram matrix (``gram``) and the per-pixel sum
+        over groups of ``n_g`` times their square (``per_pixel``)."""
+        g, p = self._mean.shape
+        n = self._n
+        run_px = min(p, max(32 * _REPORT_RUN, _REPORT_RUN * p // g))  # (bytes_needed counts its buffer)
+        buf = np.empty((g, run_px))
+        between = np.zeros(g)
+        gm = np.zeros((g, g)) if gram else None
+        pp = np.empty(p) if per_pixel else None
+        whole = self._whole.all()
+        for a in range(0, p, run_px):
+            z = min(p, a + run_px)
+            off = buf[:, :z - a]
+            if whole:
+                assert self._s1 is not None
+                np.divide(self._s1[:, a:z], n[:, None], out=off)
+            else:
+                for i in range(g):
+                    if self._whole[i]:
+                        assert self._s1 is not None
+                        np.divide(self._s1[i, a:z], n[i], out=off[i])
+                    else:
+                        off[i] = self._mean[i, a:z]
+            off -= np.einsum("g,gp->p", n, off) / self.repeats
+            between += np.einsum("gp,gp->g", off, off)
+            if gm is not None:
+                gm += off @ off.T
+            if pp is not None:
+                pp[a:z] = np.einsum("g,gp,gp->p", n, off, off)
+        return between, gm, pp
 
     def _group_terms(self, centred=None):
-        """``(M, N, P, n)`` of the groups, for the intervals (``centred``: :meth:`_centred`'s, if at hand).
+        """``(M, N, P, n)`` of the groups, for the intervals (``centred``: :meth:`_between`'s squared norms and
+        Gram matrix, if at hand).
 
         With ``xc`` the captures centred per pixel and ``d_ij = mean_p (xc_i - xc_j)^2 / 2`` (half the squared
         difference of repeats i and j, pooled over pixels): ``M[g, h]`` the sum of ``d_ij`` over i in g and j
@@ -431,10 +550,10 @@ class SinadAccumulator:
         """
         p = self._mean.shape[1]
         n = self._n
-        off, between = self._centred() if centred is None else centred
+        between, gram = self._between(True, False)[:2] if centred is None else centred
         a = (self._m2 + n * between) / p  # per group: mean square of its centred repeats, summed
         # products of the groups' centred sums (n_g times their centred mean), without a groups x pixels copy
-        k = n[:, None] * (off @ off.T) * n[None, :] / p
+        k = n[:, None] * gram * n[None, :] / p
         m = (n[None, :] * a[:, None] + n[:, None] * a[None, :] - 2.0 * k) / 2.0  # between groups
         np.fill_diagonal(m, n * a - np.diag(k))  # twice the within-group sum
         pairs = np.outer(n, n)
@@ -475,10 +594,12 @@ class SinadAccumulator:
         if not 0 < confidence < 1:
             raise EvtkError(f"confidence must be between 0 and 1, not {confidence}")
         self._flush()
+        if per_pixel:
+            self._spill()
         r, p = self.repeats, self._mean.shape[1]
         n = self._n
-        centred = self._centred()
-        off, between = centred
+        want_interval = interval is not None and r >= 3 and (interval == "jackknife" or bool(resamples))
+        between, gram, pp_between = self._between(want_interval, per_pixel)
         power = float(self._sq.sum()) / (r * p)
         if power == 0.0:
             raise EvtkError("SINAD: the signal is zero everywhere (no light reached the pixels?)")
@@ -486,8 +607,8 @@ class SinadAccumulator:
         s_db = _ratio_db(power, noise)
         report = SinadReport(s_db, enob_bits(s_db), noise == 0.0, math.sqrt(power), math.sqrt(noise), r, p,
                              confidence=confidence)
-        if interval is not None and r >= 3 and (interval == "jackknife" or resamples):
-            terms = self._group_terms(centred)
+        if want_interval:
+            terms = self._group_terms((between, gram))
             if interval == "jackknife":
                 lo, hi = _jackknife_interval_db(terms, s_db, confidence)
             else:
@@ -498,8 +619,8 @@ class SinadAccumulator:
             report.ci_db = (lo, hi)
             report.ci_enob = (enob_bits(lo), enob_bits(hi))
             report.interval = interval
-        if per_pixel:
-            var = (self._m2_px + np.einsum("g,gp,gp->p", n, off, off)) / (r - 1)
+        if pp_between is not None:  # (per_pixel)
+            var = (self._m2_px + pp_between) / (r - 1)
             ms = self._sq_px / r
             pp = np.full(p, np.inf)
             noisy = var > 0

@@ -1,0 +1,176 @@
+"""SinadAccumulator's whole-number route (the counts `evtk enob` gives it, one group of repeats a block) against an
+exact reference of eq. 8 computed here in Python integers, on the inputs that stress its integer sums."""
+
+import math
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from evtk.metrics import SinadAccumulator, sinad
+from evtk.metrics.sinad import _t_quantile_two_sided
+
+
+def _close(a, b):
+    if math.isinf(b):
+        return a == b
+    return a == pytest.approx(b, rel=1e-9, abs=1e-12)
+
+
+def _exact_db(rows):
+    """SINAD in dB of repeats ``rows`` (lists of Python ints, one per repeat), by eq. 8 in exact rationals:
+    power the mean square, noise the pixels' mean variance over repeats (ddof 1)."""
+    r, p = len(rows), len(rows[0])
+    s1 = [sum(row[i] for row in rows) for i in range(p)]
+    s2 = [sum(row[i] ** 2 for row in rows) for i in range(p)]
+    power = Fraction(sum(s2), r * p)
+    noise = Fraction(sum(r * a - b * b for a, b in zip(s2, s1)), r * (r - 1) * p)
+    if noise == 0:
+        return math.inf, power, noise
+    return 10 * math.log10(power / noise), power, noise
+
+
+def _check(x, blocks, per_pixel=True, interval="jackknife"):
+    """Feed whole-number captures ``x`` (repeats x ...) in ``blocks`` (cuts), and compare the report with the
+    exact reference: SINAD, signal and noise, the per-pixel values and the jackknife interval over the groups."""
+    r = x.shape[0]
+    acc = SinadAccumulator(r, x.shape[1:])
+    for a, b in zip(blocks, blocks[1:]):
+        assert acc.add(x[a:b]) == max(abs(int(v)) for v in x[a:b].ravel())  # the magnitude, exactly
+    got = acc.report(per_pixel=per_pixel, interval=interval)
+    rows = [[int(v) for v in row] for row in x.reshape(r, -1)]
+    db, power, noise = _exact_db(rows)
+    assert _close(got.sinad_db, db)
+    assert got.noise_free == (noise == 0) and got.repeats == r and got.pixels == len(rows[0])
+    assert _close(got.signal_rms, math.sqrt(power)) and _close(got.noise_std, math.sqrt(noise))
+    if per_pixel:
+        pp = got.per_pixel_db.reshape(-1)
+        for i in range(len(rows[0])):
+            col = [[row[i]] for row in rows]
+            if all(v[0] == 0 for v in col):
+                assert pp.mask[i]
+            else:
+                assert not pp.mask[i] and _close(float(pp[i]), _exact_db(col)[0]), i
+    if interval == "jackknife" and math.isfinite(db):
+        starts = list(acc.group_starts) + [r]
+        loo = []
+        for a, b in zip(starts, starts[1:]):
+            d, pw, nz = _exact_db(rows[:a] + rows[b:])
+            assert nz > 0 and pw > 0  # (the inputs here keep noise and signal in every leave-one-out)
+            loo.append(d)
+        g = len(loo)
+        mean = sum(loo) / g
+        se = math.sqrt((g - 1) / g * sum((v - mean) ** 2 for v in loo))
+        t = _t_quantile_two_sided(0.95, g - 1)
+        assert np.allclose(got.ci_db, (db - t * se, db + t * se), rtol=1e-9, atol=1e-9)
+    return acc, got
+
+
+def _enob_blocks(acc_repeats):
+    """Blocks of one group of repeats each, as `evtk enob` gives them."""
+    return list(SinadAccumulator(acc_repeats, 1).group_starts) + [acc_repeats]
+
+
+@pytest.mark.parametrize("repeats", [2, 3, 64, 65, 1000])
+def test_counts_a_group_a_block_equal_the_exact_reference(repeats):
+    """int16 net counts, one group a block (one repeat a group up to 64 repeats, groups of two sizes beyond), with
+    a constant pixel, a dark one and a hot one: every number of the report equals eq. 8 computed exactly."""
+    rng = np.random.default_rng(repeats)
+    x = rng.integers(-3, 4, (repeats, 4, 5)).astype(np.int16)
+    x[:, 0, 0] = 7  # constant: no noise (per-pixel +inf)
+    x[:, 0, 1] = 0  # dark: no signal (masked)
+    x[:, 3, 4] = 200 + rng.integers(0, 2, repeats)  # a large mean with tiny noise
+    _check(x, _enob_blocks(repeats), interval="jackknife" if repeats >= 3 else None)
+
+
+def test_constant_captures_are_noise_free_exactly():
+    x = np.tile(np.arange(-4, 8, dtype=np.int16).reshape(3, 4), (300, 1, 1))
+    _, got = _check(x, _enob_blocks(300), interval=None)
+    assert got.sinad_db == math.inf and got.noise_free and got.noise_std == 0.0
+    assert np.isinf(got.per_pixel_db.filled(0.0)).sum() == 11  # every pixel but the one at 0
+
+
+@pytest.mark.parametrize("big", [45, 46, 127, 128, 181, 182, 32767])
+def test_int16_sums_switch_type_before_they_could_wrap(big):
+    """Magnitudes on both sides of every limit of the int16 and int32 sums of groups of 16 repeats (1024 repeats),
+    down to -32768: exact."""
+    rng = np.random.default_rng(big)
+    x = rng.integers(-big, big + 1, (1024, 3, 3)).astype(np.int16)
+    x[:, 0, 0] = big
+    x[1::2, 0, 1] = -big if big < 32767 else -32768
+    starts = _enob_blocks(1024)
+    _check(x, starts)
+    _check(x, [0, 1, 17, 40, 1024])  # blocks across groups: partial sums kept, then merged
+
+
+def test_huge_counts_spill_their_int64_sums_before_they_could_overflow():
+    """int32 counts near 2**29 in groups of 3 (192 repeats): the sums of each size of group would leave int64
+    after two groups and the pixels' sums of a group already do; both are moved to floats in time: exact."""
+    rng = np.random.default_rng(9)
+    x = (2**29 - rng.integers(0, 1000, (192, 5))).astype(np.int32)
+    x[:, 0] = -(2**29)
+    x[::2, 1] = 0
+    _check(x, _enob_blocks(192))
+
+
+def test_three_sizes_of_groups_and_a_float_block_keep_to_the_float_routes_numbers():
+    """200 repeats (groups of 3 and 4) fed whole groups of small counts, a float block, and groups of counts near
+    2**30 one repeat at a time (whose sums are merged two repeats in, then by Chan's update): three sizes of group
+    held at once, matched against the exact reference and the float route, with both intervals."""
+    rng = np.random.default_rng(3)
+    x = rng.integers(-50, 50, (200, 6)).astype(np.int64)
+    x[100:, 2] = 2**30 - 1 - rng.integers(0, 3, 100)
+    starts = _enob_blocks(200)
+    blocks = [0, 1] + [s for s in starts if 1 < s <= 100] + list(range(101, 201))
+    _check(x, blocks)
+    acc = SinadAccumulator(200, 6)
+    acc.add(x[:1].astype(np.float64))  # a float block, then whole numbers in the same group
+    for a, b in zip(blocks[1:], blocks[2:]):
+        acc.add(x[a:b])
+    for interval in ("jackknife", "bootstrap"):
+        got, want = acc.report(per_pixel=True, interval=interval), sinad(x.astype(np.float64), per_pixel=True,
+                                                                        interval=interval)
+        for key in ("sinad_db", "signal_rms", "noise_std"):
+            assert _close(getattr(got, key), getattr(want, key)), key
+        assert np.allclose(got.ci_db, want.ci_db, rtol=1e-9, atol=1e-9)
+        assert np.allclose(got.per_pixel_db, want.per_pixel_db, rtol=1e-9)
+
+
+def test_bootstrap_of_counts_equals_the_float_routes():
+    """The bootstrap interval of int16 counts a group a block (1000 repeats) equals that of the same captures in
+    floats (Chan's update, summed in float64)."""
+    rng = np.random.default_rng(1)
+    x = rng.integers(-2, 3, (1000, 7, 3)).astype(np.int16)
+    acc = SinadAccumulator(1000, (7, 3))
+    for a, b in zip(_enob_blocks(1000), _enob_blocks(1000)[1:]):
+        acc.add(x[a:b])
+    got = acc.report(interval="bootstrap", per_pixel=True)
+    want = sinad(x.astype(np.float64), interval="bootstrap", per_pixel=True)
+    assert _close(got.sinad_db, want.sinad_db)
+    assert np.allclose(got.ci_db, want.ci_db, rtol=1e-9, atol=1e-9)
+    assert np.allclose(got.per_pixel_db, want.per_pixel_db, rtol=1e-9)
+
+
+def test_runs_of_pixels_on_several_threads_give_the_same_sums(monkeypatch):
+    """Blocks large enough to be cut into runs of pixels on the counting threads (8 threads asked for): the
+    numbers of the float route (every pixel's own sums, whatever the runs)."""
+    from evtk._parallel import parts
+
+    monkeypatch.setenv("EVTK_THREADS", "8")
+    rng = np.random.default_rng(8)
+    x = rng.integers(-6, 7, (130, 2, 40000)).astype(np.int16)
+    x[:, 1, :100] = 300  # int32 sums in the groups' first run
+    x[::2, 1, 100] = -300
+    blocks = _enob_blocks(130)
+    assert parts(x[: blocks[1]].size) > 1
+    acc = SinadAccumulator(130, x.shape[1:])
+    for a, b in zip(blocks, blocks[1:]):
+        assert acc.add(x[a:b]) == 300
+    for interval in ("jackknife", "bootstrap"):
+        got = acc.report(per_pixel=True, interval=interval)
+        want = sinad(x.astype(np.float64), per_pixel=True, interval=interval)
+        for key in ("sinad_db", "signal_rms", "noise_std"):
+            assert _close(getattr(got, key), getattr(want, key)), key
+        assert np.allclose(got.ci_db, want.ci_db, rtol=1e-9, atol=1e-12)
+        assert np.array_equal(got.per_pixel_db.mask, want.per_pixel_db.mask)
+        assert np.allclose(got.per_pixel_db, want.per_pixel_db, rtol=1e-9, atol=1e-12)
