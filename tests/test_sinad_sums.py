@@ -174,3 +174,26 @@ def test_runs_of_pixels_on_several_threads_give_the_same_sums(monkeypatch):
         assert np.allclose(got.ci_db, want.ci_db, rtol=1e-9, atol=1e-12)
         assert np.array_equal(got.per_pixel_db.mask, want.per_pixel_db.mask)
         assert np.allclose(got.per_pixel_db, want.per_pixel_db, rtol=1e-9, atol=1e-12)
+
+
+def test_the_memory_estimate_bounds_an_accumulator_mixing_floats_and_counts():
+    """``bytes_needed`` is what the budget checks before an accumulator exists: with the groups' integer sums
+    kept beside their float means, a run that mixes float blocks with counts holds both arrays, and the estimate
+    counted only the float one (tracemalloc sees numpy's allocations, untouched pages included)."""
+    import tracemalloc
+
+    repeats, pixels = 64, 40_000
+    rng = np.random.default_rng(4)
+    counts = rng.integers(-300, 300, (repeats, pixels)).astype(np.int16)  # int16 sums: a whole group's
+    tracemalloc.start()
+    try:
+        acc = SinadAccumulator(repeats, pixels)
+        for g in range(repeats - 1):
+            acc.add(counts[g:g + 1] if g % 2 else counts[g:g + 1].astype(np.float64))  # floats and counts
+        acc.add(counts[repeats - 1:].astype(np.int32) * 200)  # sums that need int32: the int16 ones widened
+        acc.report(per_pixel=True)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak <= SinadAccumulator.bytes_needed(repeats, pixels), (peak, SinadAccumulator.bytes_needed(repeats,
+                                                                                                        pixels))

@@ -291,14 +291,17 @@ class SinadAccumulator:
         Returns
         -------
         int
-            Bytes: one groups x pixels float64 array (the groups' means;
-            a group merged from whole numbers leaves its pages untouched and
-            keeps its int16 or int32 sums instead), eight per-pixel float64
+            Bytes: one groups x pixels float64 array (the groups' means; a
+            group merged from whole numbers leaves its pages untouched and
+            keeps its int16 or int32 sums instead), the int16 and int32
+            arrays of those sums (both while the first is widened, beside
+            the means where floats and counts mix), eight per-pixel float64
             ones, two int64 per-pixel sums for each size of group kept apart,
             and the report's groups x run-of-pixels buffer.
         """
         groups = min(max(int(repeats), 0), MAX_BOOTSTRAP_GROUPS)
-        return 8 * int(pixels) * (groups + 8 + _REPORT_RUN + 2 * _SIZES_KEPT) + 8 * 32 * _REPORT_RUN * groups
+        return (8 * int(pixels) * (groups + 8 + _REPORT_RUN + 2 * _SIZES_KEPT) + 6 * int(pixels) * groups
+                + 8 * 32 * _REPORT_RUN * groups)
 
     @property
     def group_starts(self) -> np.ndarray:
