@@ -130,8 +130,11 @@ def _accumulate_chunk_numpy(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, cou
     """:func:`_accumulate_chunk` in numpy, window by window (the same counts, totals and times).
 
     Each window's events are one slice of the time-sorted chunk (``searchsorted``), so a window costs a few
-    numpy calls on its own events: the region's mask, the pixel keys, one ``bincount`` of OFF and ON together,
-    and with times the least and greatest ON time of each pixel (``minimum.at``/``maximum.at``).
+    numpy calls on its own events, none of them a selection: each event's bin in a frame one column wider and
+    one row taller than the region (that column and row hold the events outside it: coordinates less the
+    region's corner, unsigned so that those below it wrap past its far edge, clipped there), OFF then ON, one
+    ``bincount`` of them all, and with times the least and greatest time of each bin (``minimum.at`` /
+    ``maximum.at``), of which the region's ON bins are kept. ``whole`` (the region is the sensor) changes nothing.
     """
     n = t.size
     if n == 0:
@@ -146,50 +149,50 @@ def _accumulate_chunk_numpy(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, cou
         return 0
     los = np.searchsorted(t, starts[live])
     his = np.searchsorted(t, ends[live])
+    stride = w_px + 1
+    ext = (h_px + 1) * stride  # the frame with its extra column and row
+    unsigned = x.dtype.kind == "u" and y.dtype.kind == "u"  # (Events' are uint16)
     used = 0
     for w, lo, hi in zip(live.tolist(), los.tolist(), his.tolist()):
         total[w] += hi - lo
         base = w * frame
+        off_w, on_w = counts[base:base + frame], counts[plane + base:plane + base + frame]
         if not started[w]:
-            counts[base:base + frame] = 0
-            counts[plane + base:plane + base + frame] = 0
+            off_w[...] = 0
+            on_w[...] = 0
             if timed:
                 first[base:base + frame] = -1
                 last[base:base + frame] = -1
             started[w] = True
         if hi == lo:
             continue
-        xs, ys, ps = x[lo:hi], y[lo:hi], p[lo:hi]
-        sel = None
-        if not whole:
-            if xs.dtype.kind != "u" or ys.dtype.kind != "u":
-                xs, ys = xs.astype(np.uint64), ys.astype(np.uint64)
-            # coordinates less the region's corner, wrapping (unsigned) past the far edge when below it
-            xs = xs - xs.dtype.type(x0)
-            ys = ys - ys.dtype.type(y0)
-            inside = xs < w_px
-            inside &= ys < h_px
-            if not inside.all():
-                sel = np.flatnonzero(inside)
-                xs, ys, ps = xs[sel], ys[sel], ps[sel]
-        keys = ys.astype(np.intp)
-        keys *= w_px
-        keys += xs
-        used += keys.size
-        on = ps != 0
-        both = np.bincount(np.where(on, keys + frame, keys), minlength=2 * frame)
-        counts[base:base + frame] += both[:frame].astype(np.int32)
-        counts[plane + base:plane + base + frame] += both[frame:].astype(np.int32)
-        if timed and on.any():
-            ts = t[lo:hi] if sel is None else t[lo:hi][sel]
-            k_on = keys[on]
-            dt = (ts[on] - starts[w]).astype(np.int32)  # windows shorter than 2**31 us (checked by the caller)
-            # the least time of each pixel: an earlier chunk's stays (times are sorted), none (-1) counts as the most
+        xs, ys = x[lo:hi], y[lo:hi]
+        if not unsigned:  # (read as int64 once clipped)
+            xs, ys = xs.astype(np.uint64), ys.astype(np.uint64)
+        xs = np.subtract(xs, xs.dtype.type(x0))
+        ys = np.subtract(ys, ys.dtype.type(y0))
+        np.minimum(xs, xs.dtype.type(w_px), out=xs)
+        np.minimum(ys, ys.dtype.type(h_px), out=ys)
+        key = ys.astype(np.intp)
+        key *= stride
+        key += xs if unsigned else xs.view(np.int64)
+        key += (p[lo:hi] != 0) * np.intp(ext)  # ON events in the second frame
+        both = np.bincount(key, minlength=2 * ext).reshape(2, h_px + 1, stride)[:, :h_px, :w_px]
+        np.add(off_w, both[0].ravel(), out=off_w, casting="unsafe")  # (each below 2**31: the caller checks)
+        np.add(on_w, both[1].ravel(), out=on_w, casting="unsafe")
+        used += int(both.sum())
+        if timed:
+            dt = np.subtract(t[lo:hi], starts[w]).astype(np.int32)  # windows shorter than 2**31 us (checked by the caller)
+            least = np.full(2 * ext, _INT32_MAX, np.int32)
+            np.minimum.at(least, key, dt)
+            most = np.full(2 * ext, -1, np.int32)
+            np.maximum.at(most, key, dt)
             f = first[base:base + frame]
-            f[f < 0] = _INT32_MAX
-            np.minimum.at(f, k_on, dt)
-            f[f == _INT32_MAX] = -1  # (dt < 2**31 - 1: windows shorter than 2**31 us)
-            np.maximum.at(last[base:base + frame], k_on, dt)
+            new = least.reshape(2, h_px + 1, stride)[1, :h_px, :w_px].ravel()
+            fresh = (f < 0) & (new != _INT32_MAX)  # an earlier chunk's first time stays (times are sorted)
+            f[fresh] = new[fresh]
+            lw = last[base:base + frame]
+            np.maximum(lw, most.reshape(2, h_px + 1, stride)[1, :h_px, :w_px].ravel(), out=lw)
     return used
 
 
