@@ -163,3 +163,21 @@ def test_linearize_numpy_look_up_matches_numba(dtypes):
     L._look_up(on, off, table, 101, a)
     L._look_up_jit(on, off, table, 101, b)
     np.testing.assert_array_equal(a, b)
+
+
+def test_numpy_counter_takes_signed_coordinates_off_a_region():
+    # Events hold uint16 coordinates, but the counter is handed columns as they come: signed ones, some negative
+    # or past the region, stopped the old counter on a casting error (an int64 key plus uint64 offsets)
+    t = np.arange(6, dtype=np.int64)
+    x = np.array([0, 3, 5, -1, 2, 4], np.int32)
+    y = np.array([1, 2, 3, 0, -2, 0], np.int64)
+    p = np.array([1, 0, 1, 1, 0, 1], np.uint8)
+    counts = np.full(2 * 4 * 3, 9, np.int32)
+    first, last = np.zeros(12, np.int32), np.zeros(12, np.int32)
+    used = A._accumulate_chunk_numpy(t, x, y, p, np.array([0]), np.array([10]), 1, 5, 0, 3, False, counts,
+                                     np.zeros(1, np.int64), np.zeros(1, np.bool_), first, last)
+    assert used == 2  # (3, 2) OFF and (4, 0) ON; the rest lie outside x 1..4, y 0..2
+    off, on = counts[:12].reshape(3, 4), counts[12:].reshape(3, 4)
+    assert off.tolist() == [[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0]]
+    assert on.tolist() == [[0, 0, 0, 1], [0, 0, 0, 0], [0, 0, 0, 0]]
+    assert first.reshape(3, 4)[0, 3] == last.reshape(3, 4)[0, 3] == 5 and (first >= 0).sum() == 1
