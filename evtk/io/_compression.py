@@ -493,13 +493,11 @@ def lz4_into_at(body, src_at: int, limit: int, verify: bool, scratch: Scratch, o
         return -1
     if not verify and n > 6 and flg & _LZ4_CHECKSUMS:
         return -1  # the frame rebuilt without its checksums: decompress_into's route
-    size = _LZ4_SIZE.unpack_from(body, 6)[0] if n >= 15 and flg & 0x08 else 0  # as _lz4_content_size
+    size = _lz4_content_size(body)
     limit = min(int(limit), MAX_PACKET_BYTES)
     if size > limit or size > cap:
         return -1
-    d = scratch._lz4
-    if d is None or d.lib is not lib:
-        d = _context(lib, scratch)
+    d = _context(lib, scratch)
     room = min(cap, limit)
     # the whole frame and the room for it in one call, which a frame of one packet's body needs; else steps
     d.dst_n.value, d.src_n.value = room, n
@@ -616,9 +614,7 @@ def _lz4_error(exc: Exception) -> str:
 def _lz4_content_size(body) -> int:
     """The content size an LZ4 frame's descriptor states (0: none), read from its bytes; lz4's own frame-info
     call builds a dictionary for every packet. A damaged descriptor is left to the decompressor to refuse."""
-    if len(body) >= 15 and body[4] & 0x08:
-        return int.from_bytes(body[6:14], "little")
-    return 0
+    return _LZ4_SIZE.unpack_from(body, 6)[0] if len(body) >= 15 and body[4] & 0x08 else 0
 
 
 def _mismatch(declared: str, body) -> str:

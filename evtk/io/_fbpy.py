@@ -197,10 +197,7 @@ def _root_vector_at(buf, at: int, n: int, ident: bytes, struct_size: int):
         start = count = 0
     else:
         field = root + off
-        if off + 1 > tb_size or field + 1 > n:
-            return ST_BAD_OFFSET, 0
-        # the vector (fb_deref, fb_vector)
-        if field + 4 > n:
+        if off + 1 > tb_size or field + 4 > n:  # (fb_field's bounds, then fb_deref's)
             return ST_BAD_OFFSET, 0
         v = field + _U32.unpack_from(buf, at + field)[0]
         if v + 4 > n:

@@ -121,9 +121,9 @@ class _Cells:
         self.dtype: type[np.unsignedinteger] = (np.uint16 if 2 * plane <= 1 << 16 and max(sensor) <= 1 << 15
                                                 else np.uint32 if 2 * plane <= 1 << 32 else np.uint64)
         u = self.dtype
-        # (lo, n, per, mul) of y, then of x; None where the step changes nothing
-        # the clip is kept on a whole-sensor axis too: a coordinate off the sensor (the readers refuse them, but
-        # a source that did not) goes to the dump place, never to another pixel's or window's bin
+        # (lo, n, per, mul) of y, then of x; None where the step changes nothing. The clip to n is kept on a
+        # whole-sensor axis too: a coordinate off the sensor (the readers refuse them, but a source that did not)
+        # goes to the dump place, never to another pixel's or window's bin
         self.y = (u(y0) if y0 else None, u(y1 - y0), u(fy) if fy > 1 else None, u(cols + 1))
         self.x = (u(x0) if x0 else None, u(x1 - x0), u(fx) if fx > 1 else None, None)
         self.plane = u(plane)
@@ -140,20 +140,14 @@ class _Cells:
     @staticmethod
     def _axis(c: np.ndarray, spec: tuple, out: np.ndarray) -> None:
         lo, n, per, mul = spec
-        src = c
         if lo is not None:
-            np.subtract(src, lo, out=out)  # wraps below lo: past n, clipped to the dump place next
-            src = out
-        if n is not None:
-            np.minimum(src, n, out=out)
-            src = out
+            np.subtract(c, lo, out=out)  # wraps below lo: past n, clipped to the dump place next
+            c = out
+        np.minimum(c, n, out=out)
         if per is not None:
-            np.floor_divide(src, per, out=out)
-            src = out
+            np.floor_divide(out, per, out=out)
         if mul is not None:
-            np.multiply(src, mul, out=out)
-        elif src is not out:
-            out[...] = src
+            np.multiply(out, mul, out=out)
 
 
 def _window_events(source: Any, windows: Windows, first: int, last: int, chunk_events: int
