@@ -171,19 +171,19 @@ class Pool:
             if self._closed:
                 raise RuntimeError(f"the {self.name} pool is shut down")
             self._jobs.put((task, fn, args))
-            if self._idle == 0 and self._threads < self.size:
+            # _idle: idle threads less the work waiting for one (below 0 only once every thread is started)
+            if self._idle <= 0 and self._threads < self.size:
                 import threading
 
                 self._threads += 1
-                threading.Thread(target=self._work, args=(self._jobs,), name=f"{self.name}-{self._threads}",
-                                 daemon=True).start()
+                threading.Thread(target=self._work, name=f"{self.name}-{self._threads}", daemon=True).start()
             else:
-                self._idle -= 1  # (that idle thread takes this work)
+                self._idle -= 1
         return task
 
-    def _work(self, jobs: SimpleQueue) -> None:
+    def _work(self) -> None:
         while True:
-            job = jobs.get()
+            job = self._jobs.get()
             if job is None:
                 return
             task, fn, args = job
@@ -196,8 +196,7 @@ class Pool:
                 task._done.release()
                 del task
             with self._lock:
-                if jobs is self._jobs:
-                    self._idle += 1
+                self._idle += 1
 
     def shutdown(self) -> None:
         """Let the threads end once the work handed in so far is done (without waiting for it); no more work
