@@ -229,3 +229,25 @@ print(np.isfinite(u).sum(), np.isfinite(th).sum(), "numba" in sys.modules)
     finite_u, finite_th, numba_loaded = out.stdout.split()
     assert int(finite_u) > 0 and int(finite_th) > 0
     assert numba_loaded == "False"
+
+
+def test_settling_of_a_pixel_that_follows_the_light_at_once_is_defined():
+    # a log-node pixel's time constant is 0: windows back to back (no dark gap) and empty windows (no light)
+    # divided 0 by 0, and the settling residual came out NaN, which the reconstruction then carried
+    import warnings
+
+    from evtk.sensor import SensorModel
+
+    sm = SensorModel(pixel="log-node")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no division warnings either
+        eps = timing._settle_residual(np.ones((3, 2)), np.array([0, 3000, 3000]), np.array([3000, 6000, 3000]), sm,
+                                      1e5)
+    # it follows the light at once: the first window starts settled; the next ones follow with no dark between,
+    # so they start where the light left it (1 log unit up: any time constant's limit as the gap goes to 0)
+    np.testing.assert_array_equal(eps, [[0, 0], [1, 1], [1, 1]])
+    # with dark between the windows it is back at the dark level at once
+    np.testing.assert_array_equal(timing._settle_residual(np.ones((2, 2)), np.array([0, 5000]),
+                                                          np.array([3000, 8000]), sm, 1e5), np.zeros((2, 2)))
+    # a finite time constant still gives the exponential
+    assert timing._decay(np.array([0.0, 10.0]), 5.0).tolist() == [1.0, float(np.exp(-2.0))]

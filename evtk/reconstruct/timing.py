@@ -21,6 +21,16 @@ _NUMPY_MAX_PAIRS = 2_000_000
 _NUMPY_CHUNK_PAIRS = 32_768
 
 
+def _decay(t_us, tau_us) -> np.ndarray:
+    """``exp(-t / tau)`` of times ``t_us >= 0`` and time constants ``tau_us >= 0``: where no time passes, 1, and
+    where the time constant is 0 (a log-node pixel follows the light at once), 0 once any time has passed; no
+    0 / 0 (back-to-back or empty windows of such a pixel gave NaN)."""
+    t, tau = np.broadcast_arrays(np.asarray(t_us, np.float64), np.asarray(tau_us, np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.exp(-t / tau)
+    return np.where(t <= 0, 1.0, np.where(tau > 0, out, 0.0))
+
+
 def _settle_residual(u, t_on_us, t_off_us, sensor, blank_rate_e_per_s):
     """How far above the dark level (log units) each pixel's photoreceptor still is at each pattern's onset.
 
@@ -36,10 +46,10 @@ def _settle_residual(u, t_on_us, t_off_us, sensor, blank_rate_e_per_s):
     t_off = np.asarray(t_off_us, np.int64)[order]
     tau_dark = float(time_constant_us(blank_rate_e_per_s, sensor))
     gap = np.maximum(t_on[1:] - t_off[:-1], 0)
-    dark_decay = np.concatenate([[0.0], np.exp(-gap / tau_dark)])  # the first window starts settled
+    dark_decay = np.concatenate([[0.0], _decay(gap, tau_dark)])  # the first window starts settled
     u_t = np.ascontiguousarray(u[order]).reshape(len(order), -1)
     lit = np.maximum(t_off - t_on, 0).astype(np.float64)
-    lit_decay = np.exp(-lit[:, None] / time_constant_us(blank_rate_e_per_s * np.exp(u_t), sensor))
+    lit_decay = _decay(lit[:, None], time_constant_us(blank_rate_e_per_s * np.exp(u_t), sensor))
     eps = np.empty_like(u)
     eps[order] = _settle_path(u_t, lit_decay, dark_decay).reshape((len(order),) + u.shape[1:])
     return eps
