@@ -21,11 +21,10 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numba
 import numpy as np
-import numpy.typing as npt
 
 from .cluster import run_tasks
 from .errors import EvtkError
@@ -33,6 +32,9 @@ from .optics import Bench
 from .reconstruct import overlap_matrix
 from .sensor import SensorModel
 from .sweeps import simulated_reconstruction
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["binary_correlate", "BCNN", "DigitalBackend", "OpticalBackend", "resample_matrix", "bce_loss",
            "poisson_robustness"]

@@ -28,7 +28,6 @@ from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from ._atomic import AtomicFile
 from .errors import EvtkError
@@ -56,6 +55,8 @@ from .settings import (
 )
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
     from .io.base import BaseRecording
     from .optics import Bench
 

@@ -21,12 +21,15 @@ import gzip
 import os
 import zlib
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from .errors import EvtkError, FormatError
 from .limits import require_memory
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["Dataset", "face_not_face", "letters_digits", "read_idx", "read_cifar_batch", "binarize_images",
            "load_dataset", "baselines"]

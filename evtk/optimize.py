@@ -18,13 +18,15 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from .bcnn import BCNN, Backend, DigitalBackend, as_binary_input, bce_loss, pool_map, resample_matrix
 from .errors import EvtkError
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["metropolis", "train_layerwise", "train_ste", "fit_mask"]
 

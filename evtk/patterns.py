@@ -33,9 +33,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from ._atomic import AtomicFile
 from .errors import EvtkError
@@ -46,6 +46,9 @@ from .sensor import SensorModel
 from .settings import MAX_COUNT, MAX_SIDE, MAX_US, Spec, check_table, read_table
 from .simulate import Simulation, default_features, load_patterns
 from .simulate.schedule import check_patterns
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["load_job", "job_simulation", "dmd_frame", "write_patterns", "SCHEDULE_VERSION", "JOB_KEYS", "JOB_SPECS"]
 

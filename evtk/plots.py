@@ -12,13 +12,13 @@ from collections import defaultdict
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from ._atomic import AtomicFile
 from .errors import EvtkError
 from .reconstruct import Reconstruction, binarize, downsample
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
     from matplotlib.figure import Figure
 
     from .recover import Recovery

@@ -29,10 +29,9 @@ import math
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from .cluster import run_tasks
 from .errors import EvtkError
@@ -41,6 +40,9 @@ from .optics import Bench, ideal_response, response_origin_px, response_region
 from .reconstruct import footprint_matrix
 from .sensor import SensorModel
 from .sweeps import simulated_reconstruction
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = [
     "Recovery",

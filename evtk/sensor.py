@@ -78,14 +78,16 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from ._lazyjit import njit, numba_ready  # numba loads on the first stochastic or large run
 from ._rng import normal, normal_outlined, rng_state, uniform
 from .errors import EvtkError, check_parameters
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = [
     "PIXELS",

@@ -19,13 +19,15 @@ import os
 import stat
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from .errors import EvtkError
 from .limits import require_memory
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["read_table", "toml_text", "Spec", "check_value", "check_table", "check_array", "check_matrix",
            "check_origin", "check_region", "MAX_SETTINGS_BYTES", "MAX_SCHEDULE_BYTES", "MAX_BLUR_PX", "MAX_US",

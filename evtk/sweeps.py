@@ -19,13 +19,11 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 import time
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any, Literal, overload
 
 import numpy as np
-import numpy.typing as npt
 
 from ._parallel import cuts, parts, run
 from .errors import EvtkError
@@ -51,6 +49,9 @@ from .reconstruct.fixed import (
     net_count_batches,
     pixel_values,
 )
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 if TYPE_CHECKING:  # (the simulator, the optics and the per-pixel stages load where a function needs them:
     # measuring fixed windows needs none of them)
@@ -429,6 +430,8 @@ def simulated_reconstruction(
         return run(lambda: reconstruct_counts(counts, sim.record(), **options))
     if method != "events":
         raise EvtkError(f"method must be 'fast' or 'events', not {method!r}")
+
+    import tempfile  # for the simulated run's file only: with shutil, bz2, lzma and random, 2-3 ms of every start
 
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "run.aedat4")

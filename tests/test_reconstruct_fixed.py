@@ -173,6 +173,9 @@ try:
 except SystemExit as exc:
     assert not exc.code, exc.code
 heavy = sorted({{m.split(".")[0] for m in sys.modules}} & {{"numba", "scipy", "llvmlite", "matplotlib", "skimage"}})
+# and two a command's start paid for without using them: numpy.typing (annotations only, 1 ms parsing numpy's
+# docstrings) and tempfile (with shutil, bz2, lzma and random, 2-3 ms; enob's simulated sweeps only)
+heavy += sorted({{"numpy.typing", "tempfile"}} & set(sys.modules))
 print("HEAVY", heavy)
 """
 

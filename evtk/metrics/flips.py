@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from ..errors import EvtkError
 from ..limits import require_memory
 from .sinad import _as_repeats
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["FlipReport", "flip_rates", "flip_rates_bytes"]
 

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from ..errors import EvtkError
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = [
     "poisson_log_pmf", "poisson_pmf", "log_cumulative_factor", "cumulative_factor",

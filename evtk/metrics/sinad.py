@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import overload
+from typing import TYPE_CHECKING, overload
 
 import numpy as np
-import numpy.typing as npt
 
 from .._parallel import parts, run
 from ..errors import EvtkError
 from ..limits import require_memory
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["SinadReport", "sinad", "SinadAccumulator", "enob_bits"]
 

@@ -21,14 +21,16 @@ import dataclasses
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from ..errors import EvtkError
 from .bench import Bench
 from .screen import response_origin_px, screen_response
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 #: Largest deviation (pixels) over the response at which a map is still taken as a scale and shift.
 AXIS_TOLERANCE_PX = 0.05

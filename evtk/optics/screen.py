@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from ..errors import EvtkError
 from .bench import Bench
 from .geometry import shadow_magnification
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = [
     "screen_response", "ideal_response", "glow_response", "brightest_response", "response_region",

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
-import numpy.typing as npt
 
 from ..errors import EvtkError
 from ..settings import (
@@ -25,6 +24,8 @@ from ..settings import (
 )
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
     from .core import Plan
 
 __all__ = [

@@ -14,10 +14,9 @@ correlation of the job's patterns, which the bench knows too.
 from __future__ import annotations
 
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from .._arrays import distinct
 from ..errors import EvtkError
@@ -31,6 +30,9 @@ from .linearize import flat_field_gain, linearize
 from .pipeline import MAX_TIMING_STAMP_US, Reconstruction, check_crop, pair_ideals, response_error, silent_failures
 from .summary import ReconstructionSummary
 from .windows import Windows, _trim, windows_from_triggers
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["load_schedule", "match_windows", "synchronous_readout", "refuse_synchronous"]
 

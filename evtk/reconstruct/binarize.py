@@ -5,11 +5,12 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from ..errors import EvtkError
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
     from ..plan import Plan, SimulationRecord
 
 __all__ = ["binarize_rule", "binarize"]

@@ -25,10 +25,9 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from .._arrays import median
 from ..errors import EvtkError
@@ -63,6 +62,9 @@ from .fit import (
 from .linearize import level_curve, level_table_values
 from .pipeline import MAX_TIMING_STAMP_US, check_crop, reconstruct_counts
 from .windows import WindowCounts, Windows, _trim
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["schedule_of_record", "nominal_placement", "fit_on_edges", "MAX_LEVEL_ERROR",
            "MAX_TABLE_ERROR", "LEAD_US", "held_out_table_error", "PHYSICAL_RANGE", "level_readback",

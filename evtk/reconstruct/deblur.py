@@ -31,7 +31,6 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 from numpy.linalg import LinAlgError
 
 from .._arrays import median
@@ -42,6 +41,7 @@ from ..optics.camera import CellMap, footprint_points
 from ..optics.screen import footprint_cdf
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
     from scipy.sparse import csr_array
 
 __all__ = ["sampling_matrix", "solve_cells", "relative_noise", "wiener_lambda", "DEFAULT_LAMBDA"]

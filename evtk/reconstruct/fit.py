@@ -29,15 +29,17 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from ..errors import EvtkError
 from ..optics.camera import CellMap
 from ..sensor import PixelState, SensorModel, simulate_pixels, time_constant_us
 from .windows import WindowCounts
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["LevelStatistics", "PixelFit", "interior_pixels", "level_statistics", "level_off_times", "level_rise_times",
            "rise_orders", "refractory_bound",

@@ -5,10 +5,12 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from ..errors import EvtkError
 from ..plan.schedule import Schedule
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 if TYPE_CHECKING:  # (the optics and scipy load where a function needs them: resizing needs neither)
     from ..optics import Bench

@@ -7,9 +7,9 @@ import json
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from .._lazyjit import njit, numba_ready
 from .._parallel import run
@@ -19,6 +19,9 @@ from ..optics import Bench, brightest_response, response_origin_px, screen_respo
 from ..optics.camera import footprint_light
 from ..plan import Plan, SimulationRecord
 from ..sensor import PixelState, SensorModel, log_noise_std, simulate_pixels, time_constant_us
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["linearize", "count_curve", "linearize_by_model", "flat_field_gain", "isotonic", "level_table_values", "level_curve"]
 

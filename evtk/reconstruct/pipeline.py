@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import numpy.typing as npt
 
 from .._blas import one_blas_thread
 from ..errors import EvtkError
@@ -32,6 +33,9 @@ from .route import plan, window_bytes
 from .summary import ReconstructionSummary
 from .timing import _settle_residual, linearize_by_timing, timing_thresholds
 from .windows import WindowCounts
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["Reconstruction", "response_error", "plan", "window_bytes", "wants_times",
     "reconstruct_counts", "silent_failures"]

@@ -5,10 +5,9 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from .._version import __version__
 from ..errors import EvtkError
@@ -43,6 +42,9 @@ from ..plan.schedule import (
 from ..sensor import PixelState, SensorModel, log_noise_std, pixel_thresholds, simulate_pixels, time_constant_us
 from .events import _sorted_events
 from .table import count_table, table_batches
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 __all__ = ["Simulation"]
 

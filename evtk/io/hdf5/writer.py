@@ -6,10 +6,9 @@ import contextlib
 import json
 import os
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from ..._atomic import AtomicFile, FailSafeFile
 from ..._version import __version__
@@ -18,6 +17,9 @@ from ...events import Events, Triggers
 from .._checks import require_readable, sorted_for_writing
 from ..base import BaseWriter
 from .common import _FILL, DEFAULT_CHUNK, EVTK_FORMAT, FORMAT_VERSION, INTERRUPTED, _filter, _h5
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 
 def _superblock_eoa(path):
