@@ -47,7 +47,8 @@ def median(values: npt.ArrayLike) -> float:
     Returns
     -------
     float
-        The middle value, or the mean of the two middle ones; NaN when a value is NaN.
+        The middle value, or the mean of the two middle ones; NaN when a value is NaN. Two middle values
+        whose sum leaves float64 (both beyond half its largest value) give their mean, not numpy's inf.
     """
     v = np.asarray(values, np.float64).ravel()
     if v.size == 0 or np.isnan(v).any():
@@ -56,4 +57,8 @@ def median(values: npt.ArrayLike) -> float:
     if v.size % 2:
         return float(np.partition(v, k)[k])
     part = np.partition(v, [k - 1, k])
-    return float(np.mean(part[k - 1:k + 1]))
+    lo, hi = float(part[k - 1]), float(part[k])
+    mid = (lo + hi) / 2  # numpy's mean of the two, to the bit
+    if mid in (float("inf"), float("-inf")) and abs(lo) != float("inf") and abs(hi) != float("inf"):
+        mid = lo / 2 + hi / 2  # the sum overflowed: halves first (exact for values this large)
+    return mid

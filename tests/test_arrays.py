@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from conftest import modules_after
 from hypothesis import given
 from hypothesis import strategies as st
@@ -30,10 +31,33 @@ def test_channels_load_no_masked_arrays():
 
 @given(hnp.arrays(np.float64, st.integers(1, 40), elements=st.floats(allow_nan=True, allow_infinity=True)))
 def test_median_is_numpys(a):
+    """evtk's median is numpy's, bit for bit, except where numpy's mean of the two middle values overflows to inf
+    (both finite, beyond half the largest float64): there the exact midpoint, rounded once, and no warning."""
     import warnings
+    from fractions import Fraction
 
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # numpy's inf - inf
+        warnings.simplefilter("ignore", RuntimeWarning)  # numpy's inf - inf, and its overflow
         want = float(np.median(a))
-    got = median(a)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        got = median(a)
+    if np.isinf(want) and np.isfinite(a).all():
+        s = np.sort(a)
+        lo, hi = (Fraction(float(v)) for v in s[len(a) // 2 - 1:len(a) // 2 + 1])
+        assert got == float((lo + hi) / 2), (got, want)
+        return
     assert (np.isnan(got) and np.isnan(want)) or got == want
+
+
+@pytest.mark.parametrize("pair", [(1e308, 1e308), (-1.7e308, -1.6e308), (1.7976931348623157e308,) * 2,
+                                  (9e307, 1.7976931348623157e308)])
+def test_median_of_values_near_the_largest_float_is_their_midpoint(pair):
+    """Two middle values whose sum leaves float64 gave inf (numpy's median does) with an overflow warning."""
+    import warnings
+    from fractions import Fraction
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        got = median(np.array([np.inf, *pair, -np.inf]))  # the pair in the middle
+    assert got == float((Fraction(pair[0]) + Fraction(pair[1])) / 2)
