@@ -1,7 +1,11 @@
 """HDF5 (evtk's layout and the foreign ones) and Arrow/Parquet."""
 
 import json
+import os
 import struct
+import subprocess
+import sys
+from pathlib import Path
 
 import h5py
 import hdf5plugin
@@ -746,3 +750,26 @@ def test_chunk_claiming_more_than_the_file_is_refused_before_allocating(tmp_path
     finally:
         tracemalloc.stop()
     assert peak < 64 * 2**20
+
+
+def test_a_finished_or_abandoned_hdf5_writer_leaves_no_file_object_to_fail(tmp_path):
+    """The HDF5 writer's file object for libhdf5 stayed open after the file was committed (or removed): the
+    garbage collector's close then flushed a closed file, an error Python reports in its development mode
+    (``-X dev``: "Exception ignored in ... flush of closed file", 262 times in the suite)."""
+    code = f"""
+import gc, numpy as np, evtk
+from evtk.errors import EvtkError
+ev = evtk.Events(np.arange(5000), np.zeros(5000), np.zeros(5000), np.ones(5000), (4, 4))
+evtk.write_events({str(tmp_path / 'a.h5')!r}, ev)
+try:
+    evtk.write_events({str(tmp_path / 'b.h5')!r}, evtk.Events(np.arange(3)[::-1], [0, 0, 0], [0, 0, 0], [1, 1, 1], (4, 4)))
+except EvtkError:
+    pass
+gc.collect()
+print(len(evtk.read_events({str(tmp_path / 'a.h5')!r})))
+"""
+    done = subprocess.run([sys.executable, "-X", "dev", "-c", code], capture_output=True, text=True,
+                          env=dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1])))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["5000"]
+    assert "Exception ignored" not in done.stderr, done.stderr

@@ -9,6 +9,7 @@ import os
 import pickle
 import struct
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -301,11 +302,11 @@ def test_no_output_replaces_an_input(tmp_path, args):
     from evtk.cli import main
 
     paths = _files(tmp_path)
-    before = {k: open(p, "rb").read() for k, p in paths.items() if os.path.isfile(p)}
+    before = {k: Path(p).read_bytes() for k, p in paths.items() if os.path.isfile(p)}
     r = CliRunner().invoke(main, [paths.get(a, a) for a in args])
     assert r.exit_code == 1, r.output
     assert r.output.startswith("evtk: error: the output") and "replace" in r.output, r.output
-    after = {k: open(p, "rb").read() for k, p in paths.items() if os.path.isfile(p)}
+    after = {k: Path(p).read_bytes() for k, p in paths.items() if os.path.isfile(p)}
     assert after == before
     assert not os.path.exists(paths["NEW"]) and not os.path.exists(paths["NEWPNG"])
     assert not [f for f in os.listdir(tmp_path) if f.endswith(".evtk-partial")]

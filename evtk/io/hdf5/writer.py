@@ -265,12 +265,14 @@ class Hdf5Writer(BaseWriter):
                 tg.create_dataset("channel", data=tr.channel[order])
         del self._f.attrs[INTERRUPTED]
         self._f.close()
+        self._sink.close()  # (left open, the collector closed it after the commit: a flush of a closed file)
 
     def _discard(self):
-        try:
-            self._f.close()
-        except Exception:
-            pass
+        for close in ("_f", "_sink"):  # (either may be missing or fail: the file is removed next)
+            try:
+                getattr(self, close).close()
+            except Exception:
+                pass
         self._atomic.discard()
 
 
