@@ -130,9 +130,11 @@ class Recording(_FileIndex, BaseRecording):
                 counts = self._count_elements(np.flatnonzero(sel), s.type)
             s.count = int(counts.sum()) if counts is not None else None
             if s.packets and idx.from_table:
+                # (salvage: the packets counted, those before the damage)
                 nz = counts > 0 if counts is not None else np.ones(s.packets, bool)
-                s.t_start_us = int(idx.t0[sel][nz].min()) if nz.any() else None
-                s.t_end_us = int(idx.t1[sel][nz].max()) if nz.any() else None
+                rows = np.flatnonzero(sel)[:len(nz)]
+                s.t_start_us = int(idx.t0[rows][nz].min()) if nz.any() else None
+                s.t_end_us = int(idx.t1[rows][nz].max()) if nz.any() else None
         if not idx.from_table:
             self._fill_times()
         return list(self._streams.values())
