@@ -669,3 +669,34 @@ def test_salvaged_stream_summary_after_the_table_counts_prove_wrong(tmp_path, go
         events = next(s for s in rec.streams if s.type == "EVTS")
         assert events.count == 5 * PACKET
         assert events.t_start_us == int(ev.t[: 5 * PACKET].min()) and events.t_end_us == int(ev.t[5 * PACKET - 1])
+
+
+def test_data_table_that_gives_an_event_packet_to_another_stream_is_damage_not_a_short_read(tmp_path, good):
+    """One bit of a data table's stream id (0 to 1, found fuzzing copies of the real DAVIS recordings) gave an
+    event packet to the trigger stream: reading events never opened it, so its 1,000 events vanished without a
+    word (dv-processing, which trusts the table too, reads as few). The table's ids are now checked against the
+    headers of the packets it gives to other streams: a FormatError at the packet, or with salvage the events
+    before it."""
+    path, ev, layout = good
+    from evtk.io import _fbpy
+
+    trigger_id = int(layout["streams"][-1])
+    assert trigger_id != int(layout["streams"][0])
+
+    def relabel(table, b, start, n):
+        entry = _fbpy.fb_deref(b, start + 4 * 6)  # packet 6: events
+        struct.pack_into("<i", table, _fbpy.fb_field(b, entry, 1, 8), trigger_id)
+
+    p = tmp_path / "relabelled.aedat4"
+    p.write_bytes(_edit_data_table(path, relabel))
+    at = int(layout["offsets"][6]) - 8
+    for window in ((None, None), (int(ev.t[100]), int(ev.t[200]))):  # a window far from the packet too
+        with evtk.open(p) as rec, pytest.raises(evtk.FormatError, match="the data table says stream") as info:
+            rec.events(*window)
+        assert info.value.offset == at and str(p) in str(info.value)
+    with evtk.open(p, salvage=True) as rec:
+        assert rec.events() == ev[: 6 * PACKET]
+        assert rec.damage is not None and rec.damage.offset == at
+        a, b = int(ev.t[100]), int(ev.t[200])
+        kept = ev[: 6 * PACKET]
+        assert rec.events(a, b) == kept[(kept.t >= a) & (kept.t < b)]
