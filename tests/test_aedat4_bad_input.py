@@ -608,3 +608,95 @@ def test_the_plain_header_parser_never_accepts_what_expat_refuses(seed):
         _plain_agrees_with_expat("".join(pieces))
 
     check()
+
+
+def _edit_data_table(path, edit):
+    """``path``'s bytes with its (LZ4) data table decompressed, changed by ``edit(table, b, start, n)`` (``start``,
+    ``n``: the entry vector's first slot and length) and compressed again."""
+    import lz4.frame
+
+    from evtk.io import _fbpy
+
+    with evtk.open(path) as rec:
+        dtp = rec._data_table_pos
+    data = path.read_bytes()
+    table = bytearray(lz4.frame.decompress(data[dtp:]))
+    b = np.frombuffer(bytes(table), np.uint8)
+    start, n = _fbpy.fb_vector(b, _fbpy.fb_root(b, b"FTAB"), 0, 4)
+    edit(table, b, start, n)
+    return data[:dtp] + lz4.frame.compress(bytes(table))
+
+
+@pytest.mark.parametrize("keep", [0, 1, 10])
+def test_data_table_that_leaves_out_packets_is_not_trusted(tmp_path, good, keep):
+    """A data table whose entry vector was cut short (damage to its length, found fuzzing copies of real
+    recordings) listed only some packets, and the reader trusted it: their events vanished without a warning
+    (0 events from a whole recording). The packets must tile the file from the header to the table; a table
+    that leaves bytes out is set aside and the packets walked."""
+    path, ev, layout = good
+
+    def cut_vector(table, b, start, n):
+        assert keep < n
+        struct.pack_into("<I", table, start - 4, keep)
+
+    p = tmp_path / "short_table.aedat4"
+    p.write_bytes(_edit_data_table(path, cut_vector))
+    with evtk.open(p) as rec:
+        assert rec.events() == ev
+        assert rec.events(int(ev.t[5000]), int(ev.t[6000])) == ev[5000:6000]
+        assert any("leaves out" in w for w in rec.warnings)
+    assert evtk.read_events(p) == ev
+
+
+def test_salvaged_stream_summary_after_the_table_counts_prove_wrong(tmp_path, good):
+    """Salvage on a file whose data table miscounts a packet and whose sixth packet is damaged: the events read
+    (five packets) made the counts be taken again from the packets, which stopped at the damage, and
+    ``streams`` then failed with numpy's IndexError (a mask of five packets on ten)."""
+    path, ev, layout = good
+    from evtk.io import _fbpy
+
+    def miscount(table, b, start, n):
+        entry = _fbpy.fb_deref(b, start)
+        struct.pack_into("<q", table, _fbpy.fb_field(b, entry, 2, 8), PACKET - 1)
+
+    data = bytearray(_edit_data_table(path, miscount))
+    data[int(layout["offsets"][5])] ^= 0xFF  # the LZ4 magic of packet 5
+    p = tmp_path / "miscount_damaged.aedat4"
+    p.write_bytes(bytes(data))
+    with evtk.open(p, salvage=True) as rec:
+        assert rec.events() == ev[: 5 * PACKET]
+        assert rec.damage is not None and rec.damage.offset == int(layout["offsets"][5])
+        events = next(s for s in rec.streams if s.type == "EVTS")
+        assert events.count == 5 * PACKET
+        assert events.t_start_us == int(ev.t[: 5 * PACKET].min()) and events.t_end_us == int(ev.t[5 * PACKET - 1])
+
+
+def test_data_table_that_gives_an_event_packet_to_another_stream_is_damage_not_a_short_read(tmp_path, good):
+    """One bit of a data table's stream id (0 to 1, found fuzzing copies of the real DAVIS recordings) gave an
+    event packet to the trigger stream: reading events never opened it, so its 1,000 events vanished without a
+    word (dv-processing, which trusts the table too, reads as few). The table's ids are now checked against the
+    headers of the packets it gives to other streams: a FormatError at the packet, or with salvage the events
+    before it."""
+    path, ev, layout = good
+    from evtk.io import _fbpy
+
+    trigger_id = int(layout["streams"][-1])
+    assert trigger_id != int(layout["streams"][0])
+
+    def relabel(table, b, start, n):
+        entry = _fbpy.fb_deref(b, start + 4 * 6)  # packet 6: events
+        struct.pack_into("<i", table, _fbpy.fb_field(b, entry, 1, 8), trigger_id)
+
+    p = tmp_path / "relabelled.aedat4"
+    p.write_bytes(_edit_data_table(path, relabel))
+    at = int(layout["offsets"][6]) - 8
+    for window in ((None, None), (int(ev.t[100]), int(ev.t[200]))):  # a window far from the packet too
+        with evtk.open(p) as rec, pytest.raises(evtk.FormatError, match="the data table says stream") as info:
+            rec.events(*window)
+        assert info.value.offset == at and str(p) in str(info.value)
+    with evtk.open(p, salvage=True) as rec:
+        assert rec.events() == ev[: 6 * PACKET]
+        assert rec.damage is not None and rec.damage.offset == at
+        a, b = int(ev.t[100]), int(ev.t[200])
+        kept = ev[: 6 * PACKET]
+        assert rec.events(a, b) == kept[(kept.t >= a) & (kept.t < b)]

@@ -19,6 +19,32 @@ __all__ = ["accumulate", "accumulate_batches", "batch_size", "span_chunks"]
 _END = object()
 
 
+def _in_time_order(chunks: Iterator[Events], source: Any) -> Iterator[Events]:
+    """The chunks of a read of the recording ``source``, refused where a time stamp goes back (within a chunk or
+    from one to the next): the windows find their events by binary search in each chunk and hand a batch on once
+    a chunk passes its end, so events out of order would be counted in other windows or not at all without a
+    word (an AEDAT4 file may hold them; the readers return events in file order). One comparison an event.
+
+    Raises
+    ------
+    EvtkError
+        At the first stamp earlier than the one before it.
+    """
+    last = None
+    for ev in chunks:
+        t = ev.t
+        if len(t):
+            back = int(t[0]) < last if last is not None else False
+            if back or bool(np.any(t[1:] < t[:-1])):
+                k = 0 if back else int(np.argmax(t[1:] < t[:-1])) + 1
+                before = last if k == 0 else int(t[k - 1])
+                raise EvtkError(f"{getattr(source, 'path', 'the recording')}: its events are not in time order (a "
+                                f"stamp of {int(t[k])} us after one of {before} us), which counting windows needs: "
+                                "`evtk convert --sort` writes a sorted copy")
+            last = int(t[-1])
+        yield ev
+
+
 def _prefetched(chunks):
     """Yield the items of the iterator ``chunks`` while the next one is produced on another thread: the next
     chunk is read and decoded (on the I/O threads) while this one is counted."""
@@ -243,11 +269,11 @@ def span_chunks(source: Events | Any, a: int, z: int, chunk_events: int, starts:
         if overlap and isinstance(n, int) and n > 0:  # eight chunks at least: each counted while the next decodes
             chunk_events = min(chunk_events, max(OVERLAP_CHUNK_EVENTS, -(-n // 8)))
         if meeting is not None:
-            yield from meeting(starts, ends, chunk_events=chunk_events)
+            yield from _in_time_order(meeting(starts, ends, chunk_events=chunk_events), source)
         else:
-            yield from source.iter_events(chunk_events=chunk_events)
+            yield from _in_time_order(source.iter_events(chunk_events=chunk_events), source)
     else:
-        yield from source.iter_events(chunk_events=chunk_events, t_start_us=a, t_end_us=z)
+        yield from _in_time_order(source.iter_events(chunk_events=chunk_events, t_start_us=a, t_end_us=z), source)
 
 
 def accumulate(source: Events | Any, windows: Windows, region: tuple[int, int, int, int] | None = None,
@@ -436,7 +462,8 @@ def _batch_events(source, bounds, chunk_events: int) -> Iterator[tuple[int, Even
                 yield b, ev[k:min(int(j), k + chunk_events)]
         return
     for b, (a, z) in enumerate(bounds):
-        for chunk in source.iter_events(chunk_events=chunk_events, t_start_us=int(a), t_end_us=int(z)):
+        for chunk in _in_time_order(source.iter_events(chunk_events=chunk_events, t_start_us=int(a), t_end_us=int(z)),
+                                    source):
             yield b, chunk
 
 

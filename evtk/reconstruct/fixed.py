@@ -161,7 +161,9 @@ def _window_events(source: Any, windows: Windows, first: int, last: int, chunk_e
         for k in range(i, j, chunk_events):
             yield source[k:min(j, k + chunk_events)]
         return
-    yield from source.iter_events(chunk_events=chunk_events, t_start_us=a, t_end_us=z)
+    from .accumulate import _in_time_order
+
+    yield from _in_time_order(source.iter_events(chunk_events=chunk_events, t_start_us=a, t_end_us=z), source)
 
 
 def _check_on_sensor(ev: Events, i: int, j: int) -> None:

@@ -427,8 +427,16 @@ class _FileIndex:
                                  "packets were indexed by walking the file")
             return None
         order = np.argsort(offset, kind="stable")
-        if n and np.any(offset[order][1:] < (offset + size)[order][:-1] + 8):
+        starts, ends = offset[order] - 8, (offset + size)[order]
+        if n and np.any(starts[1:] < ends[:-1]):
             self.warnings.append("the data table lists overlapping packets; packets were indexed by walking the file")
+            return None
+        # writers list every packet, one after the other from the header to the table: a table that leaves
+        # bytes out (a vector cut short by damage, an entry moved) would drop those packets' events unseen
+        if (starts[0] != self._data_start or ends[-1] != dtp or np.any(starts[1:] != ends[:-1])) if n \
+                else dtp > self._data_start:
+            self.warnings.append("the data table leaves out bytes between the packets; "
+                                 "packets were indexed by walking the file")
             return None
         idx = _PacketIndex(offset[order], size[order], stream[order], count[order], t0[order], t1[order], True)
         return idx

@@ -66,6 +66,7 @@ class Recording(_FileIndex, BaseRecording):
         super().__init__(path, salvage)
         self._fd = -1
         self._spans: dict = {}  # stream id -> each packet's (earliest, latest) stamp, read on the first window
+        self._hidden: dict[int, int | None] = {}  # stream id -> row of a packet the data table gives another stream
         self.verify_checksums = bool(verify_checksums)
         try:
             self._fd = os.open(self.path, os.O_RDONLY)
@@ -130,9 +131,11 @@ class Recording(_FileIndex, BaseRecording):
                 counts = self._count_elements(np.flatnonzero(sel), s.type)
             s.count = int(counts.sum()) if counts is not None else None
             if s.packets and idx.from_table:
+                # (salvage: the packets counted, those before the damage)
                 nz = counts > 0 if counts is not None else np.ones(s.packets, bool)
-                s.t_start_us = int(idx.t0[sel][nz].min()) if nz.any() else None
-                s.t_end_us = int(idx.t1[sel][nz].max()) if nz.any() else None
+                rows = np.flatnonzero(sel)[:len(nz)]
+                s.t_start_us = int(idx.t0[rows][nz].min()) if nz.any() else None
+                s.t_end_us = int(idx.t1[rows][nz].max()) if nz.any() else None
         if not idx.from_table:
             self._fill_times()
         return list(self._streams.values())
@@ -237,7 +240,7 @@ class Recording(_FileIndex, BaseRecording):
         if s is None:
             return None, np.zeros(0, np.int64), None
         idx = self._index
-        rows = np.flatnonzero(idx.stream == s.id)
+        rows = self._stream_rows(s)
         if t_start_us is None and t_end_us is None:
             return s, rows, None
         if not idx.from_table:
@@ -252,6 +255,43 @@ class Recording(_FileIndex, BaseRecording):
             keep &= lo < int(t_end_us)
             inside &= hi < int(t_end_us)
         return s, rows[keep], ~inside[keep]
+
+    def _stream_rows(self, s: StreamInfo) -> np.ndarray:
+        """The rows of stream ``s``'s packets in the index, in file order.
+
+        The data table's stream ids are checked against the packets' headers (once per stream, and only the
+        packets the table gives to other streams, which a read of ``s`` never opens): a damaged id that gave
+        one of ``s``'s packets to another stream would drop its elements without a word. Such a packet is
+        damage at its header: :class:`~evtk.FormatError`, or with salvage the rows before it.
+
+        Parameters
+        ----------
+        s : StreamInfo
+            The stream.
+
+        Returns
+        -------
+        numpy.ndarray
+            int64 rows (with salvage, those before a hidden packet).
+        """
+        idx = self._index
+        rows = np.flatnonzero(idx.stream == s.id)
+        if not idx.from_table:
+            return rows
+        if s.id not in self._hidden:
+            found = None
+            for i in np.flatnonzero(idx.stream != s.id).tolist():  # (one 8-byte read each: 0.6 us)
+                head = self._pread(8, int(idx.offset[i]) - 8)
+                if len(head) == 8 and struct.unpack_from("<i", head)[0] == s.id:
+                    found = i
+                    break
+            self._hidden[s.id] = found
+        i = self._hidden[s.id]
+        if i is None:
+            return rows
+        off = int(idx.offset[i])
+        self._note(off - 8, f"packet header says stream {s.id}; the data table says stream {int(idx.stream[i])}")
+        return rows[idx.offset[rows] < off]
 
     def _packet_spans(self, s, rows):
         """The earliest and latest time stamp of each packet of ``rows`` (stream ``s``), as the packets hold
@@ -970,7 +1010,7 @@ class Recording(_FileIndex, BaseRecording):
         if s is None:
             raise EvtkError(f"{self.path}: no stream {stream!r}")
         idx = self._index
-        rows = np.flatnonzero(idx.stream == s.id)
+        rows = self._stream_rows(s)
         if np.any(idx.count[rows] < 0):  # no data table: count what the packets hold (frames: one each)
             counted = self._count_elements(rows, s.type)
             if counted is None:
