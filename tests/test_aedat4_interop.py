@@ -178,9 +178,9 @@ def _strip_data_table(src, dst):
     """Copy of ``src`` as an interrupted recording: no data table, position -1."""
     with evtk.open(src) as rec:
         dtp = rec._data_table_pos
-    data = bytearray(open(src, "rb").read()[:dtp])
+    data = bytearray(Path(src).read_bytes()[:dtp])
     data[aedat4._DTP_FIELD : aedat4._DTP_FIELD + 8] = np.int64(-1).tobytes()
-    open(dst, "wb").write(data)
+    Path(dst).write_bytes(data)
 
 
 @pytest.mark.parametrize("compression", COMPRESSIONS)

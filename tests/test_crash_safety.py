@@ -56,6 +56,7 @@ def test_killed_writer_keeps_previous_file(tmp_path):
         finally:
             proc.send_signal(signal.SIGKILL)
             proc.wait()
+            proc.stdout.close()
         assert path.read_bytes() == before
         partials = [p for p in tmp_path.iterdir() if p.name.endswith(".evtk-partial")]
         assert len(partials) == 1
@@ -136,6 +137,7 @@ def test_writer_killed_at_random_moments(tmp_path, ext):
         finally:
             proc.send_signal(signal.SIGKILL)
             proc.wait()
+            proc.stdout.close()
         assert path.read_bytes() == before
         partials = [p for p in tmp_path.iterdir() if p.name.endswith(".evtk-partial")]
         assert len(partials) <= 1

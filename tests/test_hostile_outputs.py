@@ -391,6 +391,7 @@ def test_interrupted_writer_leaves_no_partial_file(tmp_path, name, sig):
         rc = proc.wait(timeout=60)
     finally:
         proc.kill()
+        proc.stdout.close()
     if sig == "SIGTERM":
         assert rc == -signal.SIGTERM  # it still dies of the signal
     else:
@@ -427,6 +428,7 @@ def test_stale_partial_of_a_dead_process_removed_by_the_next_write(tmp_path):
     proc = _start_writer(tmp_path, "out.h5")
     proc.send_signal(signal.SIGKILL)  # no chance to clean up
     proc.wait(timeout=60)
+    proc.stdout.close()
     stale = _partials(tmp_path)
     assert len(stale) == 1
     live = _start_writer(tmp_path, "out.h5")  # another writer of the same target, still running
@@ -440,6 +442,7 @@ def test_stale_partial_of_a_dead_process_removed_by_the_next_write(tmp_path):
     finally:
         live.kill()
         live.wait()
+        live.stdout.close()
     with evtk.open(tmp_path / "out.h5") as rec:
         assert len(rec.events()) == 10
 
