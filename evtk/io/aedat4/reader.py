@@ -30,6 +30,13 @@ BATCH_EVENTS = 1 << 16
 #: recording of 100 k events read in 64 k-event batches touched 1.2 MB more of it than in 8 k-event ones
 #: (600 page faults, 1-1.5 ms of a 3-4 ms decode here), while a large read keeps its batches' calls few.
 SMALL_BATCH_EVENTS = 1 << 13
+#: The most bytes one read of packet headers covers when a stream's first read checks the data table's stream ids
+#: against the headers of the packets it gives to other streams (``Recording._first_header_naming``), into one
+#: buffer kept for the check.
+HEADER_STRETCH_BYTES = 1 << 18
+#: Bytes a read of headers may cover for each header in it: about what a read call costs here (1-1.5 us) at the
+#: page cache's 10 GB/s; headers farther apart are read one by one.
+HEADER_READ_BYTES = 1 << 14
 # room in a thread's staging buffer for packet headers and the bytes after a packet's events
 _BATCH_SLACK = 1 << 16
 # a decode thread's buffers with batches: the staging buffer (16 bytes an event and the slack), the batch's
@@ -279,19 +286,59 @@ class Recording(_FileIndex, BaseRecording):
         if not idx.from_table:
             return rows
         if s.id not in self._hidden:
-            found = None
-            for i in np.flatnonzero(idx.stream != s.id).tolist():  # (one 8-byte read each: 0.6 us)
-                head = self._pread(8, int(idx.offset[i]) - 8)
-                if len(head) == 8 and struct.unpack_from("<i", head)[0] == s.id:
-                    found = i
-                    break
-            self._hidden[s.id] = found
+            self._hidden[s.id] = self._first_header_naming(s.id, np.flatnonzero(idx.stream != s.id))
         i = self._hidden[s.id]
         if i is None:
             return rows
         off = int(idx.offset[i])
         self._note(off - 8, f"packet header says stream {s.id}; the data table says stream {int(idx.stream[i])}")
         return rows[idx.offset[rows] < off]
+
+    def _first_header_naming(self, sid: int, others: np.ndarray) -> int | None:
+        """The first of the index rows ``others`` (in file order) whose packet header names stream ``sid``, or None.
+
+        The 8-byte headers are read a stretch of the file at a time: one read covers the headers of a stretch of
+        at most :data:`HEADER_STRETCH_BYTES` where they lie closer than :data:`HEADER_READ_BYTES` apart on
+        average (a DAVIS recording's IMU packets between its event packets: one read for dozens), each header
+        alone elsewhere (a frame's megabytes are not read for its header).
+
+        Parameters
+        ----------
+        sid : int
+            The stream id looked for.
+        others : numpy.ndarray
+            Rows of packets the data table gives to other streams, increasing.
+
+        Returns
+        -------
+        int or None
+            The first such row whose header says ``sid``.
+        """
+        if not len(others):
+            return None
+        at = self._index.offset[others] - 8  # the headers' positions, increasing
+        stretch = (at - at[0]) // HEADER_STRETCH_BYTES  # which stretch of the file each header lies in
+        cuts = [0, *(np.flatnonzero(stretch[1:] != stretch[:-1]) + 1).tolist(), len(at)]
+        four = np.arange(4)
+        buf = None  # one buffer for every stretch (a fresh megabyte a read cost more in page faults than the reads)
+        for a, z in zip(cuts[:-1], cuts[1:]):
+            lo, hi = int(at[a]), int(at[z - 1]) + 8
+            if (z - a) * HEADER_READ_BYTES >= hi - lo:  # close together: one read
+                if buf is None:
+                    buf = np.empty(HEADER_STRETCH_BYTES + 8, np.uint8)
+                b = self._pread_into(buf[:hi - lo], lo)
+                rel = at[a:z] - lo
+                whole = rel + 4 <= b.size  # (a short read at the end: those headers are not there)
+                ids = b[rel[whole, None] + four].view("<i4")[:, 0]
+                hit = np.flatnonzero(ids == sid)
+                if hit.size:
+                    return int(others[a + int(np.flatnonzero(whole)[hit[0]])])
+                continue
+            for k in range(a, z):  # far apart: each header alone
+                head = self._pread(4, int(at[k]))
+                if len(head) == 4 and struct.unpack_from("<i", head)[0] == sid:
+                    return int(others[k])
+        return None
 
     def _packet_spans(self, s, rows):
         """The earliest and latest time stamp of each packet of ``rows`` (stream ``s``), as the packets hold
