@@ -115,6 +115,22 @@ def test_numpy_loop_on_a_pixel_that_wakes_in_its_events_segment(paths):
         _assert_same(a, b)
 
 
+@pytest.mark.parametrize("seed", range(40))
+def test_a_noise_free_pixel_s_counts_do_not_depend_on_the_segments_after_them(paths, seed):
+    """What the count curve rests on when it leaves out the segments after the last counted one: a noise-free
+    pixel is causal, on numpy's loop and numba's kernel alike; the counts of every slot up to a segment are the
+    same whether the run stops there or goes on (light, blindness and refractory periods carried across)."""
+    model, state, level, starts, ends, slot = _random_run(seed)
+    for numpy in (True, False):
+        for k in range(1, len(starts) + 1):
+            cut = np.where(np.arange(len(starts)) < k, slot, -1)  # the slots counted within the first k segments
+            ref = _simulate(paths, numpy, model, copy.deepcopy(state), level, starts, ends, cut, False)
+            got = _simulate(paths, numpy, model, copy.deepcopy(state), level[:k], starts[:k], ends[:k], slot[:k],
+                            False)
+            np.testing.assert_array_equal(got[3], ref[3])
+            np.testing.assert_array_equal(got[4], ref[4])
+
+
 @pytest.mark.parametrize("sensor_changes", [{}, {"theta_on": 0.5, "theta_off": 0.3, "refractory_us": 300.0},
                                             {"tau_min_us": 5.0, "tau_electrons": 3000.0, "theta_on": 0.1},
                                             {"dark_current_e_per_s": 1e3, "refractory_us": 20.0}])

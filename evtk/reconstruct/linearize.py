@@ -229,9 +229,15 @@ def _count_curve(key):
     lit = (starts >= z) & (starts < z + w)
     lvl = np.where(lit[:, None], np.log(blank) + u[None, :], np.log(blank))
     slot = np.where((starts >= a) & (ends <= b), 0, -1)
+    noise = log_noise_std(np.exp(lvl), sm)
+    # a noise-free pixel is causal: the segments after the last counted one (the dark after the window, whose
+    # OFF events took as many rounds as the window's ON ones) cannot change its counts; with noise every
+    # segment's draws stay, so that the random stream is the same
+    n_seg = len(starts) if np.any(noise) or not np.any(slot >= 0) else int(np.flatnonzero(slot >= 0)[-1]) + 1
     st = PixelState(lvl[0], 0.0, np.full(u.size, sm.theta_on), np.full(u.size, sm.theta_off))
-    _, _, _, on, off = simulate_pixels(st, lvl, time_constant_us(np.exp(lvl), sm), log_noise_std(np.exp(lvl), sm),
-                                       starts, ends, sm, 0, emit=False, count_slot=slot, n_slots=1)
+    _, _, _, on, off = simulate_pixels(st, lvl[:n_seg], time_constant_us(np.exp(lvl[:n_seg]), sm), noise[:n_seg],
+                                       starts[:n_seg], ends[:n_seg], sm, 0, emit=False, count_slot=slot[:n_seg],
+                                       n_slots=1)
     counts = np.maximum.accumulate(on[0] - off[0])
     u.flags.writeable = counts.flags.writeable = False
     return u, counts
