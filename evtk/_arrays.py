@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -59,6 +60,6 @@ def median(values: npt.ArrayLike) -> float:
     part = np.partition(v, [k - 1, k])
     lo, hi = float(part[k - 1]), float(part[k])
     mid = (lo + hi) / 2  # numpy's mean of the two, to the bit
-    if mid in (float("inf"), float("-inf")) and abs(lo) != float("inf") and abs(hi) != float("inf"):
+    if math.isinf(mid) and math.isfinite(lo) and math.isfinite(hi):
         mid = lo / 2 + hi / 2  # the sum overflowed: halves first (exact for values this large)
     return mid
