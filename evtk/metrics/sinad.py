@@ -277,6 +277,9 @@ class SinadAccumulator:
         # per size k of group: the per-pixel sums over its whole-number groups of S2 and of S1^2 (int64, exact),
         # and bounds of the two (:meth:`_pool`; into _m2_px and _sq_px by :meth:`_spill`)
         self._sizes: dict[int, list] = {}
+        # per group merged from exact integer sums: (sum of S2, sum of S1^2) over its pixels, Python ints (for
+        # the jackknife's exact leave-one-outs); None for the others
+        self._exact_sums: list[tuple[int, int] | None] = [None] * g
         self.added = 0
 
     @staticmethod
@@ -440,9 +443,10 @@ class SinadAccumulator:
         q = np.square(s1, dtype=np.int64)  # S1^2, exact: below 2**62 (checked by _whole_sums)
         p = s1.size
         if p * k * big2 < 2**63:  # the pixels' sums of S2 and S1^2 stay in int64: exact, as Python ints
-            s2_sum = int(np.add.reduce(s2, dtype=np.int64))
-            self._m2[g] += (k * s2_sum - int(np.add.reduce(q))) / k
+            s2_sum, q_sum = int(np.add.reduce(s2, dtype=np.int64)), int(np.add.reduce(q))
+            self._m2[g] += (k * s2_sum - q_sum) / k
             self._sq[g] += float(s2_sum)
+            self._exact_sums[g] = (s2_sum, q_sum)
         else:
             num = np.multiply(s2, k, dtype=np.int64)
             num -= q
@@ -565,6 +569,42 @@ class SinadAccumulator:
         np.fill_diagonal(pairs, n * (n - 1))
         return m, pairs, self._sq / p, n
 
+    def _exact_leave_one_out(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Each leave-one-group-out estimate's pooled noise and power, exactly, where every group holds whole
+        numbers merged from its exact integer sums (the counts `evtk enob` gives); None otherwise (then
+        :func:`_leave_one_out` of :meth:`_group_terms`).
+
+        Leaving group ``j`` out keeps ``N_j = N - n_j`` repeats, whose per-pixel sums are ``T - S1_j`` (``T``
+        every group's): their pairs of distinct repeats give the noise numerator ``N_j S2_(-j) - sum_p (T_p -
+        S1_jp)^2``, an exact integer from ``sum_p T_p^2``, ``sum_p T_p S1_jp`` and each group's ``sum_p S1^2``
+        and ``S2``, over ``N_j (N_j - 1) p`` (a 64-group report formed the groups' Gram matrix for it, half its
+        time, and rounding could leave a leave-out without noise a tiny positive one: a finite upper end).
+        """
+        s1 = self._s1
+        sums = [v for v in self._exact_sums if v is not None]
+        if s1 is None or not self._whole.all() or len(sums) != len(self._exact_sums):
+            return None
+        g, p = s1.shape
+        most = max(abs(int(s1.max())), abs(int(s1.min())))
+        total = np.add.reduce(s1, axis=0, dtype=np.int32 if g * most < 2**31 else np.int64)
+        most_t = max(abs(int(total.max())), abs(int(total.min())))
+        if p * most_t * most >= 2**63 or p * most_t * most_t >= 2**63:
+            return None  # (sums beyond int64: the Gram route)
+        cross = np.einsum("gp,p->g", s1, total, dtype=np.int32 if p * most_t * most < 2**31 else np.int64)
+        sq_total = int(np.dot(total.astype(np.int64, copy=False), total.astype(np.int64, copy=False)))
+        s2 = [v[0] for v in sums]
+        s1_sq = [v[1] for v in sums]
+        sizes = [int(v) for v in self._n]
+        n_all, s2_all = sum(sizes), sum(s2)
+        noise, power = np.empty(g), np.empty(g)
+        for j in range(g):
+            n_j = n_all - sizes[j]
+            s2_j = s2_all - s2[j]
+            num = n_j * s2_j - (sq_total - 2 * int(cross[j]) + s1_sq[j])
+            noise[j] = num / (n_j * (n_j - 1) * p)  # (Python ints: the quotient rounded once)
+            power[j] = s2_j / (n_j * p)
+        return noise, power
+
     def report(self, per_pixel: bool = False, interval: str | None = "jackknife", confidence: float = 0.95,
                resamples: int = 1000, seed: int = 0) -> SinadReport:
         """The :class:`SinadReport` of the repeats (all ``repeats`` must have been added); see :func:`sinad`.
@@ -604,7 +644,8 @@ class SinadAccumulator:
         r, p = self.repeats, self._mean.shape[1]
         n = self._n
         want_interval = interval is not None and r >= 3 and (interval == "jackknife" or bool(resamples))
-        between, gram, pp_between = self._between(want_interval, per_pixel)
+        loo = self._exact_leave_one_out() if want_interval and interval == "jackknife" else None
+        between, gram, pp_between = self._between(want_interval and loo is None, per_pixel)
         power = float(self._sq.sum()) / (r * p)
         if power == 0.0:
             raise EvtkError("SINAD: the signal is zero everywhere (no light reached the pixels?)")
@@ -613,11 +654,11 @@ class SinadAccumulator:
         report = SinadReport(s_db, enob_bits(s_db), noise == 0.0, math.sqrt(power), math.sqrt(noise), r, p,
                              confidence=confidence)
         if want_interval:
-            terms = self._group_terms((between, gram))
             if interval == "jackknife":
-                lo, hi = _jackknife_interval_db(terms, s_db, confidence)
+                noise_loo, power_loo = loo if loo is not None else _leave_one_out(self._group_terms((between, gram)))
+                lo, hi = _jackknife_interval_db(noise_loo, power_loo, s_db, confidence)
             else:
-                boot = np.sort(_bootstrap_db(terms, int(resamples), seed))
+                boot = np.sort(_bootstrap_db(self._group_terms((between, gram)), int(resamples), seed))
                 tail = (1.0 - confidence) / 2
                 lo = float(boot[int(math.floor(tail * (boot.size - 1)))])
                 hi = float(boot[int(math.ceil((1 - tail) * (boot.size - 1)))])
@@ -691,19 +732,26 @@ def sinad(captures: npt.ArrayLike, per_pixel: bool = False, interval: str | None
     return acc.report(per_pixel=per_pixel, interval=interval, confidence=confidence, resamples=resamples, seed=seed)
 
 
-def _jackknife_interval_db(terms, estimate_db, confidence):
-    """Delete-one-group jackknife interval of the SINAD in dB, Student t on groups - 1 degrees of freedom.
-
-    Each leave-one-group-out estimate keeps only pairs of distinct repeats
-    outside the left-out group (the estimate's own U-statistic). Where
-    leaving a group out leaves no noise, the interval reaches ``+inf``; where
-    it leaves no signal (a few events in mostly empty windows), ``-inf``.
-    """
+def _leave_one_out(terms):
+    """Each leave-one-group-out estimate's pooled noise and power from the groups' terms
+    (:meth:`SinadAccumulator._group_terms`): the pairs of distinct repeats outside the group left out."""
     m, pairs, power, sizes = terms
     g = sizes.size
     keep = np.ones((g, g)) - np.eye(g)  # row j: every group but j
     noise = np.einsum("jg,gh,jh->j", keep, m, keep) / np.einsum("jg,gh,jh->j", keep, pairs, keep)
-    pw = (keep @ power) / (keep @ sizes)
+    return noise, (keep @ power) / (keep @ sizes)
+
+
+def _jackknife_interval_db(noise, pw, estimate_db, confidence):
+    """Delete-one-group jackknife interval of the SINAD in dB, Student t on groups - 1 degrees of freedom.
+
+    ``noise`` and ``pw`` are the leave-one-group-out estimates' pooled noise and power (:func:`_leave_one_out`,
+    or :meth:`SinadAccumulator._exact_leave_one_out`); each keeps only pairs of distinct repeats
+    outside the left-out group (the estimate's own U-statistic). Where
+    leaving a group out leaves no noise, the interval reaches ``+inf``; where
+    it leaves no signal (a few events in mostly empty windows), ``-inf``.
+    """
+    g = noise.size
     if not math.isfinite(estimate_db):
         return math.inf, math.inf
     no_noise, no_signal = noise <= 0, pw <= 0
