@@ -277,8 +277,8 @@ class SinadAccumulator:
         # per size k of group: the per-pixel sums over its whole-number groups of S2 and of S1^2 (int64, exact),
         # and bounds of the two (:meth:`_pool`; into _m2_px and _sq_px by :meth:`_spill`)
         self._sizes: dict[int, list] = {}
-        # per group merged from exact integer sums: (sum of S2, sum of S1^2) over its pixels, Python ints (for
-        # the jackknife's exact leave-one-outs); None for the others
+        # per group merged from exact integer sums and holding them still (its row of _s1): (sum of S2, sum of
+        # S1^2) over its pixels, Python ints, for the jackknife's exact leave-one-outs; None for the others
         self._exact_sums: list[tuple[int, int] | None] = [None] * g
         self.added = 0
 
@@ -513,6 +513,7 @@ class SinadAccumulator:
             assert self._s1 is not None
             np.divide(self._s1[g], self._n[g], out=self._mean[g])
             self._whole[g] = False
+            self._exact_sums[g] = None
         return self._mean[g]
 
     def _between(self, gram: bool, per_pixel: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -580,10 +581,11 @@ class SinadAccumulator:
         and ``S2``, over ``N_j (N_j - 1) p`` (a 64-group report formed the groups' Gram matrix for it, half its
         time, and rounding could leave a leave-out without noise a tiny positive one: a finite upper end).
         """
-        s1 = self._s1
         sums = [v for v in self._exact_sums if v is not None]
-        if s1 is None or not self._whole.all() or len(sums) != len(self._exact_sums):
+        if len(sums) < len(self._exact_sums):
             return None
+        s1 = self._s1
+        assert s1 is not None  # (set with the first group's exact sums)
         g, p = s1.shape
         most = max(abs(int(s1.max())), abs(int(s1.min())))
         total = np.add.reduce(s1, axis=0, dtype=np.int32 if g * most < 2**31 else np.int64)
