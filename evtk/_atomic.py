@@ -22,7 +22,6 @@ import contextlib
 import contextvars
 import io
 import os
-import signal
 
 from .errors import EvtkError
 
@@ -53,7 +52,9 @@ def _host_tag() -> str:
 _LIVE: dict = {}
 _LIVE_LOCK = _thread.RLock()  # re-entrant: the signal handler may run while the main thread holds it
 _PREVIOUS_HANDLERS: dict = {}
-_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+#: The signals whose handlers remove the partial files (names: the signal module loads with the first write, not
+#: with every command that might write: 0.4-0.5 ms of a fresh process)
+_SIGNAL_NAMES = ("SIGINT", "SIGTERM", "SIGHUP")
 
 
 def _remove_live_partials():
@@ -72,6 +73,8 @@ def _remove_live_partials():
 
 def _on_signal(signum, frame):
     """Remove the partial files, then let the signal do what it did before (raise, exit, or nothing)."""
+    import signal
+
     _remove_live_partials()
     previous = _PREVIOUS_HANDLERS.get(signum, signal.SIG_DFL)
     if callable(previous):
@@ -85,11 +88,12 @@ def _on_signal(signum, frame):
 
 def _install_signal_handlers():
     """Chain :func:`_on_signal` before the handlers in place (once; only the main thread may)."""
+    import signal
     import threading
 
     if threading.current_thread() is not threading.main_thread():
         return
-    for signum in _SIGNALS:
+    for signum in (getattr(signal, name) for name in _SIGNAL_NAMES if hasattr(signal, name)):
         current = signal.getsignal(signum)
         if current is _on_signal or current is None:  # ours already, or set outside Python: leave it
             continue

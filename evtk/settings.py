@@ -13,7 +13,6 @@ silently wrong run.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import stat
@@ -96,6 +95,8 @@ def read_table(path: str | os.PathLike[str], what: str, max_bytes: int = MAX_SET
                 import tomli as tomllib
             data = tomllib.loads(raw.decode("utf-8"))
         else:
+            import json  # here: a run without a settings file does not load it
+
             data = json.loads(raw.decode("utf-8"))  # NaN and Infinity are read, for the checks to name their key
     except Exception as exc:  # noqa: BLE001 - any parse failure is the user's file
         raise EvtkError(f"{path}: not a valid {what} file: {exc}") from None

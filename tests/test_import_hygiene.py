@@ -222,3 +222,30 @@ def test_a_fresh_read_of_another_prophesee_encoding_loads_no_evt3_decoder(tmp_pa
     env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
     assert out.split("LOADED", 1)[1].strip() == "False"
+
+
+def _cli_loads(args: list[str], names: tuple[str, ...]) -> list[str]:
+    """Which of ``names`` a fresh ``evtk ARGS`` process has loaded when it ends (it must succeed)."""
+    code = ("import sys\nfrom evtk.cli import main\n"
+            f"try:\n    main({args!r})\nexcept SystemExit as exc:\n    assert not exc.code, exc.code\n"
+            f"print('LOADED', sorted(m for m in {names!r} if m in sys.modules))\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(evtk.__file__).parents[1]))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
+    return eval(out.split("LOADED", 1)[1].strip())  # a list of names printed by the child
+
+
+def test_a_short_option_loads_no_difflib(tmp_path):
+    """``evtk reconstruct F ... -o x.npz``: click tried ``-o`` as a long option first, and its miss loaded difflib to
+    suggest a near name (2.5-3 ms of a fresh process) before it matched the short one."""
+    path = _fixture(tmp_path, "aedat4")
+    args = ["reconstruct", str(path), "--window", "period:10000", "-o", str(tmp_path / "x.npz")]
+    assert _cli_loads(args, ("difflib",)) == []
+    assert (tmp_path / "x.npz").exists()
+
+
+@pytest.mark.parametrize("command", [["enob", "--window", "period:10000"], ["info"], ["info", "--check"]])
+def test_commands_that_write_nothing_load_no_json_or_signal(tmp_path, command):
+    """``evtk enob`` and ``evtk info`` without ``--json``: json (the CLI's, the settings' and the reconstruction
+    files' module-level imports) and signal (the partial-file guard's) loaded for every command, 1.5-2 ms."""
+    path = _fixture(tmp_path, "aedat4")
+    assert _cli_loads([command[0], str(path), *command[1:]], ("json", "signal", "difflib")) == []

@@ -10,7 +10,6 @@ JSON. Two containers: evtk's HDF5 (``.h5``/``.hdf5``, arrays under
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
@@ -75,6 +74,8 @@ def save_reconstruction(path: str | os.PathLike[str], result: Any, sensor_size: 
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if ext == ".npz":
         with AtomicFile(path) as f:
+            import json  # here: `evtk info` of a recording does not load it
+
             _write_npz(f.file, {"summary": np.array(json.dumps(meta)), **arrays})
     elif ext in (".h5", ".hdf5"):
         from .hdf5 import Hdf5Writer  # HDF5 (and its compiled checks) load only for .h5 outputs
