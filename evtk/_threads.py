@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from _queue import SimpleQueue  # queue's own C queue: ``queue`` itself loads heapq and more for nothing here
-from _thread import allocate_lock  # threading.Lock; threading itself loads where a pool first starts a thread
+from _thread import _local, allocate_lock  # threading's Lock and local (threading loads with a pool's first thread)
 from _weakrefset import WeakSet  # weakref.WeakSet, loaded at every Python start (weakref is not)
 from collections.abc import Callable
 from typing import Any
@@ -217,3 +217,126 @@ def _after_fork_in_child() -> None:
 
 if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_after_fork_in_child)
+
+
+class Helpers:
+    """Work offered to the thread that waits for it: the consumer of prefetched chunks decodes with the
+    prefetching thread instead of waiting idle for it.
+
+    While one thread counts a chunk, another decodes the next one; on two cores a third decoding thread only
+    takes turns with them (and the GIL with them: every preempted holder stalls the others). A reader's split
+    decode (the AEDAT4 reader's ranges of packets) offers its ranges here when it runs on a prefetching thread
+    (:func:`helpers`), decodes them itself, and the consumer, once it has counted its chunk and would wait for
+    the next, takes ranges too (:meth:`wait`). So there are as many busy threads as cores all along: the
+    decoders less one while the consumer counts, all of them when it waits.
+
+    The prefetching thread's own work must call :meth:`finish` when it ends (it wakes the waiting consumer).
+    """
+
+    __slots__ = ("_lock", "_bell", "_work", "_active", "_finished")
+
+    def __init__(self) -> None:
+        self._lock = allocate_lock()
+        self._bell = allocate_lock()  # released ("rung") at each offer and at the end of the work
+        self._bell.acquire()
+        self._work: Callable[[], Any] | None = None
+        self._active: list = []
+        self._finished = False
+
+    def _ring(self) -> None:
+        try:
+            self._bell.release()
+        except RuntimeError:  # rung already: one wake-up is enough
+            pass
+
+    def start(self) -> None:
+        """A new piece of the prefetching thread's work begins (before it is handed to the thread)."""
+        self._finished = False
+
+    def offer(self, fn: Callable[[], Any]) -> None:
+        """Let a waiting consumer run ``fn`` too (any number of times, on any thread: it takes its own share of
+        the work and returns when none is left).
+
+        Parameters
+        ----------
+        fn : callable
+            Work that several threads may run at once.
+        """
+        with self._lock:
+            self._work = fn
+        self._ring()
+
+    def withdraw(self) -> None:
+        """No new helper may start the offered work; waits for those running it to return."""
+        with self._lock:
+            self._work = None
+            active, self._active = self._active, []
+        for done in active:
+            with done:
+                pass
+
+    def share(self, fn: Callable[[], Any]) -> None:
+        """:meth:`offer` ``fn``, run it on this thread, then :meth:`withdraw` it (also when it raises).
+
+        Parameters
+        ----------
+        fn : callable
+            Work that several threads may run at once (each takes its own share, and returns when none is left).
+        """
+        self.offer(fn)
+        try:
+            fn()
+        finally:
+            self.withdraw()
+
+    def finish(self) -> None:
+        """The prefetching thread's current work has ended (its result is ready or about to be)."""
+        self._finished = True
+        self._ring()
+
+    def _help(self) -> None:
+        with self._lock:
+            fn = self._work
+            if fn is None:
+                return
+            done = allocate_lock()
+            done.acquire()
+            self._active.append(done)
+        try:
+            fn()
+        finally:
+            done.release()
+
+    def wait(self) -> None:
+        """Run what is offered until the prefetching thread's work has ended."""
+        while not self._finished:
+            self._help()
+            if self._finished:
+                break
+            self._bell.acquire()  # the next offer, or the end
+
+
+_HERE = _local()
+
+
+def helpers() -> Helpers | None:
+    """The :class:`Helpers` a split decode on this thread offers its work to (None: none, decode alone).
+
+    Returns
+    -------
+    Helpers or None
+        Set by :func:`use_helpers` on a prefetching thread.
+    """
+    return getattr(_HERE, "helpers", None)
+
+
+def use_helpers(h: Helpers | None) -> None:
+    """Make ``h`` this thread's :class:`Helpers` (None: none).
+
+    Parameters
+    ----------
+    h : Helpers or None
+        The helpers.
+    """
+    _HERE.helpers = h
+

@@ -157,29 +157,35 @@ def test_damage_inside_a_batch_is_named_as_packet_by_packet(tmp_path, monkeypatc
         assert outcomes[0][1] == evtk.Events.concatenate(evs[:5])
 
 
+def move_off_sensor(path, packets, events_each: int) -> list[int]:
+    """Move the first event of each of ``packets`` (uncompressed EVTS packets of ``events_each`` events) to x =
+    400, off a sensor narrower than that, in place; returns every packet's byte offset."""
+    from evtk.io import _fbpy
+
+    data = bytearray(path.read_bytes())
+    with evtk.open(path) as rec:
+        offsets = [int(v) for v in rec._index.offset]
+        sizes = [int(v) for v in rec._index.size]
+    for k in packets:
+        body = np.frombuffer(bytes(data[offsets[k]:offsets[k] + sizes[k]]), np.uint8)
+        start, count = _fbpy._root_vector(body, b"EVTS", 16)
+        assert count == events_each
+        data[offsets[k] + start + 8:offsets[k] + start + 10] = (400).to_bytes(2, "little")
+    path.write_bytes(bytes(data))
+    return offsets
+
+
 def test_of_two_damaged_packets_the_first_is_named_whichever_thread_meets_it(tmp_path, monkeypatch):
     """Strict reads on several threads raise the fault of the earliest damaged packet, as one thread reading
     packet by packet would, even when a later range fails first (here the ranges before the first damage are
     slowed down, so the later damage is met first)."""
     import time as _time
-
-    from evtk.io import _fbpy
-
     monkeypatch.setenv("EVTK_THREADS", "3")
     monkeypatch.setattr(a4r, "_THREAD_BYTES", 1)
     ev = random_events(270_000, seed=210)
     path = tmp_path / "two.aedat4"
     evtk.write_events(path, ev, compression="none", packet_events=3_000, packet_us=None)
-    data = bytearray(path.read_bytes())
-    with evtk.open(path) as rec:
-        offsets = [int(v) for v in rec._index.offset]
-        sizes = [int(v) for v in rec._index.size]
-    for k in (20, 80):  # the first event of each moved off the 320-pixel-wide sensor
-        body = np.frombuffer(bytes(data[offsets[k]:offsets[k] + sizes[k]]), np.uint8)
-        start, count = _fbpy._root_vector(body, b"EVTS", 16)
-        assert count == 3_000
-        data[offsets[k] + start + 8:offsets[k] + start + 10] = (400).to_bytes(2, "little")
-    path.write_bytes(bytes(data))
+    offsets = move_off_sensor(path, (20, 80), 3_000)
     with evtk.open(path) as rec:
         body = rec._body
         slow = set(offsets[10:21])

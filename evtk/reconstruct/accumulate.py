@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from .._lazyjit import njit, numba_ready  # numba loads on the first count, when numpy does not count
-from .._threads import Pool
+from .._threads import Helpers, Pool, helpers, use_helpers
 from ..errors import EvtkError
 from ..events import Events
 from ..limits import memory_limit_bytes, require_memory
@@ -35,6 +35,8 @@ def _in_time_order(chunks: Iterator[Events], source: Any) -> Iterator[Events]:
         t = ev.t
         if len(t):
             back = last is not None and int(t[0]) < last
+            if not back and ev._sorted is None and helpers() is not None:
+                ev = Events._trusted(t, ev.x, ev.y, ev.p, ev.sensor_size, _sorted_shared(t))
             if back or not ev.is_sorted:  # (Events' own check, kept with the chunk; a simulation's is known)
                 k = 0 if back else int(np.argmax(t[1:] < t[:-1])) + 1
                 before = last if k == 0 else int(t[k - 1])
@@ -45,17 +47,60 @@ def _in_time_order(chunks: Iterator[Events], source: Any) -> Iterator[Events]:
         yield ev
 
 
+#: Stamps a thread compares at a time in :func:`_sorted_shared`.
+_SORT_PIECE = 1 << 16
+
+
+def _sorted_shared(t: np.ndarray) -> bool:
+    """Whether the stamps ``t`` never decrease, checked a piece at a time by this prefetching thread and the
+    consumer it offers the pieces to (:class:`evtk._threads.Helpers`; the same answer as
+    :attr:`evtk.Events.is_sorted`)."""
+    n = len(t)
+    pieces = iter(range(0, n - 1, _SORT_PIECE))
+    back: list[int] = []
+
+    def runner() -> None:
+        for a in pieces:
+            if back:
+                return
+            b = min(n - 1, a + _SORT_PIECE)
+            if not np.all(t[a + 1:b + 1] >= t[a:b]):
+                back.append(a)
+
+    h = helpers()
+    if h is None or n < 4 * _SORT_PIECE:
+        runner()
+    else:
+        h.share(runner)
+    return not back
+
+
 def _prefetched(chunks):
     """Yield the items of the iterator ``chunks`` while the next one is produced on another thread: the next
-    chunk is read and decoded (on the I/O threads) while this one is counted."""
+    chunk is read and decoded (on the I/O threads) while this one is counted, and once this one is, the
+    consumer decodes beside them rather than waiting (:class:`evtk._threads.Helpers`: as many busy threads as
+    cores all along)."""
     ex = Pool(1, "evtk-prefetch")
-    pending = ex.submit(next, chunks, _END)
+    help_ = Helpers()
+
+    def produce():
+        use_helpers(help_)
+        try:
+            return next(chunks, _END)
+        finally:
+            use_helpers(None)
+            help_.finish()
+
+    help_.start()
+    pending = ex.submit(produce)
     try:
         while True:
+            help_.wait()
             item = pending.result()
             if item is _END:
                 return
-            pending = ex.submit(next, chunks, _END)
+            help_.start()
+            pending = ex.submit(produce)
             yield item
     finally:  # closed early too: the chunk under way is finished before the chunks' source is let go
         try:

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..._threads import MEMORY_SHARE, workers_within
+from ..._threads import MEMORY_SHARE, helpers, workers_within
 from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
 from .. import _compression as cz
@@ -1142,7 +1142,9 @@ def _run_split(work, n_rows, counts, thread_bytes: int = 0, share: float = MEMOR
 
     Each call returns the first row it did not finish (``k1`` on success);
     the result is the length of the intact prefix. With ``thread_bytes`` (one thread's buffers), no more
-    threads work than ``share`` of the events' memory pays for (:func:`evtk._threads.workers_within`).
+    threads work than ``share`` of the events' memory pays for (:func:`evtk._threads.workers_within`). On a
+    prefetching thread (:func:`evtk._threads.helpers`) the calling thread takes ranges too, and the ranges are
+    offered to the consumer of the chunk, which takes them once it would otherwise wait.
     """
     if n_rows == 0:
         return 0
@@ -1153,7 +1155,7 @@ def _run_split(work, n_rows, counts, thread_bytes: int = 0, share: float = MEMOR
     if nw == 1 or n_rows < 4 or total < 200_000:
         return work(0, n_rows)
     # balance by elements: 4 ranges per thread keeps every thread busy to the end
-    parts = nw * 4
+    parts = nw * (16 if helpers() is not None else 4)
     cum = np.cumsum(counts)
     cuts = np.searchsorted(cum, np.linspace(0, total, parts + 1)[1:-1], side="left")
     bounds = sorted({0, n_rows, *cuts.tolist()})  # (np.unique would import numpy.ma, 7-8 ms of a first read)
@@ -1170,8 +1172,17 @@ def _run_split(work, n_rows, counts, thread_bytes: int = 0, share: float = MEMOR
             except BaseException as exc:  # noqa: BLE001 - raised below, the earliest range's first
                 failed[a] = exc
 
-    for fut in [cz.pool().submit(runner) for _ in range(min(nw, parts))]:
-        fut.result()
+    offer = helpers()
+    if offer is None:
+        for fut in [cz.pool().submit(runner) for _ in range(min(nw, parts))]:
+            fut.result()
+    else:  # a prefetching thread: it decodes too, on one core fewer than it may use (the consumer counts on that
+        # one), and the consumer joins once it would wait (:class:`evtk._threads.Helpers`)
+        own = min(nw, parts, max(1, cz.workers() - 1))
+        futures = [cz.pool().submit(runner) for _ in range(own - 1)]
+        offer.share(runner)
+        for fut in futures:
+            fut.result()
     if failed:  # the fault a read packet by packet would meet first, whichever thread met which
         raise failed[min(failed)]
     return min((stop for b, stop in got.values() if stop < b), default=n_rows)
