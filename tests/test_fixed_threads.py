@@ -181,3 +181,36 @@ def test_captures_of_fewer_pixels_than_threads(cut_small, monkeypatch, pixels):
     one = SinadAccumulator(4_000, pixels)
     one.add(x)
     assert acc.report().sinad_db == one.report().sinad_db
+
+
+@pytest.mark.parametrize("floats", [False, True])
+@pytest.mark.parametrize("interval", ["jackknife", "bootstrap", None])
+def test_the_reports_runs_of_pixels_on_two_threads_give_one_threads_figures(monkeypatch, floats, interval):
+    """The report centres the groups' means a run of pixels at a time; without the groups' Gram matrix (counts'
+    exact jackknife, no interval) the runs go to two threads, each run's sums kept apart and added in the runs'
+    order: every figure the same to the last bit whatever the threads."""
+    sinad_module = sys.modules["evtk.metrics.sinad"]
+    calls: list[tuple[str, int]] = []
+    real = sinad_module.run
+
+    def spy(fn, args):
+        calls.append((fn.__qualname__, len(args)))
+        return real(fn, args)
+
+    monkeypatch.setattr(sinad_module, "run", spy)
+    rng = np.random.default_rng(4)
+    x = rng.poisson(3, (150, 391)) - rng.poisson(2, (150, 391))
+    x = x * 0.37 + 5.0 if floats else x.astype(np.int16)
+    reports = []
+    for threads in ("1", "2", "5"):
+        monkeypatch.setenv("EVTK_THREADS", threads)
+        acc = SinadAccumulator(150, (17, 23))
+        for a in range(0, 150, 40):
+            acc.add(x[a:a + 40])
+        reports.append(acc.report(per_pixel=True, interval=interval, seed=3))
+    split = [k for name, k in calls if name.startswith("SinadAccumulator._between")]
+    assert max(split) == (1 if floats and interval is not None or interval == "bootstrap" else 2), split
+    one = reports[0]
+    for other in reports[1:]:
+        assert (other.sinad_db, other.ci_db, other.noise_std) == (one.sinad_db, one.ci_db, one.noise_std)
+        np.testing.assert_array_equal(other.per_pixel_db, one.per_pixel_db)

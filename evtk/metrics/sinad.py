@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, overload
 import numpy as np
 
 from .._parallel import parts, run
+from .._threads import workers
 from ..errors import EvtkError
 from ..limits import require_memory
 
@@ -206,8 +207,8 @@ def _whole_sums(block: np.ndarray, big: int, runs: list[tuple[int, int]]) -> tup
     return s1, s2
 
 
-#: The report centres the groups' means a run of pixels at a time: a groups x run float64 buffer of at most
-#: this many per-pixel arrays' worth (or this many times 32 runs of pixels a group, where more).
+#: The report centres the groups' means a run of pixels at a time, on at most this many threads, each with a
+#: groups x run float64 buffer of one per-pixel array's worth (or of 32 pixels a group, where more).
 _REPORT_RUN = 2
 
 #: Most sizes of groups whose whole-number sums the accumulator keeps apart at once (:meth:`SinadAccumulator._pool`):
@@ -519,35 +520,47 @@ class SinadAccumulator:
     def _between(self, gram: bool, per_pixel: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """The groups' means centred on the overall mean, a run of pixels at a time (never a groups x pixels
         float copy): each group's squared norm of them, with their Gram matrix (``gram``) and the per-pixel sum
-        over groups of ``n_g`` times their square (``per_pixel``)."""
+        over groups of ``n_g`` times their square (``per_pixel``).
+
+        Without the Gram matrix the runs go to :data:`_REPORT_RUN` threads, each with its own buffer of a run
+        (``bytes_needed`` counts them); each run's squared norms are kept apart and summed in the runs' order,
+        so the result does not depend on the threads.
+        """
         g, p = self._mean.shape
         n = self._n
-        run_px = min(p, max(32 * _REPORT_RUN, _REPORT_RUN * p // g))  # (bytes_needed counts its buffer)
-        buf = np.empty((g, run_px))
-        between = np.zeros(g)
+        run_px = min(p, max(32, p // g))  # a run a buffer, _REPORT_RUN buffers (bytes_needed counts them)
+        runs = [(a, min(p, a + run_px)) for a in range(0, p, run_px)]
+        per_run = np.zeros((len(runs), g))
         gm = np.zeros((g, g)) if gram else None
         pp = np.empty(p) if per_pixel else None
         whole = self._whole.all()
-        for a in range(0, p, run_px):
-            z = min(p, a + run_px)
-            off = buf[:, :z - a]
-            if whole:
-                assert self._s1 is not None
-                np.divide(self._s1[:, a:z], n[:, None], out=off)
-            else:
-                for i in range(g):
-                    if self._whole[i]:
-                        assert self._s1 is not None
-                        np.divide(self._s1[i, a:z], n[i], out=off[i])
-                    else:
-                        off[i] = self._mean[i, a:z]
-            off -= np.einsum("g,gp->p", n, off) / self.repeats
-            between += np.einsum("gp,gp->g", off, off)
-            if gm is not None:
-                gm += off @ off.T
-            if pp is not None:
-                pp[a:z] = np.einsum("g,gp,gp->p", n, off, off)
-        return between, gm, pp
+
+        def part(lo: int, hi: int) -> None:  # runs lo .. hi - 1
+            buf = np.empty((g, run_px))
+            for r in range(lo, hi):
+                a, z = runs[r]
+                off = buf[:, :z - a]
+                if whole:
+                    assert self._s1 is not None
+                    np.divide(self._s1[:, a:z], n[:, None], out=off)
+                else:
+                    for i in range(g):
+                        if self._whole[i]:
+                            assert self._s1 is not None
+                            np.divide(self._s1[i, a:z], n[i], out=off[i])
+                        else:
+                            off[i] = self._mean[i, a:z]
+                off -= np.einsum("g,gp->p", n, off) / self.repeats
+                per_run[r] = np.einsum("gp,gp->g", off, off)
+                if gm is not None:  # (one thread: the matrix is summed in place)
+                    np.add(gm, off @ off.T, out=gm)
+                if pp is not None:
+                    pp[a:z] = np.einsum("g,gp,gp->p", n, off, off)
+
+        threads = 1 if gm is not None else min(_REPORT_RUN, workers(), len(runs))
+        cut = [len(runs) * t // threads for t in range(threads + 1)]
+        run(part, list(zip(cut, cut[1:])))
+        return np.add.reduce(per_run, axis=0), gm, pp
 
     def _group_terms(self, centred=None):
         """``(M, N, P, n)`` of the groups, for the intervals (``centred``: :meth:`_between`'s squared norms and
