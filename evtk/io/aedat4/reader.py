@@ -1155,7 +1155,7 @@ def _run_split(work, n_rows, counts, thread_bytes: int = 0, share: float = MEMOR
     if nw == 1 or n_rows < 4 or total < 200_000:
         return work(0, n_rows)
     # balance by elements: 4 ranges per thread keeps every thread busy to the end
-    parts = nw * (16 if helpers() is not None else 4)
+    parts = nw * 4
     cum = np.cumsum(counts)
     cuts = np.searchsorted(cum, np.linspace(0, total, parts + 1)[1:-1], side="left")
     bounds = sorted({0, n_rows, *cuts.tolist()})  # (np.unique would import numpy.ma, 7-8 ms of a first read)
