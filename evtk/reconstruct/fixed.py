@@ -205,11 +205,11 @@ def _batches(source: Any, windows: Windows, firsts: list[int], nexts: list[int],
     chunk counted into the batches it reaches and a batch handed on as soon as a chunk passes its last window's
     end (later chunks are later in time); others go a batch at a time through the time-window reads.
 
-    ``overlap``: the next chunk is decoded on another thread while this one is counted and its batches used
-    (where the caller's work on a batch is long and mostly outside the GIL: enob's sums); False: each chunk is
-    decoded on the reader's threads, then counted (where the counting is all there is: numpy's bincount holds
-    the GIL and its many small calls take it back from the decoding, and a third thread on two cores only
-    competes with them)."""
+    ``overlap``: the next chunk is decoded on another thread while this one is counted and its batches used,
+    this thread decoding beside it once it has counted (:class:`evtk._threads.Helpers`; where the caller's work
+    on a batch is long and mostly outside the GIL: enob's sums); False: each chunk is decoded on the reader's
+    threads, then counted (where the counting is all there is: numpy's bincount holds the GIL and its many small
+    calls take it back from the decoding; 3 % quicker in a fresh `reconstruct -o` than the overlap)."""
     from .accumulate import _prefetched, span_chunks
 
     starts, ends = windows.t_start_us, windows.t_end_us
@@ -359,8 +359,8 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
         Called with the number of events of each chunk read.
     overlap : bool
         Decode the next chunk on another thread while one is counted and the batches it closes are used (for
-        callers with much work on each batch); False: decode each chunk, then count it (quicker where the
-        counting is all the work: a third thread on two cores only competes with the decoding ones).
+        callers with much work on each batch); False: decode each chunk, then count it (quicker in a fresh
+        process where the counting is all the work).
 
     Yields
     ------
