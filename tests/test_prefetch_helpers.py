@@ -192,3 +192,28 @@ def test_the_shared_time_order_check_agrees_with_events_own(where):
     pool.shutdown()
     assert got == bool(np.all(t[1:] >= t[:-1])) == (where is None)
     assert acc._sorted_shared(t) == got  # without helpers: the same
+
+
+def test_a_consumer_that_stops_early_leaves_nothing_running(tmp_path, monkeypatch):
+    """The consumer stops after its first batch while the next chunk is being decoded with its help offered:
+    the prefetching thread finishes that chunk alone and the read closes; the counting of a second read is
+    whole (a withdrawn offer or a stale wake-up would hang it or lose ranges)."""
+    monkeypatch.setenv("EVTK_THREADS", "2")
+    path, ev = _recording(tmp_path, seed=7)
+    win = windows_periodic(0, 2_000_000, 10_000)
+    want = [net.copy() for _, net, _ in net_count_batches(ev, win, (0, 64, 0, 48), 16)]
+    done: list = []
+
+    def stop_early_then_count() -> None:
+        with evtk.open(path) as rec:
+            _slow_batches(monkeypatch, rec, set())
+            for _ in net_count_batches(rec, win, (0, 64, 0, 48), 16):
+                break
+            done.append([net.copy() for _, net, _ in net_count_batches(rec, win, (0, 64, 0, 48), 16)])
+
+    worker = threading.Thread(target=stop_early_then_count, daemon=True)
+    worker.start()
+    worker.join(120)
+    assert not worker.is_alive(), "the read hung"
+    assert len(done) == 1 and len(done[0]) == len(want)
+    assert all(np.array_equal(a, b) for a, b in zip(done[0], want))
