@@ -309,10 +309,10 @@ class Helpers:
 
     def wait(self) -> None:
         """Run what is offered until the prefetching thread's work has ended."""
-        while not self._finished:
+        while True:
             self._help()
             if self._finished:
-                break
+                return
             self._bell.acquire()  # the next offer, or the end
 
 
@@ -339,4 +339,3 @@ def use_helpers(h: Helpers | None) -> None:
         The helpers.
     """
     _HERE.helpers = h
-

@@ -186,12 +186,12 @@ def test_the_shared_time_order_check_agrees_with_events_own(where):
     help_ = Helpers()
     pool = Pool(1, "test-prefetch")
     help_.start()
-    task = pool.submit(_produce, help_, lambda: acc._sorted_shared(t))
+    task = pool.submit(_produce, help_, lambda: acc._sorted_shared(t, help_))
     help_.wait()
     got = task.result()
     pool.shutdown()
     assert got == bool(np.all(t[1:] >= t[:-1])) == (where is None)
-    assert acc._sorted_shared(t) == got  # without helpers: the same
+    assert acc._sorted_shared(t, Helpers()) == got  # with no consumer taking pieces: the same
 
 
 def test_a_consumer_that_stops_early_leaves_nothing_running(tmp_path, monkeypatch):

@@ -35,8 +35,9 @@ def _in_time_order(chunks: Iterator[Events], source: Any) -> Iterator[Events]:
         t = ev.t
         if len(t):
             back = last is not None and int(t[0]) < last
-            if not back and ev._sorted is None and helpers() is not None:
-                ev = Events._trusted(t, ev.x, ev.y, ev.p, ev.sensor_size, _sorted_shared(t))
+            shared = helpers()  # on a prefetching thread: a long chunk's check shared with the consumer
+            if not back and ev._sorted is None and shared is not None and len(t) >= 4 * _SORT_PIECE:
+                ev = Events._trusted(t, ev.x, ev.y, ev.p, ev.sensor_size, _sorted_shared(t, shared))
             if back or not ev.is_sorted:  # (Events' own check, kept with the chunk; a simulation's is known)
                 k = 0 if back else int(np.argmax(t[1:] < t[:-1])) + 1
                 before = last if k == 0 else int(t[k - 1])
@@ -51,10 +52,9 @@ def _in_time_order(chunks: Iterator[Events], source: Any) -> Iterator[Events]:
 _SORT_PIECE = 1 << 16
 
 
-def _sorted_shared(t: np.ndarray) -> bool:
+def _sorted_shared(t: np.ndarray, shared: Helpers) -> bool:
     """Whether the stamps ``t`` never decrease, checked a piece at a time by this prefetching thread and the
-    consumer it offers the pieces to (:class:`evtk._threads.Helpers`; the same answer as
-    :attr:`evtk.Events.is_sorted`)."""
+    consumer it offers the pieces to through ``shared`` (the same answer as :attr:`evtk.Events.is_sorted`)."""
     n = len(t)
     pieces = iter(range(0, n - 1, _SORT_PIECE))
     back: list[int] = []
@@ -67,11 +67,7 @@ def _sorted_shared(t: np.ndarray) -> bool:
             if not np.all(t[a + 1:b + 1] >= t[a:b]):
                 back.append(a)
 
-    h = helpers()
-    if h is None or n < 4 * _SORT_PIECE:
-        runner()
-    else:
-        h.share(runner)
+    shared.share(runner)
     return not back
 
 

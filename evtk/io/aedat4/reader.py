@@ -1172,17 +1172,14 @@ def _run_split(work, n_rows, counts, thread_bytes: int = 0, share: float = MEMOR
             except BaseException as exc:  # noqa: BLE001 - raised below, the earliest range's first
                 failed[a] = exc
 
-    offer = helpers()
-    if offer is None:
-        for fut in [cz.pool().submit(runner) for _ in range(min(nw, parts))]:
-            fut.result()
-    else:  # a prefetching thread: it decodes too, on one core fewer than it may use (the consumer counts on that
-        # one), and the consumer joins once it would wait (:class:`evtk._threads.Helpers`)
-        own = min(nw, parts, max(1, cz.workers() - 1))
-        futures = [cz.pool().submit(runner) for _ in range(own - 1)]
+    offer = helpers()  # a prefetching thread decodes too, on one core fewer than it may use (the consumer counts
+    # on that one), and the consumer joins once it would wait (:class:`evtk._threads.Helpers`)
+    busy = min(nw, parts) if offer is None else min(nw, parts, max(1, cz.workers() - 1))
+    futures = [cz.pool().submit(runner) for _ in range(busy if offer is None else busy - 1)]
+    if offer is not None:
         offer.share(runner)
-        for fut in futures:
-            fut.result()
+    for fut in futures:
+        fut.result()
     if failed:  # the fault a read packet by packet would meet first, whichever thread met which
         raise failed[min(failed)]
     return min((stop for b, stop in got.values() if stop < b), default=n_rows)
