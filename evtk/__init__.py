@@ -2,6 +2,7 @@
 
 from typing import TYPE_CHECKING
 
+from . import _openblas_env  # noqa: F401 - first: OpenBLAS reads its settings as numpy loads
 from ._version import __version__
 from .errors import EvtkError, FormatError
 from .io import detect_format, open, read_events, write_events
