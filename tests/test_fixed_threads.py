@@ -55,6 +55,7 @@ def _reference(ev: evtk.Events, win, region) -> np.ndarray:
 def cut_small(monkeypatch):
     """Parts of 64 elements and up, and a record of how many parts each split used."""
     monkeypatch.setattr(_parallel, "MIN_PART", 64)
+    monkeypatch.setattr(_parallel, "MOST_PARTS", 64)  # the cuts' arithmetic on more parts than the default's two
     used: list[int] = []
     run = _parallel.run
 
@@ -214,3 +215,11 @@ def test_the_reports_runs_of_pixels_on_two_threads_give_one_threads_figures(monk
     for other in reports[1:]:
         assert (other.sinad_db, other.ci_db, other.noise_std) == (one.sinad_db, one.ci_db, one.noise_std)
         np.testing.assert_array_equal(other.per_pixel_db, one.per_pixel_db)
+
+
+@pytest.mark.parametrize("threads", ["2", "4", "16", "64"])
+def test_counting_is_cut_into_two_parts_at_most_by_default(monkeypatch, threads):
+    # the scatter-adds keep the GIL: more parts only took turns for it on a 16-core machine (issue 32, tenth round)
+    monkeypatch.setenv("EVTK_THREADS", threads)
+    assert _parallel.parts(10**9) == min(int(threads) // 2, _parallel.MOST_PARTS) == min(int(threads) // 2, 2)
+    assert _parallel.parts(2 * _parallel.MIN_PART - 1) == 1

@@ -217,3 +217,43 @@ def test_a_consumer_that_stops_early_leaves_nothing_running(tmp_path, monkeypatc
     assert not worker.is_alive(), "the read hung"
     assert len(done) == 1 and len(done[0]) == len(want)
     assert all(np.array_equal(a, b) for a, b in zip(done[0], want))
+
+
+def test_a_prefetched_chunk_is_decoded_by_a_few_threads_on_many_cores(tmp_path, monkeypatch):
+    """On 16 threads, no more than PREFETCH_THREADS decode a prefetched chunk at once, the consumer aside (issue
+    32, tenth round: more only took turns for the GIL on a 16-core machine); the counts are unchanged."""
+    monkeypatch.setenv("EVTK_THREADS", "16")
+    path, ev = _recording(tmp_path)
+    win = windows_periodic(0, 2_000_000, 10_000)
+    want = [(i, net.copy()) for i, net, _ in net_count_batches(ev, win, (0, 64, 0, 48), 16)]
+    lock, busy, most = threading.Lock(), set(), [0]
+    consumer = threading.get_ident()
+    with evtk.open(path) as rec:
+        monkeypatch.setattr(a4r, "_THREAD_BYTES", 1)  # every chunk split among the threads (as _slow_batches)
+        make = rec._batcher
+
+        def batcher(*args):
+            batch = make(*args)
+            if batch is None:
+                return None
+
+            def slow(*a):
+                me = threading.get_ident()
+                with lock:
+                    busy.add(me)
+                    most[0] = max(most[0], len(busy - {consumer}))
+                time.sleep(0.003)
+                try:
+                    return batch(*a)
+                finally:
+                    with lock:
+                        busy.discard(me)
+
+            return slow
+
+        monkeypatch.setattr(rec, "_batcher", batcher)
+        got = [(i, net.copy()) for i, net, _ in net_count_batches(rec, win, (0, 64, 0, 48), 16)]
+    assert 2 <= most[0] <= a4r.PREFETCH_THREADS
+    assert [i for i, _ in got] == [i for i, _ in want]
+    for (_, a), (_, b) in zip(got, want):
+        np.testing.assert_array_equal(a, b)

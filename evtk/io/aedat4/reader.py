@@ -47,6 +47,11 @@ _THREAD_BYTES = 40 * BATCH_EVENTS
 #: a chunk's whatever the file's size, and :data:`evtk._threads.MEMORY_SHARE` (a whole read's rule) of a 1 M-event
 #: chunk pays for one thread, which left the chunk-by-chunk counting of fixed windows decoding on one core.
 _CHUNK_SHARE = 1.0
+#: Most threads decoding a prefetched chunk (the prefetching thread among them; the consumer helps once it has
+#: counted its own). The consumer's counting keeps the GIL most of the time and a 1 M-event chunk decodes faster
+#: on three threads than it is counted: on a 16-core machine (issue 32, tenth round) more only took turns for the
+#: GIL, with no time saved and a fifth more CPU time.
+PREFETCH_THREADS = 3
 
 
 class Recording(_FileIndex, BaseRecording):
@@ -1174,7 +1179,7 @@ def _run_split(work, n_rows, counts, thread_bytes: int = 0, share: float = MEMOR
 
     offer = helpers()  # a prefetching thread decodes too, on one core fewer than it may use (the consumer counts
     # on that one), and the consumer joins once it would wait (:class:`evtk._threads.Helpers`)
-    busy = min(nw, parts) if offer is None else min(nw, parts, max(1, cz.workers() - 1))
+    busy = min(nw, parts) if offer is None else min(nw, parts, max(1, cz.workers() - 1), PREFETCH_THREADS)
     futures = [cz.pool().submit(runner) for _ in range(busy if offer is None else busy - 1)]
     if offer is not None:
         offer.share(runner)
