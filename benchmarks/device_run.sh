@@ -5,11 +5,15 @@
 # index: the other packages travel as wheels in .whl/ (git-ignored through .git/info/exclude), fetched here with
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 ... -d .whl \
 #     lz4 zstandard tomli_w dv-processing dask distributed tornado tblib zict partd locket
-# and the command is `bash benchmarks/device_run.sh [steps]`, carrying .whl. Results go to $OUT (or /tmp/evtk-out).
+# (hdf5plugin stays behind: 46 MB, and nothing here needs it) and the command is
+# `bash benchmarks/device_run.sh [steps]`, carrying .whl (and .old for env-ab). Results go to $OUT (or /tmp/evtk-out).
 # The data files are made there (benchmarks/data is too large to travel). Steps: threads fresh reconstruct batch
 # calibrate (all by default; about 6 minutes with the machine's start), threads-ab (against a tree in .new),
 # limits (what bounds the AEDAT4 read on 16 cores: the stages of a read, and the read with the memory bound on
-# its threads lifted and with half-size batches), memory (a whole read's peak, AEDAT4 and EVT 3.0, 20 M events).
+# its threads lifted and with half-size batches), phases (the first of those alone), memory (a whole read's peak,
+# AEDAT4 and EVT 3.0, 20 M events), env (bench_env.py: read, reconstruct -o, enob and the calibrated route in fresh
+# processes under BLAS and thread settings; ENVS="--env L=K=V ..." replaces them), env-ab (the same, this tree
+# against one in .old, carried, and the variants in ENVS; ROUNDS sets the rounds).
 set -u
 OUT=${OUT:-/tmp/evtk-out}
 mkdir -p "$OUT"
@@ -18,6 +22,7 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
     || exit 1
 export PYTHONPATH=/tmp/site:$PWD
 STEPS=${*:-threads fresh reconstruct batch calibrate}
+for w in .whl/*.whl; do echo "carried: $(basename "$w")"; done
 echo "cores: $(nproc), $(python3 -c 'import sys, numpy, numba; print(sys.version.split()[0], numpy.__version__, numba.__version__)')"
 lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)|L3" || true
 free -g | head -2
@@ -29,6 +34,9 @@ python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_fresh_rea
 python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_fresh_read as b; b.make_file(20_000_000, 'evtk-zstd')" &
 if [[ " $STEPS " == *" threads "* ]]; then
     python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_threads as b; b.data_file(20_000_000, 'evt3')" &
+fi
+if [[ " $STEPS " == *" env"* ]]; then  # bench_calibrate's camera runs (dv-processing's files) and calibration
+    python3 benchmarks/bench_calibrate.py --fresh 1 --writer dv --keep benchmarks/data/calkeep > /dev/null &
 fi
 if [[ " $STEPS " == *" batch "* ]]; then
     for i in $(seq 0 15); do
@@ -45,7 +53,7 @@ step() {  # name, seconds, command...
 }
 for s in $STEPS; do
     case $s in
-    threads) step threads 150 python3 benchmarks/bench_threads.py --cores 1,2,8,16 --rounds 2 --reads 3 \
+    threads) step threads 150 python3 benchmarks/bench_threads.py --cores 1,2,4,8,16 --rounds 2 --reads 3 \
                  --formats aedat4-dv,aedat4-zstd,evt3 --json "$OUT/threads.json" ;;
     threads-ab)  # this tree against the one in .new (git archive of a branch, carried), alternating
         for r in 1 2; do
@@ -55,6 +63,18 @@ for s in $STEPS; do
                     --json "$OUT/threads-$r-$(basename "$tree").json"
             done
         done ;;
+    phases) step phases 60 python3 benchmarks/bench_threads.py --cores 1,8,16 --rounds 1 --reads 3 --phases \
+                --formats aedat4-dv ;;
+    env)  # which threads a short process pays for: the BLAS library's (spinning at start), evtk's
+        step env 240 python3 benchmarks/bench_env.py --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 \
+            --keep benchmarks/data/calkeep --rounds 5 --ops "read;reconstruct;enob;calibrated" ${ENVS:---env base= \
+            --env blas1=OPENBLAS_NUM_THREADS=1 --env timeout4=OPENBLAS_THREAD_TIMEOUT=4 \
+            --env blas1-t2=OPENBLAS_NUM_THREADS=1,EVTK_THREADS=2 --env blas1-t4=OPENBLAS_NUM_THREADS=1,EVTK_THREADS=4 \
+            --env blas1-t8=OPENBLAS_NUM_THREADS=1,EVTK_THREADS=8} ;;
+    env-ab)  # this tree against the one in .old (git archive of the commit before, carried), and knobs in ENVS
+        step env-ab 300 python3 benchmarks/bench_env.py --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 \
+            --keep benchmarks/data/calkeep --rounds ${ROUNDS:-7} --ops "read;reconstruct;enob;calibrated" \
+            --env "old=TREE=$PWD/.old" --env new= $ENVS ;;
     limits)  # against the threads step's 1-core read on the same machine
         step limits-phases 60 python3 benchmarks/bench_threads.py --cores 1,16 --rounds 1 --reads 3 --phases \
             --formats aedat4-dv
@@ -66,13 +86,11 @@ for s in $STEPS; do
     memory) step memory 60 python3 benchmarks/bench_memory.py --full-reads 2e7 --only aedat4,evt3 ;;
     fresh) step fresh 55 python3 benchmarks/bench_fresh_read.py --writers dv-lz4,evtk-zstd --repeats 5 \
                --json "$OUT/fresh.json" ;;
-    reconstruct) step reconstruct 50 python3 benchmarks/bench_reconstruct.py --fixed --repeats 3 \
-                     --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 \
-                     --ops "reconstruct, responses only;evtk reconstruct -o x.npz;evtk enob" ;;
+    reconstruct) step reconstruct 80 python3 benchmarks/bench_reconstruct.py --fixed --repeats 5 \
+                     --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 --ops "evtk reconstruct -o x.npz;evtk enob" ;;
     batch) step batch 150 python3 benchmarks/bench_batch.py --recordings 16 --workers 16 --rounds 2 --repeats 3 --fmt npz \
                --json "$OUT/batch.json" ;;
-    calibrate) step calibrate 50 python3 benchmarks/bench_calibrate.py --repeat 150 --runs 3 \
-                   --json "$OUT/calibrate.json" ;;
+    calibrate) step calibrate 80 python3 benchmarks/bench_calibrate.py --fresh 7 --writer dv ;;
     esac
 done
 echo "== done $(date +%T)"

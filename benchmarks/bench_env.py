@@ -1,0 +1,93 @@
+"""The same evtk commands in whole fresh processes under several environments, alternating.
+
+    python benchmarks/bench_env.py --file F.aedat4 --env "base=" --env "blas1=OPENBLAS_NUM_THREADS=1" \
+        --env "t4=EVTK_THREADS=4" --rounds 5
+
+Each command (``--ops``, separated by ``;``: ``read``, ``reconstruct`` for ``evtk reconstruct F --window
+period:10000 -o x.npz``, ``enob`` for ``evtk enob F --window period:10000``, or ``calibrated`` for the calibrated
+route of bench_calibrate's job with ``--keep DIR`` holding it) runs once untimed per environment, then ``--rounds``
+times, every environment and command in turn (every other round reversed), so that a slow minute of the machine
+hits all of them. Printed: the median wall and CPU seconds (user + system) of each, and each one's ratio to the
+read under the same environment (the median of the rounds' ratios). Made for the many-core questions of issue 32:
+which of the machine's threads (evtk's, the BLAS library's) a short process pays for.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+from pathlib import Path
+
+from harness import whole_process
+
+HERE = Path(__file__).resolve().parent
+
+
+def _commands(path: str, keep: str | None) -> dict:
+    out = str(Path(path).with_suffix(".env.npz"))
+    cmds = {
+        "read": ["-c", "import evtk, sys; evtk.read_events(sys.argv[1])", path],
+        "reconstruct": ["-m", "evtk.cli", "reconstruct", path, "--window", "period:10000", "-o", out],
+        "enob": ["-m", "evtk.cli", "enob", path, "--window", "period:10000"],
+    }
+    if keep:
+        d = Path(keep).resolve()
+        job = str(d / "job.aedat4")
+        cmds["read job"] = ["-c", "import evtk, sys; evtk.read_events(sys.argv[1])", job]
+        cmds["calibrated"] = ["-m", "evtk.cli", "reconstruct", job, "--schedule", str(d / "job" / "schedule.json"),
+                              "--calibration", str(d / "cal.toml"), "-o", str(d / "x.npz")]
+    return cmds
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--file", required=True, help="the recording (absolute or relative path)")
+    ap.add_argument("--env", action="append", default=[],
+                    help="LABEL=K=V,K=V (LABEL= for the environment as is; TREE=DIR runs another evtk tree)")
+    ap.add_argument("--ops", default="read;reconstruct;enob")
+    ap.add_argument("--keep", help="bench_calibrate.py --keep folder (for the op 'calibrated')")
+    ap.add_argument("--rounds", type=int, default=5)
+    a = ap.parse_args()
+    cmds = _commands(str(Path(a.file).resolve()), a.keep)
+    ops = [o for o in a.ops.split(";") if o]
+    if "calibrated" in ops and "read job" not in ops:
+        ops.insert(0, "read job")
+    envs = {}
+    for spec in a.env or ["base="]:
+        label, _, pairs = spec.partition("=")
+        envs[label] = dict(p.split("=", 1) for p in pairs.split(",") if p)
+    saved = dict(os.environ)
+    plan = [(e, o) for e in envs for o in ops]
+
+    def run(e: str, o: str) -> tuple:
+        env = dict(envs[e])
+        tree = Path(env.pop("TREE", HERE.parent)).resolve()  # another evtk tree (git archive COMMIT evtk)
+        os.environ.clear()
+        os.environ.update(saved, **env)
+        try:
+            return whole_process(cmds[o], tree)
+        finally:
+            os.environ.clear()
+            os.environ.update(saved)
+
+    for e, o in plan:  # untimed: page cache, compiled caches
+        run(e, o)
+    got: dict = {k: [] for k in plan}
+    for r in range(a.rounds):
+        for k in (plan if r % 2 == 0 else plan[::-1]):
+            got[k].append(run(*k))
+    print(f"\n{Path(a.file).name}: whole fresh processes, median of {a.rounds}, alternating; {os.cpu_count()} CPUs, "
+          f"load {os.getloadavg()[0]:.2f}\n")
+    print("| environment | operation | wall s | CPU s | x read, wall | peak MB |")
+    print("|---|---|---:|---:|---:|---:|")
+    for e, o in plan:
+        runs = got[(e, o)]
+        base = got.get((e, "read job" if o in ("calibrated", "read job") else "read"), runs)
+        ratio = statistics.median(g[0] / b[0] for g, b in zip(runs, base))
+        print(f"| {e} | {o} | {statistics.median(g[0] for g in runs):.3f} | "
+              f"{statistics.median(g[2] for g in runs):.3f} | {ratio:.2f} | {max(g[1] for g in runs):.0f} |")
+
+
+if __name__ == "__main__":
+    main()
