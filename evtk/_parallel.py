@@ -22,7 +22,7 @@ MIN_PART = 1 << 16
 #: Most parts one piece of work is cut into, whatever the cores. The counting's scatter-adds keep the GIL, and what
 #: releases it (the sums, the block means) is short beside the decoding the other threads do meanwhile: on a
 #: 16-core machine (issue 32, tenth round) ``evtk enob`` and ``evtk reconstruct -o`` ran no slower with two parts
-#: than with eight, on a fifth less CPU time.
+#: than with eight, on 10-20 % less CPU time.
 MOST_PARTS = 2
 
 _lock = threading.Lock()

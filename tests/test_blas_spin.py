@@ -1,5 +1,5 @@
 """``import evtk`` asks OpenBLAS's idle threads to sleep at once instead of busy-waiting (issue 32, tenth round:
-1.3-1.9 s of CPU time in every fresh process of a 16-core machine went to their spinning), before numpy loads, and
+1.2-1.9 s of CPU time in every fresh process of a 16-core machine went to their spinning), before numpy loads, and
 only where the user has not set it and numpy has not loaded (then the setting could no longer take effect)."""
 
 from __future__ import annotations

@@ -112,12 +112,14 @@ def _recording(tmp_path, n=1_200_000, seed=5):
     return path, ev
 
 
-def _slow_batches(monkeypatch, rec, decoded_on: set):
+def _slow_batches(monkeypatch, rec, decoded_on: set, most: list | None = None):
     """Each batch of packets decoded a little slower, and by whom: the consumer counts faster than the file
     decodes, so it waits for every chunk and takes ranges of it. Every chunk is split among the threads (a
-    thread's buffers counted as a byte: the small test chunks would pay for one thread)."""
+    thread's buffers counted as a byte: the small test chunks would pay for one thread). With ``most``, its
+    first item becomes the most threads other than this (the consumer's) one seen decoding at once."""
     monkeypatch.setattr(a4r, "_THREAD_BYTES", 1)
     make = rec._batcher
+    lock, busy, consumer = threading.Lock(), set(), threading.get_ident()
 
     def batcher(*args):
         batch = make(*args)
@@ -125,9 +127,18 @@ def _slow_batches(monkeypatch, rec, decoded_on: set):
             return None
 
         def slow(*a):
-            decoded_on.add(threading.get_ident())
+            me = threading.get_ident()
+            decoded_on.add(me)
+            with lock:
+                busy.add(me)
+                if most is not None:
+                    most[0] = max(most[0], len(busy - {consumer}))
             time.sleep(0.003)
-            return batch(*a)
+            try:
+                return batch(*a)
+            finally:
+                with lock:
+                    busy.discard(me)
 
         return slow
 
@@ -226,32 +237,9 @@ def test_a_prefetched_chunk_is_decoded_by_a_few_threads_on_many_cores(tmp_path, 
     path, ev = _recording(tmp_path)
     win = windows_periodic(0, 2_000_000, 10_000)
     want = [(i, net.copy()) for i, net, _ in net_count_batches(ev, win, (0, 64, 0, 48), 16)]
-    lock, busy, most = threading.Lock(), set(), [0]
-    consumer = threading.get_ident()
+    most = [0]
     with evtk.open(path) as rec:
-        monkeypatch.setattr(a4r, "_THREAD_BYTES", 1)  # every chunk split among the threads (as _slow_batches)
-        make = rec._batcher
-
-        def batcher(*args):
-            batch = make(*args)
-            if batch is None:
-                return None
-
-            def slow(*a):
-                me = threading.get_ident()
-                with lock:
-                    busy.add(me)
-                    most[0] = max(most[0], len(busy - {consumer}))
-                time.sleep(0.003)
-                try:
-                    return batch(*a)
-                finally:
-                    with lock:
-                        busy.discard(me)
-
-            return slow
-
-        monkeypatch.setattr(rec, "_batcher", batcher)
+        _slow_batches(monkeypatch, rec, set(), most)
         got = [(i, net.copy()) for i, net, _ in net_count_batches(rec, win, (0, 64, 0, 48), 16)]
     assert 2 <= most[0] <= a4r.PREFETCH_THREADS
     assert [i for i, _ in got] == [i for i, _ in want]

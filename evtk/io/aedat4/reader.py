@@ -50,7 +50,7 @@ _CHUNK_SHARE = 1.0
 #: Most threads decoding a prefetched chunk (the prefetching thread among them; the consumer helps once it has
 #: counted its own). The consumer's counting keeps the GIL most of the time and a 1 M-event chunk decodes faster
 #: on three threads than it is counted: on a 16-core machine (issue 32, tenth round) more only took turns for the
-#: GIL, with no time saved and a fifth more CPU time.
+#: GIL, with no time saved and 10-20 % more CPU time.
 PREFETCH_THREADS = 3
 
 
