@@ -28,6 +28,24 @@ lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)|L3" || true
 free -g | head -2
 
 # the data, in parallel: the 20 M-event files of bench_threads and bench_fresh_read, batch's 16 recordings
+# a fresh VM's memory is cold: the first touch of a page costs the host's backing of it (1.9 s of system time a
+# GiB on the development VM, 0.29 s once touched; docs/performance.md, tenth round), the likely reason why that
+# round's later calls ran every fresh process 0.3-0.4 s slower than its first, which had read 20 M events several
+# times before. Touch WARM_GIB (16 by default) once, on every core, held at once.
+t0=$(date +%s)
+python3 - "${WARM_GIB:-16}" <<'PY'
+import os, sys
+from concurrent.futures import ThreadPoolExecutor
+import numpy as np
+gib = int(sys.argv[1])
+def touch(_):
+    a = np.empty(1 << 30, np.uint8)
+    a[::4096] = 1
+    return a
+with ThreadPoolExecutor(os.cpu_count()) as ex:
+    held = list(ex.map(touch, range(gib)))
+PY
+echo "memory touched in $(( $(date +%s) - t0 )) s"
 t0=$(date +%s)
 
 python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_fresh_read as b; b.make_file(20_000_000, 'dv-lz4')" &
