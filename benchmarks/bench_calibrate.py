@@ -103,6 +103,16 @@ def best(fn, runs):
     return min(times)
 
 
+def fresh_commands(d: Path) -> dict:
+    """The two processes ``--fresh`` times on the runs kept in ``d``: a read of the job, and the calibrated route
+    (``python`` arguments; bench_env.py times them too)."""
+    job = str(d / "job.aedat4")
+    return {"read": ["-c", "import evtk, sys; evtk.read_events(sys.argv[1])", job],
+            "evtk reconstruct --calibration": ["-m", "evtk.cli", "reconstruct", job, "--schedule",
+                                               str(d / "job" / "schedule.json"), "--calibration",
+                                               str(d / "cal.toml"), "-o", str(d / "x.npz")]}
+
+
 def fresh(rounds, writer, keep=None, baseline=None):
     """The calibrated route against a read of the same file, in whole fresh processes (module docstring)."""
     from evtk.patterns import write_patterns
@@ -122,10 +132,9 @@ def fresh(rounds, writer, keep=None, baseline=None):
             whole_process(["-m", "evtk.cli", "calibrate", str(d / "cal.aedat4"), "--schedule",
                            str(d / "cal" / "schedule.json"), "-o", str(d / "cal.toml")], HERE.parent)
         job = str(d / "job.aedat4")
-        route = ["-m", "evtk.cli", "reconstruct", job, "--schedule", str(d / "job" / "schedule.json"),
-                 "--calibration", str(d / "cal.toml"), "-o", str(d / "x.npz")]
-        plan = [("read", ["-c", "import evtk, sys; evtk.read_events(sys.argv[1])", job], HERE.parent),
-                ("evtk reconstruct --calibration", route, HERE.parent)]
+        cmds = fresh_commands(d)
+        route = cmds["evtk reconstruct --calibration"]
+        plan = [(name, args, HERE.parent) for name, args in cmds.items()]
         if baseline:
             plan.append(("base: evtk reconstruct --calibration", route, Path(baseline).resolve()))
         for _, args, tree in plan:  # untimed: page cache, numba's cache if any

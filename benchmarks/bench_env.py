@@ -25,18 +25,17 @@ HERE = Path(__file__).resolve().parent
 
 
 def _commands(path: str, keep: str | None) -> dict:
+    """The operations' ``python`` arguments: bench_reconstruct's for the recording, bench_calibrate's for the
+    bench job kept in ``keep``."""
+    from bench_calibrate import fresh_commands
+    from bench_reconstruct import _FIXED
+
     out = str(Path(path).with_suffix(".env.npz"))
-    cmds = {
-        "read": ["-c", "import evtk, sys; evtk.read_events(sys.argv[1])", path],
-        "reconstruct": ["-m", "evtk.cli", "reconstruct", path, "--window", "period:10000", "-o", out],
-        "enob": ["-m", "evtk.cli", "enob", path, "--window", "period:10000"],
-    }
+    cmds = {op: [a.format(p=path, out=out) for a in _FIXED[name]] for op, name in
+            (("read", "read"), ("reconstruct", "evtk reconstruct -o x.npz"), ("enob", "evtk enob"))}
     if keep:
-        d = Path(keep).resolve()
-        job = str(d / "job.aedat4")
-        cmds["read job"] = ["-c", "import evtk, sys; evtk.read_events(sys.argv[1])", job]
-        cmds["calibrated"] = ["-m", "evtk.cli", "reconstruct", job, "--schedule", str(d / "job" / "schedule.json"),
-                              "--calibration", str(d / "cal.toml"), "-o", str(d / "x.npz")]
+        job = fresh_commands(Path(keep).resolve())
+        cmds["read job"], cmds["calibrated"] = job["read"], job["evtk reconstruct --calibration"]
     return cmds
 
 

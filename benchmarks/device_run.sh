@@ -22,12 +22,10 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
     || exit 1
 export PYTHONPATH=/tmp/site:$PWD
 STEPS=${*:-threads fresh reconstruct batch calibrate}
-for w in .whl/*.whl; do echo "carried: $(basename "$w")"; done
 echo "cores: $(nproc), $(python3 -c 'import sys, numpy, numba; print(sys.version.split()[0], numpy.__version__, numba.__version__)')"
 lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)|L3" || true
 free -g | head -2
 
-# the data, in parallel: the 20 M-event files of bench_threads and bench_fresh_read, batch's 16 recordings
 # a fresh VM's memory is cold: the first touch of a page costs the host's backing of it (1.9 s of system time a
 # GiB on the development VM, 0.29 s once touched; docs/performance.md, tenth round), the likely reason why that
 # round's later calls ran every fresh process 0.3-0.4 s slower than its first, which had read 20 M events several
@@ -46,6 +44,9 @@ with ThreadPoolExecutor(os.cpu_count()) as ex:
     held = list(ex.map(touch, range(gib)))
 PY
 echo "memory touched in $(( $(date +%s) - t0 )) s"
+
+# the data, in parallel: the 20 M-event files of bench_threads and bench_fresh_read, bench_calibrate's runs, batch's
+# 16 recordings
 t0=$(date +%s)
 
 python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_fresh_read as b; b.make_file(20_000_000, 'dv-lz4')" &

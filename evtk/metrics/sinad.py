@@ -303,11 +303,12 @@ class SinadAccumulator:
             arrays of those sums (both while the first is widened, beside
             the means where floats and counts mix), eight per-pixel float64
             ones, two int64 per-pixel sums for each size of group kept apart,
-            and the report's groups x run-of-pixels buffer.
+            the report's groups x run-of-pixels buffers, and each run's
+            squared norms (a float64 a group; runs of 32 pixels at least).
         """
         groups = min(max(int(repeats), 0), MAX_BOOTSTRAP_GROUPS)
         return (8 * int(pixels) * (groups + 8 + _REPORT_RUN + 2 * _SIZES_KEPT) + 6 * int(pixels) * groups
-                + 8 * 32 * _REPORT_RUN * groups)
+                + 8 * 32 * _REPORT_RUN * groups + 8 * groups * -(-int(pixels) // 32))
 
     @property
     def group_starts(self) -> np.ndarray:
@@ -530,7 +531,7 @@ class SinadAccumulator:
         n = self._n
         run_px = min(p, max(32, p // g))  # a run a buffer, _REPORT_RUN buffers (bytes_needed counts them)
         runs = [(a, min(p, a + run_px)) for a in range(0, p, run_px)]
-        per_run = np.zeros((len(runs), g))
+        per_run = np.zeros((len(runs), g))  # (bytes_needed counts it: at most a row a 32 pixels)
         gm = np.zeros((g, g)) if gram else None
         pp = np.empty(p) if per_pixel else None
         whole = self._whole.all()

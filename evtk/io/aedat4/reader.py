@@ -1177,10 +1177,12 @@ def _run_split(work, n_rows, counts, thread_bytes: int = 0, share: float = MEMOR
             except BaseException as exc:  # noqa: BLE001 - raised below, the earliest range's first
                 failed[a] = exc
 
+    busy = min(nw, parts)
     offer = helpers()  # a prefetching thread decodes too, on one core fewer than it may use (the consumer counts
     # on that one), and the consumer joins once it would wait (:class:`evtk._threads.Helpers`)
-    busy = min(nw, parts) if offer is None else min(nw, parts, max(1, cz.workers() - 1), PREFETCH_THREADS)
-    futures = [cz.pool().submit(runner) for _ in range(busy if offer is None else busy - 1)]
+    if offer is not None:
+        busy = min(busy, max(1, cz.workers() - 1), PREFETCH_THREADS)
+    futures = [cz.pool().submit(runner) for _ in range(busy - (offer is not None))]
     if offer is not None:
         offer.share(runner)
     for fut in futures:
