@@ -1,8 +1,10 @@
-"""Work split over threads, in parts that release the GIL: the counting and summing of fixed windows (numpy), the
-linearisation's look-ups and timing solve (``nogil`` numba kernels); one shared pool for all of them.
+"""Work split over threads, in parts that release the GIL: the counting (evtk's compiled kernel or numpy) and
+summing of fixed windows, the linearisation's look-ups and timing solve (``nogil`` numba kernels); one shared pool
+for all of them.
 
 Most numpy loops (ufuncs, ``take``, ``einsum``, reductions) release the GIL, so parts of one array handed to
-several threads run on several cores; ``np.add.at`` and ``np.bincount`` keep it and stay serial among them.
+several threads run on several cores; ``np.add.at`` and ``np.bincount`` keep it and stay serial among them, and
+evtk's compiled counting (:mod:`evtk._native`) releases it.
 The parts are always cut so that no two threads write the same memory and every integer result is the same
 whatever the cut (each part's sums are added in integers afterwards).
 """
@@ -30,21 +32,25 @@ _pool: Pool | None = None
 _pool_size = 0
 
 
-def parts(work: int) -> int:
+def parts(work: int, gil_free: bool = False) -> int:
     """How many parts ``work`` elements are cut into: half of :func:`evtk._threads.workers` at most (the other
-    half decode the next chunk of the recording meanwhile) and :data:`MOST_PARTS`, each at least :data:`MIN_PART`.
+    half decode the next chunk of the recording meanwhile), each at least :data:`MIN_PART`, and at most
+    :data:`MOST_PARTS` unless the work releases the GIL throughout.
 
     Parameters
     ----------
     work : int
         Elements of work.
+    gil_free : bool
+        The parts run code that holds no GIL (evtk's compiled counting, :mod:`evtk._native`): as many parts as
+        half the threads, past :data:`MOST_PARTS`.
 
     Returns
     -------
     int
         At least 1.
     """
-    return max(1, min(workers() // 2, int(work) // MIN_PART, MOST_PARTS))
+    return max(1, min(workers() // 2, int(work) // MIN_PART, workers() if gil_free else MOST_PARTS))
 
 
 def cuts(weights: np.ndarray, n_parts: int) -> list[int]:

@@ -39,6 +39,19 @@ def fixtures_dir():
     return FIXTURES
 
 
+@pytest.fixture(params=["native", "numpy"])
+def counting(request, monkeypatch):
+    """Each test that uses it runs twice: with evtk's compiled counting (``evtk._ckernels``; skipped where it was
+    not built) and with numpy's (``EVTK_NATIVE=0``). Modules of the counting's tests take it for all their tests
+    (``pytestmark = pytest.mark.usefixtures("counting")``)."""
+    from evtk import _native
+
+    if request.param == "native" and not _native.BUILT:
+        pytest.skip("evtk._ckernels was not built (no C compiler at install): numpy counts")
+    monkeypatch.setenv("EVTK_NATIVE", "1" if request.param == "native" else "0")
+    return request.param
+
+
 def modules_after(code: str) -> list[str]:
     """The modules a fresh interpreter has loaded after running ``code`` with this checkout's evtk first on the
     path (sorted); the calling test fails, with the child's stderr, when the code fails."""

@@ -15,6 +15,9 @@ from evtk.reconstruct import binarize, downsample, plan, reconstruct
 from evtk.reconstruct.fixed import count_batches, net_count_batches, pixel_values
 from evtk.sweeps import recording_noise, scene_noise
 
+# every test twice: with the compiled counting and with numpy's (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("counting")
+
 
 def _hostile_recording(path, size=(48, 32), period_us=1000, windows=150, seed=0):
     """Random events with a hot pixel (hundreds of events a window), a pixel of the same count in every window (no

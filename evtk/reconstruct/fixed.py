@@ -1,11 +1,12 @@
-"""Windows without a schedule straight to their responses with numpy alone: no compiler, no scipy.
+"""Windows without a schedule straight to their responses: numpy, or evtk's optional compiled counting; no JIT, no scipy.
 
 Each window of a recording without a schedule stands alone, and its response needs only its pixels' ON and
 OFF counts. :func:`fixed_responses` reads the events a batch of windows at a time (through the recording's
 time-window API; where a batch's responses take work of their own, the next chunk decoded on another thread
 meanwhile), maps each event to its window (binary search of the window bounds in the sorted time stamps) and by
 unsigned arithmetic on its coordinates to the bin of the region it counts for, and counts with
-:func:`numpy.bincount`:
+:func:`numpy.bincount`, or where evtk's compiled kernel was built (:mod:`evtk._native`) with it, in one pass
+that needs no keys in memory and releases the GIL:
 
 * net counts (``linear=False``) resized by whole factors: each event straight to its output cell, so a batch
   is (windows, cells) integers and the response is the exact mean the whole-run path computes;
@@ -25,6 +26,9 @@ from typing import Any
 
 import numpy as np
 
+from .._native import TABLE_SIZE, padded_table
+from .._native import count_windows as native_count_windows
+from .._native import enabled as native_enabled
 from .._parallel import cuts, parts, run
 from .._threads import workers
 from ..errors import EvtkError
@@ -127,6 +131,7 @@ class _Cells:
         self.y = (u(y0) if y0 else None, u(y1 - y0), u(fy) if fy > 1 else None, u(cols + 1))
         self.x = (u(x0) if x0 else None, u(x1 - x0), u(fx) if fx > 1 else None, None)
         self.plane = u(plane)
+        self._tables: tuple[np.ndarray, np.ndarray] | None = None
 
     def keys(self, x: np.ndarray, y: np.ndarray, p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Each event's bin within its window into ``a`` (``b``: room of the same size and type); returns ``a``."""
@@ -136,6 +141,17 @@ class _Cells:
         np.multiply(p, self.plane, out=b)
         a += b
         return a
+
+    def tables(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(ky, kx)``: :meth:`keys` as look-up tables over every uint16 coordinate (int64, for
+        :func:`evtk._native.count_windows`): an event's bin within its window is ``ky[y] + kx[x] + p * plane``."""
+        if self._tables is None:
+            c = np.arange(TABLE_SIZE, dtype=self.dtype)
+            ky, kx = np.empty_like(c), np.empty_like(c)
+            self._axis(c, self.y, ky)
+            self._axis(c, self.x, kx)
+            self._tables = ky.astype(np.int64), kx.astype(np.int64)
+        return self._tables
 
     @staticmethod
     def _axis(c: np.ndarray, spec: tuple, out: np.ndarray) -> None:
@@ -207,9 +223,10 @@ def _batches(source: Any, windows: Windows, firsts: list[int], nexts: list[int],
 
     ``overlap``: the next chunk is decoded on another thread while this one is counted and its batches used,
     this thread decoding beside it once it has counted (:class:`evtk._threads.Helpers`; where the caller's work
-    on a batch is long and mostly outside the GIL: enob's sums); False: each chunk is decoded on the reader's
-    threads, then counted (where the counting is all there is: numpy's bincount holds the GIL and its many small
-    calls take it back from the decoding; 3 % quicker in a fresh `reconstruct -o` than the overlap)."""
+    on a batch is long and mostly outside the GIL: enob's sums, and any compiled counting); False: each chunk is
+    decoded on the reader's threads, then counted (where numpy's counting is all there is: its bincount holds the
+    GIL and its many small calls take it back from the decoding; 3 % quicker in a fresh `reconstruct -o` than the
+    overlap)."""
     from .accumulate import _prefetched, span_chunks
 
     starts, ends = windows.t_start_us, windows.t_end_us
@@ -265,9 +282,16 @@ def _count(ev: Events, starts: np.ndarray, ends: np.ndarray, cells: _Cells, out:
     total = int(n.sum())
     if total == 0:
         return n
+    per_window = out.size // len(starts)
+    if native_enabled():  # compiled, the GIL released: no keys in memory
+        ky, kx = cells.tables()
+        at = np.zeros(len(n) + 1, np.int64)
+        np.cumsum(n, out=at[1:])
+        if native_count_windows(ev.x, ev.y, ev.p, where, at, ky, kx, int(cells.plane), per_window, per_window, 0,
+                                 False, out):
+            return n
     x, y, p = ev.x[where], ev.y[where], ev.p[where]
     bounds = [0, *np.cumsum(n).tolist()]  # of each window's events, in x, y, p
-    per_window = out.size // len(starts)
     room = min(total, _PIECE)
     a, b = np.empty(room, cells.dtype), np.empty(room, cells.dtype)
     keys = np.empty(room, np.uint64)  # (as intp below: every key is under the batch's bins)
@@ -411,7 +435,7 @@ def count_batches(source: Events | Any, windows: Windows, region: tuple[int, int
     def add(ev: Events, i: int, j: int, out: np.ndarray, totals: np.ndarray) -> None:
         # runs of whole windows (about equal events), one a thread: each counts into its own windows' bins
         n = np.searchsorted(ev.t, ends[i:j], side="left") - np.searchsorted(ev.t, starts[i:j], side="left")
-        bounds = cuts(n, parts(int(n.sum())))
+        bounds = cuts(n, parts(int(n.sum()), gil_free=native_enabled()))
         totals += np.concatenate(run(_count, [(ev, starts[i + a:i + z], ends[i + a:i + z], keys,
                                                out[a * per_window:z * per_window])
                                               for a, z in zip(bounds, bounds[1:])]))
@@ -488,10 +512,11 @@ def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size:
     cells = not linear and h_px % oh == 0 and w_px % ow == 0  # each event straight to its output cell
     responses = np.empty((n_w, oh, ow), np.float64)
     used = 0
-    # straight to the cells, a batch needs nothing but its counts: each chunk decoded, then counted
+    # straight to the cells, a batch needs nothing but its counts: with numpy's counting (which holds the GIL)
+    # each chunk decoded, then counted; the compiled counting releases it, so the next chunk decodes meanwhile
     for i, on, off, n_used in count_batches(source, windows, (x0, x1, y0, y1), (oh, ow) if cells else None,
                                             n_w * oh * ow * 9, batch_windows, chunk_events, progress,
-                                            overlap=not cells):
+                                            overlap=not cells or native_enabled()):
         used += n_used
         if cells:  # the block mean of net counts: their exact sum over the block's pixel count
             responses[i:i + len(on)] = (on - off).astype(np.float64) / ((h_px // oh) * (w_px // ow))
@@ -583,6 +608,8 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
     by_x = np.full(sensor[0], dump, dtype)
     by_x[x0:x1] = np.arange(w_px, dtype=dtype)
     whole = (x0, x1, y0, y1) == (0, sensor[0], 0, sensor[1])
+    # the compiled kernel's tables (every uint16 coordinate; off the sensor: the dump), where it counts
+    tables = (padded_table(by_y, dump), padded_table(by_x, dump)) if native_enabled() else None
     starts, ends = windows.t_start_us, windows.t_end_us
 
     def add(ev: Events, i: int, j: int, state: list) -> None:
@@ -600,8 +627,8 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
             state[0] = out = _widened(out, frames)
         at = np.concatenate(([0], np.cumsum(n)))  # each window's events among the picked ones
         # runs of whole windows, one a thread: each writes its own windows' frames and its own dump bin
-        bounds = cuts(n, min(dumps, parts(total)))
-        run(_net_count_run, [(ev, where, at, wa, wb, r, j - i, frame, w_px, whole, by_y, by_x, dtype, out)
+        bounds = cuts(n, min(dumps, parts(total, gil_free=tables is not None)))
+        run(_net_count_run, [(ev, where, at, wa, wb, r, j - i, frame, w_px, whole, by_y, by_x, dtype, out, tables)
                              for r, (wa, wb) in enumerate(zip(bounds, bounds[1:]))])
 
     frames = np.empty(nb * frame + dumps, np.int32)  # one buffer for every batch (its pages touched once)
@@ -630,12 +657,16 @@ def _widened(out: np.ndarray, frames: np.ndarray) -> np.ndarray:
 
 def _net_count_run(ev: Events, where: slice | np.ndarray, at: np.ndarray, wa: int, wb: int, r: int, n_w: int,
                    frame: int, w_px: int, whole: bool, by_y: np.ndarray, by_x: np.ndarray, dtype: Any,
-                   out: np.ndarray) -> None:
+                   out: np.ndarray, tables: tuple[np.ndarray, np.ndarray] | None = None) -> None:
     """Add the signs of the picked events of windows ``wa .. wb - 1`` (``at``: each window's first among them)
     to their frames in ``out`` (``n_w`` windows of ``frame`` bins, then a dump bin per run: this run's is
-    ``n_w * frame + r``). Runs of different windows write different bins, so they may go on threads."""
+    ``n_w * frame + r``). Runs of different windows write different bins, so they may go on threads. With
+    ``tables`` (``by_y`` and ``by_x`` over every uint16 coordinate) the compiled kernel counts where it can."""
     a, z = int(at[wa]), int(at[wb])
     if z <= a:
+        return
+    if tables is not None and native_count_windows(ev.x, ev.y, ev.p, where, at[wa:wb + 1], *tables, 0, frame, frame,
+                                                    (n_w - wa) * frame + r, True, out[wa * frame:]):
         return
     pick = slice(where.start + a, where.start + z) if isinstance(where, slice) else where[a:z]
     if whole:  # the region is the sensor: the key by arithmetic, no table look-ups
