@@ -1,26 +1,32 @@
 """evtk's optional compiled kernels (``evtk._ckernels``, built at install where a C compiler is present), behind
-wrappers that check their arguments and say when the numpy route must be taken instead.
+wrappers that check their arguments and say when the Python route must be taken instead: the counting of fixed
+windows (:func:`count_windows`) and the AEDAT4 reader's batches of LZ4 event packets (:func:`decode_lz4_batch`).
 
 The kernels release the GIL, so parts of one piece of work run on several cores at once; numpy's scattered adds
-(``np.add.at``), which the numpy route counts with, keep it. ``EVTK_NATIVE=0`` (read at each call) turns them off,
-to compare the two routes; the results are the same to the last bit.
+(``np.add.at``), which the numpy route counts with, keep it, and so does the Python loop over a batch's
+packets. ``EVTK_NATIVE=0`` (read at each call) turns them off, to compare the two routes; the results are the
+same to the last bit.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 from typing import Any
 
 import numpy as np
 
 _kernel_count_windows: Any
+_kernel_decode_lz4_batch: Any
 try:
     from ._ckernels import count_windows as _kernel_count_windows
+    from ._ckernels import decode_lz4_batch as _kernel_decode_lz4_batch
 except ImportError:  # built without a compiler: the numpy route
-    _kernel_count_windows = None
+    _kernel_count_windows = _kernel_decode_lz4_batch = None
 
-#: Whether the install built the compiled kernels (a C compiler was present).
-BUILT = _kernel_count_windows is not None
+#: Whether the install built the compiled kernels (a C compiler was present). They read the files' little-endian
+#: numbers as the machine's own: on a big-endian machine they are left unused.
+BUILT = _kernel_count_windows is not None and sys.byteorder == "little"
 
 #: Every uint16 coordinate: the length of :func:`count_windows`' tables.
 TABLE_SIZE = 1 << 16
@@ -124,3 +130,65 @@ def count_windows(x: np.ndarray, y: np.ndarray, p: np.ndarray, where: slice | np
     _kernel_count_windows(x, y, p, picks, not isinstance(where, slice), first, at, ky, kx, int(on_step), int(limit),
                             int(per_window), int(dump), bool(net), out, out.itemsize)
     return True
+
+
+_I64 = np.dtype(np.int64)
+
+
+def decode_lz4_batch(raw: np.ndarray, heads: np.ndarray, sids: np.ndarray, sizes: np.ndarray, counts: np.ndarray,
+                     verify: bool, lz4f: tuple[int, int, int, int], stage: np.ndarray, floor_bytes: int, ratio: int,
+                     most_bytes: int, columns: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                     sensor_size: tuple[int, int]) -> bool:
+    """Decode one batch of the AEDAT4 reader's LZ4 event packets into the columns with the compiled kernel, the
+    GIL released: the packet-by-packet work of :meth:`evtk.io.aedat4.reader.Recording._batcher`'s batches.
+
+    Packet ``j``'s 8-byte header (stream id, body size: int32) lies at ``raw[heads[j]]`` and must match ``sids[j]``
+    and ``sizes[j]``; its body is one LZ4 frame, decompressed into ``stage`` (at most ``min(most_bytes,
+    floor_bytes + ratio * size)`` bytes: :func:`evtk.io._compression.output_limit`), checked as
+    :func:`evtk.io._compression.lz4_into_at` checks it, and its FlatBuffer's event vector (identifier ``EVTS``,
+    the checks of :func:`evtk.io._fbpy._root_vector_at`) must hold ``counts[j]`` events, whose coordinates lie on
+    the sensor. The events go into the columns one packet after another; a polarity byte other than 0 is ON (1).
+
+    Parameters
+    ----------
+    raw : ndarray
+        The batch's bytes as read from the file (uint8, contiguous).
+    heads : ndarray
+        Each packet's header position in ``raw`` (int64).
+    sids, sizes, counts : ndarray
+        Each packet's stream id, body size and event count from the data table (int64).
+    verify : bool
+        Check the checksums the frames carry; False: a frame that carries any goes to the Python route.
+    lz4f : tuple of int
+        The addresses of ``LZ4F_decompress``, ``LZ4F_isError`` and ``LZ4F_resetDecompressionContext`` and of this
+        thread's decompression context (:func:`evtk.io._compression.lz4f_addresses`).
+    stage : ndarray
+        This thread's room for one decompressed body (uint8, contiguous, writable).
+    floor_bytes, ratio, most_bytes : int
+        :func:`evtk.io._compression.output_limit`'s terms.
+    columns : tuple of ndarray
+        ``t`` (int64), ``x``, ``y`` (uint16) and ``p`` (uint8) for the batch's events: contiguous, writable, as
+        long as ``counts`` adds up to.
+    sensor_size : tuple of int
+        (width, height).
+
+    Returns
+    -------
+    bool
+        True when every packet decoded. False when the kernel is off or missing, an argument is not in the form it
+        takes, or anything in the batch is not as expected (a fault, a frame larger than ``stage``, checksums to
+        leave unread): the caller then decodes the batch in Python, which names any fault; the columns may hold
+        part of the batch.
+    """
+    if not enabled() or _kernel_decode_lz4_batch is None:
+        return False
+    t, x, y, p = columns
+    arrays = (raw, heads, sids, sizes, counts, stage, t, x, y, p)
+    if (any(not a.flags.c_contiguous for a in arrays) or raw.dtype != np.uint8 or stage.dtype != np.uint8
+            or any(a.dtype != _I64 for a in (heads, sids, sizes, counts)) or t.dtype != _I64
+            or (x.dtype, y.dtype, p.dtype) != (np.uint16, np.uint16, np.uint8)
+            or not all(a.flags.writeable for a in (stage, t, x, y, p))):
+        return False
+    return bool(_kernel_decode_lz4_batch(raw, heads, sids, sizes, counts, verify, *lz4f, stage, int(floor_bytes),
+                                         int(ratio), int(most_bytes), t, x, y, p, int(sensor_size[0]),
+                                         int(sensor_size[1])))

@@ -39,16 +39,17 @@ def fixtures_dir():
     return FIXTURES
 
 
-@pytest.fixture(params=["native", "numpy"])
-def counting(request, monkeypatch):
-    """Each test that uses it runs twice: with evtk's compiled counting (``evtk._ckernels``; skipped where it was
-    not built) and with numpy's (``EVTK_NATIVE=0``). Modules of the counting's tests take it for all their tests
-    (``pytestmark = pytest.mark.usefixtures("counting")``)."""
+@pytest.fixture(params=["compiled", "python"])
+def compiled(request, monkeypatch):
+    """Each test that uses it runs twice: with evtk's compiled kernels (``evtk._ckernels``: the counting of fixed
+    windows, the AEDAT4 reader's LZ4 batches; skipped where they were not built) and without them
+    (``EVTK_NATIVE=0``: numpy's counting, the reader's Python loop). Modules of their tests take it for all their
+    tests (``pytestmark = pytest.mark.usefixtures("compiled")``)."""
     from evtk import _native
 
-    if request.param == "native" and not _native.BUILT:
-        pytest.skip("evtk._ckernels was not built (no C compiler at install): numpy counts")
-    monkeypatch.setenv("EVTK_NATIVE", "1" if request.param == "native" else "0")
+    if request.param == "compiled" and not _native.BUILT:
+        pytest.skip("evtk._ckernels was not built (no C compiler at install)")
+    monkeypatch.setenv("EVTK_NATIVE", "1" if request.param == "compiled" else "0")
     return request.param
 
 

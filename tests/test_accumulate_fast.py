@@ -16,8 +16,8 @@ from evtk.reconstruct._batched import reconstruct_windows
 from evtk.reconstruct.accumulate import accumulate_batches
 from evtk.reconstruct.fixed import fixed_responses
 
-# every test twice: with the compiled counting and with numpy's (tests/conftest.py)
-pytestmark = pytest.mark.usefixtures("counting")
+# every test twice: with evtk's compiled kernels and without them (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("compiled")
 
 
 def _events(n=60_000, size=(40, 30), span_us=50_000, seed=3):

@@ -17,6 +17,9 @@ import evtk
 from evtk.io import _compression as cz
 from evtk.io.aedat4 import reader as a4r
 
+# every test twice: with evtk's compiled kernels and without them (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("compiled")
+
 # events per packet and the padding between each packet's table and its vector: headers of 28 bytes up to
 # 28 + 70,000, longer and shorter than the packet before, odd lengths, empty packets between
 SIZES = (900, 0, 1, 2_500, 7, 3_000, 0, 640, 1_200, 33, 4_000, 5)

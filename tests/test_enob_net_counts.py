@@ -15,8 +15,8 @@ from evtk.reconstruct import binarize, downsample, plan, reconstruct
 from evtk.reconstruct.fixed import count_batches, net_count_batches, pixel_values
 from evtk.sweeps import recording_noise, scene_noise
 
-# every test twice: with the compiled counting and with numpy's (tests/conftest.py)
-pytestmark = pytest.mark.usefixtures("counting")
+# every test twice: with evtk's compiled kernels and without them (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("compiled")
 
 
 def _hostile_recording(path, size=(48, 32), period_us=1000, windows=150, seed=0):

@@ -20,8 +20,8 @@ from evtk.reconstruct import Windows, windows_periodic
 from evtk.reconstruct.fixed import net_count_batches
 from evtk.sweeps import recording_noise
 
-# every test twice: with the compiled counting and with numpy's (tests/conftest.py)
-pytestmark = pytest.mark.usefixtures("counting")
+# every test twice: with evtk's compiled kernels and without them (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("compiled")
 
 SENSOR = (23, 17)  # a frame of 391 pixels: no run of pixels divides it evenly
 

@@ -22,8 +22,8 @@ from evtk.errors import EvtkError
 from evtk.reconstruct import Windows, accumulate, reconstruct, reconstruct_counts, windows_periodic
 from evtk.reconstruct.fixed import fixed_responses
 
-# every test twice: with the compiled counting and with numpy's (tests/conftest.py)
-pytestmark = pytest.mark.usefixtures("counting")
+# every test twice: with evtk's compiled kernels and without them (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("compiled")
 
 ROOT = Path(__file__).resolve().parents[1]
 SENSOR = (40, 30)
@@ -410,11 +410,11 @@ def test_an_event_off_the_sensor_never_lands_in_another_pixels_bin(cells):
                                                       (True, (15, 20), True),  # linearised: work a batch
                                                       (False, (7, 9), True)])  # resized: work a batch
 def test_only_responses_with_work_of_their_own_decode_the_next_chunk_meanwhile(recording, monkeypatch, linear, size,
-                                                                               overlapped, counting):
+                                                                               overlapped, compiled):
     # straight to the cells numpy's counting is all the work, and it holds the GIL: a thread decoding the next
     # chunk beside it only competes with the reader's own threads, so each chunk is decoded, then counted. The
     # compiled counting releases the GIL, so there the next chunk decodes meanwhile. The same responses
-    overlapped = overlapped or counting == "native"
+    overlapped = overlapped or compiled == "compiled"
     acc_module = importlib.import_module("evtk.reconstruct.accumulate")  # (the package's name is the function)
     prefetched = []
     real = acc_module._prefetched

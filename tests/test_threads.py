@@ -93,14 +93,17 @@ def test_aedat4_decode_threads_are_bounded_by_the_events_memory(tmp_path, monkey
     path = tmp_path / "m.aedat4"
     evtk.write_events(path, ev, packet_events=1_000)
     names: set[str] = set()
-    real = cz.lz4_into_at
 
-    def spy(*args):
-        names.add(threading.current_thread().name)
-        time.sleep(0.0005)  # long enough that idle threads would take ranges
-        return real(*args)
+    def spied(real):
+        def spy(*args):
+            names.add(threading.current_thread().name)
+            time.sleep(0.0005)  # long enough that idle threads would take ranges
+            return real(*args)
+        return spy
 
-    monkeypatch.setattr(cz, "lz4_into_at", spy)
+    # a packet's decompression in Python, or a batch's start in evtk's compiled batches
+    monkeypatch.setattr(cz, "lz4_into_at", spied(cz.lz4_into_at))
+    monkeypatch.setattr(cz, "lz4f_addresses", spied(cz.lz4f_addresses))
     got = evtk.read_events(path)
     assert got == ev
     if most < 4:

@@ -453,6 +453,39 @@ def _lz4_steps(lib, d: _Lz4Context, src_at: int, n: int, read: int, out_at: int,
             return written, read, False
 
 
+_lz4f_functions: tuple[int, int, int] | None = None
+
+
+def lz4f_addresses(scratch: Scratch) -> tuple[int, int, int, int] | None:
+    """The addresses of the LZ4 frame library's ``LZ4F_decompress``, ``LZ4F_isError`` and
+    ``LZ4F_resetDecompressionContext`` (the library :func:`lz4_into_at` calls) and of ``scratch``'s decompression
+    context, for evtk's compiled batches (:func:`evtk._native.decode_lz4_batch`); None where the library cannot be
+    reached.
+
+    Parameters
+    ----------
+    scratch : Scratch
+        This thread's buffers (their LZ4 context, made on first use).
+
+    Returns
+    -------
+    tuple of int or None
+        ``(decompress, is_error, reset, context)``.
+    """
+    global _lz4f_functions
+    lib = _lz4f_lib or _lz4f()
+    if not lib:
+        return None
+    if _lz4f_functions is None:
+        dec, err, reset = (_ctypes.cast(f, _ctypes.c_void_p).value or 0 for f in (
+            lib.LZ4F_decompress, lib.LZ4F_isError, lib.LZ4F_resetDecompressionContext))
+        _lz4f_functions = (dec, err, reset)
+    ctx = _context(lib, scratch).ctx.value
+    if not ctx or not all(_lz4f_functions):
+        return None
+    return (*_lz4f_functions, ctx)
+
+
 def lz4_into_at(body, src_at: int, limit: int, verify: bool, scratch: Scratch, out_at: int, cap: int) -> int:
     """Decompress the LZ4 frame ``body`` (at address ``src_at``) to the address ``out_at``, at most ``cap``
     bytes, with the frame library python-lz4 carries (the GIL released while it works).

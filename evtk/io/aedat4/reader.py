@@ -9,6 +9,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..._native import decode_lz4_batch as native_decode_lz4_batch
+from ..._native import enabled as native_enabled
 from ..._threads import MEMORY_SHARE, helpers, workers_within
 from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
@@ -616,6 +618,11 @@ class Recording(_FileIndex, BaseRecording):
         instead of eight (its read, its decompression, four column copies and two range checks): with many
         threads, taking the GIL back after each such call is what kept more cores from reading faster.
 
+        Where evtk's compiled kernels were built (:func:`evtk._native.decode_lz4_batch`), a batch of LZ4 packets
+        goes whole through one call that holds no GIL: each body decompressed into the staging buffer and its
+        events split straight into the columns, with every check below. The Python loop takes the batches it
+        declines (and every batch without it).
+
         The batch reports success only; at anything unexpected (packets far apart in the file, a header that
         disagrees with the data table, a body that fails to decompress or to parse, a count not the
         table's, an event off the sensor) it returns False and the caller decodes the batch packet by
@@ -630,13 +637,16 @@ class Recording(_FileIndex, BaseRecording):
         if len(rows) == 0 or self._code not in (cz.NONE, cz.LZ4, cz.LZ4_HIGH, cz.ZSTD, cz.ZSTD_HIGH):
             return None
         idx = self._index
-        offs = idx.offset[rows].tolist()
-        sizes = idx.size[rows].tolist()
-        sids = idx.stream[rows].tolist()
+        offs_a, sizes_a = idx.offset[rows].astype(np.int64), idx.size[rows].astype(np.int64)
+        sids_a, cnt_a = idx.stream[rows].astype(np.int64), np.asarray(counts, np.int64)
+        offs = offs_a.tolist()
+        sizes = sizes_a.tolist()
+        sids = sids_a.tolist()
         at = starts.tolist()
-        cnt = counts.tolist()
+        cnt = cnt_a.tolist()
         code, verify, ident = self._code, self.verify_checksums, b"EVTS"
         lz4 = code in (cz.LZ4, cz.LZ4_HIGH)
+        compiled = lz4 and native_enabled()  # evtk's compiled batches (the GIL released), where built
         t, x, y, p = out
         unpack_from = struct.unpack_from
         root_vector_at = _fbpy._root_vector_at
@@ -656,6 +666,14 @@ class Recording(_FileIndex, BaseRecording):
             raw_at = raw.ctypes.data
             n_ev = at[kb] - at[k]
             stage = scratch.stage(16 * n_ev + 3 * slack)
+            if compiled:
+                lz4f = cz.lz4f_addresses(scratch)
+                o, e = at[k], at[kb]
+                if lz4f is not None and native_decode_lz4_batch(
+                        raw, offs_a[k:kb] - (o0 + 8), sids_a[k:kb], sizes_a[k:kb], cnt_a[k:kb], verify, lz4f, stage,
+                        cz.BODY_FLOOR_BYTES, cz.BODY_RATIO, cz.MAX_PACKET_BYTES, (t[o:e], x[o:e], y[o:e], p[o:e]),
+                        (width, height)):
+                    return True
             stage_at, room = stage.ctypes.data, len(stage)
             h = scratch.header_hint  # the last packet's header length: the first packet placed so that its
             base = rec = -1  # events start on a multiple of 16 bytes if its header is as long

@@ -1,0 +1,223 @@
+"""evtk's compiled batches of LZ4 event packets (``evtk._native.decode_lz4_batch``): used for every batch of a
+healthy LZ4 file, the same events as the Python loop, and for anything else (damage, a header that disagrees with
+the data table, checksums to leave unread, a body too large for its room) a decline that leaves the batch to
+the Python loop, never a crash or a different answer."""
+
+from __future__ import annotations
+
+import struct
+
+import lz4.frame
+import numpy as np
+import pytest
+from conftest import random_events
+from test_aedat4_batches import _body
+from test_hostile import _aedat4
+
+import evtk
+from evtk import _native
+from evtk.io import _compression as cz
+from evtk.io import _fbpy
+
+pytestmark = pytest.mark.skipif(not _native.BUILT, reason="evtk._ckernels was not built (no C compiler)")
+
+SENSOR = (320, 240)
+
+
+class _Spy:
+    """Counts the kernel's answers while a test runs."""
+
+    def __init__(self, monkeypatch):
+        self.answers: list[bool] = []
+        real = _native._kernel_decode_lz4_batch
+
+        def spy(*args):
+            got = real(*args)
+            self.answers.append(got)
+            return got
+
+        monkeypatch.setattr(_native, "_kernel_decode_lz4_batch", spy)
+
+
+def _read_both(monkeypatch, path, **kw):
+    out = {}
+    for value in ("1", "0"):
+        monkeypatch.setenv("EVTK_NATIVE", value)
+        with evtk.open(path, **kw) as rec:
+            out[value] = rec.events()
+    return out["1"], out["0"]
+
+
+def _same(a, b):
+    for c in "txyp":
+        np.testing.assert_array_equal(getattr(a, c), getattr(b, c))
+
+
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_every_batch_of_a_healthy_lz4_file_goes_through_the_kernel_with_the_same_events(tmp_path, monkeypatch,
+                                                                                       threads):
+    monkeypatch.setenv("EVTK_THREADS", threads)
+    ev = random_events(300_000, seed=4)
+    path = tmp_path / "a.aedat4"
+    evtk.write_events(path, ev, compression="lz4")
+    spy = _Spy(monkeypatch)
+    compiled, python = _read_both(monkeypatch, path)
+    assert spy.answers and all(spy.answers)
+    _same(compiled, python)
+    _same(compiled, ev)
+
+
+def test_frames_with_checksums_are_verified_by_the_kernel_and_left_to_python_when_unread(tmp_path, monkeypatch):
+    # faery's frames carry block and content checksums: verified as they decompress; with verification off
+    # the Python route rebuilds each frame without them, so the kernel declines those batches
+    ev = random_events(40_000, seed=6)
+    bodies = [_body(ev[i:i + 4_096], 0) for i in range(0, len(ev), 4_096)]
+    frames = [lz4.frame.compress(b, content_checksum=True, block_checksum=True) for b in bodies]
+    path = tmp_path / "sums.aedat4"
+    _aedat4(path, cz.LZ4, frames)
+    spy = _Spy(monkeypatch)
+    compiled, python = _read_both(monkeypatch, path)
+    assert spy.answers and all(spy.answers)
+    _same(compiled, python)
+    spy.answers.clear()
+    compiled, python = _read_both(monkeypatch, path, verify_checksums=False)
+    assert spy.answers and not any(spy.answers)
+    _same(compiled, python)
+    # a flipped bit in one frame's compressed data: the kernel declines, and the Python route names it
+    damaged = bytearray(frames[3])
+    damaged[len(damaged) // 2] ^= 0x40
+    _aedat4(path, cz.LZ4, frames[:3] + [bytes(damaged)] + frames[4:])
+    for value in ("1", "0"):
+        monkeypatch.setenv("EVTK_NATIVE", value)
+        with pytest.raises(evtk.FormatError, match="checksum"):
+            evtk.read_events(path)
+
+
+def _one_packet(body: bytes, frame: bytes | None = None, *, sid=0, size=None, count=None, stage_bytes=None,
+                verify=True, sensor=SENSOR):
+    """The kernel on one packet: ``(answer, columns)``."""
+    frame = lz4.frame.compress(body) if frame is None else frame
+    raw = np.frombuffer(struct.pack("<ii", 0, len(frame)) + frame, np.uint8).copy()
+    n = count if count is not None else max(0, (len(body) - 28) // 16)
+    columns = (np.zeros(n, np.int64), np.zeros(n, np.uint16), np.zeros(n, np.uint16), np.zeros(n, np.uint8))
+    stage = np.zeros(stage_bytes or len(body) + 4096, np.uint8)
+    scratch = cz.Scratch()
+    got = _native.decode_lz4_batch(raw, np.array([0], np.int64), np.array([sid], np.int64),
+                                   np.array([len(frame) if size is None else size], np.int64), np.array([n], np.int64),
+                                   verify, cz.lz4f_addresses(scratch), stage, cz.BODY_FLOOR_BYTES, cz.BODY_RATIO,
+                                   cz.MAX_PACKET_BYTES, columns, sensor)
+    return got, columns
+
+
+def _python_rule(body: bytes, n: int, sensor=SENSOR):
+    """What the Python loop accepts of a decompressed body that should hold ``n`` events: the events, or None."""
+    buf = np.frombuffer(body, np.uint8)
+    start, count = _fbpy._root_vector_at(buf, 0, len(buf), b"EVTS", 16)
+    if start < 0 or count != n:
+        return None
+    ev = buf[start:start + 16 * count].view(_fbpy.EVENT_DTYPE)
+    if count and (int(ev["x"].max()) >= sensor[0] or int(ev["y"].max()) >= sensor[1]):
+        return None
+    return ev
+
+
+def test_a_healthy_packet_and_the_faults_the_kernel_declines():
+    ev = random_events(500, seed=1)
+    body = _body(ev, 12)
+    got, (t, x, y, p) = _one_packet(body)
+    assert got
+    np.testing.assert_array_equal(t, ev.t)
+    np.testing.assert_array_equal(x, ev.x)
+    np.testing.assert_array_equal(p, ev.p)
+    assert not _one_packet(body, sid=1)[0]  # the header's stream is not the table's
+    assert not _one_packet(body, size=17)[0]  # nor its size
+    assert not _one_packet(body, count=499)[0]  # the table's count is not the packet's
+    assert not _one_packet(body, stage_bytes=1_000)[0]  # the body does not fit its room
+    assert not _one_packet(body, sensor=(int(ev.x.max()), 240))[0]  # an event off the sensor
+    assert not _one_packet(body, frame=cz.compress(cz.ZSTD, body))[0]  # not an LZ4 frame
+    assert not _one_packet(body, frame=lz4.frame.compress(body)[:-9])[0]  # a frame cut short
+    checked = lz4.frame.compress(body, content_checksum=True)
+    assert _one_packet(body, frame=checked)[0] and not _one_packet(body, frame=checked, verify=False)[0]
+    sized = lz4.frame.compress(body, store_size=True)
+    wrong = bytearray(sized)
+    wrong[6:14] = struct.pack("<Q", len(body) - 16)  # a stated size the content does not meet
+    assert _one_packet(body, frame=sized)[0] and not _one_packet(body, frame=bytes(wrong))[0]
+    polar = bytearray(body)
+    polar[-4] = 7  # the last event's polarity byte: not 0, so ON
+    got, (_, _, _, p) = _one_packet(bytes(polar))
+    assert got and p[-1] == 1
+
+
+def test_hostile_headers_never_crash_the_kernel_and_it_accepts_only_what_python_accepts():
+    # 3,000 bodies with random bytes of the FlatBuffer's header (root offset, identifier, vtable, table, vector
+    # offset and length) overwritten: the kernel's answer must be the Python rule's, its events the same
+    rng = np.random.default_rng(11)
+    ev = random_events(64, seed=2)
+    base = bytearray(_body(ev, 8))
+    agreed = {True: 0, False: 0}
+    for _ in range(3_000):
+        body = bytearray(base)
+        for _ in range(int(rng.integers(1, 4))):
+            at = int(rng.integers(0, 44))  # the 36-byte header and the vector's length field
+            body[at] = int(rng.integers(0, 256))
+        if rng.random() < 0.2:
+            del body[len(body) - int(rng.integers(1, 40)):]  # and sometimes its end cut off
+        elif rng.random() < 0.2:
+            body += bytes(int(rng.integers(1, 40)))  # or bytes after the vector (room for another event: refused)
+        body = bytes(body)
+        want = _python_rule(body, len(ev))
+        got, (t, x, y, p) = _one_packet(body, count=len(ev))
+        assert got == (want is not None)
+        if got:
+            np.testing.assert_array_equal(t, want["t"])
+            np.testing.assert_array_equal(x, want["x"])
+            np.testing.assert_array_equal(p, want["p"] != 0)
+        agreed[got] += 1
+    assert agreed[True] > 50 and agreed[False] > 500  # both kinds of answer were reached
+
+
+def test_corrupt_compressed_data_never_crashes_the_kernel():
+    # random bytes of the LZ4 frame overwritten (no checksums to catch it): the kernel declines or gives what
+    # python-lz4 decompresses, never something else
+    rng = np.random.default_rng(5)
+    ev = random_events(300, seed=3)
+    body = _body(ev, 0)
+    frame = lz4.frame.compress(body)
+    for _ in range(1_000):
+        bad = bytearray(frame)
+        for _ in range(int(rng.integers(1, 6))):
+            bad[int(rng.integers(0, len(bad)))] = int(rng.integers(0, 256))
+        got, (t, x, y, p) = _one_packet(body, frame=bytes(bad), count=len(ev))
+        if got:
+            want = _python_rule(lz4.frame.decompress(bytes(bad)), len(ev))
+            assert want is not None
+            np.testing.assert_array_equal(t, want["t"])
+            np.testing.assert_array_equal(y, want["y"])
+
+
+def test_arguments_outside_the_batch_are_declined(monkeypatch):
+    body = _body(random_events(10, seed=1), 0)
+    frame = lz4.frame.compress(body)
+    raw = np.frombuffer(struct.pack("<ii", 0, len(frame)) + frame, np.uint8).copy()
+    cols = (np.zeros(10, np.int64), np.zeros(10, np.uint16), np.zeros(10, np.uint16), np.zeros(10, np.uint8))
+    one = np.array([0], np.int64)
+    scratch = cz.Scratch()
+
+    def call(heads=one, sizes=None, cols=cols, raw=raw, stage=None):
+        sizes = np.array([len(frame)], np.int64) if sizes is None else sizes
+        stage = np.zeros(4096, np.uint8) if stage is None else stage
+        return _native.decode_lz4_batch(raw, heads, np.zeros(len(heads), np.int64), sizes,
+                                        np.full(len(heads), 10, np.int64), True, cz.lz4f_addresses(scratch), stage,
+                                        cz.BODY_FLOOR_BYTES, cz.BODY_RATIO, cz.MAX_PACKET_BYTES, cols, SENSOR)
+
+    assert call()
+    assert not call(heads=np.array([len(raw) - 4], np.int64))  # a header past the bytes read
+    assert not call(heads=np.array([-1], np.int64))
+    assert not call(sizes=np.array([len(frame) + 1], np.int64), raw=raw[:-1].copy())  # a body past them
+    assert not call(heads=np.array([0, 0], np.int64))  # more events than the columns hold
+    assert not call(cols=tuple(c[:9] for c in cols))
+    assert not call(heads=one.astype(np.int32))  # the wrapper's checks: types, contiguity, writable
+    assert not call(raw=np.frombuffer(raw.tobytes(), np.uint8)[::1][:len(raw)].astype(np.int8))
+    assert not call(stage=np.zeros(8192, np.uint8)[::2])
+    monkeypatch.setenv("EVTK_NATIVE", "0")
+    assert not call()
