@@ -27,10 +27,11 @@
             int64_t e = picks ? picks[i] : first + i;                                                          \
             if (picks && (e < 0 || e >= n_ev))                                                                 \
                 return -1;                                                                                     \
-            int64_t on = p[e] != 0; /* arithmetic, no branch on it: polarities are as good as random */     \
-            int64_t k = ky[y[e]] + kx[x[e]] + (on_step & -on);                                                 \
-            int64_t bin = (uint64_t)k < (uint64_t)limit ? base + k : dump;                                     \
-            out[bin] = (BIN_T)(UBIN_T)((UBIN_T)out[bin] + (UBIN_T)(1 - 2 * (net & (1 - on))));                \
+            uint64_t on = p[e] != 0; /* arithmetic, no branch on it: polarities are as good as random */    \
+            /* unsigned: any table values wrap (defined), and one compare finds 0 <= k < limit */              \
+            uint64_t k = (uint64_t)ky[y[e]] + (uint64_t)kx[x[e]] + ((uint64_t)on_step & (0 - on));             \
+            int64_t bin = k < (uint64_t)limit ? base + (int64_t)k : dump;                                      \
+            out[bin] = (BIN_T)(UBIN_T)((UBIN_T)out[bin] + (UBIN_T)(1 - 2 * (int64_t)(net & (1 - on))));       \
         }                                                                                                      \
         return 0;                                                                                              \
     }
@@ -84,15 +85,16 @@ count_windows(PyObject *self, PyObject *args)
         Py_BEGIN_ALLOW_THREADS
         for (Py_ssize_t w = 0; w + 1 < n_at; w++) {
             int64_t a = at[w], z = at[w + 1];
-            int64_t base = (int64_t)w * per_window;
             if (a < 0 || z < a || (use_picks ? z > n_picks : z > n_ev - first)) {
                 fault = "a window's events outside the picks";
                 break;
             }
-            if (base + limit > n_out) {
+            /* w * per_window + limit <= n_out, checked without computing a product that could overflow */
+            if (limit > n_out || (per_window > 0 && w > (n_out - limit) / per_window)) {
                 fault = "a window's bins outside the bins";
                 break;
             }
+            int64_t base = (int64_t)w * per_window;
             int bad = width == 2
                 ? count_window16(x, y, p, picks, n_ev, first, a, z, ky, kx, on_step, limit, base, dump, net,
                                  (int16_t *)outb.buf)
@@ -273,9 +275,10 @@ decode_lz4_batch(PyObject *self, PyObject *args)
             if (h < 0 || h > n_raw - 8) { ok = 0; break; }
             int64_t sid = rd_i32(raw + h), size = rd_i32(raw + h + 4);
             if (sid != sids[j] || size != sizes[j] || size < 0 || size > n_raw - 8 - h) { ok = 0; break; }
-            int64_t limit = floor_bytes + ratio * size;  /* (size < 2**31, ratio small: no overflow) */
-            if (limit > most)
-                limit = most;
+            /* min(most, floor + ratio * size), without computing a sum or product that could overflow */
+            int64_t limit = most;
+            if (ratio == 0 ? floor_bytes < most : (floor_bytes < most && size < (most - floor_bytes) / ratio))
+                limit = floor_bytes + ratio * size;
             int64_t room = limit < n_stage ? limit : n_stage;
             int64_t n = lz4_frame(raw + h + 8, size, stage, room, verify, dec, is_error, reset, ctx);
             int64_t start, count;

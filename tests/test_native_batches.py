@@ -217,6 +217,13 @@ def test_arguments_outside_the_batch_are_declined(monkeypatch):
     assert not call(sizes=np.array([len(frame) + 1], np.int64), raw=raw[:-1].copy())  # a body past them
     assert not call(heads=np.array([0, 0], np.int64))  # more events than the columns hold
     assert not call(cols=tuple(c[:9] for c in cols))
+    # output limits whose sum or product would wrap: the room stays the stage's, never more
+    top = (1 << 63) - 1
+    for floor, ratio, most in ((1 << 62, 1 << 62, top), (0, 1 << 62, top), (top, 0, top), (top, 1 << 40, 1 << 20)):
+        args = dict(floor_bytes=floor, ratio=ratio, most_bytes=most)
+        assert _native.decode_lz4_batch(raw, one, np.zeros(1, np.int64), np.array([len(frame)], np.int64),
+                                        np.full(1, 10, np.int64), True, cz.lz4f_addresses(scratch),
+                                        np.zeros(100, np.uint8), columns=cols, sensor_size=SENSOR, **args) is False
     assert not call(heads=one.astype(np.int32))  # the wrapper's checks: types, contiguity, writable
     assert not call(raw=np.frombuffer(raw.tobytes(), np.uint8)[::1][:len(raw)].astype(np.int8))
     assert not call(stage=np.zeros(8192, np.uint8)[::2])

@@ -121,6 +121,8 @@ def test_evtk_native_0_turns_the_kernel_off(monkeypatch):
     (lambda a: a.__setitem__(10, 10**9), "outside the bins"),  # a limit past the window
     (lambda a: a.__setitem__(6, np.array([0, 50, 100], np.int64)) or a.__setitem__(11, 10**9),
      "outside the bins"),  # the second window's bins past the bins
+    (lambda a: a.__setitem__(6, np.array([0, 30, 60, 100], np.int64)) or a.__setitem__(11, 1 << 62),
+     "outside the bins"),  # the third window's bins at 2**63: a product that would wrap below zero
     (lambda a: a.__setitem__(15, 8), "2 or 4 bytes"),
     (lambda a: a.__setitem__(1, a[1][:-1]), "differ in length"),
 ])
