@@ -21,12 +21,13 @@ export PYTHONUNBUFFERED=1
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
     || exit 1
 export PYTHONPATH=/tmp/site:$PWD
-# evtk's compiled counting, built in place for this machine's Python (the tree runs from PYTHONPATH, uninstalled);
-# where there is no compiler or no Python.h, evtk counts with numpy and says so here
+# evtk's compiled kernels (the reader's LZ4 batches, the counting), built in place for this machine's Python (the
+# tree runs from PYTHONPATH, uninstalled); where there is no compiler or no Python.h, evtk runs its Python route
+# and says so here
 rm -f evtk/_ckernels.*.so
 gcc -O3 -fwrapv -shared -fPIC -I"$(python3 -c 'import sysconfig; print(sysconfig.get_paths()["include"])')" \
     evtk/_ckernels.c -o "evtk/_ckernels$(python3 -c 'import sysconfig; print(sysconfig.get_config_var("EXT_SUFFIX"))')" \
-    && echo "compiled counting: built" || echo "compiled counting: not built (numpy counts)"
+    && echo "compiled kernels: built" || echo "compiled kernels: not built (the Python route)"
 STEPS=${*:-threads fresh reconstruct batch calibrate}
 echo "cores: $(nproc), $(python3 -c 'import sys, numpy, numba; print(sys.version.split()[0], numpy.__version__, numba.__version__)')"
 lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)|L3" || true

@@ -10,11 +10,12 @@ same to the last bit.
 
 from __future__ import annotations
 
-import os
 import sys
 from typing import Any
 
 import numpy as np
+
+from ._threads import switched_off
 
 _kernel_count_windows: Any
 _kernel_decode_lz4_batch: Any
@@ -31,6 +32,8 @@ BUILT = _kernel_count_windows is not None and sys.byteorder == "little"
 #: Every uint16 coordinate: the length of :func:`count_windows`' tables.
 TABLE_SIZE = 1 << 16
 
+_NO_PICKS = np.zeros(0, np.int64)  # what count_windows passes for the picks of a slice (the kernel reads none)
+
 
 def enabled() -> bool:
     """Whether the compiled kernels are present and not turned off by ``EVTK_NATIVE=0``.
@@ -40,8 +43,7 @@ def enabled() -> bool:
     bool
         True where :func:`count_windows` counts.
     """
-    return BUILT and os.environ.get("EVTK_NATIVE", "").strip().lower() not in ("0", "false", "no",
-                                                                                               "off")
+    return BUILT and not switched_off("EVTK_NATIVE")
 
 
 def padded_table(values: np.ndarray, fill: int) -> np.ndarray:
@@ -122,7 +124,7 @@ def count_windows(x: np.ndarray, y: np.ndarray, p: np.ndarray, where: slice | np
         if where.step not in (None, 1):
             return False
         first, _, _ = where.indices(len(x))
-        picks: Any = np.zeros(0, np.int64)
+        picks: Any = _NO_PICKS
     else:
         if where.dtype != np.int64 or not where.flags.c_contiguous:
             return False

@@ -48,6 +48,23 @@ def workers() -> int:
     return cores()
 
 
+def switched_off(name: str) -> bool:
+    """Whether the environment variable ``name`` turns something off: it says ``0``, ``false``, ``no`` or ``off``
+    (any case, spaces around); unset or anything else leaves it on.
+
+    Parameters
+    ----------
+    name : str
+        The variable.
+
+    Returns
+    -------
+    bool
+        True when turned off.
+    """
+    return os.environ.get(name, "").strip().lower() in ("0", "false", "no", "off")
+
+
 
 #: The share of a read's own arrays that its decoding threads' working memory may add: no more threads decode
 #: than it pays for (issue 32: a whole read's peak within 1.1 times the arrays it returns, on any core count).

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .._threads import Pool, workers
+from .._threads import Pool, switched_off, workers
 
 # lz4.frame, zstandard and xxhash load where first needed: an LZ4 file small enough to decode
 # on one thread needs none of them (its frames go through the LZ4 library bound by ctypes, :func:`decompress_into`)
@@ -54,7 +54,7 @@ def verify_by_default() -> bool:
     bool
         True to verify.
     """
-    return os.environ.get(VERIFY_ENV, "").strip().lower() not in ("0", "false", "no", "off")
+    return not switched_off(VERIFY_ENV)
 
 
 def pool() -> Pool:
