@@ -1,3 +1,4 @@
+import gc
 import json
 import subprocess
 import sys
@@ -248,3 +249,31 @@ def test_info_on_an_aedat4_file_with_a_data_table_loads_no_compiler(tmp_path):
             "print('NUMBA', 'numba' in sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert '"events": 4000' in out and "NUMBA False" in out, out
+
+
+def test_the_installed_command_freezes_the_collector_after_its_command_and_main_does_not(fixtures_dir, tmp_path):
+    """`evtk` (the console entry point, and ``python -m evtk.cli``) freezes the objects alive after its command out
+    of the garbage collector, so the interpreter's exit skips collecting them; ``main``, which other programs call
+    and go on after, leaves the collector as it was. The exit status and the output are the command's."""
+    from importlib.metadata import entry_points
+
+    [script] = [e for e in entry_points(group="console_scripts") if e.name == "evtk"]
+    assert script.value == "evtk.cli:console"
+    probe = ("import atexit, gc, sys\n"
+             "atexit.register(lambda: print('FROZEN', gc.get_freeze_count() > 0))\n"
+             "from evtk.cli import console\n"
+             "console(sys.argv[1:])\n")
+    good = subprocess.run([sys.executable, "-c", probe, "info", "--json", str(fixtures_dir / "dvxplorer_lz4.aedat4")],
+                          capture_output=True, text=True)
+    assert good.returncode == 0 and '"events": 4000' in good.stdout and "FROZEN True" in good.stdout, good
+    bad = subprocess.run([sys.executable, "-c", probe, "info", str(tmp_path / "missing.aedat4")],
+                         capture_output=True, text=True)
+    assert bad.returncode == 1 and "evtk: error: " in bad.stderr and "FROZEN True" in bad.stdout, bad
+    module = subprocess.run([sys.executable, "-c", "import atexit, gc, runpy, sys\n"
+                             "atexit.register(lambda: print('FROZEN', gc.get_freeze_count() > 0))\n"
+                             "sys.argv = ['evtk', '--version']\n"
+                             "runpy.run_module('evtk.cli', run_name='__main__')\n"], capture_output=True, text=True)
+    assert module.returncode == 0 and evtk.__version__ in module.stdout and "FROZEN True" in module.stdout, module
+    before = gc.get_freeze_count()
+    assert run("info", fixtures_dir / "dvxplorer_lz4.aedat4").exit_code == 0
+    assert gc.get_freeze_count() == before

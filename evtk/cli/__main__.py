@@ -1,7 +1,5 @@
 """``python -m evtk.cli``."""
 
-import sys
+from . import console
 
-from . import main
-
-sys.exit(main())
+console()
