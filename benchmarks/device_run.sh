@@ -13,7 +13,8 @@
 # its threads lifted and with half-size batches), phases (the first of those alone), memory (a whole read's peak,
 # AEDAT4 and EVT 3.0, 20 M events), env (bench_env.py: read, reconstruct -o, enob and the calibrated route in fresh
 # processes under BLAS and thread settings; ENVS="--env L=K=V ..." replaces them), env-ab (the same, this tree
-# against one in .old, carried, and the variants in ENVS; ROUNDS sets the rounds).
+# against one in .old, carried, and the variants in ENVS; ROUNDS sets the rounds), caps (the thread caps
+# MOST_PARTS and PREFETCH_THREADS raised, in patched copies of this tree, against it; CAPS replaces the variants).
 set -u
 OUT=${OUT:-/tmp/evtk-out}
 mkdir -p "$OUT"
@@ -101,6 +102,26 @@ for s in $STEPS; do
         step env-ab 300 python3 benchmarks/bench_env.py --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 \
             --keep benchmarks/data/calkeep --rounds ${ROUNDS:-7} --ops "read;reconstruct;enob;calibrated" \
             --env "old=TREE=$PWD/.old" --env new= $ENVS ;;
+    caps)  # the tenth round's thread caps (MOST_PARTS = 2 counting parts, PREFETCH_THREADS = 3 threads decoding a
+           # prefetched chunk), set while the GIL bound the counting and the batch loop: patched copies of this
+           # tree, FILE:NAME=VALUE each, against it in whole fresh processes (CAPS="LABEL@PATCH,PATCH ..." replaces them)
+        caps=()
+        for v in ${CAPS:-parts4@evtk/_parallel.py:MOST_PARTS=4 parts8@evtk/_parallel.py:MOST_PARTS=8 \
+                prefetch6@evtk/io/aedat4/reader.py:PREFETCH_THREADS=6 \
+                both8-6@evtk/_parallel.py:MOST_PARTS=8,evtk/io/aedat4/reader.py:PREFETCH_THREADS=6}; do
+            label=${v%%@*} d=/tmp/caps/${v%%@*}
+            rm -rf "$d" && mkdir -p "$d" && cp -r evtk "$d/"
+            IFS=, read -ra patches <<< "${v#*@}"
+            for patch in "${patches[@]}"; do
+                file=${patch%%:*} name=${patch#*:} name=${name%%=*} value=${patch#*=}
+                sed -i "s/^$name = .*/$name = $value/" "$d/$file"
+                grep -q "^$name = $value\$" "$d/$file" && echo "caps: $label sets $name = $value" \
+                    || echo "caps: $label did not set $name in $file"
+            done
+            caps+=(--env "$label=TREE=$d")
+        done
+        step caps 300 python3 benchmarks/bench_env.py --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 \
+            --rounds ${ROUNDS:-5} --ops "read;reconstruct;enob" --env base= "${caps[@]}" ;;
     limits)  # against the threads step's 1-core read on the same machine
         step limits-phases 60 python3 benchmarks/bench_threads.py --cores 1,16 --rounds 1 --reads 3 --phases \
             --formats aedat4-dv
