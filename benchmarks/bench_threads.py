@@ -19,6 +19,16 @@ allocator locks) rather than a busy machine. The load average is printed
 with every row; figures taken at a load above about 1 say little about
 scaling.
 
+Before the reads, the machine's own ceiling for each core count k: k
+independent processes, one pinned to each core, each hashing the same
+bytes held in its cache (SHA-256), and again each copying a 64 MiB buffer
+to another (memory bandwidth), against one such process alone
+(``--ceiling-rounds``, alternating; 0 leaves them out). On a
+virtual machine whose vCPUs share physical cores on the host (hyperthread
+siblings, or a host with more guests than cores) k cores do well under k
+times one core's work however the work is divided; a read's speed-up is
+bounded by that figure, not by k.
+
 A second, in-process breakdown (``--phases``) times the stages of an AEDAT4
 read on the threads of a process pinned to each core count: reading the
 compressed bodies (into new buffers and into one reused buffer), reading and
@@ -183,6 +193,49 @@ def _phases(path: str, repeats: int = 5) -> None:
     print(json.dumps({"events": total, "packets": len(rows), "threads": nw, "seconds": best}))
 
 
+def _ceiling_child(kind: str) -> None:
+    """One process of the machine's ceiling: the seconds it takes to hash 256 MiB of bytes held in the core's
+    cache (``kind`` "cache"), or to copy 2 GiB from one 64 MiB buffer to another ("memory")."""
+    if kind == "cache":
+        import hashlib
+
+        piece = bytes(range(256)) * 4096  # 1 MiB
+        t0 = time.perf_counter()
+        for _ in range(256):
+            hashlib.sha256(piece).digest()
+    else:
+        src = bytearray(64 << 20)
+        dst = bytearray(64 << 20)
+        dst[:] = src  # the pages touched before the timing
+        t0 = time.perf_counter()
+        for _ in range(32):
+            dst[:] = src
+    print(json.dumps({"seconds": time.perf_counter() - t0}))
+
+
+def ceiling(cpus: list[int], rounds: int, kind: str) -> float:
+    """How many times one core's work ``len(cpus)`` independent processes do, one pinned to each of ``cpus``
+    (:func:`_ceiling_child`'s ``kind`` of work): ``k`` x the median time of one alone over the median time of the
+    ``k`` run together (``rounds`` of each, alternating)."""
+    def start(cpu: int) -> subprocess.Popen:
+        cmd = [sys.executable, __file__, "--ceiling-child", kind]
+        if shutil.which("taskset"):
+            cmd = ["taskset", "-c", str(cpu), *cmd]
+        return subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+
+    def seconds(proc: subprocess.Popen) -> float:
+        out, _ = proc.communicate()
+        return float(json.loads(out.strip().splitlines()[-1])["seconds"])
+
+    alone: list[float] = []
+    together: list[float] = []
+    for _ in range(rounds):
+        alone.append(seconds(start(cpus[0])))
+        procs = [start(c) for c in cpus]
+        together.append(statistics.mean(seconds(p) for p in procs))
+    return len(cpus) * statistics.median(alone) / statistics.median(together)
+
+
 def env_without_threads() -> dict:
     """The environment, less evtk's thread settings (the children take their thread count from taskset)."""
     return {k: v for k, v in os.environ.items() if k not in ("EVTK_THREADS", "EVTK_IO_THREADS")}
@@ -209,10 +262,16 @@ def main() -> None:
     ap.add_argument("--json", help="write the results here")
     ap.add_argument("--set", action="append", default=[], metavar="MODULE.NAME=VALUE",
                     help="an experiment: set a constant in every child (evtk._threads.MEMORY_SHARE=1, say)")
+    ap.add_argument("--ceiling-rounds", type=int, default=3,
+                    help="rounds of the machine's ceiling (k independent processes, one a core; 0: none)")
     ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     ap.add_argument("--phases-child", help=argparse.SUPPRESS)
+    ap.add_argument("--ceiling-child", choices=["cache", "memory"], help=argparse.SUPPRESS)
     args = ap.parse_args()
     _apply(args.set)
+    if args.ceiling_child:
+        _ceiling_child(args.ceiling_child)
+        return
     if args.child:
         _child(args.child[0], int(args.child[1]))
         return
@@ -225,6 +284,13 @@ def main() -> None:
     cpus = {k: ",".join(map(str, sorted(os.sched_getaffinity(0))[:k])) for k in cores if k <= have}
     print(f"{n:,} events, {args.rounds} rounds x {args.reads} warm reads, {have} cores here, "
           f"load {os.getloadavg()[0]:.1f}")
+    ceilings: dict = {}
+    for kind, what in (("cache", "SHA-256 of bytes in cache"), ("memory", "copies of 64 MiB")):
+        if args.ceiling_rounds > 0 and max(cpus) > 1:
+            ceilings[kind] = {k: ceiling(sorted(os.sched_getaffinity(0))[:k], args.ceiling_rounds, kind)
+                              for k in cpus if k > 1}
+            print(f"the machine's ceiling, k independent processes one a core ({what}), x one alone: "
+                  + ", ".join(f"{k} cores {v:.2f}x" for k, v in ceilings[kind].items()), flush=True)
     results = []
     for fmt in args.formats.split(","):
         path = data_file(n, fmt)
@@ -241,7 +307,7 @@ def main() -> None:
         med_cpu = {k: statistics.median(v) for k, v in cpu.items()}
         base = med[min(med)]
         row = dict(format=fmt, events=n, median_s=med, cpu_s=med_cpu, runs=times, load=loads,
-                   speedup={k: base / v for k, v in med.items()})
+                   speedup={k: base / v for k, v in med.items()}, ceiling=ceilings)
         results.append(row)
         print(f"{fmt:<12}" + "  ".join(f"{k} core{'s' if k > 1 else ''} {med[k]:.3f} s ({base / med[k]:.2f}x, "
                                         f"CPU {med_cpu[k]:.3f} s)" for k in med),

@@ -80,7 +80,7 @@ step() {  # name, seconds, command...
 }
 for s in $STEPS; do
     case $s in
-    threads) step threads 150 python3 benchmarks/bench_threads.py --cores 1,2,4,8,16 --rounds 2 --reads 3 \
+    threads) step threads 200 python3 benchmarks/bench_threads.py --cores 1,2,4,8,16 --rounds 2 --reads 3 \
                  --formats aedat4-dv,aedat4-zstd,evt3 --json "$OUT/threads.json" ;;
     threads-ab)  # this tree against the one in .new (git archive of a branch, carried), alternating
         for r in 1 2; do
