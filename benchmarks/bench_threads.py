@@ -285,12 +285,12 @@ def main() -> None:
     print(f"{n:,} events, {args.rounds} rounds x {args.reads} warm reads, {have} cores here, "
           f"load {os.getloadavg()[0]:.1f}")
     ceilings: dict = {}
-    for kind, what in (("cache", "SHA-256 of bytes in cache"), ("memory", "copies of 64 MiB")):
-        if args.ceiling_rounds > 0 and max(cpus) > 1:
-            ceilings[kind] = {k: ceiling(sorted(os.sched_getaffinity(0))[:k], args.ceiling_rounds, kind)
-                              for k in cpus if k > 1}
-            print(f"the machine's ceiling, k independent processes one a core ({what}), x one alone: "
-                  + ", ".join(f"{k} cores {v:.2f}x" for k, v in ceilings[kind].items()), flush=True)
+    kinds = (("cache", "SHA-256 of bytes in cache"), ("memory", "copies of 64 MiB"))
+    for kind, what in kinds if args.ceiling_rounds > 0 and max(cpus) > 1 else ():
+        ceilings[kind] = {k: ceiling(sorted(os.sched_getaffinity(0))[:k], args.ceiling_rounds, kind)
+                          for k in cpus if k > 1}
+        print(f"the machine's ceiling, k independent processes one a core ({what}), x one alone: "
+              + ", ".join(f"{k} cores {v:.2f}x" for k, v in ceilings[kind].items()), flush=True)
     results = []
     for fmt in args.formats.split(","):
         path = data_file(n, fmt)

@@ -109,7 +109,7 @@ for s in $STEPS; do
         for v in ${CAPS:-parts4@evtk/_parallel.py:MOST_PARTS=4 parts8@evtk/_parallel.py:MOST_PARTS=8 \
                 prefetch6@evtk/io/aedat4/reader.py:PREFETCH_THREADS=6 \
                 both8-6@evtk/_parallel.py:MOST_PARTS=8,evtk/io/aedat4/reader.py:PREFETCH_THREADS=6}; do
-            label=${v%%@*} d=/tmp/caps/${v%%@*}
+            label=${v%%@*} d=/tmp/caps/$label
             rm -rf "$d" && mkdir -p "$d" && cp -r evtk "$d/"
             IFS=, read -ra patches <<< "${v#*@}"
             for patch in "${patches[@]}"; do

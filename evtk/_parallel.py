@@ -50,7 +50,8 @@ def parts(work: int, gil_free: bool = False) -> int:
     int
         At least 1.
     """
-    return max(1, min(workers() // 2, int(work) // MIN_PART, workers() if gil_free else MOST_PARTS))
+    most = workers() // 2 if gil_free else min(workers() // 2, MOST_PARTS)
+    return max(1, min(most, int(work) // MIN_PART))
 
 
 def cuts(weights: np.ndarray, n_parts: int) -> list[int]:

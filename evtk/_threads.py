@@ -65,7 +65,6 @@ def switched_off(name: str) -> bool:
     return os.environ.get(name, "").strip().lower() in ("0", "false", "no", "off")
 
 
-
 #: The share of a read's own arrays that its decoding threads' working memory may add: no more threads decode
 #: than it pays for (issue 32: a whole read's peak within 1.1 times the arrays it returns, on any core count).
 MEMORY_SHARE = 0.08

@@ -24,7 +24,6 @@ COMMAND_MODULES = {
 main.commands = _LazyCommands({name: f"{__name__}.{module}" for name, module in COMMAND_MODULES.items()})
 
 
-
 def console(args: Sequence[str] | None = None) -> None:
     """The ``evtk`` program (the installed command and ``python -m evtk.cli``): :func:`main` in a process of its
     own, which it ends.
