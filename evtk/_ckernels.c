@@ -319,11 +319,407 @@ decode_lz4_batch(PyObject *self, PyObject *args)
     return PyBool_FromLong(ok);
 }
 
+/* ---- Prophesee EVT 3.0 words ------------------------------------------------------------------------------ */
+
+/* Outcomes of evt3_run (the wrapper maps them to the Prophesee decoders' status codes). */
+enum { E3_OK = 0, E3_TYPE = 1, E3_COORD = 2, E3_FULL = 3 };
+
+/* Set bits of each 12-bit value (filled as the module loads), and the index of the lowest set bit of v (v not 0),
+ * without compiler built-ins. */
+static uint8_t pop12[4096];
+
+static void
+fill_pop12(void)
+{
+    for (unsigned v = 1; v < 4096; v++)
+        pop12[v] = (uint8_t)(pop12[v >> 1] + (v & 1u));
+}
+
+static inline int
+popcount12(unsigned v)
+{
+    return pop12[v & 0xFFFu];
+}
+
+static inline int
+lowest_bit(unsigned v)
+{
+    int k = 0;
+    for (; !(v & 1u); v >>= 1)
+        k++;
+    return k;
+}
+
+/* The decoder between words: what every word needs from the words before it, the outputs' fill, and the time
+ * range of the events written. */
+typedef struct {
+    int64_t high, low, epoch, y, base, pol, now;
+    int64_t n, m, t_min, t_max;
+} e3_state;
+
+typedef struct {
+    int64_t *t, *tt;
+    uint16_t *x, *y;
+    uint8_t *p, *tk, *tch;
+    int64_t cap, cap_tr, width, height;
+    int decode;
+} e3_out;
+
+/* The time of an event at the state's time words: epoch << 24 | high << 12 | low, in unsigned arithmetic (any
+ * state wraps, defined, instead of overflowing). */
+static inline int64_t
+e3_now(const e3_state *s)
+{
+    return (int64_t)(((uint64_t)s->epoch << 24) | ((uint64_t)s->high << 12) | (uint64_t)s->low);
+}
+
+static inline void
+e3_seen(e3_state *s)
+{
+    s->t_min = s->now < s->t_min ? s->now : s->t_min;
+    s->t_max = s->now > s->t_max ? s->now : s->t_max;
+}
+
+/* One word taken exactly as the format describes it (see evt3_run): its effects on the state and outputs, or an
+ * outcome other than E3_OK when the decoding stops at it (its effects not taken, but for the events of a vector
+ * word before one off the sensor). */
+static int
+e3_word(unsigned w, e3_state *s, const e3_out *o)
+{
+    unsigned kind = w >> 12, v = w & 0xFFF;
+    switch (kind) {
+    case 0:
+        s->y = v & 0x7FF;
+        return E3_OK;
+    case 2: {
+        int64_t xx = v & 0x7FF;
+        if (o->decode && s->n >= o->cap)
+            return E3_FULL;
+        if (xx >= o->width || s->y >= o->height)
+            return E3_COORD;
+        if (o->decode) {
+            o->t[s->n] = s->now;
+            o->x[s->n] = (uint16_t)xx;
+            o->y[s->n] = (uint16_t)s->y;
+            o->p[s->n] = (uint8_t)((v >> 11) & 1);
+        }
+        s->n++;
+        e3_seen(s);
+        return E3_OK;
+    }
+    case 4:
+    case 5: {
+        unsigned mask = kind == 4 ? v : (v & 0xFF);
+        int64_t n0 = s->n;
+        int outcome = E3_OK;
+        if (o->decode && s->n + popcount12(mask) > o->cap)
+            return E3_FULL;
+        for (; mask; mask &= mask - 1) {
+            int64_t xx = s->base + lowest_bit(mask);
+            if (xx < 0 || xx >= o->width || s->y >= o->height) {
+                outcome = E3_COORD;
+                break;
+            }
+            if (o->decode) {
+                o->t[s->n] = s->now;
+                o->x[s->n] = (uint16_t)xx;
+                o->y[s->n] = (uint16_t)s->y;
+                o->p[s->n] = (uint8_t)s->pol;
+            }
+            s->n++;
+        }
+        if (s->n > n0)
+            e3_seen(s);
+        if (outcome == E3_OK)
+            s->base += kind == 4 ? 12 : 8;
+        return outcome;
+    }
+    case 3:
+        s->base = v & 0x7FF;
+        s->pol = (v >> 11) & 1;
+        return E3_OK;
+    case 6:
+        s->low = v;
+        s->now = e3_now(s);
+        return E3_OK;
+    case 8:
+        if ((int64_t)v < s->high && s->high - (int64_t)v > 2048)
+            s->epoch++;
+        s->high = v;
+        s->now = e3_now(s);
+        return E3_OK;
+    case 10:
+        if (o->decode) {
+            if (s->m >= o->cap_tr)
+                return E3_FULL;
+            o->tt[s->m] = s->now;
+            o->tk[s->m] = (v & 1) ? 1 : 2;
+            o->tch[s->m] = (uint8_t)((v >> 8) & 0xF);
+        }
+        s->m++;
+        return E3_OK;
+    case 7:
+    case 14:
+    case 15:
+        return E3_OK;
+    default:
+        return E3_TYPE;
+    }
+}
+
+/* The word types e3_fast leaves to e3_word (bit k: type k): triggers and the types that are none. */
+#define E3_SLOW_TYPES ((1u << 1) | (1u << 9) | (1u << 10) | (1u << 11) | (1u << 12) | (1u << 13))
+/* By type: the bits of a vector word that are events, and the steps it moves the base on. */
+static const unsigned e3_events_mask[16] = {0, 0, 0, 0, 0xFFF, 0xFF, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+static const int64_t e3_step[16] = {0, 0, 0, 0, 12, 8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+/* Most words e3_fast takes at a time (its events, at most 12 a word, stay in the cache for the check after). */
+#define E3_CHUNK_WORDS 4096
+
+/* Words [i, end) decoded fast, from state s, where their events cannot outgrow the columns (the caller made sure
+ * that 12 a word fit). The state's values are kept by selection, not branches, and an EVT_ADDR_X word's event
+ * is written whatever the word (only an event word moves the fill on past it). Stops at the first word it leaves
+ * to e3_word (a trigger, a word of no type, a vector word whose events could pass the sensor's width); an event
+ * off the sensor it writes all the same (the caller checks the coordinates written, and takes the words again
+ * with e3_word where one is off). Returns the index of the first word not taken. */
+static int64_t
+e3_fast(const uint16_t *words, int64_t i, int64_t end, e3_state *s, const e3_out *o)
+{
+    /* the state in locals (the columns' uint8 stores may alias anything in memory), the time as tb | low with
+     * tb = epoch << 24 | high << 12 */
+    int64_t tb = (int64_t)(((uint64_t)s->epoch << 24) | ((uint64_t)s->high << 12)), low = s->low;
+    int64_t yy = s->y, base = s->base, pol = s->pol, n = s->n;
+    int64_t *const t = o->t;
+    uint16_t *const x = o->x, *const y = o->y;
+    uint8_t *const p = o->p;
+    const int64_t base_room = o->width - 12;
+    for (; i < end; i++) {
+        unsigned w = words[i], kind = w >> 12, v = w & 0xFFF;
+        if ((E3_SLOW_TYPES >> kind) & 1u)
+            break;
+        int64_t now = tb | low;
+        t[n] = now;
+        x[n] = (uint16_t)(v & 0x7FF);
+        y[n] = (uint16_t)yy;
+        p[n] = (uint8_t)(v >> 11);
+        n += kind == 2;
+        unsigned events = v & e3_events_mask[kind];
+        if (events) {
+            if (base < 0 || base > base_room)
+                break;
+            for (; events; events &= events - 1, n++) {
+                t[n] = now;
+                x[n] = (uint16_t)(base + lowest_bit(events));
+                y[n] = (uint16_t)yy;
+                p[n] = (uint8_t)pol;
+            }
+        }
+        base += e3_step[kind];
+        yy = kind == 0 ? (int64_t)(v & 0x7FF) : yy;
+        base = kind == 3 ? (int64_t)(v & 0x7FF) : base;
+        pol = kind == 3 ? (int64_t)(v >> 11) : pol;
+        low = kind == 6 ? (int64_t)v : low;
+        if (kind == 8) {
+            int64_t high = (tb >> 12) & 0xFFF, wrap = (int64_t)v < high && high - (int64_t)v > 2048;
+            tb = (int64_t)(((((uint64_t)tb >> 24) + (uint64_t)wrap) << 24) | ((uint64_t)v << 12));
+        }
+    }
+    s->high = (tb >> 12) & 0xFFF, s->epoch = (int64_t)((uint64_t)tb >> 24), s->low = low;
+    s->y = yy, s->base = base, s->pol = pol, s->now = tb | low, s->n = n;
+    return i;
+}
+
+/* Words [0, n_words) from state s (its values in range: high and low below 4096, y below 2048, epoch and base not
+ * negative, pol 0 or 1; the wrapper checks); returns the outcome and sets *bad to the word stopped at.
+ *
+ * Decoding, most words go through e3_fast a chunk at a time; the chunk's events are then checked against the
+ * sensor, and where one is off the chunk is taken again from its start with e3_word, which stops at it. The words
+ * e3_fast leaves, those where the columns are within 12 events of full, and every word when counting, go
+ * through e3_word. Either way the words are taken one after another, so the results are e3_word's alone. */
+static int
+e3_decode(const uint16_t *words, int64_t n_words, e3_state *s, const e3_out *o, int64_t *bad)
+{
+    int64_t i = 0, n0 = s->n;
+    int outcome = E3_OK;
+    while (i < n_words && outcome == E3_OK) {
+        int64_t fits = o->decode ? (o->cap - s->n) / 12 : 0;
+        if (fits > 0) {
+            int64_t end = n_words - i < fits ? n_words : i + fits;
+            end = end - i > E3_CHUNK_WORDS ? i + E3_CHUNK_WORDS : end;
+            e3_state start = *s;
+            int64_t first = i;
+            i = e3_fast(words, i, end, s, o);
+            uint16_t most_x = 0, most_y = 0;
+            for (int64_t k = start.n; k < s->n; k++) {
+                most_x = o->x[k] > most_x ? o->x[k] : most_x;
+                most_y = o->y[k] > most_y ? o->y[k] : most_y;
+            }
+            if (s->n > start.n && (most_x >= o->width || most_y >= o->height)) {
+                int64_t taken = i; /* an event off the sensor: the chunk again, exactly */
+                *s = start;
+                for (i = first; i < taken; i++)
+                    if ((outcome = e3_word(words[i], s, o)) != E3_OK)
+                        break;
+                continue;
+            }
+            if (i == end)
+                continue;
+        }
+        outcome = e3_word(words[i], s, o); /* a word e3_fast leaves, or one near full columns, or counting */
+        if (outcome == E3_OK)
+            i++;
+    }
+    if (o->decode) /* the time range of every event written (e3_fast keeps none) */
+        for (int64_t k = n0; k < s->n; k++) {
+            s->t_min = o->t[k] < s->t_min ? o->t[k] : s->t_min;
+            s->t_max = o->t[k] > s->t_max ? o->t[k] : s->t_max;
+        }
+    *bad = outcome == E3_OK ? -1 : i;
+    return outcome;
+}
+
+/* evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch)
+ *
+ * EVT 3.0 words (uint16, the type in the top four bits) decoded one after another from state (six int64, updated
+ * in place to the state after the words whose effects stand: time high, time low, epoch, y, vector base x,
+ * polarity), to the results of evtk.io.prophesee._evt3's numpy decoder:
+ *   0 EVT_ADDR_Y sets y; 2 EVT_ADDR_X is one event at x (bits 0..10), polarity bit 11; 3 VECT_BASE_X sets the
+ *   base x and polarity; 4 VECT_12 and 5 VECT_8 are events at base + k for each set bit k of their 12 or 8 low
+ *   bits, and move the base on by 12 or 8; 6 EVT_TIME_LOW and 8 EVT_TIME_HIGH set bits 0..11 and 12..23 of
+ *   the time (a time high more than 2048 below the one before is a wrap: the epoch counts them); 10 EXT_TRIGGER
+ *   is a trigger (kind 1 rising at bit 0 set, else 2 falling; channel bits 8..11); 7, 14 and 15 carry nothing.
+ * The time of an event or trigger is epoch << 24 | high << 12 | low.
+ *
+ * Stops at a word of another type (E3_TYPE, its effects not taken), at the first event off the width x height
+ * sensor (E3_COORD: the events of its word before it are kept, the word's other effects are not) or, with
+ * decode, at the first event word whose events no longer all fit t, or trigger that no longer fits tt (E3_FULL,
+ * the word not taken). Without decode nothing is written (the columns may be empty).
+ *
+ * Returns (events, triggers, outcome, index of the word stopped at or -1, min t, max t of the events; 2**62 and
+ * -2**62 without events). The GIL is released throughout.
+ */
+static PyObject *
+evt3_run(PyObject *self, PyObject *args)
+{
+    Py_buffer wb, sb, tb, xb, yb, pb, ttb, tkb, tchb;
+    long long width, height;
+    int decode, outcome = E3_OK;
+    int64_t bad = -1;
+    e3_state s;
+    const char *fault = NULL;
+
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*w*LLpw*w*w*w*w*w*w*", &wb, &sb, &width, &height, &decode, &tb, &xb, &yb, &pb,
+                          &ttb, &tkb, &tchb))
+        return NULL;
+    int64_t *state = (int64_t *)sb.buf;
+    e3_out o = {(int64_t *)tb.buf, (int64_t *)ttb.buf, (uint16_t *)xb.buf, (uint16_t *)yb.buf, (uint8_t *)pb.buf,
+                (uint8_t *)tkb.buf, (uint8_t *)tchb.buf, tb.len / 8, ttb.len / 8, width, height, decode};
+
+    if (sb.len != 6 * 8)
+        fault = "the state is six int64";
+    else if (xb.len / 2 != o.cap || yb.len / 2 != o.cap || pb.len != o.cap || tkb.len != o.cap_tr
+             || tchb.len != o.cap_tr)
+        fault = "the columns differ in length";
+    if (fault == NULL) {
+        Py_BEGIN_ALLOW_THREADS
+        s.high = state[0], s.low = state[1], s.epoch = state[2], s.y = state[3], s.base = state[4];
+        s.pol = state[5];
+        s.now = e3_now(&s);
+        s.n = s.m = 0;
+        s.t_min = (int64_t)1 << 62, s.t_max = -((int64_t)1 << 62);
+        outcome = e3_decode((const uint16_t *)wb.buf, wb.len / 2, &s, &o, &bad);
+        state[0] = s.high, state[1] = s.low, state[2] = s.epoch, state[3] = s.y, state[4] = s.base;
+        state[5] = s.pol;
+        Py_END_ALLOW_THREADS
+    }
+    PyBuffer_Release(&wb);
+    PyBuffer_Release(&sb);
+    PyBuffer_Release(&tb);
+    PyBuffer_Release(&xb);
+    PyBuffer_Release(&yb);
+    PyBuffer_Release(&pb);
+    PyBuffer_Release(&ttb);
+    PyBuffer_Release(&tkb);
+    PyBuffer_Release(&tchb);
+    if (fault != NULL) {
+        PyErr_SetString(PyExc_ValueError, fault);
+        return NULL;
+    }
+    return Py_BuildValue("LLiLLL", (long long)s.n, (long long)s.m, outcome, (long long)bad, (long long)s.t_min,
+                         (long long)s.t_max);
+}
+
+/* evt3_scan(words)
+ *
+ * The counts and the effect on the decoder's state of EVT 3.0 words, up to the first word of no type, without
+ * decoding them (evtk.io.prophesee._evt3.scan): (events, triggers, index of the word of no type or -1, and the
+ * effect: the last y, the last time low, the first and the last time high (each -1 where no word sets it), the
+ * wraps between the time highs, the last vector base word's 12 low bits (x and polarity; -1 if none) and the
+ * vector steps after it (after the start if none)). Events off any sensor are counted.
+ *
+ * The loop branches only at time-high words and at a word of no type: each word's events are counted through
+ * tables, and its index and the vector steps so far are stored under its type, so that the last word of each
+ * type is known at the end (a third of the time of keeping each value by selection). The GIL is released.
+ */
+static PyObject *
+evt3_scan(PyObject *self, PyObject *args)
+{
+    Py_buffer wb;
+    /* the bits of a vector word that are events, and the steps it moves the base on, by type */
+    static const unsigned events_mask[16] = {0, 0, 0, 0, 0xFFF, 0xFF, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    static const int64_t step[16] = {0, 0, 0, 0, 12, 8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    /* bit k: type k is none of EVT 3.0's (1, 9, 11, 12, 13) */
+    const unsigned none = (1u << 1) | (1u << 9) | (1u << 11) | (1u << 12) | (1u << 13);
+
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*", &wb))
+        return NULL;
+    const uint16_t *words = (const uint16_t *)wb.buf;
+    int64_t n_words = wb.len / 2, n_ev = 0, n_tr = 0, stop = -1;
+    int64_t first_high = -1, last_high = -1, wraps = 0, steps = 0;
+    int64_t last[16], steps_at[16];
+    Py_BEGIN_ALLOW_THREADS
+    for (int k = 0; k < 16; k++)
+        last[k] = -1, steps_at[k] = 0;
+    for (int64_t i = 0; i < n_words; i++) {
+        unsigned w = words[i], kind = w >> 12, v = w & 0xFFF;
+        if ((none >> kind) & 1u) {
+            stop = i;
+            break;
+        }
+        n_ev += (kind == 2) + popcount12(v & events_mask[kind]);
+        n_tr += kind == 10;
+        steps += step[kind];
+        last[kind] = i;
+        steps_at[kind] = steps;
+        if (kind == 8) {
+            if (first_high < 0)
+                first_high = v;
+            else if ((int64_t)v < last_high && last_high - (int64_t)v > 2048)
+                wraps++;
+            last_high = v;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    int64_t yy = last[0] >= 0 ? (int64_t)(words[last[0]] & 0x7FF) : -1;
+    int64_t low = last[6] >= 0 ? (int64_t)(words[last[6]] & 0xFFF) : -1;
+    int64_t base = last[3] >= 0 ? (int64_t)(words[last[3]] & 0xFFF) : -1;
+    steps -= last[3] >= 0 ? steps_at[3] : 0;
+    PyBuffer_Release(&wb);
+    return Py_BuildValue("LLL(LLLLLLL)", (long long)n_ev, (long long)n_tr, (long long)stop, (long long)yy,
+                         (long long)low, (long long)first_high, (long long)last_high, (long long)wraps,
+                         (long long)base, (long long)steps);
+}
+
 static PyMethodDef methods[] = {
     {"count_windows", count_windows, METH_VARARGS,
      "Count events into their windows' bins with the GIL released (see evtk._native.count_windows)."},
     {"decode_lz4_batch", decode_lz4_batch, METH_VARARGS,
      "Decode a batch of LZ4 event packets with the GIL released (see evtk._native.decode_lz4_batch)."},
+    {"evt3_run", evt3_run, METH_VARARGS,
+     "Decode or count EVT 3.0 words with the GIL released (see evtk._native.evt3_run)."},
+    {"evt3_scan", evt3_scan, METH_VARARGS,
+     "Count EVT 3.0 words and sum up their effect, the GIL released (see evtk._native.evt3_scan)."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -335,5 +731,6 @@ static struct PyModuleDef module = {
 PyMODINIT_FUNC
 PyInit__ckernels(void)
 {
+    fill_pop12();
     return PyModule_Create(&module);
 }

@@ -1,11 +1,12 @@
 """evtk's optional compiled kernels (``evtk._ckernels``, built at install where a C compiler is present), behind
 wrappers that check their arguments and say when the Python route must be taken instead: the counting of fixed
-windows (:func:`count_windows`) and the AEDAT4 reader's batches of LZ4 event packets (:func:`decode_lz4_batch`).
+windows (:func:`count_windows`), the AEDAT4 reader's batches of LZ4 event packets (:func:`decode_lz4_batch`) and
+Prophesee EVT 3.0 words (:func:`evt3_run`, :func:`evt3_scan`).
 
 The kernels release the GIL, so parts of one piece of work run on several cores at once; numpy's scattered adds
 (``np.add.at``), which the numpy route counts with, keep it, and so does the Python loop over a batch's
-packets. ``EVTK_NATIVE=0`` (read at each call) turns them off, to compare the two routes; the results are the
-same to the last bit.
+packets (EVT 3.0's numpy decoder takes it back after each of its fifty-odd calls a slice). ``EVTK_NATIVE=0``
+(read at each call) turns them off, to compare the two routes; the results are the same to the last bit.
 """
 
 from __future__ import annotations
@@ -19,11 +20,18 @@ from ._threads import switched_off
 
 _kernel_count_windows: Any
 _kernel_decode_lz4_batch: Any
+_kernel_evt3_run: Any
+_kernel_evt3_scan: Any
+_ckernels: Any
 try:
-    from ._ckernels import count_windows as _kernel_count_windows
-    from ._ckernels import decode_lz4_batch as _kernel_decode_lz4_batch
+    from . import _ckernels
 except ImportError:  # built without a compiler: the numpy route
-    _kernel_count_windows = _kernel_decode_lz4_batch = None
+    _ckernels = None
+# each kernel where built (an install built before the EVT 3.0 kernels has the first two)
+_kernel_count_windows = getattr(_ckernels, "count_windows", None)
+_kernel_decode_lz4_batch = getattr(_ckernels, "decode_lz4_batch", None)
+_kernel_evt3_run = getattr(_ckernels, "evt3_run", None)
+_kernel_evt3_scan = getattr(_ckernels, "evt3_scan", None)
 
 #: Whether the install built the compiled kernels (a C compiler was present). They read the files' little-endian
 #: numbers as the machine's own: on a big-endian machine they are left unused.
@@ -194,3 +202,89 @@ def decode_lz4_batch(raw: np.ndarray, heads: np.ndarray, sids: np.ndarray, sizes
     return bool(_kernel_decode_lz4_batch(raw, heads, sids, sizes, counts, verify, *lz4f, stage, int(floor_bytes),
                                          int(ratio), int(most_bytes), t, x, y, p, int(sensor_size[0]),
                                          int(sensor_size[1])))
+
+
+def _as_words(words: Any) -> np.ndarray | None:
+    """``words`` as contiguous native uint16 without a copy where they already are; None where they are not words."""
+    w = np.asarray(words)
+    if w.dtype.kind not in "ui" or w.ndim != 1:
+        return None
+    return np.ascontiguousarray(w.astype(np.uint16, copy=False))
+
+
+def evt3_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool, t: np.ndarray, x: np.ndarray,
+             y: np.ndarray, p: np.ndarray, tt: np.ndarray, tk: np.ndarray, tch: np.ndarray,
+             status: tuple[int, int, int, int]) -> tuple[int, int, int, int, int, int] | None:
+    """Decode or count EVT 3.0 words with the compiled kernel, the GIL released: what
+    :func:`evtk.io.prophesee._evt3.run` does with numpy, to the same results (``tests/test_prophesee_numpy.py``
+    compares both with a word-by-word loop).
+
+    Parameters
+    ----------
+    words : array_like
+        The words (16-bit, in the machine's order).
+    state : ndarray
+        The decoder's state before the words (six int64: time high, time low, epoch, y, vector base x,
+        polarity), updated in place to the state after the words whose effects stand. Values no EVT 3.0 words
+        leave (a time part of 4096 or more, say) go to numpy.
+    width, height : int
+        The sensor: an event off it stops the decoding.
+    decode : bool
+        Write the events and triggers; else only count them.
+    t, x, y, p : ndarray
+        The events' columns (int64, uint16, uint16, uint8; one length, the most events written).
+    tt, tk, tch : ndarray
+        The triggers' time, kind and channel (int64, uint8, uint8; one length).
+    status : tuple of int
+        The status codes to return for none, a word of no type, an event off the sensor, and full outputs.
+
+    Returns
+    -------
+    tuple of int or None
+        ``(events, triggers, status, index of the word stopped at or -1, min t, max t)``, as the numpy decoder's;
+        None when the kernel is off or missing, or an argument is not in the form it takes (then the caller
+        decodes with numpy).
+    """
+    if not enabled() or _kernel_evt3_run is None:
+        return None
+    w = _as_words(words)
+    if w is None or state.dtype != _I64 or state.shape != (6,) or not state.flags.c_contiguous \
+            or not state.flags.writeable:
+        return None
+    high, low, epoch, at_y, base, pol = state.tolist()
+    if not (0 <= high < 4096 and 0 <= low < 4096 and 0 <= epoch < 1 << 39 and 0 <= at_y < 2048 and base >= 0
+            and pol in (0, 1)):
+        return None  # not a state EVT 3.0 words can leave (the kernel packs the time's parts into one int64)
+    cols = (t, x, y, p, tt, tk, tch)
+    if (any(not c.flags.c_contiguous or not c.flags.writeable for c in cols) or t.dtype != _I64 or tt.dtype != _I64
+            or (x.dtype, y.dtype, p.dtype, tk.dtype, tch.dtype) != (np.uint16, np.uint16, np.uint8, np.uint8, np.uint8)
+            or not len(t) == len(x) == len(y) == len(p) or not len(tt) == len(tk) == len(tch)):
+        return None
+    n, m, outcome, bad, lo, hi = _kernel_evt3_run(w, state, int(width), int(height), bool(decode), t, x, y, p, tt, tk,
+                                                  tch)
+    return n, m, status[outcome], bad, lo, hi
+
+
+def evt3_scan(words: Any) -> tuple[int, int, int, tuple[int, ...]] | None:
+    """Count EVT 3.0 words' events and triggers and sum up their effect on the decoder's state with the compiled
+    kernel, the GIL released: :func:`evtk.io.prophesee._evt3.scan` without numpy, to the same results.
+
+    Parameters
+    ----------
+    words : array_like
+        The words (16-bit, in the machine's order).
+
+    Returns
+    -------
+    tuple or None
+        ``(events, triggers, index of the first word of no type or -1, effect)``, ``effect`` as
+        :func:`evtk.io.prophesee._evt3.advance` takes it; None when the kernel is off or missing, or the words are
+        not in a form it takes.
+    """
+    if not enabled() or _kernel_evt3_scan is None:
+        return None
+    w = _as_words(words)
+    if w is None:
+        return None
+    n_ev, n_tr, stop, effect = _kernel_evt3_scan(w)
+    return n_ev, n_tr, stop, effect

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import evtk
+from evtk import _native
 from evtk.io.prophesee import _evt3 as evt3
 from evtk.io.prophesee import recording
 from evtk.io.prophesee.decoders import ST_COORD, ST_FULL, ST_OK, ST_TYPE
@@ -90,14 +91,33 @@ def _random_words(rng, n, trial):
         small = (kinds == 0) | (kinds == 2) | (kinds == 3)
         v[small] = (v[small] & 0x800) | rng.integers(0, 20, small.sum())
     if trial % 11 == 0:  # time highs that go back by more than half: wraps of the 24-bit time
-        v[kinds == 8] = rng.choice([0, 4095, 1, 3000], (kinds == 8).sum())
+        v[kinds == 8] = rng.choice([0, 4095, 1, 3000, 2048, 2049, 2047], (kinds == 8).sum())  # drops of 2048: none
     return ((kinds << 12) | v).astype(np.uint16)
 
 
-@pytest.mark.parametrize("slice_words, h_limit", [(8, evt3._H_LIMIT), (1 << 16, evt3._H_LIMIT), (1 << 16, 0)],
-                         ids=["slices-of-8", "one-slice", "time-high-apart"])
-def test_evt3_numpy_decoder_equals_a_word_by_word_loop(monkeypatch, slice_words, h_limit):
-    """h_limit 0: the time high's part added apart, as after 2**28 wraps of the 24-bit time."""
+def _route(monkeypatch, route):
+    """Take the numpy route (``EVTK_NATIVE=0``) or the compiled kernel's, making sure the other is not taken."""
+    if route == "numpy":
+        monkeypatch.setenv("EVTK_NATIVE", "0")
+        return
+    if not _native.BUILT or _native._kernel_evt3_run is None:
+        pytest.skip("evtk's compiled kernels were not built (no C compiler at install)")
+    monkeypatch.delenv("EVTK_NATIVE", raising=False)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the numpy route was taken")
+
+    monkeypatch.setattr(evt3, "_numpy_run", refuse)
+    monkeypatch.setattr(evt3, "_scan_slice", refuse)
+
+
+@pytest.mark.parametrize("slice_words, h_limit, route", [(8, evt3._H_LIMIT, "numpy"), (1 << 16, evt3._H_LIMIT, "numpy"),
+                                                         (1 << 16, 0, "numpy"), (8, evt3._H_LIMIT, "native")],
+                         ids=["slices-of-8", "one-slice", "time-high-apart", "compiled"])
+def test_evt3_decoder_equals_a_word_by_word_loop(monkeypatch, slice_words, h_limit, route):
+    """numpy's decoder and the compiled one. h_limit 0: numpy adds the time high's part apart, as after 2**28 wraps
+    of the 24-bit time."""
+    _route(monkeypatch, route)
     monkeypatch.setattr(evt3, "SLICE_WORDS", slice_words)
     monkeypatch.setattr(evt3, "_H_LIMIT", h_limit)
     rng = np.random.default_rng(7)
@@ -121,6 +141,20 @@ def test_evt3_numpy_decoder_equals_a_word_by_word_loop(monkeypatch, slice_words,
         evt3.advance(s3, effect)
         r = _loop(words[:stop] if stop >= 0 else words, s4, 1 << 16, 1 << 16, False, *_outs(0))
         assert (n_ev, n_tr) == r[:2] and np.array_equal(s3, s4), trial
+
+
+@pytest.mark.parametrize("route", ["numpy", "native"])
+def test_evt3_vectors_moved_past_65535_stop_at_the_sensor_s_edge(monkeypatch, route):
+    """Vector words without events move the base on by 12 each until it passes 65535: the next vector's event lies
+    off the sensor (not at its x modulo 65536), for the word-by-word loop and both decoders."""
+    _route(monkeypatch, route)
+    words = np.array([(0 << 12) | 1, (3 << 12) | 0] + [4 << 12] * 5462 + [(4 << 12) | 1, (2 << 12) | 3], np.uint16)
+    for sensor in ((40, 25), (1 << 16, 1 << 16)):
+        got, want = _outs(16), _outs(16)
+        s1, s2 = np.zeros(6, np.int64), np.zeros(6, np.int64)
+        r1 = tuple(int(a) for a in evt3.run(words, s1, *sensor, True, *got))
+        r2 = _loop(words, s2, *sensor, True, *want)
+        assert r1 == r2 and r1[2] == ST_COORD and r1[3] == 5464 and np.array_equal(s1, s2), (r1, r2)
 
 
 def _evt3_file(path, words, sensor=(40, 25)):
@@ -154,10 +188,12 @@ def _one_block_at_a_time(path, salvage):
                 rec._blocks, problem)
 
 
-@pytest.mark.parametrize("threads", ["1", "3"])
-def test_a_whole_evt3_read_on_threads_equals_the_block_by_block_read(tmp_path, monkeypatch, threads):
+@pytest.mark.parametrize("threads, route", [("1", "numpy"), ("3", "numpy"), ("3", "native")])
+def test_a_whole_evt3_read_on_threads_equals_the_block_by_block_read(tmp_path, monkeypatch, threads, route):
     """Blocks of 64 words decoded on 3 threads from the states the counting pass gives them: the events, triggers,
-    index rows and first problem of a read one block after another, damaged streams included."""
+    index rows and first problem of a read one block after another, damaged streams included; with numpy, and with
+    the compiled kernel."""
+    _route(monkeypatch, route)
     monkeypatch.setattr(recording, "BLOCK_WORDS", 64)
     monkeypatch.setattr(evt3, "THREADED_BLOCKS", 2)
     monkeypatch.setenv("EVTK_THREADS", threads)
