@@ -3,6 +3,7 @@
     python benchmarks/bench_real_files.py                        # every file, 5 alternating runs each
     python benchmarks/bench_real_files.py --repeats 7 --only evt3,es --json benchmarks/results/real.json
     python benchmarks/bench_real_files.py --commands             # also evtk info / info --check / convert
+    python benchmarks/bench_real_files.py --file evt3=benchmarks/data/threads_20000000_evt3.raw   # any file
 
 Each run is a whole process, timed from outside: start Python, import the
 reader, read every event of the file into numpy arrays, exit. evtk's run
@@ -128,9 +129,15 @@ def main() -> None:
     ap.add_argument("--only", help="comma-separated formats (aedat4, evt2, evt3, dat, es, aedat2, nmnist)")
     ap.add_argument("--evtk-path", default=str(ROOT))
     ap.add_argument("--commands", action="store_true", help="also time evtk info / info --check / convert")
+    ap.add_argument("--file", action="append", default=[], metavar="FORMAT=PATH",
+                    help="read this file instead of the real ones (repeatable), e.g. a large one another tool wrote: "
+                         "evt3=benchmarks/data/threads_20000000_evt3.raw")
     ap.add_argument("--json")
     args = ap.parse_args()
     only = set(args.only.split(",")) if args.only else None
+    chosen = [(fmt, Path(path).resolve()) for fmt, _, path in (f.partition("=") for f in args.file)]
+    if any(fmt not in PEERS for fmt, _ in chosen):
+        ap.error(f"--file takes FORMAT=PATH, FORMAT one of {', '.join(PEERS)}")
     env = env_for(args.evtk_path)
     peer_env = plain_env()
     work = Path(tempfile.mkdtemp(prefix="evtk-real-"))  # cwd: no checkout shadows PYTHONPATH's
@@ -139,7 +146,7 @@ def main() -> None:
     print(f"{'file':<62}{'format':<14}{'events':>9}{'evtk s':>8}{'peer':>14}{'peer s':>8}{'peer/evtk':>10}"
           f"{'cpu ratio':>10}")
     rows = []
-    for fmt, path in files(only):
+    for fmt, path in (chosen or files(only)):
         peer, program = PEERS[fmt]
         runs = {"evtk": [py, "-c", EVTK, str(path)], "peer": [py, "-c", program, str(path)]}
         envs = {"evtk": env, "peer": peer_env}
@@ -173,7 +180,7 @@ def main() -> None:
     commands = []
     if args.commands:
         largest: dict = {}
-        for fmt, path in files(only):
+        for fmt, path in (chosen or files(only)):
             if fmt not in largest or path.stat().st_size > largest[fmt].stat().st_size:
                 largest[fmt] = path
         print(f"\n{'file':<62}{'info':>7}{'--check':>9}{'->h5':>7}{'->aedat4':>10}  (s, median of {args.repeats})")

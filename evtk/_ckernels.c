@@ -577,6 +577,22 @@ e3_decode(const uint16_t *words, int64_t n_words, e3_state *s, const e3_out *o, 
     return outcome;
 }
 
+/* The end of a decoder's call: its buffers released, then ValueError(fault) where fault is set, else the decoders'
+ * (events, triggers, outcome, index of the word stopped at or -1, min t, max t). */
+static PyObject *
+decoded(Py_buffer *const *bufs, int n_bufs, const char *fault, int64_t n, int64_t m, int outcome, int64_t bad,
+        int64_t t_min, int64_t t_max)
+{
+    for (int k = 0; k < n_bufs; k++)
+        PyBuffer_Release(bufs[k]);
+    if (fault != NULL) {
+        PyErr_SetString(PyExc_ValueError, fault);
+        return NULL;
+    }
+    return Py_BuildValue("LLiLLL", (long long)n, (long long)m, outcome, (long long)bad, (long long)t_min,
+                         (long long)t_max);
+}
+
 /* evt3_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch)
  *
  * EVT 3.0 words (uint16, the type in the top four bits) decoded one after another from state (six int64, updated
@@ -632,21 +648,8 @@ evt3_run(PyObject *self, PyObject *args)
         state[5] = s.pol;
         Py_END_ALLOW_THREADS
     }
-    PyBuffer_Release(&wb);
-    PyBuffer_Release(&sb);
-    PyBuffer_Release(&tb);
-    PyBuffer_Release(&xb);
-    PyBuffer_Release(&yb);
-    PyBuffer_Release(&pb);
-    PyBuffer_Release(&ttb);
-    PyBuffer_Release(&tkb);
-    PyBuffer_Release(&tchb);
-    if (fault != NULL) {
-        PyErr_SetString(PyExc_ValueError, fault);
-        return NULL;
-    }
-    return Py_BuildValue("LLiLLL", (long long)s.n, (long long)s.m, outcome, (long long)bad, (long long)s.t_min,
-                         (long long)s.t_max);
+    Py_buffer *const bufs[] = {&wb, &sb, &tb, &xb, &yb, &pb, &ttb, &tkb, &tchb};
+    return decoded(bufs, 9, fault, s.n, s.m, outcome, bad, s.t_min, s.t_max);
 }
 
 /* evt3_scan(words)
@@ -711,6 +714,162 @@ evt3_scan(PyObject *self, PyObject *args)
                          (long long)base, (long long)steps);
 }
 
+/* ---- Prophesee EVT 2.0 words and DAT events --------------------------------------------------------------- */
+
+/* evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch)
+ *
+ * EVT 2.0 words (uint32, the type in the top four bits) taken one after another from state (two int64, updated in
+ * place: the last time high, the epoch), to the results of evtk.io.prophesee.decoders' numpy decoder: CD_OFF and
+ * CD_ON (0, 1) are an event at x (bits 11..21), y (bits 0..10), polarity the type, time base | bits 22..27;
+ * EV_TIME_HIGH (8) sets the time high (bits 0..27; a drop of more than 2**27 is a wrap: the epoch counts them),
+ * the time base being epoch << 34 | high << 6; EXT_TRIGGER (10) is a trigger at base | bits 22..27 (kind 1 rising
+ * at bit 0 set, else 2; channel bits 8..12); OTHERS and CONTINUED (14, 15) carry nothing.
+ *
+ * Stops at an event off the width x height sensor (E3_COORD) or a word of another type (E3_TYPE), the word's
+ * effects not taken, or, decoding, where the columns are full (E3_FULL; evtk._native's wrapper gives columns as
+ * long as the words). Returns (events, triggers, outcome, index of the word stopped at or -1, min t, max t): the
+ * time range of the events when counting; 2**62 and -2**62 when decoding, as numpy's decoder returns. The GIL is
+ * released throughout.
+ */
+static PyObject *
+evt2_run(PyObject *self, PyObject *args)
+{
+    Py_buffer wb, sb, tb, xb, yb, pb, ttb, tkb, tchb;
+    long long width, height;
+    int decode, outcome = E3_OK;
+    int64_t n = 0, m = 0, bad = -1, t_min = (int64_t)1 << 62, t_max = -((int64_t)1 << 62);
+    const char *fault = NULL;
+
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*w*LLpw*w*w*w*w*w*w*", &wb, &sb, &width, &height, &decode, &tb, &xb, &yb, &pb,
+                          &ttb, &tkb, &tchb))
+        return NULL;
+    const uint32_t *words = (const uint32_t *)wb.buf;
+    int64_t *state = (int64_t *)sb.buf, *t = (int64_t *)tb.buf, *tt = (int64_t *)ttb.buf;
+    uint16_t *x = (uint16_t *)xb.buf, *y = (uint16_t *)yb.buf;
+    uint8_t *p = (uint8_t *)pb.buf, *tk = (uint8_t *)tkb.buf, *tch = (uint8_t *)tchb.buf;
+    int64_t n_words = wb.len / 4, cap = tb.len / 8, cap_tr = ttb.len / 8;
+
+    if (sb.len != 2 * 8)
+        fault = "the state is two int64";
+    else if (xb.len / 2 != cap || yb.len / 2 != cap || pb.len != cap || tkb.len != cap_tr || tchb.len != cap_tr)
+        fault = "the columns differ in length";
+    if (fault == NULL) {
+        Py_BEGIN_ALLOW_THREADS
+        int64_t high = state[0], epoch = state[1];
+        int64_t base = (int64_t)(((uint64_t)epoch << 34) | ((uint64_t)high << 6));
+        int64_t i = 0;
+        for (; i < n_words; i++) {
+            uint32_t w = words[i];
+            unsigned kind = w >> 28;
+            if (kind <= 1) {
+                uint32_t xx = (w >> 11) & 0x7FF, yy = w & 0x7FF;
+                if (xx >= width || yy >= height) { outcome = E3_COORD; break; }
+                int64_t now = base | ((w >> 22) & 0x3F);
+                if (decode) {
+                    if (n >= cap) { outcome = E3_FULL; break; }
+                    t[n] = now;
+                    x[n] = (uint16_t)xx;
+                    y[n] = (uint16_t)yy;
+                    p[n] = (uint8_t)kind;
+                } else {
+                    t_min = now < t_min ? now : t_min;
+                    t_max = now > t_max ? now : t_max;
+                }
+                n++;
+            } else if (kind == 8) {
+                int64_t v = w & 0xFFFFFFF;
+                if (v < high && high - v > ((int64_t)1 << 27))
+                    epoch++;
+                high = v;
+                base = (int64_t)(((uint64_t)epoch << 34) | ((uint64_t)high << 6));
+            } else if (kind == 10) {
+                if (decode) {
+                    if (m >= cap_tr) { outcome = E3_FULL; break; }
+                    tt[m] = base | ((w >> 22) & 0x3F);
+                    tk[m] = (w & 1) ? 1 : 2;
+                    tch[m] = (uint8_t)((w >> 8) & 0x1F);
+                }
+                m++;
+            } else if (kind != 14 && kind != 15) {
+                outcome = E3_TYPE;
+                break;
+            }
+        }
+        bad = outcome == E3_OK ? -1 : i;
+        state[0] = high, state[1] = epoch;
+        Py_END_ALLOW_THREADS
+    }
+    Py_buffer *const bufs[] = {&wb, &sb, &tb, &xb, &yb, &pb, &ttb, &tkb, &tchb};
+    return decoded(bufs, 9, fault, n, m, outcome, bad, t_min, t_max);
+}
+
+/* dat_run(words, state, width, height, decode, t, x, y, p)
+ *
+ * DAT CD events (pairs of uint32: time stamp, data; a last odd word is left) taken one after another from state
+ * (two int64, updated in place: the last raw time stamp, -1 before the first, and the epoch), to the results of
+ * evtk.io.prophesee.decoders' numpy decoder: x is bits 0..13 of the data, y bits 14..27, the polarity ON where
+ * any of bits 28..31 is set; a time stamp more than 2**31 below the one before is a wrap of the counter (the epoch
+ * counts them), the time epoch << 32 | stamp.
+ *
+ * Stops at an event off the width x height sensor (E3_COORD; its stamp still moves the clock, as numpy's decoder
+ * reads it) or, decoding, where the columns are full (E3_FULL). Returns (events, 0, outcome, index of the event
+ * stopped at or -1, min t, max t), the time range when counting as evt2_run's. The GIL is released throughout.
+ */
+static PyObject *
+dat_run(PyObject *self, PyObject *args)
+{
+    Py_buffer wb, sb, tb, xb, yb, pb;
+    long long width, height;
+    int decode, outcome = E3_OK;
+    int64_t n = 0, bad = -1, t_min = (int64_t)1 << 62, t_max = -((int64_t)1 << 62);
+    const char *fault = NULL;
+
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*w*LLpw*w*w*w*", &wb, &sb, &width, &height, &decode, &tb, &xb, &yb, &pb))
+        return NULL;
+    const uint32_t *words = (const uint32_t *)wb.buf;
+    int64_t *state = (int64_t *)sb.buf, *t = (int64_t *)tb.buf;
+    uint16_t *x = (uint16_t *)xb.buf, *y = (uint16_t *)yb.buf;
+    uint8_t *p = (uint8_t *)pb.buf;
+    int64_t n_events = wb.len / 8, cap = tb.len / 8;
+
+    if (sb.len != 2 * 8)
+        fault = "the state is two int64";
+    else if (xb.len / 2 != cap || yb.len / 2 != cap || pb.len != cap)
+        fault = "the columns differ in length";
+    if (fault == NULL) {
+        Py_BEGIN_ALLOW_THREADS
+        int64_t prev = state[0], epoch = state[1];
+        int64_t i = 0;
+        for (; i < n_events; i++) {
+            int64_t stamp = words[2 * i];
+            uint32_t d = words[2 * i + 1], xx = d & 0x3FFF, yy = (d >> 14) & 0x3FFF;
+            if (decode && n >= cap) { outcome = E3_FULL; break; }
+            if (stamp < prev && prev - stamp > ((int64_t)1 << 31))
+                epoch++;
+            prev = stamp;
+            if (xx >= width || yy >= height) { outcome = E3_COORD; break; }
+            int64_t now = (int64_t)(((uint64_t)epoch << 32) | (uint64_t)stamp);
+            if (decode) {
+                t[n] = now;
+                x[n] = (uint16_t)xx;
+                y[n] = (uint16_t)yy;
+                p[n] = (d >> 28) != 0;
+            } else {
+                t_min = now < t_min ? now : t_min;
+                t_max = now > t_max ? now : t_max;
+            }
+            n++;
+        }
+        bad = outcome == E3_OK ? -1 : i;
+        state[0] = prev, state[1] = epoch;
+        Py_END_ALLOW_THREADS
+    }
+    Py_buffer *const bufs[] = {&wb, &sb, &tb, &xb, &yb, &pb};
+    return decoded(bufs, 6, fault, n, 0, outcome, bad, t_min, t_max);
+}
+
 static PyMethodDef methods[] = {
     {"count_windows", count_windows, METH_VARARGS,
      "Count events into their windows' bins with the GIL released (see evtk._native.count_windows)."},
@@ -720,6 +879,10 @@ static PyMethodDef methods[] = {
      "Decode or count EVT 3.0 words with the GIL released (see evtk._native.evt3_run)."},
     {"evt3_scan", evt3_scan, METH_VARARGS,
      "Count EVT 3.0 words and sum up their effect, the GIL released (see evtk._native.evt3_scan)."},
+    {"evt2_run", evt2_run, METH_VARARGS,
+     "Decode or count EVT 2.0 words with the GIL released (see evtk._native.evt2_run)."},
+    {"dat_run", dat_run, METH_VARARGS,
+     "Decode or count DAT events with the GIL released (see evtk._native.dat_run)."},
     {NULL, NULL, 0, NULL},
 };
 

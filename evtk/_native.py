@@ -1,7 +1,8 @@
 """evtk's optional compiled kernels (``evtk._ckernels``, built at install where a C compiler is present), behind
 wrappers that check their arguments and say when the Python route must be taken instead: the counting of fixed
-windows (:func:`count_windows`), the AEDAT4 reader's batches of LZ4 event packets (:func:`decode_lz4_batch`) and
-Prophesee EVT 3.0 words (:func:`evt3_run`, :func:`evt3_scan`).
+windows (:func:`count_windows`), the AEDAT4 reader's batches of LZ4 event packets (:func:`decode_lz4_batch`), and
+Prophesee EVT 3.0 words (:func:`evt3_run`, :func:`evt3_scan`), EVT 2.0 words (:func:`evt2_run`) and DAT events
+(:func:`dat_run`).
 
 The kernels release the GIL, so parts of one piece of work run on several cores at once; numpy's scattered adds
 (``np.add.at``), which the numpy route counts with, keep it, and so does the Python loop over a batch's
@@ -22,6 +23,8 @@ _kernel_count_windows: Any
 _kernel_decode_lz4_batch: Any
 _kernel_evt3_run: Any
 _kernel_evt3_scan: Any
+_kernel_evt2_run: Any
+_kernel_dat_run: Any
 _ckernels: Any
 try:
     from . import _ckernels
@@ -32,6 +35,8 @@ _kernel_count_windows = getattr(_ckernels, "count_windows", None)
 _kernel_decode_lz4_batch = getattr(_ckernels, "decode_lz4_batch", None)
 _kernel_evt3_run = getattr(_ckernels, "evt3_run", None)
 _kernel_evt3_scan = getattr(_ckernels, "evt3_scan", None)
+_kernel_evt2_run = getattr(_ckernels, "evt2_run", None)
+_kernel_dat_run = getattr(_ckernels, "dat_run", None)
 
 #: Whether the install built the compiled kernels (a C compiler was present). They read the files' little-endian
 #: numbers as the machine's own: on a big-endian machine they are left unused.
@@ -255,13 +260,111 @@ def evt3_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
     if not (0 <= high < 4096 and 0 <= low < 4096 and 0 <= epoch < 1 << 39 and 0 <= at_y < 2048 and base >= 0
             and pol in (0, 1)):
         return None  # not a state EVT 3.0 words can leave (the kernel packs the time's parts into one int64)
-    cols = (t, x, y, p, tt, tk, tch)
-    if (any(not c.flags.c_contiguous or not c.flags.writeable for c in cols) or t.dtype != _I64 or tt.dtype != _I64
-            or (x.dtype, y.dtype, p.dtype, tk.dtype, tch.dtype) != (np.uint16, np.uint16, np.uint8, np.uint8, np.uint8)
-            or not len(t) == len(x) == len(y) == len(p) or not len(tt) == len(tk) == len(tch)):
+    if not _columns_ok(t, x, y, p, tt, tk, tch):
         return None
     n, m, outcome, bad, lo, hi = _kernel_evt3_run(w, state, int(width), int(height), bool(decode), t, x, y, p, tt, tk,
                                                   tch)
+    return n, m, status[outcome], bad, lo, hi
+
+
+def _columns_ok(t: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray, tt: np.ndarray, tk: np.ndarray,
+                tch: np.ndarray) -> bool:
+    """Whether a decoder's events' and triggers' columns are in the form the kernels write: contiguous, writable,
+    int64 / uint16 / uint16 / uint8 and int64 / uint8 / uint8, each set of one length."""
+    cols = (t, x, y, p, tt, tk, tch)
+    return not (any(not c.flags.c_contiguous or not c.flags.writeable for c in cols) or t.dtype != _I64
+                or tt.dtype != _I64
+                or (x.dtype, y.dtype, p.dtype, tk.dtype, tch.dtype) != (np.uint16, np.uint16, np.uint8, np.uint8,
+                                                                        np.uint8)
+                or not len(t) == len(x) == len(y) == len(p) or not len(tt) == len(tk) == len(tch))
+
+
+def _words32(words: Any) -> np.ndarray | None:
+    """``words`` as contiguous uint32 in the machine's order (no copy where they are), or None where they are not
+    a 1-d array of 32-bit integers."""
+    w = np.asarray(words)
+    if w.ndim != 1 or w.dtype.kind not in "ui" or w.dtype.itemsize != 4:
+        return None
+    return np.ascontiguousarray(w.astype(np.uint32, copy=False))
+
+
+def evt2_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool, t: np.ndarray, x: np.ndarray,
+             y: np.ndarray, p: np.ndarray, tt: np.ndarray, tk: np.ndarray, tch: np.ndarray,
+             status: tuple[int, int, int, int]) -> tuple[int, int, int, int, int, int] | None:
+    """Decode or count Prophesee EVT 2.0 words with the compiled kernel, the GIL released: what the numpy decoder
+    (:func:`evtk.io.prophesee.decoders._evt2_numpy_run`) does, to the same results.
+
+    Parameters
+    ----------
+    words : array_like
+        The words (uint32, in the machine's order).
+    state : ndarray
+        The decoder's state (two int64: the last time high, the epoch), updated in place.
+    width, height : int
+        The sensor: an event off it stops the decoding.
+    decode : bool
+        Write the events and triggers; else only count them.
+    t, x, y, p : ndarray
+        The events' columns (int64, uint16, uint16, uint8), as long as the words at least when decoding.
+    tt, tk, tch : ndarray
+        The triggers' time, kind and channel (int64, uint8, uint8), as long as the words at least when decoding.
+    status : tuple of int
+        The status codes to return for none, a word of no type, an event off the sensor, and full outputs.
+
+    Returns
+    -------
+    tuple of int or None
+        ``(events, triggers, status, index of the word stopped at or -1, min t, max t)``, the time range when
+        counting (else ``2**62, -2**62``); None when the kernel is off or missing, or an argument is not in the form
+        it takes (then the caller decodes with numpy).
+    """
+    if not enabled() or _kernel_evt2_run is None:
+        return None
+    w = _words32(words)
+    if (w is None or state.dtype != _I64 or state.shape != (2,) or not state.flags.c_contiguous
+            or not state.flags.writeable or not _columns_ok(t, x, y, p, tt, tk, tch)
+            or (decode and (len(t) < len(w) or len(tt) < len(w)))):
+        return None
+    n, m, outcome, bad, lo, hi = _kernel_evt2_run(w, state, int(width), int(height), bool(decode), t, x, y, p, tt, tk,
+                                                  tch)
+    return n, m, status[outcome], bad, lo, hi
+
+
+def dat_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool, t: np.ndarray, x: np.ndarray,
+            y: np.ndarray, p: np.ndarray, status: tuple[int, int, int, int]) -> tuple[int, int, int, int, int, int] | None:
+    """Decode or count Prophesee DAT events with the compiled kernel, the GIL released: what the numpy decoder
+    (:func:`evtk.io.prophesee.decoders._dat_numpy_run`) does, to the same results.
+
+    Parameters
+    ----------
+    words : array_like
+        The events as pairs of uint32 (time stamp, data), in the machine's order; a last odd word is left.
+    state : ndarray
+        The decoder's state (two int64: the last raw time stamp, -1 before the first, and the epoch), updated in
+        place.
+    width, height : int
+        The sensor: an event off it stops the decoding.
+    decode : bool
+        Write the events; else only count them.
+    t, x, y, p : ndarray
+        The events' columns (int64, uint16, uint16, uint8), as long as the events at least when decoding.
+    status : tuple of int
+        The status codes to return for none, a word of no type, an event off the sensor, and full outputs.
+
+    Returns
+    -------
+    tuple of int or None
+        ``(events, 0, status, index of the event stopped at or -1, min t, max t)``, as :func:`evt2_run`'s; None when
+        the kernel is off or missing, or an argument is not in the form it takes.
+    """
+    if not enabled() or _kernel_dat_run is None:
+        return None
+    w = _words32(words)
+    if (w is None or state.dtype != _I64 or state.shape != (2,) or not state.flags.c_contiguous
+            or not state.flags.writeable or not _columns_ok(t, x, y, p, t[:0], p[:0], p[:0])
+            or (decode and len(t) < len(w) // 2)):
+        return None
+    n, m, outcome, bad, lo, hi = _kernel_dat_run(w, state, int(width), int(height), bool(decode), t, x, y, p)
     return n, m, status[outcome], bad, lo, hi
 
 

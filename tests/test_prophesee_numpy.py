@@ -374,3 +374,61 @@ def test_event_stream_numpy_decoder_equals_a_byte_by_byte_loop(monkeypatch, slic
             if decode:
                 got = list(zip(*(c[:n].tolist() for c in out[:4])))
                 assert got == want
+
+
+def _random_evt2_words(rng, n, trial):
+    """EVT 2.0 words: events (mostly on the 40x25 sensor), time highs (wrapping at times), triggers, padding, and
+    now and then a word of no type."""
+    kinds = rng.choice([0, 1, 8, 10, 14, 15, 2, 9, 12], n, p=[.3, .3, .15, .08, .05, .05, .03, .02, .02])
+    if trial % 4 == 0:
+        kinds[np.isin(kinds, [2, 9, 12])] = 0
+    w = rng.integers(0, 1 << 28, n, dtype=np.int64)
+    if trial % 3:
+        ev = kinds <= 1
+        w[ev] = (w[ev] & ~np.int64((1 << 22) - 1)) | (rng.integers(0, 42, ev.sum()) << 11) | rng.integers(0, 26, ev.sum())
+    if trial % 5 == 0:  # time highs that wrap: near the top of the 28-bit counter, then near 0
+        hi = kinds == 8
+        w[hi] = rng.choice([0, 5, (1 << 28) - 3, (1 << 27), (1 << 27) + 1], hi.sum())
+    return ((kinds.astype(np.int64) << 28) | w).astype(np.uint32)
+
+
+def _random_dat_words(rng, n, trial):
+    """DAT events as (time stamp, data) pairs: stamps that wrap at times, coordinates mostly on the 40x25 sensor."""
+    stamps = np.sort(rng.integers(0, 1 << 32, n, dtype=np.int64)) if trial % 2 else rng.choice(
+        [0, 7, (1 << 31), (1 << 31) + 1, (1 << 32) - 1], n)
+    xs, ys = rng.integers(0, 44 if trial % 3 else 1 << 14, n), rng.integers(0, 27 if trial % 3 else 1 << 14, n)
+    data = (rng.integers(0, 16, n) << 28) | (ys << 14) | xs
+    return np.stack([stamps, data], 1).reshape(-1).astype(np.uint32)
+
+
+@pytest.mark.parametrize("fmt", ["evt2", "dat"])
+def test_the_compiled_evt2_and_dat_decoders_give_numpy_s_results(fmt):
+    """Random words, both modes: the compiled kernels' counts, stops, time ranges, states and columns are numpy's
+    decoders' (the oracle, itself compared with files expelliarmus reads in tests/test_prophesee.py)."""
+    from evtk.io.prophesee import decoders
+
+    if not _native.BUILT or _native._kernel_evt2_run is None:
+        pytest.skip("evtk's compiled kernels were not built (no C compiler at install)")
+    rng = np.random.default_rng(5)
+    for trial in range(400):
+        n = int(rng.integers(0, 120))
+        if fmt == "evt2":
+            words = _random_evt2_words(rng, n, trial)
+            state = np.array([rng.integers(0, 1 << 28), rng.integers(0, 3)], np.int64)
+        else:
+            words = _random_dat_words(rng, n, trial)
+            state = np.array([-1 if trial % 2 else rng.integers(0, 1 << 32), rng.integers(0, 3)], np.int64)
+        for decode in (False, True):
+            got, want = _outs(len(words)), _outs(len(words))
+            s1, s2 = state.copy(), state.copy()
+            if fmt == "evt2":
+                r1 = _native.evt2_run(words, s1, 40, 25, decode, *got, decoders._NATIVE_STATUS)
+                r2 = decoders._evt2_numpy_run(words, s2, 40, 25, decode, *want)
+            else:
+                r1 = _native.dat_run(words, s1, 40, 25, decode, *got[:4], decoders._NATIVE_STATUS)
+                r2 = decoders._dat_numpy_run(words, s2, 40, 25, decode, *want)
+            assert r1 is not None
+            r2 = tuple(int(v) for v in r2)
+            assert r1 == r2 and np.array_equal(s1, s2), (trial, decode, r1, r2, s1, s2)
+            for a, b, k in zip(got, want, (r1[0],) * 4 + (r1[1],) * 3):
+                assert np.array_equal(a[:k], b[:k]), trial

@@ -26,7 +26,7 @@ from ..._native import evt3_run as native_evt3_run
 from ..._native import evt3_scan as native_evt3_scan
 from ..._threads import workers_within
 from ...limits import require_memory
-from .decoders import ST_COORD, ST_FULL, ST_OK, ST_TYPE, _sliced
+from .decoders import _NATIVE_STATUS, ST_COORD, ST_FULL, ST_OK, ST_TYPE, _sliced
 
 #: Words each numpy pass takes at a time: its temporaries take some 40 bytes a word (a thread's whole working
 #: memory about 5 MiB whatever the file). 32 K-word slices kept them in a core's cache, but each numpy call
@@ -251,9 +251,6 @@ def _core(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
 #: Decode or count EVT 3.0 words with numpy :data:`SLICE_WORDS` at a time (temporaries in the cache), the state
 #: carried from slice to slice: :func:`_core`'s arguments and results, over all the words.
 _numpy_run = _sliced(_core, slice_words=lambda: SLICE_WORDS)
-
-#: The compiled kernel's outcomes, in its order (none, a word of no type, an event off the sensor, full outputs).
-_NATIVE_STATUS = (ST_OK, ST_TYPE, ST_COORD, ST_FULL)
 
 
 def run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):

@@ -10,6 +10,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from ... import _native
 from ..._lazyjit import njit  # EVT 2.1: numba loads when first needed
 from ..base import sensor_dims, text_header
 
@@ -148,7 +149,7 @@ def _sliced(core, words_per_item=1, slice_words=lambda: SLICE_WORDS):
 
 
 @_sliced
-def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
+def _evt2_numpy_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over EVT 2.0 words, vectorised with numpy: counts, or with ``decode`` the events and triggers.
     Returns (events, triggers, status, word index of the problem, min t, max t); the min and max only when
     counting. ``state`` (time high, epoch) carries over from the block before and is updated.
@@ -288,7 +289,7 @@ def _evt21_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     return n, m, status, bad, t_min, t_max
 
 
-def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
+def _dat_numpy_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over DAT CD events (pairs of uint32: time stamp, data), vectorised, with :func:`_evt2_run`'s
     arguments and results (DAT files hold no triggers). The data word holds x in bits 0..13, y in 14..27 and
     the polarity in 28..31 (any bit set: ON); a time stamp more than half the 32-bit range below the one
@@ -320,7 +321,24 @@ def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
     return n, 0, status, bad, (int(tc.min()) if n else 2**62), (int(tc.max()) if n else -(2**62))
 
 
-_dat_run = _sliced(_dat_run, words_per_item=2)
+_dat_numpy_run = _sliced(_dat_numpy_run, words_per_item=2)
+
+#: The compiled kernels' outcomes, in their order (none, a word of no type, an event off the sensor, full outputs).
+_NATIVE_STATUS = (ST_OK, ST_TYPE, ST_COORD, ST_FULL)
+
+
+def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """EVT 2.0 words decoded or counted: :func:`_evt2_numpy_run`'s arguments and results, by the compiled kernel
+    where evtk's were built (:func:`evtk._native.evt2_run`: one pass, the GIL released), else by numpy."""
+    got = _native.evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, _NATIVE_STATUS)
+    return got if got is not None else _evt2_numpy_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch)
+
+
+def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """DAT events decoded or counted: :func:`_dat_numpy_run`'s arguments and results, by the compiled kernel where
+    evtk's were built (:func:`evtk._native.dat_run`), else by numpy."""
+    got = _native.dat_run(raw, state, width, height, decode, t, x, y, p, _NATIVE_STATUS)
+    return got if got is not None else _dat_numpy_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch)
 
 
 def word_type(encoding: str, word: int, legacy: bool = False) -> int:
