@@ -870,6 +870,70 @@ dat_run(PyObject *self, PyObject *args)
     return decoded(bufs, 6, fault, n, 0, outcome, bad, t_min, t_max);
 }
 
+/* evt2_scan(words), dat_scan(words)
+ *
+ * The counts of EVT 2.0 words (CD events, triggers; up to the first word of no type, whose index is the third
+ * result, -1 if none) or DAT events (pairs of uint32; no triggers, no types), without decoding them, and their
+ * effect on the decoder's state: the first and the last time high (EVT 2.0: bits 0..27 of the EV_TIME_HIGH words)
+ * or time stamp (DAT), -1 without any, and the wraps between them (a drop of more than 2**27 or 2**31). Events off
+ * any sensor are counted (the decoder finds them). The GIL is released.
+ */
+static PyObject *
+evt2_scan(PyObject *self, PyObject *args)
+{
+    Py_buffer wb;
+
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*", &wb))
+        return NULL;
+    const uint32_t *words = (const uint32_t *)wb.buf;
+    int64_t n_words = wb.len / 4, n_ev = 0, n_tr = 0, stop = -1, first = -1, last = -1, wraps = 0;
+    Py_BEGIN_ALLOW_THREADS
+    for (int64_t i = 0; i < n_words; i++) {
+        uint32_t w = words[i];
+        unsigned kind = w >> 28;
+        n_ev += kind <= 1;
+        n_tr += kind == 10;
+        if (kind == 8) {
+            int64_t v = w & 0xFFFFFFF;
+            wraps += last >= 0 && v < last && last - v > ((int64_t)1 << 27);
+            first = first < 0 ? v : first;
+            last = v;
+        } else if (kind > 1 && kind != 10 && kind < 14) {
+            stop = i;
+            break;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&wb);
+    return Py_BuildValue("LLL(LLL)", (long long)n_ev, (long long)n_tr, (long long)stop, (long long)first,
+                         (long long)last, (long long)wraps);
+}
+
+static PyObject *
+dat_scan(PyObject *self, PyObject *args)
+{
+    Py_buffer wb;
+
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*", &wb))
+        return NULL;
+    const uint32_t *words = (const uint32_t *)wb.buf;
+    int64_t n_ev = wb.len / 8, first = -1, last = -1, wraps = 0;
+    Py_BEGIN_ALLOW_THREADS
+    if (n_ev > 0)
+        first = last = words[0];
+    for (int64_t i = 1; i < n_ev; i++) {
+        int64_t v = words[2 * i];
+        wraps += v < last && last - v > ((int64_t)1 << 31);
+        last = v;
+    }
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&wb);
+    return Py_BuildValue("LLL(LLL)", (long long)n_ev, 0LL, -1LL, (long long)first, (long long)last,
+                         (long long)wraps);
+}
+
 static PyMethodDef methods[] = {
     {"count_windows", count_windows, METH_VARARGS,
      "Count events into their windows' bins with the GIL released (see evtk._native.count_windows)."},
@@ -883,6 +947,8 @@ static PyMethodDef methods[] = {
      "Decode or count EVT 2.0 words with the GIL released (see evtk._native.evt2_run)."},
     {"dat_run", dat_run, METH_VARARGS,
      "Decode or count DAT events with the GIL released (see evtk._native.dat_run)."},
+    {"evt2_scan", evt2_scan, METH_VARARGS, "Count EVT 2.0 words and sum up their effect (see evtk._native.evt2_scan)."},
+    {"dat_scan", dat_scan, METH_VARARGS, "Count DAT events and sum up their effect (see evtk._native.dat_scan)."},
     {NULL, NULL, 0, NULL},
 };
 

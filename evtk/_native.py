@@ -25,6 +25,8 @@ _kernel_evt3_run: Any
 _kernel_evt3_scan: Any
 _kernel_evt2_run: Any
 _kernel_dat_run: Any
+_kernel_evt2_scan: Any
+_kernel_dat_scan: Any
 _ckernels: Any
 try:
     from . import _ckernels
@@ -37,6 +39,8 @@ _kernel_evt3_run = getattr(_ckernels, "evt3_run", None)
 _kernel_evt3_scan = getattr(_ckernels, "evt3_scan", None)
 _kernel_evt2_run = getattr(_ckernels, "evt2_run", None)
 _kernel_dat_run = getattr(_ckernels, "dat_run", None)
+_kernel_evt2_scan = getattr(_ckernels, "evt2_scan", None)
+_kernel_dat_scan = getattr(_ckernels, "dat_scan", None)
 
 #: Whether the install built the compiled kernels (a C compiler was present). They read the files' little-endian
 #: numbers as the machine's own: on a big-endian machine they are left unused.
@@ -305,9 +309,10 @@ def evt2_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
     decode : bool
         Write the events and triggers; else only count them.
     t, x, y, p : ndarray
-        The events' columns (int64, uint16, uint16, uint8), as long as the words at least when decoding.
+        The events' columns (int64, uint16, uint16, uint8). Where they fill up, the decoding stops at the event
+        word that no longer fits (status full; numpy's decoder needs them as long as the words).
     tt, tk, tch : ndarray
-        The triggers' time, kind and channel (int64, uint8, uint8), as long as the words at least when decoding.
+        The triggers' time, kind and channel (int64, uint8, uint8), likewise.
     status : tuple of int
         The status codes to return for none, a word of no type, an event off the sensor, and full outputs.
 
@@ -322,8 +327,7 @@ def evt2_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
         return None
     w = _words32(words)
     if (w is None or state.dtype != _I64 or state.shape != (2,) or not state.flags.c_contiguous
-            or not state.flags.writeable or not _columns_ok(t, x, y, p, tt, tk, tch)
-            or (decode and (len(t) < len(w) or len(tt) < len(w)))):
+            or not state.flags.writeable or not _columns_ok(t, x, y, p, tt, tk, tch)):
         return None
     n, m, outcome, bad, lo, hi = _kernel_evt2_run(w, state, int(width), int(height), bool(decode), t, x, y, p, tt, tk,
                                                   tch)
@@ -347,7 +351,7 @@ def dat_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool
     decode : bool
         Write the events; else only count them.
     t, x, y, p : ndarray
-        The events' columns (int64, uint16, uint16, uint8), as long as the events at least when decoding.
+        The events' columns (int64, uint16, uint16, uint8); where they fill up, as :func:`evt2_run`.
     status : tuple of int
         The status codes to return for none, a word of no type, an event off the sensor, and full outputs.
 
@@ -361,8 +365,7 @@ def dat_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool
         return None
     w = _words32(words)
     if (w is None or state.dtype != _I64 or state.shape != (2,) or not state.flags.c_contiguous
-            or not state.flags.writeable or not _columns_ok(t, x, y, p, t[:0], p[:0], p[:0])
-            or (decode and len(t) < len(w) // 2)):
+            or not state.flags.writeable or not _columns_ok(t, x, y, p, t[:0], p[:0], p[:0])):
         return None
     n, m, outcome, bad, lo, hi = _kernel_dat_run(w, state, int(width), int(height), bool(decode), t, x, y, p)
     return n, m, status[outcome], bad, lo, hi
@@ -390,4 +393,34 @@ def evt3_scan(words: Any) -> tuple[int, int, int, tuple[int, ...]] | None:
     if w is None:
         return None
     n_ev, n_tr, stop, effect = _kernel_evt3_scan(w)
+    return n_ev, n_tr, stop, effect
+
+
+def prophesee_scan(encoding: str, words: Any) -> tuple[int, int, int, tuple[int, ...]] | None:
+    """Count EVT 2.0 words (``"evt2"``) or DAT events (``"dat"``) and sum up their effect on the decoder's state with
+    the compiled kernel, the GIL released: the counting pass of a whole read on threads
+    (:func:`evtk.io.prophesee._whole.read_whole`).
+
+    Parameters
+    ----------
+    encoding : str
+        ``"evt2"`` or ``"dat"``.
+    words : array_like
+        The words (uint32, in the machine's order; DAT: pairs of them, a last odd word left).
+
+    Returns
+    -------
+    tuple or None
+        ``(events, triggers, index of the first word of no type or -1, effect)``: the events counted up to that
+        word (off the sensor too), ``effect`` the first and last time high (EVT 2.0) or time stamp (DAT), -1 where
+        there is none, and the wraps between them; None when the kernel is off or missing or the words are not
+        32-bit.
+    """
+    kernel = _kernel_evt2_scan if encoding == "evt2" else _kernel_dat_scan
+    if not enabled() or kernel is None:
+        return None
+    w = _words32(words)
+    if w is None:
+        return None
+    n_ev, n_tr, stop, effect = kernel(w)
     return n_ev, n_tr, stop, effect

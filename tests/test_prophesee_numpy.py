@@ -14,7 +14,7 @@ import pytest
 import evtk
 from evtk import _native
 from evtk.io.prophesee import _evt3 as evt3
-from evtk.io.prophesee import recording
+from evtk.io.prophesee import _whole, recording
 from evtk.io.prophesee.decoders import ST_COORD, ST_FULL, ST_OK, ST_TYPE
 
 
@@ -195,7 +195,7 @@ def test_a_whole_evt3_read_on_threads_equals_the_block_by_block_read(tmp_path, m
     the compiled kernel."""
     _route(monkeypatch, route)
     monkeypatch.setattr(recording, "BLOCK_WORDS", 64)
-    monkeypatch.setattr(evt3, "THREADED_BLOCKS", 2)
+    monkeypatch.setattr(_whole, "THREADED_BLOCKS", 2)
     monkeypatch.setenv("EVTK_THREADS", threads)
     rng = np.random.default_rng(11)
     path = tmp_path / "r.raw"
@@ -239,7 +239,7 @@ def test_the_evt3_index_finds_a_vector_base_moved_off_the_counting_sensor(tmp_pa
     5,600 VECT_12 words after one base move the base past x = 65535, a stop the index must give as the
     block-by-block count does (and time ranges around it)."""
     monkeypatch.setattr(recording, "BLOCK_WORDS", 512)
-    monkeypatch.setattr(evt3, "THREADED_BLOCKS", 2)
+    monkeypatch.setattr(_whole, "THREADED_BLOCKS", 2)
     monkeypatch.setenv("EVTK_THREADS", "2")
     words = [(8 << 12) | 5, (6 << 12) | 9, 3, (3 << 12)] + [(4 << 12) | 0xFFF, (6 << 12) | 10] * 5600
     path = tmp_path / "far.raw"
@@ -380,12 +380,14 @@ def _random_evt2_words(rng, n, trial):
     """EVT 2.0 words: events (mostly on the 40x25 sensor), time highs (wrapping at times), triggers, padding, and
     now and then a word of no type."""
     kinds = rng.choice([0, 1, 8, 10, 14, 15, 2, 9, 12], n, p=[.3, .3, .15, .08, .05, .05, .03, .02, .02])
-    if trial % 4 == 0:
+    if trial % 4 == 0 or trial % 3 == 1:  # no damaged types: whole streams
         kinds[np.isin(kinds, [2, 9, 12])] = 0
     w = rng.integers(0, 1 << 28, n, dtype=np.int64)
-    if trial % 3:
+    if trial % 3:  # on the sensor (trial % 3 == 1), or now and then just off it; else anywhere (ST_COORD early)
         ev = kinds <= 1
-        w[ev] = (w[ev] & ~np.int64((1 << 22) - 1)) | (rng.integers(0, 42, ev.sum()) << 11) | rng.integers(0, 26, ev.sum())
+        off = 2 if trial % 3 == 2 else 0
+        w[ev] = ((w[ev] & ~np.int64((1 << 22) - 1)) | (rng.integers(0, 40 + off, ev.sum()) << 11)
+                 | rng.integers(0, 25 + off, ev.sum()))
     if trial % 5 == 0:  # time highs that wrap: near the top of the 28-bit counter, then near 0
         hi = kinds == 8
         w[hi] = rng.choice([0, 5, (1 << 28) - 3, (1 << 27), (1 << 27) + 1], hi.sum())
@@ -396,7 +398,8 @@ def _random_dat_words(rng, n, trial):
     """DAT events as (time stamp, data) pairs: stamps that wrap at times, coordinates mostly on the 40x25 sensor."""
     stamps = np.sort(rng.integers(0, 1 << 32, n, dtype=np.int64)) if trial % 2 else rng.choice(
         [0, 7, (1 << 31), (1 << 31) + 1, (1 << 32) - 1], n)
-    xs, ys = rng.integers(0, 44 if trial % 3 else 1 << 14, n), rng.integers(0, 27 if trial % 3 else 1 << 14, n)
+    off = {0: 1 << 14, 1: 0, 2: 2}[trial % 3]  # anywhere, on the 40x25 sensor, now and then just off it
+    xs, ys = rng.integers(0, 40 + off, n), rng.integers(0, 25 + off, n)
     data = (rng.integers(0, 16, n) << 28) | (ys << 14) | xs
     return np.stack([stamps, data], 1).reshape(-1).astype(np.uint32)
 
@@ -432,3 +435,74 @@ def test_the_compiled_evt2_and_dat_decoders_give_numpy_s_results(fmt):
             assert r1 == r2 and np.array_equal(s1, s2), (trial, decode, r1, r2, s1, s2)
             for a, b, k in zip(got, want, (r1[0],) * 4 + (r1[1],) * 3):
                 assert np.array_equal(a[:k], b[:k]), trial
+
+
+def _raw_file(path, fmt, words, sensor=(40, 25)):
+    """An EVT 2.0 (.raw) or DAT (.dat) file of the given words on a 40x25 sensor."""
+    if fmt == "evt2":
+        head = f"% evt 2.0\n% format EVT2;width={sensor[0]};height={sensor[1]}\n".encode()
+    else:
+        head = f"% Data file containing Event2D events.\n% Version 2\n% Width {sensor[0]}\n% Height {sensor[1]}\n"
+        head = head.encode() + bytes([0x0C, 8])
+    path.write_bytes(head + np.asarray(words, "<u4").tobytes())
+
+
+@pytest.mark.parametrize("fmt", ["evt2", "dat"])
+@pytest.mark.parametrize("route", ["numpy", "native"])
+def test_a_whole_evt2_or_dat_read_on_threads_equals_the_block_by_block_read(tmp_path, monkeypatch, fmt, route):
+    """Blocks of 64 items on 3 threads, from the states and places the counting pass gives them: the events,
+    triggers, index rows and first problem of a read one block after another (the streaming path), damaged
+    streams included (words of no type, events off the sensor); with numpy's scan and decoders, and the kernels."""
+    _route(monkeypatch, route)
+    if route == "native":  # neither numpy scan may be taken either
+        def refuse(*args, **kwargs):
+            raise AssertionError("the numpy route was taken")
+
+        from evtk.io.prophesee import decoders
+        monkeypatch.setattr(decoders, "_evt2_numpy_run", refuse)
+        monkeypatch.setattr(decoders, "_dat_numpy_run", refuse)
+        monkeypatch.setattr(_whole, "_first_stop", refuse)
+        monkeypatch.setattr(_whole, "_clock_effect", refuse)
+    monkeypatch.setattr(recording, "BLOCK_WORDS", 64 * (2 if fmt == "dat" else 1))
+    monkeypatch.setattr(_whole, "THREADED_BLOCKS", 2)
+    monkeypatch.setenv("EVTK_THREADS", "3")
+    rng = np.random.default_rng(13)
+    path = tmp_path / ("r.raw" if fmt == "evt2" else "r.dat")
+    for trial in range(40):
+        n = int(rng.integers(0, 700))
+        words = _random_evt2_words(rng, n, trial) if fmt == "evt2" else _random_dat_words(rng, n, trial)
+        _raw_file(path, fmt, words)
+        for salvage in (False, True):
+            ev_b, tr_b, rows_b, problem = _one_block_at_a_time(path, salvage)
+            with evtk.open(path, salvage=salvage) as rec:
+                if problem and not salvage:
+                    with pytest.raises(evtk.FormatError) as err:
+                        rec.events()
+                    assert err.value.offset == problem[0], trial
+                    continue
+                ev = rec.events()
+                assert ev == ev_b, trial
+                if problem:
+                    assert rec.damage.offset == problem[0] and rec._blocks is None, trial
+                    continue
+                assert rec.triggers() == tr_b, trial
+                assert len(rec._blocks) == len(rows_b), trial
+                for a, b in zip(rec._blocks, rows_b):
+                    assert np.array_equal(a[0], b[0]) and a[1:] == b[1:], trial
+
+
+@pytest.mark.parametrize("fmt", ["evt2", "dat"])
+def test_the_compiled_evt2_and_dat_scans_give_numpy_s_counts_and_effects(monkeypatch, fmt):
+    """The counting pass of a whole read: the kernels' counts, stops and effects are the numpy scans'."""
+    if not _native.BUILT or _native._kernel_evt2_scan is None:
+        pytest.skip("evtk's compiled kernels were not built (no C compiler at install)")
+    rng = np.random.default_rng(17)
+    numpy_scan = _whole._evt2_scan if fmt == "evt2" else _whole._dat_scan
+    for trial in range(300):
+        n = int(rng.integers(0, 150))
+        words = _random_evt2_words(rng, n, trial) if fmt == "evt2" else _random_dat_words(rng, n, trial)
+        got = _native.prophesee_scan(fmt, words)
+        monkeypatch.setenv("EVTK_NATIVE", "0")
+        want = numpy_scan(words)
+        monkeypatch.delenv("EVTK_NATIVE")
+        assert got is not None and got == want, (trial, got, want)

@@ -1,5 +1,6 @@
-"""Prophesee EVT 3.0 decoding with numpy alone: a slice decoder whose state carries from slice to slice, and a
-whole-file read that decodes its blocks on the reader's threads straight into one set of exact-size columns.
+"""Prophesee EVT 3.0 decoding: a slice decoder whose state carries from slice to slice (numpy, or the compiled
+kernel where evtk's were built), and the scan and state update with which a whole read decodes its blocks on the
+reader's threads (:data:`CODEC`, for :func:`evtk.io.prophesee._whole.read_whole`).
 
 EVT 3.0 is 16-bit words, the type in the top four bits. EVT_ADDR_Y (0) sets y; EVT_ADDR_X (2) is one event at
 its x with its polarity (bit 11); VECT_BASE_X (3) sets the x and polarity of the vectors after it; VECT_12 (4)
@@ -11,21 +12,17 @@ edge in bit 0 and the channel in bits 8..11; 7, 14 and 15 carry no events; 1, 9,
 Everything a word needs from the words before it (y, time, base x, polarity) is the value of the last word of
 one type before it, plus, for the base, the vector steps since. So a block's state at its start follows from a
 cheap scan of the blocks before it (:func:`scan`: their last words of each type, their time-high wraps and their
-event counts), and the blocks then decode independently (numpy releases the GIL in its array operations).
+event counts), and the blocks then decode independently (the kernel, and numpy in its array operations, release
+the GIL).
 """
 
 from __future__ import annotations
-
-import os
-from _thread import get_ident  # threading itself is a module more for a fresh read
-from typing import Any
 
 import numpy as np
 
 from ..._native import evt3_run as native_evt3_run
 from ..._native import evt3_scan as native_evt3_scan
-from ..._threads import workers_within
-from ...limits import require_memory
+from ._whole import Codec
 from .decoders import _NATIVE_STATUS, ST_COORD, ST_FULL, ST_OK, ST_TYPE, _sliced
 
 #: Words each numpy pass takes at a time: its temporaries take some 40 bytes a word (a thread's whole working
@@ -383,143 +380,6 @@ def _time_range(words: np.ndarray, state: np.ndarray) -> tuple[int, int] | None:
     return int(used.min()), int(used.max())
 
 
-def _keep_temporaries_mapped() -> None:
-    """Let the allocator keep the decoder's temporaries between slices. glibc returns the free memory at the top
-    of its heap to the system once it passes a threshold, which it raises to twice the largest mapped block it has
-    freed: left at its start, each slice's few MiB of temporaries are returned and faulted in again, some 300 k
-    page faults and 0.4 s of system time on a file of 50 M words. Freeing one untouched 8 MiB array (no memory is
-    used: its pages are never written) raises the threshold past them. Elsewhere, a no-op."""
-    np.empty(8 << 20, np.uint8)
-
-
-#: Files of fewer blocks than this (4 M words, some 60 ms of decoding) decode on the calling thread: the pool's
-#: imports and start (about 10 ms of a fresh process) cost more than the threads save on fewer.
-THREADED_BLOCKS = 16
-#: A decoding thread's working memory (its slices' temporaries, its block's words, its allocator arena), measured
-#: (a 20 M-event read on two threads peaked 5 MiB above one thread's).
-THREAD_BYTES = 6 << 20
-
-
-def read_whole(path: str, start: int, count: int, block_words: int, width: int, height: int,
-               state: np.ndarray, decode: bool = True) -> dict[str, Any]:
-    """Decode every word of an EVT 3.0 file into exact-size columns, its blocks on the reader's threads.
-
-    A first pass (:func:`scan`) counts each block's events and triggers and sums up its effect on the state, so
-    that each block's start state and place in the columns are known; the second decodes each block from that
-    state straight into its place. Both run on :func:`evtk._threads.workers` threads (numpy releases the GIL in
-    its array operations), the decoding on no more than :data:`evtk._threads.MEMORY_SHARE` of the columns' memory pays for
-    (:data:`THREAD_BYTES` each), so that the peak is the columns and a few MiB. Without ``decode``, the blocks
-    are counted only (their time ranges too), on the sensor of 65536 x 65536 the reader's index takes: the index.
-
-    Parameters
-    ----------
-    path : str
-        The file.
-    start : int
-        Byte offset of the first word.
-    count : int
-        Words in the file.
-    block_words : int
-        Words per block (the reader's index unit).
-    width, height : int
-        The sensor, in pixels.
-    state : numpy.ndarray
-        The state before the first word (6 int64), left as it is.
-    decode : bool
-        Decode the events and triggers; else only the index.
-
-    Returns
-    -------
-    dict
-        ``t``, ``x``, ``y``, ``p`` (the events), ``tt``, ``tk``, ``tch`` (the triggers), ``status`` and
-        ``bad`` (the first stop and its word index in the file; ST_OK and -1 when none), ``word`` (the word
-        there) and ``rows`` (per block up to the stop: start state, events, triggers, min t, max t: the reader's
-        index); without ``decode``, the columns are empty and the events and triggers those counted.
-    """
-    n_blocks = -(-count // block_words)
-    # threads while counting: as many as the file's own size pays for (its events take at least as much memory
-    # as its words unless it is mostly time words); while decoding, as many as the events' memory pays for
-    threads = workers_within(2 * count, THREAD_BYTES) if n_blocks >= THREADED_BLOCKS else 1
-    _keep_temporaries_mapped()
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        buffers: dict[int, np.ndarray] = {}  # each thread reads its blocks into one buffer of its own
-
-        def words_of(b):
-            a = b * block_words
-            size = 2 * min(block_words, count - a)
-            if not hasattr(os, "preadv"):
-                raw = os.pread(fd, size, start + 2 * a)
-                return np.frombuffer(raw, "<u2", len(raw) // 2)
-            buf = buffers.get(get_ident())
-            if buf is None:
-                buf = buffers[get_ident()] = np.empty(2 * block_words, np.uint8)
-            got = os.preadv(fd, [buf[:size]], start + 2 * a)
-            return buf[:got & ~1].view("<u2")
-
-        def each(fn, n):
-            """``[fn(b) for b in range(n)]``, on ``threads`` threads that each take the next block when done."""
-            if threads < 2 or n < 2:
-                return [fn(b) for b in range(n)]
-            from .._compression import pool
-
-            blocks, out = iter(range(n)), [None] * n
-
-            def work():
-                for b in blocks:  # a range iterator hands each block to one thread (its next holds the GIL)
-                    out[b] = fn(b)
-
-            for job in [pool().submit(work) for _ in range(min(threads, n))]:
-                job.result()
-            return out
-
-        scans = each(lambda b: scan(words_of(b)), n_blocks)
-        starts, offs, toffs = [], [0], [0]
-        cur = state.copy()
-        for b, (n_ev, n_tr, stop, effect) in enumerate(scans):
-            starts.append(cur.copy())
-            advance(cur, effect)
-            offs.append(offs[-1] + n_ev)
-            toffs.append(toffs[-1] + n_tr)
-            if stop >= 0:  # nothing after a word of no type is read
-                n_blocks = b + 1
-                break
-        if decode:
-            out_bytes = 13 * offs[-1] + 10 * toffs[-1]
-            require_memory(out_bytes, f"decoding the events of {path}")
-            threads = workers_within(out_bytes, THREAD_BYTES) if n_blocks >= THREADED_BLOCKS else 1
-        else:  # counting: no columns; the sensor the index counts on
-            offs, toffs = [0] * (n_blocks + 1), [0] * (n_blocks + 1)
-            width = height = 1 << 16
-        t, x, y, p = (np.empty(offs[-1], np.int64), np.empty(offs[-1], np.uint16), np.empty(offs[-1], np.uint16),
-                      np.empty(offs[-1], np.uint8))
-        tt, tk, tch = np.empty(toffs[-1], np.int64), np.empty(toffs[-1], np.uint8), np.empty(toffs[-1], np.uint8)
-
-        def decode_block(b):
-            a0, a1, m0, m1 = offs[b], offs[b + 1], toffs[b], toffs[b + 1]
-            words = words_of(b)
-            if not decode:  # the counts are the scan's, the time range a cheaper pass's, unless x could pass 65535
-                n_ev, n_tr, stop, _ = scans[b]
-                timed = _time_range(words[:stop] if stop >= 0 else words, starts[b])
-                if timed is not None:
-                    return (n_ev, n_tr, ST_TYPE if stop >= 0 else ST_OK, stop), timed[0], timed[1], \
-                        (int(words[stop]) if stop >= 0 else -1)
-            res = run(words, starts[b].copy(), width, height, decode, t[a0:a1], x[a0:a1], y[a0:a1], p[a0:a1],
-                      tt[m0:m1], tk[m0:m1], tch[m0:m1])
-            n, where = res[0], res[3]
-            lo, hi = (int(res[4]), int(res[5])) if n or not decode else (0, -1)
-            return res[:4], lo, hi, (int(words[where]) if where >= 0 else -1)
-
-        decoded = each(decode_block, n_blocks)
-    finally:
-        os.close(fd)
-    status, bad, word, rows = ST_OK, -1, -1, []
-    n_ev = n_tr = 0
-    for b, ((n, m, st, where), lo, hi, at) in enumerate(decoded):
-        rows.append((starts[b], n, m, lo, hi))
-        n_ev, n_tr = offs[b] + n, toffs[b] + m
-        if st != ST_OK:
-            status, bad, word = st, b * block_words + where, at
-            break
-    return {"t": t[:n_ev], "x": x[:n_ev], "y": y[:n_ev], "p": p[:n_ev], "tt": tt[:n_tr], "tk": tk[:n_tr],
-            "tch": tch[:n_tr], "status": status, "bad": bad, "word": word, "rows": rows}
+#: How :func:`evtk.io.prophesee._whole.read_whole` takes EVT 3.0 files: 16-bit words, scanned and advanced as
+#: above, decoded by :func:`run`; their index (the blocks' time ranges) counted by :func:`_time_range`.
+CODEC = Codec("<u2", 1, scan, advance, run, _time_range)

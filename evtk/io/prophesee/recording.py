@@ -12,6 +12,7 @@ from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
 from ...limits import require_memory
 from ..base import BaseRecording, Damage, StreamInfo, _event_columns, _put_events, sensor_dims
+from . import _whole
 from .decoders import (
     _DAT_PREV,
     _DTYPE,
@@ -161,6 +162,12 @@ class PropheseeRecording(BaseRecording):
             state[_E21_LEGACY] = int(self.legacy_layout)
         return state
 
+    def _codec(self) -> Any:
+        """How :func:`_whole.read_whole` takes this file's words (EVT 3.0, EVT 2.0 or DAT)."""
+        if self.encoding == EVT3:
+            return _evt3().CODEC
+        return _whole.EVT2_CODEC if self.encoding == EVT2 else _whole.DAT_CODEC
+
     def _runner(self):
         """The decoder of this file's encoding."""
         return _evt3().run if self.encoding == EVT3 else _RUNNERS[self.encoding]
@@ -170,8 +177,8 @@ class PropheseeRecording(BaseRecording):
         counts and its time range."""
         if self._blocks is None and self.encoding == EVT3:  # counted on the reader's threads
             width, height = self._size
-            got = _evt3().read_whole(str(self.path), self._start, self._count, self._per_block(), width, height,
-                                     self._initial_state(), decode=False)
+            got = _whole.read_whole(str(self.path), self._start, self._count, self._per_block(), width, height,
+                                    self._initial_state(), self._codec(), decode=False)
             if got["status"] != ST_OK:
                 self._stop(self._word_problem(np.array([got["word"]], np.uint16), got["status"], 0, got["bad"]))
             self._blocks = got["rows"]
@@ -249,7 +256,7 @@ class PropheseeRecording(BaseRecording):
         state = self._initial_state()
         rows = []
         if self.encoding == EVT3:
-            _evt3()._keep_temporaries_mapped()
+            _whole._keep_temporaries_mapped()
         for b in range(self._n_blocks()):
             start = state.copy()
             ev, tr, problem = self._decode(self._words(b), state, b * self._per_block())
@@ -380,20 +387,17 @@ class PropheseeRecording(BaseRecording):
     def _whole(self) -> Events:
         """Every event, block by block (:meth:`_through`, which leaves the index behind) into one set of columns
         sized by what the file's words can hold (pages never written cost no memory), so that the peak is the
-        events plus one block's decoding, not the events twice. EVT 3.0 decodes its blocks on the reader's
-        threads into exact-size columns (:func:`_evt3.read_whole`)."""
-        if self.encoding == EVT3:
-            return self._whole_evt3()
-        if self.encoding in (EVT2, DAT):
-            return self._whole_in_place()
-        cap = {EVT2: self._count, EVT21: self._count, EVT3: self._count + 12, DAT: self._count,
-               ES: self._count // 5 + 1}[self.encoding]
+        events plus one block's decoding, not the events twice. EVT 3.0, EVT 2.0 and DAT decode their blocks on
+        the reader's threads into exact-size columns (:func:`_whole.read_whole`)."""
+        if self.encoding in (EVT3, EVT2, DAT):
+            return self._whole_threaded()
+        cap = {EVT21: self._count, ES: self._count // 5 + 1}[self.encoding]
         cols = _event_columns(cap)
         n = 0
         trs = []
         problem = None
         for ev, tr, problem in self._through():
-            if n + len(ev) > len(cols[0]):  # EVT 3.0 and 2.1 vectors hold up to 12 and 32 events a word: grown
+            if n + len(ev) > len(cols[0]):  # EVT 2.1 vectors hold up to 32 events a word: grown
                 grown = max(2 * len(cols[0]), n + len(ev))
                 require_memory(13 * (grown + len(cols[0])), f"decoding the events of {self.path}")
             cols, n = _put_events(cols, n, ev)
@@ -407,47 +411,16 @@ class PropheseeRecording(BaseRecording):
         t, x, y, p = (c[:n] for c in cols)
         return Events._trusted(t, x, y, p, self._size)
 
-    def _whole_in_place(self) -> Events:
-        """:meth:`_whole` of an EVT 2.0 or DAT file, where a word (an item) holds one event at most: each block is
-        decoded straight into its place in one set of columns as long as the file's words (no block's own columns,
-        and no copy from them). The index rows, the triggers and a problem are those :meth:`_through` leaves."""
-        run = self._runner()
+    def _whole_threaded(self) -> Events:
+        """:meth:`_whole` of an EVT 3.0, EVT 2.0 or DAT file, its blocks on the reader's threads
+        (:func:`_whole.read_whole`): the events; the triggers and the index are kept when no problem stopped the
+        read."""
         width, height = self._size
-        per = self._per_block()
-        t, x, y, p = _event_columns(self._count)
-        cap_tr = min(per, self._count) if self.encoding == EVT2 else 0  # DAT holds no triggers
-        tt, tk, tc = np.empty(cap_tr, np.int64), np.empty(cap_tr, np.uint8), np.empty(cap_tr, np.uint8)
-        state = self._initial_state()
-        rows, trs, problem, n = [], [], None, 0
-        for b in range(self._n_blocks()):
-            start, words = state.copy(), self._words(b)
-            k, m, st, bad, _, _ = run(words, state, width, height, True, t[n:], x[n:], y[n:], p[n:], tt, tk, tc)
-            k, m = int(k), int(m)
-            tb = t[n:n + k]
-            rows.append((start, k, m, int(tb.min()) if k else 0, int(tb.max()) if k else -1))
-            if m:  # copied out: the buffers serve the next block
-                trs.append(Triggers(tt[:m].copy(), tk[:m].copy(), tc[:m].copy()))
-            n += k
-            if st != ST_OK:  # ST_FULL cannot be: the columns hold an event a word
-                problem = self._word_problem(words, st, int(bad), b * per)
-                break
-        if problem:
-            self._stop(problem)
-        else:
-            if self._blocks is None:
-                self._blocks = rows
-            if self._triggers is None:
-                self._triggers = Triggers.concatenate(trs)
-        return Events._trusted(t[:n], x[:n], y[:n], p[:n], self._size)
-
-    def _whole_evt3(self) -> Events:
-        """:meth:`_whole` of an EVT 3.0 file: the events; the triggers and the index are kept when no problem
-        stopped the read."""
-        width, height = self._size
-        got = _evt3().read_whole(str(self.path), self._start, self._count, self._per_block(), width, height,
-                                 self._initial_state())
+        got = _whole.read_whole(str(self.path), self._start, self._count, self._per_block(), width, height,
+                                self._initial_state(), self._codec())
         if got["status"] != ST_OK:
-            self._stop(self._word_problem(np.array([got["word"]], np.uint16), got["status"], 0, got["bad"]))
+            word = np.array([got["word"]], _DTYPE[self.encoding])
+            self._stop(self._word_problem(word, got["status"], 0, got["bad"]))
         else:
             self._blocks = got["rows"]
             if self._triggers is None:
