@@ -942,13 +942,15 @@ static PyMethodDef methods[] = {
     {"evt3_run", evt3_run, METH_VARARGS,
      "Decode or count EVT 3.0 words with the GIL released (see evtk._native.evt3_run)."},
     {"evt3_scan", evt3_scan, METH_VARARGS,
-     "Count EVT 3.0 words and sum up their effect, the GIL released (see evtk._native.evt3_scan)."},
+     "Count EVT 3.0 words and sum up their effect, the GIL released (see evtk._native.prophesee_scan)."},
     {"evt2_run", evt2_run, METH_VARARGS,
      "Decode or count EVT 2.0 words with the GIL released (see evtk._native.evt2_run)."},
     {"dat_run", dat_run, METH_VARARGS,
      "Decode or count DAT events with the GIL released (see evtk._native.dat_run)."},
-    {"evt2_scan", evt2_scan, METH_VARARGS, "Count EVT 2.0 words and sum up their effect (see evtk._native.evt2_scan)."},
-    {"dat_scan", dat_scan, METH_VARARGS, "Count DAT events and sum up their effect (see evtk._native.dat_scan)."},
+    {"evt2_scan", evt2_scan, METH_VARARGS,
+     "Count EVT 2.0 words and sum up their effect, the GIL released (see evtk._native.prophesee_scan)."},
+    {"dat_scan", dat_scan, METH_VARARGS,
+     "Count DAT events and sum up their effect, the GIL released (see evtk._native.prophesee_scan)."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -1,8 +1,8 @@
 """evtk's optional compiled kernels (``evtk._ckernels``, built at install where a C compiler is present), behind
 wrappers that check their arguments and say when the Python route must be taken instead: the counting of fixed
 windows (:func:`count_windows`), the AEDAT4 reader's batches of LZ4 event packets (:func:`decode_lz4_batch`), and
-Prophesee EVT 3.0 words (:func:`evt3_run`, :func:`evt3_scan`), EVT 2.0 words (:func:`evt2_run`) and DAT events
-(:func:`dat_run`).
+Prophesee EVT 3.0 words (:func:`evt3_run`), EVT 2.0 words (:func:`evt2_run`) and DAT events (:func:`dat_run`),
+with their counting passes (:func:`prophesee_scan`).
 
 The kernels release the GIL, so parts of one piece of work run on several cores at once; numpy's scattered adds
 (``np.add.at``), which the numpy route counts with, keep it, and so does the Python loop over a batch's
@@ -371,55 +371,33 @@ def dat_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool
     return n, m, status[outcome], bad, lo, hi
 
 
-def evt3_scan(words: Any) -> tuple[int, int, int, tuple[int, ...]] | None:
-    """Count EVT 3.0 words' events and triggers and sum up their effect on the decoder's state with the compiled
-    kernel, the GIL released: :func:`evtk.io.prophesee._evt3.scan` without numpy, to the same results.
-
-    Parameters
-    ----------
-    words : array_like
-        The words (16-bit, in the machine's order).
-
-    Returns
-    -------
-    tuple or None
-        ``(events, triggers, index of the first word of no type or -1, effect)``, ``effect`` as
-        :func:`evtk.io.prophesee._evt3.advance` takes it; None when the kernel is off or missing, or the words are
-        not in a form it takes.
-    """
-    if not enabled() or _kernel_evt3_scan is None:
-        return None
-    w = _as_words(words)
-    if w is None:
-        return None
-    n_ev, n_tr, stop, effect = _kernel_evt3_scan(w)
-    return n_ev, n_tr, stop, effect
-
-
 def prophesee_scan(encoding: str, words: Any) -> tuple[int, int, int, tuple[int, ...]] | None:
-    """Count EVT 2.0 words (``"evt2"``) or DAT events (``"dat"``) and sum up their effect on the decoder's state with
-    the compiled kernel, the GIL released: the counting pass of a whole read on threads
-    (:func:`evtk.io.prophesee._whole.read_whole`).
+    """Count EVT 3.0 words (``"evt3"``), EVT 2.0 words (``"evt2"``) or DAT events (``"dat"``) and sum up their
+    effect on the decoder's state with the compiled kernel, the GIL released: the counting pass of a whole read on
+    threads (:func:`evtk.io.prophesee._whole.read_whole`).
 
     Parameters
     ----------
     encoding : str
-        ``"evt2"`` or ``"dat"``.
+        ``"evt3"``, ``"evt2"`` or ``"dat"``.
     words : array_like
-        The words (uint32, in the machine's order; DAT: pairs of them, a last odd word left).
+        The words (16-bit for EVT 3.0, else 32-bit, in the machine's order; DAT: pairs of them, a last odd word
+        left).
 
     Returns
     -------
     tuple or None
         ``(events, triggers, index of the first word of no type or -1, effect)``: the events counted up to that
-        word (off the sensor too), ``effect`` the first and last time high (EVT 2.0) or time stamp (DAT), -1 where
-        there is none, and the wraps between them; None when the kernel is off or missing or the words are not
-        32-bit.
+        word (off the sensor too) and the words' effect on the state: for EVT 3.0 as
+        :func:`evtk.io.prophesee._evt3.advance` takes it, for EVT 2.0 and DAT the first and last time high or time
+        stamp (-1 where there is none) and the wraps between them. None when the kernel is off or missing, or the
+        words are not in a form it takes.
     """
-    kernel = _kernel_evt2_scan if encoding == "evt2" else _kernel_dat_scan
+    kernel, as_words = {"evt3": (_kernel_evt3_scan, _as_words), "evt2": (_kernel_evt2_scan, _words32),
+                        "dat": (_kernel_dat_scan, _words32)}[encoding]
     if not enabled() or kernel is None:
         return None
-    w = _words32(words)
+    w = as_words(words)
     if w is None:
         return None
     n_ev, n_tr, stop, effect = kernel(w)

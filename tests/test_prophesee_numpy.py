@@ -188,6 +188,26 @@ def _one_block_at_a_time(path, salvage):
                 rec._blocks, problem)
 
 
+def _assert_whole_read_equals_block_by_block(path, salvage, trial):
+    """A whole read (``events``; its triggers and index rows, or its damage) against the block-by-block read."""
+    ev_b, tr_b, rows_b, problem = _one_block_at_a_time(path, salvage)
+    with evtk.open(path, salvage=salvage) as rec:
+        if problem and not salvage:
+            with pytest.raises(evtk.FormatError) as err:
+                rec.events()
+            assert err.value.offset == problem[0], trial
+            return
+        ev = rec.events()
+        assert ev == ev_b, trial
+        if problem:
+            assert rec.damage.offset == problem[0] and rec._blocks is None, trial
+            return
+        assert rec.triggers() == tr_b, trial
+        assert len(rec._blocks) == len(rows_b), trial
+        for a, b in zip(rec._blocks, rows_b):
+            assert np.array_equal(a[0], b[0]) and a[1:] == b[1:], trial
+
+
 @pytest.mark.parametrize("threads, route", [("1", "numpy"), ("3", "numpy"), ("3", "native")])
 def test_a_whole_evt3_read_on_threads_equals_the_block_by_block_read(tmp_path, monkeypatch, threads, route):
     """Blocks of 64 words decoded on 3 threads from the states the counting pass gives them: the events, triggers,
@@ -216,22 +236,7 @@ def test_a_whole_evt3_read_on_threads_equals_the_block_by_block_read(tmp_path, m
                     assert len(rows) == len(rows_i), trial
                     for a, b in zip(rows, rows_i):
                         assert np.array_equal(a[0], b[0]) and tuple(int(v) for v in a[1:]) == b[1:], trial
-            ev_b, tr_b, rows_b, problem = _one_block_at_a_time(path, salvage)
-            with evtk.open(path, salvage=salvage) as rec:
-                if problem and not salvage:
-                    with pytest.raises(evtk.FormatError) as err:
-                        rec.events()
-                    assert err.value.offset == problem[0], trial
-                    continue
-                ev = rec.events()
-                assert ev == ev_b, trial
-                if problem:
-                    assert rec.damage.offset == problem[0] and rec._blocks is None, trial
-                    continue
-                assert rec.triggers() == tr_b, trial
-                assert len(rec._blocks) == len(rows_b), trial
-                for a, b in zip(rec._blocks, rows_b):
-                    assert np.array_equal(a[0], b[0]) and a[1:] == b[1:], trial
+            _assert_whole_read_equals_block_by_block(path, salvage, trial)
 
 
 def test_the_evt3_index_finds_a_vector_base_moved_off_the_counting_sensor(tmp_path, monkeypatch):
@@ -473,22 +478,7 @@ def test_a_whole_evt2_or_dat_read_on_threads_equals_the_block_by_block_read(tmp_
         words = _random_evt2_words(rng, n, trial) if fmt == "evt2" else _random_dat_words(rng, n, trial)
         _raw_file(path, fmt, words)
         for salvage in (False, True):
-            ev_b, tr_b, rows_b, problem = _one_block_at_a_time(path, salvage)
-            with evtk.open(path, salvage=salvage) as rec:
-                if problem and not salvage:
-                    with pytest.raises(evtk.FormatError) as err:
-                        rec.events()
-                    assert err.value.offset == problem[0], trial
-                    continue
-                ev = rec.events()
-                assert ev == ev_b, trial
-                if problem:
-                    assert rec.damage.offset == problem[0] and rec._blocks is None, trial
-                    continue
-                assert rec.triggers() == tr_b, trial
-                assert len(rec._blocks) == len(rows_b), trial
-                for a, b in zip(rec._blocks, rows_b):
-                    assert np.array_equal(a[0], b[0]) and a[1:] == b[1:], trial
+            _assert_whole_read_equals_block_by_block(path, salvage, trial)
 
 
 @pytest.mark.parametrize("fmt", ["evt2", "dat"])

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..._native import evt3_run as native_evt3_run
-from ..._native import evt3_scan as native_evt3_scan
+from ..._native import prophesee_scan
 from ._whole import Codec
 from .decoders import _NATIVE_STATUS, ST_COORD, ST_FULL, ST_OK, ST_TYPE, _sliced
 
@@ -301,9 +301,9 @@ def scan(words) -> tuple[int, int, int, tuple[int, ...]]:
     """Count the events and triggers of EVT 3.0 words without decoding them, and sum up their effect on the
     decoder's state (up to any word of no type): ``(events, triggers, index of a word of no type or -1, effect)``
     (``effect`` for :func:`advance`). Events off the sensor are counted (the decoder finds them). The compiled
-    kernel takes all the words in one call (:func:`evtk._native.evt3_scan`); numpy :data:`SLICE_WORDS` at a
+    kernel takes all the words in one call (:func:`evtk._native.prophesee_scan`); numpy :data:`SLICE_WORDS` at a
     time."""
-    got = native_evt3_scan(words)
+    got = prophesee_scan("evt3", words)
     if got is not None:
         return got
     w = np.asarray(words).astype(np.uint16, copy=False)
