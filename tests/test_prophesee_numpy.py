@@ -216,6 +216,7 @@ def test_a_whole_evt3_read_on_threads_equals_the_block_by_block_read(tmp_path, m
     _route(monkeypatch, route)
     monkeypatch.setattr(recording, "BLOCK_WORDS", 64)
     monkeypatch.setattr(_whole, "THREADED_BLOCKS", 2)
+    monkeypatch.setattr(_whole, "THREAD_BYTES", 1)  # each thread's memory paid for by any file
     monkeypatch.setenv("EVTK_THREADS", threads)
     rng = np.random.default_rng(11)
     path = tmp_path / "r.raw"
@@ -453,12 +454,16 @@ def _raw_file(path, fmt, words, sensor=(40, 25)):
 
 
 @pytest.mark.parametrize("fmt", ["evt2", "dat"])
-@pytest.mark.parametrize("route", ["numpy", "native"])
-def test_a_whole_evt2_or_dat_read_on_threads_equals_the_block_by_block_read(tmp_path, monkeypatch, fmt, route):
-    """Blocks of 64 items on 3 threads, from the states and places the counting pass gives them: the events,
-    triggers, index rows and first problem of a read one block after another (the streaming path), damaged
-    streams included (words of no type, events off the sensor); with numpy's scan and decoders, and the kernels."""
+@pytest.mark.parametrize("route, layout", [("numpy", "threads"), ("native", "threads"), ("native", "in place")])
+def test_a_whole_evt2_or_dat_read_equals_the_block_by_block_read(tmp_path, monkeypatch, fmt, route, layout):
+    """Blocks of 64 items on 3 threads, from the states and places the counting pass gives them, or on one thread
+    straight into columns as long as the items: the events, triggers, index rows and first problem of a read one
+    block after another (the streaming path), damaged streams included (words of no type, events off the sensor);
+    with numpy's scan and decoders, and the kernels."""
     _route(monkeypatch, route)
+    calls = []
+    whole = _whole.read_whole
+    monkeypatch.setattr(_whole, "read_whole", lambda *a, **k: calls.append(1) or whole(*a, **k))
     if route == "native":  # neither numpy scan may be taken either
         def refuse(*args, **kwargs):
             raise AssertionError("the numpy route was taken")
@@ -469,7 +474,9 @@ def test_a_whole_evt2_or_dat_read_on_threads_equals_the_block_by_block_read(tmp_
         monkeypatch.setattr(_whole, "_first_stop", refuse)
         monkeypatch.setattr(_whole, "_clock_effect", refuse)
     monkeypatch.setattr(recording, "BLOCK_WORDS", 64 * (2 if fmt == "dat" else 1))
-    monkeypatch.setattr(_whole, "THREADED_BLOCKS", 2)
+    if layout == "threads":  # from 2 blocks, each thread's memory paid for by any file
+        monkeypatch.setattr(_whole, "THREADED_BLOCKS", 2)
+        monkeypatch.setattr(_whole, "THREAD_BYTES", 1)
     monkeypatch.setenv("EVTK_THREADS", "3")
     rng = np.random.default_rng(13)
     path = tmp_path / ("r.raw" if fmt == "evt2" else "r.dat")
@@ -479,6 +486,7 @@ def test_a_whole_evt2_or_dat_read_on_threads_equals_the_block_by_block_read(tmp_
         _raw_file(path, fmt, words)
         for salvage in (False, True):
             _assert_whole_read_equals_block_by_block(path, salvage, trial)
+    assert bool(calls) == (layout == "threads")
 
 
 @pytest.mark.parametrize("fmt", ["evt2", "dat"])
