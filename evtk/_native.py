@@ -27,20 +27,21 @@ _kernel_evt2_run: Any
 _kernel_dat_run: Any
 _kernel_evt2_scan: Any
 _kernel_dat_scan: Any
-_ckernels: Any
 try:
-    from . import _ckernels
+    from ._ckernels import count_windows as _kernel_count_windows
+    from ._ckernels import decode_lz4_batch as _kernel_decode_lz4_batch
 except ImportError:  # built without a compiler: the numpy route
-    _ckernels = None
-# each kernel where built (an install built before the EVT 3.0 kernels has the first two)
-_kernel_count_windows = getattr(_ckernels, "count_windows", None)
-_kernel_decode_lz4_batch = getattr(_ckernels, "decode_lz4_batch", None)
-_kernel_evt3_run = getattr(_ckernels, "evt3_run", None)
-_kernel_evt3_scan = getattr(_ckernels, "evt3_scan", None)
-_kernel_evt2_run = getattr(_ckernels, "evt2_run", None)
-_kernel_dat_run = getattr(_ckernels, "dat_run", None)
-_kernel_evt2_scan = getattr(_ckernels, "evt2_scan", None)
-_kernel_dat_scan = getattr(_ckernels, "dat_scan", None)
+    _kernel_count_windows = _kernel_decode_lz4_batch = None
+try:  # apart: an install built before the Prophesee kernels has the two above
+    from ._ckernels import dat_run as _kernel_dat_run
+    from ._ckernels import dat_scan as _kernel_dat_scan
+    from ._ckernels import evt2_run as _kernel_evt2_run
+    from ._ckernels import evt2_scan as _kernel_evt2_scan
+    from ._ckernels import evt3_run as _kernel_evt3_run
+    from ._ckernels import evt3_scan as _kernel_evt3_scan
+except ImportError:
+    _kernel_dat_run = _kernel_dat_scan = _kernel_evt2_run = _kernel_evt2_scan = None
+    _kernel_evt3_run = _kernel_evt3_scan = None
 
 #: Whether the install built the compiled kernels (a C compiler was present). They read the files' little-endian
 #: numbers as the machine's own: on a big-endian machine they are left unused.

@@ -17,7 +17,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ... import _native
+from ..._native import prophesee_scan
 from ..._threads import workers_within
 from ...limits import require_memory
 from .decoders import ST_OK, ST_TYPE, _dat_run, _evt2_run, _first_stop
@@ -219,7 +219,7 @@ def _clock_effect(values: np.ndarray, half: int) -> tuple[int, int, int]:
 def _evt2_scan(words: np.ndarray) -> tuple[int, int, int, tuple[int, ...]]:
     """:class:`Codec` scan of EVT 2.0 words: the compiled kernel's (:func:`evtk._native.prophesee_scan`), else
     numpy's. Events are the CD words (0, 1) up to the first word of no type; the effect is the time highs'."""
-    got = _native.prophesee_scan("evt2", words)
+    got = prophesee_scan("evt2", words)
     if got is not None:
         return got
     kind = words >> 28
@@ -234,7 +234,7 @@ def _evt2_scan(words: np.ndarray) -> tuple[int, int, int, tuple[int, ...]]:
 def _dat_scan(words: np.ndarray) -> tuple[int, int, int, tuple[int, ...]]:
     """:class:`Codec` scan of DAT events (pairs of words): the compiled kernel's, else numpy's. Every event counts;
     the effect is the time stamps'."""
-    got = _native.prophesee_scan("dat", words)
+    got = prophesee_scan("dat", words)
     if got is not None:
         return got
     k = len(words) // 2

@@ -10,8 +10,9 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from ... import _native
 from ..._lazyjit import njit  # EVT 2.1: numba loads when first needed
+from ..._native import dat_run as native_dat_run
+from ..._native import evt2_run as native_evt2_run
 from ..base import sensor_dims, text_header
 
 __all__ = ["sniff", "sniff_lines", "word_type", "evt21_legacy"]
@@ -330,14 +331,14 @@ _NATIVE_STATUS = (ST_OK, ST_TYPE, ST_COORD, ST_FULL)
 def _evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """EVT 2.0 words decoded or counted: :func:`_evt2_numpy_run`'s arguments and results, by the compiled kernel
     where evtk's were built (:func:`evtk._native.evt2_run`: one pass, the GIL released), else by numpy."""
-    got = _native.evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, _NATIVE_STATUS)
+    got = native_evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch, _NATIVE_STATUS)
     return got if got is not None else _evt2_numpy_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch)
 
 
 def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """DAT events decoded or counted: :func:`_dat_numpy_run`'s arguments and results, by the compiled kernel where
     evtk's were built (:func:`evtk._native.dat_run`), else by numpy."""
-    got = _native.dat_run(raw, state, width, height, decode, t, x, y, p, _NATIVE_STATUS)
+    got = native_dat_run(raw, state, width, height, decode, t, x, y, p, _NATIVE_STATUS)
     return got if got is not None else _dat_numpy_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch)
 
 
