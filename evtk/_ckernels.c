@@ -727,9 +727,8 @@ evt3_scan(PyObject *self, PyObject *args)
  *
  * Stops at an event off the width x height sensor (E3_COORD) or a word of another type (E3_TYPE), the word's
  * effects not taken, or, decoding, where the columns are full (E3_FULL; evtk._native's wrapper gives columns as
- * long as the words). Returns (events, triggers, outcome, index of the word stopped at or -1, min t, max t): the
- * time range of the events when counting; 2**62 and -2**62 when decoding, as numpy's decoder returns. The GIL is
- * released throughout.
+ * long as the words). Returns (events, triggers, outcome, index of the word stopped at or -1, min t, max t of the
+ * events; 2**62 and -2**62 without any). The GIL is released throughout.
  */
 static PyObject *
 evt2_run(PyObject *self, PyObject *args)
@@ -772,10 +771,9 @@ evt2_run(PyObject *self, PyObject *args)
                     x[n] = (uint16_t)xx;
                     y[n] = (uint16_t)yy;
                     p[n] = (uint8_t)kind;
-                } else {
-                    t_min = now < t_min ? now : t_min;
-                    t_max = now > t_max ? now : t_max;
                 }
+                t_min = now < t_min ? now : t_min;
+                t_max = now > t_max ? now : t_max;
                 n++;
             } else if (kind == 8) {
                 int64_t v = w & 0xFFFFFFF;
@@ -814,7 +812,7 @@ evt2_run(PyObject *self, PyObject *args)
  *
  * Stops at an event off the width x height sensor (E3_COORD; its stamp still moves the clock, as numpy's decoder
  * reads it) or, decoding, where the columns are full (E3_FULL). Returns (events, 0, outcome, index of the event
- * stopped at or -1, min t, max t), the time range when counting as evt2_run's. The GIL is released throughout.
+ * stopped at or -1, min t, max t), as evt2_run's. The GIL is released throughout.
  */
 static PyObject *
 dat_run(PyObject *self, PyObject *args)
@@ -856,10 +854,9 @@ dat_run(PyObject *self, PyObject *args)
                 x[n] = (uint16_t)xx;
                 y[n] = (uint16_t)yy;
                 p[n] = (d >> 28) != 0;
-            } else {
-                t_min = now < t_min ? now : t_min;
-                t_max = now > t_max ? now : t_max;
             }
+            t_min = now < t_min ? now : t_min;
+            t_max = now > t_max ? now : t_max;
             n++;
         }
         bad = outcome == E3_OK ? -1 : i;

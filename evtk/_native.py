@@ -320,9 +320,9 @@ def evt2_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
     Returns
     -------
     tuple of int or None
-        ``(events, triggers, status, index of the word stopped at or -1, min t, max t)``, the time range when
-        counting (else ``2**62, -2**62``); None when the kernel is off or missing, or an argument is not in the form
-        it takes (then the caller decodes with numpy).
+        ``(events, triggers, status, index of the word stopped at or -1, min t, max t)`` (``2**62, -2**62``
+        without events); None when the kernel is off or missing, or an argument is not in the form it takes (then
+        the caller decodes with numpy).
     """
     if not enabled() or _kernel_evt2_run is None:
         return None

@@ -182,8 +182,6 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
                             p[a0:a1], tt[m0:m1], tk[m0:m1], tch[m0:m1])
             n, where = int(res[0]), int(res[3])
             lo, hi = (int(res[4]), int(res[5])) if n or not decode else (0, -1)
-            if decode and n and lo > hi:  # a decoder that keeps no time range while decoding (EVT 2.0, DAT)
-                lo, hi = int(t[a0:a0 + n].min()), int(t[a0:a0 + n].max())
             return res[:4], lo, hi, (int(words[where]) if where >= 0 else -1)
 
         decoded = each(decode_block, n_blocks)

@@ -152,8 +152,8 @@ def _sliced(core, words_per_item=1, slice_words=lambda: SLICE_WORDS):
 @_sliced
 def _evt2_numpy_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
     """One pass over EVT 2.0 words, vectorised with numpy: counts, or with ``decode`` the events and triggers.
-    Returns (events, triggers, status, word index of the problem, min t, max t); the min and max only when
-    counting. ``state`` (time high, epoch) carries over from the block before and is updated.
+    Returns (events, triggers, status, word index of the problem, min t, max t of the events). ``state`` (time
+    high, epoch) carries over from the block before and is updated.
 
     Every word is 32 bits with its type in the top four: CD_OFF/CD_ON (0, 1) hold x in bits 11..21, y in
     0..10 and the six low time bits in 22..27; EV_TIME_HIGH (8) bits 6..33 of the time in its 28 low bits (a
@@ -198,7 +198,6 @@ def _evt2_numpy_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch
             tt[:m] = (bases[ordinal[trig]] if ordinal is not None else bases[0]) | ((wt >> 22) & 0x3F)
             tk[:m] = np.where(wt & 1, 1, 2)  # kind 1 rising, 2 falling (evtk's Triggers)
             tch[:m] = (wt >> 8) & 0x1F
-        return n, m, status, bad, 2**62, -(2**62)
     return n, m, status, bad, (int(tc.min()) if n else 2**62), (int(tc.max()) if n else -(2**62))
 
 
@@ -318,7 +317,6 @@ def _dat_numpy_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
         x[:n] = xs[:n]
         y[:n] = ys[:n]
         np.not_equal(d[:n] >> 28, 0, out=p[:n].view(np.bool_))
-        return n, 0, status, bad, 2**62, -(2**62)
     return n, 0, status, bad, (int(tc.min()) if n else 2**62), (int(tc.max()) if n else -(2**62))
 
 

@@ -431,10 +431,9 @@ class PropheseeRecording(BaseRecording):
         rows, trs, problem, n = [], [], None, 0
         for b in range(self._n_blocks()):
             start, words = state.copy(), self._words(b)
-            k, m, st, bad, _, _ = run(words, state, width, height, True, t[n:], x[n:], y[n:], p[n:], tt, tk, tc)
+            k, m, st, bad, lo, hi = run(words, state, width, height, True, t[n:], x[n:], y[n:], p[n:], tt, tk, tc)
             k, m = int(k), int(m)
-            tb = t[n:n + k]
-            rows.append((start, k, m, int(tb.min()) if k else 0, int(tb.max()) if k else -1))
+            rows.append((start, k, m, int(lo) if k else 0, int(hi) if k else -1))
             if m:  # copied out: the buffers serve the next block
                 trs.append(Triggers(tt[:m].copy(), tk[:m].copy(), tc[:m].copy()))
             n += k
