@@ -61,6 +61,7 @@ python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_fresh_rea
 python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_fresh_read as b; b.make_file(20_000_000, 'evtk-zstd')" &
 if [[ " $STEPS " == *" threads "* ]]; then
     python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_threads as b; b.data_file(20_000_000, 'evt3')" &
+    python3 -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_threads as b; b.data_file(20_000_000, 'evt2')" &
 fi
 if [[ " $STEPS " == *" env"* ]]; then  # bench_calibrate's camera runs (dv-processing's files) and calibration
     python3 benchmarks/bench_calibrate.py --fresh 1 --writer dv --keep benchmarks/data/calkeep > /dev/null &
@@ -81,7 +82,7 @@ step() {  # name, seconds, command...
 for s in $STEPS; do
     case $s in
     threads) step threads 200 python3 benchmarks/bench_threads.py --cores 1,2,4,8,16 --rounds 2 --reads 3 \
-                 --formats aedat4-dv,aedat4-zstd,evt3 --json "$OUT/threads.json" ;;
+                 --formats aedat4-dv,aedat4-zstd,evt3,evt2 --json "$OUT/threads.json" ;;
     threads-ab)  # this tree against the one in .new (git archive of a branch, carried), alternating
         for r in 1 2; do
             for tree in "$PWD" "$PWD/.new"; do
