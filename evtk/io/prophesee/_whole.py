@@ -1,5 +1,5 @@
-"""A whole Prophesee file (EVT 3.0, or EVT 2.0 and DAT where evtk's compiled kernels were built) decoded on the
-reader's threads, straight into one set of exact-size columns.
+"""A whole Prophesee file (EVT 3.0; EVT 2.0 and DAT where a second thread pays) decoded on the reader's threads,
+straight into one set of exact-size columns, with evtk's compiled kernels where the install built them, else numpy.
 
 Everything a word needs from the words before it (the time base; for EVT 3.0 also y, the vector base and the
 polarity) is a short state that a block's words change in a way a cheap scan sums up (its time words' last values,
