@@ -214,12 +214,18 @@ def decode_lz4_batch(raw: np.ndarray, heads: np.ndarray, sids: np.ndarray, sizes
                                          int(sensor_size[1])))
 
 
-def _as_words(words: Any) -> np.ndarray | None:
-    """``words`` as contiguous native uint16 without a copy where they already are; None where they are not words."""
+def _words_as(words: Any, dtype: type[np.unsignedinteger]) -> np.ndarray | None:
+    """``words`` as contiguous ``dtype`` in the machine's order (no copy where they are), or None where they are not
+    a 1-d array of integers of its size."""
     w = np.asarray(words)
-    if w.dtype.kind not in "ui" or w.ndim != 1:
+    if w.ndim != 1 or w.dtype.kind not in "ui" or w.dtype.itemsize != np.dtype(dtype).itemsize:
         return None
-    return np.ascontiguousarray(w.astype(np.uint16, copy=False))
+    return np.ascontiguousarray(w.astype(dtype, copy=False))
+
+
+def _state_ok(state: np.ndarray, size: int) -> bool:
+    """Whether a decoder's state is the ``size`` int64 the kernels update in place (contiguous, writable)."""
+    return state.dtype == _I64 and state.shape == (size,) and state.flags.c_contiguous and state.flags.writeable
 
 
 def evt3_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool, t: np.ndarray, x: np.ndarray,
@@ -257,9 +263,8 @@ def evt3_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
     """
     if not enabled() or _kernel_evt3_run is None:
         return None
-    w = _as_words(words)
-    if w is None or state.dtype != _I64 or state.shape != (6,) or not state.flags.c_contiguous \
-            or not state.flags.writeable:
+    w = _words_as(words, np.uint16)
+    if w is None or not _state_ok(state, 6):
         return None
     high, low, epoch, at_y, base, pol = state.tolist()
     if not (0 <= high < 4096 and 0 <= low < 4096 and 0 <= epoch < 1 << 39 and 0 <= at_y < 2048 and base >= 0
@@ -282,15 +287,6 @@ def _columns_ok(t: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray, tt: 
                 or (x.dtype, y.dtype, p.dtype, tk.dtype, tch.dtype) != (np.uint16, np.uint16, np.uint8, np.uint8,
                                                                         np.uint8)
                 or not len(t) == len(x) == len(y) == len(p) or not len(tt) == len(tk) == len(tch))
-
-
-def _words32(words: Any) -> np.ndarray | None:
-    """``words`` as contiguous uint32 in the machine's order (no copy where they are), or None where they are not
-    a 1-d array of 32-bit integers."""
-    w = np.asarray(words)
-    if w.ndim != 1 or w.dtype.kind not in "ui" or w.dtype.itemsize != 4:
-        return None
-    return np.ascontiguousarray(w.astype(np.uint32, copy=False))
 
 
 def evt2_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool, t: np.ndarray, x: np.ndarray,
@@ -326,9 +322,8 @@ def evt2_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
     """
     if not enabled() or _kernel_evt2_run is None:
         return None
-    w = _words32(words)
-    if (w is None or state.dtype != _I64 or state.shape != (2,) or not state.flags.c_contiguous
-            or not state.flags.writeable or not _columns_ok(t, x, y, p, tt, tk, tch)):
+    w = _words_as(words, np.uint32)
+    if w is None or not _state_ok(state, 2) or not _columns_ok(t, x, y, p, tt, tk, tch):
         return None
     n, m, outcome, bad, lo, hi = _kernel_evt2_run(w, state, int(width), int(height), bool(decode), t, x, y, p, tt, tk,
                                                   tch)
@@ -364,12 +359,16 @@ def dat_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool
     """
     if not enabled() or _kernel_dat_run is None:
         return None
-    w = _words32(words)
-    if (w is None or state.dtype != _I64 or state.shape != (2,) or not state.flags.c_contiguous
-            or not state.flags.writeable or not _columns_ok(t, x, y, p, t[:0], p[:0], p[:0])):
+    w = _words_as(words, np.uint32)
+    if w is None or not _state_ok(state, 2) or not _columns_ok(t, x, y, p, t[:0], p[:0], p[:0]):
         return None
     n, m, outcome, bad, lo, hi = _kernel_dat_run(w, state, int(width), int(height), bool(decode), t, x, y, p)
     return n, m, status[outcome], bad, lo, hi
+
+
+#: Each Prophesee encoding's counting kernel and word type.
+_SCANS = {"evt3": (_kernel_evt3_scan, np.uint16), "evt2": (_kernel_evt2_scan, np.uint32),
+          "dat": (_kernel_dat_scan, np.uint32)}
 
 
 def prophesee_scan(encoding: str, words: Any) -> tuple[int, int, int, tuple[int, ...]] | None:
@@ -394,11 +393,10 @@ def prophesee_scan(encoding: str, words: Any) -> tuple[int, int, int, tuple[int,
         stamp (-1 where there is none) and the wraps between them. None when the kernel is off or missing, or the
         words are not in a form it takes.
     """
-    kernel, as_words = {"evt3": (_kernel_evt3_scan, _as_words), "evt2": (_kernel_evt2_scan, _words32),
-                        "dat": (_kernel_dat_scan, _words32)}[encoding]
+    kernel, dtype = _SCANS[encoding]
     if not enabled() or kernel is None:
         return None
-    w = as_words(words)
+    w = _words_as(words, dtype)
     if w is None:
         return None
     n_ev, n_tr, stop, effect = kernel(w)

@@ -51,6 +51,7 @@ class Codec(NamedTuple):
     run: Callable[..., tuple[int, int, int, int, int, int]]
     time_range: Callable[[np.ndarray, np.ndarray], tuple[int, int] | None] | None = None
 
+
 def _keep_temporaries_mapped() -> None:
     """Let the allocator keep the decoder's temporaries between slices. glibc returns the free memory at the top
     of its heap to the system once it passes a threshold, which it raises to twice the largest mapped block it has
@@ -66,6 +67,26 @@ THREADED_BLOCKS = 16
 #: A decoding thread's working memory (its slices' temporaries, its block's words, its allocator arena), measured
 #: (a 20 M-event read on two threads peaked 5 MiB above one thread's).
 THREAD_BYTES = 6 << 20
+
+
+def threads_for(n_blocks: int, memory_bytes: int) -> int:
+    """The threads a pass over ``n_blocks`` blocks takes: one below :data:`THREADED_BLOCKS`, else as many as
+    ``memory_bytes`` (the columns it fills, or the file) pays for at :data:`THREAD_BYTES` each
+    (:func:`evtk._threads.workers_within`).
+
+    Parameters
+    ----------
+    n_blocks : int
+        Blocks of the file.
+    memory_bytes : int
+        The memory whose share pays for the threads.
+
+    Returns
+    -------
+    int
+        At least 1.
+    """
+    return workers_within(memory_bytes, THREAD_BYTES) if n_blocks >= THREADED_BLOCKS else 1
 
 
 def read_whole(path: str, start: int, count: int, block_words: int, width: int, height: int,
@@ -110,14 +131,13 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
     n_blocks = -(-count // block_words)
     # threads while counting: as many as the file's own size pays for (its events take at least as much memory
     # as its words unless it is mostly time words); while decoding, as many as the events' memory pays for
-    threads = workers_within(2 * count, THREAD_BYTES) if n_blocks >= THREADED_BLOCKS else 1
+    threads = threads_for(n_blocks, 2 * count)
+    dtype = np.dtype(codec.dtype)
+    item = dtype.itemsize * codec.item_words  # bytes an item
     _keep_temporaries_mapped()
     fd = os.open(path, os.O_RDONLY)
     try:
         buffers: dict[int, np.ndarray] = {}  # each thread reads its blocks into one buffer of its own
-
-        dtype = np.dtype(codec.dtype)
-        item = dtype.itemsize * codec.item_words  # bytes an item
 
         def words_of(b):
             a = b * block_words
@@ -161,7 +181,7 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
         if decode:
             out_bytes = 13 * offs[-1] + 10 * toffs[-1]
             require_memory(out_bytes, f"decoding the events of {path}")
-            threads = workers_within(out_bytes, THREAD_BYTES) if n_blocks >= THREADED_BLOCKS else 1
+            threads = threads_for(n_blocks, out_bytes)
         else:  # counting: no columns; the sensor the index counts on
             offs, toffs = [0] * (n_blocks + 1), [0] * (n_blocks + 1)
             width = height = 1 << 16
@@ -202,16 +222,13 @@ def read_whole(path: str, start: int, count: int, block_words: int, width: int, 
 # -- EVT 2.0 and DAT ---------------------------------------------------------------------------------------------
 
 
-def _clock_wraps(values: np.ndarray, half: int) -> int:
-    """Wraps between consecutive ``values`` of a counter (int64): drops of more than ``half``."""
-    return int(np.count_nonzero((values[1:] < values[:-1]) & (values[:-1] - values[1:] > half)))
-
-
 def _clock_effect(values: np.ndarray, half: int) -> tuple[int, int, int]:
-    """A scan's effect on a counter's state: its first and last value (-1 without any) and the wraps between."""
+    """A scan's effect on a counter's state: its first and last value (int64; -1 without any) and the wraps between
+    them (drops of more than ``half``)."""
     if not len(values):
         return -1, -1, 0
-    return int(values[0]), int(values[-1]), _clock_wraps(values, half)
+    wraps = np.count_nonzero((values[1:] < values[:-1]) & (values[:-1] - values[1:] > half))
+    return int(values[0]), int(values[-1]), int(wraps)
 
 
 def _evt2_scan(words: np.ndarray) -> tuple[int, int, int, tuple[int, ...]]:

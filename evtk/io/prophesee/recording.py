@@ -8,7 +8,6 @@ from typing import Any
 
 import numpy as np
 
-from ..._threads import workers_within
 from ...errors import EvtkError, FormatError
 from ...events import Events, Triggers
 from ...limits import require_memory
@@ -388,13 +387,13 @@ class PropheseeRecording(BaseRecording):
     def _whole(self) -> Events:
         """Every event, block by block (:meth:`_through`, which leaves the index behind) into one set of columns
         sized by what the file's words can hold (pages never written cost no memory), so that the peak is the
-        events plus one block's decoding, not the events twice. EVT 3.0, EVT 2.0 and DAT decode their blocks on
-        the reader's threads into exact-size columns (:func:`_whole.read_whole`)."""
+        events plus one block's decoding, not the events twice. EVT 3.0 decodes its blocks on the reader's threads
+        into exact-size columns (:func:`_whole.read_whole`), and so do EVT 2.0 and DAT where a second thread pays;
+        on one thread they decode straight into their columns (:meth:`_whole_in_place`)."""
         if self.encoding == EVT3:
             return self._whole_threaded()
-        if self.encoding in (EVT2, DAT):  # on threads where the events' memory pays for two (an event an item at most)
-            threaded = self._n_blocks() >= _whole.THREADED_BLOCKS and workers_within(13 * self._count,
-                                                                                    _whole.THREAD_BYTES) > 1
+        if self.encoding in (EVT2, DAT):  # on threads where the events' memory (an event an item at most) pays for two
+            threaded = _whole.threads_for(self._n_blocks(), 13 * self._count) > 1
             return self._whole_threaded() if threaded else self._whole_in_place()
         cap = {EVT21: self._count, ES: self._count // 5 + 1}[self.encoding]
         cols = _event_columns(cap)
