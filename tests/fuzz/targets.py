@@ -76,6 +76,7 @@ import dataclasses
 import io
 import json
 import math
+import os
 import re
 import struct
 import zipfile
@@ -228,13 +229,54 @@ def _windows(truth):
 
 def read_every_way(path, salvage=False):
     """(events, triggers, warnings, info) after reading ``path`` in full, in windows and in chunks, with a
-    :class:`Wrong` if the read paths disagree."""
+    :class:`Wrong` if the read paths disagree; where evtk's compiled kernels were built, the full read is taken
+    again on the numpy route (``EVTK_NATIVE=0``), which must end the same way: the same events and triggers (and
+    no warning the compiled route did not give), or an error of the same class."""
     try:
-        return _read_every_way(path, salvage)
+        got = _read_every_way(path, salvage)
+    except evtk.EvtkError as exc:
+        _numpy_route_agrees(path, salvage, exc)
+        raise
     except Wrong as exc:
         if salvage:
             raise Wrong(f"salvage: {exc}") from None
         raise
+    _numpy_route_agrees(path, salvage, got)
+    return got
+
+
+def _numpy_route_agrees(path, salvage, compiled) -> None:
+    """Raise :class:`Wrong` unless a full read on the numpy route ends as ``compiled`` (the compiled route's
+    ``(events, triggers, warnings, info)``, or its :class:`evtk.EvtkError`)."""
+    from evtk import _native
+
+    if not _native.enabled():
+        return
+    before = os.environ.get("EVTK_NATIVE")
+    os.environ["EVTK_NATIVE"] = "0"
+    try:
+        with evtk.open(path, salvage=salvage) as rec:
+            numpy_route = (rec.events(), rec.triggers(), list(rec.warnings))
+    except evtk.EvtkError as exc:
+        numpy_route = exc
+    finally:
+        if before is None:
+            del os.environ["EVTK_NATIVE"]
+        else:
+            os.environ["EVTK_NATIVE"] = before
+    where = "salvage: " if salvage else ""
+    if isinstance(compiled, BaseException) or isinstance(numpy_route, BaseException):
+        if type(compiled) is not type(numpy_route):
+            raise Wrong(f"{where}the compiled route ended in {compiled!r:.300}, the numpy route in "
+                        f"{numpy_route!r:.300}")
+        return
+    for name, a, b in zip(("events", "triggers"), compiled[:2], numpy_route[:2]):
+        if a != b:
+            raise Wrong(f"{where}the compiled and numpy routes read different {name}: {a!r:.200} against "
+                        f"{b!r:.200}")
+    unsaid = [w for w in numpy_route[2] if w not in compiled[2]]  # the compiled route also read windows, chunks
+    if unsaid:
+        raise Wrong(f"{where}the numpy route warned {unsaid[0]!r:.200}, the compiled route did not")
 
 
 def _read_every_way(path, salvage):
