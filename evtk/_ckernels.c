@@ -319,6 +319,22 @@ decode_lz4_batch(PyObject *self, PyObject *args)
     return PyBool_FromLong(ok);
 }
 
+/* ---- the Prophesee decoders' states ----------------------------------------------------------------------- */
+
+/* Whether state[k] lies in [lo[k], hi[k]) for each of its n values: the states a decoder's words can leave (the
+ * wrappers in evtk/_native.py send other states to numpy). A raw call with another is refused, so that no sum,
+ * step or count of the decoding can overflow whatever the caller passes. */
+static int
+state_in(const int64_t *state, const int64_t *lo, const int64_t *hi, int n)
+{
+    for (int k = 0; k < n; k++)
+        if (state[k] < lo[k] || state[k] >= hi[k])
+            return 0;
+    return 1;
+}
+
+#define STATE_MOST ((int64_t)1 << 40) /* the epochs and vector bases a state may hold (each word adds 12 at most) */
+
 /* ---- Prophesee EVT 3.0 words ------------------------------------------------------------------------------ */
 
 /* Outcomes of evt3_run (the wrapper maps them to the Prophesee decoders' status codes). */
@@ -529,7 +545,7 @@ e3_fast(const uint16_t *words, int64_t i, int64_t end, e3_state *s, const e3_out
 }
 
 /* Words [0, n_words) from state s (its values in range: high and low below 4096, y below 2048, epoch and base not
- * negative, pol 0 or 1; the wrapper checks); returns the outcome and sets *bad to the word stopped at.
+ * negative and below 2**40, pol 0 or 1; evt3_run checks); returns the outcome and sets *bad to the word stopped at.
  *
  * Decoding, most words go through e3_fast a chunk at a time; the chunk's events are then checked against the
  * sensor, and where one is off the chunk is taken again from its start with e3_word, which stops at it. The words
@@ -631,8 +647,12 @@ evt3_run(PyObject *self, PyObject *args)
     e3_out o = {(int64_t *)tb.buf, (int64_t *)ttb.buf, (uint16_t *)xb.buf, (uint16_t *)yb.buf, (uint8_t *)pb.buf,
                 (uint8_t *)tkb.buf, (uint8_t *)tchb.buf, tb.len / 8, ttb.len / 8, width, height, decode};
 
+    /* time high, time low, epoch, y, vector base x, polarity */
+    static const int64_t lo3[6] = {0, 0, 0, 0, 0, 0}, hi3[6] = {4096, 4096, STATE_MOST, 2048, STATE_MOST, 2};
     if (sb.len != 6 * 8)
         fault = "the state is six int64";
+    else if (!state_in(state, lo3, hi3, 6))
+        fault = "a state EVT 3.0 words cannot leave";
     else if (xb.len / 2 != o.cap || yb.len / 2 != o.cap || pb.len != o.cap || tkb.len != o.cap_tr
              || tchb.len != o.cap_tr)
         fault = "the columns differ in length";
@@ -749,8 +769,11 @@ evt2_run(PyObject *self, PyObject *args)
     uint8_t *p = (uint8_t *)pb.buf, *tk = (uint8_t *)tkb.buf, *tch = (uint8_t *)tchb.buf;
     int64_t n_words = wb.len / 4, cap = tb.len / 8, cap_tr = ttb.len / 8;
 
+    static const int64_t lo2[2] = {0, 0}, hi2[2] = {(int64_t)1 << 28, STATE_MOST}; /* time high, epoch */
     if (sb.len != 2 * 8)
         fault = "the state is two int64";
+    else if (!state_in(state, lo2, hi2, 2))
+        fault = "a state EVT 2.0 words cannot leave";
     else if (xb.len / 2 != cap || yb.len / 2 != cap || pb.len != cap || tkb.len != cap_tr || tchb.len != cap_tr)
         fault = "the columns differ in length";
     if (fault == NULL) {
@@ -832,8 +855,11 @@ dat_run(PyObject *self, PyObject *args)
     uint8_t *p = (uint8_t *)pb.buf;
     int64_t n_events = wb.len / 8, cap = tb.len / 8;
 
+    static const int64_t lod[2] = {-1, 0}, hid[2] = {(int64_t)1 << 32, STATE_MOST}; /* last stamp, epoch */
     if (sb.len != 2 * 8)
         fault = "the state is two int64";
+    else if (!state_in(state, lod, hid, 2))
+        fault = "a state DAT events cannot leave";
     else if (xb.len / 2 != cap || yb.len / 2 != cap || pb.len != cap)
         fault = "the columns differ in length";
     if (fault == NULL) {

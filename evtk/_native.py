@@ -223,9 +223,16 @@ def _words_as(words: Any, dtype: type[np.unsignedinteger]) -> np.ndarray | None:
     return np.ascontiguousarray(w.astype(dtype, copy=False))
 
 
-def _state_ok(state: np.ndarray, size: int) -> bool:
-    """Whether a decoder's state is the ``size`` int64 the kernels update in place (contiguous, writable)."""
-    return state.dtype == _I64 and state.shape == (size,) and state.flags.c_contiguous and state.flags.writeable
+#: The most an epoch or a vector base of a decoder's state may be for the kernels (each word adds at most 12 to
+#: either; the kernels refuse more, so that nothing they add can overflow).
+_STATE_MOST = 1 << 40
+
+
+def _state_ok(state: np.ndarray, lowest: tuple[int, ...], above: tuple[int, ...]) -> bool:
+    """Whether a decoder's state is the int64 values the kernels update in place (contiguous, writable), each
+    ``lowest[k] <= state[k] < above[k]``: the states a decoder's words can leave (the kernels check the same)."""
+    return (state.dtype == _I64 and state.shape == (len(lowest),) and state.flags.c_contiguous
+            and state.flags.writeable and all(lo <= v < hi for lo, v, hi in zip(lowest, state.tolist(), above)))
 
 
 def evt3_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool, t: np.ndarray, x: np.ndarray,
@@ -264,12 +271,10 @@ def evt3_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
     if not enabled() or _kernel_evt3_run is None:
         return None
     w = _words_as(words, np.uint16)
-    if w is None or not _state_ok(state, 6):
+    # time high, time low, epoch (below 2**39: the kernel packs the time's parts into one int64), y, vector base
+    # x, polarity
+    if w is None or not _state_ok(state, (0, 0, 0, 0, 0, 0), (4096, 4096, 1 << 39, 2048, _STATE_MOST, 2)):
         return None
-    high, low, epoch, at_y, base, pol = state.tolist()
-    if not (0 <= high < 4096 and 0 <= low < 4096 and 0 <= epoch < 1 << 39 and 0 <= at_y < 2048 and base >= 0
-            and pol in (0, 1)):
-        return None  # not a state EVT 3.0 words can leave (the kernel packs the time's parts into one int64)
     if not _columns_ok(t, x, y, p, tt, tk, tch):
         return None
     n, m, outcome, bad, lo, hi = _kernel_evt3_run(w, state, int(width), int(height), bool(decode), t, x, y, p, tt, tk,
@@ -300,7 +305,8 @@ def evt2_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
     words : array_like
         The words (uint32, in the machine's order).
     state : ndarray
-        The decoder's state (two int64: the last time high, the epoch), updated in place.
+        The decoder's state (two int64: the last time high, the epoch), updated in place. Values no EVT 2.0
+        words leave (a time high of 2**28 or more, an epoch of 2**40) go to numpy.
     width, height : int
         The sensor: an event off it stops the decoding.
     decode : bool
@@ -323,7 +329,8 @@ def evt2_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
     if not enabled() or _kernel_evt2_run is None:
         return None
     w = _words_as(words, np.uint32)
-    if w is None or not _state_ok(state, 2) or not _columns_ok(t, x, y, p, tt, tk, tch):
+    if (w is None or not _state_ok(state, (0, 0), (1 << 28, _STATE_MOST))  # time high, epoch
+            or not _columns_ok(t, x, y, p, tt, tk, tch)):
         return None
     n, m, outcome, bad, lo, hi = _kernel_evt2_run(w, state, int(width), int(height), bool(decode), t, x, y, p, tt, tk,
                                                   tch)
@@ -341,7 +348,7 @@ def dat_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool
         The events as pairs of uint32 (time stamp, data), in the machine's order; a last odd word is left.
     state : ndarray
         The decoder's state (two int64: the last raw time stamp, -1 before the first, and the epoch), updated in
-        place.
+        place. Values no DAT events leave (a stamp of 2**32 or more, an epoch of 2**40) go to numpy.
     width, height : int
         The sensor: an event off it stops the decoding.
     decode : bool
@@ -360,7 +367,8 @@ def dat_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool
     if not enabled() or _kernel_dat_run is None:
         return None
     w = _words_as(words, np.uint32)
-    if w is None or not _state_ok(state, 2) or not _columns_ok(t, x, y, p, t[:0], p[:0], p[:0]):
+    if (w is None or not _state_ok(state, (-1, 0), (1 << 32, _STATE_MOST))  # last stamp, epoch
+            or not _columns_ok(t, x, y, p, t[:0], p[:0], p[:0])):
         return None
     n, m, outcome, bad, lo, hi = _kernel_dat_run(w, state, int(width), int(height), bool(decode), t, x, y, p)
     return n, m, status[outcome], bad, lo, hi

@@ -504,3 +504,56 @@ def test_the_compiled_evt2_and_dat_scans_give_numpy_s_counts_and_effects(monkeyp
         want = numpy_scan(words)
         monkeypatch.delenv("EVTK_NATIVE")
         assert got is not None and got == want, (trial, got, want)
+
+
+#: Per encoding: the kernel's name, the word type, the state's least values, the values past its most for the
+#: wrapper and for the raw kernel (the states its words can leave; the EVT 3.0 wrapper keeps the epoch below 2**39,
+#: where the time still fits int64), the most where the time fits int64 (compared with numpy there), and a state
+#: inside them.
+_STATE_RANGES = {
+    "evt3": ("evt3_run", np.uint16, (0, 0, 0, 0, 0, 0), (4096, 4096, 1 << 39, 2048, 1 << 40, 2),
+             (4096, 4096, 1 << 40, 2048, 1 << 40, 2), (4095, 4095, (1 << 39) - 1, 2047, (1 << 40) - 1, 1),
+             (7, 9, 3, 5, 11, 1)),
+    "evt2": ("evt2_run", np.uint32, (0, 0), (1 << 28, 1 << 40), (1 << 28, 1 << 40), ((1 << 28) - 1, (1 << 29) - 1),
+             (5, 2)),
+    "dat": ("dat_run", np.uint32, (-1, 0), (1 << 32, 1 << 40), (1 << 32, 1 << 40), ((1 << 32) - 1, (1 << 31) - 1),
+            (-1, 2)),
+}
+
+
+@pytest.mark.parametrize("fmt", sorted(_STATE_RANGES))
+def test_a_state_no_words_can_leave_goes_to_numpy_and_the_raw_kernel_refuses_it(fmt):
+    """Each value of a decoder's state one past either end of its range (a vector base at 2**63 - 1 made the
+    EVT 3.0 kernel's sum overflow, found by a fuzzer under UBSan): the wrapper returns None (the numpy route), the
+    raw kernel raises ValueError and leaves the state and columns alone; at either end itself (where the time fits
+    int64) both decode as numpy does."""
+    from evtk import _ckernels
+    from evtk.io.prophesee import decoders
+
+    if not _native.BUILT or _native._kernel_evt3_run is None:
+        pytest.skip("evtk's compiled kernels were not built (no C compiler at install)")
+    name, dtype, lowest, above, kernel_above, top, inside = _STATE_RANGES[fmt]
+    rng = np.random.default_rng(3)
+    words = {"evt3": lambda: _random_words(rng, 300, 4), "evt2": lambda: _random_evt2_words(rng, 300, 1),
+             "dat": lambda: _random_dat_words(rng, 150, 1)}[fmt]().astype(dtype)
+    numpy_run = {"evt3": evt3._numpy_run, "evt2": decoders._evt2_numpy_run, "dat": decoders._dat_numpy_run}[fmt]
+    for k in range(len(lowest)):
+        for value in sorted({lowest[k] - 1, above[k], kernel_above[k], lowest[k], top[k]}):
+            state = np.array(inside, np.int64)
+            state[k] = value
+            got, want = _outs(12 * len(words)), _outs(12 * len(words))
+            cols = got[:4] if fmt == "dat" else got
+            wrapped = getattr(_native, name)(words, state.copy(), 40, 25, True, *cols, decoders._NATIVE_STATUS)
+            if not lowest[k] <= value < above[k]:
+                assert wrapped is None, (k, value)
+            if not lowest[k] <= value < kernel_above[k]:
+                before = state.copy()
+                with pytest.raises(ValueError, match="state"):
+                    getattr(_ckernels, name)(words, state, 40, 25, True, *cols)
+                assert np.array_equal(state, before) and not got[0].any(), (k, value)
+            if lowest[k] <= value <= top[k]:
+                s1, s2 = state.copy(), state.copy()
+                r1 = getattr(_native, name)(words, s1, 40, 25, True, *cols, decoders._NATIVE_STATUS)
+                r2 = tuple(int(v) for v in numpy_run(words, s2, 40, 25, True, *want))
+                assert r1 == r2 and np.array_equal(s1, s2), (k, value, r1, r2)
+                assert all(np.array_equal(a[:r1[0]], b[:r1[0]]) for a, b in zip(got[:4], want[:4])), (k, value)
