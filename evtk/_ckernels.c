@@ -334,6 +334,7 @@ state_in(const int64_t *state, const int64_t *lo, const int64_t *hi, int n)
 }
 
 #define STATE_MOST ((int64_t)1 << 40) /* the epochs and vector bases a state may hold (each word adds 12 at most) */
+#define SENSOR_MOST ((int64_t)1 << 16) /* the widest and tallest sensor (the coordinates are uint16) */
 
 /* ---- Prophesee EVT 3.0 words ------------------------------------------------------------------------------ */
 
@@ -653,6 +654,8 @@ evt3_run(PyObject *self, PyObject *args)
         fault = "the state is six int64";
     else if (!state_in(state, lo3, hi3, 6))
         fault = "a state EVT 3.0 words cannot leave";
+    else if (width < 0 || width > SENSOR_MOST || height < 0 || height > SENSOR_MOST)
+        fault = "the sensor's width and height are 0 to 65536";
     else if (xb.len / 2 != o.cap || yb.len / 2 != o.cap || pb.len != o.cap || tkb.len != o.cap_tr
              || tchb.len != o.cap_tr)
         fault = "the columns differ in length";
@@ -774,6 +777,8 @@ evt2_run(PyObject *self, PyObject *args)
         fault = "the state is two int64";
     else if (!state_in(state, lo2, hi2, 2))
         fault = "a state EVT 2.0 words cannot leave";
+    else if (width < 0 || width > SENSOR_MOST || height < 0 || height > SENSOR_MOST)
+        fault = "the sensor's width and height are 0 to 65536";
     else if (xb.len / 2 != cap || yb.len / 2 != cap || pb.len != cap || tkb.len != cap_tr || tchb.len != cap_tr)
         fault = "the columns differ in length";
     if (fault == NULL) {
@@ -860,6 +865,8 @@ dat_run(PyObject *self, PyObject *args)
         fault = "the state is two int64";
     else if (!state_in(state, lod, hid, 2))
         fault = "a state DAT events cannot leave";
+    else if (width < 0 || width > SENSOR_MOST || height < 0 || height > SENSOR_MOST)
+        fault = "the sensor's width and height are 0 to 65536";
     else if (xb.len / 2 != cap || yb.len / 2 != cap || pb.len != cap)
         fault = "the columns differ in length";
     if (fault == NULL) {

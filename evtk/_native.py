@@ -228,6 +228,11 @@ def _words_as(words: Any, dtype: type[np.unsignedinteger]) -> np.ndarray | None:
 _STATE_MOST = 1 << 40
 
 
+def _sensor_ok(width: int, height: int) -> bool:
+    """Whether a sensor is one the decoders' kernels take: 0 to 65536 pixels a side (the kernels refuse others)."""
+    return 0 <= width <= 1 << 16 and 0 <= height <= 1 << 16
+
+
 def _state_ok(state: np.ndarray, lowest: tuple[int, ...], above: tuple[int, ...]) -> bool:
     """Whether a decoder's state is the int64 values the kernels update in place (contiguous, writable), each
     ``lowest[k] <= state[k] < above[k]``: the states a decoder's words can leave (the kernels check the same)."""
@@ -251,7 +256,8 @@ def evt3_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
         polarity), updated in place to the state after the words whose effects stand. Values no EVT 3.0 words
         leave (a time part of 4096 or more, say) go to numpy.
     width, height : int
-        The sensor: an event off it stops the decoding.
+        The sensor: an event off it stops the decoding. The kernel takes 0 to 65536 pixels a side (others go to
+        numpy).
     decode : bool
         Write the events and triggers; else only count them.
     t, x, y, p : ndarray
@@ -275,7 +281,7 @@ def evt3_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
     # x, polarity
     if w is None or not _state_ok(state, (0, 0, 0, 0, 0, 0), (4096, 4096, 1 << 39, 2048, _STATE_MOST, 2)):
         return None
-    if not _columns_ok(t, x, y, p, tt, tk, tch):
+    if not _columns_ok(t, x, y, p, tt, tk, tch) or not _sensor_ok(width, height):
         return None
     n, m, outcome, bad, lo, hi = _kernel_evt3_run(w, state, int(width), int(height), bool(decode), t, x, y, p, tt, tk,
                                                   tch)
@@ -308,7 +314,8 @@ def evt2_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
         The decoder's state (two int64: the last time high, the epoch), updated in place. Values no EVT 2.0
         words leave (a time high of 2**28 or more, an epoch of 2**40) go to numpy.
     width, height : int
-        The sensor: an event off it stops the decoding.
+        The sensor: an event off it stops the decoding. The kernel takes 0 to 65536 pixels a side (others go to
+        numpy).
     decode : bool
         Write the events and triggers; else only count them.
     t, x, y, p : ndarray
@@ -330,7 +337,7 @@ def evt2_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
         return None
     w = _words_as(words, np.uint32)
     if (w is None or not _state_ok(state, (0, 0), (1 << 28, _STATE_MOST))  # time high, epoch
-            or not _columns_ok(t, x, y, p, tt, tk, tch)):
+            or not _columns_ok(t, x, y, p, tt, tk, tch) or not _sensor_ok(width, height)):
         return None
     n, m, outcome, bad, lo, hi = _kernel_evt2_run(w, state, int(width), int(height), bool(decode), t, x, y, p, tt, tk,
                                                   tch)
@@ -350,7 +357,8 @@ def dat_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool
         The decoder's state (two int64: the last raw time stamp, -1 before the first, and the epoch), updated in
         place. Values no DAT events leave (a stamp of 2**32 or more, an epoch of 2**40) go to numpy.
     width, height : int
-        The sensor: an event off it stops the decoding.
+        The sensor: an event off it stops the decoding. The kernel takes 0 to 65536 pixels a side (others go to
+        numpy).
     decode : bool
         Write the events; else only count them.
     t, x, y, p : ndarray
@@ -368,7 +376,7 @@ def dat_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool
         return None
     w = _words_as(words, np.uint32)
     if (w is None or not _state_ok(state, (-1, 0), (1 << 32, _STATE_MOST))  # last stamp, epoch
-            or not _columns_ok(t, x, y, p, t[:0], p[:0], p[:0])):
+            or not _columns_ok(t, x, y, p, t[:0], p[:0], p[:0]) or not _sensor_ok(width, height)):
         return None
     n, m, outcome, bad, lo, hi = _kernel_dat_run(w, state, int(width), int(height), bool(decode), t, x, y, p)
     return n, m, status[outcome], bad, lo, hi

@@ -522,11 +522,11 @@ _STATE_RANGES = {
 
 
 @pytest.mark.parametrize("fmt", sorted(_STATE_RANGES))
-def test_a_state_no_words_can_leave_goes_to_numpy_and_the_raw_kernel_refuses_it(fmt):
+def test_a_state_or_sensor_no_file_can_give_goes_to_numpy_and_the_raw_kernel_refuses_it(fmt):
     """Each value of a decoder's state one past either end of its range (a vector base at 2**63 - 1 made the
-    EVT 3.0 kernel's sum overflow, found by a fuzzer under UBSan): the wrapper returns None (the numpy route), the
-    raw kernel raises ValueError and leaves the state and columns alone; at either end itself (where the time fits
-    int64) both decode as numpy does."""
+    EVT 3.0 kernel's sum overflow, found by tests/fuzz/kernels.py under UBSan), and sensors of other sizes: the
+    wrapper returns None (the numpy route), the raw kernel raises ValueError and leaves the state and columns
+    alone; at either end itself (where the time fits int64) both decode as numpy does."""
     from evtk import _ckernels
     from evtk.io.prophesee import decoders
 
@@ -557,3 +557,17 @@ def test_a_state_no_words_can_leave_goes_to_numpy_and_the_raw_kernel_refuses_it(
                 r2 = tuple(int(v) for v in numpy_run(words, s2, 40, 25, True, *want))
                 assert r1 == r2 and np.array_equal(s1, s2), (k, value, r1, r2)
                 assert all(np.array_equal(a[:r1[0]], b[:r1[0]]) for a, b in zip(got[:4], want[:4])), (k, value)
+    # the sensor: 0 to 65536 pixels a side (a width of -2**63 made the EVT 3.0 kernel's room overflow: UBSan)
+    for width, height in ((-1, 25), (40, -1), (65537, 25), (40, 65537), (-(1 << 63), 25), (65536, 65536), (0, 0)):
+        state = np.array(inside, np.int64)
+        got, want = _outs(12 * len(words)), _outs(12 * len(words))
+        cols = got[:4] if fmt == "dat" else got
+        wrapped = getattr(_native, name)(words, state.copy(), width, height, True, *cols, decoders._NATIVE_STATUS)
+        if not (0 <= width <= 65536 and 0 <= height <= 65536):
+            assert wrapped is None, (width, height)
+            with pytest.raises(ValueError, match="sensor"):
+                getattr(_ckernels, name)(words, state, width, height, True, *cols)
+            continue
+        r2 = tuple(int(v) for v in numpy_run(words, state.copy(), width, height, True, *want))
+        assert wrapped == r2, (width, height)
+        assert all(np.array_equal(a[:r2[0]], b[:r2[0]]) for a, b in zip(got[:4], want[:4])), (width, height)

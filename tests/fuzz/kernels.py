@@ -1,0 +1,188 @@
+"""evtk's compiled kernels (``evtk._ckernels``) called raw, past their wrappers, with hostile arguments.
+
+    python -m tests.fuzz.kernels --calls 100000 --seed 1
+
+The C file promises that no argument can make a kernel read or write outside its buffers: each checks every
+length, index and state itself. This calls each kernel with arguments a wrapper would never pass (columns of
+other lengths, picks and window bounds outside the events, bins past the output, table sizes, LZ4 frames with
+flipped bits and lying sizes, decoder states at the ends of int64, widths of any sign) and random words. A call
+must return or raise ``ValueError`` / ``TypeError`` / ``OverflowError``; anything else is raised. Run under
+AddressSanitizer and UBSan (``tests/fuzz/sanitized.sh``), any access outside a buffer or undefined arithmetic
+stops the process with its place in ``_ckernels.c``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import random
+import sys
+
+import numpy as np
+
+REFUSED = (ValueError, TypeError, OverflowError)
+
+
+def _extreme(rng: random.Random) -> int:
+    """An int64 from the ends and the middle of its range, or a small one."""
+    return rng.choice([0, 1, -1, 2, 7, 11, 100, 2047, 4096, 65535, 65536, 1 << 28, 1 << 31, 1 << 32, -(1 << 31),
+                       1 << 39, 1 << 40, 1 << 62, -(1 << 63), (1 << 63) - 1, rng.randrange(-1000, 1000)])
+
+
+class _Caller:
+    """One seeded stream of hostile calls; :meth:`call` counts each outcome."""
+
+    def __init__(self, seed: int) -> None:
+        from evtk import _ckernels
+        from evtk.io import _compression
+
+        self.k = _ckernels
+        self.rng = random.Random(seed)
+        self.nrng = np.random.default_rng(seed)
+        self.scratch = _compression.Scratch()
+        self.lz4f = _compression.lz4f_addresses(self.scratch)
+        self.outcomes: collections.Counter = collections.Counter()
+
+    def array(self, dtype, size: int) -> np.ndarray:
+        """``size`` random values of ``dtype`` (every bit pattern)."""
+        raw = self.nrng.integers(0, 256, size * np.dtype(dtype).itemsize, dtype=np.uint8)
+        return raw.view(dtype)
+
+    def call(self, name: str, *args) -> None:
+        try:
+            getattr(self.k, name)(*args)
+            self.outcomes[name, "returned"] += 1
+        except REFUSED:
+            self.outcomes[name, "refused"] += 1
+
+    def state(self, size: int, ranges: list[tuple[int, int]]) -> np.ndarray:
+        """A decoder's state: each value within its ``[lo, hi)``, with one or all values extreme now and then, or
+        of the wrong size."""
+        rng = self.rng
+        state = np.array([rng.randrange(lo, hi) for lo, hi in ranges], np.int64)
+        if rng.random() < 0.2:
+            state[rng.randrange(size)] = _extreme(rng)
+        if rng.random() < 0.05:
+            state[:] = [_extreme(rng) for _ in range(size)]
+        if rng.random() < 0.05:
+            state = state[: rng.randrange(size)]
+        return state
+
+    def count_windows(self) -> None:
+        """Arguments that fit one another (so that the counting runs), then now and then one of them not."""
+        rng, nrng = self.rng, self.nrng
+        n = rng.choice([0, 1, 5, 100, 1000])
+        width = 2 if rng.random() < 0.5 else 4
+        x, y, p = self.array(np.uint16, n), self.array(np.uint16, n), self.array(np.uint8, n)
+        use_picks = rng.random() < 0.5
+        picks = nrng.integers(0, max(n, 1), rng.choice([0, 3, 50, 500])).astype(np.int64) if n else \
+            np.zeros(0, np.int64)
+        first = rng.randrange(0, n + 1)
+        most = len(picks) if use_picks else n - first
+        at = np.sort(nrng.integers(0, most + 1, rng.choice([0, 1, 2, 5, 30]))).astype(np.int64)
+        ky = nrng.integers(-5, 40, 65536).astype(np.int64)
+        kx = nrng.integers(-5, 40, 65536).astype(np.int64)
+        per_window, on_step = rng.choice([1, 5, 40, 80]), rng.choice([0, 3, 40])
+        limit = rng.randrange(0, per_window + 1)
+        out = np.zeros(max(len(at) - 1, 0) * per_window + 1, np.int16 if width == 2 else np.int32)
+        args = [x, y, p, picks, use_picks, first, at, ky, kx, on_step, limit, per_window, len(out) - 1,
+                rng.random() < 0.5, out, width]
+        if rng.random() < 0.4:  # one argument that does not fit
+            k = rng.choice([0, 1, 2, 3, 5, 6, 7, 9, 10, 11, 12, 14, 15])
+            if k in (0, 1, 2):
+                args[k] = args[k][:-1] if len(args[k]) else self.array(args[k].dtype, 1)
+            elif k == 3:
+                args[3] = nrng.integers(-3, n + 3, len(picks) + 1).astype(np.int64)
+            elif k == 6:
+                args[6] = np.sort(nrng.integers(-2, most + 5, len(at) + 1)).astype(np.int64)
+            elif k == 7:
+                args[7] = ky[: rng.choice([0, 100, 65535])]
+            elif k == 15:
+                args[15] = rng.choice([0, 1, 3, 8, -2])
+            elif k == 14:
+                args[14] = out[: rng.randrange(len(out) + 1)]
+            else:
+                args[k] = _extreme(rng)
+        self.call("count_windows", *args)
+
+    def decode_lz4_batch(self) -> None:
+        import lz4.frame
+
+        if not self.lz4f:
+            return
+        rng = self.rng
+        body = self.array(np.uint8, rng.choice([0, 8, 100, 4000])).tobytes()
+        frame = bytearray(lz4.frame.compress(body, content_checksum=rng.random() < 0.3,
+                                             store_size=rng.random() < 0.7))
+        for _ in range(rng.choice([0, 0, 1, 3])):
+            frame[rng.randrange(len(frame))] ^= 1 << rng.randrange(8)
+        size = len(frame) if rng.random() < 0.8 else rng.choice([-1, 0, len(frame) + 1, 1 << 30])
+        head = np.array([rng.choice([1, 2, -1]), size], np.int32)
+        raw = np.frombuffer(head.tobytes() + bytes(frame) + bytes(rng.choice([0, 3])), np.uint8)
+        heads = np.array([rng.choice([0, 0, 0, 1, -1, len(raw), _extreme(rng)])], np.int64)
+        sids, sizes = np.array([head[0]], np.int64), np.array([head[1]], np.int64)
+        counts = np.array([rng.choice([0, 1, 10, _extreme(rng)])], np.int64)
+        m = rng.choice([0, 1, 3, 10])
+        stage = np.zeros(rng.choice([0, 16, 4096, 1 << 16]), np.uint8)
+        limits = [_extreme(rng) if rng.random() < 0.2 else v for v in (1024, 4, 1 << 20)]
+        self.call("decode_lz4_batch", raw, heads, sids, sizes, counts, rng.random() < 0.5, *self.lz4f, stage,
+                  *limits, np.zeros(m, np.int64), np.zeros(m, np.uint16), np.zeros(m, np.uint16),
+                  np.zeros(m, np.uint8), rng.choice([0, 1, 640, -1, _extreme(rng)]),
+                  rng.choice([0, 1, 480, -1, _extreme(rng)]))
+
+    def prophesee_run(self) -> None:
+        rng, nrng = self.rng, self.nrng
+        # each kernel's state: time high, time low, epoch, y, vector base x, polarity (EVT 3.0); time high, epoch
+        # (EVT 2.0); last stamp, epoch (DAT)
+        name, dtype, ranges = rng.choice([
+            ("evt3_run", np.uint16, [(0, 4096), (0, 4096), (0, 8), (0, 2048), (0, 3000), (0, 2)]),
+            ("evt2_run", np.uint32, [(0, 1 << 28), (0, 8)]), ("dat_run", np.uint32, [(-1, 1 << 32), (0, 8)])])
+        words = self.array(dtype, rng.choice([0, 1, 3, 100, 5000]))
+        if rng.random() < 0.5:  # words of the encoding's types, so that the decoding goes on
+            kinds = [0, 2, 3, 4, 5, 6, 8, 10, 7, 14] if dtype == np.uint16 else [0, 1, 8, 10, 14, 15]
+            shift, low = (12, 0xFFF) if dtype == np.uint16 else (28, 0xFFFFFFF)
+            words = ((nrng.choice(kinds, len(words)).astype(dtype) << dtype(shift)) | (words & dtype(low))
+                     ).astype(dtype)
+        state = self.state(len(ranges), ranges)
+        m = rng.choice([0, 1, 10, len(words), 12 * len(words) + 12])
+        cols = [np.zeros(m if rng.random() < 0.95 else m + 1, np.int64), np.zeros(m, np.uint16),
+                np.zeros(m, np.uint16), np.zeros(m, np.uint8)]
+        mt = rng.choice([0, 2, len(words)])
+        triggers = [np.zeros(mt, np.int64), np.zeros(mt, np.uint8),
+                    np.zeros(mt if rng.random() < 0.95 else mt + 1, np.uint8)]
+        sensor = [rng.choice([640, 2048, 16384, 65536]) if rng.random() < 0.8 else
+                  rng.choice([0, 1, -1, _extreme(rng)]) for _ in range(2)]
+        args = [words, state, *sensor, rng.random() < 0.7, *cols]
+        self.call(name, *(args if name == "dat_run" else args + triggers))
+
+    def scans(self) -> None:
+        for name, dtype in (("evt3_scan", np.uint16), ("evt2_scan", np.uint32), ("dat_scan", np.uint32)):
+            self.call(name, self.array(dtype, self.rng.choice([0, 1, 2, 3, 999])))
+
+
+def run(seed: int, calls: int) -> collections.Counter:
+    """``calls`` hostile calls (the kernels in turn) from ``seed``; the count of each (kernel, outcome).
+
+    Raises whatever a kernel raises other than ``ValueError``, ``TypeError`` or ``OverflowError``.
+    """
+    caller = _Caller(seed)
+    steps = (caller.count_windows, caller.decode_lz4_batch, caller.prophesee_run, caller.prophesee_run,
+             caller.scans)
+    for i in range(calls):
+        steps[i % len(steps)]()
+    return caller.outcomes
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--calls", type=int, default=20000)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    outcomes = run(args.seed, args.calls)
+    for (name, outcome), n in sorted(outcomes.items()):
+        print(f"{name:<18}{outcome:<10}{n:>8}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
