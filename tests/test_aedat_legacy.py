@@ -110,8 +110,8 @@ def test_aedat2_windows_streaming_wraps_and_damage(tmp_path, monkeypatch):
 
 def test_unknown_version_and_damaged_packet_are_one_error(tmp_path):
     path = tmp_path / "v.aedat"
-    path.write_bytes(b"#!AER-DAT1.0\r\n")
-    with pytest.raises(evtk.FormatError, match="version 1.0"):
+    path.write_bytes(b"#!AER-DAT9.1\r\n")
+    with pytest.raises(evtk.FormatError, match="version 9.1 is not read"):
         evtk.open(path)
     ev = random_events(500, seed=1, sensor_size=(346, 260))
     write_aedat31(path, ev, packet=100, other=False)
@@ -216,3 +216,75 @@ def test_text_header_ends_where_the_text_lines_end(tmp_path, n_bytes):
     path.write_bytes(head + b"#\x00\x01\x02\x03\x04\x05\x06" + b"# trailing text\n")
     lines, end = text_header(path, b"#", 4 << 20)
     assert end == len(head) and len(lines) == head.count(b"\n") and lines[0] == line.strip().decode()
+
+
+_DVS128_HEAD = b"# This is a raw AE data file - do not edit\r\n# AEChip: ch.unizh.ini.jaer.chip.retina.DVS128\r\n"
+
+
+def _jaer_records(version, addresses, stamps):
+    """AEDAT 1.0 or 2.0 as jAER's file output writes it: the version line, the header, then each record packed as
+    jAER packs it (big-endian: a 16-bit address and a 32-bit stamp for 1.0, two 32-bit words for 2.0)."""
+    fmt = ">HI" if version == "1.0" else ">II"
+    body = b"".join(struct.pack(fmt, int(a), int(t)) for a, t in zip(addresses, stamps))
+    return f"#!AER-DAT{version}\r\n".encode() + _DVS128_HEAD + body
+
+
+def _dvs128_records(n, seed, t0=0):
+    """Random DVS128 addresses (x bits 1-7, y bits 8-14, polarity bit 0) and rising 32-bit stamps from t0 (mod
+    2**32: past 2**32 they wrap, as the camera's counter does)."""
+    rng = np.random.default_rng(seed)
+    addresses = rng.integers(0, 1 << 15, n)
+    t = t0 + np.cumsum(rng.integers(0, 400, n))
+    return addresses, t % (1 << 32), t
+
+
+@pytest.mark.parametrize("t0", [0, (1 << 32) - 300_000])
+def test_aedat1_reads_as_the_same_records_in_aedat2(tmp_path, t0):
+    """jAER's first format (16-bit addresses) against AEDAT 2.0 holding the same addresses and stamps, which
+    tonic's reader and the real DVS128 recordings check: the same events; the stamps the records' own, unwrapped
+    past 2**32; x, y and polarity the address bits, in evtk's orientation (x and y mirrored, OFF in bit 0)."""
+    addresses, stamps, t = _dvs128_records(4000, seed=21, t0=t0)
+    v1, v2 = tmp_path / "old.dat", tmp_path / "new.aedat"
+    v1.write_bytes(_jaer_records("1.0", addresses, stamps))
+    v2.write_bytes(_jaer_records("2.0", addresses, stamps))
+    with evtk.open(v1) as rec:
+        assert rec.metadata["aedat_version"] == "1.0" and rec.metadata["chip"] == "dvs128"
+        assert rec.sensor_size == (128, 128) and not rec.warnings
+        ev = rec.events()
+        lo, hi = int(t[500]), int(t[3500])
+        assert rec.events(lo, hi) == ev.between(lo, hi)
+        assert evtk.Events.concatenate(list(rec.iter_events(chunk_events=333)), sensor_size=(128, 128)) == ev
+    assert ev == evtk.read_events(v2)
+    assert np.array_equal(ev.t, t)
+    assert np.array_equal(ev.x, 127 - ((addresses >> 1) & 0x7F))
+    assert np.array_equal(ev.y, 127 - ((addresses >> 8) & 0x7F))  # jAER counts y from the bottom row
+    assert np.array_equal(ev.p, 1 - (addresses & 1))
+
+
+def test_aedat1_damage_is_named_at_its_record(tmp_path):
+    """A cut inside a 6-byte record, and a stamp that steps back: the byte offset of the record (of its stamp),
+    and salvage reads the events before it; a DAVIS layout for 16-bit addresses is refused."""
+    addresses, stamps, _ = _dvs128_records(900, seed=22)
+    data = _jaer_records("1.0", addresses, stamps)
+    head = len(data) - 6 * 900
+    path = tmp_path / "cut.dat"
+    path.write_bytes(data[:-2])
+    with pytest.raises(evtk.FormatError, match=f"at byte {head + 6 * 899}: the file ends inside a record "
+                                               r"\(4 of 6 bytes\)"):
+        evtk.open(path)
+    with evtk.open(path, salvage=True) as rec:
+        assert rec.events() == evtk.read_events(_write(tmp_path / "whole.dat", data))[:899]
+    back = bytearray(data)
+    struct.pack_into(">I", back, head + 6 * 600 + 2, int(stamps[599]) - 1000)
+    path.write_bytes(bytes(back))
+    with pytest.raises(evtk.FormatError, match=f"at byte {head + 6 * 600 + 2}: the time stamp steps back"):
+        evtk.read_events(path)
+    with evtk.open(path, salvage=True) as rec:
+        assert len(rec.events()) == 600 and rec.damage.offset == head + 6 * 600 + 2
+    with pytest.raises(evtk.EvtkError, match="no DAVIS layout"):
+        evtk.open(path, layout="davis")
+
+
+def _write(path, data):
+    path.write_bytes(data)
+    return path

@@ -100,7 +100,7 @@ def detect_format(path: str | os.PathLike[str]) -> str:
     Returns
     -------
     str
-        ``"aedat4"``, ``"aedat-other"`` (AEDAT 2.0 or 3.1), ``"hdf5"``, ``"parquet"``, ``"event_stream"``,
+        ``"aedat4"``, ``"aedat-other"`` (AEDAT 1.0, 2.0 or 3.1), ``"hdf5"``, ``"parquet"``, ``"event_stream"``,
         ``"prophesee"`` (RAW or DAT), ``"text"`` or ``"nmnist"``.
 
     Raises
@@ -167,7 +167,7 @@ def open(path: str | os.PathLike[str], salvage: bool = False,  # noqa: A001
     path : str or os.PathLike
         An AEDAT4, HDF5 (evtk, DSEC, Prophesee or event_utils layout),
         Parquet, Prophesee RAW (EVT 2.0 or 3.0) or DAT, Event Stream, or
-        AEDAT 2.0/3.1 file.
+        AEDAT 1.0/2.0/3.1 file.
     salvage : bool
         Recover what is intact before damage instead of raising
         :class:`~evtk.FormatError`; ``recording.damage`` says where it stopped.

@@ -1,4 +1,4 @@
-"""AEDAT 2.0 (jAER) and AEDAT 3.1 (cAER, DV's predecessors) polarity events, read by content.
+"""AEDAT 1.0 and 2.0 (jAER) and AEDAT 3.1 (cAER, DV's predecessors) polarity events, read by content.
 
 AEDAT 2.0: text header lines starting with ``#``, then 8-byte big-endian
 records (32-bit address, 32-bit time stamp in microseconds, unwrapped when it
@@ -11,6 +11,10 @@ bit 11 and mark frame (APS) and IMU samples with bit 31 (left out, and
 counted); the DVS128 keeps x in bits 1-7 (mirrored), y in bits 8-14 and OFF in
 bit 0. jAER counts y from the bottom row; evtk counts it from the top, so y is
 mirrored (``height - 1 - y``).
+
+AEDAT 1.0: jAER's first format (DVS128 and its predecessor Tmpdiff128, files
+often named ``.dat``), as 2.0 but with 6-byte records: a 16-bit big-endian
+address in the DVS128's layout, then the 32-bit time stamp.
 
 AEDAT 3.1: a text header ending ``#!END-HEADER``, then packets of a 28-byte
 little-endian header (type, source, event size, time-stamp offset, overflow
@@ -48,6 +52,10 @@ MIN_INFERRED_SIDE = 16
 #: Sensor sizes of the cameras an AEDAT 2.0 header may name (its AEChip class, matched case-insensitively).
 CHIP_SIZES = {"dvs128": (128, 128), "davis240": (240, 180), "davis346": (346, 260), "davis640": (640, 480),
               "davis208": (208, 192), "davis128": (128, 128), "dvs640": (640, 480)}
+#: Bytes of an AEDAT 1.0 and an AEDAT 2.0 record (address and time stamp, big-endian).
+_RECORD_BYTES = {"1.0": 6, "2.0": 8}
+#: AEDAT 1.0's records: a 16-bit address (the DVS128's layout), a 32-bit time stamp.
+_V1_RECORD = np.dtype([("address", ">u2"), ("t", ">u4")])
 BLOCK_RECORDS = 1 << 20
 _PACKET_HEADER = 28
 _TYPE_NAMES = {0: "special", 1: "polarity", 2: "frame", 3: "imu6", 4: "imu9", 5: "sample", 6: "ear", 7: "config",
@@ -126,12 +134,12 @@ def _unwrap(ts, state):
 
 
 class LegacyAedatRecording(BaseRecording):
-    """An AEDAT 2.0 or 3.1 file's polarity events.
+    """An AEDAT 1.0, 2.0 or 3.1 file's polarity events.
 
     Parameters
     ----------
     path : str or os.PathLike
-        The ``.aedat`` file (``#!AER-DAT2.0`` or ``#!AER-DAT3.1``).
+        The ``.aedat`` file (``#!AER-DAT1.0``, ``#!AER-DAT2.0`` or ``#!AER-DAT3.1``).
     salvage : bool
         Read what is intact before damage instead of raising.
     sensor_size : tuple of (int, int), optional
@@ -139,7 +147,8 @@ class LegacyAedatRecording(BaseRecording):
         the largest coordinates, with a warning).
     layout : {"dvs128", "davis"}, optional
         AEDAT 2.0: the address layout, overriding the header's ``AEChip``
-        and the layout found from the addresses' bits.
+        and the layout found from the addresses' bits. AEDAT 1.0's 16-bit
+        addresses are the DVS128's only.
     """
 
     format = "aedat-legacy"
@@ -151,11 +160,13 @@ class LegacyAedatRecording(BaseRecording):
             first = f.readline(64)
         m = re.match(rb"#!AER-DAT(\d)\.(\d)", first)
         if not m:
-            raise FormatError(self.path, 0, "not an AEDAT 2.0 or 3.x file (no '#!AER-DAT' line)")
+            raise FormatError(self.path, 0, "not an AEDAT 1.0, 2.0 or 3.x file (no '#!AER-DAT' line)")
         self.version = f"{m.group(1).decode()}.{m.group(2).decode()}"
-        if self.version not in ("2.0", "3.0", "3.1"):
-            raise FormatError(self.path, 0, f"AEDAT version {self.version} is not read (evtk reads 2.0, 3.1 and 4.0)")
+        if self.version not in ("1.0", "2.0", "3.0", "3.1"):
+            raise FormatError(self.path, 0, f"AEDAT version {self.version} is not read (evtk reads 1.0, 2.0, 3.1 and "
+                                            "4.0)")
         self._v3 = self.version.startswith("3")
+        self._record = _RECORD_BYTES.get(self.version, 8)
         self._lines, self._start = _header_lines(self.path, self._v3)
         if self._v3 and not (self._lines and self._lines[-1].startswith("#!END-HEADER")):
             raise FormatError(self.path, self._start, f"the AEDAT {self.version} header never ends (no #!END-HEADER line)")
@@ -165,7 +176,11 @@ class LegacyAedatRecording(BaseRecording):
         self.chip = next((name for name in sorted(CHIP_SIZES, key=len, reverse=True) if name in bare), None)
         if layout is not None and layout not in LAYOUTS:
             raise EvtkError(f"layout must be one of {', '.join(LAYOUTS)}, not {layout!r}")
-        if layout is not None and not self._v3:
+        if self.version == "1.0":  # 16-bit addresses: the DVS128's (and the Tmpdiff128's, its predecessor's)
+            if layout == "davis":
+                raise EvtkError(f"{self.path}: AEDAT 1.0 holds 16-bit addresses, a DVS128's; it has no DAVIS layout")
+            self.chip = "dvs128"
+        elif layout is not None and not self._v3:
             self.chip = "dvs128" if layout == "dvs128" else (self.chip if self.chip not in (None, "dvs128") else
                                                              "davis")
         elif self.chip is None and not self._v3:
@@ -201,13 +216,13 @@ class LegacyAedatRecording(BaseRecording):
 
     # -- layout ---------------------------------------------------------------------------------------------
     def _index_blocks(self):
-        """Blocks of records (2.0) or of polarity packets (3.1): a list of byte ranges per block."""
+        """Blocks of records (1.0, 2.0) or of polarity packets (3.1): a list of byte ranges per block."""
         if not self._v3:
-            body = self._file_bytes - self._start
-            n = body // 8
-            if body % 8:
-                self._problem(self._start + 8 * n, f"the file ends inside a record ({body % 8} of 8 bytes)")
-            return [[(self._start + 8 * a, 8 * min(BLOCK_RECORDS, n - a))] for a in range(0, n, BLOCK_RECORDS)]
+            body, size = self._file_bytes - self._start, self._record
+            n = body // size
+            if body % size:
+                self._problem(self._start + size * n, f"the file ends inside a record ({body % size} of {size} bytes)")
+            return [[(self._start + size * a, size * min(BLOCK_RECORDS, n - a))] for a in range(0, n, BLOCK_RECORDS)]
         blocks, cur, held = [], [], 0
         pos = self._start
         with open(self.path, "rb") as f:
@@ -268,20 +283,24 @@ class LegacyAedatRecording(BaseRecording):
                 f.seek(rng[0])
                 parts.append((f.read(rng[1]), rng[2] if len(rng) > 2 else None))
         if not self._v3:
-            raw = np.frombuffer(parts[0][0], ">u4")
-            addr = raw[0::2].astype(np.int64)
+            if self._record == 6:
+                rec = np.frombuffer(parts[0][0], _V1_RECORD)
+                addr, stamps = rec["address"].astype(np.int64), rec["t"].astype(np.int64)
+            else:
+                raw = np.frombuffer(parts[0][0], ">u4")
+                addr, stamps = raw[0::2].astype(np.int64), raw[1::2].astype(np.int64)
             if self.chip == "dvs128":
                 keep = np.ones(len(addr), bool)
             else:
                 keep = (addr >> 31) == 0  # bit 31: an APS or IMU sample
             rows = np.flatnonzero(keep)
             addr = addr[rows]
-            t, state, bad = _unwrap(raw[1::2][rows].astype(np.int64), state)
+            t, state, bad = _unwrap(stamps[rows], state)
             problem = None
             if bad is not None:
-                at = self._blocks[k][0][0] + 8 * int(rows[bad]) + 4
+                at = self._blocks[k][0][0] + self._record * int(rows[bad]) + self._record - 4
                 problem = (at, f"the time stamp steps back from {int(state[1])} to "
-                               f"{int(raw[2 * rows[bad] + 1])} us, which is no 32-bit wrap (a wrap goes from the "
+                               f"{int(stamps[rows[bad]])} us, which is no 32-bit wrap (a wrap goes from the "
                                "top half of the counter to the bottom half)")
                 addr, t = addr[:bad], t[:bad]
             if self.chip == "dvs128":
