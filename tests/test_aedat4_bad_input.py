@@ -66,8 +66,8 @@ def test_not_aedat(tmp_path):
 
 def test_older_aedat_version_is_named(tmp_path):
     p = tmp_path / "old.aedat"
-    p.write_bytes(b"#!AER-DAT1.0\r\n#Format: RAW\r\n")
-    expect_error(p, "version 1.0", offset=0)
+    p.write_bytes(b"#!AER-DAT5.0\r\n#Format: RAW\r\n")
+    expect_error(p, "version 5.0", offset=0)
     p.write_bytes(b"#!AER-DAT3.1\r\n#Format: RAW\r\n")  # read by the legacy reader, whose header must end
     expect_error(p, "END-HEADER")
 
