@@ -179,9 +179,84 @@ def test_event_stream_overflow_reset_bytes_and_a_cut_event(tmp_path):
         evtk.open(path).events()
     with evtk.open(path, salvage=True) as rec:
         assert len(rec.events()) == 1 and rec.damage is not None
-    path.write_bytes(head[:15] + bytes([2]) + head[16:] + body)
-    with pytest.raises(evtk.FormatError, match="ATIS"):
+    path.write_bytes(head[:15] + bytes([4]) + head[16:] + body)
+    with pytest.raises(evtk.FormatError, match="colour"):
         evtk.open(path)
+
+
+def _atis_bytes(*records):
+    """An ATIS Event Stream 2.0 body packed by hand from the format's table: (gap_us, polarity, is_tc, x, y) each,
+    a gap of 63 us or more as overflow bytes (0xFD-0xFF: 63 us times the low two bits) before the event's byte 0;
+    None is a reset byte (0xFC)."""
+    out = bytearray()
+    for r in records:
+        if r is None:
+            out.append(0xFC)
+            continue
+        gap, pol, tc, x, y = r
+        while gap >= 63:
+            step = min(gap // 63, 3)
+            out.append(0xFC | step)
+            gap -= 63 * step
+        out += bytes([(gap << 2) | (pol << 1) | tc]) + x.to_bytes(2, "little") + y.to_bytes(2, "little")
+    return bytes(out)
+
+
+def test_event_stream_atis_bytes_as_the_format_describes_them(tmp_path):
+    """ATIS bytes packed by hand: overflow and reset bytes, change-detection events (ON and OFF, y counted from the
+    bottom row in the file) read as events, threshold crossings counted and left out; a cut event and an event off
+    the sensor are errors at their bytes, salvage keeping what comes before."""
+    head = b"Event Stream" + bytes([2, 0, 0, 2]) + (304).to_bytes(2, "little") + (240).to_bytes(2, "little")
+    body = _atis_bytes((200, 1, 0, 7, 9), None, (5, 0, 1, 300, 239), (63, 0, 0, 303, 0), None, (62, 1, 1, 0, 0),
+                       (1, 0, 0, 1, 1))
+    path = tmp_path / "a.es"
+    path.write_bytes(head + body)
+    with evtk.open(path) as rec:
+        ev = rec.events()
+        assert rec.metadata["header"][1] == "type atis" and rec.sensor_size == (304, 240)
+        assert rec.info()["left_out"] == {"threshold crossings": 2}
+    assert ev.t.tolist() == [200, 268, 331] and ev.x.tolist() == [7, 303, 1]
+    assert ev.y.tolist() == [230, 239, 238] and ev.p.tolist() == [1, 0, 0]
+    path.write_bytes(head + body + _atis_bytes((3, 1, 0, 2, 2))[:3])
+    with pytest.raises(evtk.FormatError, match=f"at byte {len(head) + len(body) + 3}: the file ends inside an event"):
+        evtk.read_events(path)
+    with evtk.open(path, salvage=True) as rec:
+        assert rec.events() == ev and rec.damage is not None
+    path.write_bytes(head + body + _atis_bytes((3, 0, 1, 304, 2)) + body)  # a threshold crossing off the sensor
+    with pytest.raises(evtk.FormatError, match="outside the 304x240"):
+        evtk.read_events(path)
+    with evtk.open(path, salvage=True) as rec:
+        assert rec.events() == ev
+
+
+def test_event_stream_atis_equals_event_stream_s_change_detection_events(tmp_path, monkeypatch):
+    """ATIS streams written and read by event_stream, the format's own library: evtk's events are its events that
+    are no exposure measurement (y from the top, ON the polarity), in full reads, windows and chunks, across blocks
+    that cut events and gaps long enough for overflow bytes; the exposure measurements are counted."""
+    event_stream = pytest.importorskip("event_stream")
+    monkeypatch.setattr(prophesee.recording, "BLOCK_WORDS", 4099)
+    rng = np.random.default_rng(17)
+    n = 30_000
+    written = np.zeros(n, event_stream.atis_dtype)
+    written["t"] = np.cumsum(rng.choice([0, 1, 30, 62, 63, 64, 200, 5000], n))
+    written["x"], written["y"] = rng.integers(0, 346, n), rng.integers(0, 260, n)
+    written["exposure"], written["polarity"] = rng.random(n) < 0.4, rng.random(n) < 0.5
+    path = tmp_path / "atis.es"
+    with event_stream.Encoder(str(path), "atis", 346, 260) as encoder:
+        encoder.write(written)
+    decoder = event_stream.Decoder(str(path))
+    theirs = np.concatenate(list(decoder))
+    assert decoder.type == "atis" and np.array_equal(theirs, written)
+    cd = theirs[~theirs["exposure"]]
+    with evtk.open(path) as rec:
+        ev = rec.events()
+        assert rec.info()["left_out"] == {"threshold crossings": int(theirs["exposure"].sum())}
+        assert len(rec._blocks) > 5
+        lo, hi = int(cd["t"][1000]), int(cd["t"][15000])
+        assert rec.events(lo, hi) == ev.between(lo, hi)
+        assert evtk.Events.concatenate(list(rec.iter_events(chunk_events=997)), sensor_size=(346, 260)) == ev
+    assert np.array_equal(ev.t, cd["t"].astype(np.int64)) and np.array_equal(ev.x, cd["x"])
+    assert np.array_equal(ev.y, 259 - cd["y"]) and np.array_equal(ev.p, cd["polarity"])
 
 
 def test_event_stream_whole_read_peaks_near_its_columns(tmp_path):

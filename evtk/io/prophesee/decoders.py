@@ -383,8 +383,9 @@ def evt21_legacy(lines: list[str]) -> bool:
     return False
 
 
-# Event Stream (DVS) decoder state: time, position inside an event (0: at its first byte), x, y, polarity
-_ES_T, _ES_PHASE, _ES_X, _ES_Y, _ES_POL = range(5)
+# Event Stream decoder state: time, position inside an event (0: at its first byte), x, y, polarity (ATIS: the
+# polarity in bit 1 and the threshold-crossing flag in bit 0), and (ATIS) the threshold crossings left out so far
+_ES_T, _ES_PHASE, _ES_X, _ES_Y, _ES_POL, _ES_LEFT = range(6)
 ES = "es"
 ES_MAGIC = b"Event Stream"
 
@@ -443,6 +444,71 @@ def _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
     state[_ES_X] = xi
     state[_ES_Y] = yi
     state[_ES_POL] = pol
+    return n, 0, ST_OK, -1, t_min, t_max
+
+
+@njit(cache=True, nogil=True)
+def _es_atis_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """One pass over Event Stream 2.x ATIS bytes: 0xFC is a reset (nothing), 0xFD to 0xFF add 63 us times their
+    two low bits, any other first byte adds its top six bits to the time and gives the polarity in bit 1 and the
+    threshold-crossing flag in bit 0; four bytes follow (x, then y counted from the bottom row, little-endian).
+    The change-detection events (flag 0) are the events, ON where the polarity is set; the threshold crossings
+    (halves of exposure measurements, flag 1) are checked against the sensor like them, then counted in
+    ``state[_ES_LEFT]`` and left out. :func:`_es_dvs_run`'s arguments and results."""
+    tc = state[_ES_T]
+    phase = state[_ES_PHASE]
+    xi = state[_ES_X]
+    yi = state[_ES_Y]
+    flags = state[_ES_POL]
+    left = state[_ES_LEFT]
+    n = 0
+    t_min = np.int64(2**62)
+    t_max = np.int64(-(2**62))
+    for i in range(len(data)):
+        b = np.int64(data[i])
+        if phase == 0:
+            if b >= 0xFC:
+                tc += 63 * (b & 3)
+            else:
+                tc += b >> 2
+                flags = b & 3
+                phase = 1
+        elif phase == 1:
+            xi = b
+            phase = 2
+        elif phase == 2:
+            xi |= b << 8
+            phase = 3
+        elif phase == 3:
+            yi = b
+            phase = 4
+        else:
+            yi |= b << 8
+            phase = 0
+            if xi >= width or yi >= height:
+                state[_ES_T] = tc
+                state[_ES_PHASE] = phase
+                state[_ES_LEFT] = left
+                return n, 0, ST_COORD, i, t_min, t_max
+            if flags & 1:
+                left += 1
+                continue
+            if decode:
+                t[n] = tc
+                x[n] = xi
+                y[n] = height - 1 - yi  # stored from the bottom row up; evtk counts y down
+                p[n] = flags >> 1
+            n += 1
+            if tc < t_min:
+                t_min = tc
+            if tc > t_max:
+                t_max = tc
+    state[_ES_T] = tc
+    state[_ES_PHASE] = phase
+    state[_ES_X] = xi
+    state[_ES_Y] = yi
+    state[_ES_POL] = flags
+    state[_ES_LEFT] = left
     return n, 0, ST_OK, -1, t_min, t_max
 
 
@@ -592,7 +658,7 @@ _es_np_run = _sliced(_es_dvs_np, slice_words=lambda: ES_SLICE_BYTES)
 
 
 _RUNNERS = {EVT2: _evt2_run, EVT21: _evt21_run, DAT: _dat_run, ES: _es_np_run}  # EVT 3.0: _evt3.run
-_STATE_SIZE = {EVT2: 2, EVT21: 3, EVT3: 6, DAT: 2, ES: 5}
+_STATE_SIZE = {EVT2: 2, EVT21: 3, EVT3: 6, DAT: 2, ES: 6}
 _DTYPE = {EVT2: "<u4", EVT21: "<u8", EVT3: "<u2", DAT: "<u4", ES: "u1"}
 # where a word's type sits, and the types a format has (for the message about a word of another type)
 _TYPES = {EVT2: (28, "EVT 2.0 has 0, 1, 8, 10, 14 and 15"), EVT21: (60, "EVT 2.1 has 0, 1, 8, 10, 14 and 15"),

@@ -17,6 +17,7 @@ from .decoders import (
     _DAT_PREV,
     _DTYPE,
     _E21_LEGACY,
+    _ES_LEFT,
     _ES_PHASE,
     _NO_OUT,
     _RUNNERS,
@@ -32,6 +33,7 @@ from .decoders import (
     ST_COORD,
     ST_FULL,
     ST_OK,
+    _es_atis_run,
     _header,
     _sensor_from_header,
     evt21_legacy,
@@ -510,13 +512,17 @@ class PropheseeRecording(BaseRecording):
 
 
 class EventStreamRecording(PropheseeRecording):
-    """An Event Stream (.es) recording of DVS events (version 2.x), as Sepia, Tonic and faery write them.
+    """An Event Stream (.es) recording of DVS or ATIS events (version 2.x), as Sepia, Tonic, event_stream and faery
+    write them.
 
     The header is the text ``Event Stream``, the version (three bytes), the
-    event type (1: DVS) and the sensor's width and height (16 bits each);
-    events follow as a byte stream (see :func:`_es_dvs_run`). y is stored
-    from the bottom row up and read as evtk's rows from the top. Generic,
-    ATIS and colour streams are named and refused.
+    event type (1: DVS, 2: ATIS) and the sensor's width and height (16 bits
+    each); events follow as a byte stream (see :func:`_es_dvs_run` and
+    :func:`_es_atis_run`). y is stored from the bottom row up and read as
+    evtk's rows from the top. An ATIS stream's events are its change-detection
+    events; its threshold crossings (exposure measurements) are counted, in
+    ``info()["left_out"]``, and left out. Generic and colour streams are
+    named and refused.
 
     Parameters
     ----------
@@ -541,10 +547,12 @@ class EventStreamRecording(PropheseeRecording):
         kind = head[15]
         if major != 2:
             raise FormatError(self.path, 12, f"Event Stream version {major}.{head[13]}.{head[14]}; evtk reads 2.x")
-        if kind != 1:
-            names = {0: "generic", 2: "ATIS", 4: "colour"}  # as the format and event_stream number them
+        if kind not in (1, 2):
+            names = {0: "generic", 3: "display", 4: "colour"}  # as the format and event_stream number them
             raise FormatError(self.path, 15, f"Event Stream of {names.get(kind, f'type {kind}')} events; evtk reads "
-                                             "DVS events (type 1)")
+                                             "DVS and ATIS events (types 1 and 2)")
+        self.atis = kind == 2
+        self._left_out: int | None = None  # ATIS: the threshold crossings left out, once a pass has counted them
         if len(head) < 20:
             raise FormatError(self.path, 16, "the file ends inside the Event Stream header")
         w, h = int.from_bytes(head[16:18], "little"), int.from_bytes(head[18:20], "little")
@@ -554,13 +562,31 @@ class EventStreamRecording(PropheseeRecording):
             self._size = sensor_dims(sensor_size[0], sensor_size[1], None, "sensor_size")
             self.size_source = "the caller"
         self.encoding = ES
-        self._lines = [f"version {major}.{head[13]}.{head[14]}", "type dvs"]
+        self._lines = [f"version {major}.{head[13]}.{head[14]}", "type atis" if self.atis else "type dvs"]
         self._start = 20
         self._item = 1
         self._file_bytes = os.path.getsize(self.path)
         self._count = self._file_bytes - self._start
         self._blocks = None
         self._triggers = None
+
+    def _runner(self):
+        """The ATIS decoder (compiled by numba on first use) for an ATIS stream, else the DVS one."""
+        return _es_atis_run if self.atis else super()._runner()
+
+    def _check_es_end(self, state):
+        """:meth:`PropheseeRecording._check_es_end`, and an ATIS stream's count of threshold crossings left out."""
+        if self.atis:
+            self._left_out = int(state[_ES_LEFT])
+        super()._check_es_end(state)
+
+    def _extra_info(self):
+        out = super()._extra_info()
+        if self.atis:
+            out["event_type"] = "atis"
+            if self._left_out is not None:
+                out["left_out"] = {"threshold crossings": self._left_out}
+        return out
 
     def _whole(self) -> Events:
         """Every event, block by block straight into one set of columns: an Event Stream's events are at most a
