@@ -26,10 +26,11 @@ SEED = 7
 CASES = 16  # per target: 8 byte mutations, 8 structure-aware ones
 
 EVENT_TARGETS = ["f.es", "f2.raw", "f3.raw", "l1.aedat", "l3.aedat", "p.parquet", "z.aedat4", "l2.aedat", "f.dat",
-                 "f.aedat4", "l.aedat4", "d.h5", "e.h5", "t.csv", "t.txt", "n.bin", "f21.raw", "f21l.raw"]
+                 "f.aedat4", "l.aedat4", "d.h5", "e.h5", "t.csv", "t.txt", "n.bin", "f21.raw", "f21l.raw",
+                 "a.es"]
 RUN_TARGETS = ["r.h5", "r.npz", "job.toml", "schedule.json", "cal.toml", "record.json"]
 #: targets added after the 100,000-case campaign whose findings are replayed below (they would shift its cases)
-LATER_TARGETS = {"f21.raw", "f21l.raw"}
+LATER_TARGETS = {"f21.raw", "f21l.raw", "a.es"}
 
 
 @pytest.fixture(scope="module")

@@ -847,6 +847,7 @@ def build(folder, files=True, runs=True) -> None:
         add("f.aedat4", "checksummed", s, unsigned_t=False, structured="aedat4")
     _build_decoded(folder, ev, add)
     _build_evt21(folder, ev, add)
+    _build_atis(folder, ev, add)
     (folder / "events.json").write_text(json.dumps(meta))
 
 
@@ -895,6 +896,26 @@ def _build_evt21(folder, ev, add) -> None:
         with evtk.open(folder / name) as rec:
             got = rec.triggers()
             assert rec.events() == vec and got.channel.tolist() == [0, 5, 31] and got.t.tolist() == tr.t.tolist()
+
+
+def _build_atis(folder, ev, add) -> None:
+    """An ATIS Event Stream as event_stream (the format's library) writes it: the events, a third of them
+    threshold crossings (which evtk counts and leaves out), with gaps long enough for overflow bytes."""
+    try:
+        import event_stream
+    except ImportError:  # pragma: no cover - event_stream is in the test extra
+        return
+    rec = np.zeros(len(ev), event_stream.atis_dtype)
+    rec["t"] = ev.t + np.arange(len(ev)) * 40  # gaps of 40 us and more: overflow bytes between some events
+    rec["x"], rec["y"] = ev.x, ev.sensor_size[1] - 1 - ev.y.astype(np.int64)
+    rec["exposure"], rec["polarity"] = np.arange(len(ev)) % 3 == 2, ev.p.astype(bool)
+    with event_stream.Encoder(str(folder / "a.es"), "atis", *ev.sensor_size) as encoder:
+        encoder.write(rec)
+    cd = ~rec["exposure"]
+    truth = evtk.Events(rec["t"][cd].astype(np.int64), ev.x[cd], ev.y[cd], ev.p[cd], ev.sensor_size)
+    add("a.es", "stateful", _es_start(b""), [(_es_start(b""), (folder / "a.es").stat().st_size, 1)],
+        structured="es", truth=truth)
+    assert evtk.read_events(folder / "a.es") == truth
 
 
 def load_event_targets(folder) -> dict:
