@@ -900,6 +900,119 @@ dat_run(PyObject *self, PyObject *args)
     return decoded(bufs, 6, fault, n, 0, outcome, bad, t_min, t_max);
 }
 
+/* es_run(data, state, width, height, decode, atis, t, x, y, p)
+ *
+ * Event Stream 2.x bytes, DVS or (atis) ATIS, taken one after another from state (six int64, updated in place: the
+ * time, the position inside an event (0: at its first byte, to 4), x, y, the flags (DVS: the polarity; ATIS: the
+ * polarity in bit 1, the threshold-crossing flag in bit 0), and the ATIS threshold crossings left out so far), to
+ * the results of evtk.io.prophesee.decoders' _es_dvs_run and _es_atis_run:
+ *   DVS: 0xFF adds 127 us, 0xFE is a reset; any other first byte adds its top seven bits to the time, its bit 0
+ *   the polarity. ATIS: 0xFC is a reset, 0xFD to 0xFF add 63 us times their two low bits; any other first byte
+ *   adds its top six bits to the time, with the flags in its two low bits. Four bytes follow: x, then y counted
+ *   from the bottom row (uint16 each, little-endian); the event's row is height - 1 - y. An ATIS threshold
+ *   crossing is checked against the sensor, counted and left out.
+ *
+ * Stops at an event off the width x height sensor (E3_COORD, at the event's last byte; the time, position and
+ * count are kept, the rest of the state not, as the loops do). Decoding, the columns must hold len(data) / 5 + 1
+ * events (every event a call can end: the one the state began, then one every five bytes). Returns (events, 0,
+ * outcome, index of the byte stopped at or -1, min t, max t of the events; 2**62 and -2**62 without events). The
+ * GIL is released throughout.
+ */
+static PyObject *
+es_run(PyObject *self, PyObject *args)
+{
+    Py_buffer db, sb, tb, xb, yb, pb;
+    long long width, height;
+    int decode, atis, outcome = E3_OK;
+    int64_t n = 0, bad = -1, t_min = (int64_t)1 << 62, t_max = -((int64_t)1 << 62);
+    const char *fault = NULL;
+    /* time, position, x, y, flags, threshold crossings left out */
+    static const int64_t lo[6] = {0, 0, 0, 0, 0, 0};
+    static const int64_t hi[6] = {(int64_t)1 << 62, 5, SENSOR_MOST, SENSOR_MOST, 4, (int64_t)1 << 62};
+
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*w*LLppw*w*w*w*", &db, &sb, &width, &height, &decode, &atis, &tb, &xb, &yb, &pb))
+        return NULL;
+    const uint8_t *data = (const uint8_t *)db.buf;
+    int64_t *state = (int64_t *)sb.buf, *t = (int64_t *)tb.buf;
+    uint16_t *x = (uint16_t *)xb.buf, *y = (uint16_t *)yb.buf;
+    uint8_t *p = (uint8_t *)pb.buf;
+    int64_t n_bytes = db.len, cap = tb.len / 8;
+
+    if (sb.len != 6 * 8)
+        fault = "the state is six int64";
+    else if (!state_in(state, lo, hi, 6))
+        fault = "a state Event Stream bytes cannot leave";
+    else if (width < 0 || width > SENSOR_MOST || height < 0 || height > SENSOR_MOST)
+        fault = "the sensor's width and height are 0 to 65536";
+    else if (xb.len / 2 != cap || yb.len / 2 != cap || pb.len != cap)
+        fault = "the columns differ in length";
+    else if (decode && cap < n_bytes / 5 + 1)
+        fault = "the columns hold fewer events than the bytes can end";
+    if (fault == NULL) {
+        Py_BEGIN_ALLOW_THREADS
+        int64_t tc = state[0], phase = state[1], xi = state[2], yi = state[3], flags = state[4], left = state[5];
+        int64_t i = 0;
+        for (; i < n_bytes; i++) {
+            int64_t b = data[i];
+            if (phase == 0) {
+                if (atis) {
+                    if (b >= 0xFC) {
+                        tc += 63 * (b & 3);
+                        continue;
+                    }
+                    tc += b >> 2;
+                    flags = b & 3;
+                } else {
+                    if (b >= 0xFE) {
+                        tc += b == 0xFF ? 127 : 0;
+                        continue;
+                    }
+                    tc += b >> 1;
+                    flags = b & 1;
+                }
+                phase = 1;
+            } else if (phase == 1) {
+                xi = b;
+                phase = 2;
+            } else if (phase == 2) {
+                xi |= b << 8;
+                phase = 3;
+            } else if (phase == 3) {
+                yi = b;
+                phase = 4;
+            } else {
+                yi |= b << 8;
+                phase = 0;
+                if (xi >= width || yi >= height) {
+                    outcome = E3_COORD;
+                    break;
+                }
+                if (atis && (flags & 1)) {
+                    left++;
+                    continue;
+                }
+                if (decode) {
+                    t[n] = tc;
+                    x[n] = (uint16_t)xi;
+                    y[n] = (uint16_t)(height - 1 - yi);
+                    p[n] = (uint8_t)(atis ? flags >> 1 : flags);
+                }
+                n++;
+                t_min = tc < t_min ? tc : t_min;
+                t_max = tc > t_max ? tc : t_max;
+            }
+        }
+        bad = outcome == E3_OK ? -1 : i;
+        state[0] = tc, state[1] = phase, state[5] = left;
+        if (outcome == E3_OK)
+            state[2] = xi, state[3] = yi, state[4] = flags;
+        Py_END_ALLOW_THREADS
+    }
+    Py_buffer *const bufs[] = {&db, &sb, &tb, &xb, &yb, &pb};
+    return decoded(bufs, 6, fault, n, 0, outcome, bad, t_min, t_max);
+}
+
 /* evt2_scan(words), dat_scan(words)
  *
  * The counts of EVT 2.0 words (CD events, triggers; up to the first word of no type, whose index is the third
@@ -977,6 +1090,8 @@ static PyMethodDef methods[] = {
      "Decode or count EVT 2.0 words with the GIL released (see evtk._native.evt2_run)."},
     {"dat_run", dat_run, METH_VARARGS,
      "Decode or count DAT events with the GIL released (see evtk._native.dat_run)."},
+    {"es_run", es_run, METH_VARARGS,
+     "Decode or count Event Stream DVS or ATIS bytes with the GIL released (see evtk._native.es_run)."},
     {"evt2_scan", evt2_scan, METH_VARARGS,
      "Count EVT 2.0 words and sum up their effect, the GIL released (see evtk._native.prophesee_scan)."},
     {"dat_scan", dat_scan, METH_VARARGS,

@@ -2,7 +2,7 @@
 wrappers that check their arguments and say when the Python route must be taken instead: the counting of fixed
 windows (:func:`count_windows`), the AEDAT4 reader's batches of LZ4 event packets (:func:`decode_lz4_batch`), and
 Prophesee EVT 3.0 words (:func:`evt3_run`), EVT 2.0 words (:func:`evt2_run`) and DAT events (:func:`dat_run`),
-with their counting passes (:func:`prophesee_scan`).
+with their counting passes (:func:`prophesee_scan`), and Event Stream DVS and ATIS bytes (:func:`es_run`).
 
 The kernels release the GIL, so parts of one piece of work run on several cores at once; numpy's scattered adds
 (``np.add.at``), which the numpy route counts with, keep it, and so does the Python loop over a batch's
@@ -27,6 +27,7 @@ _kernel_evt2_run: Any
 _kernel_dat_run: Any
 _kernel_evt2_scan: Any
 _kernel_dat_scan: Any
+_kernel_es_run: Any
 try:
     from ._ckernels import count_windows as _kernel_count_windows
     from ._ckernels import decode_lz4_batch as _kernel_decode_lz4_batch
@@ -42,6 +43,10 @@ try:  # apart: an install built before the Prophesee kernels has the two above
 except ImportError:
     _kernel_dat_run = _kernel_dat_scan = _kernel_evt2_run = _kernel_evt2_scan = None
     _kernel_evt3_run = _kernel_evt3_scan = None
+try:  # apart: an install built before the Event Stream kernel has the ones above
+    from ._ckernels import es_run as _kernel_es_run
+except ImportError:
+    _kernel_es_run = None
 
 #: Whether the install built the compiled kernels (a C compiler was present). They read the files' little-endian
 #: numbers as the machine's own: on a big-endian machine they are left unused.
@@ -379,6 +384,50 @@ def dat_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool
             or not _columns_ok(t, x, y, p, t[:0], p[:0], p[:0]) or not _sensor_ok(width, height)):
         return None
     n, m, outcome, bad, lo, hi = _kernel_dat_run(w, state, int(width), int(height), bool(decode), t, x, y, p)
+    return n, m, status[outcome], bad, lo, hi
+
+
+def es_run(data: Any, state: np.ndarray, width: int, height: int, decode: bool, atis: bool, t: np.ndarray,
+           x: np.ndarray, y: np.ndarray, p: np.ndarray,
+           status: tuple[int, int, int, int]) -> tuple[int, int, int, int, int, int] | None:
+    """Decode or count Event Stream 2.x DVS or ATIS bytes with the compiled kernel, the GIL released: what
+    :func:`evtk.io.prophesee.decoders._es_dvs_run` and :func:`~evtk.io.prophesee.decoders._es_atis_run` do, to the
+    same results.
+
+    Parameters
+    ----------
+    data : array_like
+        The bytes (uint8).
+    state : ndarray
+        The decoder's state (six int64: the time, the position inside an event, x, y, the flags, the ATIS
+        threshold crossings left out), updated in place. Values no bytes leave go to the other decoders.
+    width, height : int
+        The sensor: an event off it stops the decoding. The kernel takes 0 to 65536 pixels a side.
+    decode : bool
+        Write the events; else only count them.
+    atis : bool
+        ATIS bytes (threshold crossings counted and left out); else DVS bytes.
+    t, x, y, p : ndarray
+        The events' columns (int64, uint16, uint16, uint8; one length), decoding at least ``len(data) // 5 + 1``.
+    status : tuple of int
+        The status codes to return for none, a word of no type, an event off the sensor, and full outputs.
+
+    Returns
+    -------
+    tuple of int or None
+        ``(events, 0, status, index of the byte stopped at or -1, min t, max t)``, as :func:`evt2_run`'s; None
+        when the kernel is off or missing, or an argument is not in the form it takes.
+    """
+    if not enabled() or _kernel_es_run is None:
+        return None
+    b = _words_as(data, np.uint8)
+    # time, position, x, y, flags, threshold crossings left out
+    if (b is None or not _state_ok(state, (0,) * 6, (1 << 62, 5, 1 << 16, 1 << 16, 4, 1 << 62))
+            or not _columns_ok(t, x, y, p, t[:0], p[:0], p[:0]) or not _sensor_ok(width, height)
+            or (decode and len(t) < len(b) // 5 + 1)):
+        return None
+    n, m, outcome, bad, lo, hi = _kernel_es_run(b, state, int(width), int(height), bool(decode), bool(atis), t, x,
+                                                y, p)
     return n, m, status[outcome], bad, lo, hi
 
 

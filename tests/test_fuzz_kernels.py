@@ -12,15 +12,15 @@ from fuzz import kernels
 
 from evtk import _native
 
-KERNELS = ("count_windows", "decode_lz4_batch", "evt3_run", "evt2_run", "dat_run", "evt3_scan", "evt2_scan",
-           "dat_scan")
+KERNELS = ("count_windows", "decode_lz4_batch", "evt3_run", "evt2_run", "dat_run", "es_run", "evt3_scan",
+           "evt2_scan", "dat_scan")
 
 
 @pytest.mark.parametrize("seed", [5, 6])
 def test_every_raw_kernel_runs_or_refuses_hostile_arguments(seed):
     if not _native.BUILT or _native._kernel_evt3_run is None:
         pytest.skip("evtk's compiled kernels were not built (no C compiler at install)")
-    outcomes = kernels.run(seed, 2500)
+    outcomes = kernels.run(seed, 3000)
     for name in KERNELS:
         # both outcomes met: the arguments reach the kernels' work, and their refusals (the scans refuse nothing)
         assert outcomes[name, "returned"] > 20, (name, dict(outcomes))

@@ -571,3 +571,120 @@ def test_a_state_or_sensor_no_file_can_give_goes_to_numpy_and_the_raw_kernel_ref
         r2 = tuple(int(v) for v in numpy_run(words, state.copy(), width, height, True, *want))
         assert wrapped == r2, (width, height)
         assert all(np.array_equal(a[:r2[0]], b[:r2[0]]) for a, b in zip(got[:4], want[:4])), (width, height)
+
+
+def _atis_loop(data, state, width, height):
+    """Event Stream 2.x ATIS bytes decoded one at a time, as the format's table describes them (the reference):
+    events (change detections; threshold crossings counted), the stop, the state (as :func:`_es_loop`'s, the count
+    last)."""
+    tc, phase, xi, yi, flags, left = (int(v) for v in state)
+    ev = []
+    for i, b in enumerate(data.tolist()):
+        if phase == 0:
+            if b >= 0xFC:
+                tc += 63 * (b & 3)
+            else:
+                tc, flags, phase = tc + (b >> 2), b & 3, 1
+        elif phase == 1:
+            xi, phase = b, 2
+        elif phase == 2:
+            xi, phase = xi | b << 8, 3
+        elif phase == 3:
+            yi, phase = b, 4
+        else:
+            yi, phase = yi | b << 8, 0
+            if xi >= width or yi >= height:
+                return ev, (ST_COORD, i), [tc, phase, None, None, None, left]
+            if flags & 1:
+                left += 1
+            else:
+                ev.append((tc, xi, height - 1 - yi, flags >> 1))
+    return ev, (ST_OK, -1), [tc, phase, xi, yi, flags, left]
+
+
+@pytest.mark.parametrize("atis", [False, True], ids=["dvs", "atis"])
+def test_the_compiled_event_stream_decoder_equals_a_byte_by_byte_loop(atis):
+    """DVS and ATIS bytes (markers in runs and inside events, events off the sensor, starts inside an event),
+    both modes: the kernel's events, stop, time range and state are the loops' (and, for DVS, numpy's
+    decoder's)."""
+    from evtk.io.prophesee import decoders
+
+    if not _native.BUILT or _native._kernel_es_run is None:
+        pytest.skip("evtk's compiled kernels were not built (no C compiler at install)")
+    rng = np.random.default_rng(8)
+    for trial in range(300):
+        data = _es_bytes(rng, int(rng.integers(1, 600)), [0.0, 0.02, 0.2, 0.6][trial % 4])
+        if atis and trial % 3:  # ATIS markers: 0xFC to 0xFF
+            data[data >= 0xFE] = rng.integers(0xFC, 0x100, int((data >= 0xFE).sum()))
+        phase = int(rng.integers(0, 5)) if trial % 5 == 0 else 0
+        start = [int(rng.integers(0, 1 << 40)), phase, int(rng.integers(0, 640)), int(rng.integers(0, 480)),
+                 int(rng.integers(0, 4 if atis else 2)), int(rng.integers(0, 9))]
+        want, stop, clock = _atis_loop(data, start, 640, 480) if atis else _es_loop(data, start[:5], 640, 480)
+        for decode in (True, False):
+            state = np.array(start, np.int64)
+            out = _outs(len(data) // 5 + 1)
+            got = _native.es_run(data, state, 640, 480, decode, atis, *out[:4], decoders._NATIVE_STATUS)
+            assert got is not None
+            n, m, status, bad, lo, hi = got
+            assert (status, bad) == stop and n == len(want) and m == 0, (trial, decode)
+            assert [v for v, w in zip(state.tolist(), clock) if w is not None] == [w for w in clock if w is not None]
+            if not atis:
+                assert state[5] == start[5]
+            if want:
+                assert (lo, hi) == (min(e[0] for e in want), max(e[0] for e in want))
+            if decode:
+                assert list(zip(*(c[:n].tolist() for c in out[:4]))) == want, trial
+            if not atis and decode:  # numpy's decoder: the same
+                s2, o2 = np.array(start, np.int64), _outs(len(data) // 5 + 1)
+                r2 = decoders._es_np_run(data, s2, 640, 480, True, *o2)
+                assert tuple(int(v) for v in r2[:4]) == (n, 0, status, bad)
+                assert all(np.array_equal(a[:n], b[:n]) for a, b in zip(out[:4], o2[:4]))
+
+
+def test_the_event_stream_kernel_refuses_what_no_file_gives():
+    """States no bytes leave, sensors past 65536 and columns too short for the bytes: the wrapper returns None (the
+    Python routes), the raw kernel raises ValueError."""
+    from evtk import _ckernels
+    from evtk.io.prophesee import decoders
+
+    if not _native.BUILT or _native._kernel_es_run is None:
+        pytest.skip("evtk's compiled kernels were not built (no C compiler at install)")
+    data = _es_bytes(np.random.default_rng(1), 50, 0.1)
+    good = [5, 0, 0, 0, 0, 0]
+    bad_states = [[-1, 0, 0, 0, 0, 0], [1 << 62, 0, 0, 0, 0, 0], [0, 5, 0, 0, 0, 0], [0, 0, 1 << 16, 0, 0, 0],
+                  [0, 0, 0, -1, 0, 0], [0, 0, 0, 0, 4, 0], [0, 0, 0, 0, 0, -1]]
+    cases = [(s, 640, 480, len(data) // 5 + 1, "state") for s in bad_states]
+    cases += [(good, 65537, 480, len(data) // 5 + 1, "sensor"), (good, 640, -1, len(data) // 5 + 1, "sensor"),
+              (good, 640, 480, len(data) // 5, "columns")]
+    for state, width, height, room, what in cases:
+        out = _outs(room)[:4]
+        s = np.array(state, np.int64)
+        assert _native.es_run(data, s, width, height, True, False, *out, decoders._NATIVE_STATUS) is None, what
+        with pytest.raises(ValueError, match=what if what != "columns" else "fewer events"):
+            _ckernels.es_run(data, s, width, height, True, False, *out)
+    out = _outs(len(data) // 5 + 1)[:4]  # at the ends of the ranges: decoded
+    top = np.array([(1 << 62) - 1, 4, 65535, 65535, 3, (1 << 62) - 1], np.int64)
+    assert _native.es_run(data, top, 65536, 65536, True, True, *out, decoders._NATIVE_STATUS) is not None
+
+
+@pytest.mark.parametrize("quiet", [False, True], ids=["busy", "quiet"])
+def test_an_event_stream_file_reads_alike_on_both_routes(tmp_path, monkeypatch, quiet):
+    """A DVS Event Stream file, busy or with long silences (runs of 0xFF, which numpy's route hands to numba's
+    loop), whole, in windows and cut by blocks: the compiled kernel's events are the numpy route's."""
+    from conftest import random_events
+
+    monkeypatch.setattr(recording, "BLOCK_WORDS", 4099)
+    ev = random_events(20_000, seed=9, sensor_size=(640, 480), span_us=20_000_000 if quiet else 200_000)
+    path = tmp_path / "q.es"
+    evtk.write_events(path, ev)
+    from evtk.io.prophesee import decoders
+
+    got = {}
+    for route in ("numpy", "native"):
+        _route(monkeypatch, route)
+        if route == "native":
+            monkeypatch.setattr(decoders, "_es_np_run", None)  # the numpy route not taken
+        with evtk.open(path) as rec:
+            got[route] = (rec.events(), rec.events(int(ev.t[5000]), int(ev.t[15000])), len(rec._blocks))
+    assert got["native"][0] == got["numpy"][0] == ev
+    assert got["native"][1:] == got["numpy"][1:] and got["native"][2] > 5

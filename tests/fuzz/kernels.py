@@ -5,8 +5,8 @@
 The C file promises that no argument can make a kernel read or write outside its buffers: each checks every
 length, index and state itself. This calls each kernel with arguments a wrapper would never pass (columns of
 other lengths, picks and window bounds outside the events, bins past the output, table sizes, LZ4 frames with
-flipped bits and lying sizes, decoder states at the ends of int64, widths of any sign) and random words. A call
-must return or raise ``ValueError`` / ``TypeError`` / ``OverflowError``; anything else is raised. Run under
+flipped bits and lying sizes, decoder states at the ends of int64, widths of any sign) and random words and
+bytes. A call must return or raise ``ValueError`` / ``TypeError`` / ``OverflowError``; anything else is raised. Run under
 AddressSanitizer and UBSan (``tests/fuzz/sanitized.sh``), any access outside a buffer or undefined arithmetic
 stops the process with its place in ``_ckernels.c``.
 """
@@ -155,6 +155,18 @@ class _Caller:
         args = [words, state, *sensor, rng.random() < 0.7, *cols]
         self.call(name, *(args if name == "dat_run" else args + triggers))
 
+    def event_stream_run(self) -> None:
+        """Event Stream bytes, DVS or ATIS, from a state in range or not, into columns long enough or not."""
+        rng = self.rng
+        data = self.array(np.uint8, rng.choice([0, 1, 4, 5, 100, 5000]))
+        state = self.state(6, [(0, 1 << 40), (0, 5), (0, 65536), (0, 65536), (0, 4), (0, 100)])
+        m = len(data) // 5 + 1 if rng.random() < 0.8 else rng.choice([0, 1, len(data) // 5])
+        cols = [np.zeros(m if rng.random() < 0.95 else m + 1, np.int64), np.zeros(m, np.uint16),
+                np.zeros(m, np.uint16), np.zeros(m, np.uint8)]
+        sensor = [rng.choice([640, 2048, 65536]) if rng.random() < 0.8 else rng.choice([0, 1, -1, _extreme(rng)])
+                  for _ in range(2)]
+        self.call("es_run", data, state, *sensor, rng.random() < 0.7, rng.random() < 0.5, *cols)
+
     def scans(self) -> None:
         for name, dtype in (("evt3_scan", np.uint16), ("evt2_scan", np.uint32), ("dat_scan", np.uint32)):
             self.call(name, self.array(dtype, self.rng.choice([0, 1, 2, 3, 999])))
@@ -167,7 +179,7 @@ def run(seed: int, calls: int) -> collections.Counter:
     """
     caller = _Caller(seed)
     steps = (caller.count_windows, caller.decode_lz4_batch, caller.prophesee_run, caller.prophesee_run,
-             caller.scans)
+             caller.event_stream_run, caller.scans)
     for i in range(calls):
         steps[i % len(steps)]()
     return caller.outcomes

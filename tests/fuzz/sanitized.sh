@@ -8,9 +8,9 @@
 # alone) and runs there, with the sanitizers' runtimes preloaded into Python:
 #   1. tests/fuzz/kernels.py: CALLS (default 100000) raw calls with hostile arguments, four seeds;
 #   2. the kernels' tests (the compiled decoders, batches and counting against numpy and word-by-word loops);
-#   3. the fuzz campaign, CASES (default 3000) cases over the targets the kernels read (EVT 2.0, EVT 3.0, DAT and
-#      the AEDAT4 files), each read compared with the numpy route's. ASan's quarantine of freed memory is kept to
-#      8 MiB, so that it does not pass for a case's memory blow-up.
+#   3. the fuzz campaign, CASES (default 3000) cases over the targets the kernels read (EVT 2.0, EVT 3.0, DAT,
+#      Event Stream DVS and ATIS, and the AEDAT4 files), each read compared with the numpy route's. ASan's
+#      quarantine of freed memory is kept to 8 MiB, so that it does not pass for a case's memory blow-up.
 set -euo pipefail
 CALLS=${1:-100000}
 CASES=${2:-3000}
@@ -41,6 +41,6 @@ $PY -m pytest -q -p no:cacheprovider tests/test_native_batches.py tests/test_nat
     tests/test_prophesee_numpy.py
 echo "== 3. the fuzz campaign, $CASES cases"
 cd tests
-$PY -m fuzz.campaign --cases "$CASES" --seed 101 --only f2.raw,f3.raw,f.dat,l.aedat4,f.aedat4,z.aedat4 \
+$PY -m fuzz.campaign --cases "$CASES" --seed 101 --only f2.raw,f3.raw,f.dat,f.es,a.es,l.aedat4,f.aedat4,z.aedat4 \
     --cli-every 0
 echo "== sanitized run passed"

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..._lazyjit import njit  # EVT 2.1: numba loads when first needed
 from ..._native import dat_run as native_dat_run
+from ..._native import es_run as native_es_run
 from ..._native import evt2_run as native_evt2_run
 from ..base import sensor_dims, text_header
 
@@ -657,7 +658,21 @@ ES_SLICE_BYTES = 1 << 18
 _es_np_run = _sliced(_es_dvs_np, slice_words=lambda: ES_SLICE_BYTES)
 
 
-_RUNNERS = {EVT2: _evt2_run, EVT21: _evt21_run, DAT: _dat_run, ES: _es_np_run}  # EVT 3.0: _evt3.run
+def _es_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """Event Stream DVS bytes decoded or counted: :func:`_es_dvs_run`'s arguments and results, by the compiled
+    kernel where evtk's were built (:func:`evtk._native.es_run`), else by numpy (:func:`_es_dvs_np`)."""
+    got = native_es_run(data, state, width, height, decode, False, t, x, y, p, _NATIVE_STATUS)
+    return got if got is not None else _es_np_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch)
+
+
+def es_atis_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """Event Stream ATIS bytes decoded or counted: :func:`_es_atis_run`'s arguments and results, by the compiled
+    kernel where evtk's were built, else by numba's loop."""
+    got = native_es_run(data, state, width, height, decode, True, t, x, y, p, _NATIVE_STATUS)
+    return got if got is not None else _es_atis_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch)
+
+
+_RUNNERS = {EVT2: _evt2_run, EVT21: _evt21_run, DAT: _dat_run, ES: _es_run}  # EVT 3.0: _evt3.run
 _STATE_SIZE = {EVT2: 2, EVT21: 3, EVT3: 6, DAT: 2, ES: 6}
 _DTYPE = {EVT2: "<u4", EVT21: "<u8", EVT3: "<u2", DAT: "<u4", ES: "u1"}
 # where a word's type sits, and the types a format has (for the message about a word of another type)

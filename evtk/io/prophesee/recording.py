@@ -33,9 +33,9 @@ from .decoders import (
     ST_COORD,
     ST_FULL,
     ST_OK,
-    _es_atis_run,
     _header,
     _sensor_from_header,
+    es_atis_run,
     evt21_legacy,
     sniff_lines,
     word_type,
@@ -571,8 +571,8 @@ class EventStreamRecording(PropheseeRecording):
         self._triggers = None
 
     def _runner(self):
-        """The ATIS decoder (compiled by numba on first use) for an ATIS stream, else the DVS one."""
-        return _es_atis_run if self.atis else super()._runner()
+        """The ATIS decoder for an ATIS stream (evtk's compiled kernel, else numba's loop), else the DVS one."""
+        return es_atis_run if self.atis else super()._runner()
 
     def _check_es_end(self, state):
         """:meth:`PropheseeRecording._check_es_end`, and an ATIS stream's count of threshold crossings left out."""
