@@ -310,17 +310,24 @@ def test_a_large_evt3_read_peaks_within_a_tenth_of_its_arrays_and_loads_no_compi
     assert out[2] == "False"
 
 
-def _es_loop(data, state, width, height):
-    """Event Stream 2.x DVS bytes decoded one at a time, as the format describes them (the reference): returns
-    the events, the stop (``(ST_COORD, index of the event's last byte)`` or ``(ST_OK, -1)``) and the state."""
-    tc, phase, xi, yi, pol = (int(v) for v in state)
+def _es_loop(data, state, width, height, atis=False):
+    """Event Stream 2.x DVS (or ATIS) bytes decoded one at a time, as the format's tables describe them (the
+    reference): returns the events, the stop (``(ST_COORD, index of the event's last byte)`` or ``(ST_OK, -1)``)
+    and the state (ATIS: the threshold crossings left out last, and None where a stop leaves a value as it was).
+    ATIS threshold crossings are counted, not events."""
+    tc, phase, xi, yi, flags = (int(v) for v in state[:5])
+    left = int(state[5]) if atis else 0
     ev = []
     for i, b in enumerate(data.tolist()):
         if phase == 0:
-            if b == 0xFF:
+            if atis and b >= 0xFC:
+                tc += 63 * (b & 3)
+            elif atis:
+                tc, flags, phase = tc + (b >> 2), b & 3, 1
+            elif b == 0xFF:
                 tc += 127
             elif b != 0xFE:
-                tc, pol, phase = tc + (b >> 1), b & 1, 1
+                tc, flags, phase = tc + (b >> 1), b & 1, 1
         elif phase == 1:
             xi, phase = b, 2
         elif phase == 2:
@@ -330,9 +337,12 @@ def _es_loop(data, state, width, height):
         else:
             yi, phase = yi | b << 8, 0
             if xi >= width or yi >= height:
-                return ev, (ST_COORD, i), [tc, phase]
-            ev.append((tc, xi, height - 1 - yi, pol))
-    return ev, (ST_OK, -1), [tc, phase, xi, yi, pol]
+                return ev, (ST_COORD, i), [tc, phase] + ([None, None, None, left] if atis else [])
+            if atis and flags & 1:
+                left += 1
+            else:
+                ev.append((tc, xi, height - 1 - yi, flags >> 1 if atis else flags))
+    return ev, (ST_OK, -1), [tc, phase, xi, yi, flags] + ([left] if atis else [])
 
 
 def _es_bytes(rng, items, ff_share):
@@ -573,35 +583,6 @@ def test_a_state_or_sensor_no_file_can_give_goes_to_numpy_and_the_raw_kernel_ref
         assert all(np.array_equal(a[:r2[0]], b[:r2[0]]) for a, b in zip(got[:4], want[:4])), (width, height)
 
 
-def _atis_loop(data, state, width, height):
-    """Event Stream 2.x ATIS bytes decoded one at a time, as the format's table describes them (the reference):
-    events (change detections; threshold crossings counted), the stop, the state (as :func:`_es_loop`'s, the count
-    last)."""
-    tc, phase, xi, yi, flags, left = (int(v) for v in state)
-    ev = []
-    for i, b in enumerate(data.tolist()):
-        if phase == 0:
-            if b >= 0xFC:
-                tc += 63 * (b & 3)
-            else:
-                tc, flags, phase = tc + (b >> 2), b & 3, 1
-        elif phase == 1:
-            xi, phase = b, 2
-        elif phase == 2:
-            xi, phase = xi | b << 8, 3
-        elif phase == 3:
-            yi, phase = b, 4
-        else:
-            yi, phase = yi | b << 8, 0
-            if xi >= width or yi >= height:
-                return ev, (ST_COORD, i), [tc, phase, None, None, None, left]
-            if flags & 1:
-                left += 1
-            else:
-                ev.append((tc, xi, height - 1 - yi, flags >> 1))
-    return ev, (ST_OK, -1), [tc, phase, xi, yi, flags, left]
-
-
 @pytest.mark.parametrize("atis", [False, True], ids=["dvs", "atis"])
 def test_the_compiled_event_stream_decoder_equals_a_byte_by_byte_loop(atis):
     """DVS and ATIS bytes (markers in runs and inside events, events off the sensor, starts inside an event),
@@ -619,7 +600,7 @@ def test_the_compiled_event_stream_decoder_equals_a_byte_by_byte_loop(atis):
         phase = int(rng.integers(0, 5)) if trial % 5 == 0 else 0
         start = [int(rng.integers(0, 1 << 40)), phase, int(rng.integers(0, 640)), int(rng.integers(0, 480)),
                  int(rng.integers(0, 4 if atis else 2)), int(rng.integers(0, 9))]
-        want, stop, clock = _atis_loop(data, start, 640, 480) if atis else _es_loop(data, start[:5], 640, 480)
+        want, stop, clock = _es_loop(data, start if atis else start[:5], 640, 480, atis)
         for decode in (True, False):
             state = np.array(start, np.int64)
             out = _outs(len(data) // 5 + 1)
