@@ -19,6 +19,22 @@ FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 os.environ.setdefault("EVTK_SCHEDULER", "serial")
 
 
+def event_stream_atis_file(path, records, width, height):
+    """Write ``records`` (``event_stream.atis_dtype``) as an ATIS Event Stream with event_stream's own Encoder, in
+    a child process: event_stream 1.6.3's ATIS write turns numpy's bool dtype little-endian (``<b1``) for the rest
+    of the process it runs in, and Pillow then refuses every bool array (DMD frames among them)."""
+    import subprocess
+    import sys
+
+    saved = Path(str(path) + ".npy")
+    np.save(saved, records)
+    code = ("import sys, numpy as np, event_stream\n"
+            "with event_stream.Encoder(sys.argv[2], 'atis', int(sys.argv[3]), int(sys.argv[4])) as encoder:\n"
+            "    encoder.write(np.load(sys.argv[1]))\n")
+    subprocess.run([sys.executable, "-c", code, str(saved), str(path), str(width), str(height)], check=True)
+    saved.unlink()
+
+
 def random_events(n, seed=0, sensor_size=(320, 240), t0=0, span_us=1_000_000, sort=True):
     rng = np.random.default_rng(seed)
     t = rng.integers(t0, t0 + span_us, n, dtype=np.int64)

@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import no_hang, random_events
+from conftest import event_stream_atis_file, no_hang, random_events
 
 import evtk
 import evtk.io.prophesee.recording  # noqa: F401  (the block size the tests shrink)
@@ -242,8 +242,7 @@ def test_event_stream_atis_equals_event_stream_s_change_detection_events(tmp_pat
     written["x"], written["y"] = rng.integers(0, 346, n), rng.integers(0, 260, n)
     written["exposure"], written["polarity"] = rng.random(n) < 0.4, rng.random(n) < 0.5
     path = tmp_path / "atis.es"
-    with event_stream.Encoder(str(path), "atis", 346, 260) as encoder:
-        encoder.write(written)
+    event_stream_atis_file(path, written, 346, 260)
     decoder = event_stream.Decoder(str(path))
     theirs = np.concatenate(list(decoder))
     assert decoder.type == "atis" and np.array_equal(theirs, written)
@@ -257,6 +256,7 @@ def test_event_stream_atis_equals_event_stream_s_change_detection_events(tmp_pat
         assert evtk.Events.concatenate(list(rec.iter_events(chunk_events=997)), sensor_size=(346, 260)) == ev
     assert np.array_equal(ev.t, cd["t"].astype(np.int64)) and np.array_equal(ev.x, cd["x"])
     assert np.array_equal(ev.y, 259 - cd["y"]) and np.array_equal(ev.p, cd["polarity"])
+    assert np.dtype(bool).str == "|b1"  # event_stream wrote in a child process: this one's numpy is unharmed
 
 
 def test_event_stream_whole_read_peaks_near_its_columns(tmp_path):

@@ -767,7 +767,7 @@ def build(folder, files=True, runs=True) -> None:
     import sys
 
     sys.path.insert(0, str(HERE.parent))
-    from conftest import random_events
+    from conftest import event_stream_atis_file, random_events
     from test_aedat_legacy import write_aedat2_davis, write_aedat31
 
     folder = Path(folder)
@@ -847,7 +847,7 @@ def build(folder, files=True, runs=True) -> None:
         add("f.aedat4", "checksummed", s, unsigned_t=False, structured="aedat4")
     _build_decoded(folder, ev, add)
     _build_evt21(folder, ev, add)
-    _build_atis(folder, ev, add)
+    _build_atis(folder, ev, add, event_stream_atis_file)
     (folder / "events.json").write_text(json.dumps(meta))
 
 
@@ -898,7 +898,7 @@ def _build_evt21(folder, ev, add) -> None:
             assert rec.events() == vec and got.channel.tolist() == [0, 5, 31] and got.t.tolist() == tr.t.tolist()
 
 
-def _build_atis(folder, ev, add) -> None:
+def _build_atis(folder, ev, add, event_stream_atis_file) -> None:
     """An ATIS Event Stream as event_stream (the format's library) writes it: the events, a third of them
     threshold crossings (which evtk counts and leaves out), with gaps long enough for overflow bytes."""
     try:
@@ -909,8 +909,7 @@ def _build_atis(folder, ev, add) -> None:
     rec["t"] = ev.t + np.arange(len(ev)) * 40  # gaps of 40 us and more: overflow bytes between some events
     rec["x"], rec["y"] = ev.x, ev.sensor_size[1] - 1 - ev.y.astype(np.int64)
     rec["exposure"], rec["polarity"] = np.arange(len(ev)) % 3 == 2, ev.p.astype(bool)
-    with event_stream.Encoder(str(folder / "a.es"), "atis", *ev.sensor_size) as encoder:
-        encoder.write(rec)
+    event_stream_atis_file(folder / "a.es", rec, *ev.sensor_size)  # in a child process (see its docstring)
     cd = ~rec["exposure"]
     truth = evtk.Events(rec["t"][cd].astype(np.int64), ev.x[cd], ev.y[cd], ev.p[cd], ev.sensor_size)
     add("a.es", "stateful", _es_start(b""), [(_es_start(b""), (folder / "a.es").stat().st_size, 1)],
