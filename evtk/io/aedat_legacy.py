@@ -52,10 +52,9 @@ MIN_INFERRED_SIDE = 16
 #: Sensor sizes of the cameras an AEDAT 2.0 header may name (its AEChip class, matched case-insensitively).
 CHIP_SIZES = {"dvs128": (128, 128), "davis240": (240, 180), "davis346": (346, 260), "davis640": (640, 480),
               "davis208": (208, 192), "davis128": (128, 128), "dvs640": (640, 480)}
-#: Bytes of an AEDAT 1.0 and an AEDAT 2.0 record (address and time stamp, big-endian).
-_RECORD_BYTES = {"1.0": 6, "2.0": 8}
-#: AEDAT 1.0's records: a 16-bit address (the DVS128's layout), a 32-bit time stamp.
-_V1_RECORD = np.dtype([("address", ">u2"), ("t", ">u4")])
+#: AEDAT 1.0's and 2.0's records, big-endian: a 16-bit (1.0: the DVS128's layout) or 32-bit address, then a
+#: 32-bit time stamp.
+_RECORDS = {"1.0": np.dtype([("address", ">u2"), ("t", ">u4")]), "2.0": np.dtype([("address", ">u4"), ("t", ">u4")])}
 BLOCK_RECORDS = 1 << 20
 _PACKET_HEADER = 28
 _TYPE_NAMES = {0: "special", 1: "polarity", 2: "frame", 3: "imu6", 4: "imu9", 5: "sample", 6: "ear", 7: "config",
@@ -166,7 +165,7 @@ class LegacyAedatRecording(BaseRecording):
             raise FormatError(self.path, 0, f"AEDAT version {self.version} is not read (evtk reads 1.0, 2.0, 3.1 and "
                                             "4.0)")
         self._v3 = self.version.startswith("3")
-        self._record = _RECORD_BYTES.get(self.version, 8)
+        self._record = _RECORDS[self.version].itemsize if self.version in _RECORDS else 0  # 3.x: packets
         self._lines, self._start = _header_lines(self.path, self._v3)
         if self._v3 and not (self._lines and self._lines[-1].startswith("#!END-HEADER")):
             raise FormatError(self.path, self._start, f"the AEDAT {self.version} header never ends (no #!END-HEADER line)")
@@ -283,12 +282,8 @@ class LegacyAedatRecording(BaseRecording):
                 f.seek(rng[0])
                 parts.append((f.read(rng[1]), rng[2] if len(rng) > 2 else None))
         if not self._v3:
-            if self._record == 6:
-                rec = np.frombuffer(parts[0][0], _V1_RECORD)
-                addr, stamps = rec["address"].astype(np.int64), rec["t"].astype(np.int64)
-            else:
-                raw = np.frombuffer(parts[0][0], ">u4")
-                addr, stamps = raw[0::2].astype(np.int64), raw[1::2].astype(np.int64)
+            rec = np.frombuffer(parts[0][0], _RECORDS[self.version])
+            addr, stamps = rec["address"].astype(np.int64), rec["t"].astype(np.int64)
             if self.chip == "dvs128":
                 keep = np.ones(len(addr), bool)
             else:

@@ -392,70 +392,16 @@ ES_MAGIC = b"Event Stream"
 
 
 @njit(cache=True, nogil=True)
-def _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """One pass over Event Stream 2.x DVS bytes: 0xFF adds 127 us, 0xFE is a reset (nothing), any other
-    first byte adds its top seven bits to the time and gives the polarity in bit 0; four bytes follow (x,
-    then y counted from the bottom row, little-endian). :func:`_evt2_run`'s arguments and results (no
-    triggers); ``state`` carries over between blocks."""
-    tc = state[_ES_T]
-    phase = state[_ES_PHASE]
-    xi = state[_ES_X]
-    yi = state[_ES_Y]
-    pol = state[_ES_POL]
-    n = 0
-    t_min = np.int64(2**62)
-    t_max = np.int64(-(2**62))
-    for i in range(len(data)):
-        b = np.int64(data[i])
-        if phase == 0:
-            if b == 0xFF:
-                tc += 127
-            elif b != 0xFE:
-                tc += b >> 1
-                pol = b & 1
-                phase = 1
-        elif phase == 1:
-            xi = b
-            phase = 2
-        elif phase == 2:
-            xi |= b << 8
-            phase = 3
-        elif phase == 3:
-            yi = b
-            phase = 4
-        else:
-            yi |= b << 8
-            phase = 0
-            if xi >= width or yi >= height:
-                state[_ES_T] = tc
-                state[_ES_PHASE] = phase
-                return n, 0, ST_COORD, i, t_min, t_max
-            if decode:
-                t[n] = tc
-                x[n] = xi
-                y[n] = height - 1 - yi  # stored from the bottom row up; evtk counts y down
-                p[n] = pol
-            n += 1
-            if tc < t_min:
-                t_min = tc
-            if tc > t_max:
-                t_max = tc
-    state[_ES_T] = tc
-    state[_ES_PHASE] = phase
-    state[_ES_X] = xi
-    state[_ES_Y] = yi
-    state[_ES_POL] = pol
-    return n, 0, ST_OK, -1, t_min, t_max
+def _es_loop(data, state, width, height, decode, atis, t, x, y, p):
+    """One pass over Event Stream 2.x bytes, DVS or (``atis``) ATIS, one byte at a time.
 
-
-@njit(cache=True, nogil=True)
-def _es_atis_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
-    """One pass over Event Stream 2.x ATIS bytes: 0xFC is a reset (nothing), 0xFD to 0xFF add 63 us times their
-    two low bits, any other first byte adds its top six bits to the time and gives the polarity in bit 1 and the
-    threshold-crossing flag in bit 0; four bytes follow (x, then y counted from the bottom row, little-endian).
-    The change-detection events (flag 0) are the events, ON where the polarity is set; the threshold crossings
-    (halves of exposure measurements, flag 1) are checked against the sensor like them, then counted in
-    ``state[_ES_LEFT]`` and left out. :func:`_es_dvs_run`'s arguments and results."""
+    DVS: 0xFF adds 127 us, 0xFE is a reset (nothing), any other first byte adds its top seven bits to the time
+    and gives the polarity in bit 0. ATIS: 0xFC is a reset, 0xFD to 0xFF add 63 us times their two low bits, any
+    other first byte adds its top six bits to the time and gives the polarity in bit 1 and the threshold-crossing
+    flag in bit 0. Four bytes follow (x, then y counted from the bottom row, little-endian). An ATIS threshold
+    crossing (half an exposure measurement) is checked against the sensor like an event, then counted in
+    ``state[_ES_LEFT]`` and left out. :func:`_evt2_run`'s results (no triggers); ``state`` carries over between
+    blocks."""
     tc = state[_ES_T]
     phase = state[_ES_PHASE]
     xi = state[_ES_X]
@@ -468,11 +414,17 @@ def _es_atis_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
     for i in range(len(data)):
         b = np.int64(data[i])
         if phase == 0:
-            if b >= 0xFC:
+            if atis and b >= 0xFC:
                 tc += 63 * (b & 3)
-            else:
+            elif atis:
                 tc += b >> 2
                 flags = b & 3
+                phase = 1
+            elif b == 0xFF:
+                tc += 127
+            elif b != 0xFE:
+                tc += b >> 1
+                flags = b & 1
                 phase = 1
         elif phase == 1:
             xi = b
@@ -491,14 +443,14 @@ def _es_atis_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
                 state[_ES_PHASE] = phase
                 state[_ES_LEFT] = left
                 return n, 0, ST_COORD, i, t_min, t_max
-            if flags & 1:
+            if atis and flags & 1:
                 left += 1
                 continue
             if decode:
                 t[n] = tc
                 x[n] = xi
                 y[n] = height - 1 - yi  # stored from the bottom row up; evtk counts y down
-                p[n] = flags >> 1
+                p[n] = flags >> 1 if atis else flags
             n += 1
             if tc < t_min:
                 t_min = tc
@@ -511,6 +463,18 @@ def _es_atis_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
     state[_ES_POL] = flags
     state[_ES_LEFT] = left
     return n, 0, ST_OK, -1, t_min, t_max
+
+
+def _es_dvs_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """Event Stream 2.x DVS bytes through numba's loop (:func:`_es_loop`): :func:`_evt2_run`'s arguments and
+    results (no triggers)."""
+    return _es_loop(data, state, width, height, decode, False, t, x, y, p)
+
+
+def _es_atis_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
+    """Event Stream 2.x ATIS bytes through numba's loop (:func:`_es_loop`): change detections as events,
+    threshold crossings counted and left out."""
+    return _es_loop(data, state, width, height, decode, True, t, x, y, p)
 
 
 #: Event Stream slices with more bytes of 0xFE or 0xFF than this fraction (long silences: one 0xFF per 127 us
