@@ -166,6 +166,31 @@ def test_aedat2_wrap_from_top_to_bottom_half_is_unwrapped(tmp_path):
         assert rec.events(lo, hi) == ev.between(lo, hi)
 
 
+def test_aedat2_time_past_int64_stops_the_read_at_its_stamp(tmp_path, monkeypatch):
+    """2**31 wraps (32 GiB of records at the least) take the time past 2**63 - 1 µs: the read stops at the stamp
+    whose wrap does, naming its byte, and salvage keeps the events before it (numpy wrapped to negative times).
+    The reader starts one wrap short of the limit."""
+    from evtk.io import aedat_legacy
+
+    most = (2**63 - 1) >> 32
+    monkeypatch.setattr(aedat_legacy.LegacyAedatRecording, "_TIME_START", (most, -1))
+    ev = random_events(3000, seed=12, sensor_size=(346, 260), t0=(1 << 32) - 1_000, span_us=3_000)
+    k = int(np.argmax(ev.t >= 1 << 32))
+    assert 0 < k < len(ev)
+    path = tmp_path / "w.aedat"
+    write_aedat2_davis(path, ev, 260)
+    at = _stamp_at(path, k)
+    with pytest.raises(evtk.FormatError, match=rf"at byte {at}: the time passes 2\*\*63 - 1 us"):
+        evtk.read_events(path)
+    with evtk.open(path, salvage=True) as rec:
+        got = rec.events()
+        assert got.t.tolist() == [(most << 32) + int(t) for t in ev.t[:k]] and got.x.tolist() == ev.x[:k].tolist()
+        assert rec.damage.offset == at
+    with evtk.open(path, salvage=True) as rec:  # the windowed path: its index, then a window
+        lo, hi = (most << 32) + int(ev.t[100]), (most << 32) + int(ev.t[k - 100])
+        assert rec.events(lo, hi) == got.between(lo, hi)
+
+
 def test_aedat31_negative_overflow_counter_is_refused(tmp_path):
     ev = random_events(500, seed=13, sensor_size=(346, 260))
     path = tmp_path / "n.aedat"

@@ -127,6 +127,36 @@ def test_damage_names_the_byte_offset_and_salvage_keeps_the_prefix(tmp_path):
     assert r.exit_code != 0 and "Traceback" not in r.output and "unknown type 5" in r.output
 
 
+@pytest.mark.parametrize("legacy", [False, True])
+def test_a_time_past_int64_stops_the_read_at_its_word(tmp_path, monkeypatch, legacy):
+    """2**29 wraps of the 34-bit time (4 GiB of words) take the time past 2**63 - 1 µs: the read stops at the time
+    high that does, naming its byte, and salvage keeps the events before it (numba's loop wrapped to negative
+    times). The reader starts one wrap short of the limit."""
+    from evtk.io.prophesee import recording
+
+    most = (2**63 - 1) >> 34
+    initial = recording.PropheseeRecording._initial_state
+
+    def near_the_end(self):
+        state = initial(self)
+        state[1] = most  # the epoch
+        return state
+
+    monkeypatch.setattr(recording.PropheseeRecording, "_initial_state", near_the_end)
+    words = [_time_high(0xFFFFFF0)] + [_cd(1, k % 64, 32 * (k % 20), k % 480, 0b11) for k in range(60)]
+    words += [_time_high(5)] + [_cd(0, k % 64, 0, k % 480, 1) for k in range(10)]
+    data = _file(words, legacy)
+    start = len(data) - 8 * len(words)
+    path = tmp_path / "w.raw"
+    path.write_bytes(data)
+    with pytest.raises(evtk.FormatError, match=rf"byte {start + 8 * 61}\b.*passes 2\*\*63 - 1 us"):
+        evtk.read_events(path)
+    with evtk.open(path, salvage=True) as rec:
+        ev = rec.events()
+        assert len(ev) == 120 and rec.damage.offset == start + 8 * 61
+        assert ev.t.tolist() == [(most << 34) | (0xFFFFFF0 << 6) | (k // 2 % 64) for k in range(120)]
+
+
 def test_full_vectors_resume_and_stay_within_the_memory_budget(tmp_path, monkeypatch):
     """32 events a word: the decoder resumes where the output is full; a budget too small for the events is a
     clean error before the memory is taken."""

@@ -669,3 +669,66 @@ def test_an_event_stream_file_reads_alike_on_both_routes(tmp_path, monkeypatch, 
             got[route] = (rec.events(), rec.events(int(ev.t[5000]), int(ev.t[15000])), len(rec._blocks))
     assert got["native"][0] == got["numpy"][0] == ev
     assert got["native"][1:] == got["numpy"][1:] and got["native"][2] > 5
+
+
+@pytest.mark.parametrize("fmt", ["evt2", "dat"])
+@pytest.mark.parametrize("route", ["numpy", "native"])
+def test_a_time_past_int64_stops_the_read_at_its_word_on_every_path(tmp_path, monkeypatch, fmt, route):
+    """A time counter wrapped more often than int64 holds (2**29 EVT 2.0 wraps, 2**31 DAT: GiBs of words) stops
+    every read at the word that passes 2**63 - 1 µs, with a FormatError naming its byte, or with salvage the events
+    before it; before, numpy raised Python's OverflowError and the kernels wrapped to negative times. The reader
+    starts here one wrap short of the limit (its initial state), over blocks of 64 items on 3 threads."""
+    _route(monkeypatch, route)
+    shift, slot = (34, 1) if fmt == "evt2" else (32, 1)
+    most = (2**63 - 1) >> shift
+    initial = recording.PropheseeRecording._initial_state
+
+    def near_the_end(self):
+        state = initial(self)
+        state[slot] = most
+        return state
+
+    monkeypatch.setattr(recording.PropheseeRecording, "_initial_state", near_the_end)
+    monkeypatch.setattr(recording, "BLOCK_WORDS", 64 * (2 if fmt == "dat" else 1))
+    monkeypatch.setattr(_whole, "THREADED_BLOCKS", 2)
+    monkeypatch.setattr(_whole, "THREAD_BYTES", 1)
+    monkeypatch.setenv("EVTK_THREADS", "3")
+    rng = np.random.default_rng(5)
+    n_before, n_after = 150, 100
+    xs, ys = rng.integers(0, 40, n_before + n_after), rng.integers(0, 25, n_before + n_after)
+    if fmt == "evt2":
+        top = 0xFFFFF00  # time highs in the counter's top half, rising; then one back at 16: a wrap
+        words = [(8 << 28) | top]
+        for k in range(n_before):
+            words += [(8 << 28) | (top + k // 10)] if k % 10 == 0 else []
+            words.append(_cd2(k % 64, int(xs[k]), int(ys[k])))
+        stop = len(words)
+        words += [(8 << 28) | 16] + [_cd2(k % 64, int(xs[k]), int(ys[k])) for k in range(n_before, n_before + 100)]
+        item = 4
+        t_before = [(most << 34) | ((top + k // 10) << 6) | (k % 64) for k in range(n_before)]
+    else:
+        stamps = [0xFFFFF000 + k for k in range(n_before)] + [16 + k for k in range(n_after)]
+        words = []
+        for k, ts in enumerate(stamps):
+            words += [ts, (1 << 28) | (int(ys[k]) << 14) | int(xs[k])]
+        stop, item = n_before, 8
+        t_before = [(most << 32) | ts for ts in stamps[:n_before]]
+    path = tmp_path / ("r.raw" if fmt == "evt2" else "r.dat")
+    _raw_file(path, fmt, words)
+    head = len(path.read_bytes()) - 4 * len(words)
+    with pytest.raises(evtk.FormatError, match=r"passes 2\*\*63 - 1 us") as err:
+        evtk.read_events(path)
+    assert err.value.offset == head + item * stop
+    with evtk.open(path, salvage=True) as rec:
+        ev = rec.events()
+        assert ev.t.tolist() == t_before and ev.x.tolist() == xs[:n_before].tolist()
+        assert rec.damage.offset == head + item * stop
+    with evtk.open(path, salvage=True) as rec:  # the windowed path: its index, then a window
+        assert rec.events(t_before[40], t_before[90]) == ev.between(t_before[40], t_before[90])
+    _assert_whole_read_equals_block_by_block(path, True, fmt)
+    _assert_whole_read_equals_block_by_block(path, False, fmt)
+
+
+def _cd2(t_low, x, y, on=1):
+    """An EVT 2.0 CD word."""
+    return (on << 28) | (t_low << 22) | (x << 11) | y

@@ -66,6 +66,7 @@ _TYPE_NAMES = {0: "special", 1: "polarity", 2: "frame", 3: "imu6", 4: "imu9", 5:
 MAX_HEADER_BYTES = 4 << 20
 _END_V3 = re.compile(rb"^#!END-HEADER", re.M)
 _WRAP = 1 << 32  # AEDAT 2.0 time stamps are 32-bit counters
+_WRAPS_MOST = (2**63 - 1) >> 32  # the most wraps whose times fit int64
 _DIGITS = re.compile(r"\d+")
 
 
@@ -108,11 +109,14 @@ def _unwrap(ts, state):
     state : tuple of int
         (wraps, last raw stamp) after ``ts`` or, when one steps back, before the first that does.
     bad : int or None
-        The index of the first stamp that steps back without wrapping.
+        The index of the first stamp that steps back without wrapping, or whose wrap takes the time past
+        2**63 - 1 µs (after 2**31 wraps, 32 GiB of records at the least: no recording runs that long).
+    past : bool
+        Whether ``bad`` is such a wrap.
     """
     epoch, prev = state
     if not len(ts):
-        return ts, state, None
+        return ts, state, None, False
     before = np.empty(len(ts), np.int64)
     before[0] = prev
     before[1:] = ts[:-1]
@@ -126,10 +130,14 @@ def _unwrap(ts, state):
     if bad is not None:
         ts, wrap = ts[:bad], wrap[:bad]
     wraps = np.cumsum(wrap) + epoch
+    past = bool(len(wraps)) and int(wraps[-1]) > _WRAPS_MOST
+    if past:
+        bad = int(np.argmax(wraps > _WRAPS_MOST))
+        ts, wraps = ts[:bad], wraps[:bad]
     t = ts + (wraps << 32)
     if bad is not None:
-        return t, ((int(wraps[-1]) if len(ts) else epoch), int(ts[-1]) if len(ts) else prev), bad
-    return t, (int(wraps[-1]), int(ts[-1])), None
+        return t, ((int(wraps[-1]) if len(ts) else epoch), int(ts[-1]) if len(ts) else prev), bad, past
+    return t, (int(wraps[-1]), int(ts[-1])), None, False
 
 
 class LegacyAedatRecording(BaseRecording):
@@ -268,7 +276,10 @@ class LegacyAedatRecording(BaseRecording):
         if self.damage is None:
             self.damage = Damage(at, reason)
 
-    def _read_block(self, k, state=(0, -1)):
+    #: The 2.0 time state before the first record: no wraps yet, no stamp before it.
+    _TIME_START = (0, -1)
+
+    def _read_block(self, k, state):
         """Block ``k``'s events as stored (y not yet mirrored) from ``state``, the (2.0) time state before it.
 
         Returns ``(t, x, y, p, left_out, state_after, problem)``: ``left_out`` counts the records left out
@@ -290,13 +301,15 @@ class LegacyAedatRecording(BaseRecording):
                 keep = (addr >> 31) == 0  # bit 31: an APS or IMU sample
             rows = np.flatnonzero(keep)
             addr = addr[rows]
-            t, state, bad = _unwrap(stamps[rows], state)
+            t, state, bad, past = _unwrap(stamps[rows], state)
             problem = None
             if bad is not None:
                 at = self._blocks[k][0][0] + self._record * int(rows[bad]) + self._record - 4
-                problem = (at, f"the time stamp steps back from {int(state[1])} to "
-                               f"{int(stamps[rows[bad]])} us, which is no 32-bit wrap (a wrap goes from the "
-                               "top half of the counter to the bottom half)")
+                problem = (at, f"the time passes 2**63 - 1 us (int64) here, after {_WRAPS_MOST + 1} wraps of the "
+                               "32-bit time stamp: no recording runs that long, so the file is damaged or crafted"
+                           if past else f"the time stamp steps back from {int(state[1])} to "
+                           f"{int(stamps[rows[bad]])} us, which is no 32-bit wrap (a wrap goes from the "
+                           "top half of the counter to the bottom half)")
                 addr, t = addr[:bad], t[:bad]
             if self.chip == "dvs128":
                 x = 127 - ((addr >> 1) & 0x7F)
@@ -333,7 +346,7 @@ class LegacyAedatRecording(BaseRecording):
         largest (x, y) stored; the records left out are counted on the way. A time stamp that steps back
         without wrapping raises, or with salvage ends the recording before it."""
         if self._block_stats is None:
-            rows, state, mx, my = [], (0, -1), 0, 0
+            rows, state, mx, my = [], self._TIME_START, 0, 0
             for k in range(len(self._blocks)):
                 t, x, y, _, left_out, after, problem = self._read_block(k, state)
                 if left_out:

@@ -24,7 +24,7 @@ _MAX_HEADER = 1 << 20
 
 EVT2, EVT21, EVT3, DAT = "evt2", "evt21", "evt3", "dat"
 
-ST_OK, ST_COORD, ST_TYPE, ST_FULL = 0, -1, -2, -3
+ST_OK, ST_COORD, ST_TYPE, ST_FULL, ST_TIME = 0, -1, -2, -3, -4  # ST_TIME: a time past int64 (see _within_int64)
 
 
 _END = re.compile(rb"^%[ \t]*end[ \t\r]*$", re.M)  # OpenEB closes newer headers with '% end'
@@ -341,6 +341,46 @@ def _dat_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch):
     return got if got is not None else _dat_numpy_run(raw, state, width, height, decode, t, x, y, p, tt, tk, tch)
 
 
+def _within_int64(run, epoch_slot: int, shift: int, item_words: int = 1):
+    """``run`` (a decoder with :func:`_evt2_numpy_run`'s arguments and results) that stops with ``ST_TIME`` at the
+    first item whose time would pass 2**63 - 1 µs, instead of wrapping.
+
+    The time is ``epoch << shift`` plus bits below (EVT 2.0 and 2.1: 34; DAT: 32), so the last epoch that fits
+    is ``(2**63 - 1) >> shift``: 2**29 wraps of EVT 2.0's time (4 GiB of words at the least), 2**31 of DAT's.
+    Past it, numpy's route would raise Python's OverflowError and the kernels' unsigned arithmetic would wrap.
+    When a call leaves the epoch past its last, the item that took it there is found by bisection over counting
+    runs (from the call's start state; only then) and the words before it are decoded again: the events before
+    it, the stop at it, and the state before it. A call from a state already past (a block after the stop,
+    decoded from its scanned state) stops at its first item.
+    """
+    most = (2**63 - 1) >> shift
+
+    def capped(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
+        if state[epoch_slot] > most:
+            return 0, 0, ST_TIME, 0, 2**62, -(2**62)
+        start = state.copy()
+        got = run(words, state, width, height, decode, t, x, y, p, tt, tk, tch)
+        if state[epoch_slot] <= most:
+            return got
+        lo, hi = 0, len(words) // item_words  # words[:lo] stay within, words[:hi] pass: the item hi - 1 passes
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            trial = start.copy()
+            run(words[:mid * item_words], trial, width, height, False, *_NO_OUT)
+            lo, hi = (lo, mid) if trial[epoch_slot] > most else (mid, hi)
+        state[:] = start
+        n, m, _, _, t_lo, t_hi = run(words[:lo * item_words], state, width, height, decode, t, x, y, p, tt, tk, tch)
+        return n, m, ST_TIME, lo, t_lo, t_hi
+
+    capped.__doc__ = run.__doc__
+    capped.__name__ = run.__name__
+    return capped
+
+
+_evt2_run = _within_int64(_evt2_run, _E2_EPOCH, 34)
+_dat_run = _within_int64(_dat_run, _DAT_EPOCH, 32, item_words=2)
+
+
 def word_type(encoding: str, word: int, legacy: bool = False) -> int:
     """The type (top four bits) of a RAW word, for messages about a word of an unknown type.
 
@@ -636,7 +676,8 @@ def es_atis_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch):
     return got if got is not None else _es_atis_run(data, state, width, height, decode, t, x, y, p, tt, tk, tch)
 
 
-_RUNNERS = {EVT2: _evt2_run, EVT21: _evt21_run, DAT: _dat_run, ES: _es_run}  # EVT 3.0: _evt3.run
+_RUNNERS = {EVT2: _evt2_run, EVT21: _within_int64(_evt21_run, _E2_EPOCH, 34), DAT: _dat_run,
+            ES: _es_run}  # EVT 3.0: _evt3.run
 _STATE_SIZE = {EVT2: 2, EVT21: 3, EVT3: 6, DAT: 2, ES: 6}
 _DTYPE = {EVT2: "<u4", EVT21: "<u8", EVT3: "<u2", DAT: "<u4", ES: "u1"}
 # where a word's type sits, and the types a format has (for the message about a word of another type)

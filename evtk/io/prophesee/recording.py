@@ -33,6 +33,7 @@ from .decoders import (
     ST_COORD,
     ST_FULL,
     ST_OK,
+    ST_TIME,
     _header,
     _sensor_from_header,
     es_atis_run,
@@ -245,6 +246,10 @@ class PropheseeRecording(BaseRecording):
         if st == ST_COORD:
             w, h = self._size
             return at, f"an event lies outside the {w}x{h} sensor"
+        if st == ST_TIME:
+            bits = 32 if self.encoding == DAT else 34
+            return at, (f"the time passes 2**63 - 1 us (int64) here, after {((2**63 - 1) >> bits) + 1} wraps of the "
+                        f"{bits}-bit time: no recording runs that long, so the file is damaged or crafted")
         kind = word_type(self.encoding, int(words[bad]), self.legacy_layout)
         return at, f"word of unknown type {kind} ({_TYPES[self.encoding][1]})"
 
