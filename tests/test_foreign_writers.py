@@ -432,3 +432,78 @@ def test_a_chunk_refused_part_way_is_taken_back_whole_and_the_writer_goes_on(tmp
             w.write_events(chunk(t_bad))
         w.write_events(last)
     assert _same(evtk.read_events(path), evtk.Events.concatenate([first, last]))
+
+
+@pytest.mark.parametrize("fmt,period", [("evt3", 1 << 24), ("evt2", 1 << 34), ("evt21", 1 << 34)])
+def test_a_first_time_in_the_counter_s_first_period_reads_back_and_one_past_it_is_refused(fmt, period, tmp_path):
+    """Readers take a RAW file's first time for one of the counter's first period (2**24 us in EVT 3.0, 2**34 in
+    EVT 2.0 and 2.1): a later first event read back modulo the period (a DV recording stamped in Unix
+    microseconds lost its hours and days, with no warning). Events starting just inside it read back exactly, in
+    evtk and in the evt3 package; one microsecond later the write is refused and leaves no file."""
+    ev = _events(n=3_000, seed=12, t0=period - 1_000, span=3_000_000)
+    tr = _triggers(t0=period - 500, span=3_000_000)
+    path = tmp_path / "late.raw"
+    evtk.write_events(path, ev, tr, fmt=fmt)
+    with evtk.open(path) as rec:
+        assert _same(rec.events(), ev) and np.array_equal(rec.triggers().t, tr.t)
+    if fmt == "evt3":
+        evt3 = pytest.importorskip("evt3")
+        e, _ = evt3.decode_file_with_triggers(str(path))
+        assert np.array_equal(np.asarray(e.timestamp, np.int64), ev.t)
+    path.unlink()
+    later = evtk.Events(ev.t - int(ev.t[0]) + period, ev.x, ev.y, ev.p, ev.sensor_size)
+    with pytest.raises(EvtkError, match=f"modulo {period:,} us"):
+        evtk.write_events(path, later, fmt=fmt)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("fmt,ext,t0", [("evt3", ".raw", 1_761_176_369_642_276), ("dat", ".dat", 2**32),
+                                        ("evt2", ".raw", 2**62)])
+def test_a_first_time_no_file_of_the_format_can_reach_is_refused_and_convert_shifts_it(fmt, ext, t0, tmp_path):
+    """A first time past the counter's first period (Unix microseconds in EVT 3.0; 2**32 us in DAT; 2**62 us in
+    EVT 2.0) is refused, naming the remedy, and leaves no file; ``convert --time-from-zero`` writes the times less
+    the earliest, and keeps that in the header (HDF5: in the metadata)."""
+    ev = _events(n=2_000, seed=13, t0=t0, span=2_000_000)
+    tr = None
+    if fmt != "dat":  # the earliest time a trigger's, 500 us before the first event
+        tr = _triggers(t0=t0, span=2_000_000)
+        tr = evtk.Triggers(np.concatenate(([int(ev.t[0]) - 500], tr.t)), np.concatenate(([1], tr.kind)),
+                           np.concatenate(([0], tr.channel)))
+    target = tmp_path / f"late{ext}"
+    with pytest.raises(EvtkError, match="--time-from-zero"):
+        evtk.write_events(target, ev, tr, fmt=fmt)
+    assert not list(tmp_path.iterdir())
+    source = tmp_path / "src.h5"
+    evtk.write_events(source, ev, tr)
+    r = CliRunner().invoke(main, ["convert", str(source), str(target), "--format", fmt])
+    assert r.exit_code != 0 and "--time-from-zero" in r.output and not target.exists()
+    r = CliRunner().invoke(main, ["convert", str(source), str(target), "--format", fmt, "--time-from-zero"])
+    start = int(ev.t[0]) if tr is None else min(int(ev.t[0]), int(tr.t[0]))
+    assert r.exit_code == 0, r.output
+    assert f"shifted by -{start:,} us" in r.output
+    with evtk.open(target) as rec:
+        assert np.array_equal(rec.events().t, ev.t - start) and _same(rec.events(), evtk.Events(
+            ev.t - start, ev.x, ev.y, ev.p, ev.sensor_size))
+        if tr is not None:
+            assert np.array_equal(rec.triggers().t, tr.t - start)
+        assert f"time_offset_us {start}" in rec.metadata["header"]
+    done = evtk.io.convert(source, tmp_path / "again.h5", time_from_zero=True)
+    assert done["time_offset_us"] == start
+    with evtk.open(tmp_path / "again.h5") as rec:
+        assert str(rec.metadata.get("time_offset_us")) == str(start)
+        assert np.array_equal(rec.events().t, ev.t - start)
+
+
+def test_time_from_zero_refuses_to_leave_an_aedat4_target_s_other_streams_unshifted(tmp_path):
+    """AEDAT4 to AEDAT4 copies the other streams' packets as they are: shifting only the events would misalign
+    them, so --time-from-zero asks for --events-only there."""
+    src = REAL / "hetk987__dvSave-2025_10_22_18_39_29.aedat4"  # events and 698 IMU packets
+    if not src.exists():
+        pytest.skip("../shared/real-files is not beside the checkout")
+    r = CliRunner().invoke(main, ["convert", str(src), str(tmp_path / "o.aedat4"), "--time-from-zero"])
+    assert r.exit_code != 0 and "--events-only" in r.output and not (tmp_path / "o.aedat4").exists()
+    r = CliRunner().invoke(main, ["convert", str(src), str(tmp_path / "o.aedat4"), "--time-from-zero",
+                                  "--events-only"])
+    assert r.exit_code == 0, r.output
+    a, b = evtk.read_events(src), evtk.read_events(tmp_path / "o.aedat4")
+    assert np.array_equal(b.t, a.t - a.t.min()) and np.array_equal(b.x, a.x)

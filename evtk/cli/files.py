@@ -80,7 +80,10 @@ def info(file, as_json, salvage, check):
 @click.option("--format", "fmt", type=click.Choice(["aedat4", "hdf5", "parquet", "evt2", "evt21", "evt3", "dat", "es",
                                                           "csv"]),
               help="TARGET's format where its extension does not say (.raw is EVT 3.0 unless --format evt2 or evt21).")
-def convert(source, target, compression, salvage, sort, chunk_events, events_only, fmt):
+@click.option("--time-from-zero", is_flag=True,
+              help="Subtract the earliest event or trigger time from every time (kept as the metadata key "
+                   "time_offset_us): EVT 3.0 and DAT count time from 0 and cannot start at Unix microseconds.")
+def convert(source, target, compression, salvage, sort, chunk_events, events_only, fmt, time_from_zero):
     """Convert SOURCE to TARGET (format from TARGET's extension), streaming.
 
     Any format evtk reads to AEDAT4, HDF5, Parquet, Prophesee RAW (EVT 2.0,
@@ -91,7 +94,7 @@ def convert(source, target, compression, salvage, sort, chunk_events, events_onl
     from ..io import convert as run
 
     done = run(source, target, compression, salvage=salvage, sort=sort, chunk_events=chunk_events,
-               events_only=events_only, fmt=fmt)
+               events_only=events_only, fmt=fmt, time_from_zero=time_from_zero)
     if done["left_out"]:
         what = ", ".join(f"{name} ({k:,}{'' if name in ('trigger edges', 'metadata keys') else ' packets'})"
                          for name, k in done["left_out"].items())
@@ -100,5 +103,7 @@ def convert(source, target, compression, salvage, sort, chunk_events, events_onl
         lost = ", ".join(map(str, done["channels_lost"]))
         click.echo(f"evtk: warning: {target} holds no trigger channels: the triggers of channel(s) {lost} "
                    "are written without theirs (they read back as channel 0)", err=True)
+    if time_from_zero:
+        click.echo(f"evtk: times shifted by -{done['time_offset_us']:,} us (metadata time_offset_us)", err=True)
     copied = "".join(f", {k:,} {name} packets" for name, k in done["copied"].items())
     click.echo(f"wrote {done['events']:,} events and {done['triggers']:,} triggers{copied} to {target}", err=True)

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import itertools
 import os
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any, cast
 
 from .._atomic import refuse_overwriting_inputs
+from ..errors import EvtkError
+from ..events import Events, Triggers
 from . import LOSES, open_writer, write_format
 from . import open as open_recording
 from ._checks import sorted_for_writing
@@ -23,7 +27,7 @@ _OWN_KEYS = {"compression", "originalModuleName", "originalOutputName", "typeDes
 
 def convert(source: str | os.PathLike[str], target: str | os.PathLike[str], compression: str = "lz4",
             salvage: bool = False, sort: bool = False, chunk_events: int = 4_000_000, events_only: bool = False,
-            fmt: str | None = None) -> dict[str, Any]:
+            fmt: str | None = None, time_from_zero: bool = False) -> dict[str, Any]:
     """Write the recording ``source`` to ``target``, streaming the events ``chunk_events`` at a time.
 
     AEDAT4 to AEDAT4 also copies the other streams (frames, IMU, ...) packet
@@ -57,14 +61,19 @@ def convert(source: str | os.PathLike[str], target: str | os.PathLike[str], comp
         AEDAT4 to AEDAT4: copy only the events and triggers, not the other streams.
     fmt : str, optional
         One of :data:`evtk.io.WRITE_FORMATS`, overriding the target's extension.
+    time_from_zero : bool
+        Subtract the earliest time of the events and triggers from every time, and keep it as the metadata
+        key ``time_offset_us``: for the formats whose time counts from 0 in a counter that wraps (EVT 3.0, DAT),
+        which cannot hold time stamps in Unix microseconds (DV's) at the start of a file. Not with the other
+        streams of an AEDAT4 target (their packets are copied as they are): add ``events_only``.
 
     Returns
     -------
     dict
         ``events``, ``triggers`` (written), ``copied`` (stream name -> packets copied), ``left_out``
-        (stream name -> packets; ``"trigger edges"`` -> count; ``"metadata keys"`` -> count) and
+        (stream name -> packets; ``"trigger edges"`` -> count; ``"metadata keys"`` -> count),
         ``channels_lost`` (the non-zero trigger channels the target cannot hold, in increasing order;
-        empty when none).
+        empty when none) and ``time_offset_us`` (what ``time_from_zero`` subtracted; 0 without it).
 
     Raises
     ------
@@ -87,6 +96,21 @@ def convert(source: str | os.PathLike[str], target: str | os.PathLike[str], comp
             camera = None
         metadata = dict(rec.metadata or {})
         copied, left_out = {}, {}
+        chunks: Iterator[Events] = iter([sorted_for_writing(rec.events(), True, fmt)]) if sort else \
+            rec.iter_events(chunk_events=chunk_events)
+        offset = 0
+        if time_from_zero:
+            if fmt == "aedat4" and others:
+                raise EvtkError(f"--time-from-zero shifts the events and triggers, not the packets of {source}'s "
+                                "other streams: add --events-only to leave those out")
+            first = next(chunks, None)
+            starts = [int(c.t.min()) for c in (first, triggers) if c is not None and len(c)]
+            offset = min(starts, default=0)
+            chunks = itertools.chain([] if first is None else [first], chunks)
+            chunks = (Events._trusted(c.t - offset, c.x, c.y, c.p, c.sensor_size) for c in chunks)
+            if triggers is not None:
+                triggers = Triggers(triggers.t - offset, triggers.kind, triggers.channel)
+            metadata["time_offset_us"] = str(offset)
         channels_lost = []
         if triggers is not None and fmt in _NO_CHANNELS:
             channels_lost = [c for c in triggers.channels if c != 0]
@@ -108,14 +132,9 @@ def convert(source: str | os.PathLike[str], target: str | os.PathLike[str], comp
             writer = open_writer(target, rec.sensor_size, compression, metadata or None, triggers, fmt=fmt)
         n = 0
         with writer:
-            if sort:  # in memory: a stable sort by time
-                events = sorted_for_writing(rec.events(), True, fmt)
-                writer.write_events(events)
-                n = len(events)
-            else:
-                for chunk in rec.iter_events(chunk_events=chunk_events):
-                    writer.write_events(chunk)
-                    n += len(chunk)
+            for chunk in chunks:  # (with sort: all events, read and sorted by time in memory)
+                writer.write_events(chunk)
+                n += len(chunk)
             for s in others:
                 k = 0
                 aedat_writer = cast("Aedat4Writer", writer)  # (AEDAT4 to AEDAT4 only)
@@ -124,4 +143,4 @@ def convert(source: str | os.PathLike[str], target: str | os.PathLike[str], comp
                     k += 1
                 copied[s.name] = k
     return {"events": n, "triggers": 0 if triggers is None else len(triggers), "copied": copied,
-            "left_out": left_out, "channels_lost": channels_lost}
+            "left_out": left_out, "channels_lost": channels_lost, "time_offset_us": offset}

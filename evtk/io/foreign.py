@@ -8,7 +8,7 @@ reads, and the files are read back exactly by the public readers
 
 What each format holds:
 
-- EVT 2.0: 32-bit words; x and y below 2048; any time from 0 (a TIME_HIGH
+- EVT 2.0: 32-bit words; x and y below 2048; any time from 0, the first below 2**34 us (a TIME_HIGH
   word is written whenever the time's upper 28 bits change, with extra ones
   across long gaps so that the 34-bit counter's wraps are never ambiguous);
   trigger edges with their channel (0-31).
@@ -17,10 +17,13 @@ What each format holds:
   consecutive events at one time, row and polarity whose x rise inside one
   group of 32 pixels (its base x a multiple of 32, a 32-bit mask of the
   pixels); x and y below 2048; trigger edges with their channel (0-31).
-- EVT 3.0: 16-bit words; x and y below 2048; any time from 0 (the 24-bit
+- EVT 3.0: 16-bit words; x and y below 2048; any time from 0, the first below 2**24 us (the 24-bit
   time's wraps likewise kept unambiguous); trigger edges with channels 0-15.
 - DAT (CD events, version 2): x and y below 16384; 32-bit time stamps, so
-  no gap between events may reach 2**31 us; no triggers.
+  the first below 2**32 us and no gap between events reaching 2**31 us; no triggers.
+
+A first time past those is refused (readers would take it modulo the counter's period):
+``evtk.io.convert(..., time_from_zero=True)`` shifts a recording's times to start at 0.
 - Event Stream 2.0.0 DVS: x and y below 65536, y stored from the bottom row;
   any time from 0 (a gap costs one byte per 127 us); no triggers.
 """
@@ -116,14 +119,27 @@ def _check(events: Events, tt: np.ndarray, fmt: str, coord_limit: int):
         raise EvtkError(f"{fmt} holds coordinates below {coord_limit}; the sensor is {w}x{h}")
 
 
-def _high_changes(high: np.ndarray, prev: int | None, step: int):
+def _high_changes(high: np.ndarray, prev: int | None, step: int, fmt: str = "", mask: int = -1, unit_us: int = 1):
     """The records of a block whose time high differs from the record's before (the first compared with ``prev``,
     the last high written; None at a file's start), the high before each, and how many intermediate time-high
     words go before its own: across a long gap they advance by at most ``step``, less than half the counter's
-    period, so a reader sees each wrap of the counter as a drop."""
+    period, so a reader sees each wrap of the counter as a drop.
+
+    A file's first time high must fit the counter (``mask``; ``fmt`` and ``unit_us``, the time high's unit, name
+    it in the error): readers take it as the time high of the counter's first period (evtk's, and the evt3
+    package's, which counts no wraps before the first event), so a later first time read back modulo the period
+    (a recording stamped in Unix microseconds, as DV's are, lost its hours and days, with no warning)."""
     chg = np.flatnonzero(high[1:] != high[:-1]) + 1
     if len(high) and (prev is None or high[0] != prev):
         chg = np.concatenate(([0], chg))
+    if prev is None and len(high) and mask >= 0 and int(high[0]) > mask:
+        period = (mask + 1) * unit_us
+        raise EvtkError(f"{fmt} counts its time from 0 in a counter that wraps every {period:,} us, and readers "
+                        f"take the first time in the file for one of the first period: the first record, at "
+                        f"{int(high[0]) * unit_us:,} us or up to {unit_us - 1} us later, would read back modulo "
+                        f"{period:,} us. Shift the times to start near 0 (evtk convert --time-from-zero; in "
+                        "Python, evtk.Events(ev.t - t0, ev.x, ev.y, ev.p, ev.sensor_size)), or write "
+                        f"{'EVT 2.0, ' if fmt == 'EVT 3.0' else ''}AEDAT4, HDF5 or Parquet")
     before = high[chg - 1]
     if len(chg) and chg[0] == 0:
         before[0] = high[0] if prev is None else prev  # a file's first high: no intermediate words
@@ -221,7 +237,7 @@ def _evt2_blocks(events: Events, triggers: Triggers | None, state: dict):
         else:
             tb, own = t[a:b], own_all[a:b]
         high = tb >> 6
-        chg, before, fillers = _high_changes(high, state.get("high"), 1 << 26)
+        chg, before, fillers = _high_changes(high, state.get("high"), 1 << 26, "EVT 2.0", 0xFFFFFFF, 64)
         state["high"] = int(high[-1])
         if not len(chg):
             yield own
@@ -289,7 +305,7 @@ def _evt3_blocks(events: Events, triggers: Triggers | None, state: dict):
         else:
             tb = t[a:b]
         high = tb >> 12
-        chg, before, fillers = _high_changes(high, state.get("high"), 2047)
+        chg, before, fillers = _high_changes(high, state.get("high"), 2047, "EVT 3.0", 0xFFF, 4096)
         keep[last_chg, 0] = False  # the last block's EVT_TIME_HIGH marks
         k[chg, 0] = True
         last_chg = chg
@@ -355,6 +371,11 @@ def _dat_blocks(events: Events, state: dict):
     n = len(t)
     if not n:
         return
+    if "t" not in state and int(t[0]) >= 1 << 32:  # a reader takes the first stamp as the time: no wrap before it
+        raise EvtkError(f"DAT's 32-bit time stamps start from 0: the first event, at {int(t[0]):,} us, lies past "
+                        "2**32 us, where a reader would take it modulo 2**32. Shift the times to start near 0 (evtk "
+                        "convert --time-from-zero; in Python, evtk.Events(ev.t - t0, ev.x, ev.y, ev.p, "
+                        "ev.sensor_size)), or write EVT 2.0, AEDAT4, HDF5 or Parquet")
     prev = state.get("t", int(t[0]))
     if int(t[-1]) - prev >= 1 << 31:  # some gap may be too long for the 32-bit stamps: find the longest
         gaps = np.diff(t, prepend=prev)
