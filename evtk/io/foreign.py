@@ -422,6 +422,8 @@ def encode_dat(events: Events, state: dict | None = None) -> bytes:
 
 
 _ES_EVENT = np.dtype([("b", "u1"), ("x", "<u2"), ("y", "<u2")])  # packed: 5 bytes an event
+#: Most bytes of silence (0xFF, 127 us each) an Event Stream file may begin with: 1 GiB, 38 hours
+_ES_LEAD_MOST = 1 << 30
 
 
 def _es_blocks(events: Events, state: dict):
@@ -429,6 +431,11 @@ def _es_blocks(events: Events, state: dict):
     _check(events, np.empty(0, np.int64), "Event Stream", 65536)
     t = events.t
     n = len(t)
+    if n and "t" not in state and int(t[0]) // 127 > _ES_LEAD_MOST:
+        raise EvtkError(f"Event Stream counts its time from 0, a byte for each 127 us of a gap: the first event, "
+                        f"at {int(t[0]):,} us, would need {int(t[0]) // 127:,} bytes before it. Shift the times to "
+                        "start near 0 (evtk convert --time-from-zero; in Python, evtk.Events(ev.t - t0, ev.x, ev.y, "
+                        "ev.p, ev.sensor_size)), or write AEDAT4, HDF5 or Parquet")
     m = min(n, _BLOCK)
     rec, gap, tmp = np.empty(m, _ES_EVENT), np.empty(m, np.int64), np.empty(m, np.uint16)
     top = events.sensor_size[1] - 1
