@@ -21,11 +21,11 @@ What each format holds:
   time's wraps likewise kept unambiguous); trigger edges with channels 0-15.
 - DAT (CD events, version 2): x and y below 16384; 32-bit time stamps, so
   the first below 2**32 us and no gap between events reaching 2**31 us; no triggers.
+- Event Stream 2.0.0 DVS: x and y below 65536, y stored from the bottom row;
+  any time from 0 (a gap costs one byte per 127 us, at most 2**30 of them before the first event); no triggers.
 
 A first time past those is refused (readers would take it modulo the counter's period):
 ``evtk.io.convert(..., time_from_zero=True)`` shifts a recording's times to start at 0.
-- Event Stream 2.0.0 DVS: x and y below 65536, y stored from the bottom row;
-  any time from 0 (a gap costs one byte per 127 us); no triggers.
 """
 
 from __future__ import annotations
@@ -119,7 +119,13 @@ def _check(events: Events, tt: np.ndarray, fmt: str, coord_limit: int):
         raise EvtkError(f"{fmt} holds coordinates below {coord_limit}; the sensor is {w}x{h}")
 
 
-def _high_changes(high: np.ndarray, prev: int | None, step: int, fmt: str = "", mask: int = -1, unit_us: int = 1):
+def _late_start(fmt: str, problem: str) -> EvtkError:
+    """The error for a file whose first time ``fmt`` cannot hold (``problem`` says why), naming the remedies."""
+    return EvtkError(f"{fmt} {problem}. Shift the times to start near 0 (evtk convert --time-from-zero; in Python, "
+                     "evtk.Events(ev.t - t0, ev.x, ev.y, ev.p, ev.sensor_size)), or write AEDAT4, HDF5 or Parquet")
+
+
+def _high_changes(high: np.ndarray, prev: int | None, step: int, fmt: str, mask: int, unit_us: int):
     """The records of a block whose time high differs from the record's before (the first compared with ``prev``,
     the last high written; None at a file's start), the high before each, and how many intermediate time-high
     words go before its own: across a long gap they advance by at most ``step``, less than half the counter's
@@ -132,14 +138,12 @@ def _high_changes(high: np.ndarray, prev: int | None, step: int, fmt: str = "", 
     chg = np.flatnonzero(high[1:] != high[:-1]) + 1
     if len(high) and (prev is None or high[0] != prev):
         chg = np.concatenate(([0], chg))
-    if prev is None and len(high) and mask >= 0 and int(high[0]) > mask:
+    if prev is None and len(high) and int(high[0]) > mask:
         period = (mask + 1) * unit_us
-        raise EvtkError(f"{fmt} counts its time from 0 in a counter that wraps every {period:,} us, and readers "
-                        f"take the first time in the file for one of the first period: the first record, at "
-                        f"{int(high[0]) * unit_us:,} us or up to {unit_us - 1} us later, would read back modulo "
-                        f"{period:,} us. Shift the times to start near 0 (evtk convert --time-from-zero; in "
-                        "Python, evtk.Events(ev.t - t0, ev.x, ev.y, ev.p, ev.sensor_size)), or write "
-                        f"{'EVT 2.0, ' if fmt == 'EVT 3.0' else ''}AEDAT4, HDF5 or Parquet")
+        raise _late_start(fmt, f"counts its time from 0 in a counter that wraps every {period:,} us, and readers "
+                               f"take the first time in the file for one of the first period: the first record, at "
+                               f"{int(high[0]) * unit_us:,} us or up to {unit_us - 1} us later, would read back "
+                               f"modulo {period:,} us")
     before = high[chg - 1]
     if len(chg) and chg[0] == 0:
         before[0] = high[0] if prev is None else prev  # a file's first high: no intermediate words
@@ -372,10 +376,8 @@ def _dat_blocks(events: Events, state: dict):
     if not n:
         return
     if "t" not in state and int(t[0]) >= 1 << 32:  # a reader takes the first stamp as the time: no wrap before it
-        raise EvtkError(f"DAT's 32-bit time stamps start from 0: the first event, at {int(t[0]):,} us, lies past "
-                        "2**32 us, where a reader would take it modulo 2**32. Shift the times to start near 0 (evtk "
-                        "convert --time-from-zero; in Python, evtk.Events(ev.t - t0, ev.x, ev.y, ev.p, "
-                        "ev.sensor_size)), or write EVT 2.0, AEDAT4, HDF5 or Parquet")
+        raise _late_start("DAT", f"time stamps are 32 bits from 0: the first event, at {int(t[0]):,} us, lies past "
+                                 "2**32 us, where a reader would take it modulo 2**32")
     prev = state.get("t", int(t[0]))
     if int(t[-1]) - prev >= 1 << 31:  # some gap may be too long for the 32-bit stamps: find the longest
         gaps = np.diff(t, prepend=prev)
@@ -432,10 +434,8 @@ def _es_blocks(events: Events, state: dict):
     t = events.t
     n = len(t)
     if n and "t" not in state and int(t[0]) // 127 > _ES_LEAD_MOST:
-        raise EvtkError(f"Event Stream counts its time from 0, a byte for each 127 us of a gap: the first event, "
-                        f"at {int(t[0]):,} us, would need {int(t[0]) // 127:,} bytes before it. Shift the times to "
-                        "start near 0 (evtk convert --time-from-zero; in Python, evtk.Events(ev.t - t0, ev.x, ev.y, "
-                        "ev.p, ev.sensor_size)), or write AEDAT4, HDF5 or Parquet")
+        raise _late_start("Event Stream", f"counts its time from 0, a byte for each 127 us of a gap: the first "
+                                          f"event, at {int(t[0]):,} us, would need {int(t[0]) // 127:,} bytes before it")
     m = min(n, _BLOCK)
     rec, gap, tmp = np.empty(m, _ES_EVENT), np.empty(m, np.int64), np.empty(m, np.uint16)
     top = events.sensor_size[1] - 1

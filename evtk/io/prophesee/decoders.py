@@ -3,6 +3,7 @@ decoders (numpy; numba for EVT 2.1 and Event Stream's dense stretches; EVT 3.0's
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 from _bisect import bisect_left  # bisect's C half: the module bisect itself is 0.1 ms more of a fresh read
@@ -355,6 +356,7 @@ def _within_int64(run, epoch_slot: int, shift: int, item_words: int = 1):
     """
     most = (2**63 - 1) >> shift
 
+    @functools.wraps(run)
     def capped(words, state, width, height, decode, t, x, y, p, tt, tk, tch):
         if state[epoch_slot] > most:
             return 0, 0, ST_TIME, 0, 2**62, -(2**62)
@@ -372,8 +374,6 @@ def _within_int64(run, epoch_slot: int, shift: int, item_words: int = 1):
         n, m, _, _, t_lo, t_hi = run(words[:lo * item_words], state, width, height, decode, t, x, y, p, tt, tk, tch)
         return n, m, ST_TIME, lo, t_lo, t_hi
 
-    capped.__doc__ = run.__doc__
-    capped.__name__ = run.__name__
     return capped
 
 

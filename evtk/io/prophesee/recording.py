@@ -247,9 +247,8 @@ class PropheseeRecording(BaseRecording):
             w, h = self._size
             return at, f"an event lies outside the {w}x{h} sensor"
         if st == ST_TIME:
-            bits = 32 if self.encoding == DAT else 34
-            return at, (f"the time passes 2**63 - 1 us (int64) here, after {((2**63 - 1) >> bits) + 1} wraps of the "
-                        f"{bits}-bit time: no recording runs that long, so the file is damaged or crafted")
+            return at, ("the time passes 2**63 - 1 us (int64) here, after more wraps of the time counter than any "
+                        "recording holds: the file is damaged or crafted")
         kind = word_type(self.encoding, int(words[bad]), self.legacy_layout)
         return at, f"word of unknown type {kind} ({_TYPES[self.encoding][1]})"
 
