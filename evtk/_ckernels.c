@@ -11,6 +11,10 @@
 #include <Python.h>
 #include <stdint.h>
 #include <string.h>
+#include <errno.h>
+#ifndef _WIN32
+#include <unistd.h>
+#endif
 
 /* One window's events into its bins: the picked events i in [a, z) (event picks[i], or first + i without
  * picks), each to bin base + k (k = ky[y] + kx[x], plus on_step when ON) where 0 <= k < limit, else to dump.
@@ -222,14 +226,78 @@ lz4_frame(const uint8_t *src, int64_t n, uint8_t *dst, int64_t room, int verify,
     return written;
 }
 
+/* What every packet of a batch is decoded with: the LZ4 library's functions and this thread's context (as
+ * addresses), whether checksums are verified, output_limit's terms and the sensor. */
+typedef struct {
+    lz4f_decompress_fn dec;
+    lz4f_is_error_fn is_error;
+    lz4f_reset_fn reset;
+    void *ctx;
+    int verify;
+    int64_t floor_bytes, ratio, most;
+    uint32_t width, height;
+} lz4_job;
+
+/* The n_pk packets of one batch in raw[0:n_raw]: packet j's 8-byte header (stream id and body size, int32) at
+ * raw[heads[j] - head_base], then its body, which must match sids[j] and sizes[j]; decompressed into stage
+ * (at most min(most, floor + ratio * size) bytes), the FlatBuffer's EVTS vector of counts[j] events split into
+ * the columns t, x, y, p (n_out events in all) after the previous packet's (x and y within the sensor; a
+ * polarity byte not 0 is ON: 1). Returns 1 when every packet decoded and the columns are filled; 0 at anything
+ * else (the columns may then hold part of the batch). Called with the GIL released. */
+static int
+decode_packets(const lz4_job *job, const uint8_t *raw, int64_t n_raw, const int64_t *heads, int64_t head_base,
+               const int64_t *sids, const int64_t *sizes, const int64_t *counts, int64_t n_pk, uint8_t *stage,
+               int64_t n_stage, int64_t *t, uint16_t *x, uint16_t *y, uint8_t *p, int64_t n_out)
+{
+    int64_t cursor = 0;
+    for (int64_t j = 0; j < n_pk; j++) {
+        if (heads[j] < head_base)
+            return 0;
+        int64_t h = heads[j] - head_base;
+        if (h > n_raw - 8)
+            return 0;
+        int64_t sid = rd_i32(raw + h), size = rd_i32(raw + h + 4);
+        if (sid != sids[j] || size != sizes[j] || size < 0 || size > n_raw - 8 - h)
+            return 0;
+        /* min(most, floor + ratio * size), without computing a sum or product that could overflow */
+        int64_t limit = job->most;
+        if (job->ratio == 0 ? job->floor_bytes < job->most
+                            : (job->floor_bytes < job->most && size < (job->most - job->floor_bytes) / job->ratio))
+            limit = job->floor_bytes + job->ratio * size;
+        int64_t room = limit < n_stage ? limit : n_stage;
+        int64_t n = lz4_frame(raw + h + 8, size, stage, room, job->verify, job->dec, job->is_error, job->reset,
+                              job->ctx);
+        int64_t start, count;
+        if (n < 0 || root_vector(stage, n, "EVTS", &start, &count) != 0 || count != counts[j]
+            || count > n_out - cursor)
+            return 0;
+        const uint8_t *ev = stage + start;
+        uint32_t most_x = 0, most_y = 0;
+        for (int64_t i = 0; i < count; i++, ev += 16) {
+            int64_t tt;
+            uint16_t xx, yy;
+            memcpy(&tt, ev, 8);
+            memcpy(&xx, ev + 8, 2);
+            memcpy(&yy, ev + 10, 2);
+            t[cursor + i] = tt;
+            x[cursor + i] = xx;
+            y[cursor + i] = yy;
+            p[cursor + i] = ev[12] != 0;
+            most_x = xx > most_x ? xx : most_x;
+            most_y = yy > most_y ? yy : most_y;
+        }
+        if (count > 0 && (most_x >= job->width || most_y >= job->height))
+            return 0;
+        cursor += count;
+    }
+    return cursor == n_out;
+}
+
 /* decode_lz4_batch(raw, heads, sids, sizes, counts, verify, decompress, is_error, reset, ctx, stage, floor, ratio,
  *                  most, t, x, y, p, width, height)
  *
- * The event packets of one batch of the AEDAT4 reader, each an LZ4 frame: packet j's 8-byte header (stream id
- * and body size, int32) at raw[heads[j]], then its body, which must match sids[j] and sizes[j]; decompressed into
- * stage (at most min(most, floor + ratio * size) bytes), the FlatBuffer's EVTS vector of counts[j] events split
- * into the columns t, x, y, p after the previous packet's (x and y within the sensor; a polarity byte not 0 is
- * ON: 1). decompress, is_error, reset and ctx: LZ4F_decompress, LZ4F_isError, LZ4F_resetDecompressionContext
+ * The event packets of one batch of the AEDAT4 reader, each an LZ4 frame (decode_packets, heads relative to
+ * raw). decompress, is_error, reset and ctx: LZ4F_decompress, LZ4F_isError, LZ4F_resetDecompressionContext
  * and a decompression context of this thread, as addresses. The GIL is released throughout.
  *
  * Returns True when every packet decoded; False at anything else (the caller decodes the batch again in Python,
@@ -250,60 +318,21 @@ decode_lz4_batch(PyObject *self, PyObject *args)
                           &dec_at, &err_at, &reset_at, &ctx_at, &stageb, &floor_bytes, &ratio, &most, &tb, &xb, &yb,
                           &pb, &width, &height))
         return NULL;
-    const uint8_t *raw = (const uint8_t *)rawb.buf;
-    const int64_t *heads = (const int64_t *)headb.buf, *sids = (const int64_t *)sidb.buf;
-    const int64_t *sizes = (const int64_t *)sizeb.buf, *counts = (const int64_t *)countb.buf;
-    uint8_t *stage = (uint8_t *)stageb.buf;
-    int64_t *t = (int64_t *)tb.buf;
-    uint16_t *x = (uint16_t *)xb.buf, *y = (uint16_t *)yb.buf;
-    uint8_t *p = (uint8_t *)pb.buf;
-    int64_t n_raw = rawb.len, n_pk = headb.len / 8, n_stage = stageb.len, n_out = tb.len / 8;
-    lz4f_decompress_fn dec = (lz4f_decompress_fn)(uintptr_t)dec_at;
-    lz4f_is_error_fn is_error = (lz4f_is_error_fn)(uintptr_t)err_at;
-    lz4f_reset_fn reset = (lz4f_reset_fn)(uintptr_t)reset_at;
-    void *ctx = (void *)(uintptr_t)ctx_at;
+    lz4_job job = {(lz4f_decompress_fn)(uintptr_t)dec_at, (lz4f_is_error_fn)(uintptr_t)err_at,
+                   (lz4f_reset_fn)(uintptr_t)reset_at, (void *)(uintptr_t)ctx_at, verify, floor_bytes, ratio, most,
+                   (uint32_t)width, (uint32_t)height};
+    int64_t n_pk = headb.len / 8, n_out = tb.len / 8;
 
     if (sidb.len / 8 != n_pk || sizeb.len / 8 != n_pk || countb.len / 8 != n_pk || xb.len / 2 != n_out
-        || yb.len / 2 != n_out || pb.len != n_out || !dec || !is_error || !reset || !ctx || width < 0 || height < 0
-        || floor_bytes < 0 || ratio < 0 || most < 0)
+        || yb.len / 2 != n_out || pb.len != n_out || !job.dec || !job.is_error || !job.reset || !job.ctx
+        || width < 0 || height < 0 || floor_bytes < 0 || ratio < 0 || most < 0)
         ok = 0;
     if (ok) {
         Py_BEGIN_ALLOW_THREADS
-        int64_t cursor = 0;
-        for (int64_t j = 0; j < n_pk && ok; j++) {
-            int64_t h = heads[j];
-            if (h < 0 || h > n_raw - 8) { ok = 0; break; }
-            int64_t sid = rd_i32(raw + h), size = rd_i32(raw + h + 4);
-            if (sid != sids[j] || size != sizes[j] || size < 0 || size > n_raw - 8 - h) { ok = 0; break; }
-            /* min(most, floor + ratio * size), without computing a sum or product that could overflow */
-            int64_t limit = most;
-            if (ratio == 0 ? floor_bytes < most : (floor_bytes < most && size < (most - floor_bytes) / ratio))
-                limit = floor_bytes + ratio * size;
-            int64_t room = limit < n_stage ? limit : n_stage;
-            int64_t n = lz4_frame(raw + h + 8, size, stage, room, verify, dec, is_error, reset, ctx);
-            int64_t start, count;
-            if (n < 0 || root_vector(stage, n, "EVTS", &start, &count) != 0 || count != counts[j]
-                || count > n_out - cursor) { ok = 0; break; }
-            const uint8_t *ev = stage + start;
-            uint32_t most_x = 0, most_y = 0;
-            for (int64_t i = 0; i < count; i++, ev += 16) {
-                int64_t tt;
-                uint16_t xx, yy;
-                memcpy(&tt, ev, 8);
-                memcpy(&xx, ev + 8, 2);
-                memcpy(&yy, ev + 10, 2);
-                t[cursor + i] = tt;
-                x[cursor + i] = xx;
-                y[cursor + i] = yy;
-                p[cursor + i] = ev[12] != 0;
-                most_x = xx > most_x ? xx : most_x;
-                most_y = yy > most_y ? yy : most_y;
-            }
-            if (count > 0 && (most_x >= (uint32_t)width || most_y >= (uint32_t)height)) { ok = 0; break; }
-            cursor += count;
-        }
-        if (ok && cursor != n_out)
-            ok = 0;
+        ok = decode_packets(&job, (const uint8_t *)rawb.buf, rawb.len, (const int64_t *)headb.buf, 0,
+                            (const int64_t *)sidb.buf, (const int64_t *)sizeb.buf, (const int64_t *)countb.buf, n_pk,
+                            (uint8_t *)stageb.buf, stageb.len, (int64_t *)tb.buf, (uint16_t *)xb.buf,
+                            (uint16_t *)yb.buf, (uint8_t *)pb.buf, n_out);
         Py_END_ALLOW_THREADS
     }
     PyBuffer_Release(&rawb);
@@ -317,6 +346,145 @@ decode_lz4_batch(PyObject *self, PyObject *args)
     PyBuffer_Release(&yb);
     PyBuffer_Release(&pb);
     return PyBool_FromLong(ok);
+}
+
+/* decode_lz4_range(fd, offs, sids, sizes, counts, starts, k0, k1, batch_events, slack, raw, verify, decompress,
+ *                  is_error, reset, ctx, stage, floor, ratio, most, t, x, y, p, width, height)
+ *
+ * Rows k0 .. k1 - 1 of the AEDAT4 reader's packets (row k: its body at file offset offs[k], after its 8-byte
+ * header; sids, sizes and counts as for decode_lz4_batch; its events go to columns[starts[k]:starts[k + 1]]),
+ * batch after batch as the reader cuts them (from row k up to the row before the first whose start passes
+ * starts[k] + batch_events, at least one row, at most k1), each batch's bytes read from the file descriptor
+ * fd into raw with pread, then decode_packets: the reader's whole loop over its batches, the GIL released
+ * from the first batch to the last instead of taken back after each.
+ *
+ * Returns (k, need_raw, need_stage, batches): k1 when every batch decoded; else the first row of the batch
+ * left, with need_raw or need_stage the bytes raw or stage lack for it (the caller grows the buffer and calls
+ * again), or both 0 where the caller's Python loop is to decode that batch (packets far apart in the file, a
+ * short read, anything decode_packets declines, a platform without pread); batches: how many decoded.
+ */
+static PyObject *
+decode_lz4_range(PyObject *self, PyObject *args)
+{
+    Py_buffer offb, sidb, sizeb, countb, startb, rawb, stageb, tb, xb, yb, pb;
+    int fd, verify;
+    Py_ssize_t k0, k1;
+    long long batch_events, slack;
+    unsigned long long dec_at, err_at, reset_at, ctx_at;
+    long long floor_bytes, ratio, most;
+    int width, height;
+
+    (void)self;
+    if (!PyArg_ParseTuple(args, "iy*y*y*y*y*nnLLw*pKKKKw*LLLw*w*w*w*ii", &fd, &offb, &sidb, &sizeb, &countb,
+                          &startb, &k0, &k1, &batch_events, &slack, &rawb, &verify, &dec_at, &err_at, &reset_at,
+                          &ctx_at, &stageb, &floor_bytes, &ratio, &most, &tb, &xb, &yb, &pb, &width, &height))
+        return NULL;
+    lz4_job job = {(lz4f_decompress_fn)(uintptr_t)dec_at, (lz4f_is_error_fn)(uintptr_t)err_at,
+                   (lz4f_reset_fn)(uintptr_t)reset_at, (void *)(uintptr_t)ctx_at, verify, floor_bytes, ratio, most,
+                   (uint32_t)width, (uint32_t)height};
+    const int64_t *offs = (const int64_t *)offb.buf, *sids = (const int64_t *)sidb.buf;
+    const int64_t *sizes = (const int64_t *)sizeb.buf, *counts = (const int64_t *)countb.buf;
+    const int64_t *starts = (const int64_t *)startb.buf;
+    uint8_t *raw = (uint8_t *)rawb.buf, *stage = (uint8_t *)stageb.buf;
+    int64_t *t = (int64_t *)tb.buf;
+    uint16_t *x = (uint16_t *)xb.buf, *y = (uint16_t *)yb.buf;
+    uint8_t *p = (uint8_t *)pb.buf;
+    int64_t n_rows = offb.len / 8, n_out = tb.len / 8, n_raw = rawb.len, n_stage = stageb.len;
+    const char *fault = NULL;
+    int64_t k = k0, need_raw = 0, need_stage = 0, batches = 0;
+
+    if (sidb.len / 8 != n_rows || sizeb.len / 8 != n_rows || countb.len / 8 != n_rows
+        || startb.len / 8 != n_rows + 1)
+        fault = "offs, sids, sizes and counts need one entry a row, starts one more";
+    else if (xb.len / 2 != n_out || yb.len / 2 != n_out || pb.len != n_out)
+        fault = "the columns differ in length";
+    else if (k0 < 0 || k0 > k1 || k1 > n_rows)
+        fault = "rows k0 .. k1 outside the rows";
+    else if (batch_events < 1 || batch_events > ((int64_t)1 << 40) || slack < 0 || slack > ((int64_t)1 << 40))
+        fault = "batch_events or slack out of range";
+    else if (!job.dec || !job.is_error || !job.reset || !job.ctx || width < 0 || height < 0 || floor_bytes < 0
+             || ratio < 0 || most < 0)
+        fault = "an LZ4 address is 0, or a size is negative";
+    if (fault == NULL) {
+#ifdef _WIN32
+        (void)fd;  /* no pread here: every batch goes the Python way */
+#else
+        Py_BEGIN_ALLOW_THREADS
+        while (k < k1) {
+            /* the batch: rows k .. kb - 1, kb the row before the first whose start passes starts[k] + batch_events
+             * (numpy's searchsorted(starts, ..., "right") over k + 1 .. k1), at least k + 1, at most k1 */
+            if (starts[k] < 0 || starts[k] > n_out)
+                break;
+            int64_t v = starts[k] + batch_events, lo = k + 1, hi = k1 + 1;
+            while (lo < hi) {
+                int64_t mid = lo + (hi - lo) / 2;
+                if (starts[mid] > v)
+                    hi = mid;
+                else
+                    lo = mid + 1;
+            }
+            int64_t kb = lo - 1 < k + 1 ? k + 1 : (lo - 1 > k1 ? k1 : lo - 1);
+            int64_t first = starts[k], last = starts[kb];
+            if (last < first || last > n_out)
+                break;
+            /* the batch's bytes: from row k's header to row kb - 1's end, unless other packets lie between */
+            int64_t body = 0, bad = 0;
+            for (int64_t j = k; j < kb; j++) {
+                if (offs[j] < 8 || sizes[j] < 0 || sizes[j] > INT32_MAX || offs[j] > ((int64_t)1 << 60))
+                    bad = 1;
+                else
+                    body += sizes[j] + 8;
+            }
+            if (bad)
+                break;
+            int64_t o0 = offs[k] - 8;
+            int64_t span = offs[kb - 1] + sizes[kb - 1] - o0;
+            if (span < 8 || span > 2 * body + slack)
+                break;
+            if (span > n_raw) {
+                need_raw = span;
+                break;
+            }
+            if (16 * (last - first) + 3 * slack > n_stage) {
+                need_stage = 16 * (last - first) + 3 * slack;
+                break;
+            }
+            int64_t got = 0;
+            while (got < span) {
+                ssize_t r = pread(fd, raw + got, (size_t)(span - got), (off_t)(o0 + got));
+                if (r < 0 && errno == EINTR)
+                    continue;
+                if (r <= 0)
+                    break;
+                got += r;
+            }
+            if (got < span)
+                break;
+            if (!decode_packets(&job, raw, span, offs + k, o0 + 8, sids + k, sizes + k, counts + k, kb - k, stage,
+                                n_stage, t + first, x + first, y + first, p + first, last - first))
+                break;
+            batches++;
+            k = kb;
+        }
+        Py_END_ALLOW_THREADS
+#endif
+    }
+    PyBuffer_Release(&offb);
+    PyBuffer_Release(&sidb);
+    PyBuffer_Release(&sizeb);
+    PyBuffer_Release(&countb);
+    PyBuffer_Release(&startb);
+    PyBuffer_Release(&rawb);
+    PyBuffer_Release(&stageb);
+    PyBuffer_Release(&tb);
+    PyBuffer_Release(&xb);
+    PyBuffer_Release(&yb);
+    PyBuffer_Release(&pb);
+    if (fault != NULL) {
+        PyErr_SetString(PyExc_ValueError, fault);
+        return NULL;
+    }
+    return Py_BuildValue("(nLLL)", (Py_ssize_t)k, (long long)need_raw, (long long)need_stage, (long long)batches);
 }
 
 /* ---- the Prophesee decoders' states ----------------------------------------------------------------------- */
@@ -1082,6 +1250,9 @@ static PyMethodDef methods[] = {
      "Count events into their windows' bins with the GIL released (see evtk._native.count_windows)."},
     {"decode_lz4_batch", decode_lz4_batch, METH_VARARGS,
      "Decode a batch of LZ4 event packets with the GIL released (see evtk._native.decode_lz4_batch)."},
+    {"decode_lz4_range", decode_lz4_range, METH_VARARGS,
+     "Read and decode the batches of a range of LZ4 event packets with the GIL released (see "
+     "evtk._native.decode_lz4_range)."},
     {"evt3_run", evt3_run, METH_VARARGS,
      "Decode or count EVT 3.0 words with the GIL released (see evtk._native.evt3_run)."},
     {"evt3_scan", evt3_scan, METH_VARARGS,

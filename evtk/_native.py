@@ -2,7 +2,8 @@
 wrappers that check their arguments and say when the Python route must be taken instead: the counting of fixed
 windows (:func:`count_windows`), the AEDAT4 reader's batches of LZ4 event packets (:func:`decode_lz4_batch`), and
 Prophesee EVT 3.0 words (:func:`evt3_run`), EVT 2.0 words (:func:`evt2_run`) and DAT events (:func:`dat_run`),
-with their counting passes (:func:`prophesee_scan`), and Event Stream DVS and ATIS bytes (:func:`es_run`).
+with their counting passes (:func:`prophesee_scan`), and Event Stream DVS and ATIS bytes (:func:`es_run`); the
+reader's whole range of LZ4 batches, its reads from the file included, goes through :func:`decode_lz4_range`.
 
 The kernels release the GIL, so parts of one piece of work run on several cores at once; numpy's scattered adds
 (``np.add.at``), which the numpy route counts with, keep it, and so does the Python loop over a batch's
@@ -47,6 +48,11 @@ try:  # apart: an install built before the Event Stream kernel has the ones abov
     from ._ckernels import es_run as _kernel_es_run
 except ImportError:
     _kernel_es_run = None
+_kernel_decode_lz4_range: Any
+try:  # apart: an install built before the whole range of batches in one call has the ones above
+    from ._ckernels import decode_lz4_range as _kernel_decode_lz4_range
+except ImportError:
+    _kernel_decode_lz4_range = None
 
 #: Whether the install built the compiled kernels (a C compiler was present). They read the files' little-endian
 #: numbers as the machine's own: on a big-endian machine they are left unused.
@@ -217,6 +223,83 @@ def decode_lz4_batch(raw: np.ndarray, heads: np.ndarray, sids: np.ndarray, sizes
     return bool(_kernel_decode_lz4_batch(raw, heads, sids, sizes, counts, verify, *lz4f, stage, int(floor_bytes),
                                          int(ratio), int(most_bytes), t, x, y, p, int(sensor_size[0]),
                                          int(sensor_size[1])))
+
+
+def decode_lz4_range(fd: int, offs: np.ndarray, sids: np.ndarray, sizes: np.ndarray, counts: np.ndarray,
+                     starts: np.ndarray, k0: int, k1: int, batch_events: int, slack: int, raw: np.ndarray,
+                     verify: bool, lz4f: tuple[int, int, int, int], stage: np.ndarray, floor_bytes: int, ratio: int,
+                     most_bytes: int, columns: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                     sensor_size: tuple[int, int]) -> tuple[int, int, int, int] | None:
+    """Read and decode the AEDAT4 reader's LZ4 event packets ``k0 .. k1 - 1`` batch after batch with the compiled
+    kernel, the GIL released from the first batch to the last: the loop of
+    :meth:`evtk.io.aedat4.reader.Recording._batcher`'s batches, each batch's bytes read with ``pread`` and decoded
+    as :func:`decode_lz4_batch` decodes them.
+
+    Each batch is cut as the reader cuts it: from row ``k`` up to the row before the first whose start passes
+    ``starts[k] + batch_events`` (at least one row, at most ``k1``). A batch whose packets lie far apart in the
+    file (more than twice their bytes plus ``slack``), whose read comes back short, or that the decoding declines
+    stops the call at its first row, for the Python loop, which names any fault.
+
+    Parameters
+    ----------
+    fd : int
+        The file's descriptor, open for reading.
+    offs : ndarray
+        Each row's packet body offset in the file, after its 8-byte header (int64).
+    sids, sizes, counts : ndarray
+        Each row's stream id, body size and event count from the data table (int64).
+    starts : ndarray
+        Each row's first event in the columns, then the end of the last row's (int64, one more than the rows,
+        non-decreasing).
+    k0, k1 : int
+        The rows to decode.
+    batch_events : int
+        Events a batch aims at.
+    slack : int
+        Bytes of other packets a batch's read may take in beside its own.
+    raw : ndarray
+        Room for a batch's bytes (uint8, contiguous, writable).
+    verify : bool
+        Check the checksums the frames carry, as :func:`decode_lz4_batch`.
+    lz4f : tuple of int
+        As :func:`decode_lz4_batch`.
+    stage : ndarray
+        This thread's room for a decompressed body (uint8, contiguous, writable): at least 16 bytes an event of
+        the batch plus three ``slack``.
+    floor_bytes, ratio, most_bytes : int
+        :func:`evtk.io._compression.output_limit`'s terms.
+    columns : tuple of ndarray
+        ``t`` (int64), ``x``, ``y`` (uint16) and ``p`` (uint8), written at ``starts``: contiguous and writable.
+    sensor_size : tuple of int
+        (width, height).
+
+    Returns
+    -------
+    tuple of int or None
+        ``(k, need_raw, need_stage, batches)``: ``k`` is ``k1`` when every batch decoded, else the first row of
+        the batch left; ``need_raw`` or ``need_stage``, when not 0, the bytes ``raw`` or ``stage`` needs for that
+        batch (grow it and call again); both 0: the Python loop takes that batch. ``batches``: how many were
+        decoded. None when the kernel is off or missing, or an argument is not in the form it takes (the Python
+        loop then takes every batch).
+    """
+    if not enabled() or _kernel_decode_lz4_range is None or fd < 0:
+        return None
+    t, x, y, p = columns
+    tables = (offs, sids, sizes, counts, starts)
+    if (any(a.dtype != _I64 or not a.flags.c_contiguous for a in tables) or len(starts) != len(offs) + 1
+            or any(len(a) != len(offs) for a in (sids, sizes, counts)) or not 0 <= k0 <= k1 <= len(offs)):
+        return None
+    buffers = (raw, stage, t, x, y, p)
+    if (any(not a.flags.c_contiguous or not a.flags.writeable for a in buffers) or raw.dtype != np.uint8
+            or stage.dtype != np.uint8 or t.dtype != _I64 or (x.dtype, y.dtype, p.dtype) != (np.uint16, np.uint16,
+                                                                                            np.uint8)
+            or not len(t) == len(x) == len(y) == len(p)):
+        return None
+    k, need_raw, need_stage, batches = _kernel_decode_lz4_range(
+        int(fd), offs, sids, sizes, counts, starts, int(k0), int(k1), int(batch_events), int(slack), raw,
+        bool(verify), *lz4f, stage, int(floor_bytes), int(ratio), int(most_bytes), t, x, y, p, int(sensor_size[0]),
+        int(sensor_size[1]))
+    return int(k), int(need_raw), int(need_stage), int(batches)
 
 
 def _words_as(words: Any, dtype: type[np.unsignedinteger]) -> np.ndarray | None:

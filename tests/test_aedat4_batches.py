@@ -14,6 +14,7 @@ from conftest import random_events
 from test_hostile import _aedat4
 
 import evtk
+from evtk import _native
 from evtk.io import _compression as cz
 from evtk.io.aedat4 import reader as a4r
 
@@ -89,21 +90,31 @@ def test_batches_are_used(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("small", [1_000, 1 << 20])
-def test_a_small_read_takes_small_batches(tmp_path, monkeypatch, small):
+def test_a_small_read_takes_small_batches(tmp_path, monkeypatch, compiled, small):
     """A read of fewer than 16 batches' events takes batches of a sixteenth of it, at least
-    ``SMALL_BATCH_EVENTS`` (the memory a fresh process touches first costs page faults), and reads the same."""
+    ``SMALL_BATCH_EVENTS`` (the memory a fresh process touches first costs page faults), and reads the same; the
+    compiled range cuts its batches as the Python loop does."""
     monkeypatch.setattr(a4r, "SMALL_BATCH_EVENTS", small)
     evs = [random_events(n, seed=70 + k) for k, n in enumerate(SIZES)]
     path = tmp_path / "small.aedat4"
     _aedat4(path, cz.LZ4, _frames(cz.LZ4, [_body(ev, pad) for ev, pad in zip(evs, PADS)]))
     with evtk.open(path) as rec:
         assert rec.events() == evtk.Events.concatenate(evs)  # (this file's packets counted: no data table)
-        reads = []
+        reads = []  # one a batch: the Python loop's reads, or the batches the range kernel says it decoded
         pread = rec._pread_into
         monkeypatch.setattr(rec, "_pread_into", lambda buf, off: reads.append(off) or pread(buf, off))
+        ranged = _native._kernel_decode_lz4_range
+
+        def counted(*args):
+            got = ranged(*args)
+            reads.extend([None] * got[3])
+            return got
+
+        monkeypatch.setattr(_native, "_kernel_decode_lz4_range", counted)
         assert rec.events() == evtk.Events.concatenate(evs)
     # 1,000-event batches: the packets of 900 to 4,000 events one or two at a time; else the file in one read
     assert len(reads) == (9 if small == 1_000 else 1), reads
+    assert (None in reads) == (compiled == "compiled")
 
 
 def _damage(kind, bodies, evs):

@@ -1,4 +1,5 @@
-"""evtk's compiled batches of LZ4 event packets (``evtk._native.decode_lz4_batch``): used for every batch of a
+"""evtk's compiled batches of LZ4 event packets (``evtk._native.decode_lz4_range``, a thread's batches read and
+decoded in one call, and ``evtk._native.decode_lz4_batch``, one batch a call): used for every batch of a
 healthy LZ4 file, the same events as the Python loop, and for anything else (damage, a header that disagrees with
 the data table, checksums to leave unread, a body too large for its room) a decline that leaves the batch to
 the Python loop, never a crash or a different answer."""
@@ -19,6 +20,7 @@ import evtk
 from evtk import _native
 from evtk.io import _compression as cz
 from evtk.io import _fbpy
+from evtk.io.aedat4 import reader as a4r
 
 pytestmark = pytest.mark.skipif(not _native.BUILT, reason="evtk._ckernels was not built (no C compiler)")
 
@@ -26,18 +28,29 @@ SENSOR = (320, 240)
 
 
 class _Spy:
-    """Counts the kernel's answers while a test runs."""
+    """Counts the kernels' answers while a test runs, a batch at a time: True for each batch the range kernel or
+    the one-batch kernel decoded, False for each one it left to the Python loop."""
 
     def __init__(self, monkeypatch):
         self.answers: list[bool] = []
         real = _native._kernel_decode_lz4_batch
+        ranged = _native._kernel_decode_lz4_range
 
         def spy(*args):
             got = real(*args)
             self.answers.append(got)
             return got
 
+        def spy_range(*args):
+            got = ranged(*args)
+            k, need_raw, need_stage, batches = got
+            self.answers.extend([True] * batches)
+            if k < args[7] and not need_raw and not need_stage:  # (args[7]: k1) a batch declined
+                self.answers.append(False)
+            return got
+
         monkeypatch.setattr(_native, "_kernel_decode_lz4_batch", spy)
+        monkeypatch.setattr(_native, "_kernel_decode_lz4_range", spy_range)
 
 
 def _read_both(monkeypatch, path, **kw):
@@ -268,3 +281,79 @@ def test_flipped_bits_give_the_same_events_or_the_same_error_with_the_kernel_and
             compiled = _outcome(path, salvage)
             monkeypatch.setenv("EVTK_NATIVE", "0")
             assert _outcome(path, salvage) == compiled
+
+
+def _two_streams(path, bodies, other_at, other_bytes):
+    """An LZ4 AEDAT4 file of event packets (stream 0) with one packet of another stream (1, ``other_bytes`` of
+    LZ4 noise) after the ``other_at``-th: no data table, so the reader counts the packets."""
+    from evtk.io.aedat4 import writer as a4w
+
+    xml = a4w._header_xml([("events", "EVTS", {"sizeX": ("int", 320), "sizeY": ("int", 240)}),
+                           ("imu", "IMUS", {})], cz.LZ4)
+    out = bytearray(a4w.MAGIC + a4w._io_header(cz.LZ4, -1, xml))
+    other = lz4.frame.compress(np.random.default_rng(1).integers(0, 256, other_bytes, dtype=np.uint8).tobytes())
+    for k, body in enumerate(bodies):
+        frame = lz4.frame.compress(body)
+        out += struct.pack("<ii", 0, len(frame)) + frame
+        if k == other_at:
+            out += struct.pack("<ii", 1, len(other)) + other
+    path.write_bytes(bytes(out))
+
+
+def test_a_batch_around_another_streams_large_packet_is_left_to_python_and_reads_the_same(tmp_path, monkeypatch):
+    # the range kernel reads a batch's bytes at once only when they are mostly its own packets: a megabyte of
+    # another stream between two event packets sends that batch to the Python loop, packet by packet
+    ev = random_events(40_000, seed=8)
+    bodies = [_body(ev[i:i + 4_000], 0) for i in range(0, len(ev), 4_000)]
+    path = tmp_path / "imu.aedat4"
+    _two_streams(path, bodies, 4, 1 << 20)
+    spy = _Spy(monkeypatch)
+    compiled, python = _read_both(monkeypatch, path)
+    assert False in spy.answers and True in spy.answers
+    _same(compiled, python)
+    _same(compiled, ev)
+    # the same packets without it: every batch through the kernel
+    _two_streams(path, bodies, -1, 0)
+    spy.answers.clear()
+    compiled, python = _read_both(monkeypatch, path)
+    assert spy.answers and all(spy.answers)
+    _same(compiled, ev)
+
+
+@pytest.mark.parametrize("native", ["1", "0"])
+def test_a_file_cut_short_after_it_was_opened_is_an_error_not_stale_events(tmp_path, monkeypatch, native):
+    # the packets were indexed when the file opened; its end then goes missing: the read that comes back short
+    # is named, whichever route reads it (the range kernel hands that batch to the Python loop)
+    monkeypatch.setenv("EVTK_NATIVE", native)
+    monkeypatch.setenv("EVTK_THREADS", "1")
+    ev = random_events(200_000, seed=9)
+    path = tmp_path / "cut.aedat4"
+    evtk.write_events(path, ev, compression="lz4")
+    with evtk.open(path) as rec:
+        rec.info()
+        size = path.stat().st_size
+        with open(path, "r+b") as f:
+            f.truncate(size * 3 // 4)
+        with pytest.raises(evtk.EvtkError) as err:
+            rec.events()
+    assert "cut.aedat4" in str(err.value)
+
+
+def test_a_batch_read_short_is_never_decoded_from_the_bytes_of_the_batch_before(tmp_path, monkeypatch):
+    # eight identical packets, two a batch: a read that comes back empty leaves the previous batch's bytes in the
+    # buffer, exactly where this batch's would be; they must not pass for this batch's events
+    monkeypatch.setenv("EVTK_THREADS", "1")
+    monkeypatch.setattr(a4r, "SMALL_BATCH_EVENTS", 2_000)
+    ev = random_events(1_000, seed=10)
+    frame = lz4.frame.compress(_body(ev, 0))
+    path = tmp_path / "same.aedat4"
+    _aedat4(path, cz.LZ4, [frame] * 8)
+    spy = _Spy(monkeypatch)
+    with evtk.open(path) as rec:
+        rec.info()
+        size = path.stat().st_size
+        with open(path, "r+b") as f:  # the last two batches' packets gone
+            f.truncate(size - 4 * (8 + len(frame)))
+        with pytest.raises(evtk.EvtkError):
+            rec.events()
+    assert spy.answers[:2] == [True, True]  # the first two batches decoded, the third left to the Python loop

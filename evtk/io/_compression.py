@@ -238,6 +238,11 @@ def _lz4_checked(body, limit: int, verify: bool):
     return body, size
 
 
+def _at_least(buf: np.ndarray, n: int) -> np.ndarray:
+    """``buf``, or a new uint8 buffer of at least ``n`` bytes (twice its length if more) where it is shorter."""
+    return buf if len(buf) >= n else np.empty(max(n, 2 * len(buf)), np.uint8)
+
+
 class Scratch:
     """Buffers one thread reuses from packet to packet: the body as read from the file (:meth:`room`) and the
     body decompressed (:func:`decompress_into`). Each grows to the largest packet met and is never shrunk;
@@ -270,9 +275,25 @@ class Scratch:
         numpy.ndarray
             uint8, writable, at least ``n`` long.
         """
-        if len(self._stage) < n:
-            self._stage = np.empty(max(n, 2 * len(self._stage)), np.uint8)
+        self._stage = _at_least(self._stage, n)
         return self._stage
+
+    def read_room(self, n: int) -> np.ndarray:
+        """The whole buffer :meth:`room` reads into, grown to at least ``n`` bytes as :meth:`stage` grows (for a
+        caller that reads several packets into it at once: the AEDAT4 reader's compiled range).
+
+        Parameters
+        ----------
+        n : int
+            The most bytes one read will put into it.
+
+        Returns
+        -------
+        numpy.ndarray
+            The whole buffer (uint8, writable; what it held is left).
+        """
+        self._raw = _at_least(self._raw, n)
+        return self._raw
 
     def room(self, n: int) -> np.ndarray:
         """A buffer of exactly ``n`` bytes to read a packet into (its contents are left from before).
@@ -287,9 +308,7 @@ class Scratch:
         numpy.ndarray
             uint8, writable, ``n`` long.
         """
-        if len(self._raw) < n:
-            self._raw = np.empty(max(n, 2 * len(self._raw)), np.uint8)
-        return self._raw[:n]
+        return self.read_room(n)[:n]
 
     def _output(self, n: int, keep: int, most: int) -> np.ndarray:
         """The output buffer, at least ``n`` bytes, its first ``keep`` bytes kept when it has to grow (to twice

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import collections
 import random
+import struct
 import sys
 
 import numpy as np
@@ -130,6 +131,71 @@ class _Caller:
                   np.zeros(m, np.uint8), rng.choice([0, 1, 640, -1, _extreme(rng)]),
                   rng.choice([0, 1, 480, -1, _extreme(rng)]))
 
+    def decode_lz4_range(self) -> None:
+        """A file of a few packets (frames whole, damaged or lying about their size), read through rows whose
+        offsets, sizes, counts and starts are right or hostile, from a descriptor open or not, into buffers of
+        any size."""
+        import os
+        import tempfile
+
+        import lz4.frame
+
+        if not self.lz4f:
+            return
+        rng = self.rng
+        heads, bodies, n_ev = [], bytearray(), []
+        for _ in range(rng.choice([0, 1, 2, 4])):
+            n = rng.choice([0, 1, 10, 200])
+            recs = self.array(np.uint8, 16 * n).reshape(n, 16).copy()
+            if rng.random() < 0.8:  # coordinates on the sensor, most of the time
+                recs[:, 8:12].view(np.uint16)[:] %= np.array([640, 480], np.uint16)
+            # an EVTS FlatBuffer (root offset, identifier, vtable, table, the vector ending the buffer), or noise
+            body = (struct.pack("<I4sHHH2xiII", 16, b"EVTS", 6, 8, 4, 8, 4, n) + recs.tobytes()
+                    if rng.random() < 0.85 else self.array(np.uint8, 28 + 16 * n).tobytes())
+            frame = bytearray(lz4.frame.compress(body, store_size=rng.random() < 0.7))
+            for _ in range(rng.choice([0, 0, 0, 1, 3])):
+                frame[rng.randrange(len(frame))] ^= 1 << rng.randrange(8)
+            heads.append(len(bodies) + 8)
+            bodies += np.array([0, len(frame)], np.int32).tobytes() + bytes(frame)
+            n_ev.append(n)
+        rows = len(heads)
+        with tempfile.TemporaryDirectory() as tmp:
+            path = os.path.join(tmp, "packets.bin")
+            with open(path, "wb") as f:
+                f.write(bytes(bodies))
+            fd = os.open(path, os.O_RDONLY)
+            try:
+                offs = np.array(heads, np.int64)
+                sizes = np.array([int.from_bytes(bodies[h - 4:h], "little", signed=True) for h in heads], np.int64)
+                counts = np.array(n_ev, np.int64)
+                starts = np.zeros(rows + 1, np.int64)
+                np.cumsum(counts, out=starts[1:])
+                hostile = rng.random() < 0.5  # else only the file's bytes are damaged: the batches are decoded
+                for table in (offs, sizes, counts, starts):
+                    if hostile and len(table) and rng.random() < 0.15:
+                        table[rng.randrange(len(table))] = _extreme(rng)
+                sids = np.zeros(rows, np.int64)
+                if hostile and rows and rng.random() < 0.1:
+                    sids = sids[:-1]
+                m = int(starts[-1]) if not hostile or (rng.random() < 0.8 and 0 <= starts[-1] < 10_000) else \
+                    rng.choice([0, 5, 300])
+                cols = [np.zeros(m if not hostile or rng.random() < 0.9 else m + 1, np.int64), np.zeros(m, np.uint16),
+                        np.zeros(m, np.uint16), np.zeros(m, np.uint8)]
+                k0, k1 = (0, rows) if not hostile or rng.random() < 0.7 else (rng.choice([0, 1, -1, 5]),
+                                                                              rng.choice([0, rows, 7]))
+                batch_events = rng.choice([1, 10, 1 << 16] + ([0, -1, _extreme(rng)] if hostile else []))
+                slack = rng.choice([0, 1 << 16] + ([-1, _extreme(rng)] if hostile else []))
+                raw = np.zeros(rng.choice([0, 8, 100, len(bodies), 1 << 16]), np.uint8)
+                stage = np.zeros(rng.choice([0, 16, 4096, 1 << 18, 1 << 20]), np.uint8)
+                limits = [_extreme(rng) if hostile and rng.random() < 0.2 else v for v in (1024, 4, 1 << 20)]
+                sensor = (640, 480) if not hostile else (rng.choice([640, 1, 0, -1, _extreme(rng)]),
+                                                         rng.choice([480, 1, 0, -1, _extreme(rng)]))
+                fd_used = fd if not hostile or rng.random() < 0.8 else rng.choice([-1, 9999])
+                self.call("decode_lz4_range", fd_used, offs, sids, sizes, counts, starts, k0, k1, batch_events,
+                          slack, raw, rng.random() < 0.5, *self.lz4f, stage, *limits, *cols, *sensor)
+            finally:
+                os.close(fd)
+
     def prophesee_run(self) -> None:
         rng, nrng = self.rng, self.nrng
         # each kernel's state: time high, time low, epoch, y, vector base x, polarity (EVT 3.0); time high, epoch
@@ -179,7 +245,7 @@ def run(seed: int, calls: int) -> collections.Counter:
     """
     caller = _Caller(seed)
     steps = (caller.count_windows, caller.decode_lz4_batch, caller.prophesee_run, caller.prophesee_run,
-             caller.event_stream_run, caller.scans)
+             caller.event_stream_run, caller.scans, caller.decode_lz4_range)
     for i in range(calls):
         steps[i % len(steps)]()
     return caller.outcomes

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..._native import decode_lz4_batch as native_decode_lz4_batch
+from ..._native import decode_lz4_range as native_decode_lz4_range
 from ..._native import enabled as native_enabled
 from ..._threads import MEMORY_SHARE, helpers, workers_within
 from ...errors import EvtkError, FormatError
@@ -618,10 +619,13 @@ class Recording(_FileIndex, BaseRecording):
         instead of eight (its read, its decompression, four column copies and two range checks): with many
         threads, taking the GIL back after each such call is what kept more cores from reading faster.
 
-        Where evtk's compiled kernels were built (:func:`evtk._native.decode_lz4_batch`), a batch of LZ4 packets
-        goes whole through one call that holds no GIL: each body decompressed into the staging buffer and its
-        events split straight into the columns, with every check below. The Python loop takes the batches it
-        declines (and every batch without it).
+        Where evtk's compiled kernels were built, a thread's whole range of LZ4 batches goes through one call that
+        holds no GIL (:func:`evtk._native.decode_lz4_range`): each batch cut by the same rule and read with
+        ``pread``, each body decompressed into the staging buffer and its events split straight into the columns,
+        with every check below. Its Python loop took the GIL back twice a batch, about a tenth of a one-thread
+        read, which on many threads is the part that runs one at a time. A batch the range declines goes through
+        :func:`evtk._native.decode_lz4_batch` (one call a batch) and then the Python loop, which takes every
+        batch without the kernels.
 
         The batch reports success only; at anything unexpected (packets far apart in the file, a header that
         disagrees with the data table, a body that fails to decompress or to parse, a count not the
@@ -732,9 +736,36 @@ class Recording(_FileIndex, BaseRecording):
                 np.not_equal(ps, 0, out=ps.view(np.bool_))
             return True
 
+        fd = self._fd
+        ranged = [compiled]  # the range kernel until it cannot run (a build before it, no LZ4 library)
+
+        def through_range(k, k1, scratch) -> int:
+            """Rows ``k ..`` through the compiled range, growing its buffers as it asks: the first row not done."""
+            while k < k1:
+                lz4f = cz.lz4f_addresses(scratch)
+                got = None if lz4f is None else native_decode_lz4_range(
+                    fd, offs_a, sids_a, sizes_a, cnt_a, starts, k, k1, batch_events, slack, scratch.read_room(0),
+                    verify, lz4f, scratch.stage(0), cz.BODY_FLOOR_BYTES, cz.BODY_RATIO, cz.MAX_PACKET_BYTES, out,
+                    (width, height))
+                if got is None:
+                    ranged[0] = False
+                    return k
+                k, need_raw, need_stage, _ = got
+                if not need_raw and not need_stage:
+                    return k
+                scratch.read_room(need_raw)
+                scratch.stage(need_stage)
+            return k
+
         def batch(k0, k1, scratch, packets) -> int:
+            if self._fd < 0:
+                raise EvtkError(f"{self.path}: the recording is closed")
             k = k0
             while k < k1:
+                if ranged[0]:
+                    k = through_range(k, k1, scratch)
+                    if k >= k1:
+                        break
                 # the first row past the batch (numpy's search: _bisect is a shared library more for a fresh
                 # read to load, 0.2-0.7 ms; the starts are non-decreasing, so it is past k)
                 past = min(k1 + 1, int(searchsorted(starts, at[k] + batch_events, "right")))
