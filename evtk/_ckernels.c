@@ -361,7 +361,8 @@ decode_lz4_batch(PyObject *self, PyObject *args)
  * Returns (k, need_raw, need_stage, batches): k1 when every batch decoded; else the first row of the batch
  * left, with need_raw or need_stage the bytes raw or stage lack for it (the caller grows the buffer and calls
  * again), or both 0 where the caller's Python loop is to decode that batch (packets far apart in the file, a
- * short read, anything decode_packets declines, a platform without pread); batches: how many decoded.
+ * short read, anything decode_packets declines); batches: how many decoded, or -1 on a platform without pread
+ * (nothing done).
  */
 static PyObject *
 decode_lz4_range(PyObject *self, PyObject *args)
@@ -407,7 +408,8 @@ decode_lz4_range(PyObject *self, PyObject *args)
         fault = "an LZ4 address is 0, or a size is negative";
     if (fault == NULL) {
 #ifdef _WIN32
-        (void)fd;  /* no pread here: every batch goes the Python way */
+        (void)fd;  /* no pread here: batches -1 tells the caller to take every batch the Python way */
+        batches = -1;
 #else
         Py_BEGIN_ALLOW_THREADS
         while (k < k1) {

@@ -279,8 +279,8 @@ def decode_lz4_range(fd: int, offs: np.ndarray, sids: np.ndarray, sizes: np.ndar
         ``(k, need_raw, need_stage, batches)``: ``k`` is ``k1`` when every batch decoded, else the first row of
         the batch left; ``need_raw`` or ``need_stage``, when not 0, the bytes ``raw`` or ``stage`` needs for that
         batch (grow it and call again); both 0: the Python loop takes that batch. ``batches``: how many were
-        decoded. None when the kernel is off or missing, or an argument is not in the form it takes (the Python
-        loop then takes every batch).
+        decoded. None when the kernel is off or missing, the platform has no ``pread``, or an argument is not in
+        the form it takes (the Python loop then takes every batch).
     """
     if not enabled() or _kernel_decode_lz4_range is None or fd < 0:
         return None
@@ -299,6 +299,8 @@ def decode_lz4_range(fd: int, offs: np.ndarray, sids: np.ndarray, sizes: np.ndar
         int(fd), offs, sids, sizes, counts, starts, int(k0), int(k1), int(batch_events), int(slack), raw,
         bool(verify), *lz4f, stage, int(floor_bytes), int(ratio), int(most_bytes), t, x, y, p, int(sensor_size[0]),
         int(sensor_size[1]))
+    if batches < 0:  # a platform without pread
+        return None
     return int(k), int(need_raw), int(need_stage), int(batches)
 
 
