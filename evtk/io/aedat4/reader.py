@@ -233,9 +233,13 @@ class Recording(_FileIndex, BaseRecording):
         numpy.ndarray
             The part of ``buf`` read.
         """
+        return buf[:os.preadv(self._open_fd(), [buf], offset)]
+
+    def _open_fd(self) -> int:
+        """The file's descriptor; an :class:`~evtk.errors.EvtkError` once the recording is closed."""
         if self._fd < 0:
             raise EvtkError(f"{self.path}: the recording is closed")
-        return buf[:os.preadv(self._fd, [buf], offset)]
+        return self._fd
 
     def _select(self, typ, stream, t_start_us, t_end_us):
         """The stream of ``typ`` and the rows of its packets that can hold stamps in the window.
@@ -622,8 +626,8 @@ class Recording(_FileIndex, BaseRecording):
         Where evtk's compiled kernels were built, a thread's whole range of LZ4 batches goes through one call that
         holds no GIL (:func:`evtk._native.decode_lz4_range`): each batch cut by the same rule and read with
         ``pread``, each body decompressed into the staging buffer and its events split straight into the columns,
-        with every check below. Its Python loop took the GIL back twice a batch, about a tenth of a one-thread
-        read, which on many threads is the part that runs one at a time. A batch the range declines goes through
+        with every check below. A loop over the batches in Python held the GIL for about a tenth of a one-thread
+        read: the part that runs one thread at a time however many cores read. A batch the range declines goes through
         :func:`evtk._native.decode_lz4_batch` (one call a batch) and then the Python loop, which takes every
         batch without the kernels.
 
@@ -642,7 +646,7 @@ class Recording(_FileIndex, BaseRecording):
             return None
         idx = self._index
         offs_a, sizes_a = idx.offset[rows].astype(np.int64), idx.size[rows].astype(np.int64)
-        sids_a, cnt_a = idx.stream[rows].astype(np.int64), np.asarray(counts, np.int64)
+        sids_a, cnt_a = idx.stream[rows].astype(np.int64), np.ascontiguousarray(counts, np.int64)
         offs = offs_a.tolist()
         sizes = sizes_a.tolist()
         sids = sids_a.tolist()
@@ -736,10 +740,9 @@ class Recording(_FileIndex, BaseRecording):
                 np.not_equal(ps, 0, out=ps.view(np.bool_))
             return True
 
-        fd = self._fd
         ranged = [compiled]  # the range kernel until it cannot run (a build before it, no LZ4 library)
 
-        def through_range(k, k1, scratch) -> int:
+        def through_range(k, k1, scratch, fd) -> int:
             """Rows ``k ..`` through the compiled range, growing its buffers as it asks: the first row not done."""
             while k < k1:
                 lz4f = cz.lz4f_addresses(scratch)
@@ -758,12 +761,11 @@ class Recording(_FileIndex, BaseRecording):
             return k
 
         def batch(k0, k1, scratch, packets) -> int:
-            if self._fd < 0:
-                raise EvtkError(f"{self.path}: the recording is closed")
+            fd = self._open_fd()  # (closed meanwhile: said, not read from a descriptor another file may hold now)
             k = k0
             while k < k1:
                 if ranged[0]:
-                    k = through_range(k, k1, scratch)
+                    k = through_range(k, k1, scratch, fd)
                     if k >= k1:
                         break
                 # the first row past the batch (numpy's search: _bisect is a shared library more for a fresh
