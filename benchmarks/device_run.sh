@@ -14,7 +14,9 @@
 # AEDAT4 and EVT 3.0, 20 M events), env (bench_env.py: read, reconstruct -o, enob and the calibrated route in fresh
 # processes under BLAS and thread settings; ENVS="--env L=K=V ..." replaces them), env-ab (the same, this tree
 # against one in .old, carried, and the variants in ENVS; ROUNDS sets the rounds), caps (the thread caps
-# MOST_PARTS and PREFETCH_THREADS raised, in patched copies of this tree, against it; CAPS replaces the variants).
+# MOST_PARTS and PREFETCH_THREADS raised, in patched copies of this tree, against it; CAPS replaces the variants),
+# serial (bench_serial.py: the share of a one-core read that holds the GIL), range-ab (the AEDAT4 read on 1, 8 and
+# 16 cores with the reader's range kernel, then without it: one kernel call a batch, as before the sixteenth round).
 set -u
 OUT=${OUT:-/tmp/evtk-out}
 mkdir -p "$OUT"
@@ -132,6 +134,11 @@ for s in $STEPS; do
             --formats aedat4-dv,aedat4-zstd --set evtk.io.aedat4.reader.BATCH_EVENTS=32768 \
             --set evtk.io.aedat4.reader._THREAD_BYTES=1310720 ;;
     memory) step memory 60 python3 benchmarks/bench_memory.py --full-reads 2e7 --only aedat4,evt3 ;;
+    serial) step serial 40 python3 benchmarks/bench_serial.py --rounds 2 --reads 5 ;;
+    range-ab) step range-on 70 python3 benchmarks/bench_threads.py --cores 1,8,16 --rounds 2 --reads 3 \
+                  --formats aedat4-dv --ceiling-rounds 0
+        step range-off 70 python3 benchmarks/bench_threads.py --cores 1,8,16 --rounds 2 --reads 3 \
+            --formats aedat4-dv --ceiling-rounds 0 --set evtk._native._kernel_decode_lz4_range=None ;;
     fresh) step fresh 55 python3 benchmarks/bench_fresh_read.py --writers dv-lz4,evtk-zstd --repeats 5 \
                --json "$OUT/fresh.json" ;;
     reconstruct) step reconstruct 80 python3 benchmarks/bench_reconstruct.py --fixed --repeats 5 \
