@@ -357,3 +357,19 @@ def test_a_batch_read_short_is_never_decoded_from_the_bytes_of_the_batch_before(
         with pytest.raises(evtk.EvtkError):
             rec.events()
     assert spy.answers[:2] == [True, True]  # the first two batches decoded, the third left to the Python loop
+
+
+def test_without_the_range_kernel_every_batch_goes_through_the_one_batch_kernel(tmp_path, monkeypatch):
+    # an install built before the range kernel: the reader asks for it once, then calls the one-batch kernel
+    ev = random_events(300_000, seed=11)
+    path = tmp_path / "a.aedat4"
+    evtk.write_events(path, ev, compression="lz4")
+    spy = _Spy(monkeypatch)
+    monkeypatch.setattr(_native, "_kernel_decode_lz4_range", None)
+    batches = _native._kernel_decode_lz4_batch
+    calls = []
+    monkeypatch.setattr(_native, "_kernel_decode_lz4_batch", lambda *a: calls.append(1) or batches(*a))
+    compiled, python = _read_both(monkeypatch, path)
+    assert calls and spy.answers and all(spy.answers)
+    _same(compiled, python)
+    _same(compiled, ev)

@@ -627,9 +627,10 @@ class Recording(_FileIndex, BaseRecording):
         holds no GIL (:func:`evtk._native.decode_lz4_range`): each batch cut by the same rule and read with
         ``pread``, each body decompressed into the staging buffer and its events split straight into the columns,
         with every check below. A loop over the batches in Python held the GIL for about a tenth of a one-thread
-        read: the part that runs one thread at a time however many cores read. A batch the range declines goes through
-        :func:`evtk._native.decode_lz4_batch` (one call a batch) and then the Python loop, which takes every
-        batch without the kernels.
+        read: the part that runs one thread at a time however many cores read. A batch the range declines goes to the
+        Python loop; where the range cannot run (a build before it), each batch goes through
+        :func:`evtk._native.decode_lz4_batch` (one call a batch) first. Without the kernels the Python loop takes
+        every batch.
 
         The batch reports success only; at anything unexpected (packets far apart in the file, a header that
         disagrees with the data table, a body that fails to decompress or to parse, a count not the
@@ -663,7 +664,7 @@ class Recording(_FileIndex, BaseRecording):
         slack = _BATCH_SLACK
         batch_events = min(BATCH_EVENTS, max(SMALL_BATCH_EVENTS, at[-1] - at[0] >> 4))
 
-        def one(k, kb, scratch) -> bool:
+        def one(k, kb, scratch, kernel) -> bool:
             o0 = offs[k] - 8
             span = offs[kb - 1] + sizes[kb - 1] - o0
             if span > 2 * (sum(sizes[k:kb]) + 8 * (kb - k)) + slack:
@@ -674,7 +675,7 @@ class Recording(_FileIndex, BaseRecording):
             raw_at = raw.ctypes.data
             n_ev = at[kb] - at[k]
             stage = scratch.stage(16 * n_ev + 3 * slack)
-            if compiled:
+            if kernel:  # (not for a batch the range declined: the one-batch kernel checks the same, and declines too)
                 lz4f = cz.lz4f_addresses(scratch)
                 o, e = at[k], at[kb]
                 if lz4f is not None and native_decode_lz4_batch(
@@ -772,7 +773,7 @@ class Recording(_FileIndex, BaseRecording):
                 # read to load, 0.2-0.7 ms; the starts are non-decreasing, so it is past k)
                 past = min(k1 + 1, int(searchsorted(starts, at[k] + batch_events, "right")))
                 kb = min(k1, max(k + 1, past - 1))
-                if not one(k, kb, scratch):
+                if not one(k, kb, scratch, compiled and not ranged[0]):
                     got = packets(k, kb, scratch)
                     if got < kb:
                         return got
