@@ -5,11 +5,12 @@
 
 Each child process is pinned to one core (``taskset -c 0``, ``EVTK_THREADS=1``) and times ``--reads`` warm full
 reads (``evtk.read_events``) after an untimed one, with every compiled kernel of :mod:`evtk._native` and
-``os.preadv`` wrapped by a timer: both release the GIL, so the rest of the read's wall time, which the
-interpreter runs, is what several threads cannot share. Only those calls are timed: where a read calls a codec
-from Python (ZSTD packets, through the zstandard package) or reads through Python's file objects (the Prophesee
-and Event Stream readers' blocks), which release the GIL too, that time counts as held, and the figure is an
-upper bound. It is exact for LZ4 AEDAT4 files, whose reads are all ``pread`` and compiled kernels.
+``os.preadv`` wrapped by a timer, and so are zstandard's decompressions (a ZSTD AEDAT4 file's packets, one call each
+from Python): all release the GIL, so the rest of the read's wall time, which the interpreter runs, is what several
+threads cannot share. Only those calls are timed: where a read reads through Python's file objects (the Prophesee
+and Event Stream readers' blocks) or copies large arrays in numpy (a ZSTD batch's bodies into its staging buffer,
+its columns out of it), which release the GIL too, that time counts as held, and the figure is an upper bound. It
+is exact for LZ4 AEDAT4 files, whose reads are all ``pread`` and compiled kernels.
 
 Amdahl's law then bounds the read on ``N`` threads at ``1 / (s + (1 - s) / N)`` for a share ``s`` (printed for 16
 threads), before memory bandwidth or the cores' shared clock bound it further. With an AEDAT4 LZ4 file, a second
@@ -61,6 +62,22 @@ def child(path: str, reads: int, mode: str) -> None:
     if mode == "batch":
         _native._kernel_decode_lz4_range = None
     os.preadv = timed(os.preadv)
+    try:  # zstandard's decompressor, as the reader makes it (evtk.io._compression.decompress), its calls timed
+        import zstandard
+
+        class _TimedZstd:
+            def __init__(self, *args, **kwargs):
+                self._d = _real_zstd(*args, **kwargs)
+                self.decompress = timed(self._d.decompress)
+
+            def stream_reader(self, *args, **kwargs):
+                reader = self._d.stream_reader(*args, **kwargs)
+                return type("_TimedReader", (), {"read": staticmethod(timed(reader.read))})()
+
+        _real_zstd = zstandard.ZstdDecompressor
+        zstandard.ZstdDecompressor = _TimedZstd
+    except ImportError:
+        pass
     n = len(evtk.read_events(path))
     gc.collect()
     walls, held = [], []
@@ -76,6 +93,16 @@ def child(path: str, reads: int, mode: str) -> None:
     print(json.dumps({"events": n, "wall_s": statistics.median(walls), "held_s": statistics.median(held)}))
 
 
+def _lz4_aedat4(path: str) -> bool:
+    """Whether ``path`` is an AEDAT4 file of LZ4 packets (the range kernel's): the only files of the second mode."""
+    if not path.endswith(".aedat4"):
+        return False
+    import evtk
+
+    with evtk.open(path) as rec:
+        return str(rec.info().get("compression", "")).startswith("lz4")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--file", default=str(DEFAULT))
@@ -87,14 +114,14 @@ def main() -> None:
         child(a.child[0], int(a.child[1]), a.child[2])
         return
     path = str(Path(a.file).resolve())
-    modes = ["range", "batch"] if path.endswith(".aedat4") else ["range"]
+    modes = ["range", "batch"] if _lz4_aedat4(path) else ["range"]
     got: dict[str, list[dict]] = {m: [] for m in modes}
     for r in range(a.rounds):
         for mode in (modes if r % 2 == 0 else modes[::-1]):
             got[mode] += child_runs(Path(__file__), [path, a.reads, mode], pin_cpu=True)
     print(f"{Path(path).name}: one core, {a.rounds} rounds x {a.reads} warm reads, medians")
-    print("  (held: the read's wall time outside evtk's compiled kernels and os.preadv; an upper bound where the "
-          "reader also reads through file objects or a codec called from Python)")
+    print("  (held: the read's wall time outside evtk's compiled kernels, os.preadv and zstandard's decompressions; "
+          "an upper bound where the reader also reads through file objects or copies in numpy)")
     for mode, rows in got.items():
         wall = statistics.median(r["wall_s"] for r in rows)
         held = statistics.median(r["held_s"] for r in rows)
