@@ -1,5 +1,5 @@
-/* evtk._ckernels: the counting of fixed windows, and the AEDAT4 reader's batches of LZ4 event packets, in
- * compiled code that releases the GIL.
+/* evtk._ckernels: the counting of fixed windows, and the AEDAT4 reader's batches of LZ4 (and, through the
+ * system's libzstd, Zstandard) event packets, in compiled code that releases the GIL.
  *
  * Built at install where a C compiler is present (setup.py marks it optional); without it evtk counts
  * with numpy and decodes in Python (evtk/_native.py chooses). The Python wrappers, evtk._native.count_windows
@@ -132,6 +132,14 @@ typedef size_t (*lz4f_decompress_fn)(void *ctx, void *dst, size_t *dst_size, con
                                      const void *options);
 typedef unsigned (*lz4f_is_error_fn)(size_t code);
 typedef void (*lz4f_reset_fn)(void *ctx);
+/* libzstd's ZSTD_decompressDCtx, ZSTD_findFrameCompressedSize and ZSTD_getFrameContentSize (ZSTD_isError has
+ * LZ4F_isError's type) */
+typedef size_t (*zstd_decompress_fn)(void *dctx, void *dst, size_t capacity, const void *src, size_t size);
+typedef size_t (*zstd_frame_bytes_fn)(const void *src, size_t size);
+typedef unsigned long long (*zstd_content_size_fn)(const void *src, size_t size);
+
+/* The codecs of the reader's batches: an AEDAT4 file's LZ4 or Zstandard packets. */
+enum { CODEC_LZ4 = 0, CODEC_ZSTD = 1 };
 
 static inline uint32_t
 rd_u32(const uint8_t *b) { uint32_t v; memcpy(&v, b, 4); return v; }  /* little-endian hosts (checked at import) */
@@ -226,8 +234,11 @@ lz4_frame(const uint8_t *src, int64_t n, uint8_t *dst, int64_t room, int verify,
     return written;
 }
 
-/* What every packet of a batch is decoded with: the LZ4 library's functions and this thread's context (as
- * addresses), whether checksums are verified, output_limit's terms and the sensor. */
+/* What every packet of a batch is decoded with: the codec, its library's functions and this thread's context (as
+ * addresses), whether checksums are verified, output_limit's terms and the sensor. For LZ4: LZ4F_decompress,
+ * LZ4F_isError, LZ4F_resetDecompressionContext and a decompression context; for Zstandard (zdec, zbytes and zsize
+ * set, dec and reset not used): ZSTD_decompressDCtx, ZSTD_isError, ZSTD_findFrameCompressedSize,
+ * ZSTD_getFrameContentSize and a ZSTD_DCtx. */
 typedef struct {
     lz4f_decompress_fn dec;
     lz4f_is_error_fn is_error;
@@ -236,7 +247,34 @@ typedef struct {
     int verify;
     int64_t floor_bytes, ratio, most;
     uint32_t width, height;
+    int codec;
+    zstd_decompress_fn zdec;
+    zstd_frame_bytes_fn zbytes;
+    zstd_content_size_fn zsize;
 } lz4_job;
+
+/* One Zstandard frame src[0:n] into dst (at most room bytes): evtk.io._compression.decompress's rule for ZSTD (its
+ * magic, a stated content size within room and met), and exactly one frame filling the body (anything else goes to
+ * the Python route, which decides). The frame's checksum, if it has one, is checked by the library. Returns the
+ * bytes written, or -1. */
+static int64_t
+zstd_frame(const uint8_t *src, int64_t n, uint8_t *dst, int64_t room, const lz4_job *job)
+{
+    static const uint8_t magic[4] = {0x28, 0xb5, 0x2f, 0xfd};
+    const unsigned long long unknown = 0ULL - 1, error = 0ULL - 2;  /* ZSTD_CONTENTSIZE_UNKNOWN, _ERROR */
+    if (n < 4 || room < 0 || memcmp(src, magic, 4) != 0)
+        return -1;
+    size_t whole = job->zbytes(src, (size_t)n);
+    if (job->is_error(whole) || whole != (size_t)n)
+        return -1;
+    unsigned long long stated = job->zsize(src, (size_t)n);
+    if (stated == error || (stated != unknown && stated > (unsigned long long)room))
+        return -1;
+    size_t got = job->zdec(job->ctx, dst, (size_t)room, src, (size_t)n);
+    if (job->is_error(got) || got > (size_t)room || (stated != unknown && got != stated))
+        return -1;
+    return (int64_t)got;
+}
 
 /* The n_pk packets of one batch in raw[0:n_raw]: packet j's 8-byte header (stream id and body size, int32) at
  * raw[heads[j] - head_base], then its body, which must match sids[j] and sizes[j]; decompressed into stage
@@ -265,8 +303,9 @@ decode_packets(const lz4_job *job, const uint8_t *raw, int64_t n_raw, const int6
                             : (job->floor_bytes < job->most && size < (job->most - job->floor_bytes) / job->ratio))
             limit = job->floor_bytes + job->ratio * size;
         int64_t room = limit < n_stage ? limit : n_stage;
-        int64_t n = lz4_frame(raw + h + 8, size, stage, room, job->verify, job->dec, job->is_error, job->reset,
-                              job->ctx);
+        int64_t n = job->codec == CODEC_ZSTD
+            ? zstd_frame(raw + h + 8, size, stage, room, job)
+            : lz4_frame(raw + h + 8, size, stage, room, job->verify, job->dec, job->is_error, job->reset, job->ctx);
         int64_t start, count;
         if (n < 0 || root_vector(stage, n, "EVTS", &start, &count) != 0 || count != counts[j]
             || count > n_out - cursor)
@@ -320,7 +359,7 @@ decode_lz4_batch(PyObject *self, PyObject *args)
         return NULL;
     lz4_job job = {(lz4f_decompress_fn)(uintptr_t)dec_at, (lz4f_is_error_fn)(uintptr_t)err_at,
                    (lz4f_reset_fn)(uintptr_t)reset_at, (void *)(uintptr_t)ctx_at, verify, floor_bytes, ratio, most,
-                   (uint32_t)width, (uint32_t)height};
+                   (uint32_t)width, (uint32_t)height, CODEC_LZ4, NULL, NULL, NULL};
     int64_t n_pk = headb.len / 8, n_out = tb.len / 8;
 
     if (sidb.len / 8 != n_pk || sizeb.len / 8 != n_pk || countb.len / 8 != n_pk || xb.len / 2 != n_out
@@ -349,7 +388,11 @@ decode_lz4_batch(PyObject *self, PyObject *args)
 }
 
 /* decode_lz4_range(fd, offs, sids, sizes, counts, starts, k0, k1, batch_events, slack, raw, verify, decompress,
- *                  is_error, reset, ctx, stage, floor, ratio, most, t, x, y, p, width, height)
+ *                  is_error, reset, ctx, stage, floor, ratio, most, t, x, y, p, width, height[, codec, content_size])
+ *
+ * codec 0 (the default): LZ4 packets, decompress, is_error, reset and ctx as for decode_lz4_batch; codec 1:
+ * Zstandard packets, decompress, is_error and reset the addresses of libzstd's ZSTD_decompressDCtx, ZSTD_isError
+ * and ZSTD_findFrameCompressedSize, ctx a ZSTD_DCtx of this thread and content_size ZSTD_getFrameContentSize's.
  *
  * Rows k0 .. k1 - 1 of the AEDAT4 reader's packets (row k: its body at file offset offs[k], after its 8-byte
  * header; sids, sizes and counts as for decode_lz4_batch; its events go to columns[starts[k]:starts[k + 1]]),
@@ -371,18 +414,23 @@ decode_lz4_range(PyObject *self, PyObject *args)
     int fd, verify;
     Py_ssize_t k0, k1;
     long long batch_events, slack;
-    unsigned long long dec_at, err_at, reset_at, ctx_at;
+    unsigned long long dec_at, err_at, reset_at, ctx_at, size_at = 0;
     long long floor_bytes, ratio, most;
-    int width, height;
+    int width, height, codec = CODEC_LZ4;
 
     (void)self;
-    if (!PyArg_ParseTuple(args, "iy*y*y*y*y*nnLLw*pKKKKw*LLLw*w*w*w*ii", &fd, &offb, &sidb, &sizeb, &countb,
+    if (!PyArg_ParseTuple(args, "iy*y*y*y*y*nnLLw*pKKKKw*LLLw*w*w*w*ii|iK", &fd, &offb, &sidb, &sizeb, &countb,
                           &startb, &k0, &k1, &batch_events, &slack, &rawb, &verify, &dec_at, &err_at, &reset_at,
-                          &ctx_at, &stageb, &floor_bytes, &ratio, &most, &tb, &xb, &yb, &pb, &width, &height))
+                          &ctx_at, &stageb, &floor_bytes, &ratio, &most, &tb, &xb, &yb, &pb, &width, &height, &codec,
+                          &size_at))
         return NULL;
-    lz4_job job = {(lz4f_decompress_fn)(uintptr_t)dec_at, (lz4f_is_error_fn)(uintptr_t)err_at,
-                   (lz4f_reset_fn)(uintptr_t)reset_at, (void *)(uintptr_t)ctx_at, verify, floor_bytes, ratio, most,
-                   (uint32_t)width, (uint32_t)height};
+    int zstd = codec == CODEC_ZSTD;
+    lz4_job job = {zstd ? NULL : (lz4f_decompress_fn)(uintptr_t)dec_at, (lz4f_is_error_fn)(uintptr_t)err_at,
+                   zstd ? NULL : (lz4f_reset_fn)(uintptr_t)reset_at, (void *)(uintptr_t)ctx_at, verify, floor_bytes,
+                   ratio, most, (uint32_t)width, (uint32_t)height, codec,
+                   zstd ? (zstd_decompress_fn)(uintptr_t)dec_at : NULL,
+                   zstd ? (zstd_frame_bytes_fn)(uintptr_t)reset_at : NULL,
+                   zstd ? (zstd_content_size_fn)(uintptr_t)size_at : NULL};
     const int64_t *offs = (const int64_t *)offb.buf, *sids = (const int64_t *)sidb.buf;
     const int64_t *sizes = (const int64_t *)sizeb.buf, *counts = (const int64_t *)countb.buf;
     const int64_t *starts = (const int64_t *)startb.buf;
@@ -403,9 +451,11 @@ decode_lz4_range(PyObject *self, PyObject *args)
         fault = "rows k0 .. k1 outside the rows";
     else if (batch_events < 1 || batch_events > ((int64_t)1 << 40) || slack < 0 || slack > ((int64_t)1 << 40))
         fault = "batch_events or slack out of range";
-    else if (!job.dec || !job.is_error || !job.reset || !job.ctx || width < 0 || height < 0 || floor_bytes < 0
-             || ratio < 0 || most < 0)
-        fault = "an LZ4 address is 0, or a size is negative";
+    else if (codec != CODEC_LZ4 && codec != CODEC_ZSTD)
+        fault = "the codec is 0 (LZ4) or 1 (Zstandard)";
+    else if ((zstd ? (!job.zdec || !job.zbytes || !job.zsize) : (!job.dec || !job.reset)) || !job.is_error || !job.ctx
+             || width < 0 || height < 0 || floor_bytes < 0 || ratio < 0 || most < 0)
+        fault = "a codec address is 0, or a size is negative";
     if (fault == NULL) {
 #ifdef _WIN32
         (void)fd;  /* no pread here: batches -1 tells the caller to take every batch the Python way */
@@ -1253,7 +1303,7 @@ static PyMethodDef methods[] = {
     {"decode_lz4_batch", decode_lz4_batch, METH_VARARGS,
      "Decode a batch of LZ4 event packets with the GIL released (see evtk._native.decode_lz4_batch)."},
     {"decode_lz4_range", decode_lz4_range, METH_VARARGS,
-     "Read and decode the batches of a range of LZ4 event packets with the GIL released (see "
+     "Read and decode the batches of a range of LZ4 or Zstandard event packets with the GIL released (see "
      "evtk._native.decode_lz4_range)."},
     {"evt3_run", evt3_run, METH_VARARGS,
      "Decode or count EVT 3.0 words with the GIL released (see evtk._native.evt3_run)."},
@@ -1281,5 +1331,11 @@ PyMODINIT_FUNC
 PyInit__ckernels(void)
 {
     fill_pop12();
-    return PyModule_Create(&module);
+    PyObject *m = PyModule_Create(&module);
+    /* the codecs decode_lz4_range takes (its optional codec argument): a build before Zstandard has no such name */
+    if (m != NULL && PyModule_AddIntConstant(m, "RANGE_CODECS", 2) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
 }

@@ -10,7 +10,9 @@ def decode_lz4_batch(raw: Any, heads: Any, sids: Any, sizes: Any, counts: Any, v
 def decode_lz4_range(fd: int, offs: Any, sids: Any, sizes: Any, counts: Any, starts: Any, k0: int, k1: int,
                      batch_events: int, slack: int, raw: Any, verify: bool, decompress: int, is_error: int, reset: int,
                      ctx: int, stage: Any, floor_bytes: int, ratio: int, most: int, t: Any, x: Any, y: Any, p: Any,
-                     width: int, height: int, /) -> tuple[int, int, int, int]: ...
+                     width: int, height: int, codec: int = 0, content_size: int = 0, /) -> tuple[int, int, int, int]: ...
+
+RANGE_CODECS: int
 
 def evt3_run(words: Any, state: Any, width: int, height: int, decode: bool, t: Any, x: Any, y: Any, p: Any, tt: Any,
              tk: Any, tch: Any, /) -> tuple[int, int, int, int, int, int]: ...

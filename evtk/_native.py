@@ -3,7 +3,8 @@ wrappers that check their arguments and say when the Python route must be taken 
 windows (:func:`count_windows`), the AEDAT4 reader's batches of LZ4 event packets (:func:`decode_lz4_batch`), and
 Prophesee EVT 3.0 words (:func:`evt3_run`), EVT 2.0 words (:func:`evt2_run`) and DAT events (:func:`dat_run`),
 with their counting passes (:func:`prophesee_scan`), and Event Stream DVS and ATIS bytes (:func:`es_run`); the
-reader's whole range of LZ4 batches, its reads from the file included, goes through :func:`decode_lz4_range`.
+reader's whole range of LZ4 batches (and of Zstandard ones, where the system has libzstd), its reads from the file
+included, goes through :func:`decode_lz4_range`.
 
 The kernels release the GIL, so parts of one piece of work run on several cores at once; numpy's scattered adds
 (``np.add.at``), which the numpy route counts with, keep it, and so does the Python loop over a batch's
@@ -53,6 +54,13 @@ try:  # apart: an install built before the whole range of batches in one call ha
     from ._ckernels import decode_lz4_range as _kernel_decode_lz4_range
 except ImportError:
     _kernel_decode_lz4_range = None
+try:  # a build whose range takes Zstandard packets too says so
+    from ._ckernels import RANGE_CODECS as _RANGE_CODECS
+except ImportError:
+    _RANGE_CODECS = 1
+
+#: Whether :func:`decode_lz4_range` takes Zstandard packets (a build before it took LZ4 only).
+RANGE_ZSTD = _RANGE_CODECS >= 2
 
 #: Whether the install built the compiled kernels (a C compiler was present). They read the files' little-endian
 #: numbers as the machine's own: on a big-endian machine they are left unused.
@@ -229,11 +237,17 @@ def decode_lz4_range(fd: int, offs: np.ndarray, sids: np.ndarray, sizes: np.ndar
                      starts: np.ndarray, k0: int, k1: int, batch_events: int, slack: int, raw: np.ndarray,
                      verify: bool, lz4f: tuple[int, int, int, int], stage: np.ndarray, floor_bytes: int, ratio: int,
                      most_bytes: int, columns: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-                     sensor_size: tuple[int, int]) -> tuple[int, int, int, int] | None:
-    """Read and decode the AEDAT4 reader's LZ4 event packets ``k0 .. k1 - 1`` batch after batch with the compiled
-    kernel, the GIL released from the first batch to the last: the loop of
+                     sensor_size: tuple[int, int],
+                     zstd: tuple[int, int, int, int, int] | None = None) -> tuple[int, int, int, int] | None:
+    """Read and decode the AEDAT4 reader's LZ4 (or, given ``zstd``, Zstandard) event packets ``k0 .. k1 - 1`` batch
+    after batch with the compiled kernel, the GIL released from the first batch to the last: the loop of
     :meth:`evtk.io.aedat4.reader.Recording._batcher`'s batches, each batch's bytes read with ``pread`` and decoded
     as :func:`decode_lz4_batch` decodes them.
+
+    A Zstandard packet must be one frame filling its body, of its stated content size if it states one, within the
+    same output limit: :func:`evtk.io._compression.decompress`'s rule; the library checks the frame's checksum,
+    if it has one. Anything else stops the call at its batch, for the Python loop (which decompresses with
+    zstandard), as a faulty LZ4 packet does.
 
     Each batch is cut as the reader cuts it: from row ``k`` up to the row before the first whose start passes
     ``starts[k] + batch_events`` (at least one row, at most ``k1``). A batch whose packets lie far apart in the
@@ -262,7 +276,7 @@ def decode_lz4_range(fd: int, offs: np.ndarray, sids: np.ndarray, sizes: np.ndar
     verify : bool
         Check the checksums the frames carry, as :func:`decode_lz4_batch`.
     lz4f : tuple of int
-        As :func:`decode_lz4_batch`.
+        As :func:`decode_lz4_batch` (not used with ``zstd``).
     stage : ndarray
         This thread's room for a decompressed body (uint8, contiguous, writable): at least 16 bytes an event of
         the batch plus three ``slack``.
@@ -272,6 +286,9 @@ def decode_lz4_range(fd: int, offs: np.ndarray, sids: np.ndarray, sizes: np.ndar
         ``t`` (int64), ``x``, ``y`` (uint16) and ``p`` (uint8), written at ``starts``: contiguous and writable.
     sensor_size : tuple of int
         (width, height).
+    zstd : tuple of int, optional
+        The packets are Zstandard frames: :func:`evtk.io._compression.zstd_addresses` (the system library's
+        functions and this thread's context).
 
     Returns
     -------
@@ -279,10 +296,11 @@ def decode_lz4_range(fd: int, offs: np.ndarray, sids: np.ndarray, sizes: np.ndar
         ``(k, need_raw, need_stage, batches)``: ``k`` is ``k1`` when every batch decoded, else the first row of
         the batch left; ``need_raw`` or ``need_stage``, when not 0, the bytes ``raw`` or ``stage`` needs for that
         batch (grow it and call again); both 0: the Python loop takes that batch. ``batches``: how many were
-        decoded. None when the kernel is off or missing, the platform has no ``pread``, or an argument is not in
-        the form it takes (the Python loop then takes every batch).
+        decoded. None when the kernel is off or missing (or, for Zstandard packets, built before it took them), the
+        platform has no ``pread``, or an argument is not in the form it takes (the Python loop then takes every
+        batch).
     """
-    if not enabled() or _kernel_decode_lz4_range is None or fd < 0:
+    if not enabled() or _kernel_decode_lz4_range is None or fd < 0 or (zstd is not None and not RANGE_ZSTD):
         return None
     t, x, y, p = columns
     tables = (offs, sids, sizes, counts, starts)
@@ -295,10 +313,15 @@ def decode_lz4_range(fd: int, offs: np.ndarray, sids: np.ndarray, sizes: np.ndar
                                                                                             np.uint8)
             or not len(t) == len(x) == len(y) == len(p)):
         return None
+    if zstd is None:
+        codec: tuple[int, ...] = ()
+    else:  # libzstd's decompress, is_error, frame_bytes in the LZ4 functions' places; the context; content_size
+        dec, err, frame_bytes, ctx, content_size = zstd
+        lz4f, codec = (dec, err, frame_bytes, ctx), (1, content_size)
     k, need_raw, need_stage, batches = _kernel_decode_lz4_range(
         int(fd), offs, sids, sizes, counts, starts, int(k0), int(k1), int(batch_events), int(slack), raw,
         bool(verify), *lz4f, stage, int(floor_bytes), int(ratio), int(most_bytes), t, x, y, p, int(sensor_size[0]),
-        int(sensor_size[1]))
+        int(sensor_size[1]), *codec)
     if batches < 0:  # a platform without pread
         return None
     return int(k), int(need_raw), int(need_stage), int(batches)

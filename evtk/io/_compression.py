@@ -250,13 +250,14 @@ class Scratch:
     Not to be shared between threads.
     """
 
-    __slots__ = ("_raw", "_out", "_out_at", "_lz4", "_stage", "header_hint")
+    __slots__ = ("_raw", "_out", "_out_at", "_lz4", "_zstd", "_stage", "header_hint")
 
     def __init__(self) -> None:
         self._raw = np.empty(0, np.uint8)
         self._out = np.empty(0, np.uint8)
         self._out_at = 0  # the output buffer's address, for the LZ4 library
         self._lz4: _Lz4Context | None = None  # this thread's LZ4 decompression context, made on first use
+        self._zstd: _ZstdContext | None = None  # this thread's libzstd context, for the compiled batches (zstd_addresses)
         self._stage = np.empty(0, np.uint8)
         #: a packet header's length in bytes, as the last packet had it (the AEDAT4 reader's batches)
         self.header_hint = 0
@@ -503,6 +504,98 @@ def lz4f_addresses(scratch: Scratch) -> tuple[int, int, int, int] | None:
     if not ctx or not all(_lz4f_functions):
         return None
     return (*_lz4f_functions, ctx)
+
+
+#: The names the Zstandard library is looked for under (Linux, macOS, Windows), in order. zstandard, which evtk's
+#: Python route decompresses with, carries its own copy but exports none of its functions: the compiled batches use
+#: the system's library where there is one (:func:`zstd_addresses`), and the Python route everywhere else.
+ZSTD_LIBRARIES = ("libzstd.so.1", "libzstd.1.dylib", "libzstd.dylib", "libzstd.dll", "zstd.dll")
+
+#: The oldest libzstd whose frame functions the compiled batches call (1.3.0: ``ZSTD_findFrameCompressedSize`` and
+#: ``ZSTD_getFrameContentSize``), as ``ZSTD_versionNumber`` gives it.
+ZSTD_LEAST_VERSION = 10300
+
+_zstd_lib: Any = None  # the bound Zstandard library; False where none can be used
+_zstd_functions: tuple[int, int, int, int] | None = None
+
+
+def _zstd() -> Any:
+    """The system's Zstandard library bound through ctypes (:data:`ZSTD_LIBRARIES`, at least
+    :data:`ZSTD_LEAST_VERSION`); False where there is none."""
+    global _zstd_lib
+    if _zstd_lib is None:
+        _zstd_lib = False
+        try:
+            import ctypes
+        except ImportError:
+            return _zstd_lib
+        for name in ZSTD_LIBRARIES:
+            try:
+                lib = ctypes.CDLL(name)
+                lib.ZSTD_versionNumber.restype = ctypes.c_uint
+                lib.ZSTD_versionNumber.argtypes = []
+                if lib.ZSTD_versionNumber() < ZSTD_LEAST_VERSION:
+                    continue
+                lib.ZSTD_createDCtx.restype = ctypes.c_void_p
+                lib.ZSTD_createDCtx.argtypes = []
+                lib.ZSTD_freeDCtx.restype = ctypes.c_size_t
+                lib.ZSTD_freeDCtx.argtypes = [ctypes.c_void_p]
+                for fn in ("ZSTD_decompressDCtx", "ZSTD_isError", "ZSTD_findFrameCompressedSize",
+                           "ZSTD_getFrameContentSize"):
+                    getattr(lib, fn)  # (each must be there)
+            except (OSError, AttributeError):
+                continue
+            _zstd_lib = lib
+            break
+    return _zstd_lib
+
+
+class _ZstdContext:
+    """One libzstd decompression context, freed with the object."""
+
+    def __init__(self, lib) -> None:
+        self.lib = lib
+        self.ctx = lib.ZSTD_createDCtx() or 0
+
+    def __del__(self) -> None:
+        if getattr(self, "ctx", 0):
+            self.lib.ZSTD_freeDCtx(self.ctx)
+            self.ctx = 0
+
+
+def zstd_addresses(scratch: Scratch) -> tuple[int, int, int, int, int] | None:
+    """The addresses of the system Zstandard library's ``ZSTD_decompressDCtx``, ``ZSTD_isError`` and
+    ``ZSTD_findFrameCompressedSize``, of ``scratch``'s decompression context and of ``ZSTD_getFrameContentSize``,
+    for evtk's compiled batches of Zstandard packets (:func:`evtk._native.decode_lz4_range` with codec 1); None
+    where no such library can be used (:data:`ZSTD_LIBRARIES`): then the Python route decodes them.
+
+    Parameters
+    ----------
+    scratch : Scratch
+        This thread's buffers (their Zstandard context, made on first use).
+
+    Returns
+    -------
+    tuple of int or None
+        ``(decompress, is_error, frame_bytes, context, content_size)``.
+    """
+    global _zstd_functions
+    lib = _zstd_lib or _zstd()
+    if not lib:
+        return None
+    if _zstd_functions is None:
+        import ctypes
+
+        _zstd_functions = tuple(ctypes.cast(getattr(lib, f), ctypes.c_void_p).value or 0 for f in (  # type: ignore[assignment]
+            "ZSTD_decompressDCtx", "ZSTD_isError", "ZSTD_findFrameCompressedSize", "ZSTD_getFrameContentSize"))
+    assert _zstd_functions is not None
+    d = scratch._zstd
+    if d is None or d.lib is not lib:
+        d = scratch._zstd = _ZstdContext(lib)
+    if not d.ctx or not all(_zstd_functions):
+        return None
+    dec, err, frame_bytes, content_size = _zstd_functions
+    return dec, err, frame_bytes, d.ctx, content_size
 
 
 def lz4_into_at(body, src_at: int, limit: int, verify: bool, scratch: Scratch, out_at: int, cap: int) -> int:

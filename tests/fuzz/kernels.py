@@ -42,6 +42,8 @@ class _Caller:
         self.nrng = np.random.default_rng(seed)
         self.scratch = _compression.Scratch()
         self.lz4f = _compression.lz4f_addresses(self.scratch)
+        # the system libzstd's functions for the range's Zstandard packets, where there is one
+        self.zstd = _compression.zstd_addresses(self.scratch) if getattr(_ckernels, "RANGE_CODECS", 1) >= 2 else None
         self.outcomes: collections.Counter = collections.Counter()
 
     def array(self, dtype, size: int) -> np.ndarray:
@@ -49,12 +51,12 @@ class _Caller:
         raw = self.nrng.integers(0, 256, size * np.dtype(dtype).itemsize, dtype=np.uint8)
         return raw.view(dtype)
 
-    def call(self, name: str, *args) -> None:
+    def call(self, name: str, *args, label: str | None = None) -> None:
         try:
             getattr(self.k, name)(*args)
-            self.outcomes[name, "returned"] += 1
+            self.outcomes[label or name, "returned"] += 1
         except REFUSED:
-            self.outcomes[name, "refused"] += 1
+            self.outcomes[label or name, "refused"] += 1
 
     def state(self, size: int, ranges: list[tuple[int, int]]) -> np.ndarray:
         """A decoder's state: each value within its ``[lo, hi)``, with one or all values extreme now and then, or
@@ -132,17 +134,19 @@ class _Caller:
                   rng.choice([0, 1, 480, -1, _extreme(rng)]))
 
     def decode_lz4_range(self) -> None:
-        """A file of a few packets (frames whole, damaged or lying about their size), read through rows whose
-        offsets, sizes, counts and starts are right or hostile, from a descriptor open or not, into buffers of
-        any size."""
+        """A file of a few packets (LZ4 or Zstandard frames whole, damaged or lying about their size; Zstandard
+        bodies of two frames), read through rows whose offsets, sizes, counts and starts are right or hostile, from
+        a descriptor open or not, into buffers of any size."""
         import os
         import tempfile
 
         import lz4.frame
+        import zstandard
 
         if not self.lz4f:
             return
         rng = self.rng
+        zstd = self.zstd is not None and rng.random() < 0.5
         heads, bodies, n_ev = [], bytearray(), []
         for _ in range(rng.choice([0, 1, 2, 4])):
             n = rng.choice([0, 1, 10, 200])
@@ -152,7 +156,13 @@ class _Caller:
             # an EVTS FlatBuffer (root offset, identifier, vtable, table, the vector ending the buffer), or noise
             body = (struct.pack("<I4sHHH2xiII", 16, b"EVTS", 6, 8, 4, 8, 4, n) + recs.tobytes()
                     if rng.random() < 0.85 else self.array(np.uint8, 28 + 16 * n).tobytes())
-            frame = bytearray(lz4.frame.compress(body, store_size=rng.random() < 0.7))
+            if zstd:
+                frame = bytearray(zstandard.ZstdCompressor(write_content_size=rng.random() < 0.7,
+                                                           write_checksum=rng.random() < 0.5).compress(body))
+                if rng.random() < 0.1:
+                    frame += zstandard.ZstdCompressor().compress(body[:rng.randrange(len(body) + 1)])
+            else:
+                frame = bytearray(lz4.frame.compress(body, store_size=rng.random() < 0.7))
             for _ in range(rng.choice([0, 0, 0, 1, 3])):
                 frame[rng.randrange(len(frame))] ^= 1 << rng.randrange(8)
             heads.append(len(bodies) + 8)
@@ -191,8 +201,17 @@ class _Caller:
                 sensor = (640, 480) if not hostile else (rng.choice([640, 1, 0, -1, _extreme(rng)]),
                                                          rng.choice([480, 1, 0, -1, _extreme(rng)]))
                 fd_used = fd if not hostile or rng.random() < 0.8 else rng.choice([-1, 9999])
-                self.call("decode_lz4_range", fd_used, offs, sids, sizes, counts, starts, k0, k1, batch_events,
-                          slack, raw, rng.random() < 0.5, *self.lz4f, stage, *limits, *cols, *sensor)
+                if zstd:  # libzstd's functions in the LZ4 ones' places, then the codec and ZSTD_getFrameContentSize
+                    dec, err, frame_bytes, ctx, content_size = self.zstd
+                    codec = [1 if not hostile or rng.random() < 0.9 else rng.choice([2, -1]), content_size]
+                    if hostile and rng.random() < 0.1:
+                        codec[1] = 0
+                    self.call("decode_lz4_range", fd_used, offs, sids, sizes, counts, starts, k0, k1, batch_events,
+                              slack, raw, rng.random() < 0.5, dec, err, frame_bytes, ctx, stage, *limits, *cols,
+                              *sensor, *codec, label="decode_lz4_range/zstd")
+                else:
+                    self.call("decode_lz4_range", fd_used, offs, sids, sizes, counts, starts, k0, k1, batch_events,
+                              slack, raw, rng.random() < 0.5, *self.lz4f, stage, *limits, *cols, *sensor)
             finally:
                 os.close(fd)
 
@@ -238,6 +257,13 @@ class _Caller:
             self.call(name, self.array(dtype, self.rng.choice([0, 1, 2, 3, 999])))
 
 
+def _compression_zstd():
+    """The system libzstd evtk binds for the range's Zstandard packets (False where there is none)."""
+    from evtk.io import _compression
+
+    return _compression._zstd()
+
+
 def run(seed: int, calls: int) -> collections.Counter:
     """``calls`` hostile calls (the kernels in turn) from ``seed``; the count of each (kernel, outcome).
 
@@ -258,7 +284,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     outcomes = run(args.seed, args.calls)
     for (name, outcome), n in sorted(outcomes.items()):
-        print(f"{name:<18}{outcome:<10}{n:>8}")
+        print(f"{name:<22}{outcome:<10}{n:>8}")
     return 0
 
 

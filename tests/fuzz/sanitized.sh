@@ -37,7 +37,7 @@ for seed in 1 2 3 4; do
     echo
 done
 echo "== 2. the kernels' tests"
-$PY -m pytest -q -p no:cacheprovider tests/test_native_batches.py tests/test_native_counting.py \
+$PY -m pytest -q -p no:cacheprovider tests/test_native_batches.py tests/test_native_counting.py tests/test_native_zstd.py \
     tests/test_prophesee_numpy.py
 echo "== 3. the fuzz campaign, $CASES cases"
 cd tests

@@ -655,6 +655,7 @@ class Recording(_FileIndex, BaseRecording):
         cnt = cnt_a.tolist()
         code, verify, ident = self._code, self.verify_checksums, b"EVTS"
         lz4 = code in (cz.LZ4, cz.LZ4_HIGH)
+        zstd = code in (cz.ZSTD, cz.ZSTD_HIGH)
         compiled = lz4 and native_enabled()  # evtk's compiled batches (the GIL released), where built
         t, x, y, p = out
         unpack_from = struct.unpack_from
@@ -741,16 +742,22 @@ class Recording(_FileIndex, BaseRecording):
                 np.not_equal(ps, 0, out=ps.view(np.bool_))
             return True
 
-        ranged = [compiled]  # the range kernel until it cannot run (a build before it, no LZ4 library)
+        # the range kernel until it cannot run (a build before it, no LZ4 library, no Zstandard library)
+        ranged = [compiled or (zstd and native_enabled())]
 
         def through_range(k, k1, scratch, fd) -> int:
             """Rows ``k ..`` through the compiled range, growing its buffers as it asks: the first row not done."""
             while k < k1:
-                lz4f = cz.lz4f_addresses(scratch)
-                got = None if lz4f is None else native_decode_lz4_range(
+                lz4f: tuple[int, int, int, int] | None = (0, 0, 0, 0)  # (unused for Zstandard)
+                zfns = None
+                if zstd:  # the system's libzstd (zstandard exports none of its functions), or the Python loop
+                    zfns = cz.zstd_addresses(scratch)
+                else:
+                    lz4f = cz.lz4f_addresses(scratch)
+                got = None if lz4f is None or (zstd and zfns is None) else native_decode_lz4_range(
                     fd, offs_a, sids_a, sizes_a, cnt_a, starts, k, k1, batch_events, slack, scratch.read_room(0),
                     verify, lz4f, scratch.stage(0), cz.BODY_FLOOR_BYTES, cz.BODY_RATIO, cz.MAX_PACKET_BYTES, out,
-                    (width, height))
+                    (width, height), zfns)
                 if got is None:
                     ranged[0] = False
                     return k
