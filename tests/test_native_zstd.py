@@ -72,7 +72,8 @@ def test_every_batch_of_a_healthy_zstd_file_goes_through_the_kernel_with_the_sam
 
 
 def test_frames_that_state_no_size_are_decoded_by_the_kernel_too(tmp_path, monkeypatch):
-    # dv-processing streams its frames: no content size in their headers
+    # a streaming compressor's frames: no content size in their headers (dv-processing 2's state one; a writer
+    # that streams its packets' bytes would not)
     ev = random_events(60_000, seed=6)
     bodies = [_body(ev[i:i + 5_000], 0) for i in range(0, len(ev), 5_000)]
     frames = [zstandard.ZstdCompressor(write_content_size=False, write_checksum=True).compress(b) for b in bodies]
