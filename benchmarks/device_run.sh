@@ -31,6 +31,8 @@ rm -f evtk/_ckernels.*.so
 gcc -O3 -fwrapv -shared -fPIC -I"$(python3 -c 'import sysconfig; print(sysconfig.get_paths()["include"])')" \
     evtk/_ckernels.c -o "evtk/_ckernels$(python3 -c 'import sysconfig; print(sysconfig.get_config_var("EXT_SUFFIX"))')" \
     && echo "compiled kernels: built" || echo "compiled kernels: not built (the Python route)"
+# the reader's compiled Zstandard batches need the system's libzstd (evtk.io._compression.zstd_addresses)
+python3 -c "from evtk.io import _compression as c; lib = c._zstd(); print('libzstd:', lib.ZSTD_versionNumber() if lib else 'none (ZSTD batches take the Python loop)')"
 STEPS=${*:-threads fresh reconstruct batch calibrate}
 echo "cores: $(nproc), $(python3 -c 'import sys, numpy, numba; print(sys.version.split()[0], numpy.__version__, numba.__version__)')"
 lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)|L3" || true
