@@ -29,10 +29,12 @@ SENSOR = (320, 240)
 
 class _Spy:
     """Counts the kernels' answers while a test runs, a batch at a time: True for each batch the range kernel or
-    the one-batch kernel decoded, False for each one it left to the Python loop."""
+    the one-batch kernel decoded, False for each one it left to the Python loop; ``codecs`` holds each range
+    call's codec (0 LZ4, 1 Zstandard)."""
 
     def __init__(self, monkeypatch):
         self.answers: list[bool] = []
+        self.codecs: list[int] = []
         real = _native._kernel_decode_lz4_batch
         ranged = _native._kernel_decode_lz4_range
 
@@ -43,6 +45,7 @@ class _Spy:
 
         def spy_range(*args):
             got = ranged(*args)
+            self.codecs.append(args[26] if len(args) > 26 else 0)  # (the optional codec after the sensor)
             k, need_raw, need_stage, batches = got
             self.answers.extend([True] * batches)
             if k < args[7] and not need_raw and not need_stage:  # (args[7]: k1) a batch declined
@@ -268,9 +271,13 @@ def test_flipped_bits_give_the_same_events_or_the_same_error_with_the_kernel_and
         source = REAL / name
         if not source.exists():
             pytest.skip("../shared/real-files is not beside the checkout")
-    data = source.read_bytes()
-    rng = np.random.default_rng(21)
-    path = tmp_path / "flipped.aedat4"
+    _flipped_copies_read_alike(monkeypatch, source.read_bytes(), tmp_path / "flipped.aedat4", 21)
+
+
+def _flipped_copies_read_alike(monkeypatch, data, path, seed):
+    """40 copies of the file ``data`` with 1-3 bits flipped past its first fiftieth, written to ``path``: with
+    salvage and without, the compiled batches and the Python loop give the same events, warnings and errors."""
+    rng = np.random.default_rng(seed)
     for _ in range(40):
         flipped = bytearray(data)
         for _ in range(int(rng.integers(1, 4))):

@@ -11,6 +11,7 @@ import zstandard
 from conftest import random_events
 from test_aedat4_batches import _body
 from test_hostile import _aedat4
+from test_native_batches import _flipped_copies_read_alike, _outcome, _read_both, _same, _Spy
 
 import evtk
 from evtk import _native
@@ -18,43 +19,6 @@ from evtk.io import _compression as cz
 
 pytestmark = pytest.mark.skipif(not _native.BUILT or not _native.RANGE_ZSTD or not cz._zstd(),
                                 reason="evtk._ckernels without Zstandard batches, or no system libzstd")
-
-
-class _Spy:
-    """The range kernel's answers for Zstandard packets (codec 1), a batch at a time: True for each batch it
-    decoded, False for each it left to the Python loop."""
-
-    def __init__(self, monkeypatch):
-        self.answers: list[bool] = []
-        self.lz4_calls = 0
-        ranged = _native._kernel_decode_lz4_range
-
-        def spy_range(*args):
-            got = ranged(*args)
-            if len(args) > 26 and args[26] == 1:
-                k, need_raw, need_stage, batches = got
-                self.answers.extend([True] * batches)
-                if k < args[7] and not need_raw and not need_stage:  # (args[7]: k1) a batch declined
-                    self.answers.append(False)
-            else:
-                self.lz4_calls += 1
-            return got
-
-        monkeypatch.setattr(_native, "_kernel_decode_lz4_range", spy_range)
-
-
-def _read_both(monkeypatch, path, **kw):
-    out = {}
-    for value in ("1", "0"):
-        monkeypatch.setenv("EVTK_NATIVE", value)
-        with evtk.open(path, **kw) as rec:
-            out[value] = rec.events()
-    return out["1"], out["0"]
-
-
-def _same(a, b):
-    for c in "txyp":
-        np.testing.assert_array_equal(getattr(a, c), getattr(b, c))
 
 
 @pytest.mark.parametrize("threads", ["1", "2"])
@@ -66,7 +30,7 @@ def test_every_batch_of_a_healthy_zstd_file_goes_through_the_kernel_with_the_sam
     evtk.write_events(path, ev, compression="zstd")
     spy = _Spy(monkeypatch)
     compiled, python = _read_both(monkeypatch, path)
-    assert spy.answers and all(spy.answers) and spy.lz4_calls == 0
+    assert spy.answers and all(spy.answers) and spy.codecs and set(spy.codecs) == {1}
     _same(compiled, python)
     _same(compiled, ev)
 
@@ -114,11 +78,7 @@ def test_two_frames_in_one_body_are_left_to_the_python_loop(tmp_path, monkeypatc
     outcomes = []
     for value in ("1", "0"):
         monkeypatch.setenv("EVTK_NATIVE", value)
-        try:
-            got = evtk.read_events(path)
-            outcomes.append(("events", got.t.tobytes(), got.x.tobytes()))
-        except evtk.EvtkError as exc:
-            outcomes.append(("error", type(exc).__name__, str(exc)))
+        outcomes.append(_outcome(path, False))
     assert False in spy.answers
     assert outcomes[0] == outcomes[1]
 
@@ -128,35 +88,9 @@ def test_damaged_frames_give_the_same_events_or_the_same_error_with_the_kernel_a
     # the compiled range and the Python loop give the same events, warnings and errors
     source = tmp_path / "z.aedat4"
     evtk.write_events(source, random_events(120_000, seed=9), compression="zstd", packet_events=5_000)
-    data = source.read_bytes()
-    rng = np.random.default_rng(23)
-    path = tmp_path / "flipped.aedat4"
     spy = _Spy(monkeypatch)
-    for _ in range(40):
-        flipped = bytearray(data)
-        for _ in range(int(rng.integers(1, 4))):
-            flipped[int(rng.integers(len(data) // 50, len(data)))] ^= 1 << int(rng.integers(0, 8))
-        path.write_bytes(bytes(flipped))
-        for salvage in (False, True):
-            monkeypatch.setenv("EVTK_NATIVE", "1")
-            compiled = _outcome(path, salvage)
-            monkeypatch.setenv("EVTK_NATIVE", "0")
-            assert _outcome(path, salvage) == compiled
+    _flipped_copies_read_alike(monkeypatch, source.read_bytes(), tmp_path / "flipped.aedat4", 23)
     assert True in spy.answers and False in spy.answers  # both routes met: intact batches and damaged ones
-
-
-def _outcome(path, salvage):
-    import warnings
-
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            with evtk.open(path, salvage=salvage) as rec:
-                ev = rec.events()
-        return "events", ev.t.tobytes(), ev.x.tobytes(), ev.y.tobytes(), ev.p.tobytes(), [str(w.message)
-                                                                                        for w in caught]
-    except evtk.EvtkError as exc:
-        return "error", type(exc).__name__, str(exc)
 
 
 @pytest.mark.parametrize("change", ["magic", "end", "middle"])

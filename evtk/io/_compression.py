@@ -473,7 +473,15 @@ def _lz4_steps(lib, d: _Lz4Context, src_at: int, n: int, read: int, out_at: int,
             return written, read, False
 
 
-_lz4f_functions: tuple[int, int, int] | None = None
+_lz4f_functions: tuple[int, ...] | None = None
+
+
+def _addresses(lib, names: tuple[str, ...]) -> tuple[int, ...]:
+    """The addresses of a ctypes library's functions ``names``, as ints (0 where one has none), for the compiled
+    kernels, which call them through pointers."""
+    import ctypes
+
+    return tuple(ctypes.cast(getattr(lib, name), ctypes.c_void_p).value or 0 for name in names)
 
 
 def lz4f_addresses(scratch: Scratch) -> tuple[int, int, int, int] | None:
@@ -497,9 +505,7 @@ def lz4f_addresses(scratch: Scratch) -> tuple[int, int, int, int] | None:
     if not lib:
         return None
     if _lz4f_functions is None:
-        dec, err, reset = (_ctypes.cast(f, _ctypes.c_void_p).value or 0 for f in (
-            lib.LZ4F_decompress, lib.LZ4F_isError, lib.LZ4F_resetDecompressionContext))
-        _lz4f_functions = (dec, err, reset)
+        _lz4f_functions = _addresses(lib, ("LZ4F_decompress", "LZ4F_isError", "LZ4F_resetDecompressionContext"))
     ctx = _context(lib, scratch).ctx.value
     if not ctx or not all(_lz4f_functions):
         return None
@@ -516,7 +522,7 @@ ZSTD_LIBRARIES = ("libzstd.so.1", "libzstd.1.dylib", "libzstd.dylib", "libzstd.d
 ZSTD_LEAST_VERSION = 10300
 
 _zstd_lib: Any = None  # the bound Zstandard library; False where none can be used
-_zstd_functions: tuple[int, int, int, int] | None = None
+_zstd_functions: tuple[int, ...] | None = None
 
 
 def _zstd() -> Any:
@@ -584,11 +590,8 @@ def zstd_addresses(scratch: Scratch) -> tuple[int, int, int, int, int] | None:
     if not lib:
         return None
     if _zstd_functions is None:
-        import ctypes
-
-        _zstd_functions = tuple(ctypes.cast(getattr(lib, f), ctypes.c_void_p).value or 0 for f in (  # type: ignore[assignment]
-            "ZSTD_decompressDCtx", "ZSTD_isError", "ZSTD_findFrameCompressedSize", "ZSTD_getFrameContentSize"))
-    assert _zstd_functions is not None
+        _zstd_functions = _addresses(lib, ("ZSTD_decompressDCtx", "ZSTD_isError", "ZSTD_findFrameCompressedSize",
+                                           "ZSTD_getFrameContentSize"))
     d = scratch._zstd
     if d is None or d.lib is not lib:
         d = scratch._zstd = _ZstdContext(lib)
