@@ -1,11 +1,25 @@
 """evtk: event-camera I/O, simulation and reconstruction for an opto-electronic convolution accelerator."""
 
-from typing import TYPE_CHECKING
+__version__ = "0.1.0"
 
-from . import _openblas_env  # noqa: F401 - first: OpenBLAS reads its settings as numpy loads
-from ._version import __version__
-from .errors import EvtkError, FormatError
-from .io import detect_format, open, read_events, write_events
+import os as _os
+import sys as _sys
+
+# First, before numpy loads (OpenBLAS reads its settings once, as it loads): OpenBLAS (numpy's and scipy's BLAS)
+# starts a thread a core and each busy-waits for work about 0.1 s before it sleeps, at start and after every call.
+# evtk's own BLAS work is small matrices on one thread (evtk._blas), so that spinning only took cores from its
+# decoding threads: 1.2-1.9 s of CPU time in every fresh process of a 16-core machine, about 0.1 s on two (issue
+# 32, tenth round). At OpenBLAS's least timeout (2**4 cycles) idle threads sleep at once and are woken for work as
+# before; results and thread counts do not change. Set only where the user has not set it; child processes
+# inherit it. (Here rather than in a module of its own: a module more is 0.15 ms of every fresh process.)
+if "numpy" not in _sys.modules:
+    _os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "4")
+del _os, _sys
+
+from typing import TYPE_CHECKING  # noqa: E402
+
+from .errors import EvtkError, FormatError  # noqa: E402
+from .io import detect_format, open, read_events, write_events  # noqa: E402
 
 if TYPE_CHECKING:  # for type checkers; at run time these load on first use (below)
     from .cluster import to_dask

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ._version import __version__
+from . import __version__
 from .errors import EvtkError, FormatError
 
 if TYPE_CHECKING:

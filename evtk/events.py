@@ -9,19 +9,18 @@ external-signal time stamps that the camera records beside the events.
 
 from __future__ import annotations
 
-import enum
-import inspect
 from collections.abc import Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ._table import columns_to_table, table_to_columns
 from .errors import EvtkError
 
 if TYPE_CHECKING:
     import numpy.typing as npt  # for the annotations only: a fresh process need not load it
     import pyarrow as pa
+
+    from ._trigger_kind import TriggerKind
 
 #: A sensor size as the API takes it: ``(width, height)`` in pixels, any two whole numbers (checked).
 SensorSize = Sequence[int] | np.ndarray
@@ -55,33 +54,18 @@ T_MIN_US = np.iinfo(np.int64).min
 T_MAX_US = np.iinfo(np.int64).max
 
 
-class TriggerKind(enum.IntEnum):
-    """Trigger type codes, numbered as in the AEDAT4 ``Trigger`` table.
+def __getattr__(name: str) -> Any:
+    # TriggerKind lives in its own module, loaded on first use: making an enum class costs a fresh process 0.5 ms,
+    # which a read of events alone need not pay
+    if name == "TriggerKind":
+        from ._trigger_kind import TriggerKind
 
-    Parameters
-    ----------
-    value : int
-        The code (0 to 9): ``TriggerKind(1)`` is ``EXTERNAL_SIGNAL_RISING_EDGE``; any other value raises
-        ``ValueError``.
-    """
+        return TriggerKind
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
-    # what calling the class takes (a code), for the signature help and the API reference shows
-    __signature__ = inspect.Signature([inspect.Parameter("value", inspect.Parameter.POSITIONAL_OR_KEYWORD,
-                                                         annotation=int)])
 
-    def __init__(self, value: int) -> None:  # each member is made with its code; nothing more to set
-        super().__init__()
-
-    TIMESTAMP_RESET = 0
-    EXTERNAL_SIGNAL_RISING_EDGE = 1
-    EXTERNAL_SIGNAL_FALLING_EDGE = 2
-    EXTERNAL_SIGNAL_PULSE = 3
-    EXTERNAL_GENERATOR_RISING_EDGE = 4
-    EXTERNAL_GENERATOR_FALLING_EDGE = 5
-    APS_FRAME_START = 6
-    APS_FRAME_END = 7
-    APS_EXPOSURE_START = 8
-    APS_EXPOSURE_END = 9
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | {"TriggerKind"})
 
 
 def _as_sensor_size(sensor_size: SensorSize) -> tuple[int, int]:
@@ -322,6 +306,8 @@ class Events:
             Columns ``t`` (int64, µs), ``x``, ``y`` (uint16) and ``p`` (uint8), sharing this stream's memory
             where Arrow can.
         """
+        from ._table import columns_to_table
+
         return columns_to_table(self.t, self.x, self.y, self.p, self.sensor_size, metadata)
 
     @classmethod
@@ -345,6 +331,8 @@ class Events:
         EvtkError
             When a column is missing or its values do not fit, or there is no sensor size.
         """
+        from ._table import table_to_columns
+
         t, x, y, p, size = table_to_columns(table, sensor_size)
         return cls(t, x, y, p, size)
 

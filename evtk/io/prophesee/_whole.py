@@ -13,7 +13,7 @@ from __future__ import annotations
 import os
 from _thread import get_ident  # threading itself is a module more for a fresh read
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
@@ -23,8 +23,9 @@ from ...limits import require_memory
 from .decoders import ST_OK, ST_TYPE, _dat_run, _evt2_run, _first_stop
 
 
-class Codec(NamedTuple):
-    """How :func:`read_whole` takes one encoding's words.
+class Codec:
+    """How :func:`read_whole` takes one encoding's words (a plain class: a ``NamedTuple`` costs a fresh read
+    0.5 ms to create).
 
     Attributes
     ----------
@@ -44,12 +45,13 @@ class Codec(NamedTuple):
         cannot tell); None where the encoding has none (the index then counts with ``run``).
     """
 
-    dtype: str
-    item_words: int
-    scan: Callable[[np.ndarray], tuple[int, int, int, tuple[int, ...]]]
-    advance: Callable[[np.ndarray, tuple[int, ...]], None]
-    run: Callable[..., tuple[int, int, int, int, int, int]]
-    time_range: Callable[[np.ndarray, np.ndarray], tuple[int, int] | None] | None = None
+    __slots__ = ("dtype", "item_words", "scan", "advance", "run", "time_range")
+
+    def __init__(self, dtype: str, item_words: int, scan: Callable[[np.ndarray], tuple[int, int, int, tuple[int, ...]]],
+                 advance: Callable[[np.ndarray, tuple[int, ...]], None], run: Callable[..., tuple[int, int, int, int, int, int]],
+                 time_range: Callable[[np.ndarray, np.ndarray], tuple[int, int] | None] | None = None) -> None:
+        self.dtype, self.item_words, self.scan, self.advance, self.run = dtype, item_words, scan, advance, run
+        self.time_range = time_range
 
 
 def _keep_temporaries_mapped() -> None:
