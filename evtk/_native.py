@@ -417,7 +417,7 @@ def evt2_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
              y: np.ndarray, p: np.ndarray, tt: np.ndarray, tk: np.ndarray, tch: np.ndarray,
              status: tuple[int, int, int, int]) -> tuple[int, int, int, int, int, int] | None:
     """Decode or count Prophesee EVT 2.0 words with the compiled kernel, the GIL released: what the numpy decoder
-    (:func:`evtk.io.prophesee.decoders._evt2_numpy_run`) does, to the same results.
+    (:func:`evtk.io.prophesee._fallbacks._evt2_numpy_run`) does, to the same results.
 
     Parameters
     ----------
@@ -460,7 +460,7 @@ def evt2_run(words: Any, state: np.ndarray, width: int, height: int, decode: boo
 def dat_run(words: Any, state: np.ndarray, width: int, height: int, decode: bool, t: np.ndarray, x: np.ndarray,
             y: np.ndarray, p: np.ndarray, status: tuple[int, int, int, int]) -> tuple[int, int, int, int, int, int] | None:
     """Decode or count Prophesee DAT events with the compiled kernel, the GIL released: what the numpy decoder
-    (:func:`evtk.io.prophesee.decoders._dat_numpy_run`) does, to the same results.
+    (:func:`evtk.io.prophesee._fallbacks._dat_numpy_run`) does, to the same results.
 
     Parameters
     ----------
@@ -499,7 +499,7 @@ def es_run(data: Any, state: np.ndarray, width: int, height: int, decode: bool, 
            x: np.ndarray, y: np.ndarray, p: np.ndarray,
            status: tuple[int, int, int, int]) -> tuple[int, int, int, int, int, int] | None:
     """Decode or count Event Stream 2.x DVS or ATIS bytes with the compiled kernel, the GIL released: what
-    :func:`evtk.io.prophesee.decoders._es_dvs_run` and :func:`~evtk.io.prophesee.decoders._es_atis_run` do, to the
+    :func:`evtk.io.prophesee._fallbacks._es_dvs_run` and :func:`~evtk.io.prophesee._fallbacks._es_atis_run` do, to the
     same results.
 
     Parameters

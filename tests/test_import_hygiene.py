@@ -95,12 +95,13 @@ START_UP = ("lz4", "zstandard", "xxhash", "hdf5plugin", "click", "xml.etree.Elem
             "numpy.typing", "dataclasses", "xml.parsers.expat", "pyexpat", "bisect", "_bisect")
 # an AEDAT4 file evtk writes has LZ4 packets, decoded through the LZ4 library bound by ctypes: python-lz4's frame
 # module (with the stdlib's _compression) and threading (the pool's lock is _thread's) load for none of them
-# module; _bisect (a shared library to load, 0.2-0.7 ms) loads only for the Prophesee decoders' numpy routes, which
-# search with it (the compiled kernels do not); _queue (0.4 ms) with the first thread pool, which a small read on
-# one thread never starts
-START_UP += ("_queue",)
+# module; the Prophesee decoders' numpy and numba routes (their module, numba's lazy decorator and _bisect, a shared
+# library to load, 0.2-0.7 ms, which Event Stream's numpy route searches with) load only where the compiled kernels
+# are off; _queue (0.4 ms) with the first thread pool, which a small read on one thread never starts
+START_UP += ("_queue", "evtk.io.prophesee._fallbacks", "evtk._lazyjit")
 START_UP_NEEDED: dict[str, set[str]] = ({} if native_enabled() else
-                                        {fmt: {"_bisect"} for fmt in ("evt3", "es", "evt2", "dat")})
+                                        {fmt: {"_bisect", "evtk.io.prophesee._fallbacks", "evtk._lazyjit"}
+                                         for fmt in ("evt3", "es", "evt2", "dat")})
 
 
 @pytest.mark.parametrize("fmt", ["aedat4", "evt3", "es", "evt2", "dat"])

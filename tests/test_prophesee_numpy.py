@@ -370,10 +370,10 @@ def test_event_stream_numpy_decoder_equals_a_byte_by_byte_loop(monkeypatch, slic
     """The numpy Event Stream decoder (one cumulative sum for the times, straight into the time column, with the
     0xFF bytes between event ranges added at each range's first event) gives the loop's events, stop and clock,
     slices cutting events and runs of 0xFF anywhere, with and without decoding (the index's count)."""
-    from evtk.io.prophesee import decoders
+    from evtk.io.prophesee import _fallbacks
 
-    monkeypatch.setattr(decoders, "ES_MARKER_SHARE", 1.0)  # every slice through numpy, however many 0xFF
-    monkeypatch.setattr(decoders, "ES_SLICE_BYTES", slice_bytes)
+    monkeypatch.setattr(_fallbacks, "ES_MARKER_SHARE", 1.0)  # every slice through numpy, however many 0xFF
+    monkeypatch.setattr(_fallbacks, "ES_SLICE_BYTES", slice_bytes)
     rng = np.random.default_rng(slice_bytes)
     for trial in range(60):
         data = _es_bytes(rng, int(rng.integers(1, 2500)), [0.0, 0.002, 0.02, 0.2][trial % 4])
@@ -382,7 +382,7 @@ def test_event_stream_numpy_decoder_equals_a_byte_by_byte_loop(monkeypatch, slic
         for decode in (True, False):
             state = np.array(start, np.int64)
             out = _outs(len(data) // 5 + 1)
-            n, _, status, bad, lo, hi = decoders._es_np_run(data, state, 640, 480, decode, *out)
+            n, _, status, bad, lo, hi = _fallbacks._es_np_run(data, state, 640, 480, decode, *out)
             assert (status, bad) == stop and n == len(want)
             assert state[:len(clock)].tolist() == clock
             if want:
@@ -424,7 +424,7 @@ def _random_dat_words(rng, n, trial):
 def test_the_compiled_evt2_and_dat_decoders_give_numpy_s_results(fmt):
     """Random words, both modes: the compiled kernels' counts, stops, time ranges, states and columns are numpy's
     decoders' (the oracle, itself compared with files expelliarmus reads in tests/test_prophesee.py)."""
-    from evtk.io.prophesee import decoders
+    from evtk.io.prophesee import _fallbacks, decoders
 
     if not _native.BUILT or _native._kernel_evt2_run is None:
         pytest.skip("evtk's compiled kernels were not built (no C compiler at install)")
@@ -442,10 +442,10 @@ def test_the_compiled_evt2_and_dat_decoders_give_numpy_s_results(fmt):
             s1, s2 = state.copy(), state.copy()
             if fmt == "evt2":
                 r1 = _native.evt2_run(words, s1, 40, 25, decode, *got, decoders._NATIVE_STATUS)
-                r2 = decoders._evt2_numpy_run(words, s2, 40, 25, decode, *want)
+                r2 = _fallbacks._evt2_numpy_run(words, s2, 40, 25, decode, *want)
             else:
                 r1 = _native.dat_run(words, s1, 40, 25, decode, *got[:4], decoders._NATIVE_STATUS)
-                r2 = decoders._dat_numpy_run(words, s2, 40, 25, decode, *want)
+                r2 = _fallbacks._dat_numpy_run(words, s2, 40, 25, decode, *want)
             assert r1 is not None
             r2 = tuple(int(v) for v in r2)
             assert r1 == r2 and np.array_equal(s1, s2), (trial, decode, r1, r2, s1, s2)
@@ -478,9 +478,9 @@ def test_a_whole_evt2_or_dat_read_equals_the_block_by_block_read(tmp_path, monke
         def refuse(*args, **kwargs):
             raise AssertionError("the numpy route was taken")
 
-        from evtk.io.prophesee import decoders
-        monkeypatch.setattr(decoders, "_evt2_numpy_run", refuse)
-        monkeypatch.setattr(decoders, "_dat_numpy_run", refuse)
+        from evtk.io.prophesee import _fallbacks
+        monkeypatch.setattr(_fallbacks, "_evt2_numpy_run", refuse)
+        monkeypatch.setattr(_fallbacks, "_dat_numpy_run", refuse)
         monkeypatch.setattr(_whole, "_first_stop", refuse)
         monkeypatch.setattr(_whole, "_clock_effect", refuse)
     monkeypatch.setattr(recording, "BLOCK_WORDS", 64 * (2 if fmt == "dat" else 1))
@@ -538,7 +538,7 @@ def test_a_state_or_sensor_no_file_can_give_goes_to_numpy_and_the_raw_kernel_ref
     wrapper returns None (the numpy route), the raw kernel raises ValueError and leaves the state and columns
     alone; at either end itself (where the time fits int64) both decode as numpy does."""
     from evtk import _ckernels
-    from evtk.io.prophesee import decoders
+    from evtk.io.prophesee import _fallbacks, decoders
 
     if not _native.BUILT or _native._kernel_evt3_run is None:
         pytest.skip("evtk's compiled kernels were not built (no C compiler at install)")
@@ -546,7 +546,7 @@ def test_a_state_or_sensor_no_file_can_give_goes_to_numpy_and_the_raw_kernel_ref
     rng = np.random.default_rng(3)
     words = {"evt3": lambda: _random_words(rng, 300, 4), "evt2": lambda: _random_evt2_words(rng, 300, 1),
              "dat": lambda: _random_dat_words(rng, 150, 1)}[fmt]().astype(dtype)
-    numpy_run = {"evt3": evt3._numpy_run, "evt2": decoders._evt2_numpy_run, "dat": decoders._dat_numpy_run}[fmt]
+    numpy_run = {"evt3": evt3._numpy_run, "evt2": _fallbacks._evt2_numpy_run, "dat": _fallbacks._dat_numpy_run}[fmt]
     for k in range(len(lowest)):
         for value in sorted({lowest[k] - 1, above[k], kernel_above[k], lowest[k], top[k]}):
             state = np.array(inside, np.int64)
@@ -588,7 +588,7 @@ def test_the_compiled_event_stream_decoder_equals_a_byte_by_byte_loop(atis):
     """DVS and ATIS bytes (markers in runs and inside events, events off the sensor, starts inside an event),
     both modes: the kernel's events, stop, time range and state are the loops' (and, for DVS, numpy's
     decoder's)."""
-    from evtk.io.prophesee import decoders
+    from evtk.io.prophesee import _fallbacks, decoders
 
     if not _native.BUILT or _native._kernel_es_run is None:
         pytest.skip("evtk's compiled kernels were not built (no C compiler at install)")
@@ -617,7 +617,7 @@ def test_the_compiled_event_stream_decoder_equals_a_byte_by_byte_loop(atis):
                 assert list(zip(*(c[:n].tolist() for c in out[:4]))) == want, trial
             if not atis and decode:  # numpy's decoder: the same
                 s2, o2 = np.array(start, np.int64), _outs(len(data) // 5 + 1)
-                r2 = decoders._es_np_run(data, s2, 640, 480, True, *o2)
+                r2 = _fallbacks._es_np_run(data, s2, 640, 480, True, *o2)
                 assert tuple(int(v) for v in r2[:4]) == (n, 0, status, bad)
                 assert all(np.array_equal(a[:n], b[:n]) for a, b in zip(out[:4], o2[:4]))
 
@@ -658,13 +658,13 @@ def test_an_event_stream_file_reads_alike_on_both_routes(tmp_path, monkeypatch, 
     ev = random_events(20_000, seed=9, sensor_size=(640, 480), span_us=20_000_000 if quiet else 200_000)
     path = tmp_path / "q.es"
     evtk.write_events(path, ev)
-    from evtk.io.prophesee import decoders
+    from evtk.io.prophesee import _fallbacks
 
     got = {}
     for route in ("numpy", "native"):
         _route(monkeypatch, route)
         if route == "native":
-            monkeypatch.setattr(decoders, "_es_np_run", None)  # the numpy route not taken
+            monkeypatch.setattr(_fallbacks, "_es_np_run", None)  # the numpy route not taken
         with evtk.open(path) as rec:
             got[route] = (rec.events(), rec.events(int(ev.t[5000]), int(ev.t[15000])), len(rec._blocks))
     assert got["native"][0] == got["numpy"][0] == ev

@@ -521,8 +521,8 @@ class EventStreamRecording(PropheseeRecording):
 
     The header is the text ``Event Stream``, the version (three bytes), the
     event type (1: DVS, 2: ATIS) and the sensor's width and height (16 bits
-    each); events follow as a byte stream (see :func:`_es_dvs_run` and
-    :func:`_es_atis_run`). y is stored from the bottom row up and read as
+    each); events follow as a byte stream (see :func:`._fallbacks._es_dvs_run` and
+    :func:`._fallbacks._es_atis_run`). y is stored from the bottom row up and read as
     evtk's rows from the top. An ATIS stream's events are its change-detection
     events; its threshold crossings (exposure measurements) are counted, in
     ``info()["left_out"]``, and left out. Generic and colour streams are
