@@ -1,7 +1,5 @@
 """evtk: event-camera I/O, simulation and reconstruction for an opto-electronic convolution accelerator."""
 
-__version__ = "0.1.0"
-
 import os as _os
 import sys as _sys
 
@@ -22,6 +20,7 @@ from .errors import EvtkError, FormatError  # noqa: E402
 from .io import detect_format, open, read_events, write_events  # noqa: E402
 
 if TYPE_CHECKING:  # for type checkers; at run time these load on first use (below)
+    from ._version import __version__
     from .cluster import to_dask
     from .events import Events, TriggerKind, Triggers
     from .io import Recording
@@ -29,10 +28,11 @@ if TYPE_CHECKING:  # for type checkers; at run time these load on first use (bel
     from .reconstruct.files import load_reconstruction
     from .workflow import reconstruct_recording
 
-# loaded on first use (numba compiles and loads its caches when they are), so that the command line starts fast
-_LAZY = {"Events": "events", "Triggers": "events", "TriggerKind": "events", "to_dask": "cluster", "Recording": "io",
-         "load_reconstruction": "reconstruct.files", "save_reconstruction": "io.reconstruction",
-         "reconstruct_recording": "workflow"}
+# loaded on first use (numba compiles and loads its caches when they are), so that the command line starts fast;
+# __version__ too (its module is one more a fresh read would load for nothing: the writers and the CLI load it)
+_LAZY = {"__version__": "_version", "Events": "events", "Triggers": "events", "TriggerKind": "events",
+         "to_dask": "cluster", "Recording": "io", "load_reconstruction": "reconstruct.files",
+         "save_reconstruction": "io.reconstruction", "reconstruct_recording": "workflow"}
 
 
 def __getattr__(name):

@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from . import __version__
-from .errors import EvtkError, FormatError
+from ._version import __version__
+from .errors import MAX_SENSOR_SIDE, EvtkError, FormatError, load_json, sensor_dims  # noqa: F401  (this module's API)
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -27,90 +27,6 @@ KEY_SENSOR = b"evtk.sensor_size"
 KEY_META = b"evtk.metadata"
 KEY_TRIGGERS = b"evtk.triggers"
 KEY_VERSION = b"evtk.version"
-
-#: Largest sensor side evtk reads (coordinates are 16-bit).
-MAX_SENSOR_SIDE = 65536
-
-
-def sensor_dims(width: Any, height: Any, path: str | os.PathLike[str] | None, where: str) -> tuple[int, int]:
-    """``(width, height)`` from a file's header values (numbers, or their text), checked.
-
-    Parameters
-    ----------
-    width, height : Any
-        The values as the header holds them: numbers, text or bytes of a number, or one-element arrays.
-    path : str or os.PathLike or None
-        The file, for the error.
-    where : str
-        Which header entry they came from, for the error.
-
-    Returns
-    -------
-    tuple of (int, int)
-        ``(width, height)`` in pixels.
-
-    Raises
-    ------
-    FormatError
-        Naming ``where``, when either is not a whole number from 1 to :data:`MAX_SENSOR_SIDE` (65536).
-    """
-    out = []
-    for v in (width, height):
-        if isinstance(v, (bytes, np.bytes_)):
-            v = bytes(v).decode("utf-8", "replace")
-        if isinstance(v, np.ndarray) and v.size == 1:
-            v = v.reshape(-1)[0]
-        try:
-            f = float(v)
-            ok = f.is_integer() and 1 <= f <= MAX_SENSOR_SIDE
-        except (TypeError, ValueError, OverflowError):
-            ok = False
-        if not ok:
-            raise FormatError(path, None, f"{where} gives an impossible sensor size {width!r} x {height!r} "
-                                          f"(whole numbers from 1 to {MAX_SENSOR_SIDE} expected)")
-        out.append(int(f))
-    return out[0], out[1]
-
-
-def _no_constant(name):
-    raise ValueError(f"{name} is not a JSON number")
-
-
-def load_json(text: str | bytes | bytearray | memoryview, path: str | os.PathLike[str] | None, what: str) -> Any:
-    """JSON metadata a file carries, parsed and checked.
-
-    Parameters
-    ----------
-    text : str or bytes-like
-        The JSON (bytes as UTF-8).
-    path : str or os.PathLike or None
-        The file, for the error.
-    what : str
-        Which entry of the file it is, for the error.
-
-    Returns
-    -------
-    object
-        The parsed value (dict, list, str, number, bool or None).
-
-    Raises
-    ------
-    FormatError
-        Naming ``what`` when it is not valid JSON or UTF-8, nests too deeply to read, or holds NaN or
-        infinities (which would make evtk's own JSON output invalid).
-    """
-    import json  # here: a fresh process reading a file without JSON in it does not load the module (1-1.5 ms)
-
-    try:
-        if isinstance(text, (bytes, bytearray, memoryview)):
-            text = bytes(text).decode("utf-8")
-        return json.loads(text, parse_constant=_no_constant)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise FormatError(path, None, f"{what} is not valid JSON ({' '.join(str(exc).split())[:200]})") from None
-    except RecursionError:
-        raise FormatError(path, None, f"{what} nests too deeply to read") from None
-
-
 
 def pyarrow_module():
     import pyarrow as pa

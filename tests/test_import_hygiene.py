@@ -98,7 +98,10 @@ START_UP = ("lz4", "zstandard", "xxhash", "hdf5plugin", "click", "xml.etree.Elem
 # module; the Prophesee decoders' numpy and numba routes (their module, numba's lazy decorator and _bisect, a shared
 # library to load, 0.2-0.7 ms, which Event Stream's numpy route searches with) load only where the compiled kernels
 # are off; _queue (0.4 ms) with the first thread pool, which a small read on one thread never starts
-START_UP += ("_queue", "evtk.io.prophesee._fallbacks", "evtk._lazyjit")
+START_UP += ("_queue", "evtk.io.prophesee._fallbacks", "evtk._lazyjit",
+             # evtk's own modules a read does not need: the Arrow table code (the header checks every reader uses
+             # live with the errors), the version (the writers and the command line load it), the trigger kinds
+             "evtk._table", "evtk._version", "evtk._trigger_kind")
 START_UP_NEEDED: dict[str, set[str]] = ({} if native_enabled() else
                                         {fmt: {"_bisect", "evtk.io.prophesee._fallbacks", "evtk._lazyjit"}
                                          for fmt in ("evt3", "es", "evt2", "dat")})

@@ -7,8 +7,8 @@ import sys
 import click
 import numpy as np
 
-from .. import __version__
 from .. import io as evio  # (light: its readers and writers load on first use)
+from .._version import __version__
 from ..errors import EvtkError, one_line
 
 #: Largest whole number an option takes: microseconds and counts stay far inside int64 arithmetic.

@@ -9,8 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from .._table import MAX_SENSOR_SIDE, load_json, sensor_dims  # noqa: F401  (part of this module's API)
-from ..errors import EvtkError, FormatError
+from ..errors import MAX_SENSOR_SIDE, EvtkError, FormatError, load_json, sensor_dims  # noqa: F401  (part of this module's API)
 from ..events import Events, Triggers
 
 __all__ = ["BaseRecording", "BaseWriter", "StreamInfo", "Damage", "time_chunks", "window_blocks", "sensor_dims", "load_json",

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .. import __version__
+from .._version import __version__
 from ..errors import EvtkError
 from ..events import Events, TriggerKind, Triggers
 from ..io import open_writer

@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from ... import __version__
 from ..._atomic import AtomicFile
+from ..._version import __version__
 from ...errors import EvtkError
 from ...events import Events, Triggers
 from .. import _compression as cz

@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ... import __version__
 from ..._atomic import AtomicFile, FailSafeFile
+from ..._version import __version__
 from ...errors import EvtkError
 from ...events import Events, Triggers
 from .._checks import require_readable, sorted_for_writing
