@@ -3,6 +3,7 @@
     python benchmarks/bench_real_files.py                        # every file, 5 alternating runs each
     python benchmarks/bench_real_files.py --repeats 7 --only evt3,es --json benchmarks/results/real.json
     python benchmarks/bench_real_files.py --commands             # also evtk info / info --check / convert
+    python benchmarks/bench_real_files.py --only aedat4,es --inside   # and what evtk adds inside the process
     python benchmarks/bench_real_files.py --file evt3=benchmarks/data/threads_20000000_evt3.raw   # any file
 
 Each run is a whole process, timed from outside: start Python, import the
@@ -22,6 +23,12 @@ public reader of it installed here):
   ``get_aer_events_from_file`` and ``read_dvs_128``'s bit masks, as
   ``read_dvs_128`` itself fails in tonic 1.7.0);
 * N-MNIST: tonic (``read_mnist_file``).
+
+With ``--inside``, each file also gets as many rounds of the two scripts with ``import numpy`` first and a
+clock read inside the process from then to the end of the read: the median of the rounds' differences (evtk's
+time minus the peer's, ms) is what evtk's imports and read add over the peer's, free of the process's start and
+exit, which on a small file move by more than that from one minute to the next on a shared machine (issue 32,
+eighteenth round).
 
 With ``--commands``, ``evtk info``, ``evtk info --check``, ``evtk convert F
 out.h5`` and ``evtk convert F out.aedat4`` are timed the same way (fresh
@@ -123,6 +130,24 @@ def timed_cpu(argv, env, cwd) -> tuple[float, float, str]:
     return dt, (r1.ru_utime + r1.ru_stime) - (r0.ru_utime + r0.ru_stime), res.stdout.strip()
 
 
+INSIDE = "import time, numpy\n_t0 = time.perf_counter()\n{program}\nprint('INSIDE', time.perf_counter() - _t0)\n"
+
+
+def inside_ms(runs: dict, envs: dict, work: Path, repeats: int) -> float:
+    """The median over ``repeats`` alternating rounds of evtk's time minus the peer's, in ms, each read inside its
+    process from after ``import numpy`` to the end of the read (the scripts of ``runs`` with that clock around
+    them)."""
+    diffs = []
+    for r in range(repeats):
+        got = {}
+        for k in (("evtk", "peer") if r % 2 == 0 else ("peer", "evtk")):
+            argv = [*runs[k][:2], INSIDE.format(program=runs[k][2]), *runs[k][3:]]
+            out = timed(argv, envs[k], work)[1]
+            got[k] = float(out.rsplit("INSIDE", 1)[1])
+        diffs.append(got["evtk"] - got["peer"])
+    return 1e3 * statistics.median(diffs)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
@@ -132,6 +157,8 @@ def main() -> None:
     ap.add_argument("--file", action="append", default=[], metavar="FORMAT=PATH",
                     help="read this file instead of the real ones (repeatable), e.g. a large one another tool wrote: "
                          "evt3=benchmarks/data/threads_20000000_evt3.raw")
+    ap.add_argument("--inside", action="store_true",
+                    help="also the paired in-process time after numpy's import (evtk minus the peer, ms)")
     ap.add_argument("--json")
     args = ap.parse_args()
     only = set(args.only.split(",")) if args.only else None
@@ -144,7 +171,7 @@ def main() -> None:
     py = sys.executable
     print(f"{args.repeats} alternating fresh processes per file, load {os.getloadavg()[0]:.1f}")
     print(f"{'file':<62}{'format':<14}{'events':>9}{'evtk s':>8}{'peer':>14}{'peer s':>8}{'peer/evtk':>10}"
-          f"{'cpu ratio':>10}")
+          f"{'cpu ratio':>10}" + (f"{'inside ms':>11}" if args.inside else ""))
     rows = []
     for fmt, path in (chosen or files(only)):
         peer, program = PEERS[fmt]
@@ -166,9 +193,12 @@ def main() -> None:
                    evtk_s=med["evtk"], peer_s=med["peer"], peer_over_evtk=med["peer"] / med["evtk"], runs=times,
                    evtk_cpu_s=med_cpu["evtk"], peer_cpu_s=med_cpu["peer"],
                    peer_over_evtk_cpu=med_cpu["peer"] / med_cpu["evtk"], cpu_runs=cpu)
+        if args.inside:
+            row["inside_evtk_minus_peer_ms"] = inside_ms(runs, envs, work, args.repeats)
         rows.append(row)
         print(f"{path.name[:61]:<62}{fmt:<14}{row['events']:>9}{med['evtk']:>8.3f}{peer:>14}{med['peer']:>8.3f}"
-              f"{row['peer_over_evtk']:>10.2f}{row['peer_over_evtk_cpu']:>10.2f}", flush=True)
+              f"{row['peer_over_evtk']:>10.2f}{row['peer_over_evtk_cpu']:>10.2f}"
+              + (f"{row['inside_evtk_minus_peer_ms']:>+11.1f}" if args.inside else ""), flush=True)
     by_fmt: dict = {}
     for r in rows:
         by_fmt.setdefault(r["format"], []).append((r["peer_over_evtk"], r["peer_over_evtk_cpu"]))
