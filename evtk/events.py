@@ -585,7 +585,7 @@ class Triggers:
             mask &= self.t < int(t_end_us)
         return self._take(mask)
 
-    def of_kind(self, kind: TriggerKind | int) -> Triggers:
+    def of_kind(self, kind: int) -> Triggers:
         """Only the triggers of one :class:`TriggerKind`.
 
         Parameters
