@@ -128,7 +128,7 @@ class Task:
         return self._value
 
 
-def _queue() -> SimpleQueue:
+def _new_queue() -> SimpleQueue:
     """A new job queue: ``queue``'s own C queue (``queue`` itself loads heapq and more for nothing here), its
     extension loaded with the first pool (0.4 ms a fresh process that reads a small file on one thread need not
     pay)."""
@@ -160,7 +160,7 @@ class Pool:
     def __init__(self, size: int, name: str) -> None:
         self.size = max(1, int(size))
         self.name = name
-        self._jobs: SimpleQueue = _queue()
+        self._jobs: SimpleQueue = _new_queue()
         self._lock = allocate_lock()
         self._threads = 0
         self._idle = 0
@@ -170,7 +170,7 @@ class Pool:
     def _forked(self) -> None:
         """In a forked child: no threads, no work, a lock nobody holds."""
         self._lock = allocate_lock()
-        self._jobs = _queue()
+        self._jobs = _new_queue()
         self._threads = self._idle = 0
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> Task:
