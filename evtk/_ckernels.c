@@ -706,63 +706,74 @@ e3_word(unsigned w, e3_state *s, const e3_out *o)
 
 /* The word types e3_fast leaves to e3_word (bit k: type k): triggers and the types that are none. */
 #define E3_SLOW_TYPES ((1u << 1) | (1u << 9) | (1u << 10) | (1u << 11) | (1u << 12) | (1u << 13))
-/* By type: the bits of a vector word that are events, and the steps it moves the base on. */
-static const unsigned e3_events_mask[16] = {0, 0, 0, 0, 0xFFF, 0xFF, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
-static const int64_t e3_step[16] = {0, 0, 0, 0, 12, 8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+/* e3_fast is compiled on its own, not inlined into its caller: there the caller's values (a copy of the state
+ * among them) took the registers its loop needs, and it kept its pointers and values on the stack between words. */
+#if defined(__GNUC__) || defined(__clang__)
+#define E3_NOINLINE __attribute__((noinline))
+#elif defined(_MSC_VER)
+#define E3_NOINLINE __declspec(noinline)
+#else
+#define E3_NOINLINE
+#endif
 /* Most words e3_fast takes at a time (its events, at most 12 a word, stay in the cache for the check after). */
 #define E3_CHUNK_WORDS 4096
 
 /* Words [i, end) decoded fast, from state s, where their events cannot outgrow the columns (the caller made sure
- * that 12 a word fit). The state's values are kept by selection, not branches, and an EVT_ADDR_X word's event
- * is written whatever the word (only an event word moves the fill on past it). Stops at the first word it leaves
- * to e3_word (a trigger, a word of no type, a vector word whose events could pass the sensor's width); an event
- * off the sensor it writes all the same (the caller checks the coordinates written, and takes the words again
- * with e3_word where one is off). Returns the index of the first word not taken. */
-static int64_t
+ * that 12 a word fit). An EVT_ADDR_X word's event is written whatever the word (only an event word moves the fill
+ * on past it), so that nothing branches on the y, x and time words, which come in no order a predictor learns.
+ * Stops at the first word it leaves to e3_word (a trigger, a word of no type, a vector word whose events could
+ * pass the sensor's width); an event off the sensor it writes all the same (the caller checks the coordinates
+ * written, and takes the words again with e3_word where one is off). Returns the index of the first word not
+ * taken. */
+E3_NOINLINE static int64_t
 e3_fast(const uint16_t *words, int64_t i, int64_t end, e3_state *s, const e3_out *o)
 {
-    /* the state in locals (the columns' uint8 stores may alias anything in memory), the time as tb | low with
-     * tb = epoch << 24 | high << 12 */
-    int64_t tb = (int64_t)(((uint64_t)s->epoch << 24) | ((uint64_t)s->high << 12)), low = s->low;
-    int64_t yy = s->y, base = s->base, pol = s->pol, n = s->n;
+    /* in locals (the columns' uint8 stores may alias anything in memory) only what every word needs: the time as
+     * the one value now = epoch << 24 | high << 12 | low (unsigned arithmetic: any state wraps, defined), y and
+     * the fill; the vector base and polarity, which only vector and EVT_VECT_BASE_X words touch, stay in *s, so
+     * that the loop's values fit in the registers (it kept its pointers on the stack between words before) */
+    uint64_t now = ((uint64_t)s->epoch << 24) | ((uint64_t)s->high << 12) | (uint64_t)s->low;
+    int64_t yy = s->y, n = s->n;
     int64_t *const t = o->t;
     uint16_t *const x = o->x, *const y = o->y;
     uint8_t *const p = o->p;
-    const int64_t base_room = o->width - 12;
-    for (; i < end; i++) {
-        unsigned w = words[i], kind = w >> 12, v = w & 0xFFF;
+    const uint16_t *at = words + i, *const stop = words + end;
+    for (; at < stop; at++) {
+        unsigned w = *at, kind = w >> 12, v = w & 0xFFF;
         if ((E3_SLOW_TYPES >> kind) & 1u)
             break;
-        int64_t now = tb | low;
-        t[n] = now;
+        t[n] = (int64_t)now;
         x[n] = (uint16_t)(v & 0x7FF);
         y[n] = (uint16_t)yy;
         p[n] = (uint8_t)(v >> 11);
         n += kind == 2;
-        unsigned events = v & e3_events_mask[kind];
-        if (events) {
-            if (base < 0 || base > base_room)
+        if ((kind | 1u) == 5u) { /* a vector word (4: 12 bits, 5: 8): its events, then the base moves on */
+            unsigned events = kind == 4 ? v : (v & 0xFFu);
+            int64_t base = s->base;
+            if (events && (base < 0 || base > o->width - 12))
                 break;
             for (; events; events &= events - 1, n++) {
-                t[n] = now;
+                t[n] = (int64_t)now;
                 x[n] = (uint16_t)(base + lowest_bit(events));
                 y[n] = (uint16_t)yy;
-                p[n] = (uint8_t)pol;
+                p[n] = (uint8_t)s->pol;
             }
+            s->base = base + (kind == 4 ? 12 : 8);
+            continue;
         }
-        base += e3_step[kind];
         yy = kind == 0 ? (int64_t)(v & 0x7FF) : yy;
-        base = kind == 3 ? (int64_t)(v & 0x7FF) : base;
-        pol = kind == 3 ? (int64_t)(v >> 11) : pol;
-        low = kind == 6 ? (int64_t)v : low;
-        if (kind == 8) {
-            int64_t high = (tb >> 12) & 0xFFF, wrap = (int64_t)v < high && high - (int64_t)v > 2048;
-            tb = (int64_t)(((((uint64_t)tb >> 24) + (uint64_t)wrap) << 24) | ((uint64_t)v << 12));
+        now = kind == 6 ? (now & ~(uint64_t)0xFFF) | v : now;
+        if (kind == 3) {
+            s->base = (int64_t)(v & 0x7FF);
+            s->pol = (int64_t)(v >> 11);
+        } else if (kind == 8) {
+            uint64_t high = (now >> 12) & 0xFFF, wrap = v < high && high - v > 2048;
+            now = (((now >> 24) + wrap) << 24) | ((uint64_t)v << 12) | (now & 0xFFF);
         }
     }
-    s->high = (tb >> 12) & 0xFFF, s->epoch = (int64_t)((uint64_t)tb >> 24), s->low = low;
-    s->y = yy, s->base = base, s->pol = pol, s->now = tb | low, s->n = n;
-    return i;
+    s->high = (int64_t)((now >> 12) & 0xFFF), s->epoch = (int64_t)(now >> 24), s->low = (int64_t)(now & 0xFFF);
+    s->y = yy, s->now = (int64_t)now, s->n = n;
+    return (int64_t)(at - words);
 }
 
 /* Words [0, n_words) from state s (its values in range: high and low below 4096, y below 2048, epoch and base not
@@ -775,7 +786,7 @@ e3_fast(const uint16_t *words, int64_t i, int64_t end, e3_state *s, const e3_out
 static int
 e3_decode(const uint16_t *words, int64_t n_words, e3_state *s, const e3_out *o, int64_t *bad)
 {
-    int64_t i = 0, n0 = s->n;
+    int64_t i = 0;
     int outcome = E3_OK;
     while (i < n_words && outcome == E3_OK) {
         int64_t fits = o->decode ? (o->cap - s->n) / 12 : 0;
@@ -786,9 +797,12 @@ e3_decode(const uint16_t *words, int64_t n_words, e3_state *s, const e3_out *o, 
             int64_t first = i;
             i = e3_fast(words, i, end, s, o);
             uint16_t most_x = 0, most_y = 0;
+            int64_t t_min = s->t_min, t_max = s->t_max;
             for (int64_t k = start.n; k < s->n; k++) {
                 most_x = o->x[k] > most_x ? o->x[k] : most_x;
                 most_y = o->y[k] > most_y ? o->y[k] : most_y;
+                t_min = o->t[k] < t_min ? o->t[k] : t_min;
+                t_max = o->t[k] > t_max ? o->t[k] : t_max;
             }
             if (s->n > start.n && (most_x >= o->width || most_y >= o->height)) {
                 int64_t taken = i; /* an event off the sensor: the chunk again, exactly */
@@ -798,6 +812,7 @@ e3_decode(const uint16_t *words, int64_t n_words, e3_state *s, const e3_out *o, 
                         break;
                 continue;
             }
+            s->t_min = t_min, s->t_max = t_max; /* the time range of the events e3_fast wrote (it keeps none) */
             if (i == end)
                 continue;
         }
@@ -805,11 +820,6 @@ e3_decode(const uint16_t *words, int64_t n_words, e3_state *s, const e3_out *o, 
         if (outcome == E3_OK)
             i++;
     }
-    if (o->decode) /* the time range of every event written (e3_fast keeps none) */
-        for (int64_t k = n0; k < s->n; k++) {
-            s->t_min = o->t[k] < s->t_min ? o->t[k] : s->t_min;
-            s->t_max = o->t[k] > s->t_max ? o->t[k] : s->t_max;
-        }
     *bad = outcome == E3_OK ? -1 : i;
     return outcome;
 }
