@@ -16,16 +16,28 @@
 #include <unistd.h>
 #endif
 
+/* A hot loop compiled as a function of its own: inlined into its caller, it shares the registers with the
+ * caller's values, and the compiler kept the loop's pointers on the stack, reloading them at every event or word
+ * (the counting below and EVT 3.0's e3_fast: a fifth of their time). */
+#if defined(__GNUC__) || defined(__clang__)
+#define NOINLINE __attribute__((noinline))
+#elif defined(_MSC_VER)
+#define NOINLINE __declspec(noinline)
+#else
+#define NOINLINE
+#endif
+
 /* One window's events into its bins: the picked events i in [a, z) (event picks[i], or first + i without
  * picks), each to bin base + k (k = ky[y] + kx[x], plus on_step when ON) where 0 <= k < limit, else to dump.
  * The caller has checked that every pick, and every bin it can reach, lies inside its buffer. restrict: the
  * bins share no memory with the columns and tables, so the compiler may load the next events' columns while
  * a bin is being written (twice as fast as without), and nothing branches on the polarity. */
 #define COUNT_WINDOW(NAME, BIN_T, UBIN_T)                                                                       \
-    static int NAME(const uint16_t *restrict x, const uint16_t *restrict y, const uint8_t *restrict p,         \
-                    const int64_t *restrict picks, Py_ssize_t n_ev, int64_t first, int64_t a, int64_t z,        \
-                    const int64_t *restrict ky, const int64_t *restrict kx, int64_t on_step, int64_t limit,     \
-                    int64_t base, int64_t dump, int net, BIN_T *restrict out)                                   \
+    NOINLINE static int NAME(const uint16_t *restrict x, const uint16_t *restrict y, const uint8_t *restrict p, \
+                             const int64_t *restrict picks, Py_ssize_t n_ev, int64_t first, int64_t a,          \
+                             int64_t z, const int64_t *restrict ky, const int64_t *restrict kx,                 \
+                             int64_t on_step, int64_t limit, int64_t base, int64_t dump, int net,               \
+                             BIN_T *restrict out)                                                               \
     {                                                                                                          \
         for (int64_t i = a; i < z; i++) {                                                                      \
             int64_t e = picks ? picks[i] : first + i;                                                          \
@@ -706,15 +718,6 @@ e3_word(unsigned w, e3_state *s, const e3_out *o)
 
 /* The word types e3_fast leaves to e3_word (bit k: type k): triggers and the types that are none. */
 #define E3_SLOW_TYPES ((1u << 1) | (1u << 9) | (1u << 10) | (1u << 11) | (1u << 12) | (1u << 13))
-/* e3_fast is compiled on its own, not inlined into its caller: there the caller's values (a copy of the state
- * among them) took the registers its loop needs, and it kept its pointers and values on the stack between words. */
-#if defined(__GNUC__) || defined(__clang__)
-#define E3_NOINLINE __attribute__((noinline))
-#elif defined(_MSC_VER)
-#define E3_NOINLINE __declspec(noinline)
-#else
-#define E3_NOINLINE
-#endif
 /* Most words e3_fast takes at a time (its events, at most 12 a word, stay in the cache for the check after). */
 #define E3_CHUNK_WORDS 4096
 
@@ -725,7 +728,8 @@ e3_word(unsigned w, e3_state *s, const e3_out *o)
  * pass the sensor's width); an event off the sensor it writes all the same (the caller checks the coordinates
  * written, and takes the words again with e3_word where one is off). Returns the index of the first word not
  * taken. */
-E3_NOINLINE static int64_t
+/* (compiled on its own, NOINLINE: inlined, it lost the registers to its caller's copy of the state) */
+NOINLINE static int64_t
 e3_fast(const uint16_t *words, int64_t i, int64_t end, e3_state *s, const e3_out *o)
 {
     /* in locals (the columns' uint8 stores may alias anything in memory) only what every word needs: the time as
