@@ -1205,37 +1205,48 @@ es_run(PyObject *self, PyObject *args)
                     tc += b >> 1;
                     flags = b & 1;
                 }
-                phase = 1;
+                if (n_bytes - i < 5) { /* the event's last bytes are in the next call's data */
+                    phase = 1;
+                    continue;
+                }
+                /* its four bytes at once (what the positions below take one at a time), i at its last */
+                xi = data[i + 1] | (int64_t)data[i + 2] << 8;
+                yi = data[i + 3] | (int64_t)data[i + 4] << 8;
+                i += 4;
             } else if (phase == 1) {
                 xi = b;
                 phase = 2;
+                continue;
             } else if (phase == 2) {
                 xi |= b << 8;
                 phase = 3;
+                continue;
             } else if (phase == 3) {
                 yi = b;
                 phase = 4;
+                continue;
             } else {
                 yi |= b << 8;
                 phase = 0;
-                if (xi >= width || yi >= height) {
-                    outcome = E3_COORD;
-                    break;
-                }
-                if (atis && (flags & 1)) {
-                    left++;
-                    continue;
-                }
-                if (decode) {
-                    t[n] = tc;
-                    x[n] = (uint16_t)xi;
-                    y[n] = (uint16_t)(height - 1 - yi);
-                    p[n] = (uint8_t)(atis ? flags >> 1 : flags);
-                }
-                n++;
-                t_min = tc < t_min ? tc : t_min;
-                t_max = tc > t_max ? tc : t_max;
             }
+            /* an event's last byte */
+            if (xi >= width || yi >= height) {
+                outcome = E3_COORD;
+                break;
+            }
+            if (atis && (flags & 1)) {
+                left++;
+                continue;
+            }
+            if (decode) {
+                t[n] = tc;
+                x[n] = (uint16_t)xi;
+                y[n] = (uint16_t)(height - 1 - yi);
+                p[n] = (uint8_t)(atis ? flags >> 1 : flags);
+            }
+            n++;
+            t_min = tc < t_min ? tc : t_min;
+            t_max = tc > t_max ? tc : t_max;
         }
         bad = outcome == E3_OK ? -1 : i;
         state[0] = tc, state[1] = phase, state[5] = left;
