@@ -973,6 +973,63 @@ evt3_scan(PyObject *self, PyObject *args)
 
 /* ---- Prophesee EVT 2.0 words and DAT events --------------------------------------------------------------- */
 
+/* EVT 2.0 words [0, n_words) from the time high *high and its wraps *epoch (updated), the events and triggers
+ * after the first *n and *m of o's columns (updated, as the events' time range *t_min, *t_max): evt2_run's loop,
+ * compiled on its own (NOINLINE: inlined, it shared the registers with evt2_run's buffers). Returns the outcome and
+ * sets *at to the word it stopped at (n_words when none). */
+NOINLINE static int
+e2_decode(const uint32_t *words, int64_t n_words, int64_t *high_io, int64_t *epoch_io, const e3_out *o, int64_t *n_io,
+          int64_t *m_io, int64_t *t_min_io, int64_t *t_max_io, int64_t *at)
+{
+    int64_t high = *high_io, epoch = *epoch_io, n = *n_io, m = *m_io, t_min = *t_min_io, t_max = *t_max_io;
+    const int64_t width = o->width, height = o->height, cap = o->cap;
+    const int decode = o->decode;
+    int64_t *const t = o->t;
+    uint16_t *const x = o->x, *const y = o->y;
+    uint8_t *const p = o->p;
+    int outcome = E3_OK;
+    int64_t base = (int64_t)(((uint64_t)epoch << 34) | ((uint64_t)high << 6));
+    int64_t i = 0;
+    for (; i < n_words; i++) {
+        uint32_t w = words[i];
+        unsigned kind = w >> 28;
+        if (kind <= 1) {
+            int64_t xx = (w >> 11) & 0x7FF, yy = w & 0x7FF;
+            if (xx >= width || yy >= height) { outcome = E3_COORD; break; }
+            int64_t now = base | ((w >> 22) & 0x3F);
+            if (decode) {
+                if (n >= cap) { outcome = E3_FULL; break; }
+                t[n] = now;
+                x[n] = (uint16_t)xx;
+                y[n] = (uint16_t)yy;
+                p[n] = (uint8_t)kind;
+            }
+            t_min = now < t_min ? now : t_min;
+            t_max = now > t_max ? now : t_max;
+            n++;
+        } else if (kind == 8) {
+            int64_t v = w & 0xFFFFFFF;
+            if (v < high && high - v > ((int64_t)1 << 27))
+                epoch++;
+            high = v;
+            base = (int64_t)(((uint64_t)epoch << 34) | ((uint64_t)high << 6));
+        } else if (kind == 10) {
+            if (decode) {
+                if (m >= o->cap_tr) { outcome = E3_FULL; break; }
+                o->tt[m] = base | ((w >> 22) & 0x3F);
+                o->tk[m] = (w & 1) ? 1 : 2;
+                o->tch[m] = (uint8_t)((w >> 8) & 0x1F);
+            }
+            m++;
+        } else if (kind != 14 && kind != 15) {
+            outcome = E3_TYPE;
+            break;
+        }
+    }
+    *high_io = high, *epoch_io = epoch, *n_io = n, *m_io = m, *t_min_io = t_min, *t_max_io = t_max, *at = i;
+    return outcome;
+}
+
 /* evt2_run(words, state, width, height, decode, t, x, y, p, tt, tk, tch)
  *
  * EVT 2.0 words (uint32, the type in the top four bits) taken one after another from state (two int64, updated in
@@ -1017,45 +1074,9 @@ evt2_run(PyObject *self, PyObject *args)
         fault = "the columns differ in length";
     if (fault == NULL) {
         Py_BEGIN_ALLOW_THREADS
-        int64_t high = state[0], epoch = state[1];
-        int64_t base = (int64_t)(((uint64_t)epoch << 34) | ((uint64_t)high << 6));
-        int64_t i = 0;
-        for (; i < n_words; i++) {
-            uint32_t w = words[i];
-            unsigned kind = w >> 28;
-            if (kind <= 1) {
-                uint32_t xx = (w >> 11) & 0x7FF, yy = w & 0x7FF;
-                if (xx >= width || yy >= height) { outcome = E3_COORD; break; }
-                int64_t now = base | ((w >> 22) & 0x3F);
-                if (decode) {
-                    if (n >= cap) { outcome = E3_FULL; break; }
-                    t[n] = now;
-                    x[n] = (uint16_t)xx;
-                    y[n] = (uint16_t)yy;
-                    p[n] = (uint8_t)kind;
-                }
-                t_min = now < t_min ? now : t_min;
-                t_max = now > t_max ? now : t_max;
-                n++;
-            } else if (kind == 8) {
-                int64_t v = w & 0xFFFFFFF;
-                if (v < high && high - v > ((int64_t)1 << 27))
-                    epoch++;
-                high = v;
-                base = (int64_t)(((uint64_t)epoch << 34) | ((uint64_t)high << 6));
-            } else if (kind == 10) {
-                if (decode) {
-                    if (m >= cap_tr) { outcome = E3_FULL; break; }
-                    tt[m] = base | ((w >> 22) & 0x3F);
-                    tk[m] = (w & 1) ? 1 : 2;
-                    tch[m] = (uint8_t)((w >> 8) & 0x1F);
-                }
-                m++;
-            } else if (kind != 14 && kind != 15) {
-                outcome = E3_TYPE;
-                break;
-            }
-        }
+        e3_out o = {t, tt, x, y, p, tk, tch, cap, cap_tr, (int64_t)width, (int64_t)height, decode};
+        int64_t high = state[0], epoch = state[1], i = 0;
+        outcome = e2_decode(words, n_words, &high, &epoch, &o, &n, &m, &t_min, &t_max, &i);
         bad = outcome == E3_OK ? -1 : i;
         state[0] = high, state[1] = epoch;
         Py_END_ALLOW_THREADS
