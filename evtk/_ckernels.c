@@ -18,7 +18,7 @@
 
 /* A hot loop compiled as a function of its own: inlined into its caller, it shares the registers with the
  * caller's values, and the compiler kept the loop's pointers on the stack, reloading them at every event or word
- * (the counting below and EVT 3.0's e3_fast: a fifth of their time). */
+ * (the counting below, EVT 3.0's e3_fast and EVT 2.0's e2_decode: a fifth of their instructions). */
 #if defined(__GNUC__) || defined(__clang__)
 #define NOINLINE __attribute__((noinline))
 #elif defined(_MSC_VER)
@@ -723,19 +723,19 @@ e3_word(unsigned w, e3_state *s, const e3_out *o)
 
 /* Words [i, end) decoded fast, from state s, where their events cannot outgrow the columns (the caller made sure
  * that 12 a word fit). An EVT_ADDR_X word's event is written whatever the word (only an event word moves the fill
- * on past it), so that nothing branches on the y, x and time words, which come in no order a predictor learns.
+ * on past it), so that the fill takes no branch on the y, x and time words, which come in no order a predictor
+ * learns.
  * Stops at the first word it leaves to e3_word (a trigger, a word of no type, a vector word whose events could
  * pass the sensor's width); an event off the sensor it writes all the same (the caller checks the coordinates
  * written, and takes the words again with e3_word where one is off). Returns the index of the first word not
- * taken. */
-/* (compiled on its own, NOINLINE: inlined, it lost the registers to its caller's copy of the state) */
+ * taken. Compiled on its own (NOINLINE): inlined, it lost the registers to its caller's copy of the state. */
 NOINLINE static int64_t
 e3_fast(const uint16_t *words, int64_t i, int64_t end, e3_state *s, const e3_out *o)
 {
     /* in locals (the columns' uint8 stores may alias anything in memory) only what every word needs: the time as
      * the one value now = epoch << 24 | high << 12 | low (unsigned arithmetic: any state wraps, defined), y and
      * the fill; the vector base and polarity, which only vector and EVT_VECT_BASE_X words touch, stay in *s, so
-     * that the loop's values fit in the registers (it kept its pointers on the stack between words before) */
+     * that the loop's values fit in the registers */
     uint64_t now = ((uint64_t)s->epoch << 24) | ((uint64_t)s->high << 12) | (uint64_t)s->low;
     int64_t yy = s->y, n = s->n;
     int64_t *const t = o->t;
@@ -974,9 +974,9 @@ evt3_scan(PyObject *self, PyObject *args)
 /* ---- Prophesee EVT 2.0 words and DAT events --------------------------------------------------------------- */
 
 /* EVT 2.0 words [0, n_words) from the time high *high and its wraps *epoch (updated), the events and triggers
- * after the first *n and *m of o's columns (updated, as the events' time range *t_min, *t_max): evt2_run's loop,
- * compiled on its own (NOINLINE: inlined, it shared the registers with evt2_run's buffers). Returns the outcome and
- * sets *at to the word it stopped at (n_words when none). */
+ * after the first *n and *m of o's columns (EVT 3.0's output struct; updated, as the events' time range *t_min,
+ * *t_max): evt2_run's loop, compiled on its own (NOINLINE: inlined, it shared the registers with evt2_run's
+ * buffers). Returns the outcome and sets *at to the word it stopped at (n_words when none). */
 NOINLINE static int
 e2_decode(const uint32_t *words, int64_t n_words, int64_t *high_io, int64_t *epoch_io, const e3_out *o, int64_t *n_io,
           int64_t *m_io, int64_t *t_min_io, int64_t *t_max_io, int64_t *at)
