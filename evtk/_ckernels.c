@@ -55,7 +55,8 @@
 COUNT_WINDOW(count_window16, int16_t, uint16_t)
 COUNT_WINDOW(count_window32, int32_t, uint32_t)
 
-/* count_windows(x, y, p, picks, use_picks, first, at, ky, kx, on_step, limit, per_window, dump, net, out, width)
+/* count_windows(x, y, p, picks, use_picks, first, at, ky, kx, on_step, limit, per_window, dump, net, out, width
+ *               [, zero_from, zero_to])
  *
  * For window w (0 <= w < len(at) - 1) and each of its picked events i in [at[w], at[w + 1]) (event
  * picks[i] with use_picks, else first + i), the bin of the event within its window is
@@ -63,7 +64,9 @@ COUNT_WINDOW(count_window32, int32_t, uint32_t)
  * the dump bin. That bin of out (int16 bins with width 2, int32 with width 4) gets +1, or with net the
  * event's sign (+1 ON, -1 OFF). x and y are uint16, p uint8 (not 0: ON), picks, at, ky and kx int64;
  * ky and kx have 65536 entries (every uint16 coordinate). Adds wrap in the bins' type (the caller
- * chooses a type that holds every window's events).
+ * chooses a type that holds every window's events). Windows zero_from <= w < zero_to have their per_window
+ * bins set to 0 just before their events are counted (still in cache when the events reach them; a batch's
+ * bins cleared at once ahead had left the cache by the time its later windows were counted).
  *
  * Returns None; raises ValueError for an argument this file refuses (the wrapper's checks make that a
  * bug), after which out may hold part of the counts.
@@ -73,13 +76,14 @@ count_windows(PyObject *self, PyObject *args)
 {
     Py_buffer xb, yb, pb, pickb, atb, kyb, kxb, outb;
     int use_picks, net, width;
-    Py_ssize_t first;
+    Py_ssize_t first, zero_from = 0, zero_to = 0;
     long long on_step, limit, per_window, dump;
     const char *fault = NULL;
 
     (void)self;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*pny*y*y*LLLLpw*i", &xb, &yb, &pb, &pickb, &use_picks, &first, &atb,
-                          &kyb, &kxb, &on_step, &limit, &per_window, &dump, &net, &outb, &width))
+    if (!PyArg_ParseTuple(args, "y*y*y*y*pny*y*y*LLLLpw*i|nn", &xb, &yb, &pb, &pickb, &use_picks, &first, &atb,
+                          &kyb, &kxb, &on_step, &limit, &per_window, &dump, &net, &outb, &width, &zero_from,
+                          &zero_to))
         return NULL;
 
     const uint16_t *x = (const uint16_t *)xb.buf, *y = (const uint16_t *)yb.buf;
@@ -111,6 +115,13 @@ count_windows(PyObject *self, PyObject *args)
                 break;
             }
             int64_t base = (int64_t)w * per_window;
+            if (w >= zero_from && w < zero_to) {
+                if (per_window > 0 && (per_window > n_out || w > (n_out - per_window) / per_window)) {
+                    fault = "a window's bins outside the bins";
+                    break;
+                }
+                memset((char *)outb.buf + base * width, 0, (size_t)per_window * (size_t)width);
+            }
             int bad = width == 2
                 ? count_window16(x, y, p, picks, n_ev, first, a, z, ky, kx, on_step, limit, base, dump, net,
                                  (int16_t *)outb.buf)
@@ -1379,7 +1390,9 @@ PyInit__ckernels(void)
     fill_pop12();
     PyObject *m = PyModule_Create(&module);
     /* the codecs decode_lz4_range takes (its optional codec argument): a build before Zstandard has no such name */
-    if (m != NULL && PyModule_AddIntConstant(m, "RANGE_CODECS", 2) < 0) {
+    /* count_windows takes the windows to clear (zero_from, zero_to): a build before it has no such name */
+    if (m != NULL && (PyModule_AddIntConstant(m, "RANGE_CODECS", 2) < 0
+                      || PyModule_AddIntConstant(m, "COUNT_CLEARS", 1) < 0)) {
         Py_DECREF(m);
         return NULL;
     }

@@ -1,7 +1,8 @@
 from typing import Any
 
 def count_windows(x: Any, y: Any, p: Any, picks: Any, use_picks: bool, first: int, at: Any, ky: Any, kx: Any,
-                  on_step: int, limit: int, per_window: int, dump: int, net: bool, out: Any, width: int, /) -> None: ...
+                  on_step: int, limit: int, per_window: int, dump: int, net: bool, out: Any, width: int,
+                  zero_from: int = 0, zero_to: int = 0, /) -> None: ...
 
 def decode_lz4_batch(raw: Any, heads: Any, sids: Any, sizes: Any, counts: Any, verify: bool, decompress: int,
                      is_error: int, reset: int, ctx: int, stage: Any, floor_bytes: int, ratio: int, most: int, t: Any,
@@ -13,6 +14,7 @@ def decode_lz4_range(fd: int, offs: Any, sids: Any, sizes: Any, counts: Any, sta
                      width: int, height: int, codec: int = 0, content_size: int = 0, /) -> tuple[int, int, int, int]: ...
 
 RANGE_CODECS: int
+COUNT_CLEARS: int
 
 def evt3_run(words: Any, state: Any, width: int, height: int, decode: bool, t: Any, x: Any, y: Any, p: Any, tt: Any,
              tk: Any, tch: Any, /) -> tuple[int, int, int, int, int, int]: ...

@@ -54,6 +54,10 @@ try:  # apart: an install built before the whole range of batches in one call ha
     from ._ckernels import decode_lz4_range as _kernel_decode_lz4_range
 except ImportError:
     _kernel_decode_lz4_range = None
+try:  # a build whose count_windows clears the windows it is given says so
+    from ._ckernels import COUNT_CLEARS as _COUNT_CLEARS
+except ImportError:
+    _COUNT_CLEARS = 0
 try:  # a build whose range takes Zstandard packets too says so
     from ._ckernels import RANGE_CODECS as _RANGE_CODECS
 except ImportError:
@@ -106,7 +110,7 @@ def padded_table(values: np.ndarray, fill: int) -> np.ndarray:
 
 def count_windows(x: np.ndarray, y: np.ndarray, p: np.ndarray, where: slice | np.ndarray, at: np.ndarray,
                   ky: np.ndarray, kx: np.ndarray, on_step: int, limit: int, per_window: int, dump: int, net: bool,
-                  out: np.ndarray) -> bool:
+                  out: np.ndarray, clear: tuple[int, int] = (0, 0)) -> bool:
     """Count picked events into their windows' bins with the compiled kernel, the GIL released.
 
     Window ``w`` (``0 <= w < len(at) - 1``) holds the picks ``at[w]:at[w + 1]`` (of ``where``: a slice of the
@@ -138,6 +142,10 @@ def count_windows(x: np.ndarray, y: np.ndarray, p: np.ndarray, where: slice | np
         Add signs instead of ones.
     out : ndarray
         The bins: int16 or int32, contiguous, writable, holding every window's bins and ``dump``.
+    clear : tuple of int
+        Windows ``clear[0] <= w < clear[1]`` have their ``per_window`` bins set to 0 just before their events are
+        counted, while they stay in cache (clearing a batch of windows ahead evicts its first windows' bins before
+        they are counted).
 
     Returns
     -------
@@ -166,8 +174,12 @@ def count_windows(x: np.ndarray, y: np.ndarray, p: np.ndarray, where: slice | np
         if where.dtype != np.int64 or not where.flags.c_contiguous:
             return False
         first, picks = 0, where
+    lo, hi = max(0, int(clear[0])), min(n_w, int(clear[1]))
+    if hi > lo and not _COUNT_CLEARS:  # (a build before the kernel cleared them)
+        out[lo * per_window:hi * per_window] = 0
     _kernel_count_windows(x, y, p, picks, not isinstance(where, slice), first, at, ky, kx, int(on_step), int(limit),
-                            int(per_window), int(dump), bool(net), out, out.itemsize)
+                          int(per_window), int(dump), bool(net), out, out.itemsize,
+                          *((lo, hi) if hi > lo and _COUNT_CLEARS else ()))
     return True
 
 

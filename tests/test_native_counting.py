@@ -62,6 +62,28 @@ def test_the_kernel_counts_what_numpys_scattered_adds_count(dtype, net, picks):
 
 
 @needs_kernel
+@pytest.mark.parametrize("dtype", [np.int16, np.int32])
+@pytest.mark.parametrize("built_clearing", [True, False])
+def test_the_kernel_clears_the_windows_it_is_given_and_no_others(dtype, built_clearing, monkeypatch):
+    # bins full of leftovers: windows 2 .. 4 are cleared before they are counted (the first cleared one without
+    # events of its own), the others keep what they held, counts added to it; a build before the kernel cleared
+    # (no COUNT_CLEARS) gets the same bins from the wrapper
+    monkeypatch.setattr(_native, "_COUNT_CLEARS", int(built_clearing))
+    rng = np.random.default_rng(11)
+    x, y, p, where, at, ky, kx, frame, per_window, dump = _case(rng, n_w=7)
+    at[3] = at[2]  # window 2: no events
+    old = rng.integers(-99, 99, dump + 1).astype(dtype)
+    got = old.copy()
+    assert _native.count_windows(x, y, p, where, at, ky, kx, 0, frame, per_window, dump, True, got, (2, 5))
+    want = old.copy()
+    want[2 * per_window:5 * per_window] = 0
+    _oracle(x, y, p, np.arange(where.start, where.stop, dtype=np.int64), at, ky, kx, 0, frame, per_window, dump,
+            True, want)
+    np.testing.assert_array_equal(got, want)
+    assert np.any(got[:2 * per_window] != 0) and not np.any(got[2 * per_window:3 * per_window])
+
+
+@needs_kernel
 def test_the_kernel_wraps_in_the_bins_type_as_numpy_does():
     # 40,000 ON events on one pixel: int16 bins wrap (the callers widen them before that can happen)
     n = 40_000

@@ -430,3 +430,24 @@ def test_only_responses_with_work_of_their_own_decode_the_next_chunk_meanwhile(r
         got = fixed_responses(rec, win, (0, 40, 0, 30), chunk_events=5_000, batch_windows=4, **options)
     assert bool(prefetched) == overlapped
     _same(got, _whole_run(_events(), win, (0, 40, 0, 30), **options))
+
+
+@pytest.mark.parametrize("dtype", [np.int16, np.int32])
+def test_a_run_of_windows_clears_the_frames_it_is_given_with_or_without_events(dtype):
+    # the shared frames hold a batch's leftovers: a run clears the windows of its clear range before it counts
+    # (the compiled kernel as it reaches each, numpy first), whether its windows hold events in this chunk or not,
+    # and leaves the others' counts as they were
+    from evtk.reconstruct.fixed import _net_count_run
+
+    ev = evtk.Events(np.arange(6, dtype=np.int64), np.array([0, 1, 2, 0, 1, 2], np.uint16),
+                     np.zeros(6, np.uint16), np.array([1, 1, 0, 1, 0, 1], np.uint8), (3, 1))
+    frame, n_w = 3, 4
+    by_y, by_x = np.zeros(1, np.int64), np.arange(3, dtype=np.int64)
+    tables = (evtk._native.padded_table(by_y, n_w * frame), evtk._native.padded_table(by_x, n_w * frame))
+    for at, want_counted in ((np.array([0, 3, 3, 6, 6]), [[1, 1, -1], [0, 0, 0], [1, -1, 1], [0, 0, 0]]),
+                             (np.array([0, 0, 0, 0, 0]), [[0] * 3] * 4)):
+        out = np.full(n_w * frame + 1, 7, dtype)
+        _net_count_run(ev, slice(0, 6), at, 0, n_w, 0, n_w, frame, 3, True, by_y, by_x, np.int64, out,
+                       tables if evtk._native.enabled() else None, (1, 3))
+        want = np.array(want_counted, dtype).reshape(-1) + np.repeat([7, 0, 0, 7], 3).astype(dtype)
+        np.testing.assert_array_equal(out[:n_w * frame], want)

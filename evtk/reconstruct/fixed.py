@@ -614,7 +614,7 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
 
     def add(ev: Events, i: int, j: int, state: list) -> None:
         n, where = _window_picks(ev, starts[i:j], ends[i:j])
-        out, totals = state
+        out, totals, cleared = state
         totals += n
         most = int(totals.max(initial=0))
         if most > np.iinfo(np.int32).max:
@@ -626,21 +626,30 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
         if out.dtype == np.int16 and most > np.iinfo(np.int16).max:  # a pixel's net count could leave int16
             state[0] = out = _widened(out, frames)
         at = np.concatenate(([0], np.cumsum(n)))  # each window's events among the picked ones
+        # the windows up to the last this chunk reaches are cleared as they are counted (windows come in time
+        # order: one this chunk passes will hold no more events); those before `cleared` hold counts already
+        reach = int(np.flatnonzero(n)[-1]) + 1
+        clear = (cleared, max(cleared, reach))
+        state[2] = clear[1]
         # runs of whole windows, one a thread: each writes its own windows' frames and its own dump bin
         bounds = cuts(n, min(dumps, parts(total, gil_free=tables is not None)))
-        run(_net_count_run, [(ev, where, at, wa, wb, r, j - i, frame, w_px, whole, by_y, by_x, dtype, out, tables)
-                             for r, (wa, wb) in enumerate(zip(bounds, bounds[1:]))])
+        run(_net_count_run, [(ev, where, at, wa, wb, r, j - i, frame, w_px, whole, by_y, by_x, dtype, out, tables,
+                              clear) for r, (wa, wb) in enumerate(zip(bounds, bounds[1:]))])
 
     frames = np.empty(nb * frame + dumps, np.int32)  # one buffer for every batch (its pages touched once)
 
     def batch(b: int) -> tuple[list]:  # the shared frames: a batch is used before the next
-        # int16 frames (half the memory to clear, count into and sum) until a window's events could exceed them
-        out = frames.view(np.int16)[:(nexts[b] - firsts[b]) * frame + dumps]
-        out.fill(0)
-        return [out, np.zeros(nexts[b] - firsts[b], np.int64)],
+        # int16 frames (half the memory to clear, count into and sum) until a window's events could exceed them;
+        # a window's frame is cleared when it is first counted (or when the batch is finished, if never), the
+        # dump bins now
+        n_b = nexts[b] - firsts[b]
+        out = frames.view(np.int16)[:n_b * frame + dumps]
+        out[n_b * frame:] = 0
+        return [out, np.zeros(n_b, np.int64), 0],
 
     def finished(i: int, j: int, state: list) -> tuple[int, np.ndarray, int]:
-        out, totals = state
+        out, totals, cleared = state
+        out[cleared * frame:(j - i) * frame] = 0  # the windows no event reached
         return i, out[:(j - i) * frame].reshape(j - i, h_px, w_px), int(totals.max(initial=0))
 
     yield from _batches(source, windows, firsts, nexts, max(1, min(int(chunk_events), READ_EVENTS)), progress,
@@ -657,17 +666,24 @@ def _widened(out: np.ndarray, frames: np.ndarray) -> np.ndarray:
 
 def _net_count_run(ev: Events, where: slice | np.ndarray, at: np.ndarray, wa: int, wb: int, r: int, n_w: int,
                    frame: int, w_px: int, whole: bool, by_y: np.ndarray, by_x: np.ndarray, dtype: Any,
-                   out: np.ndarray, tables: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                   out: np.ndarray, tables: tuple[np.ndarray, np.ndarray] | None = None,
+                   clear: tuple[int, int] = (0, 0)) -> None:
     """Add the signs of the picked events of windows ``wa .. wb - 1`` (``at``: each window's first among them)
     to their frames in ``out`` (``n_w`` windows of ``frame`` bins, then a dump bin per run: this run's is
-    ``n_w * frame + r``). Runs of different windows write different bins, so they may go on threads. With
-    ``tables`` (``by_y`` and ``by_x`` over every uint16 coordinate) the compiled kernel counts where it can."""
+    ``n_w * frame + r``), the frames of windows ``clear[0] .. clear[1] - 1`` among them set to 0 first. Runs of
+    different windows write different bins, so they may go on threads. With ``tables`` (``by_y`` and ``by_x`` over
+    every uint16 coordinate) the compiled kernel counts (and clears each window's frame as it reaches it) where it
+    can."""
     a, z = int(at[wa]), int(at[wb])
+    lo, hi = max(clear[0], wa), min(clear[1], wb)  # the run's windows to clear
     if z <= a:
+        out[lo * frame:hi * frame] = 0
         return
     if tables is not None and native_count_windows(ev.x, ev.y, ev.p, where, at[wa:wb + 1], *tables, 0, frame, frame,
-                                                    (n_w - wa) * frame + r, True, out[wa * frame:]):
+                                                    (n_w - wa) * frame + r, True, out[wa * frame:],
+                                                    (lo - wa, hi - wa)):
         return
+    out[lo * frame:hi * frame] = 0
     pick = slice(where.start + a, where.start + z) if isinstance(where, slice) else where[a:z]
     if whole:  # the region is the sensor: the key by arithmetic, no table look-ups
         key = np.multiply(ev.y[pick], w_px, dtype=dtype)
