@@ -291,3 +291,31 @@ def test_a_packet_header_read_in_place_is_read_as_step_by_step():
             assert _fbpy._root_vector_at(buf, pad, len(b), b"EVTS", size) == want, (k, bytes(b).hex())
             seen.add(want[0] if want[0] < 0 else "ok")
     assert seen >= {"ok", _fbpy.ST_BAD_IDENT, _fbpy.ST_BAD_OFFSET, _fbpy.ST_SLACK}, seen
+
+
+@pytest.mark.parametrize("threads", [2, 5, 16])
+def test_the_threads_ranges_shrink_to_the_end_and_cover_every_packet_once(monkeypatch, threads):
+    # packets of uneven sizes over the threads: the ranges run back to back over every row, the long ones first,
+    # and the last ones short (no thread left alone with a long range at the end); a range that stops early
+    # ends the intact prefix there
+    monkeypatch.setenv("EVTK_THREADS", str(threads))
+    rng = np.random.default_rng(threads)
+    counts = rng.integers(1_000, 20_000, 2_000)
+    total = int(counts.sum())
+    seen: list[tuple[int, int]] = []
+
+    def work(a, b):
+        seen.append((a, b))
+        return b
+
+    assert a4r._run_split(work, len(counts), counts) == len(counts)
+    seen.sort()
+    assert seen[0][0] == 0 and seen[-1][1] == len(counts)
+    assert all(b == c for (_, b), (c, _) in zip(seen, seen[1:])) and all(a < b for a, b in seen)
+    sizes = [int(counts[a:b].sum()) for a, b in seen]
+    assert sizes[0] > 4 * sizes[-2]  # guided: the first range is several of the last ones
+    assert max(sizes[-3:]) <= total // (16 * threads) + int(counts.max())  # the last ones at the floor
+    assert len(seen) <= 8 * threads  # few ranges, however many packets
+
+    stop = seen[len(seen) // 2]
+    assert a4r._run_split(lambda a, b: a if (a, b) == stop else b, len(counts), counts) == stop[0]
