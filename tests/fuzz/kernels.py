@@ -106,6 +106,9 @@ class _Caller:
                 args[14] = out[: rng.randrange(len(out) + 1)]
             else:
                 args[k] = _extreme(rng)
+        if rng.random() < 0.5:  # the windows to clear: among them, past them, reversed, or extreme
+            n_w = max(len(at) - 1, 0)
+            args += [rng.choice([0, 1, n_w, -1, _extreme(rng)]), rng.choice([0, n_w, n_w + 1, 2, _extreme(rng)])]
         self.call("count_windows", *args)
 
     def decode_lz4_batch(self) -> None:
