@@ -16,7 +16,9 @@
 # against one in .old, carried, and the variants in ENVS; ROUNDS sets the rounds), caps (the thread caps
 # MOST_PARTS and PREFETCH_THREADS raised, in patched copies of this tree, against it; CAPS replaces the variants),
 # serial (bench_serial.py: the share of a one-core read that holds the GIL), range-ab (the AEDAT4 read on 1, 8 and
-# 16 cores with the reader's range kernel, then without it: one kernel call a batch, as before the sixteenth round).
+# 16 cores with the reader's range kernel, then without it: one kernel call a batch, as before the sixteenth round),
+# pipeline (bench_pipeline.py: whether the decoding of each chunk or its counting and sums bound enob and
+# reconstruct -o).
 set -u
 OUT=${OUT:-/tmp/evtk-out}
 mkdir -p "$OUT"
@@ -148,6 +150,11 @@ for s in $STEPS; do
     batch) step batch 150 python3 benchmarks/bench_batch.py --recordings 16 --workers 16 --rounds 2 --repeats 3 --fmt npz \
                --json "$OUT/batch.json" ;;
     calibrate) step calibrate 80 python3 benchmarks/bench_calibrate.py --fresh 7 --writer dv ;;
+    pipeline)  # which side bounds enob and reconstruct -o here: the decoding of each chunk or its counting
+        step pipeline-enob 60 python3 benchmarks/bench_pipeline.py --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 \
+            --op enob --runs 2
+        step pipeline-reconstruct 60 python3 benchmarks/bench_pipeline.py \
+            --file benchmarks/data/fresh_20000000_dv-lz4.aedat4 --op reconstruct --runs 2 ;;
     esac
 done
 echo "== done $(date +%T)"
