@@ -15,6 +15,10 @@
 #ifndef _WIN32
 #include <unistd.h>
 #endif
+#if defined(__SSE2__) || defined(_M_X64)
+#include <emmintrin.h>
+#define HAVE_SSE2 1
+#endif
 
 /* A hot loop compiled as a function of its own: inlined into its caller, it shares the registers with the
  * caller's values, and the compiler kept the loop's pointers on the stack, reloading them at every event or word
@@ -147,6 +151,261 @@ count_windows(PyObject *self, PyObject *args)
         return NULL;
     }
     Py_RETURN_NONE;
+}
+
+/* ---- the sums of a batch of windows' net counts (evtk enob) ------------------------------------------- */
+
+/* The least and the largest of v[0 .. w - 1] into *lo and *hi (which hold a running least and largest). Compiled
+ * on its own: inlined into net_sums_rows, the loop was left scalar. */
+#define VALUE_RANGE(NAME, T)                                                                                    \
+    NOINLINE static void NAME(const T *restrict v, int64_t w, int64_t *lo, int64_t *hi)                        \
+    {                                                                                                          \
+        T l = 0, u = 0;                                                                                        \
+        for (int64_t c = 0; c < w; c++) {                                                                      \
+            l = v[c] < l ? v[c] : l;                                                                           \
+            u = v[c] > u ? v[c] : u;                                                                           \
+        }                                                                                                      \
+        *lo = l < *lo ? l : *lo;                                                                               \
+        *hi = u > *hi ? u : *hi;                                                                               \
+    }
+
+VALUE_RANGE(range16, int16_t)
+VALUE_RANGE(range32, int32_t)
+
+#ifdef HAVE_SSE2
+/* Row `row` of k windows' int16 net counts with SSE2, eight pixels at a time and every window of them before the
+ * next eight (their sums in registers): each pixel's sum and sum of squares over the windows into S1 and S2, two
+ * windows' counts interleaved so that pmaddwd gives a * a + b * b (and with ones a + b) per pixel; where the eight
+ * pixels' largest magnitude m lets the int32 sums overflow (k * m * m > INT32_MAX), they are summed again in 64
+ * bits. With wsum (k rows of w / 2 int32, w even), each window's sums of pixel pairs (c, c + 1) are added to its
+ * row: the block sums' first step. Returns the row's largest magnitude. */
+NOINLINE static int64_t
+row_sums16_sse2(const int16_t *restrict net, int64_t k, int64_t h, int64_t w, int64_t row, uint64_t *restrict S1,
+                uint64_t *restrict S2, int32_t *restrict wsum)
+{
+    const int64_t plane = h * w, half = w / 2;
+    const int16_t *top = net + row * w;
+    const __m128i ones = _mm_set1_epi16(1), zero = _mm_setzero_si128();
+    int64_t big = 0, c = 0;
+    for (; c + 8 <= w; c += 8) {
+        __m128i s1l = zero, s1h = zero, s2l = zero, s2h = zero, mn = zero, mx = zero;
+        for (int64_t i = 0; i < k; i += 2) {
+            __m128i a = _mm_loadu_si128((const __m128i *)(top + i * plane + c));
+            __m128i b = i + 1 < k ? _mm_loadu_si128((const __m128i *)(top + (i + 1) * plane + c)) : zero;
+            mn = _mm_min_epi16(mn, _mm_min_epi16(a, b));
+            mx = _mm_max_epi16(mx, _mm_max_epi16(a, b));
+            __m128i lo = _mm_unpacklo_epi16(a, b), hi = _mm_unpackhi_epi16(a, b);
+            s1l = _mm_add_epi32(s1l, _mm_madd_epi16(lo, ones));
+            s1h = _mm_add_epi32(s1h, _mm_madd_epi16(hi, ones));
+            s2l = _mm_add_epi32(s2l, _mm_madd_epi16(lo, lo));
+            s2h = _mm_add_epi32(s2h, _mm_madd_epi16(hi, hi));
+            if (wsum != NULL) {
+                __m128i *pa = (__m128i *)(wsum + i * half + c / 2);
+                _mm_storeu_si128(pa, _mm_add_epi32(_mm_loadu_si128(pa), _mm_madd_epi16(a, ones)));
+                if (i + 1 < k) {
+                    __m128i *pb = (__m128i *)(wsum + (i + 1) * half + c / 2);
+                    _mm_storeu_si128(pb, _mm_add_epi32(_mm_loadu_si128(pb), _mm_madd_epi16(b, ones)));
+                }
+            }
+        }
+        int16_t least[8], most[8];
+        _mm_storeu_si128((__m128i *)least, mn);
+        _mm_storeu_si128((__m128i *)most, mx);
+        int64_t m = 0;
+        for (int j = 0; j < 8; j++) {
+            m = -(int64_t)least[j] > m ? -(int64_t)least[j] : m;
+            m = most[j] > m ? most[j] : m;
+        }
+        big = m > big ? m : big;
+        if (m <= 32767 && k <= INT32_MAX && (uint64_t)k * (uint64_t)(m * m) <= INT32_MAX) {  /* int32 sums exact */
+            int32_t v1[8], v2[8];
+            _mm_storeu_si128((__m128i *)v1, s1l);
+            _mm_storeu_si128((__m128i *)(v1 + 4), s1h);
+            _mm_storeu_si128((__m128i *)v2, s2l);
+            _mm_storeu_si128((__m128i *)(v2 + 4), s2h);
+            for (int j = 0; j < 8; j++) {
+                S1[c + j] = (uint64_t)(int64_t)v1[j];
+                S2[c + j] = (uint64_t)v2[j];
+            }
+        } else {
+            for (int j = 0; j < 8; j++) {
+                uint64_t t1 = 0, t2 = 0;
+                for (int64_t i = 0; i < k; i++) {
+                    uint64_t a = (uint64_t)(int64_t)top[i * plane + c + j];
+                    t1 += a;
+                    t2 += a * a;
+                }
+                S1[c + j] = t1;
+                S2[c + j] = t2;
+            }
+        }
+    }
+    for (; c < w; c++) {  /* the last w % 8 pixels */
+        uint64_t t1 = 0, t2 = 0;
+        for (int64_t i = 0; i < k; i++) {
+            int64_t v = top[i * plane + c];
+            t1 += (uint64_t)v;
+            t2 += (uint64_t)v * (uint64_t)v;
+            big = (v < 0 ? -v : v) > big ? (v < 0 ? -v : v) : big;
+            if (wsum != NULL)
+                wsum[i * half + c / 2] += (int32_t)v;
+        }
+        S1[c] = t1;
+        S2[c] = t2;
+    }
+    return big;
+}
+#endif
+
+/* Rows ya .. yb - 1 of k windows' net counts (frames of h x w bins, window after window; int16 with width 2,
+ * int32 with width 4): each pixel's sum (s1) and sum of squares (s2) over the windows, each window's sums over
+ * blocks of fy x fx pixels added to blocks (k x (h / fy) x (w / fx); NULL: none), and the largest magnitude,
+ * returned: one pass over the counts where numpy takes six. The int16 rows go through row_sums16_sse2 where SSE2
+ * is there (with wsum, the pair sums that make the blocks' sums); elsewhere, and for int32 counts, each row's
+ * largest magnitude is found first and the sums are 64-bit. 64-bit sums wrap (unsigned: defined); the caller
+ * checks that they hold the magnitudes. r1: room for a row of int32 sums. */
+static int64_t
+net_sums_rows(const void *net, int width, int64_t k, int64_t h, int64_t w, int64_t ya, int64_t yb, int64_t fy,
+              int64_t fx, int64_t *s1, int64_t *s2, int64_t *blocks, int32_t *r1, int32_t *wsum)
+{
+    const int16_t *n16 = (const int16_t *)net;
+    const int32_t *n32 = (const int32_t *)net;
+    int64_t big = 0, rmax = 0, ow = fx > 0 ? w / fx : 0, oh = fy > 0 ? h / fy : 0;
+    for (int64_t row = ya; row < yb; row++) {
+        uint64_t *S1 = (uint64_t *)s1 + row * w, *S2 = (uint64_t *)s2 + row * w;
+#ifdef HAVE_SSE2
+        if (width == 2) {
+            int64_t m = row_sums16_sse2(n16, k, h, w, row, S1, S2, wsum);
+            big = m > big ? m : big;
+            rmax = m > rmax ? m : rmax;
+            if (blocks == NULL || (row + 1) % fy)
+                continue;
+            if (wsum != NULL) {  /* a block row's last row: its blocks from the windows' pair sums */
+                for (int64_t i = 0; i < k; i++) {
+                    uint64_t *B = (uint64_t *)blocks + (i * oh + row / fy) * ow;
+                    int32_t *pairs = wsum + i * (w / 2);
+                    for (int64_t b = 0; b < ow; b++) {
+                        uint64_t s = 0;
+                        for (int64_t j = b * (fx / 2); j < (b + 1) * (fx / 2); j++)
+                            s += (uint64_t)(int64_t)pairs[j];
+                        B[b] += s;
+                    }
+                    memset(pairs, 0, (size_t)(w / 2) * sizeof(int32_t));
+                }
+                rmax = 0;
+                continue;
+            }
+        } else
+#endif
+        {
+            int64_t lo = 0, hi = 0;
+            for (int64_t i = 0; i < k; i++) {
+                if (width == 2)
+                    range16(n16 + (i * h + row) * w, w, &lo, &hi);
+                else
+                    range32(n32 + (i * h + row) * w, w, &lo, &hi);
+            }
+            int64_t m = -lo > hi ? -lo : hi;
+            big = m > big ? m : big;
+            rmax = m > rmax ? m : rmax;
+            for (int64_t c = 0; c < w; c++)
+                S1[c] = S2[c] = 0;
+            for (int64_t i = 0; i < k; i++) {
+                int64_t at = (i * h + row) * w;
+                for (int64_t c = 0; c < w; c++) {
+                    uint64_t a = (uint64_t)(int64_t)(width == 2 ? n16[at + c] : n32[at + c]);
+                    S1[c] += a;
+                    S2[c] += a * a;
+                }
+            }
+            if (blocks == NULL || (row + 1) % fy)
+                continue;
+        }
+        /* a block row's last row: each window's sums of its fy rows, column by column (in int32 where fy * rmax
+           cannot overflow it), then over each block's fx columns */
+        for (int64_t i = 0; i < k; i++) {
+            int64_t top = (i * h + row + 1 - fy) * w;
+            uint64_t *B = (uint64_t *)blocks + (i * oh + row / fy) * ow;
+            if (fy * rmax <= INT32_MAX) {
+                for (int64_t c = 0; c < w; c++)
+                    r1[c] = 0;
+                for (int64_t r = 0; r < fy; r++)
+                    for (int64_t c = 0; c < w; c++)
+                        r1[c] += width == 2 ? n16[top + r * w + c] : n32[top + r * w + c];
+                for (int64_t b = 0; b < ow; b++) {
+                    uint64_t s = 0;
+                    for (int64_t c = b * fx; c < (b + 1) * fx; c++)
+                        s += (uint64_t)(int64_t)r1[c];
+                    B[b] += s;
+                }
+            } else {
+                for (int64_t r = 0; r < fy; r++)
+                    for (int64_t c = 0; c < w; c++)
+                        B[c / fx] += (uint64_t)(int64_t)(width == 2 ? n16[top + r * w + c] : n32[top + r * w + c]);
+            }
+        }
+        rmax = 0;
+    }
+    return big;
+}
+
+/* net_sums(net, width, k, h, w, ya, yb, fy, fx, s1, s2, blocks)
+ *
+ * net: k frames of h x w net counts (int16 with width 2, int32 with width 4), contiguous; s1, s2: int64, h * w;
+ * blocks: int64, k * (h / fy) * (w / fx) (fy and fx dividing h and w), or fy = fx = 0 for no block sums. Rows ya ..
+ * yb - 1 of s1 and s2 are set and their block rows of blocks added to (ya and yb multiples of fy: another call's
+ * rows are other blocks). Returns the largest magnitude among those rows' counts; raises ValueError for an
+ * argument this file refuses (the wrapper's checks make that a bug).
+ */
+static PyObject *
+net_sums(PyObject *self, PyObject *args)
+{
+    Py_buffer nb, s1b, s2b, bb;
+    int width;
+    long long k, h, w, ya, yb, fy, fx;
+    const char *fault = NULL;
+    int64_t big = 0;
+
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*iLLLLLLLw*w*w*", &nb, &width, &k, &h, &w, &ya, &yb, &fy, &fx, &s1b, &s2b, &bb))
+        return NULL;
+    if (width != 2 && width != 4)
+        fault = "counts are 2 or 4 bytes";
+    else if (k < 0 || h <= 0 || w <= 0 || h > (1 << 20) || w > (1 << 20) || k > (nb.len / width) / w / h)
+        fault = "frames outside the counts";
+    else if (s1b.len / 8 < h * w || s2b.len / 8 < h * w || s1b.buf == s2b.buf || ya < 0 || yb < ya || yb > h)
+        fault = "rows outside the sums";
+    else if (fy < 0 || fx < 0 || (fy == 0) != (fx == 0))
+        fault = "a block size below 0, or one of two";
+    else if (fy > 0 && (h % fy || w % fx || ya % fy || yb % fy || bb.len / 8 < k * (h / fy) * (w / fx)))
+        fault = "blocks that do not tile the frames, rows that split them, or blocks outside the block sums";
+    if (fault == NULL && k > 0 && yb > ya) {
+        /* the SSE2 route's pair sums: each window's pixel pairs over a block row (fy * 65536 fits int32) */
+        int pairs = fy > 0 && fx % 2 == 0 && fy <= 32767;
+        size_t ints = (size_t)w + (pairs ? (size_t)k * (size_t)(w / 2) : 0);
+        int32_t *room = PyMem_RawCalloc(ints, sizeof(int32_t));
+        if (room == NULL) {
+            PyBuffer_Release(&nb);
+            PyBuffer_Release(&s1b);
+            PyBuffer_Release(&s2b);
+            PyBuffer_Release(&bb);
+            return PyErr_NoMemory();
+        }
+        Py_BEGIN_ALLOW_THREADS
+        big = net_sums_rows(nb.buf, width, k, h, w, ya, yb, fy, fx, (int64_t *)s1b.buf, (int64_t *)s2b.buf,
+                            fy > 0 ? (int64_t *)bb.buf : NULL, room, pairs ? room + w : NULL);
+        Py_END_ALLOW_THREADS
+        PyMem_RawFree(room);
+    }
+    PyBuffer_Release(&nb);
+    PyBuffer_Release(&s1b);
+    PyBuffer_Release(&s2b);
+    PyBuffer_Release(&bb);
+    if (fault != NULL) {
+        PyErr_SetString(PyExc_ValueError, fault);
+        return NULL;
+    }
+    return PyLong_FromLongLong(big);
 }
 
 /* ---- the AEDAT4 reader's batches of LZ4 event packets ---------------------------------------------------- */
@@ -1357,6 +1616,8 @@ dat_scan(PyObject *self, PyObject *args)
 static PyMethodDef methods[] = {
     {"count_windows", count_windows, METH_VARARGS,
      "Count events into their windows' bins with the GIL released (see evtk._native.count_windows)."},
+    {"net_sums", net_sums, METH_VARARGS,
+     "Sum windows' net counts per pixel and per block with the GIL released (see evtk._native.net_sums)."},
     {"decode_lz4_batch", decode_lz4_batch, METH_VARARGS,
      "Decode a batch of LZ4 event packets with the GIL released (see evtk._native.decode_lz4_batch)."},
     {"decode_lz4_range", decode_lz4_range, METH_VARARGS,

@@ -49,6 +49,11 @@ try:  # apart: an install built before the Event Stream kernel has the ones abov
     from ._ckernels import es_run as _kernel_es_run
 except ImportError:
     _kernel_es_run = None
+_kernel_net_sums: Any
+try:  # apart: an install built before the net counts' sums has the ones above
+    from ._ckernels import net_sums as _kernel_net_sums
+except ImportError:
+    _kernel_net_sums = None
 _kernel_decode_lz4_range: Any
 try:  # apart: an install built before the whole range of batches in one call has the ones above
     from ._ckernels import decode_lz4_range as _kernel_decode_lz4_range
@@ -181,6 +186,56 @@ def count_windows(x: np.ndarray, y: np.ndarray, p: np.ndarray, where: slice | np
                           int(per_window), int(dump), bool(net), out, out.itemsize,
                           *((lo, hi) if hi > lo and _COUNT_CLEARS else ()))
     return True
+
+
+def net_sums(net: np.ndarray, size: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray, int,
+                                                                         np.ndarray | None] | None:
+    """Each pixel's sum and sum of squares over ``k`` windows' net counts, each window's sums over the blocks of a
+    ``size`` grid, and the counts' largest magnitude, in one pass of the compiled kernel with the GIL released
+    (runs of rows on evtk's counting threads: :func:`evtk._parallel.parts`).
+
+    What :meth:`evtk.metrics.SinadAccumulator.add_sums` takes for eq. 8 from whole-number repeats, and what
+    :func:`evtk.reconstruct.downsample` averages a window into (the block sums over the block's pixel count).
+    Exact where the caller's bounds hold: ``k * big**2 < 2**63`` for the squares and ``(h * w // (rows * cols)) *
+    big < 2**63`` for the blocks (beyond them the int64 sums wrap).
+
+    Parameters
+    ----------
+    net : ndarray
+        int16 or int32 counts, shape ``(k, h, w)``, C-contiguous.
+    size : tuple of int, optional
+        ``(rows, cols)`` of the blocks' grid: block sums only where it divides ``(h, w)``.
+
+    Returns
+    -------
+    tuple or None
+        ``(s1, s2, big, blocks)``: the int64 sums over the windows, shape ``(h, w)``, the largest magnitude (a
+        Python int) and the int64 block sums, shape ``(k, rows, cols)`` (None without a dividing ``size``). None,
+        nothing done, when the kernel is off or missing or ``net`` is not in the form it takes: the caller then
+        sums with numpy.
+    """
+    if not enabled() or _kernel_net_sums is None:
+        return None
+    if net.ndim != 3 or net.dtype not in (np.int16, np.int32) or not net.flags.c_contiguous or 0 in net.shape:
+        return None
+    k, h, w = (int(v) for v in net.shape)
+    if h > 1 << 20 or w > 1 << 20:
+        return None
+    fy = fx = 0
+    if size is not None and int(size[0]) > 0 and int(size[1]) > 0 and h % int(size[0]) == 0 and w % int(size[1]) == 0:
+        fy, fx = h // int(size[0]), w // int(size[1])
+    s1 = np.empty((h, w), np.int64)
+    s2 = np.empty((h, w), np.int64)
+    blocks = np.zeros((k, h // fy, w // fx) if fy else (0,), np.int64)
+    from ._parallel import parts, run  # (here: a read needs none of it)
+
+    unit = fy or 1  # runs of whole block rows: each run adds to its own blocks
+    units = h // unit
+    n = min(parts(net.size, gil_free=True), units)
+    rows = [unit * (units * r // n) for r in range(n + 1)]
+    bigs = run(lambda a, z: _kernel_net_sums(net, net.itemsize, k, h, w, a, z, fy, fx, s1, s2, blocks),
+               list(zip(rows, rows[1:])))
+    return s1, s2, int(max(bigs)), blocks if fy else None
 
 
 _I64 = np.dtype(np.int64)

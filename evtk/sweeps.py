@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any, Literal, overload
 
 import numpy as np
 
+from ._native import net_sums as native_net_sums
 from ._parallel import cuts, parts, run
 from .errors import EvtkError
 from .io import open as open_recording
@@ -244,9 +245,20 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
             require_memory(fixed + 4 * (nb * pixels + 1), f"{span}: measuring {len(win):,} windows over "
                            f"{x1 - x0}x{y1 - y0} pixels, {nb:,} at a time")
             starts = acc.group_starts.tolist()
+            # the kernel's int64 block sums hold any window's counts (each below 2**31) where a block holds fewer
+            # than 2**32 pixels
+            size_fits = pixels // (rows * cols) < 2**32
             firsts = [i for a, z in zip(starts, starts[1:] + [len(win)]) for i in range(a, z, nb)]
             responses = np.empty(binary.shape)
             for i, net, most in net_count_batches(rec, win, region, firsts, progress=progress):
+                # the compiled kernel's sums in one pass, the GIL released, where built (numpy's otherwise)
+                sums = native_net_sums(net, size) if size_fits else None
+                if sums is not None and acc.add_sums(len(net), sums[0], sums[1], sums[2]):
+                    if sums[3] is not None:  # the blocks' exact sums over their pixel count: their means
+                        np.divide(sums[3], net[0].size // (rows * cols), out=responses[i:i + len(net)])
+                    else:
+                        responses[i:i + len(net)] = _net_block_means(net, size, sums[2])
+                    continue
                 big = acc.add(net)  # the largest magnitude (the events of a window only bound it)
                 responses[i:i + len(net)] = _net_block_means(net, size, most if big is None else big)
             binary[:] = binarize(responses, method)  # each response at its own threshold: one call for all

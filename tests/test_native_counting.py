@@ -230,3 +230,99 @@ def test_counting_that_releases_the_gil_takes_half_the_threads(monkeypatch):
     assert _parallel.parts(work) == _parallel.MOST_PARTS
     assert _parallel.parts(work, gil_free=True) == 8
     assert _parallel.parts(_parallel.MIN_PART, gil_free=True) == 1  # each part still worth a thread
+
+
+def _numpy_sums(net, size):
+    a = net.astype(object) if np.abs(net.astype(np.int64)).max(initial=0) > 1 << 20 else net.astype(np.int64)
+    k, h, w = net.shape
+    blocks = None
+    if size is not None and h % size[0] == 0 and w % size[1] == 0:
+        blocks = a.reshape(k, size[0], h // size[0], size[1], w // size[1]).sum((2, 4))
+    return a.sum(0), (a * a).sum(0), int(np.abs(a).max(initial=0)), blocks
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [np.int16, np.int32])
+@pytest.mark.parametrize(("shape", "size", "most"), [
+    ((16, 240, 320), (16, 16), 40),        # enob's batches: SSE2 pairs, blocks of 15 x 20
+    ((7, 12, 21), (4, 3), 90),             # an odd number of windows, blocks of odd width (no pair sums)
+    ((3_000, 2, 8), (2, 4), 1_000),        # k * m * m past int32: the eight pixels summed again in 64 bits
+    ((5, 6, 21), (2, 7), 30),              # rows of 21: a tail past the eight-pixel groups
+    ((3, 8, 12), (16, 16), 9),             # a grid that does not divide the frame: no block sums
+    ((4, 6, 6), (3, 2), 32767),            # the largest int16 magnitudes: int32 sums would overflow
+    ((70_000, 2, 2), (1, 1), 32767),       # many windows: the squares' sums past int32
+    ((1, 1, 1), None, 5),
+])
+def test_the_net_sums_kernel_gives_numpys_sums(dtype, shape, size, most):
+    rng = np.random.default_rng(sum(shape) + most)
+    net = rng.integers(-most, most, shape, endpoint=True).astype(dtype)
+    got = _native.net_sums(net, size)
+    want = _numpy_sums(net, size)
+    assert got is not None
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    assert got[2] == want[2]
+    if want[3] is None:
+        assert got[3] is None
+    else:
+        np.testing.assert_array_equal(got[3], want[3])
+
+
+@needs_kernel
+def test_the_net_sums_kernel_sums_again_where_int32_would_overflow():
+    # magnitudes of 30,000 over six windows: each pixel's squares pass 2**31, so the eight-pixel groups' int32
+    # sums would wrap; they are summed again in 64 bits
+    rng = np.random.default_rng(8)
+    net = (30_000 * rng.choice([-1, 1], (6, 2, 16))).astype(np.int16)
+    got, want = _native.net_sums(net, (1, 2)), _numpy_sums(net, (1, 2))
+    assert int(want[1].min()) > 2**31
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a, b)
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [np.int16, np.int32])
+def test_the_net_sums_kernel_at_the_types_ends(dtype):
+    # -32768 (int16) or int32's ends: the 64-bit route, exact for int16; int32's squares wrap past int64 as two's
+    # complement (the caller's bound, k * big**2 < 2**63, then sends the repeats to numpy's float route)
+    info = np.iinfo(dtype)
+    net = np.array([[[info.min, info.max, 0, -1, 1, info.min, 3, info.max, 2]]] * 3, dtype).reshape(3, 1, 9)
+    net[1] = -net[1] // 2
+    got = _native.net_sums(net, (1, 3))
+    want = _numpy_sums(net, (1, 3))
+    wrapped = [((int(v) + 2**63) % 2**64) - 2**63 for v in np.asarray(want[1], dtype=object).ravel()]
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1].ravel(), np.array(wrapped, np.int64))
+    assert got[2] == want[2] == -int(info.min)
+    np.testing.assert_array_equal(got[3], want[3])
+
+
+@needs_kernel
+def test_the_net_sums_kernel_on_several_threads_equals_one(monkeypatch):
+    rng = np.random.default_rng(3)
+    net = rng.integers(-60, 60, (9, 240, 320)).astype(np.int16)
+    monkeypatch.setenv("EVTK_THREADS", "1")
+    one = _native.net_sums(net, (16, 16))
+    monkeypatch.setenv("EVTK_THREADS", "8")
+    monkeypatch.setattr(_parallel, "MIN_PART", 1)
+    many = _native.net_sums(net, (16, 16))
+    for a, b in zip(one, many):
+        np.testing.assert_array_equal(a, b)
+
+
+@needs_kernel
+def test_the_net_sums_kernel_refuses_what_does_not_fit():
+    net = np.zeros((2, 4, 6), np.int16)
+    s = np.zeros(24, np.int64)
+    for args in [(net, 3, 2, 4, 6, 0, 4, 0, 0, s, s.copy(), s),                # a width of 3 bytes
+                 (net, 2, 3, 4, 6, 0, 4, 0, 0, s, s.copy(), s),                # more windows than the counts
+                 (net, 2, 2, 4, 6, 0, 5, 0, 0, s, s.copy(), s),                # rows past the frame
+                 (net, 2, 2, 4, 6, 0, 4, 0, 0, s[:10], s.copy(), s),           # sums too short
+                 (net, 2, 2, 4, 6, 0, 4, 0, 0, s, s, s),                       # one array for both sums
+                 (net, 2, 2, 4, 6, 0, 4, 3, 2, s, s.copy(), s),                # blocks that do not tile
+                 (net, 2, 2, 4, 6, 1, 4, 2, 2, s, s.copy(), s),                # rows that split a block row
+                 (net, 2, 2, 4, 6, 0, 4, 2, 0, s, s.copy(), s),                # one block size of two
+                 (net, 2, 2, 4, 6, 0, 4, 1, 1, s, s.copy(), np.zeros(5, np.int64))]:  # block sums too short
+        with pytest.raises(ValueError):
+            _native._kernel_net_sums(*args)
+    assert _native.net_sums(np.zeros((2, 3), np.int16)) is None and _native.net_sums(np.zeros((1, 2, 2), np.int8)) is None

@@ -254,3 +254,34 @@ def test_exact_leave_outs_equal_the_gram_routes_and_skip_its_product(monkeypatch
     floats = sinad(x.astype(np.float64), interval="jackknife")
     assert asked == [False, True]
     assert np.allclose(acc.report(interval="jackknife").ci_db, floats.ci_db, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("interval", ["jackknife", "bootstrap", None])
+def test_sums_added_give_the_state_the_repeats_give(interval):
+    # add_sums of each group's per-pixel sums (as enob's compiled kernel gives them) against add of the repeats
+    rng = np.random.default_rng(5)
+    reps = rng.integers(-30, 30, (130, 4, 5)).astype(np.int16)
+    by_rows, by_sums = SinadAccumulator(130, (4, 5)), SinadAccumulator(130, (4, 5))
+    starts = by_sums.group_starts.tolist() + [130]
+    for a, z in zip(starts, starts[1:]):
+        for lo in range(a, z, 3):  # blocks within the group
+            hi = min(z, lo + 3)
+            block = reps[lo:hi].astype(np.int64)
+            by_rows.add(reps[lo:hi])
+            assert by_sums.add_sums(hi - lo, block.sum(0), (block * block).sum(0), int(np.abs(block).max()))
+    ra, rb = by_rows.report(interval=interval), by_sums.report(interval=interval)
+    assert ra.sinad_db == rb.sinad_db and ra.ci_enob == rb.ci_enob
+
+
+def test_sums_refused_where_they_do_not_fit_the_groups_or_the_pixels():
+    acc = SinadAccumulator(40, (2,))
+    first_group = int(acc.group_starts[1])
+    with pytest.raises(Exception, match="span two groups"):
+        acc.add_sums(first_group + 1, np.zeros(2, np.int64), np.zeros(2, np.int64), 0)
+    with pytest.raises(Exception, match="2 values"):
+        acc.add_sums(1, np.zeros(3, np.int64), np.zeros(3, np.int64), 0)
+    with pytest.raises(Exception, match="integers"):
+        acc.add_sums(1, np.zeros(2), np.zeros(2), 0)
+    # sums whose squares could leave int64: nothing added, add() takes the repeats by the float route
+    assert not acc.add_sums(1, np.zeros(2, np.int64), np.zeros(2, np.int64), 2**31)
+    assert acc.added == 0

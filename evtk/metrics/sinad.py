@@ -387,6 +387,56 @@ class SinadAccumulator:
         self.added += x.shape[0]
         return big
 
+    def add_sums(self, k: int, s1: npt.ArrayLike, s2: npt.ArrayLike, big: int) -> bool:
+        """Add the next ``k`` whole-number repeats given by their per-pixel sum and sum of squares (eq. 8's sums):
+        the same state, to the last bit, as :meth:`add` of the repeats themselves.
+
+        For a caller that sums its counts itself (``evtk enob`` with the compiled kernel,
+        :func:`evtk._native.net_sums`). The ``k`` repeats must lie in one group (blocks cut at
+        :attr:`group_starts`).
+
+        Parameters
+        ----------
+        k : int
+            Repeats summed (at least 1).
+        s1, s2 : array_like
+            Each pixel's sum and sum of squares over them: exact integers, one per pixel of a capture.
+        big : int
+            The largest magnitude among the repeats' values.
+
+        Returns
+        -------
+        bool
+            True when added; False, nothing added, where the exact integer sums could leave int64 (``k**2 *
+            big**2 >= 2**62``): :meth:`add` then takes the repeats themselves by the float route.
+
+        Raises
+        ------
+        EvtkError
+            Sums that are not integers or not one per pixel, ``k`` below 1 or a negative ``big``, more repeats than
+            announced, or repeats that span two groups.
+        """
+        k, big = int(k), int(big)
+        a1, a2 = np.asarray(s1), np.asarray(s2)
+        p = self._mean.shape[1]
+        if not (np.issubdtype(a1.dtype, np.integer) and np.issubdtype(a2.dtype, np.integer)):
+            raise EvtkError(f"SINAD: the sums must be integers, not {a1.dtype} and {a2.dtype}")
+        if a1.size != p or a2.size != p:
+            raise EvtkError(f"SINAD: the sums must hold {p} values each, got {a1.size} and {a2.size}")
+        if k < 1 or big < 0:
+            raise EvtkError(f"SINAD: {k} repeats of largest magnitude {big}")
+        if self.added + k > self.repeats:
+            raise EvtkError(f"SINAD: more than the {self.repeats} repeats announced")
+        g = int(np.searchsorted(self._bounds, self.added, side="right")) - 1
+        if self.added + k > int(self._bounds[g + 1]):
+            raise EvtkError(f"SINAD: repeats {self.added} .. {self.added + k - 1} span two groups (cut them at "
+                            "group_starts)")
+        if k * k * big * big >= 2**62:
+            return False
+        self._stash(g, k, big, a1.reshape(p), a2.reshape(p))
+        self.added += k
+        return True
+
     def _stash(self, g: int, k: int, big: int, s1: np.ndarray, s2: np.ndarray) -> None:
         """Add a block of ``k`` whole-number repeats of group ``g`` (magnitudes at most ``big``, per-pixel sum
         ``s1`` and sum of squares ``s2``, exact in an integer type) to the group's integer sums; merged

@@ -255,6 +255,29 @@ class _Caller:
                   for _ in range(2)]
         self.call("es_run", data, state, *sensor, rng.random() < 0.7, rng.random() < 0.5, *cols)
 
+    def net_sums(self) -> None:
+        """Frames of net counts and their sums' buffers that fit one another, then now and then one that does not."""
+        rng, nrng = self.rng, self.nrng
+        dtype = np.int16 if rng.random() < 0.6 else np.int32
+        k, h, w = rng.choice([0, 1, 2, 3, 9]), rng.choice([1, 2, 6, 15]), rng.choice([1, 7, 8, 16, 21])
+        info = np.iinfo(dtype)
+        net = nrng.integers(info.min, info.max, (k, h, w), endpoint=True).astype(dtype) if rng.random() < 0.3 \
+            else nrng.integers(-40, 40, (k, h, w)).astype(dtype)
+        fy, fx = rng.choice([(0, 0), (1, 1), (h, w), (1, w), (3, 2), (2, 7)])
+        s1, s2 = np.zeros(h * w, np.int64), np.zeros(h * w, np.int64)
+        blocks = np.zeros(k * (h // fy) * (w // fx) if fy and fx else 0, np.int64)
+        ya, yb = 0, h
+        args = [net, net.itemsize, k, h, w, ya, yb, fy, fx, s1, s2, blocks]
+        if rng.random() < 0.4:  # one argument that does not fit
+            i = rng.choice([1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11])
+            if i in (9, 10, 11):
+                args[i] = args[i][:rng.randrange(len(args[i]) + 1)]
+            elif i == 1:
+                args[1] = rng.choice([0, 1, 3, 8, -2])
+            else:
+                args[i] = _extreme(self.rng)
+        self.call("net_sums", *args)
+
     def scans(self) -> None:
         for name, dtype in (("evt3_scan", np.uint16), ("evt2_scan", np.uint32), ("dat_scan", np.uint32)):
             self.call(name, self.array(dtype, self.rng.choice([0, 1, 2, 3, 999])))
@@ -274,7 +297,7 @@ def run(seed: int, calls: int) -> collections.Counter:
     """
     caller = _Caller(seed)
     steps = (caller.count_windows, caller.decode_lz4_batch, caller.prophesee_run, caller.prophesee_run,
-             caller.event_stream_run, caller.scans, caller.decode_lz4_range)
+             caller.event_stream_run, caller.scans, caller.decode_lz4_range, caller.net_sums)
     for i in range(calls):
         steps[i % len(steps)]()
     return caller.outcomes
