@@ -1,5 +1,5 @@
-/* evtk._ckernels: the counting of fixed windows, and the AEDAT4 reader's batches of LZ4 (and, through the
- * system's libzstd, Zstandard) event packets, in compiled code that releases the GIL.
+/* evtk._ckernels: the counting of fixed windows and the sums of their net counts, and the AEDAT4 reader's batches of
+ * LZ4 (and, through the system's libzstd, Zstandard) event packets, in compiled code that releases the GIL.
  *
  * Built at install where a C compiler is present (setup.py marks it optional); without it evtk counts
  * with numpy and decodes in Python (evtk/_native.py chooses). The Python wrappers, evtk._native.count_windows

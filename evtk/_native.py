@@ -1,8 +1,9 @@
 """evtk's optional compiled kernels (``evtk._ckernels``, built at install where a C compiler is present), behind
 wrappers that check their arguments and say when the Python route must be taken instead: the counting of fixed
-windows (:func:`count_windows`), the AEDAT4 reader's batches of LZ4 event packets (:func:`decode_lz4_batch`), and
-Prophesee EVT 3.0 words (:func:`evt3_run`), EVT 2.0 words (:func:`evt2_run`) and DAT events (:func:`dat_run`),
-with their counting passes (:func:`prophesee_scan`), and Event Stream DVS and ATIS bytes (:func:`es_run`); the
+windows (:func:`count_windows`) and the sums of their net counts (:func:`net_sums`), the AEDAT4 reader's batches
+of LZ4 event packets (:func:`decode_lz4_batch`), and Prophesee EVT 3.0 words (:func:`evt3_run`), EVT 2.0 words
+(:func:`evt2_run`) and DAT events (:func:`dat_run`), with their counting passes (:func:`prophesee_scan`), and Event
+Stream DVS and ATIS bytes (:func:`es_run`); the
 reader's whole range of LZ4 batches (and of Zstandard ones, where the system has libzstd), its reads from the file
 included, goes through :func:`decode_lz4_range`.
 
