@@ -365,6 +365,7 @@ net_sums(PyObject *self, PyObject *args)
     long long k, h, w, ya, yb, fy, fx;
     const char *fault = NULL;
     int64_t big = 0;
+    int no_memory = 0;
 
     (void)self;
     if (!PyArg_ParseTuple(args, "y*iLLLLLLLw*w*w*", &nb, &width, &k, &h, &w, &ya, &yb, &fy, &fx, &s1b, &s2b, &bb))
@@ -384,23 +385,21 @@ net_sums(PyObject *self, PyObject *args)
         int pairs = fy > 0 && fx % 2 == 0 && fy <= 32767;
         size_t ints = (size_t)w + (pairs ? (size_t)k * (size_t)(w / 2) : 0);
         int32_t *room = PyMem_RawCalloc(ints, sizeof(int32_t));
-        if (room == NULL) {
-            PyBuffer_Release(&nb);
-            PyBuffer_Release(&s1b);
-            PyBuffer_Release(&s2b);
-            PyBuffer_Release(&bb);
-            return PyErr_NoMemory();
+        no_memory = room == NULL;
+        if (room != NULL) {
+            Py_BEGIN_ALLOW_THREADS
+            big = net_sums_rows(nb.buf, width, k, h, w, ya, yb, fy, fx, (int64_t *)s1b.buf, (int64_t *)s2b.buf,
+                                fy > 0 ? (int64_t *)bb.buf : NULL, room, pairs ? room + w : NULL);
+            Py_END_ALLOW_THREADS
+            PyMem_RawFree(room);
         }
-        Py_BEGIN_ALLOW_THREADS
-        big = net_sums_rows(nb.buf, width, k, h, w, ya, yb, fy, fx, (int64_t *)s1b.buf, (int64_t *)s2b.buf,
-                            fy > 0 ? (int64_t *)bb.buf : NULL, room, pairs ? room + w : NULL);
-        Py_END_ALLOW_THREADS
-        PyMem_RawFree(room);
     }
     PyBuffer_Release(&nb);
     PyBuffer_Release(&s1b);
     PyBuffer_Release(&s2b);
     PyBuffer_Release(&bb);
+    if (no_memory)
+        return PyErr_NoMemory();
     if (fault != NULL) {
         PyErr_SetString(PyExc_ValueError, fault);
         return NULL;

@@ -178,13 +178,19 @@ def _magnitude(x: np.ndarray, runs: list[tuple[int, int]]) -> int:
     return max(run(part, runs))
 
 
+def _sums_exact(k: int, big: int) -> bool:
+    """Whether ``k`` whole-number repeats of magnitudes at most ``big`` keep ``k * S2`` and ``S1 ** 2`` in int64 (the
+    exact integer route); beyond it the float route measures them."""
+    return k * k * big * big < 2**62
+
+
 def _whole_sums(block: np.ndarray, big: int, runs: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray] | None:
     """Per-pixel sum and sum of squares (exact) of a block of whole-number repeats whose magnitudes are at most
     ``big``, in the narrowest signed type of the block's own, int32 and int64 that holds them; None where ``k * S2``
     or ``S1 ** 2`` could leave int64 (then the float route measures it). ``runs`` of pixels (:func:`_pixel_parts`)
     go to the counting threads (each pixel's sums are its own: the same whatever the runs)."""
     k = block.shape[0]
-    if k * k * big * big >= 2**62:
+    if not _sums_exact(k, big):
         return None
     # einsum sums in its inputs' type: in the block's own signed type where neither sum can leave it (int16 net
     # counts: no copy), else in int32 where they cannot overflow it, else in int64; the sums stay in that type
@@ -431,7 +437,7 @@ class SinadAccumulator:
         if self.added + k > int(self._bounds[g + 1]):
             raise EvtkError(f"SINAD: repeats {self.added} .. {self.added + k - 1} span two groups (cut them at "
                             "group_starts)")
-        if k * k * big * big >= 2**62:
+        if not _sums_exact(k, big):
             return False
         self._stash(g, k, big, a1.reshape(p), a2.reshape(p))
         self.added += k

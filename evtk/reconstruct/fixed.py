@@ -626,8 +626,8 @@ def net_count_batches(source: Events | Any, windows: Windows, region: tuple[int,
         if out.dtype == np.int16 and most > np.iinfo(np.int16).max:  # a pixel's net count could leave int16
             state[0] = out = _widened(out, frames)
         at = np.concatenate(([0], np.cumsum(n)))  # each window's events among the picked ones
-        # the windows up to the last this chunk reaches are cleared as they are counted (windows come in time
-        # order: one this chunk passes will hold no more events); those before `cleared` hold counts already
+        # each window is cleared once, in the first chunk that reaches it or a later one (just before its events
+        # are counted); those before `cleared` hold counts already, which later chunks add to
         reach = int(np.flatnonzero(n)[-1]) + 1
         clear = (cleared, max(cleared, reach))
         state[2] = clear[1]
