@@ -104,7 +104,7 @@ def scene_noise(result: Reconstruction, interval: str | None = "jackknife", per_
     for (k, f), idx in result.groups().items():
         if idx.size < 2:
             continue
-        acc = SinadAccumulator(idx.size, result.cells.shape[1:])
+        acc = SinadAccumulator(idx.size, result.cells.shape[1:], per_pixel=per_pixel)
         acc.add(result.cells[idx])
         row = _scene_row(k, f, acc, result.binary[idx], interval, per_pixel, seed)
         if route:
@@ -232,7 +232,7 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
         size = (rows, cols)
         method = options.get("binarize_method", "auto")
         method = binarize_rule(None) if isinstance(method, str) and method == "auto" else method
-        acc = SinadAccumulator(len(win), (y1 - y0, x1 - x0))
+        acc = SinadAccumulator(len(win), (y1 - y0, x1 - x0), per_pixel=per_pixel)
         binary = np.empty((len(win),) + size, np.int8)
         if linear and theta is not None:
             for i, on, off, _ in count_batches(rec, win, region, None, 0, batch, progress=progress):  # (checked)
@@ -268,7 +268,7 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
         for i, counts in accumulate_batches(rec, win, region, batch, progress=progress, reuse=True):
             part = reconstruct_counts(counts, None, skip_us=skip_us, length_us=length_us, **options)
             if acc is None:
-                acc = SinadAccumulator(len(win), part.cells.shape[1:])
+                acc = SinadAccumulator(len(win), part.cells.shape[1:], per_pixel=per_pixel)
                 binary = np.empty((len(win),) + part.binary.shape[1:], part.binary.dtype)
             assert acc is not None and binary is not None  # made by the first batch
             acc.add(part.cells)

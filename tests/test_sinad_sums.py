@@ -7,6 +7,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
+from evtk import EvtkError
 from evtk.metrics import SinadAccumulator, sinad
 from evtk.metrics.sinad import _t_quantile_two_sided
 
@@ -239,7 +240,7 @@ def test_exact_leave_outs_equal_the_gram_routes_and_skip_its_product(monkeypatch
     acc = SinadAccumulator(640, (12, 7))
     for a, b in zip(_enob_blocks(640), _enob_blocks(640)[1:]):
         acc.add(x[a:b])
-    noise, power = acc._exact_leave_one_out()
+    noise, power = acc._exact_leave_one_out(acc._exact_totals())
     want_noise, want_power = _leave_one_out(acc._group_terms())
     assert np.allclose(noise, want_noise, rtol=1e-12, atol=0) and np.allclose(power, want_power, rtol=1e-12, atol=0)
     asked = []
@@ -251,8 +252,9 @@ def test_exact_leave_outs_equal_the_gram_routes_and_skip_its_product(monkeypatch
 
     monkeypatch.setattr(SinadAccumulator, "_between", spy)
     acc.report(interval="jackknife")
+    assert asked == []  # the counts' noise and leave-outs: exact sums, no float pass over the groups' means
     floats = sinad(x.astype(np.float64), interval="jackknife")
-    assert asked == [False, True]
+    assert asked == [True]
     assert np.allclose(acc.report(interval="jackknife").ci_db, floats.ci_db, rtol=1e-9, atol=1e-12)
 
 
@@ -285,3 +287,55 @@ def test_sums_refused_where_they_do_not_fit_the_groups_or_the_pixels():
     # sums whose squares could leave int64: nothing added, add() takes the repeats by the float route
     assert not acc.add_sums(1, np.zeros(2, np.int64), np.zeros(2, np.int64), 2**31)
     assert acc.added == 0
+
+
+@pytest.mark.parametrize("interval", ["jackknife", "bootstrap", None])
+def test_counts_noise_from_exact_sums_equals_the_float_route(interval, monkeypatch):
+    """Counts merged from exact integer sums give the pooled noise as one exact quotient, ``(R sum S2 - sum_p
+    T_p^2) / (R (R - 1) p)``, without the float pass over the groups' means (``_between``) unless an interval or
+    per-pixel figures need it: the same SINAD as the float route (the captures as floats) to 1e-12, and as numpy's
+    own pooled variance (ddof 1). An accumulator made without per-pixel sums gives the same figures and refuses
+    per-pixel SINAD."""
+    rng = np.random.default_rng(11)
+    x = rng.poisson(4.0, (96, 9, 5)).astype(np.int16) - 2
+    x[:, 2, 3] = 7  # a noiseless pixel among noisy ones
+    calls = []
+    between = SinadAccumulator._between
+
+    def spy(self, gram, per_pixel):
+        calls.append((gram, per_pixel))
+        return between(self, gram, per_pixel)
+
+    monkeypatch.setattr(SinadAccumulator, "_between", spy)
+    blocks = _enob_blocks(96)
+    got = {}
+    for keep in (True, False):
+        acc = SinadAccumulator(96, (9, 5), per_pixel=keep)
+        for a, b in zip(blocks, blocks[1:]):
+            acc.add(x[a:b])
+        assert bool(acc._sizes) == keep  # (no per-pixel int64 sums kept without per-pixel figures)
+        calls.clear()
+        got[keep] = acc.report(interval=interval)
+        assert calls == ([(True, False)] if interval == "bootstrap" else []), (keep, calls)
+        if not keep:
+            with pytest.raises(EvtkError, match="per_pixel=True"):
+                acc.report(per_pixel=True, interval=interval)
+    floats = sinad(x.astype(np.float64), interval=interval)
+    noise = float(np.var(x.astype(np.float64), axis=0, ddof=1).mean())
+    for rep in got.values():
+        assert math.isclose(rep.noise_std ** 2, noise, rel_tol=1e-12)
+        assert math.isclose(rep.sinad_db, floats.sinad_db, rel_tol=1e-12)
+        if interval is not None:
+            assert np.allclose(rep.ci_db, floats.ci_db, rtol=1e-9, atol=1e-12)
+    assert got[True].sinad_db == got[False].sinad_db and got[True].ci_db == got[False].ci_db
+
+
+def test_counts_of_identical_repeats_are_exactly_noiseless():
+    """Repeats that are all the same counts have no noise, exactly (an integer numerator of 0), however large
+    the counts: infinite SINAD and noise_free, never a tiny positive noise from rounding."""
+    x = np.tile(np.array([[30000, -29999, 7], [1, 0, -32768]], np.int16), (40, 1, 1))
+    acc = SinadAccumulator(40, (2, 3), per_pixel=False)
+    for a, b in zip(_enob_blocks(40), _enob_blocks(40)[1:]):
+        acc.add(x[a:b])
+    rep = acc.report(interval=None)
+    assert rep.noise_free and rep.sinad_db == math.inf and rep.noise_std == 0.0

@@ -240,6 +240,10 @@ class SinadAccumulator:
         How many repeats will be added in all (at least two).
     shape : int or tuple of int
         Shape of one capture.
+    per_pixel : bool
+        Keep each pixel's own sums for :meth:`report`'s per-pixel SINAD (default). False leaves them out (two
+        int64 or float64 passes over the pixels a group, which ``evtk enob`` spares when no per-pixel figure is
+        asked for); :meth:`report` then refuses ``per_pixel=True``.
 
     Raises
     ------
@@ -258,7 +262,7 @@ class SinadAccumulator:
     True
     """
 
-    def __init__(self, repeats: int, shape: int | tuple[int, ...]) -> None:
+    def __init__(self, repeats: int, shape: int | tuple[int, ...], per_pixel: bool = True) -> None:
         repeats = int(repeats)
         if repeats < 2:
             raise EvtkError(f"SINAD needs at least two repeated captures, got {repeats}")
@@ -268,6 +272,7 @@ class SinadAccumulator:
             raise EvtkError("SINAD: the captures hold no pixels")
         require_memory(self.bytes_needed(repeats, p), f"SINAD of {repeats:,} captures of {p:,} pixels")
         self.repeats = repeats
+        self.per_pixel = bool(per_pixel)
         g = min(repeats, MAX_BOOTSTRAP_GROUPS)
         self._bounds = np.linspace(0, repeats, g + 1).round().astype(np.int64)
         self._n = np.zeros(g)
@@ -510,7 +515,8 @@ class SinadAccumulator:
             num -= q
             self._m2[g] += float(np.divide(num, k).sum())
             self._sq[g] += float(s2.sum(dtype=np.float64))
-        self._pool(k, big2, s2, q)
+        if self.per_pixel:
+            self._pool(k, big2, s2, q)
         self._n[g] = k
 
     def _pool(self, k: int, big2: int, s2: np.ndarray, q: np.ndarray) -> None:
@@ -547,21 +553,23 @@ class SinadAccumulator:
         it is in the group's row already)."""
         had = self._n[g]
         if not had:  # the group's first block: nothing to merge with
-            self._m2_px += block_m2
+            if self.per_pixel:
+                self._m2_px += block_m2
+                self._sq_px += sq
             self._m2[g] += float(block_m2.sum())
             if block_mean is not None:
                 self._mean[g] = block_mean
-            self._sq_px += sq
             self._sq[g] += float(sq.sum())
             self._n[g] = k
             return
         delta = block_mean - self._mean_of(g)
         w = had * k / (had + k)
-        self._m2_px += block_m2 + w * delta * delta
+        if self.per_pixel:
+            self._m2_px += block_m2 + w * delta * delta
+            self._sq_px += sq
         # (einsum, not @: a BLAS dot of one vector wakes its threads, 600x slower on a busy machine)
         self._m2[g] += float(block_m2.sum()) + w * float(np.einsum("p,p->", delta, delta))
         self._mean[g] += delta * (k / (had + k))
-        self._sq_px += sq
         self._sq[g] += float(sq.sum())
         self._n[g] += k
 
@@ -640,19 +648,12 @@ class SinadAccumulator:
         np.fill_diagonal(pairs, n * (n - 1))
         return m, pairs, self._sq / p, n
 
-    def _exact_leave_one_out(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """Each leave-one-group-out estimate's pooled noise and power, exactly, where every group holds whole
-        numbers merged from its exact integer sums (the counts `evtk enob` gives); None otherwise (then
-        :func:`_leave_one_out` of :meth:`_group_terms`).
-
-        Leaving group ``j`` out keeps ``N_j = N - n_j`` repeats, whose per-pixel sums are ``T - S1_j`` (``T``
-        every group's): their pairs of distinct repeats give the noise numerator ``N_j S2_(-j) - sum_p (T_p -
-        S1_jp)^2``, an exact integer from ``sum_p T_p^2``, ``sum_p T_p S1_jp`` and each group's ``sum_p S1^2``
-        and ``S2``, over ``N_j (N_j - 1) p`` (a 64-group report formed the groups' Gram matrix for it, half its
-        time, and rounding could leave a leave-out without noise a tiny positive one: a finite upper end).
-        """
-        sums = [v for v in self._exact_sums if v is not None]
-        if len(sums) < len(self._exact_sums):
+    def _exact_totals(self) -> tuple[np.ndarray, int] | None:
+        """Where every group holds whole numbers merged from its exact integer sums (the counts `evtk enob`
+        gives): each group's ``sum_p S1_gp T_p`` (int32 or int64) and ``sum_p T_p^2`` (a Python int), ``T`` the
+        per-pixel sum over every group; None otherwise, or where they could leave int64 (then the float route,
+        :meth:`_between`)."""
+        if any(v is None for v in self._exact_sums):
             return None
         s1 = self._s1
         assert s1 is not None  # (set with the first group's exact sums)
@@ -661,9 +662,33 @@ class SinadAccumulator:
         total = np.add.reduce(s1, axis=0, dtype=np.int32 if g * most < 2**31 else np.int64)
         most_t = max(abs(int(total.max())), abs(int(total.min())))
         if p * most_t * most >= 2**63 or p * most_t * most_t >= 2**63:
-            return None  # (sums beyond int64: the Gram route)
+            return None  # (sums beyond int64)
         cross = np.einsum("gp,p->g", s1, total, dtype=np.int32 if p * most_t * most < 2**31 else np.int64)
         sq_total = int(np.dot(total.astype(np.int64, copy=False), total.astype(np.int64, copy=False)))
+        return cross, sq_total
+
+    def _exact_noise(self, totals: tuple[np.ndarray, int]) -> float:
+        """The pooled per-pixel variance (ddof 1) of every repeat from the groups' exact integer sums
+        (:meth:`_exact_totals`): ``(R sum S2 - sum_p T_p^2) / (R (R - 1) p)`` over the ``R`` repeats, an exact
+        integer over an exact integer, rounded once (the sum of the groups' squared deviations and their means'
+        spread that :meth:`_between` forms in floats)."""
+        r, p = self.repeats, self._mean.shape[1]
+        s2_all = sum(v[0] for v in self._exact_sums if v is not None)
+        return (r * s2_all - totals[1]) / (r * (r - 1) * p)
+
+    def _exact_leave_one_out(self, totals: tuple[np.ndarray, int]) -> tuple[np.ndarray, np.ndarray]:
+        """Each leave-one-group-out estimate's pooled noise and power, exactly, from the groups' exact integer sums
+        and :meth:`_exact_totals` (else :func:`_leave_one_out` of :meth:`_group_terms`).
+
+        Leaving group ``j`` out keeps ``N_j = N - n_j`` repeats, whose per-pixel sums are ``T - S1_j`` (``T``
+        every group's): their pairs of distinct repeats give the noise numerator ``N_j S2_(-j) - sum_p (T_p -
+        S1_jp)^2``, an exact integer from ``sum_p T_p^2``, ``sum_p T_p S1_jp`` and each group's ``sum_p S1^2``
+        and ``S2``, over ``N_j (N_j - 1) p`` (a 64-group report formed the groups' Gram matrix for it, half its
+        time, and rounding could leave a leave-out without noise a tiny positive one: a finite upper end).
+        """
+        cross, sq_total = totals
+        g, p = self._mean.shape
+        sums = [v for v in self._exact_sums if v is not None]
         s2 = [v[0] for v in sums]
         s1_sq = [v[1] for v in sums]
         sizes = [int(v) for v in self._n]
@@ -710,18 +735,31 @@ class SinadAccumulator:
             raise EvtkError(f"interval must be one of {INTERVALS}, not {interval!r}")
         if not 0 < confidence < 1:
             raise EvtkError(f"confidence must be between 0 and 1, not {confidence}")
+        if per_pixel and not self.per_pixel:
+            raise EvtkError("SINAD: this accumulator keeps no per-pixel sums (made with per_pixel=False); make it "
+                            "with per_pixel=True for per-pixel SINAD")
         self._flush()
         if per_pixel:
             self._spill()
         r, p = self.repeats, self._mean.shape[1]
         n = self._n
         want_interval = interval is not None and r >= 3 and (interval == "jackknife" or bool(resamples))
-        loo = self._exact_leave_one_out() if want_interval and interval == "jackknife" else None
-        between, gram, pp_between = self._between(want_interval and loo is None, per_pixel)
+        totals = self._exact_totals()
+        loo = self._exact_leave_one_out(totals) if totals is not None and want_interval and interval == "jackknife" \
+            else None
+        between: np.ndarray | None = None
+        gram: np.ndarray | None = None
+        pp_between: np.ndarray | None = None
+        if totals is None or per_pixel or (want_interval and loo is None):  # (counts' exact sums need no float pass)
+            between, gram, pp_between = self._between(want_interval and loo is None, per_pixel)
         power = float(self._sq.sum()) / (r * p)
         if power == 0.0:
             raise EvtkError("SINAD: the signal is zero everywhere (no light reached the pixels?)")
-        noise = float(self._m2.sum() + n @ between) / ((r - 1) * p)  # pooled per-pixel variance, ddof 1
+        if totals is not None:
+            noise = self._exact_noise(totals)
+        else:  # pooled per-pixel variance, ddof 1
+            assert between is not None
+            noise = float(self._m2.sum() + n @ between) / ((r - 1) * p)
         s_db = _ratio_db(power, noise)
         report = SinadReport(s_db, enob_bits(s_db), noise == 0.0, math.sqrt(power), math.sqrt(noise), r, p,
                              confidence=confidence)
@@ -799,7 +837,7 @@ def sinad(captures: npt.ArrayLike, per_pixel: bool = False, interval: str | None
     9.2942
     """
     x = _as_repeats(captures, "SINAD")
-    acc = SinadAccumulator(x.shape[0], x.shape[1:])
+    acc = SinadAccumulator(x.shape[0], x.shape[1:], per_pixel=per_pixel)
     acc.add(x)
     return acc.report(per_pixel=per_pixel, interval=interval, confidence=confidence, resamples=resamples, seed=seed)
 
