@@ -32,14 +32,11 @@ from .io import open as open_recording
 from .limits import memory_limit_bytes, require_memory, require_window_work
 from .metrics import SinadAccumulator, flip_rates, flip_rates_bytes
 from .reconstruct import (
-    ORACLE_ROUTE,
-    Reconstruction,
     WindowCounts,
     binarize,
     binarize_rule,
     downsample,
     plan,
-    reconstruct,
     window_bytes,
 )
 from .reconstruct.accumulate import accumulate_batches
@@ -58,6 +55,7 @@ if TYPE_CHECKING:  # (the simulator, the optics and the per-pixel stages load wh
     # measuring fixed windows needs none of them)
     from .io.base import BaseRecording
     from .optics import Bench
+    from .reconstruct import Reconstruction
     from .sensor import SensorModel
     from .simulate import Simulation
 
@@ -202,6 +200,8 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
 
     sim, win, region = plan(rec, window, skip_us, length_us, options.pop("region", None), check_memory=False)
     if sim is not None:
+        from .reconstruct import ORACLE_ROUTE, reconstruct  # (here: fixed windows need neither)
+
         result = reconstruct(rec, window=window, skip_us=skip_us, length_us=length_us, region=region, progress=progress,
                              **options)
         result.summary["route"] = ORACLE_ROUTE
@@ -448,6 +448,8 @@ def simulated_reconstruction(
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "run.aedat4")
         sim.write(path)
+        from .reconstruct import reconstruct
+
         with open_recording(path) as rec:
             return run(lambda: reconstruct(rec, **options))
 

@@ -294,3 +294,14 @@ def test_commands_that_write_nothing_load_no_json_or_signal(tmp_path, command):
     files' module-level imports) and signal (the partial-file guard's) loaded for every command, 1.5-2 ms."""
     path = _fixture(tmp_path, "aedat4")
     assert _cli_loads([command[0], str(path), *command[1:]], ("json", "signal", "difflib")) == []
+
+
+def test_enob_of_fixed_windows_loads_no_schedule_or_reconstruction_result(tmp_path):
+    """``evtk enob F --window period:US`` counts net counts into frames and sums them: the capture schedule's
+    module (with the settings it checks against), the scheduled route's entry and its result and summary classes
+    loaded with the windows, the block means and the fixed route's module (about 13 ms of imports in a fresh
+    process), though a recording without a schedule uses none of them."""
+    path = _fixture(tmp_path, "aedat4")
+    heavy = ("evtk.plan.schedule", "evtk.settings", "evtk.reconstruct.entry", "evtk.reconstruct.result",
+             "evtk.reconstruct.summary")
+    assert _cli_loads(["enob", str(path), "--window", "period:10000"], heavy) == []

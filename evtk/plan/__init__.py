@@ -32,11 +32,15 @@ from .._lazymod import lazy_names
 _WHERE = {
     **dict.fromkeys(["PixelModel", "Plan", "as_plan"], "core"),
     **dict.fromkeys(["RECORD_SPECS", "SimulationRecord"], "record"),
-    **dict.fromkeys(["DOT_MARKER_MIN", "DOTS_ID", "FLAT_ID", "LEVEL_ID", "METADATA_KEY", "SCHEDULE_SPECS",
+    **dict.fromkeys(["DOT_MARKER_MIN", "DOTS_ID", "FLAT_ID", "LEVEL_ID", "SCHEDULE_SPECS",
                      "CaptureCounts", "Schedule", "check_patterns", "check_schedule", "default_features", "dot_grid",
                      "level_kernel", "level_steps", "load_patterns", "read_schedule", "sign_pass", "split_passes"],
                     "schedule"),
 }
+
+#: Key of the simulation record in a recording's evtk metadata (here, not with the schedule: whether a recording
+#: carries a record is asked of every recording, fixed windows too, which need no schedule).
+METADATA_KEY = "simulation"
 
 if TYPE_CHECKING:
     from .core import PixelModel, Plan, as_plan
@@ -46,7 +50,6 @@ if TYPE_CHECKING:
         DOTS_ID,
         FLAT_ID,
         LEVEL_ID,
-        METADATA_KEY,
         SCHEDULE_SPECS,
         CaptureCounts,
         Schedule,

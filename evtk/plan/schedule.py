@@ -22,6 +22,7 @@ from ..settings import (
     check_value,
     read_table,
 )
+from . import METADATA_KEY  # (defined in the package: a recording's route is known without this module)
 
 if TYPE_CHECKING:
     import numpy.typing as npt
@@ -35,8 +36,6 @@ __all__ = [
 ]
 
 
-#: Key of the simulation record in a recording's evtk metadata.
-METADATA_KEY = "simulation"
 
 
 _T_LIMIT = np.iinfo(np.int64).max

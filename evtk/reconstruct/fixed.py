@@ -22,7 +22,7 @@ A chunk's windows are counted in runs of whole windows on several threads (:mod:
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,9 +36,10 @@ from ..events import Events
 from ..limits import memory_limit_bytes, require_memory
 from .binarize import binarize, binarize_rule
 from .grid import downsample
-from .result import Reconstruction
-from .summary import ReconstructionSummary
 from .windows import WindowCounts, Windows
+
+if TYPE_CHECKING:
+    from .result import Reconstruction
 
 #: Most count bins (int32) one batch of windows holds: 8 MB, small enough to stay in cache.
 BATCH_BINS = 1 << 21
@@ -532,6 +533,9 @@ def fixed_responses(source: Events | Any, windows: Windows, region: tuple, size:
         "deblur_regularisation": None, "flat_field_captures": 0, "decimation": 1,
         "linearization": "exp(n theta)" if linear else "counts", "timed_share": None, "timing_skipped": None,
     }
+    from .result import Reconstruction  # (here: enob's net counts need neither)
+    from .summary import ReconstructionSummary
+
     empty = np.zeros((n_w, 0, 0), np.int32)
     return Reconstruction(responses, binary, None, responses, None,
                           WindowCounts(empty, empty, windows, (x0, x1, y0, y1), used),

@@ -7,10 +7,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import EvtkError
-from ..plan.schedule import Schedule
 
 if TYPE_CHECKING:
     import numpy.typing as npt
+
+    from ..plan.schedule import Schedule
 
 if TYPE_CHECKING:  # (the optics and scipy load where a function needs them: resizing needs neither)
     from ..optics import Bench
@@ -43,6 +44,8 @@ def combine_passes(values: npt.ArrayLike, schedule: Schedule | dict,
     """
 
     if isinstance(schedule, dict):
+        from ..plan.schedule import Schedule  # (here: fixed windows' block means load no schedule)
+
         schedule = Schedule.from_dict(schedule)
     values = np.asarray(values)
     if values.shape[0] != len(schedule):

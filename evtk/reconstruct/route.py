@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..errors import EvtkError
 from ..limits import require_memory
-from ..plan.schedule import METADATA_KEY
+from ..plan import METADATA_KEY
 from .windows import Windows, windows_from_schedule, windows_from_triggers, windows_periodic
 
 if TYPE_CHECKING:

@@ -11,10 +11,10 @@ import numpy as np
 from ..errors import EvtkError
 from ..events import TRIGGER_CHANNEL_ENV, TriggerKind, Triggers
 from ..limits import require_memory, require_window_work
-from ..plan.schedule import METADATA_KEY, Schedule  # (light: the record's module loads when a schedule is read)
 
 if TYPE_CHECKING:
     from ..plan import CaptureCounts, SimulationRecord
+    from ..plan.schedule import Schedule
 
 __all__ = ["Windows", "WindowCounts", "windows_from_schedule", "windows_from_triggers", "windows_periodic"]
 
@@ -203,6 +203,7 @@ def windows_from_schedule(schedule: Schedule | SimulationRecord | dict, skip_us:
         When a dict holds no schedule, ``skip_us`` < 0 or leaves nothing of a window, or ``length_us`` < 1.
     """
     from ..plan.record import SimulationRecord
+    from ..plan.schedule import METADATA_KEY, Schedule  # (here: fixed windows load no schedule, no settings)
 
     if isinstance(schedule, SimulationRecord):
         schedule = schedule.schedule
