@@ -709,7 +709,7 @@ class SinadAccumulator:
         Parameters
         ----------
         per_pixel : bool
-            Also report each pixel's own SINAD.
+            Also report each pixel's own SINAD (from an accumulator that keeps per-pixel sums: the default).
         interval : "jackknife", "bootstrap" or None
             Confidence interval over repeats (needs at least three); see :func:`sinad`.
         confidence : float
@@ -727,7 +727,8 @@ class SinadAccumulator:
         Raises
         ------
         EvtkError
-            Repeats missing, an unknown interval, a confidence outside (0, 1), or an all-zero signal.
+            Repeats missing, an unknown interval, a confidence outside (0, 1), an all-zero signal, or
+            ``per_pixel`` from an accumulator made without per-pixel sums.
         """
         if self.added != self.repeats:
             raise EvtkError(f"SINAD: {self.added} of the {self.repeats} repeats announced were added")
