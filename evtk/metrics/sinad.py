@@ -648,11 +648,11 @@ class SinadAccumulator:
         np.fill_diagonal(pairs, n * (n - 1))
         return m, pairs, self._sq / p, n
 
-    def _exact_totals(self) -> tuple[np.ndarray, int] | None:
+    def _exact_totals(self) -> tuple[np.ndarray, int, int] | None:
         """Where every group holds whole numbers merged from its exact integer sums (the counts `evtk enob`
-        gives): each group's ``sum_p S1_gp T_p`` (int32 or int64) and ``sum_p T_p^2`` (a Python int), ``T`` the
-        per-pixel sum over every group; None otherwise, or where they could leave int64 (then the float route,
-        :meth:`_between`)."""
+        gives): each group's ``sum_p S1_gp T_p`` (int32 or int64), ``sum_p T_p^2`` and every group's ``sum S2``
+        (Python ints), ``T`` the per-pixel sum over every group; None otherwise, or where they could leave int64
+        (then the float route, :meth:`_between`)."""
         if any(v is None for v in self._exact_sums):
             return None
         s1 = self._s1
@@ -665,18 +665,18 @@ class SinadAccumulator:
             return None  # (sums beyond int64)
         cross = np.einsum("gp,p->g", s1, total, dtype=np.int32 if p * most_t * most < 2**31 else np.int64)
         sq_total = int(np.dot(total.astype(np.int64, copy=False), total.astype(np.int64, copy=False)))
-        return cross, sq_total
+        return cross, sq_total, sum(v[0] for v in self._exact_sums if v is not None)
 
-    def _exact_noise(self, totals: tuple[np.ndarray, int]) -> float:
+    def _exact_noise(self, totals: tuple[np.ndarray, int, int]) -> float:
         """The pooled per-pixel variance (ddof 1) of every repeat from the groups' exact integer sums
         (:meth:`_exact_totals`): ``(R sum S2 - sum_p T_p^2) / (R (R - 1) p)`` over the ``R`` repeats, an exact
         integer over an exact integer, rounded once (the sum of the groups' squared deviations and their means'
         spread that :meth:`_between` forms in floats)."""
         r, p = self.repeats, self._mean.shape[1]
-        s2_all = sum(v[0] for v in self._exact_sums if v is not None)
-        return (r * s2_all - totals[1]) / (r * (r - 1) * p)
+        _, sq_total, s2_all = totals
+        return (r * s2_all - sq_total) / (r * (r - 1) * p)
 
-    def _exact_leave_one_out(self, totals: tuple[np.ndarray, int]) -> tuple[np.ndarray, np.ndarray]:
+    def _exact_leave_one_out(self, totals: tuple[np.ndarray, int, int]) -> tuple[np.ndarray, np.ndarray]:
         """Each leave-one-group-out estimate's pooled noise and power, exactly, from the groups' exact integer sums
         and :meth:`_exact_totals` (else :func:`_leave_one_out` of :meth:`_group_terms`).
 
@@ -686,13 +686,13 @@ class SinadAccumulator:
         and ``S2``, over ``N_j (N_j - 1) p`` (a 64-group report formed the groups' Gram matrix for it, half its
         time, and rounding could leave a leave-out without noise a tiny positive one: a finite upper end).
         """
-        cross, sq_total = totals
+        cross, sq_total, s2_all = totals
         g, p = self._mean.shape
         sums = [v for v in self._exact_sums if v is not None]
         s2 = [v[0] for v in sums]
         s1_sq = [v[1] for v in sums]
         sizes = [int(v) for v in self._n]
-        n_all, s2_all = sum(sizes), sum(s2)
+        n_all = sum(sizes)
         noise, power = np.empty(g), np.empty(g)
         for j in range(g):
             n_j = n_all - sizes[j]

@@ -36,8 +36,6 @@ __all__ = [
 ]
 
 
-
-
 _T_LIMIT = np.iinfo(np.int64).max
 
 
