@@ -170,8 +170,8 @@ def fresh(rounds, writer, keep=None, baseline=None):
         print(f"| {name} | {statistics.median(g[0] for g in got):.3f} | {wall:.2f} | "
               f"{statistics.median(g[2] for g in got):.3f} | {cpu:.2f} | {max(g[1] for g in got):.0f} |")
     w = json.loads(warm[3].strip().splitlines()[-1])
-    print(f"\nwarm, one process (numba loaded by the end: {w['numba']}; it is once the process has counted more "
-          f"than numpy's share), best of {max(rounds, 5)}: read "
+    print(f"\nwarm, one process (numba loaded by the end: {w['numba']}; it is where evtk's compiled kernels are "
+          f"not built, once the process has counted more than numpy's share), best of {max(rounds, 5)}: read "
           f"{w['read'] * 1e3:.1f} ms, calibrated route {w['route'] * 1e3:.1f} ms ({w['route'] / w['read']:.2f}x the read)")
 
 

@@ -1,4 +1,5 @@
-/* evtk._ckernels: the counting of fixed windows and the sums of their net counts, and the AEDAT4 reader's batches of
+/* evtk._ckernels: the counting of fixed windows and the sums of their net counts, the counting of a schedule's windows
+ * with their ON-event times and the timing linearisation's solve, and the AEDAT4 reader's batches of
  * LZ4 (and, through the system's libzstd, Zstandard) event packets, in compiled code that releases the GIL.
  *
  * Built at install where a C compiler is present (setup.py marks it optional); without it evtk counts
@@ -12,6 +13,7 @@
 #include <stdint.h>
 #include <string.h>
 #include <errno.h>
+#include <math.h>
 #ifndef _WIN32
 #include <unistd.h>
 #endif
@@ -1669,6 +1671,277 @@ dat_scan(PyObject *self, PyObject *args)
                          (long long)wraps);
 }
 
+/* The first index of the sorted t[0 .. n - 1] at or after v (numpy's searchsorted, side "left"). */
+static int64_t
+lower_bound(const int64_t *t, int64_t n, int64_t v)
+{
+    int64_t lo = 0, hi = n;
+    while (lo < hi) {
+        int64_t mid = lo + (hi - lo) / 2;
+        if (t[mid] < v)
+            lo = mid + 1;
+        else
+            hi = mid;
+    }
+    return lo;
+}
+
+/* One window's events t[lo .. hi - 1] into its frames: the region's pixel k = (y - y0) * w_px + (x - x0) of the OFF
+ * frame (counts[base + k]) or the ON one (counts[plane + base + k]); with times (first, last not NULL), the first
+ * and last ON event's time from the window's start a_us. Returns the events inside the region. */
+NOINLINE static int64_t
+timed_window(const int64_t *restrict t, const uint16_t *restrict x, const uint16_t *restrict y,
+             const uint8_t *restrict p, int64_t lo, int64_t hi, int64_t x0, int64_t w_px, int64_t y0, int64_t h_px,
+             int64_t base, int64_t plane, int64_t a_us, int32_t *restrict counts, int32_t *restrict first,
+             int32_t *restrict last)
+{
+    int64_t used = 0;
+    for (int64_t i = lo; i < hi; i++) {
+        /* unsigned: coordinates below the region's corner wrap past its far edge, one compare each */
+        uint64_t xi = (uint64_t)((int64_t)x[i] - x0), yi = (uint64_t)((int64_t)y[i] - y0);
+        if (xi >= (uint64_t)w_px || yi >= (uint64_t)h_px)
+            continue;
+        int64_t k = base + (int64_t)yi * w_px + (int64_t)xi;
+        int on = p[i] != 0;
+        int32_t *bin = counts + k + (on ? plane : 0);
+        *bin = (int32_t)((uint32_t)*bin + 1u); /* (the caller refuses a window past 2**31 - 1 events) */
+        used++;
+        if (first != NULL && on) {
+            /* windows shorter than 2**31 us (checked by the caller); the difference wraps, as numba's and numpy's */
+            int32_t dt = (int32_t)(uint32_t)((uint64_t)t[i] - (uint64_t)a_us);
+            if (first[k] < 0)
+                first[k] = dt;
+            last[k] = dt;
+        }
+    }
+    return used;
+}
+
+/* accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, started, first, last, wa, wz)
+ *
+ * evtk.reconstruct.accumulate._accumulate_chunk for windows wa .. wz - 1: a chunk of time-sorted events (t int64, x
+ * and y uint16, p uint8, one length) added to every window [starts[w], ends[w]) it meets (int64, one per window).
+ * counts: int32, OFF then ON, (2, windows, y1 - y0, x1 - x0) flat; total: int64 events per window so far; started:
+ * one byte per window, the windows whose frames (and times) have been zeroed (set on the first chunk that meets
+ * them); first, last: int32 (windows, y1 - y0, x1 - x0) flat, the first and last ON event's time from its window's
+ * start (-1: none), or both empty for no times. Calls on other window ranges may run at the same time. Returns the
+ * events counted inside the region; raises ValueError for an argument this file refuses (the wrapper's checks
+ * make that a bug).
+ */
+static PyObject *
+accumulate_chunk(PyObject *self, PyObject *args)
+{
+    Py_buffer tb, xb, yb, pb, sb, eb, cb, totb, stb, fb, lb;
+    long long x0, x1, y0, y1, wa, wz;
+    const char *fault = NULL;
+    int64_t used = 0;
+
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*LLLLw*w*w*w*w*LL", &tb, &xb, &yb, &pb, &sb, &eb, &x0, &x1, &y0, &y1,
+                          &cb, &totb, &stb, &fb, &lb, &wa, &wz))
+        return NULL;
+    int64_t n = tb.len / 8, n_w = sb.len / 8;
+    int64_t w_px = x1 - x0, h_px = y1 - y0;
+    if (xb.len / 2 < n || yb.len / 2 < n || pb.len < n || eb.len / 8 != n_w)
+        fault = "columns or windows of two lengths";
+    else if (x0 < 0 || y0 < 0 || w_px <= 0 || h_px <= 0 || x1 > 65536 || y1 > 65536)
+        fault = "a region off the coordinates";
+    else if (n_w > 0 && (cb.len / 4 / 2 / n_w / h_px / w_px < 1 || totb.len / 8 < n_w || stb.len < n_w))
+        fault = "counts, totals or flags shorter than the windows";
+    else if (fb.len != lb.len || (fb.len > 0 && n_w > 0 && fb.len / 4 / n_w / h_px / w_px < 1))
+        fault = "times shorter than the counts";
+    else if (wa < 0 || wz < wa || wz > n_w)
+        fault = "windows outside the starts";
+    if (fault == NULL && n > 0) {
+        const int64_t *t = (const int64_t *)tb.buf, *starts = (const int64_t *)sb.buf, *ends = (const int64_t *)eb.buf;
+        int32_t *counts = (int32_t *)cb.buf, *first = fb.len ? (int32_t *)fb.buf : NULL;
+        int32_t *last = lb.len ? (int32_t *)lb.buf : NULL;
+        int64_t *total = (int64_t *)totb.buf;
+        char *started = (char *)stb.buf;
+        int64_t frame = h_px * w_px, plane = n_w * frame;
+        Py_BEGIN_ALLOW_THREADS
+        for (int64_t w = wa; w < wz; w++) {
+            int64_t a = starts[w], b = ends[w];
+            if (b <= t[0] || a > t[n - 1])
+                continue;
+            int64_t lo = lower_bound(t, n, a), hi = lower_bound(t, n, b);
+            total[w] += hi - lo;
+            int64_t base = w * frame;
+            if (!started[w]) {
+                memset(counts + base, 0, (size_t)frame * sizeof(int32_t));
+                memset(counts + plane + base, 0, (size_t)frame * sizeof(int32_t));
+                if (first != NULL) {
+                    memset(first + base, 0xFF, (size_t)frame * sizeof(int32_t)); /* -1 */
+                    memset(last + base, 0xFF, (size_t)frame * sizeof(int32_t));
+                }
+                started[w] = 1;
+            }
+            used += timed_window(t, (const uint16_t *)xb.buf, (const uint16_t *)yb.buf, (const uint8_t *)pb.buf, lo,
+                                 hi, x0, w_px, y0, h_px, base, plane, a, counts, first, last);
+        }
+        Py_END_ALLOW_THREADS
+    }
+    PyBuffer_Release(&tb);
+    PyBuffer_Release(&xb);
+    PyBuffer_Release(&yb);
+    PyBuffer_Release(&pb);
+    PyBuffer_Release(&sb);
+    PyBuffer_Release(&eb);
+    PyBuffer_Release(&cb);
+    PyBuffer_Release(&totb);
+    PyBuffer_Release(&stb);
+    PyBuffer_Release(&fb);
+    PyBuffer_Release(&lb);
+    if (fault != NULL) {
+        PyErr_SetString(PyExc_ValueError, fault);
+        return NULL;
+    }
+    return PyLong_FromLongLong((long long)used);
+}
+
+/* The timing linearisation's solve (evtk.reconstruct.timing): numba's scalar kernel _timing_solve_jit in C, the
+ * same operations in the same order, so that a fresh process solves without loading numba and without numpy's
+ * many short calls. */
+
+/* u / theta for a pixel whose n >= 2 ON events after a step came first at a_us and last at b_us after it, the light
+ * exp(log_rate) photoelectrons/s; -1 where no noise-free chain gives those times (timing._timing_factor). */
+static double
+timing_factor(int64_t n, double a_us, double b_us, double log_rate, double tau_min_us, double tau_electrons,
+              double refr_us)
+{
+    double tau = tau_min_us + tau_electrons / (exp(log_rate) * 1e-6);
+    double r = refr_us / tau;
+    double m_r = (double)(n - 1) * r;
+    double x = (b_us - a_us) / tau - m_r;
+    if (!(x > 0.0))
+        return -1.0;
+    double big = b_us / tau;
+    if (big < 700.0)
+        return -expm1(-m_r) / (-expm1(-r) * exp(-big) * expm1(x));
+    double log_den = log(-expm1(-r)) - big + x + log1p(-exp(-x)); /* where exp(-big) would underflow */
+    return exp(log(-expm1(-m_r)) - log_den);
+}
+
+/* Windows ya .. yb - 1 (rows of n_px pairs): secant steps from the middle of the band the count allows, then the
+ * Illinois method within the band; NaN where the times do not determine the step. */
+static void
+timing_rows(const int64_t *n_on, const int64_t *first, const int64_t *last, const double *theta, double theta_nominal,
+            const double *band_lo, const double *band_hi, int64_t top, double offset_us, double log_blank,
+            double tau_min_us, double tau_electrons, double refr_us, int64_t n_px, int64_t ya, int64_t yb, double *out)
+{
+    for (int64_t j = ya * n_px; j < yb * n_px; j++) {
+        int64_t n = n_on[j], i = j % n_px;
+        out[j] = Py_NAN;
+        if (n < 2 || first[j] < 0 || last[j] < first[j])
+            continue;
+        double a = (double)first[j] + offset_us + 0.5; /* time stamps are whole us, rounded down */
+        double b = (double)last[j] + offset_us + 0.5;
+        double th = theta[i], s = th / theta_nominal;
+        double lo = band_lo[n < top ? n : top] * s - th;
+        lo = lo > 0.0 ? lo : 0.0;
+        double hi = n < top - 1 ? band_hi[n + 1] * s + th : band_hi[top] * (s > 1.0 ? s : 1.0) + th;
+        double u0 = 0.5 * (lo + hi);
+        double f = timing_factor(n, a, b, log_blank + u0, tau_min_us, tau_electrons, refr_us);
+        if (f < 0.0) /* depends on the times only */
+            continue;
+        double h0 = u0 - th * f, u1 = th * f;
+        int done = 0;
+        for (int k = 0; k < 10; k++) {
+            double h1 = u1 - th * timing_factor(n, a, b, log_blank + u1, tau_min_us, tau_electrons, refr_us);
+            if (fabs(h1) <= 1e-4 * (1.0 + fabs(u1))) {
+                done = lo <= u1 && u1 <= hi;
+                break;
+            }
+            if (h1 == h0)
+                break;
+            double step = u1 - h1 * (u1 - u0) / (h1 - h0);
+            u0 = u1;
+            h0 = h1;
+            u1 = step;
+            if (!(-1.0 < u1 && u1 < 2.0 * hi + 1.0))
+                break;
+        }
+        if (done) {
+            out[j] = u1;
+            continue;
+        }
+        double h_lo = lo - th * timing_factor(n, a, b, log_blank + lo, tau_min_us, tau_electrons, refr_us);
+        double h_hi = hi - th * timing_factor(n, a, b, log_blank + hi, tau_min_us, tau_electrons, refr_us);
+        if (!(h_lo < 0.0 && 0.0 < h_hi))
+            continue;
+        int side = 0;
+        double u = lo;
+        for (int k = 0; k < 100; k++) {
+            u = (lo * h_hi - hi * h_lo) / (h_hi - h_lo);
+            double h = u - th * timing_factor(n, a, b, log_blank + u, tau_min_us, tau_electrons, refr_us);
+            if (fabs(h) <= 1e-6 * (1.0 + u) || hi - lo <= 1e-9)
+                break;
+            if (h > 0.0) {
+                hi = u;
+                h_hi = h;
+                if (side == 1)
+                    h_lo *= 0.5;
+                side = 1;
+            } else {
+                lo = u;
+                h_lo = h;
+                if (side == -1)
+                    h_hi *= 0.5;
+                side = -1;
+            }
+        }
+        out[j] = u;
+    }
+}
+
+/* timing_solve(n_on, first, last, theta, band_lo, band_hi, out, n_px, ya, yb, theta_nominal, offset_us, log_blank,
+ *              tau_min_us, tau_electrons, refr_us)
+ *
+ * n_on, first, last: int64, rows of n_px (window, pixel) pairs; theta: float64, n_px; band_lo, band_hi: float64 of
+ * one length (at least 1); out: float64 like n_on. Rows ya .. yb - 1 of out are set (other calls may set other
+ * rows at the same time). Raises ValueError for an argument this file refuses (the wrapper's checks make that a
+ * bug).
+ */
+static PyObject *
+timing_solve(PyObject *self, PyObject *args)
+{
+    Py_buffer nb, fb, lb, tb, lob, hib, ob;
+    long long n_px, ya, yb;
+    double theta_nominal, offset_us, log_blank, tau_min_us, tau_electrons, refr_us;
+    const char *fault = NULL;
+
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*w*LLLdddddd", &nb, &fb, &lb, &tb, &lob, &hib, &ob, &n_px, &ya, &yb,
+                          &theta_nominal, &offset_us, &log_blank, &tau_min_us, &tau_electrons, &refr_us))
+        return NULL;
+    Py_ssize_t pairs = nb.len / 8;
+    if (n_px <= 0 || ya < 0 || yb < ya || yb > pairs / n_px)
+        fault = "rows outside the counts";
+    else if (fb.len / 8 < pairs || lb.len / 8 < pairs || ob.len / 8 < pairs || tb.len / 8 < n_px)
+        fault = "times, thresholds or out shorter than the counts";
+    else if (lob.len < 8 || lob.len != hib.len)
+        fault = "bands empty or of two lengths";
+    if (fault == NULL && yb > ya) {
+        Py_BEGIN_ALLOW_THREADS
+        timing_rows((const int64_t *)nb.buf, (const int64_t *)fb.buf, (const int64_t *)lb.buf, (const double *)tb.buf,
+                    theta_nominal, (const double *)lob.buf, (const double *)hib.buf, lob.len / 8 - 1, offset_us,
+                    log_blank, tau_min_us, tau_electrons, refr_us, n_px, ya, yb, (double *)ob.buf);
+        Py_END_ALLOW_THREADS
+    }
+    PyBuffer_Release(&nb);
+    PyBuffer_Release(&fb);
+    PyBuffer_Release(&lb);
+    PyBuffer_Release(&tb);
+    PyBuffer_Release(&lob);
+    PyBuffer_Release(&hib);
+    PyBuffer_Release(&ob);
+    if (fault != NULL) {
+        PyErr_SetString(PyExc_ValueError, fault);
+        return NULL;
+    }
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"count_windows", count_windows, METH_VARARGS,
      "Count events into their windows' bins with the GIL released (see evtk._native.count_windows)."},
@@ -1693,6 +1966,11 @@ static PyMethodDef methods[] = {
      "Count EVT 2.0 words and sum up their effect, the GIL released (see evtk._native.prophesee_scan)."},
     {"dat_scan", dat_scan, METH_VARARGS,
      "Count DAT events and sum up their effect, the GIL released (see evtk._native.prophesee_scan)."},
+    {"accumulate_chunk", accumulate_chunk, METH_VARARGS,
+     "Count a chunk of events into the windows it meets, with ON-event times, the GIL released (see "
+     "evtk._native.accumulate_chunk)."},
+    {"timing_solve", timing_solve, METH_VARARGS,
+     "Solve the timing linearisation's steps with the GIL released (see evtk._native.timing_solve)."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -36,3 +36,10 @@ def es_run(data: Any, state: Any, width: int, height: int, decode: bool, atis: b
 
 def net_sums(net: Any, width: int, k: int, h: int, w: int, ya: int, yb: int, fy: int, fx: int, s1: Any, s2: Any,
              blocks: Any, /) -> int: ...
+
+def accumulate_chunk(t: Any, x: Any, y: Any, p: Any, starts: Any, ends: Any, x0: int, x1: int, y0: int, y1: int,
+                     counts: Any, total: Any, started: Any, first: Any, last: Any, wa: int, wz: int, /) -> int: ...
+
+def timing_solve(n_on: Any, first: Any, last: Any, theta: Any, band_lo: Any, band_hi: Any, out: Any, n_px: int,
+                 ya: int, yb: int, theta_nominal: float, offset_us: float, log_blank: float, tau_min_us: float,
+                 tau_electrons: float, refr_us: float, /) -> None: ...

@@ -1,6 +1,8 @@
 """evtk's optional compiled kernels (``evtk._ckernels``, built at install where a C compiler is present), behind
 wrappers that check their arguments and say when the Python route must be taken instead: the counting of fixed
-windows (:func:`count_windows`) and the sums of their net counts (:func:`net_sums`), the AEDAT4 reader's batches
+windows (:func:`count_windows`) and the sums of their net counts (:func:`net_sums`), the counting of a schedule's
+windows with their ON-event times (:func:`accumulate_chunk`) and the timing linearisation's solve
+(:func:`timing_solve`), the AEDAT4 reader's batches
 of LZ4 event packets (:func:`decode_lz4_batch`), and Prophesee EVT 3.0 words (:func:`evt3_run`), EVT 2.0 words
 (:func:`evt2_run`) and DAT events (:func:`dat_run`), with their counting passes (:func:`prophesee_scan`), and Event
 Stream DVS and ATIS bytes (:func:`es_run`); the
@@ -55,6 +57,13 @@ try:  # apart: an install built before the net counts' sums has the ones above
     from ._ckernels import net_sums as _kernel_net_sums
 except ImportError:
     _kernel_net_sums = None
+_kernel_timing_solve: Any
+_kernel_accumulate_chunk: Any
+try:  # apart: an install built before the timing solve and the timed counting has the ones above
+    from ._ckernels import accumulate_chunk as _kernel_accumulate_chunk
+    from ._ckernels import timing_solve as _kernel_timing_solve
+except ImportError:
+    _kernel_timing_solve = _kernel_accumulate_chunk = None
 _kernel_decode_lz4_range: Any
 try:  # apart: an install built before the whole range of batches in one call has the ones above
     from ._ckernels import decode_lz4_range as _kernel_decode_lz4_range
@@ -68,6 +77,10 @@ try:  # a build whose range takes Zstandard packets too says so
     from ._ckernels import RANGE_CODECS as _RANGE_CODECS
 except ImportError:
     _RANGE_CODECS = 1
+
+#: Whether the install's kernels include :func:`timing_solve` and :func:`accumulate_chunk` (a build before them
+#: does not).
+TIMING_SOLVE = _kernel_timing_solve is not None
 
 #: Whether :func:`decode_lz4_range` takes Zstandard packets (a build before it took LZ4 only).
 RANGE_ZSTD = _RANGE_CODECS >= 2
@@ -237,6 +250,116 @@ def net_sums(net: np.ndarray, size: tuple[int, int] | None = None) -> tuple[np.n
     bigs = run(lambda a, z: _kernel_net_sums(net, net.itemsize, k, h, w, a, z, fy, fx, s1, s2, blocks),
                list(zip(rows, rows[1:])))
     return s1, s2, int(max(bigs)), blocks if fy else None
+
+
+def accumulate_chunk(t: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray, starts: np.ndarray,
+                     ends: np.ndarray, region: tuple[int, int, int, int], counts: np.ndarray, total: np.ndarray,
+                     started: np.ndarray, first: np.ndarray, last: np.ndarray) -> int | None:
+    """Add a chunk of time-sorted events to every window it meets with the compiled kernel, the GIL released:
+    :func:`evtk.reconstruct.accumulate._accumulate_chunk`'s work (the same counts, totals and ON-event times).
+
+    Parameters
+    ----------
+    t, x, y, p : ndarray
+        The chunk's columns: int64 times (sorted), uint16 coordinates, uint8 polarities (not 0: ON).
+    starts, ends : ndarray
+        int64, the windows (half-open, us).
+    region : tuple of int
+        ``(x0, x1, y0, y1)``: the sensor pixels counted.
+    counts : ndarray
+        int32, flat ``(2, windows, y1 - y0, x1 - x0)``: OFF then ON, each window's frames zeroed when it is
+        first met (``started``).
+    total : ndarray
+        int64, events per window so far.
+    started : ndarray
+        bool, one per window.
+    first, last : ndarray
+        int32, flat ``(windows, y1 - y0, x1 - x0)``: the first and last ON event's time from its window's start
+        (-1: none); or both empty, for no times.
+
+    Returns
+    -------
+    int or None
+        The events counted inside the region; None, nothing done, when the kernel is off or missing or an array
+        is not in the form it takes (the caller then counts with numba or numpy).
+    """
+    if not enabled() or _kernel_accumulate_chunk is None:
+        return None
+    n, n_w = t.shape[0], starts.shape[0]
+    x0, x1, y0, y1 = (int(v) for v in region)
+    frame = (x1 - x0) * (y1 - y0)
+    forms = ((t, _I64, n), (x, np.uint16, n), (y, np.uint16, n), (p, np.uint8, n), (starts, _I64, n_w),
+             (ends, _I64, n_w), (counts, np.int32, 2 * n_w * frame), (total, _I64, n_w), (started, np.bool_, n_w),
+             (first, np.int32, first.size), (last, np.int32, first.size))
+    if any(a.dtype != d or a.ndim != 1 or a.shape[0] != size or not a.flags.c_contiguous for a, d, size in forms):
+        return None
+    if first.size not in (0, n_w * frame) or not (0 <= x0 < x1 <= TABLE_SIZE and 0 <= y0 < y1 <= TABLE_SIZE):
+        return None
+    if not all(a.flags.writeable for a in (counts, total, started, first, last)):
+        return None
+    if n_w == 0 or n == 0:
+        return 0
+    from ._parallel import cuts, parts, run  # (here: a read needs none of it)
+
+    live = np.flatnonzero((ends > t[0]) & (starts <= t[n - 1]))
+    if live.size == 0:
+        return 0
+    weights = np.searchsorted(t, ends[live]) - np.searchsorted(t, starts[live]) + frame // 8
+    # runs of windows of about equal work (their events, and the zeroing of their frames), each on its own thread:
+    # no two write the same window; the windows between live ones that meet no event are skipped by the kernel
+    bounds = [int(live[c]) for c in cuts(weights, parts(int(weights.sum()), gil_free=True))[:-1]]
+    bounds.append(int(live[-1]) + 1)
+    used = run(lambda a, z: _kernel_accumulate_chunk(t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total,
+                                                     started, first, last, a, z), list(zip(bounds, bounds[1:])))
+    return int(sum(used))
+
+
+def timing_solve(n_on: np.ndarray, first: np.ndarray, last: np.ndarray, theta: np.ndarray, band_lo: np.ndarray,
+                 band_hi: np.ndarray, out: np.ndarray, rows: tuple[int, int], theta_nominal: float, offset_us: float,
+                 log_blank: float, tau_min_us: float, tau_electrons: float, refr_us: float) -> bool:
+    """The timing linearisation's steps of the windows ``rows`` (``(a, z)``: rows ``a .. z - 1``) with the compiled
+    kernel, the GIL released: :func:`evtk.reconstruct.timing._timing_solve_jit`'s scalar method, the same
+    operations in the same order.
+
+    Parameters
+    ----------
+    n_on, first, last : ndarray
+        int64, shape ``(windows, pixels)``, C-contiguous: each pair's ON count and first and last ON-event times.
+    theta : ndarray
+        float64, one per pixel: the thresholds.
+    band_lo, band_hi : ndarray
+        float64, of one length (at least 1): the count bands' ends (``_count_bands``).
+    out : ndarray
+        float64 like ``n_on``, whose rows ``rows`` are set (a step, or NaN).
+    rows : tuple of int
+        The windows to solve.
+    theta_nominal, offset_us, log_blank, tau_min_us, tau_electrons, refr_us : float
+        As :func:`evtk.reconstruct.timing._timing_solve`.
+
+    Returns
+    -------
+    bool
+        True when the kernel solved them; False, nothing done, when it is off or missing or an array is not in
+        the form it takes (the caller then solves with numba or numpy).
+    """
+    if not enabled() or _kernel_timing_solve is None:
+        return False
+    pairs = (n_on, first, last, out)
+    if n_on.ndim != 2 or any(a.shape != n_on.shape or not a.flags.c_contiguous for a in pairs):
+        return False
+    if out.dtype != np.float64 or any(a.dtype != np.int64 for a in pairs[:3]) or not out.flags.writeable:
+        return False
+    bands = (theta, band_lo, band_hi)
+    if any(a.dtype != np.float64 or a.ndim != 1 or not a.flags.c_contiguous for a in bands):
+        return False
+    if theta.size != n_on.shape[1] or band_lo.size == 0 or band_lo.size != band_hi.size:
+        return False
+    a, z = (int(v) for v in rows)
+    if n_on.size == 0:  # no windows or no pixels: nothing to solve
+        return True
+    _kernel_timing_solve(n_on, first, last, theta, band_lo, band_hi, out, n_on.shape[1], a, z, float(theta_nominal),
+                         float(offset_us), float(log_blank), float(tau_min_us), float(tau_electrons), float(refr_us))
+    return True
 
 
 _I64 = np.dtype(np.int64)

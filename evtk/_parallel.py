@@ -1,6 +1,6 @@
 """Work split over threads, in parts that release the GIL: the counting (evtk's compiled kernel or numpy) and
-summing of fixed windows, the linearisation's look-ups and timing solve (``nogil`` numba kernels); one shared pool
-for all of them.
+summing of fixed windows, the counting of a schedule's windows and the timing solve (evtk's compiled kernels, else
+``nogil`` numba kernels), the linearisation's look-ups; one shared pool for all of them.
 
 Most numpy loops (ufuncs, ``take``, ``einsum``, reductions) release the GIL, so parts of one array handed to
 several threads run on several cores; ``np.add.at`` and ``np.bincount`` keep it and stay serial among them, and

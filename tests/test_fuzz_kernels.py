@@ -13,7 +13,7 @@ from fuzz import kernels
 from evtk import _native
 
 KERNELS = ("count_windows", "decode_lz4_batch", "decode_lz4_range", "evt3_run", "evt2_run", "dat_run", "es_run", "evt3_scan",
-           "evt2_scan", "dat_scan")
+           "evt2_scan", "dat_scan", "net_sums", "accumulate_chunk", "timing_solve")
 
 
 @pytest.mark.parametrize("seed", [5, 6])

@@ -1,4 +1,5 @@
-"""The timing linearisation's numpy path (used while numba is not loaded) against numba's scalar kernel."""
+"""The timing linearisation's numpy path (used while numba is not loaded) and compiled kernel (used where the
+install built it) against numba's scalar kernel."""
 
 import math
 import os
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 import evtk
+from evtk import _native
 from evtk.optics import Bench
 from evtk.reconstruct import accumulate, count_curve, timing, windows_from_schedule
 from evtk.sensor import SensorModel
@@ -22,12 +24,35 @@ def _meta(sensor, **kw):
     return Simulation(np.ones((3, 3)), np.ones((16, 16)), sensor=sensor, seed=1, **kw).metadata()["simulation"]
 
 
-def _both(monkeypatch, func, *args):
-    """``func(*args)`` through numpy's path (numba not loaded) and through numba's kernel."""
+def _paths(monkeypatch, func, *args):
+    """``func(*args)`` through numba's kernel, and through the other paths: numpy's (numba not loaded) and the
+    compiled kernel (where the install built it), as ``(numba's, {path: result})``."""
+    monkeypatch.setenv("EVTK_NATIVE", "0")
     monkeypatch.setattr(timing, "numba_ready", lambda: False)
-    by_numpy = func(*args)
+    others = {"numpy": func(*args)}
     monkeypatch.setattr(timing, "numba_ready", lambda: True)
-    return by_numpy, func(*args)
+    want = func(*args)
+    monkeypatch.delenv("EVTK_NATIVE")
+    if _native.enabled() and _native.TIMING_SOLVE:
+        calls = []
+        monkeypatch.setattr(_native, "_kernel_timing_solve", _spy(_native._kernel_timing_solve, calls))
+        others["compiled"] = func(*args)
+        assert calls or not want.size  # the kernel solved them, not a fallback
+    return want, others
+
+
+def _spy(real, calls):
+    def spy(*args):
+        calls.append(args[0].shape)
+        return real(*args)
+
+    return spy
+
+
+def _assert_paths(others, want):
+    assert others
+    for got in others.values():
+        _assert_close(got, want)
 
 
 def _assert_close(got, want, rel=1e-9):
@@ -69,25 +94,22 @@ def _edge_inputs(rng, curve, n_w, n_px, blank, theta=0.2, offset_us=0):
 
 
 def test_numpy_path_is_taken_while_numba_is_not_loaded(monkeypatch):
-    """With numba not loaded and small work, numba's kernel is never called (so a fresh process pays no
-    compiler start here); once numba is loaded, or the work is large enough to pay its start, it is."""
+    """Without the compiled kernel, with numba not loaded and small work, numba's kernel is never called (so a
+    fresh process pays no compiler start here); once numba is loaded, or the work is large enough to pay its start,
+    it is. With the compiled kernel, neither numba's nor numpy's path runs, whatever numba's state."""
     meta = _meta(QUIET)
     blank, curve = meta["blank_rate_e_per_s"], count_curve(meta)
     rng = np.random.default_rng(0)
     n, first, last = _edge_inputs(rng, curve, 6, 50, blank)
+    monkeypatch.setenv("EVTK_NATIVE", "0")
     monkeypatch.setattr(timing, "numba_ready", lambda: True)
     timing.linearize_by_timing(n, first, last, 0.2, QUIET, blank, curve)  # numba's kernel compiled (put in place)
-    calls = []
-    real = timing._timing_solve_jit
-
-    def spy(*args):
-        calls.append(args[0].shape)
-        return real(*args)
-
-    monkeypatch.setattr(timing, "_timing_solve_jit", spy)
+    calls, by_numpy = [], []
+    monkeypatch.setattr(timing, "_timing_solve_jit", _spy(timing._timing_solve_jit, calls))
+    monkeypatch.setattr(timing, "_timing_solve_np", _spy(timing._timing_solve_np, by_numpy))
     monkeypatch.setattr(timing, "numba_ready", lambda: False)
     timing.linearize_by_timing(n, first, last, 0.2, QUIET, blank, curve)
-    assert calls == []
+    assert calls == [] and by_numpy
     monkeypatch.setattr(timing, "_NUMPY_MAX_PAIRS", n.size - 1)  # large work: numba pays its start
     timing.linearize_by_timing(n, first, last, 0.2, QUIET, blank, curve)
     assert calls
@@ -96,6 +118,15 @@ def test_numpy_path_is_taken_while_numba_is_not_loaded(monkeypatch):
     monkeypatch.setattr(timing, "numba_ready", lambda: True)
     timing.linearize_by_timing(n, first, last, 0.2, QUIET, blank, curve)
     assert calls
+    if not _native.TIMING_SOLVE:
+        return
+    monkeypatch.delenv("EVTK_NATIVE")
+    calls.clear()
+    by_numpy.clear()
+    for ready in (False, True):
+        monkeypatch.setattr(timing, "numba_ready", lambda ready=ready: ready)
+        timing.linearize_by_timing(n, first, last, 0.2, QUIET, blank, curve)
+    assert calls == [] and by_numpy == []
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -106,9 +137,27 @@ def test_numpy_path_matches_numba_on_random_and_edge_inputs(monkeypatch, seed):
     theta = rng.uniform(0.15, 0.25, 97)
     n, first, last = _edge_inputs(rng, curve, 40, 97, blank, theta, 37)
     monkeypatch.setattr(timing, "_NUMPY_CHUNK_PAIRS", 500)  # several chunks
-    got, want = _both(monkeypatch, timing.linearize_by_timing, n, first, last, theta, QUIET, blank, curve, 37.0)
+    want, got = _paths(monkeypatch, timing.linearize_by_timing, n, first, last, theta, QUIET, blank, curve, 37.0)
     assert np.isfinite(want).mean() > 0.15 and np.isnan(want).mean() > 0.4  # both kinds of answer are exercised
-    _assert_close(got, want)
+    _assert_paths(got, want)
+
+
+def test_paths_agree_where_the_secant_steps_fail_and_the_band_brackets_the_step(monkeypatch):
+    """Counts at and around the curve's top, long spans and thresholds well below the nominal one: the secant steps
+    leave the band or stall for a share of these pairs, which the Illinois method then solves within the band
+    (its halvings on both sides); every path gives numba's numbers there too."""
+    meta = _meta(QUIET)
+    blank, curve = meta["blank_rate_e_per_s"], count_curve(meta)
+    top = int(curve[1][-1])
+    rng = np.random.default_rng(11)
+    shape = (60, 97)
+    n = rng.integers(top - 1, top + 3, shape)
+    first = rng.integers(0, 300, shape)
+    last = first + rng.integers(0, 30_000, shape)
+    theta = rng.uniform(0.05, 0.08, shape[1])
+    want, got = _paths(monkeypatch, timing.linearize_by_timing, n, first, last, theta, QUIET, blank, curve, 37.0)
+    assert np.isfinite(want).mean() > 0.02
+    _assert_paths(got, want)
 
 
 @pytest.mark.parametrize("shape", [(0, 5), (3, 0), (1, 1), (7, 1)])
@@ -117,8 +166,8 @@ def test_numpy_path_on_no_windows_no_pixels_one_pixel(monkeypatch, shape):
     blank, curve = meta["blank_rate_e_per_s"], count_curve(meta)
     n = np.full(shape, 6)
     first, last = np.full(shape, 20), np.full(shape, 900)
-    got, want = _both(monkeypatch, timing.linearize_by_timing, n, first, last, 0.2, QUIET, blank, curve)
-    _assert_close(got, want)
+    want, got = _paths(monkeypatch, timing.linearize_by_timing, n, first, last, 0.2, QUIET, blank, curve)
+    _assert_paths(got, want)
 
 
 def test_numpy_path_on_huge_times_where_the_log_form_is_used(monkeypatch):
@@ -130,8 +179,8 @@ def test_numpy_path_on_huge_times_where_the_log_form_is_used(monkeypatch):
     n = rng.integers(2, 30, (5, 200))
     first = rng.integers(0, 10**6, n.shape)
     last = first + rng.integers(10**5, 10**7, n.shape)
-    got, want = _both(monkeypatch, timing.linearize_by_timing, n, first, last, 0.2, QUIET, blank, curve)
-    _assert_close(got, want)
+    want, got = _paths(monkeypatch, timing.linearize_by_timing, n, first, last, 0.2, QUIET, blank, curve)
+    _assert_paths(got, want)
     a, b = np.full(50, 0.5), np.full(50, 3e6) + np.arange(50)  # b / tau in the thousands
     lr = math.log(blank) + np.linspace(0.5, 5.0, 50)
     f = timing._timing_factor(np.full(50, 4), a, b, lr, QUIET.tau_min_us, QUIET.tau_electrons, QUIET.refractory_us)
@@ -143,9 +192,9 @@ def test_numpy_path_on_huge_times_where_the_log_form_is_used(monkeypatch):
         assert f[k] == pytest.approx(one, rel=1e-9)
     n = np.array([[2, 3, 40]])
     first, last = np.array([[0, 2**62, 0]]), np.array([[2**62, 2**62 + 9, 2**63 - 2]])
-    got, want = _both(monkeypatch, timing.linearize_by_timing, n, first, last, 0.2, QUIET, blank, curve)
-    _assert_close(got, want)
-    assert not np.any(np.isinf(got))
+    want, got = _paths(monkeypatch, timing.linearize_by_timing, n, first, last, 0.2, QUIET, blank, curve)
+    _assert_paths(got, want)
+    assert not any(np.any(np.isinf(v)) for v in got.values())
 
 
 def test_numpy_path_matches_numba_on_a_simulated_job(monkeypatch):
@@ -160,10 +209,10 @@ def test_numpy_path_matches_numba_on_a_simulated_job(monkeypatch):
     region = tuple(meta["response_region"])
     c = accumulate(sim.events(), windows_from_schedule(meta), region, times=True)
     blank, curve = meta["blank_rate_e_per_s"], count_curve(meta)
-    got, want = _both(monkeypatch, timing.linearize_by_timing, c.on, c.on_first_us, c.on_last_us, 0.2, sm, blank,
-                      curve, 3.0)
+    want, got = _paths(monkeypatch, timing.linearize_by_timing, c.on, c.on_first_us, c.on_last_us, 0.2, sm, blank,
+                       curve, 3.0)
     assert np.isfinite(want).mean() > 0.3
-    _assert_close(got, want)
+    _assert_paths(got, want)
 
     ff = np.asarray(meta["schedule"]["kernel_id"]) < 0
     flat_u = np.random.default_rng(1).uniform(1.0, 4.0, c.on.shape[1:])
@@ -251,3 +300,30 @@ def test_settling_of_a_pixel_that_follows_the_light_at_once_is_defined():
                                                           np.array([3000, 8000]), sm, 1e5), np.zeros((2, 2)))
     # a finite time constant still gives the exponential
     assert timing._decay(np.array([0.0, 10.0]), 5.0).tolist() == [1.0, float(np.exp(-2.0))]
+
+
+@pytest.mark.skipif(not (_native.BUILT and _native.TIMING_SOLVE), reason="the compiled kernels are not built")
+def test_compiled_solve_refuses_buffers_too_short_and_the_wrapper_passes_only_its_forms():
+    """The kernel itself refuses rows past the counts, times or thresholds shorter than them and empty or uneven
+    bands (before touching memory); the wrapper hands it only int64 and float64 C-contiguous arrays of matching
+    shapes, and says False (the caller solves another way) for the rest."""
+    n = np.full((4, 3), 5, np.int64)
+    t = np.zeros((4, 3), np.int64)
+    th, band, out = np.full(3, 0.2), np.linspace(0.0, 5.0, 8), np.empty((4, 3))
+    args = (1e-3, 0.0, 1.0, 100.0, 1e5, 1.0)
+    kernel = _native._kernel_timing_solve
+    with pytest.raises(ValueError, match="rows outside"):
+        kernel(n, t, t, th, band, band, out, 3, 0, 5, *args)
+    with pytest.raises(ValueError, match="shorter"):
+        kernel(n, t[:3], t, th, band, band, out, 3, 0, 4, *args)
+    with pytest.raises(ValueError, match="shorter"):
+        kernel(n, t, t, th[:2], band, band, out, 3, 0, 4, *args)
+    with pytest.raises(ValueError, match="bands"):
+        kernel(n, t, t, th, band, band[:-1], out, 3, 0, 4, *args)
+    with pytest.raises(ValueError, match="bands"):
+        kernel(n, t, t, th, band[:0], band[:0], out, 3, 0, 4, *args)
+    forms = [(n.astype(np.int32), t, th, out), (n, t.T.copy().T, th, out), (n, t, th.astype(np.float32), out),
+             (n, t, th, out[:, :2]), (n, t, th[:2], out)]
+    for nn, tt, tth, oo in forms:
+        assert not _native.timing_solve(nn, tt, tt, tth, band, band, oo, (0, 4), *args)
+    assert _native.timing_solve(n, t, t, th, band, band, out, (0, 4), *args)

@@ -1,4 +1,5 @@
-"""ON and OFF event counts per window and pixel, in one streamed pass over the events (numba)."""
+"""ON and OFF event counts per window and pixel, in one streamed pass over the events (evtk's compiled kernel where
+built, else numba or numpy)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from .._lazyjit import njit, numba_ready  # numba loads on the first count, when numpy does not count
+from .._lazyjit import njit, numba_ready  # numba loads on the first count, when neither C nor numpy counts
+from .._native import TIMING_SOLVE as NATIVE_COUNTS
+from .._native import accumulate_chunk as native_accumulate_chunk
+from .._native import enabled as native_enabled
 from .._threads import Helpers, Pool, helpers, use_helpers
 from ..errors import EvtkError
 from ..events import Events
@@ -181,9 +185,12 @@ _numpy_work = 0
 
 def _chunk_counter(events: int | None, window_pixels: int):
     """The chunk counter for a count of about ``events`` events (None: unknown) into ``window_pixels`` pixels of
-    all windows: numpy while numba is not loaded and this count, with those counted in numpy before it in this
-    process, is small enough that numba's start would cost more than numpy's slower loop."""
+    all windows: evtk's compiled kernel where the install built it; else numpy while numba is not loaded and this
+    count, with those counted in numpy before it in this process, is small enough that numba's start would cost
+    more than numpy's slower loop."""
     global _numpy_work
+    if native_enabled() and NATIVE_COUNTS:
+        return _accumulate_chunk_native
     if numba_ready() or events is None:
         return _accumulate_chunk
     work = events + window_pixels // 5
@@ -191,6 +198,17 @@ def _chunk_counter(events: int | None, window_pixels: int):
         return _accumulate_chunk
     _numpy_work += work
     return _accumulate_chunk_numpy
+
+
+def _accumulate_chunk_native(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, counts, total, started, first, last):
+    """:func:`_accumulate_chunk` in evtk's compiled kernel (:func:`evtk._native.accumulate_chunk`: the same counts,
+    totals and times), which holds no GIL while it counts; for a chunk not in the kernel's form (columns of
+    other types), numba's counter once numba is loaded, else numpy's."""
+    used = native_accumulate_chunk(t, x, y, p, starts, ends, (x0, x1, y0, y1), counts, total, started, first, last)
+    if used is not None:
+        return used
+    other = _accumulate_chunk if numba_ready() else _accumulate_chunk_numpy
+    return other(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, counts, total, started, first, last)
 
 
 def _accumulate_chunk_numpy(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, counts, total, started, first, last):
@@ -403,8 +421,8 @@ def accumulate(source: Events | Any, windows: Windows, region: tuple[int, int, i
     count = _chunk_counter(len(source) if isinstance(source, Events) else _recording_events(source), flat.size // 2)
     if isinstance(source, Events):
         chunks: Any = [source.sorted()]
-    elif count is _accumulate_chunk:
-        # numba's counter holds no GIL: it counts one chunk while another thread decodes the next
+    elif count is not _accumulate_chunk_numpy:
+        # the compiled and numba's counters hold no GIL: each counts one chunk while another thread decodes the next
         chunks = _prefetched(span_chunks(source, span[0], span[1], chunk_events, starts, ends))
     else:
         # numpy's counter makes many small calls, each taking the GIL back from the decoding threads: decoding a

@@ -7,6 +7,9 @@ import math
 import numpy as np
 
 from .._lazyjit import njit, numba_ready
+from .._native import TIMING_SOLVE as NATIVE_SOLVE
+from .._native import enabled as native_enabled
+from .._native import timing_solve as native_timing_solve
 from ..errors import EvtkError
 from ..sensor import SensorModel, time_constant_us
 from .linearize import _count_bands, _on_threads
@@ -212,15 +215,16 @@ def linearize_by_timing(on: np.ndarray, on_first_us: np.ndarray, on_last_us: np.
     th2, out2 = np.ascontiguousarray(th.ravel()), out.reshape(rows, cols)
     lo_band, hi_band = np.ascontiguousarray(band_lo, np.float64), np.ascontiguousarray(band_hi, np.float64)
 
-    # numpy's arrays where they cost less than numba's start would, numba's loop once that is paid or for work
-    # large enough to pay it
-    jit = numba_ready() or n2.size > _NUMPY_MAX_PAIRS
+    # the compiled kernel where the install built it; else numpy's arrays where they cost less than numba's start
+    # would, numba's loop once that is paid or for work large enough to pay it
+    native = native_enabled() and NATIVE_SOLVE
+    jit = not native and (numba_ready() or n2.size > _NUMPY_MAX_PAIRS)
 
     def rows_of(a, b):  # windows a..b: each pixel-window is solved alone, so any split gives the same numbers
         _timing_solve(n2[a:b], first2[a:b], last2[a:b], th2, sm.theta_on, lo_band, hi_band, float(offset_us),
                       log_blank, sm.tau_min_us, sm.tau_electrons, sm.refractory_us, out2[a:b], jit)
 
-    if jit:
+    if native or jit:  # both release the GIL
         _on_threads(rows_of, rows, max(1, 4096 // max(1, cols)))
     else:  # numpy's many short calls hold the GIL between them: more threads add CPU time, not speed
         rows_of(0, rows)
@@ -322,7 +326,11 @@ def _factor(m, d_us, b_us, log_rate, tau_min_us, tau_electrons, refr_us):
 
 def _timing_solve(n_on, first, last, theta, theta_nominal, band_lo, band_hi, offset_us, log_blank, tau_min_us,
                   tau_electrons, refr_us, out, jit):
-    """:func:`linearize_by_timing`'s work on a block of windows: numba's kernel if ``jit``, else numpy's."""
+    """:func:`linearize_by_timing`'s work on a block of windows: the compiled kernel where built (the same
+    operations as numba's), else numba's kernel if ``jit``, else numpy's."""
+    if native_timing_solve(n_on, first, last, theta, band_lo, band_hi, out, (0, n_on.shape[0]), theta_nominal,
+                           offset_us, log_blank, tau_min_us, tau_electrons, refr_us):
+        return
     if jit:
         _timing_solve_jit(n_on, first, last, theta, theta_nominal, band_lo, band_hi, offset_us, log_blank,
                           tau_min_us, tau_electrons, refr_us, out)

@@ -278,6 +278,66 @@ class _Caller:
                 args[i] = _extreme(self.rng)
         self.call("net_sums", *args)
 
+    def accumulate_chunk(self) -> None:
+        """A chunk and windows that fit one another (times anywhere in int64, windows of any length, regions
+        reaching past the coordinates), then now and then an argument that does not fit."""
+        rng, nrng = self.rng, self.nrng
+        n, n_w = rng.choice([0, 1, 5, 200]), rng.choice([0, 1, 3, 17])
+        t0 = _extreme(rng)
+        t = np.sort(nrng.integers(-(1 << 63), (1 << 63) - 1, n, endpoint=True)) if rng.random() < 0.3 else \
+            np.sort(t0 + nrng.integers(0, 1000, n).astype(np.int64) if abs(t0) < 1 << 62 else np.full(n, t0))
+        t = t.astype(np.int64)
+        x, y = self.array(np.uint16, n), self.array(np.uint16, n)
+        if rng.random() < 0.7:
+            x, y = x % 40, y % 30
+        p = self.array(np.uint8, n)
+        near = [_extreme(rng) if rng.random() < 0.3 else t0 + rng.randrange(-50, 1000) for _ in range(n_w)]
+        starts = np.sort(np.array([min(max(v, -(1 << 63)), (1 << 63) - 1) for v in near], np.int64))
+        ends = np.array([int(s) + rng.choice([0, 1, 100, 5000]) if abs(int(s)) < 1 << 62 else s for s in starts],
+                        np.int64)
+        x0, y0 = rng.choice([0, 3, 39]), rng.choice([0, 2, 29])
+        x1, y1 = x0 + rng.choice([1, 4, 40]), y0 + rng.choice([1, 5, 30])
+        frame = (x1 - x0) * (y1 - y0)
+        timed = rng.random() < 0.6
+        counts = self.array(np.int32, 2 * n_w * frame)
+        total, started = np.zeros(n_w, np.int64), (self.array(np.uint8, n_w) & 1).astype(np.bool_)
+        first = self.array(np.int32, n_w * frame if timed else 0)
+        last = self.array(np.int32, first.size)
+        args = [t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, started, first, last, 0, n_w]
+        if rng.random() < 0.4:  # one argument that does not fit
+            i = rng.choice(range(len(args)))
+            if isinstance(args[i], np.ndarray):
+                args[i] = args[i][:rng.randrange(len(args[i]) + 1)] if len(args[i]) else self.array(np.int64, 3)
+            else:
+                args[i] = _extreme(rng)
+        self.call("accumulate_chunk", *args)
+
+    def timing_solve(self) -> None:
+        """Counts and times anywhere in int64, thresholds and bands of any float (NaN, inf, 0, negative), then now
+        and then an argument that does not fit."""
+        rng = self.rng
+        rows, n_px = rng.choice([0, 1, 4]), rng.choice([1, 3, 17])
+        n_on = self.array(np.int64, rows * n_px) if rng.random() < 0.3 else \
+            self.nrng.integers(0, 40, rows * n_px).astype(np.int64)
+        first = self.array(np.int64, rows * n_px) if rng.random() < 0.3 else \
+            self.nrng.integers(-1, 500, rows * n_px).astype(np.int64)
+        last = first + self.nrng.integers(-3, 9000, first.size) if rng.random() < 0.7 else \
+            self.array(np.int64, first.size)
+        bands = rng.choice([1, 2, 27])
+        floats = [0.0, -1.0, 1e-300, 1e300, float("inf"), float("nan"), 0.2, 1.0, 100.0, 1e5]
+        theta = np.array([rng.choice(floats) for _ in range(n_px)])
+        lo = np.sort(self.nrng.uniform(0.0, 6.0, bands)) if rng.random() < 0.8 else self.array(np.float64, bands)
+        hi = lo + 0.3
+        out = np.empty(rows * n_px)
+        args = [n_on, first, last, theta, lo, hi, out, n_px, 0, rows] + [rng.choice(floats) for _ in range(6)]
+        if rng.random() < 0.4:  # one argument that does not fit
+            i = rng.choice(range(10))
+            if isinstance(args[i], np.ndarray):
+                args[i] = args[i][:rng.randrange(len(args[i]) + 1)] if len(args[i]) else self.array(np.int64, 3)
+            else:
+                args[i] = _extreme(rng)
+        self.call("timing_solve", *args)
+
     def scans(self) -> None:
         for name, dtype in (("evt3_scan", np.uint16), ("evt2_scan", np.uint32), ("dat_scan", np.uint32)):
             self.call(name, self.array(dtype, self.rng.choice([0, 1, 2, 3, 999])))
@@ -297,7 +357,8 @@ def run(seed: int, calls: int) -> collections.Counter:
     """
     caller = _Caller(seed)
     steps = (caller.count_windows, caller.decode_lz4_batch, caller.prophesee_run, caller.prophesee_run,
-             caller.event_stream_run, caller.scans, caller.decode_lz4_range, caller.net_sums)
+             caller.event_stream_run, caller.scans, caller.decode_lz4_range, caller.net_sums, caller.accumulate_chunk,
+             caller.timing_solve)
     for i in range(calls):
         steps[i % len(steps)]()
     return caller.outcomes

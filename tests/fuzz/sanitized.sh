@@ -7,7 +7,8 @@
 # Builds the kernels with -fsanitize=address,undefined into a copy of the tree (the checkout's own build is left
 # alone) and runs there, with the sanitizers' runtimes preloaded into Python:
 #   1. tests/fuzz/kernels.py: CALLS (default 100000) raw calls with hostile arguments, four seeds;
-#   2. the kernels' tests (the compiled decoders, batches and counting against numpy and word-by-word loops);
+#   2. the kernels' tests (the compiled decoders, batches and counting against numpy and word-by-word loops, the
+#      timed counting and the timing solve against numba's kernels);
 #   3. the fuzz campaign, CASES (default 3000) cases over the targets the kernels read (EVT 2.0, EVT 3.0, DAT,
 #      Event Stream DVS and ATIS, and the AEDAT4 files), each read compared with the numpy route's. ASan's
 #      quarantine of freed memory is kept to 8 MiB, so that it does not pass for a case's memory blow-up.
@@ -27,7 +28,7 @@ PY=${PYTHON:-python3}
 INC=$($PY -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
 EXT=$($PY -c 'import sysconfig; print(sysconfig.get_config_var("EXT_SUFFIX"))')
 gcc -shared -fPIC -O1 -g -fno-omit-frame-pointer -fsanitize=address,undefined -fno-sanitize-recover=undefined \
-    -std=c99 -Wall -Wextra -I"$INC" evtk/_ckernels.c -o "evtk/_ckernels$EXT"
+    -std=c99 -Wall -Wextra -I"$INC" evtk/_ckernels.c -o "evtk/_ckernels$EXT" -lm
 export LD_PRELOAD="$(gcc -print-file-name=libasan.so) $(gcc -print-file-name=libubsan.so)"
 export ASAN_OPTIONS=detect_leaks=0:quarantine_size_mb=8 UBSAN_OPTIONS=print_stacktrace=1 PYTHONPATH=$WORK
 $PY -c 'import evtk, evtk._native as n; assert evtk.__file__.startswith("'"$WORK"'") and n.enabled(), "not built"'
@@ -38,7 +39,7 @@ for seed in 1 2 3 4; do
 done
 echo "== 2. the kernels' tests"
 $PY -m pytest -q -p no:cacheprovider tests/test_native_batches.py tests/test_native_counting.py tests/test_native_zstd.py \
-    tests/test_prophesee_numpy.py
+    tests/test_prophesee_numpy.py tests/test_accumulate_numpy.py tests/test_timing_numpy.py
 echo "== 3. the fuzz campaign, $CASES cases"
 cd tests
 $PY -m fuzz.campaign --cases "$CASES" --seed 101 --only f2.raw,f3.raw,f.dat,f.es,a.es,l.aedat4,f.aedat4,z.aedat4 \
