@@ -1741,10 +1741,12 @@ accumulate_chunk(PyObject *self, PyObject *args)
                           &cb, &totb, &stb, &fb, &lb, &wa, &wz))
         return NULL;
     int64_t n = tb.len / 8, n_w = sb.len / 8;
-    int64_t w_px = x1 - x0, h_px = y1 - y0;
+    /* the region's bounds checked before any arithmetic on them */
+    int region_ok = x0 >= 0 && y0 >= 0 && x0 < x1 && y0 < y1 && x1 <= 65536 && y1 <= 65536;
+    int64_t w_px = region_ok ? x1 - x0 : 1, h_px = region_ok ? y1 - y0 : 1;
     if (xb.len / 2 < n || yb.len / 2 < n || pb.len < n || eb.len / 8 != n_w)
         fault = "columns or windows of two lengths";
-    else if (x0 < 0 || y0 < 0 || w_px <= 0 || h_px <= 0 || x1 > 65536 || y1 > 65536)
+    else if (!region_ok)
         fault = "a region off the coordinates";
     else if (n_w > 0 && (cb.len / 4 / 2 / n_w / h_px / w_px < 1 || totb.len / 8 < n_w || stb.len < n_w))
         fault = "counts, totals or flags shorter than the windows";
@@ -1765,7 +1767,7 @@ accumulate_chunk(PyObject *self, PyObject *args)
             if (b <= t[0] || a > t[n - 1])
                 continue;
             int64_t lo = lower_bound(t, n, a), hi = lower_bound(t, n, b);
-            total[w] += hi - lo;
+            total[w] = (int64_t)((uint64_t)total[w] + (uint64_t)(hi - lo)); /* wraps, as numba's int64 */
             int64_t base = w * frame;
             if (!started[w]) {
                 memset(counts + base, 0, (size_t)frame * sizeof(int32_t));
