@@ -112,6 +112,36 @@ def test_aedat4_decode_threads_are_bounded_by_the_events_memory(tmp_path, monkey
         assert len(names) >= 2, names
 
 
+def test_a_chunk_of_a_chunked_read_takes_the_threads_its_batches_memory_pays_for(tmp_path, monkeypatch):
+    """A chunked read's threads are bounded by the buffers of the chunk's own batches, which a chunk of a quarter
+    million events keeps to a sixteenth of it (15 k events, about 0.6 MB a thread), not by full batches' (2.6 MB,
+    which held such a chunk to one thread while the windows' counting waited for it): it decodes on several."""
+    import threading
+
+    from evtk.io import _compression as cz
+
+    _clear(monkeypatch)
+    monkeypatch.setenv("EVTK_THREADS", "4")
+    ev = random_events(500_000, seed=7)
+    path = tmp_path / "c.aedat4"
+    evtk.write_events(path, ev, packet_events=10_000)
+    names: set[str] = set()
+    real = cz.lz4f_addresses
+
+    def spy(*args):
+        names.add(threading.current_thread().name)
+        time.sleep(0.002)  # long enough that idle threads would take ranges
+        return real(*args)
+
+    monkeypatch.setattr(cz, "lz4f_addresses", spy)
+    with evtk.open(path) as rec:
+        chunks = list(rec.iter_events(chunk_events=250_000))
+    assert [len(c) for c in chunks] == [250_000, 250_000]
+    assert np.array_equal(np.concatenate([c.t for c in chunks]), ev.t)
+    assert np.array_equal(np.concatenate([c.x for c in chunks]), ev.x)
+    assert len(names) >= 2, names
+
+
 # -- evtk's own thread pool (issue 32: concurrent.futures and its logging were 4-5 ms of a fresh process) --------
 
 

@@ -42,8 +42,8 @@ HEADER_STRETCH_BYTES = 1 << 18
 HEADER_READ_BYTES = 1 << 14
 # room in a thread's staging buffer for packet headers and the bytes after a packet's events
 _BATCH_SLACK = 1 << 16
-# a decode thread's buffers with batches: the staging buffer (16 bytes an event and the slack), the batch's
-# compressed bytes, its allocator arena's share (about 2.5 MiB)
+# a decode thread's buffers with batches of BATCH_EVENTS: the staging buffer (16 bytes an event and the slack), the
+# batch's compressed bytes, its allocator arena's share (about 2.5 MiB); in proportion for a small read's batches
 _THREAD_BYTES = 40 * BATCH_EVENTS
 
 #: The share of a chunk's memory its decoding threads may add in a chunked read (``iter_events``): its memory is
@@ -608,7 +608,9 @@ class Recording(_FileIndex, BaseRecording):
                         return k
             return k1
 
-        stopped = _run_split(work, len(rows), counts, 0 if batch is None else _THREAD_BYTES, share)
+        # a thread's buffers scale with its batches, which a small read (a chunk) keeps small
+        thread_bytes = max(1, _THREAD_BYTES * _batch_events(int(starts[-1] - starts[0])) // BATCH_EVENTS)
+        stopped = _run_split(work, len(rows), counts, 0 if batch is None else thread_bytes, share)
         return int(starts[stopped]) - offset, stopped == len(rows)
 
     def _batcher(self, rows, counts, starts, out, width: int, height: int):
@@ -663,7 +665,7 @@ class Recording(_FileIndex, BaseRecording):
         searchsorted = np.searchsorted
         pread_into = self._pread_into
         slack = _BATCH_SLACK
-        batch_events = min(BATCH_EVENTS, max(SMALL_BATCH_EVENTS, at[-1] - at[0] >> 4))
+        batch_events = _batch_events(at[-1] - at[0])
 
         def one(k, kb, scratch, kernel) -> bool:
             o0 = offs[k] - 8
@@ -1199,6 +1201,12 @@ def _cut(ev: Events, seg_lo: np.ndarray, seg_hi: np.ndarray, t_start_us: int | N
     if end - first == kept:
         return ev[first:end]
     return Events._trusted(ev.t[keep], ev.x[keep], ev.y[keep], ev.p[keep], ev.sensor_size)
+
+
+def _batch_events(n_events: int) -> int:
+    """Events of a batch in a read of ``n_events``: :data:`BATCH_EVENTS`, or a sixteenth of a smaller read (at
+    least :data:`SMALL_BATCH_EVENTS`)."""
+    return min(BATCH_EVENTS, max(SMALL_BATCH_EVENTS, n_events >> 4))
 
 
 def _run_split(work, n_rows, counts, thread_bytes: int = 0, share: float = MEMORY_SHARE) -> int:
