@@ -80,7 +80,7 @@ except ImportError:
 
 #: Whether the install's kernels include :func:`timing_solve` and :func:`accumulate_chunk` (a build before them
 #: does not).
-TIMING_SOLVE = _kernel_timing_solve is not None
+TIMED_KERNELS = _kernel_timing_solve is not None
 
 #: Whether :func:`decode_lz4_range` takes Zstandard packets (a build before it took LZ4 only).
 RANGE_ZSTD = _RANGE_CODECS >= 2

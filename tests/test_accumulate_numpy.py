@@ -17,7 +17,7 @@ from evtk.reconstruct.linearize import linearize as _linearize  # noqa: F401  (l
 from evtk.reconstruct.windows import Windows
 
 A = sys.modules["evtk.reconstruct.accumulate"]
-NATIVE = _native.BUILT and _native.TIMING_SOLVE
+NATIVE = _native.BUILT and _native.TIMED_KERNELS
 
 
 def _compiled(t, x, y, p, starts, ends, x0, x1, y0, y1, whole, counts, total, started, first, last):

@@ -194,7 +194,7 @@ def test_a_whole_read_is_counted_while_its_next_chunk_is_decoded(tmp_path, monke
     from evtk.reconstruct import Windows, accumulate
 
     acc = sys.modules["evtk.reconstruct.accumulate"]  # (the package's name `accumulate` is the function)
-    if counter == "compiled" and not (_native.BUILT and _native.TIMING_SOLVE):
+    if counter == "compiled" and not (_native.BUILT and _native.TIMED_KERNELS):
         pytest.skip("the compiled kernels are not built")
     monkeypatch.setenv("EVTK_NATIVE", "1" if counter == "compiled" else "0")
     monkeypatch.setattr(acc, "numba_ready", lambda: counter == "numba")

@@ -33,7 +33,7 @@ def _paths(monkeypatch, func, *args):
     monkeypatch.setattr(timing, "numba_ready", lambda: True)
     want = func(*args)
     monkeypatch.delenv("EVTK_NATIVE")
-    if _native.enabled() and _native.TIMING_SOLVE:
+    if _native.enabled() and _native.TIMED_KERNELS:
         calls = []
         monkeypatch.setattr(_native, "_kernel_timing_solve", _spy(_native._kernel_timing_solve, calls))
         others["compiled"] = func(*args)
@@ -118,7 +118,7 @@ def test_numpy_path_is_taken_while_numba_is_not_loaded(monkeypatch):
     monkeypatch.setattr(timing, "numba_ready", lambda: True)
     timing.linearize_by_timing(n, first, last, 0.2, QUIET, blank, curve)
     assert calls
-    if not _native.TIMING_SOLVE:
+    if not _native.TIMED_KERNELS:
         return
     monkeypatch.delenv("EVTK_NATIVE")
     calls.clear()
@@ -302,7 +302,7 @@ def test_settling_of_a_pixel_that_follows_the_light_at_once_is_defined():
     assert timing._decay(np.array([0.0, 10.0]), 5.0).tolist() == [1.0, float(np.exp(-2.0))]
 
 
-@pytest.mark.skipif(not (_native.BUILT and _native.TIMING_SOLVE), reason="the compiled kernels are not built")
+@pytest.mark.skipif(not (_native.BUILT and _native.TIMED_KERNELS), reason="the compiled kernels are not built")
 def test_compiled_solve_refuses_buffers_too_short_and_the_wrapper_passes_only_its_forms():
     """The kernel itself refuses rows past the counts, times or thresholds shorter than them and empty or uneven
     bands (before touching memory); the wrapper hands it only int64 and float64 C-contiguous arrays of matching

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from .._lazyjit import njit, numba_ready  # numba loads on the first count, when neither C nor numpy counts
-from .._native import TIMING_SOLVE as NATIVE_COUNTS
+from .._native import TIMED_KERNELS as NATIVE_COUNTS
 from .._native import accumulate_chunk as native_accumulate_chunk
 from .._native import enabled as native_enabled
 from .._threads import Helpers, Pool, helpers, use_helpers

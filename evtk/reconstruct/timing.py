@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from .._lazyjit import njit, numba_ready
-from .._native import TIMING_SOLVE as NATIVE_SOLVE
+from .._native import TIMED_KERNELS as NATIVE_SOLVE
 from .._native import enabled as native_enabled
 from .._native import timing_solve as native_timing_solve
 from ..errors import EvtkError
