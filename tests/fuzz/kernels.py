@@ -278,6 +278,17 @@ class _Caller:
                 args[i] = _extreme(self.rng)
         self.call("net_sums", *args)
 
+    def misfit(self, args: list, among: int) -> None:
+        """Now and then, one of the first ``among`` arguments made not to fit: an array cut short (or, empty,
+        replaced by three int64s), a number from the ends of int64."""
+        rng = self.rng
+        if rng.random() < 0.4:
+            i = rng.choice(range(among))
+            if isinstance(args[i], np.ndarray):
+                args[i] = args[i][:rng.randrange(len(args[i]) + 1)] if len(args[i]) else self.array(np.int64, 3)
+            else:
+                args[i] = _extreme(rng)
+
     def accumulate_chunk(self) -> None:
         """A chunk and windows that fit one another (times anywhere in int64, windows of any length, regions
         reaching past the coordinates), then now and then an argument that does not fit."""
@@ -304,12 +315,7 @@ class _Caller:
         first = self.array(np.int32, n_w * frame if timed else 0)
         last = self.array(np.int32, first.size)
         args = [t, x, y, p, starts, ends, x0, x1, y0, y1, counts, total, started, first, last, 0, n_w]
-        if rng.random() < 0.4:  # one argument that does not fit
-            i = rng.choice(range(len(args)))
-            if isinstance(args[i], np.ndarray):
-                args[i] = args[i][:rng.randrange(len(args[i]) + 1)] if len(args[i]) else self.array(np.int64, 3)
-            else:
-                args[i] = _extreme(rng)
+        self.misfit(args, len(args))
         self.call("accumulate_chunk", *args)
 
     def timing_solve(self) -> None:
@@ -330,12 +336,7 @@ class _Caller:
         hi = lo + 0.3
         out = np.empty(rows * n_px)
         args = [n_on, first, last, theta, lo, hi, out, n_px, 0, rows] + [rng.choice(floats) for _ in range(6)]
-        if rng.random() < 0.4:  # one argument that does not fit
-            i = rng.choice(range(10))
-            if isinstance(args[i], np.ndarray):
-                args[i] = args[i][:rng.randrange(len(args[i]) + 1)] if len(args[i]) else self.array(np.int64, 3)
-            else:
-                args[i] = _extreme(rng)
+        self.misfit(args, 10)
         self.call("timing_solve", *args)
 
     def scans(self) -> None:
