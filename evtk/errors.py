@@ -8,7 +8,8 @@ import os
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["EvtkError", "FormatError", "check_parameters", "sensor_dims", "load_json", "MAX_SENSOR_SIDE"]
+__all__ = ["EvtkError", "FormatError", "check_parameters", "check_positive", "sensor_dims", "load_json",
+           "MAX_SENSOR_SIDE"]
 
 
 class EvtkError(Exception):
@@ -109,6 +110,31 @@ def check_parameters(kind: str, cls: type, values: Mapping[str, object]) -> None
             ok, want = True, ""
         if not ok:
             raise EvtkError(f"{kind} parameter {name} must be {want}, not {v!r}")
+
+
+
+def check_positive(**values: Any) -> None:
+    """Check that every value is a positive finite number.
+
+    Parameters
+    ----------
+    **values : Any
+        The values, by the name the error gives them (numbers, or anything ``float`` takes).
+
+    Raises
+    ------
+    EvtkError
+        Naming the first value that is not a number above 0 and below infinity (NaN, infinity, 0, negative, text).
+    """
+    import math
+
+    for name, v in values.items():
+        try:
+            ok = math.isfinite(float(v)) and float(v) > 0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise EvtkError(f"{name} must be a positive finite number, not {v!r}")
 
 
 #: Largest sensor side evtk reads (coordinates are 16-bit).

@@ -28,3 +28,21 @@ def test_the_help_lists_every_command_and_an_unknown_one_is_refused():
     assert res.exit_code == 0 and all(f"  {name} " in res.output for name in COMMAND_MODULES)
     res = CliRunner().invoke(main, ["reconstrct"])
     assert res.exit_code != 0 and "No such command" in res.output
+
+
+def test_enob_on_fixed_windows_loads_no_reconstruction_options_optics_or_compiler(tmp_path):
+    """`evtk enob --window period:US` measures net counts: its check of --theta is the shared one
+    (:func:`evtk.errors.check_positive`), not a ReconstructOptions built for it, and it loads none of the
+    optics, the sensor model, the simulator, numba or scipy (issue 32: a fresh enob's start)."""
+    from conftest import random_events
+
+    from evtk.io import write_events
+
+    path = tmp_path / "r.aedat4"
+    write_events(path, random_events(20_000, seed=3, span_us=100_000))
+    loaded = modules_after("from evtk.cli import main\n"
+                           f"try:\n    main(['enob', {str(path)!r}, '--window', 'period:10000', '--theta', '0.2'])\n"
+                           "except SystemExit as exc:\n    assert not exc.code, exc.code\n")
+    assert "evtk.sweeps" in loaded and "evtk.metrics.sinad" in loaded  # (it measured)
+    for name in ("evtk.reconstruct.options", "evtk.optics", "evtk.sensor", "evtk.simulate", "numba", "scipy"):
+        assert name not in loaded, name

@@ -6,7 +6,7 @@ import click
 import numpy as np
 
 from .. import io as evio  # (light: its readers and writers load on first use)
-from ..errors import EvtkError
+from ..errors import EvtkError, check_positive
 from ._base import (
     _MAX_INT,
     OutputPath,
@@ -41,9 +41,9 @@ def enob(recording, window_spec, skip_us, length_us, interval, per_pixel, theta,
     (as reconstruct gives them).
     """
     from ..io.reconstruction import is_reconstruction
-    from ..reconstruct.options import ReconstructOptions
 
-    ReconstructOptions(theta=theta)  # refuses a theta of NaN or infinity, as reconstruct does
+    if theta is not None:  # NaN, infinity or <= 0 refused as reconstruct refuses them (ReconstructOptions)
+        check_positive(theta=theta)
     if is_reconstruction(recording):  # the responses of an earlier `evtk reconstruct`
         if theta is not None:
             raise EvtkError(f"--theta linearises a recording's counts; {recording} holds responses already")

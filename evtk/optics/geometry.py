@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import math
-from typing import Any
-
-from ..errors import EvtkError
+from ..errors import EvtkError, check_positive
 
 __all__ = [
     "effective_extents_um", "optical_scaling", "software_scaling", "stride_mm", "effective_stride",
@@ -42,7 +39,7 @@ def optical_scaling(u_mm: float, z_mm: float) -> float:
     >>> optical_scaling(300.0, 100.0)
     1.3333333333333333
     """
-    _positive(u_mm=u_mm, z_mm=z_mm)
+    check_positive(u_mm=u_mm, z_mm=z_mm)
     return (u_mm + z_mm) / u_mm
 
 
@@ -73,7 +70,7 @@ def software_scaling(sigma: float, feature_pitch_um: float, kernel_pitch_um: flo
     >>> software_scaling(4 / 3, 45.36, 7.56)
     8.0
     """
-    _positive(sigma=sigma, feature_pitch_um=feature_pitch_um, kernel_pitch_um=kernel_pitch_um)
+    check_positive(sigma=sigma, feature_pitch_um=feature_pitch_um, kernel_pitch_um=kernel_pitch_um)
     return sigma * feature_pitch_um / kernel_pitch_um
 
 
@@ -108,7 +105,7 @@ def effective_extents_um(
     EvtkError
         If any argument is not a positive finite number.
     """
-    _positive(kernel_pitch_um=kernel_pitch_um, feature_pitch_um=feature_pitch_um, sigma=sigma, varsigma=varsigma)
+    check_positive(kernel_pitch_um=kernel_pitch_um, feature_pitch_um=feature_pitch_um, sigma=sigma, varsigma=varsigma)
     return varsigma * kernel_pitch_um, sigma * feature_pitch_um
 
 
@@ -136,7 +133,7 @@ def stride_mm(u_mm: float, z_mm: float, sensor_pitch_um: float) -> float:
     EvtkError
         If any argument is not a positive finite number.
     """
-    _positive(u_mm=u_mm, z_mm=z_mm, sensor_pitch_um=sensor_pitch_um)
+    check_positive(u_mm=u_mm, z_mm=z_mm, sensor_pitch_um=sensor_pitch_um)
     return z_mm * (sensor_pitch_um * 1e-3) / u_mm
 
 
@@ -190,9 +187,9 @@ def effective_stride(
         raise EvtkError(f"decimation must be a positive integer, not {decimation!r}")
     s_mm = stride_mm(u_mm, z_mm, sensor_pitch_um)
     if k_eff_um is None:
-        _positive(feature_pitch_um=feature_pitch_um)
+        check_positive(feature_pitch_um=feature_pitch_um)
         return z_mm * sensor_pitch_um * decimation / (feature_pitch_um * (u_mm + z_mm))
-    _positive(k_eff_um=k_eff_um)
+    check_positive(k_eff_um=k_eff_um)
     return s_mm * 1e3 * decimation / k_eff_um
 
 
@@ -223,7 +220,7 @@ def min_capture_window_us(kernel_hz: float, features_hz: float, pixel_latency_us
     >>> min_capture_window_us(9523.0, 9523.0, 200.0)
     200.0
     """
-    _positive(kernel_hz=kernel_hz, features_hz=features_hz, pixel_latency_us=pixel_latency_us)
+    check_positive(kernel_hz=kernel_hz, features_hz=features_hz, pixel_latency_us=pixel_latency_us)
     h_min_hz = min(kernel_hz, features_hz, 1e6 / pixel_latency_us)
     return 1e6 / h_min_hz
 
@@ -248,15 +245,7 @@ def shadow_magnification(u_mm: float, z_mm: float) -> float:
     EvtkError
         If either distance is not a positive finite number.
     """
-    _positive(u_mm=u_mm, z_mm=z_mm)
+    check_positive(u_mm=u_mm, z_mm=z_mm)
     return (u_mm + z_mm) / z_mm
 
 
-def _positive(**values: Any) -> None:
-    for name, v in values.items():
-        try:
-            ok = math.isfinite(float(v)) and float(v) > 0
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise EvtkError(f"{name} must be a positive finite number, not {v!r}")

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 
-from ..errors import EvtkError
+from ..errors import EvtkError, check_positive
 
 __all__ = ["ReconstructOptions"]
 
@@ -91,12 +90,7 @@ class ReconstructOptions:
         if len(tuple(self.size)) != 2 or min(int(v) for v in self.size) < 1:
             raise EvtkError(f"size must be two positive numbers, not {self.size!r}")
         if self.theta is not None:
-            try:
-                ok = 0 < float(self.theta) < math.inf
-            except (TypeError, ValueError):
-                ok = False
-            if not ok:
-                raise EvtkError(f"theta must be a positive finite number, not {self.theta!r}")
+            check_positive(theta=self.theta)
 
     def kwargs(self) -> dict:
         """The settings as keyword arguments (the field names), ``size`` as a tuple of ints.
