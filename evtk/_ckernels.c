@@ -210,25 +210,27 @@ row_sums16_sse2(const int16_t *restrict net, int64_t k, int64_t h, int64_t w, in
                 }
             }
         }
-        int16_t least[8], most[8];
-        _mm_storeu_si128((__m128i *)least, mn);
-        _mm_storeu_si128((__m128i *)most, mx);
-        int64_t m = 0;
-        for (int j = 0; j < 8; j++) {
-            m = -(int64_t)least[j] > m ? -(int64_t)least[j] : m;
-            m = most[j] > m ? most[j] : m;
-        }
+        /* the eight pixels' least and largest counts across their lanes (two shifts and a compare each) */
+        mn = _mm_min_epi16(mn, _mm_srli_si128(mn, 8));
+        mn = _mm_min_epi16(mn, _mm_srli_si128(mn, 4));
+        mn = _mm_min_epi16(mn, _mm_srli_si128(mn, 2));
+        mx = _mm_max_epi16(mx, _mm_srli_si128(mx, 8));
+        mx = _mm_max_epi16(mx, _mm_srli_si128(mx, 4));
+        mx = _mm_max_epi16(mx, _mm_srli_si128(mx, 2));
+        int64_t least = (int16_t)_mm_cvtsi128_si32(mn), most = (int16_t)_mm_cvtsi128_si32(mx);
+        int64_t m = -least > most ? -least : most;
         big = m > big ? m : big;
         if (m <= 32767 && k <= INT32_MAX && (uint64_t)k * (uint64_t)(m * m) <= INT32_MAX) {  /* int32 sums exact */
-            int32_t v1[8], v2[8];
-            _mm_storeu_si128((__m128i *)v1, s1l);
-            _mm_storeu_si128((__m128i *)(v1 + 4), s1h);
-            _mm_storeu_si128((__m128i *)v2, s2l);
-            _mm_storeu_si128((__m128i *)(v2 + 4), s2h);
-            for (int j = 0; j < 8; j++) {
-                S1[c + j] = (uint64_t)(int64_t)v1[j];
-                S2[c + j] = (uint64_t)v2[j];
-            }
+            /* widened in registers: each sum's sign (S1) or zero (S2, squares) as its upper half */
+            __m128i sl = _mm_srai_epi32(s1l, 31), sh = _mm_srai_epi32(s1h, 31);
+            _mm_storeu_si128((__m128i *)(S1 + c), _mm_unpacklo_epi32(s1l, sl));
+            _mm_storeu_si128((__m128i *)(S1 + c + 2), _mm_unpackhi_epi32(s1l, sl));
+            _mm_storeu_si128((__m128i *)(S1 + c + 4), _mm_unpacklo_epi32(s1h, sh));
+            _mm_storeu_si128((__m128i *)(S1 + c + 6), _mm_unpackhi_epi32(s1h, sh));
+            _mm_storeu_si128((__m128i *)(S2 + c), _mm_unpacklo_epi32(s2l, zero));
+            _mm_storeu_si128((__m128i *)(S2 + c + 2), _mm_unpackhi_epi32(s2l, zero));
+            _mm_storeu_si128((__m128i *)(S2 + c + 4), _mm_unpacklo_epi32(s2h, zero));
+            _mm_storeu_si128((__m128i *)(S2 + c + 6), _mm_unpackhi_epi32(s2h, zero));
         } else {
             for (int j = 0; j < 8; j++) {
                 uint64_t t1 = 0, t2 = 0;
