@@ -202,8 +202,9 @@ def count_windows(x: np.ndarray, y: np.ndarray, p: np.ndarray, where: slice | np
     return True
 
 
-def net_sums(net: np.ndarray, size: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray, int,
-                                                                         np.ndarray | None] | None:
+def net_sums(net: np.ndarray, size: tuple[int, int] | None = None,
+             out: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, int,
+                                                                        np.ndarray | None] | None:
     """Each pixel's sum and sum of squares over ``k`` windows' net counts, each window's sums over the blocks of a
     ``size`` grid, and the counts' largest magnitude, in one pass of the compiled kernel with the GIL released
     (runs of rows on evtk's counting threads: :func:`evtk._parallel.parts`).
@@ -219,6 +220,10 @@ def net_sums(net: np.ndarray, size: tuple[int, int] | None = None) -> tuple[np.n
         int16 or int32 counts, shape ``(k, h, w)``, C-contiguous.
     size : tuple of int, optional
         ``(rows, cols)`` of the blocks' grid: block sums only where it divides ``(h, w)``.
+    out : tuple of ndarray, optional
+        Two distinct int64 arrays of shape ``(h, w)``, C-contiguous and writable, to hold ``s1`` and ``s2``
+        (a caller summing batch after batch reuses them: fresh arrays of a whole frame's pixels are new pages
+        each time, one page fault each 4 KiB); others are not used, and new arrays are made.
 
     Returns
     -------
@@ -238,8 +243,13 @@ def net_sums(net: np.ndarray, size: tuple[int, int] | None = None) -> tuple[np.n
     fy = fx = 0
     if size is not None and int(size[0]) > 0 and int(size[1]) > 0 and h % int(size[0]) == 0 and w % int(size[1]) == 0:
         fy, fx = h // int(size[0]), w // int(size[1])
-    s1 = np.empty((h, w), np.int64)
-    s2 = np.empty((h, w), np.int64)
+    if out is not None and len(out) == 2 and out[0] is not out[1] and all(
+            isinstance(a, np.ndarray) and a.dtype == np.int64 and a.shape == (h, w) and a.flags.c_contiguous
+            and a.flags.writeable for a in out) and not np.shares_memory(out[0], out[1]):
+        s1, s2 = out
+    else:
+        s1 = np.empty((h, w), np.int64)
+        s2 = np.empty((h, w), np.int64)
     blocks = np.zeros((k, h // fy, w // fx) if fy else (0,), np.int64)
     from ._parallel import parts, run  # (here: a read needs none of it)
 

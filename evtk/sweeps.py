@@ -250,9 +250,11 @@ def recording_noise(rec: BaseRecording, window: str | tuple[str, int] = "schedul
             size_fits = pixels // (rows * cols) < 2**32
             firsts = [i for a, z in zip(starts, starts[1:] + [len(win)]) for i in range(a, z, nb)]
             responses = np.empty(binary.shape)
+            sums_out = (np.empty((y1 - y0, x1 - x0), np.int64), np.empty((y1 - y0, x1 - x0), np.int64))
             for i, net, most in net_count_batches(rec, win, region, firsts, progress=progress):
-                # the compiled kernel's sums in one pass, the GIL released, where built (numpy's otherwise)
-                sums = native_net_sums(net, size) if size_fits else None
+                # the compiled kernel's sums in one pass, the GIL released, where built (numpy's otherwise), into
+                # the same two arrays batch after batch (the accumulator copies what it keeps)
+                sums = native_net_sums(net, size, sums_out) if size_fits else None
                 if sums is not None and acc.add_sums(len(net), sums[0], sums[1], sums[2]):
                     if sums[3] is not None:  # the blocks' exact sums over their pixel count: their means
                         np.divide(sums[3], net[0].size // (rows * cols), out=responses[i:i + len(net)])

@@ -311,6 +311,25 @@ def test_the_net_sums_kernel_on_several_threads_equals_one(monkeypatch):
 
 
 @needs_kernel
+def test_the_net_sums_kernel_sums_into_the_arrays_it_is_given_where_they_fit():
+    rng = np.random.default_rng(4)
+    net = rng.integers(-50, 50, (5, 12, 16)).astype(np.int16)
+    want = _numpy_sums(net, (4, 4))
+    s1, s2 = np.full((12, 16), 99, np.int64), np.full((12, 16), 99, np.int64)
+    got = _native.net_sums(net, (4, 4), (s1, s2))
+    assert got[0] is s1 and got[1] is s2  # (the arrays given, every value written)
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a, b)
+    base = np.zeros((12, 16), np.int64)
+    for out in [(s1, s1), (s1[:6], s2[:6]), (s1.astype(np.int32), s2), (s1.T, s2.T), (base, base.view()),
+                (s1, np.zeros((12, 16), np.int64)[::1].copy()[::-1])]:  # shared, short, int32, strided, one memory
+        got = _native.net_sums(net, (4, 4), out)
+        assert not any(a is b for a in got[:2] for b in out)  # not used: new arrays
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+
+
+@needs_kernel
 def test_the_net_sums_kernel_refuses_what_does_not_fit():
     net = np.zeros((2, 4, 6), np.int16)
     s = np.zeros(24, np.int64)

@@ -275,6 +275,33 @@ def test_sums_added_give_the_state_the_repeats_give(interval):
     assert ra.sinad_db == rb.sinad_db and ra.ci_enob == rb.ci_enob
 
 
+@pytest.mark.parametrize("per_pixel", [False, True])
+def test_sums_added_from_the_same_two_arrays_batch_after_batch_give_the_same_state(per_pixel):
+    # enob sums every batch into the same two arrays (evtk._native.net_sums' out): the accumulator must copy what
+    # it keeps, whole groups and blocks within a group alike, before the arrays are overwritten
+    rng = np.random.default_rng(9)
+    reps = rng.integers(-30, 30, (130, 4, 5)).astype(np.int16)
+    fresh = SinadAccumulator(130, (4, 5), per_pixel=per_pixel)
+    reused = SinadAccumulator(130, (4, 5), per_pixel=per_pixel)
+    s1, s2 = np.empty((4, 5), np.int64), np.empty((4, 5), np.int64)
+    starts = reused.group_starts.tolist() + [130]
+    for a, z in zip(starts, starts[1:]):
+        for lo, hi in ([(a, z)] if a % 2 else [(a, (a + z) // 2), ((a + z) // 2, z)]):  # whole groups and halves
+            block = reps[lo:hi].astype(np.int64)
+            big = int(np.abs(block).max())
+            assert fresh.add_sums(hi - lo, block.sum(0), (block * block).sum(0), big)
+            np.sum(block, 0, out=s1)
+            np.sum(block * block, 0, out=s2)
+            assert reused.add_sums(hi - lo, s1, s2, big)
+            s1.fill(7_777)  # (what the next batch's sums would overwrite)
+            s2.fill(-1)
+    for interval in ("jackknife", None):
+        ra, rb = fresh.report(per_pixel, interval=interval), reused.report(per_pixel, interval=interval)
+        assert ra.sinad_db == rb.sinad_db and ra.ci_enob == rb.ci_enob and ra.noise_std == rb.noise_std
+        if per_pixel:
+            np.testing.assert_array_equal(ra.per_pixel_db, rb.per_pixel_db)
+
+
 def test_sums_refused_where_they_do_not_fit_the_groups_or_the_pixels():
     acc = SinadAccumulator(40, (2,))
     first_group = int(acc.group_starts[1])

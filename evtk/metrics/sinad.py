@@ -404,7 +404,8 @@ class SinadAccumulator:
 
         For a caller that sums its counts itself (``evtk enob`` with the compiled kernel,
         :func:`evtk._native.net_sums`). The ``k`` repeats must lie in one group (blocks cut at
-        :attr:`group_starts`).
+        :attr:`group_starts`). The accumulator copies what it keeps of ``s1`` and ``s2``: the caller may
+        overwrite them once this returns (enob sums every batch into the same two arrays).
 
         Parameters
         ----------
