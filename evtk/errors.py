@@ -112,7 +112,6 @@ def check_parameters(kind: str, cls: type, values: Mapping[str, object]) -> None
             raise EvtkError(f"{kind} parameter {name} must be {want}, not {v!r}")
 
 
-
 def check_positive(**values: Any) -> None:
     """Check that every value is a positive finite number.
 
