@@ -243,9 +243,9 @@ def net_sums(net: np.ndarray, size: tuple[int, int] | None = None,
     fy = fx = 0
     if size is not None and int(size[0]) > 0 and int(size[1]) > 0 and h % int(size[0]) == 0 and w % int(size[1]) == 0:
         fy, fx = h // int(size[0]), w // int(size[1])
-    if out is not None and len(out) == 2 and out[0] is not out[1] and all(
+    if out is not None and len(out) == 2 and all(
             isinstance(a, np.ndarray) and a.dtype == np.int64 and a.shape == (h, w) and a.flags.c_contiguous
-            and a.flags.writeable for a in out) and not np.shares_memory(out[0], out[1]):
+            and a.flags.writeable for a in out) and not np.may_share_memory(out[0], out[1]):
         s1, s2 = out
     else:
         s1 = np.empty((h, w), np.int64)
