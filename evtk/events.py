@@ -398,16 +398,20 @@ class Events:
         if t.size < 64:
             return None
         d = np.diff(t)
-        from ._arrays import distinct
+        if np.all(d >= 0):  # sorted stamps: the gaps between distinct ones are the positive differences
+            gaps = d[d > 0]
+        else:
+            from ._arrays import distinct
 
-        u = t[np.r_[True, d > 0]] if np.all(d >= 0) else distinct(t)  # sorted stamps: distinct in one pass
-        if u.size < 64:
+            gaps = np.diff(distinct(t))
+        if gaps.size < 63:  # fewer than 64 distinct stamps
             return None
-        gaps = np.diff(u)
+        shortest = int(gaps.min())
+        if shortest == 1:  # no grid (an asynchronous sensor's stamps), without the divisor of every gap
+            return 1.0
         g = int(np.gcd.reduce(gaps))
         if g > 1:
             return float(g)
-        shortest = gaps.min()
         if shortest > 2:
             period = float(gaps[gaps < 1.5 * shortest].mean())
             k = gaps / period

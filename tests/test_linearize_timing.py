@@ -228,6 +228,60 @@ def test_stamp_period_of_asynchronous_sparse_and_short_streams():
         assert ev.stamp_period_us() == want
 
 
+def _stamp_period_by_definition(t, max_events=200_000):
+    """The grid of :meth:`evtk.Events.stamp_period_us` as its docstring defines it, in plain Python (sets and
+    math.gcd): the oracle of the numpy route."""
+    import math
+    from functools import reduce
+
+    u = sorted(set(int(v) for v in t[:max_events]))
+    if len(u) < 64:
+        return None
+    gaps = [b - a for a, b in zip(u, u[1:])]
+    g = reduce(math.gcd, gaps)
+    if g > 1:
+        return float(g)
+    shortest = min(gaps)
+    if shortest > 2:
+        near = [v for v in gaps if v < 1.5 * shortest]
+        period = sum(near) / len(near)
+        if np.mean([abs(v / period - round(v / period)) < 0.05 for v in gaps]) >= 0.95:
+            return period
+    return 1.0
+
+
+@pytest.mark.parametrize("case", range(16))
+def test_stamp_period_matches_its_definition_on_grids_gaps_and_disorder(case):
+    """Sorted and shuffled stamps, on whole and fractional grids, with and without gaps of one microsecond, about
+    the least number of distinct stamps, near the int64 limit, and more events than are looked at: the numpy
+    route gives the definition's answer."""
+    import evtk
+
+    rng = np.random.default_rng(case)
+    n = int(rng.integers(40, 3000))
+    if case % 4 == 0:  # a whole grid, some stamps repeated, some grid points skipped
+        t = np.cumsum(rng.integers(0, 4, n)) * (2 if case == 12 else int(rng.integers(3, 500)))
+    elif case % 4 == 1:  # a period that is not a whole number of microseconds, rounded
+        t = np.round(np.cumsum(rng.integers(0, 3, n)) * float(rng.uniform(3.0, 50.0))).astype(np.int64)
+    elif case % 4 == 2:  # asynchronous: gaps of 1 among others
+        t = np.cumsum(rng.integers(0, 6, n))
+    elif case % 8 == 3:  # sparse, no grid
+        t = np.cumsum(rng.integers(3, 10_000, n))
+    else:  # 63 and 64 distinct stamps (the least that finds a grid), each several times
+        t = np.repeat(np.arange(63 + case // 8) * 3, int(rng.integers(2, 9)))
+    t = t.astype(np.int64) + (2**62 if case >= 8 else 0)
+    if case % 3 == 0:
+        t = rng.permutation(t)
+    max_events = int(rng.integers(30, 2 * n)) if case % 5 == 0 else 200_000
+    zeros = np.zeros(t.size, np.uint16)
+    ev = evtk.Events(t, zeros, zeros, np.ones(t.size, np.uint8), (4, 4))
+    want = _stamp_period_by_definition(t, max_events)
+    got = ev.stamp_period_us(max_events)
+    assert (got is None) == (want is None)
+    if want is not None:
+        assert got == pytest.approx(want, rel=1e-12)
+
+
 def test_a_pixel_model_that_does_not_fit_the_camera_degrades_gracefully(tmp_path):
     """Reconstructing a camera whose dark current is twice the record's used to fail ("thresholds must be finite
     and positive") where the event times put a pixel's threshold at zero or below; such pixels now keep the
