@@ -51,9 +51,11 @@ _THREAD_BYTES = 40 * BATCH_EVENTS
 #: chunk pays for one thread, which left the chunk-by-chunk counting of fixed windows decoding on one core.
 _CHUNK_SHARE = 1.0
 #: Most threads decoding a prefetched chunk (the prefetching thread among them; the consumer helps once it has
-#: counted its own). The consumer's counting keeps the GIL most of the time and a 1 M-event chunk decodes faster
-#: on three threads than it is counted: on a 16-core machine (issue 32, tenth round) more only took turns for the
-#: GIL, with no time saved and 10-20 % more CPU time.
+#: counted its own). Set on a 16-core machine in issue 32's tenth round, when the consumer counted with numpy and
+#: kept the GIL most of the time: more threads only took turns for it, with no time saved and 10-20 % more CPU
+#: time. The counting and the decoding now release the GIL (compiled), so on many cores the cap may hold the
+#: chunked commands back against a read that decodes on every core; on two cores it never binds. Not remeasured
+#: since (``benchmarks/device_run.sh caps`` does).
 PREFETCH_THREADS = 3
 
 
