@@ -563,7 +563,10 @@ zstd_frame(const uint8_t *src, int64_t n, uint8_t *dst, int64_t room, const lz4_
 
 /* The n events of a FlatBuffer EVTS vector at ev (16 bytes each: int64 t, uint16 x, uint16 y, a polarity byte,
  * 3 bytes of padding) split into the columns t, x, y and p (a polarity byte not 0 is ON: 1). Returns -1 where an
- * event's x is width or more or its y height or more (the columns then hold the events, checked or not), else 0.
+ * event's x is width or more or its y height or more (the columns then hold the events, checked or not), else 1
+ * where a stamp is earlier than the one before it in the vector and 0 where none is: the time-order check that
+ * counting windows needs, made while each stamp is in a register (the stamps of packets decoded one after
+ * another are compared by the caller, at their edges).
  * With SSE2, eight events at a time: their times moved two by two, their x and y gathered from the events' second
  * halves by shuffles into eight 16-bit lanes each, their polarity bytes packed and compared with 0, and every x
  * and y checked by a saturating subtraction of the largest one allowed (any lane above it leaves a non-zero
@@ -574,9 +577,17 @@ split_events(const uint8_t *ev, int64_t n, int64_t *t, uint16_t *x, uint16_t *y,
 {
     if (width == 0 || height == 0)
         return n > 0 ? -1 : 0;
-    int64_t i = 0;
+    int64_t i = 0, first = 0;
+    int back = 0;
+    if (n > 0)
+        memcpy(&first, ev, 8);
 #ifdef HAVE_SSE2
     const __m128i zero = _mm_setzero_si128(), one8 = _mm_set1_epi8(1), low8 = _mm_set1_epi32(0xff);
+    /* each stamp against the one before it: t - before has its sign bit set exactly where t < before if neither
+     * is negative (the difference cannot overflow); the stamps are ORed together to tell. A sign bit set in any
+     * difference or any stamp sends the stamps to the exact scalar comparison below: sorted stamps of a
+     * recording never go there. */
+    __m128i before = _mm_set1_epi64x(first), diffs = zero, stamps = zero;
     const __m128i last_x = _mm_set1_epi16((short)(width > 65536 ? 65535 : width - 1));
     const __m128i last_y = _mm_set1_epi16((short)(height > 65536 ? 65535 : height - 1));
     __m128i over = zero;
@@ -586,10 +597,22 @@ split_events(const uint8_t *ev, int64_t n, int64_t *t, uint16_t *x, uint16_t *y,
         __m128i e2 = _mm_loadu_si128((const __m128i *)(e + 32)), e3 = _mm_loadu_si128((const __m128i *)(e + 48));
         __m128i e4 = _mm_loadu_si128((const __m128i *)(e + 64)), e5 = _mm_loadu_si128((const __m128i *)(e + 80));
         __m128i e6 = _mm_loadu_si128((const __m128i *)(e + 96)), e7 = _mm_loadu_si128((const __m128i *)(e + 112));
-        _mm_storeu_si128((__m128i *)(t + i), _mm_unpacklo_epi64(e0, e1));
-        _mm_storeu_si128((__m128i *)(t + i + 2), _mm_unpacklo_epi64(e2, e3));
-        _mm_storeu_si128((__m128i *)(t + i + 4), _mm_unpacklo_epi64(e4, e5));
-        _mm_storeu_si128((__m128i *)(t + i + 6), _mm_unpacklo_epi64(e6, e7));
+        __m128i t01 = _mm_unpacklo_epi64(e0, e1), t23 = _mm_unpacklo_epi64(e2, e3);
+        __m128i t45 = _mm_unpacklo_epi64(e4, e5), t67 = _mm_unpacklo_epi64(e6, e7);
+        _mm_storeu_si128((__m128i *)(t + i), t01);
+        _mm_storeu_si128((__m128i *)(t + i + 2), t23);
+        _mm_storeu_si128((__m128i *)(t + i + 4), t45);
+        _mm_storeu_si128((__m128i *)(t + i + 6), t67);
+        /* the stamps before them, (t-1, t0), (t1, t2), (t3, t4), (t5, t6): the high lane of one pair, the low of
+         * the next */
+        __m128i b01 = _mm_castpd_si128(_mm_shuffle_pd(_mm_castsi128_pd(before), _mm_castsi128_pd(t01), 1));
+        __m128i b23 = _mm_castpd_si128(_mm_shuffle_pd(_mm_castsi128_pd(t01), _mm_castsi128_pd(t23), 1));
+        __m128i b45 = _mm_castpd_si128(_mm_shuffle_pd(_mm_castsi128_pd(t23), _mm_castsi128_pd(t45), 1));
+        __m128i b67 = _mm_castpd_si128(_mm_shuffle_pd(_mm_castsi128_pd(t45), _mm_castsi128_pd(t67), 1));
+        diffs = _mm_or_si128(diffs, _mm_or_si128(_mm_or_si128(_mm_sub_epi64(t01, b01), _mm_sub_epi64(t23, b23)),
+                                                 _mm_or_si128(_mm_sub_epi64(t45, b45), _mm_sub_epi64(t67, b67))));
+        stamps = _mm_or_si128(stamps, _mm_or_si128(_mm_or_si128(t01, t23), _mm_or_si128(t45, t67)));
+        before = t67;
         /* second halves, as 32-bit lanes [x | y << 16, polarity and padding] two events each: the (x, y) words
          * to the low half, the polarity words to the high */
         __m128i h01 = _mm_shuffle_epi32(_mm_unpackhi_epi64(e0, e1), _MM_SHUFFLE(3, 1, 2, 0));
@@ -613,8 +636,13 @@ split_events(const uint8_t *ev, int64_t n, int64_t *t, uint16_t *x, uint16_t *y,
     }
     if (_mm_movemask_epi8(_mm_cmpeq_epi8(over, zero)) != 0xffff)
         return -1;
+    if (_mm_movemask_pd(_mm_castsi128_pd(_mm_or_si128(diffs, stamps))) != 0) {  /* the exact comparison */
+        for (int64_t j = 1; j < i; j++)
+            back |= t[j] < t[j - 1];
+    }
 #endif
     uint32_t most_x = 0, most_y = 0;
+    int64_t last = i > 0 ? t[i - 1] : first;
     for (; i < n; i++) {
         const uint8_t *e = ev + 16 * i;
         int64_t tt;
@@ -628,8 +656,10 @@ split_events(const uint8_t *ev, int64_t n, int64_t *t, uint16_t *x, uint16_t *y,
         p[i] = e[12] != 0;
         most_x = xx > most_x ? xx : most_x;
         most_y = yy > most_y ? yy : most_y;
+        back |= tt < last;
+        last = tt;
     }
-    return most_x >= width || most_y >= height ? -1 : 0;
+    return most_x >= width || most_y >= height ? -1 : back;
 }
 
 /* The n_pk packets of one batch in raw[0:n_raw]: packet j's 8-byte header (stream id and body size, int32) at
@@ -637,11 +667,12 @@ split_events(const uint8_t *ev, int64_t n, int64_t *t, uint16_t *x, uint16_t *y,
  * (at most min(most, floor + ratio * size) bytes), the FlatBuffer's EVTS vector of counts[j] events split into
  * the columns t, x, y, p (n_out events in all) after the previous packet's (x and y within the sensor; a
  * polarity byte not 0 is ON: 1). Returns 1 when every packet decoded and the columns are filled; 0 at anything
- * else (the columns may then hold part of the batch). Called with the GIL released. */
+ * else (the columns may then hold part of the batch). *back is set to 1 where a packet's stamps go back in time
+ * within it (split_events), left as it is otherwise. Called with the GIL released. */
 static int
 decode_packets(const lz4_job *job, const uint8_t *raw, int64_t n_raw, const int64_t *heads, int64_t head_base,
                const int64_t *sids, const int64_t *sizes, const int64_t *counts, int64_t n_pk, uint8_t *stage,
-               int64_t n_stage, int64_t *t, uint16_t *x, uint16_t *y, uint8_t *p, int64_t n_out)
+               int64_t n_stage, int64_t *t, uint16_t *x, uint16_t *y, uint8_t *p, int64_t n_out, int *back)
 {
     int64_t cursor = 0;
     for (int64_t j = 0; j < n_pk; j++) {
@@ -666,9 +697,13 @@ decode_packets(const lz4_job *job, const uint8_t *raw, int64_t n_raw, const int6
         if (n < 0 || root_vector(stage, n, "EVTS", &start, &count) != 0 || count != counts[j]
             || count > n_out - cursor)
             return 0;
-        if (count > 0 && split_events(stage + start, count, t + cursor, x + cursor, y + cursor, p + cursor,
-                                      job->width, job->height) != 0)
-            return 0;
+        if (count > 0) {
+            int split = split_events(stage + start, count, t + cursor, x + cursor, y + cursor, p + cursor,
+                                     job->width, job->height);
+            if (split < 0)
+                return 0;
+            *back |= split;
+        }
         cursor += count;
     }
     return cursor == n_out;
@@ -709,11 +744,12 @@ decode_lz4_batch(PyObject *self, PyObject *args)
         || width < 0 || height < 0 || floor_bytes < 0 || ratio < 0 || most < 0)
         ok = 0;
     if (ok) {
+        int back = 0;  /* (the batch's caller checks the order itself) */
         Py_BEGIN_ALLOW_THREADS
         ok = decode_packets(&job, (const uint8_t *)rawb.buf, rawb.len, (const int64_t *)headb.buf, 0,
                             (const int64_t *)sidb.buf, (const int64_t *)sizeb.buf, (const int64_t *)countb.buf, n_pk,
                             (uint8_t *)stageb.buf, stageb.len, (int64_t *)tb.buf, (uint16_t *)xb.buf,
-                            (uint16_t *)yb.buf, (uint8_t *)pb.buf, n_out);
+                            (uint16_t *)yb.buf, (uint8_t *)pb.buf, n_out, &back);
         Py_END_ALLOW_THREADS
     }
     PyBuffer_Release(&rawb);
@@ -743,11 +779,12 @@ decode_lz4_batch(PyObject *self, PyObject *args)
  * fd into raw with pread, then decode_packets: the reader's whole loop over its batches, the GIL released
  * from the first batch to the last instead of taken back after each.
  *
- * Returns (k, need_raw, need_stage, batches): k1 when every batch decoded; else the first row of the batch
+ * Returns (k, need_raw, need_stage, batches, back): k1 when every batch decoded; else the first row of the batch
  * left, with need_raw or need_stage the bytes raw or stage lack for it (the caller grows the buffer and calls
  * again), or both 0 where the caller's Python loop is to decode that batch (packets far apart in the file, a
  * short read, anything decode_packets declines); batches: how many decoded, or -1 on a platform without pread
- * (nothing done).
+ * (nothing done); back: 1 where the stamps of a packet of the batches decoded go back in time within it, else 0
+ * (the packets' edges are the caller's to compare).
  */
 static PyObject *
 decode_lz4_range(PyObject *self, PyObject *args)
@@ -783,6 +820,7 @@ decode_lz4_range(PyObject *self, PyObject *args)
     int64_t n_rows = offb.len / 8, n_out = tb.len / 8, n_raw = rawb.len, n_stage = stageb.len;
     const char *fault = NULL;
     int64_t k = k0, need_raw = 0, need_stage = 0, batches = 0;
+    int back = 0;
 
     if (sidb.len / 8 != n_rows || sizeb.len / 8 != n_rows || countb.len / 8 != n_rows
         || startb.len / 8 != n_rows + 1)
@@ -854,9 +892,11 @@ decode_lz4_range(PyObject *self, PyObject *args)
             }
             if (got < span)
                 break;
+            int batch_back = 0;  /* (kept only where the whole batch decoded) */
             if (!decode_packets(&job, raw, span, offs + k, o0 + 8, sids + k, sizes + k, counts + k, kb - k, stage,
-                                n_stage, t + first, x + first, y + first, p + first, last - first))
+                                n_stage, t + first, x + first, y + first, p + first, last - first, &batch_back))
                 break;
+            back |= batch_back;
             batches++;
             k = kb;
         }
@@ -878,7 +918,8 @@ decode_lz4_range(PyObject *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, fault);
         return NULL;
     }
-    return Py_BuildValue("(nLLL)", (Py_ssize_t)k, (long long)need_raw, (long long)need_stage, (long long)batches);
+    return Py_BuildValue("(nLLLi)", (Py_ssize_t)k, (long long)need_raw, (long long)need_stage, (long long)batches,
+                         back);
 }
 
 /* ---- the Prophesee decoders' states ----------------------------------------------------------------------- */

@@ -439,7 +439,7 @@ def decode_lz4_range(fd: int, offs: np.ndarray, sids: np.ndarray, sizes: np.ndar
                      verify: bool, lz4f: tuple[int, int, int, int], stage: np.ndarray, floor_bytes: int, ratio: int,
                      most_bytes: int, columns: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
                      sensor_size: tuple[int, int],
-                     zstd: tuple[int, int, int, int, int] | None = None) -> tuple[int, int, int, int] | None:
+                     zstd: tuple[int, int, int, int, int] | None = None) -> tuple[int, int, int, int, bool] | None:
     """Read and decode the AEDAT4 reader's LZ4 (or, given ``zstd``, Zstandard) event packets ``k0 .. k1 - 1`` batch
     after batch with the compiled kernel, the GIL released from the first batch to the last: the loop of
     :meth:`evtk.io.aedat4.reader.Recording._batcher`'s batches, each batch's bytes read with ``pread`` and decoded
@@ -493,13 +493,15 @@ def decode_lz4_range(fd: int, offs: np.ndarray, sids: np.ndarray, sizes: np.ndar
 
     Returns
     -------
-    tuple of int or None
-        ``(k, need_raw, need_stage, batches)``: ``k`` is ``k1`` when every batch decoded, else the first row of
-        the batch left; ``need_raw`` or ``need_stage``, when not 0, the bytes ``raw`` or ``stage`` needs for that
-        batch (grow it and call again); both 0: the Python loop takes that batch. ``batches``: how many were
-        decoded. None when the kernel is off or missing (or, for Zstandard packets, built before it took them), the
-        platform has no ``pread``, or an argument is not in the form it takes (the Python loop then takes every
-        batch).
+    tuple or None
+        ``(k, need_raw, need_stage, batches, back)``: ``k`` is ``k1`` when every batch decoded, else the first row
+        of the batch left; ``need_raw`` or ``need_stage``, when not 0, the bytes ``raw`` or ``stage`` needs for
+        that batch (grow it and call again); both 0: the Python loop takes that batch. ``batches``: how many were
+        decoded. ``back``: whether the stamps of a packet among them go back in time within the packet (each
+        stamp compared with the one before it as the events are split; False says that every decoded packet's
+        stamps are in order, not that one packet's follow the last's). None when the kernel is off or missing
+        (or, for Zstandard packets, built before it took them), the platform has no ``pread``, or an argument is
+        not in the form it takes (the Python loop then takes every batch).
     """
     if not enabled() or _kernel_decode_lz4_range is None or fd < 0 or (zstd is not None and not RANGE_ZSTD):
         return None
@@ -519,13 +521,13 @@ def decode_lz4_range(fd: int, offs: np.ndarray, sids: np.ndarray, sizes: np.ndar
     else:  # libzstd's decompress, is_error, frame_bytes in the LZ4 functions' places; the context; content_size
         dec, err, frame_bytes, ctx, content_size = zstd
         lz4f, codec = (dec, err, frame_bytes, ctx), (1, content_size)
-    k, need_raw, need_stage, batches = _kernel_decode_lz4_range(
+    k, need_raw, need_stage, batches, back = _kernel_decode_lz4_range(
         int(fd), offs, sids, sizes, counts, starts, int(k0), int(k1), int(batch_events), int(slack), raw,
         bool(verify), *lz4f, stage, int(floor_bytes), int(ratio), int(most_bytes), t, x, y, p, int(sensor_size[0]),
         int(sensor_size[1]), *codec)
     if batches < 0:  # a platform without pread
         return None
-    return int(k), int(need_raw), int(need_stage), int(batches)
+    return int(k), int(need_raw), int(need_stage), int(batches), bool(back)
 
 
 def _words_as(words: Any, dtype: type[np.unsignedinteger]) -> np.ndarray | None:

@@ -365,7 +365,13 @@ class Events:
 
     @property
     def is_sorted(self) -> bool:
-        """True when time stamps never decrease."""
+        """True when time stamps never decrease.
+
+        Checked on first use and kept; a reader that compared the stamps as it decoded them (AEDAT4's compiled
+        decoding) or a simulation that made them in order gives the answer with the events. The answer is the
+        stamps' as they were then: stamps changed in place afterwards are not checked again (wrap them in a new
+        :class:`Events` for that).
+        """
         if self._sorted is None:
             self._sorted = bool(len(self.t) < 2 or np.all(self.t[1:] >= self.t[:-1]))
         return self._sorted

@@ -46,7 +46,7 @@ class _Spy:
         def spy_range(*args):
             got = ranged(*args)
             self.codecs.append(args[26] if len(args) > 26 else 0)  # (the optional codec after the sensor)
-            k, need_raw, need_stage, batches = got
+            k, need_raw, need_stage, batches, _ = got
             self.answers.extend([True] * batches)
             if k < args[7] and not need_raw and not need_stage:  # (args[7]: k1) a batch declined
                 self.answers.append(False)

@@ -123,7 +123,7 @@ def test_the_raw_kernel_refuses_a_zstd_call_without_its_functions():
     z = np.zeros(1, np.int64)
     args = [0, z, z, z, z, np.zeros(2, np.int64), 0, 0, 1, 0, np.zeros(8, np.uint8), True, 1, 1, 1, 1,
             np.zeros(8, np.uint8), 0, 0, 0, *cols, 320, 240]
-    assert _native._kernel_decode_lz4_range(*args) == (0, 0, 0, 0)  # no rows: nothing to do (LZ4, addresses set)
+    assert _native._kernel_decode_lz4_range(*args) == (0, 0, 0, 0, 0)  # no rows: nothing to do (LZ4, addresses set)
     for codec, size_at in ((1, 0), (2, 1)):
         with pytest.raises(ValueError):
             _native._kernel_decode_lz4_range(*args, codec, size_at)

@@ -8,7 +8,7 @@
 # alone) and runs there, with the sanitizers' runtimes preloaded into Python:
 #   1. tests/fuzz/kernels.py: CALLS (default 100000) raw calls with hostile arguments, four seeds;
 #   2. the kernels' tests (the compiled decoders, batches and counting against numpy and word-by-word loops, the
-#      timed counting and the timing solve against numba's kernels);
+#      timed counting and the timing solve against numba's kernels, the time order the AEDAT4 split finds);
 #   3. the fuzz campaign, CASES (default 3000) cases over the targets the kernels read (EVT 2.0, EVT 3.0, DAT,
 #      Event Stream DVS and ATIS, and the AEDAT4 files), each read compared with the numpy route's. ASan's
 #      quarantine of freed memory is kept to 8 MiB, so that it does not pass for a case's memory blow-up.
@@ -39,7 +39,7 @@ for seed in 1 2 3 4; do
 done
 echo "== 2. the kernels' tests"
 $PY -m pytest -q -p no:cacheprovider tests/test_native_batches.py tests/test_native_counting.py tests/test_native_zstd.py \
-    tests/test_prophesee_numpy.py tests/test_accumulate_numpy.py tests/test_timing_numpy.py
+    tests/test_prophesee_numpy.py tests/test_accumulate_numpy.py tests/test_timing_numpy.py tests/test_aedat4_time_order.py
 echo "== 3. the fuzz campaign, $CASES cases"
 cd tests
 $PY -m fuzz.campaign --cases "$CASES" --seed 101 --only f2.raw,f3.raw,f.dat,f.es,a.es,l.aedat4,f.aedat4,z.aedat4 \

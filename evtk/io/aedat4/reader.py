@@ -551,21 +551,27 @@ class Recording(_FileIndex, BaseRecording):
         """Decode the event packets ``rows`` (element counts known) on both cores.
 
         Returns ``(events, complete)``; with salvage, ``events`` is the intact
-        prefix and ``complete`` False when damage stopped the decoding.
+        prefix and ``complete`` False when damage stopped the decoding. The events know whether they are in time
+        order where the decoding found out (:meth:`_decode_into`).
         """
         total = int(np.sum(counts))
         t = np.empty(total, np.int64)
         x = np.empty(total, np.uint16)
         y = np.empty(total, np.uint16)
         p = np.empty(total, np.uint8)
-        end, complete = self._decode_into(s, rows, counts, (t, x, y, p), 0)
-        return Events._trusted(t[:end], x[:end], y[:end], p[:end], s.sensor_size), complete
+        end, complete, ordered = self._decode_into(s, rows, counts, (t, x, y, p), 0)
+        return Events._trusted(t[:end], x[:end], y[:end], p[:end], s.sensor_size, ordered), complete
 
     def _decode_into(self, s, rows, counts, out, offset, share=MEMORY_SHARE):
         """Decode the packets ``rows`` into the columns ``out`` from ``offset``, on the threads that ``share`` of
         the events' memory pays for (:func:`evtk._threads.workers_within`).
 
-        Returns ``(events written, complete)``.
+        Returns ``(events written, complete, ordered)``. ``ordered`` is whether the columns' stamps from the
+        start of ``out`` to the last written never decrease, where the decoding can tell: the compiled range
+        compares each stamp with the one before it in its packet as it splits the events (no pass of its own over
+        the stamps), and each packet's first stamp is compared here with the stamp before it. None (not known:
+        :attr:`evtk.Events.is_sorted` checks when asked) where a packet went another way (the Python loop, the
+        one-batch kernel) or the decoding stopped early.
         """
         width, height = s.sensor_size
         t, x, y, p = out
@@ -574,7 +580,8 @@ class Recording(_FileIndex, BaseRecording):
         starts[1:] += offset
         ident = b"EVTS"
         decode = _fbpy.decode_events
-        batch = self._batcher(rows, counts, starts, out, width, height)
+        order = [False, False]  # [a packet decoded another way than the compiled range, a packet's stamps go back]
+        batch = self._batcher(rows, counts, starts, out, width, height, order)
 
         free: list[cz.Scratch] = []  # the read's buffers: a range takes a set, gives it back for the next range
 
@@ -588,6 +595,7 @@ class Recording(_FileIndex, BaseRecording):
                 free.append(scratch)
 
         def packets(k0, k1, scratch):
+            order[0] = True  # (stamps not compared on the way)
             for k in range(k0, k1):
                 i = rows[k]
                 try:
@@ -613,9 +621,15 @@ class Recording(_FileIndex, BaseRecording):
         # a thread's buffers scale with its batches, which a small read (a chunk) keeps small
         thread_bytes = max(1, _THREAD_BYTES * _batch_events(int(starts[-1] - starts[0])) // BATCH_EVENTS)
         stopped = _run_split(work, len(rows), counts, 0 if batch is None else thread_bytes, share)
-        return int(starts[stopped]) - offset, stopped == len(rows)
+        complete = stopped == len(rows)
+        ordered = None
+        if complete and order[1]:  # (a whole batch's stamps, all of them kept: out of order for certain)
+            ordered = False
+        elif complete and not order[0]:
+            ordered = _edges_in_order(t, starts)
+        return int(starts[stopped]) - offset, complete, ordered
 
-    def _batcher(self, rows, counts, starts, out, width: int, height: int):
+    def _batcher(self, rows, counts, starts, out, width: int, height: int, order: list[bool]):
         """The batched decode of :meth:`_decode_into`'s packet ranges, or None where it does not apply.
 
         A thread's packets go a batch at a time (about :data:`BATCH_EVENTS` events, fewer in a small read: see
@@ -635,6 +649,9 @@ class Recording(_FileIndex, BaseRecording):
         Python loop; where the range cannot run (a build before it), each batch goes through
         :func:`evtk._native.decode_lz4_batch` (one call a batch) first. Without the kernels the Python loop takes
         every batch.
+
+        ``order`` is :meth:`_decode_into`'s: the compiled range sets ``order[1]`` where a packet's stamps go back
+        in time within it; a batch decoded any other way sets ``order[0]`` (its stamps were not compared).
 
         The batch reports success only; at anything unexpected (packets far apart in the file, a header that
         disagrees with the data table, a body that fails to decompress or to parse, a count not the
@@ -670,6 +687,7 @@ class Recording(_FileIndex, BaseRecording):
         batch_events = _batch_events(at[-1] - at[0])
 
         def one(k, kb, scratch, kernel) -> bool:
+            order[0] = True  # (stamps not compared on the way)
             o0 = offs[k] - 8
             span = offs[kb - 1] + sizes[kb - 1] - o0
             if span > 2 * (sum(sizes[k:kb]) + 8 * (kb - k)) + slack:
@@ -765,7 +783,9 @@ class Recording(_FileIndex, BaseRecording):
                 if got is None:
                     ranged[0] = False
                     return k
-                k, need_raw, need_stage, _ = got
+                k, need_raw, need_stage, _, back = got
+                if back:
+                    order[1] = True
                 if not need_raw and not need_stage:
                     return k
                 scratch.read_room(need_raw)
@@ -913,9 +933,15 @@ class Recording(_FileIndex, BaseRecording):
         fill = 0
         seg_lo: list[np.ndarray] = []  # where the current chunk's packets that cross the window's edges lie
         seg_hi: list[np.ndarray] = []
+        ordered = [True]  # (bool or None) the chunk's stamps in order so far (None: not known)
+
+        def part_ordered(in_order):  # a part of the chunk: out of order stays so, not known stays so unless out
+            if in_order is not True and ordered[0] is not False:
+                ordered[0] = in_order
 
         def chunk(n):
-            ev = Events._trusted(buf[0][:n], buf[1][:n], buf[2][:n], buf[3][:n], s.sensor_size)
+            ev = Events._trusted(buf[0][:n], buf[1][:n], buf[2][:n], buf[3][:n], s.sensor_size, ordered[0])
+            ordered[0] = True
             if edge is None:
                 return ev
             cut = (np.concatenate(seg_lo), np.concatenate(seg_hi)) if seg_lo else (np.zeros(0, np.int64),) * 2
@@ -935,7 +961,8 @@ class Recording(_FileIndex, BaseRecording):
             j = int(np.searchsorted(cum, cum[k] + (chunk_events - fill), side="right")) - 1
             try:
                 if j > k:
-                    n, complete = self._decode_into(s, rows[k:j], counts[k:j], buf, fill, _CHUNK_SHARE)
+                    n, complete, in_order = self._decode_into(s, rows[k:j], counts[k:j], buf, fill, _CHUNK_SHARE)
+                    part_ordered(in_order)  # (each part compared with the chunk's stamps before it too)
                     if edge is not None:
                         e = k + np.flatnonzero(edge[k:j])
                         seg_lo.append(fill + cum[e] - cum[k])
@@ -951,6 +978,12 @@ class Recording(_FileIndex, BaseRecording):
                         take = min(chunk_events - fill, len(ev1) - pos)
                         for dst, src in zip(buf, (ev1.t, ev1.x, ev1.y, ev1.p)):
                             dst[fill:fill + take] = src[pos:pos + take]
+                        # the part in order (a packet out of order: this part checked alone) and its first stamp
+                        # no earlier than the chunk's last before it (a packet's order not known: not known)
+                        seg = ev1.t[pos:pos + take]
+                        part_ordered(None if ev1._sorted is None else
+                                     (ev1._sorted or bool(np.all(seg[1:] >= seg[:-1])))
+                                     and (fill == 0 or bool(buf[0][fill] >= buf[0][fill - 1])))
                         if edge is not None and edge[k]:
                             seg_lo.append(np.array([fill], np.int64))
                             seg_hi.append(np.array([fill + take], np.int64))
@@ -1202,7 +1235,16 @@ def _cut(ev: Events, seg_lo: np.ndarray, seg_hi: np.ndarray, t_start_us: int | N
     end = n - int(np.argmax(keep[::-1]))
     if end - first == kept:
         return ev[first:end]
-    return Events._trusted(ev.t[keep], ev.x[keep], ev.y[keep], ev.p[keep], ev.sensor_size)
+    return Events._trusted(ev.t[keep], ev.x[keep], ev.y[keep], ev.p[keep], ev.sensor_size, ev._sorted or None)
+
+
+def _edges_in_order(t: np.ndarray, starts: np.ndarray) -> bool:
+    """Whether each packet's first stamp in ``t`` (packet ``k``'s events at ``starts[k]:starts[k + 1]``) is no
+    earlier than the stamp before it in the column, the last of the packets before (one comparison a packet: the
+    compiled range has compared the stamps within each)."""
+    at = starts[:-1]
+    at = at[(at > 0) & (at < starts[-1])]
+    return bool(np.all(t[at] >= t[at - 1]))
 
 
 def _batch_events(n_events: int) -> int:
