@@ -566,12 +566,12 @@ class Recording(_FileIndex, BaseRecording):
         """Decode the packets ``rows`` into the columns ``out`` from ``offset``, on the threads that ``share`` of
         the events' memory pays for (:func:`evtk._threads.workers_within`).
 
-        Returns ``(events written, complete, ordered)``. ``ordered`` is whether the columns' stamps from the
-        start of ``out`` to the last written never decrease, where the decoding can tell: the compiled range
-        compares each stamp with the one before it in its packet as it splits the events (no pass of its own over
-        the stamps), and each packet's first stamp is compared here with the stamp before it. None (not known:
-        :attr:`evtk.Events.is_sorted` checks when asked) where a packet went another way (the Python loop, the
-        one-batch kernel) or the decoding stopped early.
+        Returns ``(events written, complete, ordered)``. ``ordered`` is whether the stamps written never
+        decrease, the first of them included against the stamp before it in ``out`` (where ``offset`` is not 0),
+        where the decoding can tell: the compiled range compares each stamp with the one before it in its packet
+        as it splits the events (no pass of its own over the stamps), and each packet's first stamp is compared
+        here with the stamp before it. None (not known: :attr:`evtk.Events.is_sorted` checks when asked) where a
+        packet went another way (the Python loop, the one-batch kernel) or the decoding stopped early.
         """
         width, height = s.sensor_size
         t, x, y, p = out
