@@ -347,7 +347,8 @@ class Events:
     def __getitem__(self, index) -> Events:
         if isinstance(index, (int, np.integer)):
             index = slice(index, index + 1 if index != -1 else None)
-        sorted_hint = self._sorted if isinstance(index, slice) and (index.step in (None, 1)) else None
+        # a run of stamps in order is in order; a run of stamps out of order may not be: not known
+        sorted_hint = True if self._sorted and isinstance(index, slice) and index.step in (None, 1) else None
         return Events._trusted(self.t[index], self.x[index], self.y[index], self.p[index], self.sensor_size, sorted_hint)
 
     def __eq__(self, other) -> bool:
@@ -489,8 +490,8 @@ class Events:
         mask = self.t >= lo
         if not hi_open:
             mask &= self.t < hi
-        ev = Events._trusted(self.t[mask], self.x[mask], self.y[mask], self.p[mask], self.sensor_size, False)
-        return ev
+        # (those kept may be in order: checked when asked)
+        return Events._trusted(self.t[mask], self.x[mask], self.y[mask], self.p[mask], self.sensor_size)
 
     def out_of_bounds(self) -> int:
         """Number of events whose coordinates fall outside the sensor.
