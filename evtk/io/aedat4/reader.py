@@ -976,14 +976,13 @@ class Recording(_FileIndex, BaseRecording):
                         if buf is None:
                             buf, fill = new_buffer(), 0
                         take = min(chunk_events - fill, len(ev1) - pos)
-                        for dst, src in zip(buf, (ev1.t, ev1.x, ev1.y, ev1.p)):
-                            dst[fill:fill + take] = src[pos:pos + take]
-                        # the part in order (a packet out of order: this part checked alone) and its first stamp
-                        # no earlier than the chunk's last before it (a packet's order not known: not known)
-                        seg = ev1.t[pos:pos + take]
+                        part = ev1[pos:pos + take]  # (in order where the packet is; else its own check)
+                        for dst, src in zip(buf, (part.t, part.x, part.y, part.p)):
+                            dst[fill:fill + take] = src
+                        # the part in order and its first stamp no earlier than the chunk's last before it (a
+                        # packet's order not known: not known)
                         part_ordered(None if ev1._sorted is None else
-                                     (ev1._sorted or bool(np.all(seg[1:] >= seg[:-1])))
-                                     and (fill == 0 or bool(buf[0][fill] >= buf[0][fill - 1])))
+                                     part.is_sorted and (fill == 0 or bool(buf[0][fill] >= buf[0][fill - 1])))
                         if edge is not None and edge[k]:
                             seg_lo.append(np.array([fill], np.int64))
                             seg_hi.append(np.array([fill + take], np.int64))
